@@ -1,0 +1,33 @@
+# One-command set-up: `make demo` runs the main job, `make test` runs the suite. Both create .venv first.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench setup clean
+
+$(STAMP): pyproject.toml Makefile
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >/dev/null 2>&1 || echo "warning: could not install libusb-1.0-0 (open3d fusion needs it)"; \
+	  else echo "warning: libusb-1.0-0 missing and not root: install it for open3d fusion"; fi; fi
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# The CPU wheel of torch is pinned here; the package itself only asks for a range.
+	$(PY) -m pip install -q "torch==2.13.0" "zfpy==1.0.1"
+	$(PY) -m pip install -q -e ".[fusion,plot,scale,test]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/sdfcodec demo --out demo-out
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(VENV)/bin/sdfcodec bench
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,136 @@
+"""The ``pca`` codec: the paper's eigenshapes (projection onto principal components of TSDF blocks).
+
+Two readings of the paper's "one slot stores the mean" are supported (``mean=``):
+
+``"dataset"`` (default; what the authors' released code does)
+    A data-set mean block ``mu`` (4096 values) is part of the learned state; all ``code_size`` slots are
+    principal components of the centred data: ``code = (x - mu) W^T``, ``x ~= code W + mu``.
+``"block"`` (the paper's text)
+    Slot 0 stores the block's own mean ``m``; the other ``code_size - 1`` slots are principal components of
+    the block-centred data ``x - m`` (whose small data-set mean ``mu_c`` is kept in the state):
+    ``x ~= m 1 + code[1:] W + mu_c``.
+
+At equal code size, ``"dataset"`` spends every slot on a direction PCA chose, and measured lower error
+(see docs/pca-mean.md for the numbers and the command that reproduces them), so it is the default.
+
+Both are affine maps, so encode and decode are each one batched matrix product (``torch.addmm``) on the
+input's device. Components are sorted by explained variance, so any code prefix decodes
+(``prefix_ordered``): the first 32 of a 128-slot code give a 32-slot reconstruction.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+import torch
+from sklearn.decomposition import PCA
+
+from sdfcodec import Codec
+from sdfcodec.errors import InvalidValueError, ShapeError
+
+__all__ = ["PCACodec"]
+
+_N = 16 ** 3
+
+
+class PCACodec(Codec):
+    """PCA eigenshapes codec.
+
+    Args:
+        code_size: code length k (the paper uses 32, 64, 128).
+        mean: ``"dataset"`` or ``"block"``: where the mean lives (see the module docstring).
+        svd_solver: passed to :class:`sklearn.decomposition.PCA` (``"auto"``, ``"full"``, ``"randomized"``...).
+        random_state: seed for the randomized solver, so fitting is reproducible.
+
+    Learned state (``state_dict``): ``components`` ``(c, 4096)``, ``mean`` ``(4096,)``,
+    ``explained_variance`` ``(c,)`` with ``c = k`` (dataset mean) or ``k - 1`` (block mean); float32.
+    """
+
+    codec_id = "pca"
+    prefix_ordered = True
+    requires_fit = True
+    code_sizes = (32, 64, 128)
+
+    def __init__(self, code_size: int = 64, mean: str = "dataset", svd_solver: str = "auto",
+                 random_state: int | None = 0):
+        self.code_size = code_size
+        self.mean = mean
+        self.svd_solver = svd_solver
+        self.random_state = random_state
+
+    # -- learned state --------------------------------------------------------------------------------
+    def _n_components(self) -> int:
+        if self.mean not in ("dataset", "block"):
+            raise InvalidValueError(f"pca mean must be 'dataset' or 'block', got {self.mean!r}")
+        if not isinstance(self.code_size, int) or not 1 + (self.mean == "block") <= self.code_size <= _N:
+            raise InvalidValueError(f"pca code_size must be an int in [{1 + (self.mean == 'block')}, {_N}], "
+                                    f"got {self.code_size!r}")
+        return self.code_size - (self.mean == "block")
+
+    def _fit(self, blocks: np.ndarray) -> None:
+        n_comp = self._n_components()
+        x = blocks.reshape(len(blocks), _N)
+        if self.mean == "block":
+            x = x - x.mean(axis=1, keepdims=True)
+        if len(x) < n_comp:
+            raise ShapeError(f"pca-{self.code_size} needs at least {n_comp} blocks to fit, got {len(x)}; "
+                             "fit on more data or use a trained model (--model)")
+        pca = PCA(n_components=n_comp, svd_solver=self.svd_solver, random_state=self.random_state).fit(x)
+        self.load_state_dict({"components": pca.components_, "mean": pca.mean_,
+                              "explained_variance": pca.explained_variance_})
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        if not hasattr(self, "components_"):
+            return {}
+        return {"components": self.components_, "mean": self.mean_, "explained_variance": self.explained_variance_}
+
+    def load_state_dict(self, state: Mapping[str, np.ndarray]) -> "PCACodec":
+        n_comp = self._n_components()
+        missing = {"components", "mean", "explained_variance"} - set(state)
+        if missing:
+            raise InvalidValueError(f"pca state lacks array(s) {sorted(missing)}")
+        comp = np.asarray(state["components"], dtype=np.float32)
+        mean = np.asarray(state["mean"], dtype=np.float32)
+        var = np.asarray(state["explained_variance"], dtype=np.float32)
+        if comp.shape != (n_comp, _N) or mean.shape != (_N,) or var.shape != (n_comp,):
+            raise ShapeError(f"pca-{self.code_size} (mean={self.mean!r}) state needs components ({n_comp}, {_N}), "
+                             f"mean ({_N},), explained_variance ({n_comp},); got {comp.shape}, {mean.shape}, "
+                             f"{var.shape}")
+        if not (np.isfinite(comp).all() and np.isfinite(mean).all()):
+            raise InvalidValueError("pca state holds NaN or infinite values")
+        self.components_, self.mean_, self.explained_variance_ = comp, mean, var
+        self._affine = self._build_affine()
+        self._device_cache: dict[torch.device, tuple[torch.Tensor, ...]] = {}
+        return self
+
+    def _build_affine(self) -> tuple[np.ndarray, ...]:
+        """Fold the mean handling into ``code = x E + e`` and ``x = code D + d`` (float64 while folding)."""
+        w = self.components_.astype(np.float64)  # (c, 4096)
+        mu = self.mean_.astype(np.float64)
+        if self.mean == "dataset":
+            enc_w, enc_b, dec_w, dec_b = w.T, -(mu @ w.T), w, mu
+        else:
+            # slot 0 = block mean; slots 1.. = (x - mean(x) 1 - mu_c) W^T = x (W^T - 1 colmean(W^T)) - mu_c W^T
+            enc_w = np.concatenate([np.full((_N, 1), 1.0 / _N), w.T - w.T.mean(axis=0, keepdims=True)], axis=1)
+            enc_b = np.concatenate([[0.0], -(mu @ w.T)])
+            dec_w = np.concatenate([np.ones((1, _N)), w], axis=0)
+            dec_b = mu
+        return tuple(np.ascontiguousarray(a, dtype=np.float32) for a in (enc_w, enc_b, dec_w, dec_b))
+
+    def _on(self, device: torch.device) -> tuple[torch.Tensor, ...]:
+        mats = self._device_cache.get(device)
+        if mats is None:
+            mats = tuple(torch.from_numpy(a).to(device) for a in self._affine)
+            self._device_cache[device] = mats
+        return mats
+
+    # -- encode / decode: one affine map each ---------------------------------------------------------
+    def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
+        enc_w, enc_b, _, _ = self._on(blocks.device)
+        return torch.addmm(enc_b, blocks.reshape(len(blocks), _N), enc_w)
+
+    def _decode(self, codes: torch.Tensor) -> torch.Tensor:
+        _, _, dec_w, dec_b = self._on(codes.device)
+        k = codes.shape[1]
+        return torch.addmm(dec_b, codes, dec_w[:k]).reshape(len(codes), 16, 16, 16)

@@ -1,0 +1,56 @@
+"""The one place that checks and converts arrays handed to sdfcodec (kornia-style shape checks).
+
+Codecs take numpy arrays or torch tensors on any device; results follow the input: a numpy input gives a
+numpy result, a tensor gives a tensor on the same device. Everything is computed in float32.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from .errors import DTypeError, InvalidValueError, ShapeError
+
+BLOCK = 16  # voxels per block edge (DESIGN.md: fixed at 16)
+
+
+def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_finite: bool = True
+                    ) -> tuple[torch.Tensor, bool]:
+    """Check ``x`` against ``shape`` (``None`` = any size) and return ``(float32 tensor, was_numpy)``.
+
+    Raises:
+        ShapeError: wrong rank or size (the message gives the expected and actual shape).
+        DTypeError: not a floating-point array.
+        InvalidValueError: NaN or infinite values (only when ``check_finite``).
+    """
+    was_numpy = not isinstance(x, torch.Tensor)
+    if was_numpy:
+        if not isinstance(x, np.ndarray):
+            try:
+                x = np.asarray(x)
+            except Exception as exc:  # ragged lists and the like
+                raise DTypeError(f"{name} must be a numpy array or torch tensor, got {type(x).__name__}") from exc
+        if x.dtype.kind != "f":
+            raise DTypeError(f"{name} must be floating point (float16/32/64), got dtype {x.dtype}; "
+                             "convert with .astype(np.float32)")
+        t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+    else:
+        if not x.is_floating_point():
+            raise DTypeError(f"{name} must be floating point, got {x.dtype}; convert with .float()")
+        t = x.to(torch.float32)
+    expected = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+    if t.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
+        hint = " (a single block needs a batch axis: x[None])" if t.ndim == len(shape) - 1 else ""
+        raise ShapeError(f"{name} must have shape {expected}, got {tuple(t.shape)}{hint}")
+    if check_finite and t.numel() and not bool(torch.isfinite(t).all()):
+        bad = int((~torch.isfinite(t)).sum())
+        raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
+                                "(replace unobserved voxels with the truncation distance d_max)")
+    return t, was_numpy
+
+
+def like_input(t: torch.Tensor, was_numpy: bool) -> Any:
+    """Return ``t`` as numpy when the input was numpy, else as the tensor itself."""
+    return t.detach().cpu().numpy() if was_numpy else t

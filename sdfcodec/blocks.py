@@ -1,0 +1,52 @@
+"""Cutting volumes into 16^3 blocks and back, and the metres <-> normalised mapping.
+
+Volumes and blocks are indexed (x, y, z); block ``(bx, by, bz)`` covers voxels ``[16 bx, 16 bx + 16)`` etc.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import BLOCK
+from .errors import InvalidValueError, ShapeError
+
+__all__ = ["normalise", "denormalise", "split_blocks", "assemble_blocks", "blocks_grid_shape", "BLOCK"]
+
+
+def check_truncation(d_min: float, d_max: float) -> None:
+    if not (np.isfinite(d_min) and np.isfinite(d_max) and d_min < d_max):
+        raise InvalidValueError(f"truncation must satisfy d_min < d_max (finite metres), got [{d_min}, {d_max}]")
+
+
+def normalise(d: np.ndarray, d_min: float, d_max: float) -> np.ndarray:
+    """Metres in ``[d_min, d_max]`` -> ``[0, 1]`` (free space 1.0). Does not clip."""
+    return ((np.asarray(d, dtype=np.float32) - np.float32(d_min)) / np.float32(d_max - d_min)).astype(np.float32)
+
+
+def denormalise(v: np.ndarray, d_min: float, d_max: float) -> np.ndarray:
+    """``[0, 1]`` -> metres (the inverse of :func:`normalise`)."""
+    return (np.asarray(v, dtype=np.float32) * np.float32(d_max - d_min) + np.float32(d_min)).astype(np.float32)
+
+
+def blocks_grid_shape(shape_voxels) -> tuple[int, int, int]:
+    """Number of blocks along each axis needed to cover ``shape_voxels`` (ceil division)."""
+    return tuple(-(-int(n) // BLOCK) for n in shape_voxels)  # type: ignore[return-value]
+
+
+def split_blocks(volume: np.ndarray, fill: float) -> np.ndarray:
+    """``(X, Y, Z)`` -> ``(Bx, By, Bz, 16, 16, 16)``, padding the far faces with ``fill``."""
+    if volume.ndim != 3:
+        raise ShapeError(f"a volume must have 3 axes (x, y, z), got shape {volume.shape}")
+    gb = blocks_grid_shape(volume.shape)
+    padded = np.full([g * BLOCK for g in gb], fill, dtype=volume.dtype)
+    padded[: volume.shape[0], : volume.shape[1], : volume.shape[2]] = volume
+    v = padded.reshape(gb[0], BLOCK, gb[1], BLOCK, gb[2], BLOCK)
+    return v.transpose(0, 2, 4, 1, 3, 5)
+
+
+def assemble_blocks(blocks: np.ndarray) -> np.ndarray:
+    """``(Bx, By, Bz, 16, 16, 16)`` -> ``(16 Bx, 16 By, 16 Bz)`` (inverse of :func:`split_blocks` before cropping)."""
+    if blocks.ndim != 6 or blocks.shape[3:] != (BLOCK,) * 3:
+        raise ShapeError(f"blocks must have shape (Bx, By, Bz, 16, 16, 16), got {blocks.shape}")
+    bx, by, bz = blocks.shape[:3]
+    return blocks.transpose(0, 3, 1, 4, 2, 5).reshape(bx * BLOCK, by * BLOCK, bz * BLOCK)

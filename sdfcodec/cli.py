@@ -1,0 +1,364 @@
+"""The ``sdfcodec`` command line (typer + rich). Errors print one line on stderr and exit non-zero."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from . import __version__
+from .errors import InvalidValueError, MapExistsError, SDFCodecError, SDFCodecWarning
+
+app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+out = Console()
+err = Console(stderr=True, soft_wrap=True)
+
+
+def _fail(msg: str, code: int = 1) -> None:
+    err.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def _cli(fn: Callable) -> Callable:
+    """Turn the project's errors (and missing files) into one line on stderr and exit status 1."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        def show(message, category, filename, lineno, file=None, line=None):
+            err.print(f"[yellow]warning:[/] {message}", highlight=False, soft_wrap=True)
+
+        old = warnings.showwarning
+        warnings.showwarning = show
+        try:
+            return fn(*args, **kwargs)
+        except SDFCodecError as e:
+            _fail(str(e))
+        except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
+            _fail(f"{e.strerror or e}: {e.filename}" if getattr(e, "filename", None) else str(e))
+        finally:
+            warnings.showwarning = old
+
+    return wrapper
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    TextColumn("{task.fields[rate]}"), console=err, transient=True)
+
+
+def _triple(text: str | None, name: str) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != 3:
+        _fail(f"{name} must be three comma-separated numbers, got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+def _pair(text: str, name: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        _fail(f"{name} must be two comma-separated numbers like -0.04,0.1, got {text!r}")
+    return a, b
+
+
+def _region(text: str | None) -> tuple | None:
+    if text is None:
+        return None
+    try:
+        parts = [tuple(float(v) for v in p.split(":")) for p in text.split(",")]
+        assert len(parts) == 3 and all(len(p) == 2 for p in parts)
+    except (ValueError, AssertionError):
+        _fail(f"--region must look like x0:x1,y0:y1,z0:z1, got {text!r}")
+    return tuple(parts)
+
+
+def _print_json(obj: Any) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2, default=str) + "\n")
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", help="Print the version and exit.")) -> None:
+    if version:
+        out.print(f"sdfcodec {__version__}")
+        raise typer.Exit()
+
+
+@app.command("codecs")
+@_cli
+def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+    """List installed codecs: id, code sizes, prefix-ordered, needs fitting, providing package."""
+    from .registry import get_codec_class, list_codecs
+
+    rows = []
+    for entry in list_codecs():
+        row: dict[str, Any] = {"id": entry.id, "package": entry.package, "version": entry.version}
+        try:
+            cls = get_codec_class(entry.id)
+            row.update(code_sizes=list(cls.code_sizes), prefix_ordered=cls.prefix_ordered,
+                       requires_fit=cls.requires_fit, status="ok")
+        except SDFCodecError as e:  # one broken plugin is reported, the rest still listed
+            row.update(code_sizes=None, prefix_ordered=None, requires_fit=None, status=f"failed: {e}")
+        rows.append(row)
+    if as_json:
+        _print_json(rows)
+        return
+    table = Table(title="installed sdfcodec codecs")
+    for col in ("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"):
+        table.add_column(col)
+    for r in rows:
+        yn = {True: "yes", False: "no", None: "?"}
+        table.add_row(r["id"], ", ".join(map(str, r["code_sizes"] or [])) or "?", yn[r["prefix_ordered"]],
+                      yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}", r["status"])
+    out.print(table)
+
+
+@app.command("info")
+@_cli
+def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+             as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+    """Show a map's header, blocks by state, bytes on disk and ratio to a dense float32 volume."""
+    from .mapfile import open_map
+
+    info = open_map(map_path).info()
+    if as_json:
+        _print_json(info)
+        return
+    table = Table(show_header=False, title=f"map {map_path}")
+    b = info["blocks"]
+    rows = [
+        ("format version", str(info["format_version"])),
+        ("codec", json.dumps(info["codec"])),
+        ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"),
+        ("voxel size", f"{info['voxel_size']} m"),
+        ("truncation", f"[{info['truncation'][0]}, {info['truncation'][1]}] m"),
+        ("origin", f"{info['origin']} m"),
+        ("extent", f"{info['shape_voxels']} voxels, {info['grid_blocks']} blocks"),
+        ("blocks", f"{b['coded']} coded, {b['empty']} empty, {b['unobserved']} unobserved"),
+        ("dense float32", _bytes(info["dense_float32_bytes"])),
+        ("codes (uncompressed)", _bytes(info["code_bytes_raw"])),
+    ]
+    if info["bytes_on_disk"] is not None:
+        rows += [("on disk", f"{_bytes(info['bytes_on_disk'])} (codec state {_bytes(info['codec_state_bytes'])})"),
+                 ("ratio dense : disk", f"{info['ratio_dense_to_disk']:.1f} : 1"),
+                 ("ratio dense : disk without codec state", f"{info['ratio_dense_to_codes']:.1f} : 1")]
+    for k, v in rows:
+        table.add_row(k, v)
+    out.print(table)
+
+
+def _bytes(n: float | None) -> str:
+    if n is None:
+        return "?"
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.2f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+def _load_volume(path: Path, key: str | None) -> tuple[np.ndarray, dict[str, Any]]:
+    """A dense TSDF from .npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation)."""
+    meta: dict[str, Any] = {}
+    if path.suffix == ".npy":
+        vol = np.load(path, allow_pickle=False, mmap_mode="r")
+    elif path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            names = [n for n in z.files if n not in ("voxel_size", "origin", "truncation")]
+            pick = key or ("tsdf" if "tsdf" in z.files else (names[0] if len(names) == 1 else None))
+            if pick is None or pick not in z.files:
+                _fail(f"{path} holds arrays {z.files}; choose one with --key")
+            vol = z[pick]
+            for m in ("voxel_size", "origin", "truncation"):
+                if m in z.files:
+                    meta[m] = z[m].tolist()
+    else:
+        _fail(f"{path}: input must be a .npy or .npz volume, or a map directory")
+    return np.asarray(vol), meta
+
+
+@app.command("encode")
+@_cli
+def encode_cmd(
+    input: str = typer.Argument(..., metavar="INPUT", help=".npy/.npz dense TSDF in metres, or a map to transcode."),
+    output: Path = typer.Argument(..., metavar="OUTPUT", help="Map to write (a directory, e.g. room.sdfz)."),
+    codec_id: Optional[str] = typer.Option(None, "--codec", help="Codec id (see `sdfcodec codecs`); default pca."),
+    code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length (e.g. 32, 64, 128)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Trained codec (.npz from `sdfcodec train`)."),
+    voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="Voxel edge in metres (volumes)."),
+    truncation: Optional[str] = typer.Option(None, "--truncation", help="d_min,d_max in metres [-0.04,0.1]."),
+    origin: Optional[str] = typer.Option(None, "--origin", help="x,y,z metres of voxel (0,0,0) [0,0,0]."),
+    key: Optional[str] = typer.Option(None, "--key", help="Array name inside an .npz input."),
+    code_dtype: str = typer.Option("float32", "--code-dtype", help="float32 or float16 code storage."),
+    fit_max_blocks: int = typer.Option(100_000, "--fit-max-blocks", help="Blocks sampled to fit a codec."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
+    device: str = typer.Option("cpu", "--device", help="Torch device to encode on (cpu, cuda)."),
+    as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
+) -> None:
+    """Encode a dense TSDF volume (or transcode a map) into a compressed map."""
+    from .blocks import normalise, split_blocks
+    from .mapfile import _check_volume, create_map, open_map
+    from .model import load_model
+    from .registry import get_codec
+
+    if output.exists() and not overwrite:
+        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    src_map = None
+    in_path = Path(input)
+    if "://" in input or in_path.is_dir():
+        src_map = open_map(input)
+        vs, trunc, org = src_map.voxel_size, src_map.truncation, src_map.origin
+    else:
+        if not in_path.exists():
+            raise FileNotFoundError(2, "no such input file", str(in_path))
+        vol, meta = _load_volume(in_path, key)
+        vs = voxel_size if voxel_size is not None else meta.get("voxel_size")
+        if vs is None:
+            _fail(f"{in_path} does not record its voxel size: pass --voxel-size (metres)")
+        trunc = _pair(truncation, "--truncation") if truncation else tuple(meta.get("truncation", (-0.04, 0.1)))
+        org = _triple(origin, "--origin") or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
+        vol = _check_volume(vol, trunc)
+
+    if model is not None:
+        codec = load_model(model)
+        if codec_id and codec_id != codec.codec_id:
+            raise InvalidValueError(f"--codec {codec_id} contradicts the model {model} (codec {codec.codec_id})")
+        if code_size and code_size != codec.code_size:
+            raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
+                                    f"(code size {codec.code_size})")
+    else:
+        params = {"code_size": code_size} if code_size else {}
+        codec = get_codec(codec_id or "pca", **params)
+
+    fitted_on = None
+    if not codec.is_fitted:
+        # no model given: learn the basis from this map's own non-empty blocks (stored inside the map)
+        if src_map is not None:
+            sample = np.concatenate([b for _, b in src_map.iter_blocks()] or [np.zeros((0, 16, 16, 16))])
+        else:
+            sample = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
+        v = normalise(sample, *trunc)
+        v = v[~(v >= 1 - 1e-6).reshape(len(v), -1).all(axis=1)]
+        if len(v) > fit_max_blocks:
+            v = v[np.random.default_rng(0).choice(len(v), fit_max_blocks, replace=False)]
+        err.print(f"fitting {codec!r} on {len(v)} non-empty blocks of the input (pass --model to use a trained one)")
+        codec.fit(v)
+        fitted_on = len(v)
+
+    with _progress() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,
+                                         code_dtype=code_dtype, overwrite=overwrite, device=device,
+                                         tool="sdfcodec encode", source=str(input)) as m:
+        if src_map is not None:
+            total = src_map.count_states()["coded"]
+            task = prog.add_task("transcoding", total=total, rate="")
+            m.mark_empty(np.argwhere(src_map.block_states() == 1))
+            for coords, blocks in src_map.iter_blocks():
+                # a lossy decode overshoots the truncation a little: clip quietly, that is not bad input
+                m.write_blocks(coords, np.clip(blocks, *trunc))
+                prog.advance(task, len(coords))
+            m._w().grow_voxels(src_map.shape_voxels)
+        else:
+            nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
+            task = prog.add_task("encoding", total=nblocks, rate="")
+            m.write_volume(vol, progress=lambda n: prog.advance(task, n))
+    info = m.info()
+    summary = {"output": str(output), "codec": codec.get_config(), "fitted_on_blocks": fitted_on,
+               "blocks": info["blocks"], "bytes_on_disk": info["bytes_on_disk"],
+               "ratio_dense_to_disk": info["ratio_dense_to_disk"]}
+    if as_json:
+        _print_json(summary)
+    else:
+        out.print(f"wrote {output}: {info['blocks']['coded']} coded blocks, {_bytes(info['bytes_on_disk'])} on disk, "
+                  f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32")
+
+
+@app.command("decode")
+@_cli
+def decode_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    output: Path = typer.Argument(..., metavar="OUTPUT.npy", help="Dense TSDF (metres) to write."),
+    level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
+    region: Optional[str] = typer.Option(None, "--region", help="x0:x1,y0:y1,z0:z1 (half-open voxels, or metres)."),
+    units: str = typer.Option("voxels", "--units", help="Units of --region: voxels or m."),
+    device: str = typer.Option("cpu", "--device", help="Torch device to decode on."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
+    as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
+) -> None:
+    """Decode a map (or a region of it) to a dense .npy volume in metres, free space where nothing is coded."""
+    from .mapfile import open_map
+
+    if output.suffix != ".npy":
+        _fail(f"OUTPUT must end in .npy, got {output}")
+    if output.exists() and not overwrite:
+        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    m = open_map(map_path)
+    with _progress() as prog:
+        prog.add_task("decoding", total=None, rate="")
+        vol = m.decode_region(_region(region), units=units, level=level, device=None if device == "cpu" else device)
+    if not isinstance(vol, np.ndarray):
+        vol = vol.cpu().numpy()
+    tmp = output.with_name(f".{output.name}.tmp")
+    with open(tmp, "wb") as f:  # written beside the output, then renamed: never a half-written .npy
+        np.save(f, vol)
+    tmp.replace(output)
+    summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
+               "voxel_size": m.voxel_size, "origin": list(m.origin)}
+    if as_json:
+        _print_json(summary)
+    else:
+        out.print(f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
+
+
+@app.command("bench")
+@_cli
+def bench_cmd(
+    codec_id: str = typer.Option("pca", "--codec", help="Codec to measure."),
+    sizes: str = typer.Option("32,64,128", "--sizes", help="Code sizes."),
+    batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4)."),
+    device: str = typer.Option("cpu", "--device", help="Torch device."),
+    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (under 30 s)."),
+    as_json: bool = typer.Option(False, "--json", help="Print records as JSON."),
+) -> None:
+    """Encode/decode throughput (blocks/s) beside a numpy matrix product of the same shape, same run."""
+    from .bench import PAPER_US_PER_BLOCK, bench_codec
+
+    ks = [int(s) for s in sizes.split(",")]
+    bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
+                                                               [1, 16, 256, 1024, 4096, 16384, 65536])
+    with _progress() as prog:
+        task = prog.add_task("bench", total=len(ks) * len(bs) * 2, rate="")
+        records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2,
+                              progress=lambda s: prog.update(task, advance=1, description=s))
+    if as_json:
+        _print_json(records)
+        return
+    table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)")
+    for col in ("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper"):
+        table.add_column(col, justify="right")
+    for r in records:
+        table.add_row(str(r["code_size"]), r["operation"], str(r["batch"]), f"{r['blocks_per_s']:,.0f}",
+                      f"{r['baseline_blocks_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}",
+                      f"{r['us_per_block']:.2f}", f"{PAPER_US_PER_BLOCK[0] / r['us_per_block']:,.0f}x")
+    out.print(table)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

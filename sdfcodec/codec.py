@@ -1,0 +1,158 @@
+"""The codec contract: what every sdfcodec codec is and promises.
+
+A codec turns normalised TSDF blocks into short code vectors and back. Normalised means
+``v = (d - d_min) / (d_max - d_min)`` so values lie in ``[0, 1]`` and free or unobserved space is 1.0.
+
+A codec is a subclass of :class:`Codec` that:
+
+* sets the class attributes ``codec_id`` (the registry name, ``[a-z0-9][a-z0-9_.-]*``), ``prefix_ordered``
+  (True when the first ``k' < k`` code elements still decode, coarser: PCA), ``requires_fit`` (True when
+  it learns state from data) and optionally ``code_sizes`` (the sizes it is meant to be used at);
+* has an ``__init__`` that only stores its keyword arguments, under attributes of the same names
+  (scikit-learn style). Those arguments, plus ``"id"``, are its JSON configuration: ``get_config()``
+  returns them and ``from_config`` / :func:`sdfcodec.get_codec` rebuild an equal codec;
+* has ``code_size`` (an ``__init__`` argument or a property), implements ``_encode`` and ``_decode`` on float32 torch tensors
+  ``(N, 16, 16, 16) -> (N, code_size)`` and ``(N, k) -> (N, 16, 16, 16)``, computing on the tensor's device;
+* if ``requires_fit``: implements ``_fit`` and keeps learned state in attributes ending in ``_``, exposed as
+  plain arrays through ``state_dict`` / ``load_state_dict`` (no pickles, ever).
+
+The public ``encode``/``decode``/``fit`` of the base class check shapes, dtypes and finiteness (raising
+:mod:`sdfcodec.errors` types), convert numpy or any-float input to float32, and return a result that
+follows the input: numpy in, numpy out; a tensor in, a tensor on the same device out. Both are batched.
+
+``sdfcodec.testing.check_codec`` verifies all of this for any codec; plugins run it in their own tests.
+"""
+
+from __future__ import annotations
+
+import abc
+import copy
+import inspect
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+import torch
+
+from ._validate import BLOCK, as_float_tensor, like_input
+from .errors import InvalidValueError, NotFittedError, ShapeError
+
+__all__ = ["Codec", "BLOCK"]
+
+
+class Codec(abc.ABC):
+    """Abstract base of all codecs. See the module docstring for the contract."""
+
+    codec_id: ClassVar[str]
+    prefix_ordered: ClassVar[bool] = False
+    requires_fit: ClassVar[bool] = False
+    code_sizes: ClassVar[tuple[int, ...]] = ()
+
+    #: Length ``k`` of one block's code vector: an ``__init__`` argument or a property of the subclass.
+    code_size: int
+
+    # -- what subclasses implement -------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
+        """``(N, 16, 16, 16)`` float32 -> ``(N, code_size)`` float32, on ``blocks.device``."""
+
+    @abc.abstractmethod
+    def _decode(self, codes: torch.Tensor) -> torch.Tensor:
+        """``(N, k)`` float32 -> ``(N, 16, 16, 16)`` float32 on ``codes.device``; ``k < code_size`` only
+        when ``prefix_ordered``."""
+
+    def _fit(self, blocks: np.ndarray) -> None:  # pragma: no cover - codecs without state never call it
+        """Learn state from ``(N, 16, 16, 16)`` float32 numpy blocks."""
+        raise NotImplementedError
+
+    @property
+    def is_fitted(self) -> bool:
+        """True when the codec can encode and decode (always, for codecs that need no fitting)."""
+        return not self.requires_fit or bool(self.state_dict())
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Learned state as plain numpy arrays (empty for codecs without state)."""
+        return {}
+
+    def load_state_dict(self, state: Mapping[str, np.ndarray]) -> "Codec":
+        """Restore learned state written by :meth:`state_dict`; returns ``self``."""
+        if state:
+            raise InvalidValueError(f"codec {self.codec_id!r} has no learned state, got arrays {sorted(state)}")
+        return self
+
+    # -- the public, checked surface -----------------------------------------------------------------
+    def fit(self, blocks: Any) -> "Codec":
+        """Learn the codec's state from normalised blocks ``(N, 16, 16, 16)``; returns ``self``."""
+        if self.requires_fit:
+            t, _ = as_float_tensor(blocks, "blocks", (None, BLOCK, BLOCK, BLOCK))
+            if t.shape[0] == 0:
+                raise ShapeError("fit needs at least one block, got an empty batch")
+            self._fit(t.cpu().numpy())
+        return self
+
+    def encode(self, blocks: Any) -> Any:
+        """Encode normalised blocks ``(N, 16, 16, 16)`` to codes ``(N, code_size)`` (float32).
+
+        numpy in gives numpy out; a torch tensor gives a tensor on the same device.
+        """
+        self._check_fitted()
+        t, was_numpy = as_float_tensor(blocks, "blocks", (None, BLOCK, BLOCK, BLOCK))
+        if t.shape[0] == 0:
+            return like_input(t.new_zeros((0, self.code_size)), was_numpy)
+        return like_input(self._encode(t), was_numpy)
+
+    def decode(self, codes: Any) -> Any:
+        """Decode codes ``(N, k)`` to normalised blocks ``(N, 16, 16, 16)`` (float32).
+
+        ``k`` must equal ``code_size``, or, for prefix-ordered codecs, be any ``1 <= k <= code_size``
+        (a prefix decodes to a coarser block). Output follows the input like :meth:`encode`.
+        """
+        self._check_fitted()
+        t, was_numpy = as_float_tensor(codes, "codes", (None, None))
+        k = t.shape[1]
+        if self.prefix_ordered:
+            if not 1 <= k <= self.code_size:
+                raise ShapeError(f"codes for {self!r} must have 1..{self.code_size} elements, got {k}")
+        elif k != self.code_size:
+            raise ShapeError(f"codes for {self!r} must have {self.code_size} elements, got {k}"
+                             " (this codec is not prefix-ordered, so a shorter code cannot be decoded)")
+        if t.shape[0] == 0:
+            return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
+        return like_input(self._decode(t), was_numpy)
+
+    # -- configuration -------------------------------------------------------------------------------
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [p.name for p in sig.parameters.values()
+                if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+
+    def get_config(self) -> dict[str, Any]:
+        """JSON-serialisable configuration: ``{"id": codec_id, **init arguments}``."""
+        cfg: dict[str, Any] = {"id": self.codec_id}
+        for name in self._param_names():
+            cfg[name] = copy.deepcopy(getattr(self, name))
+        return cfg
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> "Codec":
+        """Build an (unfitted) codec from :meth:`get_config` output. ``config`` is not modified."""
+        params = dict(config)
+        cid = params.pop("id", cls.codec_id)
+        if cid != cls.codec_id:
+            raise InvalidValueError(f"config is for codec {cid!r}, not {cls.codec_id!r}")
+        unknown = set(params) - set(cls._param_names())
+        if unknown:
+            raise InvalidValueError(f"codec {cls.codec_id!r} has no parameter(s) {sorted(unknown)}; "
+                                    f"it takes {cls._param_names()}")
+        return cls(**copy.deepcopy(params))
+
+    # -- helpers -------------------------------------------------------------------------------------
+    def _check_fitted(self) -> None:
+        if not self.is_fitted:
+            raise NotFittedError(f"{self!r} needs fitting: call fit(blocks), load_state_dict(...), "
+                                 "or pass a trained model (--model PATH)")
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_config().items() if k != "id")
+        return f"{type(self).__name__}({args})"

@@ -1,0 +1,81 @@
+"""Errors and warnings raised by sdfcodec.
+
+Every error the project raises on purpose derives from :class:`SDFCodecError`, so a caller can catch one
+type; each also derives from the closest built-in exception (``ValueError``, ``KeyError``...) so code that
+already catches those keeps working. Messages name what was wrong and what to do about it.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "SDFCodecError",
+    "SDFCodecWarning",
+    "UnknownCodecError",
+    "PluginLoadError",
+    "ShapeError",
+    "DTypeError",
+    "InvalidValueError",
+    "NotFittedError",
+    "FormatError",
+    "VersionError",
+    "ChecksumError",
+    "MapExistsError",
+    "MapNotFoundError",
+    "ReadOnlyError",
+]
+
+
+class SDFCodecError(Exception):
+    """Base class of every error sdfcodec raises on purpose."""
+
+
+class SDFCodecWarning(UserWarning):
+    """Base class of sdfcodec's warnings (e.g. values clipped to the truncation range)."""
+
+
+class UnknownCodecError(SDFCodecError, LookupError):
+    """No installed codec has the requested id (the message names the id and, when known, its package)."""
+
+
+class PluginLoadError(SDFCodecError, ImportError):
+    """A codec plugin is installed but failed to import; other codecs keep working."""
+
+
+class ShapeError(SDFCodecError, ValueError):
+    """An array has the wrong rank or shape."""
+
+
+class DTypeError(SDFCodecError, TypeError):
+    """An array has a dtype that cannot be used (integers, booleans, complex...)."""
+
+
+class InvalidValueError(SDFCodecError, ValueError):
+    """An array holds NaN or infinite values, or a parameter is out of range."""
+
+
+class NotFittedError(SDFCodecError, RuntimeError):
+    """A codec that needs fitting was used before ``fit`` or ``load_state_dict``."""
+
+
+class FormatError(SDFCodecError, ValueError):
+    """A map on disk does not follow the map format (bad header, missing array, unreadable chunk)."""
+
+
+class VersionError(FormatError):
+    """A map was written by a newer format version, or needs an extension this reader does not know."""
+
+
+class ChecksumError(FormatError):
+    """A stored chunk failed its checksum or could not be decompressed (the message names the chunk)."""
+
+
+class MapExistsError(SDFCodecError, FileExistsError):
+    """The output path exists and overwriting was not asked for."""
+
+
+class MapNotFoundError(SDFCodecError, FileNotFoundError):
+    """No map (or no file) at the given path or URL."""
+
+
+class ReadOnlyError(SDFCodecError, PermissionError):
+    """A write was attempted on a map opened read-only."""

@@ -1,0 +1,174 @@
+"""The map header: pydantic models of the ``sdfcodec`` attribute of a map's root Zarr group.
+
+``spec/map-format.md`` is normative; ``spec/map-header.schema.json`` is generated from these models by
+``python -m sdfcodec.header > spec/map-header.schema.json`` and a test keeps the two in step.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import FormatError, VersionError
+
+__all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "parse_header",
+           "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS"]
+
+FORMAT_NAME = "sdfcodec-map"
+FORMAT_VERSION = 1
+KNOWN_EXTENSIONS: frozenset[str] = frozenset()
+
+
+class BlockState:
+    """Values of the ``state`` array (uint8)."""
+
+    UNOBSERVED = 0  #: never written; decodes as free space
+    EMPTY = 1  #: observed and entirely free space; stores no code
+    CODED = 2  #: has a code vector in ``codes``
+    NAMES = {0: "unobserved", 1: "empty", 2: "coded"}
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Truncation(_Model):
+    """Distances are truncated to ``[d_min, d_max]`` metres; negative is inside/behind the surface."""
+
+    d_min: float = Field(description="lower truncation distance in metres (behind the surface)")
+    d_max: float = Field(description="upper truncation distance in metres; free space stores d_max")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Truncation":
+        if not self.d_min < self.d_max:
+            raise ValueError(f"d_min ({self.d_min}) must be below d_max ({self.d_max})")
+        return self
+
+
+class CodecSpec(_Model):
+    """Which codec wrote the codes, its configuration and a digest of its learned state."""
+
+    id: str = Field(pattern=r"^[a-z0-9][a-z0-9_.-]*$", description="codec id (entry point name)")
+    config: dict[str, Any] = Field(description="the codec's get_config() (JSON); contains 'id'")
+    package: str | None = Field(None, description="distribution that provides the codec, to name in errors")
+    package_version: str | None = None
+    state_arrays: list[str] = Field(default_factory=list, description="names of the arrays under codec/")
+    state_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$",
+                                     description="SHA-256 over the learned state (see spec)")
+
+    @model_validator(mode="after")
+    def _id_matches(self) -> "CodecSpec":
+        if self.config.get("id") != self.id:
+            raise ValueError(f"codec.config.id ({self.config.get('id')!r}) differs from codec.id ({self.id!r})")
+        return self
+
+
+class CodesSpec(_Model):
+    """How code vectors are stored in the ``codes`` array."""
+
+    size: int = Field(ge=1, le=1 << 16, description="code length D (last axis of codes)")
+    dtype: Literal["float32", "float16"] = "float32"
+    chunk_blocks: int = Field(8, ge=1, le=256, description="blocks per chunk along x, y and z")
+    chunk_code: int = Field(ge=1, description="code elements per chunk along the code axis")
+    prefix_ordered: bool = Field(description="a code prefix decodes (levels are meaningful)")
+    levels: list[int] = Field(description="prefix lengths a reader may request cheaply, ascending, last = size")
+
+    @model_validator(mode="after")
+    def _levels(self) -> "CodesSpec":
+        if not self.levels or self.levels[-1] != self.size or sorted(set(self.levels)) != self.levels:
+            raise ValueError(f"levels must be ascending, unique and end at size {self.size}, got {self.levels}")
+        if self.chunk_code > self.size:
+            raise ValueError(f"chunk_code ({self.chunk_code}) exceeds size ({self.size})")
+        return self
+
+
+class Provenance(_Model):
+    created: str = Field(description="ISO 8601 UTC time the map was written")
+    sdfcodec_version: str
+    tool: str | None = Field(None, description="what wrote it, e.g. 'sdfcodec encode'")
+    source: str | None = Field(None, description="input it was made from, free text")
+
+
+class Extension(_Model):
+    """An optional feature a map uses. A reader MUST refuse a map with an unknown *required* extension."""
+
+    name: str
+    required: bool = True
+
+
+class MapHeader(_Model):
+    """The ``sdfcodec`` attribute of a map's root group (format version 1)."""
+
+    format: Literal["sdfcodec-map"] = FORMAT_NAME
+    format_version: Literal[1] = FORMAT_VERSION
+    voxel_size: float = Field(gt=0, description="edge of one voxel in metres")
+    truncation: Truncation
+    origin: tuple[float, float, float] = Field(description="world position (metres) of voxel (0, 0, 0)")
+    block_size: Literal[16] = 16
+    shape_voxels: tuple[int, int, int] = Field(description="true extent of the map in voxels (x, y, z)")
+    grid_blocks: tuple[int, int, int] = Field(description="shape of the block grid (x, y, z)")
+    codec: CodecSpec
+    codes: CodesSpec
+    extensions: list[Extension] = Field(default_factory=list)
+    provenance: Provenance
+
+    @field_validator("shape_voxels", "grid_blocks")
+    @classmethod
+    def _non_negative(cls, v: tuple[int, int, int]) -> tuple[int, int, int]:
+        if any(n < 0 for n in v):
+            raise ValueError(f"must be non-negative, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "MapHeader":
+        need = tuple(-(-n // self.block_size) for n in self.shape_voxels)
+        if any(g < n for g, n in zip(self.grid_blocks, need)):
+            raise ValueError(f"grid_blocks {self.grid_blocks} cannot hold shape_voxels {self.shape_voxels}")
+        return self
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def parse_header(raw: Any, where: str = "map") -> MapHeader:
+    """Validate a header dict. Checks the format name and version *before* anything else, so a map from a
+    newer sdfcodec is refused with both versions named, and unknown required extensions are refused."""
+    if not isinstance(raw, dict):
+        raise FormatError(f"{where}: no sdfcodec header (group attribute 'sdfcodec' missing or not an object); "
+                          "is this an sdfcodec map?")
+    if raw.get("format") != FORMAT_NAME:
+        raise FormatError(f"{where}: header format is {raw.get('format')!r}, expected {FORMAT_NAME!r}")
+    version = raw.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise FormatError(f"{where}: header format_version must be an integer, got {version!r}")
+    if version > FORMAT_VERSION:
+        raise VersionError(f"{where}: written in map format version {version}, but this sdfcodec reads up to "
+                           f"version {FORMAT_VERSION}; upgrade sdfcodec to read it")
+    if version < 1:
+        raise FormatError(f"{where}: invalid format_version {version}")
+    for ext in raw.get("extensions") or []:
+        if isinstance(ext, dict) and ext.get("required", True) and ext.get("name") not in KNOWN_EXTENSIONS:
+            raise VersionError(f"{where}: needs extension {ext.get('name')!r}, which this sdfcodec "
+                               f"(format version {FORMAT_VERSION}) does not know; upgrade sdfcodec")
+    try:
+        return MapHeader.model_validate(raw)
+    except ValidationError as e:
+        first = e.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"]) or "(root)"
+        raise FormatError(f"{where}: invalid header field {loc}: {first['msg']} "
+                          f"({e.error_count()} problem(s) in all)") from e
+
+
+def json_schema() -> dict[str, Any]:
+    schema = MapHeader.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["$id"] = "https://sdfcodec.dev/spec/map-header-v1.schema.json"
+    return schema
+
+
+if __name__ == "__main__":  # python -m sdfcodec.header > spec/map-header.schema.json
+    print(json.dumps(json_schema(), indent=2, sort_keys=True))

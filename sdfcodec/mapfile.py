@@ -1,0 +1,702 @@
+"""The sdfcodec map: a Zarr v3 group holding per-block codes (``spec/map-format.md`` is normative).
+
+::
+
+    <map>/zarr.json            group; attribute "sdfcodec" = the header (sdfcodec.header.MapHeader)
+    <map>/codes                (Bx, By, Bz, D) float32|float16 code vectors, chunked (c, c, c, chunk_code)
+    <map>/state                (Bx, By, Bz) uint8 block state (0 unobserved, 1 empty, 2 coded)
+    <map>/codec/<name>         the codec's learned state, one array per state_dict entry
+
+Every chunk is Blosc/zstd-compressed and carries a CRC32C checksum (Zarr's ``crc32c`` codec). A map is
+written into a hidden sibling directory and renamed into place on commit, so an interrupted write leaves the
+previous map (or none), never half of one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import os
+import shutil
+import uuid
+import warnings
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+import torch
+import zarr
+from zarr.codecs import BloscCodec, Crc32cCodec
+
+from . import __version__
+from ._validate import BLOCK, as_float_tensor
+from .blocks import check_truncation, denormalise, normalise, split_blocks
+from .codec import Codec
+from .errors import (ChecksumError, FormatError, InvalidValueError, MapExistsError, MapNotFoundError,
+                     ReadOnlyError, SDFCodecWarning, ShapeError)
+from .header import (FORMAT_VERSION, BlockState, CodecSpec, CodesSpec, MapHeader, Provenance, Truncation,
+                     now_iso, parse_header)
+from .registry import codec_package, get_codec_class
+
+__all__ = ["Map", "open_map", "create_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES"]
+
+#: A decode that would allocate more than this many bytes is refused unless the caller raises the limit, so a
+#: hostile or mistaken header cannot make a reader allocate without bound.
+DEFAULT_MAX_DECODE_BYTES = 8 << 30
+_EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
+Region = Sequence[Sequence[float]]
+
+
+def _compressors() -> list:
+    return [BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"), Crc32cCodec()]
+
+
+def state_digest(state: dict[str, np.ndarray]) -> str:
+    """SHA-256 of a codec state: for each array by sorted name, ``name NUL dtype NUL shape-json NUL`` then
+    its little-endian C-order bytes (spec/map-format.md, "Codec state")."""
+    h = hashlib.sha256()
+    for name in sorted(state):
+        a = np.ascontiguousarray(state[name])
+        a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+        h.update(f"{name}\0{a.dtype.str}\0{json.dumps(list(a.shape))}\0".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: int | None) -> CodesSpec:
+    size = codec.code_size
+    if chunk_code is None:
+        # a prefix level of 32 elements reads only its own chunk along the code axis
+        chunk_code = 32 if codec.prefix_ordered and size > 32 else size
+    chunk_code = min(chunk_code, size)
+    levels = sorted({*range(chunk_code, size, chunk_code), size}) if codec.prefix_ordered else [size]
+    if chunk_blocks is None:
+        # keep an uncompressed chunk near or below 2 MiB (raw 4096-element codes get 4^3-block chunks)
+        itemsize = np.dtype(dtype).itemsize
+        chunk_blocks = 8 if 8 ** 3 * chunk_code * itemsize <= 2 << 20 else 4
+    return CodesSpec(size=size, dtype=dtype, chunk_blocks=chunk_blocks, chunk_code=chunk_code,
+                     prefix_ordered=codec.prefix_ordered, levels=levels)
+
+
+def _is_url(s: str) -> bool:
+    return "://" in s
+
+
+class Map:
+    """An open sdfcodec map. Get one from :func:`open_map` (read) or :func:`create_map` (write).
+
+    Geometry: voxel ``(i, j, k)`` lies at world position ``origin + voxel_size * (i, j, k)``; block
+    ``(bx, by, bz)`` covers voxels ``[16 bx, 16 bx + 16)`` on each axis. Decoded values are metres.
+    """
+
+    def __init__(self, group: zarr.Group, header: MapHeader, location: str, *,
+                 max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES):
+        self._group = group
+        self.header = header
+        self.location = location
+        self.max_decode_bytes = max_decode_bytes
+        self._codec: Codec | None = None
+        self._writer: _Writer | None = None
+        self._check_arrays()
+
+    # -- geometry -------------------------------------------------------------------------------------
+    @property
+    def voxel_size(self) -> float:
+        return self.header.voxel_size
+
+    @property
+    def truncation(self) -> tuple[float, float]:
+        return self.header.truncation.d_min, self.header.truncation.d_max
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        return self.header.origin
+
+    @property
+    def shape_voxels(self) -> tuple[int, int, int]:
+        return self.header.shape_voxels
+
+    @property
+    def grid_blocks(self) -> tuple[int, int, int]:
+        return self.header.grid_blocks
+
+    @property
+    def code_size(self) -> int:
+        return self.header.codes.size
+
+    @property
+    def writable(self) -> bool:
+        return self._writer is not None
+
+    def _check_arrays(self) -> None:
+        h = self.header
+        try:
+            codes, state = self._group["codes"], self._group["state"]
+        except KeyError as e:
+            raise FormatError(f"{self.location}: map lacks array {e}; it is incomplete or not an sdfcodec map") from e
+        if not isinstance(codes, zarr.Array) or not isinstance(state, zarr.Array):
+            raise FormatError(f"{self.location}: 'codes' and 'state' must be arrays")
+        if tuple(codes.shape) != (*h.grid_blocks, h.codes.size) or str(codes.dtype) != h.codes.dtype:
+            raise FormatError(f"{self.location}: codes array is {codes.dtype}{tuple(codes.shape)}, header says "
+                              f"{h.codes.dtype}{(*h.grid_blocks, h.codes.size)}")
+        if tuple(state.shape) != tuple(h.grid_blocks) or state.dtype != np.uint8:
+            raise FormatError(f"{self.location}: state array is {state.dtype}{tuple(state.shape)}, expected "
+                              f"uint8{tuple(h.grid_blocks)}")
+        self._codes, self._state = codes, state
+
+    # -- reading --------------------------------------------------------------------------------------
+    def _read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
+        """Read ``arr[sel]``; a chunk that fails its checksum or decompression becomes a ChecksumError
+        naming the chunk."""
+        try:
+            return np.asarray(arr[sel])
+        except Exception as exc:  # find the chunk(s) to name: slow path, errors only
+            raise ChecksumError(f"{self.location}: {self._bad_chunks(arr, sel)} of array '{arr.path}' is "
+                                f"corrupted or truncated ({type(exc).__name__}: {exc}); the map cannot be "
+                                "trusted there: restore it from a copy or re-encode") from exc
+
+    def _bad_chunks(self, arr: zarr.Array, sel: tuple) -> str:
+        ranges = []
+        for s, n, c in zip(sel, arr.shape, arr.chunks):
+            start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
+            ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
+        bad = []
+        for idx in itertools.product(*ranges):
+            try:
+                arr.blocks[idx]
+            except Exception:  # noqa: BLE001
+                bad.append("chunk c/" + "/".join(map(str, idx)))
+        return ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "") if bad else "a chunk"
+
+    def block_states(self) -> np.ndarray:
+        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
+        if self._writer is not None:
+            return self._writer.state.copy()
+        return self._read(self._state, (slice(None),) * 3)
+
+    def count_states(self) -> dict[str, int]:
+        counts = np.bincount(self.block_states().ravel(), minlength=3)
+        return {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
+
+    @property
+    def codec(self) -> Codec:
+        """The codec that wrote the map, with its learned state (loaded on first use).
+
+        Raises:
+            UnknownCodecError: its plugin is not installed (names the id and the package to install).
+        """
+        if self._codec is None:
+            spec = self.header.codec
+            cls = get_codec_class(spec.id, package_hint=spec.package)
+            codec = cls.from_config(spec.config)
+            state = {}
+            if spec.state_arrays:
+                grp = self._group["codec"]
+                for name in spec.state_arrays:
+                    arr = grp[name]
+                    state[name] = self._read(arr, (slice(None),) * arr.ndim)
+            if spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
+                raise ChecksumError(f"{self.location}: the codec state under codec/ does not match the digest "
+                                    "in the header; the map's codec arrays were altered or corrupted")
+            self._codec = codec.load_state_dict(state) if state else codec
+        return self._codec
+
+    def _level(self, level: int | None) -> int:
+        size = self.header.codes.size
+        if level is None or level == size:
+            return size
+        if not self.header.codes.prefix_ordered:
+            raise InvalidValueError(f"codec {self.header.codec.id!r} codes are not prefix-ordered, so level "
+                                    f"{level} cannot be decoded; omit the level (full size {size})")
+        if not isinstance(level, (int, np.integer)) or not 1 <= level <= size:
+            raise InvalidValueError(f"level must be an int in 1..{size}, got {level!r}")
+        return int(level)
+
+    def _block_box(self, region: Region | None, units: str) -> tuple[tuple[int, int], ...]:
+        """Voxel region -> validated half-open voxel bounds per axis."""
+        shape = self.shape_voxels
+        if region is None:
+            return tuple((0, n) for n in shape)
+        if len(region) != 3 or any(len(r) != 2 for r in region):
+            raise ShapeError(f"region must be ((x0, x1), (y0, y1), (z0, z1)), got {region!r}")
+        if units in ("m", "metres", "meters"):
+            o, vs = self.origin, self.voxel_size
+            # voxels whose centre lies in [lo, hi]; 1e-9 guards against rounding at exact voxel positions
+            vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.floor((hi - oo) / vs + 1e-9)) + 1)
+                        for (lo, hi), oo in zip(region, o))
+        elif units in ("voxels", "vox"):
+            vox = tuple((int(lo), int(hi)) for lo, hi in region)
+        else:
+            raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
+        for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):
+            if not 0 <= lo < hi <= n:
+                raise InvalidValueError(f"region {region!r} ({units}) is outside the map on axis {'xyz'[axis]}: "
+                                        f"voxels [{lo}, {hi}) vs extent [0, {n})")
+        return vox
+
+    def read_codes(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Codes of the coded blocks touching ``region``.
+
+        Returns:
+            ``coords`` ``(N, 3)`` int64 block indices and ``codes`` ``(N, L)`` float32, ``L = level or D``.
+            Only the chunks holding the first ``L`` code elements are read.
+        """
+        lv = self._level(level)
+        box = self._block_range(self._block_box(region, units))
+        return self._codes_in(box, lv)
+
+    @staticmethod
+    def _block_range(vox: tuple[tuple[int, int], ...]) -> tuple[slice, slice, slice]:
+        return tuple(slice(lo // BLOCK, -(-hi // BLOCK)) for lo, hi in vox)  # type: ignore[return-value]
+
+    def _codes_in(self, box: tuple[slice, slice, slice], level: int) -> tuple[np.ndarray, np.ndarray]:
+        state = self.block_states()[box]
+        local = np.argwhere(state == BlockState.CODED)
+        if not len(local):
+            return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
+        if self._writer is not None:
+            self._writer.flush()
+        codes = self._read(self._codes, (*box, slice(0, level)))
+        origin = np.array([s.start for s in box], dtype=np.int64)
+        return local + origin, codes[tuple(local.T)].astype(np.float32)
+
+    def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
+                    chunks_per_batch: int = 8) -> Iterator[tuple[np.ndarray, Any]]:
+        """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a few chunks
+        of the block grid at a time (bounded memory). ``blocks`` is numpy, or a tensor on ``device``."""
+        lv = self._level(level)
+        cb = self.header.codes.chunk_blocks
+        starts = [range(0, g, cb) for g in self.grid_blocks]
+        pending_c, pending_z = [], []
+        for n, (x, y, z) in enumerate(itertools.product(*starts), 1):
+            box = (slice(x, x + cb), slice(y, y + cb), slice(z, z + cb))
+            coords, codes = self._codes_in(box, lv)
+            if len(coords):
+                pending_c.append(coords)
+                pending_z.append(codes)
+            if pending_c and (n % chunks_per_batch == 0):
+                yield self._decode_batch(np.concatenate(pending_c), np.concatenate(pending_z), device)
+                pending_c, pending_z = [], []
+        if pending_c:
+            yield self._decode_batch(np.concatenate(pending_c), np.concatenate(pending_z), device)
+
+    def _decode_batch(self, coords: np.ndarray, codes: np.ndarray, device) -> tuple[np.ndarray, Any]:
+        d_min, d_max = self.truncation
+        dev = torch.device(device) if device is not None else torch.device("cpu")
+        v = self.codec.decode(torch.from_numpy(codes).to(dev))
+        blocks = v * (d_max - d_min) + d_min
+        return coords, blocks if device is not None else blocks.numpy()
+
+    def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
+                      device: str | torch.device | None = None, batch_size: int = 65536) -> Any:
+        """Decode a region to a dense TSDF in metres.
+
+        Args:
+            region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open, in voxels (default: the whole map) or, with
+                ``units="m"``, closed bounds in metres (the voxels whose centres lie inside).
+            level: decode only the first ``level`` code elements (prefix-ordered codecs only).
+            device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
+            batch_size: blocks per decode call.
+
+        Returns:
+            ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``.
+        """
+        lv = self._level(level)
+        vox = self._block_box(region, units)
+        box = self._block_range(vox)
+        nb = [s.stop - s.start for s in box]
+        nbytes = int(np.prod(nb)) * BLOCK ** 3 * 4
+        if nbytes > self.max_decode_bytes:
+            raise InvalidValueError(f"decoding {region or 'the whole map'} needs {nbytes / 2**30:.1f} GiB, above the "
+                                    f"limit of {self.max_decode_bytes / 2**30:.1f} GiB; decode a smaller region or "
+                                    "raise max_decode_bytes in open_map()")
+        coords, codes = self._codes_in(box, lv)
+        dev = torch.device(device) if device is not None else torch.device("cpu")
+        d_max = self.truncation[1]
+        out = torch.full([n * BLOCK for n in nb], d_max, dtype=torch.float32, device=dev)
+        view = out.view(nb[0], BLOCK, nb[1], BLOCK, nb[2], BLOCK).permute(0, 2, 4, 1, 3, 5)
+        local = torch.from_numpy(coords - np.array([s.start for s in box])).to(dev)
+        for i in range(0, len(coords), batch_size):
+            _, blocks = self._decode_batch(coords[i:i + batch_size], codes[i:i + batch_size], dev)
+            idx = local[i:i + batch_size]
+            view[idx[:, 0], idx[:, 1], idx[:, 2]] = blocks
+        crop = tuple(slice(lo - s.start * BLOCK, hi - s.start * BLOCK) for (lo, hi), s in zip(vox, box))
+        out = out[crop]
+        return out.contiguous() if device is not None else out.numpy().copy()
+
+    def info(self) -> dict[str, Any]:
+        """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""
+        h = self.header
+        dense = int(np.prod(h.shape_voxels)) * 4
+        on_disk = _dir_bytes(self.location) if not _is_url(self.location) else None
+        state_bytes = _dir_bytes(str(Path(self.location) / "codec")) if on_disk is not None else None
+        counts = self.count_states()
+        return {
+            "location": self.location,
+            "format_version": h.format_version,
+            "codec": h.codec.config,
+            "code_size": h.codes.size,
+            "code_dtype": h.codes.dtype,
+            "levels": h.codes.levels,
+            "voxel_size": h.voxel_size,
+            "truncation": [h.truncation.d_min, h.truncation.d_max],
+            "origin": list(h.origin),
+            "shape_voxels": list(h.shape_voxels),
+            "grid_blocks": list(h.grid_blocks),
+            "blocks": counts,
+            "code_bytes_raw": counts["coded"] * h.codes.size * np.dtype(h.codes.dtype).itemsize,
+            "bytes_on_disk": on_disk,
+            "dense_float32_bytes": dense,
+            "codec_state_bytes": state_bytes,
+            "ratio_dense_to_disk": (dense / on_disk) if on_disk else None,
+            # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
+            "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
+            "provenance": h.provenance.model_dump(),
+        }
+
+    # -- writing (maps from create_map) ---------------------------------------------------------------
+    def _w(self) -> "_Writer":
+        if self._writer is None:
+            raise ReadOnlyError(f"{self.location} is open read-only; write with sdfcodec.create_map(...)")
+        return self._writer
+
+    def write_volume(self, volume: Any, *, offset: Sequence[int] = (0, 0, 0), batch_size: int = 16384,
+                     progress: Callable[[int], None] | None = None) -> None:
+        """Encode a dense TSDF ``(X, Y, Z)`` in metres, placed at voxel ``offset`` (multiples of 16).
+
+        The map's extent grows to hold it (``shape_voxels`` records the true extent; the far faces are padded
+        with free space). Values outside the truncation are clipped with a warning; NaN/Inf are refused.
+        """
+        w = self._w()
+        vol = _check_volume(volume, self.truncation)
+        off = np.asarray(offset, dtype=np.int64)
+        if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
+            raise ShapeError(f"offset must be three non-negative multiples of {BLOCK} voxels, got {tuple(offset)}")
+        w.grow_voxels(tuple(int(o + n) for o, n in zip(off, vol.shape)))
+        d_min, d_max = self.truncation
+        blocks = split_blocks(vol, fill=d_max)
+        gb = blocks.shape[:3]
+        flat = blocks.reshape(-1, BLOCK, BLOCK, BLOCK)
+        coords = np.stack(np.meshgrid(*[np.arange(n) for n in gb], indexing="ij"), -1).reshape(-1, 3) + off // BLOCK
+        w.put_blocks(coords, flat, batch_size=batch_size, progress=progress)
+
+    def write_blocks(self, coords: Any, blocks: Any, *, batch_size: int = 16384,
+                     progress: Callable[[int], None] | None = None) -> None:
+        """Encode blocks ``(N, 16, 16, 16)`` in metres at block indices ``coords`` ``(N, 3)`` (non-negative)."""
+        w = self._w()
+        c = _check_coords(coords)
+        b = _check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
+        if len(c):
+            w.grow_voxels(tuple(int(v) for v in (c.max(axis=0) + 1) * BLOCK))
+        w.put_blocks(c, b, batch_size=batch_size, progress=progress)
+
+    def write_codes(self, coords: Any, codes: Any) -> None:
+        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords``."""
+        w = self._w()
+        c = _check_coords(coords)
+        z, _ = as_float_tensor(codes, "codes", (len(c), self.code_size))
+        if len(c):
+            w.grow_voxels(tuple(int(v) for v in (c.max(axis=0) + 1) * BLOCK))
+        w.put_codes(c, z.numpy())
+
+    def mark_empty(self, coords: Any) -> None:
+        """Record blocks as observed free space (no code stored)."""
+        w = self._w()
+        c = _check_coords(coords)
+        if len(c):
+            w.grow_voxels(tuple(int(v) for v in (c.max(axis=0) + 1) * BLOCK))
+            w.set_state(c, BlockState.EMPTY)
+
+    def commit(self) -> None:
+        """Finish writing and move the map into place atomically; the object then reads the committed map."""
+        w = self._w()
+        final = w.commit()
+        self._writer = None
+        reopened = open_map(final, max_decode_bytes=self.max_decode_bytes)
+        self._group, self.header, self.location = reopened._group, reopened.header, reopened.location
+        self._check_arrays()
+
+    def abort(self) -> None:
+        """Discard everything written; the previous map at the path (if any) is untouched."""
+        if self._writer is not None:
+            self._writer.abort()
+            self._writer = None
+
+    def __enter__(self) -> "Map":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._writer is None:
+            return
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+
+    def __repr__(self) -> str:
+        mode = "writing" if self._writer else "read-only"
+        return (f"<sdfcodec.Map {self.location!r} {mode} codec={self.header.codec.id}-{self.code_size} "
+                f"voxels={self.shape_voxels} voxel_size={self.voxel_size}>")
+
+
+def _dir_bytes(path: str) -> int | None:
+    p = Path(path)
+    if p.is_file():
+        return p.stat().st_size
+    if not p.is_dir():
+        return None
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+
+def _check_coords(coords: Any) -> np.ndarray:
+    c = np.asarray(coords)
+    if c.ndim != 2 or c.shape[1] != 3:
+        raise ShapeError(f"block coords must have shape (N, 3), got {c.shape}")
+    if c.dtype.kind not in "iu":
+        if c.dtype.kind == "f" and np.all(np.isfinite(c)) and np.all(c == np.round(c)):
+            c = c.astype(np.int64)
+        else:
+            raise ShapeError(f"block coords must be integers, got dtype {c.dtype}")
+    if len(c) and c.min() < 0:
+        raise InvalidValueError("block coords must be non-negative (move the map origin to cover negative "
+                                f"positions); got minimum {int(c.min())}")
+    if len(np.unique(c, axis=0)) != len(c):
+        raise InvalidValueError("block coords hold duplicates; write each block once per call")
+    return c.astype(np.int64)
+
+
+def _check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | None = None,
+                  name: str = "volume") -> np.ndarray:
+    if isinstance(volume, torch.Tensor):
+        volume = volume.detach().cpu().numpy()
+    v = np.asarray(volume)
+    if v.dtype.kind != "f":
+        from .errors import DTypeError
+
+        raise DTypeError(f"{name} must be floating point metres, got dtype {v.dtype}")
+    if shape is None and v.ndim != 3:
+        raise ShapeError(f"{name} must be a dense (X, Y, Z) array of metres, got shape {v.shape}")
+    if shape is not None and v.shape != shape:
+        raise ShapeError(f"{name} must have shape {shape}, got {v.shape}")
+    finite = np.isfinite(v)
+    if not finite.all():
+        raise InvalidValueError(f"{name} holds {int((~finite).sum())} NaN/Inf value(s); replace unobserved "
+                                f"voxels with d_max (e.g. np.nan_to_num(v, nan={truncation[1]}))")
+    d_min, d_max = truncation
+    outside = int(((v < d_min) | (v > d_max)).sum())
+    if outside:
+        warnings.warn(f"{outside} value(s) of {name} lie outside the truncation [{d_min}, {d_max}] m and were "
+                      "clipped to it", SDFCodecWarning, stacklevel=3)
+        v = np.clip(v, d_min, d_max)
+    return v.astype(np.float32, copy=False)
+
+
+class _Writer:
+    """State of a map being written into its temporary directory."""
+
+    def __init__(self, final: Path, tmp: Path, group: zarr.Group, codec: Codec, header_kw: dict,
+                 codes_spec: CodesSpec, overwrite: bool, device: torch.device):
+        self.final, self.tmp, self.group, self.codec = final, tmp, group, codec
+        self.header_kw, self.codes_spec, self.overwrite, self.device = header_kw, codes_spec, overwrite, device
+        self.shape_voxels = tuple(header_kw.pop("shape_voxels"))
+        self.grid = tuple(-(-n // BLOCK) for n in self.shape_voxels)
+        self.state = np.zeros(self.grid, dtype=np.uint8)
+        self.codes = group["codes"]
+
+    def flush(self) -> None:
+        """Nothing is buffered between calls; kept so readers of a writing map can ask."""
+
+    def grow_voxels(self, need: tuple[int, int, int]) -> None:
+        self.shape_voxels = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
+        grid = tuple(-(-n // BLOCK) for n in self.shape_voxels)
+        if grid != self.grid:
+            state = np.zeros(grid, dtype=np.uint8)
+            state[tuple(slice(0, n) for n in self.grid)] = self.state
+            self.state, self.grid = state, grid
+            self.codes.resize((*grid, self.codes_spec.size))
+
+    def set_state(self, coords: np.ndarray, value: int) -> None:
+        self.state[tuple(coords.T)] = value
+
+    def put_blocks(self, coords: np.ndarray, blocks_m: np.ndarray, *, batch_size: int,
+                   progress: Callable[[int], None] | None) -> None:
+        d_min, d_max = self.header_kw["truncation"].d_min, self.header_kw["truncation"].d_max
+        for i in range(0, len(coords), batch_size):
+            c = coords[i:i + batch_size]
+            v = normalise(blocks_m[i:i + batch_size], d_min, d_max)
+            empty = (v >= 1.0 - _EMPTY_EPS).reshape(len(v), -1).all(axis=1)
+            self.set_state(c[empty], BlockState.EMPTY)
+            if (~empty).any():
+                codes = self.codec.encode(torch.from_numpy(np.ascontiguousarray(v[~empty])).to(self.device))
+                self.put_codes(c[~empty], codes.cpu().numpy())
+            if progress is not None:
+                progress(len(c))
+
+    def put_codes(self, coords: np.ndarray, codes: np.ndarray) -> None:
+        """Scatter codes into whole chunks: one write per touched chunk (read first only if it had data)."""
+        if not len(coords):
+            return
+        if not np.isfinite(codes).all():
+            raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
+        cb, size = self.codes_spec.chunk_blocks, self.codes_spec.size
+        dtype = np.dtype(self.codes_spec.dtype)
+        chunk_of = coords // cb
+        order = np.lexsort(chunk_of.T[::-1])
+        coords, codes, chunk_of = coords[order], codes[order], chunk_of[order]
+        bounds = np.flatnonzero(np.any(np.diff(chunk_of, axis=0) != 0, axis=1)) + 1
+        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(coords)]):
+            ch = chunk_of[lo]
+            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, self.grid))
+            had = (self.state[box] == BlockState.CODED).any()
+            shape = [s.stop - s.start for s in box]
+            buf = np.asarray(self.codes[box]) if had else np.zeros((*shape, size), dtype=dtype)
+            local = coords[lo:hi] - ch * cb
+            buf[tuple(local.T)] = codes[lo:hi].astype(dtype)
+            self.codes[box] = buf
+        self.set_state(coords, BlockState.CODED)
+
+    def commit(self) -> Path:
+        st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0,
+                                     chunks=tuple(min(64, max(1, n)) for n in self.grid),
+                                     compressors=_compressors())
+        st[...] = self.state
+        # codes of blocks that are no longer coded (overwritten as empty) are zeroed for tidiness
+        header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
+                           **self.header_kw)
+        self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
+        if self.final.exists() and not self.overwrite:
+            self.abort()
+            raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
+        if self.final.exists():
+            backup = self.final.with_name(f".{self.final.name}.old-{uuid.uuid4().hex[:8]}")
+            os.replace(self.final, backup)  # a crash from here to the next line leaves no map, never half of one
+            os.replace(self.tmp, self.final)
+            _rmtree(backup)
+        else:
+            os.replace(self.tmp, self.final)
+        return self.final
+
+    def abort(self) -> None:
+        _rmtree(self.tmp)
+
+
+def _rmtree(p: Path) -> None:
+    if p.is_dir():
+        shutil.rmtree(p, ignore_errors=True)
+    elif p.exists():
+        p.unlink()
+
+
+def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
+    pkg = codec_package(codec.codec_id)
+    if pkg is None:
+        top = type(codec).__module__.split(".")[0]
+        pkg = (metadata.packages_distributions().get(top) or [None])[0]
+    try:
+        version = metadata.version(pkg) if pkg else None
+    except metadata.PackageNotFoundError:
+        version = None
+    return pkg, version
+
+
+def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
+               truncation: tuple[float, float] = (-0.04, 0.1), origin: Sequence[float] = (0.0, 0.0, 0.0),
+               shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
+               chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
+               device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None) -> Map:
+    """Start writing a new map at ``path`` (a local directory). Use as a context manager::
+
+        with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
+            m.write_volume(tsdf)          # metres, (X, Y, Z)
+
+    Everything is written to a hidden sibling directory and moved into place on commit (leaving the block
+    without an exception); on an exception nothing at ``path`` changes.
+
+    Args:
+        codec: a fitted codec instance (its config and learned state are stored in the map).
+        voxel_size: voxel edge in metres. truncation: ``(d_min, d_max)`` metres. origin: world position of
+            voxel (0, 0, 0). shape_voxels: initial extent (grows with the data written).
+        code_dtype: ``"float32"`` or ``"float16"`` code storage.
+        chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
+        overwrite: replace an existing map at ``path`` (atomically, on commit).
+        device: where encoding runs.
+    """
+    final = Path(path)
+    if _is_url(str(path)):
+        raise InvalidValueError(f"maps are written to local paths; got URL {path} (write locally, then upload)")
+    if final.exists() and not overwrite:
+        raise MapExistsError(f"{final} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    if final.suffix == ".zip":
+        raise InvalidValueError("writing zip maps is not supported; write a directory map and zip its contents")
+    if not codec.is_fitted:
+        codec._check_fitted()
+    if code_dtype not in ("float32", "float16"):
+        raise InvalidValueError(f"code_dtype must be 'float32' or 'float16', got {code_dtype!r}")
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise InvalidValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
+    check_truncation(*truncation)
+    if len(origin) != 3 or not np.all(np.isfinite(origin)):
+        raise InvalidValueError(f"origin must be three finite numbers (metres), got {origin!r}")
+    spec = _code_layout(codec, code_dtype, chunk_blocks, chunk_code)
+    state = codec.state_dict()
+    pkg, pkg_version = _distribution_of(codec)
+    header_kw = dict(
+        voxel_size=float(voxel_size), truncation=Truncation(d_min=truncation[0], d_max=truncation[1]),
+        origin=tuple(float(o) for o in origin),
+        codec=CodecSpec(id=codec.codec_id, config=codec.get_config(), package=pkg, package_version=pkg_version,
+                        state_arrays=sorted(state), state_sha256=state_digest(state) if state else None),
+        provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
+    )
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.with_name(f".{final.name}.tmp-{uuid.uuid4().hex[:8]}")
+    group = zarr.open_group(zarr.storage.LocalStore(str(tmp)), mode="w", zarr_format=3)
+    try:
+        grid = tuple(-(-int(n) // BLOCK) for n in shape_voxels)
+        cb, cc = spec.chunk_blocks, spec.chunk_code
+        group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
+                           chunks=(cb, cb, cb, cc), compressors=_compressors(),
+                           dimension_names=["bx", "by", "bz", "code"])
+        cgroup = group.create_group("codec")
+        for name, arr in state.items():
+            arr = np.ascontiguousarray(arr)
+            a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
+                                    compressors=_compressors())
+            a[...] = arr
+    except BaseException:
+        _rmtree(tmp)
+        raise
+    m = Map.__new__(Map)
+    m._group, m.location, m.max_decode_bytes, m._codec = group, str(final), DEFAULT_MAX_DECODE_BYTES, codec
+    m.header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=grid, codes=spec,
+                         **header_kw)
+    m._writer = _Writer(final, tmp, group, codec, dict(header_kw, shape_voxels=m.header.shape_voxels), spec,
+                        overwrite, torch.device(device))
+    m._codes = group["codes"]
+    return m
+
+
+def open_map(path_or_url: str | os.PathLike, *, storage_options: dict | None = None,
+             max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
+    """Open a map read-only: a local directory, a ``.zip``, or a URL (``http(s)://``, ``s3://``,
+    ``file://``... through fsspec). Reads only the header and array metadata; data is read on demand."""
+    loc = str(path_or_url)
+    try:
+        if _is_url(loc):
+            store = zarr.storage.FsspecStore.from_url(loc, read_only=True, storage_options=storage_options)
+        else:
+            p = Path(loc)
+            if not p.exists():
+                raise MapNotFoundError(f"no map at {loc}")
+            store = zarr.storage.ZipStore(p, mode="r") if p.is_file() else zarr.storage.LocalStore(p, read_only=True)
+        group = zarr.open_group(store, mode="r", zarr_format=3)
+    except (MapNotFoundError, FormatError):
+        raise
+    except FileNotFoundError as e:
+        raise MapNotFoundError(f"no map at {loc}") from e
+    except Exception as e:
+        raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
+    header = parse_header(group.attrs.get("sdfcodec"), where=loc)
+    return Map(group, header, loc, max_decode_bytes=max_decode_bytes)

@@ -1,0 +1,82 @@
+"""Model files: a trained codec (its config and learned state) as one ``.npz`` of plain arrays.
+
+Layout: every state array under its own name, plus ``__sdfcodec_model__``, a uint8 array holding UTF-8 JSON
+``{"format": "sdfcodec-model", "version": 1, "config": {...}}``. Files are read with
+``allow_pickle=False``: object arrays are refused, never unpickled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from .codec import Codec
+from .errors import FormatError, VersionError
+
+__all__ = ["save_model", "load_model", "save_state_file", "load_state_file"]
+
+_META = "__sdfcodec_model__"
+MODEL_FORMAT = "sdfcodec-model"
+MODEL_VERSION = 1
+
+
+def save_state_file(path: str | Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """Write plain arrays to ``path`` (.npz, compressed), atomically (temp file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_state_file(path: str | Path) -> dict[str, np.ndarray]:
+    """Read the arrays of a ``.npz`` without ever unpickling."""
+    try:
+        with np.load(Path(path), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise
+    except ValueError as e:  # object arrays need pickle: refused
+        raise FormatError(f"{path}: holds object arrays, which sdfcodec never unpickles ({e})") from e
+    except Exception as e:
+        raise FormatError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from e
+
+
+def save_model(codec: Codec, path: str | Path) -> Path:
+    """Save a fitted codec to ``path`` (``.npz``); returns the path."""
+    codec._check_fitted()
+    meta = json.dumps({"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": codec.get_config()})
+    arrays = dict(codec.state_dict())
+    arrays[_META] = np.frombuffer(meta.encode(), dtype=np.uint8)
+    save_state_file(path, arrays)
+    return Path(path)
+
+
+def load_model(path: str | Path) -> Codec:
+    """Load a codec saved by :func:`save_model` (its plugin must be installed)."""
+    from .registry import get_codec
+
+    arrays = load_state_file(path)
+    if _META not in arrays:
+        raise FormatError(f"{path}: not an sdfcodec model (no {_META} entry); models are written by "
+                          "`sdfcodec train` or sdfcodec.model.save_model")
+    try:
+        meta = json.loads(arrays.pop(_META).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FormatError(f"{path}: model metadata is not valid JSON ({e})") from e
+    if meta.get("format") != MODEL_FORMAT:
+        raise FormatError(f"{path}: model format is {meta.get('format')!r}, expected {MODEL_FORMAT!r}")
+    if not isinstance(meta.get("version"), int) or meta["version"] > MODEL_VERSION:
+        raise VersionError(f"{path}: model format version {meta.get('version')} is newer than this sdfcodec "
+                           f"reads ({MODEL_VERSION}); upgrade sdfcodec")
+    return get_codec(meta["config"]).load_state_dict(arrays)

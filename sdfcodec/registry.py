@@ -1,0 +1,121 @@
+"""Codec registry: codecs are found through the ``sdfcodec.codecs`` entry point group.
+
+Listing is eager (entry point names only, nothing imported); loading is lazy (a plugin's module is imported
+the first time its codec is asked for). A plugin that fails to import raises :class:`PluginLoadError` naming
+it, and never breaks the listing or loading of other codecs. :func:`register_codec` adds a class at run time
+(e.g. in tests or notebooks) and takes precedence over an entry point of the same id.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any, Mapping
+
+from .codec import Codec
+from .errors import PluginLoadError, UnknownCodecError
+
+__all__ = ["list_codecs", "get_codec", "get_codec_class", "register_codec", "codec_package", "CodecEntry"]
+
+ENTRY_POINT_GROUP = "sdfcodec.codecs"
+_ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
+_runtime: dict[str, type[Codec]] = {}
+_loaded: dict[str, type[Codec]] = {}
+
+
+@dataclass(frozen=True)
+class CodecEntry:
+    """One installed codec as listed (without importing it)."""
+
+    id: str
+    package: str | None  # the distribution that provides it (None for run-time registrations)
+    version: str | None
+    target: str  # "module:attribute"
+
+
+def _entry_points() -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def _entries() -> dict[str, CodecEntry]:
+    out: dict[str, CodecEntry] = {}
+    for name, ep in _entry_points().items():
+        dist = getattr(ep, "dist", None)
+        out[name] = CodecEntry(name, dist.name if dist else None, dist.version if dist else None, ep.value)
+    for name, cls in _runtime.items():
+        out[name] = CodecEntry(name, None, None, f"{cls.__module__}:{cls.__qualname__}")
+    return out
+
+
+def list_codecs() -> list[CodecEntry]:
+    """All installed codecs, sorted by id, without importing any plugin."""
+    return [e for _, e in sorted(_entries().items())]
+
+
+def codec_package(codec_id: str) -> str | None:
+    """The distribution that provides ``codec_id``, or None when unknown or registered at run time."""
+    entry = _entries().get(codec_id)
+    return entry.package if entry else None
+
+
+def get_codec_class(codec_id: str, *, package_hint: str | None = None) -> type[Codec]:
+    """Load the class of ``codec_id``.
+
+    Raises:
+        UnknownCodecError: no such codec installed (names the id, ``package_hint`` and what is installed).
+        PluginLoadError: the plugin is installed but its import failed.
+    """
+    if codec_id in _runtime:
+        return _runtime[codec_id]
+    if codec_id in _loaded:
+        return _loaded[codec_id]
+    eps = _entry_points()
+    ep = eps.get(codec_id)
+    if ep is None:
+        installed = ", ".join(sorted(set(eps) | set(_runtime))) or "none"
+        where = f" (provided by package {package_hint!r}: pip install {package_hint})" if package_hint else ""
+        raise UnknownCodecError(f"codec {codec_id!r} is not installed{where}; installed codecs: {installed}")
+    try:
+        cls = ep.load()
+    except Exception as exc:
+        dist = getattr(ep, "dist", None)
+        raise PluginLoadError(f"codec plugin {codec_id!r} ({ep.value}, package "
+                              f"{dist.name if dist else '?'}) failed to import: {type(exc).__name__}: {exc}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, Codec)):
+        raise PluginLoadError(f"entry point {codec_id!r} = {ep.value} is not a sdfcodec.Codec subclass")
+    if getattr(cls, "codec_id", None) != codec_id:
+        raise PluginLoadError(f"entry point {codec_id!r} loads {cls.__qualname__} whose codec_id is "
+                              f"{getattr(cls, 'codec_id', None)!r}; they must match")
+    _loaded[codec_id] = cls
+    return cls
+
+
+def get_codec(id_or_config: str | Mapping[str, Any], **params: Any) -> Codec:
+    """Build a codec from an id plus parameters, or from a config dict (``{"id": ..., ...}``).
+
+    The config dict is not modified; ``params`` override its entries. The codec is returned unfitted.
+    """
+    if isinstance(id_or_config, str):
+        config: dict[str, Any] = {"id": id_or_config}
+    elif isinstance(id_or_config, Mapping):
+        if "id" not in id_or_config:
+            raise UnknownCodecError(f"codec config has no 'id' key: {dict(id_or_config)!r}")
+        config = dict(id_or_config)
+    else:
+        raise TypeError(f"get_codec takes a codec id or a config dict, got {type(id_or_config).__name__}")
+    config.update(params)
+    return get_codec_class(str(config["id"])).from_config(config)
+
+
+def register_codec(cls: type[Codec], *, replace: bool = False) -> type[Codec]:
+    """Register a codec class at run time (usable as a decorator); returns ``cls``."""
+    if not (isinstance(cls, type) and issubclass(cls, Codec)):
+        raise TypeError(f"register_codec takes a Codec subclass, got {cls!r}")
+    cid = getattr(cls, "codec_id", None)
+    if not isinstance(cid, str) or not _ID_RE.match(cid):
+        raise ValueError(f"{cls.__qualname__}.codec_id must match {_ID_RE.pattern}, got {cid!r}")
+    if not replace and cid in _runtime and _runtime[cid] is not cls:
+        raise ValueError(f"codec {cid!r} is already registered ({_runtime[cid].__qualname__}); pass replace=True")
+    _runtime[cid] = cls
+    return cls
