@@ -44,7 +44,9 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
     if t.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
         hint = " (a single block needs a batch axis: x[None])" if t.ndim == len(shape) - 1 else ""
         raise ShapeError(f"{name} must have shape {expected}, got {tuple(t.shape)}{hint}")
-    if check_finite and t.numel() and not bool(torch.isfinite(t).all()):
+    # fast path: one reduction (NaN/Inf propagate into the sum); the exact element test runs only when the sum
+    # is not finite, which also covers finite values whose sum overflows
+    if check_finite and t.numel() and not bool(torch.isfinite(t.sum())) and not bool(torch.isfinite(t).all()):
         bad = int((~torch.isfinite(t)).sum())
         raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
                                 "(replace unobserved voxels with the truncation distance d_max)")
@@ -54,3 +56,11 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
 def like_input(t: torch.Tensor, was_numpy: bool) -> Any:
     """Return ``t`` as numpy when the input was numpy, else as the tensor itself."""
     return t.detach().cpu().numpy() if was_numpy else t
+
+
+def empty(shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
+    """An uninitialised float32 tensor. On the CPU it is allocated by numpy, which asks the kernel for huge
+    pages on large arrays: first-touch page faults of a fresh torch allocation halve decode throughput."""
+    if device.type == "cpu":
+        return torch.from_numpy(np.empty(shape, dtype=np.float32))
+    return torch.empty(shape, dtype=torch.float32, device=device)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Optional
@@ -259,9 +260,10 @@ def encode_cmd(
         codec.fit(v)
         fitted_on = len(v)
 
+    shape = src_map.shape_voxels if src_map is not None else (0, 0, 0)
     with _progress() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,
-                                         code_dtype=code_dtype, overwrite=overwrite, device=device,
-                                         tool="sdfcodec encode", source=str(input)) as m:
+                                         shape_voxels=shape, code_dtype=code_dtype, overwrite=overwrite,
+                                         device=device, tool="sdfcodec encode", source=str(input)) as m:
         if src_map is not None:
             total = src_map.count_states()["coded"]
             task = prog.add_task("transcoding", total=total, rate="")
@@ -270,7 +272,6 @@ def encode_cmd(
                 # a lossy decode overshoots the truncation a little: clip quietly, that is not bad input
                 m.write_blocks(coords, np.clip(blocks, *trunc))
                 prog.advance(task, len(coords))
-            m._w().grow_voxels(src_map.shape_voxels)
         else:
             nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
             task = prog.add_task("encoding", total=nblocks, rate="")
@@ -354,6 +355,20 @@ def bench_cmd(
                       f"{r['baseline_blocks_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}",
                       f"{r['us_per_block']:.2f}", f"{PAPER_US_PER_BLOCK[0] / r['us_per_block']:,.0f}x")
     out.print(table)
+
+
+@app.command("demo")
+@_cli
+def demo_cmd(
+    out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the maps and report.md."),
+    voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge in metres."),
+) -> None:
+    """Compress the built-in analytic room at pca-32/64/128 and write OUT/report.md (nothing downloaded)."""
+    from .demo import run_demo
+
+    t0 = time.perf_counter()
+    run_demo(out_dir, voxel_size=voxel_size, log=lambda s: err.print(s, highlight=False))
+    out.print(f"report: {out_dir / 'report.md'} ({time.perf_counter() - t0:.0f} s)")
 
 
 def main() -> None:

@@ -33,10 +33,10 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 import torch
 
-from ._validate import BLOCK, as_float_tensor, like_input
+from ._validate import BLOCK, as_float_tensor, empty, like_input
 from .errors import InvalidValueError, NotFittedError, ShapeError
 
-__all__ = ["Codec", "BLOCK"]
+__all__ = ["Codec", "BLOCK", "empty"]
 
 
 class Codec(abc.ABC):

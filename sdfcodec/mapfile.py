@@ -28,10 +28,11 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 import torch
 import zarr
+import zarr.abc.store
 from zarr.codecs import BloscCodec, Crc32cCodec
 
 from . import __version__
-from ._validate import BLOCK, as_float_tensor
+from ._validate import BLOCK, as_float_tensor, empty
 from .blocks import check_truncation, denormalise, normalise, split_blocks
 from .codec import Codec
 from .errors import (ChecksumError, FormatError, InvalidValueError, MapExistsError, MapNotFoundError,
@@ -174,7 +175,11 @@ class Map:
         """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
         if self._writer is not None:
             return self._writer.state.copy()
-        return self._read(self._state, (slice(None),) * 3)
+        state = self._read(self._state, (slice(None),) * 3)
+        if state.size and state.max() > BlockState.CODED:
+            raise FormatError(f"{self.location}: state array holds reserved value {int(state.max())} "
+                              "(valid: 0 unobserved, 1 empty, 2 coded)")
+        return state
 
     def count_states(self) -> dict[str, int]:
         counts = np.bincount(self.block_states().ravel(), minlength=3)
@@ -316,7 +321,7 @@ class Map:
         coords, codes = self._codes_in(box, lv)
         dev = torch.device(device) if device is not None else torch.device("cpu")
         d_max = self.truncation[1]
-        out = torch.full([n * BLOCK for n in nb], d_max, dtype=torch.float32, device=dev)
+        out = empty(tuple(n * BLOCK for n in nb), dev).fill_(d_max)
         view = out.view(nb[0], BLOCK, nb[1], BLOCK, nb[2], BLOCK).permute(0, 2, 4, 1, 3, 5)
         local = torch.from_numpy(coords - np.array([s.start for s in box])).to(dev)
         for i in range(0, len(coords), batch_size):
@@ -390,7 +395,7 @@ class Map:
         c = _check_coords(coords)
         b = _check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
         if len(c):
-            w.grow_voxels(tuple(int(v) for v in (c.max(axis=0) + 1) * BLOCK))
+            w.grow_blocks(c.max(axis=0))
         w.put_blocks(c, b, batch_size=batch_size, progress=progress)
 
     def write_codes(self, coords: Any, codes: Any) -> None:
@@ -399,7 +404,7 @@ class Map:
         c = _check_coords(coords)
         z, _ = as_float_tensor(codes, "codes", (len(c), self.code_size))
         if len(c):
-            w.grow_voxels(tuple(int(v) for v in (c.max(axis=0) + 1) * BLOCK))
+            w.grow_blocks(c.max(axis=0))
         w.put_codes(c, z.numpy())
 
     def mark_empty(self, coords: Any) -> None:
@@ -407,7 +412,7 @@ class Map:
         w = self._w()
         c = _check_coords(coords)
         if len(c):
-            w.grow_voxels(tuple(int(v) for v in (c.max(axis=0) + 1) * BLOCK))
+            w.grow_blocks(c.max(axis=0))
             w.set_state(c, BlockState.EMPTY)
 
     def commit(self) -> None:
@@ -517,6 +522,12 @@ class _Writer:
             state[tuple(slice(0, n) for n in self.grid)] = self.state
             self.state, self.grid = state, grid
             self.codes.resize((*grid, self.codes_spec.size))
+
+    def grow_blocks(self, max_coord: np.ndarray) -> None:
+        """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
+        need = tuple((int(m) + 1) * BLOCK if int(m) >= g else n
+                     for m, g, n in zip(max_coord, self.grid, self.shape_voxels))
+        self.grow_voxels(need)
 
     def set_state(self, coords: np.ndarray, value: int) -> None:
         self.state[tuple(coords.T)] = value
@@ -678,13 +689,15 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     return m
 
 
-def open_map(path_or_url: str | os.PathLike, *, storage_options: dict | None = None,
+def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
              max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
-    """Open a map read-only: a local directory, a ``.zip``, or a URL (``http(s)://``, ``s3://``,
-    ``file://``... through fsspec). Reads only the header and array metadata; data is read on demand."""
+    """Open a map read-only: a local directory, a ``.zip``, a URL (``http(s)://``, ``s3://``, ``file://``...
+    through fsspec) or any Zarr store. Reads only the header and array metadata; data is read on demand."""
     loc = str(path_or_url)
     try:
-        if _is_url(loc):
+        if isinstance(path_or_url, zarr.abc.store.Store):
+            store = path_or_url
+        elif _is_url(loc):
             store = zarr.storage.FsspecStore.from_url(loc, read_only=True, storage_options=storage_options)
         else:
             p = Path(loc)

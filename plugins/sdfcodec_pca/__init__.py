@@ -27,6 +27,7 @@ import torch
 from sklearn.decomposition import PCA
 
 from sdfcodec import Codec
+from sdfcodec.codec import empty
 from sdfcodec.errors import InvalidValueError, ShapeError
 
 __all__ = ["PCACodec"]
@@ -133,4 +134,5 @@ class PCACodec(Codec):
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         _, _, dec_w, dec_b = self._on(codes.device)
         k = codes.shape[1]
-        return torch.addmm(dec_b, codes, dec_w[:k]).reshape(len(codes), 16, 16, 16)
+        out = empty((len(codes), _N), codes.device)
+        return torch.addmm(dec_b, codes, dec_w[:k], out=out).reshape(len(codes), 16, 16, 16)

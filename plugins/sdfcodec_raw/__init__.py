@@ -1,4 +1,5 @@
-"""The ``raw`` codec: the code of a block is the block itself (4096 values), lossless.
+"""The ``raw`` codec: the code of a block is the block itself (4096 values), lossless up to float32
+rounding of the metres <-> [0, 1] normalisation (about 1e-8 m).
 
 Fused maps are stored with it so they can be transcoded later (``sdfcodec encode MAP OUT --codec pca``);
 with float16 code storage it halves the bytes at about 1e-3 normalised error (float16's resolution near 1).

@@ -5,11 +5,12 @@ Each check raises ``AssertionError`` naming the check and what was wrong, so it 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import re
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -40,6 +41,17 @@ def _raises(exc: type[BaseException], fn: Callable[[], Any], what: str) -> None:
     except Exception as e:  # noqa: BLE001 - we report the wrong type
         raise AssertionError(f"{what}: expected sdfcodec.errors.{exc.__name__}, got {type(e).__name__}: {e}") from e
     raise AssertionError(f"{what}: expected sdfcodec.errors.{exc.__name__}, nothing was raised")
+
+
+@contextlib.contextmanager
+def _check(name: str) -> Iterator[None]:
+    """Report an unexpected exception inside a check as that check's failure."""
+    try:
+        yield
+    except AssertionError:
+        raise
+    except Exception as e:  # noqa: BLE001
+        raise AssertionError(f"{name}: raised {type(e).__name__}: {e}") from e
 
 
 def _close(a: np.ndarray, b: np.ndarray, atol: float, what: str) -> None:
@@ -98,87 +110,81 @@ def check_codec(codec: Codec, *, blocks: np.ndarray | None = None, golden: str |
     done("config round trip")
 
     # 3. fitting
-    if cls.requires_fit:
-        _raises(errors.NotFittedError, lambda: rebuilt.encode(x[:2]), "fitting: encode before fit")
-        if not codec.is_fitted:
-            assert codec.fit(x) is codec, "fitting: fit() must return self"
-        assert codec.is_fitted, "fitting: is_fitted is False after fit"
-    else:
-        assert codec.fit(x) is codec, "fitting: fit() must return self (even when it learns nothing)"
-    done("fit")
+    with _check("fitting"):
+        if cls.requires_fit:
+            _raises(errors.NotFittedError, lambda: rebuilt.encode(x[:2]), "fitting: encode before fit")
+            if not codec.is_fitted:
+                assert codec.fit(x) is codec, "fitting: fit() must return self"
+            assert codec.is_fitted, "fitting: is_fitted is False after fit"
+        else:
+            assert codec.fit(x) is codec, "fitting: fit() must return self (even when it learns nothing)"
+        done("fit")
 
     # 4. round trip, shapes, dtypes, numpy in -> numpy out, determinism
-    codes = codec.encode(x)
-    assert isinstance(codes, np.ndarray) and codes.dtype == np.float32 and codes.shape == (len(x), k), \
-        f"round trip: encode(numpy {x.shape}) must give float32 numpy ({len(x)}, {k}), got " \
-        f"{type(codes).__name__} {getattr(codes, 'dtype', None)} {getattr(codes, 'shape', None)}"
-    dec = codec.decode(codes)
-    assert isinstance(dec, np.ndarray) and dec.dtype == np.float32 and dec.shape == x.shape, \
-        f"round trip: decode must give float32 numpy {x.shape}, got {getattr(dec, 'dtype', None)} {dec.shape}"
-    assert np.isfinite(dec).all(), "round trip: decode produced NaN or Inf"
-    mse = float(np.mean((dec - x) ** 2))
-    baseline = float(np.mean((x - x.mean(axis=0)) ** 2))
-    assert mse < 0.5 * baseline, f"round trip: MSE {mse:.4g} is not below half of the mean-block baseline " \
-                                 f"{baseline:.4g}; the codes carry too little of the block"
-    report["mse"] = mse
-    _close(codec.encode(x), codes, 0.0, "determinism: encoding twice")
-    _close(codec.encode(x.astype(np.float64)), codes, atol, "dtypes: float64 input")
-    done("round trip")
+    with _check("round trip"):
+        codes = codec.encode(x)
+        assert isinstance(codes, np.ndarray) and codes.dtype == np.float32 and codes.shape == (len(x), k), \
+            f"round trip: encode(numpy {x.shape}) must give float32 numpy ({len(x)}, {k}), got " \
+            f"{type(codes).__name__} {getattr(codes, 'dtype', None)} {getattr(codes, 'shape', None)}"
+        dec = codec.decode(codes)
+        assert isinstance(dec, np.ndarray) and dec.dtype == np.float32 and dec.shape == x.shape, \
+            f"round trip: decode must give float32 numpy {x.shape}, got {getattr(dec, 'dtype', None)} {dec.shape}"
+        assert np.isfinite(dec).all(), "round trip: decode produced NaN or Inf"
+        mse = float(np.mean((dec - x) ** 2))
+        baseline = float(np.mean((x - x.mean(axis=0)) ** 2))
+        assert mse < 0.5 * baseline, f"round trip: MSE {mse:.4g} is not below half of the mean-block baseline " \
+                                     f"{baseline:.4g}; the codes carry too little of the block"
+        report["mse"] = mse
+        _close(codec.encode(x), codes, 0.0, "determinism: encoding twice")
+        _close(codec.encode(x.astype(np.float64)), codes, atol, "dtypes: float64 input")
+        done("round trip")
 
     # 5. batch independence: one block at a time and a large batch give the same codes
-    for i in (0, len(x) - 1):
-        _close(codec.encode(x[i:i + 1]), codes[i:i + 1], atol, f"batch: encode of block {i} alone")
-        _close(codec.decode(codes[i:i + 1]), dec[i:i + 1], atol, f"batch: decode of block {i} alone")
-    reps = -(-large_batch // len(x))
-    big = np.concatenate([x] * reps)[:large_batch]
-    _close(codec.encode(big)[: len(x)], codes[: min(len(x), large_batch)], atol, f"batch: batch of {large_batch}")
-    empty = codec.encode(x[:0])
-    assert empty.shape == (0, k), f"batch: encode of 0 blocks must give (0, {k}), got {empty.shape}"
-    assert codec.decode(codes[:0]).shape == (0, 16, 16, 16), "batch: decode of 0 codes"
-    done("batch sizes")
+    with _check("batch"):
+        for i in (0, len(x) - 1):
+            _close(codec.encode(x[i:i + 1]), codes[i:i + 1], atol, f"batch: encode of block {i} alone")
+            _close(codec.decode(codes[i:i + 1]), dec[i:i + 1], atol, f"batch: decode of block {i} alone")
+        reps = -(-large_batch // len(x))
+        big = np.concatenate([x] * reps)[:large_batch]
+        _close(codec.encode(big)[: len(x)], codes[: min(len(x), large_batch)], atol, f"batch: batch of {large_batch}")
+        empty = codec.encode(x[:0])
+        assert empty.shape == (0, k), f"batch: encode of 0 blocks must give (0, {k}), got {empty.shape}"
+        assert codec.decode(codes[:0]).shape == (0, 16, 16, 16), "batch: decode of 0 codes"
+        done("batch sizes")
 
     # 6. torch input, devices follow the input
-    devs = devices or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
-    for dev in devs:
-        t = torch.from_numpy(x).to(dev)
-        tc = codec.encode(t)
-        assert isinstance(tc, torch.Tensor) and tc.device.type == torch.device(dev).type and tc.dtype == torch.float32, \
-            f"devices: encode(tensor on {dev}) must return a float32 tensor on {dev}"
-        td = codec.decode(tc)
-        assert isinstance(td, torch.Tensor) and td.device.type == torch.device(dev).type, \
-            f"devices: decode(tensor on {dev}) must return a tensor on {dev}"
-        # GPU matrix products may use TF32/other orders of summation: compare loosely but meaningfully
-        tol = atol if dev == "cpu" else max(atol, 1e-3)
-        _close(tc.cpu().numpy(), codes, tol, f"devices: codes on {dev} vs numpy")
-        _close(td.cpu().numpy(), dec, tol, f"devices: decoded on {dev} vs numpy")
-        _close(codec.encode(t.half()).cpu().numpy(), codec.encode(x.astype(np.float16).astype(np.float32)),
-               tol, f"devices: float16 tensor input on {dev}")
-    done("devices")
+    with _check("devices"):
+        devs = devices or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+        for dev in devs:
+            t = torch.from_numpy(x).to(dev)
+            tc = codec.encode(t)
+            assert isinstance(tc, torch.Tensor) and tc.device.type == torch.device(dev).type and tc.dtype == torch.float32, \
+                f"devices: encode(tensor on {dev}) must return a float32 tensor on {dev}"
+            td = codec.decode(tc)
+            assert isinstance(td, torch.Tensor) and td.device.type == torch.device(dev).type, \
+                f"devices: decode(tensor on {dev}) must return a tensor on {dev}"
+            # GPU matrix products may use TF32/other orders of summation: compare loosely but meaningfully
+            tol = atol if dev == "cpu" else max(atol, 1e-3)
+            _close(tc.cpu().numpy(), codes, tol, f"devices: codes on {dev} vs numpy")
+            _close(td.cpu().numpy(), dec, tol, f"devices: decoded on {dev} vs numpy")
+            _close(codec.encode(t.half()).cpu().numpy(), codec.encode(x.astype(np.float16).astype(np.float32)),
+                   tol, f"devices: float16 tensor input on {dev}")
+        done("devices")
 
     # 7. state round trip into a fresh codec built from the config
-    state = codec.state_dict()
-    for name, arr in state.items():
-        assert isinstance(arr, np.ndarray) and arr.dtype.kind in "fiub", \
-            f"state: {name!r} must be a plain numeric numpy array, got {type(arr).__name__} {getattr(arr, 'dtype', '')}"
-    fresh = get_codec(cfg).load_state_dict(copy.deepcopy(state))
-    _close(fresh.encode(x), codes, 0.0, "state: codes after load_state_dict")
-    _close(fresh.decode(codes), dec, 0.0, "state: decoded after load_state_dict")
-    done("state round trip")
+    with _check("state"):
+        state = codec.state_dict()
+        for name, arr in state.items():
+            assert isinstance(arr, np.ndarray) and arr.dtype.kind in "fiub", \
+                f"state: {name!r} must be a plain numeric numpy array, got {type(arr).__name__} {getattr(arr, 'dtype', '')}"
+        fresh = get_codec(cfg).load_state_dict(copy.deepcopy(state))
+        _close(fresh.encode(x), codes, 0.0, "state: codes after load_state_dict")
+        _close(fresh.decode(codes), dec, 0.0, "state: decoded after load_state_dict")
+        done("state round trip")
 
     # 8. prefix decoding
-    if cls.prefix_ordered:
-        levels = sorted({1, max(1, k // 4), max(1, k // 2), k})
-        errs = []
-        for lv in levels:
-            d = codec.decode(codes[:, :lv])
-            assert d.shape == x.shape, f"prefix: decode of a {lv}-element prefix has shape {d.shape}"
-            errs.append(float(np.mean((d - x) ** 2)))
-        assert all(a >= b - 1e-7 for a, b in zip(errs, errs[1:])), \
-            f"prefix: error must not grow with the prefix length; levels {levels} gave MSE {errs}"
-        report["prefix_mse"] = dict(zip(levels, errs))
-    elif k > 1:
-        _raises(errors.ShapeError, lambda: codec.decode(codes[:, : k - 1]), "prefix: decoding a prefix of a "
-                "codec that is not prefix-ordered")
+    with _check("prefix"):
+        _check_prefix(codec, cls, x, codes, k, report)
     done("prefix decoding")
 
     # 9. bad input gives the project's errors
@@ -197,7 +203,8 @@ def check_codec(codec: Codec, *, blocks: np.ndarray | None = None, golden: str |
 
     # 10. golden fixture: written once, decoded forever
     if golden is not None:
-        _golden(codec, Path(golden), regen_golden, atol)
+        with _check("golden"):
+            _golden(codec, Path(golden), regen_golden, atol)
         done("golden fixture")
     return report
 
@@ -222,3 +229,19 @@ def _golden(codec: Codec, path: Path, regen: bool, atol: float) -> None:
     codes = np.load(codes_p, allow_pickle=False)
     _close(g.encode(x), codes, atol, f"golden: codes of {path}")
     _close(g.decode(codes), np.load(dec_p, allow_pickle=False), atol, f"golden: decoded blocks of {path}")
+
+
+def _check_prefix(codec: Codec, cls: type, x: np.ndarray, codes: np.ndarray, k: int, report: dict) -> None:
+    if cls.prefix_ordered:
+        levels = sorted({1, max(1, k // 4), max(1, k // 2), k})
+        errs = []
+        for lv in levels:
+            d = codec.decode(codes[:, :lv])
+            assert d.shape == x.shape, f"prefix: decode of a {lv}-element prefix has shape {d.shape}"
+            errs.append(float(np.mean((d - x) ** 2)))
+        assert all(a >= b - 1e-7 for a, b in zip(errs, errs[1:])), \
+            f"prefix: error must not grow with the prefix length; levels {levels} gave MSE {errs}"
+        report["prefix_mse"] = dict(zip(levels, errs))
+    elif k > 1:
+        _raises(errors.ShapeError, lambda: codec.decode(codes[:, : k - 1]), "prefix: decoding a prefix of a "
+                "codec that is not prefix-ordered")

@@ -1,0 +1,131 @@
+"""The command line: encode -> info -> decode round trip, JSON output, one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import sdfcodec
+from sdfcodec.cli import app
+from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+
+runner = CliRunner()
+VS = 0.02
+
+
+@pytest.fixture(scope="module")
+def volume_file(tmp_path_factory) -> tuple[Path, np.ndarray]:
+    scene = Scene([Plane((0, 0, 1), 0.1), Plane((0, 1, 0), 0.07), Sphere((0.7, 0.8, 0.5), 0.25),
+                   Box((1.5, 0.5, 0.4), (0.2, 0.15, 0.25))])
+    vol = sample_volume(scene, (120, 100, 60), VS)
+    path = tmp_path_factory.mktemp("cli") / "scene.npy"
+    np.save(path, vol)
+    return path, vol
+
+
+def run(*args: str):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_encode_info_decode_round_trip(volume_file, tmp_path):
+    src, vol = volume_file
+    out_map = tmp_path / "scene.sdfz"
+    r = run("encode", src, out_map, "--voxel-size", VS, "--code-size", 64, "--json")
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout[r.stdout.index("{"):])
+    assert summary["codec"]["code_size"] == 64 and summary["blocks"]["coded"] > 64
+
+    r = run("info", out_map, "--json")
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.stdout)
+    assert info["shape_voxels"] == [120, 100, 60] and info["levels"] == [32, 64]
+    assert info["ratio_dense_to_disk"] > 1
+    r = run("info", out_map)
+    assert r.exit_code == 0 and "coded" in r.stdout
+
+    dense = tmp_path / "dense.npy"
+    r = run("decode", out_map, dense)
+    assert r.exit_code == 0, r.output
+    dec = np.load(dense)
+    assert dec.shape == vol.shape
+    assert np.array_equal(dec, sdfcodec.open_map(out_map).decode_region())
+    assert np.sqrt(np.mean((dec - vol) ** 2)) < 0.01
+
+    part = tmp_path / "part.npy"
+    r = run("decode", out_map, part, "--level", 32, "--region", "0:40,10:20,5:6", "--json")
+    assert r.exit_code == 0, r.output
+    assert np.load(part).shape == (40, 10, 1)
+
+
+def test_transcode_map_to_raw_float16(volume_file, tmp_path):
+    src, vol = volume_file
+    a, b = tmp_path / "a.sdfz", tmp_path / "b.sdfz"
+    assert run("encode", src, a, "--voxel-size", VS, "--codec", "raw").exit_code == 0
+    r = run("encode", a, b, "--codec", "raw", "--code-dtype", "float16")
+    assert r.exit_code == 0, r.output
+    mb = sdfcodec.open_map(b)
+    assert mb.header.codes.dtype == "float16" and mb.shape_voxels == vol.shape
+    assert np.abs(mb.decode_region() - vol).max() < 1e-4  # float16 steps of ~0.14 mm near d_max
+
+
+def test_model_option(volume_file, tmp_path):
+    src, _ = volume_file
+    from sdfcodec.testing import analytic_blocks
+
+    model = sdfcodec.save_model(sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(300)),
+                                tmp_path / "pca32.npz")
+    r = run("encode", src, tmp_path / "m.sdfz", "--voxel-size", VS, "--model", model)
+    assert r.exit_code == 0, r.output
+    m = sdfcodec.open_map(tmp_path / "m.sdfz")
+    assert m.code_size == 32
+    assert np.array_equal(m.codec.components_, sdfcodec.load_model(model).components_)
+    r = run("encode", src, tmp_path / "n.sdfz", "--voxel-size", VS, "--model", model, "--code-size", 64)
+    assert r.exit_code == 1 and "contradicts the model" in r.stderr
+
+
+def one_line_error(r, *needles: str) -> None:
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:"), r.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def test_errors_are_one_line(volume_file, tmp_path):
+    src, vol = volume_file
+    out_map = tmp_path / "x.sdfz"
+    one_line_error(run("encode", src, out_map), "--voxel-size")
+    one_line_error(run("encode", tmp_path / "missing.npy", out_map, "--voxel-size", VS), "missing.npy")
+    one_line_error(run("encode", src, out_map, "--voxel-size", VS, "--codec", "zzz"), "'zzz' is not installed")
+    assert run("encode", src, out_map, "--voxel-size", VS, "--codec", "raw").exit_code == 0
+    one_line_error(run("encode", src, out_map, "--voxel-size", VS, "--codec", "raw"), "exists", "--overwrite")
+    one_line_error(run("decode", out_map, tmp_path / "d.npy", "--level", 3), "not prefix-ordered")
+    one_line_error(run("decode", out_map, tmp_path / "d.npy", "--region", "0:10,0:10"), "--region")
+    one_line_error(run("decode", out_map, tmp_path / "d.npy", "--region", "0:500,0:10,0:10"), "outside the map")
+    one_line_error(run("info", tmp_path / "nowhere.sdfz"), "no map at")
+    nan = vol.copy()
+    nan[3, 3, 3] = np.nan
+    np.save(tmp_path / "nan.npy", nan)
+    one_line_error(run("encode", tmp_path / "nan.npy", tmp_path / "y.sdfz", "--voxel-size", VS), "NaN")
+    assert not (tmp_path / "y.sdfz").exists()
+
+
+def test_codecs_listing():
+    r = run("codecs", "--json")
+    assert r.exit_code == 0
+    rows = {row["id"]: row for row in json.loads(r.stdout)}
+    assert rows["pca"]["prefix_ordered"] is True and rows["pca"]["code_sizes"] == [32, 64, 128]
+    assert rows["raw"]["requires_fit"] is False and rows["pca"]["package"] == "sdfcodec"
+
+
+def test_bench_json_records():
+    r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--json")
+    assert r.exit_code == 0, r.output
+    recs = json.loads(r.stdout)
+    assert {(x["operation"], x["batch"]) for x in recs} == {("encode", 1), ("decode", 1), ("encode", 64),
+                                                             ("decode", 64)}
+    assert all(x["blocks_per_s"] > 0 and x["baseline_blocks_per_s"] > 0 for x in recs)

@@ -1,0 +1,418 @@
+"""Map format v1: writing, reading, prefix levels, checksums, versions and nothing lost on bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+import sdfcodec
+from sdfcodec import errors
+from sdfcodec.header import BlockState
+from sdfcodec.sdf import Box, Cylinder, Plane, Scene, Sphere, sample_volume
+from sdfcodec.testing import analytic_blocks
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+
+
+def analytic_scene() -> Scene:
+    """Floor, wall, sphere, box and cylinder that do not overlap: exact distances everywhere."""
+    return Scene([
+        Plane((0, 0, 1), 0.1),
+        Plane((1, 0, 0), 0.05),
+        Sphere((0.6, 0.6, 0.5), 0.2),
+        Box((1.2, 0.4, 0.35), (0.15, 0.1, 0.2)),
+        Cylinder((1.5, 1.1, 0.45), 0.15, 0.3),
+    ])
+
+
+@pytest.fixture(scope="module")
+def volume() -> np.ndarray:
+    # 90 x 70 x 45 voxels: not a multiple of 16, so padding and the true extent are exercised
+    return sample_volume(analytic_scene(), (90, 70, 45), VS, truncation=TRUNC)
+
+
+@pytest.fixture(scope="module")
+def pca64():
+    return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
+
+
+@pytest.fixture(scope="module")
+def map_path(tmp_path_factory, volume, pca64) -> Path:
+    path = tmp_path_factory.mktemp("maps") / "scene.sdfz"
+    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC, origin=(1.0, -2.0, 0.5)) as m:
+        m.write_volume(volume)
+    return path
+
+
+def independent_decode(volume: np.ndarray, codec, level: int | None = None) -> np.ndarray:
+    """Numpy projection onto the codec's basis, block by block, in float64: the reference decode."""
+    w, mu = codec.components_.astype(np.float64), codec.mean_.astype(np.float64)
+    k = level or w.shape[0]
+    d_min, d_max = TRUNC
+    X, Y, Z = volume.shape
+    pad = np.full([-(-n // 16) * 16 for n in volume.shape], d_max)
+    pad[:X, :Y, :Z] = volume
+    out = np.full_like(pad, d_max)
+    for bx in range(pad.shape[0] // 16):
+        for by in range(pad.shape[1] // 16):
+            for bz in range(pad.shape[2] // 16):
+                sl = np.s_[bx * 16:(bx + 1) * 16, by * 16:(by + 1) * 16, bz * 16:(bz + 1) * 16]
+                v = (pad[sl].ravel() - d_min) / (d_max - d_min)
+                if np.all(v >= 1 - 1e-6):
+                    continue  # empty block: stores no code, decodes as free space
+                c = (v - mu) @ w.T
+                out[sl] = ((c[:k] @ w[:k] + mu) * (d_max - d_min) + d_min).reshape(16, 16, 16)
+    return out[:X, :Y, :Z]
+
+
+def test_decode_matches_independent_projection(map_path, volume, pca64):
+    m = sdfcodec.open_map(map_path)
+    assert m.shape_voxels == volume.shape and m.grid_blocks == (6, 5, 3)
+    dec = m.decode_region()
+    assert dec.shape == volume.shape and dec.dtype == np.float32
+    ref = independent_decode(volume, pca64)
+    assert np.abs(dec - ref).max() < 2e-5  # float32 precision in metres
+    # and the codec really compresses this scene well near the surface
+    assert np.sqrt(np.mean((dec - volume) ** 2)) < 0.01
+
+
+@pytest.mark.parametrize("level", [32, 17])
+def test_prefix_level_matches_truncated_projection(map_path, volume, pca64, level):
+    m = sdfcodec.open_map(map_path)
+    dec = m.decode_region(level=level)
+    assert np.abs(dec - independent_decode(volume, pca64, level)).max() < 2e-5
+    full_err = np.mean((m.decode_region() - volume) ** 2)
+    assert np.mean((dec - volume) ** 2) > full_err  # fewer components, more error
+
+
+def test_region_in_voxels_and_metres(map_path):
+    m = sdfcodec.open_map(map_path)
+    full = m.decode_region()
+    part = m.decode_region(((10, 40), (3, 70), (20, 21)))
+    # decoding fewer blocks per batch may change float32 summation order: equal to rounding, not bitwise
+    assert np.allclose(part, full[10:40, 3:70, 20:21], rtol=0, atol=1e-6)
+    # metres: voxels whose centres lie in the closed box; origin is (1.0, -2.0, 0.5)
+    metres = m.decode_region(((1.2, 1.5), (-2.0, -1.9), (0.9, 0.9)), units="m")
+    assert np.allclose(metres, full[10:26, 0:6, 20:21], rtol=0, atol=1e-6)
+    with pytest.raises(errors.InvalidValueError, match="outside the map on axis x"):
+        m.decode_region(((0, 91), (0, 1), (0, 1)))
+
+
+def test_read_codes_and_states(map_path, volume, pca64):
+    m = sdfcodec.open_map(map_path)
+    coords, codes = m.read_codes()
+    states = m.block_states()
+    assert states.shape == m.grid_blocks
+    assert len(coords) == (states == BlockState.CODED).sum() == m.count_states()["coded"]
+    # empty blocks (pure free space) store no code, only their state
+    assert m.count_states()["empty"] > 0 and m.count_states()["unobserved"] == 0
+    bx, by, bz = coords[0]
+    blk = np.full((16, 16, 16), TRUNC[1], np.float32)
+    src = volume[bx * 16:bx * 16 + 16, by * 16:by * 16 + 16, bz * 16:bz * 16 + 16]
+    blk[: src.shape[0], : src.shape[1], : src.shape[2]] = src
+    expect = pca64.encode(((blk - TRUNC[0]) / (TRUNC[1] - TRUNC[0]))[None])[0]
+    assert np.allclose(codes[0], expect, atol=1e-4)
+    c32, z32 = m.read_codes(level=32)
+    assert np.array_equal(c32, coords) and np.array_equal(z32, codes[:, :32])
+
+
+class CountingStore(zarr.storage.WrapperStore):
+    """Records the keys read, to check which chunks a read touches."""
+
+    def __init__(self, store):
+        super().__init__(store)
+        self.keys: list[str] = []
+
+    async def get(self, key, prototype, byte_range=None):
+        self.keys.append(key)
+        return await self._store.get(key, prototype, byte_range)
+
+
+def test_prefix_level_reads_only_its_own_chunks(tmp_path, volume):
+    codec = sdfcodec.get_codec("pca", code_size=128).fit(analytic_blocks(800, seed=5))
+    path = tmp_path / "m128.sdfz"
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_volume(volume)
+    assert sdfcodec.open_map(path).header.codes.levels == [32, 64, 96, 128]
+    store = CountingStore(zarr.storage.LocalStore(path, read_only=True))
+    m = sdfcodec.open_map(store)
+    m.read_codes(level=32)
+    code_keys = [k for k in store.keys if k.startswith("codes/c/")]
+    assert code_keys and all(k.endswith("/0") for k in code_keys), code_keys
+    store.keys.clear()
+    m.read_codes()
+    assert {k.rsplit("/", 1)[1] for k in store.keys if k.startswith("codes/c/")} == {"0", "1", "2", "3"}
+
+
+def test_plain_zarr_reads_header_and_codes(map_path):
+    g = zarr.open_group(str(map_path), mode="r")
+    hdr = g.attrs["sdfcodec"]
+    assert hdr["format"] == "sdfcodec-map" and hdr["format_version"] == 1
+    assert hdr["codec"]["id"] == "pca" and hdr["codes"]["size"] == 64
+    codes = g["codes"]
+    assert codes.shape == (6, 5, 3, 64) and codes.chunks == (8, 8, 8, 32)
+    coded = np.asarray(g["state"][:]) == 2
+    assert np.abs(np.asarray(codes[:])[coded]).sum() > 0
+    names = [type(c).__name__ for c in codes.metadata.codecs]
+    assert "BloscCodec" in names and "Crc32cCodec" in names
+
+
+def test_float16_codes(tmp_path, volume, pca64, map_path):
+    path = tmp_path / "f16.sdfz"
+    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC, origin=(1.0, -2.0, 0.5),
+                             code_dtype="float16") as m:
+        m.write_volume(volume)
+    m16 = sdfcodec.open_map(path)
+    assert str(m16._codes.dtype) == "float16"
+    d16, d32 = m16.decode_region(), sdfcodec.open_map(map_path).decode_region()
+    # float16 keeps ~3 significant digits of each code: the extra error is small against the codec's own
+    extra = np.sqrt(np.mean((d16 - d32) ** 2))
+    own = np.sqrt(np.mean((d32 - volume) ** 2))
+    assert 0 < extra < 0.1 * own
+
+
+def test_write_blocks_grows_map_and_round_trips(tmp_path):
+    raw = sdfcodec.get_codec("raw")
+    rng = np.random.default_rng(0)
+    blocks = rng.uniform(*TRUNC, size=(5, 16, 16, 16)).astype(np.float32)
+    coords = np.array([[0, 0, 0], [3, 1, 2], [9, 0, 0], [1, 1, 1], [0, 4, 0]])
+    path = tmp_path / "raw.sdfz"
+    with sdfcodec.create_map(path, codec=raw, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks(coords[:3], blocks[:3])
+        m.write_blocks(coords[3:], blocks[3:])
+        m.mark_empty([[2, 2, 2]])
+    m = sdfcodec.open_map(path)
+    assert m.grid_blocks == (10, 5, 3) and m.shape_voxels == (160, 80, 48)
+    full = m.decode_region()
+    for (bx, by, bz), b in zip(coords, blocks):
+        # raw is lossless up to float32 rounding of the metres <-> [0, 1] mapping (~1e-8 m)
+        assert np.allclose(full[bx * 16:bx * 16 + 16, by * 16:by * 16 + 16, bz * 16:bz * 16 + 16], b,
+                           rtol=0, atol=1e-7)
+    assert m.count_states() == {"unobserved": 10 * 5 * 3 - 6, "empty": 1, "coded": 5}
+
+
+def test_overwriting_blocks_in_one_chunk_keeps_neighbours(tmp_path):
+    raw = sdfcodec.get_codec("raw")
+    a = np.full((2, 16, 16, 16), 0.05, np.float32)
+    b = np.full((1, 16, 16, 16), -0.01, np.float32)
+    with sdfcodec.create_map(tmp_path / "m.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks([[0, 0, 0], [1, 0, 0]], a)
+        m.write_blocks([[1, 0, 0]], b)
+    dec = sdfcodec.open_map(tmp_path / "m.sdfz").decode_region()
+    assert np.allclose(dec[:16], 0.05, atol=1e-7) and np.allclose(dec[16:32], -0.01, atol=1e-7)
+
+
+def test_decode_on_torch_device(map_path):
+    import torch
+
+    m = sdfcodec.open_map(map_path)
+    t = m.decode_region(device="cpu", level=32)
+    assert isinstance(t, torch.Tensor) and t.device.type == "cpu"
+    assert np.array_equal(t.numpy(), m.decode_region(level=32))
+
+
+def test_open_map_over_file_url_and_http(map_path):
+    import http.server
+    import threading
+    from functools import partial
+
+    ref = sdfcodec.open_map(map_path).decode_region(level=32)
+    assert np.array_equal(sdfcodec.open_map(map_path.resolve().as_uri()).decode_region(level=32), ref)
+    handler = partial(http.server.SimpleHTTPRequestHandler, directory=str(map_path.parent))
+    handler.log_message = lambda *a, **k: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/{map_path.name}"
+        assert np.array_equal(sdfcodec.open_map(url).decode_region(level=32), ref)
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+# -- bad input: a clear error, and nothing lost ----------------------------------------------------------
+
+def _snapshot(path: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def existing(tmp_path, volume, pca64):
+    path = tmp_path / "keep.sdfz"
+    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_volume(volume)
+    return path
+
+
+def _no_leftovers(directory: Path) -> None:
+    assert not [p.name for p in directory.iterdir() if p.name.startswith(".")], "temporary files left behind"
+
+
+@pytest.mark.parametrize("bad, exc, msg", [
+    (lambda v: np.where(v > 0.09, np.nan, v), errors.InvalidValueError, "NaN/Inf"),
+    (lambda v: np.where(v > 0.09, np.inf, v), errors.InvalidValueError, "NaN/Inf"),
+    (lambda v: (v * 1000).astype(np.int16), errors.DTypeError, "floating point"),
+    (lambda v: v[None], errors.ShapeError, r"dense \(X, Y, Z\)"),
+])
+def test_bad_volume_is_refused_and_old_map_kept(existing, volume, pca64, bad, exc, msg):
+    before = _snapshot(existing)
+    with pytest.raises(exc, match=msg):
+        with sdfcodec.create_map(existing, codec=pca64, voxel_size=VS, truncation=TRUNC, overwrite=True) as m:
+            m.write_volume(bad(volume))
+    assert _snapshot(existing) == before
+    _no_leftovers(existing.parent)
+
+
+def test_values_outside_truncation_are_clipped_with_a_warning(tmp_path, volume, pca64):
+    raw = sdfcodec.get_codec("raw")
+    wild = volume.copy()
+    wild[0, 0, 0], wild[1, 1, 1] = 5.0, -3.0
+    with pytest.warns(errors.SDFCodecWarning, match="2 value.* outside the truncation"):
+        with sdfcodec.create_map(tmp_path / "w.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
+            m.write_volume(wild)
+    dec = sdfcodec.open_map(tmp_path / "w.sdfz").decode_region()
+    assert dec[0, 0, 0] == pytest.approx(TRUNC[1]) and dec[1, 1, 1] == pytest.approx(TRUNC[0])
+
+
+def test_existing_output_refused_without_overwrite(existing, pca64, volume):
+    before = _snapshot(existing)
+    with pytest.raises(errors.MapExistsError, match="overwrite"):
+        sdfcodec.create_map(existing, codec=pca64, voxel_size=VS)
+    assert _snapshot(existing) == before
+    with sdfcodec.create_map(existing, codec=pca64, voxel_size=VS, truncation=TRUNC, overwrite=True) as m:
+        m.write_volume(volume[:20, :20, :20])
+    assert sdfcodec.open_map(existing).shape_voxels == (20, 20, 20)
+    _no_leftovers(existing.parent)
+
+
+def test_exception_during_write_leaves_old_map(existing, pca64, volume):
+    before = _snapshot(existing)
+    with pytest.raises(RuntimeError, match="boom"):
+        with sdfcodec.create_map(existing, codec=pca64, voxel_size=VS, truncation=TRUNC, overwrite=True) as m:
+            m.write_volume(volume[:40])
+            raise RuntimeError("boom")
+    assert _snapshot(existing) == before
+    _no_leftovers(existing.parent)
+
+
+def test_crash_during_write_leaves_old_map(existing, volume):
+    """A writer process that dies abruptly (os._exit, no clean-up) leaves the previous map readable."""
+    ref = sdfcodec.open_map(existing).decode_region()
+    script = textwrap.dedent(f"""
+        import os, numpy as np, sdfcodec
+        from sdfcodec.testing import analytic_blocks
+        codec = sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(300))
+        m = sdfcodec.create_map({str(existing)!r}, codec=codec, voxel_size=0.05, overwrite=True)
+        m.write_volume(np.zeros((64, 64, 64), np.float32))
+        os._exit(9)  # crash before commit
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 9, proc.stderr
+    m = sdfcodec.open_map(existing)
+    assert m.voxel_size == VS and np.array_equal(m.decode_region(), ref)
+
+
+def test_corrupted_chunk_names_the_chunk(existing):
+    chunk = existing / "codes" / "c" / "0" / "0" / "0" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    m = sdfcodec.open_map(existing)
+    m.block_states()  # the state array is intact
+    with pytest.raises(errors.ChecksumError, match=r"chunk c/0/0/0/0 of array 'codes'"):
+        m.decode_region()
+    with pytest.raises(errors.ChecksumError, match=r"chunk c/0/0/0/0"):
+        m.read_codes(level=32)
+
+
+def test_truncated_chunk_names_the_chunk(existing):
+    chunk = existing / "state" / "c" / "0" / "0" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:7])
+    with pytest.raises(errors.ChecksumError, match=r"chunk c/0/0/0 of array 'state'"):
+        sdfcodec.open_map(existing).decode_region()
+
+
+def _edit_header(path: Path, fn) -> None:
+    meta = path / "zarr.json"
+    doc = json.loads(meta.read_text())
+    fn(doc["attributes"]["sdfcodec"])
+    meta.write_text(json.dumps(doc))
+
+
+def test_newer_format_version_is_refused_naming_both(existing):
+    _edit_header(existing, lambda h: h.update(format_version=2))
+    with pytest.raises(errors.VersionError, match="format version 2.*reads up to version 1"):
+        sdfcodec.open_map(existing)
+
+
+def test_unknown_required_extension_is_refused(existing):
+    _edit_header(existing, lambda h: h.update(extensions=[{"name": "octree-lod", "required": True}]))
+    with pytest.raises(errors.VersionError, match="extension 'octree-lod'"):
+        sdfcodec.open_map(existing)
+
+
+def test_invalid_header_field_is_named(existing):
+    _edit_header(existing, lambda h: h.update(voxel_size=-1))
+    with pytest.raises(errors.FormatError, match="voxel_size"):
+        sdfcodec.open_map(existing)
+
+
+def test_missing_codec_plugin_names_id_and_package(existing):
+    def swap(h):
+        h["codec"].update(id="eigen-ae", package="sdfcodec-eigen-ae")
+        h["codec"]["config"]["id"] = "eigen-ae"
+
+    _edit_header(existing, swap)
+    m = sdfcodec.open_map(existing)  # header, states and codes stay readable without the plugin
+    assert m.count_states()["coded"] > 0 and len(m.read_codes()[0]) > 0
+    with pytest.raises(errors.UnknownCodecError, match="'eigen-ae'.*package 'sdfcodec-eigen-ae'"):
+        m.decode_region()
+
+
+def test_altered_codec_state_is_detected(existing):
+    arr = zarr.open_array(str(existing / "codec" / "mean"), mode="r+")
+    arr[0] = arr[0] + 0.5
+    with pytest.raises(errors.ChecksumError, match="codec state"):
+        sdfcodec.open_map(existing).decode_region()
+
+
+def test_not_a_map(tmp_path):
+    with pytest.raises(errors.MapNotFoundError, match="no map at"):
+        sdfcodec.open_map(tmp_path / "absent.sdfz")
+    zarr.open_group(str(tmp_path / "plain"), mode="w")
+    with pytest.raises(errors.FormatError, match="no sdfcodec header"):
+        sdfcodec.open_map(tmp_path / "plain")
+
+
+def test_read_only_map_refuses_writes(map_path):
+    with pytest.raises(errors.ReadOnlyError):
+        sdfcodec.open_map(map_path).write_blocks([[0, 0, 0]], np.zeros((1, 16, 16, 16), np.float32))
+
+
+def test_unfitted_codec_is_refused(tmp_path):
+    with pytest.raises(errors.NotFittedError, match="fit"):
+        sdfcodec.create_map(tmp_path / "x.sdfz", codec=sdfcodec.get_codec("pca"), voxel_size=VS)
+
+
+def test_decode_size_limit(map_path):
+    m = sdfcodec.open_map(map_path, max_decode_bytes=1000)
+    with pytest.raises(errors.InvalidValueError, match="above the limit"):
+        m.decode_region()
+
+
+def test_header_schema_is_current():
+    from sdfcodec.header import json_schema
+
+    spec = Path(__file__).resolve().parents[1] / "spec" / "map-header.schema.json"
+    assert json.loads(spec.read_text()) == json_schema(), \
+        "spec/map-header.schema.json is stale: python -m sdfcodec.header > spec/map-header.schema.json"

@@ -1,0 +1,155 @@
+"""Registry: eager listing, lazy loading, broken plugins reported by name, run-time registration; and the
+conformance suite catches codecs that break the contract."""
+
+from __future__ import annotations
+
+from importlib import metadata
+
+import numpy as np
+import pytest
+import torch
+
+import sdfcodec
+from sdfcodec import errors, registry
+from sdfcodec.testing import analytic_blocks, check_codec
+
+
+def test_builtin_codecs_are_listed_with_their_package():
+    entries = {e.id: e for e in sdfcodec.list_codecs()}
+    assert {"pca", "raw"} <= set(entries)
+    assert entries["pca"].package == "sdfcodec" and entries["pca"].target == "sdfcodec_pca:PCACodec"
+
+
+def test_get_codec_by_id_and_by_config_without_mutating_it():
+    c = sdfcodec.get_codec("pca", code_size=32, mean="block")
+    assert c.get_config() == {"id": "pca", "code_size": 32, "mean": "block", "svd_solver": "auto",
+                              "random_state": 0}
+    cfg = {"id": "pca", "code_size": 128}
+    c2 = sdfcodec.get_codec(cfg, mean="block")
+    assert cfg == {"id": "pca", "code_size": 128}
+    assert (c2.code_size, c2.mean) == (128, "block")
+
+
+def test_unknown_codec_lists_what_is_installed():
+    with pytest.raises(errors.UnknownCodecError, match="'nope' is not installed.*installed codecs: .*pca"):
+        sdfcodec.get_codec("nope")
+    with pytest.raises(errors.InvalidValueError, match="no parameter"):
+        sdfcodec.get_codec("pca", colour="red")
+
+
+@pytest.fixture
+def broken_plugin(monkeypatch):
+    real = registry._entry_points
+
+    def with_broken():
+        eps = real()
+        eps["broken"] = metadata.EntryPoint("broken", "sdfcodec_does_not_exist:Codec", registry.ENTRY_POINT_GROUP)
+        return eps
+
+    monkeypatch.setattr(registry, "_entry_points", with_broken)
+
+
+def test_broken_plugin_is_reported_by_name_and_others_work(broken_plugin):
+    assert "broken" in {e.id for e in sdfcodec.list_codecs()}  # listing imports nothing
+    with pytest.raises(errors.PluginLoadError, match="'broken'.*sdfcodec_does_not_exist"):
+        sdfcodec.get_codec("broken")
+    assert sdfcodec.get_codec("raw").encode(analytic_blocks(2)).shape == (2, 4096)
+
+
+class Downsample(sdfcodec.Codec):
+    """A tiny third-party-style codec: 2x2x2 average pooling (512 numbers), nearest upsampling."""
+
+    codec_id = "test-downsample"
+    code_size = 512
+
+    def _encode(self, blocks):
+        return torch.nn.functional.avg_pool3d(blocks[:, None], 2).reshape(len(blocks), 512)
+
+    def _decode(self, codes):
+        c = codes.reshape(len(codes), 1, 8, 8, 8)
+        return c.repeat_interleave(2, 2).repeat_interleave(2, 3).repeat_interleave(2, 4)[:, 0]
+
+
+def test_registered_codec_passes_conformance():
+    sdfcodec.register_codec(Downsample, replace=True)
+    assert "test-downsample" in {e.id for e in sdfcodec.list_codecs()}
+    report = check_codec(sdfcodec.get_codec("test-downsample"))
+    assert "bad input" in report["checks"] and report["mse"] > 0
+
+
+class WrongShape(Downsample):
+    codec_id = "test-wrong-shape"
+
+    def _decode(self, codes):
+        return super()._decode(codes)[:, :8]
+
+
+class ForgetfulState(sdfcodec.Codec):
+    """Claims to need fitting but loses its state on a round trip."""
+
+    codec_id = "test-forgetful"
+    requires_fit = True
+    code_size = 4
+
+    def _fit(self, blocks):
+        self.scale_ = np.float32(blocks.mean())
+
+    def state_dict(self):
+        return {"scale": np.asarray(self.scale_)} if hasattr(self, "scale_") else {}
+
+    def load_state_dict(self, state):
+        self.scale_ = np.float32(1.0)  # ignores what it was given
+        return self
+
+    def _encode(self, blocks):
+        m = blocks.reshape(len(blocks), 8, -1).mean(-1)[:, :4]
+        return m * float(self.scale_)
+
+    def _decode(self, codes):
+        return (codes.mean(1) / float(self.scale_))[:, None, None, None].expand(-1, 16, 16, 16).contiguous()
+
+
+class NotPrefix(Downsample):
+    codec_id = "test-not-prefix"
+    prefix_ordered = True  # a false claim: it cannot decode a prefix
+
+
+@pytest.mark.parametrize("cls, match", [
+    (WrongShape, "decode must give float32 numpy"),
+    (ForgetfulState, "round trip|state"),
+    (NotPrefix, "prefix"),
+])
+def test_conformance_suite_catches_broken_codecs(cls, match):
+    sdfcodec.register_codec(cls, replace=True)
+    with pytest.raises(AssertionError, match=match):
+        check_codec(sdfcodec.get_codec(cls.codec_id))
+
+
+def test_register_codec_validates():
+    class NoId(sdfcodec.Codec):
+        code_size = 1
+
+        def _encode(self, b):
+            return b
+
+        def _decode(self, c):
+            return c
+
+    with pytest.raises(ValueError, match="codec_id"):
+        sdfcodec.register_codec(NoId)
+    with pytest.raises(TypeError):
+        sdfcodec.register_codec(object)  # type: ignore[arg-type]
+
+
+def test_model_file_round_trip_and_no_pickles(tmp_path):
+    codec = sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(200))
+    path = sdfcodec.save_model(codec, tmp_path / "m.npz")
+    back = sdfcodec.load_model(path)
+    x = analytic_blocks(5, seed=9)
+    assert back.get_config() == codec.get_config() and np.array_equal(back.encode(x), codec.encode(x))
+    np.savez(tmp_path / "evil.npz", payload=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(errors.FormatError, match="never unpickles"):
+        sdfcodec.load_model(tmp_path / "evil.npz")
+    np.savez(tmp_path / "plain.npz", a=np.zeros(3))
+    with pytest.raises(errors.FormatError, match="not an sdfcodec model"):
+        sdfcodec.load_model(tmp_path / "plain.npz")
