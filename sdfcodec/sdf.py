@@ -114,7 +114,8 @@ class Barrel:
     The radius is ``radius`` at the middle (local z = 0) and ``cap_radius`` (``<= radius``) at the flat caps
     ``z = +-half_height``; between them it follows the circular arc through ``(cap_radius, -half_height)``,
     ``(radius, 0)`` and ``(cap_radius, half_height)``. ``cap_radius == radius`` is the straight capped cylinder
-    (same distances as :class:`Cylinder`).
+    (same distances as :class:`Cylinder`). The bulge ``radius - cap_radius`` may be at most ``half_height``
+    (the profile is then a half circle); a larger one raises ``ValueError``.
 
     The distance is exact: by rotational symmetry the nearest surface point lies in the query point's meridian
     half-plane, where the boundary is one circular arc and two cap segments, each with a closed-form
@@ -132,38 +133,44 @@ class Barrel:
     rotation: np.ndarray | None = None
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
-        p = _local(points, np.asarray(self.center, np.float64), self.rotation)
         r_mid = np.asarray(self.radius, np.float64)
         r_cap = np.asarray(self.cap_radius, np.float64)
         h = np.asarray(self.half_height, np.float64)
-        if np.any(h <= 0) or np.any(r_cap <= 0) or np.any(r_cap > r_mid):
-            raise ValueError("a Barrel needs half_height > 0 and 0 < cap_radius <= radius")
-        rho = np.linalg.norm(p[..., :2], axis=-1)
-        z = p[..., 2]
-        bulge = r_mid - r_cap
-        straight = bulge <= 1e-12 * r_mid
-        b = np.where(straight, 1.0, bulge)  # placeholder where straight; those entries are replaced below
-        # arc radius from the chord condition R - sqrt(R^2 - h^2) = bulge; the arc's centre is (r_mid - R, 0)
-        big_r = (h * h + b * b) / (2.0 * b)
-        root = np.sqrt(big_r * big_r - h * h)  # = R - bulge, the arc centre's horizontal distance to a cap rim
-        dz = np.abs(z)
-        # lateral piece. Everything is written relative to r_mid so that nearly straight barrels (huge R)
-        # lose no precision: |v| - R = (2 R delta + delta^2 + z^2) / (|v| + R), delta = rho - r_mid.
+        if np.any(h <= 0) or np.any(r_cap <= 0) or np.any(r_cap > r_mid) or np.any(r_mid - r_cap > h):
+            raise ValueError("a Barrel needs half_height > 0 and 0 < cap_radius <= radius <= cap_radius + "
+                             "half_height (a larger bulge would bend the profile arc past a semicircle)")
+        p = _local(points, np.asarray(self.center, np.float64), self.rotation)
+        # component-wise arithmetic throughout: reductions over a length-3 axis are slow in numpy
+        x, y = p[..., 0], p[..., 1]
+        rho = np.sqrt(x * x + y * y)
+        dz = np.abs(p[..., 2])
+        dz2 = dz * dz
         delta = rho - r_mid
-        v_rho = big_r + delta  # horizontal offset from the arc centre
-        v_norm = np.sqrt(v_rho * v_rho + z * z)
-        on_arc = (v_rho >= 0) & (dz * root <= v_rho * h)  # within the arc's angular span
-        to_rim = np.sqrt((rho - r_cap) ** 2 + (dz - h) ** 2)  # nearer rim circle (arc end point)
-        d_arc = np.where(on_arc, np.abs((2 * big_r * delta + delta * delta + z * z) / (v_norm + big_r)), to_rim)
-        d_line = np.where(dz <= h, np.abs(delta), to_rim)  # straight side segment
-        d_side = np.where(straight, d_line, d_arc)
-        # caps: the disc of radius r_cap at |z| = h (only the nearer cap can be nearest)
-        d_cap = np.sqrt(np.maximum(rho - r_cap, 0.0) ** 2 + (dz - h) ** 2)
-        unsigned = np.minimum(d_side, d_cap)
-        # profile radius at height z, r(z) = r_mid - z^2 / (R + sqrt(R^2 - z^2)) (stable form of the arc)
-        zc = np.minimum(dz, h)
-        profile = np.where(straight, r_mid, r_mid - zc * zc / (big_r + np.sqrt(np.maximum(big_r * big_r - zc * zc, 0.0))))
-        inside = (dz <= h) & (rho <= profile)
+        to_rim = np.sqrt((rho - r_cap) ** 2 + (dz - h) ** 2)  # distance to the nearer rim circle
+        d_cap = np.sqrt(np.maximum(rho - r_cap, 0.0) ** 2 + (dz - h) ** 2)  # to the nearer cap disc
+        straight = (r_mid - r_cap) <= 1e-12 * r_mid
+        # straight side: the segment rho = r_mid, |z| <= h
+        if np.all(straight):
+            side = np.where(dz <= h, np.abs(delta), to_rim)
+            inside = (dz <= h) & (delta <= 0)
+        else:
+            b = np.where(straight, 1.0, r_mid - r_cap)  # placeholder where straight, replaced below
+            # arc radius from the chord condition R - sqrt(R^2 - h^2) = bulge; its centre is (r_mid - R, 0)
+            big_r = (h * h + b * b) / (2.0 * b)
+            root = np.sqrt(big_r * big_r - h * h)  # the arc centre's horizontal distance to a cap rim
+            # written relative to r_mid so nearly straight barrels (huge R) lose no precision:
+            # |v| - R = (2 R delta + delta^2 + z^2) / (|v| + R), v = (rho, z) - centre, delta = rho - r_mid
+            v_rho = big_r + delta
+            v_norm = np.sqrt(v_rho * v_rho + dz2)
+            on_arc = (v_rho >= 0) & (dz * root <= v_rho * h)  # within the arc's angular span
+            side = np.where(on_arc, np.abs((2.0 * big_r * delta + delta * delta + dz2) / (v_norm + big_r)), to_rim)
+            # inside: |z| <= h and rho <= r(z) = r_mid - z^2 / (R + sqrt(R^2 - z^2)) (stable form of the arc)
+            zc2 = np.minimum(dz2, h * h)
+            inside = (dz <= h) & (delta <= -zc2 / (big_r + np.sqrt(big_r * big_r - zc2)))
+            if np.any(straight):
+                side = np.where(straight, np.where(dz <= h, np.abs(delta), to_rim), side)
+                inside = np.where(straight, (dz <= h) & (delta <= 0), inside)
+        unsigned = np.minimum(side, d_cap)
         return np.where(inside, -unsigned, unsigned)
 
 
@@ -190,7 +197,9 @@ class ConcaveCorner:
         if not np.all((k == 2) | (k == 3)):
             raise ValueError(f"a ConcaveCorner has 2 or 3 planes, got {self.planes}")
         p = _local(points, np.asarray(self.center, np.float64), self.rotation)
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
         # with 2 planes local z plays no part: +inf never wins the min and never counts as solid
-        q = np.stack([p[..., 0], p[..., 1], np.where(k == 3, p[..., 2], np.inf)], axis=-1)
-        free = np.all(q > 0, axis=-1)
-        return np.where(free, q.min(axis=-1), -np.linalg.norm(np.minimum(q, 0.0), axis=-1))
+        z = np.where(k == 3, z, np.inf)
+        nearest = np.minimum(np.minimum(x, y), z)
+        depth = np.sqrt(np.minimum(x, 0.0) ** 2 + np.minimum(y, 0.0) ** 2 + np.minimum(z, 0.0) ** 2)
+        return np.where(nearest > 0, nearest, -depth)
