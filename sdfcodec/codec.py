@@ -28,7 +28,7 @@ from __future__ import annotations
 import abc
 import copy
 import inspect
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar, Iterable, Iterator, Mapping
 
 import numpy as np
 import torch
@@ -89,6 +89,21 @@ class Codec(abc.ABC):
                 raise ShapeError("fit needs at least one block, got an empty batch")
             self._fit(t.cpu().numpy())
         return self
+
+    def fit_stream(self, batches: Iterable[Any]) -> "Codec":
+        """Learn from an iterable of normalised block batches ``(N_i, 16, 16, 16)``, for data sets larger than
+        memory; returns ``self``. Codecs that learn incrementally implement ``_fit_stream(iterator of float32
+        numpy batches)``; for the others the batches are concatenated and passed to :meth:`fit`."""
+        if not self.requires_fit:
+            return self
+        checked = (as_float_tensor(b, "blocks", (None, BLOCK, BLOCK, BLOCK))[0].cpu().numpy() for b in batches)
+        if type(self)._fit_stream is Codec._fit_stream:
+            return self.fit(np.concatenate(list(checked)))
+        self._fit_stream(checked)
+        return self
+
+    def _fit_stream(self, batches: Iterator[np.ndarray]) -> None:  # pragma: no cover - see fit_stream
+        raise NotImplementedError
 
     def encode(self, blocks: Any) -> Any:
         """Encode normalised blocks ``(N, 16, 16, 16)`` to codes ``(N, code_size)`` (float32).

@@ -257,8 +257,9 @@ class Map:
     def _block_range(vox: tuple[tuple[int, int], ...]) -> tuple[slice, slice, slice]:
         return tuple(slice(lo // BLOCK, -(-hi // BLOCK)) for lo, hi in vox)  # type: ignore[return-value]
 
-    def _codes_in(self, box: tuple[slice, slice, slice], level: int) -> tuple[np.ndarray, np.ndarray]:
-        state = self.block_states()[box]
+    def _codes_in(self, box: tuple[slice, slice, slice], level: int, states: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        state = (self.block_states() if states is None else states)[box]
         local = np.argwhere(state == BlockState.CODED)
         if not len(local):
             return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
@@ -268,25 +269,33 @@ class Map:
         origin = np.array([s.start for s in box], dtype=np.int64)
         return local + origin, codes[tuple(local.T)].astype(np.float32)
 
-    def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
-                    chunks_per_batch: int = 8) -> Iterator[tuple[np.ndarray, Any]]:
-        """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a few chunks
-        of the block grid at a time (bounded memory). ``blocks`` is numpy, or a tensor on ``device``."""
+    def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8
+                   ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Yield ``(coords (n, 3) int64, codes (n, L) float32)`` for every coded block, a few chunks of the block
+        grid at a time (bounded memory); only the chunks holding the first ``L = level or D`` elements are read."""
         lv = self._level(level)
         cb = self.header.codes.chunk_blocks
+        states = self.block_states()
         starts = [range(0, g, cb) for g in self.grid_blocks]
         pending_c, pending_z = [], []
         for n, (x, y, z) in enumerate(itertools.product(*starts), 1):
             box = (slice(x, x + cb), slice(y, y + cb), slice(z, z + cb))
-            coords, codes = self._codes_in(box, lv)
-            if len(coords):
+            if (states[box] == BlockState.CODED).any():
+                coords, codes = self._codes_in(box, lv, states)
                 pending_c.append(coords)
                 pending_z.append(codes)
             if pending_c and (n % chunks_per_batch == 0):
-                yield self._decode_batch(np.concatenate(pending_c), np.concatenate(pending_z), device)
+                yield np.concatenate(pending_c), np.concatenate(pending_z)
                 pending_c, pending_z = [], []
         if pending_c:
-            yield self._decode_batch(np.concatenate(pending_c), np.concatenate(pending_z), device)
+            yield np.concatenate(pending_c), np.concatenate(pending_z)
+
+    def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
+                    chunks_per_batch: int = 8) -> Iterator[tuple[np.ndarray, Any]]:
+        """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a few chunks
+        of the block grid at a time (bounded memory). ``blocks`` is numpy, or a tensor on ``device``."""
+        for coords, codes in self.iter_codes(level=level, chunks_per_batch=chunks_per_batch):
+            yield self._decode_batch(coords, codes, device)
 
     def _decode_batch(self, coords: np.ndarray, codes: np.ndarray, device) -> tuple[np.ndarray, Any]:
         d_min, d_max = self.truncation

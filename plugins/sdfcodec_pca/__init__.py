@@ -20,10 +20,11 @@ input's device. Components are sorted by explained variance, so any code prefix 
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Iterator, Mapping
 
 import numpy as np
 import torch
+from scipy.linalg import eigh
 from sklearn.decomposition import PCA
 
 from sdfcodec import Codec
@@ -80,6 +81,31 @@ class PCACodec(Codec):
         pca = PCA(n_components=n_comp, svd_solver=self.svd_solver, random_state=self.random_state).fit(x)
         self.load_state_dict({"components": pca.components_, "mean": pca.mean_,
                               "explained_variance": pca.explained_variance_})
+
+    def _fit_stream(self, batches: Iterator[np.ndarray]) -> None:
+        """One pass over the data accumulating the mean and the 4096 x 4096 second moment (float64), then the
+        top eigenvectors of the covariance: exact PCA (as sklearn's full SVD) in bounded memory (~260 MB)."""
+        n_comp = self._n_components()
+        total = np.zeros(_N, dtype=np.float64)
+        moment = np.zeros((_N, _N), dtype=np.float64)
+        count = 0
+        for b in batches:
+            x = b.reshape(len(b), _N)
+            if self.mean == "block":
+                x = x - x.mean(axis=1, keepdims=True)
+            t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+            moment += (t.T @ t).double().numpy()  # float32 product per batch, float64 accumulation across batches
+            total += x.sum(axis=0, dtype=np.float64)
+            count += len(x)
+        if count < max(n_comp, 2):
+            raise ShapeError(f"pca-{self.code_size} needs at least {max(n_comp, 2)} blocks to fit, got {count}")
+        mu = total / count
+        cov = (moment - count * np.outer(mu, mu)) / (count - 1)
+        vals, vecs = eigh(cov, subset_by_index=[_N - n_comp, _N - 1])
+        vals, vecs = vals[::-1], vecs[:, ::-1].T
+        # deterministic signs: the largest-magnitude entry of each component is positive
+        signs = np.sign(vecs[np.arange(n_comp), np.abs(vecs).argmax(axis=1)])
+        self.load_state_dict({"components": vecs * signs[:, None], "mean": mu, "explained_variance": vals})
 
     def state_dict(self) -> dict[str, np.ndarray]:
         if not hasattr(self, "components_"):
