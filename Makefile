@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench setup clean
+.PHONY: demo test bench setup clean default-model
 
 $(STAMP): pyproject.toml Makefile
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
@@ -25,6 +25,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# Retrain the shipped eigenshapes (sdfcodec/models/pca-128.npz) and rewrite docs/default-model.*
+default-model: $(STAMP)
+	$(PY) examples/train_default_model.py
 
 bench: $(STAMP)
 	$(VENV)/bin/sdfcodec bench

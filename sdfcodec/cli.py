@@ -205,12 +205,17 @@ def encode_cmd(
     origin: Optional[str] = typer.Option(None, "--origin", help="x,y,z metres of voxel (0,0,0) [0,0,0]."),
     key: Optional[str] = typer.Option(None, "--key", help="Array name inside an .npz input."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32 or float16 code storage."),
+    fit: bool = typer.Option(False, "--fit", help="Fit the codec on the input instead of the shipped model."),
     fit_max_blocks: int = typer.Option(100_000, "--fit-max-blocks", help="Blocks sampled to fit a codec."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     device: str = typer.Option("cpu", "--device", help="Torch device to encode on (cpu, cuda)."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
-    """Encode a dense TSDF volume (or transcode a map) into a compressed map."""
+    """Encode a dense TSDF volume (or transcode a map) into a compressed map.
+
+    The codec comes from --model, else (pca) the shipped default eigenshapes cut to --code-size (default 64),
+    else it is fitted on the input's non-empty blocks (also with --fit); the map stores it either way.
+    """
     from .blocks import normalise, split_blocks
     from .mapfile import _check_volume, create_map, open_map
     from .model import load_model
@@ -241,13 +246,17 @@ def encode_cmd(
         if code_size and code_size != codec.code_size:
             raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
                                     f"(code size {codec.code_size})")
+    elif (codec_id or "pca") == "pca" and not fit:
+        from .models import default_codec
+
+        codec = default_codec("pca", code_size or 64)
     else:
         params = {"code_size": code_size} if code_size else {}
         codec = get_codec(codec_id or "pca", **params)
 
     fitted_on = None
     if not codec.is_fitted:
-        # no model given: learn the basis from this map's own non-empty blocks (stored inside the map)
+        # asked to (--fit), or no shipped model: learn the basis from the input's own non-empty blocks
         if src_map is not None:
             sample = np.concatenate([b for _, b in src_map.iter_blocks()] or [np.zeros((0, 16, 16, 16))])
         else:
@@ -322,6 +331,190 @@ def decode_cmd(
         _print_json(summary)
     else:
         out.print(f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
+
+
+@app.command("fuse")
+@_cli
+def fuse_cmd(
+    sequence: str = typer.Argument(..., metavar="SEQUENCE", help="TUM RGB-D or 7-Scenes directory."),
+    output: Path = typer.Argument(..., metavar="OUTPUT", help="Map to write (e.g. kitchen.sdfz)."),
+    voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge in metres."),
+    truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
+    depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
+    code_dtype: str = typer.Option("float32", "--code-dtype", help="float32 or float16 storage of the field."),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a lossless `raw` map.
+
+    Transcode it afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz --codec pca`.
+    """
+    from .fusion import fuse
+    from .mapfile import create_map
+    from .registry import get_codec
+
+    if output.exists() and not overwrite:
+        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    trunc = _pair(truncation, "--truncation")
+    fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, quiet=as_json)
+    with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
+                    origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse",
+                    source=str(sequence)) as m:
+        m.write_blocks(fused.coords, fused.tsdf)
+    info = m.info()
+    summary = {"output": str(output), "frames_integrated": fused.frames_integrated,
+               "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],
+               "fusion_seconds": fused.seconds, "frames_per_s": fused.frames_integrated / max(fused.seconds, 1e-9),
+               "bytes_on_disk": info["bytes_on_disk"]}
+    if as_json:
+        _print_json(summary)
+    else:
+        out.print(f"wrote {output}: {fused.frames_integrated} frames ({summary['frames_per_s']:.0f} frames/s), "
+                  f"{len(fused)} allocated blocks ({info['blocks']['coded']} coded, {info['blocks']['empty']} empty)")
+
+
+@app.command("mesh")
+@_cli
+def mesh_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    output: Path = typer.Argument(..., metavar="OUT.ply", help="Triangle mesh to write (.ply, .obj, .stl...)."),
+    level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Extract the zero level set of a map as a triangle mesh (marching cubes on the decoded blocks)."""
+    import open3d as o3d
+
+    from .fusion import mesh_from_blocks
+    from .mapfile import open_map
+
+    if output.exists() and not overwrite:
+        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    m = open_map(map_path)
+    coords, blocks = [], []
+    for c, b in m.iter_blocks(level=level):
+        coords.append(c)
+        blocks.append(b)
+    if not coords:
+        _fail(f"{map_path} has no coded blocks: nothing to mesh")
+    mesh = mesh_from_blocks(np.concatenate(coords), np.concatenate(blocks), origin=m.origin,
+                            voxel_size=m.voxel_size, truncation=m.truncation)
+    tmp = output.with_name(f".tmp-{output.name}")
+    if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+        _fail(f"could not write {output} (unsupported extension? use .ply, .obj or .stl)")
+    tmp.replace(output)
+    summary = {"output": str(output), "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
+    if as_json:
+        _print_json(summary)
+    else:
+        out.print(f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles")
+
+
+@app.command("dataset")
+@_cli
+def dataset_cmd(
+    output: Path = typer.Argument(..., metavar="OUTPUT", help="Data set to write (a Zarr directory)."),
+    synthetic: int = typer.Option(0, "--synthetic", help="Number of synthetic primitive blocks."),
+    sequence: list[str] = typer.Option([], "--sequence", help="RGB-D sequence (TUM or 7-Scenes) to fuse and sample."),
+    map_paths: list[str] = typer.Option([], "--map", help="Map to decode and sample."),
+    volume: list[Path] = typer.Option([], "--volume", help="Dense .npy TSDF (metres) to sample."),
+    voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge (synthetic blocks, fusion)."),
+    truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
+    stride: int = typer.Option(8, "--stride", help="Sub-volume stride in voxels (the paper: 8)."),
+    max_mean: float = typer.Option(0.85, "--max-mean", help="Drop windows whose normalised mean is above this."),
+    empty_fraction: float = typer.Option(0.02, "--empty-fraction", help="Share of dropped windows kept anyway."),
+    batch_size: int = typer.Option(500, "--batch-size", help="Blocks per batch (the paper: 500)."),
+    seed: int = typer.Option(0, "--seed"),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Build a training data set: synthetic blocks plus sub-volumes of real maps, split 300:50:50 by batches."""
+    from .data.sampler import iter_windows
+    from .data.synthetic import synthetic_blocks
+    from .dataset import build_dataset
+    from .mapfile import open_map
+
+    trunc = _pair(truncation, "--truncation")
+    window_kw = dict(stride=stride, truncation=trunc, max_mean=max_mean, empty_fraction=empty_fraction, seed=seed)
+
+    def synth(n: int):
+        for i in range(0, n, 10_000):  # chunks of 10k keep memory flat and the bar moving
+            yield synthetic_blocks(min(10_000, n - i), seed=seed + i, voxel_size=voxel_size, truncation=trunc)
+
+    def fused(path: str):
+        from .fusion import fuse
+
+        yield from iter_windows(fuse(path, voxel_size=voxel_size, truncation=trunc, quiet=True).to_dense(),
+                                **window_kw)
+
+    sources = ([("synthetic", synth(synthetic))] if synthetic else []) \
+        + [(f"sequence:{p}", fused(p)) for p in sequence] \
+        + [(f"map:{p}", iter_windows(open_map(p).decode_region(), **window_kw)) for p in map_paths] \
+        + [(f"volume:{p}", iter_windows(np.load(p, mmap_mode="r", allow_pickle=False), **window_kw)) for p in volume]
+    if not sources:
+        _fail("give at least one source: --synthetic N, --sequence PATH, --map MAP or --volume X.npy")
+    with _progress() as prog:
+        task = prog.add_task("collecting blocks", total=None, rate="")
+        ds = build_dataset(output, sources, batch_size=batch_size, seed=seed, voxel_size=voxel_size,
+                           truncation=trunc, overwrite=overwrite, progress=lambda n: prog.advance(task, n))
+    if as_json:
+        _print_json(ds.meta)
+    else:
+        out.print(f"wrote {output}: {ds.meta['splits']} blocks from {ds.meta['sources']}")
+
+
+@app.command("train")
+@_cli
+def train_cmd(
+    dataset: Path = typer.Argument(..., metavar="DATASET", help="Data set from `sdfcodec dataset`."),
+    output: Path = typer.Option(..., "-o", "--output", help="Model file to write (.npz)."),
+    codec_id: str = typer.Option("pca", "--codec", help="Codec id."),
+    code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length."),
+    max_memory_gb: float = typer.Option(4.0, "--max-memory-gb",
+                                        help="Train in memory below this; stream the data set above it."),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Train a codec on a data set and save it as a model (.npz of plain arrays); report validation/test error."""
+    from .dataset import open_dataset
+    from .model import save_model
+    from .registry import get_codec
+
+    if output.exists() and not overwrite:
+        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    ds = open_dataset(dataset)
+    codec = get_codec(codec_id, **({"code_size": code_size} if code_size else {}))
+    n = ds.split("train").shape[0]
+    t0 = time.perf_counter()
+    with _progress() as prog:
+        if n * 4096 * 4 <= max_memory_gb * 2**30:
+            prog.add_task(f"fitting {codec!r} on {n} blocks (in memory)", total=None, rate="")
+            codec.fit(ds.load("train"))
+        else:
+            task = prog.add_task(f"fitting {codec!r} on {n} blocks (streamed)", total=n, rate="")
+
+            def batches():
+                for b in ds.iter_batches("train"):
+                    prog.advance(task, len(b))
+                    yield b
+
+            codec.fit_stream(batches())
+    seconds = time.perf_counter() - t0
+    save_model(codec, output)
+    report: dict[str, Any] = {"model": str(output), "codec": codec.get_config(), "train_blocks": n,
+                              "fit_seconds": seconds}
+    for split in ("validation", "test"):
+        sse, sq, count = 0.0, 0.0, 0
+        for b in ds.iter_batches(split):
+            err2 = (codec.decode(codec.encode(b)) - b) ** 2
+            sq += float(err2.sum(dtype=np.float64))
+            count += len(b)
+        report[split] = {"blocks": count, "mse_voxel": sq / (count * 4096), "sse_block": sq / count}
+    if as_json:
+        _print_json(report)
+    else:
+        out.print(f"wrote {output} ({codec!r}, {n} blocks, {seconds:.1f} s): validation MSE/voxel "
+                  f"{report['validation']['mse_voxel']:.3e}, test {report['test']['mse_voxel']:.3e}")
 
 
 @app.command("bench")

@@ -129,3 +129,37 @@ def test_bench_json_records():
     assert {(x["operation"], x["batch"]) for x in recs} == {("encode", 1), ("decode", 1), ("encode", 64),
                                                              ("decode", 64)}
     assert all(x["blocks_per_s"] > 0 and x["baseline_blocks_per_s"] > 0 for x in recs)
+
+
+def test_encode_uses_shipped_model_by_default(volume_file, tmp_path):
+    from sdfcodec.mapfile import state_digest
+    from sdfcodec.models import default_codec
+
+    src, _ = volume_file
+    r = run("encode", src, tmp_path / "d.sdfz", "--voxel-size", VS, "--code-size", 32)
+    assert r.exit_code == 0, r.output
+    m = sdfcodec.open_map(tmp_path / "d.sdfz")
+    assert m.header.codec.state_sha256 == state_digest(default_codec("pca", 32).state_dict())
+    r = run("encode", src, tmp_path / "f.sdfz", "--voxel-size", VS, "--code-size", 32, "--fit")
+    assert r.exit_code == 0 and "fitting" in r.stderr
+    assert sdfcodec.open_map(tmp_path / "f.sdfz").header.codec.state_sha256 != m.header.codec.state_sha256
+
+
+def test_dataset_and_train(volume_file, tmp_path):
+    src, _ = volume_file
+    ds = tmp_path / "ds.zarr"
+    r = run("dataset", ds, "--synthetic", 1500, "--volume", src, "--json")
+    assert r.exit_code == 0, r.output
+    meta = json.loads(r.stdout)
+    assert meta["sources"]["synthetic"] == 1500 and sum(meta["splits"].values()) % 500 == 0
+    nb = sum(meta["splits"].values()) // 500  # whole batches, split 300 : 50 : 50 (at least one each)
+    assert meta["splits"]["validation"] == meta["splits"]["test"] == 500 * max(1, round(nb / 8))
+    reports = []
+    for extra in ([], ["--max-memory-gb", "0.001"]):  # in memory (sklearn), then streamed covariance
+        r = run("train", ds, "--code-size", 16, "-o", tmp_path / "m.npz", "--overwrite", "--json", *extra)
+        assert r.exit_code == 0, r.output
+        reports.append(json.loads(r.stdout))
+    assert reports[0]["validation"]["mse_voxel"] == pytest.approx(reports[1]["validation"]["mse_voxel"], rel=1e-4)
+    m = sdfcodec.load_model(tmp_path / "m.npz")
+    assert m.code_size == 16
+    one_line_error(run("train", ds, "-o", tmp_path / "m.npz"), "exists")

@@ -68,3 +68,46 @@ def test_pca_bad_parameters():
         sdfcodec.get_codec("pca", mean="median").fit(analytic_blocks(100))
     with pytest.raises(sdfcodec.errors.InvalidValueError, match="code_size"):
         sdfcodec.get_codec("pca", code_size=0).fit(analytic_blocks(100))
+
+
+@pytest.mark.parametrize("mean", ["dataset", "block"])
+def test_streamed_pca_equals_sklearn(mean):
+    """One pass of streamed covariance gives sklearn's exact (full SVD) basis, in bounded memory."""
+    from sdfcodec.data.synthetic import synthetic_blocks
+
+    x = synthetic_blocks(1500, seed=3)
+    ref = sdfcodec.get_codec("pca", code_size=16, mean=mean, svd_solver="full").fit(x)
+    streamed = sdfcodec.get_codec("pca", code_size=16, mean=mean).fit_stream(x[i:i + 250] for i in range(0, 1500, 250))
+    # components agree up to sign; the variances and the mean to float32 precision
+    assert np.all(np.abs(np.sum(ref.components_ * streamed.components_, axis=1)) > 1 - 1e-5)
+    assert np.allclose(ref.explained_variance_, streamed.explained_variance_, rtol=1e-4)
+    assert np.allclose(ref.mean_, streamed.mean_, atol=1e-6)
+    rec = lambda c: float(np.mean((c.decode(c.encode(x)) - x) ** 2))  # noqa: E731
+    assert rec(streamed) == pytest.approx(rec(ref), rel=1e-5)
+
+
+def test_pca_prefix_is_the_truncated_basis(train_blocks):
+    big = sdfcodec.get_codec("pca", code_size=64).fit(train_blocks)
+    small = big.prefix(32)
+    assert small.code_size == 32 and small.is_fitted
+    assert np.allclose(small.encode(train_blocks), big.encode(train_blocks)[:, :32], atol=1e-4)
+    assert np.allclose(small.decode(big.encode(train_blocks)[:, :32]), big.decode(big.encode(train_blocks)[:, :32]))
+    with pytest.raises(sdfcodec.errors.InvalidValueError, match="prefix size"):
+        big.prefix(65)
+
+
+def test_shipped_default_model():
+    """The shipped eigenshapes load without pickles, are orthonormal, and reconstruct real-like blocks."""
+    from sdfcodec.data.synthetic import synthetic_blocks
+    from sdfcodec.models import default_codec
+
+    c = default_codec("pca", 128)
+    w = c.components_.astype(np.float64)
+    assert np.allclose(w @ w.T, np.eye(128), atol=1e-4)
+    assert np.all(np.diff(c.explained_variance_) <= 0)
+    x = synthetic_blocks(500, seed=99)
+    errs = [float(np.mean((default_codec("pca", k).decode(default_codec("pca", k).encode(x)) - x) ** 2))
+            for k in (32, 64, 128)]
+    assert errs[0] > errs[1] > errs[2] and errs[0] < 0.01
+    with pytest.raises(sdfcodec.errors.InvalidValueError, match="129"):
+        default_codec("pca", 129)

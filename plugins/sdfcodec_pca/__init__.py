@@ -152,6 +152,19 @@ class PCACodec(Codec):
             self._device_cache[device] = mats
         return mats
 
+    def prefix(self, code_size: int) -> "PCACodec":
+        """The fitted codec that keeps only the first ``code_size`` code elements (its leading components):
+        one 128-component basis serves pca-32 and pca-64 exactly as a prefix of its codes would."""
+        self._check_fitted()
+        if not 1 + (self.mean == "block") <= code_size <= self.code_size:
+            raise InvalidValueError(f"prefix size must be in [{1 + (self.mean == 'block')}, {self.code_size}], "
+                                    f"got {code_size}")
+        c = code_size - (self.mean == "block")
+        out = type(self)(code_size=code_size, mean=self.mean, svd_solver=self.svd_solver,
+                         random_state=self.random_state)
+        return out.load_state_dict({"components": self.components_[:c], "mean": self.mean_,
+                                    "explained_variance": self.explained_variance_[:c]})
+
     # -- encode / decode: one affine map each ---------------------------------------------------------
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
         enc_w, enc_b, _, _ = self._on(blocks.device)
