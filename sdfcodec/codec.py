@@ -46,6 +46,10 @@ class Codec(abc.ABC):
     prefix_ordered: ClassVar[bool] = False
     requires_fit: ClassVar[bool] = False
     code_sizes: ClassVar[tuple[int, ...]] = ()
+    #: Voxels of neighbour context the decoder needs on each side (0: blocks decode on their own). A codec
+    #: with ``halo > 0`` also implements ``_decode_context``; map readers then decode neighbouring blocks and
+    #: hand it the assembled neighbourhood, so block seams vanish (spec/codec-plugins.md, "Halo").
+    halo: ClassVar[int] = 0
 
     #: Length ``k`` of one block's code vector: an ``__init__`` argument or a property of the subclass.
     code_size: int
@@ -60,6 +64,11 @@ class Codec(abc.ABC):
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         """``(N, k)`` float32 -> ``(N, 16, 16, 16)`` float32 on ``codes.device``; ``k < code_size`` only
         when ``prefix_ordered``."""
+
+    def _decode_context(self, padded: torch.Tensor) -> torch.Tensor:  # pragma: no cover - halo codecs only
+        """``(N, X + 2 halo, Y + 2 halo, Z + 2 halo)`` normalised values assembled from ``_decode`` outputs of
+        neighbouring blocks (1.0 where there is none) -> ``(N, X, Y, Z)`` final values."""
+        raise NotImplementedError
 
     def _fit(self, blocks: np.ndarray) -> None:  # pragma: no cover - codecs without state never call it
         """Learn state from ``(N, 16, 16, 16)`` float32 numpy blocks."""
@@ -133,6 +142,30 @@ class Codec(abc.ABC):
                              " (this codec is not prefix-ordered, so a shorter code cannot be decoded)")
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
+        out = self._decode(t)
+        if self.halo:
+            # alone, a block has no neighbours: repeat its faces as the context (maps give the real ones)
+            h = self.halo
+            out = self._decode_context(torch.nn.functional.pad(out[:, None], (h,) * 6, mode="replicate")[:, 0])
+        return like_input(out, was_numpy)
+
+    def decode_context(self, padded: Any) -> Any:
+        """Finish decoding with neighbour context: ``(N, X + 2h, Y + 2h, Z + 2h)`` normalised values (blocks
+        decoded by :meth:`decode_core`, assembled; 1.0 where there is no block) -> ``(N, X, Y, Z)``, with
+        ``h = halo``. For ``halo == 0`` it is the identity."""
+        t, was_numpy = as_float_tensor(padded, "padded", (None, None, None, None))
+        h = self.halo
+        if min(t.shape[1:]) <= 2 * h:
+            raise ShapeError(f"padded volumes for {self!r} need more than {2 * h} voxels per axis, got {tuple(t.shape)}")
+        return like_input(self._decode_context(t) if h else t, was_numpy)
+
+    def decode_core(self, codes: Any) -> Any:
+        """Decode without neighbour context (what :meth:`decode_context` assembles); equals :meth:`decode`
+        for codecs with ``halo == 0``."""
+        if not self.halo:
+            return self.decode(codes)
+        self._check_fitted()
+        t, was_numpy = as_float_tensor(codes, "codes", (None, self.code_size))
         return like_input(self._decode(t), was_numpy)
 
     # -- configuration -------------------------------------------------------------------------------

@@ -293,19 +293,60 @@ class Map:
     def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
                     chunks_per_batch: int = 8) -> Iterator[tuple[np.ndarray, Any]]:
         """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a few chunks
-        of the block grid at a time (bounded memory). ``blocks`` is numpy, or a tensor on ``device``."""
-        for coords, codes in self.iter_codes(level=level, chunks_per_batch=chunks_per_batch):
-            yield self._decode_batch(coords, codes, device)
-
-    def _decode_batch(self, coords: np.ndarray, codes: np.ndarray, device) -> tuple[np.ndarray, Any]:
-        d_min, d_max = self.truncation
+        of the block grid at a time (bounded memory). ``blocks`` is numpy, or a tensor on ``device``.
+        Codecs with a decode halo get their neighbours' context, exactly as in :meth:`decode_region`."""
         dev = torch.device(device) if device is not None else torch.device("cpu")
-        v = self.codec.decode(torch.from_numpy(codes).to(dev))
-        blocks = v * (d_max - d_min) + d_min
-        return coords, blocks if device is not None else blocks.numpy()
+        halo = self.codec.halo
+        for coords, codes in self.iter_codes(level=level, chunks_per_batch=1 if halo else chunks_per_batch):
+            if halo:
+                lo, hi = coords.min(axis=0) * BLOCK, (coords.max(axis=0) + 1) * BLOCK
+                vol = self._decode_voxels(lo, hi, self._level(level), dev)
+                view = _block_view(vol, [(h - l) // BLOCK for l, h in zip(lo, hi)])
+                rel = torch.from_numpy(coords - lo // BLOCK).to(dev)
+                blocks = view[rel[:, 0], rel[:, 1], rel[:, 2]]
+            else:
+                blocks = self._to_metres(self.codec.decode(torch.from_numpy(codes).to(dev)))
+            yield coords, blocks if device is not None else blocks.numpy()
+
+    def _to_metres(self, v: torch.Tensor) -> torch.Tensor:
+        d_min, d_max = self.truncation
+        return v.mul_(d_max - d_min).add_(d_min)
+
+    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device,
+                    batch_size: int = 65536) -> torch.Tensor:
+        """Normalised core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the
+        grid: 1.0 (free space) wherever no coded block is."""
+        grid_hi = np.asarray(self.grid_blocks) * BLOCK
+        clo, chi = np.maximum(lo, 0), np.minimum(hi, grid_hi)
+        if np.any(chi <= clo):
+            return empty(tuple(int(n) for n in hi - lo), dev).fill_(1.0)
+        box = self._block_range(tuple(zip(clo.tolist(), chi.tolist())))
+        coords, codes = self._codes_in(box, level)
+        b0 = np.array([s.start for s in box])
+        nb = [s.stop - s.start for s in box]
+        tmp = empty(tuple(n * BLOCK for n in nb), dev).fill_(1.0)
+        view = _block_view(tmp, nb)
+        local = torch.from_numpy(coords - b0).to(dev)
+        for i in range(0, len(coords), batch_size):
+            idx = local[i:i + batch_size]
+            view[idx[:, 0], idx[:, 1], idx[:, 2]] = self.codec.decode_core(torch.from_numpy(codes[i:i + batch_size]).to(dev))
+        src = tuple(slice(int(a - o * BLOCK), int(b - o * BLOCK)) for a, b, o in zip(clo, chi, b0))
+        if np.array_equal(clo, lo) and np.array_equal(chi, hi):
+            return tmp[src]  # inside the grid (always, without a halo): a view, no copy
+        out = empty(tuple(int(n) for n in hi - lo), dev).fill_(1.0)
+        out[tuple(slice(int(a - l), int(b - l)) for a, b, l in zip(clo, chi, lo))] = tmp[src]
+        return out
+
+    def _decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device) -> torch.Tensor:
+        """Final decoded metres of voxels ``[lo, hi)`` inside the grid, neighbour context included."""
+        h = self.codec.halo
+        core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev)
+        if h:
+            core = self.codec.decode_context(core[None])[0]
+        return self._to_metres(core)
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                      device: str | torch.device | None = None, batch_size: int = 65536) -> Any:
+                      device: str | torch.device | None = None) -> Any:
         """Decode a region to a dense TSDF in metres.
 
         Args:
@@ -313,33 +354,23 @@ class Map:
                 ``units="m"``, closed bounds in metres (the voxels whose centres lie inside).
             level: decode only the first ``level`` code elements (prefix-ordered codecs only).
             device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
-            batch_size: blocks per decode call.
 
         Returns:
-            ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``.
+            ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``. Codecs with
+            a decode halo (e.g. ``gaussian-blur``) see their neighbour blocks, so there are no seams.
         """
         lv = self._level(level)
         vox = self._block_box(region, units)
         box = self._block_range(vox)
-        nb = [s.stop - s.start for s in box]
-        nbytes = int(np.prod(nb)) * BLOCK ** 3 * 4
+        nbytes = 4 * int(np.prod([(s.stop - s.start) * BLOCK + 2 * 16 for s in box]))
         if nbytes > self.max_decode_bytes:
             raise InvalidValueError(f"decoding {region or 'the whole map'} needs {nbytes / 2**30:.1f} GiB, above the "
                                     f"limit of {self.max_decode_bytes / 2**30:.1f} GiB; decode a smaller region or "
                                     "raise max_decode_bytes in open_map()")
-        coords, codes = self._codes_in(box, lv)
         dev = torch.device(device) if device is not None else torch.device("cpu")
-        d_max = self.truncation[1]
-        out = empty(tuple(n * BLOCK for n in nb), dev).fill_(d_max)
-        view = out.view(nb[0], BLOCK, nb[1], BLOCK, nb[2], BLOCK).permute(0, 2, 4, 1, 3, 5)
-        local = torch.from_numpy(coords - np.array([s.start for s in box])).to(dev)
-        for i in range(0, len(coords), batch_size):
-            _, blocks = self._decode_batch(coords[i:i + batch_size], codes[i:i + batch_size], dev)
-            idx = local[i:i + batch_size]
-            view[idx[:, 0], idx[:, 1], idx[:, 2]] = blocks
-        crop = tuple(slice(lo - s.start * BLOCK, hi - s.start * BLOCK) for (lo, hi), s in zip(vox, box))
-        out = out[crop]
-        return out.contiguous() if device is not None else out.numpy().copy()
+        lo, hi = np.array([v[0] for v in vox]), np.array([v[1] for v in vox])
+        out = self._decode_voxels(lo, hi, lv, dev)
+        return out.contiguous() if device is not None else np.ascontiguousarray(out.numpy())
 
     def info(self) -> dict[str, Any]:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""
@@ -722,3 +753,8 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
         raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
     header = parse_header(group.attrs.get("sdfcodec"), where=loc)
     return Map(group, header, loc, max_decode_bytes=max_decode_bytes)
+
+
+def _block_view(vol: torch.Tensor, nb) -> torch.Tensor:
+    """``(16 bx, 16 by, 16 bz)`` -> a ``(bx, by, bz, 16, 16, 16)`` view of the same memory."""
+    return vol.view(nb[0], BLOCK, nb[1], BLOCK, nb[2], BLOCK).permute(0, 2, 4, 1, 3, 5)
