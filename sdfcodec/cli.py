@@ -342,6 +342,7 @@ def fuse_cmd(
     truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
     depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32 or float16 storage of the field."),
+    weights: bool = typer.Option(False, "--weights", help="Also store the per-voxel fusion weights."),
     overwrite: bool = typer.Option(False, "--overwrite"),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
@@ -360,7 +361,7 @@ def fuse_cmd(
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse",
                     source=str(sequence)) as m:
-        m.write_blocks(fused.coords, fused.tsdf)
+        m.write_blocks(fused.coords, fused.tsdf, weights=fused.weights if weights else None)
     info = m.info()
     summary = {"output": str(output), "frames_integrated": fused.frames_integrated,
                "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],

@@ -19,7 +19,8 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
 
 FORMAT_NAME = "sdfcodec-map"
 FORMAT_VERSION = 1
-KNOWN_EXTENSIONS: frozenset[str] = frozenset()
+#: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a).
+KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights"})
 
 
 class BlockState:

@@ -37,7 +37,7 @@ from .blocks import check_truncation, denormalise, normalise, split_blocks
 from .codec import Codec
 from .errors import (ChecksumError, FormatError, InvalidValueError, MapExistsError, MapNotFoundError,
                      ReadOnlyError, SDFCodecWarning, ShapeError)
-from .header import (FORMAT_VERSION, BlockState, CodecSpec, CodesSpec, MapHeader, Provenance, Truncation,
+from .header import (FORMAT_VERSION, BlockState, CodecSpec, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                      now_iso, parse_header)
 from .registry import codec_package, get_codec_class
 
@@ -263,8 +263,6 @@ class Map:
         local = np.argwhere(state == BlockState.CODED)
         if not len(local):
             return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
-        if self._writer is not None:
-            self._writer.flush()
         codes = self._read(self._codes, (*box, slice(0, level)))
         origin = np.array([s.start for s in box], dtype=np.int64)
         return local + origin, codes[tuple(local.T)].astype(np.float32)
@@ -428,15 +426,44 @@ class Map:
         coords = np.stack(np.meshgrid(*[np.arange(n) for n in gb], indexing="ij"), -1).reshape(-1, 3) + off // BLOCK
         w.put_blocks(coords, flat, batch_size=batch_size, progress=progress)
 
-    def write_blocks(self, coords: Any, blocks: Any, *, batch_size: int = 16384,
+    def write_blocks(self, coords: Any, blocks: Any, *, weights: Any = None, batch_size: int = 16384,
                      progress: Callable[[int], None] | None = None) -> None:
-        """Encode blocks ``(N, 16, 16, 16)`` in metres at block indices ``coords`` ``(N, 3)`` (non-negative)."""
+        """Encode blocks ``(N, 16, 16, 16)`` in metres at block indices ``coords`` ``(N, 3)`` (non-negative).
+
+        ``weights`` ``(N, 16, 16, 16)``, optional: per-voxel fusion weights (observation counts), stored
+        losslessly up to 2048 as float16 in the optional ``weights`` array (extension "fusion-weights").
+        """
         w = self._w()
         c = _check_coords(coords)
         b = _check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
+        if weights is not None:
+            wt, _ = as_float_tensor(weights, "weights", (len(c), BLOCK, BLOCK, BLOCK))
+            if len(c) and float(wt.min()) < 0:
+                raise InvalidValueError("weights must be non-negative (observation counts)")
         if len(c):
             w.grow_blocks(c.max(axis=0))
         w.put_blocks(c, b, batch_size=batch_size, progress=progress)
+        if weights is not None:
+            w.put_weights(c, wt.numpy())
+
+    @property
+    def has_weights(self) -> bool:
+        """True when the map stores fusion weights."""
+        return any(e.name == "fusion-weights" for e in self.header.extensions) and "weights" in self._group
+
+    def read_weights(self, coords: Any) -> np.ndarray:
+        """Fusion weights ``(N, 16, 16, 16)`` float32 of blocks ``coords`` (0 where none were written)."""
+        if not self.has_weights:
+            raise FormatError(f"{self.location} stores no fusion weights (write them with write_blocks(weights=...),"
+                              " e.g. `sdfcodec fuse --weights`)")
+        c = _check_coords(coords)
+        if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
+            raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
+        arr = self._group["weights"]
+        out = np.zeros((len(c), 4096), np.float32)
+        for i, (x, y, z) in enumerate(c):
+            out[i] = self._read(arr, (int(x), int(y), int(z), slice(None)))
+        return out.reshape(len(c), BLOCK, BLOCK, BLOCK)
 
     def write_codes(self, coords: Any, codes: Any) -> None:
         """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords``."""
@@ -551,9 +578,6 @@ class _Writer:
         self.state = np.zeros(self.grid, dtype=np.uint8)
         self.codes = group["codes"]
 
-    def flush(self) -> None:
-        """Nothing is buffered between calls; kept so readers of a writing map can ask."""
-
     def grow_voxels(self, need: tuple[int, int, int]) -> None:
         self.shape_voxels = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
         grid = tuple(-(-n // BLOCK) for n in self.shape_voxels)
@@ -568,6 +592,19 @@ class _Writer:
         need = tuple((int(m) + 1) * BLOCK if int(m) >= g else n
                      for m, g, n in zip(max_coord, self.grid, self.shape_voxels))
         self.grow_voxels(need)
+
+    def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
+        if "weights" not in self.group:
+            self.group.create_array("weights", shape=(*self.grid, 4096), dtype="float16", fill_value=0,
+                                    chunks=(4, 4, 4, 4096), compressors=_compressors(),
+                                    dimension_names=["bx", "by", "bz", "voxel"])
+        arr = self.group["weights"]
+        if tuple(arr.shape[:3]) != self.grid:
+            arr.resize((*self.grid, 4096))
+        # float16 counts are exact to 2048 frames and saturate at its maximum beyond
+        w16 = np.minimum(weights.reshape(len(weights), 4096), 65504).astype(np.float16)
+        for (x, y, z), row in zip(coords, w16):
+            arr[int(x), int(y), int(z)] = row
 
     def set_state(self, coords: np.ndarray, value: int) -> None:
         self.state[tuple(coords.T)] = value
@@ -614,9 +651,13 @@ class _Writer:
                                      chunks=tuple(min(64, max(1, n)) for n in self.grid),
                                      compressors=_compressors())
         st[...] = self.state
-        # codes of blocks that are no longer coded (overwritten as empty) are zeroed for tidiness
+        extensions = []
+        if "weights" in self.group:
+            if tuple(self.group["weights"].shape[:3]) != self.grid:
+                self.group["weights"].resize((*self.grid, 4096))
+            extensions.append(Extension(name="fusion-weights", required=False))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
-                           **self.header_kw)
+                           extensions=extensions, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
         if self.final.exists() and not self.overwrite:
             self.abort()

@@ -416,3 +416,23 @@ def test_header_schema_is_current():
     spec = Path(__file__).resolve().parents[1] / "spec" / "map-header.schema.json"
     assert json.loads(spec.read_text()) == json_schema(), \
         "spec/map-header.schema.json is stale: python -m sdfcodec.header > spec/map-header.schema.json"
+
+
+def test_fusion_weights_are_optional_and_lossless(tmp_path):
+    raw = sdfcodec.get_codec("raw")
+    rng = np.random.default_rng(1)
+    blocks = rng.uniform(*TRUNC, size=(3, 16, 16, 16)).astype(np.float32)
+    weights = rng.integers(0, 300, size=(3, 16, 16, 16)).astype(np.float32)
+    coords = [[0, 0, 0], [2, 1, 0], [5, 5, 5]]
+    with sdfcodec.create_map(tmp_path / "w.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks(coords, blocks, weights=weights)
+    m = sdfcodec.open_map(tmp_path / "w.sdfz")
+    assert m.has_weights and m.header.extensions[0].name == "fusion-weights"
+    assert np.array_equal(m.read_weights(coords), weights)  # integers below 2048 are exact in float16
+    assert np.array_equal(m.read_weights([[1, 1, 1]]), np.zeros((1, 16, 16, 16)))
+    with sdfcodec.create_map(tmp_path / "n.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks(coords, blocks)
+    m = sdfcodec.open_map(tmp_path / "n.sdfz")
+    assert not m.has_weights and m.header.extensions == []
+    with pytest.raises(errors.FormatError, match="no fusion weights"):
+        m.read_weights(coords)
