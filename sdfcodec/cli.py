@@ -17,7 +17,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from . import __version__
-from .errors import InvalidValueError, MapExistsError, SDFCodecError, SDFCodecWarning
+from .errors import InvalidValueError, MapExistsError, SDFCodecError
 
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -90,6 +90,19 @@ def _region(text: str | None) -> tuple | None:
 
 def _print_json(obj: Any) -> None:
     sys.stdout.write(json.dumps(obj, indent=2, default=str) + "\n")
+
+
+def _report(summary: Any, as_json: bool, line: Callable[[], str]) -> None:
+    """Print ``summary`` as JSON, or the human line ``line()`` (built only when needed)."""
+    if as_json:
+        _print_json(summary)
+    else:
+        out.print(line())
+
+
+def _refuse_existing(path: Path, overwrite: bool) -> None:
+    if path.exists() and not overwrite:
+        raise MapExistsError(f"{path} exists; pass --overwrite to replace it")
 
 
 @app.callback()
@@ -221,8 +234,7 @@ def encode_cmd(
     from .model import load_model
     from .registry import get_codec
 
-    if output.exists() and not overwrite:
-        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    _refuse_existing(output, overwrite)
     src_map = None
     in_path = Path(input)
     if "://" in input or in_path.is_dir():
@@ -289,11 +301,9 @@ def encode_cmd(
     summary = {"output": str(output), "codec": codec.get_config(), "fitted_on_blocks": fitted_on,
                "blocks": info["blocks"], "bytes_on_disk": info["bytes_on_disk"],
                "ratio_dense_to_disk": info["ratio_dense_to_disk"]}
-    if as_json:
-        _print_json(summary)
-    else:
-        out.print(f"wrote {output}: {info['blocks']['coded']} coded blocks, {_bytes(info['bytes_on_disk'])} on disk, "
-                  f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32")
+    _report(summary, as_json, lambda: (
+        f"wrote {output}: {info['blocks']['coded']} coded blocks, {_bytes(info['bytes_on_disk'])} on disk, "
+        f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32"))
 
 
 @app.command("decode")
@@ -313,8 +323,7 @@ def decode_cmd(
 
     if output.suffix != ".npy":
         _fail(f"OUTPUT must end in .npy, got {output}")
-    if output.exists() and not overwrite:
-        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    _refuse_existing(output, overwrite)
     m = open_map(map_path)
     with _progress() as prog:
         prog.add_task("decoding", total=None, rate="")
@@ -327,10 +336,7 @@ def decode_cmd(
     tmp.replace(output)
     summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
                "voxel_size": m.voxel_size, "origin": list(m.origin)}
-    if as_json:
-        _print_json(summary)
-    else:
-        out.print(f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
+    _report(summary, as_json, lambda: f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
 
 
 @app.command("fuse")
@@ -354,8 +360,7 @@ def fuse_cmd(
     from .mapfile import create_map
     from .registry import get_codec
 
-    if output.exists() and not overwrite:
-        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    _refuse_existing(output, overwrite)
     trunc = _pair(truncation, "--truncation")
     fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, quiet=as_json)
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
@@ -367,11 +372,9 @@ def fuse_cmd(
                "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],
                "fusion_seconds": fused.seconds, "frames_per_s": fused.frames_integrated / max(fused.seconds, 1e-9),
                "bytes_on_disk": info["bytes_on_disk"]}
-    if as_json:
-        _print_json(summary)
-    else:
-        out.print(f"wrote {output}: {fused.frames_integrated} frames ({summary['frames_per_s']:.0f} frames/s), "
-                  f"{len(fused)} allocated blocks ({info['blocks']['coded']} coded, {info['blocks']['empty']} empty)")
+    _report(summary, as_json, lambda: (
+        f"wrote {output}: {fused.frames_integrated} frames ({summary['frames_per_s']:.0f} frames/s), "
+        f"{len(fused)} allocated blocks ({info['blocks']['coded']} coded, {info['blocks']['empty']} empty)"))
 
 
 @app.command("mesh")
@@ -389,8 +392,7 @@ def mesh_cmd(
     from .fusion import mesh_from_blocks
     from .mapfile import open_map
 
-    if output.exists() and not overwrite:
-        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    _refuse_existing(output, overwrite)
     m = open_map(map_path)
     coords, blocks = [], []
     for c, b in m.iter_blocks(level=level):
@@ -405,10 +407,8 @@ def mesh_cmd(
         _fail(f"could not write {output} (unsupported extension? use .ply, .obj or .stl)")
     tmp.replace(output)
     summary = {"output": str(output), "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
-    if as_json:
-        _print_json(summary)
-    else:
-        out.print(f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles")
+    _report(summary, as_json, lambda: (
+        f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles"))
 
 
 @app.command("dataset")
@@ -481,8 +481,7 @@ def train_cmd(
     from .model import save_model
     from .registry import get_codec
 
-    if output.exists() and not overwrite:
-        raise MapExistsError(f"{output} exists; pass --overwrite to replace it")
+    _refuse_existing(output, overwrite)
     ds = open_dataset(dataset)
     codec = get_codec(codec_id, **({"code_size": code_size} if code_size else {}))
     n = ds.split("train").shape[0]
@@ -505,17 +504,15 @@ def train_cmd(
     report: dict[str, Any] = {"model": str(output), "codec": codec.get_config(), "train_blocks": n,
                               "fit_seconds": seconds}
     for split in ("validation", "test"):
-        sse, sq, count = 0.0, 0.0, 0
+        sq, count = 0.0, 0
         for b in ds.iter_batches(split):
             err2 = (codec.decode(codec.encode(b)) - b) ** 2
             sq += float(err2.sum(dtype=np.float64))
             count += len(b)
         report[split] = {"blocks": count, "mse_voxel": sq / (count * 4096), "sse_block": sq / count}
-    if as_json:
-        _print_json(report)
-    else:
-        out.print(f"wrote {output} ({codec!r}, {n} blocks, {seconds:.1f} s): validation MSE/voxel "
-                  f"{report['validation']['mse_voxel']:.3e}, test {report['test']['mse_voxel']:.3e}")
+    _report(report, as_json, lambda: (
+        f"wrote {output} ({codec!r}, {n} blocks, {seconds:.1f} s): validation MSE/voxel "
+        f"{report['validation']['mse_voxel']:.3e}, test {report['test']['mse_voxel']:.3e}"))
 
 
 @app.command("bench")
