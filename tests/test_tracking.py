@@ -1,0 +1,401 @@
+"""The SDF Tracker against an analytic scene: a room corner with boxes and a sphere, sampled at 2 cm, and depth
+images rendered from the same exact distance function by sphere tracing."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+import torch
+from scipy.linalg import expm
+from scipy.spatial.transform import Rotation
+
+from sdfcodec import metrics
+from sdfcodec.errors import DTypeError, InvalidValueError, ShapeError
+from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+from sdfcodec.tracking import (CameraIntrinsics, DenseField, FieldSampler, SDFTracker, TrackerConfig, backproject,
+                               se3_exp)
+
+VOXEL = 0.02
+ORIGIN = (-0.2, -0.2, -0.2)
+SHAPE = (110, 110, 90)  # covers -0.2 .. 1.98 m in x and y, -0.2 .. 1.58 m in z
+W, H = 160, 120
+K = (131.25, 131.25, 79.5, 59.5)  # a Kinect's 525 px focal length at a quarter of 640x480
+
+
+def room() -> Scene:
+    """Floor z = 0 and walls x = 0 and y = 0 (a concave corner), two boxes and a ball on the floor."""
+    return Scene([
+        Box((1.0, 1.0, -0.5), (1.6, 1.6, 0.5)),
+        Box((-0.5, 1.0, 1.0), (0.5, 1.6, 1.6)),
+        Box((1.0, -0.5, 1.0), (1.6, 0.5, 1.6)),
+        Box((0.7, 0.45, 0.15), (0.15, 0.2, 0.15), Rotation.from_euler("z", 20, degrees=True).as_matrix()),
+        Sphere((0.45, 1.1, 0.25), 0.25),
+        Box((1.2, 0.3, 0.35), (0.1, 0.1, 0.35)),
+    ])
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV camera: x right, y down, z forward) at ``eye`` looking at ``target``."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    y = -(up - (up @ z) * z)
+    y /= np.linalg.norm(y)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = np.cross(y, z), y, z, eye
+    return pose
+
+
+def render_depth(sdf, pose: np.ndarray, intrinsics=K, height: int = H, width: int = W,
+                 max_range: float = 8.0, steps: int = 300) -> np.ndarray:
+    """Depth (H, W) float32 metres (z along the optical axis, 0 = no hit) by sphere tracing the exact SDF."""
+    fx, fy, cx, cy = intrinsics
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    rays = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1).reshape(-1, 3)
+    norm = np.linalg.norm(rays, axis=1)
+    dirs = (rays / norm[:, None]) @ pose[:3, :3].T
+    origin = pose[:3, 3]
+    s = np.zeros(len(dirs))
+    active = np.ones(len(dirs), dtype=bool)
+    hit = np.zeros(len(dirs), dtype=bool)
+    for _ in range(steps):
+        idx = np.flatnonzero(active)
+        if not len(idx):
+            break
+        d = sdf(origin + s[idx, None] * dirs[idx])
+        s[idx] += d
+        done = np.abs(d) < 1e-6
+        hit[idx[done]] = True
+        active[idx[done | (s[idx] > max_range)]] = False
+    return np.where(hit, s / norm, 0.0).reshape(height, width).astype(np.float32)
+
+
+def pose_error(estimate, truth) -> tuple[float, float]:
+    """(translation metres, rotation degrees) of ``truth^-1 estimate``."""
+    e = np.linalg.inv(truth) @ np.asarray(estimate, dtype=np.float64)
+    return float(np.linalg.norm(e[:3, 3])), float(metrics.rotation_angle(e[None, :3, :3], degrees=True)[0])
+
+
+def perturb(pose: np.ndarray, rng: np.random.Generator, metres: float, degrees: float) -> np.ndarray:
+    t = rng.normal(size=3)
+    w = rng.normal(size=3)
+    xi = np.concatenate([metres * t / np.linalg.norm(t), math.radians(degrees) * w / np.linalg.norm(w)])
+    return pose @ se3_exp(xi)
+
+
+TRUE_POSE = look_at((1.7, 1.5, 1.2), (0.4, 0.4, 0.2))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return room()
+
+
+@pytest.fixture(scope="module")
+def volume(scene):
+    return sample_volume(scene, SHAPE, VOXEL, ORIGIN)
+
+
+@pytest.fixture(scope="module")
+def field(volume):
+    return DenseField(volume, VOXEL, ORIGIN)
+
+
+@pytest.fixture(scope="module")
+def depth(scene):
+    d = render_depth(scene, TRUE_POSE)
+    assert (d > 0).mean() > 0.99
+    return d
+
+
+# ----------------------------------------------------------------------------------------------- the field
+def test_plane_gradient_is_exact():
+    normal = np.array([0.3, -0.5, 0.8])
+    normal /= np.linalg.norm(normal)
+    plane = Plane(normal, offset=0.35)
+    shape, origin = (30, 32, 34), (0.0, 0.05, -0.1)
+    vol = sample_volume(plane, shape, VOXEL, origin, truncation=None)  # raw distances: a linear field
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(np.array(origin) + 1.0 * VOXEL, np.array(origin) + (np.array(shape) - 2.0) * VOXEL,
+                      size=(2000, 3))
+    t = torch.as_tensor(pts, dtype=torch.float32)
+    for kwargs in ({}, {"precompute_gradient": False}, {"backend": "grid_sample"}):
+        f = DenseField(vol, VOXEL, origin, truncation=(-2.0, 2.0), **kwargs)
+        d, g, valid = f.sample_with_gradient(t)
+        assert valid.all()
+        # trilinear interpolation and central differences are exact on a linear function
+        np.testing.assert_allclose(d.numpy(), plane(pts), atol=2e-6)
+        np.testing.assert_allclose(g.numpy(), np.broadcast_to(normal, (len(pts), 3)), atol=2e-4)
+        d2, valid2 = f.sample(t)
+        np.testing.assert_allclose(d2.numpy(), d.numpy(), atol=1e-6)
+
+
+def test_gradient_variants_agree_and_bounds(volume):
+    rng = np.random.default_rng(1)
+    lo = np.array(ORIGIN) - 0.1
+    hi = np.array(ORIGIN) + np.array(SHAPE) * VOXEL + 0.1
+    pts = torch.as_tensor(rng.uniform(lo, hi, size=(5000, 3)), dtype=torch.float32)
+    results = [DenseField(volume, VOXEL, ORIGIN, **kw).sample_with_gradient(pts)
+               for kw in ({}, {"precompute_gradient": False}, {"backend": "grid_sample"})]
+    ref_d, ref_g, ref_v = results[0]
+    u = (pts.numpy().astype(np.float64) - ORIGIN) / VOXEL
+    inside = np.all((u >= 1) & (u < np.array(SHAPE) - 2), axis=1)
+    np.testing.assert_array_equal(ref_v.numpy(), inside)
+    assert 0 < inside.sum() < len(pts)
+    for d, g, v in results[1:]:
+        np.testing.assert_array_equal(v.numpy(), ref_v.numpy())
+        np.testing.assert_allclose(d[v].numpy(), ref_d[v].numpy(), atol=1e-6)
+        np.testing.assert_allclose(g[v].numpy(), ref_g[v].numpy(), atol=1e-4)
+    # the (N, 3) input may be a transposed (3, N) view (what the tracker passes)
+    d2, g2, v2 = DenseField(volume, VOXEL, ORIGIN).sample_with_gradient(pts.t().contiguous().t())
+    assert torch.equal(d2, ref_d) and torch.equal(g2, ref_g) and torch.equal(v2, ref_v)
+
+
+def test_dense_field_nan_voxels_are_unknown(volume):
+    vol = volume.copy()
+    vol[50:60, 50:60, 10:20] = np.nan
+    f = DenseField(torch.from_numpy(vol), VOXEL, ORIGIN)
+    p = torch.tensor([[ORIGIN[0] + 55 * VOXEL, ORIGIN[1] + 55 * VOXEL, ORIGIN[2] + 15 * VOXEL],
+                      [ORIGIN[0] + 20 * VOXEL, ORIGIN[1] + 20 * VOXEL, ORIGIN[2] + 15 * VOXEL]])
+    d, g, valid = f.sample_with_gradient(p)
+    assert valid.tolist() == [False, True]
+    assert torch.isfinite(d).all() and torch.isfinite(g).all()
+    # NaN or infinite query points are simply not valid, for every backend
+    bad = torch.tensor([[float("nan"), 0.5, 0.5], [float("inf"), 0.5, 0.5], [0.5, 0.5, 0.5]])
+    for kw in ({}, {"precompute_gradient": False}, {"backend": "grid_sample"}):
+        d, g, valid = DenseField(volume, VOXEL, ORIGIN, **kw).sample_with_gradient(bad)
+        assert valid.tolist() == [False, False, True]
+        assert torch.isfinite(d).all() and torch.isfinite(g).all()
+
+
+def test_dense_field_input_errors(volume):
+    with pytest.raises(ShapeError, match=r"\(X, Y, Z\)"):
+        DenseField(volume[0], VOXEL)
+    with pytest.raises(ShapeError, match="at least 4"):
+        DenseField(volume[:3], VOXEL)
+    with pytest.raises(DTypeError):
+        DenseField(volume.astype(np.int16), VOXEL)
+    with pytest.raises(InvalidValueError, match="voxel_size"):
+        DenseField(volume, -0.02)
+    with pytest.raises(InvalidValueError, match="truncation"):
+        DenseField(volume, VOXEL, truncation=(0.1, -0.04))
+    with pytest.raises(ShapeError, match="origin"):
+        DenseField(volume, VOXEL, origin=(0.0, 0.0))
+    with pytest.raises(ShapeError, match=r"\(N, 3\)"):
+        DenseField(volume, VOXEL).sample(torch.zeros(5, 2))
+    assert isinstance(DenseField(volume, VOXEL), FieldSampler)
+
+
+# ------------------------------------------------------------------------------------------------ geometry
+def test_se3_exp_matches_matrix_exponential():
+    rng = np.random.default_rng(2)
+    for scale in (1e-10, 1e-3, 0.5, 2.0):
+        xi = rng.normal(size=6) * scale
+        twist = np.zeros((4, 4))
+        twist[:3, :3] = np.array([[0, -xi[5], xi[4]], [xi[5], 0, -xi[3]], [-xi[4], xi[3], 0]])
+        twist[:3, 3] = xi[:3]
+        np.testing.assert_allclose(se3_exp(xi), expm(twist), atol=1e-12)
+
+
+def test_backproject_pixels():
+    depth = torch.zeros(6, 8)
+    depth[2, 5] = 2.0
+    depth[4, 0] = 1.0
+    depth[0, 0] = float("nan")
+    k = CameraIntrinsics(100.0, 50.0, 4.0, 3.0)
+    pts = backproject(depth, k)
+    assert pts.shape == (2, 3)
+    np.testing.assert_allclose(pts.numpy(), [[(5 - 4) / 100 * 2, (2 - 3) / 50 * 2, 2.0],
+                                             [(0 - 4) / 100 * 1, (4 - 3) / 50 * 1, 1.0]])
+    assert backproject(depth, k, stride=2).shape == (1, 3)  # rows 0, 2, 4 x columns 0, 2, 4, 6: only (4, 0)
+    assert CameraIntrinsics.coerce(np.array([[100, 0, 4], [0, 50, 3], [0, 0, 1.0]])) == k
+
+
+# ------------------------------------------------------------------------------------------------ tracking
+def test_converges_from_perturbed_poses(field, depth):
+    tracker = SDFTracker(field, K)
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        start = perturb(TRUE_POSE, rng, 0.03, 3.0)
+        res = tracker.track(depth, start)
+        assert res.success, res.message
+        trans, rot = pose_error(res.pose, TRUE_POSE)
+        assert trans < 0.005 and rot < 0.5, (trans, rot, res.message)
+        assert res.inlier_ratio > 0.9 and res.residual < 0.002
+        assert len(res.iterations_per_level) == 3 and res.iterations == sum(res.iterations_per_level)
+        assert isinstance(res.pose, np.ndarray) and res.pose.dtype == np.float64
+
+
+def test_true_pose_is_a_fixed_point(field, depth):
+    res = SDFTracker(field, K).track(depth, TRUE_POSE)
+    trans, rot = pose_error(res.pose, TRUE_POSE)
+    assert trans < 0.001 and rot < 0.05
+
+
+def test_pose_type_follows_input_and_threads_agree(field, depth):
+    start = perturb(TRUE_POSE, np.random.default_rng(6), 0.02, 2.0)
+    one = SDFTracker(field, K, TrackerConfig(threads=1)).track(depth, start)
+    two = SDFTracker(field, K, {"threads": 2, "chunk_size": 4096}).track(torch.from_numpy(depth),
+                                                                        torch.as_tensor(start, dtype=torch.float32))
+    assert isinstance(two.pose, torch.Tensor) and two.pose.dtype == torch.float32
+    np.testing.assert_allclose(two.pose.numpy(), one.pose, atol=1e-4)
+
+
+def test_custom_field_sampler(scene, depth):
+    """Any object with device, truncation and the two sample methods plugs in: here the exact analytic SDF."""
+
+    class AnalyticField:
+        device = torch.device("cpu")
+        truncation = (-0.04, 0.1)
+
+        def _d(self, p):
+            return np.clip(scene(p), *self.truncation)
+
+        def sample(self, points):
+            p = points.double().numpy()
+            return torch.from_numpy(self._d(p)).float(), torch.ones(len(p), dtype=torch.bool)
+
+        def sample_with_gradient(self, points):
+            p = points.double().numpy()
+            h = 1e-3
+            g = np.stack([(self._d(p + h * e) - self._d(p - h * e)) / (2 * h) for e in np.eye(3)], axis=1)
+            return (torch.from_numpy(self._d(p)).float(), torch.from_numpy(g).float(),
+                    torch.ones(len(p), dtype=torch.bool))
+
+    start = perturb(TRUE_POSE, np.random.default_rng(8), 0.02, 2.0)
+    res = SDFTracker(AnalyticField(), K, TrackerConfig(strides=(8, 4), iterations=(12, 6))).track(depth, start)
+    assert res.success, res.message
+    trans, rot = pose_error(res.pose, TRUE_POSE)
+    assert trans < 0.003 and rot < 0.3
+
+
+def test_misbehaving_field_sampler_is_reported(depth):
+    class NaNField:
+        device = torch.device("cpu")
+        truncation = (-0.04, 0.1)
+
+        def sample(self, points):
+            return torch.full((len(points),), float("nan")), torch.ones(len(points), dtype=torch.bool)
+
+        def sample_with_gradient(self, points):
+            n = len(points)
+            return torch.full((n,), float("nan")), torch.zeros(n, 3), torch.ones(n, dtype=torch.bool)
+
+    res = SDFTracker(NaNField(), K).track(depth, TRUE_POSE)
+    assert not res.success and "non-finite" in res.message
+    np.testing.assert_array_equal(res.pose, TRUE_POSE)
+
+
+def test_track_sequence(scene, field):
+    # the camera slides sideways and pans: about 1 cm and 1 degree a frame
+    poses = [look_at((1.7 - 0.01 * i, 1.5 + 0.005 * i, 1.2), (0.4 + 0.02 * i, 0.4, 0.2)) for i in range(6)]
+    frames = [render_depth(scene, p) for p in poses]
+    frames[3][::3] = np.nan  # missing readings are ignored
+    tracker = SDFTracker(field, K, TrackerConfig(constant_velocity=True))
+    seq = tracker.track_sequence(frames, poses[0])
+    assert seq.poses.shape == (6, 4, 4) and not seq.failures
+    truth = metrics.Trajectory.from_poses(np.stack(poses))
+    result = metrics.ate(truth, seq.to_trajectory())
+    assert result.max < 0.005, result.as_dict()
+    assert metrics.rpe(truth, seq.to_trajectory(), relation="rotation").max < 0.5
+    untracked_first = tracker.track_sequence(iter(frames[:2]), poses[0], track_first=False)
+    assert untracked_first.results[0] is None and np.array_equal(untracked_first.poses[0], poses[0])
+
+
+def test_failures_are_reported_not_nan(field, depth):
+    tracker = SDFTracker(field, K)
+    far = TRUE_POSE.copy()
+    far[:3, 3] += [10.0, 0.0, 0.0]  # the map is nowhere near
+    res = tracker.track(depth, far)
+    assert not res.success
+    assert "fall where the map is usable" in res.message and "far off the map" in res.message
+    np.testing.assert_array_equal(res.pose, far)
+    assert res.inliers == 0 and math.isinf(res.residual) and res.inlier_ratio == 0.0
+    # inside the map but 30 cm off along the optical axis: most points sit in the free-space plateau and
+    # Gauss-Newton wanders off; that is reported, not returned as a pose
+    behind = TRUE_POSE.copy()
+    behind[:3, 3] -= 0.3 * TRUE_POSE[:3, 2]
+    lost = tracker.track(depth, behind)
+    assert not lost.success and "did not converge" in lost.message
+    np.testing.assert_array_equal(lost.pose, behind)
+    assert lost.update_norm > 0.01 and np.isfinite(lost.residual)
+    empty = tracker.track(np.zeros_like(depth), TRUE_POSE)
+    assert not empty.success and "valid depth readings" in empty.message
+    assert np.isfinite(empty.pose).all()
+    mm = tracker.track(depth * 1000.0, TRUE_POSE)  # millimetres by mistake: beyond max_depth
+    assert not mm.success and "metres" in mm.message
+    seq = tracker.track_sequence([depth, np.zeros_like(depth), depth], TRUE_POSE)
+    assert seq.failures == [1] and np.isfinite(seq.poses).all()
+    stopped = tracker.track_sequence([depth, np.zeros_like(depth), depth], TRUE_POSE, stop_on_failure=True)
+    assert len(stopped.poses) == 2
+
+
+def test_input_errors(field, depth):
+    tracker = SDFTracker(field, K)
+    with pytest.raises(ShapeError, match=r"\(H, W\)"):
+        tracker.track(depth[..., None], TRUE_POSE)
+    with pytest.raises(DTypeError, match="metres"):
+        tracker.track((depth * 1000).astype(np.uint16), TRUE_POSE)
+    with pytest.raises(ShapeError, match=r"\(4, 4\)"):
+        tracker.track(depth, TRUE_POSE[:3])
+    bad = TRUE_POSE.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InvalidValueError, match="NaN"):
+        tracker.track(depth, bad)
+    bad = TRUE_POSE.copy()
+    bad[:3, :3] *= 2.0
+    with pytest.raises(InvalidValueError, match="rotation"):
+        tracker.track(depth, bad)
+    with pytest.raises(InvalidValueError, match="same length"):
+        TrackerConfig(strides=(4, 2), iterations=(3,))
+    with pytest.raises(InvalidValueError, match="huber_delta"):
+        TrackerConfig(huber_delta=-1.0)
+    with pytest.raises(InvalidValueError, match="no field 'huber'.*huber_delta"):
+        SDFTracker(field, K, {"huber": 0.1})
+    with pytest.raises(InvalidValueError, match="FieldSampler"):
+        SDFTracker(object(), K)
+    with pytest.raises(ShapeError, match="intrinsics"):
+        SDFTracker(field, (1.0, 2.0))
+    with pytest.raises(InvalidValueError, match="focal"):
+        CameraIntrinsics(-1.0, 1.0, 0.0, 0.0)
+
+
+def test_config_defaults_are_the_original_trackers():
+    cfg = TrackerConfig()
+    assert cfg.strides == (4, 2, 1) and cfg.iterations == (12, 8, 2) and cfg.min_update == 1e-4
+    assert TrackerConfig(**cfg.model_dump()) == cfg
+    assert "huber_delta" in TrackerConfig.model_json_schema()["properties"]
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_tracks_on_gpu(volume, depth):
+    field = DenseField(torch.from_numpy(volume).cuda(), VOXEL, ORIGIN)
+    start = perturb(TRUE_POSE, np.random.default_rng(9), 0.03, 3.0)
+    res = SDFTracker(field, K).track(torch.from_numpy(depth).cuda(), torch.as_tensor(start, device="cuda"))
+    assert res.success and res.pose.device.type == "cuda"
+    trans, rot = pose_error(res.pose.cpu().numpy(), TRUE_POSE)
+    assert trans < 0.005 and rot < 0.5
+
+
+@pytest.mark.bench
+def test_benchmark_vga_frames_per_second(scene, field):
+    """Frames per second at 640x480 with the default stride pyramid (run: pytest -m bench -s)."""
+    k = (525.0, 525.0, 319.5, 239.5)
+    depth = render_depth(scene, TRUE_POSE, k, 480, 640)
+    tracker = SDFTracker(field, k)
+    rng = np.random.default_rng(10)
+    starts = [perturb(TRUE_POSE, rng, 0.01, 1.0) for _ in range(30)]  # a typical frame-to-frame motion
+    tracker.track(depth, starts[0])  # warm up
+    times = []
+    for start in starts:
+        t0 = time.perf_counter()
+        res = tracker.track(depth, start)
+        times.append(time.perf_counter() - t0)
+        assert res.success and pose_error(res.pose, TRUE_POSE)[0] < 0.002
+    print(f"\nSDF tracker 640x480, strides {tracker.config.strides}, torch threads {torch.get_num_threads()}: "
+          f"median {1e3 * np.median(times):.1f} ms ({1 / np.median(times):.1f} frames/s), best "
+          f"{1e3 * min(times):.1f} ms ({1 / min(times):.1f} frames/s); iterations {res.iterations_per_level}")
