@@ -4,7 +4,7 @@
 
 Fits pca-32/64/128 with mean="dataset" and mean="block" on synthetic blocks, and reports per-voxel MSE and
 per-block sum of squared errors (normalised units) on held-out synthetic blocks, on the built-in analytic room,
-and (when --kitchen is given and open3d is installed) on real blocks fused from 7-Scenes; then the extra error
+and (with --kitchen) on real blocks fused from 7-Scenes; then the extra error
 of storing the codes as float16 instead of float32. Prints JSON.
 """
 
@@ -18,8 +18,10 @@ import numpy as np
 import sdfcodec
 from sdfcodec.blocks import normalise, split_blocks
 from sdfcodec.data.synthetic import synthetic_blocks
-from sdfcodec.demo import TRUNC, demo_room
+from sdfcodec.data.render import room_scene
 from sdfcodec.sdf import sample_volume
+
+TRUNC = (-0.04, 0.1)
 
 
 def nonempty(v: np.ndarray) -> np.ndarray:
@@ -40,13 +42,12 @@ def main() -> None:
     args = ap.parse_args()
     train = synthetic_blocks(args.train, seed=0)
     sets = {"synthetic held-out": synthetic_blocks(args.test, seed=1)}
-    room = sample_volume(demo_room(), (200, 160, 120), 0.02, truncation=TRUNC)
+    room = sample_volume(room_scene(seed=0).sdf, (200, 160, 125), 0.02, truncation=TRUNC)
     sets["analytic room"] = nonempty(normalise(split_blocks(room, TRUNC[1]).reshape(-1, 16, 16, 16), *TRUNC))
     if args.kitchen:
-        from sdfcodec.data.sequences import open_sequence
         from sdfcodec.fusion import fuse
 
-        fused = fuse(open_sequence(args.kitchen), voxel_size=0.02, truncation=TRUNC, quiet=True)
+        fused = fuse(args.kitchen, voxel_size=0.02, truncation=TRUNC, quiet=True)
         sets["7-scenes kitchen (real)"] = nonempty(normalise(fused.tsdf, *TRUNC))
     out = {"train_blocks": args.train, "sets": {k: len(v) for k, v in sets.items()}, "mean": [], "float16": []}
     for k in (32, 64, 128):
