@@ -411,6 +411,93 @@ def mesh_cmd(
         f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles"))
 
 
+@app.command("search")
+@_cli
+def search_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, or a saved query (.npz)."),
+    level: Optional[int] = typer.Option(None, "--level", help="Match only the first K code elements."),
+    threshold: Optional[float] = typer.Option(None, "--threshold", help="Select blocks scoring at most this."),
+    top: Optional[int] = typer.Option(None, "--top", help="Select the K best-scoring blocks."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
+    device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
+    no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
+) -> None:
+    """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""
+    from .search_cli import format_summary, search_command
+
+    summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
+                             overwrite=overwrite)
+    _report(summary, as_json, lambda: format_summary(summary))
+
+
+@app.command("verify")
+@_cli
+def verify_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable report."),
+) -> None:
+    """Check a map: header, every chunk's checksum, codec state digest, states against codes, and a decode."""
+    from .verify import verify_command
+
+    raise typer.Exit(verify_command(map_path, as_json))
+
+
+@app.command("track")
+@_cli
+def track_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    sequence: str = typer.Argument(..., metavar="SEQUENCE", help="TUM RGB-D or 7-Scenes directory."),
+    output: Path = typer.Option(..., "-o", "--output", help="TUM-format trajectory to write."),
+    level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
+    device: Optional[str] = typer.Option(None, "--device", help="Torch device."),
+    cache_mb: float = typer.Option(256.0, "--cache-mb", help="Decoded-block cache bound (MiB)."),
+    dense: bool = typer.Option(False, "--dense", help="Decode the whole map first instead of on demand."),
+    start: str = typer.Option("groundtruth", "--start", help="Start pose: groundtruth (the paper) or identity."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Track only the first N frames."),
+    stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
+    from .evaluation import track_command
+
+    summary = track_command(map_path, sequence, output, level=level, device=device, cache_mb=cache_mb, dense=dense,
+                            start=start, frames=frames, stride=stride, progress=not as_json)
+    _report(summary, as_json, lambda: f"wrote {output}: " + ", ".join(
+        f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()
+        if not isinstance(v, (dict, list))))
+
+
+@app.command("eval")
+@_cli
+def eval_cmd(
+    sequences: list[str] = typer.Argument(..., metavar="SEQUENCE...",
+                                          help="synthetic:PRESET (e.g. synthetic:fast-noisy) or a sequence folder."),
+    out_dir: Path = typer.Option(Path("eval-out"), "-o", "--out", help="Results JSON, table and pictures go here."),
+    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated (default: all of Table 1)."),
+    frames: int = typer.Option(60, "--frames", help="Frames per sequence (0: all)."),
+    stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
+    size: str = typer.Option("320x240", "--size", help="Image size of rendered synthetic sequences, WxH."),
+    voxel_size: float = typer.Option(0.02, "--voxel-size"),
+    docs_dir: Optional[Path] = typer.Option(None, "--docs", help="Also write eval.md/eval.json/eval/ here."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Reproduce the paper's Table 1: reconstruction error and tracking ATE per compression method."""
+    from .evaluation import eval_command, markdown_table
+
+    try:
+        wh = tuple(int(v) for v in size.lower().split("x"))
+        assert len(wh) == 2
+    except (ValueError, AssertionError):
+        _fail(f"--size must look like 320x240, got {size!r}")
+    results = eval_command(sequences, out_dir, methods=methods.split(",") if methods else None,
+                           frames=frames or None, stride=stride, size=wh, voxel_size=voxel_size, docs_dir=docs_dir,
+                           progress=not as_json, log=None if as_json else (lambda s_: err.print(s_, highlight=False)))
+    _report(results, as_json, lambda: markdown_table(results))
+
+
 @app.command("dataset")
 @_cli
 def dataset_cmd(
@@ -554,7 +641,7 @@ def demo_cmd(
     out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the maps and report.md."),
     voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge in metres."),
 ) -> None:
-    """Compress the built-in analytic room at pca-32/64/128 and write OUT/report.md (nothing downloaded)."""
+    """Render, fuse and compress a synthetic room with the shipped eigenshapes; write OUT/report.md."""
     from .demo import run_demo
 
     t0 = time.perf_counter()

@@ -22,6 +22,7 @@ reference: same associations, same numbers to 1e-6):
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Iterable, Literal, Union
 
@@ -43,50 +44,60 @@ __all__ = [
     "quaternion_to_matrix",
     "matrix_to_quaternion",
     "rotation_angle",
+    "check_pose",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
+# rotation part of a pose must be orthonormal to this tolerance (7-Scenes' printed poses reach 2.4e-4)
+_RIGID_TOL = 5e-3
+# a TUM quaternion printed with 4 decimals has |q| within ~2e-4 of 1; more means a broken file
+_QUAT_NORM_TOL = 1e-2
 
 
 # ----------------------------------------------------------------------------------------------- rotations
 def quaternion_to_matrix(quaternions: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(N, 3, 3)`` from quaternions ``(N, 4)`` in TUM order ``(qx, qy, qz, qw)``.
+    """Rotation matrices ``(..., 3, 3)`` from quaternions ``(..., 4)`` in TUM order ``(qx, qy, qz, qw)``.
 
     Quaternions need not be unit length: they are normalised (the same formula as evo's
-    ``transformations.quaternion_matrix``). A zero quaternion raises :class:`InvalidValueError`.
+    ``transformations.quaternion_matrix``; files print them with a few decimals). A zero quaternion raises
+    :class:`InvalidValueError`.
     """
     q = np.asarray(quaternions, dtype=np.float64)
-    if q.ndim != 2 or q.shape[1] != 4:
-        raise ShapeError(f"quaternions must have shape (N, 4) (qx, qy, qz, qw), got {q.shape}")
-    n = np.einsum("ij,ij->i", q, q)
-    if np.any(n < np.finfo(np.float64).eps * 4.0):
-        bad = int(np.flatnonzero(n < np.finfo(np.float64).eps * 4.0)[0])
+    if q.ndim < 1 or q.shape[-1] != 4:
+        raise ShapeError(f"quaternions must have shape (..., 4) (qx, qy, qz, qw), got {q.shape}")
+    n = np.einsum("...i,...i->...", q, q)
+    tiny = n < np.finfo(np.float64).eps * 4.0
+    if np.any(tiny):
+        bad = int(np.flatnonzero(tiny.ravel())[0])
         raise InvalidValueError(f"quaternion {bad} has (nearly) zero length; a rotation needs a non-zero quaternion")
-    q = q * np.sqrt(2.0 / n)[:, None]
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    r = np.empty((len(q), 3, 3))
-    r[:, 0, 0] = 1.0 - y * y - z * z
-    r[:, 0, 1] = x * y - z * w
-    r[:, 0, 2] = x * z + y * w
-    r[:, 1, 0] = x * y + z * w
-    r[:, 1, 1] = 1.0 - x * x - z * z
-    r[:, 1, 2] = y * z - x * w
-    r[:, 2, 0] = x * z - y * w
-    r[:, 2, 1] = y * z + x * w
-    r[:, 2, 2] = 1.0 - x * x - y * y
+    q = q * np.sqrt(2.0 / n)[..., None]
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = np.empty(q.shape[:-1] + (3, 3))
+    r[..., 0, 0] = 1.0 - y * y - z * z
+    r[..., 0, 1] = x * y - z * w
+    r[..., 0, 2] = x * z + y * w
+    r[..., 1, 0] = x * y + z * w
+    r[..., 1, 1] = 1.0 - x * x - z * z
+    r[..., 1, 2] = y * z - x * w
+    r[..., 2, 0] = x * z - y * w
+    r[..., 2, 1] = y * z + x * w
+    r[..., 2, 2] = 1.0 - x * x - y * y
     return r
 
 
 def matrix_to_quaternion(rotations: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(N, 4)`` in TUM order ``(qx, qy, qz, qw)`` with ``qw >= 0`` from rotation matrices
-    ``(N, 3, 3)`` (the nearest rotation is used when a matrix is not exactly orthonormal)."""
+    """Unit quaternions ``(..., 4)`` in TUM order ``(qx, qy, qz, qw)`` with ``qw >= 0`` from rotation matrices
+    ``(..., 3, 3)`` (the nearest rotation is used when a matrix is not exactly orthonormal)."""
     from scipy.spatial.transform import Rotation
 
     r = np.asarray(rotations, dtype=np.float64)
-    if r.ndim != 3 or r.shape[1:] != (3, 3):
-        raise ShapeError(f"rotations must have shape (N, 3, 3), got {r.shape}")
-    q = Rotation.from_matrix(r).as_quat()  # scalar last
-    return np.where(q[:, 3:4] < 0, -q, q)
+    if r.ndim < 2 or r.shape[-2:] != (3, 3):
+        raise ShapeError(f"rotations must have shape (..., 3, 3), got {r.shape}")
+    if r.size == 0:
+        return np.zeros(r.shape[:-2] + (4,))
+    q = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_quat()  # scalar last
+    q = np.where(q[:, 3:4] < 0, -q, q)
+    return q.reshape(r.shape[:-2] + (4,))
 
 
 def rotation_angle(rotations: np.ndarray, degrees: bool = False) -> np.ndarray:
@@ -212,14 +223,35 @@ def _as_trajectory(x, name: str) -> Trajectory:
 
 # ----------------------------------------------------------------------------------------------------- I/O
 def read_tum(path: PathLike) -> Trajectory:
-    """Read a TUM trajectory file: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comment lines and
-    blank lines skipped; fields separated by spaces, tabs or commas.
+    """Read a TUM trajectory file (a TUM ``groundtruth.txt`` or an estimate in the same format).
 
-    Raises:
-        FileNotFoundError: no such file.
-        FormatError: a line without 8 numeric fields (the message gives the line number), or no poses.
+    One pose a line, ``timestamp tx ty tz qx qy qz qw`` (camera-to-world); ``#`` comment lines and blank
+    lines are skipped; fields are separated by spaces, tabs or commas. The poses are returned sorted by
+    timestamp (stable, so an already sorted file is read exactly as written).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The text file.
+
+    Returns
+    -------
+    Trajectory
+        ``N`` poses, float64, timestamps non-decreasing.
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    FormatError
+        A line without 8 numeric fields (the message gives the line number), no poses at all, or a zero
+        quaternion.
+    InvalidValueError
+        Non-finite values, or a quaternion whose norm is far from 1 (more than 1e-2: not a rotation, e.g.
+        columns in the wrong order); the message gives the line.
     """
     rows: list[list[float]] = []
+    linenos: list[int] = []
     with open(path, encoding="utf-8-sig") as f:
         for lineno, line in enumerate(f, 1):
             s = line.strip()
@@ -227,31 +259,102 @@ def read_tum(path: PathLike) -> Trajectory:
                 continue
             parts = s.replace(",", " ").split()
             if len(parts) != 8:
-                raise FormatError(f"{path}:{lineno}: a TUM trajectory line has 8 fields "
-                                  f"(timestamp tx ty tz qx qy qz qw), got {len(parts)}: {s[:80]!r}")
+                raise FormatError(f"{path}:{lineno}: expected 8 numbers (a TUM trajectory line has 8 fields: "
+                                  f"timestamp tx ty tz qx qy qz qw), got {len(parts)}: {s[:80]!r}")
             try:
                 rows.append([float(v) for v in parts])
             except ValueError as exc:
-                raise FormatError(f"{path}:{lineno}: non-numeric field in TUM trajectory line {s[:80]!r}") from exc
+                raise FormatError(f"{path}:{lineno}: non-numeric field (not a number) in TUM trajectory line "
+                                  f"{s[:80]!r}") from exc
+            linenos.append(lineno)
     if not rows:
-        raise FormatError(f"{path}: no poses found (expected lines 'timestamp tx ty tz qx qy qz qw')")
+        raise FormatError(f"trajectory file {path} holds no poses (only comments or blank lines; expected lines "
+                          "'timestamp tx ty tz qx qy qz qw')")
     m = np.asarray(rows, dtype=np.float64)
+    bad = ~np.all(np.isfinite(m), axis=1)
+    if bad.any():
+        raise InvalidValueError(f"{path}:{linenos[int(np.argmax(bad))]}: non-finite value in a pose; remove the "
+                                "line or fix the file")
+    norms = np.linalg.norm(m[:, 4:8], axis=1)
+    if np.any(norms < 1e-8):
+        i = int(np.argmax(norms < 1e-8))
+        raise FormatError(f"{path}:{linenos[i]}: quaternion has zero length; a rotation needs a non-zero quaternion")
+    bad = np.abs(norms - 1.0) > _QUAT_NORM_TOL
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InvalidValueError(f"{path}:{linenos[i]}: quaternion norm {norms[i]:.4g} is not 1, so the pose is not "
+                                "a rotation; the columns must be 'timestamp tx ty tz qx qy qz qw'")
+    m = m[np.argsort(m[:, 0], kind="stable")]
     try:
         return Trajectory(m[:, 0], m[:, 1:4], m[:, 4:8])
     except (InvalidValueError, ShapeError) as exc:
         raise FormatError(f"{path}: {exc}") from exc
 
 
-def write_tum(path: PathLike, trajectory: Trajectory, header: str | None = None) -> None:
-    """Write ``trajectory`` as a TUM file (shortest round-trip float text, so reading it back gives exactly
-    the same timestamps, positions and quaternions). ``header`` lines are written as ``#`` comments."""
+def write_tum(path: PathLike, trajectory: Trajectory, header: str | None = None) -> Path:
+    """Write a trajectory as a TUM file, ``timestamp tx ty tz qx qy qz qw`` per line.
+
+    Values are written as shortest round-trip float text, so reading the file back gives exactly the same
+    timestamps, positions and quaternions.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file (overwritten).
+    trajectory : Trajectory or array
+        The poses, or camera-to-world matrices ``(N, 4, 4)``.
+    header : str, optional
+        Lines written first as ``#`` comments; a ``# timestamp tx ty tz qx qy qz qw`` column line follows
+        unless the header already names the columns.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+
+    Raises
+    ------
+    InvalidValueError
+        A pose matrix that is not rigid (checked when the trajectory was built from matrices).
+    """
     traj = _as_trajectory(trajectory, "trajectory")
-    with open(path, "w", encoding="utf-8") as f:
-        if header:
-            for line in header.splitlines():
-                f.write(f"# {line}\n")
-        for t, p, q in zip(traj.timestamps, traj.positions, traj.quaternions):
-            f.write(" ".join(repr(float(v)) for v in (t, *p, *q)) + "\n")
+    if traj._poses is not None:
+        for i, p in enumerate(traj._poses):
+            why = check_pose(p)
+            if why:
+                raise InvalidValueError(f"pose {i} of the trajectory to write is not rigid: {why}")
+    columns = "timestamp tx ty tz qx qy qz qw"
+    lines = [f"# {h}" for h in (header.splitlines() if header else [])]
+    if not header or columns not in header:
+        lines.append(f"# {columns}")
+    for t, p, q in zip(traj.timestamps, traj.positions, traj.quaternions):
+        lines.append(" ".join(repr(float(v)) for v in (t, *p, *q)))
+    out = Path(path)
+    out.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return out
+
+
+def check_pose(pose: np.ndarray, tol: float = _RIGID_TOL) -> str | None:
+    """Why ``pose`` is not a usable 4x4 rigid transform, or ``None`` when it is.
+
+    Checks shape, finiteness, the bottom row ``(0, 0, 0, 1)``, orthonormality of the rotation part
+    (``max |R^T R - I| <= tol``, default 5e-3: 7-Scenes' printed poses reach 2.4e-4) and ``det R > 0``
+    (no reflection).
+    """
+    p = np.asarray(pose)
+    if p.shape != (4, 4):
+        return f"shape {p.shape} is not 4x4"
+    if not np.all(np.isfinite(p)):
+        return "non-finite values"
+    if np.abs(p[3] - (0.0, 0.0, 0.0, 1.0)).max() > tol:
+        return f"bottom row {p[3].tolist()} is not (0, 0, 0, 1)"
+    r = p[:3, :3]
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > tol:
+        return f"rotation is not orthonormal (|R^T R - I| = {err:.3g})"
+    if np.linalg.det(r) <= 0:
+        return "rotation is a reflection (det < 0)"
+    return None
 
 
 # ------------------------------------------------------------------------------------------- association

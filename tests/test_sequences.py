@@ -24,9 +24,9 @@ from sdfcodec.data.sequences import (
     open_sequence,
     quaternion_to_matrix,
     read_depth_png,
-    read_tum_trajectory,
     write_depth_png,
 )
+from sdfcodec.metrics import read_tum as read_tum_trajectory  # the one TUM reader lives in sdfcodec.metrics
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecError, SDFCodecWarning
 
 KITCHEN = "7scenes-redkitchen"

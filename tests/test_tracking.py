@@ -399,3 +399,93 @@ def test_benchmark_vga_frames_per_second(scene, field):
     print(f"\nSDF tracker 640x480, strides {tracker.config.strides}, torch threads {torch.get_num_threads()}: "
           f"median {1e3 * np.median(times):.1f} ms ({1 / np.median(times):.1f} frames/s), best "
           f"{1e3 * min(times):.1f} ms ({1 / min(times):.1f} frames/s); iterations {res.iterations_per_level}")
+
+
+# ------------------------------------------------------------------------------- MapField: lazily decoded maps
+@pytest.fixture(scope="module")
+def raw_map(volume, tmp_path_factory):
+    from sdfcodec import create_map, get_codec, open_map
+
+    path = tmp_path_factory.mktemp("mapfield") / "room.sdfz"
+    with create_map(path, codec=get_codec("raw"), voxel_size=VOXEL, origin=ORIGIN) as m:
+        m.write_volume(volume)
+    return open_map(path)
+
+
+def test_map_field_matches_dense_decode(raw_map, depth):
+    from sdfcodec.mapfield import MapField
+
+    dense = DenseField(raw_map.decode_region(), VOXEL, ORIGIN, raw_map.truncation)
+    lazy = MapField(raw_map)
+    assert isinstance(lazy, FieldSampler)
+    rng = np.random.default_rng(3)
+    # points all over the map and beyond it, plus the surface points a camera sees
+    pts = rng.uniform(-0.4, 2.2, size=(20000, 3)).astype(np.float32)
+    d0, g0, v0 = dense.sample_with_gradient(torch.from_numpy(pts))
+    d1, g1, v1 = lazy.sample_with_gradient(torch.from_numpy(pts))
+    d_max = raw_map.truncation[1]
+    # every point DenseField can use is valid here too, with the same numbers; the others read d_max / invalid
+    informative = v0 & (d0 < d_max - 1e-6)
+    assert torch.equal(v1 & informative, informative)
+    assert torch.allclose(d1[v1], d0[v1], atol=1e-6) and torch.allclose(g1[v1], g0[v1], atol=1e-6)
+    assert not v1[~v0].any()
+    assert torch.all(d1[~v1] == d_max) and torch.all(g1[~v1] == 0)
+    s = lazy.stats()
+    # misses count every block given a slot (coded ones and the empty neighbours of coded ones); each coded
+    # block is decoded once
+    assert s["misses"] > 0 and s["blocks_decoded"] > 0 and s["evictions"] == 0
+    # the same tracked pose
+    start = perturb(TRUE_POSE, np.random.default_rng(8), 0.02, 2.0)
+    a = SDFTracker(dense, K).track(depth, start)
+    b = SDFTracker(MapField(raw_map), K).track(depth, start)
+    np.testing.assert_allclose(b.pose, a.pose, atol=1e-5)
+    assert a.iterations == b.iterations
+
+
+def test_map_field_partial_view_and_cache_bound(raw_map, depth):
+    from sdfcodec.mapfield import MapField, _SLOT_BYTES
+
+    start = perturb(TRUE_POSE, np.random.default_rng(9), 0.02, 2.0)
+    lazy = MapField(raw_map)
+    res = SDFTracker(lazy, K).track(depth, start)
+    trans, rot = pose_error(res.pose, TRUE_POSE)
+    assert res.success and trans < 0.005 and rot < 0.5
+    s = lazy.stats()
+    assert 0 < s["misses"] < lazy.n_coded  # a partial view decodes only part of the map
+    assert s["hits"] > s["misses"]  # later iterations find their blocks cached
+    # a tight bound: two halves of the map in turn, each fitting the cache but not both; blocks are evicted,
+    # the bound holds and the samples stay exact
+    dense = DenseField(raw_map.decode_region(), VOXEL, ORIGIN, raw_map.truncation)
+    budget = 40 * _SLOT_BYTES
+    small = MapField(raw_map, cache_bytes=budget)
+    rng = np.random.default_rng(10)
+    for lo, hi in [((0.0, 0.0, 0.0), (0.6, 0.6, 0.6)), ((1.0, 1.0, 0.6), (1.6, 1.6, 1.2)),
+                   ((0.0, 0.0, 0.0), (0.6, 0.6, 0.6))]:
+        pts = torch.from_numpy(rng.uniform(lo, hi, size=(3000, 3)).astype(np.float32))
+        d0, _, _ = dense.sample_with_gradient(pts)
+        d1, _, v1 = small.sample_with_gradient(pts)
+        assert v1.any() and torch.allclose(d1[v1], d0[v1], atol=1e-6)
+        s2 = small.stats()
+        assert s2["resident_bytes"] <= budget and s2["pool_bytes"] <= budget
+    assert small.stats()["evictions"] > 0
+    with pytest.raises(InvalidValueError, match="raise cache_bytes"):  # one lookup that cannot fit
+        MapField(raw_map, cache_bytes=4 * _SLOT_BYTES).sample(torch.from_numpy(
+            rng.uniform(0.0, 1.6, size=(3000, 3)).astype(np.float32)))
+    with pytest.raises(InvalidValueError, match="cache_bytes"):
+        MapField(raw_map, cache_bytes=1000)
+
+
+def test_map_field_halo_codec_has_no_seams(volume, tmp_path):
+    from sdfcodec import create_map, get_codec, open_map
+    from sdfcodec.mapfield import MapField
+
+    path = tmp_path / "blur.sdfz"
+    with create_map(path, codec=get_codec("gaussian-blur"), voxel_size=VOXEL, origin=ORIGIN) as m:
+        m.write_volume(volume)
+    blur = open_map(path)
+    dense = DenseField(blur.decode_region(), VOXEL, ORIGIN, blur.truncation)
+    lazy = MapField(blur)
+    pts = torch.from_numpy(np.random.default_rng(4).uniform(0.0, 1.8, size=(5000, 3)).astype(np.float32))
+    d0, g0, v0 = dense.sample_with_gradient(pts)
+    d1, g1, v1 = lazy.sample_with_gradient(pts)
+    assert torch.allclose(d1[v1], d0[v1], atol=1e-5) and torch.allclose(g1[v1], g0[v1], atol=1e-4)

@@ -52,14 +52,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InvalidValueError, MapExistsError
+from ..metrics import Trajectory, write_tum
 from ..sdf import Box, Cylinder, Plane, Scene, Sphere
-from .sequences import (
-    TUM_DEPTH_SCALE,
-    Intrinsics,
-    Trajectory,
-    write_depth_png,
-    write_tum_trajectory,
-)
+from .sequences import TUM_DEPTH_SCALE, Intrinsics, write_depth_png
 
 __all__ = [
     "LABELS",
@@ -601,8 +596,8 @@ def render_sequence(out_dir: str | Path, preset: str = "slow-clean", seed: int =
         lines.append(f"{t:.6f} {name}")
     (out / "depth.txt").write_text("\n".join(lines) + "\n")
     # ground truth at the depth timestamps, printed identically, so association is exact
-    write_tum_trajectory(out / "groundtruth.txt", Trajectory(np.round(stamps, 6), poses),
-                         header=f"ground truth trajectory\nfile: 'sdfcodec synthetic preset={preset} seed={seed}'")
+    write_tum(out / "groundtruth.txt", Trajectory.from_poses(poses, np.round(stamps, 6)),
+              header=f"ground truth trajectory\nfile: 'sdfcodec synthetic preset={preset} seed={seed}'")
     k = intrinsics
     (out / "intrinsics.txt").write_text(f"# fx fy cx cy width height\n{k.fx!r} {k.fy!r} {k.cx!r} {k.cy!r} "
                                         f"{k.width} {k.height}\n")

@@ -59,6 +59,10 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError, SDFCodecWarning
 
+# one implementation of trajectories, TUM files and rotations for the whole package: sdfcodec.metrics
+# (re-exported here because sequences carry their ground truth as a Trajectory)
+from ..metrics import Trajectory, check_pose, matrix_to_quaternion, quaternion_to_matrix, read_tum
+
 __all__ = [
     "Intrinsics",
     "Frame",
@@ -67,8 +71,6 @@ __all__ = [
     "open_sequence",
     "read_depth_png",
     "write_depth_png",
-    "read_tum_trajectory",
-    "write_tum_trajectory",
     "read_intrinsics_file",
     "associate",
     "quaternion_to_matrix",
@@ -89,10 +91,6 @@ _PLAUSIBLE_MEDIAN = (0.05, 20.0)
 # millimetres gives 5x too far (a 2.4 m median reads 12 m), millimetres read as 5000/m 5x too near (most
 # pixels closer than a Kinect's 0.4-0.5 m minimum range)
 _USUAL_MEDIAN = (0.4, 6.0)
-# rotation part of a pose must be orthonormal to this tolerance (7-Scenes' printed poses reach 2.4e-4)
-_RIGID_TOL = 5e-3
-# a TUM quaternion printed with 4 decimals has |q| within ~2e-4 of 1; more means a broken file
-_QUAT_NORM_TOL = 1e-2
 
 
 @dataclass(frozen=True)
@@ -167,84 +165,7 @@ class Frame:
     path: Path
 
 
-@dataclass(frozen=True)
-class Trajectory:
-    """A timed sequence of camera poses.
-
-    Attributes
-    ----------
-    timestamps : np.ndarray
-        ``(M,)`` float64 seconds, non-decreasing.
-    poses : np.ndarray
-        ``(M, 4, 4)`` float64 camera-to-world transforms.
-    """
-
-    timestamps: np.ndarray
-    poses: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.timestamps.shape[0])
-
-    @property
-    def positions(self) -> np.ndarray:
-        """``(M, 3)`` camera centres in world coordinates (metres)."""
-        return self.poses[:, :3, 3]
-
-
 # --------------------------------------------------------------------------------------------------- poses
-def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(..., 4)`` in TUM order ``(qx, qy, qz, qw)`` -> rotation matrices ``(..., 3, 3)``.
-
-    The quaternions are normalised first (files print them with a few decimals).
-    """
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = np.empty(q.shape[:-1] + (3, 3))
-    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    r[..., 0, 1] = 2 * (x * y - z * w)
-    r[..., 0, 2] = 2 * (x * z + y * w)
-    r[..., 1, 0] = 2 * (x * y + z * w)
-    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    r[..., 1, 2] = 2 * (y * z - x * w)
-    r[..., 2, 0] = 2 * (x * z - y * w)
-    r[..., 2, 1] = 2 * (y * z + x * w)
-    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
-
-
-def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` -> unit quaternions ``(..., 4)`` ``(qx, qy, qz, qw)`` with ``qw >= 0``."""
-    from scipy.spatial.transform import Rotation
-
-    r = np.asarray(r, dtype=np.float64)
-    q = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_quat()  # scipy's order is (x, y, z, w)
-    q = np.where(q[:, 3:4] < 0, -q, q)
-    return q.reshape(r.shape[:-2] + (4,))
-
-
-def check_pose(pose: np.ndarray, tol: float = _RIGID_TOL) -> str | None:
-    """Why ``pose`` is not a usable 4x4 rigid transform, or None when it is.
-
-    Checks shape, finiteness, the bottom row ``(0, 0, 0, 1)``, orthonormality of the rotation part
-    (``|R^T R - I| <= tol``) and ``det R > 0`` (no reflection).
-    """
-    p = np.asarray(pose)
-    if p.shape != (4, 4):
-        return f"shape {p.shape} is not 4x4"
-    if not np.all(np.isfinite(p)):
-        return "non-finite values"
-    if np.abs(p[3] - (0.0, 0.0, 0.0, 1.0)).max() > tol:
-        return f"bottom row {p[3].tolist()} is not (0, 0, 0, 1)"
-    r = p[:3, :3]
-    err = float(np.abs(r.T @ r - np.eye(3)).max())
-    if err > tol:
-        return f"rotation is not orthonormal (|R^T R - I| = {err:.3g})"
-    if np.linalg.det(r) <= 0:
-        return "rotation is a reflection (det < 0)"
-    return None
-
-
 def _slerp_pose(p0: np.ndarray, p1: np.ndarray, a: float) -> np.ndarray:
     """Pose a fraction ``a`` in [0, 1] of the way from ``p0`` to ``p1`` (lerp translation, slerp rotation)."""
     q0, q1 = matrix_to_quaternion(p0[:3, :3]), matrix_to_quaternion(p1[:3, :3])
@@ -277,76 +198,6 @@ def _numeric_rows(path: Path, what: str) -> list[tuple[int, list[str]]]:
         if s and not s.startswith("#"):
             rows.append((n, s.replace(",", " ").split()))
     return rows
-
-
-def read_tum_trajectory(path: str | Path) -> Trajectory:
-    """Read a TUM-format trajectory (``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments).
-
-    Parameters
-    ----------
-    path : str or Path
-        The text file (e.g. a TUM ``groundtruth.txt`` or an estimate written in the same format).
-
-    Returns
-    -------
-    Trajectory
-        Samples sorted by timestamp; poses are camera-to-world, quaternions normalised.
-
-    Raises
-    ------
-    FormatError
-        A line without exactly 8 numbers (the message gives the line), or no samples at all.
-    InvalidValueError
-        Non-finite values or a quaternion whose norm is far from 1 (not a rotation).
-    """
-    path = Path(path)
-    rows = _numeric_rows(path, "trajectory file")
-    data = np.empty((len(rows), 8))
-    for i, (n, fields) in enumerate(rows):
-        if len(fields) != 8:
-            raise FormatError(f"{path}:{n}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
-        try:
-            data[i] = [float(f) for f in fields]
-        except ValueError:
-            raise FormatError(f"{path}:{n}: not a number in {' '.join(fields)!r}") from None
-    if not len(rows):
-        raise FormatError(f"trajectory file {path} holds no poses (only comments or blank lines)")
-    bad = ~np.all(np.isfinite(data), axis=1)
-    if bad.any():
-        n = rows[int(np.argmax(bad))][0]
-        raise InvalidValueError(f"{path}:{n}: non-finite value in a pose; remove the line or fix the file")
-    norms = np.linalg.norm(data[:, 4:8], axis=1)
-    bad = np.abs(norms - 1.0) > _QUAT_NORM_TOL
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise InvalidValueError(f"{path}:{rows[i][0]}: quaternion norm {norms[i]:.4g} is not 1, so the pose is not "
-                                "a rotation; the columns must be 'timestamp tx ty tz qx qy qz qw'")
-    order = np.argsort(data[:, 0], kind="stable")
-    data = data[order]
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = quaternion_to_matrix(data[:, 4:8])
-    poses[:, :3, 3] = data[:, 1:4]
-    return Trajectory(timestamps=data[:, 0].copy(), poses=poses)
-
-
-def write_tum_trajectory(path: str | Path, trajectory: Trajectory, header: str | None = None) -> Path:
-    """Write ``trajectory`` in TUM format (``timestamp tx ty tz qx qy qz qw``, 9 decimals).
-
-    ``header`` lines are written as ``#`` comments first. Poses must be rigid (checked).
-    """
-    path = Path(path)
-    for i, p in enumerate(trajectory.poses):
-        why = check_pose(p)
-        if why:
-            raise InvalidValueError(f"pose {i} of the trajectory to write is not rigid: {why}")
-    q = matrix_to_quaternion(trajectory.poses[:, :3, :3])
-    t = trajectory.poses[:, :3, 3]
-    lines = [f"# {h}" for h in (header.splitlines() if header else [])]
-    lines.append("# timestamp tx ty tz qx qy qz qw")
-    for s, tt, qq in zip(trajectory.timestamps, t, q):
-        lines.append(f"{s:.6f} " + " ".join(f"{v:.9f}" for v in (*tt, *qq)))
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def read_intrinsics_file(path: str | Path, width: int, height: int) -> Intrinsics:
@@ -742,7 +593,7 @@ def _read_tum(root: Path, max_difference: float, pose_lookup: str, missing_pose:
             return entries, None
         raise FormatError(f"{root} has no groundtruth.txt, so its frames have no poses; fusion needs them. Pass "
                           "missing_pose='keep' to read the depth frames without poses")
-    gt = read_tum_trajectory(gt_path)
+    gt = read_tum(gt_path)  # sorted by timestamp
     poses = _lookup_poses(np.array([e.timestamp for e in entries]), gt, max_difference, pose_lookup)
     if all(p is None for p in poses) and missing_pose != "keep":
         raise InvalidValueError(
@@ -790,7 +641,7 @@ def _read_7scenes(root: Path, frame_rate: float, reject) -> tuple[list[_Entry], 
     good = [e for e in entries if e.pose is not None]
     traj = None
     if good:
-        traj = Trajectory(np.array([e.timestamp for e in good]), np.stack([e.pose for e in good]))
+        traj = Trajectory.from_poses(np.stack([e.pose for e in good]), np.array([e.timestamp for e in good]))
     return entries, traj
 
 
