@@ -22,6 +22,7 @@ __all__ = [
     "MapExistsError",
     "MapNotFoundError",
     "ReadOnlyError",
+    "MapBusyError",
 ]
 
 
@@ -79,3 +80,7 @@ class MapNotFoundError(SDFCodecError, FileNotFoundError):
 
 class ReadOnlyError(SDFCodecError, PermissionError):
     """A write was attempted on a map opened read-only."""
+
+
+class MapBusyError(SDFCodecError, TimeoutError):
+    """Another process kept a map locked (an update in progress) for longer than the caller would wait."""

@@ -8,16 +8,21 @@ from __future__ import annotations
 
 import json
 from datetime import datetime, timezone
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "parse_header",
-           "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS"]
+           "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "MAX_EXTENT"]
 
 FORMAT_NAME = "sdfcodec-map"
+#: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
+#: from naming absurd sizes (a reader also checks the bytes it would allocate against ``max_decode_bytes``).
+MAX_EXTENT = 2**31 - 1
+#: Names of codec state arrays: plain path segments, so a header cannot point a reader outside ``codec/``.
+STATE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 FORMAT_VERSION = 1
 #: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a).
 KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights"})
@@ -33,7 +38,8 @@ class BlockState:
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and infinities are no valid voxel size, origin or truncation
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Truncation(_Model):
@@ -56,7 +62,8 @@ class CodecSpec(_Model):
     config: dict[str, Any] = Field(description="the codec's get_config() (JSON); contains 'id'")
     package: str | None = Field(None, description="distribution that provides the codec, to name in errors")
     package_version: str | None = None
-    state_arrays: list[str] = Field(default_factory=list, description="names of the arrays under codec/")
+    state_arrays: list[Annotated[str, Field(pattern=STATE_NAME_PATTERN, max_length=255)]] = Field(
+        default_factory=list, description="names of the arrays under codec/")
     state_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$",
                                      description="SHA-256 over the learned state (see spec)")
 
@@ -109,19 +116,15 @@ class MapHeader(_Model):
     truncation: Truncation
     origin: tuple[float, float, float] = Field(description="world position (metres) of voxel (0, 0, 0)")
     block_size: Literal[16] = 16
-    shape_voxels: tuple[int, int, int] = Field(description="true extent of the map in voxels (x, y, z)")
-    grid_blocks: tuple[int, int, int] = Field(description="shape of the block grid (x, y, z)")
+    shape_voxels: tuple[Annotated[int, Field(ge=0, le=MAX_EXTENT)], Annotated[int, Field(ge=0, le=MAX_EXTENT)],
+                        Annotated[int, Field(ge=0, le=MAX_EXTENT)]] = Field(
+        description="true extent of the map in voxels (x, y, z)")
+    grid_blocks: tuple[Annotated[int, Field(ge=0, le=MAX_EXTENT)], Annotated[int, Field(ge=0, le=MAX_EXTENT)],
+                       Annotated[int, Field(ge=0, le=MAX_EXTENT)]] = Field(description="shape of the block grid (x, y, z)")
     codec: CodecSpec
     codes: CodesSpec
     extensions: list[Extension] = Field(default_factory=list)
     provenance: Provenance
-
-    @field_validator("shape_voxels", "grid_blocks")
-    @classmethod
-    def _non_negative(cls, v: tuple[int, int, int]) -> tuple[int, int, int]:
-        if any(n < 0 for n in v):
-            raise ValueError(f"must be non-negative, got {v}")
-        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> "MapHeader":
@@ -151,8 +154,11 @@ def parse_header(raw: Any, where: str = "map") -> MapHeader:
                            f"version {FORMAT_VERSION}; upgrade sdfcodec to read it")
     if version < 1:
         raise FormatError(f"{where}: invalid format_version {version}")
-    for ext in raw.get("extensions") or []:
-        if isinstance(ext, dict) and ext.get("required", True) and ext.get("name") not in KNOWN_EXTENSIONS:
+    extensions = raw.get("extensions") or []
+    for ext in extensions if isinstance(extensions, list) else []:
+        # malformed entries (a name that is no string...) are left to the schema check below
+        if isinstance(ext, dict) and isinstance(ext.get("name"), str) and ext.get("required", True) is not False \
+                and ext["name"] not in KNOWN_EXTENSIONS:
             raise VersionError(f"{where}: needs extension {ext.get('name')!r}, which this sdfcodec "
                                f"(format version {FORMAT_VERSION}) does not know; upgrade sdfcodec")
     try:

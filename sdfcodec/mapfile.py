@@ -8,8 +8,13 @@
     <map>/codec/<name>         the codec's learned state, one array per state_dict entry
 
 Every chunk is Blosc/zstd-compressed and carries a CRC32C checksum (Zarr's ``crc32c`` codec). A map is
-written into a hidden sibling directory and renamed into place on commit, so an interrupted write leaves the
-previous map (or none), never half of one.
+written (or, by :func:`update_map`, copied and changed) in a hidden sibling directory and swapped into place
+on commit, so an interrupted write leaves the previous map (or none), never half of one; readers hold the
+version they opened, so a swap never mixes two versions under them (``sdfcodec._atomic``, spec section 9).
+
+Maps are untrusted input: opening one never runs code from it (codec ids resolve only to installed entry
+points, array codecs come from a fixed list, nothing is unpickled), and every size the header or the array
+metadata names is checked against ``max_decode_bytes`` before anything that large is allocated.
 """
 
 from __future__ import annotations
@@ -17,10 +22,12 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import math
 import os
+import re
 import shutil
-import uuid
 import warnings
+import weakref
 from importlib import metadata
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
@@ -29,23 +36,33 @@ import numpy as np
 import torch
 import zarr
 import zarr.abc.store
-from zarr.codecs import BloscCodec, Crc32cCodec
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCodec
 
-from . import __version__
+from . import __version__, _atomic
 from ._validate import BLOCK, as_float_tensor, empty
 from .blocks import check_truncation, denormalise, normalise, split_blocks
 from .codec import Codec
 from .errors import (ChecksumError, FormatError, InvalidValueError, MapExistsError, MapNotFoundError,
-                     ReadOnlyError, SDFCodecWarning, ShapeError)
-from .header import (FORMAT_VERSION, BlockState, CodecSpec, CodesSpec, Extension, MapHeader, Provenance, Truncation,
-                     now_iso, parse_header)
+                     ReadOnlyError, SDFCodecError, SDFCodecWarning, ShapeError, VersionError)
+from .header import (FORMAT_VERSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
+                     Extension, MapHeader, Provenance, Truncation, now_iso, parse_header)
 from .registry import codec_package, get_codec_class
 
-__all__ = ["Map", "open_map", "create_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES"]
+__all__ = ["Map", "open_map", "create_map", "update_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES"]
 
-#: A decode that would allocate more than this many bytes is refused unless the caller raises the limit, so a
-#: hostile or mistaken header cannot make a reader allocate without bound.
+#: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
+#: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
+#: or mistaken header cannot make a reader allocate without bound.
 DEFAULT_MAX_DECODE_BYTES = 8 << 30
+#: The Zarr codecs a map's arrays may use (spec section 4): anything else (sharding, numcodecs.* such as
+#: pickle, variable-length types) is refused before a chunk is read.
+_ALLOWED_ZARR_CODECS = (BytesCodec, BloscCodec, ZstdCodec, GzipCodec, Crc32cCodec)
+#: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
+_MAX_METADATA_BYTES = 16 << 20
+#: A read may touch at most max(_MIN_CHUNKS_PER_READ, max_decode_bytes // _BYTES_PER_CHUNK) chunks.
+_MIN_CHUNKS_PER_READ, _BYTES_PER_CHUNK = 64, 4096
+#: How long a writer waits for another process's update of the same map to finish before giving up.
+_LOCK_TIMEOUT = 60.0
 _EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
 Region = Sequence[Sequence[float]]
 
@@ -85,6 +102,96 @@ def _is_url(s: str) -> bool:
     return "://" in s
 
 
+class _GuardStore(zarr.storage.WrapperStore):
+    """Read-side wrapper around any store: refuses oversize metadata documents, and chunks whose Blosc header
+    claims more bytes than the chunk's shape holds (a decompression bomb), before anything that large is
+    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first)."""
+
+    def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None):
+        super().__init__(store)
+        self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
+
+    def _with_store(self, store):
+        return type(self)(store, self.limits)
+
+    def _local_size(self, key: str) -> int | None:
+        inner = self._store
+        if isinstance(inner, zarr.storage.LocalStore):
+            try:
+                return os.stat(inner.root / key).st_size
+            except OSError:
+                return None
+        return None
+
+    async def get(self, key, prototype=None, byte_range=None):
+        meta = key == "zarr.json" or key.endswith("/zarr.json")
+        limit = None if meta else next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
+        size = self._local_size(key) if (meta or limit) else None
+        if meta and size is not None and size > _MAX_METADATA_BYTES:
+            raise FormatError(f"{key} is {size} bytes, more than any map metadata ({_MAX_METADATA_BYTES}); refused")
+        if limit and size is not None and size > 2 * limit[0] + (1 << 20):
+            raise ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
+        buf = await self._store.get(key, prototype, byte_range)
+        if buf is None or byte_range is not None:
+            return buf
+        if meta and len(buf) > _MAX_METADATA_BYTES:
+            raise FormatError(f"{key} is {len(buf)} bytes, more than any map metadata ({_MAX_METADATA_BYTES}); refused")
+        if limit and limit[1] and len(buf) >= 16:
+            # Blosc header: bytes 4..8 hold the uncompressed size, which decompression would allocate
+            claimed = int.from_bytes(bytes(buf.as_numpy_array()[4:8]), "little")
+            if claimed > limit[0]:
+                raise ChecksumError(f"chunk {key} claims {claimed} bytes uncompressed, more than its shape holds "
+                                    f"({limit[0]}); refused without decompressing")
+        return buf
+
+
+class _PinnedStore(zarr.storage.LocalStore):
+    """A read-only local store over one version of a map directory, held open by a file descriptor and read
+    through ``/proc/self/fd/N``: a writer that swaps in a new version cannot mix it into what this reader
+    sees, and the held version is not removed while this store lives (``sdfcodec._atomic``)."""
+
+    def __init__(self, root, *, read_only: bool = True, _path: Path | None = None, _fd: int | None = None):
+        super().__init__(root, read_only=True)
+        self._path, self._fd, self._closed = _path, _fd, False
+        self._release = (weakref.finalize(self, _atomic.release_pin, _fd, _path, os.getpid())
+                         if _fd is not None else None)
+
+    @classmethod
+    def pin(cls, path: Path) -> "_PinnedStore":
+        fd = _atomic.pin_dir(path)
+        return cls(f"/proc/self/fd/{fd}", _path=path, _fd=fd)
+
+    def close_pin(self) -> None:
+        self._closed = True
+        if self._release is not None:
+            self._release()
+
+    def with_read_only(self, read_only: bool = False):
+        if not read_only:
+            raise ReadOnlyError(f"{self._path} is open read-only")
+        return self
+
+    def __reduce__(self):
+        # the descriptor means nothing in another process: pin the map there afresh
+        return (_PinnedStore.pin, (self._path,))
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise InvalidValueError(f"{self._path}: the map was closed; open it again with sdfcodec.open_map")
+
+    async def get(self, key, prototype=None, byte_range=None):
+        self._check_open()
+        return await super().get(key, prototype, byte_range)
+
+    async def get_partial_values(self, prototype, key_ranges):
+        self._check_open()
+        return await super().get_partial_values(prototype, key_ranges)
+
+    async def exists(self, key: str) -> bool:
+        self._check_open()
+        return await super().exists(key)
+
+
 class Map:
     """An open sdfcodec map. Get one from :func:`open_map` (read) or :func:`create_map` (write).
 
@@ -100,6 +207,9 @@ class Map:
         self.max_decode_bytes = max_decode_bytes
         self._codec: Codec | None = None
         self._writer: _Writer | None = None
+        self._closed = False
+        self._close_on_exit = False
+        self._chunk_bytes: dict[str, int] = {}
         self._check_arrays()
 
     # -- geometry -------------------------------------------------------------------------------------
@@ -131,26 +241,98 @@ class Map:
     def writable(self) -> bool:
         return self._writer is not None
 
+    def _member(self, path: str, kind: type = zarr.Array) -> Any:
+        """The array (or group) at ``path``, or None when absent; unreadable metadata is a FormatError."""
+        try:
+            node = self._group[path]
+        except KeyError:
+            return None
+        except SDFCodecError:
+            raise
+        except Exception as e:  # zarr's many ways to say its metadata is malformed
+            raise FormatError(f"{self.location}: the metadata of '{path}' is invalid ({type(e).__name__}: {e}); "
+                              "the map is corrupted: restore it from a copy or re-encode") from e
+        if not isinstance(node, kind):
+            raise FormatError(f"{self.location}: '{path}' must be a Zarr {kind.__name__.lower()}")
+        return node
+
+    def _check_array(self, arr: zarr.Array, *, dtype: Any = None, shape: tuple | None = None,
+                     chunks: tuple | None = None, zero_fill: bool = False) -> None:
+        """Validate an array's metadata against the spec and the reader's limits *before* reading from it, and
+        register its chunk size with the guard store (a chunk claiming more is refused unread)."""
+        where = f"{self.location}: array '{arr.path}'"
+        try:
+            dt = np.dtype(arr.dtype)
+            codecs = tuple(arr.metadata.codecs)
+            ch = tuple(int(c) for c in arr.chunks)
+            fill = arr.metadata.fill_value
+        except Exception as e:  # noqa: BLE001 - irregular chunk grids, data types numpy lacks...
+            raise FormatError(f"{where} has metadata this reader cannot use ({type(e).__name__}: {e})") from e
+        if dt.kind not in "biuf" or dt.itemsize > 8:
+            raise FormatError(f"{where} has data type {dt}; map arrays hold plain numbers only")
+        if dtype is not None and dt != np.dtype(dtype):
+            raise FormatError(f"{where} has data type {dt}, expected {np.dtype(dtype)}")
+        if shape is not None and tuple(arr.shape) != tuple(shape):
+            raise FormatError(f"{where} has shape {tuple(arr.shape)}, expected {tuple(shape)} (from the header)")
+        if chunks is not None and ch != tuple(chunks):
+            raise FormatError(f"{where} has chunks {ch}, expected {tuple(chunks)} (from the header)")
+        bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs
+               if not isinstance(c, _ALLOWED_ZARR_CODECS)]
+        if bad:
+            raise FormatError(f"{where} uses Zarr codec(s) {bad}, which a map may not use (allowed: bytes, blosc, "
+                              "zstd, gzip, crc32c)")
+        if not codecs or not isinstance(codecs[-1], Crc32cCodec):
+            raise FormatError(f"{where} has no crc32c checksum codec (spec section 4): it cannot be verified")
+        # checked when reading (_read), so that a small limit still lets a map open and say what is too big
+        chunk_bytes = self._chunk_bytes[arr.path] = math.prod(ch) * dt.itemsize
+        if zero_fill and not (np.ndim(fill) == 0 and np.asarray(fill) == 0):
+            raise FormatError(f"{where} has fill value {fill!r}; the spec requires 0")
+        store = self._group.store
+        if isinstance(store, _GuardStore):
+            first = next((c for c in codecs if not isinstance(c, BytesCodec)), None)
+            store.limits[arr.path] = (chunk_bytes, isinstance(first, BloscCodec))
+
     def _check_arrays(self) -> None:
         h = self.header
-        try:
-            codes, state = self._group["codes"], self._group["state"]
-        except KeyError as e:
-            raise FormatError(f"{self.location}: map lacks array {e}; it is incomplete or not an sdfcodec map") from e
-        if not isinstance(codes, zarr.Array) or not isinstance(state, zarr.Array):
-            raise FormatError(f"{self.location}: 'codes' and 'state' must be arrays")
-        if tuple(codes.shape) != (*h.grid_blocks, h.codes.size) or str(codes.dtype) != h.codes.dtype:
-            raise FormatError(f"{self.location}: codes array is {codes.dtype}{tuple(codes.shape)}, header says "
-                              f"{h.codes.dtype}{(*h.grid_blocks, h.codes.size)}")
-        if tuple(state.shape) != tuple(h.grid_blocks) or state.dtype != np.uint8:
-            raise FormatError(f"{self.location}: state array is {state.dtype}{tuple(state.shape)}, expected "
-                              f"uint8{tuple(h.grid_blocks)}")
+        state_bytes = math.prod(h.grid_blocks)
+        if state_bytes > self.max_decode_bytes:
+            raise FormatError(f"{self.location}: header field grid_blocks {h.grid_blocks} needs {state_bytes} bytes "
+                              f"of block states, above the reader's limit of {self.max_decode_bytes} bytes (raise "
+                              "max_decode_bytes in open_map() if the map is genuine)")
+        codes, state = self._member("codes"), self._member("state")
+        if codes is None or state is None:
+            missing = "codes" if codes is None else "state"
+            raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec map")
+        cb = h.codes.chunk_blocks
+        self._check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size),
+                          chunks=(cb, cb, cb, h.codes.chunk_code), zero_fill=True)
+        self._check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
+        self._weights = None
+        if any(e.name == "fusion-weights" for e in h.extensions):
+            self._weights = self._member("weights")
+            if self._weights is not None:
+                self._check_array(self._weights, dtype=np.float16, shape=(*h.grid_blocks, 4096))
         self._codes, self._state = codes, state
 
     # -- reading --------------------------------------------------------------------------------------
     def _read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
         """Read ``arr[sel]``; a chunk that fails its checksum or decompression becomes a ChecksumError
         naming the chunk."""
+        if self._closed:
+            raise InvalidValueError(f"{self.location}: the map was closed; open it again with sdfcodec.open_map")
+        chunk_bytes = self._chunk_bytes.get(arr.path, 0)
+        if chunk_bytes > self.max_decode_bytes:
+            raise InvalidValueError(f"{self.location}: array '{arr.path}' has chunks of {chunk_bytes} bytes, above the "
+                                    f"limit of {self.max_decode_bytes} bytes; raise max_decode_bytes in open_map() "
+                                    "if the map is genuine")
+        # each chunk costs a request and a task however small it is: a read may touch only so many (a hostile
+        # chunk grid of 1-element chunks would otherwise take hours to read a modest array)
+        n_chunks = math.prod(len(r) for r in _chunk_ranges(arr, sel))
+        max_chunks = max(_MIN_CHUNKS_PER_READ, self.max_decode_bytes // _BYTES_PER_CHUNK)
+        if n_chunks > max_chunks:
+            raise InvalidValueError(f"{self.location}: reading array '{arr.path}' there touches {n_chunks} chunks, above "
+                                    f"the limit of {max_chunks} for max_decode_bytes={self.max_decode_bytes}; read a "
+                                    "smaller region, or raise max_decode_bytes if the map is genuine")
         try:
             return np.asarray(arr[sel])
         except Exception as exc:  # find the chunk(s) to name: slow path, errors only
@@ -159,17 +341,19 @@ class Map:
                                 "trusted there: restore it from a copy or re-encode") from exc
 
     def _bad_chunks(self, arr: zarr.Array, sel: tuple) -> str:
-        ranges = []
-        for s, n, c in zip(sel, arr.shape, arr.chunks):
-            start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
-            ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
-        bad = []
-        for idx in itertools.product(*ranges):
+        # probe chunk by chunk, but boundedly: naming five is enough, and probing is one request per chunk
+        bad, probed = [], 0
+        for idx in itertools.product(*_chunk_ranges(arr, sel)):
+            if len(bad) > 5 or probed >= 256:
+                break
+            probed += 1
             try:
                 arr.blocks[idx]
             except Exception:  # noqa: BLE001
                 bad.append("chunk c/" + "/".join(map(str, idx)))
-        return ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "") if bad else "a chunk"
+        if not bad:
+            return "a chunk"
+        return ", ".join(bad[:5]) + (" and more" if len(bad) > 5 else "")
 
     def block_states(self) -> np.ndarray:
         """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
@@ -193,20 +377,51 @@ class Map:
             UnknownCodecError: its plugin is not installed (names the id and the package to install).
         """
         if self._codec is None:
-            spec = self.header.codec
-            cls = get_codec_class(spec.id, package_hint=spec.package)
-            codec = cls.from_config(spec.config)
-            state = {}
-            if spec.state_arrays:
-                grp = self._group["codec"]
-                for name in spec.state_arrays:
-                    arr = grp[name]
-                    state[name] = self._read(arr, (slice(None),) * arr.ndim)
-            if spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
-                raise ChecksumError(f"{self.location}: the codec state under codec/ does not match the digest "
-                                    "in the header; the map's codec arrays were altered or corrupted")
-            self._codec = codec.load_state_dict(state) if state else codec
+            self._codec = self._load_codec()
         return self._codec
+
+    def _load_codec(self) -> Codec:
+        h, where = self.header, self.location
+        spec = h.codec
+        cls = get_codec_class(spec.id, package_hint=spec.package)
+        try:
+            codec = cls.from_config(spec.config)
+        except Exception as e:  # a hostile or stale config: the plugin's own error, whatever its type
+            raise FormatError(f"{where}: header field codec.config is not a valid {spec.id!r} configuration "
+                              f"({type(e).__name__}: {e})") from e
+        state = {}
+        if spec.state_arrays:
+            total = 0
+            for name in spec.state_arrays:
+                arr = self._member(f"codec/{name}")
+                if arr is None:
+                    raise FormatError(f"{where}: codec state array 'codec/{name}' (listed in codec.state_arrays) "
+                                      "is missing")
+                self._check_array(arr)
+                total += math.prod(arr.shape) * np.dtype(arr.dtype).itemsize
+                if total > self.max_decode_bytes:
+                    raise FormatError(f"{where}: the codec state is over {self.max_decode_bytes} bytes, the reader's "
+                                      "limit (raise max_decode_bytes in open_map() if the map is genuine)")
+                state[name] = self._read(arr, (slice(None),) * arr.ndim)
+        if spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
+            raise ChecksumError(f"{where}: the codec state under codec/ does not match the digest "
+                                "in the header; the map's codec arrays were altered or corrupted")
+        try:
+            if state:
+                codec = codec.load_state_dict(state)
+            fitted = codec.is_fitted
+        except Exception as e:
+            raise FormatError(f"{where}: the codec state under codec/ does not fit codec {spec.id!r} "
+                              f"({type(e).__name__}: {e})") from e
+        if not fitted:
+            raise FormatError(f"{where}: codec {spec.id!r} needs learned state, which the map does not store")
+        if codec.code_size != h.codes.size:
+            raise FormatError(f"{where}: header field codes.size is {h.codes.size}, but the codec makes codes of "
+                              f"{codec.code_size} elements")
+        if h.codes.prefix_ordered and not codec.prefix_ordered:
+            raise FormatError(f"{where}: header field codes.prefix_ordered is true, but codec {spec.id!r} codes "
+                              "are not prefix-ordered")
+        return codec
 
     def _level(self, level: int | None) -> int:
         size = self.header.codes.size
@@ -263,9 +478,21 @@ class Map:
         local = np.argwhere(state == BlockState.CODED)
         if not len(local):
             return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
+        nbytes = state.size * level * np.dtype(self.header.codes.dtype).itemsize
+        if nbytes > self.max_decode_bytes:
+            raise InvalidValueError(f"reading the codes of blocks {[(s.start, s.stop) for s in box]} densely needs "
+                                    f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
+                                    " GiB; read a smaller region, use iter_codes(), or raise max_decode_bytes")
         codes = self._read(self._codes, (*box, slice(0, level)))
         origin = np.array([s.start for s in box], dtype=np.int64)
-        return local + origin, codes[tuple(local.T)].astype(np.float32)
+        out = codes[tuple(local.T)].astype(np.float32)
+        finite = np.isfinite(out).all(axis=1)
+        if not finite.all():
+            bad = local[~finite] + origin
+            raise FormatError(f"{self.location}: {len(bad)} coded block(s) hold NaN/Inf code values, e.g. block "
+                              f"{tuple(int(v) for v in bad[0])}; the map is corrupted there (`sdfcodec verify` lists "
+                              "them): restore it from a copy or re-encode those blocks")
+        return local + origin, out
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -274,15 +501,17 @@ class Map:
         lv = self._level(level)
         cb = self.header.codes.chunk_blocks
         states = self.block_states()
-        starts = [range(0, g, cb) for g in self.grid_blocks]
+        coded = np.argwhere(states == BlockState.CODED)
+        # only the chunks that hold coded blocks, in grid order: a sparse map (or a hostile, huge and empty
+        # grid) costs what it stores, not its extent
+        chunks = np.unique(coded // cb, axis=0) if len(coded) else np.zeros((0, 3), np.int64)
         pending_c, pending_z = [], []
-        for n, (x, y, z) in enumerate(itertools.product(*starts), 1):
+        for n, (x, y, z) in enumerate((chunks * cb).tolist(), 1):
             box = (slice(x, x + cb), slice(y, y + cb), slice(z, z + cb))
-            if (states[box] == BlockState.CODED).any():
-                coords, codes = self._codes_in(box, lv, states)
-                pending_c.append(coords)
-                pending_z.append(codes)
-            if pending_c and (n % chunks_per_batch == 0):
+            coords, codes = self._codes_in(box, lv, states)
+            pending_c.append(coords)
+            pending_z.append(codes)
+            if n % chunks_per_batch == 0:
                 yield np.concatenate(pending_c), np.concatenate(pending_z)
                 pending_c, pending_z = [], []
         if pending_c:
@@ -303,8 +532,15 @@ class Map:
                 rel = torch.from_numpy(coords - lo // BLOCK).to(dev)
                 blocks = view[rel[:, 0], rel[:, 1], rel[:, 2]]
             else:
-                blocks = self._to_metres(self.codec.decode(torch.from_numpy(codes).to(dev)))
+                blocks = self._to_metres(self._decoded(self.codec.decode(torch.from_numpy(codes).to(dev))))
             yield coords, blocks if device is not None else blocks.numpy()
+
+    def _decoded(self, v: torch.Tensor) -> torch.Tensor:
+        """Refuse NaN/Inf out of the codec (a corrupted or hostile learned state) rather than return them."""
+        if not bool(torch.isfinite(v).all()):
+            raise FormatError(f"{self.location}: codec {self.header.codec.id!r} decoded NaN/Inf values; its learned "
+                              "state in the map is broken: restore the map from a copy or re-encode it")
+        return v
 
     def _to_metres(self, v: torch.Tensor) -> torch.Tensor:
         d_min, d_max = self.truncation
@@ -327,7 +563,8 @@ class Map:
         local = torch.from_numpy(coords - b0).to(dev)
         for i in range(0, len(coords), batch_size):
             idx = local[i:i + batch_size]
-            view[idx[:, 0], idx[:, 1], idx[:, 2]] = self.codec.decode_core(torch.from_numpy(codes[i:i + batch_size]).to(dev))
+            core = self.codec.decode_core(torch.from_numpy(codes[i:i + batch_size]).to(dev))
+            view[idx[:, 0], idx[:, 1], idx[:, 2]] = self._decoded(core)
         src = tuple(slice(int(a - o * BLOCK), int(b - o * BLOCK)) for a, b, o in zip(clo, chi, b0))
         if np.array_equal(clo, lo) and np.array_equal(chi, hi):
             return tmp[src]  # inside the grid (always, without a halo): a view, no copy
@@ -374,8 +611,9 @@ class Map:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""
         h = self.header
         dense = int(np.prod(h.shape_voxels)) * 4
-        on_disk = _dir_bytes(self.location) if not _is_url(self.location) else None
-        state_bytes = _dir_bytes(str(Path(self.location) / "codec")) if on_disk is not None else None
+        root = self._local_root()
+        on_disk = _dir_bytes(root) if root is not None else None
+        state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
         counts = self.count_states()
         return {
             "location": self.location,
@@ -399,6 +637,28 @@ class Map:
             "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
             "provenance": h.provenance.model_dump(),
         }
+
+    def _local_root(self) -> str | None:
+        """The directory (or zip) this map reads from: the pinned version for maps opened by path."""
+        store = self._group.store
+        inner = store._store if isinstance(store, _GuardStore) else store
+        if isinstance(inner, zarr.storage.LocalStore):
+            return str(inner.root)
+        if isinstance(inner, zarr.storage.ZipStore):
+            return str(inner.path)
+        return None
+
+    def close(self) -> None:
+        """Release the map: a read-only map lets go of the version it holds (a replaced version is removed once
+        its last reader closes it), and further reads raise. Dropping the object does the same. A map being
+        written must be committed or aborted first."""
+        if self._writer is not None:
+            raise InvalidValueError(f"{self.location} is being written: commit() or abort() it before close()")
+        self._closed = True
+        store = self._group.store
+        inner = store._store if isinstance(store, _GuardStore) else store
+        if isinstance(inner, _PinnedStore):
+            inner.close_pin()
 
     # -- writing (maps from create_map) ---------------------------------------------------------------
     def _w(self) -> "_Writer":
@@ -449,7 +709,9 @@ class Map:
     @property
     def has_weights(self) -> bool:
         """True when the map stores fusion weights."""
-        return any(e.name == "fusion-weights" for e in self.header.extensions) and "weights" in self._group
+        if self._writer is not None:
+            return "weights" in self._group
+        return self._weights is not None
 
     def read_weights(self, coords: Any) -> np.ndarray:
         """Fusion weights ``(N, 16, 16, 16)`` float32 of blocks ``coords`` (0 where none were written)."""
@@ -459,7 +721,7 @@ class Map:
         c = _check_coords(coords)
         if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
             raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
-        arr = self._group["weights"]
+        arr = self._weights if self._writer is None else self._group["weights"]
         out = np.zeros((len(c), 4096), np.float32)
         for i, (x, y, z) in enumerate(c):
             out[i] = self._read(arr, (int(x), int(y), int(z), slice(None)))
@@ -498,9 +760,15 @@ class Map:
             self._writer = None
 
     def __enter__(self) -> "Map":
+        # a map opened for reading is closed on leaving the block; one being written is committed (and stays
+        # open for reading, e.g. for info())
+        self._close_on_exit = self._writer is None
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        if self._close_on_exit:
+            self.close()
+            return
         if self._writer is None:
             return
         if exc_type is None:
@@ -512,6 +780,15 @@ class Map:
         mode = "writing" if self._writer else "read-only"
         return (f"<sdfcodec.Map {self.location!r} {mode} codec={self.header.codec.id}-{self.code_size} "
                 f"voxels={self.shape_voxels} voxel_size={self.voxel_size}>")
+
+
+def _chunk_ranges(arr: zarr.Array, sel: tuple) -> list[range]:
+    """Chunk indices per axis that reading ``arr[sel]`` touches (``sel``: ints and step-1 slices)."""
+    ranges = []
+    for s, n, c in zip(sel, arr.shape, arr.chunks):
+        start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
+        ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
+    return ranges
 
 
 def _dir_bytes(path: str) -> int | None:
@@ -567,20 +844,33 @@ def _check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | N
 
 
 class _Writer:
-    """State of a map being written into its temporary directory."""
+    """State of a map being written into its temporary directory (``.NAME.tmp-*``, locked while we live).
 
-    def __init__(self, final: Path, tmp: Path, group: zarr.Group, codec: Codec, header_kw: dict,
-                 codes_spec: CodesSpec, overwrite: bool, device: torch.device):
-        self.final, self.tmp, self.group, self.codec = final, tmp, group, codec
+    ``update`` is set for :func:`update_map`: the temporary directory starts as a copy of the current version
+    (whose directory identity is ``update["source"]``), the grid and block states start from it, and the
+    writer lock ``update["lock"]`` is held from the copy to the swap so no other update is lost.
+    """
+
+    def __init__(self, final: Path, tmp: Path, tmp_fd: int, group: zarr.Group, codec: Codec, header_kw: dict,
+                 codes_spec: CodesSpec, overwrite: bool, device: torch.device, *,
+                 max_state_bytes: int = DEFAULT_MAX_DECODE_BYTES, grid: tuple | None = None,
+                 state: np.ndarray | None = None, update: dict | None = None):
+        self.final, self.tmp, self.tmp_fd, self.group, self.codec = final, tmp, tmp_fd, group, codec
         self.header_kw, self.codes_spec, self.overwrite, self.device = header_kw, codes_spec, overwrite, device
+        self.max_state_bytes, self.update = max_state_bytes, update
         self.shape_voxels = tuple(header_kw.pop("shape_voxels"))
-        self.grid = tuple(-(-n // BLOCK) for n in self.shape_voxels)
-        self.state = np.zeros(self.grid, dtype=np.uint8)
+        self.grid = tuple(grid) if grid is not None else tuple(-(-n // BLOCK) for n in self.shape_voxels)
+        self.state = state if state is not None else np.zeros(self.grid, dtype=np.uint8)
         self.codes = group["codes"]
 
     def grow_voxels(self, need: tuple[int, int, int]) -> None:
-        self.shape_voxels = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
-        grid = tuple(-(-n // BLOCK) for n in self.shape_voxels)
+        shape = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
+        grid = tuple(max(g, -(-n // BLOCK)) for g, n in zip(self.grid, shape))
+        if math.prod(grid) > self.max_state_bytes or max(shape) > 2**31 - 1:
+            raise InvalidValueError(f"writing there would grow the map to {grid} blocks ({shape} voxels), whose block "
+                                    f"states alone exceed the limit of {self.max_state_bytes} bytes; check the block "
+                                    "coordinates or offset (or move the map's origin)")
+        self.shape_voxels = shape
         if grid != self.grid:
             state = np.zeros(grid, dtype=np.uint8)
             state[tuple(slice(0, n) for n in self.grid)] = self.state
@@ -649,7 +939,7 @@ class _Writer:
     def commit(self) -> Path:
         st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0,
                                      chunks=tuple(min(64, max(1, n)) for n in self.grid),
-                                     compressors=_compressors())
+                                     compressors=_compressors(), overwrite=True)
         st[...] = self.state
         extensions = []
         if "weights" in self.group:
@@ -658,21 +948,47 @@ class _Writer:
             extensions.append(Extension(name="fusion-weights", required=False))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
+        # the header goes last: until the swap below nobody sees any of this anyway
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
-        if self.final.exists() and not self.overwrite:
+        try:
+            lock = self.update["lock"] if self.update else _atomic.WriterLock(self.final, _LOCK_TIMEOUT).acquire()
+        except BaseException:
             self.abort()
-            raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
-        if self.final.exists():
-            backup = self.final.with_name(f".{self.final.name}.old-{uuid.uuid4().hex[:8]}")
-            os.replace(self.final, backup)  # a crash from here to the next line leaves no map, never half of one
-            os.replace(self.tmp, self.final)
-            _rmtree(backup)
-        else:
-            os.replace(self.tmp, self.final)
+            raise
+        try:
+            exists = os.path.lexists(self.final)
+            if self.update and (not exists or _stat_id(self.final) != self.update["source"]):
+                raise FormatError(f"{self.final} was replaced or removed by something other than sdfcodec while "
+                                  "this update ran; nothing was written: update it again")
+            if exists and not self.overwrite:
+                raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
+            # on failure either call leaves everything as it was (the new version still at self.tmp)
+            if exists:
+                _atomic.swap_into_place(self.tmp, self.final)
+            else:
+                os.rename(self.tmp, self.final)
+        except BaseException:
+            self.abort()
+            raise
+        finally:
+            lock.release()
+        os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
+        self.tmp_fd = None
+        _atomic.collect(self.final)  # the version replaced, if nobody reads it, and dead writers' leftovers
         return self.final
 
     def abort(self) -> None:
-        _rmtree(self.tmp)
+        if self.tmp_fd is not None:
+            _rmtree(self.tmp)
+            os.close(self.tmp_fd)
+            self.tmp_fd = None
+        if self.update:
+            self.update["lock"].release()
+
+
+def _stat_id(p: Path) -> tuple[int, int]:
+    st = os.stat(p)
+    return st.st_dev, st.st_ino
 
 
 def _rmtree(p: Path) -> None:
@@ -705,7 +1021,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             m.write_volume(tsdf)          # metres, (X, Y, Z)
 
     Everything is written to a hidden sibling directory and moved into place on commit (leaving the block
-    without an exception); on an exception nothing at ``path`` changes.
+    without an exception); on an exception, or if the process dies, nothing at ``path`` changes. Replacing a
+    map (``overwrite``) swaps the new version in atomically; readers of the old one keep reading it.
 
     Args:
         codec: a fitted codec instance (its config and learned state are stored in the map).
@@ -742,10 +1059,15 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                         state_arrays=sorted(state), state_sha256=state_digest(state) if state else None),
         provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
     )
+    bad_names = [n for n in state if not re.fullmatch(STATE_NAME_PATTERN, n)]
+    if bad_names:
+        raise InvalidValueError(f"codec {codec.codec_id!r} state array names {bad_names} cannot be stored in a map: "
+                                f"names must match {STATE_NAME_PATTERN} (a plugin bug)")
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.tmp-{uuid.uuid4().hex[:8]}")
-    group = zarr.open_group(zarr.storage.LocalStore(str(tmp)), mode="w", zarr_format=3)
+    _atomic.collect(final)  # leftovers of writers killed earlier
+    tmp, tmp_fd = _atomic.make_temp_dir(final)
     try:
+        group = zarr.open_group(_atomic.CowLocalStore(str(tmp)), mode="w", zarr_format=3)
         grid = tuple(-(-int(n) // BLOCK) for n in shape_voxels)
         cb, cc = spec.chunk_blocks, spec.chunk_code
         group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
@@ -757,42 +1079,130 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
                                     compressors=_compressors())
             a[...] = arr
+        header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=grid, codes=spec,
+                           **header_kw)
     except BaseException:
         _rmtree(tmp)
+        os.close(tmp_fd)
         raise
+    writer = _Writer(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
+                     overwrite, torch.device(device))
+    return _writing_map(group, header, str(final), codec, writer, DEFAULT_MAX_DECODE_BYTES)
+
+
+def _writing_map(group: zarr.Group, header: MapHeader, location: str, codec: Codec, writer: _Writer,
+                 max_decode_bytes: int) -> Map:
     m = Map.__new__(Map)
-    m._group, m.location, m.max_decode_bytes, m._codec = group, str(final), DEFAULT_MAX_DECODE_BYTES, codec
-    m.header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=grid, codes=spec,
-                         **header_kw)
-    m._writer = _Writer(final, tmp, group, codec, dict(header_kw, shape_voxels=m.header.shape_voxels), spec,
-                        overwrite, torch.device(device))
+    m._group, m.header, m.location, m.max_decode_bytes, m._codec = group, header, location, max_decode_bytes, codec
+    m._writer, m._closed, m._close_on_exit, m._chunk_bytes = writer, False, False, {}
     m._codes = group["codes"]
     return m
+
+
+def update_map(path: str | os.PathLike, *, device: str | torch.device = "cpu", tool: str | None = None,
+               wait: float = _LOCK_TIMEOUT, max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
+    """Start adding or replacing blocks of the existing map at ``path`` (a local directory). Use as a context
+    manager, with the same write methods as :func:`create_map`::
+
+        with sdfcodec.update_map("room.sdfz") as m:
+            m.write_blocks(coords, blocks)      # new blocks grow the map; existing ones are replaced
+            m.mark_empty(cleared)
+
+    The current version is copied (hard links: writers only ever replace files) into a hidden sibling
+    directory, changed there, and swapped into place atomically on commit. Until then, and if anything fails
+    or the process dies, the map at ``path`` stays exactly as it was; readers that opened it keep reading the
+    version they opened. One update at a time: a second waits up to ``wait`` seconds for the first.
+
+    Args:
+        device: where encoding runs. tool: recorded as the map's provenance tool (default: kept).
+        wait: seconds to wait for another update of the same map to finish.
+        max_decode_bytes: limit for reading the current version (see :func:`open_map`) and for growing it.
+
+    Raises:
+        MapNotFoundError: no map at ``path``. MapBusyError: another update held it for ``wait`` seconds.
+        FormatError, UnknownCodecError: the current map is unreadable, or its codec plugin is missing (the
+        codec is needed to encode the new blocks).
+    """
+    final = Path(path)
+    if _is_url(str(path)) or final.is_file():
+        raise InvalidValueError(f"only local directory maps can be updated, got {path} (copy it locally first)")
+    if not final.exists():
+        raise MapNotFoundError(f"no map at {final}; create it with sdfcodec.create_map")
+    lock = _atomic.WriterLock(final, wait).acquire()
+    tmp = tmp_fd = None
+    try:
+        src = open_map(final, max_decode_bytes=max_decode_bytes)
+        h = src.header
+        unknown = [e.name for e in h.extensions if e.name not in KNOWN_EXTENSIONS]
+        if unknown:
+            raise VersionError(f"{final} uses extension(s) {unknown} that this sdfcodec cannot keep consistent "
+                               "while changing blocks; update it with a newer sdfcodec")
+        codec = src.codec  # checks the state digest; the codec encodes the new blocks
+        states = src.block_states()
+        root = src._local_root()
+        source_id = _stat_id(Path(root))
+        tmp, tmp_fd = _atomic.make_temp_dir(final)
+        _atomic.link_tree(root, tmp)
+        src.close()
+        group = zarr.open_group(_atomic.CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
+        prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
+        header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
+                         provenance=prov, shape_voxels=h.shape_voxels)
+        writer = _Writer(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
+                         max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
+                         update={"lock": lock, "source": source_id})
+    except BaseException:
+        if tmp is not None:
+            _rmtree(tmp)
+            os.close(tmp_fd)
+        lock.release()
+        raise
+    return _writing_map(group, h, str(final), codec, writer, max_decode_bytes)
+
+
+def _reader_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
+                  storage_options: dict | None) -> zarr.abc.store.Store:
+    if isinstance(path_or_url, zarr.abc.store.Store):
+        return _GuardStore(path_or_url)
+    if _is_url(loc):
+        return _GuardStore(zarr.storage.FsspecStore.from_url(loc, read_only=True, storage_options=storage_options))
+    p = Path(loc)
+    if not p.exists():
+        raise MapNotFoundError(f"no map at {loc}")
+    if p.is_file():
+        return _GuardStore(zarr.storage.ZipStore(p, mode="r"))
+    if _atomic.HAVE_PROC_FD:
+        return _GuardStore(_PinnedStore.pin(p))
+    return _GuardStore(zarr.storage.LocalStore(p, read_only=True))
 
 
 def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
              max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
     """Open a map read-only: a local directory, a ``.zip``, a URL (``http(s)://``, ``s3://``, ``file://``...
-    through fsspec) or any Zarr store. Reads only the header and array metadata; data is read on demand."""
+    through fsspec) or any Zarr store. Reads only the header and array metadata; data is read on demand.
+
+    A local directory map is held at the version opened (Linux): a writer replacing it meanwhile changes
+    nothing this object reads; open the path again to see the new version. ``close()`` (or dropping the object,
+    or leaving a ``with`` block) lets the old version go.
+
+    ``max_decode_bytes`` bounds what one call may allocate (a decoded region, a dense read of codes, the
+    block states, one chunk, the codec state): maps whose header or array metadata name more are refused with
+    FormatError before anything is read. Opening never runs code from the map.
+    """
     loc = str(path_or_url)
     try:
-        if isinstance(path_or_url, zarr.abc.store.Store):
-            store = path_or_url
-        elif _is_url(loc):
-            store = zarr.storage.FsspecStore.from_url(loc, read_only=True, storage_options=storage_options)
-        else:
-            p = Path(loc)
-            if not p.exists():
-                raise MapNotFoundError(f"no map at {loc}")
-            store = zarr.storage.ZipStore(p, mode="r") if p.is_file() else zarr.storage.LocalStore(p, read_only=True)
+        store = _reader_store(path_or_url, loc, storage_options)
         group = zarr.open_group(store, mode="r", zarr_format=3)
+        raw = group.attrs.get("sdfcodec")
     except (MapNotFoundError, FormatError):
         raise
-    except FileNotFoundError as e:
+    except (FileNotFoundError, NotADirectoryError) as e:
         raise MapNotFoundError(f"no map at {loc}") from e
+    except SDFCodecError:
+        raise
     except Exception as e:
         raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
-    header = parse_header(group.attrs.get("sdfcodec"), where=loc)
+    header = parse_header(raw, where=loc)
     return Map(group, header, loc, max_decode_bytes=max_decode_bytes)
 
 

@@ -1,0 +1,330 @@
+"""Crash-safe replacement of map directories that readers can use while it happens (spec section 9).
+
+The protocol, for a map directory ``NAME`` (all names below are siblings of it):
+
+* A writer builds the new version in ``.NAME.tmp-<hex>`` and holds an exclusive ``flock`` on that directory
+  while it lives, so nobody collects it as garbage.
+* Commit makes the new version current in one step: ``renameat2(RENAME_EXCHANGE)`` swaps it with ``NAME``
+  (Linux, glibc >= 2.28); the previous version then sits at the temporary name and is renamed to
+  ``.NAME.old-<hex>``. Where the exchange is not available the fallback is two renames, with a window in
+  which ``NAME`` is missing (the previous version is whole at ``.NAME.old-<hex>`` during it).
+* Readers open ``NAME`` as a directory file descriptor, take a shared ``flock`` on it, check that it is still
+  the directory at ``NAME`` (else retry), and read every file through ``/proc/self/fd/<fd>/...``: a later
+  swap cannot mix another version into what they read, because the version they hold is never deleted
+  while their lock stands.
+* Garbage collection (after every commit, and when the last reader of a replaced version lets go) removes
+  every ``.NAME.tmp-*`` and ``.NAME.old-*`` whose exclusive ``flock`` it can take: nobody reads or writes it.
+  Locks die with their process, so a killed writer or reader never keeps garbage alive.
+* Writers that read, modify and write a map (updates) serialise on ``.NAME.lock`` (removed when released).
+
+Nothing here is specific to Zarr except :class:`CowLocalStore`, the store writers use.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import errno
+import fcntl
+import os
+import re
+import shutil
+import time
+import uuid
+from pathlib import Path
+
+from zarr.core.buffer import Buffer
+from zarr.storage import LocalStore
+
+from .errors import MapBusyError
+
+__all__ = ["HAVE_PROC_FD", "hidden_path", "make_temp_dir", "pin_dir", "release_pin", "swap_into_place",
+           "collect", "WriterLock", "CowLocalStore", "link_tree", "same_dir", "dir_id"]
+
+#: Readers can hold a directory through ``/proc/self/fd`` (Linux). Elsewhere they read by path and must reopen
+#: a map after it was replaced (documented in spec section 9).
+HAVE_PROC_FD = os.path.isdir("/proc/self/fd")
+_HIDDEN_RE = re.compile(r"(tmp|old)-[0-9a-f]{8,32}")
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+_renameat2_fn = None
+
+
+def hidden_path(final: Path, kind: str) -> Path:
+    """A fresh hidden sibling name of ``final``: ``.NAME.<kind>-<hex>`` (kind ``tmp`` or ``old``)."""
+    return final.with_name(f".{final.name}.{kind}-{uuid.uuid4().hex[:16]}")
+
+
+def dir_id(fd: int) -> tuple[int, int]:
+    st = os.fstat(fd)
+    return st.st_dev, st.st_ino
+
+
+def same_dir(fd: int, path: Path) -> bool:
+    """True when ``path`` names the very directory ``fd`` holds (not a replacement)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) == dir_id(fd)
+
+
+def _try_lock(fd: int, op: int) -> bool | None:
+    """``flock`` without blocking: True (got it), False (someone holds a conflicting lock), None (the file
+    system has no flock: callers proceed without the protection, never delete on its strength)."""
+    try:
+        fcntl.flock(fd, op | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
+    except OSError as e:
+        if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL, errno.EBADF):
+            return None
+        raise
+
+
+def _wait_lock(fd: int, op: int, deadline: float) -> bool | None:
+    delay = 0.001
+    while True:
+        got = _try_lock(fd, op)
+        if got is not False or time.monotonic() >= deadline:
+            return got
+        time.sleep(delay)
+        delay = min(delay * 2, 0.05)
+
+
+def _open_dir(path: Path | str, *, nofollow: bool = False) -> int:
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
+    if nofollow:
+        flags |= getattr(os, "O_NOFOLLOW", 0)
+    return os.open(path, flags)
+
+
+def make_temp_dir(final: Path) -> tuple[Path, int]:
+    """Create ``.NAME.tmp-<hex>`` beside ``final`` and lock it exclusively; returns its path and fd."""
+    for _ in range(100):
+        tmp = hidden_path(final, "tmp")
+        try:
+            os.mkdir(tmp)
+        except FileExistsError:
+            continue
+        fd = _open_dir(tmp)
+        # another writer's garbage collection may have removed it between mkdir and flock: check, else retry
+        if _try_lock(fd, fcntl.LOCK_EX) is not False and same_dir(fd, tmp):
+            return tmp, fd
+        os.close(fd)
+    raise OSError(f"could not create a temporary directory beside {final}")
+
+
+def pin_dir(path: Path, timeout: float = 30.0) -> int:
+    """Open the directory at ``path`` for reading and hold it (shared lock) against garbage collection.
+
+    Raises:
+        FileNotFoundError, NotADirectoryError: nothing (or a file) at ``path``.
+        MapBusyError: it kept being replaced, or stayed locked, for ``timeout`` seconds.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        fd = _open_dir(path)
+        try:
+            got = _wait_lock(fd, fcntl.LOCK_SH, deadline)
+            # a version locked exclusively is being removed, or was current only until a swap we raced with
+            if got is not False and same_dir(fd, path):
+                return fd
+        except BaseException:
+            os.close(fd)
+            raise
+        os.close(fd)
+        if time.monotonic() >= deadline:
+            raise MapBusyError(f"{path} kept changing or stayed locked for {timeout:.0f} s; try again")
+
+
+def release_pin(fd: int, final: Path, owner_pid: int) -> None:
+    """Let go of a pinned version; when it was replaced meanwhile and this was its last reader, remove it now
+    (rather than at the next commit). Never raises: it runs from finalizers."""
+    try:
+        # a forked child shares the lock with its parent: only the process that took it may clean up
+        if os.getpid() == owner_pid and not same_dir(fd, final) and _try_lock(fd, fcntl.LOCK_EX) is True:
+            ident = dir_id(fd)
+            for entry in _hidden_entries(final):
+                try:
+                    st = entry.stat(follow_symlinks=False)
+                except OSError:
+                    continue
+                if (st.st_dev, st.st_ino) == ident:
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                    break
+    except Exception:  # noqa: BLE001 - best effort; the next commit collects what is left
+        pass
+    finally:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+def _renameat2():
+    global _renameat2_fn
+    if _renameat2_fn is None:
+        try:
+            fn = ctypes.CDLL(None, use_errno=True).renameat2
+            fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+            fn.restype = ctypes.c_int
+            _renameat2_fn = fn
+        except (AttributeError, OSError):
+            _renameat2_fn = False
+    return _renameat2_fn or None
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the directory entries ``a`` and ``b`` atomically; False when the platform cannot."""
+    fn = _renameat2()
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False  # this kernel or file system cannot exchange: fall back
+    raise OSError(err, os.strerror(err), str(a), None, str(b))
+
+
+def swap_into_place(tmp: Path, final: Path) -> Path:
+    """Make the directory ``tmp`` the one at ``final`` (which exists); returns where the previous one went."""
+    old = hidden_path(final, "old")
+    if _exchange(tmp, final):
+        # the new version is in place. Killed (or failing) before this rename, the previous version waits at
+        # the temporary name instead: collected all the same
+        try:
+            os.rename(tmp, old)
+        except OSError:
+            return tmp
+        return old
+    os.rename(final, old)  # killed between these two renames: no map at `final`, the previous one whole at `old`
+    try:
+        os.rename(tmp, final)
+    except BaseException:
+        os.rename(old, final)  # put the previous version back; the new one stays at `tmp`
+        raise
+    return old
+
+
+def _hidden_entries(final: Path):
+    prefix = f".{final.name}."
+    try:
+        entries = list(os.scandir(final.parent))
+    except OSError:
+        return []
+    return [e for e in entries if e.name.startswith(prefix) and _HIDDEN_RE.fullmatch(e.name[len(prefix):])]
+
+
+def collect(final: Path) -> int:
+    """Remove the replaced versions and dead writers' temporaries of ``final`` that nobody holds; returns how
+    many. Entries somebody holds (a reader's shared lock, a live writer's exclusive one) are kept."""
+    removed = 0
+    for entry in _hidden_entries(final):
+        try:
+            fd = _open_dir(entry.path, nofollow=True)
+        except OSError:
+            continue
+        try:
+            if _try_lock(fd, fcntl.LOCK_EX) is True and same_dir(fd, Path(entry.path)):
+                shutil.rmtree(entry.path, ignore_errors=True)
+                removed += 1
+        finally:
+            os.close(fd)
+    return removed
+
+
+class WriterLock:
+    """Exclusive lock serialising the writers of one map: ``.NAME.lock`` beside it, removed on release."""
+
+    def __init__(self, final: Path, timeout: float):
+        self.final, self.timeout = final, timeout
+        self.path = final.with_name(f".{final.name}.lock")
+        self.fd: int | None = None
+
+    def acquire(self) -> "WriterLock":
+        deadline = time.monotonic() + self.timeout
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+            got = _wait_lock(fd, fcntl.LOCK_EX, deadline)
+            if got is False:
+                os.close(fd)
+                raise MapBusyError(f"{self.final} is being written by another process (lock file {self.path}); "
+                                   f"waited {self.timeout:g} s: try again when it is done")
+            try:
+                st = os.stat(self.path)
+                same = (st.st_dev, st.st_ino) == dir_id(fd)
+            except OSError:
+                same = False
+            if same:  # else the holder we waited for removed that file: lock the current one
+                self.fd = fd
+                return self
+            os.close(fd)
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        try:
+            os.unlink(self.path)  # while still holding it, so a waiter sees the file is gone and retries
+        except OSError:
+            pass
+        os.close(self.fd)
+        self.fd = None
+
+    def __enter__(self) -> "WriterLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _cow_put(path: Path, value: Buffer, exclusive: bool = False) -> int:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.partial")
+    try:
+        with open(tmp, "xb") as f:
+            n = f.write(value.as_buffer_like())
+        if exclusive:
+            os.link(tmp, path)  # FileExistsError when the key exists
+            os.unlink(tmp)
+        else:
+            os.replace(tmp, path)
+        return n
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+class CowLocalStore(LocalStore):
+    """A Zarr local store that writes every value into a new file and renames it over the key: never into an
+    existing file. An update's copy of a map is made of hard links shared with the previous version, which
+    must stay intact for its readers; this holds whatever Zarr's own LocalStore does."""
+
+    def set_sync(self, key: str, value: Buffer) -> None:
+        self._ensure_open_sync()
+        self._check_writable()
+        _cow_put(self.root / key, value)
+
+    async def _set(self, key: str, value: Buffer, exclusive: bool = False) -> None:
+        if not self._is_open:
+            await self._open()
+        self._check_writable()
+        await asyncio.to_thread(_cow_put, self.root / key, value, exclusive)
+
+
+def link_tree(src: Path | str, dst: Path) -> None:
+    """Fill the existing directory ``dst`` with hard links to every file under ``src`` (copies where the file
+    system refuses links). Safe because writers replace files (:class:`CowLocalStore`), never rewrite them."""
+    src = str(src)
+    for dirpath, dirnames, filenames in os.walk(src):
+        rel = os.path.relpath(dirpath, src)
+        target = dst if rel == "." else dst / rel
+        target.mkdir(exist_ok=True)
+        for name in filenames:
+            s, d = os.path.join(dirpath, name), target / name
+            try:
+                os.link(s, d)
+            except OSError:
+                shutil.copy2(s, d)

@@ -1,0 +1,391 @@
+"""``sdfcodec verify MAP``: check a map end to end and say precisely what is wrong.
+
+What is checked (spec/map-format.md):
+
+* the header validates against the schema (format and version first), and the arrays' metadata matches it
+  (shapes, dtypes, chunk layout, fill values, allowed Zarr codecs with a crc32c checksum);
+* every stored chunk of every array reads back: its checksum matches and it decompresses;
+* block states hold only defined values; every coded block has its code chunks and finite code values;
+* the codec state under ``codec/`` matches ``codec.state_sha256``, and the listed arrays are all there;
+* the codec plugin is installed, accepts the stored configuration and state, and decodes the stored codes
+  (up to ``decode_blocks`` of them) to finite blocks.
+
+Problems name the header field, array chunk (``codes/c/0/0/0/1``) or block they are about. Notes are things
+the spec discourages without making the map invalid (stray files, codes stored for blocks that are not coded).
+:func:`verify_map` never raises for anything wrong with the map: everything goes into the report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import zarr
+
+from .errors import MapNotFoundError, SDFCodecError
+from .header import BlockState, parse_header
+
+__all__ = ["Problem", "VerifyReport", "verify_map", "verify_command"]
+
+#: How many coded blocks verify decodes by default (all of them would take as long as decoding the map).
+DEFAULT_DECODE_BLOCKS = 4096
+_SHOWN = 5  # blocks named per problem before "and N more"
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One finding: ``where`` names the header field, chunk or block; ``message`` says what is wrong."""
+
+    where: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.where}: {self.message}"
+
+
+@dataclass
+class VerifyReport:
+    """The result of :func:`verify_map`. ``ok`` is true when there are no problems (notes do not count)."""
+
+    location: str
+    problems: list[Problem] = field(default_factory=list)
+    notes: list[Problem] = field(default_factory=list)
+    chunks_checked: dict[str, int] = field(default_factory=dict)
+    blocks: dict[str, int] | None = None
+    codec: str | None = None
+    decoded_blocks: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def problem(self, where: str, message: str) -> None:
+        self.problems.append(Problem(where, message))
+
+    def note(self, where: str, message: str) -> None:
+        self.notes.append(Problem(where, message))
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["ok"] = self.ok
+        return d
+
+
+def _blocks_text(coords: np.ndarray) -> str:
+    shown = ", ".join(str(tuple(int(v) for v in c)) for c in coords[:_SHOWN])
+    return shown + (f" and {len(coords) - _SHOWN} more" if len(coords) > _SHOWN else "")
+
+
+def _decode_key(enc: Any, rel: str) -> tuple[int, ...]:
+    """Chunk coordinates of a key relative to its array, () when it is no chunk key (zarr's own decoder
+    mishandles the default "c/" prefix); the key must encode back to itself."""
+    sep = getattr(enc, "separator", "/")
+    body = rel[2:] if getattr(enc, "name", "") == "default" and rel.startswith("c" + sep) else rel
+    try:
+        coords = tuple(int(c) for c in body.split(sep))
+    except ValueError:
+        return ()
+    try:
+        return coords if enc.encode_chunk_key(coords) == rel else ()
+    except Exception:  # noqa: BLE001
+        return ()
+
+
+def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str]] | None:
+    """Chunk coordinates -> store key of every chunk stored for ``arr``, and stray keys under it; None when
+    the store cannot list (every chunk position is then read)."""
+    from zarr.core.sync import sync
+
+    store = arr.store
+    prefix = arr.path + "/"
+
+    async def keys() -> list[str]:
+        return [k async for k in store.list_prefix(prefix)]
+
+    try:
+        listed = sync(keys())
+    except Exception:  # noqa: BLE001 - HTTP and other stores that cannot list
+        return None
+    enc = arr.metadata.chunk_key_encoding
+    grid = arr.cdata_shape
+    found: dict[tuple[int, ...], str] = {}
+    stray: list[str] = []
+    for key in sorted(listed):
+        rel = key[len(prefix):]
+        if rel == "zarr.json":
+            continue
+        coords = _decode_key(enc, rel)
+        if len(coords) == len(grid) and all(0 <= c < n for c, n in zip(coords, grid)):
+            found[coords] = key
+        else:
+            stray.append(key)
+    return found, stray
+
+
+def _iter_chunks(rep: VerifyReport, arr: zarr.Array, listing: Any = False):
+    """Yield ``(coords, key, data or None)`` for every stored chunk of ``arr``; a chunk that does not read back
+    is reported (data None). Counts the chunks in ``rep.chunks_checked``. ``listing``: from _chunk_keys."""
+    if listing is False:
+        listing = _chunk_keys(arr)
+    if listing is None:
+        positions = {c: arr.metadata.encode_chunk_key(c) for c in np.ndindex(*arr.cdata_shape)}
+        positions = {tuple(int(v) for v in c): f"{arr.path}/{k}" for c, k in positions.items()}
+    else:
+        positions, stray = listing
+        for key in stray:
+            rep.note(key, "a file that is no chunk of this array (ignored by readers)")
+    rep.chunks_checked.setdefault(arr.path, 0)
+    for coords, key in positions.items():
+        rep.chunks_checked[arr.path] += 1
+        try:
+            data = np.asarray(arr.blocks[coords])
+        except Exception as e:  # noqa: BLE001 - whatever the checksum or decompressor says
+            msg = str(e) or type(e).__name__
+            rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({msg})")
+            data = None
+        yield coords, key, data
+
+
+def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
+    """Without a valid header: still check every chunk of every array found."""
+    try:
+        arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+    except Exception as e:  # noqa: BLE001
+        rep.problem("map", f"its arrays cannot be listed ({type(e).__name__}: {e})")
+        return
+    for arr in arrays:
+        try:
+            for _ in _iter_chunks(rep, arr):
+                pass
+        except Exception as e:  # noqa: BLE001 - malformed metadata of that array
+            rep.problem(arr.path, f"cannot be read ({type(e).__name__}: {e})")
+
+
+def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
+    states = np.zeros(m.grid_blocks, np.uint8)
+    ok = True
+    for coords, key, data in _iter_chunks(rep, m._state):
+        if data is None:
+            ok = False
+            continue
+        box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, m._state.chunks, data.shape))
+        states[box] = data
+    if not ok:
+        return None
+    bad = np.argwhere(states > BlockState.CODED)
+    if len(bad):
+        rep.problem("state", f"{len(bad)} block(s) hold reserved state values (valid: 0, 1, 2), e.g. value "
+                             f"{int(states[tuple(bad[0])])} at block(s) {_blocks_text(bad)}")
+        return None
+    return states
+
+
+def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
+    codes = m._codes
+    cb, cc = codes.chunks[0], codes.chunks[3]
+    n_code_chunks = codes.cdata_shape[3]
+    stored: set[tuple[int, ...]] = set()
+    listing = _chunk_keys(codes)
+    stray_codes = 0
+    for coords, key, data in _iter_chunks(rep, codes, listing):
+        stored.add(coords)
+        if data is None or states is None:
+            continue
+        box = tuple(slice(c * cb, c * cb + s) for c, s in zip(coords[:3], data.shape[:3]))
+        coded = states[box] == BlockState.CODED
+        finite = np.isfinite(data).all(axis=3)
+        bad = np.argwhere(coded & ~finite)
+        if len(bad):
+            rep.problem(key, f"holds NaN/Inf code values for coded block(s) "
+                             f"{_blocks_text(bad + np.array([s.start for s in box]))}")
+        stray_codes += int(((data != 0).any(axis=3) & ~coded).sum())
+    if stray_codes:
+        rep.note("codes", f"{stray_codes} block(s) that are not coded have code values stored (spec: SHOULD be "
+                          "left unwritten); readers ignore them")
+    if states is None or listing is None:  # without a listing, missing chunks cannot be told from zeros
+        return
+    coded = np.argwhere(states == BlockState.CODED)
+    if not len(coded):
+        return
+    for chunk in np.unique(coded // cb, axis=0):
+        for k in range(n_code_chunks):
+            coords = (*map(int, chunk), k)
+            if coords not in stored:
+                inside = coded[(coded // cb == chunk).all(axis=1)]
+                rep.problem(f"codes/{codes.metadata.encode_chunk_key(coords)}",
+                            f"is missing, but block(s) {_blocks_text(inside)} are coded: their code elements "
+                            f"[{k * cc}, {min((k + 1) * cc, codes.shape[3])}) would read as zeros")
+
+
+def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
+    from .mapfile import state_digest
+
+    spec = m.header.codec
+    rep.codec = spec.id
+    present = set()
+    try:
+        group = m._member("codec", zarr.Group)
+        if group is not None:
+            present = {name for name, node in group.members() if isinstance(node, zarr.Array)}
+    except SDFCodecError as e:
+        rep.problem("codec", str(e))
+        return
+    except Exception as e:  # noqa: BLE001 - a member whose metadata zarr cannot parse
+        rep.problem("codec", f"the codec group cannot be listed ({type(e).__name__}: {e})")
+        present = set(m.header.codec.state_arrays)
+    state, complete = {}, True
+    for name in spec.state_arrays:
+        if name not in present:
+            rep.problem(f"codec/{name}", "is missing, but header field codec.state_arrays lists it")
+            complete = False
+            continue
+        try:
+            arr = m._member(f"codec/{name}")
+            m._check_array(arr)
+        except SDFCodecError as e:
+            rep.problem(f"codec/{name}", str(e).removeprefix(f"{m.location}: "))
+            complete = False
+            continue
+        if arr is None:
+            rep.problem(f"codec/{name}", "is missing, but header field codec.state_arrays lists it")
+            complete = False
+            continue
+        for _, _, data in _iter_chunks(rep, arr):
+            complete &= data is not None
+        if complete:
+            try:
+                state[name] = m._read(arr, (slice(None),) * arr.ndim)
+            except SDFCodecError as e:
+                rep.problem(f"codec/{name}", str(e))
+                complete = False
+    for name in sorted(present - set(spec.state_arrays)):
+        rep.note(f"codec/{name}", "is not listed in header field codec.state_arrays (readers ignore it)")
+    if complete and spec.state_arrays:
+        if spec.state_sha256 is None:
+            rep.note("header field codec.state_sha256", "is null: the codec state cannot be checked against it")
+        elif state_digest(state) != spec.state_sha256:
+            rep.problem("header field codec.state_sha256", "does not match the codec state under codec/ (the "
+                        "state arrays were altered or corrupted, or the header was)")
+            return
+    if not complete:
+        return
+    try:
+        codec = m.codec
+    except SDFCodecError as e:
+        rep.problem("codec", str(e))
+        return
+    if decode_blocks <= 0:
+        return
+    try:
+        done = 0
+        for _, codes in m.iter_codes():
+            z = codes[: decode_blocks - done]
+            out = codec.decode(torch.from_numpy(np.ascontiguousarray(z)))
+            out = out.numpy() if isinstance(out, torch.Tensor) else np.asarray(out)
+            if out.shape != (len(z), 16, 16, 16):
+                rep.problem("codec", f"decoded {len(z)} codes to shape {out.shape}, expected ({len(z)}, 16, 16, 16)")
+                return
+            if not np.isfinite(out).all():
+                rep.problem("codec", "decodes stored codes to NaN/Inf values")
+                return
+            done += len(z)
+            if done >= decode_blocks:
+                break
+        rep.decoded_blocks = done
+    except SDFCodecError as e:
+        rep.problem("codec", f"decoding failed: {e}")
+    except Exception as e:  # noqa: BLE001 - a plugin failing on stored codes is a finding, not a crash
+        rep.problem("codec", f"decoding failed: {type(e).__name__}: {e}")
+
+
+def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None = None,
+               max_decode_bytes: int | None = None, decode_blocks: int = DEFAULT_DECODE_BLOCKS) -> VerifyReport:
+    """Check the map at ``path_or_url`` end to end (see the module docstring); never raises for a bad map.
+
+    Args:
+        storage_options: passed to fsspec for URLs.
+        max_decode_bytes: the reader's allocation limit (default: :data:`sdfcodec.mapfile.DEFAULT_MAX_DECODE_BYTES`).
+        decode_blocks: how many coded blocks to decode with the codec (0: none, only load it).
+    """
+    from .mapfile import DEFAULT_MAX_DECODE_BYTES, Map, _reader_store
+
+    limit = DEFAULT_MAX_DECODE_BYTES if max_decode_bytes is None else max_decode_bytes
+    loc = str(path_or_url)
+    rep = VerifyReport(location=loc)
+    try:
+        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, _reader_store)
+    except Exception as e:  # noqa: BLE001 - a bug in verify itself: reported, never a traceback
+        rep.problem("verify", f"internal error while checking ({type(e).__name__}: {e}); please report it")
+    return rep
+
+
+def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, _reader_store) -> None:
+    try:
+        store = _reader_store(path_or_url, loc, storage_options)
+        group = zarr.open_group(store, mode="r", zarr_format=3)
+        raw = group.attrs.get("sdfcodec")
+    except MapNotFoundError as e:
+        rep.problem("map", str(e))
+        return
+    except SDFCodecError as e:
+        rep.problem("map", str(e))
+        return
+    except Exception as e:  # noqa: BLE001
+        rep.problem("map", f"not a readable Zarr v3 group ({type(e).__name__}: {e})")
+        return
+    try:
+        header = parse_header(raw, where="header")
+    except SDFCodecError as e:
+        rep.problem("header", str(e).removeprefix("header: "))
+        _generic_chunks(rep, group)
+        return
+    try:
+        m = Map(group, header, loc, max_decode_bytes=limit)
+    except SDFCodecError as e:
+        rep.problem("arrays", str(e).removeprefix(f"{loc}: "))
+        _generic_chunks(rep, group)
+        return
+    states = _check_states(rep, m)
+    if states is not None:
+        counts = np.bincount(states.ravel(), minlength=3)
+        rep.blocks = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
+    _check_codes(rep, m, states)
+    if m.has_weights:
+        for _ in _iter_chunks(rep, m._weights):
+            pass
+    _check_codec(rep, m, decode_blocks)
+    m.close()
+
+
+def verify_command(map_path: str, as_json: bool = False) -> int:
+    """Run :func:`verify_map` and print the report (rich text, or JSON with ``as_json``) on stdout.
+
+    Returns:
+        The exit status: 0 when the map has no problems, 1 otherwise.
+    """
+    rep = verify_map(map_path)
+    if as_json:
+        print(json.dumps(rep.to_dict(), indent=2))
+        return 0 if rep.ok else 1
+    from rich.console import Console
+    from rich.markup import escape
+
+    out = Console(soft_wrap=True, highlight=False)
+    chunks = sum(rep.chunks_checked.values())
+    status = "[bold green]OK[/]" if rep.ok else f"[bold red]FAILED[/] ({len(rep.problems)} problem(s))"
+    out.print(f"verify {escape(rep.location)}: {status}")
+    if rep.blocks is not None:
+        out.print("  blocks: " + ", ".join(f"{v} {k}" for k, v in rep.blocks.items()))
+    out.print(f"  chunks checked: {chunks} (" + ", ".join(f"{escape(k)} {v}" for k, v in rep.chunks_checked.items())
+              + ")")
+    if rep.codec is not None:
+        out.print(f"  codec: {escape(rep.codec)}, {rep.decoded_blocks} block(s) decoded")
+    for p in rep.problems:
+        out.print(f"  [red]problem[/] [bold]{escape(p.where)}[/]: {escape(p.message)}")
+    for p in rep.notes:
+        out.print(f"  [yellow]note[/] [bold]{escape(p.where)}[/]: {escape(p.message)}")
+    return 0 if rep.ok else 1

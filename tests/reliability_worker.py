@@ -1,0 +1,221 @@
+"""Helper process for tests/test_reliability.py: a small fork server that writes and reads maps on command.
+
+It imports sdfcodec once and forks a child per job, so that a test can run (and SIGKILL) dozens of writers
+and several concurrent readers without paying Python's and torch's start-up each time. The server itself
+never touches zarr or torch before forking: its children start without helper threads.
+
+Protocol: one JSON object per line on stdin, one reply per line on stdout.
+  {"job": "write", "op": "update"|"create"|"transcode", "path": ..., "gen": g, "cid": c, "layout": [...],
+   "kill_at_step": n|null, "out": file|null}            -> {"pid": pid}
+  {"job": "read", "path": ..., "out": file, "stop": file, "deadline": t, "seed": s}   -> {"pid": pid}
+  {"job": "updates", "path": ..., "gen": g, "cid": c, "count": k, "out": file}        -> {"pid": pid}
+  {"job": "wait", "pid": pid}                                                         -> {"pid": pid, "status": s}
+  {"job": "quit"}
+``status`` is the child's exit code, or minus the signal that killed it (-9 for SIGKILL).
+
+The maps hold constant blocks of the lossless ``raw`` codec; what a map must contain is a function of a
+content id ``cid`` (:func:`content`), and each write records ``{"gen": ..., "cid": ...}`` as its provenance
+tool, so a reader can tell which version it sees and check every block of it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import sys
+import threading
+import time
+import traceback
+
+import numpy as np
+
+import sdfcodec
+from sdfcodec import _atomic
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+N0, ADD, NMAX = 24, 8, 200
+TOL = 2e-4  # metres; float16 codes (transcoded layouts) round constant blocks to ~1e-4 m
+
+
+def coord(i: int) -> tuple[int, int, int]:
+    return (i % 8, (i // 8) % 8, i // 64)
+
+
+def n_coded(cid: int) -> int:
+    return min(N0 + ADD * cid, NMAX)
+
+
+def value(i: int, cid: int) -> float:
+    """Distance (metres) filling block i in content cid: block 0 changes with every cid, the others never."""
+    return -0.03 + 0.002 * (cid % 50) if i == 0 else -0.035 + 0.0005 * (i % 200)
+
+
+def content(cid: int) -> tuple[dict[tuple[int, int, int], float], tuple[int, int, int]]:
+    """Coded blocks -> value, and the one block marked empty (the next one to be coded)."""
+    return {coord(i): value(i, cid) for i in range(n_coded(cid))}, coord(n_coded(cid))
+
+
+def blocks_of(coords: list, cid: int) -> np.ndarray:
+    index = {coord(i): i for i in range(NMAX + 1)}
+    return np.stack([np.full((16, 16, 16), value(index[tuple(c)], cid), np.float32) for c in coords])
+
+
+def tag(gen: int, cid: int) -> str:
+    return json.dumps({"gen": gen, "cid": cid})
+
+
+def check_content(m: sdfcodec.Map, cid: int) -> None:
+    """Raise AssertionError unless the open map holds exactly content ``cid`` (states and every code)."""
+    coded, empty = content(cid)
+    states = m.block_states()
+    got_coded = {tuple(int(v) for v in c) for c in np.argwhere(states == 2)}
+    got_empty = {tuple(int(v) for v in c) for c in np.argwhere(states == 1)}
+    assert got_coded == set(coded), f"cid {cid}: coded blocks differ: {sorted(got_coded ^ set(coded))[:5]}"
+    assert got_empty == {empty}, f"cid {cid}: empty blocks {sorted(got_empty)[:5]} != {[empty]}"
+    coords, codes = m.read_codes()
+    d_min, d_max = TRUNC
+    metres = codes * (d_max - d_min) + d_min  # raw codes are the normalised voxels
+    for c, row in zip(coords, metres):
+        want = coded[tuple(int(v) for v in c)]
+        assert np.abs(row - want).max() <= TOL, f"cid {cid}: block {tuple(c)} holds {row[0]}, expected {want}"
+
+
+def _install_step_kill(n: int | None, counter: list) -> None:
+    """Count the file-system steps a write takes (renames, links, unlinks, mkdirs, the exchange) and SIGKILL
+    this process just before step ``n``: a deterministic kill point at every step of a commit."""
+    lock = threading.Lock()
+
+    def step() -> None:
+        with lock:
+            counter[0] += 1
+            if n is not None and counter[0] >= n:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    for name in ("rename", "replace", "link", "unlink", "mkdir", "rmdir"):
+        orig = getattr(os, name)
+
+        def wrapper(*a, __orig=orig, **k):
+            step()
+            return __orig(*a, **k)
+
+        setattr(os, name, wrapper)
+    orig_exchange = _atomic._exchange
+
+    def exchange(*a, **k):
+        step()
+        return orig_exchange(*a, **k)
+
+    _atomic._exchange = exchange
+
+
+def write(op: str, path: str, gen: int, cid: int, layout: list) -> None:
+    """Move the map at ``path`` to generation ``gen`` holding content ``cid`` in ``layout`` (dtype, chunk_blocks).
+
+    update: cid - 1 -> cid by writing only what changed. create: cid from scratch (overwrite).
+    transcode: read the map and write it again in another layout (same cid)."""
+    raw = sdfcodec.get_codec("raw")
+    coded, empty = content(cid)
+    dtype, cb = layout
+    if op == "update":
+        before, _ = content(cid - 1)
+        changed = [c for c in coded if c not in before] + [coord(0)]
+        with sdfcodec.update_map(path, tool=tag(gen, cid)) as m:
+            m.write_blocks(changed, blocks_of(changed, cid))
+            m.mark_empty([empty])
+    elif op == "create":
+        cs = list(coded)
+        with sdfcodec.create_map(path, codec=raw, voxel_size=VS, truncation=TRUNC, code_dtype=dtype, chunk_blocks=cb,
+                                 overwrite=True, tool=tag(gen, cid)) as m:
+            m.write_blocks(cs, blocks_of(cs, cid))
+            m.mark_empty([empty])
+    elif op == "transcode":
+        src = sdfcodec.open_map(path)
+        with sdfcodec.create_map(path, codec=src.codec, voxel_size=src.voxel_size, truncation=src.truncation,
+                                 origin=src.origin, shape_voxels=src.shape_voxels, code_dtype=dtype, chunk_blocks=cb,
+                                 overwrite=True, tool=tag(gen, cid)) as m:
+            m.mark_empty(np.argwhere(src.block_states() == 1))
+            for coords, blocks in src.iter_blocks():
+                m.write_blocks(coords, np.clip(blocks, *TRUNC))
+        src.close()
+    else:
+        raise ValueError(op)
+
+
+def read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
+    """Open, read and check the map over and over while a writer updates it; also hold maps across swaps."""
+    rng = random.Random(seed)
+    ops = held = 0
+    gens = set()
+    while time.time() < deadline and not os.path.exists(stop):
+        with sdfcodec.open_map(path) as m:
+            info = json.loads(m.header.provenance.tool)
+            gens.add(info["gen"])
+            pinned = m._group.store._store._fd
+            if rng.random() < 0.5:
+                time.sleep(rng.uniform(0, 0.05))  # let a writer swap in a new version under this open map
+            check_content(m, info["cid"])  # states, codes: all of the version opened
+            dec = m.decode_region(((0, 16), (0, 16), (0, 16)))  # block (0, 0, 0): changes with every version
+            assert abs(float(dec.mean()) - value(0, info["cid"])) <= 2e-4, "decoded block 0 is of another version"
+            if not _atomic.same_dir(pinned, __import__("pathlib").Path(path)):
+                held += 1  # the map was replaced while this one was open, and it still read its own version
+            ops += 1
+    return {"ops": ops, "gens": sorted(gens), "held_across_swap": held}
+
+
+def updates(path: str, gen: int, cid: int, count: int) -> dict:
+    for k in range(1, count + 1):
+        write("update", path, gen + k, cid + k, ["float32", 4])
+        time.sleep(0.02)
+    return {"updates": count}
+
+
+def _child(cmd: dict) -> int:
+    out = cmd.get("out")
+    try:
+        if cmd["job"] == "write":
+            counter = [0]
+            _install_step_kill(cmd.get("kill_at_step"), counter)
+            write(cmd["op"], cmd["path"], cmd["gen"], cmd["cid"], cmd["layout"])
+            result = {"steps": counter[0]}
+        elif cmd["job"] == "read":
+            result = read_loop(cmd["path"], cmd["stop"], cmd["deadline"], cmd["seed"])
+        elif cmd["job"] == "updates":
+            result = updates(cmd["path"], cmd["gen"], cmd["cid"], cmd["count"])
+        else:
+            raise ValueError(cmd["job"])
+        code = 0
+    except BaseException:  # noqa: BLE001 - reported to the test through `out`
+        result = {"error": traceback.format_exc()}
+        code = 1
+    if out:
+        with open(out, "w") as f:
+            json.dump(result, f)
+    return code
+
+
+def main() -> None:
+    for line in sys.stdin:
+        cmd = json.loads(line)
+        if cmd["job"] == "quit":
+            break
+        if cmd["job"] == "wait":
+            pid, status = os.waitpid(cmd["pid"], 0)
+            code = -os.WTERMSIG(status) if os.WIFSIGNALED(status) else os.WEXITSTATUS(status)
+            reply = {"pid": pid, "status": code}
+        else:
+            pid = os.fork()
+            if pid == 0:
+                code = 1
+                try:
+                    code = _child(cmd)
+                finally:
+                    os._exit(code)
+            reply = {"pid": pid}
+        sys.stdout.write(json.dumps(reply) + "\n")
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,327 @@
+"""Fuzzing untrusted maps (issue 8): hypothesis mutates the header, the arrays' metadata and the chunk bytes of
+a valid map, then opens, reads, decodes and verifies it. Every call must either work or raise one of
+sdfcodec's own errors (SDFCodecError): any other exception, a hang, or an allocation past the memory bound is
+a bug. Bounded: a fixed number of examples (derandomized, so CI sees the same ones), a per-example time
+limit, and an address-space limit (RLIMIT_AS) a little above what the process already uses.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import resource
+import shutil
+import signal
+import tempfile
+from pathlib import Path
+
+import google_crc32c
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+import sdfcodec
+from sdfcodec.errors import SDFCodecError
+from sdfcodec.testing import analytic_blocks
+from sdfcodec.verify import verify_map
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+LIMIT = 64 << 20  # max_decode_bytes for the fuzzed reads: every allocation the header could ask for is below it
+HEADROOM = 2 << 30  # address space allowed beyond what the process uses when the fuzzing starts
+PER_EXAMPLE_S = 20
+COUNTS = {"cases": 0, "worked": 0, "refused": 0}
+# no shrinking: it can take minutes on a failure; the report still shows every draw of the failing case
+# SDFCODEC_FUZZ_EXAMPLES=2000 make test for a long run; CI's default keeps the file near a minute
+EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "120"))
+SETTINGS = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
+                    phases=(Phase.explicit, Phase.generate),
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
+                                           HealthCheck.data_too_large])
+
+
+@pytest.fixture(scope="module")
+def base_map(tmp_path_factory) -> Path:
+    """A small valid map: pca-8 codes over 2x2x2-block chunks (prefix levels 4, 8), empties, weights."""
+    codec = sdfcodec.get_codec("pca", code_size=8).fit(analytic_blocks(200, seed=4))
+    path = tmp_path_factory.mktemp("fuzz") / "base.sdfz"
+    blocks = analytic_blocks(6, seed=5) * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
+    coords = [[0, 0, 0], [1, 0, 0], [2, 1, 0], [0, 1, 1], [2, 0, 1], [1, 1, 1]]
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2, chunk_code=4) as m:
+        m.write_blocks(coords, blocks, weights=np.ones((6, 16, 16, 16), np.float32))
+        m.mark_empty([[1, 0, 1]])
+    assert verify_map(path).ok
+    return path
+
+
+@pytest.fixture(scope="module")
+def bounded_memory():
+    """Limit the address space for the fuzz tests: a reader that tried to allocate gigabytes fails loudly."""
+    status = Path("/proc/self/status")
+    if not status.exists():
+        yield
+        return
+    vm = next(int(line.split()[1]) * 1024 for line in status.read_text().splitlines() if line.startswith("VmSize"))
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = vm + HEADROOM
+    if hard != resource.RLIM_INFINITY and hard < limit:
+        limit = hard
+    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+class Hang(Exception):
+    pass
+
+
+def _alarm(signum, frame):
+    raise Hang(f"an operation took more than {PER_EXAMPLE_S} s")
+
+
+def _exercise(path: Path) -> str:
+    """Everything a reader does with a map; returns "worked" or "refused" (an SDFCodecError somewhere)."""
+    outcome = "worked"
+
+    def attempt(fn):
+        nonlocal outcome
+        try:
+            return fn()
+        except SDFCodecError:
+            outcome = "refused"
+            return None
+
+    m = attempt(lambda: sdfcodec.open_map(path, max_decode_bytes=LIMIT))
+    if m is not None:
+        attempt(m.block_states)
+        attempt(m.count_states)
+        attempt(m.read_codes)
+        attempt(lambda: m.read_codes(level=4))
+        attempt(lambda: list(m.iter_codes()))
+        attempt(m.decode_region)
+        attempt(lambda: m.decode_region(((0, 16), (0, 16), (0, 16)), level=4))
+        attempt(lambda: list(m.iter_blocks()))
+        attempt(m.info)
+        attempt(lambda: m.read_weights([[0, 0, 0]]))
+        m.close()
+    rep = verify_map(path, max_decode_bytes=LIMIT, decode_blocks=64)
+    internal = [p for p in rep.problems if p.where == "verify"]
+    assert not internal, internal  # verify itself must not fail on any input
+    return outcome
+
+
+def _run_case(base: Path, mutate) -> None:
+    tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-fuzz-"))
+    try:
+        path = tmp / "m.sdfz"
+        shutil.copytree(base, path)
+        mutate(path)
+        old = signal.signal(signal.SIGALRM, _alarm)
+        signal.setitimer(signal.ITIMER_REAL, PER_EXAMPLE_S)
+        try:
+            outcome = _exercise(path)
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+        COUNTS["cases"] += 1
+        COUNTS[outcome] += 1
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+# -- strategies ---------------------------------------------------------------------------------------------
+
+SPECIAL = [0, 1, -1, 2, 3, 4, 8, 16, 255, 256, 4096, 2**31 - 1, 2**31, 2**32, 2**40, 2**53, 2**63, 2**64, -2**63,
+           10**30, 0.5, -0.0, 1e-300, 1e308, "", "float64", "float16", "uint8", "int8", "bool", "complex64", "|O",
+           "string", "numcodecs.pickle", "sharding_indexed", "transpose", "vlen-utf8", "blosc", "zstd", "gzip",
+           "crc32c", "bytes", "c", "v2", ".", "/", "../codes", "pca", "raw", "ae", "sdfcodec-map", "regular",
+           "fusion-weights", "array", "group"]
+leaf = st.one_of(st.none(), st.booleans(), st.sampled_from(SPECIAL),
+                 st.integers(min_value=-2**70, max_value=2**70), st.floats(allow_nan=True, allow_infinity=True),
+                 st.text(max_size=8))
+json_value = st.recursive(leaf, lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=6), kids,
+                                                                                             max_size=3),
+                          max_leaves=8)
+
+
+def _paths(doc, prefix=()):
+    """Every path (tuple of keys/indices) into a JSON document, containers included."""
+    out = [prefix]
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            out += _paths(v, prefix + (k,))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            out += _paths(v, prefix + (i,))
+    return out
+
+
+def _apply(doc, path, how: str, value):
+    if not path:
+        return value if how == "replace" else doc
+    parent = doc
+    for k in path[:-1]:
+        parent = parent[k]
+    last = path[-1]
+    if how == "replace":
+        parent[last] = value
+    elif how == "delete":
+        del parent[last]
+    elif how == "insert" and isinstance(parent, dict):
+        parent[f"x{len(parent)}"] = value
+    elif how == "insert" and isinstance(parent, list):
+        parent.insert(last, value)
+    elif how == "wrap":
+        parent[last] = [parent[last]]
+    return doc
+
+
+def _meta_files(base: Path) -> list[str]:
+    return sorted(str(p.relative_to(base)) for p in base.rglob("zarr.json"))
+
+
+def _chunk_files(base: Path) -> list[str]:
+    return sorted(str(p.relative_to(base)) for p in base.rglob("*") if p.is_file() and p.name != "zarr.json")
+
+
+@SETTINGS
+@given(data=st.data())
+def test_fuzz_header(base_map, bounded_memory, data):
+    """Mutate the sdfcodec header (the group attribute): values, types, missing and unknown fields."""
+    doc = json.loads((base_map / "zarr.json").read_text())
+    header = doc["attributes"]["sdfcodec"]
+    edits = data.draw(st.integers(1, 3))
+    for _ in range(edits):
+        path = data.draw(st.sampled_from(_paths(header)))
+        how = data.draw(st.sampled_from(["replace", "replace", "delete", "insert", "wrap"]))
+        header = _apply(header, path, how, data.draw(json_value))
+    doc["attributes"]["sdfcodec"] = header
+
+    def mutate(p: Path) -> None:
+        (p / "zarr.json").write_text(json.dumps(doc))
+
+    _run_case(base_map, mutate)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_fuzz_array_metadata(base_map, bounded_memory, data):
+    """Mutate the Zarr metadata of the arrays and groups: shapes, chunk grids, data types, codecs, fill values."""
+    name = data.draw(st.sampled_from(_meta_files(base_map)))
+    doc = json.loads((base_map / name).read_text())
+    edits = data.draw(st.integers(1, 2))
+    for _ in range(edits):
+        focus = [p for p in _paths(doc) if p and p[0] in ("shape", "chunk_grid", "data_type", "codecs", "fill_value",
+                                                          "chunk_key_encoding", "node_type", "zarr_format")]
+        path = data.draw(st.sampled_from(focus or _paths(doc)))
+        how = data.draw(st.sampled_from(["replace", "replace", "delete", "insert", "wrap"]))
+        doc = _apply(doc, path, how, data.draw(json_value))
+    raw = json.dumps(doc)
+    if data.draw(st.integers(0, 9)) == 0:
+        raw = raw[: data.draw(st.integers(0, len(raw)))]  # not even JSON
+
+    def mutate(p: Path) -> None:
+        (p / name).write_text(raw)
+
+    _run_case(base_map, mutate)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_fuzz_chunk_bytes(base_map, bounded_memory, data):
+    """Mutate chunk files: bit flips, truncation, garbage, deletion, and tampered Blosc headers, with the CRC32C
+    recomputed half the time so the damage reaches the decompressor and the decoders."""
+    name = data.draw(st.sampled_from(_chunk_files(base_map)))
+    orig = (base_map / name).read_bytes()
+    how = data.draw(st.sampled_from(["flip", "truncate", "extend", "garbage", "delete", "blosc-header", "zero"]))
+    b = bytearray(orig)
+    if how == "flip" and b:
+        i = data.draw(st.integers(0, len(b) - 1))
+        b[i] ^= 1 << data.draw(st.integers(0, 7))
+    elif how == "truncate":
+        b = b[: data.draw(st.integers(0, max(0, len(b) - 1)))]
+    elif how == "extend":
+        b += data.draw(st.binary(min_size=1, max_size=64))
+    elif how == "garbage":
+        b = bytearray(data.draw(st.binary(max_size=128)))
+    elif how == "blosc-header" and len(b) >= 16:
+        b[4:16] = data.draw(st.binary(min_size=12, max_size=12))
+    elif how == "zero":
+        b = bytearray(len(b))
+    if how != "delete" and len(b) >= 4 and data.draw(st.booleans()):
+        body = bytes(b[:-4])
+        b = bytearray(body + google_crc32c.value(body).to_bytes(4, "little"))
+
+    def mutate(p: Path) -> None:
+        if how == "delete":
+            (p / name).unlink()
+        else:
+            (p / name).write_bytes(bytes(b))
+
+    _run_case(base_map, mutate)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_fuzz_codes_and_state_values(base_map, bounded_memory, data):
+    """Write hostile *values* with valid checksums: NaN/Inf/huge codes, reserved states, altered codec state."""
+    import zarr
+
+    which = data.draw(st.sampled_from(["codes", "state", "codec/components", "codec/mean", "weights"]))
+    value = data.draw(st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32), st.integers(0, 255)))
+    index = data.draw(st.integers(0, 2**16))
+
+    def mutate(p: Path) -> None:
+        arr = zarr.open_array(str(p / which), mode="r+")
+        flat = np.asarray(arr[...]).copy()
+        if flat.dtype == np.uint8:
+            v = int(value) % 256 if np.isfinite(value) else 3
+        else:
+            v = value
+        with np.errstate(all="ignore"):
+            flat.reshape(-1)[index % flat.size] = v
+        arr[...] = flat
+
+    _run_case(base_map, mutate)
+
+
+@settings(SETTINGS, max_examples=max(1, EXAMPLES // 4))  # ~0.8 s a case: absurd grids are slow to refuse
+@given(data=st.data())
+def test_fuzz_geometry(base_map, bounded_memory, data):
+    """Hostile but *consistent* sizes: header and array metadata agree on a grid, code size and chunk shapes
+    (up to absurd ones), so the checks past "header and arrays disagree" are exercised too."""
+    dims = st.sampled_from([0, 1, 2, 3, 5, 64, 1000, 4096, 2**20, 2**31 - 1])
+    grid = [data.draw(dims) for _ in range(3)]
+    shape_voxels = [data.draw(st.integers(0, min(16 * g, 2**31 - 1))) for g in grid]
+    size = data.draw(st.sampled_from([8, 4, 16, 4096, 65536]))
+    chunk_code = data.draw(st.sampled_from([c for c in (1, 4, 8, 32, size) if c <= size]))
+    cb = data.draw(st.sampled_from([1, 2, 3, 8, 256]))
+    state_chunks = [data.draw(st.sampled_from([1, 2, 4, 64, 4096, 2**20])) for _ in range(3)]
+    weights_chunks = [data.draw(st.sampled_from([1, 4, 64])) for _ in range(3)] + [data.draw(st.sampled_from([1, 4096]))]
+    prefix = data.draw(st.booleans())
+    levels = sorted({*range(chunk_code, size, chunk_code), size})[-64:] if prefix else [size]
+
+    def mutate(p: Path) -> None:
+        doc = json.loads((p / "zarr.json").read_text())
+        h = doc["attributes"]["sdfcodec"]
+        h.update(grid_blocks=grid, shape_voxels=shape_voxels)
+        h["codes"].update(size=size, chunk_code=chunk_code, chunk_blocks=cb, prefix_ordered=prefix, levels=levels)
+        (p / "zarr.json").write_text(json.dumps(doc))
+        for name, shp, chunks in (("codes", [*grid, size], [cb, cb, cb, chunk_code]), ("state", grid, state_chunks),
+                                  ("weights", [*grid, 4096], weights_chunks)):
+            meta = json.loads((p / name / "zarr.json").read_text())
+            meta["shape"] = shp
+            meta["chunk_grid"]["configuration"]["chunk_shape"] = chunks
+            (p / name / "zarr.json").write_text(json.dumps(meta))
+
+    _run_case(base_map, mutate)
+
+
+def test_fuzz_counts():
+    """Runs after the fuzz tests (file order): report how many cases ran."""
+    print(f"fuzz: {COUNTS}")
+    if COUNTS["cases"]:
+        assert COUNTS["worked"] + COUNTS["refused"] == COUNTS["cases"]
