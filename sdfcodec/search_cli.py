@@ -1,0 +1,239 @@
+"""The work behind ``sdfcodec search``: search a map, draw the paper's Fig. 7, expand and mesh the selection.
+
+The CLI module wires a thin command to :func:`search_command` and prints :func:`format_summary` (or the
+returned dict as JSON with ``--json``)::
+
+    sdfcodec search MAP --query floor [--level K] [--threshold T | --top K] [--out DIR] [--json] [--device D]
+
+With ``--out DIR`` it writes ``DIR/search.png`` (a top-down view of the map coloured by descriptor distance,
+selected cells outlined, beside a rendering of the expanded blocks' mesh) and ``DIR/expanded.ply`` (the mesh
+of the selected blocks, decoded at full quality and nothing else).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InvalidValueError, MapExistsError
+from .mapfile import Map, open_map
+from .search import Expansion, SearchResult, expand, search
+
+__all__ = ["search_command", "format_summary", "search_picture", "top_down"]
+
+
+def _basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane perpendicular to ``up`` (``x``, ``y`` when ``up`` is ``z``)."""
+    up = up / np.linalg.norm(up)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = ref - (ref @ up) * up
+    u /= np.linalg.norm(u)
+    return u, np.cross(up, u)
+
+
+def top_down(m: Map, coords: np.ndarray, values: np.ndarray, up=(0.0, 0.0, 1.0), reduce: str = "min"
+             ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Rasterise per-block values seen from above: block centres projected along ``up`` onto cells one block
+    wide; each cell keeps the ``reduce`` ("min" or "max") of its blocks (NaN where none).
+
+    Parameters
+    ----------
+    m : Map
+        For the grid geometry (origin, voxel size).
+    coords : np.ndarray
+        ``(N, 3)`` int block indices.
+    values : np.ndarray
+        ``(N,)`` float.
+    up : sequence of 3 floats
+        The viewing direction is ``-up``.
+
+    Returns
+    -------
+    raster : np.ndarray
+        ``(nu, nv)`` float64 (index ``[i, j]``: ``i`` along the first in-plane axis).
+    extent : tuple of float
+        ``(u0, u1, v0, v1)`` metres, for ``imshow(raster.T, origin="lower", extent=extent)``.
+    """
+    up = np.asarray(up, dtype=np.float64)
+    u, v = _basis(up)
+    cell = 16 * m.voxel_size
+    centres = np.asarray(m.origin) + m.voxel_size * (16 * np.asarray(coords, np.float64) + 7.5)
+    pu, pv = centres @ u, centres @ v
+    if not len(pu):
+        return np.full((1, 1), np.nan), (0.0, cell, 0.0, cell)
+    i = np.round((pu - pu.min()) / cell).astype(int)
+    j = np.round((pv - pv.min()) / cell).astype(int)
+    fill = np.inf if reduce == "min" else -np.inf
+    raster = np.full((i.max() + 1, j.max() + 1), fill)
+    (np.minimum if reduce == "min" else np.maximum).at(raster, (i, j), np.asarray(values, np.float64))
+    raster[~np.isfinite(raster)] = np.nan
+    extent = (pu.min() - cell / 2, pu.min() + cell * (i.max() + 0.5),
+              pv.min() - cell / 2, pv.min() + cell * (j.max() + 0.5))
+    return raster, extent
+
+
+def search_picture(m: Map, result: SearchResult, path: str | os.PathLike, *, mesh: Any = None, up=None,
+                   title: str | None = None) -> Path:
+    """The paper's Fig. 7 for a search: (a) the map from above, each cell coloured by the smallest descriptor
+    distance of its blocks (log scale), selected cells outlined; (b) the expanded blocks' mesh rendered from
+    above at an angle (or, without a mesh, the selected cells).
+
+    Needs ``result`` from ``search(..., keep_scores=True)``. ``up`` defaults to the query's up direction.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    if result.all_scores is None:
+        raise InvalidValueError("search_picture needs every block's score: search with keep_scores=True")
+    up = result.query.up if up is None else np.asarray(up, np.float64)
+    scores = np.maximum(result.all_scores.astype(np.float64), 1e-3)
+    dist, extent = top_down(m, result.all_coords, scores, up)
+    sel, _ = top_down(m, np.concatenate([result.all_coords, result.coords]),
+                      np.r_[np.zeros(len(result.all_coords)), np.ones(len(result.coords))], up, reduce="max")
+    # the selection raster shares the grid of the distance raster because it projects the same blocks
+    has_mesh = mesh is not None and len(getattr(mesh, "triangles", [])) > 0
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.4), constrained_layout=True)
+    ax = axes[0]
+    ax.set_facecolor("#e6e6e6")
+    lo, hi = float(np.nanmin(dist)), float(np.nanmax(dist))
+    # bright = close to the query, so the matches stand out as in the paper's figure
+    im = ax.imshow(dist.T, origin="lower", extent=extent, cmap="viridis_r",
+                   norm=LogNorm(vmin=lo, vmax=max(hi, lo * 1.01)), interpolation="nearest")
+    cell = 16 * m.voxel_size
+    for i, j in np.argwhere(sel > 0.5):
+        ax.add_patch(plt.Rectangle((extent[0] + i * cell, extent[2] + j * cell), cell, cell, fill=False,
+                                   edgecolor="red", linewidth=1.2))
+    fig.colorbar(im, ax=ax, shrink=0.85, label="min squared code distance to the query (log)")
+    ax.set_title(f"(a) distance to '{result.query.name}' ({len(result.query)} "
+                 f"descriptors, level {result.level}); red: selected")
+    ax.set_xlabel("m")
+    ax.set_ylabel("m")
+    ax.set_aspect("equal")
+    ax = axes[1]
+    if has_mesh:
+        from .viz import render_mesh
+
+        ax.imshow(render_mesh(mesh, width=800, height=600, up=tuple(up)))
+        ax.set_title(f"(b) the {len(result)} selected blocks, decoded and meshed")
+        ax.set_axis_off()
+    else:
+        ax.set_facecolor("#e6e6e6")
+        ax.imshow(np.where(np.isnan(dist), np.nan, np.where(sel > 0.5, 1.0, 0.25)).T, origin="lower", extent=extent,
+                  cmap="Reds", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"(b) the {len(result)} selected cells")
+        ax.set_aspect("equal")
+        ax.set_xlabel("m")
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def search_command(map_path: str | os.PathLike, query: str = "floor", level: int | None = None,
+                   threshold: float | None = None, top: int | None = None, out_dir: str | os.PathLike | None = None,
+                   as_json: bool = False, device: str | None = None, *, mesh: bool = True,
+                   overwrite: bool = False) -> dict:
+    """Everything ``sdfcodec search`` does; returns a JSON-able summary.
+
+    Parameters
+    ----------
+    map_path : path or URL
+        The map.
+    query : str
+        A built-in query name (floor, ceiling, wall, edge, corner) or the path of a saved query model (.npz).
+    level : int, optional
+        Compare the first ``level`` code elements (prefix-ordered codecs only).
+    threshold : float, optional
+        Select blocks scoring ``<= threshold``.
+    top : int, optional
+        Select the ``top`` best blocks (with ``threshold``: the best ``top`` under it). With neither, the
+        automatic threshold of :func:`sdfcodec.search.auto_threshold` is used.
+    out_dir : path, optional
+        Write ``search.png`` (Fig. 7-style picture) and, with ``mesh``, ``expanded.ply`` there.
+    as_json : bool
+        Include every selected block as ``{"coords": [x, y, z], "score": s}`` (``"blocks"``).
+    device : str, optional
+        Where distances are computed and blocks decoded (default CUDA when available).
+    mesh : bool
+        With ``out_dir``, decode the selected blocks and write their mesh.
+    overwrite : bool
+        Replace existing files in ``out_dir``.
+
+    Returns
+    -------
+    dict
+        ``map``, ``codec``, ``code_size``, ``level``, ``query``, ``descriptors``, ``threshold``,
+        ``threshold_mode`` ("given", "auto" or "none"), ``top``, ``coded_blocks``, ``selected``,
+        ``code_bytes_read``, ``code_bytes_level``, ``code_bytes_full``, ``bytes_read``, ``seconds``,
+        ``blocks_per_s``, ``device``, and when written ``picture``, ``mesh``, ``expanded`` (``blocks_decoded``,
+        ``code_bytes_read``, ``triangles``); with ``as_json`` also ``blocks``.
+    """
+    m = open_map(map_path)
+    out = Path(out_dir) if out_dir is not None else None
+    if out is not None and not overwrite:
+        clash = [p for p in (out / "search.png", out / "expanded.ply") if p.exists()]
+        if clash:
+            raise MapExistsError(f"{clash[0]} exists; pass --overwrite to replace it or choose another --out")
+    mode = "given" if threshold is not None else ("none" if top is not None else "auto")
+    res = search(m, query, level=level, threshold="auto" if mode == "auto" else threshold, top=top, device=device,
+                 keep_scores=out is not None)
+    summary: dict[str, Any] = {
+        "map": str(map_path), "codec": m.header.codec.id, "code_size": m.code_size, "level": res.level,
+        "query": res.query.name, "descriptors": len(res.query), "threshold": res.threshold, "threshold_mode": mode,
+        "top": top, "coded_blocks": res.stats["blocks_scored"], "selected": len(res),
+        **{k: res.stats[k] for k in ("code_bytes_read", "code_bytes_level", "code_bytes_full", "bytes_read",
+                                     "seconds", "blocks_per_s", "device")},
+    }
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        exp: Expansion | None = None
+        if mesh and len(res):
+            exp = expand(m, res, as_="mesh", device=device)
+            import open3d as o3d
+
+            ply = out / "expanded.ply"
+            o3d.io.write_triangle_mesh(str(ply), exp.mesh)
+            summary["mesh"] = str(ply)
+            summary["expanded"] = {"blocks_decoded": exp.stats["blocks_decoded"],
+                                   "code_bytes_read": exp.stats["code_bytes_read"],
+                                   "triangles": len(exp.mesh.triangles)}
+        summary["picture"] = str(search_picture(m, res, out / "search.png", mesh=exp.mesh if exp else None,
+                                                title=f"{Path(str(map_path)).name}: {res.query.name} search"))
+    if as_json:
+        summary["blocks"] = [{"coords": [int(c) for c in xyz], "score": float(s)}
+                             for xyz, s in zip(res.coords, res.scores)]
+    return summary
+
+
+def format_summary(s: dict) -> str:
+    """Human-readable lines for a :func:`search_command` summary."""
+    def kib(n):
+        return "n/a" if n is None else f"{n / 1024:.1f} KiB"
+
+    sel = (f"threshold {s['threshold']:.4g} ({s['threshold_mode']})" if s.get("threshold") is not None
+           else "no threshold")
+    if s.get("top"):
+        sel += f", top {s['top']}"
+    lines = [
+        f"{s['map']}: {s['codec']}-{s['code_size']}, query '{s['query']}' ({s['descriptors']} descriptors) at level "
+        f"{s['level']}, {sel}",
+        f"selected {s['selected']} of {s['coded_blocks']} coded blocks in {s['seconds']:.3f} s "
+        f"({s['blocks_per_s'] or 0:,.0f} blocks/s on {s['device']})",
+        f"code bytes read {kib(s['code_bytes_read'])} of {kib(s['code_bytes_full'])} for a full read",
+    ]
+    if "expanded" in s:
+        e = s["expanded"]
+        lines.append(f"expanded {e['blocks_decoded']} blocks ({kib(e['code_bytes_read'])} of codes read), "
+                     f"mesh {e['triangles']:,} triangles" + (f" -> {s['mesh']}" if s.get("mesh") else ""))
+    if "picture" in s:
+        lines.append(f"picture -> {s['picture']}")
+    return "\n".join(lines)
