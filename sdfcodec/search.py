@@ -1617,7 +1617,8 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
         Records like :func:`sdfcodec.bench.bench_codec`'s: ``codec``, ``code_size``, ``operation``
         (``"search"`` for the kernel, ``"search-map"`` for a whole search), ``batch``, ``device``,
         ``blocks_per_s``, ``baseline`` (``"numpy matmul"``), ``baseline_blocks_per_s``, ``ratio_to_baseline``,
-        ``us_per_block``; map records add ``level``, ``code_bytes_read``, ``code_bytes_full``, ``seconds``.
+        ``us_per_block``, ``load_before`` and ``load_after`` (``os.getloadavg()`` around the timing: this is a
+        shared machine); map records add ``level``, ``code_bytes_read``, ``code_bytes_full``, ``seconds``.
     """
     import tempfile
 
@@ -1640,11 +1641,13 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
             x = torch.from_numpy(codes).to(dev) if dev.type != "cpu" else codes
             if progress:
                 progress(f"search kernel pca-{k} batch {b}")
+            load0 = os.getloadavg()
             t = time_call(lambda: (scorer(x), sync()), min_time)
             tb = time_call(lambda: codes @ qt, min_time)
             records.append({"codec": "pca", "code_size": k, "operation": "search", "batch": b, "device": str(dev),
                             "descriptors": len(q), "blocks_per_s": b / t, "baseline": "numpy matmul",
-                            "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b})
+                            "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
+                            "load_before": list(load0), "load_after": list(os.getloadavg())})
         if map_blocks > 0:
             tmp = tempfile.TemporaryDirectory(prefix="sdfcodec-bench-") if workdir is None else None
             try:
@@ -1662,6 +1665,7 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
                 for lv in (map_levels or {}).get(k, [k]):
                     if progress:
                         progress(f"searching the pca-{k} map at level {lv}")
+                    load0 = os.getloadavg()
                     res = search(m, build_query("floor", codec=codec, offsets=descriptors), level=lv, top=100,
                                  device=dev)
                     base_codes = rng.standard_normal((len(coords), lv), dtype=np.float32)
@@ -1674,7 +1678,8 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
                                     "baseline_blocks_per_s": len(coords) / tb, "ratio_to_baseline": tb / t,
                                     "us_per_block": 1e6 * t / len(coords), "seconds": t,
                                     "code_bytes_read": res.stats["code_bytes_read"],
-                                    "code_bytes_full": res.stats["code_bytes_full"]})
+                                    "code_bytes_full": res.stats["code_bytes_full"],
+                                    "load_before": list(load0), "load_after": list(os.getloadavg())})
             finally:
                 if tmp is not None:
                     tmp.cleanup()

@@ -340,6 +340,64 @@ def test_search_command(tmp_path, maps):
     assert top["selected"] == 3 and "blocks" not in top and top["threshold_mode"] == "none"
 
 
+def test_cli_search_json(tmp_path, maps, pca128):
+    """`sdfcodec search MAP --json` through the real command line: every selected block as a list of three ints
+    with its score, equal to a brute-force numpy search of the codes read with plain zarr."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    runner = CliRunner()
+    r = runner.invoke(app, ["search", str(maps[128]), "--query", "floor", "--level", "32", "--top", "6", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["level"] == 32 and out["code_size"] == 128 and out["selected"] == 6 and len(out["blocks"]) == 6
+    for b in out["blocks"]:
+        assert set(b) == {"coords", "score"}
+        assert isinstance(b["coords"], list) and len(b["coords"]) == 3 and all(type(v) is int for v in b["coords"])
+        assert type(b["score"]) is float
+    idx, codes = _plain_zarr_codes(maps[128], level=32)
+    q = S.query_blocks("floor", voxel_size=VS, truncation=TRUNC)[0]
+    q = pca128.encode(q)[:, :32].astype(np.float64)
+    expected = ((codes[:, None] - q[None]) ** 2).sum(-1).min(1)
+    order = np.argsort(expected, kind="stable")
+    np.testing.assert_allclose([b["score"] for b in out["blocks"]], expected[order[:6]], rtol=1e-4, atol=2e-3)
+    # the blocks named are the brute force's best six (ties aside: compare the scores at the reported coords)
+    row = {tuple(int(v) for v in c): i for i, c in enumerate(idx)}
+    for b in out["blocks"]:
+        assert abs(expected[row[tuple(b["coords"])]] - b["score"]) <= 2e-3 + 1e-4 * b["score"]
+    # a threshold selects every block under it, best first (a threshold in a gap of the scores: many blocks of
+    # exact floor tie, and float32 scores differ from float64 ones in the last digits)
+    srt = expected[order]
+    k = next(i for i in range(20, len(srt) - 1) if srt[i + 1] - srt[i] > 0.05)
+    t = float(srt[k] + srt[k + 1]) / 2
+    r = runner.invoke(app, ["search", str(maps[128]), "--level", "32", "--threshold", f"{t!r}", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["threshold_mode"] == "given" and out["selected"] == int((expected <= t).sum())
+    assert {tuple(b["coords"]) for b in out["blocks"]} == _key(idx[expected <= t])
+    assert [b["score"] for b in out["blocks"]] == sorted(b["score"] for b in out["blocks"])
+    # without --json: the human summary, no block list
+    r = runner.invoke(app, ["search", str(maps[128]), "--top", "3"])
+    assert r.exit_code == 0 and "selected 3 of" in r.stdout and "coords" not in r.stdout
+
+
+def test_cli_search_errors_are_one_line(tmp_path, room):
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    path = tmp_path / "raw.sdfz"
+    with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(room.volume[:32, :32, :32])
+    runner = CliRunner()
+    r = runner.invoke(app, ["search", str(path), "--level", "32", "--json"])
+    assert r.exit_code != 0 and "not prefix-ordered" in r.stderr and r.stdout.strip() == ""
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    r = runner.invoke(app, ["search", str(path), "--query", "sofa"])
+    assert r.exit_code != 0 and "floor, ceiling, wall, edge, corner" in r.stderr
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_gpu_scores_equal_cpu(maps):
