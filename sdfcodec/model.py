@@ -18,7 +18,7 @@ import numpy as np
 from .codec import Codec
 from .errors import FormatError, VersionError
 
-__all__ = ["save_model", "load_model", "save_state_file", "load_state_file"]
+__all__ = ["save_model", "load_model", "save_state_file", "load_state_file", "load_meta_file"]
 
 _META = "__sdfcodec_model__"
 MODEL_FORMAT = "sdfcodec-model"
@@ -55,6 +55,27 @@ def load_state_file(path: str | Path) -> dict[str, np.ndarray]:
         raise FormatError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from e
 
 
+def load_meta_file(path: str | Path, key: str, fmt: str, version: int, what: str, writer: str
+                   ) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a ``.npz`` of plain arrays whose entry ``key`` is UTF-8 JSON metadata with ``format == fmt`` and
+    ``version <= version``; returns ``(metadata, the other arrays)``. ``what``/``writer`` name the kind of file
+    and what writes it, in errors (FormatError; VersionError for a newer version)."""
+    arrays = load_state_file(path)
+    if key not in arrays:
+        raise FormatError(f"{path}: not an sdfcodec {what} (no {key} entry); {what}s are written by {writer}")
+    try:
+        meta = json.loads(arrays.pop(key).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FormatError(f"{path}: {what} metadata is not valid JSON ({e})") from e
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        got = meta.get("format") if isinstance(meta, dict) else meta
+        raise FormatError(f"{path}: {what} format is {got!r}, expected {fmt!r}")
+    if not isinstance(meta.get("version"), int) or meta["version"] > version:
+        raise VersionError(f"{path}: {what} format version {meta.get('version')} is newer than this sdfcodec "
+                           f"reads ({version}); upgrade sdfcodec")
+    return meta, arrays
+
+
 def save_model(codec: Codec, path: str | Path) -> Path:
     """Save a fitted codec to ``path`` (``.npz``); returns the path."""
     codec._check_fitted()
@@ -69,17 +90,6 @@ def load_model(path: str | Path) -> Codec:
     """Load a codec saved by :func:`save_model` (its plugin must be installed)."""
     from .registry import get_codec
 
-    arrays = load_state_file(path)
-    if _META not in arrays:
-        raise FormatError(f"{path}: not an sdfcodec model (no {_META} entry); models are written by "
-                          "`sdfcodec train` or sdfcodec.model.save_model")
-    try:
-        meta = json.loads(arrays.pop(_META).tobytes().decode())
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise FormatError(f"{path}: model metadata is not valid JSON ({e})") from e
-    if meta.get("format") != MODEL_FORMAT:
-        raise FormatError(f"{path}: model format is {meta.get('format')!r}, expected {MODEL_FORMAT!r}")
-    if not isinstance(meta.get("version"), int) or meta["version"] > MODEL_VERSION:
-        raise VersionError(f"{path}: model format version {meta.get('version')} is newer than this sdfcodec "
-                           f"reads ({MODEL_VERSION}); upgrade sdfcodec")
+    meta, arrays = load_meta_file(path, _META, MODEL_FORMAT, MODEL_VERSION, "model",
+                                  "`sdfcodec train` or sdfcodec.model.save_model")
     return get_codec(meta["config"]).load_state_dict(arrays)

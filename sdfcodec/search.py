@@ -63,7 +63,7 @@ import zarr.abc.store
 from ._validate import BLOCK
 from .blocks import check_truncation, normalise
 from .codec import Codec
-from .errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError, VersionError
+from .errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
 from .mapfile import Map, open_map, state_digest
 
@@ -635,24 +635,15 @@ def load_query(path: str | os.PathLike) -> QueryModel:
     FormatError
         Not a query model, or its metadata is broken. ``VersionError`` for a newer format version.
     """
-    from .model import load_state_file
+    from .model import load_meta_file
 
     if not Path(path).is_file():
         raise InvalidValueError(f"no query model at {path}: give a built-in query ({', '.join(QUERY_NAMES)}) or the "
                                 "path of a model written by sdfcodec.search.save_query")
-    arrays = load_state_file(path)
-    if _QUERY_META not in arrays or "descriptors" not in arrays:
-        raise FormatError(f"{path}: not an sdfcodec query model (no {_QUERY_META} entry); query models are "
-                          "written by sdfcodec.search.save_query")
-    try:
-        meta = json.loads(arrays[_QUERY_META].tobytes().decode())
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise FormatError(f"{path}: query metadata is not valid JSON ({e})") from e
-    if meta.get("format") != QUERY_FORMAT:
-        raise FormatError(f"{path}: format is {meta.get('format')!r}, expected {QUERY_FORMAT!r}")
-    if not isinstance(meta.get("version"), int) or meta["version"] > QUERY_VERSION:
-        raise VersionError(f"{path}: query format version {meta.get('version')} is newer than this sdfcodec reads "
-                           f"({QUERY_VERSION}); upgrade sdfcodec")
+    meta, arrays = load_meta_file(path, _QUERY_META, QUERY_FORMAT, QUERY_VERSION, "query model",
+                                  "sdfcodec.search.save_query")
+    if "descriptors" not in arrays:
+        raise FormatError(f"{path}: query model lacks its descriptors array")
     try:
         return QueryModel(name=str(meta["name"]), descriptors=arrays["descriptors"], codec_config=meta["codec_config"],
                           codec_state_sha256=meta["codec_state_sha256"], voxel_size=float(meta["voxel_size"]),
