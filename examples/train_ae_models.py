@@ -90,6 +90,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads while training (1 is fastest when other work shares the cores)")
     ap.add_argument("--only", default="ae-64,sequential-64-64", help="which shipped models to (re)train")
+    ap.add_argument("--max-epochs", type=int, default=None,
+                    help="cap the epochs (default: the codec's 200, i.e. early stopping decides); a capped run "
+                         "resumed with the epochs already done exports its best weights without training")
     ap.add_argument("--sizes", default="", help="extra AE code sizes to train into --workdir (e.g. 32,128)")
     args = ap.parse_args()
     work, models, report = Path(args.workdir), Path(args.models), Path(args.report)
@@ -125,7 +128,8 @@ def main() -> None:
         before = load()
         t0 = time.perf_counter()
         codec.fit_dataset(ds, checkpoint=work / f"{name}.ckpt", resume=True, report=report / name,
-                          threads=args.threads)
+                          threads=args.threads,
+                          **({"max_epochs": args.max_epochs} if args.max_epochs else {}))
         wall = time.perf_counter() - t0
         h = codec.history_
         out = (models if shipped else work) / f"{name}.npz"

@@ -1,24 +1,50 @@
 """Throughput benchmarks, each beside a baseline measured in the same run (never as timed unit tests).
 
-For a codec of code size ``k`` the baseline of encode is a plain numpy matrix product ``(B, 4096) @ (4096, k)``
-and of decode ``(B, k) @ (k, 4096)``: the work a linear codec cannot avoid. A ratio near 1 means the codec adds
-no overhead to the matrix product; the paper's GPU implementation took 405-645 microseconds per block.
+The baseline ("roofline") of an operation is the chain of plain numpy matrix products ``(B, m) @ (m, n)`` that
+the operation cannot avoid for a batch of ``B`` blocks, timed in the same run. For a linear codec of code size
+``k`` (the default) that is ``(B, 4096) @ (4096, k)`` for encode and ``(B, k) @ (k, 4096)`` for decode. A ratio
+near 1 means the codec adds no overhead to those products; the paper's GPU implementation took 405-645
+microseconds per block.
+
+Benchmark hooks
+---------------
+A codec class MAY provide two optional hooks; :func:`bench_codec` uses them when present and never looks at
+codec ids:
+
+``bench_instance(code_size) -> (codec, weights)`` (classmethod)
+    A ready codec for timing at the nominal ``code_size`` (what ``sdfcodec bench --sizes`` passes; a codec
+    defines what it means, e.g. the size of each part of a mixture), built without training, and a short
+    phrase saying where its weights come from (e.g. ``"shipped sdfcodec/models/ae-64.npz"`` or
+    ``"untrained (random init)"``: speed does not depend on the values). Without the hook the benchmark builds
+    ``get_codec(id, code_size=k)`` (``get_codec(id)`` when the class takes no ``code_size``) and fits it on
+    512 analytic blocks when it ``requires_fit``, which suits codecs that fit in moments (PCA).
+``roofline_shapes(operation) -> list[(m, n)]`` (method)
+    The right-hand matrix shapes of the products ``operation`` (``"encode"`` or ``"decode"``) needs per batch,
+    in order: each is timed as ``(B, m) @ (m, n)``. Without it: ``[(4096, k)]`` / ``[(k, 4096)]``.
+
+Records of a codec with either hook also carry ``roofline_shapes``, ``weights`` and ``torch_threads``; the
+records of a codec with neither keep the original keys (see :func:`bench_codec`).
 """
 
 from __future__ import annotations
 
+import inspect
 import time
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 
-from .registry import get_codec
+from .codec import Codec
+from .errors import InvalidValueError
+from .registry import get_codec, get_codec_class
 from .testing import analytic_blocks
 
-__all__ = ["time_call", "bench_codec", "PAPER_US_PER_BLOCK"]
+__all__ = ["time_call", "bench_codec", "bench_codec_instance", "roofline_shapes", "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
+_N = 16 ** 3
+_OPS = ("encode", "decode")
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:
@@ -37,44 +63,96 @@ def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3)
     return best
 
 
+def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
+    """The ``(m, n)`` right-hand shapes of the matrix products ``operation`` needs: the codec's
+    ``roofline_shapes`` hook, else the single product of a linear codec."""
+    if operation not in _OPS:
+        raise InvalidValueError(f"operation must be 'encode' or 'decode', got {operation!r}")
+    hook = getattr(codec, "roofline_shapes", None)
+    if callable(hook):
+        shapes = [(int(m), int(n)) for m, n in hook(operation)]
+        if not shapes or any(m < 1 or n < 1 for m, n in shapes):
+            raise InvalidValueError(f"{codec!r}.roofline_shapes({operation!r}) must be a non-empty list of "
+                                    f"positive (m, n) shapes, got {shapes}")
+        return shapes
+    k = codec.code_size
+    return [(_N, k)] if operation == "encode" else [(k, _N)]
+
+
+def _roofline_fn(shapes: list[tuple[int, int]], batch: int) -> Callable[[], object]:
+    rng = np.random.default_rng(0)
+    mats = [rng.standard_normal(s, dtype=np.float32) for s in shapes]
+    lhs = [rng.standard_normal((batch, s[0]), dtype=np.float32) for s in shapes]
+
+    def run() -> None:
+        for a, m in zip(lhs, mats):
+            a @ m
+    return run
+
+
+def _has_hooks(codec: Codec) -> bool:
+    return callable(getattr(type(codec), "bench_instance", None)) or callable(getattr(codec, "roofline_shapes", None))
+
+
+def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = "cpu", min_time: float = 0.2,
+                         weights: str | None = None, name: str | None = None,
+                         progress: Callable[[str], None] | None = None) -> list[dict]:
+    """Encode/decode blocks/s of a ready ``codec`` at each batch size, beside the numpy roofline of its layer
+    shapes (:func:`roofline_shapes`), timed in the same run. Returns records as :func:`bench_codec`'s;
+    ``weights`` (where the codec's weights come from) is recorded when given."""
+    data = analytic_blocks(512, seed=3)
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    name = name or codec.codec_id
+    extra = _has_hooks(codec) or weights is not None
+    records = []
+    for b in batches:
+        x = torch.from_numpy(np.concatenate([data] * -(-b // len(data)))[:b]).to(dev)
+        codes = codec.encode(x)
+        for op, fn in (("encode", lambda: (codec.encode(x), sync())),
+                       ("decode", lambda: (codec.decode(codes), sync()))):
+            if progress:
+                progress(f"{name}-{codec.code_size} {op} batch {b}")
+            shapes = roofline_shapes(codec, op)
+            t = time_call(fn, min_time)
+            tb = time_call(_roofline_fn(shapes, b), min_time)
+            rec: dict[str, Any] = {
+                "codec": name, "code_size": codec.code_size, "operation": op, "batch": b, "device": str(dev),
+                "blocks_per_s": b / t, "baseline": "numpy matmul of the layer shapes" if extra else "numpy matmul",
+                "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
+            }
+            if extra:
+                rec.update(roofline_shapes=[list(s) for s in shapes], weights=weights,
+                           torch_threads=torch.get_num_threads())
+            records.append(rec)
+    return records
+
+
+def _instance(codec_id: str, k: int) -> tuple[Codec, str | None]:
+    cls = get_codec_class(codec_id)
+    hook = getattr(cls, "bench_instance", None)
+    if callable(hook):
+        codec, weights = hook(k)
+        return codec, str(weights)
+    takes_size = "code_size" in inspect.signature(cls.__init__).parameters
+    codec = get_codec(codec_id, code_size=k) if takes_size else get_codec(codec_id)
+    if codec.requires_fit:
+        codec.fit(analytic_blocks(512, seed=3))
+    return codec, None
+
+
 def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, device: str = "cpu",
                 min_time: float = 0.2, progress: Callable[[str], None] | None = None) -> list[dict]:
-    """Encode/decode blocks/s of ``codec_id`` at each code size and batch, beside the numpy matmul baseline.
+    """Encode/decode blocks/s of ``codec_id`` at each code size and batch, beside the numpy matmul roofline.
 
-    Returns one record per (code_size, operation, batch) with ``codec``, ``code_size``, ``operation``,
-    ``batch``, ``device``, ``blocks_per_s``, ``baseline_blocks_per_s``, ``ratio_to_baseline`` and
-    ``us_per_block``.
+    Returns one record per (code_size, operation, batch) with ``codec``, ``code_size`` (the codec's actual
+    code length), ``operation``, ``batch``, ``device``, ``blocks_per_s``, ``baseline``,
+    ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block``; codecs with a benchmark hook (see
+    the module docstring) add ``roofline_shapes``, ``weights`` and ``torch_threads``.
     """
-    train = analytic_blocks(512, seed=3)
     records = []
-    dev = torch.device(device)
     for k in code_sizes:
-        codec = get_codec(codec_id, code_size=k) if codec_id != "raw" else get_codec(codec_id)
-        if codec.requires_fit:
-            codec.fit(train)
-        k = codec.code_size
-        rng = np.random.default_rng(0)
-        w_enc = rng.standard_normal((4096, k), dtype=np.float32)
-        w_dec = rng.standard_normal((k, 4096), dtype=np.float32)
-        for b in batches:
-            reps = -(-b // len(train))
-            x_np = np.concatenate([train] * reps)[:b]
-            x = torch.from_numpy(x_np).to(dev)
-            codes = codec.encode(x)
-            x_flat = x_np.reshape(b, 4096)
-            c_np = codes.cpu().numpy()
-            sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-            for op, fn, base in (
-                ("encode", lambda: (codec.encode(x), sync()), lambda: x_flat @ w_enc),
-                ("decode", lambda: (codec.decode(codes), sync()), lambda: c_np @ w_dec),
-            ):
-                if progress:
-                    progress(f"{codec_id}-{k} {op} batch {b}")
-                t = time_call(fn, min_time)
-                tb = time_call(base, min_time)
-                records.append({
-                    "codec": codec_id, "code_size": k, "operation": op, "batch": b, "device": str(dev),
-                    "blocks_per_s": b / t, "baseline": "numpy matmul", "baseline_blocks_per_s": b / tb,
-                    "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
-                })
+        codec, weights = _instance(codec_id, k)
+        records += bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights,
+                                        name=codec_id, progress=progress)
     return records

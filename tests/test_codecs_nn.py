@@ -355,6 +355,96 @@ def test_bench_records_quick():
     assert all(r["blocks_per_s"] > 0 and r["baseline_blocks_per_s"] > 0 for r in recs)
     seq = bench_records("sequential", 16, [4], min_time=0.01)
     assert seq[0]["roofline_shapes"][0] == [4096, 16] and seq[0]["code_size"] == 33
+    # a fixed w: no w slot; sequential still decodes its PCA part at encode time (the residual), parallel not
+    for cid, enc in (("sequential", [(4096, 8), (8, 4096), (4096, 512), (512, 8)]),
+                     ("parallel", [(4096, 8), (4096, 512), (512, 8)])):
+        mix, _ = type(sdfcodec.get_codec(cid)).bench_instance(8, 0.5)
+        assert mix.code_size == 16 and mix.roofline_shapes("encode") == enc
+        assert mix.roofline_shapes("decode") == [(8, 4096), (8, 512), (512, 4096)]
+
+
+def _bench_cli(*args: str):
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    res = CliRunner().invoke(app, ["bench", "--quick", *args])
+    assert res.exit_code == 0, res.output
+    return res
+
+
+def _check_timing_fields(recs):
+    for r in recs:
+        assert r["blocks_per_s"] > 0 and r["baseline_blocks_per_s"] > 0
+        assert r["us_per_block"] == pytest.approx(1e6 / r["blocks_per_s"], rel=1e-9)
+        assert r["ratio_to_baseline"] == pytest.approx(r["blocks_per_s"] / r["baseline_blocks_per_s"], rel=1e-9)
+
+
+def test_cli_bench_ae_and_mixtures_quick(monkeypatch):
+    """`sdfcodec bench --codec ae|parallel|sequential`: blocks/s beside the roofline of the paper network's layer
+    shapes (4096-512-d-512-4096), with no training (shipped weights at 64, untrained ones elsewhere)."""
+    from sdfcodec_ae import AECodec
+
+    def no_training(*a, **k):
+        raise AssertionError("bench must not train")
+
+    monkeypatch.setattr(AECodec, "fit_validated", no_training)
+    recs = json.loads(_bench_cli("--codec", "ae", "--sizes", "16,64", "--batches", "3", "--json").stdout)
+    assert [(r["code_size"], r["operation"], r["batch"]) for r in recs] == [
+        (16, "encode", 3), (16, "decode", 3), (64, "encode", 3), (64, "decode", 3)]
+    assert recs[0]["roofline_shapes"] == [[4096, 512], [512, 16]]
+    assert recs[1]["roofline_shapes"] == [[16, 512], [512, 4096]]
+    assert recs[2]["roofline_shapes"] == [[4096, 512], [512, 64]]
+    assert "untrained" in recs[0]["weights"] and "ae-64.npz" in recs[2]["weights"]
+    _check_timing_fields(recs)
+
+    pca_enc, pca_dec = [[4096, 8], [8, 4096]]
+    ae_enc, ae_dec = [[4096, 512], [512, 8]], [[8, 512], [512, 4096]]
+    par = json.loads(_bench_cli("--codec", "parallel", "--sizes", "8", "--batches", "2", "--json").stdout)
+    assert [r["code_size"] for r in par] == [17, 17]  # 8 + 8 + the per-block w
+    assert par[0]["roofline_shapes"] == [pca_enc] + ae_enc + [pca_dec] + ae_dec
+    assert par[1]["roofline_shapes"] == [pca_dec] + ae_dec
+    _check_timing_fields(par)
+    # the table: the layer shapes and where the weights come from are printed under it
+    out = " ".join(_bench_cli("--codec", "sequential", "--sizes", "8", "--batches", "2").stdout.split())  # unwrap
+    assert "layer shapes" in out and "code 17 encode: (B,4096)x(4096,8) + (B,8)x(8,4096) + (B,4096)x(4096,512)" in out
+    assert "untrained" in out
+
+
+def test_bench_hooks_are_generic_and_linear_default_unchanged():
+    """The core uses a codec's optional hooks whatever its id; a codec without them (pca) keeps the single
+    (4096, k) product as its baseline and its original record keys."""
+    from sdfcodec.bench import bench_codec, roofline_shapes
+
+    class TwoStage(sdfcodec.Codec):
+        codec_id = "test-bench-two-stage"
+        code_size = 3
+
+        @classmethod
+        def bench_instance(cls, code_size):
+            return cls(), f"nothing to learn ({code_size})"
+
+        def roofline_shapes(self, operation):
+            return [(4096, 7), (7, 3)] if operation == "encode" else [(3, 4096)]
+
+        def _encode(self, blocks):
+            return blocks.reshape(len(blocks), -1)[:, :3].clone()
+
+        def _decode(self, codes):
+            return codes.mean(dim=1)[:, None, None, None].expand(len(codes), 16, 16, 16).clone()
+
+    sdfcodec.register_codec(TwoStage, replace=True)
+    recs = bench_codec("test-bench-two-stage", [5], [2], min_time=0.005)
+    assert [r["roofline_shapes"] for r in recs] == [[[4096, 7], [7, 3]], [[3, 4096]]]
+    assert recs[0]["weights"] == "nothing to learn (5)" and recs[0]["code_size"] == 3
+    _check_timing_fields(recs)
+
+    pca = bench_codec("pca", [32], [2], min_time=0.005)
+    assert set(pca[0]) == {"codec", "code_size", "operation", "batch", "device", "blocks_per_s", "baseline",
+                           "baseline_blocks_per_s", "ratio_to_baseline", "us_per_block"}
+    assert pca[0]["baseline"] == "numpy matmul"
+    assert roofline_shapes(sdfcodec.get_codec("raw"), "encode") == [(4096, 4096)]
+    _check_timing_fields(pca)
 
 
 @pytest.mark.slow

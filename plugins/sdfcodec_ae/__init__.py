@@ -160,6 +160,21 @@ class AECodec(Codec):
         """The trained model shipped with sdfcodec at ``code_size`` (see :func:`default_ae`)."""
         return default_ae(code_size)
 
+    # -- benchmark hooks (sdfcodec.bench) -----------------------------------------------------------
+    @classmethod
+    def bench_instance(cls, code_size: int) -> tuple["AECodec", str]:
+        """For ``sdfcodec bench``: the shipped AE-64 at 64, else untrained weights of the paper's shapes
+        (no training; speed does not depend on the values). Returns the codec and where its weights come from."""
+        from .bench import ae_bench_instance
+
+        return ae_bench_instance(code_size)
+
+    def roofline_shapes(self, operation: str) -> list[tuple[int, int]]:
+        """For ``sdfcodec bench``: right-hand shapes of the two matrix products of ``operation``."""
+        from .bench import ae_roofline_shapes
+
+        return ae_roofline_shapes(self.code_size, self.hidden, operation)
+
     # -- encode / decode ----------------------------------------------------------------------------
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
         return self._net.encode(blocks.reshape(len(blocks), N_VOXELS))

@@ -1,129 +1,72 @@
 """Throughput of the ``ae``, ``parallel`` and ``sequential`` codecs beside their matrix-product roofline.
 
-:func:`bench_records` returns records shaped like :func:`sdfcodec.bench.bench_codec`'s, so the ``sdfcodec
-bench`` table prints them unchanged. The baseline ("roofline") of each operation is the chain of plain numpy
-matrix products of the layer shapes that operation cannot avoid, timed in the same run:
+``sdfcodec bench --codec ae|parallel|sequential`` measures these codecs through the two optional benchmark
+hooks of :mod:`sdfcodec.bench` (no codec id is special-cased there): each class's ``bench_instance`` builds a
+ready codec without training (the shipped weights where they exist: ae-64, parallel and sequential 64 + 64;
+else untrained weights of the same shapes, since speed does not depend on the values) and each codec's
+``roofline_shapes`` lists the matrix products an operation cannot avoid, timed as plain numpy in the same
+run:
 
-============================  =====================================================================
-operation                     matrix products per batch of ``B`` blocks (``h`` hidden, ``d`` code)
-============================  =====================================================================
-ae encode                     ``(B,4096)(4096,h)``, ``(B,h)(h,d)``
-ae decode                     ``(B,d)(d,h)``, ``(B,h)(h,4096)``
-parallel encode, per-block w  PCA ``(B,4096)(4096,k)`` and ``(B,k)(k,4096)`` + ae encode + ae decode
-parallel encode, fixed w      PCA ``(B,4096)(4096,k)`` + ae encode
-sequential encode             as parallel (the residual needs the PCA decode even for a fixed w)
-parallel/sequential decode    PCA ``(B,k)(k,4096)`` + ae decode
-============================  =====================================================================
+=============================  ========================================================================
+operation                      matrix products per batch of ``B`` blocks (``h`` hidden, ``d``/``k`` codes)
+=============================  ========================================================================
+ae encode                      ``(B,4096)(4096,h)``, ``(B,h)(h,d)``
+ae decode                      ``(B,d)(d,h)``, ``(B,h)(h,4096)``
+parallel encode, per-block w   PCA ``(B,4096)(4096,k)`` + ae encode + PCA ``(B,k)(k,4096)`` + ae decode
+parallel encode, fixed w       PCA ``(B,4096)(4096,k)`` + ae encode
+sequential encode, per-block   PCA encode + PCA decode (the residual) + ae encode + ae decode
+sequential encode, fixed w     PCA encode + PCA decode + ae encode
+parallel/sequential decode     PCA ``(B,k)(k,4096)`` + ae decode
+=============================  ========================================================================
 
 A ratio near 1 means the codec adds little beyond those products (activations, the weight search, the
-element-wise mix).
+element-wise mix). :func:`bench_records` is the Python entry point used by ``examples/eval_codecs.py``.
 """
 
 from __future__ import annotations
 
 from typing import Callable, Iterable
 
-import numpy as np
 import torch
 
 import sdfcodec
-from sdfcodec.bench import time_call
+from sdfcodec.bench import bench_codec_instance, roofline_shapes
 from sdfcodec.codec import Codec
 from sdfcodec.errors import SDFCodecError
-from sdfcodec.testing import analytic_blocks
+from sdfcodec.registry import get_codec_class
 
 from .network import N_VOXELS, build_module, export_state, module_state
 
-__all__ = ["bench_records", "bench_codec_instance", "roofline_shapes"]
+__all__ = ["bench_records", "bench_codec_instance", "roofline_shapes", "ae_roofline_shapes", "random_ae",
+           "ae_bench_instance"]
+
+UNTRAINED = "untrained (random init; speed does not depend on the values)"
 
 
-def _random_ae(code_size: int, hidden: int, output: str, seed: int = 0) -> Codec:
-    """An AE with initial (untrained) weights: throughput does not depend on the values."""
+def ae_roofline_shapes(code_size: int, hidden: int, operation: str) -> list[tuple[int, int]]:
+    """Right-hand shapes of the ae's matrix products: encode ``(4096, h), (h, d)``; decode ``(d, h), (h, 4096)``."""
+    if operation == "encode":
+        return [(N_VOXELS, hidden), (hidden, code_size)]
+    return [(code_size, hidden), (hidden, N_VOXELS)]
+
+
+def random_ae(code_size: int, hidden: int = 512, output: str = "sigmoid", seed: int = 0) -> Codec:
+    """An ``ae`` codec with its initial (untrained) weights, deterministic by ``seed``."""
     torch.manual_seed(seed)
     state = export_state(module_state(build_module(code_size, hidden, output)))
     return sdfcodec.get_codec("ae", code_size=code_size, hidden=hidden, output=output).load_state_dict(state)
 
 
-def _codec(codec_id: str, code_size: int, weight: str | float) -> Codec:
-    """The shipped model where there is one (ae-64, parallel/sequential 64 + 64), else random weights."""
-    if codec_id == "ae":
+def ae_bench_instance(code_size: int) -> tuple[Codec, str]:
+    """The shipped AE-64 for ``code_size=64`` (when installed), else an untrained paper-sized network."""
+    if code_size == 64:
         try:
             from . import default_ae
 
-            return default_ae(code_size)
+            return default_ae(64), "shipped sdfcodec/models/ae-64.npz"
         except SDFCodecError:
-            return _random_ae(code_size, 512, "sigmoid")
-    if codec_id in ("parallel", "sequential"):
-        if code_size == 64:
-            try:
-                import sdfcodec_mixed as mixed
-
-                fn = mixed.default_parallel if codec_id == "parallel" else mixed.default_sequential
-                return fn(weight=weight)
-            except SDFCodecError:
-                pass
-        from sdfcodec.models import default_codec
-
-        cls = type(sdfcodec.get_codec(codec_id))
-        ae = _random_ae(code_size, 512, "sigmoid" if codec_id == "parallel" else "tanh")
-        return cls.from_parts(default_codec("pca", code_size), ae, weight=weight)
-    raise SDFCodecError(f"bench_records measures 'ae', 'parallel' and 'sequential', not {codec_id!r}")
-
-
-def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
-    """``(in, out)`` right-hand matrix shapes of the products ``operation`` needs (see the module table)."""
-    def ae_parts(ae: Codec) -> tuple[list, list]:
-        d, h = ae.code_size, ae.hidden
-        return [(N_VOXELS, h), (h, d)], [(d, h), (h, N_VOXELS)]
-
-    if codec.codec_id == "ae":
-        enc, dec = ae_parts(codec)
-        return enc if operation == "encode" else dec
-    enc, dec = ae_parts(codec.ae_)
-    k = codec.pca_size
-    if operation == "decode":
-        return [(k, N_VOXELS)] + dec
-    needs_decode = codec.per_block or codec.codec_id == "sequential"
-    return [(N_VOXELS, k)] + enc + (([(k, N_VOXELS)] + dec) if needs_decode else [])
-
-
-def _roofline_fn(shapes: list[tuple[int, int]], batch: int) -> Callable[[], object]:
-    rng = np.random.default_rng(0)
-    mats = [rng.standard_normal(s, dtype=np.float32) for s in shapes]
-    lhs = [rng.standard_normal((batch, s[0]), dtype=np.float32) for s in shapes]
-
-    def run() -> None:
-        for a, m in zip(lhs, mats):
-            a @ m
-    return run
-
-
-def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = "cpu", min_time: float = 0.2,
-                         progress: Callable[[str], None] | None = None) -> list[dict]:
-    """Encode/decode blocks/s of a fitted ``ae``/``parallel``/``sequential`` codec at each batch size, beside
-    the numpy roofline of its layer shapes; records as :func:`sdfcodec.bench.bench_codec`'s plus
-    ``roofline_shapes``."""
-    train = analytic_blocks(512, seed=3)
-    dev = torch.device(device)
-    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    name = codec.codec_id if codec.codec_id == "ae" else f"{codec.codec_id}"
-    records = []
-    for b in batches:
-        x = torch.from_numpy(np.concatenate([train] * -(-b // len(train)))[:b]).to(dev)
-        codes = codec.encode(x)
-        for op, fn in (("encode", lambda: (codec.encode(x), sync())), ("decode", lambda: (codec.decode(codes), sync()))):
-            if progress:
-                progress(f"{name}-{codec.code_size} {op} batch {b}")
-            shapes = roofline_shapes(codec, op)
-            t = time_call(fn, min_time)
-            tb = time_call(_roofline_fn(shapes, b), min_time)
-            records.append({
-                "codec": name, "code_size": codec.code_size, "operation": op, "batch": b, "device": str(dev),
-                "blocks_per_s": b / t, "baseline": "numpy matmul of the layer shapes",
-                "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
-                "roofline_shapes": [list(s) for s in shapes], "torch_threads": torch.get_num_threads(),
-            })
-    return records
+            pass
+    return random_ae(code_size), UNTRAINED
 
 
 def bench_records(codec_id: str, code_size: int, batches: Iterable[int], *, device: str = "cpu",
@@ -146,10 +89,14 @@ def bench_records(codec_id: str, code_size: int, batches: Iterable[int], *, devi
     Returns
     -------
     list of dict
-        One record per (operation, batch) with ``codec``, ``code_size``, ``operation``, ``batch``, ``device``,
-        ``blocks_per_s``, ``baseline`` (``"numpy matmul of the layer shapes"``), ``baseline_blocks_per_s``,
-        ``ratio_to_baseline``, ``us_per_block``, ``roofline_shapes``, ``torch_threads``. Shipped weights are
-        used where they exist, else untrained weights of the same shapes (speed does not depend on values).
+        As :func:`sdfcodec.bench.bench_codec`: one record per (operation, batch) with ``codec``, ``code_size``,
+        ``operation``, ``batch``, ``device``, ``blocks_per_s``, ``baseline`` (``"numpy matmul of the layer
+        shapes"``), ``baseline_blocks_per_s``, ``ratio_to_baseline``, ``us_per_block``, ``roofline_shapes``,
+        ``weights`` (where the weights come from) and ``torch_threads``.
     """
-    codec = _codec(codec_id, code_size, weight)
-    return bench_codec_instance(codec, batches, device=device, min_time=min_time, progress=progress)
+    if codec_id not in ("ae", "parallel", "sequential"):
+        raise SDFCodecError(f"bench_records measures 'ae', 'parallel' and 'sequential', not {codec_id!r}")
+    cls = get_codec_class(codec_id)
+    codec, weights = cls.bench_instance(code_size) if codec_id == "ae" else cls.bench_instance(code_size, weight)
+    return bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights, name=codec_id,
+                                progress=progress)

@@ -266,6 +266,40 @@ class _Mixture(Codec):
         return self._set_parts(self._new_pca().load_state_dict(parts["pca"]),
                                self._new_ae().load_state_dict(parts["ae"]))
 
+    # -- benchmark hooks (sdfcodec.bench) -----------------------------------------------------------
+    @classmethod
+    def bench_instance(cls, code_size: int = 64, weight: str | float = "block") -> tuple["_Mixture", str]:
+        """For ``sdfcodec bench``: a ready ``code_size + code_size`` mixture without training. At 64 the
+        shipped model when installed; else the shipped eigenshapes' first ``code_size`` components beside an
+        untrained autoencoder of the paper's shapes (speed does not depend on the values). Returns the codec
+        and where its weights come from."""
+        from sdfcodec.errors import SDFCodecError
+        from sdfcodec.models import default_codec
+        from sdfcodec_ae.bench import UNTRAINED, random_ae
+
+        if code_size == 64:
+            try:
+                shipped = "sequential-64-64.npz" if cls.codec_id == "sequential" else "eigenshapes + ae-64.npz"
+                return cls.shipped(weight=weight), f"shipped ({shipped})"
+            except SDFCodecError:
+                pass
+        ae = random_ae(code_size, 512, cls._ae_output)
+        mix = cls.from_parts(default_codec("pca", code_size), ae, weight=weight)
+        return mix, f"shipped eigenshapes; ae {UNTRAINED}"
+
+    def roofline_shapes(self, operation: str) -> list[tuple[int, int]]:
+        """For ``sdfcodec bench``: right-hand shapes of the matrix products of ``operation`` (the PCA part's
+        and the autoencoder's; see :mod:`sdfcodec_ae.bench` for the table)."""
+        kp, ka, h = self.pca_size, self.ae_size, self.hidden
+        p_enc, p_dec = [(_N, kp)], [(kp, _N)]
+        a_enc, a_dec = [(_N, h), (h, ka)], [(ka, h), (h, _N)]
+        if operation == "decode":
+            return p_dec + a_dec
+        return self._encode_shapes(p_enc, p_dec, a_enc, a_dec)
+
+    def _encode_shapes(self, p_enc: list, p_dec: list, a_enc: list, a_dec: list) -> list:
+        raise NotImplementedError
+
     # -- encode / decode ----------------------------------------------------------------------------
     def _split(self, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         k_p, k_a = self.pca_size, self.ae_size
@@ -288,6 +322,9 @@ class ParallelCodec(_Mixture):
 
     codec_id = "parallel"
     _ae_output = "sigmoid"
+
+    def _encode_shapes(self, p_enc: list, p_dec: list, a_enc: list, a_dec: list) -> list:
+        return p_enc + a_enc + ((p_dec + a_dec) if self.per_block else [])
 
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
         cp, ca = self.pca_.encode(blocks), self.ae_.encode(blocks)
@@ -314,6 +351,9 @@ class SequentialCodec(_Mixture):
 
     codec_id = "sequential"
     _ae_output = "tanh"
+
+    def _encode_shapes(self, p_enc: list, p_dec: list, a_enc: list, a_dec: list) -> list:
+        return p_enc + p_dec + a_enc + (a_dec if self.per_block else [])
 
     def _ae_inputs(self, pca_codec: Codec, blocks: np.ndarray) -> np.ndarray:
         out = np.empty_like(blocks)
