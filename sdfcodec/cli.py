@@ -482,10 +482,16 @@ def eval_cmd(
     size: str = typer.Option("320x240", "--size", help="Image size of rendered synthetic sequences, WxH."),
     voxel_size: float = typer.Option(0.02, "--voxel-size"),
     docs_dir: Optional[Path] = typer.Option(None, "--docs", help="Also write eval.md/eval.json/eval/ here."),
+    model: list[str] = typer.Option([], "--model", metavar="KEY=FILE",
+                                    help="Model file for a row, e.g. ae-32=ae-32.npz (repeatable)."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Reproduce the paper's Table 1: reconstruction error and tracking ATE per compression method."""
     from .evaluation import eval_command, markdown_table
+
+    if any("=" not in m for m in model):
+        _fail(f"--model must look like ae-32=ae-32.npz, got {[m for m in model if '=' not in m]}")
+    models = dict(m.split("=", 1) for m in model)
 
     try:
         wh = tuple(int(v) for v in size.lower().split("x"))
@@ -494,7 +500,8 @@ def eval_cmd(
         _fail(f"--size must look like 320x240, got {size!r}")
     results = eval_command(sequences, out_dir, methods=methods.split(",") if methods else None,
                            frames=frames or None, stride=stride, size=wh, voxel_size=voxel_size, docs_dir=docs_dir,
-                           progress=not as_json, log=None if as_json else (lambda s_: err.print(s_, highlight=False)))
+                           progress=not as_json, log=None if as_json else (lambda s_: err.print(s_, highlight=False)),
+                           models=models)
     _report(results, as_json, lambda: markdown_table(results))
 
 
@@ -612,7 +619,13 @@ def bench_cmd(
     quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (under 30 s)."),
     as_json: bool = typer.Option(False, "--json", help="Print records as JSON."),
 ) -> None:
-    """Encode/decode throughput (blocks/s) beside a numpy matrix product of the same shape, same run."""
+    """Encode/decode throughput (blocks/s) beside numpy matrix products of the codec's shapes, same run.
+
+    The baseline is the codec's "roofline": one (B,4096)x(4096,k) product for a linear codec (pca), or the
+    layer shapes a codec declares (ae, parallel, sequential; see sdfcodec.bench). Those are timed with the
+    shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
+    mixtures --sizes is the size of each part (64: code 64+64+1).
+    """
     from .bench import PAPER_US_PER_BLOCK, bench_codec
 
     ks = [int(s) for s in sizes.split(",")]
@@ -625,7 +638,17 @@ def bench_cmd(
     if as_json:
         _print_json(records)
         return
-    table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)")
+    layered = any("roofline_shapes" in r for r in records)  # codecs with benchmark hooks (sdfcodec.bench)
+    if layered:
+        lines: dict[tuple, str] = {}
+        for r in records:
+            lines.setdefault((r["code_size"], r["operation"]), f"code {r['code_size']} {r['operation']}: " + " + ".join(
+                f"(B,{m})x({m},{n})" for m, n in r["roofline_shapes"]))
+            lines.setdefault((r["code_size"], "weights"), f"code {r['code_size']} weights: {r['weights']}")
+        table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmuls of the codec's layer "
+                            "shapes, same run)", caption="\n".join(lines.values()), caption_justify="left")
+    else:
+        table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)")
     for col in ("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper"):
         table.add_column(col, justify="right")
     for r in records:
@@ -638,14 +661,28 @@ def bench_cmd(
 @app.command("demo")
 @_cli
 def demo_cmd(
-    out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the maps and report.md."),
+    out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the maps, pictures and report.md."),
     voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge in metres."),
+    frames: int = typer.Option(120, "--frames", min=2, help="Frames to render and fuse."),
+    track_frames: int = typer.Option(60, "--track-frames", min=2, help="Frames to track (every --track-stride-th)."),
+    track_stride: int = typer.Option(2, "--track-stride", min=1, help="Track every N-th rendered frame."),
+    ae: bool = typer.Option(True, "--ae/--no-ae", help="Also encode with the shipped AE-64 when installed."),
+    as_json: bool = typer.Option(False, "--json", help="Print the results (results.json) as JSON."),
 ) -> None:
-    """Render, fuse and compress a synthetic room with the shipped eigenshapes; write OUT/report.md."""
+    """Render, fuse, compress, search and track a synthetic room; write OUT/report.md with tables and pictures.
+
+    Built-in data only, nothing downloaded. Encodes with the shipped eigenshapes at 32/64/128 (and the shipped
+    AE-64 when its plugin is installed), searches the pca-64 map for floors and expands only them, and tracks
+    the sequence against the original map and against the pca-64 map decoded on demand.
+    """
     from .demo import run_demo
 
     t0 = time.perf_counter()
-    run_demo(out_dir, voxel_size=voxel_size, log=lambda s: err.print(s, highlight=False))
+    summary = run_demo(out_dir, voxel_size=voxel_size, frames=frames, track_frames=track_frames,
+                       track_stride=track_stride, ae=ae, console=err)
+    if as_json:
+        _print_json(summary)
+        return
     out.print(f"report: {out_dir / 'report.md'} ({time.perf_counter() - t0:.0f} s)")
 
 

@@ -84,9 +84,19 @@ PAPER_SEQUENCES = ("freiburg1_teddy", "freiburg1_room", "freiburg1_desk", "freib
                    "freiburg1_plant")
 
 
-def build_codec(method: Method):
-    """The fitted codec of a Table 1 row (shipped models), or raise with the reason it is not available."""
+def build_codec(method: Method, model: str | Path | None = None):
+    """The fitted codec of a Table 1 row: the model file ``model`` when given (e.g. an ae-32 trained with
+    ``sdfcodec train``), else the shipped model; raises with the reason when it is not available."""
     from .registry import get_codec
+
+    if model is not None:
+        from .model import load_model
+
+        codec = load_model(model)
+        if codec.codec_id != method.codec or codec.code_size not in (method.size, 2 * method.size + 1,
+                                                                     2 * method.size):
+            raise InvalidValueError(f"model {model} is a {codec!r}, not the {method.key} of this row")
+        return codec
 
     if method.codec == "raw":
         return get_codec("raw")
@@ -340,7 +350,8 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
                  frames: int | None = 60, stride: int = 1, size: tuple[int, int] | None = (320, 240),
                  voxel_size: float = 0.02, truncation: tuple[float, float] = (-0.04, 0.1),
                  depth_max: float = 4.0, docs_dir: str | Path | None = None, progress: bool = True,
-                 log: Callable[[str], None] | None = print) -> dict[str, Any]:
+                 log: Callable[[str], None] | None = print,
+                 models: dict[str, str | Path] | None = None) -> dict[str, Any]:
     """Table 1 of the paper on ``sequences`` (``sdfcodec eval``).
 
     Parameters
@@ -362,6 +373,9 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
         Also write ``eval.md``, ``eval.json`` and the pictures there (``docs/``).
     progress : bool
         Rich progress bars. ``log``: a function taking status lines (None: quiet).
+    models : dict, optional
+        Model files for rows by key, e.g. ``{"ae-32": "ae-32.npz"}``, used instead of the shipped models (rows
+        with no shipped model, such as ae-32 and ae-128, need one).
 
     Returns
     -------
@@ -382,13 +396,14 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
     codecs, skipped = {}, {}
     for k in keys:
         try:
-            codecs[k] = build_codec(METHODS[k])
+            codecs[k] = build_codec(METHODS[k], (models or {}).get(k))
         except Exception as exc:  # noqa: BLE001 - optional plugins/models: report why, go on
             skipped[k] = f"{type(exc).__name__}: {exc}"
             say(f"skipping {k}: {skipped[k]}")
     results: dict[str, Any] = {"sequences": {}, "skipped": skipped, "settings": {
         "frames": frames, "stride": stride, "size": list(size) if size else None, "voxel_size": voxel_size,
-        "truncation": list(truncation), "depth_max": depth_max, "methods": keys}}
+        "truncation": list(truncation), "depth_max": depth_max, "methods": keys,
+        "models": {k: str(v) for k, v in (models or {}).items()}}}
     slices: dict[str, dict[str, np.ndarray]] = {}
     for spec in sequences:
         path = resolve_sequence(spec, out / "sequences", frames=frames, size=size)

@@ -74,3 +74,21 @@ def test_track_command_lazy_and_dense(tiny_eval, tmp_path):
                                                 abs=1e-3)
     with pytest.raises(InvalidValueError, match="start"):
         track_command(raw, seq_path, tmp_path / "x.txt", start="nowhere", progress=False)
+
+
+def test_rows_take_model_files(tmp_path):
+    """A row's codec can come from a model file (ae-32 and ae-128 are not shipped); a file of another codec or
+    size is refused."""
+    import sdfcodec
+    from sdfcodec.evaluation import build_codec
+    from sdfcodec.testing import analytic_blocks
+
+    pca = sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(100, seed=1))
+    path = sdfcodec.save_model(pca, tmp_path / "pca-32.npz")
+    got = build_codec(METHODS["pca-32"], path)
+    x = analytic_blocks(5, seed=2)
+    assert np.array_equal(got.encode(x), pca.encode(x))
+    with pytest.raises(InvalidValueError, match="not the ae-32"):
+        build_codec(METHODS["ae-32"], path)
+    with pytest.raises(InvalidValueError, match="not the pca-64"):
+        build_codec(METHODS["pca-64"], path)
