@@ -19,6 +19,8 @@ metadata names is checked against ``max_decode_bytes`` before anything that larg
 
 from __future__ import annotations
 
+import asyncio
+import collections
 import hashlib
 import itertools
 import json
@@ -29,6 +31,7 @@ import shutil
 import warnings
 import weakref
 from importlib import metadata
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
@@ -37,14 +40,15 @@ import torch
 import zarr
 import zarr.abc.store
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCodec
+from zarr.core.sync import sync as zarr_sync
 
 from . import __version__, _atomic
 from ._validate import BLOCK, as_float_tensor, empty
-from .blocks import check_truncation, denormalise, normalise, split_blocks
+from .blocks import check_truncation, normalise, split_blocks
 from .codec import Codec
 from .errors import (ChecksumError, FormatError, InvalidValueError, MapExistsError, MapNotFoundError,
                      ReadOnlyError, SDFCodecError, SDFCodecWarning, ShapeError, VersionError)
-from .header import (FORMAT_VERSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
+from .header import (KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
                      Extension, MapHeader, Provenance, Truncation, now_iso, parse_header)
 from .registry import codec_package, get_codec_class
 
@@ -192,6 +196,45 @@ class _PinnedStore(zarr.storage.LocalStore):
         return await super().exists(key)
 
 
+class _DeviceFeed:
+    """Brings a group's host codes to the decode device (the staging step of the read pipeline).
+
+    ``stage`` runs in the worker thread that fetched the group; ``ready`` in the thread that decodes it. On CUDA,
+    ``stage`` copies the codes into pinned (page-locked) host memory and starts a non-blocking host-to-device
+    copy on a side stream, recording an event; ``ready`` makes the decoding stream wait for that event (on the
+    GPU, not the host) and tells the caching allocator that the decoding stream uses the tensor. The copy of
+    the next group thus overlaps the decode of the current one. On the CPU the codes are used as they are.
+    """
+
+    def __init__(self, dev: torch.device):
+        self.cuda = dev.type == "cuda"
+        if self.cuda and dev.index is None:
+            dev = torch.device("cuda", torch.cuda.current_device())
+        self.dev = dev
+        self.stream = torch.cuda.Stream(device=dev) if self.cuda else None
+
+    def stage(self, codes: np.ndarray) -> tuple[torch.Tensor, Any, Any]:
+        t = torch.from_numpy(codes)
+        if not self.cuda:
+            return (t if self.dev.type == "cpu" else t.to(self.dev)), None, None
+        host = t.pin_memory()
+        with torch.cuda.device(self.dev), torch.cuda.stream(self.stream):
+            on_dev = host.to(self.dev, non_blocking=True)
+            done = torch.cuda.Event()
+            done.record(self.stream)
+        # ``host`` travels with the group until ``ready``: the pinned buffer outlives its copy (the caching host
+        # allocator would also hold it until the copy's event, but nothing depends on that)
+        return on_dev, done, host
+
+    def ready(self, staged: tuple[torch.Tensor, Any, Any]) -> torch.Tensor:
+        on_dev, done, _host = staged
+        if done is not None:
+            current = torch.cuda.current_stream(self.dev)
+            current.wait_event(done)
+            on_dev.record_stream(current)
+        return on_dev
+
+
 class Map:
     """An open sdfcodec map. Get one from :func:`open_map` (read) or :func:`create_map` (write).
 
@@ -210,6 +253,7 @@ class Map:
         self._closed = False
         self._close_on_exit = False
         self._chunk_bytes: dict[str, int] = {}
+        self._reopen: tuple[Any, dict | None] | None = None  # (path, URL or store; storage options): see to_dask
         self._check_arrays()
 
     # -- geometry -------------------------------------------------------------------------------------
@@ -318,6 +362,40 @@ class Map:
     def _read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
         """Read ``arr[sel]``; a chunk that fails its checksum or decompression becomes a ChecksumError
         naming the chunk."""
+        self._check_read(arr, sel)
+        try:
+            return np.asarray(arr[sel])
+        except Exception as exc:  # find the chunk(s) to name: slow path, errors only
+            raise self._chunk_error(arr, sel, exc) from exc
+
+    def _read_many(self, arr: zarr.Array, sels: Sequence[tuple]) -> list[np.ndarray]:
+        """Read ``arr[sel]`` for every selection concurrently (one batch of Zarr's async I/O: the chunks are
+        fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`_read`."""
+        if len(sels) == 1:
+            return [self._read(arr, sels[0])]
+        for sel in sels:
+            self._check_read(arr, sel)
+        aarr = arr.async_array
+
+        async def gather():
+            return await asyncio.gather(*(aarr.getitem(sel) for sel in sels), return_exceptions=True)
+
+        out = []
+        for sel, res in zip(sels, zarr_sync(gather())):
+            if isinstance(res, BaseException):
+                if not isinstance(res, Exception):
+                    raise res
+                raise self._chunk_error(arr, sel, res) from res
+            out.append(np.asarray(res))
+        return out
+
+    def _chunk_error(self, arr: zarr.Array, sel: tuple, exc: Exception) -> Exception:
+        return ChecksumError(f"{self.location}: {self._bad_chunks(arr, sel)} of array '{arr.path}' is "
+                             f"corrupted or truncated ({type(exc).__name__}: {exc}); the map cannot be "
+                             "trusted there: restore it from a copy or re-encode")
+
+    def _check_read(self, arr: zarr.Array, sel: tuple) -> None:
+        """The limits on one read (module docstring): open map, chunk size, number of chunks touched."""
         if self._closed:
             raise InvalidValueError(f"{self.location}: the map was closed; open it again with sdfcodec.open_map")
         chunk_bytes = self._chunk_bytes.get(arr.path, 0)
@@ -333,12 +411,6 @@ class Map:
             raise InvalidValueError(f"{self.location}: reading array '{arr.path}' there touches {n_chunks} chunks, above "
                                     f"the limit of {max_chunks} for max_decode_bytes={self.max_decode_bytes}; read a "
                                     "smaller region, or raise max_decode_bytes if the map is genuine")
-        try:
-            return np.asarray(arr[sel])
-        except Exception as exc:  # find the chunk(s) to name: slow path, errors only
-            raise ChecksumError(f"{self.location}: {self._bad_chunks(arr, sel)} of array '{arr.path}' is "
-                                f"corrupted or truncated ({type(exc).__name__}: {exc}); the map cannot be "
-                                "trusted there: restore it from a copy or re-encode") from exc
 
     def _bad_chunks(self, arr: zarr.Array, sel: tuple) -> str:
         # probe chunk by chunk, but boundedly: naming five is enough, and probing is one request per chunk
@@ -359,11 +431,7 @@ class Map:
         """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
         if self._writer is not None:
             return self._writer.state.copy()
-        state = self._read(self._state, (slice(None),) * 3)
-        if state.size and state.max() > BlockState.CODED:
-            raise FormatError(f"{self.location}: state array holds reserved value {int(state.max())} "
-                              "(valid: 0 unobserved, 1 empty, 2 coded)")
-        return state
+        return self._valid_states(self._read(self._state, (slice(None),) * 3))
 
     def count_states(self) -> dict[str, int]:
         counts = np.bincount(self.block_states().ravel(), minlength=3)
@@ -484,60 +552,240 @@ class Map:
                                     f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
                                     " GiB; read a smaller region, use iter_codes(), or raise max_decode_bytes")
         codes = self._read(self._codes, (*box, slice(0, level)))
-        origin = np.array([s.start for s in box], dtype=np.int64)
-        out = codes[tuple(local.T)].astype(np.float32)
+        coords = local + np.array([s.start for s in box], dtype=np.int64)
+        return coords, self._finite_codes(coords, codes[tuple(local.T)])
+
+    def _finite_codes(self, coords: np.ndarray, codes: np.ndarray) -> np.ndarray:
+        """``codes`` as float32, refusing NaN/Inf (a corrupted but checksum-valid chunk) by naming a block."""
+        out = codes.astype(np.float32, copy=False)
         finite = np.isfinite(out).all(axis=1)
         if not finite.all():
-            bad = local[~finite] + origin
+            bad = coords[~finite]
             raise FormatError(f"{self.location}: {len(bad)} coded block(s) hold NaN/Inf code values, e.g. block "
                               f"{tuple(int(v) for v in bad[0])}; the map is corrupted there (`sdfcodec verify` lists "
                               "them): restore it from a copy or re-encode those blocks")
-        return local + origin, out
+        return out
 
-    def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8
-                   ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """Yield ``(coords (n, 3) int64, codes (n, L) float32)`` for every coded block, a few chunks of the block
-        grid at a time (bounded memory); only the chunks holding the first ``L = level or D`` elements are read."""
-        lv = self._level(level)
+    # -- the decode-on-read pipeline ------------------------------------------------------------------
+    # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
+    # to_dask, the tracker's map field): the chunks of the code array that hold coded blocks of a block box are
+    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently, through
+    # Zarr's async I/O, which also decompresses them off the calling thread) and stages their codes for the
+    # device (pinned host memory + an asynchronous copy on CUDA) while the calling thread decodes the current
+    # group in one batched call.
+
+    def _grid(self) -> tuple[int, int, int]:
+        return self._writer.grid if self._writer is not None else self.grid_blocks
+
+    def _states_in(self, box: tuple[slice, slice, slice]) -> np.ndarray:
+        """Block states of a block box: only the state chunks it touches are read."""
+        if self._writer is not None:
+            return self._writer.state[box]
+        return self._valid_states(self._read(self._state, box))
+
+    def _valid_states(self, state: np.ndarray) -> np.ndarray:
+        if state.size and state.max() > BlockState.CODED:
+            raise FormatError(f"{self.location}: state array holds reserved value {int(state.max())} "
+                              "(valid: 0 unobserved, 1 empty, 2 coded)")
+        return state
+
+    def _chunk_groups(self, box: tuple[slice, slice, slice], states: np.ndarray, level: int, *,
+                      batch_blocks: int | None = None, chunks_per_group: int | None = None) -> list[np.ndarray]:
+        """Chunk indices ``(G, 3)`` (of the block axes of ``codes``) holding coded blocks inside ``box``, in grid
+        order, grouped: ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold
+        that many coded blocks. A group never holds more than ``max_decode_bytes`` of codes and decoded blocks.
+        A sparse map (or a hostile, huge and empty grid) costs what it stores, not its extent."""
+        spec = self.header.codes
+        cb = spec.chunk_blocks
+        b0 = np.array([s.start for s in box], dtype=np.int64)
+        n = np.array(states.shape, dtype=np.int64)
+        if not n.all():
+            return []
+        lead = b0 % cb
+        cn = -(-(lead + n) // cb)
+        coded = np.zeros(tuple(cn * cb), dtype=bool)
+        coded[tuple(slice(int(a), int(a + m)) for a, m in zip(lead, n))] = states == BlockState.CODED
+        counts = coded.reshape(cn[0], cb, cn[1], cb, cn[2], cb).sum(axis=(1, 3, 5), dtype=np.int64)
+        idx = np.argwhere(counts)
+        if not len(idx):
+            return []
+        per_block = counts[tuple(idx.T)]
+        idx += b0 // cb
+        read = -(-level // spec.chunk_code) * spec.chunk_code * np.dtype(spec.dtype).itemsize
+        cap = max(1, self.max_decode_bytes // (cb ** 3 * (read + 4 * BLOCK ** 3)))
+        if chunks_per_group is not None:
+            cap, target = min(cap, chunks_per_group), None
+        else:
+            target = batch_blocks
+        groups, start, acc = [], 0, 0
+        for i, c in enumerate(per_block.tolist()):
+            acc += c
+            if (target is not None and acc >= target) or i + 1 - start >= cap:
+                groups.append(idx[start:i + 1])
+                start, acc = i + 1, 0
+        if start < len(idx):
+            groups.append(idx[start:])
+        return groups
+
+    def _fetch_group(self, chunks: np.ndarray, b0: np.ndarray, b1: np.ndarray, states: np.ndarray, level: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Codes ``(n, level)`` float32 and block coords ``(n, 3)`` of the coded blocks of the given chunks
+        inside the block box ``[b0, b1)`` (``states`` covers that box): the chunks are read concurrently."""
         cb = self.header.codes.chunk_blocks
-        states = self.block_states()
-        coded = np.argwhere(states == BlockState.CODED)
-        # only the chunks that hold coded blocks, in grid order: a sparse map (or a hostile, huge and empty
-        # grid) costs what it stores, not its extent
-        chunks = np.unique(coded // cb, axis=0) if len(coded) else np.zeros((0, 3), np.int64)
-        pending_c, pending_z = [], []
-        for n, (x, y, z) in enumerate((chunks * cb).tolist(), 1):
-            box = (slice(x, x + cb), slice(y, y + cb), slice(z, z + cb))
-            coords, codes = self._codes_in(box, lv, states)
-            pending_c.append(coords)
-            pending_z.append(codes)
-            if n % chunks_per_batch == 0:
-                yield np.concatenate(pending_c), np.concatenate(pending_z)
-                pending_c, pending_z = [], []
-        if pending_c:
-            yield np.concatenate(pending_c), np.concatenate(pending_z)
+        sels, locs, los = [], [], []
+        for c in chunks:
+            lo, hi = np.maximum(c * cb, b0), np.minimum(c * cb + cb, b1)
+            sub = states[tuple(slice(int(a), int(b)) for a, b in zip(lo - b0, hi - b0))]
+            sels.append((*(slice(int(a), int(b)) for a, b in zip(lo, hi)), slice(0, level)))
+            locs.append(np.argwhere(sub == BlockState.CODED))
+            los.append(lo)
+        arrays = self._read_many(self._codes, sels)
+        codes = np.concatenate([a[tuple(loc.T)] for a, loc in zip(arrays, locs)])
+        coords = np.concatenate([loc + lo for loc, lo in zip(locs, los)]).astype(np.int64, copy=False)
+        return coords, self._finite_codes(coords, codes)
+
+    def _fetch_stream(self, box: tuple[slice, slice, slice], level: int, *, states: np.ndarray | None = None,
+                      stage: Callable[[np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
+                      chunks_per_group: int | None = None, prefetch: int = 2) -> Iterator[tuple[np.ndarray, Any]]:
+        """Yield ``(coords, codes)`` per group of chunks (see :meth:`_chunk_groups`), ``codes`` passed through
+        ``stage`` in the fetching thread. Up to ``prefetch`` further groups are fetched (and staged) by a
+        thread pool while the caller works on the one yielded; with one group, everything runs inline."""
+        if isinstance(prefetch, bool) or not isinstance(prefetch, (int, np.integer)) or prefetch < 0:
+            raise InvalidValueError(f"prefetch must be an int >= 0 (groups read ahead), got {prefetch!r}")
+        for name, v in (("batch_blocks", batch_blocks), ("chunks_per_batch", chunks_per_group)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+                raise InvalidValueError(f"{name} must be an int >= 1, got {v!r}")
+        if states is None:
+            states = self._states_in(box)
+        groups = self._chunk_groups(box, states, level, batch_blocks=batch_blocks, chunks_per_group=chunks_per_group)
+        b0 = np.array([s.start for s in box], dtype=np.int64)
+        b1 = b0 + np.array(states.shape, dtype=np.int64)
+
+        def job(chunks: np.ndarray) -> tuple[np.ndarray, Any]:
+            coords, codes = self._fetch_group(chunks, b0, b1, states, level)
+            return coords, (stage(codes) if stage is not None else codes)
+
+        if len(groups) <= 1 or prefetch == 0:
+            for g in groups:
+                yield job(g)
+            return
+        pool = ThreadPoolExecutor(max_workers=int(prefetch), thread_name_prefix="sdfcodec-read")
+        pending: collections.deque = collections.deque()
+        todo = iter(groups)
+        finished = False
+        try:
+            for g in itertools.islice(todo, int(prefetch)):
+                pending.append(pool.submit(job, g))
+            while pending:
+                result = pending.popleft().result()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.append(pool.submit(job, nxt))
+                yield result
+            finished = True
+        finally:
+            # abandoned early (an error, a consumer that stopped): do not wait for reads nobody will use
+            for f in pending:
+                f.cancel()
+            pool.shutdown(wait=finished, cancel_futures=True)
+
+    def _decode_stream(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, **kw
+                       ) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+        """The decode path: ``(coords (n, 3), normalised core decodes (n, 16, 16, 16) on dev)`` per group of
+        chunks, one batched ``decode_core`` call per group (keywords: see :meth:`_fetch_stream`)."""
+        codec = self.codec  # loaded (and its state checked) here, before any thread starts
+        feed = _DeviceFeed(dev)
+        for coords, staged in self._fetch_stream(box, level, stage=feed.stage, **kw):
+            yield coords, self._decoded(codec.decode_core(feed.ready(staged)))
+
+    def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
+                   ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Yield ``(coords (n, 3) int64, codes (n, L) float32)`` for every coded block, ``chunks_per_batch``
+        chunks of the block grid at a time (bounded memory), in grid order; only the chunks holding the first
+        ``L = level or D`` elements are read, and the next ``prefetch`` batches are read ahead concurrently."""
+        lv = self._level(level)
+        box = tuple(slice(0, n) for n in self._grid())
+        yield from self._fetch_stream(box, lv, chunks_per_group=chunks_per_batch, batch_blocks=None,
+                                      prefetch=prefetch)
+
+    def iter_decoded(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
+                     device: str | torch.device | None = None, batch_blocks: int = 8192, prefetch: int = 2
+                     ) -> Iterator[tuple[np.ndarray, Any]]:
+        """Decode on read: yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) float32 metres)`` for every coded
+        block touching ``region`` (default: the whole map), a group of chunks at a time, in grid order.
+
+        This is the pipeline every decoding reader uses (:meth:`iter_blocks`, :meth:`decode_region`,
+        :meth:`to_dask`): the chunks holding coded blocks are grouped (consecutive chunks until they hold about
+        ``batch_blocks`` blocks, capped by ``max_decode_bytes``); while the calling thread decodes one group
+        in a single batched call, ``prefetch`` worker threads fetch the next groups (each group's chunks
+        concurrently through Zarr's async I/O: local files, HTTP or S3 alike), decompress them and, when
+        ``device`` is CUDA, copy their codes into pinned host memory and start the host-to-device copy on a
+        side stream (non-blocking), so transfers overlap decoding. Empty and unobserved blocks are not
+        yielded (they decode to ``d_max``).
+
+        Args:
+            region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open voxels, or closed metres with ``units="m"``;
+                every coded block with a voxel in it is yielded, whole.
+            level: decode only the first ``level`` code elements (prefix-ordered codecs).
+            device: ``None``: decode on the CPU and yield numpy arrays; otherwise yield torch tensors on it.
+            batch_blocks: about how many blocks one decode call gets. prefetch: groups read ahead (0: none).
+
+        Values are metres, exactly as :meth:`iter_blocks` and :meth:`decode_region` give them; codecs with a
+        decode halo see their neighbours (decoded chunk by chunk, each with its neighbourhood).
+        """
+        lv = self._level(level)
+        box = self._block_range(self._block_box(region, units))
+        dev = torch.device(device) if device is not None else torch.device("cpu")
+        for coords, blocks in self._decoded_blocks(box, lv, dev, batch_blocks=batch_blocks, prefetch=prefetch):
+            yield coords, blocks if device is not None else blocks.numpy()
+
+    def _decoded_blocks(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, **kw
+                        ) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+        if not self.codec.halo:
+            for coords, core in self._decode_stream(box, level, dev, **kw):
+                yield coords, self._to_metres(core)
+            return
+        # a halo codec's blocks need their neighbours' core decodes: chunk by chunk, decode the bounding box of
+        # its coded blocks with context (the same pipeline, reading the neighbouring chunks too)
+        states = self._states_in(box)
+        b0 = np.array([s.start for s in box], dtype=np.int64)
+        cb = self.header.codes.chunk_blocks
+        for (chunk,) in self._chunk_groups(box, states, level, chunks_per_group=1):
+            lo, hi = np.maximum(chunk * cb, b0), np.minimum(chunk * cb + cb, b0 + states.shape)
+            sub = states[tuple(slice(int(a), int(b)) for a, b in zip(lo - b0, hi - b0))]
+            coords = np.argwhere(sub == BlockState.CODED) + lo
+            vlo, vhi = coords.min(axis=0) * BLOCK, (coords.max(axis=0) + 1) * BLOCK
+            vol = self._decode_voxels(vlo, vhi, level, dev)
+            view = _block_view(vol, [(h - l) // BLOCK for l, h in zip(vlo, vhi)])
+            rel = torch.from_numpy(coords - vlo // BLOCK).to(dev)
+            yield coords, view[rel[:, 0], rel[:, 1], rel[:, 2]]
 
     def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
-                    chunks_per_batch: int = 8) -> Iterator[tuple[np.ndarray, Any]]:
-        """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a few chunks
-        of the block grid at a time (bounded memory). ``blocks`` is numpy, or a tensor on ``device``.
-        Codecs with a decode halo get their neighbours' context, exactly as in :meth:`decode_region`."""
+                    chunks_per_batch: int | None = None) -> Iterator[tuple[np.ndarray, Any]]:
+        """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a group of
+        chunks at a time (bounded memory): :meth:`iter_decoded` over the whole map. ``blocks`` is numpy, or a
+        tensor on ``device``. ``chunks_per_batch``: fixed number of chunks per group (default: about 8192
+        blocks per group). Codecs with a decode halo get their neighbours' context, as in :meth:`decode_region`."""
+        lv = self._level(level)
+        box = tuple(slice(0, n) for n in self._grid())
         dev = torch.device(device) if device is not None else torch.device("cpu")
-        halo = self.codec.halo
-        for coords, codes in self.iter_codes(level=level, chunks_per_batch=1 if halo else chunks_per_batch):
-            if halo:
-                lo, hi = coords.min(axis=0) * BLOCK, (coords.max(axis=0) + 1) * BLOCK
-                vol = self._decode_voxels(lo, hi, self._level(level), dev)
-                view = _block_view(vol, [(h - l) // BLOCK for l, h in zip(lo, hi)])
-                rel = torch.from_numpy(coords - lo // BLOCK).to(dev)
-                blocks = view[rel[:, 0], rel[:, 1], rel[:, 2]]
-            else:
-                blocks = self._to_metres(self._decoded(self.codec.decode(torch.from_numpy(codes).to(dev))))
+        kw = {} if chunks_per_batch is None else {"chunks_per_group": chunks_per_batch, "batch_blocks": None}
+        for coords, blocks in self._decoded_blocks(box, lv, dev, **kw):
             yield coords, blocks if device is not None else blocks.numpy()
+
+    def to_dask(self, level: int | None = None):
+        """A lazy dask array of the decoded map: shape :attr:`shape_voxels`, float32 metres (``d_max`` where no
+        block is coded), one dask chunk per chunk of the code array (``16 * chunk_blocks`` voxels per axis),
+        each decoded on demand by :meth:`decode_region`. It pickles (a worker process reopens the map by its
+        path or URL), so it computes on a ``dask.distributed`` cluster. See :func:`sdfcodec.scale.map_to_dask`."""
+        from .scale import map_to_dask
+
+        return map_to_dask(self, level=level)
 
     def _decoded(self, v: torch.Tensor) -> torch.Tensor:
         """Refuse NaN/Inf out of the codec (a corrupted or hostile learned state) rather than return them."""
-        if not bool(torch.isfinite(v).all()):
+        # fast path: one reduction (NaN/Inf propagate into the sum); the exact test only when it is not finite
+        if not bool(torch.isfinite(v.sum())) and not bool(torch.isfinite(v).all()):
             raise FormatError(f"{self.location}: codec {self.header.codec.id!r} decoded NaN/Inf values; its learned "
                               "state in the map is broken: restore the map from a copy or re-encode it")
         return v
@@ -546,8 +794,7 @@ class Map:
         d_min, d_max = self.truncation
         return v.mul_(d_max - d_min).add_(d_min)
 
-    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device,
-                    batch_size: int = 65536) -> torch.Tensor:
+    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device) -> torch.Tensor:
         """Normalised core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the
         grid: 1.0 (free space) wherever no coded block is."""
         grid_hi = np.asarray(self.grid_blocks) * BLOCK
@@ -555,16 +802,13 @@ class Map:
         if np.any(chi <= clo):
             return empty(tuple(int(n) for n in hi - lo), dev).fill_(1.0)
         box = self._block_range(tuple(zip(clo.tolist(), chi.tolist())))
-        coords, codes = self._codes_in(box, level)
         b0 = np.array([s.start for s in box])
         nb = [s.stop - s.start for s in box]
         tmp = empty(tuple(n * BLOCK for n in nb), dev).fill_(1.0)
         view = _block_view(tmp, nb)
-        local = torch.from_numpy(coords - b0).to(dev)
-        for i in range(0, len(coords), batch_size):
-            idx = local[i:i + batch_size]
-            core = self.codec.decode_core(torch.from_numpy(codes[i:i + batch_size]).to(dev))
-            view[idx[:, 0], idx[:, 1], idx[:, 2]] = self._decoded(core)
+        for coords, core in self._decode_stream(box, level, dev):
+            idx = torch.from_numpy(coords - b0).to(dev)
+            view[idx[:, 0], idx[:, 1], idx[:, 2]] = core
         src = tuple(slice(int(a - o * BLOCK), int(b - o * BLOCK)) for a, b, o in zip(clo, chi, b0))
         if np.array_equal(clo, lo) and np.array_equal(chi, hi):
             return tmp[src]  # inside the grid (always, without a halo): a view, no copy
@@ -672,8 +916,16 @@ class Map:
 
         The map's extent grows to hold it (``shape_voxels`` records the true extent; the far faces are padded
         with free space). Values outside the truncation are clipped with a warning; NaN/Inf are refused.
+
+        A dask array (e.g. ``dask.array.from_zarr`` of a volume larger than memory) is encoded chunk by chunk by
+        dask's scheduler, or a ``dask.distributed`` cluster if a client is active, each task writing its chunks
+        of codes into this map's temporary directory (:func:`sdfcodec.scale.write_volume_dask`).
         """
         w = self._w()
+        if _is_dask_array(volume):
+            from .scale import write_volume_dask
+
+            return write_volume_dask(self, volume, offset=offset)
         vol = _check_volume(volume, self.truncation)
         off = np.asarray(offset, dtype=np.int64)
         if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
@@ -751,6 +1003,7 @@ class Map:
         self._writer = None
         reopened = open_map(final, max_decode_bytes=self.max_decode_bytes)
         self._group, self.header, self.location = reopened._group, reopened.header, reopened.location
+        self._reopen = reopened._reopen
         self._check_arrays()
 
     def abort(self) -> None:
@@ -798,6 +1051,10 @@ def _dir_bytes(path: str) -> int | None:
     if not p.is_dir():
         return None
     return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+
+def _is_dask_array(x: Any) -> bool:
+    return type(x).__module__.split(".")[0] == "dask" and hasattr(x, "chunks") and hasattr(x, "dask")
 
 
 def _check_coords(coords: Any) -> np.ndarray:
@@ -1095,6 +1352,7 @@ def _writing_map(group: zarr.Group, header: MapHeader, location: str, codec: Cod
     m = Map.__new__(Map)
     m._group, m.header, m.location, m.max_decode_bytes, m._codec = group, header, location, max_decode_bytes, codec
     m._writer, m._closed, m._close_on_exit, m._chunk_bytes = writer, False, False, {}
+    m._reopen = None
     m._codes = group["codes"]
     return m
 
@@ -1203,7 +1461,11 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
     except Exception as e:
         raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
     header = parse_header(raw, where=loc)
-    return Map(group, header, loc, max_decode_bytes=max_decode_bytes)
+    m = Map(group, header, loc, max_decode_bytes=max_decode_bytes)
+    inner = store._store if isinstance(store, _GuardStore) else store
+    m._reopen = (path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
+                 str(inner._path) if isinstance(inner, _PinnedStore) else loc, storage_options)
+    return m
 
 
 def _block_view(vol: torch.Tensor, nb) -> torch.Tensor:
