@@ -547,7 +547,7 @@ def _figures(results: dict, slices: dict, fig_dir: Path, truncation) -> list[Pat
         plt.close(fig)
         paths.append(p)
     for name, sl in slices.items():
-        show = [k for k in ("original", "blur-9", "pca-128", "pca-64", "ae-64") if k in sl][:4]
+        show = [k for k in ("original", "blur-9", "pca-64", "ae-64", "pca-128") if k in sl][:4]  # the paper's Fig. 5
         if not show:
             continue
         fig, ax = plt.subplots(1, len(show), figsize=(3.2 * len(show), 3.4))
