@@ -1,0 +1,132 @@
+"""examples/rate_distortion.py: its --quick path runs on a small synthetic map, and what it measures holds up
+against expectations computed here independently (ZFP's error bound, DCT losslessness and Parseval, bytes on
+disk, float16 storage, int8 quantisation step)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def rd():
+    spec = importlib.util.spec_from_file_location("example_rate_distortion", ROOT / "examples" / "rate_distortion.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def quick(rd, tmp_path_factory):
+    work = tmp_path_factory.mktemp("rd")
+    res = rd.main(["--quick", "--workdir", str(work), "--out", str(work)])
+    return rd, work, res
+
+
+@pytest.fixture(scope="module")
+def blocks(rd):
+    coords, tsdf = rd.synthetic_blocks(True)
+    v = rd.normalised(tsdf)
+    return np.ascontiguousarray(v[rd.nonempty_mask(v)])
+
+
+def test_quick_writes_outputs(quick):
+    rd, work, res = quick
+    saved = json.loads((work / "rate-distortion.json").read_text())
+    assert saved["points"] == json.loads(json.dumps(res["points"]))
+    assert (work / "rate-distortion.png").stat().st_size > 10_000
+    md = (work / "rate-distortion.md").read_text()
+    assert "int8" in md and "simulated" in md and "64:1" in md
+    kinds = {p["codec"] for p in res["points"]}
+    assert {"pca-16", "pca-64", "zfp fixed-rate", "zfp fixed-accuracy", "dct float16", "blosc float16 raw"} <= kinds
+    for p in res["points"]:
+        assert set(p) >= {"codec", "setting", "bytes_per_block", "mse_voxel", "sse_block", "dataset"}
+        assert p["sse_block"] == pytest.approx(4096 * p["mse_voxel"], rel=1e-9)
+        assert p["bytes_per_block"] > 0 and p["mse_voxel"] >= 0
+    assert res["wall_s"] > 0 and len(res["load_before"]) == 3
+
+
+def test_map_bytes_match_disk(quick):
+    """The bytes counted per map are the files on disk: codes + state + codec state + metadata = du."""
+    rd, work, res = quick
+    maps = [p for p in res["points"] if p["kind"] == "map"]
+    assert len(maps) == 4  # pca-16, pca-64 x float32, float16
+    for p in maps:
+        path = work / p["map"]
+        total = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
+        b = p["map_bytes"]
+        assert b["total"] == total and b["other"] == 0
+        assert b["codes"] + b["state"] + b["codec_state"] + b["metadata"] == total
+        assert p["bytes_per_block"] * p["blocks"] == pytest.approx(b["codes"] + b["state"])
+        # the codec state is the PCA basis (k x 4096), mean and variances, at least their raw float32 bytes
+        assert b["codec_state"] >= 4 * (p["code_size"] * 4096 + 4096) * 0.5
+    # float16 codes take about half the bytes of float32 ones for the same codec
+    for k in (16, 64):
+        f32 = next(p for p in maps if p["codec"] == f"pca-{k}" and p["setting"] == "float32")
+        f16 = next(p for p in maps if p["codec"] == f"pca-{k}" and p["setting"] == "float16")
+        assert 0.35 < f16["bytes_per_block"] / f32["bytes_per_block"] < 0.65
+        assert f16["mse_voxel"] >= f32["mse_voxel"] * (1 - 1e-3)
+
+
+def test_map_error_matches_codec(quick, blocks):
+    """The error read back from the float32 map is the codec's own round-trip error on the same blocks."""
+    from sdfcodec.models import default_codec
+
+    rd, work, res = quick
+    c = default_codec("pca", 64)
+    y = np.asarray(c.decode(c.encode(blocks)))
+    mse = float(((y.astype(np.float64) - blocks) ** 2).mean())
+    p = next(p for p in res["points"] if p["codec"] == "pca-64" and p["setting"] == "float32")
+    assert p["blocks"] == len(blocks)
+    assert p["mse_voxel"] == pytest.approx(mse, rel=1e-4)
+
+
+def test_zfp_bounds(rd, blocks):
+    for tol in (0.05, 0.005):
+        y, n = rd.zfp_roundtrip(blocks, tolerance=tol)
+        assert np.abs(y.astype(np.float64) - blocks).max() <= tol  # ZFP's fixed-accuracy guarantee
+    for rate in (0.25, 0.5):
+        y, n = rd.zfp_roundtrip(blocks, rate=rate)
+        assert (n == rate * 4096 / 8 + rd.ZFP_HEADER).all()  # fixed rate: payload exactly rate bits per value
+    with pytest.raises(ValueError):
+        rd.zfp_roundtrip(blocks[:1], rate=0.125)
+
+
+def test_dct(rd, blocks):
+    x = blocks.astype(np.float64)
+    # all 4096 coefficients as float16: orthonormal, so the error's L2 norm is at most float16's relative
+    # rounding (2^-11) times the block's norm, per block
+    y = rd.dct_truncate(blocks, 4096).astype(np.float64)
+    err = np.linalg.norm((y - x).reshape(len(x), -1), axis=1)
+    assert (err <= 2.0 ** -11 * np.linalg.norm(x.reshape(len(x), -1), axis=1) * 1.001 + 1e-6).all()
+    assert err.max() > 0  # float16 does round
+    # Parseval: keeping K float64 coefficients, the SSE is the energy of the dropped ones
+    from scipy.fft import dctn
+
+    c = dctn(x, axes=(1, 2, 3), norm="ortho").reshape(len(x), -1)
+    order = rd.dct_order()
+    assert sorted(order) == list(range(4096)) and order[0] == 0
+    for k in (64, 500):
+        y = rd.dct_truncate(blocks, k, dtype=np.float64).astype(np.float64)
+        sse = ((y - x) ** 2).reshape(len(x), -1).sum(1)
+        assert sse == pytest.approx((c[:, order[k:]] ** 2).sum(1), rel=1e-4, abs=1e-6)
+
+
+def test_int8_quantisation(rd):
+    rng = np.random.default_rng(0)
+    codes = (rng.normal(size=(200, 32)) * np.linspace(5, 0.1, 32)).astype(np.float32)
+    for per, axis in (("block", 1), ("component", 0)):
+        q, deq, scales = rd.quantise_int8(codes, per)
+        assert q.dtype == np.int8 and q.shape == codes.shape
+        span = codes.max(axis=axis, keepdims=True) - codes.min(axis=axis, keepdims=True)
+        # half a step of 1/255 of the range, plus float16 rounding of a per-block offset and scale
+        bound = span / 255 * (0.5 + (0.02 if per == "block" else 1e-3)) + (np.abs(codes).max(axis=axis, keepdims=True) * 2e-3 if per == "block" else 0)
+        assert (np.abs(deq - codes) <= bound).all()
+        assert scales.nbytes == (200 * 2 * 2 if per == "block" else 2 * 32 * 4)
