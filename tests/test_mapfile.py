@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import textwrap
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -17,21 +15,10 @@ import zarr
 import sdfcodec
 from sdfcodec import errors
 from sdfcodec.header import BlockState
-from sdfcodec.sdf import Box, Cylinder, Plane, Scene, Sphere, sample_volume
-from sdfcodec.testing import analytic_blocks
+from sdfcodec.sdf import sample_volume
+from sdfcodec.testing import analytic_blocks, analytic_scene
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
-
-
-def analytic_scene() -> Scene:
-    """Floor, wall, sphere, box and cylinder that do not overlap: exact distances everywhere."""
-    return Scene([
-        Plane((0, 0, 1), 0.1),
-        Plane((1, 0, 0), 0.05),
-        Sphere((0.6, 0.6, 0.5), 0.2),
-        Box((1.2, 0.4, 0.35), (0.15, 0.1, 0.2)),
-        Cylinder((1.5, 1.1, 0.45), 0.15, 0.3),
-    ])
 
 
 @pytest.fixture(scope="module")

@@ -21,22 +21,17 @@ import zarr
 
 import sdfcodec
 from sdfcodec import errors
-from sdfcodec.sdf import Box, Cylinder, Plane, Scene, Sphere, sample_volume
-from sdfcodec.testing import analytic_blocks
+from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
+from sdfcodec.testing import analytic_blocks, analytic_scene
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 D_MIN, D_MAX = TRUNC
 
 
-def scene() -> Scene:
-    return Scene([Plane((0, 0, 1), 0.1), Plane((1, 0, 0), 0.05), Sphere((0.6, 0.6, 0.5), 0.2),
-                  Box((1.2, 0.4, 0.35), (0.15, 0.1, 0.2)), Cylinder((1.5, 1.1, 0.45), 0.15, 0.3)])
-
-
 @pytest.fixture(scope="module")
 def volume() -> np.ndarray:
     # 90 x 70 x 45 voxels: not a multiple of 16 (padding) nor of a chunk (32 voxels with chunk_blocks=2)
-    return sample_volume(scene(), (90, 70, 45), VS, truncation=TRUNC)
+    return sample_volume(analytic_scene(), (90, 70, 45), VS, truncation=TRUNC)
 
 
 @pytest.fixture(scope="module")
@@ -246,7 +241,7 @@ def _files(root: Path) -> dict[str, int]:
 
 def test_remote_region_fetches_only_its_chunks(tmp_path):
     # the raw codec has no learned state: the map is its codes, as a dense archive's would be
-    vol = sample_volume(scene(), (192, 192, 48), VS, truncation=TRUNC)
+    vol = sample_volume(analytic_scene(), (192, 192, 48), VS, truncation=TRUNC)
     path = tmp_path / "x.sdfz"
     with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC,
                              chunk_blocks=2) as w:

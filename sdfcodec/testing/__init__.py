@@ -6,6 +6,6 @@
 """
 
 from ._check import check_codec, golden_dir_files
-from ._data import analytic_blocks
+from ._data import analytic_blocks, analytic_scene
 
-__all__ = ["check_codec", "analytic_blocks", "golden_dir_files"]
+__all__ = ["check_codec", "analytic_blocks", "analytic_scene", "golden_dir_files"]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..blocks import normalise
-from ..sdf import Box, Plane, Sphere, grid_points
+from ..sdf import Box, Cylinder, Plane, Scene, Sphere, grid_points
 
-__all__ = ["analytic_blocks"]
+__all__ = ["analytic_blocks", "analytic_scene"]
 
 
 def analytic_blocks(n: int, seed: int = 0, voxel_size: float = 0.02,
@@ -39,3 +39,10 @@ def analytic_blocks(n: int, seed: int = 0, voxel_size: float = 0.02,
         d = np.clip(sdf(pts), *truncation)
         out[i] = normalise(d, *truncation)
     return out
+
+
+def analytic_scene() -> Scene:
+    """A small exact scene for map tests: a floor (z = 0.1 m), a wall (x = 0.05 m), a sphere, a box and a
+    cylinder inside about 1.8 x 1.4 x 0.9 m. Sample it with :func:`sdfcodec.sdf.sample_volume`."""
+    return Scene([Plane((0, 0, 1), 0.1), Plane((1, 0, 0), 0.05), Sphere((0.6, 0.6, 0.5), 0.2),
+                  Box((1.2, 0.4, 0.35), (0.15, 0.1, 0.2)), Cylinder((1.5, 1.1, 0.45), 0.15, 0.3)])
