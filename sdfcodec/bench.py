@@ -40,7 +40,8 @@ from .errors import InvalidValueError
 from .registry import get_codec, get_codec_class
 from .testing import analytic_blocks
 
-__all__ = ["time_call", "bench_codec", "bench_codec_instance", "roofline_shapes", "PAPER_US_PER_BLOCK"]
+__all__ = ["time_call", "bench_codec", "bench_codec_instance", "bench_decode_on_read", "roofline_shapes",
+           "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
@@ -142,17 +143,87 @@ def _instance(codec_id: str, k: int) -> tuple[Codec, str | None]:
 
 
 def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, device: str = "cpu",
-                min_time: float = 0.2, progress: Callable[[str], None] | None = None) -> list[dict]:
+                min_time: float = 0.2, progress: Callable[[str], None] | None = None,
+                read_blocks: int = 0) -> list[dict]:
     """Encode/decode blocks/s of ``codec_id`` at each code size and batch, beside the numpy matmul roofline.
 
     Returns one record per (code_size, operation, batch) with ``codec``, ``code_size`` (the codec's actual
     code length), ``operation``, ``batch``, ``device``, ``blocks_per_s``, ``baseline``,
     ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block``; codecs with a benchmark hook (see
-    the module docstring) add ``roofline_shapes``, ``weights`` and ``torch_threads``.
+    the module docstring) add ``roofline_shapes``, ``weights`` and ``torch_threads``. With ``read_blocks > 0``,
+    each code size also gets a ``"decode-on-read"`` record (:func:`bench_decode_on_read` over a map of that
+    many blocks).
     """
     records = []
     for k in code_sizes:
         codec, weights = _instance(codec_id, k)
         records += bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights,
                                         name=codec_id, progress=progress)
+        if read_blocks > 0:
+            if progress:
+                progress(f"{codec_id}-{codec.code_size} decode-on-read {read_blocks} blocks")
+            records.append(bench_decode_on_read(codec, read_blocks, device=device, min_time=min_time,
+                                                name=codec_id, weights=weights))
     return records
+
+
+def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", min_time: float = 0.2,
+                         name: str | None = None, weights: str | None = None, prefetch: int = 2) -> dict:
+    """Decode on read: blocks/s of :meth:`sdfcodec.Map.iter_decoded` over a whole map of ``n_blocks`` coded
+    blocks on local disk (codes read, checksummed, decompressed, decoded to float32 metres), beside two
+    baselines timed in the same run: the numpy roofline of the decode's layer shapes (``baseline``) and the
+    codec's own decode of the same codes already in memory (``in_memory_decode_blocks_per_s``).
+
+    The map (float32 codes, default chunking) is written to a temporary directory and removed afterwards.
+    Returns one record with ``operation="decode-on-read"`` and ``batch=n_blocks``.
+    """
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from .mapfile import create_map, open_map
+
+    if n_blocks < 1:
+        raise InvalidValueError(f"n_blocks must be >= 1, got {n_blocks}")
+    d_min, d_max = -0.04, 0.1
+    data = analytic_blocks(512, seed=3)
+    side = int(np.ceil(n_blocks ** (1 / 3)))
+    coords = np.stack(np.unravel_index(np.arange(n_blocks), (side, side, side)), axis=1)
+    tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-bench-"))
+    try:
+        with create_map(tmp / "bench.sdfz", codec=codec, voxel_size=0.02, truncation=(d_min, d_max)) as m:
+            for i in range(0, n_blocks, 16384):
+                j = min(i + 16384, n_blocks)
+                blocks = np.concatenate([data] * -(-(j - i) // len(data)))[: j - i] * (d_max - d_min) + d_min
+                m.write_blocks(coords[i:j], blocks)
+        m = open_map(tmp / "bench.sdfz")
+        dev = None if device == "cpu" else torch.device(device)
+        sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
+
+        def read() -> None:
+            n = sum(len(c) for c, _ in m.iter_decoded(device=dev, prefetch=prefetch))
+            sync()
+            if n != n_blocks:  # the map reader lost or invented blocks: the timing would be meaningless
+                raise InvalidValueError(f"decode on read yielded {n} blocks of the {n_blocks} written")
+
+        t = time_call(read, min_time)
+        _, codes = m.read_codes()
+        z = torch.from_numpy(codes).to(device)
+        t_mem = time_call(lambda: (codec.decode(z), sync()), min_time)
+        shapes = roofline_shapes(codec, "decode")
+        tb = time_call(_roofline_fn(shapes, n_blocks), min_time)
+        code_bytes = sum(f.stat().st_size for f in (tmp / "bench.sdfz" / "codes").rglob("*") if f.is_file())
+        m.close()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    rec: dict[str, Any] = {
+        "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": "decode-on-read",
+        "batch": n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
+        "baseline": "numpy matmul of the layer shapes", "baseline_blocks_per_s": n_blocks / tb,
+        "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / n_blocks,
+        "in_memory_decode_blocks_per_s": n_blocks / t_mem, "ratio_to_in_memory_decode": t_mem / t,
+        "code_bytes_on_disk": code_bytes, "prefetch": prefetch, "torch_threads": torch.get_num_threads(),
+    }
+    if weights is not None:
+        rec["weights"] = weights
+    return rec

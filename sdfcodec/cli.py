@@ -617,9 +617,15 @@ def bench_cmd(
     batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4)."),
     device: str = typer.Option("cpu", "--device", help="Torch device."),
     quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (under 30 s)."),
+    read: Optional[int] = typer.Option(None, "--read", help="Blocks in the map timed for decode-on-read "
+                                       "(default 65536, --quick 8192; 0: skip)."),
     as_json: bool = typer.Option(False, "--json", help="Print records as JSON."),
 ) -> None:
     """Encode/decode throughput (blocks/s) beside numpy matrix products of the codec's shapes, same run.
+
+    Decode-on-read times a whole map on local disk read and decoded to float32 metres by Map.iter_decoded,
+    beside the same roofline and the codec's decode of the same codes in memory (JSON:
+    in_memory_decode_blocks_per_s).
 
     The baseline is the codec's "roofline": one (B,4096)x(4096,k) product for a linear codec (pca), or the
     layer shapes a codec declares (ae, parallel, sequential; see sdfcodec.bench). Those are timed with the
@@ -631,10 +637,13 @@ def bench_cmd(
     ks = [int(s) for s in sizes.split(",")]
     bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
                                                                [1, 16, 256, 1024, 4096, 16384, 65536])
+    n_read = (8192 if quick else 65536) if read is None else read
+    if n_read < 0:
+        _fail(f"--read must be >= 0, got {n_read}")
     with _progress() as prog:
-        task = prog.add_task("bench", total=len(ks) * len(bs) * 2, rate="")
+        task = prog.add_task("bench", total=len(ks) * (len(bs) * 2 + (n_read > 0)), rate="")
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2,
-                              progress=lambda s: prog.update(task, advance=1, description=s))
+                              progress=lambda s: prog.update(task, advance=1, description=s), read_blocks=n_read)
     if as_json:
         _print_json(records)
         return
@@ -642,6 +651,8 @@ def bench_cmd(
     if layered:
         lines: dict[tuple, str] = {}
         for r in records:
+            if "roofline_shapes" not in r:
+                continue
             lines.setdefault((r["code_size"], r["operation"]), f"code {r['code_size']} {r['operation']}: " + " + ".join(
                 f"(B,{m})x({m},{n})" for m, n in r["roofline_shapes"]))
             lines.setdefault((r["code_size"], "weights"), f"code {r['code_size']} weights: {r['weights']}")
@@ -650,12 +661,12 @@ def bench_cmd(
     else:
         table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)")
     for col in ("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper"):
-        table.add_column(col, justify="right")
+        table.add_column(col, justify="right", min_width=14 if col == "op" else None)
     for r in records:
         table.add_row(str(r["code_size"]), r["operation"], str(r["batch"]), f"{r['blocks_per_s']:,.0f}",
                       f"{r['baseline_blocks_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}",
                       f"{r['us_per_block']:.2f}", f"{PAPER_US_PER_BLOCK[0] / r['us_per_block']:,.0f}x")
-    out.print(table)
+    out.print(table, width=max(out.width, 100), crop=False)  # ~100 columns wide: never truncate figures
 
 
 @app.command("demo")

@@ -123,12 +123,20 @@ def test_codecs_listing():
 
 
 def test_bench_json_records():
-    r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--json")
+    r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--json")
     assert r.exit_code == 0, r.output
     recs = json.loads(r.stdout)
     assert {(x["operation"], x["batch"]) for x in recs} == {("encode", 1), ("decode", 1), ("encode", 64),
-                                                             ("decode", 64)}
+                                                             ("decode", 64), ("decode-on-read", 300)}
     assert all(x["blocks_per_s"] > 0 and x["baseline_blocks_per_s"] > 0 for x in recs)
+    read = next(x for x in recs if x["operation"] == "decode-on-read")
+    # 300 pca-32 codes of float32 were really stored and read: at least their compressed bytes (4 B x 32 each,
+    # Blosc-compressible, so bounded below loosely) and at most their raw size plus chunk overhead
+    assert 300 * 32 * 4 / 20 < read["code_bytes_on_disk"] < 300 * 32 * 4 * 2 + 4096
+    assert read["in_memory_decode_blocks_per_s"] > 0
+    assert read["ratio_to_in_memory_decode"] == pytest.approx(
+        read["blocks_per_s"] / read["in_memory_decode_blocks_per_s"], rel=1e-9)
+    assert run("bench", "--quick", "--read", "-1").exit_code != 0
 
 
 def test_encode_uses_shipped_model_by_default(volume_file, tmp_path):

@@ -368,7 +368,7 @@ def _bench_cli(*args: str):
 
     from sdfcodec.cli import app
 
-    res = CliRunner().invoke(app, ["bench", "--quick", *args])
+    res = CliRunner().invoke(app, ["bench", "--quick", "--read", "0", *args])
     assert res.exit_code == 0, res.output
     return res
 
