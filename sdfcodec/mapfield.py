@@ -271,11 +271,11 @@ class MapField:
                 if len(todo):
                     box = tuple(slice(int(a), int(b)) for a, b in zip(cl, ch))
                     all_c, all_z = self.map._codes_in(box, self.level, self._states)
-                    want = {tuple(t) for t in todo.tolist()}
-                    pick = np.array([tuple(t) in want for t in all_c.tolist()], dtype=bool)
+                    strides = np.array(self._bstrides)
+                    pick = np.isin(all_c @ strides, todo @ strides)
                     cc, zz = all_c[pick], all_z[pick]
-                    dec = self.codec.decode_core(torch.from_numpy(zz).to(dev))
-                    dec = self.map._to_metres(dec)  # the same float ops as Map.decode_region
+                    # the map readers' decode step: NaN/Inf refused, then the same float ops as decode_region
+                    dec = self.map._to_metres(self.map._decoded(self.codec.decode_core(torch.from_numpy(zz).to(dev))))
                     rel = torch.from_numpy(cc - b0).to(dev)
                     view[rel[:, 0], rel[:, 1], rel[:, 2]] = dec
                     self.blocks_decoded += len(cc)

@@ -735,11 +735,16 @@ class Map:
         """
         lv = self._level(level)
         box = self._block_range(self._block_box(region, units))
+        yield from self._decoded_blocks(box, lv, device, batch_blocks=batch_blocks, prefetch=prefetch)
+
+    def _decoded_blocks(self, box: tuple[slice, slice, slice], level: int, device: str | torch.device | None,
+                        **kw) -> Iterator[tuple[np.ndarray, Any]]:
+        """:meth:`_decoded_metres` on ``device``, as numpy when ``device`` is None (decoded on the CPU)."""
         dev = torch.device(device) if device is not None else torch.device("cpu")
-        for coords, blocks in self._decoded_blocks(box, lv, dev, batch_blocks=batch_blocks, prefetch=prefetch):
+        for coords, blocks in self._decoded_metres(box, level, dev, **kw):
             yield coords, blocks if device is not None else blocks.numpy()
 
-    def _decoded_blocks(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, **kw
+    def _decoded_metres(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, **kw
                         ) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
         if not self.codec.halo:
             for coords, core in self._decode_stream(box, level, dev, **kw):
@@ -768,10 +773,8 @@ class Map:
         blocks per group). Codecs with a decode halo get their neighbours' context, as in :meth:`decode_region`."""
         lv = self._level(level)
         box = tuple(slice(0, n) for n in self._grid())
-        dev = torch.device(device) if device is not None else torch.device("cpu")
         kw = {} if chunks_per_batch is None else {"chunks_per_group": chunks_per_batch, "batch_blocks": None}
-        for coords, blocks in self._decoded_blocks(box, lv, dev, **kw):
-            yield coords, blocks if device is not None else blocks.numpy()
+        yield from self._decoded_blocks(box, lv, device, **kw)
 
     def to_dask(self, level: int | None = None):
         """A lazy dask array of the decoded map: shape :attr:`shape_voxels`, float32 metres (``d_max`` where no
@@ -1074,6 +1077,17 @@ def _check_coords(coords: Any) -> np.ndarray:
     return c.astype(np.int64)
 
 
+def _free_space(v: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: which normalised blocks ``(N, 16, 16, 16)`` hold only free space (stored as ``empty``)."""
+    return (v >= 1.0 - _EMPTY_EPS).reshape(len(v), -1).all(axis=1)
+
+
+def _check_codes(codes: np.ndarray) -> None:
+    """Refuse NaN/Inf codes out of an encoder before they are stored."""
+    if not np.isfinite(codes).all():
+        raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
+
+
 def _check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | None = None,
                   name: str = "volume") -> np.ndarray:
     if isinstance(volume, torch.Tensor):
@@ -1162,7 +1176,7 @@ class _Writer:
         for i in range(0, len(coords), batch_size):
             c = coords[i:i + batch_size]
             v = normalise(blocks_m[i:i + batch_size], d_min, d_max)
-            empty = (v >= 1.0 - _EMPTY_EPS).reshape(len(v), -1).all(axis=1)
+            empty = _free_space(v)
             self.set_state(c[empty], BlockState.EMPTY)
             if (~empty).any():
                 codes = self.codec.encode(torch.from_numpy(np.ascontiguousarray(v[~empty])).to(self.device))
@@ -1174,8 +1188,7 @@ class _Writer:
         """Scatter codes into whole chunks: one write per touched chunk (read first only if it had data)."""
         if not len(coords):
             return
-        if not np.isfinite(codes).all():
-            raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
+        _check_codes(codes)
         cb, size = self.codes_spec.chunk_blocks, self.codes_spec.size
         dtype = np.dtype(self.codes_spec.dtype)
         chunk_of = coords // cb

@@ -37,11 +37,9 @@ from .blocks import normalise, split_blocks
 from .codec import Codec
 from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
+from .mapfile import _check_codes, _free_space, create_map, open_map, state_digest
 
 __all__ = ["map_to_dask", "write_volume_dask", "encode_volume_dask", "fit_volume_stream", "as_dask_volume"]
-
-_EMPTY_EPS = 1e-6  # as sdfcodec.mapfile: a normalised voxel >= 1 - eps is free space
-
 
 # -- reading: a map as a dask array ---------------------------------------------------------------------------
 
@@ -50,8 +48,6 @@ _OPEN_LOCK = threading.Lock()
 
 
 def _reopened(source: Any, storage_options: dict | None, max_decode_bytes: int):
-    from .mapfile import open_map
-
     if not isinstance(source, str):  # a Zarr store object: nothing to key a cache on
         return open_map(source, storage_options=storage_options, max_decode_bytes=max_decode_bytes)
     key = (source, repr(sorted((storage_options or {}).items())), max_decode_bytes)
@@ -195,8 +191,6 @@ class _CodecSpec:
     no plugin object travels). In the process that made it, the codec object itself is used."""
 
     def __init__(self, codec: Codec):
-        from .mapfile import state_digest
-
         self.config, self.state = codec.get_config(), codec.state_dict()
         self.digest = state_digest(self.state) + repr(sorted(self.config.items()))
         self._codec: Codec | None = codec
@@ -252,12 +246,11 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
     blocks = split_blocks(v, fill=d_max)
     gb = blocks.shape[:3]
     norm = normalise(blocks.reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
-    empty = (norm >= 1.0 - _EMPTY_EPS).reshape(len(norm), -1).all(axis=1)
+    empty = _free_space(norm)
     states = np.where(empty, BlockState.EMPTY, BlockState.CODED).astype(np.uint8).reshape(gb)
     if not empty.all():
         codes = spec.get().encode(torch.from_numpy(np.ascontiguousarray(norm[~empty])).to(device)).cpu().numpy()
-        if not np.isfinite(codes).all():
-            raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
+        _check_codes(codes)
         arr = zarr.open_array(_atomic.CowLocalStore(tmp), path="codes", mode="r+")
         box = tuple(slice(int(a), int(b)) for a, b in cbox)
         shape = [b - a for a, b in cbox]
@@ -334,7 +327,6 @@ def encode_volume_dask(volume: Any, path: str | os.PathLike, codec: Codec, *, vo
     """Create the map at ``path`` from a dense volume with dask (:func:`write_volume_dask`) and commit it;
     ``create_kw`` go to :func:`sdfcodec.create_map` (``code_dtype``, ``chunk_blocks``, ``overwrite``...).
     On any error nothing at ``path`` changes. Returns the map's path."""
-    from .mapfile import create_map
 
     with create_map(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                     **create_kw) as m:
@@ -367,7 +359,7 @@ def fit_volume_stream(codec: Codec, volume: Any, truncation: tuple[float, float]
             v = np.clip(v, d_min, d_max)
             b = normalise(split_blocks(v, fill=d_max).reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
             if not include_empty:
-                b = b[~(b >= 1.0 - _EMPTY_EPS).reshape(len(b), -1).all(axis=1)]
+                b = b[~_free_space(b)]
             if len(b):
                 yield b
 

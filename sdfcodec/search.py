@@ -1463,18 +1463,11 @@ def operating_points(curve: dict, target: float = 0.9) -> dict:
     i = int(np.argmax(f1))
     out = {"ap": ap, "best_f1": float(f1[i]), "best_f1_threshold": float(t[i]),
            "best_f1_precision": float(p[i]), "best_f1_recall": float(r[i])}
-    ok = r >= target
-    if ok.any():
-        j = np.flatnonzero(ok)[np.argmax(p[ok])]
-        out.update(precision_at_recall=float(p[j]), precision_at_recall_threshold=float(t[j]))
-    else:
-        out.update(precision_at_recall=None, precision_at_recall_threshold=None)
-    ok = p >= target
-    if ok.any():
-        j = np.flatnonzero(ok)[np.argmax(r[ok])]
-        out.update(recall_at_precision=float(r[j]), recall_at_precision_threshold=float(t[j]))
-    else:
-        out.update(recall_at_precision=None, recall_at_precision_threshold=None)
+    # the best of one measure where the other reaches the target (None when it never does)
+    for name, ok, best in (("precision_at_recall", r >= target, p), ("recall_at_precision", p >= target, r)):
+        j = np.flatnonzero(ok)[np.argmax(best[ok])] if ok.any() else None
+        out[name] = None if j is None else float(best[j])
+        out[f"{name}_threshold"] = None if j is None else float(t[j])
     return out
 
 

@@ -320,15 +320,7 @@ def _same_map(a: Path, b: Path) -> None:
     assert la == lb
 
 
-@pytest.fixture(scope="module")
-def single_map(tmp_path_factory, volume, pca64) -> Path:
-    path = tmp_path_factory.mktemp("single") / "s.sdfz"
-    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC, chunk_blocks=2) as m:
-        m.write_volume(volume)
-    return path
-
-
-def test_encode_from_memmap_and_zarr_on_a_local_cluster(tmp_path, volume, pca64, single_map):
+def test_encode_from_memmap_and_zarr_on_a_local_cluster(tmp_path, volume, pca64, map_path):
     from distributed import Client, LocalCluster
 
     from sdfcodec.scale import encode_volume_dask
@@ -350,21 +342,21 @@ def test_encode_from_memmap_and_zarr_on_a_local_cluster(tmp_path, volume, pca64,
         with pytest.raises(errors.InvalidValueError, match="NaN"):
             encode_volume_dask(tmp_path / "bad.npy", tmp_path / "d3.sdfz", pca64, voxel_size=VS, truncation=TRUNC,
                                chunk_blocks=2)
-    _same_map(tmp_path / "d1.sdfz", single_map)
-    _same_map(tmp_path / "d2.sdfz", single_map)
+    _same_map(tmp_path / "d1.sdfz", map_path)
+    _same_map(tmp_path / "d2.sdfz", map_path)
     assert not (tmp_path / "d3.sdfz").exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".d3")]
     m = sdfcodec.open_map(tmp_path / "d1.sdfz")
-    assert np.abs(m.decode_region() - sdfcodec.open_map(single_map).decode_region()).max() < 1e-4
+    assert np.abs(m.decode_region() - sdfcodec.open_map(map_path).decode_region()).max() < 1e-4
 
 
-def test_write_volume_accepts_a_dask_array(tmp_path, volume, pca64, single_map):
+def test_write_volume_accepts_a_dask_array(tmp_path, volume, pca64, map_path):
     import dask.array as da
 
     src = da.from_array(volume, chunks=(50, 23, 45))  # chunks that match nothing: rechunked to code chunks
     with sdfcodec.create_map(tmp_path / "w.sdfz", codec=pca64, voxel_size=VS, truncation=TRUNC,
                              chunk_blocks=2) as m:
         m.write_volume(src)
-    _same_map(tmp_path / "w.sdfz", single_map)
+    _same_map(tmp_path / "w.sdfz", map_path)
     # at an offset, into a map that already holds blocks, with clipping: as the single-process writer
     shifted = np.array(volume[:40, :40, :30])
     shifted[0, 0, 0] = 1.0
@@ -418,7 +410,7 @@ def test_fit_volume_stream_equals_fit_stream_in_memory(tmp_path, volume):
 
 
 @pytest.mark.slow
-def test_encode_and_to_dask_on_worker_processes(tmp_path, volume, pca64, single_map):
+def test_encode_and_to_dask_on_worker_processes(tmp_path, volume, pca64, map_path):
     from distributed import Client, LocalCluster
 
     from sdfcodec.scale import encode_volume_dask
@@ -429,5 +421,5 @@ def test_encode_and_to_dask_on_worker_processes(tmp_path, volume, pca64, single_
         encode_volume_dask(tmp_path / "vol.npy", tmp_path / "p.sdfz", pca64, voxel_size=VS, truncation=TRUNC,
                            chunk_blocks=2)
         dense = sdfcodec.open_map(tmp_path / "p.sdfz").to_dask().compute()
-    _same_map(tmp_path / "p.sdfz", single_map)
-    assert np.abs(dense - sdfcodec.open_map(single_map).decode_region()).max() < 1e-4
+    _same_map(tmp_path / "p.sdfz", map_path)
+    assert np.abs(dense - sdfcodec.open_map(map_path).decode_region()).max() < 1e-4
