@@ -1,6 +1,6 @@
 """Rate-distortion: reconstruction error against bytes per block actually stored, for every learned codec (codes
-as float32 and float16 in a real map, int8 simulated), ZFP, a 3-D DCT truncation baseline and Blosc-compressed
-float16 raw blocks. Writes docs/rate-distortion.json, docs/rate-distortion.png and docs/rate-distortion.md.
+as float32, float16 and int8 in a real map; int8 with per-component scales simulated), ZFP, a 3-D DCT
+truncation baseline and Blosc-compressed float16 raw blocks. Writes docs/rate-distortion.json, docs/rate-distortion.png and docs/rate-distortion.md.
 
     python examples/rate_distortion.py                 # kitchen + synthetic room (about a minute)
     python examples/rate_distortion.py --quick         # a small synthetic map only (the test's path)
@@ -19,16 +19,16 @@ Every method is measured on the same non-empty blocks (blocks that are not all f
 codes); an empty block stores no code in any method, only its state. Errors: per-voxel MSE and per-block SSE
 (sum over the block's 4096 voxels, mean over blocks). Bytes per block:
 
-* learned codecs, float32 / float16 codes: a real map is written with ``sdfcodec.create_map(...,
-  code_dtype=...)`` and ``write_blocks``; bytes = (chunk files of ``codes/`` + chunk files of ``state/``) / coded
-  blocks, read from the file system. The codec's learned state (``codec/``) and the Zarr metadata documents
-  (``zarr.json``) are per map, not per block, and are reported separately. The error is that of the blocks
-  decoded from the map (``Map.iter_decoded``).
-* int8 codes: SIMULATED, not a map format. The float32 codes read from the map are quantised affinely to 8
-  bits, either with a per-block (offset, scale) pair stored as float16 (4 bytes per block) or with a
-  per-component (offset, scale) pair stored as float32 (8 k bytes per map); bytes = the int8 codes and scales
-  compressed with the map's Blosc/zstd (level 3, byte shuffle) through numcodecs in chunks of 512 blocks, plus
-  the float32 map's ``state/`` bytes. Uncompressed, that is N k + scale bytes.
+* learned codecs, float32 / float16 / int8 codes: a real map is written with ``sdfcodec.create_map(...,
+  code_dtype=...)`` and ``write_blocks``; bytes = (chunk files of ``codes/``, ``code_scale/`` (int8: a float32
+  offset and scale per block, spec section 4a) and ``state/``) / coded blocks, read from the file system. The
+  codec's learned state (``codec/``) and the Zarr metadata documents (``zarr.json``) are per map, not per
+  block, and are reported separately. The error is that of the blocks decoded from the map
+  (``Map.iter_decoded``).
+* int8 codes with per-component scales: SIMULATED, not a map format. The float32 codes read from the map are
+  quantised by ``sdfcodec.quantize.quantize_codes(per="component")`` (one float32 offset and scale per code
+  element, 8 k bytes per map); bytes = the int8 codes and scales compressed with the map's Blosc/zstd (level 3,
+  byte shuffle) through numcodecs in chunks of 512 blocks, plus the float32 map's ``state/`` bytes.
 * ZFP (zfpy): each 16^3 block compressed on its own, fixed-rate and fixed-accuracy; bytes = the stream length
   (which includes zfpy's 16-byte header; ``payload_bytes_per_block`` is without it).
 * DCT: ``scipy.fft.dctn(v, norm="ortho")``, the K coefficients of lowest frequency kept (order: i + j + k, then
@@ -124,7 +124,8 @@ def point(dataset: str, codec: str, setting: str, bytes_per_block: float, x: np.
 
 # ------------------------------------------------------------------------------------------ map byte counts
 def map_bytes(path: Path) -> dict:
-    """Bytes on disk of a committed map directory, by part: chunk files of codes/ and state/, the codec's learned
+    """Bytes on disk of a committed map directory, by part: chunk files of codes/ (with code_scale/ of int8 maps)
+    and state/, the codec's learned
     state (codec/, its metadata included), the Zarr metadata documents of codes/, state/ and the group, other."""
     out = {"codes": 0, "state": 0, "codec_state": 0, "metadata": 0, "other": 0}
     for dirpath, _, files in os.walk(path):
@@ -136,8 +137,10 @@ def map_bytes(path: Path) -> dict:
                 out["codec_state"] += n
             elif f == "zarr.json":
                 out["metadata"] += n
-            elif top in ("codes", "state"):
-                out[top] += n
+            elif top in ("codes", "code_scale"):
+                out["codes"] += n
+            elif top == "state":
+                out["state"] += n
             else:
                 out["other"] += n
     out["total"] = sum(out.values())
@@ -170,33 +173,16 @@ def compressed_size(a: np.ndarray, chunk: int) -> int:
     return sum(len(c.encode(np.ascontiguousarray(a[i:i + chunk]))) for i in range(0, len(a), chunk))
 
 
-def quantise_int8(codes: np.ndarray, per: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Affine 8-bit quantisation of codes (N, k), per block or per component: (int8 codes (N, k), the dequantised
-    float32 codes, the stored (offset, scale) pairs: (N, 2) float16 per block or (2, k) float32 per component)."""
-    c = codes.astype(np.float64)
-    if per == "block":
-        lo = c.min(axis=1, keepdims=True).astype(np.float16).astype(np.float64)  # stored as float16
-        span = np.maximum(c.max(axis=1, keepdims=True) - lo, 1e-12)
-        scale = (span / 255).astype(np.float16).astype(np.float64)
-        scale = np.where(scale * 255 < span, np.nextafter(scale.astype(np.float16), np.float16(np.inf)), scale)
-        scales = np.concatenate([lo, scale], axis=1).astype(np.float16)
-    else:
-        lo = c.min(axis=0, keepdims=True).astype(np.float32).astype(np.float64)
-        scale = (np.maximum(c.max(axis=0, keepdims=True) - lo, 1e-12) / 255).astype(np.float32).astype(np.float64)
-        scales = np.concatenate([lo, scale], axis=0).astype(np.float32)
-    q = np.clip(np.round((c - lo) / scale), 0, 255)
-    deq = (q * scale + lo).astype(np.float32)
-    return (q - 128).astype(np.int8), deq, scales
-
-
 def measure_learned(name: str, codec, dataset: str, coords: np.ndarray, tsdf: np.ndarray, x: np.ndarray,
                     coded: np.ndarray, workdir: Path) -> list[dict]:
-    """float32 and float16 maps (stored bytes, decoded error), and int8 simulated from the float32 codes."""
+    """float32, float16 and int8 maps (stored bytes, decoded error), and int8 with per-component scales
+    simulated from the float32 codes."""
     import sdfcodec
+    from sdfcodec.quantize import dequantize_codes, quantize_codes
 
     pts, codes32, state_bytes = [], None, None
     index = {tuple(c): i for i, c in enumerate(coords[coded])}
-    for dtype in ("float32", "float16"):
+    for dtype in ("float32", "float16", "int8"):
         path = workdir / "maps" / f"{dataset}-{name.replace(' ', '_').replace('+', '_')}-{dtype}.sdfz"
         with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, code_dtype=dtype,
                                  overwrite=True, tool="examples/rate_distortion.py") as m:
@@ -214,18 +200,19 @@ def measure_learned(name: str, codec, dataset: str, coords: np.ndarray, tsdf: np
             codes32 = codes32[np.argsort(order)]
             state_bytes = b["state"]
         m.close()
-        pts.append(point(dataset, name, dtype, (b["codes"] + b["state"]) / n, x, y, code_size=codec.code_size,
+        setting = "int8 per-block" if dtype == "int8" else dtype
+        pts.append(point(dataset, name, setting, (b["codes"] + b["state"]) / n, x, y, code_size=codec.code_size,
                          kind="map", map=str(path.relative_to(workdir)), map_bytes=b,
                          codec_state_bytes=b["codec_state"], metadata_bytes=b["metadata"],
                          bytes_per_block_with_codec_state=(b["codes"] + b["state"] + b["codec_state"]) / n))
-    for per in ("block", "component"):
-        q, deq, scales = quantise_int8(codes32, per)
-        est = compressed_size(q, 512) + compressed_size(scales, 1 << 20)
-        y = np.concatenate([np.asarray(codec.decode(deq[i:i + 4096])) for i in range(0, len(deq), 4096)])
-        pts.append(point(dataset, name, f"int8 per-{per} (simulated)", (est + state_bytes) / len(x), x, y,
-                         code_size=codec.code_size, kind="simulated",
-                         raw_bytes_per_block=(q.nbytes + scales.nbytes) / len(x),
-                         compressed_codes_and_scales_bytes=est, state_bytes=state_bytes))
+    q, scales = quantize_codes(codes32, per="component")
+    deq = dequantize_codes(q, scales, per="component")
+    est = compressed_size(q, 512) + compressed_size(scales, 1 << 20)
+    y = np.concatenate([np.asarray(codec.decode(deq[i:i + 4096])) for i in range(0, len(deq), 4096)])
+    pts.append(point(dataset, name, "int8 per-component (simulated)", (est + state_bytes) / len(x), x, y,
+                     code_size=codec.code_size, kind="simulated",
+                     raw_bytes_per_block=(q.nbytes + scales.nbytes) / len(x),
+                     compressed_codes_and_scales_bytes=est, state_bytes=state_bytes))
     return pts
 
 
@@ -385,9 +372,10 @@ def plot(points: list[dict], datasets: list[str], path: Path) -> None:
         for (fam, setting), S in sorted(series.items()):
             S = sorted(S, key=lambda p: p["bytes_per_block"])
             color, marker = STYLE.get(fam, ("C9", "."))
-            label = f"{fam} {setting}".strip() + (" (sim.)" if setting.startswith("int8") else "")
+            sim = S[0]["kind"] == "simulated"
+            label = f"{fam} {setting}".strip() + (" (sim.)" if sim else "")
             ax.plot([p["bytes_per_block"] for p in S], [p["mse_voxel"] for p in S], ls.get(setting, "-"),
-                    color=color, marker=marker, label=label, alpha=0.5 if setting.startswith("int8") else 1)
+                    color=color, marker=marker, label=label, alpha=0.5 if sim else 1)
             if fam == "pca":
                 for p in S:
                     if setting == "float32":
@@ -423,17 +411,18 @@ def write_md(res: dict, path: Path, png: str) -> None:
          "is stored: for our codecs the `codes/` + `state/` chunk files of a real map written with "
          "`create_map(code_dtype=...)` (the codec's learned state and the Zarr metadata are per map and listed "
          "separately), for ZFP the zfpy stream length of each 16^3 block (16 of those bytes are zfpy's header), "
-         "for the DCT 2 bytes per kept coefficient, for raw float16 the Blosc/zstd chunks. **int8 codes are "
+         "for the DCT 2 bytes per kept coefficient, for raw float16 the Blosc/zstd chunks; int8 per-block maps "
+         "count their `code_scale/` chunks (a float32 offset and scale per block) with the codes. **int8 with per-component scales is "
          "simulated** (quantised from the stored float32 codes; compressed size estimated with the map's "
-         "Blosc/zstd through numcodecs): the map format stores only float32 and float16.", "",
+         "Blosc/zstd through numcodecs): the map format stores per-block scales only.", "",
          f"Data sets: {'; '.join(f'`{k}`: {v}' for k, v in res['datasets'].items())}.", "",
          f"![rate-distortion]({png})", ""]
     L += ["## The goal: at 64:1 and 128:1, is our best codec's error lower than ZFP's at the same stored bytes?", ""]
     for ds, g in res["goal"].items():
         for budget in ("256", "128"):
             row = g[budget]
-            for label, what in (("stored", "stored formats (float32/float16 maps)"),
-                                ("with_int8_simulated", "including simulated int8")):
+            for label, what in (("stored", "stored formats (float32/float16/int8 maps)"),
+                                ("with_int8_simulated", "including simulated per-component int8")):
                 r = row[label]
                 if r is None:
                     L.append(f"- **{ds}, {row['ratio']}:1 ({budget} B/block), {what}**: none of our points fits.")

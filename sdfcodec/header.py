@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from .errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "parse_header",
-           "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "MAX_EXTENT"]
+           "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION", "MAX_EXTENT"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -24,8 +24,10 @@ MAX_EXTENT = 2**31 - 1
 #: Names of codec state arrays: plain path segments, so a header cannot point a reader outside ``codec/``.
 STATE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 FORMAT_VERSION = 1
-#: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a).
-KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights"})
+#: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a);
+#: "int8-codes": 8-bit codes with a per-block ``code_scale`` array (spec section 4a), required when used.
+KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights", "int8-codes"})
+INT8_EXTENSION = "int8-codes"
 
 
 class BlockState:
@@ -78,7 +80,8 @@ class CodesSpec(_Model):
     """How code vectors are stored in the ``codes`` array."""
 
     size: int = Field(ge=1, le=1 << 16, description="code length D (last axis of codes)")
-    dtype: Literal["float32", "float16"] = "float32"
+    dtype: Literal["float32", "float16", "int8"] = Field(
+        "float32", description="element type of codes; int8 needs the required extension 'int8-codes'")
     chunk_blocks: int = Field(8, ge=1, le=256, description="blocks per chunk along x, y and z")
     chunk_code: int = Field(ge=1, description="code elements per chunk along the code axis")
     prefix_ordered: bool = Field(description="a code prefix decodes (levels are meaningful)")
@@ -131,6 +134,10 @@ class MapHeader(_Model):
         need = tuple(-(-n // self.block_size) for n in self.shape_voxels)
         if any(g < n for g, n in zip(self.grid_blocks, need)):
             raise ValueError(f"grid_blocks {self.grid_blocks} cannot hold shape_voxels {self.shape_voxels}")
+        int8 = [e for e in self.extensions if e.name == INT8_EXTENSION]
+        if (self.codes.dtype == "int8") != bool(int8) or any(not e.required for e in int8):
+            raise ValueError(f"codes.dtype 'int8' and the required extension {INT8_EXTENSION!r} go together "
+                             f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
         return self
 
 

@@ -3,7 +3,8 @@
 ::
 
     <map>/zarr.json            group; attribute "sdfcodec" = the header (sdfcodec.header.MapHeader)
-    <map>/codes                (Bx, By, Bz, D) float32|float16 code vectors, chunked (c, c, c, chunk_code)
+    <map>/codes                (Bx, By, Bz, D) float32|float16|int8 code vectors, chunked (c, c, c, chunk_code)
+    <map>/code_scale           (Bx, By, Bz, 2) float32 [offset, scale] per block, int8 codes only (spec 4a)
     <map>/state                (Bx, By, Bz) uint8 block state (0 unobserved, 1 empty, 2 coded)
     <map>/codec/<name>         the codec's learned state, one array per state_dict entry
 
@@ -48,8 +49,9 @@ from .blocks import check_truncation, normalise, split_blocks
 from .codec import Codec
 from .errors import (ChecksumError, FormatError, InvalidValueError, MapExistsError, MapNotFoundError,
                      ReadOnlyError, SDFCodecError, SDFCodecWarning, ShapeError, VersionError)
-from .header import (KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
+from .header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
                      Extension, MapHeader, Provenance, Truncation, now_iso, parse_header)
+from .quantize import dequantize_codes, quantize_codes
 from .registry import codec_package, get_codec_class
 
 __all__ = ["Map", "open_map", "create_map", "update_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES"]
@@ -68,6 +70,8 @@ _MIN_CHUNKS_PER_READ, _BYTES_PER_CHUNK = 64, 4096
 #: How long a writer waits for another process's update of the same map to finish before giving up.
 _LOCK_TIMEOUT = 60.0
 _EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
+#: How codes may be stored (spec sections 4 and 4a).
+CODE_DTYPES = ("float32", "float16", "int8")
 Region = Sequence[Sequence[float]]
 
 
@@ -351,6 +355,14 @@ class Map:
         self._check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size),
                           chunks=(cb, cb, cb, h.codes.chunk_code), zero_fill=True)
         self._check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
+        self._code_scale = None
+        if h.codes.dtype == "int8":
+            self._code_scale = self._member("code_scale")
+            if self._code_scale is None:
+                raise FormatError(f"{self.location}: map has int8 codes but lacks array 'code_scale' (spec section "
+                                  "4a); it is incomplete")
+            self._check_array(self._code_scale, dtype=np.float32, shape=(*h.grid_blocks, 2), chunks=(cb, cb, cb, 2),
+                              zero_fill=True)
         self._weights = None
         if any(e.name == "fusion-weights" for e in h.extensions):
             self._weights = self._member("weights")
@@ -546,18 +558,20 @@ class Map:
         local = np.argwhere(state == BlockState.CODED)
         if not len(local):
             return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
-        nbytes = state.size * level * np.dtype(self.header.codes.dtype).itemsize
+        nbytes = state.size * (level * np.dtype(self.header.codes.dtype).itemsize + 8 * (self._code_scale is not None))
         if nbytes > self.max_decode_bytes:
             raise InvalidValueError(f"reading the codes of blocks {[(s.start, s.stop) for s in box]} densely needs "
                                     f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
                                     " GiB; read a smaller region, use iter_codes(), or raise max_decode_bytes")
-        codes = self._read(self._codes, (*box, slice(0, level)))
+        codes = self._read(self._codes, (*box, slice(0, level)))[tuple(local.T)]
+        params = None if self._code_scale is None else self._read(self._code_scale, (*box, slice(0, 2)))[tuple(local.T)]
         coords = local + np.array([s.start for s in box], dtype=np.int64)
-        return coords, self._finite_codes(coords, codes[tuple(local.T)])
+        return coords, self._code_values(coords, codes, params)
 
-    def _finite_codes(self, coords: np.ndarray, codes: np.ndarray) -> np.ndarray:
-        """``codes`` as float32, refusing NaN/Inf (a corrupted but checksum-valid chunk) by naming a block."""
-        out = codes.astype(np.float32, copy=False)
+    def _code_values(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> np.ndarray:
+        """Stored ``codes`` of blocks ``coords`` as float32 (dequantised with their ``code_scale`` rows
+        ``params`` for int8 maps), refusing NaN/Inf (a corrupted but checksum-valid chunk) by naming a block."""
+        out = codes.astype(np.float32, copy=False) if params is None else dequantize_codes(codes, params)
         finite = np.isfinite(out).all(axis=1)
         if not finite.all():
             bad = coords[~finite]
@@ -642,7 +656,11 @@ class Map:
         arrays = self._read_many(self._codes, sels)
         codes = np.concatenate([a[tuple(loc.T)] for a, loc in zip(arrays, locs)])
         coords = np.concatenate([loc + lo for loc, lo in zip(locs, los)]).astype(np.int64, copy=False)
-        return coords, self._finite_codes(coords, codes)
+        params = None
+        if self._code_scale is not None:
+            scales = self._read_many(self._code_scale, [(*sel[:3], slice(0, 2)) for sel in sels])
+            params = np.concatenate([a[tuple(loc.T)] for a, loc in zip(scales, locs)])
+        return coords, self._code_values(coords, codes, params)
 
     def _fetch_stream(self, box: tuple[slice, slice, slice], level: int, *, states: np.ndarray | None = None,
                       stage: Callable[[np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
@@ -875,7 +893,9 @@ class Map:
             "shape_voxels": list(h.shape_voxels),
             "grid_blocks": list(h.grid_blocks),
             "blocks": counts,
-            "code_bytes_raw": counts["coded"] * h.codes.size * np.dtype(h.codes.dtype).itemsize,
+            # int8 codes carry an [offset, scale] float32 pair per block
+            "code_bytes_raw": counts["coded"] * (h.codes.size * np.dtype(h.codes.dtype).itemsize
+                                                 + 8 * (h.codes.dtype == "int8")),
             "bytes_on_disk": on_disk,
             "dense_float32_bytes": dense,
             "codec_state_bytes": state_bytes,
@@ -1088,6 +1108,25 @@ def _check_codes(codes: np.ndarray) -> None:
         raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
 
 
+def _store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
+                      local: np.ndarray, codes: np.ndarray, had: bool) -> None:
+    """Write float32 ``codes`` ``(n, D)`` of the blocks at ``local`` (indices inside the chunk ``box`` of the block
+    axes) into that chunk of ``codes_arr``, quantised to int8 with their ``[offset, scale]`` rows in ``scale_arr``
+    when the map stores int8 codes: one write per array (each chunk read first only when it already ``had``
+    codes). The single-process writer and the dask encoder both write through here."""
+    shape = [s.stop - s.start for s in box]
+    idx = tuple(local.T)
+    buf = np.asarray(codes_arr[box]) if had else np.zeros((*shape, codes_arr.shape[3]), dtype=codes_arr.dtype)
+    if scale_arr is None:
+        buf[idx] = codes.astype(codes_arr.dtype)
+    else:
+        q, params = quantize_codes(codes, per="block")
+        sbuf = np.asarray(scale_arr[box]) if had else np.zeros((*shape, 2), dtype=np.float32)
+        buf[idx], sbuf[idx] = q, params
+        scale_arr[box] = sbuf
+    codes_arr[box] = buf
+
+
 def _check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | None = None,
                   name: str = "volume") -> np.ndarray:
     if isinstance(volume, torch.Tensor):
@@ -1133,6 +1172,7 @@ class _Writer:
         self.grid = tuple(grid) if grid is not None else tuple(-(-n // BLOCK) for n in self.shape_voxels)
         self.state = state if state is not None else np.zeros(self.grid, dtype=np.uint8)
         self.codes = group["codes"]
+        self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
 
     def grow_voxels(self, need: tuple[int, int, int]) -> None:
         shape = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
@@ -1147,6 +1187,8 @@ class _Writer:
             state[tuple(slice(0, n) for n in self.grid)] = self.state
             self.state, self.grid = state, grid
             self.codes.resize((*grid, self.codes_spec.size))
+            if self.code_scale is not None:
+                self.code_scale.resize((*grid, 2))
 
     def grow_blocks(self, max_coord: np.ndarray) -> None:
         """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
@@ -1189,8 +1231,7 @@ class _Writer:
         if not len(coords):
             return
         _check_codes(codes)
-        cb, size = self.codes_spec.chunk_blocks, self.codes_spec.size
-        dtype = np.dtype(self.codes_spec.dtype)
+        cb = self.codes_spec.chunk_blocks
         chunk_of = coords // cb
         order = np.lexsort(chunk_of.T[::-1])
         coords, codes, chunk_of = coords[order], codes[order], chunk_of[order]
@@ -1198,12 +1239,8 @@ class _Writer:
         for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(coords)]):
             ch = chunk_of[lo]
             box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, self.grid))
-            had = (self.state[box] == BlockState.CODED).any()
-            shape = [s.stop - s.start for s in box]
-            buf = np.asarray(self.codes[box]) if had else np.zeros((*shape, size), dtype=dtype)
-            local = coords[lo:hi] - ch * cb
-            buf[tuple(local.T)] = codes[lo:hi].astype(dtype)
-            self.codes[box] = buf
+            had = bool((self.state[box] == BlockState.CODED).any())
+            _store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had)
         self.set_state(coords, BlockState.CODED)
 
     def commit(self) -> Path:
@@ -1216,6 +1253,8 @@ class _Writer:
             if tuple(self.group["weights"].shape[:3]) != self.grid:
                 self.group["weights"].resize((*self.grid, 4096))
             extensions.append(Extension(name="fusion-weights", required=False))
+        if self.code_scale is not None:
+            extensions.append(Extension(name=INT8_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
         # the header goes last: until the swap below nobody sees any of this anyway
@@ -1298,7 +1337,9 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         codec: a fitted codec instance (its config and learned state are stored in the map).
         voxel_size: voxel edge in metres. truncation: ``(d_min, d_max)`` metres. origin: world position of
             voxel (0, 0, 0). shape_voxels: initial extent (grows with the data written).
-        code_dtype: ``"float32"`` or ``"float16"`` code storage.
+        code_dtype: ``"float32"``, ``"float16"`` or ``"int8"`` code storage (int8: each block's code quantised
+            with its own offset and scale, spec section 4a; a quarter of float32's bytes, readers before
+            sdfcodec 0.2 refuse such maps by the extension they require).
         chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
         overwrite: replace an existing map at ``path`` (atomically, on commit).
         device: where encoding runs.
@@ -1312,8 +1353,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         raise InvalidValueError("writing zip maps is not supported; write a directory map and zip its contents")
     if not codec.is_fitted:
         codec._check_fitted()
-    if code_dtype not in ("float32", "float16"):
-        raise InvalidValueError(f"code_dtype must be 'float32' or 'float16', got {code_dtype!r}")
+    if code_dtype not in CODE_DTYPES:
+        raise InvalidValueError(f"code_dtype must be one of {', '.join(CODE_DTYPES)}, got {code_dtype!r}")
     if not (np.isfinite(voxel_size) and voxel_size > 0):
         raise InvalidValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
     check_truncation(*truncation)
@@ -1343,6 +1384,9 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
                            chunks=(cb, cb, cb, cc), compressors=_compressors(),
                            dimension_names=["bx", "by", "bz", "code"])
+        if code_dtype == "int8":
+            group.create_array("code_scale", shape=(*grid, 2), dtype="float32", fill_value=0, chunks=(cb, cb, cb, 2),
+                               compressors=_compressors(), dimension_names=["bx", "by", "bz", "offset_scale"])
         cgroup = group.create_group("codec")
         for name, arr in state.items():
             arr = np.ascontiguousarray(arr)
@@ -1350,7 +1394,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                     compressors=_compressors())
             a[...] = arr
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=grid, codes=spec,
-                           **header_kw)
+                           extensions=[Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else [], **header_kw)
     except BaseException:
         _rmtree(tmp)
         os.close(tmp_fd)
@@ -1367,6 +1411,7 @@ def _writing_map(group: zarr.Group, header: MapHeader, location: str, codec: Cod
     m._writer, m._closed, m._close_on_exit, m._chunk_bytes = writer, False, False, {}
     m._reopen = None
     m._codes = group["codes"]
+    m._code_scale = writer.code_scale
     return m
 
 

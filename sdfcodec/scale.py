@@ -37,7 +37,7 @@ from .blocks import normalise, split_blocks
 from .codec import Codec
 from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
-from .mapfile import _check_codes, _free_space, create_map, open_map, state_digest
+from .mapfile import _check_codes, _free_space, _store_code_chunk, create_map, open_map, state_digest
 
 __all__ = ["map_to_dask", "write_volume_dask", "encode_volume_dask", "fit_volume_stream", "as_dask_volume"]
 
@@ -225,7 +225,7 @@ _WORKER_CODECS: dict[str, Codec] = {}
 
 
 def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple, had: bool,
-                  truncation: tuple[float, float], code_dtype: str, code_size: int, device: str
+                  truncation: tuple[float, float], code_dtype: str, device: str
                   ) -> tuple[tuple, np.ndarray, int]:
     """One dask task: encode the blocks of one volume chunk (all inside one chunk of the code array, whose
     block box is ``cbox``) and write that chunk of codes into the map's temporary directory ``tmp``.
@@ -251,14 +251,12 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
     if not empty.all():
         codes = spec.get().encode(torch.from_numpy(np.ascontiguousarray(norm[~empty])).to(device)).cpu().numpy()
         _check_codes(codes)
-        arr = zarr.open_array(_atomic.CowLocalStore(tmp), path="codes", mode="r+")
+        store = _atomic.CowLocalStore(tmp)
+        arr = zarr.open_array(store, path="codes", mode="r+")
+        scale_arr = zarr.open_array(store, path="code_scale", mode="r+") if code_dtype == "int8" else None
         box = tuple(slice(int(a), int(b)) for a, b in cbox)
-        shape = [b - a for a, b in cbox]
-        # a whole chunk per write (read first only when it already held codes), as the single-process writer
-        buf = np.asarray(arr[box]) if had else np.zeros((*shape, code_size), dtype=code_dtype)
         local = np.argwhere(states == BlockState.CODED) + np.asarray(b0) - np.array([a for a, _ in cbox])
-        buf[tuple(local.T)] = codes.astype(code_dtype)
-        arr[box] = buf
+        _store_code_chunk(arr, scale_arr, box, local, codes, had)
     return b0, states, clipped
 
 
@@ -306,7 +304,7 @@ def write_volume_dask(m, volume: Any, *, offset: Sequence[int] = (0, 0, 0), sche
         cbox = tuple((int(a), int(min(a + cb, g))) for a, g in zip(c0, w.grid))
         had = bool((w.state[tuple(slice(a, b) for a, b in cbox)] == BlockState.CODED).any())
         tasks.append(encode(part, spec, str(w.tmp), tuple(int(b) for b in b0), cbox, had, truncation,
-                            spec_c.dtype, spec_c.size, str(w.device)))
+                            spec_c.dtype, str(w.device)))
     results = dask.compute(*tasks, scheduler=scheduler) if tasks else ()
     failed = next((r[0] for r in results if len(r) == 1), None)
     if failed is not None:

@@ -185,7 +185,14 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
 
 
 def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
-    codes = m._codes
+    """Every chunk of ``codes`` (and of ``code_scale`` for int8 maps: same block chunking, spec section 4a)
+    reads back, holds finite values for coded blocks, and is present wherever a block is coded."""
+    for arr in (m._codes, m._code_scale):
+        if arr is not None:
+            _check_code_array(rep, arr, states)
+
+
+def _check_code_array(rep: VerifyReport, codes, states: np.ndarray | None) -> None:
     cb, cc = codes.chunks[0], codes.chunks[3]
     n_code_chunks = codes.cdata_shape[3]
     stored: set[tuple[int, ...]] = set()
@@ -204,8 +211,8 @@ def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
                              f"{_blocks_text(bad + np.array([s.start for s in box]))}")
         stray_codes += int(((data != 0).any(axis=3) & ~coded).sum())
     if stray_codes:
-        rep.note("codes", f"{stray_codes} block(s) that are not coded have code values stored (spec: SHOULD be "
-                          "left unwritten); readers ignore them")
+        rep.note(codes.path, f"{stray_codes} block(s) that are not coded have values stored (spec: SHOULD be "
+                               "left unwritten); readers ignore them")
     if states is None or listing is None:  # without a listing, missing chunks cannot be told from zeros
         return
     coded = np.argwhere(states == BlockState.CODED)
@@ -216,8 +223,8 @@ def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
             coords = (*map(int, chunk), k)
             if coords not in stored:
                 inside = coded[(coded // cb == chunk).all(axis=1)]
-                rep.problem(f"codes/{codes.metadata.encode_chunk_key(coords)}",
-                            f"is missing, but block(s) {_blocks_text(inside)} are coded: their code elements "
+                rep.problem(f"{codes.path}/{codes.metadata.encode_chunk_key(coords)}",
+                            f"is missing, but block(s) {_blocks_text(inside)} are coded: their elements "
                             f"[{k * cc}, {min((k + 1) * cc, codes.shape[3])}) would read as zeros")
 
 

@@ -70,6 +70,14 @@ def test_transcode_map_to_raw_float16(volume_file, tmp_path):
     mb = sdfcodec.open_map(b)
     assert mb.header.codes.dtype == "float16" and mb.shape_voxels == vol.shape
     assert np.abs(mb.decode_region() - vol).max() < 1e-4  # float16 steps of ~0.14 mm near d_max
+    # int8 raw codes: each block's 4096 values in 255 steps of its own range (at most 0.14 m / 254 apart)
+    c = tmp_path / "c.sdfz"
+    r = run("encode", a, c, "--codec", "raw", "--code-dtype", "int8")
+    assert r.exit_code == 0, r.output
+    mc = sdfcodec.open_map(c)
+    assert mc.header.codes.dtype == "int8" and run("info", c).output.count("int8") >= 1
+    err = np.abs(mc.decode_region() - vol).max()
+    assert 0 < err <= (0.1 + 0.04) / 254 / 2 * 1.001
 
 
 def test_model_option(volume_file, tmp_path):
