@@ -13,15 +13,17 @@ res = {"loadavg_start": os.getloadavg(), "cpus": os.cpu_count(), "torch_threads"
 rng = np.random.default_rng(0)
 pca = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(500, seed=1))
 
-# 1. decode on read, pca-64 float32 codes, 48^3-block grid, 75% of blocks coded
-path = out / "bench.sdfz"
-if not path.exists():
-    coords = np.argwhere(rng.random((48, 48, 48)) < 0.75)
-    base = pca.encode(analytic_blocks(512, seed=2))
-    z = base[rng.integers(0, 512, len(coords))] + rng.normal(0, 0.01, (len(coords), 64)).astype(np.float32)
-    with sdfcodec.create_map(path, codec=pca, voxel_size=0.02) as m:
-        m.write_codes(coords, z)
-m = sdfcodec.open_map(path)
+# 1. decode on read, pca-64 float32 codes, 48^3-block grid, 75% of blocks coded, the same codes in two maps:
+#    16^3 blocks per chunk (the default) and 8^3 (the earlier default; smaller remote region reads)
+coords = np.argwhere(rng.random((48, 48, 48)) < 0.75)
+base = pca.encode(analytic_blocks(512, seed=2))
+z = base[rng.integers(0, 512, len(coords))] + rng.normal(0, 0.01, (len(coords), 64)).astype(np.float32)
+maps = {}
+for cb in (16, 8):
+    path = maps[cb] = out / f"bench-c{cb}.sdfz"
+    with sdfcodec.create_map(path, codec=pca, voxel_size=0.02, chunk_blocks=cb, overwrite=True) as w:
+        w.write_codes(coords, z)
+m = sdfcodec.open_map(maps[16])
 _, allcodes = m.read_codes()
 n = len(allcodes)
 res["coded_blocks"] = n
@@ -37,27 +39,31 @@ def decode_only():
         pca.decode(torch.from_numpy(allcodes[i:i + 8192]))
 
 res["decode_only_in_memory"] = best(decode_only)
-res["iter_codes"] = best(lambda: sum(len(c) for c, _ in m.iter_codes(chunks_per_batch=16)))
-for pf in (0, 2):
-    res[f"iter_decoded_prefetch{pf}"] = best(lambda: sum(len(c) for c, _ in m.iter_decoded(prefetch=pf)))
-res["iter_decoded_level32"] = best(lambda: sum(len(c) for c, _ in m.iter_decoded(level=32)))
+for cb, path in maps.items():
+    m = sdfcodec.open_map(path)
+    res[f"c{cb}_iter_codes"] = best(lambda: sum(len(c) for c, _ in m.iter_codes(chunks_per_batch=16)))
+    for pf in (0, 2):
+        res[f"c{cb}_iter_decoded_prefetch{pf}"] = best(lambda: sum(len(c) for c, _ in m.iter_decoded(prefetch=pf)))
+    res[f"c{cb}_iter_decoded_level32"] = best(lambda: sum(len(c) for c, _ in m.iter_decoded(level=32)))
 
-# 2. the same map over HTTP on loopback: a one-chunk region and the whole map
+# 2. the same maps over HTTP on loopback: a 32^3-voxel region and the whole map
 sent = []
 class H(http.server.SimpleHTTPRequestHandler):
+    disable_nagle_algorithm = True  # as real servers: no 40 ms delayed-ACK stall per response
+    protocol_version = "HTTP/1.1"
     def log_message(self, *a): pass
     def copyfile(self, src, dst):
         d = src.read(); dst.write(d); sent.append(len(d))
 srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), partial(H, directory=str(out)))
 threading.Thread(target=srv.serve_forever, daemon=True).start()
-url = f"http://127.0.0.1:{srv.server_address[1]}/bench.sdfz"
-total = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-sent.clear()
-r = sdfcodec.open_map(url)
-r.decode_region(((128, 160), (128, 160), (128, 160)))
-res["http_region_bytes"], res["map_bytes"] = sum(sent), total
-t = time.perf_counter(); k = sum(len(c) for c, _ in r.iter_decoded()); dt = time.perf_counter() - t
-res["http_iter_decoded_blocks_per_s"] = k / dt
+for cb, path in maps.items():
+    url = f"http://127.0.0.1:{srv.server_address[1]}/{path.name}"
+    total = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    sent.clear()
+    r = sdfcodec.open_map(url)
+    r.decode_region(((128, 160), (128, 160), (128, 160)))
+    res[f"c{cb}_http_region_bytes"], res[f"c{cb}_map_bytes"] = sum(sent), total
+    res[f"c{cb}_http_iter_decoded"] = best(lambda: sum(len(c) for c, _ in r.iter_decoded()))
 srv.shutdown()
 
 # 3. dask: a 256 x 256 x 128 scene (8.4 M voxels), encode single-process vs dask, decode_region vs to_dask

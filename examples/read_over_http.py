@@ -66,7 +66,9 @@ def main(argv: list[str] | None = None) -> None:
         e = args.size
         scene = Scene([Plane((0, 0, 1), 0.1), Plane((0, 1, 0), 0.1), Box((0.7 * e, 0.6, 0.4), (0.3, 0.3, 0.3))])
         path = work / "room.sdfz"
-        with sdfcodec.create_map(path, codec=default_codec("pca", 64), voxel_size=0.02) as m:
+        # chunk_blocks=8 (128^3 voxels per chunk) rather than the default 16: a map mostly read in small
+        # remote regions transfers less per region with smaller chunks (docs/scale.md, "Chunk size")
+        with sdfcodec.create_map(path, codec=default_codec("pca", 64), voxel_size=0.02, chunk_blocks=8) as m:
             m.write_volume(sample_volume(scene, (round(e / 0.02), 64, 64), 0.02))
     else:
         path = args.map.resolve()

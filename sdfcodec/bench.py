@@ -23,7 +23,13 @@ codec ids:
     in order: each is timed as ``(B, m) @ (m, n)``. Without it: ``[(4096, k)]`` / ``[(k, 4096)]``.
 
 Records of a codec with either hook also carry ``roofline_shapes``, ``weights`` and ``torch_threads``; the
-records of a codec with neither keep the original keys (see :func:`bench_codec`).
+records of a codec with neither keep the original keys (see :func:`bench_codec`). Every record carries
+``paper_us_per_block`` (405, 645) and ``speedup_vs_paper`` (those divided by ``us_per_block``).
+
+Decode on read (:func:`bench_decode_on_read`) has a second roofline, memory-copy bandwidth: ``np.copyto``
+between two 64 MiB buffers, timed in the same run, expressed as the blocks/s at which the decoded float32
+blocks (16 KiB each) could merely be copied (``memcpy_blocks_per_s``): no decoder that writes its output can
+beat it.
 """
 
 from __future__ import annotations
@@ -40,11 +46,12 @@ from .errors import InvalidValueError
 from .registry import get_codec, get_codec_class
 from .testing import analytic_blocks
 
-__all__ = ["time_call", "bench_codec", "bench_codec_instance", "bench_decode_on_read", "roofline_shapes",
-           "PAPER_US_PER_BLOCK"]
+__all__ = ["time_call", "bench_codec", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
+           "roofline_shapes", "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
+_BLOCK_BYTES = 4 * _N  # one decoded float32 block
 _OPS = ("encode", "decode")
 
 
@@ -62,6 +69,19 @@ def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3)
                 break
         best = min(best, dt / n)
     return best
+
+
+def _vs_paper(us_per_block: float) -> dict[str, Any]:
+    return {"paper_us_per_block": list(PAPER_US_PER_BLOCK),
+            "speedup_vs_paper": [p / us_per_block for p in PAPER_US_PER_BLOCK]}
+
+
+def memcpy_bytes_per_s(nbytes: int = 64 << 20, min_time: float = 0.2) -> float:
+    """Memory-copy bandwidth of this machine, now: bytes/s of ``np.copyto`` between two ``nbytes`` buffers
+    (both touched first, so page faults are not timed)."""
+    src = np.ones(max(1, nbytes // 4), np.float32)
+    dst = np.zeros_like(src)
+    return src.nbytes / time_call(lambda: np.copyto(dst, src), min_time)
 
 
 def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
@@ -121,6 +141,7 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
                 "codec": name, "code_size": codec.code_size, "operation": op, "batch": b, "device": str(dev),
                 "blocks_per_s": b / t, "baseline": "numpy matmul of the layer shapes" if extra else "numpy matmul",
                 "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
+                **_vs_paper(1e6 * t / b),
             }
             if extra:
                 rec.update(roofline_shapes=[list(s) for s in shapes], weights=weights,
@@ -144,7 +165,7 @@ def _instance(codec_id: str, k: int) -> tuple[Codec, str | None]:
 
 def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, device: str = "cpu",
                 min_time: float = 0.2, progress: Callable[[str], None] | None = None,
-                read_blocks: int = 0) -> list[dict]:
+                read_blocks: int = 0, http: bool = False) -> list[dict]:
     """Encode/decode blocks/s of ``codec_id`` at each code size and batch, beside the numpy matmul roofline.
 
     Returns one record per (code_size, operation, batch) with ``codec``, ``code_size`` (the codec's actual
@@ -152,7 +173,7 @@ def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int]
     ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block``; codecs with a benchmark hook (see
     the module docstring) add ``roofline_shapes``, ``weights`` and ``torch_threads``. With ``read_blocks > 0``,
     each code size also gets a ``"decode-on-read"`` record (:func:`bench_decode_on_read` over a map of that
-    many blocks).
+    many blocks), and with ``http`` a ``"decode-on-read-http"`` one (the same map served on loopback).
     """
     records = []
     for k in code_sizes:
@@ -162,20 +183,24 @@ def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int]
         if read_blocks > 0:
             if progress:
                 progress(f"{codec_id}-{codec.code_size} decode-on-read {read_blocks} blocks")
-            records.append(bench_decode_on_read(codec, read_blocks, device=device, min_time=min_time,
-                                                name=codec_id, weights=weights))
+            records += bench_decode_on_read(codec, read_blocks, device=device, min_time=min_time,
+                                            name=codec_id, weights=weights, http=http)
     return records
 
 
 def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", min_time: float = 0.2,
-                         name: str | None = None, weights: str | None = None, prefetch: int = 2) -> dict:
+                         name: str | None = None, weights: str | None = None, prefetch: int = 2,
+                         http: bool = False) -> list[dict]:
     """Decode on read: blocks/s of :meth:`sdfcodec.Map.iter_decoded` over a whole map of ``n_blocks`` coded
-    blocks on local disk (codes read, checksummed, decompressed, decoded to float32 metres), beside two
-    baselines timed in the same run: the numpy roofline of the decode's layer shapes (``baseline``) and the
-    codec's own decode of the same codes already in memory (``in_memory_decode_blocks_per_s``).
+    blocks (codes read, checksummed, decompressed, decoded to float32 metres) from local disk, and with
+    ``http`` also over HTTP from a server on loopback, beside three baselines timed in the same run: the numpy
+    roofline of the decode's layer shapes (``baseline``), memory-copy bandwidth (``memcpy_blocks_per_s``, see
+    the module docstring) and the codec's own decode of the same codes already in memory
+    (``in_memory_decode_blocks_per_s``).
 
     The map (float32 codes, default chunking) is written to a temporary directory and removed afterwards.
-    Returns one record with ``operation="decode-on-read"`` and ``batch=n_blocks``.
+    Returns one record per source, ``operation`` ``"decode-on-read"`` (local) or ``"decode-on-read-http"``,
+    with ``batch=n_blocks``.
     """
     import shutil
     import tempfile
@@ -190,40 +215,80 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     side = int(np.ceil(n_blocks ** (1 / 3)))
     coords = np.stack(np.unravel_index(np.arange(n_blocks), (side, side, side)), axis=1)
     tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-bench-"))
+    dev = None if device == "cpu" else torch.device(device)
+    sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
+    timed: dict[str, float] = {}
     try:
+        codes = np.asarray(codec.encode(data))  # real codes of 512 analytic blocks, tiled (reading is timed)
         with create_map(tmp / "bench.sdfz", codec=codec, voxel_size=0.02, truncation=(d_min, d_max)) as m:
             for i in range(0, n_blocks, 16384):
                 j = min(i + 16384, n_blocks)
-                blocks = np.concatenate([data] * -(-(j - i) // len(data)))[: j - i] * (d_max - d_min) + d_min
-                m.write_blocks(coords[i:j], blocks)
+                m.write_codes(coords[i:j], np.concatenate([codes] * -(-(j - i) // len(codes)))[: j - i])
+        sources = {"decode-on-read": str(tmp / "bench.sdfz")}
+        server = _serve(tmp) if http else None
+        if server is not None:
+            sources["decode-on-read-http"] = f"http://127.0.0.1:{server.server_address[1]}/bench.sdfz"
+        try:
+            for op, where in sources.items():
+                m = open_map(where)
+
+                def read() -> None:
+                    n = sum(len(c) for c, _ in m.iter_decoded(device=dev, prefetch=prefetch))
+                    sync()
+                    if n != n_blocks:  # the reader lost or invented blocks: the timing would be meaningless
+                        raise InvalidValueError(f"decode on read yielded {n} blocks of the {n_blocks} written")
+
+                timed[op] = time_call(read, min_time)
+                m.close()
+        finally:
+            if server is not None:
+                server.shutdown()
+                server.server_close()
         m = open_map(tmp / "bench.sdfz")
-        dev = None if device == "cpu" else torch.device(device)
-        sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
-
-        def read() -> None:
-            n = sum(len(c) for c, _ in m.iter_decoded(device=dev, prefetch=prefetch))
-            sync()
-            if n != n_blocks:  # the map reader lost or invented blocks: the timing would be meaningless
-                raise InvalidValueError(f"decode on read yielded {n} blocks of the {n_blocks} written")
-
-        t = time_call(read, min_time)
         _, codes = m.read_codes()
+        m.close()
         z = torch.from_numpy(codes).to(device)
         t_mem = time_call(lambda: (codec.decode(z), sync()), min_time)
         shapes = roofline_shapes(codec, "decode")
         tb = time_call(_roofline_fn(shapes, n_blocks), min_time)
+        copy_bps = memcpy_bytes_per_s(min_time=min_time)
         code_bytes = sum(f.stat().st_size for f in (tmp / "bench.sdfz" / "codes").rglob("*") if f.is_file())
-        m.close()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    rec: dict[str, Any] = {
-        "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": "decode-on-read",
-        "batch": n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
-        "baseline": "numpy matmul of the layer shapes", "baseline_blocks_per_s": n_blocks / tb,
-        "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / n_blocks,
-        "in_memory_decode_blocks_per_s": n_blocks / t_mem, "ratio_to_in_memory_decode": t_mem / t,
-        "code_bytes_on_disk": code_bytes, "prefetch": prefetch, "torch_threads": torch.get_num_threads(),
-    }
-    if weights is not None:
-        rec["weights"] = weights
-    return rec
+    records = []
+    for op, t in timed.items():
+        us = 1e6 * t / n_blocks
+        rec: dict[str, Any] = {
+            "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": op,
+            "batch": n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
+            "baseline": "numpy matmul of the layer shapes", "baseline_blocks_per_s": n_blocks / tb,
+            "ratio_to_baseline": tb / t, "us_per_block": us, **_vs_paper(us),
+            "memcpy_bytes_per_s": copy_bps, "memcpy_blocks_per_s": copy_bps / _BLOCK_BYTES,
+            "ratio_to_memcpy": (n_blocks / t) / (copy_bps / _BLOCK_BYTES),
+            "in_memory_decode_blocks_per_s": n_blocks / t_mem, "ratio_to_in_memory_decode": t_mem / t,
+            "code_bytes_on_disk": code_bytes, "prefetch": prefetch, "torch_threads": torch.get_num_threads(),
+        }
+        if weights is not None:
+            rec["weights"] = weights
+        records.append(rec)
+    return records
+
+
+def _serve(root: Any):
+    """A static HTTP server for the files under ``root`` on a free loopback port, serving from a thread."""
+    import http.server
+    import threading
+    from functools import partial
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        # as production servers do: without it, headers and body leave in separate segments and the client's
+        # delayed ACK stalls every response by ~40 ms (Nagle), which would time the TCP stack, not the reader
+        disable_nagle_algorithm = True
+        protocol_version = "HTTP/1.1"  # keep-alive: one connection per client thread, as with a real server
+
+        def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the stdlib's signature
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), partial(Quiet, directory=str(root)))
+    threading.Thread(target=server.serve_forever, daemon=True, name="sdfcodec-bench-http").start()
+    return server

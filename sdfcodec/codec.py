@@ -125,12 +125,9 @@ class Codec(abc.ABC):
             return like_input(t.new_zeros((0, self.code_size)), was_numpy)
         return like_input(self._encode(t), was_numpy)
 
-    def decode(self, codes: Any) -> Any:
-        """Decode codes ``(N, k)`` to normalised blocks ``(N, 16, 16, 16)`` (float32).
-
-        ``k`` must equal ``code_size``, or, for prefix-ordered codecs, be any ``1 <= k <= code_size``
-        (a prefix decodes to a coarser block). Output follows the input like :meth:`encode`.
-        """
+    def _checked_codes(self, codes: Any) -> tuple[torch.Tensor, bool]:
+        """``codes`` as a float32 tensor, checked: finite, ``(N, k)`` with ``k == code_size`` or, for prefix-ordered
+        codecs, ``1 <= k <= code_size``."""
         self._check_fitted()
         t, was_numpy = as_float_tensor(codes, "codes", (None, None))
         k = t.shape[1]
@@ -140,6 +137,15 @@ class Codec(abc.ABC):
         elif k != self.code_size:
             raise ShapeError(f"codes for {self!r} must have {self.code_size} elements, got {k}"
                              " (this codec is not prefix-ordered, so a shorter code cannot be decoded)")
+        return t, was_numpy
+
+    def decode(self, codes: Any) -> Any:
+        """Decode codes ``(N, k)`` to normalised blocks ``(N, 16, 16, 16)`` (float32).
+
+        ``k`` must equal ``code_size``, or, for prefix-ordered codecs, be any ``1 <= k <= code_size``
+        (a prefix decodes to a coarser block). Output follows the input like :meth:`encode`.
+        """
+        t, was_numpy = self._checked_codes(codes)
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
         out = self._decode(t)
@@ -159,14 +165,35 @@ class Codec(abc.ABC):
             raise ShapeError(f"padded volumes for {self!r} need more than {2 * h} voxels per axis, got {tuple(t.shape)}")
         return like_input(self._decode_context(t) if h else t, was_numpy)
 
-    def decode_core(self, codes: Any) -> Any:
-        """Decode without neighbour context (what :meth:`decode_context` assembles); equals :meth:`decode`
-        for codecs with ``halo == 0``."""
-        if not self.halo:
+    def decode_core(self, codes: Any, *, scale: float = 1.0, offset: float = 0.0) -> Any:
+        """Decode without neighbour context (what :meth:`decode_context` assembles), as ``scale * v + offset``:
+        ``(N, k) -> (N, 16, 16, 16)``. With the defaults it equals :meth:`decode` for codecs with ``halo == 0``;
+        map readers pass ``scale = d_max - d_min, offset = d_min`` to get metres in the same pass (codecs whose
+        last step is linear fold it into their weights, see :meth:`_decode_affine`)."""
+        if not self.halo and scale == 1.0 and offset == 0.0:
             return self.decode(codes)
-        self._check_fitted()
-        t, was_numpy = as_float_tensor(codes, "codes", (None, self.code_size))
-        return like_input(self._decode(t), was_numpy)
+        t, was_numpy = self._checked_codes(codes)
+        if t.shape[0] == 0:
+            return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
+        return like_input(self._decode_affine(t, float(scale), float(offset)), was_numpy)
+
+    # -- optional hooks (the defaults are correct for every codec; overriding only makes them faster) --------
+    def _decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
+        """``scale * _decode(codes) + offset`` for checked float32 codes ``(N, k)``. The default adds one fused
+        pass over the output (in place unless the output is a view of ``codes``); a codec whose decode ends in
+        a linear layer MAY override it to fold ``scale`` and ``offset`` into that layer (PCA does)."""
+        out = self._decode(codes)
+        if scale == 1.0 and offset == 0.0:
+            return out
+        aliased = out.untyped_storage().data_ptr() == codes.untyped_storage().data_ptr()
+        base = torch.tensor(offset, dtype=out.dtype, device=out.device)
+        return torch.add(base, out, alpha=scale) if aliased else torch.add(base, out, alpha=scale, out=out)
+
+    def _decode_bound(self, codes: torch.Tensor) -> float | None:
+        """An upper bound on ``|_decode(codes)|`` over all outputs, or None (the default) when the codec cannot
+        give one cheaply. Map readers check decoded blocks for NaN/Inf (a broken learned state) with a pass
+        over the output; a finite bound proves them finite without it (PCA: from the codes and its basis)."""
+        return None
 
     # -- configuration -------------------------------------------------------------------------------
     @classmethod

@@ -275,7 +275,7 @@ class MapField:
                     pick = np.isin(all_c @ strides, todo @ strides)
                     cc, zz = all_c[pick], all_z[pick]
                     # the map readers' decode step: NaN/Inf refused, then the same float ops as decode_region
-                    dec = self.map._to_metres(self.map._decoded(self.codec.decode_core(torch.from_numpy(zz).to(dev))))
+                    dec = self.map._decode_codes(torch.from_numpy(zz).to(dev), metres=True)
                     rel = torch.from_numpy(cc - b0).to(dev)
                     view[rel[:, 0], rel[:, 1], rel[:, 2]] = dec
                     self.blocks_decoded += len(cc)

@@ -70,6 +70,8 @@ _MIN_CHUNKS_PER_READ, _BYTES_PER_CHUNK = 64, 4096
 #: How long a writer waits for another process's update of the same map to finish before giving up.
 _LOCK_TIMEOUT = 60.0
 _EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
+#: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
+_FINITE_BOUND = 1e37
 #: How codes may be stored (spec sections 4 and 4a).
 CODE_DTYPES = ("float32", "float16", "int8")
 Region = Sequence[Sequence[float]]
@@ -99,9 +101,12 @@ def _code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code:
     chunk_code = min(chunk_code, size)
     levels = sorted({*range(chunk_code, size, chunk_code), size}) if codec.prefix_ordered else [size]
     if chunk_blocks is None:
-        # keep an uncompressed chunk near or below 2 MiB (raw 4096-element codes get 4^3-block chunks)
+        # the largest of 16, 8, 4 blocks per axis that keeps an uncompressed chunk at or below 2 MiB (pca-64: 16,
+        # 512 KiB; raw 4096-element codes: 4). Zarr costs about 1 ms per chunk read on top of its bytes, so
+        # decoding a whole map from 16^3-block chunks fetches 4x faster than from 8^3 ones (docs/scale.md); a
+        # map read mostly in small remote regions may prefer chunk_blocks=8 (less transferred per region)
         itemsize = np.dtype(dtype).itemsize
-        chunk_blocks = 8 if 8 ** 3 * chunk_code * itemsize <= 2 << 20 else 4
+        chunk_blocks = next((c for c in (16, 8) if c ** 3 * chunk_code * itemsize <= 2 << 20), 4)
     return CodesSpec(size=size, dtype=dtype, chunk_blocks=chunk_blocks, chunk_code=chunk_code,
                      prefix_ordered=codec.prefix_ordered, levels=levels)
 
@@ -707,14 +712,28 @@ class Map:
                 f.cancel()
             pool.shutdown(wait=finished, cancel_futures=True)
 
-    def _decode_stream(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, **kw
-                       ) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
-        """The decode path: ``(coords (n, 3), normalised core decodes (n, 16, 16, 16) on dev)`` per group of
-        chunks, one batched ``decode_core`` call per group (keywords: see :meth:`_fetch_stream`)."""
-        codec = self.codec  # loaded (and its state checked) here, before any thread starts
+    def _decode_stream(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, *, metres: bool,
+                       **kw) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+        """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
+        batched decode per group (:meth:`_decode_codes`; keywords: see :meth:`_fetch_stream`)."""
+        self.codec  # loaded (and its state checked) here, before any thread starts
         feed = _DeviceFeed(dev)
         for coords, staged in self._fetch_stream(box, level, stage=feed.stage, **kw):
-            yield coords, self._decoded(codec.decode_core(feed.ready(staged)))
+            yield coords, self._decode_codes(feed.ready(staged), metres=metres)
+
+    def _decode_codes(self, codes: torch.Tensor, *, metres: bool) -> torch.Tensor:
+        """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
+        into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised. NaN/Inf out of the
+        codec (a corrupted or hostile learned state) are refused: proven impossible by the codec's bound on
+        its outputs when it gives one (no pass over the output), else checked on the output."""
+        codec = self.codec
+        d_min, d_max = self.truncation
+        scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
+        v = codec.decode_core(codes, scale=scale, offset=offset)
+        bound = codec._decode_bound(codes)
+        if bound is not None and math.isfinite(bound) and bound * scale + abs(offset) < _FINITE_BOUND:
+            return v
+        return self._decoded(v)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -765,8 +784,7 @@ class Map:
     def _decoded_metres(self, box: tuple[slice, slice, slice], level: int, dev: torch.device, **kw
                         ) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
         if not self.codec.halo:
-            for coords, core in self._decode_stream(box, level, dev, **kw):
-                yield coords, self._to_metres(core)
+            yield from self._decode_stream(box, level, dev, metres=True, **kw)
             return
         # a halo codec's blocks need their neighbours' core decodes: chunk by chunk, decode the bounding box of
         # its coded blocks with context (the same pipeline, reading the neighbouring chunks too)
@@ -815,35 +833,37 @@ class Map:
         d_min, d_max = self.truncation
         return v.mul_(d_max - d_min).add_(d_min)
 
-    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device) -> torch.Tensor:
-        """Normalised core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the
-        grid: 1.0 (free space) wherever no coded block is."""
+    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *, metres: bool
+                    ) -> torch.Tensor:
+        """Core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the grid, in metres
+        or normalised: free space (``d_max`` or 1.0) wherever no coded block is."""
+        free = self.truncation[1] if metres else 1.0
         grid_hi = np.asarray(self.grid_blocks) * BLOCK
         clo, chi = np.maximum(lo, 0), np.minimum(hi, grid_hi)
         if np.any(chi <= clo):
-            return empty(tuple(int(n) for n in hi - lo), dev).fill_(1.0)
+            return empty(tuple(int(n) for n in hi - lo), dev).fill_(free)
         box = self._block_range(tuple(zip(clo.tolist(), chi.tolist())))
         b0 = np.array([s.start for s in box])
         nb = [s.stop - s.start for s in box]
-        tmp = empty(tuple(n * BLOCK for n in nb), dev).fill_(1.0)
+        tmp = empty(tuple(n * BLOCK for n in nb), dev).fill_(free)
         view = _block_view(tmp, nb)
-        for coords, core in self._decode_stream(box, level, dev):
+        for coords, core in self._decode_stream(box, level, dev, metres=metres):
             idx = torch.from_numpy(coords - b0).to(dev)
             view[idx[:, 0], idx[:, 1], idx[:, 2]] = core
         src = tuple(slice(int(a - o * BLOCK), int(b - o * BLOCK)) for a, b, o in zip(clo, chi, b0))
         if np.array_equal(clo, lo) and np.array_equal(chi, hi):
             return tmp[src]  # inside the grid (always, without a halo): a view, no copy
-        out = empty(tuple(int(n) for n in hi - lo), dev).fill_(1.0)
+        out = empty(tuple(int(n) for n in hi - lo), dev).fill_(free)
         out[tuple(slice(int(a - l), int(b - l)) for a, b, l in zip(clo, chi, lo))] = tmp[src]
         return out
 
     def _decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device) -> torch.Tensor:
         """Final decoded metres of voxels ``[lo, hi)`` inside the grid, neighbour context included."""
         h = self.codec.halo
-        core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev)
-        if h:
-            core = self.codec.decode_context(core[None])[0]
-        return self._to_metres(core)
+        if not h:  # metres straight out of the decode
+            return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True)
+        core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev, metres=False)
+        return self._to_metres(self.codec.decode_context(core[None])[0])
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
                       device: str | torch.device | None = None) -> Any:

@@ -134,9 +134,18 @@ def test_bench_json_records():
     r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--json")
     assert r.exit_code == 0, r.output
     recs = json.loads(r.stdout)
-    assert {(x["operation"], x["batch"]) for x in recs} == {("encode", 1), ("decode", 1), ("encode", 64),
-                                                             ("decode", 64), ("decode-on-read", 300)}
+    assert {(x["operation"], x["batch"]) for x in recs} == {
+        ("encode", 1), ("decode", 1), ("encode", 64), ("decode", 64), ("decode-on-read", 300),
+        ("decode-on-read-http", 300), ("search", 8192)}
     assert all(x["blocks_per_s"] > 0 and x["baseline_blocks_per_s"] > 0 for x in recs)
+    for x in recs:  # the paper's 405-645 us per block against ours
+        assert x["speedup_vs_paper"] == pytest.approx([405 / x["us_per_block"], 645 / x["us_per_block"]])
+    for op in ("decode-on-read", "decode-on-read-http"):  # the memory-copy roofline: 16 KiB per decoded block
+        x = next(x for x in recs if x["operation"] == op)
+        assert x["memcpy_blocks_per_s"] == pytest.approx(x["memcpy_bytes_per_s"] / 16384)
+        assert x["ratio_to_memcpy"] == pytest.approx(x["blocks_per_s"] / x["memcpy_blocks_per_s"])
+    assert run("bench", "--quick", "--sizes", "32", "--batches", "1", "--read", "0", "--no-search",
+               "--json").exit_code == 0
     read = next(x for x in recs if x["operation"] == "decode-on-read")
     # 300 pca-32 codes of float32 were really stored and read: at least their compressed bytes (4 B x 32 each,
     # Blosc-compressible, so bounded below loosely) and at most their raw size plus chunk overhead

@@ -413,7 +413,7 @@ def test_cli_bench_ae_and_mixtures_quick(monkeypatch):
 
 def test_bench_hooks_are_generic_and_linear_default_unchanged():
     """The core uses a codec's optional hooks whatever its id; a codec without them (pca) keeps the single
-    (4096, k) product as its baseline and its original record keys."""
+    (4096, k) product as its baseline and the plain record keys (no hook fields)."""
     from sdfcodec.bench import bench_codec, roofline_shapes
 
     class TwoStage(sdfcodec.Codec):
@@ -441,7 +441,8 @@ def test_bench_hooks_are_generic_and_linear_default_unchanged():
 
     pca = bench_codec("pca", [32], [2], min_time=0.005)
     assert set(pca[0]) == {"codec", "code_size", "operation", "batch", "device", "blocks_per_s", "baseline",
-                           "baseline_blocks_per_s", "ratio_to_baseline", "us_per_block"}
+                           "baseline_blocks_per_s", "ratio_to_baseline", "us_per_block", "paper_us_per_block",
+                           "speedup_vs_paper"}
     assert pca[0]["baseline"] == "numpy matmul"
     assert roofline_shapes(sdfcodec.get_codec("raw"), "encode") == [(4096, 4096)]
     _check_timing_fields(pca)

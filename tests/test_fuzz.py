@@ -7,7 +7,6 @@ limit, and an address-space limit (RLIMIT_AS) a little above what the process al
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import resource

@@ -22,7 +22,6 @@ import zarr
 
 import sdfcodec
 from sdfcodec import errors
-from sdfcodec.header import BlockState
 from sdfcodec.testing import analytic_blocks
 from sdfcodec.verify import verify_command, verify_map
 

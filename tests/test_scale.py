@@ -187,6 +187,32 @@ def test_pipeline_guards(map_path, tmp_path):
         next(full.iter_decoded(prefetch=-1))
 
 
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # numpy's, on the hostile state
+def test_decoded_values_are_checked_unless_the_codec_bound_proves_them_finite(tmp_path, monkeypatch):
+    """A PCA state with huge (finite) components decodes codes of 1e6 to Inf in float32: the codec's bound
+    says it cannot vouch for them, so the reader checks the output and refuses; with a sane state the bound
+    proves the output finite and the pass over it is skipped."""
+    pca = sdfcodec.get_codec("pca", code_size=8).fit(analytic_blocks(64, seed=4))
+    state = pca.state_dict()
+    huge = sdfcodec.get_codec("pca", code_size=8).load_state_dict(dict(state, components=state["components"] * 1e36))
+    coords = np.array([[0, 0, 0], [1, 0, 0]])
+    codes = np.full((2, 8), 1e6, np.float32)
+    checked = []
+    real = sdfcodec.Map._decoded
+    monkeypatch.setattr(sdfcodec.Map, "_decoded", lambda self, v: (checked.append(len(v)), real(self, v))[1])
+    for name, codec in (("sane", pca), ("huge", huge)):
+        with sdfcodec.create_map(tmp_path / f"{name}.sdfz", codec=codec, voxel_size=VS, truncation=TRUNC) as w:
+            w.write_codes(coords, codes if name == "huge" else np.ones((2, 8), np.float32))
+    ok = sdfcodec.open_map(tmp_path / "sane.sdfz")
+    assert sum(len(c) for c, _ in ok.iter_decoded()) == 2 and ok.decode_region().shape == (32, 16, 16)
+    assert checked == []  # the bound proved the decodes finite: no pass over them
+    bad = sdfcodec.open_map(tmp_path / "huge.sdfz")
+    for read in (lambda: list(bad.iter_decoded()), bad.decode_region):
+        with pytest.raises(errors.FormatError, match="decoded NaN/Inf"):
+            read()
+    assert checked  # the output was checked
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_pipeline_on_cuda_matches_cpu(map_path):
     m = sdfcodec.open_map(map_path)

@@ -241,7 +241,7 @@ class _Counting(zarr.storage.WrapperStore):
         return await self._store.get(key, prototype, byte_range)
 
 
-def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch):
+def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     m = sdfcodec.open_map(maps[128])
     full = S.search(m, "floor", top=5)
     low = S.search(m, "floor", level=32, top=5)
@@ -264,8 +264,12 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch):
         return real(self, codes)
 
     monkeypatch.setattr(S._Scorer, "__call__", spy)
-    res = S.search(m, "floor", level=32, chunks_per_batch=1)
-    assert max(sizes) <= m.header.codes.chunk_blocks ** 3 and sum(sizes) == res.stats["blocks_scored"]
+    small = tmp_path / "small-chunks.sdfz"  # the room spans one default (16^3-block) chunk: use 4^3 ones
+    with sdfcodec.create_map(small, codec=m.codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=4) as w:
+        w.write_codes(*m.read_codes())
+    ms = sdfcodec.open_map(small)
+    res = S.search(ms, "floor", level=32, chunks_per_batch=1)
+    assert max(sizes) <= 4 ** 3 and sum(sizes) == res.stats["blocks_scored"] == m.count_states()["coded"]
     assert len(sizes) > 1
 
 

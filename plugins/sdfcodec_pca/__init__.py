@@ -21,7 +21,7 @@ input's device. Components are sorted by explained variance, so any code prefix 
 
 from __future__ import annotations
 
-from typing import Iterator, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 import torch
@@ -129,8 +129,10 @@ class PCACodec(Codec):
             raise InvalidValueError("pca state holds NaN or infinite values")
         self.components_, self.mean_, self.explained_variance_ = comp, mean, var
         self._affine = self._build_affine()
-        self._folded = np.ascontiguousarray(np.concatenate([self._affine[3][None], self._affine[2]]))  # [d; D]
-        self._device_cache: dict[torch.device, tuple[torch.Tensor, ...]] = {}
+        dec_w, dec_b = self._affine[2].astype(np.float64), self._affine[3].astype(np.float64)
+        # |x_j| <= sum_i |code_i| max_j |D_ij| + max_j |d_j|: what _decode_bound evaluates per batch
+        self._row_max, self._bias_max = np.abs(dec_w).max(axis=1), float(np.abs(dec_b).max())
+        self._device_cache: dict[Any, tuple[Any, ...]] = {}
         return self
 
     def _build_affine(self) -> tuple[np.ndarray, ...]:
@@ -154,6 +156,23 @@ class PCACodec(Codec):
             self._device_cache[device] = mats
         return mats
 
+    def _decoder(self, device: torch.device, scale: float, offset: float) -> Any:
+        """The decode layer with the output scaling folded in, cached: on the CPU the numpy matrix ``[d; D]``
+        (bias as the first row) scaled, elsewhere the tensors ``(scale d + offset, scale D)``."""
+        key = (device, scale, offset)
+        dec = self._device_cache.get(key)
+        if dec is None:
+            dec_w = self._affine[2].astype(np.float64) * scale
+            dec_b = self._affine[3].astype(np.float64) * scale + offset
+            if device.type == "cpu":
+                dec = (np.ascontiguousarray(np.concatenate([dec_b[None], dec_w]), dtype=np.float32),)
+            else:
+                dec = tuple(torch.from_numpy(a.astype(np.float32)).to(device) for a in (dec_b, dec_w))
+            if len(self._device_cache) > 8:  # a handful of truncations per process; never grow without bound
+                self._device_cache.clear()
+            self._device_cache[key] = dec
+        return dec
+
     def prefix(self, code_size: int) -> "PCACodec":
         """The fitted codec that keeps only the first ``code_size`` code elements (its leading components):
         one 128-component basis serves pca-32 and pca-64 exactly as a prefix of its codes would."""
@@ -173,14 +192,26 @@ class PCACodec(Codec):
         return torch.addmm(enc_b, blocks.reshape(len(blocks), _N), enc_w)
 
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
+        return self._decode_affine(codes, 1.0, 0.0)
+
+    def _decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
+        # the output scaling (map readers: normalised -> metres) is folded into the decode layer: no extra pass
         n, k = codes.shape
+        dec = self._decoder(codes.device, scale, offset)
         if codes.device.type == "cpu":
             # numpy's BLAS is 15-40% faster than torch's for this thin (N, k) x (k, 4096) product here, and
             # folding the bias in as a row (codes get a leading 1) saves a pass over the 16 KiB-per-block output
             c1 = np.empty((n, k + 1), dtype=np.float32)
             c1[:, 0] = 1.0
             c1[:, 1:] = codes.numpy()
-            return torch.from_numpy(c1 @ self._folded[: k + 1]).reshape(n, 16, 16, 16)
-        _, _, dec_w, dec_b = self._on(codes.device)
+            return torch.from_numpy(c1 @ dec[0][: k + 1]).reshape(n, 16, 16, 16)
+        dec_b, dec_w = dec
         out = empty((n, _N), codes.device)
         return torch.addmm(dec_b, codes, dec_w[:k], out=out).reshape(n, 16, 16, 16)
+
+    def _decode_bound(self, codes: torch.Tensor) -> float:
+        # max |code| * sum_i max_j |D_ij| + max |d|: one min/max pass over the codes, no temporaries
+        if not len(codes):
+            return 0.0
+        lo, hi = torch.aminmax(codes)
+        return max(-float(lo), float(hi)) * float(self._row_max[: codes.shape[1]].sum()) + self._bias_max

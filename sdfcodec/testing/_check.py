@@ -139,6 +139,21 @@ def check_codec(codec: Codec, *, blocks: np.ndarray | None = None, golden: str |
         _close(codec.encode(x.astype(np.float64)), codes, atol, "dtypes: float64 input")
         done("round trip")
 
+    # 4b. decode-on-read hooks (spec/codec-plugins.md 3b): scaled core decodes, the codec's output bound
+    with _check("decode on read"):
+        scale, offset = 0.14, -0.04  # a map's truncation (-0.04, 0.1) m: what readers pass
+        core = codec.decode_core(codes)
+        metres = codec.decode_core(codes, scale=scale, offset=offset)
+        _close(metres, np.asarray(core, np.float64) * scale + offset, atol * scale,
+               "decode on read: decode_core(codes, scale, offset) vs scale * decode_core(codes) + offset")
+        _close(codes, codec.encode(x), 0.0, "decode on read: decode_core(scale=...) modified the codes")
+        bound = codec._decode_bound(torch.from_numpy(codes))
+        if bound is not None:
+            peak = float(np.abs(core).max())
+            assert bound >= peak * (1 - 1e-5), f"decode on read: _decode_bound gave {bound:.6g} below the " \
+                                               f"largest decoded magnitude {peak:.6g}"
+        done("decode on read")
+
     # 5. batch independence: one block at a time and a large batch give the same codes
     with _check("batch"):
         for i in (0, len(x) - 1):
