@@ -621,10 +621,12 @@ class Map:
         if not n.all():
             return []
         lead = b0 % cb
-        cn = -(-(lead + n) // cb)
-        coded = np.zeros(tuple(cn * cb), dtype=bool)
-        coded[tuple(slice(int(a), int(a + m)) for a, m in zip(lead, n))] = states == BlockState.CODED
-        counts = coded.reshape(cn[0], cb, cn[1], cb, cn[2], cb).sum(axis=(1, 3, 5), dtype=np.int64)
+        # coded blocks per chunk, summed axis by axis between chunk boundaries: time and memory follow the block
+        # states, never the chunks' volume (a hostile 256^3-block chunk over a thin box costs nothing extra)
+        counts = states == BlockState.CODED
+        for ax in range(3):
+            starts = np.r_[0, np.arange(cb - lead[ax] if lead[ax] else cb, n[ax], cb)]
+            counts = np.add.reduceat(counts, starts, axis=ax, dtype=np.int32)
         idx = np.argwhere(counts)
         if not len(idx):
             return []

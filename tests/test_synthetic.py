@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy import stats
 from scipy.spatial import cKDTree
@@ -276,6 +276,7 @@ def test_straight_barrel_is_the_cylinder(rng):
 
 @settings(max_examples=30, deadline=None)
 @given(r_mid=st.floats(0.05, 0.5), share=st.floats(0.0, 0.99), h=st.floats(0.05, 0.5), seed=st.integers(0, 2 ** 16))
+@example(r_mid=0.4375, share=2.220446049250313e-16, h=0.5, seed=0)  # bulges by one ulp: R ~ 1e15 (found by a full run)
 def test_barrel_matches_dense_meridian_samples(r_mid, share, h, seed):
     r_cap = r_mid - share * min(r_mid, h)  # every allowed bulge, up to a half-circle profile
     rng = np.random.default_rng(seed)
@@ -290,13 +291,16 @@ def test_barrel_matches_dense_meridian_samples(r_mid, share, h, seed):
         c, big_r = arc
         alpha = np.arcsin(h / big_r)
         phi = np.linspace(-alpha, alpha, int(2 * alpha * big_r / step) + 2)
-        seg_r, seg_z = c + big_r * np.cos(phi), big_r * np.sin(phi)
+        # r_mid - R (1 - cos phi), not c + R cos phi: for a barrel that bulges by a hair, c ~ -R ~ -1e15 and the
+        # difference of the two would lose everything below R's last bit (0.125 at 1e15)
+        seg_r, seg_z = r_mid - 2 * big_r * np.sin(phi / 2) ** 2, big_r * np.sin(phi)
     rr = np.linspace(0, r_cap, int(r_cap / step) + 2)
     prof = np.concatenate([np.stack([seg_r, seg_z], 1), np.stack([rr, np.full_like(rr, h)], 1),
                            np.stack([rr, np.full_like(rr, -h)], 1)])
     rho, z = np.hypot(q[:, 0], q[:, 1]), q[:, 2]
     dist, _ = cKDTree(prof).query(np.stack([rho, z], 1))
-    radius = r_mid if arc is None else arc[0] + np.sqrt(np.maximum(arc[1] ** 2 - z ** 2, 0))
+    # the arc's radius at height z, r_mid - z^2 / (R + sqrt(R^2 - z^2)): the same value as c + sqrt(R^2 - z^2), stable
+    radius = r_mid if arc is None else r_mid - z ** 2 / (arc[1] + np.sqrt(np.maximum(arc[1] ** 2 - z ** 2, 0)))
     inside = (np.abs(z) <= h) & (rho <= radius)
     np.testing.assert_allclose(got, np.where(inside, -dist, dist), rtol=0, atol=step)
 
