@@ -638,7 +638,7 @@ def bench_cmd(
     shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
     mixtures --sizes is the size of each part (64: code 64+64+1).
     """
-    from .bench import PAPER_US_PER_BLOCK, bench_codec
+    from .bench import PAPER_US_PER_BLOCK, _vs_paper, bench_codec
 
     ks = [int(s) for s in sizes.split(",")]
     bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
@@ -656,11 +656,9 @@ def bench_cmd(
         if do_search:
             from .search import bench_search
 
-            records += bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
-                                    min_time=0.05 if quick else 0.2, progress=step)
-    for r in records:  # search records come from sdfcodec.search; give them the same comparison to the paper
-        r.setdefault("paper_us_per_block", list(PAPER_US_PER_BLOCK))
-        r.setdefault("speedup_vs_paper", [p / r["us_per_block"] for p in PAPER_US_PER_BLOCK])
+            found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
+                                 min_time=0.05 if quick else 0.2, progress=step)
+            records += [dict(r, **_vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
     if as_json:
         _print_json(records)
         return

@@ -87,6 +87,12 @@ class CodesSpec(_Model):
     prefix_ordered: bool = Field(description="a code prefix decodes (levels are meaningful)")
     levels: list[int] = Field(description="prefix lengths a reader may request cheaply, ascending, last = size")
 
+    def stored_bytes(self, level: int | None = None) -> int:
+        """Uncompressed bytes of one coded block's first ``level`` (default: all) code elements, with the
+        float32 ``[offset, scale]`` pair int8 codes carry (spec section 4a)."""
+        n = self.size if level is None else level
+        return n * {"float32": 4, "float16": 2, "int8": 1}[self.dtype] + 8 * (self.dtype == "int8")
+
     @model_validator(mode="after")
     def _levels(self) -> "CodesSpec":
         if not self.levels or self.levels[-1] != self.size or sorted(set(self.levels)) != self.levels:

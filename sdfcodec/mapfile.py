@@ -563,7 +563,7 @@ class Map:
         local = np.argwhere(state == BlockState.CODED)
         if not len(local):
             return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
-        nbytes = state.size * (level * np.dtype(self.header.codes.dtype).itemsize + 8 * (self._code_scale is not None))
+        nbytes = state.size * self.header.codes.stored_bytes(level)
         if nbytes > self.max_decode_bytes:
             raise InvalidValueError(f"reading the codes of blocks {[(s.start, s.stop) for s in box]} densely needs "
                                     f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
@@ -915,9 +915,7 @@ class Map:
             "shape_voxels": list(h.shape_voxels),
             "grid_blocks": list(h.grid_blocks),
             "blocks": counts,
-            # int8 codes carry an [offset, scale] float32 pair per block
-            "code_bytes_raw": counts["coded"] * (h.codes.size * np.dtype(h.codes.dtype).itemsize
-                                                 + 8 * (h.codes.dtype == "int8")),
+            "code_bytes_raw": counts["coded"] * h.codes.stored_bytes(),
             "bytes_on_disk": on_disk,
             "dense_float32_bytes": dense,
             "codec_state_bytes": state_bytes,

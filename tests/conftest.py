@@ -38,6 +38,25 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="module")
+def volume() -> np.ndarray:
+    """The exact analytic scene (sdfcodec.testing.analytic_scene) sampled at 2 cm, truncation (-0.04, 0.1) m:
+    90 x 70 x 45 voxels, a multiple neither of 16 (padding, true extent) nor of small chunks."""
+    from sdfcodec.sdf import sample_volume
+    from sdfcodec.testing import analytic_scene
+
+    return sample_volume(analytic_scene(), (90, 70, 45), 0.02, truncation=(-0.04, 0.1))
+
+
+@pytest.fixture(scope="module")
+def pca64():
+    """A pca-64 codec fitted on 800 analytic blocks (seed 11)."""
+    import sdfcodec
+    from sdfcodec.testing import analytic_blocks
+
+    return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

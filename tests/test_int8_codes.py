@@ -24,16 +24,6 @@ GOLDEN = Path(__file__).parent / "golden" / "maps" / "int8-pca-4"
 
 
 @pytest.fixture(scope="module")
-def volume() -> np.ndarray:
-    return sample_volume(analytic_scene(), (90, 70, 45), VS, truncation=TRUNC)
-
-
-@pytest.fixture(scope="module")
-def pca64():
-    return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
-
-
-@pytest.fixture(scope="module")
 def maps(tmp_path_factory, volume, pca64) -> dict[str, Path]:
     out = {}
     for dtype in ("float32", "int8"):

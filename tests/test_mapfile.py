@@ -15,21 +15,9 @@ import zarr
 import sdfcodec
 from sdfcodec import errors
 from sdfcodec.header import BlockState
-from sdfcodec.sdf import sample_volume
-from sdfcodec.testing import analytic_blocks, analytic_scene
+from sdfcodec.testing import analytic_blocks
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
-
-
-@pytest.fixture(scope="module")
-def volume() -> np.ndarray:
-    # 90 x 70 x 45 voxels: not a multiple of 16, so padding and the true extent are exercised
-    return sample_volume(analytic_scene(), (90, 70, 45), VS, truncation=TRUNC)
-
-
-@pytest.fixture(scope="module")
-def pca64():
-    return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
 
 
 @pytest.fixture(scope="module")

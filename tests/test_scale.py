@@ -29,17 +29,6 @@ D_MIN, D_MAX = TRUNC
 
 
 @pytest.fixture(scope="module")
-def volume() -> np.ndarray:
-    # 90 x 70 x 45 voxels: not a multiple of 16 (padding) nor of a chunk (32 voxels with chunk_blocks=2)
-    return sample_volume(analytic_scene(), (90, 70, 45), VS, truncation=TRUNC)
-
-
-@pytest.fixture(scope="module")
-def pca64():
-    return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(500, seed=3))
-
-
-@pytest.fixture(scope="module")
 def map_path(tmp_path_factory, volume, pca64) -> Path:
     # small chunks (2^3 blocks) so that a small map has many chunks, groups and prefetches
     path = tmp_path_factory.mktemp("scale") / "m.sdfz"
