@@ -13,7 +13,7 @@ import torch
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-BLOCK = 16  # voxels per block edge (DESIGN.md: fixed at 16)
+BLOCK = 16  # voxels per block edge, fixed at 16 by the map format (spec/map-format.md)
 
 
 def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_finite: bool = True

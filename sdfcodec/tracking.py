@@ -134,7 +134,7 @@ def _as_vec3(x: Any, name: str) -> tuple[float, float, float]:
 class DenseField:
     """A dense TSDF volume as a :class:`FieldSampler` (trilinear interpolation, central-difference gradient).
 
-    Voxel ``(i, j, k)`` holds the distance at world position ``origin + voxel_size * (i, j, k)`` (DESIGN.md).
+    Voxel ``(i, j, k)`` holds the distance at world position ``origin + voxel_size * (i, j, k)`` (spec/map-format.md).
     A point is valid when every voxel its interpolation and central differences touch lies in the volume
     (continuous voxel coordinates ``u = (p - origin) / voxel_size`` in ``[1, n - 2)`` on each axis) and is
     finite; NaN points are not valid. NaN voxels are allowed and mean "unknown": points that touch one are
