@@ -20,9 +20,40 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
+def _pin_examples() -> bool:
+    """Keep Hypothesis from mining literals out of the loaded modules (deterministic profile only).
+
+    Hypothesis (>= 6.131) draws a few percent of its integers, floats and strings from the literals of the
+    *local modules loaded at that moment*. Which modules are loaded depends on the tests that ran before, so a
+    derandomized test drew other examples alone than late in the full suite: there test_fuzz_geometry drew
+    grids of 5 x 2^20 x 3 blocks that took 20-40 s each, alone it drew others (10 s for the whole test). Any
+    edit that adds or moves a literal anywhere in the package changed the examples too. The tests list their own
+    special values (test_fuzz.SPECIAL), so nothing is lost. There is no public switch; where the hook is missing
+    (another Hypothesis), tests/test_fuzz.py::test_examples_are_pinned fails and says so.
+    """
+    try:
+        from hypothesis.internal.conjecture import providers
+    except ImportError:  # pragma: no cover - a Hypothesis without the provider module
+        return False
+    empty = getattr(providers, "_local_constants", None)
+    if not hasattr(providers, "_get_local_constants") or empty is None or len(empty):
+        return False  # pragma: no cover - another Hypothesis
+    providers._get_local_constants = lambda: empty  # noqa: SLF001 - no public switch exists
+    return True
+
+
+EXAMPLES_PINNED = os.environ.get("HYPOTHESIS_PROFILE", "deterministic") == "deterministic" and _pin_examples()
+
+
 def pytest_addoption(parser):
     parser.addoption("--regen-golden", action="store_true", default=False,
                      help="rewrite golden fixture files instead of checking against them (format changes only)")
+
+
+@pytest.fixture
+def examples_pinned() -> bool:
+    """Whether Hypothesis's examples are independent of the modules loaded (see _pin_examples)."""
+    return EXAMPLES_PINNED
 
 
 @pytest.fixture
@@ -60,3 +91,4 @@ def pca64():
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
