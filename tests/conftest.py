@@ -69,17 +69,23 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-@pytest.fixture(scope="module")
+# The two fixtures below are built once per session (five modules use them): the volume is read-only so a test
+# that changed it in place would fail there instead of leaking into the next module; tests only encode and
+# decode with the codec, never refit it.
+@pytest.fixture(scope="session")
 def volume() -> np.ndarray:
     """The exact analytic scene (sdfcodec.testing.analytic_scene) sampled at 2 cm, truncation (-0.04, 0.1) m:
-    90 x 70 x 45 voxels, a multiple neither of 16 (padding, true extent) nor of small chunks."""
+    float32 metres, 90 x 70 x 45 voxels, a multiple neither of 16 (padding, true extent) nor of small chunks;
+    read-only."""
     from sdfcodec.sdf import sample_volume
     from sdfcodec.testing import analytic_scene
 
-    return sample_volume(analytic_scene(), (90, 70, 45), 0.02, truncation=(-0.04, 0.1))
+    vol = sample_volume(analytic_scene(), (90, 70, 45), 0.02, truncation=(-0.04, 0.1))
+    vol.setflags(write=False)
+    return vol
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def pca64():
     """A pca-64 codec fitted on 800 analytic blocks (seed 11)."""
     import sdfcodec
