@@ -193,7 +193,8 @@ def _track(field, seq, start_pose: np.ndarray, *, config=None, progress: bool = 
 
 
 def _ate(seq, poses: np.ndarray) -> dict[str, Any] | None:
-    from .metrics import Trajectory, ate
+    from .metrics import ate
+    from .trajectory import Trajectory
 
     gt = seq.poses
     ok = np.isfinite(gt).all(axis=(1, 2))
@@ -244,7 +245,7 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     from .data.sequences import open_sequence
     from .mapfield import MapField
     from .mapfile import open_map
-    from .metrics import Trajectory, write_tum
+    from .trajectory import Trajectory, write_tum
     from .tracking import DenseField
 
     if start not in ("groundtruth", "identity"):
