@@ -32,6 +32,7 @@ __all__ = [
     "se3_exp",
     "se3_inverse",
     "se3_compose",
+    "orthonormality_error",
     "check_pose",
     "umeyama_alignment",
 ]
@@ -205,6 +206,13 @@ def se3_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("nij,njk->nik", a, b)
 
 
+def orthonormality_error(rotation: np.ndarray) -> float:
+    """``max |R^T R - I|`` of a ``(3, 3)`` matrix: 0 for a rotation (or a reflection; check ``det R`` too).
+    Callers choose their own tolerance (:func:`check_pose` 5e-3 for printed poses, the tracker 1e-3)."""
+    r = np.asarray(rotation)
+    return float(np.abs(r.T @ r - np.eye(3)).max())
+
+
 def check_pose(pose: np.ndarray, tol: float = RIGID_TOL) -> str | None:
     """Why ``pose`` is not a usable 4x4 rigid transform, or ``None`` when it is.
 
@@ -220,7 +228,7 @@ def check_pose(pose: np.ndarray, tol: float = RIGID_TOL) -> str | None:
     if np.abs(p[3] - (0.0, 0.0, 0.0, 1.0)).max() > tol:
         return f"bottom row {p[3].tolist()} is not (0, 0, 0, 1)"
     r = p[:3, :3]
-    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    err = orthonormality_error(r)
     if err > tol:
         return f"rotation is not orthonormal (|R^T R - I| = {err:.3g})"
     if np.linalg.det(r) <= 0:

@@ -56,7 +56,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .densefield import DenseField
 from .errors import DTypeError, InvalidValueError, ShapeError
-from .geometry import se3_exp
+from .geometry import orthonormality_error, se3_exp
 
 __all__ = [
     "FieldSampler",
@@ -408,7 +408,7 @@ class SDFTracker:
         if not np.all(np.isfinite(p)):
             raise InvalidValueError(f"{name} holds NaN or infinite values")
         r = p[:3, :3]
-        if np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
+        if orthonormality_error(r) > 1e-3 or np.linalg.det(r) < 0:
             raise InvalidValueError(f"{name}'s rotation part is not a rotation (R^T R != I or det < 0)")
         return p
 
