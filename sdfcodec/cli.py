@@ -654,7 +654,7 @@ def bench_cmd(
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
                               read_blocks=n_read, http=http)
         if do_search:
-            from .search import bench_search
+            from .bench import bench_search
 
             found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step)

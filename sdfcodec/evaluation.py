@@ -193,7 +193,8 @@ def _track(field, seq, start_pose: np.ndarray, *, config=None, progress: bool = 
 
 
 def _ate(seq, poses: np.ndarray) -> dict[str, Any] | None:
-    from .metrics import Trajectory, ate
+    from .metrics import ate
+    from .trajectory import Trajectory
 
     gt = seq.poses
     ok = np.isfinite(gt).all(axis=(1, 2))
@@ -226,7 +227,7 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     cache_mb : float
         Bound of the decoded-block cache in MiB (lazy decoding).
     dense : bool
-        Decode the whole map up front instead (:class:`~sdfcodec.tracking.DenseField`).
+        Decode the whole map up front instead (:class:`~sdfcodec.densefield.DenseField`).
     start : {"groundtruth", "identity"}
         Start pose: the first frame's ground truth (as the paper does; falls back to identity with no
         ground truth) or the identity.
@@ -244,8 +245,8 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     from .data.sequences import open_sequence
     from .mapfield import MapField
     from .mapfile import open_map
-    from .metrics import Trajectory, write_tum
-    from .tracking import DenseField
+    from .trajectory import Trajectory, write_tum
+    from .densefield import DenseField
 
     if start not in ("groundtruth", "identity"):
         raise InvalidValueError(f"start must be 'groundtruth' or 'identity', got {start!r}")
@@ -277,7 +278,7 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
     """Tracker frames/s against one map, dense and lazily decoded (the issue's speed benchmark).
 
     Tracks the first ``frames`` frames of ``sequence`` from ground truth three times: against
-    :class:`~sdfcodec.tracking.DenseField` on the map's dense decode, against a fresh
+    :class:`~sdfcodec.densefield.DenseField` on the map's dense decode, against a fresh
     :class:`~sdfcodec.mapfield.MapField` (cold: every block decoded on first touch) and against the same
     MapField again (warm cache). Frames are read before timing; only ``SDFTracker.track`` is timed.
 
@@ -291,7 +292,8 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
     from .data.sequences import open_sequence
     from .mapfield import MapField
     from .mapfile import open_map
-    from .tracking import DenseField, SDFTracker, TrackerConfig
+    from .densefield import DenseField
+    from .tracking import SDFTracker, TrackerConfig
 
     seq = open_sequence(resolve_sequence(str(sequence), Path(".sdfcodec-sequences")))[:frames]
     depths = [seq[i].depth for i in range(len(seq))]
@@ -384,7 +386,7 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
         "skipped": {key: reason}, "settings": {...}}``.
     """
     from .fusion import fuse
-    from .tracking import DenseField
+    from .densefield import DenseField
 
     say = log or (lambda s: None)
     out = Path(out_dir)

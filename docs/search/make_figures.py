@@ -22,6 +22,7 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec import search as S
+from sdfcodec.bench import bench_search
 from sdfcodec.models import default_codec
 from sdfcodec.search_cli import format_summary, search_command
 
@@ -174,8 +175,8 @@ def _pr_figure(records: list[dict]) -> None:
 def bench() -> None:
     """Search throughput (kernel and whole-map) and bytes read at level 32 of a 128-element map."""
     machine = _machine()
-    recs = S.bench_search((64, 128), batches=(65536, 1 << 20), map_blocks=200_000,
-                          map_levels={64: [64], 128: [32, 128]}, progress=print)
+    recs = bench_search((64, 128), batches=(65536, 1 << 20), map_blocks=200_000,
+                        map_levels={64: [64], 128: [32, 128]}, progress=print)
     import os
 
     (HERE / "bench.json").write_text(json.dumps({"command": "python docs/search/make_figures.py bench",
