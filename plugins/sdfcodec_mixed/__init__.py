@@ -226,7 +226,7 @@ class _Mixture(TrainableCodec):
         return self
 
     def write_training_report(self, prefix: str | Path) -> list[Path]:
-        """Learning curves of the autoencoder part's last fit (see :meth:`sdfcodec_ae.AECodec.write_training_report`)."""
+        """Learning curves of the autoencoder part's last fit (the ``ae`` codec's ``write_training_report``)."""
         return self.ae_.write_training_report(prefix)
 
     @classmethod
@@ -391,7 +391,8 @@ def _bench_instance(cls: type[_Mixture]) -> Any:
             except SDFCodecError:
                 pass
         ae = get_codec_class("ae").untrained(code_size, 512, cls._ae_output)  # type: ignore[attr-defined]
-        return cls.from_parts(pretrained_codec("pca", code_size), ae, weight=weight), f"shipped eigenshapes; ae {UNTRAINED}"
+        mix = cls.from_parts(pretrained_codec("pca", code_size), ae, weight=weight)
+        return mix, f"shipped eigenshapes; ae {UNTRAINED}"
     return build
 
 
