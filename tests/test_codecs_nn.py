@@ -373,6 +373,10 @@ def test_plugins_import_only_the_public_toolkit():
             for name in names:
                 if name.startswith("sdfcodec"):
                     assert name in allowed or name.split(".")[0] == pkg, f"{path}: imports {name}"
+    from sdfcodec.plugin import TrainableCodec
+    from sdfcodec.registry import get_codec_class
+
+    assert all(issubclass(get_codec_class(c), TrainableCodec) for c in ("ae", "parallel", "sequential"))
 
 
 def test_bench_records_quick():
@@ -394,6 +398,8 @@ def test_bench_records_quick():
         assert roofline_shapes(mix, "decode") == [(8, 4096), (8, 512), (512, 4096)]
     ae, _ = bench_instance("ae", 8, weight=0.5)  # an option the ae's instance does not take is not passed
     assert ae.code_size == 8
+    pca = bench_records("pca", 8, [2], min_time=0.005)  # any codec: no codec id is special-cased
+    assert pca[0]["code_size"] == 8 and "roofline_shapes" not in pca[0]
 
 
 def _bench_cli(*args: str):
