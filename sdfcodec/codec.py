@@ -77,9 +77,7 @@ class Codec(abc.ABC):
     prefix_ordered: ClassVar[bool] = False
     requires_fit: ClassVar[bool] = False
     code_sizes: ClassVar[tuple[int, ...]] = ()
-    #: Voxels of neighbour context the decoder needs on each side (0: blocks decode on their own). A codec
-    #: with ``halo > 0`` also implements ``_decode_context``; map readers then decode neighbouring blocks and
-    #: hand it the assembled neighbourhood, so block seams vanish (spec/codec-plugins.md, "Halo").
+    #: Voxels of neighbour context the decoder needs on each side (0: none; spec section 3, "Halo").
     halo: ClassVar[int] = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -197,7 +195,8 @@ class Codec(abc.ABC):
         t, was_numpy = as_float_tensor(padded, "padded", (None, None, None, None))
         h = self.halo
         if min(t.shape[1:]) <= 2 * h:
-            raise ShapeError(f"padded volumes for {self!r} need more than {2 * h} voxels per axis, got {tuple(t.shape)}")
+            raise ShapeError(f"padded volumes for {self!r} need more than {2 * h} voxels per axis, "
+                             f"got {tuple(t.shape)}")
         return like_input(self._decode_context(t) if h else t, was_numpy)
 
     def decode_core(self, codes: Any, *, scale: float = 1.0, offset: float = 0.0) -> Any:
