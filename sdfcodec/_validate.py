@@ -1,7 +1,8 @@
 """The one place that checks and converts arrays handed to sdfcodec (kornia-style shape checks).
 
 Codecs take numpy arrays or torch tensors on any device; results follow the input: a numpy input gives a
-numpy result, a tensor gives a tensor on the same device. Everything is computed in float32.
+numpy result, a tensor gives a tensor on the same device. Everything is computed in float32. Plugin authors
+use these through :mod:`sdfcodec.plugin`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ import torch
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-BLOCK = 16  # voxels per block edge (DESIGN.md: fixed at 16)
+__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty"]  # public through sdfcodec.plugin
+
+BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 
 
 def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_finite: bool = True

@@ -259,9 +259,9 @@ def encode_cmd(
             raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
                                     f"(code size {codec.code_size})")
     elif (codec_id or "pca") == "pca" and not fit:
-        from .models import default_codec
+        from .registry import pretrained_codec
 
-        codec = default_codec("pca", code_size or 64)
+        codec = pretrained_codec("pca", code_size or 64)
     else:
         params = {"code_size": code_size} if code_size else {}
         codec = get_codec(codec_id or "pca", **params)
@@ -638,7 +638,7 @@ def bench_cmd(
     shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
     mixtures --sizes is the size of each part (64: code 64+64+1).
     """
-    from .bench import PAPER_US_PER_BLOCK, _vs_paper, bench_codec
+    from .bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
 
     ks = [int(s) for s in sizes.split(",")]
     bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
@@ -658,7 +658,7 @@ def bench_cmd(
 
             found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step)
-            records += [dict(r, **_vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
+            records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
     if as_json:
         _print_json(records)
         return

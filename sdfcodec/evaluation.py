@@ -87,7 +87,7 @@ PAPER_SEQUENCES = ("freiburg1_teddy", "freiburg1_room", "freiburg1_desk", "freib
 def build_codec(method: Method, model: str | Path | None = None):
     """The fitted codec of a Table 1 row: the model file ``model`` when given (e.g. an ae-32 trained with
     ``sdfcodec train``), else the shipped model; raises with the reason when it is not available."""
-    from .registry import get_codec
+    from .registry import get_codec, pretrained_codec
 
     if model is not None:
         from .model import load_model
@@ -100,20 +100,12 @@ def build_codec(method: Method, model: str | Path | None = None):
 
     if method.codec == "raw":
         return get_codec("raw")
-    if method.codec == "pca":
-        from .models import default_codec
-
-        return default_codec("pca", method.size)
     if method.codec == "gaussian-blur":
         return get_codec("gaussian-blur", size=9, sigma=4.0 / 3.0)
-    if method.codec == "ae":
-        import sdfcodec_ae  # the plugin (optional)
-
-        return sdfcodec_ae.default_ae(method.size)
+    if method.codec in ("pca", "ae"):
+        return pretrained_codec(method.codec, method.size)  # shipped in the plugin (optional for ae)
     if method.codec in ("parallel", "sequential"):
-        import sdfcodec_mixed
-
-        return sdfcodec_mixed.default_parallel() if method.codec == "parallel" else sdfcodec_mixed.default_sequential()
+        return pretrained_codec(method.codec)  # the shipped 64 + 64
     raise InvalidValueError(f"unknown method codec {method.codec!r}")
 
 
