@@ -68,7 +68,6 @@ def vs_paper(us_per_block: float) -> dict[str, Any]:
             "speedup_vs_paper": [p / us_per_block for p in PAPER_US_PER_BLOCK]}
 
 
-_vs_paper = vs_paper  # the former private name, kept for callers not yet renamed
 
 
 # -- benchmark registrations (spec/codec-plugins.md, section 5) --------------------------------------------------
@@ -402,7 +401,7 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
     from pathlib import Path
 
     from .mapfile import create_map, open_map
-    from .models import default_codec
+    from .registry import pretrained_codec
     from .search import build_query, search
     from .search.engine import Scorer
 
@@ -411,7 +410,7 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     rng = np.random.default_rng(0)
     for k in code_sizes:
-        codec = default_codec("pca", k)
+        codec = pretrained_codec("pca", k)
         spread = np.sqrt(codec.explained_variance_).astype(np.float32)
         q = build_query("floor", codec=codec, offsets=descriptors).descriptors
         scorer = Scorer(q, dev)

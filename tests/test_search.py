@@ -16,7 +16,7 @@ import sdfcodec
 from sdfcodec import search as S
 from sdfcodec.search import engine
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning
-from sdfcodec.models import default_codec
+from sdfcodec import pretrained_codec
 from sdfcodec.search_cli import format_summary, search_command
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -31,7 +31,7 @@ def room() -> S.LabelledRoom:
 
 @pytest.fixture(scope="module")
 def pca128():
-    return default_codec("pca", 128)
+    return pretrained_codec("pca", 128)
 
 
 @pytest.fixture(scope="module")
@@ -222,7 +222,7 @@ def test_non_prefix_codec_refuses_a_prefix_level(tmp_path, room):
     with pytest.raises(InvalidValueError, match="not prefix-ordered"):
         S.search(m, "floor", level=32)
     with pytest.raises(InvalidValueError, match="not prefix-ordered"):
-        S.search(m, S.build_query("floor", codec=default_codec("pca", 64), keep_blocks=False))
+        S.search(m, S.build_query("floor", codec=pretrained_codec("pca", 64), keep_blocks=False))
     # at full size, raw codes are the normalised voxels: scores are exact squared voxel distances
     res = S.search(m, "floor", keep_scores=True)
     blocks, _, _ = S.query_blocks("floor")
@@ -445,6 +445,6 @@ def test_gpu_scores_equal_cpu(maps):
 def test_floor_precision_recall_target():
     """Paper-scale check (minutes): precision >= 0.9 at recall >= 0.9 for clean floor blocks at pca-64."""
     rooms = [S.synthetic_room(s, geometry="normal" if s % 2 == 0 else "rich") for s in range(4)]
-    rec = S.evaluate_retrieval(rooms, {"pca-64": default_codec("pca", 64)}, truths=("floor-vs-none",),
+    rec = S.evaluate_retrieval(rooms, {"pca-64": pretrained_codec("pca", 64)}, truths=("floor-vs-none",),
                                keep_curves=False)[0]
     assert rec["precision_at_recall"] >= 0.9, rec
