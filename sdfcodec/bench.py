@@ -206,7 +206,7 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     import tempfile
     from pathlib import Path
 
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
 
     if n_blocks < 1:
         raise InvalidValueError(f"n_blocks must be >= 1, got {n_blocks}")

@@ -243,7 +243,7 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
-    from .mapfile import open_map
+    from .map import open_map
     from .metrics import Trajectory, write_tum
     from .tracking import DenseField
 
@@ -290,7 +290,7 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
-    from .mapfile import open_map
+    from .map import open_map
     from .tracking import DenseField, SDFTracker, TrackerConfig
 
     seq = open_sequence(resolve_sequence(str(sequence), Path(".sdfcodec-sequences")))[:frames]
@@ -337,7 +337,7 @@ def _blocks_of(vol: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 def _roundtrip(codec, fused, work: Path, name: str):
     """Compress the fused blocks into a map ``work/<name>.sdfz`` with ``codec``; returns it opened."""
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
 
     path = work / f"{name}.sdfz"
     with create_map(path, codec=codec, voxel_size=fused.voxel_size, truncation=fused.truncation,
