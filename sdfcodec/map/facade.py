@@ -8,6 +8,7 @@ The format, crash safety and the limits on untrusted maps: ``sdfcodec.map`` and 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
@@ -200,7 +201,34 @@ class Map:
 
     def info(self) -> dict[str, Any]:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""
-        return self.reader.info()
+        h = self.header
+        dense = int(np.prod(h.shape_voxels)) * 4
+        root = self.reader.local_root()
+        on_disk = _dir_bytes(root) if root is not None else None
+        state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
+        counts = self.count_states()
+        return {
+            "location": self.location,
+            "format_version": h.format_version,
+            "codec": h.codec.config,
+            "code_size": h.codes.size,
+            "code_dtype": h.codes.dtype,
+            "levels": h.codes.levels,
+            "voxel_size": h.voxel_size,
+            "truncation": [h.truncation.d_min, h.truncation.d_max],
+            "origin": list(h.origin),
+            "shape_voxels": list(h.shape_voxels),
+            "grid_blocks": list(h.grid_blocks),
+            "blocks": counts,
+            "code_bytes_raw": counts["coded"] * h.codes.stored_bytes(),
+            "bytes_on_disk": on_disk,
+            "dense_float32_bytes": dense,
+            "codec_state_bytes": state_bytes,
+            "ratio_dense_to_disk": (dense / on_disk) if on_disk else None,
+            # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
+            "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
+            "provenance": h.provenance.model_dump(),
+        }
 
     @property
     def has_weights(self) -> bool:
@@ -393,3 +421,12 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
     FormatError before anything is read. Opening never runs code from the map.
     """
     return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes))
+
+
+def _dir_bytes(path: str) -> int | None:
+    p = Path(path)
+    if p.is_file():
+        return p.stat().st_size
+    if not p.is_dir():
+        return None
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())

@@ -15,7 +15,6 @@ import itertools
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
@@ -692,37 +691,6 @@ class MapReader:
         out = self.decode_voxels(lo, hi, lv, dev)
         return out.contiguous() if device is not None else np.ascontiguousarray(out.numpy())
 
-    def info(self) -> dict[str, Any]:
-        """:meth:`sdfcodec.Map.info`: header, blocks by state, bytes on disk, ratios."""
-        h = self.header
-        dense = int(np.prod(h.shape_voxels)) * 4
-        root = self.local_root()
-        on_disk = _dir_bytes(root) if root is not None else None
-        state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
-        counts = self.count_states()
-        return {
-            "location": self.location,
-            "format_version": h.format_version,
-            "codec": h.codec.config,
-            "code_size": h.codes.size,
-            "code_dtype": h.codes.dtype,
-            "levels": h.codes.levels,
-            "voxel_size": h.voxel_size,
-            "truncation": [h.truncation.d_min, h.truncation.d_max],
-            "origin": list(h.origin),
-            "shape_voxels": list(h.shape_voxels),
-            "grid_blocks": list(h.grid_blocks),
-            "blocks": counts,
-            "code_bytes_raw": counts["coded"] * h.codes.stored_bytes(),
-            "bytes_on_disk": on_disk,
-            "dense_float32_bytes": dense,
-            "codec_state_bytes": state_bytes,
-            "ratio_dense_to_disk": (dense / on_disk) if on_disk else None,
-            # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
-            "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
-            "provenance": h.provenance.model_dump(),
-        }
-
     def local_root(self) -> str | None:
         """The directory (or zip) this map reads from: the pinned version for maps opened by path."""
         inner = unguarded(self.group.store)
@@ -784,15 +752,6 @@ def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storag
     source = (path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
               str(inner.path) if isinstance(inner, PinnedStore) else loc, storage_options)
     return MapReader(group, header, loc, max_decode_bytes=max_decode_bytes, cache=cache, source=source)
-
-
-def _dir_bytes(path: str) -> int | None:
-    p = Path(path)
-    if p.is_file():
-        return p.stat().st_size
-    if not p.is_dir():
-        return None
-    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
 
 
 def _block_view(vol: torch.Tensor, nb) -> torch.Tensor:
