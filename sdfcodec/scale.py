@@ -31,7 +31,6 @@ import numpy as np
 import torch
 import zarr
 
-from . import _atomic
 from ._validate import BLOCK
 from .blocks import normalise, split_blocks
 from .codec import Codec
@@ -39,6 +38,7 @@ from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
 from .map.format import check_codes, free_space, state_digest
 from .map.reader import MapReader, open_reader
+from .map.stores import CowLocalStore
 from .map.writer import MapWriter, create_writer, store_code_chunk
 
 __all__ = ["map_to_dask", "write_volume_dask", "encode_volume_dask", "fit_volume_stream", "as_dask_volume"]
@@ -255,7 +255,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
     if not empty.all():
         codes = spec.get().encode(torch.from_numpy(np.ascontiguousarray(norm[~empty])).to(device)).cpu().numpy()
         check_codes(codes)
-        store = _atomic.CowLocalStore(tmp)
+        store = CowLocalStore(tmp)
         arr = zarr.open_array(store, path="codes", mode="r+")
         scale_arr = zarr.open_array(store, path="code_scale", mode="r+") if code_dtype == "int8" else None
         box = tuple(slice(int(a), int(b)) for a, b in cbox)

@@ -480,3 +480,19 @@ def test_mapfile_is_a_deprecated_alias():
             "assert mf.create_map is sdfcodec.create_map and mf.update_map is sdfcodec.update_map\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.startswith("warned sdfcodec.mapfile is deprecated")
+
+
+def test_map_package_imports_no_cycle_and_no_deprecated_module():
+    """The map package never imports the dask layer (sdfcodec.scale imports the package's reader and writer, not
+    the other way round) and the package's own modules do not import the deprecated sdfcodec.mapfile."""
+    code = textwrap.dedent("""
+        import sys, warnings
+        warnings.simplefilter("error", DeprecationWarning)
+        import sdfcodec.map, sdfcodec.map.stores, sdfcodec.map.format, sdfcodec.map.reader, sdfcodec.map.writer
+        assert "sdfcodec.scale" not in sys.modules, "the map package imported sdfcodec.scale"
+        import sdfcodec.scale, sdfcodec.verify, sdfcodec.mapfield, sdfcodec.cli
+        assert "sdfcodec.mapfile" not in sys.modules
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

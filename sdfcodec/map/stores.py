@@ -1,5 +1,7 @@
-"""The stores a map is read through: a guard against oversize metadata and decompression bombs, a local store
-pinned to one version of a map directory, URL detection, and opening the right store for a path or URL.
+"""The stores a map is read and written through: a guard against oversize metadata and decompression bombs, a
+local store pinned to one version of a map directory, the copy-on-write store writers use, URL detection, and
+opening the right store for a path or URL. (Search counts what it reads with its own wrapper, through
+``Map.with_store``.)
 
 Nothing here knows the map format beyond the sizes it is told (:class:`GuardStore.limits`); the checks of the
 format itself live in :mod:`sdfcodec.map.format`.
@@ -7,17 +9,19 @@ format itself live in :mod:`sdfcodec.map.format`.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import weakref
 from pathlib import Path
 
 import zarr
 import zarr.abc.store
+from zarr.core.buffer import Buffer
 
 from .. import _atomic
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-__all__ = ["MAX_METADATA_BYTES", "GuardStore", "PinnedStore", "is_url", "open_store", "unguarded"]
+__all__ = ["MAX_METADATA_BYTES", "GuardStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "unguarded"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
 MAX_METADATA_BYTES = 16 << 20
@@ -131,6 +135,23 @@ class PinnedStore(zarr.storage.LocalStore):
     async def exists(self, key: str) -> bool:
         self._check_open()
         return await super().exists(key)
+
+
+class CowLocalStore(zarr.storage.LocalStore):
+    """A Zarr local store that writes every value into a new file and renames it over the key: never into an
+    existing file. An update's copy of a map is made of hard links shared with the previous version, which
+    must stay intact for its readers; this holds whatever Zarr's own LocalStore does."""
+
+    def set_sync(self, key: str, value: Buffer) -> None:
+        self._ensure_open_sync()
+        self._check_writable()
+        _atomic.write_new_file(self.root / key, value.as_buffer_like())
+
+    async def _set(self, key: str, value: Buffer, exclusive: bool = False) -> None:
+        if not self._is_open:
+            await self._open()
+        self._check_writable()
+        await asyncio.to_thread(_atomic.write_new_file, self.root / key, value.as_buffer_like(), exclusive)
 
 
 def unguarded(store: zarr.abc.store.Store) -> zarr.abc.store.Store:

@@ -33,7 +33,7 @@ from ..registry import codec_package
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
                      free_space, state_digest)
 from .reader import open_reader
-from .stores import is_url
+from .stores import CowLocalStore, is_url
 
 __all__ = ["MapWriter", "create_writer", "update_writer", "store_code_chunk", "LOCK_TIMEOUT"]
 
@@ -323,7 +323,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     _atomic.collect(final)  # leftovers of writers killed earlier
     tmp, tmp_fd = _atomic.make_temp_dir(final)
     try:
-        group = zarr.open_group(_atomic.CowLocalStore(str(tmp)), mode="w", zarr_format=3)
+        group = zarr.open_group(CowLocalStore(str(tmp)), mode="w", zarr_format=3)
         grid = tuple(-(-int(n) // BLOCK) for n in shape_voxels)
         cb, cc = spec.chunk_blocks, spec.chunk_code
         group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
@@ -374,7 +374,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         tmp, tmp_fd = _atomic.make_temp_dir(final)
         _atomic.link_tree(root, tmp)
         src.close()
-        group = zarr.open_group(_atomic.CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
+        group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
                          provenance=prov, shape_voxels=h.shape_voxels)
