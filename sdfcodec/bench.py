@@ -265,7 +265,7 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     import tempfile
     from pathlib import Path
 
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
     from .testing import analytic_blocks
 
     if n_blocks < 1:
@@ -400,7 +400,7 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
     import tempfile
     from pathlib import Path
 
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
     from .registry import pretrained_codec
     from .search import build_query, search
     from .search.engine import Scorer

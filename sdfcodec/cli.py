@@ -146,7 +146,7 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
 def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
              as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
     """Show a map's header, blocks by state, bytes on disk and ratio to a dense float32 volume."""
-    from .mapfile import open_map
+    from .map import open_map
 
     info = open_map(map_path).info()
     if as_json:
@@ -230,7 +230,8 @@ def encode_cmd(
     else it is fitted on the input's non-empty blocks (also with --fit); the map stores it either way.
     """
     from .blocks import normalise, split_blocks
-    from .mapfile import _check_volume, create_map, open_map
+    from .map import create_map, open_map
+    from .map.format import check_volume
     from .model import load_model
     from .registry import get_codec
 
@@ -249,7 +250,7 @@ def encode_cmd(
             _fail(f"{in_path} does not record its voxel size: pass --voxel-size (metres)")
         trunc = _pair(truncation, "--truncation") if truncation else tuple(meta.get("truncation", (-0.04, 0.1)))
         org = _triple(origin, "--origin") or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
-        vol = _check_volume(vol, trunc)
+        vol = check_volume(vol, trunc)
 
     if model is not None:
         codec = load_model(model)
@@ -319,7 +320,7 @@ def decode_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
     """Decode a map (or a region of it) to a dense .npy volume in metres, free space where nothing is coded."""
-    from .mapfile import open_map
+    from .map import open_map
 
     if output.suffix != ".npy":
         _fail(f"OUTPUT must end in .npy, got {output}")
@@ -357,7 +358,7 @@ def fuse_cmd(
     Transcode it afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz --codec pca`.
     """
     from .fusion import fuse
-    from .mapfile import create_map
+    from .map import create_map
     from .registry import get_codec
 
     _refuse_existing(output, overwrite)
@@ -390,7 +391,7 @@ def mesh_cmd(
     import open3d as o3d
 
     from .fusion import mesh_from_blocks
-    from .mapfile import open_map
+    from .map import open_map
 
     _refuse_existing(output, overwrite)
     m = open_map(map_path)
@@ -527,7 +528,7 @@ def dataset_cmd(
     from .data.sampler import iter_windows
     from .data.synthetic import synthetic_blocks
     from .dataset import build_dataset
-    from .mapfile import open_map
+    from .map import open_map
 
     trunc = _pair(truncation, "--truncation")
     window_kw = dict(stride=stride, truncation=trunc, max_mean=max_mean, empty_fraction=empty_fraction, seed=seed)

@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from .errors import SDFCodecError, UnknownCodecError
-from .mapfile import Map, create_map, open_map
+from .map import Map, create_map, open_map
 from .registry import get_codec, pretrained_codec
 
 __all__ = ["run_demo"]

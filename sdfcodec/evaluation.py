@@ -236,7 +236,7 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
-    from .mapfile import open_map
+    from .map import open_map
     from .trajectory import Trajectory, write_tum
     from .densefield import DenseField
 
@@ -283,7 +283,7 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
-    from .mapfile import open_map
+    from .map import open_map
     from .densefield import DenseField
     from .tracking import SDFTracker, TrackerConfig
 
@@ -331,7 +331,7 @@ def _blocks_of(vol: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 def _roundtrip(codec, fused, work: Path, name: str):
     """Compress the fused blocks into a map ``work/<name>.sdfz`` with ``codec``; returns it opened."""
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
 
     path = work / f"{name}.sdfz"
     with create_map(path, codec=codec, voxel_size=fused.voxel_size, truncation=fused.truncation,

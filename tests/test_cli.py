@@ -157,7 +157,7 @@ def test_bench_json_records():
 
 
 def test_encode_uses_shipped_model_by_default(volume_file, tmp_path):
-    from sdfcodec.mapfile import state_digest
+    from sdfcodec.map import state_digest
     from sdfcodec.models import default_codec
 
     src, _ = volume_file

@@ -21,7 +21,7 @@ from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
-from ..mapfile import Map, open_map
+from ..map import Map, open_map
 from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
@@ -70,12 +70,14 @@ def _counting_view(m: Map) -> tuple[Map, CountingStore]:
     if m.writable:
         raise InvalidValueError(f"{m.location} is still being written; leave the create_map block (commit) and "
                                 "search the map with sdfcodec.open_map")
-    group = m._group  # the map's Zarr group: re-opened over a counting wrapper of its store
-    store = CountingStore(group.store)
-    view = Map(zarr.open_group(store, mode="r", path=group.path or None, zarr_format=3), m.header, m.location,
-               max_decode_bytes=m.max_decode_bytes)
-    view._codec = m._codec
-    return view, store
+    made: list[CountingStore] = []
+
+    def wrap(store):
+        made.append(CountingStore(store))
+        return made[0]
+
+    view = m.with_store(wrap)  # shares the header and the codec cache: a codec loaded by either serves both
+    return view, made[0]
 
 
 def _code_chunk_bytes(m: Map, level: int | None = None) -> int | None:
@@ -290,8 +292,6 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         raise InvalidValueError(f"top must be a positive int, got {top!r}")
     view, store = _counting_view(m)
     codec = view.codec  # loads (and counts) the codec state unless the map already holds it
-    if m._codec is None:
-        m._codec = codec
     model = resolve_query(query, m, codec)
     lv = _search_level(m, model, level)
     if threshold == "auto":
@@ -410,7 +410,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
         raise ShapeError(f"selected block coords must be an integer (N, 3) array, got {coords.shape} {coords.dtype}")
     coords = coords.astype(np.int64)
     view, store = _counting_view(m)
-    lv = view._level(level)
+    lv = view.reader.level(level)
     dev = _default_device(device)
     states = view.block_states()
     grid = np.asarray(m.grid_blocks)
@@ -420,8 +420,6 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
         raise InvalidValueError("some selected blocks are not coded in this map (empty or unobserved): select from "
                                 "a search of this map")
     codec = view.codec
-    if m._codec is None:
-        m._codec = codec
     d_min, d_max = m.truncation
     blocks = np.empty((len(coords), BLOCK, BLOCK, BLOCK), np.float32)
     if codec.halo:
@@ -434,7 +432,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
     elif len(coords):
         # group the selected blocks by code chunk: each chunk holding one is read once, at level lv
         cb = m.header.codes.chunk_blocks
-        arr = view._group["codes"]
+        arr = view.reader.codes_array
         chunk_of = coords // cb
         order = np.lexsort(chunk_of.T[::-1])
         bounds = np.flatnonzero(np.any(np.diff(chunk_of[order], axis=0) != 0, axis=1)) + 1
@@ -443,7 +441,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
             idx = order[lo:hi]
             ch = chunk_of[idx[0]]
             box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
-            chunk = view._read(arr, (*box, slice(0, lv)))
+            chunk = view.reader.read(arr, (*box, slice(0, lv)))
             codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
         for i in range(0, len(coords), 65536):
             v = codec.decode(torch.from_numpy(codes[i:i + 65536]).to(dev))

@@ -14,7 +14,7 @@ import numpy as np
 from ..codec import Codec
 from ..data.rooms import LabelledRoom
 from ..errors import InvalidValueError
-from ..mapfile import open_map
+from ..map import open_map
 from .engine import search
 from .query import build_query
 
@@ -134,7 +134,7 @@ def evaluate_retrieval(rooms: Sequence[LabelledRoom], codecs: Mapping[str, Codec
     """
     import tempfile
 
-    from ..mapfile import create_map
+    from ..map import create_map
 
     queries = queries or {"floor": {"shape": "floor"}}
     for t in truths:

@@ -19,7 +19,7 @@ from .._validate import BLOCK
 from ..blocks import check_truncation, normalise
 from ..codec import Codec
 from ..errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
-from ..mapfile import Map, state_digest
+from ..map import Map, state_digest
 from .shapes import (QUERY_NAMES, check_query_name, dedupe_blocks, probe_blocks, query_blocks, rotate_blocks,
                      rotation_set)
 
@@ -52,7 +52,7 @@ class QueryModel:
     codec_config : dict
         ``get_config()`` of the codec that encoded them (JSON).
     codec_state_sha256 : str or None
-        Digest of that codec's learned state (``sdfcodec.mapfile.state_digest``), None without state.
+        Digest of that codec's learned state (``sdfcodec.map.state_digest``), None without state.
     voxel_size : float
         Metres per voxel the shapes were sampled at.
     truncation : tuple of float
