@@ -19,6 +19,8 @@ from rich.table import Table
 from . import __version__
 from .errors import InvalidValueError, MapExistsError, SDFCodecError
 
+__all__ = ["app", "main"]
+
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 out = Console()

@@ -24,7 +24,8 @@ from .. import __version__, _atomic
 from .._validate import BLOCK, as_float_tensor
 from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
-from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, ShapeError,
+from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
+                      ShapeError,
                       VersionError)
 from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
                       Extension, MapHeader, Provenance, Truncation, now_iso)
@@ -297,7 +298,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     if final.suffix == ".zip":
         raise InvalidValueError("writing zip maps is not supported; write a directory map and zip its contents")
     if not codec.is_fitted:
-        codec._check_fitted()
+        raise NotFittedError(f"{codec!r} needs fitting: call fit(blocks), load_state_dict(...), "
+                             "or pass a trained model (--model PATH)")
     if code_dtype not in CODE_DTYPES:
         raise InvalidValueError(f"code_dtype must be one of {', '.join(CODE_DTYPES)}, got {code_dtype!r}")
     if not (np.isfinite(voxel_size) and voxel_size > 0):
