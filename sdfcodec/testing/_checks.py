@@ -152,6 +152,9 @@ def check_batch_sizes(case: Case) -> None:
     k = codec.code_size
     codes = codec.encode(x)
     dec = codec.decode(codes)
+    # other batch sizes take other BLAS kernels (blocking, threads): float32 sums of 4096 terms in another order
+    # (measured: 1.5e-5 for a small autoencoder's codes of magnitude 1, batch 4096 vs 256)
+    atol = 4 * atol
     for i in (0, len(x) - 1):
         assert_close(codec.encode(x[i:i + 1]), codes[i:i + 1], atol, f"batch: encode of block {i} alone")
         assert_close(codec.decode(codes[i:i + 1]), dec[i:i + 1], atol, f"batch: decode of block {i} alone")
