@@ -252,7 +252,7 @@ def parametrize_codec_checks(codecs: CodecLike | Sequence[CodecLike], *,
     """
     import pytest
 
-    entries = [codecs] if isinstance(codecs, Codec) or not isinstance(codecs, Sequence) else list(codecs)
+    entries = [codecs] if isinstance(codecs, Codec) or callable(codecs) else list(codecs)
     goldens = list(golden) if isinstance(golden, (list, tuple)) else [golden] * len(entries)
     if len(goldens) != len(entries) or (golden is not None and not isinstance(golden, (list, tuple))
                                         and len(entries) != 1):
