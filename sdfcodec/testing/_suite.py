@@ -9,6 +9,7 @@ fitted once on the test blocks and shared, as the reference, by all checks of th
 from __future__ import annotations
 
 import copy
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence, Union
@@ -31,12 +32,14 @@ _FUNCS = dict(CHECKS)
 
 @dataclass
 class CheckResult:
-    """The outcome of one check: ``passed``, the failure ``message`` ("" when it passed) and measurements."""
+    """The outcome of one check: ``passed``, the failure ``message`` ("" when it passed), measurements and the
+    wall time it took (``seconds``; the first check of a codec includes building and fitting it)."""
 
     name: str
     passed: bool
     message: str = ""
     details: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
     error: BaseException | None = field(default=None, repr=False, compare=False)
 
 
@@ -128,15 +131,18 @@ class _Subject:
         return repr(self.entry) if isinstance(self.entry, Codec) else getattr(self.entry, "__name__", "codec")
 
     def run(self, name: str, regen_golden: bool = False) -> CheckResult:
+        t0 = time.perf_counter()
         try:
             ref, fit_returned_self = self._prepare()
             case = Case(_copy(ref), self.options, fit_returned_self, regen_golden)
             out = _FUNCS[name](case) or {}
-            return CheckResult(name, True, details={**case.report, **out})
+            result = CheckResult(name, True, details={**case.report, **out})
         except AssertionError as e:
-            return CheckResult(name, False, str(e) or "assertion failed", error=e)
+            result = CheckResult(name, False, str(e) or "assertion failed", error=e)
         except Exception as e:  # noqa: BLE001 - an unexpected error is this check's failure
-            return CheckResult(name, False, f"raised {type(e).__name__}: {e}", error=e)
+            result = CheckResult(name, False, f"raised {type(e).__name__}: {e}", error=e)
+        result.seconds = time.perf_counter() - t0
+        return result
 
 
 class CodecCheck:
