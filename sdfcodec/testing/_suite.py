@@ -97,7 +97,8 @@ def _copy(codec: Codec) -> Codec:
     try:
         return copy.deepcopy(codec)
     except Exception:  # noqa: BLE001 - e.g. a handle that cannot be copied; the rebuild is checked elsewhere
-        return get_codec(codec.get_config()).load_state_dict(copy.deepcopy(codec.state_dict()))
+        state, fresh = codec.state_dict(), get_codec(codec.get_config())
+        return fresh.load_state_dict(copy.deepcopy(state)) if state else fresh
 
 
 class _Subject:
