@@ -48,8 +48,9 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
         hint = " (a single block needs a batch axis: x[None])" if t.ndim == len(shape) - 1 else ""
         raise ShapeError(f"{name} must have shape {expected}, got {tuple(t.shape)}{hint}")
     # fast path: one reduction (NaN/Inf propagate into the sum); the exact element test runs only when the sum
-    # is not finite, which also covers finite values whose sum overflows
-    if check_finite and t.numel() and not bool(torch.isfinite(t.sum())) and not bool(torch.isfinite(t).all()):
+    # is not finite, which also covers finite values whose sum overflows; meta tensors hold no values to check
+    if (check_finite and t.numel() and t.device.type != "meta" and not bool(torch.isfinite(t.sum()))
+            and not bool(torch.isfinite(t).all())):
         bad = int((~torch.isfinite(t)).sum())
         raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
                                 "(replace unobserved voxels with the truncation distance d_max)")

@@ -16,18 +16,13 @@ settings.register_profile("deterministic", derandomize=True, database=None)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
+# --regen-golden and the regen_golden fixture: the plugin sdfcodec ships for every codec package. Installed,
+# its pytest11 entry point (named like the module) loads it first and this line is a no-op; from a bare
+# checkout it loads it here.
+pytest_plugins = ["sdfcodec.testing.pytest_plugin"]
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
-
-
-def pytest_addoption(parser):
-    parser.addoption("--regen-golden", action="store_true", default=False,
-                     help="rewrite golden fixture files instead of checking against them (format changes only)")
-
-
-@pytest.fixture
-def regen_golden(request) -> bool:
-    return bool(request.config.getoption("--regen-golden"))
 
 
 @pytest.fixture
