@@ -349,7 +349,7 @@ def fit_volume_stream(codec: Codec, volume: Any, truncation: tuple[float, float]
     :func:`as_dask_volume`), one chunk of ``chunk_voxels`` per axis at a time, through
     :meth:`Codec.fit_stream`. Empty blocks (all free space) are left out unless ``include_empty``.
 
-    Memory stays bounded only for codecs that learn incrementally (``_fit_stream``: PCA accumulates the exact
+    Memory stays bounded only for codecs that learn incrementally (``fit_batches``: PCA accumulates the exact
     4096 x 4096 covariance in one pass); the others get the concatenated blocks. For a block data set on disk
     (``sdfcodec.dataset``), ``codec.fit_stream(ds.iter_batches("train"))`` is the same thing, and what
     ``sdfcodec train`` does when the data set exceeds ``--max-memory-gb``."""
