@@ -12,6 +12,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = [ROOT / "sdfcodec", *sorted(p for p in (ROOT / "plugins").iterdir() if (p / "__init__.py").exists())]
 MAX_LINES = 800
+# private members of third-party objects that have no public equivalent (torch's in-place version counter,
+# which the conformance suite reads to catch an in-place write of unchanged values)
+FOREIGN_PRIVATE_OK = {"_version"}
 
 
 def _modules() -> dict[str, Path]:
@@ -102,7 +105,7 @@ def test_no_module_uses_another_modules_private_names():
                 continue
             elif isinstance(v, ast.Call) and isinstance(v.func, ast.Name) and v.func.id in ("super", "type"):
                 continue
-            elif node.attr not in own:
+            elif node.attr not in own and node.attr not in FOREIGN_PRIVATE_OK:
                 bad.append(f"{f.relative_to(ROOT)}:{node.lineno} uses .{node.attr}, a private member defined "
                            "in another module")
     assert not bad, "private names used across modules:\n" + "\n".join(bad)

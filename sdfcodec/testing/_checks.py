@@ -276,6 +276,8 @@ def check_state_round_trip(case: Case) -> None:
                                            f"not {sorted(state)}"
     for name in state:
         assert np.array_equal(np.asarray(again[name]), state[name]), f"state: array {name!r} changed in a round trip"
+    # the spec promises that config + state rebuild an *equal* codec (Codec.__eq__: class, config, state)
+    assert fresh == codec, "state: get_codec(get_config()).load_state_dict(state_dict()) != the original codec"
     _same_outputs(_outputs(codec, x, case.options.max_levels), _outputs(fresh, x, case.options.max_levels),
                   "state: rebuilt from get_config() + state_dict() vs the original")
 
