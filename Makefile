@@ -26,7 +26,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# Retrain the shipped eigenshapes (sdfcodec/models/pca-128.npz) and rewrite docs/default-model.*
+# Retrain the shipped eigenshapes (plugins/sdfcodec_pca/models/pca-128.npz) and rewrite docs/default-model.*
 default-model: $(STAMP)
 	$(PY) examples/train_default_model.py
 

@@ -47,7 +47,6 @@ import numpy as np
 import torch
 
 import sdfcodec
-from sdfcodec.models import default_codec
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUNC, VS = (-0.04, 0.1), 0.02
@@ -145,7 +144,7 @@ def load_codecs(workdir: Path, data: Path | None, val_blocks: int) -> tuple[dict
 
     codecs, notes = {}, {}
     for k in (32, 64, 128):
-        codecs[f"pca-{k}"] = default_codec("pca", k)
+        codecs[f"pca-{k}"] = sdfcodec.pretrained_codec("pca", k)
     for k in (32, 64, 128):
         if k == 64:
             codecs["ae-64"] = default_ae(64)
@@ -165,7 +164,7 @@ def load_codecs(workdir: Path, data: Path | None, val_blocks: int) -> tuple[dict
             per_block = make()
         except SDFCodecError as exc:
             what = "sequential-64-64" if name == "sequential" else "ae-64"
-            notes[f"{name} 64+64"] = (f"skipped, sdfcodec/models/{what}.npz is not trained yet "
+            notes[f"{name} 64+64"] = (f"skipped, the shipped {what}.npz is not trained yet "
                                       f"({type(exc).__name__}): run `python examples/train_ae_models.py --only {what}`")
             continue
         codecs[f"{name} 64+64"] = per_block
@@ -263,13 +262,15 @@ DISCUSSION = """
   `w`, so this "line search" is exact and closed-form (clip of the unconstrained minimiser). The PCA part
   is the shipped eigenshapes (first 64 of `pca-128.npz`); the state of a mixture holds both parts' arrays
   (`pca.*`, `ae.*`) so maps stay self-contained. Neither is prefix-ordered.
-- **Shipped weights**: `sdfcodec/models/ae-64.npz` and `sequential-64-64.npz` (AE weights float16, PCA
-  float32), made by `python examples/train_ae_models.py`; the parallel 64 + 64 pairs the shipped
-  eigenshapes with the shipped AE-64 and needs no file. AE-32 and AE-128 are trained on demand
+- **Shipped weights**: each plugin ships its own, `plugins/sdfcodec_ae/models/ae-64.npz` and
+  `plugins/sdfcodec_mixed/models/sequential-64-64.npz` (AE weights float16, PCA float32), made by
+  `python examples/train_ae_models.py`, and served by `sdfcodec.pretrained_codec("ae" | "sequential")`; the
+  parallel 64 + 64 pairs the shipped eigenshapes with the shipped AE-64 and needs no file. AE-32 and AE-128 are trained on demand
   (`sdfcodec train DATASET --codec ae --code-size 32 -o MODEL`, or the script's `--sizes`).
 - **Speed**: `sdfcodec bench --codec ae|parallel|sequential` times encode and decode beside the numpy
-  matrix products of the codec's layer shapes (its roofline), in the same run, through two optional hooks
-  any codec may provide (`bench_instance`, `roofline_shapes`; see `sdfcodec/bench.py`). It never trains:
+  matrix products of the codec's layer shapes (its roofline), in the same run, through what a plugin
+  registers (`sdfcodec.plugin.register_bench`: a ready instance and the roofline shapes; see
+  spec/codec-plugins.md, section 5). It never trains:
   it uses the shipped weights at 64 (+ 64) and untrained weights of the same shapes at other sizes.
 
 ## Differences from the paper's setup (why numbers need not match)

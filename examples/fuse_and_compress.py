@@ -20,7 +20,6 @@ import numpy as np
 import sdfcodec
 from sdfcodec.data.sequences import open_sequence
 from sdfcodec.fusion import fuse
-from sdfcodec.models import default_codec
 
 DEFAULT_SEQUENCE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes-redkitchen"
 TRUNC = (-0.04, 0.1)
@@ -50,7 +49,7 @@ def main(argv: list[str] | None = None) -> None:
           f"in {time.perf_counter() - t0:.1f} s")
 
     # the lossless map, then the compressed one (all-free blocks are stored as empty: no code)
-    maps = {"raw": sdfcodec.get_codec("raw"), f"pca-{args.code_size}": default_codec("pca", args.code_size)}
+    maps = {"raw": sdfcodec.get_codec("raw"), f"pca-{args.code_size}": sdfcodec.pretrained_codec("pca", args.code_size)}
     for name, codec in maps.items():
         t0 = time.perf_counter()
         with sdfcodec.create_map(out / f"{name}.sdfz", codec=codec, voxel_size=args.voxel_size, truncation=TRUNC,

@@ -20,7 +20,6 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec.fusion import fuse, mesh_from_blocks
-from sdfcodec.models import default_codec
 from sdfcodec.viz import render_mesh, save_png
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +47,7 @@ def main() -> None:
             m = raw
             if k:
                 path = Path(tmp) / f"kitchen-{k}.sdfz"
-                with sdfcodec.create_map(path, codec=default_codec("pca", k), voxel_size=0.02,
+                with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", k), voxel_size=0.02,
                                          origin=raw.origin) as w:
                     for coords, blocks in raw.iter_blocks():
                         w.write_blocks(coords, blocks)

@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 import sdfcodec
-from sdfcodec.models import default_codec
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -39,7 +38,7 @@ def main(argv: list[str] | None = None) -> None:
 
     # --- the README's ten lines ----------------------------------------------------------------------
     tsdf = np.load(room_npy)                                      # (X, Y, Z) metres, truncated to [-0.04, 0.1]
-    with sdfcodec.create_map(out / "room.sdfz", codec=default_codec("pca", 64), voxel_size=0.02) as m:
+    with sdfcodec.create_map(out / "room.sdfz", codec=sdfcodec.pretrained_codec("pca", 64), voxel_size=0.02) as m:
         m.write_volume(tsdf)                                      # written atomically when the block ends
     room = sdfcodec.open_map(out / "room.sdfz")                   # a path, file:// or http(s):// URL
     coarse = room.decode_region(((0, 64), (0, 64), (0, 32)), level=32)   # reads only the first 32 code elements

@@ -149,16 +149,13 @@ def map_bytes(path: Path) -> dict:
 
 # ----------------------------------------------------------------------------------------- learned codecs
 def learned_codecs(quick: bool) -> dict:
-    from sdfcodec.models import default_codec
+    import sdfcodec
 
-    codecs = {f"pca-{k}": default_codec("pca", k) for k in ((16, 64) if quick else (16, 32, 64, 128))}
+    codecs = {f"pca-{k}": sdfcodec.pretrained_codec("pca", k) for k in ((16, 64) if quick else (16, 32, 64, 128))}
     if not quick:
-        import sdfcodec_ae
-        import sdfcodec_mixed
-
-        codecs["ae-64"] = sdfcodec_ae.default_ae(64)
-        codecs["parallel 64+64"] = sdfcodec_mixed.default_parallel()
-        codecs["sequential 64+64"] = sdfcodec_mixed.default_sequential()
+        codecs["ae-64"] = sdfcodec.pretrained_codec("ae", 64)
+        codecs["parallel 64+64"] = sdfcodec.pretrained_codec("parallel")
+        codecs["sequential 64+64"] = sdfcodec.pretrained_codec("sequential")
     return codecs
 
 

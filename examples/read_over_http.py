@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 import sdfcodec
-from sdfcodec.models import default_codec
 
 
 class CountingHandler(http.server.SimpleHTTPRequestHandler):
@@ -68,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
         path = work / "room.sdfz"
         # chunk_blocks=8 (128^3 voxels per chunk) rather than the default 16: a map mostly read in small
         # remote regions transfers less per region with smaller chunks (docs/scale.md, "Chunk size")
-        with sdfcodec.create_map(path, codec=default_codec("pca", 64), voxel_size=0.02, chunk_blocks=8) as m:
+        with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", 64), voxel_size=0.02, chunk_blocks=8) as m:
             m.write_volume(sample_volume(scene, (round(e / 0.02), 64, 64), 0.02))
     else:
         path = args.map.resolve()

@@ -15,7 +15,6 @@ import tempfile
 from pathlib import Path
 
 import sdfcodec
-from sdfcodec.models import default_codec
 from sdfcodec.search import expand, search
 
 
@@ -36,7 +35,7 @@ def main(argv: list[str] | None = None) -> None:
 
         room = synthetic_room(0, size=(args.size, args.size, 2.0))          # exact TSDF with labelled primitives
         path = Path(tempfile.mkdtemp(prefix="sdfcodec-floors-")) / "room.sdfz"
-        with sdfcodec.create_map(path, codec=default_codec("pca", 64), voxel_size=room.voxel_size,
+        with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", 64), voxel_size=room.voxel_size,
                                  truncation=room.truncation, origin=tuple(room.origin)) as m:
             m.write_volume(room.volume)
     m = sdfcodec.open_map(path)

@@ -22,7 +22,6 @@ from sdfcodec.evaluation import EVAL_TRACKER_CONFIG
 from sdfcodec.fusion import fuse
 from sdfcodec.mapfield import MapField
 from sdfcodec.metrics import Trajectory, ate
-from sdfcodec.models import default_codec
 from sdfcodec.tracking import SDFTracker, TrackerConfig
 
 TRUNC = (-0.04, 0.1)
@@ -44,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
 
     fused = fuse(seq, truncation=TRUNC, quiet=True)
     maps = {}
-    for name, codec in (("original", sdfcodec.get_codec("raw")), ("pca-64", default_codec("pca", 64))):
+    for name, codec in (("original", sdfcodec.get_codec("raw")), ("pca-64", sdfcodec.pretrained_codec("pca", 64))):
         with sdfcodec.create_map(out / f"{name}.sdfz", codec=codec, voxel_size=fused.voxel_size, truncation=TRUNC,
                                  origin=tuple(fused.origin), overwrite=True) as m:
             m.write_blocks(fused.coords, fused.tsdf)

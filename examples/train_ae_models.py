@@ -1,4 +1,5 @@
-"""Train the shipped autoencoder models: ``sdfcodec/models/ae-64.npz`` and ``sequential-64-64.npz``.
+"""Train the shipped autoencoder models: ``plugins/sdfcodec_ae/models/ae-64.npz`` and
+``plugins/sdfcodec_mixed/models/sequential-64-64.npz`` (each plugin ships its weights in its own package).
 
     python examples/train_ae_models.py            # add --threads 2 on an idle machine
 
@@ -63,6 +64,9 @@ def build_training_set(path: Path, kitchen: str, synthetic: int = 60_000, real_s
                          truncation=TRUNC, overwrite=True)
 
 
+SHIPPED = {"ae-64": "sdfcodec_ae", "sequential-64-64": "sdfcodec_mixed"}  # shipped model -> its plugin
+
+
 def round_to_float16(codec):
     """Load the float16-rounded weights, so what is evaluated is what is shipped (PCA arrays stay float32)."""
     state = {k: (v.astype(np.float16).astype(np.float32) if not k.startswith("pca.") else v)
@@ -85,7 +89,8 @@ def main() -> None:
     ap.add_argument("--dataset", default=None, help="existing data set (default: build it in --workdir)")
     ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
     ap.add_argument("--workdir", default=str(ROOT / "build" / "ae-models"))
-    ap.add_argument("--models", default=str(ROOT / "sdfcodec" / "models"))
+    ap.add_argument("--models", default=None,
+                    help="directory for the shipped models (default: each plugin's own models/ directory)")
     ap.add_argument("--report", default=str(ROOT / "docs" / "codecs"))
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads while training (1 is fastest when other work shares the cores)")
@@ -95,7 +100,9 @@ def main() -> None:
                          "resumed with the epochs already done exports its best weights without training")
     ap.add_argument("--sizes", default="", help="extra AE code sizes to train into --workdir (e.g. 32,128)")
     args = ap.parse_args()
-    work, models, report = Path(args.workdir), Path(args.models), Path(args.report)
+    work, report = Path(args.workdir), Path(args.report)
+    shipped_dirs = {name: Path(args.models) if args.models else ROOT / "plugins" / pkg / "models"
+                    for name, pkg in SHIPPED.items()}
     work.mkdir(parents=True, exist_ok=True)
     report.mkdir(parents=True, exist_ok=True)
 
@@ -123,7 +130,7 @@ def main() -> None:
             codec = sdfcodec.get_codec("sequential", pca_size=64, ae_size=64)
         else:
             raise SystemExit(f"unknown model {name!r}")
-        shipped = name in ("ae-64", "sequential-64-64")
+        shipped = name in SHIPPED
         print(f"{name}: training on {ds.meta['splits']['train']} blocks (load {load()})", flush=True)
         before = load()
         t0 = time.perf_counter()
@@ -132,7 +139,8 @@ def main() -> None:
                           **({"max_epochs": args.max_epochs} if args.max_epochs else {}))
         wall = time.perf_counter() - t0
         h = codec.history_
-        out = (models if shipped else work) / f"{name}.npz"
+        out = (shipped_dirs[name] if shipped else work) / f"{name}.npz"
+        out.parent.mkdir(parents=True, exist_ok=True)
         round_to_float16(codec)
         save_model_float16(codec, out, keep_float32=("pca.",))
         rec = {"file": str(out.relative_to(ROOT)) if ROOT in out.parents else str(out),

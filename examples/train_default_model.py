@@ -1,4 +1,5 @@
-"""Train the shipped default eigenshapes (sdfcodec/models/pca-128.npz) and report their error on real blocks.
+"""Train the shipped default eigenshapes (plugins/sdfcodec_pca/models/pca-128.npz) and report their error on
+real blocks.
 
     make default-model        # = python examples/train_default_model.py
 
@@ -13,7 +14,7 @@ Reproducible: fixed seeds, nothing downloaded. Steps:
 3. Fit the same on the synthetic blocks alone, and report both at 32/64/128 (prefixes of the 128 basis) on
    the held-out real blocks: per-voxel MSE and per-block sum of squared errors, normalised units.
 
-Writes sdfcodec/models/pca-128.npz, docs/default-model.json and docs/default-model.md.
+Writes plugins/sdfcodec_pca/models/pca-128.npz, docs/default-model.json and docs/default-model.md.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def main() -> None:
     ap.add_argument("--real-stride", type=int, default=4,
                     help="window stride on the real half (4: overlapping windows, 8x the paper's 8-voxel count)")
     ap.add_argument("--workdir", default=str(ROOT / "build" / "default-model"))
-    ap.add_argument("--model", default=str(ROOT / "sdfcodec" / "models" / "pca-128.npz"))
+    ap.add_argument("--model", default=str(ROOT / "plugins" / "sdfcodec_pca" / "models" / "pca-128.npz"))
     ap.add_argument("--report", default=str(ROOT / "docs" / "default-model"))
     args = ap.parse_args()
     work = Path(args.workdir)

@@ -13,9 +13,9 @@ __version__ = "0.1.0"
 
 from . import errors
 from .codec import Codec
-from .mapfile import Map, create_map, open_map, update_map
+from .map import Map, create_map, open_map, update_map
 from .model import load_model, save_model
-from .registry import get_codec, list_codecs, register_codec
+from .registry import get_codec, list_codecs, pretrained_codec, register_codec
 
-__all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "open_map", "create_map",
+__all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "pretrained_codec", "open_map", "create_map",
            "update_map", "load_model", "save_model", "errors", "__version__"]

@@ -17,12 +17,12 @@ The protocol, for a map directory ``NAME`` (all names below are siblings of it):
   Locks die with their process, so a killed writer or reader never keeps garbage alive.
 * Writers that read, modify and write a map (updates) serialise on ``.NAME.lock`` (removed when released).
 
-Nothing here is specific to Zarr except :class:`CowLocalStore`, the store writers use.
+Nothing here is specific to Zarr: the store writers use on top of :func:`write_new_file` is
+``sdfcodec.map.stores.CowLocalStore``.
 """
 
 from __future__ import annotations
 
-import asyncio
 import ctypes
 import errno
 import fcntl
@@ -33,13 +33,10 @@ import time
 import uuid
 from pathlib import Path
 
-from zarr.core.buffer import Buffer
-from zarr.storage import LocalStore
-
 from .errors import MapBusyError
 
 __all__ = ["HAVE_PROC_FD", "hidden_path", "make_temp_dir", "pin_dir", "release_pin", "swap_into_place",
-           "collect", "WriterLock", "CowLocalStore", "link_tree", "same_dir", "dir_id"]
+           "collect", "WriterLock", "write_new_file", "link_tree", "same_dir", "dir_id"]
 
 #: Readers can hold a directory through ``/proc/self/fd`` (Linux). Elsewhere they read by path and must reopen
 #: a map after it was replaced (documented in spec section 9).
@@ -280,12 +277,15 @@ class WriterLock:
         self.release()
 
 
-def _cow_put(path: Path, value: Buffer, exclusive: bool = False) -> int:
+def write_new_file(path: Path, data, exclusive: bool = False) -> int:
+    """Write ``data`` (bytes-like) as the file ``path`` without ever writing into an existing file: into a new
+    file renamed over ``path`` (``exclusive``: linked to it, FileExistsError when it exists). Returns the
+    bytes written. Hard links an update shares with the previous version thus stay intact."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.partial")
     try:
         with open(tmp, "xb") as f:
-            n = f.write(value.as_buffer_like())
+            n = f.write(data)
         if exclusive:
             os.link(tmp, path)  # FileExistsError when the key exists
             os.unlink(tmp)
@@ -297,26 +297,9 @@ def _cow_put(path: Path, value: Buffer, exclusive: bool = False) -> int:
         raise
 
 
-class CowLocalStore(LocalStore):
-    """A Zarr local store that writes every value into a new file and renames it over the key: never into an
-    existing file. An update's copy of a map is made of hard links shared with the previous version, which
-    must stay intact for its readers; this holds whatever Zarr's own LocalStore does."""
-
-    def set_sync(self, key: str, value: Buffer) -> None:
-        self._ensure_open_sync()
-        self._check_writable()
-        _cow_put(self.root / key, value)
-
-    async def _set(self, key: str, value: Buffer, exclusive: bool = False) -> None:
-        if not self._is_open:
-            await self._open()
-        self._check_writable()
-        await asyncio.to_thread(_cow_put, self.root / key, value, exclusive)
-
-
 def link_tree(src: Path | str, dst: Path) -> None:
     """Fill the existing directory ``dst`` with hard links to every file under ``src`` (copies where the file
-    system refuses links). Safe because writers replace files (:class:`CowLocalStore`), never rewrite them."""
+    system refuses links). Safe because writers replace files (:func:`write_new_file`), never rewrite them."""
     src = str(src)
     for dirpath, dirnames, filenames in os.walk(src):
         rel = os.path.relpath(dirpath, src)

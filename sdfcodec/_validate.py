@@ -1,7 +1,8 @@
 """The one place that checks and converts arrays handed to sdfcodec (kornia-style shape checks).
 
 Codecs take numpy arrays or torch tensors on any device; results follow the input: a numpy input gives a
-numpy result, a tensor gives a tensor on the same device. Everything is computed in float32.
+numpy result, a tensor gives a tensor on the same device. Everything is computed in float32. Plugin authors
+use these through :mod:`sdfcodec.plugin`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ import torch
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-BLOCK = 16  # voxels per block edge, fixed at 16 by the map format (spec/map-format.md)
+__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty"]  # public through sdfcodec.plugin
+
+BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 
 
 def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_finite: bool = True
@@ -45,8 +48,9 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
         hint = " (a single block needs a batch axis: x[None])" if t.ndim == len(shape) - 1 else ""
         raise ShapeError(f"{name} must have shape {expected}, got {tuple(t.shape)}{hint}")
     # fast path: one reduction (NaN/Inf propagate into the sum); the exact element test runs only when the sum
-    # is not finite, which also covers finite values whose sum overflows
-    if check_finite and t.numel() and not bool(torch.isfinite(t.sum())) and not bool(torch.isfinite(t).all()):
+    # is not finite, which also covers finite values whose sum overflows; meta tensors hold no values to check
+    if (check_finite and t.numel() and t.device.type != "meta" and not bool(torch.isfinite(t.sum()))
+            and not bool(torch.isfinite(t).all())):
         bad = int((~torch.isfinite(t)).sum())
         raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
                                 "(replace unobserved voxels with the truncation distance d_max)")

@@ -6,25 +6,14 @@ the operation cannot avoid for a batch of ``B`` blocks, timed in the same run. F
 near 1 means the codec adds no overhead to those products; the paper's GPU implementation took 405-645
 microseconds per block.
 
-Benchmark hooks
----------------
-A codec class MAY provide two optional hooks; :func:`bench_codec` uses them when present and never looks at
-codec ids:
+A codec's plugin MAY register how to benchmark it with :func:`register_bench` (a ready instance without
+training, and the matrix shapes of its roofline); the contract is spec/codec-plugins.md, section 5. Without a
+registration the benchmark builds ``get_codec(id, code_size=k)``, fits it on 512 analytic blocks when it
+``requires_fit``, and times the single product of a linear codec. No codec id is special-cased here.
 
-``bench_instance(code_size) -> (codec, weights)`` (classmethod)
-    A ready codec for timing at the nominal ``code_size`` (what ``sdfcodec bench --sizes`` passes; a codec
-    defines what it means, e.g. the size of each part of a mixture), built without training, and a short
-    phrase saying where its weights come from (e.g. ``"shipped sdfcodec/models/ae-64.npz"`` or
-    ``"untrained (random init)"``: speed does not depend on the values). Without the hook the benchmark builds
-    ``get_codec(id, code_size=k)`` (``get_codec(id)`` when the class takes no ``code_size``) and fits it on
-    512 analytic blocks when it ``requires_fit``, which suits codecs that fit in moments (PCA).
-``roofline_shapes(operation) -> list[(m, n)]`` (method)
-    The right-hand matrix shapes of the products ``operation`` (``"encode"`` or ``"decode"``) needs per batch,
-    in order: each is timed as ``(B, m) @ (m, n)``. Without it: ``[(4096, k)]`` / ``[(k, 4096)]``.
-
-Records of a codec with either hook also carry ``roofline_shapes``, ``weights`` and ``torch_threads``; the
-records of a codec with neither keep the original keys (see :func:`bench_codec`). Every record carries
-``paper_us_per_block`` (405, 645) and ``speedup_vs_paper`` (those divided by ``us_per_block``).
+Records of a registered codec also carry ``roofline_shapes``, ``weights`` and ``torch_threads``; the records
+of others keep the original keys (see :func:`bench_codec`). Every record carries ``paper_us_per_block``
+(405, 645) and ``speedup_vs_paper`` (those divided by ``us_per_block``, :func:`vs_paper`).
 
 Decode on read (:func:`bench_decode_on_read`) has a second roofline, memory-copy bandwidth: ``np.copyto``
 between two 64 MiB buffers, timed in the same run, expressed as the blocks/s at which the decoded float32
@@ -36,18 +25,19 @@ from __future__ import annotations
 
 import inspect
 import time
+import warnings
+from dataclasses import dataclass
 from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 
 from .codec import Codec
-from .errors import InvalidValueError
+from .errors import CodecTypeError, InvalidValueError, RegistrationError
 from .registry import get_codec, get_codec_class
-from .testing import analytic_blocks
 
 __all__ = ["time_call", "bench_codec", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
-           "roofline_shapes", "PAPER_US_PER_BLOCK"]
+           "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
@@ -71,9 +61,89 @@ def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3)
     return best
 
 
-def _vs_paper(us_per_block: float) -> dict[str, Any]:
+def vs_paper(us_per_block: float) -> dict[str, Any]:
+    """The paper comparison every benchmark record carries: ``{"paper_us_per_block": [405, 645],
+    "speedup_vs_paper": [405 / us, 645 / us]}`` for ``us_per_block`` microseconds per block."""
     return {"paper_us_per_block": list(PAPER_US_PER_BLOCK),
             "speedup_vs_paper": [p / us_per_block for p in PAPER_US_PER_BLOCK]}
+
+
+
+
+# -- benchmark registrations (spec/codec-plugins.md, section 5) --------------------------------------------------
+@dataclass(frozen=True)
+class BenchSpec:
+    """How to benchmark one codec: see :func:`register_bench`."""
+
+    instance: Callable[..., tuple[Codec, str]] | None = None
+    roofline_shapes: Callable[[Codec, str], list[tuple[int, int]]] | None = None
+
+
+_BENCH: dict[Any, BenchSpec] = {}  # keys: codec classes and codec ids
+
+
+def register_bench(codec: str | type[Codec], *, instance: Callable[..., tuple[Codec, str]] | None = None,
+                   roofline_shapes: Callable[[Codec, str], list[tuple[int, int]]] | None = None) -> None:
+    """Tell the benchmark how to measure ``codec`` (a codec id, or a class: it then covers its subclasses).
+
+    ``instance(code_size, **options) -> (codec, weights)`` builds a ready codec for timing at the nominal
+    ``code_size`` (what ``sdfcodec bench --sizes`` passes; the codec says what it means, e.g. the size of
+    each part of a mixture) without training, and a short phrase saying where its weights come from
+    (``"untrained (random init)"`` is fine: speed does not depend on the values). ``options`` are
+    codec-specific settings given to :func:`bench_instance`; those the function does not name are not passed.
+    ``roofline_shapes(codec, operation) -> [(m, n), ...]`` lists the right-hand shapes of the matrix products
+    ``operation`` (``"encode"`` or ``"decode"``) needs per batch, in order, each timed as ``(B, m) @ (m, n)``.
+    A plugin calls this once, when it is imported (through :mod:`sdfcodec.plugin`); registering again
+    replaces the earlier registration.
+    """
+    if not (isinstance(codec, str) or (isinstance(codec, type) and issubclass(codec, Codec))):
+        raise CodecTypeError(f"register_bench takes a codec id or a Codec subclass, got {codec!r}")
+    if instance is None and roofline_shapes is None:
+        raise RegistrationError(f"register_bench({codec!r}) needs instance= or roofline_shapes=")
+    for name, fn in (("instance", instance), ("roofline_shapes", roofline_shapes)):
+        if fn is not None and not callable(fn):
+            raise CodecTypeError(f"register_bench {name}= must be callable, got {fn!r}")
+    _BENCH[codec] = BenchSpec(instance, roofline_shapes)
+
+
+def _legacy_spec(cls: type) -> BenchSpec | None:
+    """Spec 1's benchmark hooks, methods on the codec class (``bench_instance``, ``roofline_shapes``)."""
+    inst, shapes = getattr(cls, "bench_instance", None), getattr(cls, "roofline_shapes", None)
+    if not (callable(inst) or callable(shapes)):
+        return None
+    warnings.warn(f"{cls.__qualname__} declares spec-1 benchmark hooks (bench_instance/roofline_shapes "
+                  "methods); register them with sdfcodec.plugin.register_bench instead", DeprecationWarning,
+                  stacklevel=3)
+    return BenchSpec(inst if callable(inst) else None,
+                     (lambda codec, op: codec.roofline_shapes(op)) if callable(shapes) else None)
+
+
+def _spec(cls: type[Codec]) -> BenchSpec | None:
+    for klass in cls.__mro__:
+        if klass in _BENCH:
+            return _BENCH[klass]
+    return _BENCH.get(getattr(cls, "codec_id", None)) or _legacy_spec(cls)
+
+
+def bench_instance(codec_id: str, code_size: int, **options: Any) -> tuple[Codec, str | None]:
+    """A ready codec ``codec_id`` for timing at nominal ``code_size``, and where its weights come from (None
+    when not registered: then ``get_codec(codec_id, code_size=k)``, fitted on 512 analytic blocks when it
+    ``requires_fit``; ``options`` are then unused). See :func:`register_bench`."""
+    from .testing import analytic_blocks
+
+    cls = get_codec_class(codec_id)
+    spec = _spec(cls)
+    if spec is not None and spec.instance is not None:
+        params = inspect.signature(spec.instance).parameters.values()
+        takes_all = any(p.kind is p.VAR_KEYWORD for p in params)
+        names = {p.name for p in params}
+        codec, weights = spec.instance(code_size, **{k: v for k, v in options.items() if takes_all or k in names})
+        return codec, str(weights)
+    takes_size = "code_size" in inspect.signature(cls.__init__).parameters
+    codec = get_codec(codec_id, code_size=code_size) if takes_size else get_codec(codec_id)
+    if codec.requires_fit:
+        codec.fit(analytic_blocks(512, seed=3))
+    return codec, None
 
 
 def memcpy_bytes_per_s(nbytes: int = 64 << 20, min_time: float = 0.2) -> float:
@@ -85,15 +155,15 @@ def memcpy_bytes_per_s(nbytes: int = 64 << 20, min_time: float = 0.2) -> float:
 
 
 def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
-    """The ``(m, n)`` right-hand shapes of the matrix products ``operation`` needs: the codec's
-    ``roofline_shapes`` hook, else the single product of a linear codec."""
+    """The ``(m, n)`` right-hand shapes of the matrix products ``operation`` needs: those registered for the
+    codec (:func:`register_bench`), else the single product of a linear codec."""
     if operation not in _OPS:
         raise InvalidValueError(f"operation must be 'encode' or 'decode', got {operation!r}")
-    hook = getattr(codec, "roofline_shapes", None)
-    if callable(hook):
-        shapes = [(int(m), int(n)) for m, n in hook(operation)]
+    spec = _spec(type(codec))
+    if spec is not None and spec.roofline_shapes is not None:
+        shapes = [(int(m), int(n)) for m, n in spec.roofline_shapes(codec, operation)]
         if not shapes or any(m < 1 or n < 1 for m, n in shapes):
-            raise InvalidValueError(f"{codec!r}.roofline_shapes({operation!r}) must be a non-empty list of "
+            raise InvalidValueError(f"roofline_shapes({codec!r}, {operation!r}) must be a non-empty list of "
                                     f"positive (m, n) shapes, got {shapes}")
         return shapes
     k = codec.code_size
@@ -112,7 +182,7 @@ def _roofline_fn(shapes: list[tuple[int, int]], batch: int) -> Callable[[], obje
 
 
 def _has_hooks(codec: Codec) -> bool:
-    return callable(getattr(type(codec), "bench_instance", None)) or callable(getattr(codec, "roofline_shapes", None))
+    return _spec(type(codec)) is not None
 
 
 def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = "cpu", min_time: float = 0.2,
@@ -121,6 +191,8 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
     """Encode/decode blocks/s of a ready ``codec`` at each batch size, beside the numpy roofline of its layer
     shapes (:func:`roofline_shapes`), timed in the same run. Returns records as :func:`bench_codec`'s;
     ``weights`` (where the codec's weights come from) is recorded when given."""
+    from .testing import analytic_blocks
+
     data = analytic_blocks(512, seed=3)
     dev = torch.device(device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
@@ -141,26 +213,13 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
                 "codec": name, "code_size": codec.code_size, "operation": op, "batch": b, "device": str(dev),
                 "blocks_per_s": b / t, "baseline": "numpy matmul of the layer shapes" if extra else "numpy matmul",
                 "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
-                **_vs_paper(1e6 * t / b),
+                **vs_paper(1e6 * t / b),
             }
             if extra:
                 rec.update(roofline_shapes=[list(s) for s in shapes], weights=weights,
                            torch_threads=torch.get_num_threads())
             records.append(rec)
     return records
-
-
-def _instance(codec_id: str, k: int) -> tuple[Codec, str | None]:
-    cls = get_codec_class(codec_id)
-    hook = getattr(cls, "bench_instance", None)
-    if callable(hook):
-        codec, weights = hook(k)
-        return codec, str(weights)
-    takes_size = "code_size" in inspect.signature(cls.__init__).parameters
-    codec = get_codec(codec_id, code_size=k) if takes_size else get_codec(codec_id)
-    if codec.requires_fit:
-        codec.fit(analytic_blocks(512, seed=3))
-    return codec, None
 
 
 def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, device: str = "cpu",
@@ -170,14 +229,14 @@ def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int]
 
     Returns one record per (code_size, operation, batch) with ``codec``, ``code_size`` (the codec's actual
     code length), ``operation``, ``batch``, ``device``, ``blocks_per_s``, ``baseline``,
-    ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block``; codecs with a benchmark hook (see
-    the module docstring) add ``roofline_shapes``, ``weights`` and ``torch_threads``. With ``read_blocks > 0``,
+    ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block``; registered codecs
+    (:func:`register_bench`) add ``roofline_shapes``, ``weights`` and ``torch_threads``. With ``read_blocks > 0``,
     each code size also gets a ``"decode-on-read"`` record (:func:`bench_decode_on_read` over a map of that
     many blocks), and with ``http`` a ``"decode-on-read-http"`` one (the same map served on loopback).
     """
     records = []
     for k in code_sizes:
-        codec, weights = _instance(codec_id, k)
+        codec, weights = bench_instance(codec_id, k)
         records += bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights,
                                         name=codec_id, progress=progress)
         if read_blocks > 0:
@@ -206,7 +265,8 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     import tempfile
     from pathlib import Path
 
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
+    from .testing import analytic_blocks
 
     if n_blocks < 1:
         raise InvalidValueError(f"n_blocks must be >= 1, got {n_blocks}")
@@ -262,7 +322,7 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
             "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": op,
             "batch": n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
             "baseline": "numpy matmul of the layer shapes", "baseline_blocks_per_s": n_blocks / tb,
-            "ratio_to_baseline": tb / t, "us_per_block": us, **_vs_paper(us),
+            "ratio_to_baseline": tb / t, "us_per_block": us, **vs_paper(us),
             "memcpy_bytes_per_s": copy_bps, "memcpy_blocks_per_s": copy_bps / _BLOCK_BYTES,
             "ratio_to_memcpy": (n_blocks / t) / (copy_bps / _BLOCK_BYTES),
             "in_memory_decode_blocks_per_s": n_blocks / t_mem, "ratio_to_in_memory_decode": t_mem / t,
@@ -292,3 +352,117 @@ def _serve(root: Any):
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), partial(Quiet, directory=str(root)))
     threading.Thread(target=server.serve_forever, daemon=True, name="sdfcodec-bench-http").start()
     return server
+
+
+# ------------------------------------------------------------------------------------------- search benchmark
+def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, batches: Iterable[int] = (65536,),
+                 device: str = "cpu", min_time: float = 0.2, map_blocks: int = 0,
+                 map_levels: dict[int, Iterable[int]] | None = None, workdir: Any = None,
+                 progress: Callable[[str], None] | None = None) -> list[dict]:
+    """Search throughput: the scoring kernel on in-memory codes beside a plain numpy matrix product of the same
+    shape, and (``map_blocks > 0``) whole searches of a map on disk with the bytes they read.
+
+    Codes are random with the shipped eigenshapes' per-component spread (``sqrt(explained_variance)``), so
+    their magnitudes (and compressibility) resemble real ones; descriptors are the floor model.
+
+    Parameters
+    ----------
+    code_sizes : iterable of int
+        Code lengths ``k`` (1..128: prefixes of the shipped pca-128 basis).
+    descriptors : int
+        Model size ``M`` (15: the paper's floor model; other values: planes at that many offsets).
+    batches : iterable of int
+        Blocks per kernel call.
+    device : str
+        Where the kernel runs (the baseline is always numpy on the CPU).
+    min_time : float
+        Seconds per timing round (best of 3, :func:`time_call`).
+    map_blocks : int
+        Coded blocks of the benchmark map (0: skip the map records). The map is dense in a cube of blocks.
+    map_levels : mapping of int to sequence of int, optional
+        Code size -> levels to search its map at (default: the full size; e.g. ``{128: [32, 128]}``).
+    workdir : str or os.PathLike, optional
+        Where the map is written (default: a temporary directory).
+
+    Returns
+    -------
+    list of dict
+        Records like :func:`bench_codec`'s: ``codec``, ``code_size``, ``operation``
+        (``"search"`` for the kernel, ``"search-map"`` for a whole search), ``batch``, ``device``,
+        ``blocks_per_s``, ``baseline`` (``"numpy matmul"``), ``baseline_blocks_per_s``, ``ratio_to_baseline``,
+        ``us_per_block``, ``load_before`` and ``load_after`` (``os.getloadavg()`` around the timing: this is a
+        shared machine); map records add ``level``, ``code_bytes_read``, ``code_bytes_full``, ``seconds``.
+    """
+    # imported here: this module is imported by the CLI and plugins that never search, and search imports the
+    # map reader
+    import math
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from .map import create_map, open_map
+    from .registry import pretrained_codec
+    from .search import build_query, search
+    from .search.engine import Scorer
+
+    records = []
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    rng = np.random.default_rng(0)
+    for k in code_sizes:
+        codec = pretrained_codec("pca", k)
+        spread = np.sqrt(codec.explained_variance_).astype(np.float32)
+        q = build_query("floor", codec=codec, offsets=descriptors).descriptors
+        scorer = Scorer(q, dev)
+        qt = np.ascontiguousarray(q.T)
+        for b in batches:
+            codes = rng.standard_normal((b, k), dtype=np.float32) * spread
+            x = torch.from_numpy(codes).to(dev) if dev.type != "cpu" else codes
+            if progress:
+                progress(f"search kernel pca-{k} batch {b}")
+            load0 = os.getloadavg()
+            t = time_call(lambda: (scorer(x), sync()), min_time)
+            tb = time_call(lambda: codes @ qt, min_time)
+            records.append({"codec": "pca", "code_size": k, "operation": "search", "batch": b, "device": str(dev),
+                            "descriptors": len(q), "blocks_per_s": b / t, "baseline": "numpy matmul",
+                            "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
+                            "load_before": list(load0), "load_after": list(os.getloadavg())})
+        if map_blocks > 0:
+            tmp = tempfile.TemporaryDirectory(prefix="sdfcodec-bench-") if workdir is None else None
+            try:
+                path = Path(tmp.name if tmp else workdir) / f"bench-pca-{k}.sdfz"
+                side = math.ceil(map_blocks ** (1 / 3))
+                coords = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:map_blocks]
+                if progress:
+                    progress(f"writing a {len(coords)}-block pca-{k} map")
+                with create_map(path, codec=codec, voxel_size=0.02, overwrite=True, tool="sdfcodec.search.bench") as w:
+                    for i in range(0, len(coords), 1 << 16):
+                        c = coords[i:i + (1 << 16)]
+                        w.write_codes(c, rng.standard_normal((len(c), k), dtype=np.float32) * spread)
+                m = open_map(path)
+                m.codec  # load the codec state once, outside the timed searches
+                for lv in (map_levels or {}).get(k, [k]):
+                    if progress:
+                        progress(f"searching the pca-{k} map at level {lv}")
+                    load0 = os.getloadavg()
+                    res = search(m, build_query("floor", codec=codec, offsets=descriptors), level=lv, top=100,
+                                 device=dev)
+                    base_codes = rng.standard_normal((len(coords), lv), dtype=np.float32)
+                    base_q = np.ascontiguousarray(q[:, :lv].T)
+                    tb = time_call(lambda: base_codes @ base_q, min_time)
+                    t = res.stats["seconds"]
+                    records.append({"codec": "pca", "code_size": k, "operation": "search-map", "level": lv,
+                                    "batch": len(coords), "device": str(dev), "descriptors": len(q),
+                                    "blocks_per_s": len(coords) / t, "baseline": "numpy matmul",
+                                    "baseline_blocks_per_s": len(coords) / tb, "ratio_to_baseline": tb / t,
+                                    "us_per_block": 1e6 * t / len(coords), "seconds": t,
+                                    "code_bytes_read": res.stats["code_bytes_read"],
+                                    "code_bytes_full": res.stats["code_bytes_full"],
+                                    "load_before": list(load0), "load_after": list(os.getloadavg())})
+            finally:
+                if tmp is not None:
+                    tmp.cleanup()
+    return records
+
+
+__all__ += ["bench_search"]

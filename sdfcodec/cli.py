@@ -20,6 +20,8 @@ from rich.table import Table
 from . import __version__
 from .errors import InputNotFoundError, InvalidValueError, MapExistsError, SDFCodecError
 
+__all__ = ["app", "main"]
+
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 out = Console()
@@ -148,7 +150,7 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
 def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
              as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
     """Show a map's header, blocks by state, bytes on disk and ratio to a dense float32 volume."""
-    from .mapfile import open_map
+    from .map import open_map
 
     info = open_map(map_path).info()
     if as_json:
@@ -232,7 +234,8 @@ def encode_cmd(
     else it is fitted on the input's non-empty blocks (also with --fit); the map stores it either way.
     """
     from .blocks import normalise, split_blocks
-    from .mapfile import _check_volume, create_map, open_map
+    from .map import create_map, open_map
+    from .map.format import check_volume
     from .model import load_model
     from .registry import get_codec
 
@@ -251,7 +254,7 @@ def encode_cmd(
             _fail(f"{in_path} does not record its voxel size: pass --voxel-size (metres)")
         trunc = _pair(truncation, "--truncation") if truncation else tuple(meta.get("truncation", (-0.04, 0.1)))
         org = _triple(origin, "--origin") or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
-        vol = _check_volume(vol, trunc)
+        vol = check_volume(vol, trunc)
 
     if model is not None:
         codec = load_model(model)
@@ -261,9 +264,9 @@ def encode_cmd(
             raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
                                     f"(code size {codec.code_size})")
     elif (codec_id or "pca") == "pca" and not fit:
-        from .models import default_codec
+        from .registry import pretrained_codec
 
-        codec = default_codec("pca", code_size or 64)
+        codec = pretrained_codec("pca", code_size or 64)
     else:
         params = {"code_size": code_size} if code_size else {}
         codec = get_codec(codec_id or "pca", **params)
@@ -321,7 +324,7 @@ def decode_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
     """Decode a map (or a region of it) to a dense .npy volume in metres, free space where nothing is coded."""
-    from .mapfile import open_map
+    from .map import open_map
 
     if output.suffix != ".npy":
         _fail(f"OUTPUT must end in .npy, got {output}")
@@ -359,7 +362,7 @@ def fuse_cmd(
     Transcode it afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz --codec pca`.
     """
     from .fusion import fuse
-    from .mapfile import create_map
+    from .map import create_map
     from .registry import get_codec
 
     _refuse_existing(output, overwrite)
@@ -392,7 +395,7 @@ def mesh_cmd(
     import open3d as o3d
 
     from .fusion import mesh_from_blocks
-    from .mapfile import open_map
+    from .map import open_map
 
     _refuse_existing(output, overwrite)
     m = open_map(map_path)
@@ -529,7 +532,7 @@ def dataset_cmd(
     from .data.sampler import iter_windows
     from .data.synthetic import synthetic_blocks
     from .dataset import build_dataset
-    from .mapfile import open_map
+    from .map import open_map
 
     trunc = _pair(truncation, "--truncation")
     window_kw = dict(stride=stride, truncation=trunc, max_mean=max_mean, empty_fraction=empty_fraction, seed=seed)
@@ -640,7 +643,7 @@ def bench_cmd(
     shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
     mixtures --sizes is the size of each part (64: code 64+64+1).
     """
-    from .bench import PAPER_US_PER_BLOCK, _vs_paper, bench_codec
+    from .bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
 
     ks = [int(s) for s in sizes.split(",")]
     bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
@@ -656,11 +659,11 @@ def bench_cmd(
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
                               read_blocks=n_read, http=http)
         if do_search:
-            from .search import bench_search
+            from .bench import bench_search
 
             found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step)
-            records += [dict(r, **_vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
+            records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
     if as_json:
         _print_json(records)
         return

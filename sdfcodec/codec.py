@@ -1,26 +1,18 @@
-"""The codec contract: what every sdfcodec codec is and promises.
+"""The codec contract in brief; the whole, normative text is ``spec/codec-plugins.md`` (version 2).
 
-A codec turns normalised TSDF blocks into short code vectors and back. Normalised means
-``v = (d - d_min) / (d_max - d_min)`` so values lie in ``[0, 1]`` and free or unobserved space is 1.0.
+A codec turns normalised TSDF blocks ``(N, 16, 16, 16)`` float32 (``v = (d - d_min) / (d_max - d_min)``,
+free and unobserved space 1.0) into code vectors ``(N, code_size)`` float32 and back. A codec is a subclass
+of :class:`Codec` that sets ``codec_id``, ``prefix_ordered``, ``requires_fit`` (and SHOULD set
+``code_sizes``), has an ``__init__`` that only stores its JSON keyword arguments (its configuration), and
+implements ``_encode`` / ``_decode`` (and ``_fit`` plus ``state_dict`` / ``load_state_dict`` when it learns).
+The public ``fit`` / ``encode`` / ``decode`` of this base class check and convert input and return results
+that follow it (numpy in, numpy out; a tensor in, a tensor on its device out).
 
-A codec is a subclass of :class:`Codec` that:
-
-* sets the class attributes ``codec_id`` (the registry name, ``[a-z0-9][a-z0-9_.-]*``), ``prefix_ordered``
-  (True when the first ``k' < k`` code elements still decode, coarser: PCA), ``requires_fit`` (True when
-  it learns state from data) and optionally ``code_sizes`` (the sizes it is meant to be used at);
-* has an ``__init__`` that only stores its keyword arguments, under attributes of the same names
-  (scikit-learn style). Those arguments, plus ``"id"``, are its JSON configuration: ``get_config()``
-  returns them and ``from_config`` / :func:`sdfcodec.get_codec` rebuild an equal codec;
-* has ``code_size`` (an ``__init__`` argument or a property), implements ``_encode`` and ``_decode`` on float32 torch tensors
-  ``(N, 16, 16, 16) -> (N, code_size)`` and ``(N, k) -> (N, 16, 16, 16)``, computing on the tensor's device;
-* if ``requires_fit``: implements ``_fit`` and keeps learned state in attributes ending in ``_``, exposed as
-  plain arrays through ``state_dict`` / ``load_state_dict`` (no pickles, ever).
-
-The public ``encode``/``decode``/``fit`` of the base class check shapes, dtypes and finiteness (raising
-:mod:`sdfcodec.errors` types), convert numpy or any-float input to float32, and return a result that
-follows the input: numpy in, numpy out; a tensor in, a tensor on the same device out. Both are batched.
-
-``sdfcodec.testing.check_codec`` verifies all of this for any codec; plugins run it in their own tests.
+Optional public hooks, each with a default that is correct for every codec (spec section 4):
+:meth:`Codec.decode_affine`, :meth:`Codec.decode_bound` (decode on read) and :meth:`Codec.fit_batches`
+(streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained`. Benchmark shapes are
+registered with :func:`sdfcodec.bench.register_bench`, not declared here. Plugin authors import their tools
+from :mod:`sdfcodec.plugin`; :func:`sdfcodec.testing.check_codec` checks the contract.
 """
 
 from __future__ import annotations
@@ -28,28 +20,75 @@ from __future__ import annotations
 import abc
 import copy
 import inspect
-from typing import Any, ClassVar, Iterable, Iterator, Mapping
+import warnings
+from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping
 
 import numpy as np
 import torch
 
-from ._validate import BLOCK, as_float_tensor, empty, like_input
-from .errors import InvalidValueError, NotFittedError, ShapeError
+from ._validate import BLOCK, as_float_tensor, like_input
+from .errors import InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
-__all__ = ["Codec", "BLOCK", "empty"]
+__all__ = ["Codec", "BLOCK"]
+
+#: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
+LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
+
+
+def _forward_to(old: str) -> Callable[..., Any]:
+    """The public hook of a codec that implements only its spec-1 name ``old``: calls that method."""
+    def hook(self: "Codec", *args: Any) -> Any:
+        return getattr(self, old)(*args)
+    hook.__sdfcodec_legacy__ = True  # type: ignore[attr-defined]  # marks it for _legacy_alias
+    hook.__name__ = LEGACY_HOOKS[old]
+    return hook
+
+
+def _legacy_alias(old: str) -> Callable[..., Any]:
+    """``Codec.<old>``, kept for callers of the spec-1 names: warns and calls the public hook (its default when
+    the codec's own hook is an old-style override calling up to the base class, so that cannot loop)."""
+    new = LEGACY_HOOKS[old]
+
+    def alias(self: "Codec", *args: Any) -> Any:
+        warnings.warn(f"Codec.{old} is deprecated since codec spec 2: call {new} instead", DeprecationWarning,
+                      stacklevel=2)
+        hook = getattr(type(self), new)
+        if getattr(hook, "__sdfcodec_legacy__", False):
+            hook = getattr(Codec, new)
+        return hook(self, *args)
+    alias.__name__ = old
+    return alias
+
+
+def _same_array(a: Any, b: Any) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and bool(np.array_equal(a, b))
 
 
 class Codec(abc.ABC):
-    """Abstract base of all codecs. See the module docstring for the contract."""
+    """Abstract base of all codecs: the contract is spec/codec-plugins.md (summary in the module docstring).
+
+    Two codecs are equal when they have the same class, configuration and learned state (arrays compared
+    exactly: dtype, shape and values). Codecs are mutable (``fit``, ``load_state_dict``), so they are not
+    hashable: key caches by ``id(codec)`` or by ``get_config()``, never by the codec.
+    """
 
     codec_id: ClassVar[str]
     prefix_ordered: ClassVar[bool] = False
     requires_fit: ClassVar[bool] = False
     code_sizes: ClassVar[tuple[int, ...]] = ()
-    #: Voxels of neighbour context the decoder needs on each side (0: blocks decode on their own). A codec
-    #: with ``halo > 0`` also implements ``_decode_context``; map readers then decode neighbouring blocks and
-    #: hand it the assembled neighbourhood, so block seams vanish (spec/codec-plugins.md, "Halo").
+    #: Voxels of neighbour context the decoder needs on each side (0: none; spec section 3, "Halo").
     halo: ClassVar[int] = 0
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # spec 1 promised its optional hooks under underscore names: a codec still written that way keeps working
+        for old, new in LEGACY_HOOKS.items():
+            if old in cls.__dict__ and new not in cls.__dict__:
+                warnings.warn(f"{cls.__module__}.{cls.__qualname__} implements the optional hook {old!r}, whose "
+                              f"name since codec spec 2 is {new!r}; rename it (spec/codec-plugins.md, section 4)",
+                              DeprecationWarning, stacklevel=3)  # the class statement (past ABCMeta)
+                setattr(cls, new, _forward_to(old))
 
     #: Length ``k`` of one block's code vector: an ``__init__`` argument or a property of the subclass.
     code_size: int
@@ -101,18 +140,12 @@ class Codec(abc.ABC):
 
     def fit_stream(self, batches: Iterable[Any]) -> "Codec":
         """Learn from an iterable of normalised block batches ``(N_i, 16, 16, 16)``, for data sets larger than
-        memory; returns ``self``. Codecs that learn incrementally implement ``_fit_stream(iterator of float32
-        numpy batches)``; for the others the batches are concatenated and passed to :meth:`fit`."""
+        memory; returns ``self``. Each batch is checked and handed, as float32 numpy, to :meth:`fit_batches`."""
         if not self.requires_fit:
             return self
         checked = (as_float_tensor(b, "blocks", (None, BLOCK, BLOCK, BLOCK))[0].cpu().numpy() for b in batches)
-        if type(self)._fit_stream is Codec._fit_stream:
-            return self.fit(np.concatenate(list(checked)))
-        self._fit_stream(checked)
+        self.fit_batches(checked)
         return self
-
-    def _fit_stream(self, batches: Iterator[np.ndarray]) -> None:  # pragma: no cover - see fit_stream
-        raise NotImplementedError
 
     def encode(self, blocks: Any) -> Any:
         """Encode normalised blocks ``(N, 16, 16, 16)`` to codes ``(N, code_size)`` (float32).
@@ -162,26 +195,29 @@ class Codec(abc.ABC):
         t, was_numpy = as_float_tensor(padded, "padded", (None, None, None, None))
         h = self.halo
         if min(t.shape[1:]) <= 2 * h:
-            raise ShapeError(f"padded volumes for {self!r} need more than {2 * h} voxels per axis, got {tuple(t.shape)}")
+            raise ShapeError(f"padded volumes for {self!r} need more than {2 * h} voxels per axis, "
+                             f"got {tuple(t.shape)}")
         return like_input(self._decode_context(t) if h else t, was_numpy)
 
     def decode_core(self, codes: Any, *, scale: float = 1.0, offset: float = 0.0) -> Any:
         """Decode without neighbour context (what :meth:`decode_context` assembles), as ``scale * v + offset``:
         ``(N, k) -> (N, 16, 16, 16)``. With the defaults it equals :meth:`decode` for codecs with ``halo == 0``;
         map readers pass ``scale = d_max - d_min, offset = d_min`` to get metres in the same pass (codecs whose
-        last step is linear fold it into their weights, see :meth:`_decode_affine`)."""
+        last step is linear fold it into their weights, see :meth:`decode_affine`)."""
         if not self.halo and scale == 1.0 and offset == 0.0:
             return self.decode(codes)
         t, was_numpy = self._checked_codes(codes)
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
-        return like_input(self._decode_affine(t, float(scale), float(offset)), was_numpy)
+        return like_input(self.decode_affine(t, float(scale), float(offset)), was_numpy)
 
-    # -- optional hooks (the defaults are correct for every codec; overriding only makes them faster) --------
-    def _decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
-        """``scale * _decode(codes) + offset`` for checked float32 codes ``(N, k)``. The default adds one fused
-        pass over the output (in place unless the output is a view of ``codes``); a codec whose decode ends in
-        a linear layer MAY override it to fold ``scale`` and ``offset`` into that layer (PCA does)."""
+    # -- optional public hooks (spec section 4): the defaults are correct for every codec; overriding one only
+    # makes it faster. They take already checked input: callers are the base class and map readers.
+    def decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
+        """Hook: ``scale * _decode(codes) + offset`` ``(N, 16, 16, 16)`` float32 for checked float32 codes
+        ``(N, k)``, on their device (:meth:`decode_core` calls it). The default adds one fused pass over the
+        output (in place unless the output is a view of ``codes``); a codec whose decode ends in a linear layer
+        MAY override it to fold ``scale`` and ``offset`` into that layer (PCA does)."""
         out = self._decode(codes)
         if scale == 1.0 and offset == 0.0:
             return out
@@ -189,11 +225,36 @@ class Codec(abc.ABC):
         base = torch.tensor(offset, dtype=out.dtype, device=out.device)
         return torch.add(base, out, alpha=scale) if aliased else torch.add(base, out, alpha=scale, out=out)
 
-    def _decode_bound(self, codes: torch.Tensor) -> float | None:
-        """An upper bound on ``|_decode(codes)|`` over all outputs, or None (the default) when the codec cannot
-        give one cheaply. Map readers check decoded blocks for NaN/Inf (a broken learned state) with a pass
-        over the output; a finite bound proves them finite without it (PCA: from the codes and its basis)."""
+    def decode_bound(self, codes: torch.Tensor) -> float | None:
+        """Hook: an upper bound on ``|_decode(codes)|`` over all outputs for checked float32 codes ``(N, k)``,
+        or None (the default) when the codec cannot give one cheaply. Map readers check decoded blocks for
+        NaN/Inf (a broken learned state) with a pass over the output; a finite bound proves them finite
+        without it (PCA: from the codes and its basis)."""
         return None
+
+    def fit_batches(self, batches: Iterator[np.ndarray]) -> None:
+        """Hook: learn from an iterator of checked float32 numpy batches ``(N_i, 16, 16, 16)``
+        (:meth:`fit_stream` calls it). The default concatenates them and calls :meth:`fit`, so it needs memory
+        for all of them; a codec that learns incrementally overrides it (PCA accumulates moments)."""
+        self.fit(np.concatenate(list(batches)))
+
+    # spec-1 names of the hooks, for callers not yet renamed (each warns once per call site)
+    _decode_affine = _legacy_alias("_decode_affine")
+    _decode_bound = _legacy_alias("_decode_bound")
+    _fit_stream = _legacy_alias("_fit_stream")
+
+    # -- shipped weights ------------------------------------------------------------------------------
+    @classmethod
+    def pretrained(cls, code_size: int | None = None, **options: Any) -> "Codec":
+        """A fitted codec with the weights its plugin ships (in the plugin's own package), at ``code_size``
+        (None: the codec's default size) with codec-specific ``options``; a fresh codec each call.
+
+        Raises:
+            ModelNotFoundError: this codec (or this size) ships no trained model; the message says how to
+                train one (the default, for codecs that ship none).
+        """
+        raise ModelNotFoundError(f"codec {getattr(cls, 'codec_id', cls.__qualname__)!r} ships no trained model: "
+                                 "train one with `sdfcodec train` and pass it with --model")
 
     # -- configuration -------------------------------------------------------------------------------
     @classmethod
@@ -228,6 +289,26 @@ class Codec(abc.ABC):
             raise NotFittedError(f"{self!r} needs fitting: call fit(blocks), load_state_dict(...), "
                                  "or pass a trained model (--model PATH)")
 
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Codec):
+            return NotImplemented
+        if type(self) is not type(other) or self.get_config() != other.get_config():
+            return False
+        mine, theirs = self.state_dict(), other.state_dict()
+        return mine.keys() == theirs.keys() and all(_same_array(mine[k], theirs[k]) for k in mine)
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, compared by value: see the class docstring
+
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.get_config().items() if k != "id")
         return f"{type(self).__name__}({args})"
+
+
+def __getattr__(name: str) -> Any:
+    if name == "empty":  # the huge-page allocator moved to the plugin toolkit
+        warnings.warn("sdfcodec.codec.empty is deprecated: use sdfcodec.plugin.empty", DeprecationWarning,
+                      stacklevel=2)
+        from ._validate import empty
+
+        return empty
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

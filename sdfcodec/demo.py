@@ -31,9 +31,9 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .errors import InvalidValueError, SDFCodecError
-from .mapfile import Map, create_map, open_map
-from .registry import get_codec
+from .errors import InvalidValueError, SDFCodecError, UnknownCodecError
+from .map import Map, create_map, open_map
+from .registry import get_codec, pretrained_codec
 
 __all__ = ["run_demo"]
 
@@ -123,7 +123,7 @@ def _shipped_ae() -> tuple[Any, str | None]:
 
     try:
         return build_codec(METHODS["ae-64"]), None
-    except ImportError as e:
+    except (ImportError, UnknownCodecError) as e:
         return None, f"the `ae` codec plugin is not installed ({e})"
     except SDFCodecError as e:
         return None, f"no shipped AE-64 model ({e})"
@@ -284,7 +284,6 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     from .fusion import fuse, mesh_from_blocks
     from .mapfield import MapField
     from .metrics import Trajectory, ate
-    from .models import default_codec
     from .search import expand, search
     from .search_cli import search_picture
     from .tracking import DenseField, SDFTracker, TrackerConfig
@@ -346,7 +345,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
              "rmse_near_vs_exact_mm": rmse_exact_mm(dense_raw)}]
     fields = {"fused (raw)": dense_raw}
     maps: dict[str, Map] = {"raw": raw}
-    codecs: list[tuple[str, Any]] = [(f"pca-{k}", default_codec("pca", k)) for k in code_sizes]
+    codecs: list[tuple[str, Any]] = [(f"pca-{k}", pretrained_codec("pca", k)) for k in code_sizes]
     ae_note = None
     if ae:
         ae_codec, ae_note = _shipped_ae()

@@ -110,3 +110,21 @@ class SamplingError(SDFCodecError, RuntimeError):
 
 class MapBusyError(SDFCodecError, TimeoutError):
     """Another process kept a map locked (an update in progress) for longer than the caller would wait."""
+
+
+# -- codec registry and model files (issue 14) ------------------------------------------------------------
+__all__ += ["RegistrationError", "CodecTypeError", "ModelNotFoundError"]
+
+
+class RegistrationError(SDFCodecError, ValueError):
+    """A codec (or its benchmark) could not be registered: a malformed ``codec_id`` or a clash with another
+    class registered under the same id."""
+
+
+class CodecTypeError(SDFCodecError, TypeError):
+    """Something that must be a codec (a ``Codec`` subclass, an id or a config dict) is of another type."""
+
+
+class ModelNotFoundError(SDFCodecError, FileNotFoundError):
+    """No model file (trained codec, state ``.npz``) at the given path, or no shipped model for a codec or
+    size: the message says how to train or where to pass one."""

@@ -87,7 +87,7 @@ PAPER_SEQUENCES = ("freiburg1_teddy", "freiburg1_room", "freiburg1_desk", "freib
 def build_codec(method: Method, model: str | Path | None = None):
     """The fitted codec of a Table 1 row: the model file ``model`` when given (e.g. an ae-32 trained with
     ``sdfcodec train``), else the shipped model; raises with the reason when it is not available."""
-    from .registry import get_codec
+    from .registry import get_codec, pretrained_codec
 
     if model is not None:
         from .model import load_model
@@ -100,20 +100,12 @@ def build_codec(method: Method, model: str | Path | None = None):
 
     if method.codec == "raw":
         return get_codec("raw")
-    if method.codec == "pca":
-        from .models import default_codec
-
-        return default_codec("pca", method.size)
     if method.codec == "gaussian-blur":
         return get_codec("gaussian-blur", size=9, sigma=4.0 / 3.0)
-    if method.codec == "ae":
-        import sdfcodec_ae  # the plugin (optional)
-
-        return sdfcodec_ae.default_ae(method.size)
+    if method.codec in ("pca", "ae"):
+        return pretrained_codec(method.codec, method.size)  # shipped in the plugin (optional for ae)
     if method.codec in ("parallel", "sequential"):
-        import sdfcodec_mixed
-
-        return sdfcodec_mixed.default_parallel() if method.codec == "parallel" else sdfcodec_mixed.default_sequential()
+        return pretrained_codec(method.codec)  # the shipped 64 + 64
     raise InvalidValueError(f"unknown method codec {method.codec!r}")
 
 
@@ -193,7 +185,8 @@ def _track(field, seq, start_pose: np.ndarray, *, config=None, progress: bool = 
 
 
 def _ate(seq, poses: np.ndarray) -> dict[str, Any] | None:
-    from .metrics import Trajectory, ate
+    from .metrics import ate
+    from .trajectory import Trajectory
 
     gt = seq.poses
     ok = np.isfinite(gt).all(axis=(1, 2))
@@ -226,7 +219,7 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     cache_mb : float
         Bound of the decoded-block cache in MiB (lazy decoding).
     dense : bool
-        Decode the whole map up front instead (:class:`~sdfcodec.tracking.DenseField`).
+        Decode the whole map up front instead (:class:`~sdfcodec.densefield.DenseField`).
     start : {"groundtruth", "identity"}
         Start pose: the first frame's ground truth (as the paper does; falls back to identity with no
         ground truth) or the identity.
@@ -243,9 +236,9 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
-    from .mapfile import open_map
-    from .metrics import Trajectory, write_tum
-    from .tracking import DenseField
+    from .map import open_map
+    from .trajectory import Trajectory, write_tum
+    from .densefield import DenseField
 
     if start not in ("groundtruth", "identity"):
         raise InvalidValueError(f"start must be 'groundtruth' or 'identity', got {start!r}")
@@ -277,7 +270,7 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
     """Tracker frames/s against one map, dense and lazily decoded (the issue's speed benchmark).
 
     Tracks the first ``frames`` frames of ``sequence`` from ground truth three times: against
-    :class:`~sdfcodec.tracking.DenseField` on the map's dense decode, against a fresh
+    :class:`~sdfcodec.densefield.DenseField` on the map's dense decode, against a fresh
     :class:`~sdfcodec.mapfield.MapField` (cold: every block decoded on first touch) and against the same
     MapField again (warm cache). Frames are read before timing; only ``SDFTracker.track`` is timed.
 
@@ -290,8 +283,9 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
-    from .mapfile import open_map
-    from .tracking import DenseField, SDFTracker, TrackerConfig
+    from .map import open_map
+    from .densefield import DenseField
+    from .tracking import SDFTracker, TrackerConfig
 
     seq = open_sequence(resolve_sequence(str(sequence), Path(".sdfcodec-sequences")))[:frames]
     depths = [seq[i].depth for i in range(len(seq))]
@@ -337,7 +331,7 @@ def _blocks_of(vol: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 def _roundtrip(codec, fused, work: Path, name: str):
     """Compress the fused blocks into a map ``work/<name>.sdfz`` with ``codec``; returns it opened."""
-    from .mapfile import create_map, open_map
+    from .map import create_map, open_map
 
     path = work / f"{name}.sdfz"
     with create_map(path, codec=codec, voxel_size=fused.voxel_size, truncation=fused.truncation,
@@ -384,7 +378,7 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
         "skipped": {key: reason}, "settings": {...}}``.
     """
     from .fusion import fuse
-    from .tracking import DenseField
+    from .densefield import DenseField
 
     say = log or (lambda s: None)
     out = Path(out_dir)

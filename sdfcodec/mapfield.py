@@ -84,14 +84,14 @@ class MapField:
 
     def __init__(self, map: Any, level: int | None = None, device: str | torch.device | None = None,
                  cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
-        from .mapfile import Map, open_map
+        from .map import Map, open_map
 
         if not isinstance(map, Map):
             if not isinstance(map, (str, os.PathLike)):
                 raise InvalidValueError(f"map must be a Map or a path, got {type(map).__name__}")
             map = open_map(map)
         self.map = map
-        self.level = map._level(level)
+        self.level = map.reader.level(level)
         self.codec = map.codec
         self._halo = int(self.codec.halo)
         self._device = torch.device(device) if device is not None else torch.device("cpu")
@@ -249,7 +249,7 @@ class MapField:
         nb = b1 - b0
         dev = self._device
         if self._halo:
-            canvas = self.map._decode_voxels(b0 * BLOCK, b1 * BLOCK, self.level, dev)
+            canvas = self.map.reader.decode_voxels(b0 * BLOCK, b1 * BLOCK, self.level, dev)
             cl, ch = np.maximum(b0, 0), np.minimum(b1, self.grid)
             self.blocks_decoded += int((self._states[cl[0]:ch[0], cl[1]:ch[1], cl[2]:ch[2]] == BlockState.CODED).sum())
         else:
@@ -270,12 +270,12 @@ class MapField:
                 todo = in_box[~cached]
                 if len(todo):
                     box = tuple(slice(int(a), int(b)) for a, b in zip(cl, ch))
-                    all_c, all_z = self.map._codes_in(box, self.level, self._states)
+                    all_c, all_z = self.map.reader.codes_in(box, self.level, self._states)
                     strides = np.array(self._bstrides)
                     pick = np.isin(all_c @ strides, todo @ strides)
                     cc, zz = all_c[pick], all_z[pick]
                     # the map readers' decode step: NaN/Inf refused, then the same float ops as decode_region
-                    dec = self.map._decode_codes(torch.from_numpy(zz).to(dev), metres=True)
+                    dec = self.map.reader.decode_codes(torch.from_numpy(zz).to(dev), metres=True)
                     rel = torch.from_numpy(cc - b0).to(dev)
                     view[rel[:, 0], rel[:, 1], rel[:, 2]] = dec
                     self.blocks_decoded += len(cc)

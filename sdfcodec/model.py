@@ -2,7 +2,8 @@
 
 Layout: every state array under its own name, plus ``__sdfcodec_model__``, a uint8 array holding UTF-8 JSON
 ``{"format": "sdfcodec-model", "version": 1, "config": {...}}``. Files are read with
-``allow_pickle=False``: object arrays are refused, never unpickled.
+``allow_pickle=False``: object arrays are refused, never unpickled. Plugin authors reach these functions
+through :mod:`sdfcodec.plugin`; a missing file raises :class:`~sdfcodec.errors.ModelNotFoundError`.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from .codec import Codec
-from .errors import FormatError, VersionError
+from .errors import FormatError, ModelNotFoundError, NotFittedError, VersionError
 
 __all__ = ["save_model", "load_model", "save_state_file", "load_state_file", "load_meta_file"]
 
@@ -43,12 +44,17 @@ def save_state_file(path: str | Path, arrays: Mapping[str, np.ndarray]) -> None:
 
 
 def load_state_file(path: str | Path) -> dict[str, np.ndarray]:
-    """Read the arrays of a ``.npz`` without ever unpickling."""
+    """Read the arrays of a ``.npz`` without ever unpickling.
+
+    Raises:
+        ModelNotFoundError: no file at ``path`` (a ``FileNotFoundError`` too).
+        FormatError: not a readable ``.npz``, or object arrays (which would need unpickling).
+    """
     try:
         with np.load(Path(path), allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise
+    except FileNotFoundError as e:
+        raise ModelNotFoundError(f"no such file: {path}") from e
     except ValueError as e:  # object arrays need pickle: refused
         raise FormatError(f"{path}: holds object arrays, which sdfcodec never unpickles ({e})") from e
     except Exception as e:
@@ -78,7 +84,8 @@ def load_meta_file(path: str | Path, key: str, fmt: str, version: int, what: str
 
 def save_model(codec: Codec, path: str | Path) -> Path:
     """Save a fitted codec to ``path`` (``.npz``); returns the path."""
-    codec._check_fitted()
+    if not codec.is_fitted:
+        raise NotFittedError(f"{codec!r} is not fitted: there is no learned state to save (call fit first)")
     meta = json.dumps({"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": codec.get_config()})
     arrays = dict(codec.state_dict())
     arrays[_META] = np.frombuffer(meta.encode(), dtype=np.uint8)

@@ -3,7 +3,9 @@
 Listing is eager (entry point names only, nothing imported); loading is lazy (a plugin's module is imported
 the first time its codec is asked for). A plugin that fails to import raises :class:`PluginLoadError` naming
 it, and never breaks the listing or loading of other codecs. :func:`register_codec` adds a class at run time
-(e.g. in tests or notebooks) and takes precedence over an entry point of the same id.
+(e.g. in tests or notebooks) and takes precedence over an entry point of the same id. :func:`pretrained_codec`
+gives a codec's shipped weights (from its plugin's own package). Every error raised here on purpose is an
+:class:`sdfcodec.errors.SDFCodecError`.
 """
 
 from __future__ import annotations
@@ -14,9 +16,10 @@ from importlib import metadata
 from typing import Any, Mapping
 
 from .codec import Codec
-from .errors import PluginLoadError, UnknownCodecError
+from .errors import CodecTypeError, PluginLoadError, RegistrationError, UnknownCodecError
 
-__all__ = ["list_codecs", "get_codec", "get_codec_class", "register_codec", "codec_package", "CodecEntry"]
+__all__ = ["list_codecs", "get_codec", "get_codec_class", "register_codec", "codec_package", "pretrained_codec",
+           "CodecEntry"]
 
 ENTRY_POINT_GROUP = "sdfcodec.codecs"
 _ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
@@ -103,19 +106,31 @@ def get_codec(id_or_config: str | Mapping[str, Any], **params: Any) -> Codec:
             raise UnknownCodecError(f"codec config has no 'id' key: {dict(id_or_config)!r}")
         config = dict(id_or_config)
     else:
-        raise TypeError(f"get_codec takes a codec id or a config dict, got {type(id_or_config).__name__}")
+        raise CodecTypeError(f"get_codec takes a codec id or a config dict, got {type(id_or_config).__name__}")
     config.update(params)
     return get_codec_class(str(config["id"])).from_config(config)
+
+
+def pretrained_codec(codec_id: str, code_size: int | None = None, **options: Any) -> Codec:
+    """The fitted codec ``codec_id`` with the weights its plugin ships, at ``code_size`` (None: the codec's
+    default), through :meth:`sdfcodec.Codec.pretrained` of its class; e.g. ``pretrained_codec("pca", 64)``.
+
+    Raises:
+        UnknownCodecError / PluginLoadError: as :func:`get_codec_class`.
+        ModelNotFoundError: the codec ships no model (or none at that size).
+    """
+    return get_codec_class(codec_id).pretrained(code_size, **options)
 
 
 def register_codec(cls: type[Codec], *, replace: bool = False) -> type[Codec]:
     """Register a codec class at run time (usable as a decorator); returns ``cls``."""
     if not (isinstance(cls, type) and issubclass(cls, Codec)):
-        raise TypeError(f"register_codec takes a Codec subclass, got {cls!r}")
+        raise CodecTypeError(f"register_codec takes a Codec subclass, got {cls!r}")
     cid = getattr(cls, "codec_id", None)
     if not isinstance(cid, str) or not _ID_RE.match(cid):
-        raise ValueError(f"{cls.__qualname__}.codec_id must match {_ID_RE.pattern}, got {cid!r}")
+        raise RegistrationError(f"{cls.__qualname__}.codec_id must match {_ID_RE.pattern}, got {cid!r}")
     if not replace and cid in _runtime and _runtime[cid] is not cls:
-        raise ValueError(f"codec {cid!r} is already registered ({_runtime[cid].__qualname__}); pass replace=True")
+        raise RegistrationError(f"codec {cid!r} is already registered ({_runtime[cid].__qualname__}); "
+                                "pass replace=True")
     _runtime[cid] = cls
     return cls

@@ -3,7 +3,7 @@ streamed fitting.
 
 * :func:`map_to_dask` (``Map.to_dask``): a lazy ``(X, Y, Z)`` float32 array of metres, one dask chunk per
   chunk of the map's code array, each decoded on demand through the map's read pipeline
-  (``Map.decode_region``). It pickles: a worker process reopens the map by its path or URL.
+  (``MapReader.decode_region``). It pickles: a worker process reopens the map by its path or URL.
 * :func:`write_volume_dask` (also what ``Map.write_volume`` does with a dask array) and
   :func:`encode_volume_dask`: encode a dense TSDF that need not fit in memory (a dask array, a Zarr array, a
   ``.npy`` file or ``np.memmap``) chunk by chunk on dask's scheduler or a ``dask.distributed`` cluster. Each
@@ -31,48 +31,51 @@ import numpy as np
 import torch
 import zarr
 
-from . import _atomic
 from ._validate import BLOCK
 from .blocks import normalise, split_blocks
 from .codec import Codec
 from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
-from .mapfile import _check_codes, _free_space, _store_code_chunk, create_map, open_map, state_digest
+from .map.format import check_codes, free_space, state_digest
+from .map.reader import MapReader, open_reader
+from .map.stores import CowLocalStore
+from .map.writer import MapWriter, create_writer, store_code_chunk
 
 __all__ = ["map_to_dask", "write_volume_dask", "encode_volume_dask", "fit_volume_stream", "as_dask_volume"]
 
 # -- reading: a map as a dask array ---------------------------------------------------------------------------
 
-_OPEN_MAPS: dict[tuple, Any] = {}  # maps reopened in this process (dask workers), by (source, options, limit)
+_OPEN_MAPS: dict[tuple, MapReader] = {}  # maps reopened in this process (dask workers), by (source, options, limit)
 _OPEN_LOCK = threading.Lock()
 
 
-def _reopened(source: Any, storage_options: dict | None, max_decode_bytes: int):
+def _reopened(source: Any, storage_options: dict | None, max_decode_bytes: int) -> MapReader:
     if not isinstance(source, str):  # a Zarr store object: nothing to key a cache on
-        return open_map(source, storage_options=storage_options, max_decode_bytes=max_decode_bytes)
+        return open_reader(source, storage_options=storage_options, max_decode_bytes=max_decode_bytes)
     key = (source, repr(sorted((storage_options or {}).items())), max_decode_bytes)
     with _OPEN_LOCK:
         m = _OPEN_MAPS.get(key)
         if m is None:
             if len(_OPEN_MAPS) >= 16:
                 _OPEN_MAPS.pop(next(iter(_OPEN_MAPS)))
-            m = _OPEN_MAPS[key] = open_map(source, storage_options=storage_options,
-                                           max_decode_bytes=max_decode_bytes)
+            m = _OPEN_MAPS[key] = open_reader(source, storage_options=storage_options,
+                                              max_decode_bytes=max_decode_bytes)
         return m
 
 
 class _MapVoxels:
     """The decoded voxels of a map as an array-like for ``dask.array.from_array``: slicing decodes the region
-    (``Map.decode_region``). In the process that made it, it uses the open map (the version it holds); a copy
-    unpickled elsewhere reopens the map by path or URL, once per process."""
+    (``MapReader.decode_region``). In the process that made it, it uses the open map's reader (the version it
+    holds); a copy unpickled elsewhere reopens the map by path or URL, once per process."""
 
-    def __init__(self, m, level: int | None):
-        if m._reopen is None:
+    def __init__(self, m: Any, level: int | None):
+        reader = m if isinstance(m, MapReader) else m.reader
+        if reader.source is None:
             raise InvalidValueError(f"{m.location}: to_dask needs a map opened for reading (sdfcodec.open_map); "
                                     "commit the map being written first")
-        self._map = m
-        self._source = (*m._reopen, m.max_decode_bytes)
-        self.level = m._level(level)
+        self._map: MapReader | None = reader
+        self._source = (*reader.source, reader.max_decode_bytes)
+        self.level = reader.level(level)
         self.shape = tuple(int(n) for n in m.shape_voxels)
         self.dtype = np.dtype(np.float32)
         self.ndim = 3
@@ -98,8 +101,9 @@ class _MapVoxels:
         return self._map.decode_region(bounds, level=self.level)
 
 
-def map_to_dask(m, level: int | None = None):
-    """The decoded map as a lazy ``dask.array.Array``: shape ``m.shape_voxels``, float32 metres (``d_max`` for
+def map_to_dask(m: Any, level: int | None = None):
+    """The decoded map ``m`` (a :class:`sdfcodec.Map` or its reader) as a lazy ``dask.array.Array``: shape
+    ``m.shape_voxels``, float32 metres (``d_max`` for
     unobserved and empty blocks and nothing beyond the true extent), chunked as the code array
     (``16 * chunk_blocks`` voxels per axis, the last chunk of each axis cut at the extent). Computing a chunk
     reads and decodes only the code chunks under it (plus the neighbours a halo codec needs)."""
@@ -246,17 +250,17 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
     blocks = split_blocks(v, fill=d_max)
     gb = blocks.shape[:3]
     norm = normalise(blocks.reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
-    empty = _free_space(norm)
+    empty = free_space(norm)
     states = np.where(empty, BlockState.EMPTY, BlockState.CODED).astype(np.uint8).reshape(gb)
     if not empty.all():
         codes = spec.get().encode(torch.from_numpy(np.ascontiguousarray(norm[~empty])).to(device)).cpu().numpy()
-        _check_codes(codes)
-        store = _atomic.CowLocalStore(tmp)
+        check_codes(codes)
+        store = CowLocalStore(tmp)
         arr = zarr.open_array(store, path="codes", mode="r+")
         scale_arr = zarr.open_array(store, path="code_scale", mode="r+") if code_dtype == "int8" else None
         box = tuple(slice(int(a), int(b)) for a, b in cbox)
         local = np.argwhere(states == BlockState.CODED) + np.asarray(b0) - np.array([a for a, _ in cbox])
-        _store_code_chunk(arr, scale_arr, box, local, codes, had)
+        store_code_chunk(arr, scale_arr, box, local, codes, had)
     return b0, states, clipped
 
 
@@ -270,9 +274,10 @@ def _encode_chunk_or_error(*args: Any) -> tuple:
         return (e,)
 
 
-def write_volume_dask(m, volume: Any, *, offset: Sequence[int] = (0, 0, 0), scheduler: Any = None) -> None:
-    """Encode a dense TSDF ``(X, Y, Z)`` in metres into the map ``m`` being written (from ``create_map`` or
-    ``update_map``), placed at voxel ``offset`` (multiples of 16), with dask: one task per chunk of the code
+def write_volume_dask(m: Any, volume: Any, *, offset: Sequence[int] = (0, 0, 0), scheduler: Any = None) -> None:
+    """Encode a dense TSDF ``(X, Y, Z)`` in metres into the map ``m`` being written (a :class:`sdfcodec.Map` from
+    ``create_map`` or ``update_map``, or its ``MapWriter``), placed at voxel ``offset`` (multiples of 16),
+    with dask: one task per chunk of the code
     array, each writing its chunk into the map's temporary directory. Gives the same map as
     ``m.write_volume`` of the whole array in memory (codes equal up to float32 rounding of batched products).
 
@@ -283,7 +288,7 @@ def write_volume_dask(m, volume: Any, *, offset: Sequence[int] = (0, 0, 0), sche
     """
     import dask
 
-    w = m._w()
+    w = m if isinstance(m, MapWriter) else m.writer  # ReadOnlyError for a map open for reading
     off = np.asarray(offset, dtype=np.int64)
     if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
         raise ShapeError(f"offset must be three non-negative multiples of {BLOCK} voxels, got {tuple(offset)}")
@@ -293,7 +298,7 @@ def write_volume_dask(m, volume: Any, *, offset: Sequence[int] = (0, 0, 0), sche
     if np.dtype(vol.dtype).kind != "f":
         raise DTypeError(f"volume must be floating point metres, got dtype {vol.dtype}")
     w.grow_voxels(tuple(int(o + n) for o, n in zip(off, vol.shape)))
-    truncation = (w.header_kw["truncation"].d_min, w.header_kw["truncation"].d_max)
+    truncation = w.truncation
     spec = dask.delayed(_CodecSpec(w.codec), pure=True, traverse=False)
     encode = dask.delayed(_encode_chunk_or_error, pure=False)
     starts = [np.r_[0, np.cumsum(c)[:-1]] for c in vol.chunks]
@@ -326,9 +331,13 @@ def encode_volume_dask(volume: Any, path: str | os.PathLike, codec: Codec, *, vo
     ``create_kw`` go to :func:`sdfcodec.create_map` (``code_dtype``, ``chunk_blocks``, ``overwrite``...).
     On any error nothing at ``path`` changes. Returns the map's path."""
 
-    with create_map(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
-                    **create_kw) as m:
-        write_volume_dask(m, volume, scheduler=scheduler)
+    w = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin, **create_kw)
+    try:
+        write_volume_dask(w, volume, scheduler=scheduler)
+    except BaseException:
+        w.abort()
+        raise
+    w.commit()
     return Path(path)
 
 
@@ -340,7 +349,7 @@ def fit_volume_stream(codec: Codec, volume: Any, truncation: tuple[float, float]
     :func:`as_dask_volume`), one chunk of ``chunk_voxels`` per axis at a time, through
     :meth:`Codec.fit_stream`. Empty blocks (all free space) are left out unless ``include_empty``.
 
-    Memory stays bounded only for codecs that learn incrementally (``_fit_stream``: PCA accumulates the exact
+    Memory stays bounded only for codecs that learn incrementally (``fit_batches``: PCA accumulates the exact
     4096 x 4096 covariance in one pass); the others get the concatenated blocks. For a block data set on disk
     (``sdfcodec.dataset``), ``codec.fit_stream(ds.iter_batches("train"))`` is the same thing, and what
     ``sdfcodec train`` does when the data set exceeds ``--max-memory-gb``."""
@@ -357,7 +366,7 @@ def fit_volume_stream(codec: Codec, volume: Any, truncation: tuple[float, float]
             v = np.clip(v, d_min, d_max)
             b = normalise(split_blocks(v, fill=d_max).reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
             if not include_empty:
-                b = b[~_free_space(b)]
+                b = b[~free_space(b)]
             if len(b):
                 yield b
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InvalidValueError, MapExistsError
-from .mapfile import Map, open_map
+from .map import Map, open_map
 from .search import Expansion, SearchResult, expand, search
 
 __all__ = ["search_command", "format_summary", "search_picture", "top_down"]

@@ -25,10 +25,7 @@ Method (one depth frame):
 5. Coarse to fine: pixel strides 4, 2, 1 with at most 12, 8 and 2 iterations; a level stops early when the
    update norm ``|xi|`` drops below ``1e-4``.
 
-Gradient: central differences with a step of one voxel of the trilinearly interpolated field. Trilinear
-interpolation is linear in the voxel values, so this is *exactly* the trilinear interpolation of the voxels'
-central differences ``(d[i+1] - d[i-1]) / 2h``; :class:`DenseField` precomputes those (4 channels: value and
-gradient, interpolated in one gather) unless told to save the memory and evaluate them on the fly.
+The field's gradient is :class:`~sdfcodec.densefield.DenseField`'s business (see that module).
 
 Speed (CPU): points are evaluated in chunks of 32768 laid out as ``(3, n)`` rows, so every elementwise op
 runs over contiguous memory and the temporaries stay below glibc's mmap threshold (fresh multi-megabyte
@@ -51,13 +48,15 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field as dc_field
-from typing import Any, Iterable, Literal, Protocol, Sequence, runtime_checkable
+from typing import Any, Iterable, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .densefield import DenseField
 from .errors import DTypeError, InvalidValueError, ShapeError
+from .geometry import orthonormality_error, se3_exp
 
 __all__ = [
     "FieldSampler",
@@ -77,8 +76,9 @@ __all__ = [
 class FieldSampler(Protocol):
     """What the tracker needs from a map: a truncated signed distance field it can sample at world points.
 
-    Implementations: :class:`DenseField` (a dense voxel volume); a compressed map decoding blocks lazily
-    (e.g. with an LRU cache of decoded blocks) implements the same four members. The tracker calls
+    Implementations: :class:`~sdfcodec.densefield.DenseField` (a dense voxel volume) and
+    :class:`~sdfcodec.mapfield.MapField` (a compressed map decoding blocks lazily into an LRU cache of decoded
+    blocks) implement the same four members. The tracker calls
     :meth:`sample_with_gradient` once per chunk of at most ``TrackerConfig.chunk_size`` points per
     Gauss-Newton iteration, possibly from several threads at once (``TrackerConfig.threads``), with points
     that may be a non-contiguous view (a transposed ``(3, N)`` tensor): implementations must accept any
@@ -120,225 +120,6 @@ class FieldSampler(Protocol):
             gradients are finite everywhere (zero where not valid is fine).
         """
         ...
-
-
-def _as_vec3(x: Any, name: str) -> tuple[float, float, float]:
-    a = np.asarray(x, dtype=np.float64).reshape(-1)
-    if a.shape != (3,):
-        raise ShapeError(f"{name} must have 3 components (x, y, z), got shape {np.shape(x)}")
-    if not np.all(np.isfinite(a)):
-        raise InvalidValueError(f"{name} must be finite, got {a.tolist()}")
-    return float(a[0]), float(a[1]), float(a[2])
-
-
-class DenseField:
-    """A dense TSDF volume as a :class:`FieldSampler` (trilinear interpolation, central-difference gradient).
-
-    Voxel ``(i, j, k)`` holds the distance at world position ``origin + voxel_size * (i, j, k)`` (spec/map-format.md).
-    A point is valid when every voxel its interpolation and central differences touch lies in the volume
-    (continuous voxel coordinates ``u = (p - origin) / voxel_size`` in ``[1, n - 2)`` on each axis) and is
-    finite; NaN points are not valid. NaN voxels are allowed and mean "unknown": points that touch one are
-    not valid (the project's convention is to store unobserved space as ``d_max``, which the tracker's
-    plateau test drops as well).
-
-    Args:
-        volume: ``(X, Y, Z)`` distances in metres, numpy or torch (any float dtype; stored as float32). Each
-            axis needs at least 4 voxels.
-        voxel_size: edge of a voxel in metres.
-        origin: world position ``(3,)`` of voxel ``(0, 0, 0)`` in metres.
-        truncation: ``(d_min, d_max)`` metres the volume was truncated to.
-        device: where to keep the volume and compute; default: the tensor's device (CPU for numpy).
-        precompute_gradient: keep a ``(X, Y, Z, 4)`` table of value and central differences (4x the memory of
-            the volume; one 8-corner gather per point) instead of 7 trilinear lookups of the values per point
-            (the same numbers up to float rounding, about 5x slower).
-        backend: ``"gather"`` (hand-written trilinear gather; about 15% faster than grid_sample on a 2-core
-            CPU for scattered points) or ``"grid_sample"`` (``torch.nn.functional.grid_sample``; needs
-            ``precompute_gradient``).
-
-    Memory: ``precompute_gradient`` keeps 16 bytes a voxel (a 5 x 5 x 3 m room at 2 cm: 150 MB). For maps too
-    large for that, implement :class:`FieldSampler` over decoded blocks instead.
-    """
-
-    def __init__(self, volume: Any, voxel_size: float, origin: Sequence[float] = (0.0, 0.0, 0.0),
-                 truncation: tuple[float, float] = (-0.04, 0.1), *, device: str | torch.device | None = None,
-                 precompute_gradient: bool = True, backend: Literal["gather", "grid_sample"] = "gather") -> None:
-        if isinstance(volume, torch.Tensor):
-            if not volume.is_floating_point():
-                raise DTypeError(f"volume must be floating point, got {volume.dtype}; convert with .float()")
-            vol = volume.detach().to(device=device if device is not None else volume.device, dtype=torch.float32)
-        else:
-            arr = np.asarray(volume)
-            if arr.dtype.kind != "f":
-                raise DTypeError(f"volume must be floating point (distances in metres), got dtype {arr.dtype}")
-            vol = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
-            if device is not None:
-                vol = vol.to(device)
-        if vol.ndim != 3:
-            raise ShapeError(f"volume must have shape (X, Y, Z), got {tuple(vol.shape)}")
-        if min(vol.shape) < 4:
-            raise ShapeError(f"volume needs at least 4 voxels along each axis for trilinear interpolation and "
-                             f"central differences, got {tuple(vol.shape)}")
-        if not (isinstance(voxel_size, (int, float)) and math.isfinite(voxel_size) and voxel_size > 0):
-            raise InvalidValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
-        d_min, d_max = (float(v) for v in truncation)
-        if not d_min < d_max:
-            raise InvalidValueError(f"truncation must be (d_min, d_max) with d_min < d_max, got {truncation}")
-        if backend not in ("gather", "grid_sample"):
-            raise InvalidValueError(f"backend must be 'gather' or 'grid_sample', got {backend!r}")
-        if backend == "grid_sample" and not precompute_gradient:
-            raise InvalidValueError("backend='grid_sample' needs precompute_gradient=True")
-        self.voxel_size = float(voxel_size)
-        self.origin = _as_vec3(origin, "origin")
-        self._truncation = (d_min, d_max)
-        self.shape = tuple(int(s) for s in vol.shape)
-        self.precompute_gradient = bool(precompute_gradient)
-        self.backend = backend
-        self._device = vol.device
-        X, Y, Z = self.shape
-        self._strides = (Y * Z, Z, 1)
-        # a point is valid when the lower corner of its cell, floor(u) (u = continuous voxel coordinate), is in
-        # [1, n - 3] on each axis: its 8 corners and their central differences then stay inside the volume
-        dev = vol.device
-        self._lo = torch.ones(3, device=dev)
-        self._hi = torch.tensor([X - 3.0, Y - 3.0, Z - 3.0], device=dev)
-        self._lo0 = torch.zeros(3, device=dev)
-        self._hi0 = torch.tensor([X - 2.0, Y - 2.0, Z - 2.0], device=dev)
-        self._origin_t = torch.tensor(self.origin, dtype=torch.float32, device=dev)
-        # int64 on the CPU (numpy's take wants intp); int32 on accelerators unless the volume passes 2^31 voxels
-        small = X * Y * Z < 2**31 - 1
-        self._index_dtype = torch.int32 if small and dev.type != "cpu" else torch.int64
-        off = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], device=dev)
-        self._corner_offsets = (off * torch.tensor(self._strides, device=dev)).sum(1).to(self._index_dtype)  # (8,)
-        self._has_nan = not bool(torch.isfinite(vol).all())  # NaN/inf voxels: unknown
-        self._repeat_cache: dict[tuple[int, int], torch.Tensor] = {}
-        if precompute_gradient:
-            table = torch.zeros((X, Y, Z, 4), dtype=torch.float32, device=vol.device)
-            table[..., 0] = vol
-            inv2h = 1.0 / (2.0 * self.voxel_size)
-            table[1:-1, :, :, 1] = (vol[2:] - vol[:-2]) * inv2h
-            table[:, 1:-1, :, 2] = (vol[:, 2:] - vol[:, :-2]) * inv2h
-            table[:, :, 1:-1, 3] = (vol[:, :, 2:] - vol[:, :, :-2]) * inv2h
-            self._table = table.reshape(-1, 4)
-            if backend == "grid_sample":
-                self._grid_volume = table.permute(3, 0, 1, 2).unsqueeze(0).contiguous()  # (1, 4, X, Y, Z)
-                self._grid_scale = torch.tensor([2.0 / (Z - 1), 2.0 / (Y - 1), 2.0 / (X - 1)],
-                                                dtype=torch.float32, device=vol.device)
-        else:
-            self._table = vol.reshape(-1, 1)
-        self._volume = vol
-
-    # -- FieldSampler
-    @property
-    def device(self) -> torch.device:
-        return self._device
-
-    @property
-    def truncation(self) -> tuple[float, float]:
-        return self._truncation
-
-    @property
-    def volume(self) -> torch.Tensor:
-        """The distances ``(X, Y, Z)`` float32 metres on :attr:`device`."""
-        return self._volume
-
-    def _check_points(self, points: torch.Tensor) -> torch.Tensor:
-        if not isinstance(points, torch.Tensor):
-            points = torch.as_tensor(np.asarray(points, dtype=np.float32))
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise ShapeError(f"points must have shape (N, 3) (world x, y, z in metres), got {tuple(points.shape)}")
-        return points.to(device=self._device, dtype=torch.float32)
-
-    def _cells(self, points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Lower cell corners clamped to ``[lo, hi]``: flat voxel index (N,), fractions (N, 3), in_range (N,).
-
-        Elementwise ops keep the points' memory layout, so a ``(3, N).t()`` view (what the tracker passes)
-        is processed column by column, contiguously."""
-        u = (points - self._origin_t) * (1.0 / self.voxel_size)
-        i0f = torch.floor(u)
-        c = torch.clamp(i0f, lo, hi).nan_to_num_(nan=1.0)  # NaN points: any in-range cell, flagged below
-        ok = c == i0f
-        in_range = ok[:, 0] & ok[:, 1] & ok[:, 2]
-        frac = (u - c).nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)  # [0, 1) in range; finite elsewhere
-        ci = c.to(self._index_dtype)
-        base = ci[:, 0] * self._strides[0] + ci[:, 1] * self._strides[1] + ci[:, 2]
-        return base, frac, in_range
-
-    def _interp(self, base: torch.Tensor, frac: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
-        """Trilinear interpolation of ``table`` rows (X*Y*Z, C) over the cells at ``base`` (N,) with fractions
-        ``frac`` (N, 3) -> (N, C).
-
-        The corners are gathered corner-major, (8, N, C), so that each lerp runs over long contiguous runs
-        with the fractions expanded to (N * C,); on the CPU the gather is numpy's ``take`` (about 4x faster
-        than ``index_select`` for rows this short; zero-copy either way)."""
-        n, ch = len(base), table.shape[1]
-        idx = (self._corner_offsets[:, None] + base[None, :]).reshape(-1)  # x-major, then y, then z
-        if table.device.type == "cpu":
-            c = torch.from_numpy(np.take(table.numpy(), idx.numpy(), axis=0))
-        else:
-            c = table.index_select(0, idx)
-        c = c.reshape(2, 2, 2, n * ch)
-        if ch == 1:
-            w = frac.t()
-        else:  # each fraction repeated C times; a gather is the fastest way to expand on the CPU
-            w = frac.t().index_select(1, self._repeat_index(n, ch))
-        c = torch.lerp(c[0], c[1], w[0])  # (2, 2, N * C)
-        c = torch.lerp(c[0], c[1], w[1])  # (2, N * C)
-        return torch.lerp(c[0], c[1], w[2]).reshape(n, ch)
-
-    def _repeat_index(self, n: int, ch: int) -> torch.Tensor:
-        key = (n, ch)
-        if key not in self._repeat_cache:
-            if len(self._repeat_cache) > 8:
-                self._repeat_cache.clear()
-            self._repeat_cache[key] = torch.arange(n * ch, device=self._device) // ch
-        return self._repeat_cache[key]
-
-    def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Distances ``(N,)`` metres and validity ``(N,)`` at world points ``(N, 3)`` metres (see
-        :class:`FieldSampler`); validity uses the same bounds as :meth:`sample_with_gradient`."""
-        p = self._check_points(points)
-        base, frac, valid = self._cells(p, self._lo, self._hi)
-        d = self._interp(base, frac, self._table)[:, 0]
-        if self._has_nan:
-            valid = valid & torch.isfinite(d)
-            d = torch.where(valid, d, torch.zeros_like(d))
-        return d, valid
-
-    def sample_with_gradient(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Distances ``(N,)``, gradients ``(N, 3)`` (world frame, per metre) and validity ``(N,)`` at world
-        points ``(N, 3)`` metres (see :class:`FieldSampler`). Where not valid the outputs are finite but
-        meaningless."""
-        p = self._check_points(points)
-        if self.backend == "grid_sample":
-            u = (p - self._origin_t) * (1.0 / self.voxel_size)
-            i0f = torch.floor(u)
-            ok = torch.clamp(i0f, self._lo, self._hi) == i0f
-            valid = ok[:, 0] & ok[:, 1] & ok[:, 2]
-            # grid_sample's last grid axis indexes the input's last dimension: (z, y, x) order, in [-1, 1]
-            g = (u.flip(1) * self._grid_scale - 1.0).reshape(1, 1, 1, -1, 3)
-            out = torch.nn.functional.grid_sample(self._grid_volume, g, mode="bilinear", padding_mode="border",
-                                                  align_corners=True)
-            vals = torch.where(valid[:, None], out.reshape(4, -1).t(), 0.0)
-        elif self.precompute_gradient:
-            base, frac, valid = self._cells(p, self._lo, self._hi)
-            vals = self._interp(base, frac, self._table)
-        else:
-            # central differences of the trilinear field, one voxel each way: 7 lookups of the values
-            _, _, valid = self._cells(p, self._lo, self._hi)
-            h = self.voxel_size
-            shifts = torch.tensor([[0, 0, 0], [h, 0, 0], [-h, 0, 0], [0, h, 0], [0, -h, 0], [0, 0, h], [0, 0, -h]],
-                                  dtype=p.dtype, device=p.device)
-            stacked = (p[None] + shifts[:, None]).reshape(-1, 3)
-            # the +-1 voxel lookups may use the border voxels: clamp to the whole volume there
-            base, frac, _ = self._cells(stacked, self._lo0, self._hi0)
-            v = self._interp(base, frac, self._table)[:, 0].reshape(7, -1)
-            inv2h = 1.0 / (2.0 * h)
-            vals = torch.stack([v[0], (v[1] - v[2]) * inv2h, (v[3] - v[4]) * inv2h, (v[5] - v[6]) * inv2h], 1)
-        if self._has_nan:
-            valid = valid & torch.isfinite(vals).all(dim=1)
-            vals = torch.where(valid[:, None], vals, torch.zeros_like(vals))
-        return vals[:, 0], vals[:, 1:], valid
 
 
 # ------------------------------------------------------------------------------------------- camera, config
@@ -496,40 +277,14 @@ class TrackedSequence:
         return [i for i, r in enumerate(self.results) if r is not None and not r.success]
 
     def to_trajectory(self, timestamps: Any = None):
-        """The poses as a :class:`sdfcodec.metrics.Trajectory` (timestamps ``(N,)`` seconds; default
+        """The poses as a :class:`sdfcodec.trajectory.Trajectory` (timestamps ``(N,)`` seconds; default
         ``0, 1, 2, ...``), ready for :func:`sdfcodec.metrics.ate`."""
-        from .metrics import Trajectory
+        from .trajectory import Trajectory
 
         return Trajectory.from_poses(self.poses, timestamps)
 
 
-# --------------------------------------------------------------------------------------------------- maths
-def _hat(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def se3_exp(xi: Any) -> np.ndarray:
-    """The exponential map of a twist ``xi = (v, w)`` ``(6,)`` (``v`` metres, ``w`` rotation vector in
-    radians) to a rigid transform ``(4, 4)`` float64: ``R = exp([w]x)``, ``t = V v`` with
-    ``V = I + (1 - cos a) / a^2 [w]x + (a - sin a) / a^3 [w]x^2``, ``a = |w|``."""
-    xi = np.asarray(xi, dtype=np.float64).reshape(-1)
-    if xi.shape != (6,):
-        raise ShapeError(f"a twist has 6 components (vx, vy, vz, wx, wy, wz), got shape {xi.shape}")
-    v, w = xi[:3], xi[3:]
-    a2 = float(w @ w)
-    a = math.sqrt(a2)
-    k = _hat(w)
-    k2 = k @ k
-    if a < 1e-8:  # Taylor expansions
-        s1, s2, s3 = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
-    else:
-        s1, s2, s3 = math.sin(a) / a, (1.0 - math.cos(a)) / a2, (a - math.sin(a)) / (a2 * a)
-    out = np.eye(4)
-    out[:3, :3] = np.eye(3) + s1 * k + s2 * k2
-    out[:3, 3] = (np.eye(3) + s2 * k + s3 * k2) @ v
-    return out
-
-
+# ------------------------------------------------------------------------------------------ back-projection
 def backproject(depth: torch.Tensor, intrinsics: Any, stride: int = 1, min_depth: float = 0.0,
                 max_depth: float = math.inf) -> torch.Tensor:
     """Camera-frame points ``(N, 3)`` metres of the valid pixels of ``depth`` ``(H, W)`` metres, every
@@ -653,7 +408,7 @@ class SDFTracker:
         if not np.all(np.isfinite(p)):
             raise InvalidValueError(f"{name} holds NaN or infinite values")
         r = p[:3, :3]
-        if np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
+        if orthonormality_error(r) > 1e-3 or np.linalg.det(r) < 0:
             raise InvalidValueError(f"{name}'s rotation part is not a rotation (R^T R != I or det < 0)")
         return p
 

@@ -168,11 +168,11 @@ def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
 def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
     states = np.zeros(m.grid_blocks, np.uint8)
     ok = True
-    for coords, key, data in _iter_chunks(rep, m._state):
+    for coords, key, data in _iter_chunks(rep, m.reader.state_array):
         if data is None:
             ok = False
             continue
-        box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, m._state.chunks, data.shape))
+        box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, m.reader.state_array.chunks, data.shape))
         states[box] = data
     if not ok:
         return None
@@ -187,7 +187,7 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
 def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
     """Every chunk of ``codes`` (and of ``code_scale`` for int8 maps: same block chunking, spec section 4a)
     reads back, holds finite values for coded blocks, and is present wherever a block is coded."""
-    for arr in (m._codes, m._code_scale):
+    for arr in (m.reader.codes_array, m.reader.code_scale_array):
         if arr is not None:
             _check_code_array(rep, arr, states)
 
@@ -229,13 +229,13 @@ def _check_code_array(rep: VerifyReport, codes, states: np.ndarray | None) -> No
 
 
 def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
-    from .mapfile import state_digest
+    from .map import state_digest
 
     spec = m.header.codec
     rep.codec = spec.id
     present = set()
     try:
-        group = m._member("codec", zarr.Group)
+        group = m.reader.member("codec", zarr.Group)
         if group is not None:
             present = {name for name, node in group.members() if isinstance(node, zarr.Array)}
     except SDFCodecError as e:
@@ -251,8 +251,8 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
             complete = False
             continue
         try:
-            arr = m._member(f"codec/{name}")
-            m._check_array(arr)
+            arr = m.reader.member(f"codec/{name}")
+            m.reader.check_array(arr)
         except SDFCodecError as e:
             rep.problem(f"codec/{name}", str(e).removeprefix(f"{m.location}: "))
             complete = False
@@ -265,7 +265,7 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
             complete &= data is not None
         if complete:
             try:
-                state[name] = m._read(arr, (slice(None),) * arr.ndim)
+                state[name] = m.reader.read(arr, (slice(None),) * arr.ndim)
             except SDFCodecError as e:
                 rep.problem(f"codec/{name}", str(e))
                 complete = False
@@ -315,24 +315,25 @@ def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None =
 
     Args:
         storage_options: passed to fsspec for URLs.
-        max_decode_bytes: the reader's allocation limit (default: :data:`sdfcodec.mapfile.DEFAULT_MAX_DECODE_BYTES`).
+        max_decode_bytes: the reader's allocation limit (default: :data:`sdfcodec.map.DEFAULT_MAX_DECODE_BYTES`).
         decode_blocks: how many coded blocks to decode with the codec (0: none, only load it).
     """
-    from .mapfile import DEFAULT_MAX_DECODE_BYTES, Map, _reader_store
+    from .map import DEFAULT_MAX_DECODE_BYTES, Map
+    from .map.stores import open_store
 
     limit = DEFAULT_MAX_DECODE_BYTES if max_decode_bytes is None else max_decode_bytes
     loc = str(path_or_url)
     rep = VerifyReport(location=loc)
     try:
-        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, _reader_store)
+        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, open_store)
     except Exception as e:  # noqa: BLE001 - a bug in verify itself: reported, never a traceback
         rep.problem("verify", f"internal error while checking ({type(e).__name__}: {e}); please report it")
     return rep
 
 
-def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, _reader_store) -> None:
+def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, open_store) -> None:
     try:
-        store = _reader_store(path_or_url, loc, storage_options)
+        store = open_store(path_or_url, loc, storage_options)
         group = zarr.open_group(store, mode="r", zarr_format=3)
         raw = group.attrs.get("sdfcodec")
     except MapNotFoundError as e:
@@ -362,7 +363,7 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, _
         rep.blocks = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
     _check_codes(rep, m, states)
     if m.has_weights:
-        for _ in _iter_chunks(rep, m._weights):
+        for _ in _iter_chunks(rep, m.reader.weights_array):
             pass
     _check_codec(rep, m, decode_blocks)
     m.close()

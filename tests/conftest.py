@@ -16,6 +16,11 @@ settings.register_profile("deterministic", derandomize=True, database=None)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
+# --regen-golden and the regen_golden fixture: the plugin sdfcodec ships for every codec package. Installed,
+# its pytest11 entry point (named like the module) loads it first and this line is a no-op; from a bare
+# checkout it loads it here.
+pytest_plugins = ["sdfcodec.testing.pytest_plugin"]
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
@@ -45,20 +50,10 @@ def _pin_examples() -> bool:
 EXAMPLES_PINNED = os.environ.get("HYPOTHESIS_PROFILE", "deterministic") == "deterministic" and _pin_examples()
 
 
-def pytest_addoption(parser):
-    parser.addoption("--regen-golden", action="store_true", default=False,
-                     help="rewrite golden fixture files instead of checking against them (format changes only)")
-
-
 @pytest.fixture
 def examples_pinned() -> bool:
     """Whether Hypothesis's examples are independent of the modules loaded (see _pin_examples)."""
     return EXAMPLES_PINNED
-
-
-@pytest.fixture
-def regen_golden(request) -> bool:
-    return bool(request.config.getoption("--regen-golden"))
 
 
 @pytest.fixture

@@ -152,7 +152,7 @@ def read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
         with sdfcodec.open_map(path) as m:
             info = json.loads(m.header.provenance.tool)
             gens.add(info["gen"])
-            pinned = m._group.store._store._fd
+            pinned = m.reader.pinned_fd
             if rng.random() < 0.5:
                 time.sleep(rng.uniform(0, 0.05))  # let a writer swap in a new version under this open map
             check_content(m, info["cid"])  # states, codes: all of the version opened

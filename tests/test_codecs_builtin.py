@@ -98,8 +98,8 @@ def test_pca_prefix_is_the_truncated_basis(train_blocks):
 
 def test_shipped_default_model():
     """The shipped eigenshapes load without pickles, are orthonormal, and reconstruct real-like blocks."""
+    from sdfcodec import pretrained_codec as default_codec
     from sdfcodec.data.synthetic import synthetic_blocks
-    from sdfcodec.models import default_codec
 
     c = default_codec("pca", 128)
     w = c.components_.astype(np.float64)
@@ -111,6 +111,39 @@ def test_shipped_default_model():
     assert errs[0] > errs[1] > errs[2] and errs[0] < 0.01
     with pytest.raises(sdfcodec.errors.InvalidValueError, match="129"):
         default_codec("pca", 129)
+
+
+def test_codecs_compare_by_class_config_and_state():
+    """``get_codec(c.get_config()).load_state_dict(c.state_dict()) == c`` (spec: config + state rebuild an equal
+    codec); another config, another state or another class is unequal; codecs are mutable, so unhashable."""
+    c = sdfcodec.pretrained_codec("pca", 32)
+    rebuilt = sdfcodec.get_codec(c.get_config()).load_state_dict(c.state_dict())
+    assert rebuilt == c and not rebuilt != c and rebuilt is not c
+    assert sdfcodec.get_codec(c.get_config()) != c  # unfitted: no state
+    assert sdfcodec.pretrained_codec("pca", 33) != c
+    other = sdfcodec.get_codec(c.get_config()).load_state_dict(
+        {k: (v + np.float32(1e-7) if k == "mean" else v) for k, v in c.state_dict().items()})
+    assert other != c  # one ulp-sized change of one array: compared exactly
+    assert sdfcodec.get_codec("raw") == sdfcodec.get_codec("raw") and sdfcodec.get_codec("raw") != c
+    assert c != "pca" and c != None  # noqa: E711 - not a codec: unequal, no error
+    for codec_id in ("ae", "sequential"):
+        nn = sdfcodec.pretrained_codec(codec_id)
+        assert sdfcodec.get_codec(nn.get_config()).load_state_dict(nn.state_dict()) == nn
+    with pytest.raises(TypeError, match="unhashable"):
+        hash(c)
+
+
+def test_pretrained_through_the_registry():
+    """Shipped weights come from the codec class (``pretrained``), reached through the registry; a codec that
+    ships none says so with ModelNotFoundError, not MapNotFoundError."""
+    from sdfcodec.registry import get_codec_class
+
+    assert sdfcodec.pretrained_codec("pca") == get_codec_class("pca").pretrained(64)
+    with pytest.raises(sdfcodec.errors.ModelNotFoundError, match="ships no trained model") as e:
+        sdfcodec.pretrained_codec("raw")
+    assert not isinstance(e.value, sdfcodec.errors.MapNotFoundError) and isinstance(e.value, FileNotFoundError)
+    with pytest.raises(sdfcodec.errors.InvalidValueError, match="no options"):
+        sdfcodec.pretrained_codec("pca", 32, mean="block")
 
 
 def test_gaussian_blur_conforms(regen_golden):

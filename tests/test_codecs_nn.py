@@ -14,6 +14,7 @@ import torch
 
 import sdfcodec
 from sdfcodec.data.synthetic import synthetic_blocks
+from sdfcodec import errors
 from sdfcodec.errors import FormatError, InvalidValueError, NotFittedError, ShapeError
 from sdfcodec.testing import analytic_blocks, check_codec
 
@@ -60,9 +61,7 @@ def test_ae_conforms(small_ae, regen_golden):
 
 
 def test_parallel_conforms(small_ae, regen_golden):
-    from sdfcodec.models import default_codec
-
-    par = type(sdfcodec.get_codec("parallel")).from_parts(default_codec("pca", 8), small_ae)
+    par = type(sdfcodec.get_codec("parallel")).from_parts(sdfcodec.pretrained_codec("pca", 8), small_ae)
     assert par.code_size == 8 + 8 + 1 and not par.prefix_ordered
     report = check_codec(par, golden=GOLDEN / "parallel-8-8", regen_golden=regen_golden)
     assert report["mse"] < 0.02
@@ -78,9 +77,8 @@ def test_sequential_conforms(small_seq, regen_golden):
 def test_fixed_weight(codec_id, weight, small_ae, small_seq, blocks):
     """A fixed w makes the code two plain codes (no w slot) and decodes with that w."""
     if codec_id == "parallel":
-        from sdfcodec.models import default_codec
-
-        mix = type(sdfcodec.get_codec("parallel")).from_parts(default_codec("pca", 8), small_ae, weight=weight)
+        mix = type(sdfcodec.get_codec("parallel")).from_parts(sdfcodec.pretrained_codec("pca", 8), small_ae,
+                                                              weight=weight)
     else:
         mix = sdfcodec.get_codec({**small_seq.get_config(), "weight": weight}).load_state_dict(small_seq.state_dict())
     assert mix.code_size == 16 and mix.get_config()["weight"] == weight
@@ -96,9 +94,7 @@ def test_fixed_weight(codec_id, weight, small_ae, small_seq, blocks):
 # -- the mixing weight -------------------------------------------------------------------------------------
 def test_parallel_weight_is_the_best_per_block(small_ae, blocks):
     """Per-block w beats (or ties) both parts alone and every w of a fine grid, block by block."""
-    from sdfcodec.models import default_codec
-
-    par = type(sdfcodec.get_codec("parallel")).from_parts(default_codec("pca", 8), small_ae)
+    par = type(sdfcodec.get_codec("parallel")).from_parts(sdfcodec.pretrained_codec("pca", 8), small_ae)
     x = blocks[::3]
     codes = par.encode(x)
     err = per_block_sse(par.decode(codes), x)
@@ -170,7 +166,7 @@ def test_training_is_deterministic_by_seed(tiny):
 @pytest.mark.parametrize("optimizer", ["adam", "gd"])
 def test_resume_equals_uninterrupted(tiny, tmp_path, optimizer):
     from sdfcodec_ae import train_autoencoder
-    from sdfcodec.model import load_state_file
+    from sdfcodec.plugin import load_state_file
 
     cfg = _ae(optimizer=optimizer, lr=1e-2 if optimizer == "adam" else 2.0).train_config(
         checkpoint=str(tmp_path / "run"), max_epochs=4)
@@ -322,28 +318,65 @@ def sdfcodec_mixed():
 
 
 # -- shipped weights, benchmark -----------------------------------------------------------------------------------
-SHIPPED = ("ae-64.npz", "sequential-64-64.npz")
+SHIPPED = {"sdfcodec_ae": "ae-64.npz", "sdfcodec_mixed": "sequential-64-64.npz"}
 
 
 def test_shipped_models():
-    from sdfcodec_ae import default_ae, shipped_model_path
+    """Each plugin ships its weights in its own package, served by its codec's ``pretrained`` through the
+    registry; the old names keep working, deprecated."""
+    from sdfcodec.plugin import shipped_model_file
 
-    models = ROOT / "sdfcodec" / "models"
-    if not all((models / f).exists() for f in SHIPPED):
+    files = [ROOT / "plugins" / pkg / "models" / name for pkg, name in SHIPPED.items()]
+    if not all(f.exists() for f in files):
         pytest.skip("shipped AE models not built yet (python examples/train_ae_models.py)")
-    assert sum(f.stat().st_size for f in models.glob("*.npz")) < 30e6
-    with np.load(shipped_model_path("ae-64.npz"), allow_pickle=False) as z:
+    assert not list((ROOT / "sdfcodec" / "models").glob("*.npz"))  # none left in the core package
+    assert sum(f.stat().st_size for f in files) < 30e6
+    with np.load(shipped_model_file("sdfcodec_ae", "ae-64.npz"), allow_pickle=False) as z:
         assert z["enc1.weight"].dtype == np.float16
     x = synthetic_blocks(300, seed=123)
-    m = sdfcodec_mixed()
-    ae, par, seq = default_ae(64), m.default_parallel(), m.default_sequential()
-    from sdfcodec.models import default_codec
-
-    pca = default_codec("pca", 64)
+    ae, par, seq = (sdfcodec.pretrained_codec(c) for c in ("ae", "parallel", "sequential"))
+    pca = sdfcodec.pretrained_codec("pca", 64)
     e = {n: mse(c.decode(c.encode(x)), x) for n, c in (("pca", pca), ("ae", ae), ("par", par), ("seq", seq))}
     assert e["ae"] < 0.02 and e["par"] <= min(e["pca"], e["ae"]) + 1e-6 and e["seq"] <= e["pca"] + 1e-6
     with pytest.raises(InvalidValueError, match="only ae-64"):
-        default_ae(32)
+        sdfcodec.pretrained_codec("ae", 32)
+    assert sdfcodec.pretrained_codec("sequential", weight=0.5).code_size == 128
+
+    # the former names: same codecs, with a DeprecationWarning where the name itself is deprecated
+    from sdfcodec_ae import AECodec, default_ae, shipped_model_path
+
+    m = sdfcodec_mixed()
+    assert default_ae(64) == ae and m.default_parallel() == par and m.default_sequential() == seq
+    with pytest.warns(DeprecationWarning, match="shipped_model_file"):
+        assert shipped_model_path("ae-64.npz") == shipped_model_file("sdfcodec_ae", "ae-64.npz")
+    with pytest.warns(DeprecationWarning, match="pretrained"):
+        assert AECodec.shipped(64) == ae
+    with pytest.warns(DeprecationWarning, match="pretrained_codec"):
+        from sdfcodec.models import default_codec
+
+        assert default_codec("pca", 64) == pca and default_codec("ae", 64) == ae
+    with pytest.raises(errors.ModelNotFoundError, match="no shipped model"):
+        shipped_model_file("sdfcodec_ae", "ae-7.npz")
+
+
+def test_plugins_import_only_the_public_toolkit():
+    """Plugins import only sdfcodec, sdfcodec.errors, sdfcodec.testing and sdfcodec.plugin (and their own
+    modules); the mixtures reach the autoencoder through the registry, never by importing sdfcodec_ae."""
+    import ast
+
+    allowed = {"sdfcodec", "sdfcodec.errors", "sdfcodec.testing", "sdfcodec.plugin"}
+    roots = [*(ROOT / "plugins").iterdir(), ROOT / "examples" / "sdfcodec-dct" / "sdfcodec_dct"]
+    for path, pkg in [(f, r.name) for r in roots if r.is_dir() for f in r.rglob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+            for name in names:
+                if name.startswith("sdfcodec"):
+                    assert name in allowed or name.split(".")[0] == pkg, f"{path}: imports {name}"
+    from sdfcodec.plugin import TrainableCodec
+    from sdfcodec.registry import get_codec_class
+
+    assert all(issubclass(get_codec_class(c), TrainableCodec) for c in ("ae", "parallel", "sequential"))
 
 
 def test_bench_records_quick():
@@ -356,11 +389,17 @@ def test_bench_records_quick():
     seq = bench_records("sequential", 16, [4], min_time=0.01)
     assert seq[0]["roofline_shapes"][0] == [4096, 16] and seq[0]["code_size"] == 33
     # a fixed w: no w slot; sequential still decodes its PCA part at encode time (the residual), parallel not
+    from sdfcodec.bench import bench_instance, roofline_shapes
+
     for cid, enc in (("sequential", [(4096, 8), (8, 4096), (4096, 512), (512, 8)]),
                      ("parallel", [(4096, 8), (4096, 512), (512, 8)])):
-        mix, _ = type(sdfcodec.get_codec(cid)).bench_instance(8, 0.5)
-        assert mix.code_size == 16 and mix.roofline_shapes("encode") == enc
-        assert mix.roofline_shapes("decode") == [(8, 4096), (8, 512), (512, 4096)]
+        mix, _ = bench_instance(cid, 8, weight=0.5)
+        assert mix.code_size == 16 and roofline_shapes(mix, "encode") == enc
+        assert roofline_shapes(mix, "decode") == [(8, 4096), (8, 512), (512, 4096)]
+    ae, _ = bench_instance("ae", 8, weight=0.5)  # an option the ae's instance does not take is not passed
+    assert ae.code_size == 8
+    pca = bench_records("pca", 8, [2], min_time=0.005)  # any codec: no codec id is special-cased
+    assert pca[0]["code_size"] == 8 and "roofline_shapes" not in pca[0]
 
 
 def _bench_cli(*args: str):
@@ -411,33 +450,34 @@ def test_cli_bench_ae_and_mixtures_quick(monkeypatch):
     assert "untrained" in out
 
 
-def test_bench_hooks_are_generic_and_linear_default_unchanged():
-    """The core uses a codec's optional hooks whatever its id; a codec without them (pca) keeps the single
-    (4096, k) product as its baseline and the plain record keys (no hook fields)."""
+class _TwoStage(sdfcodec.Codec):
+    codec_id = "test-bench-two-stage"
+    code_size = 3
+
+    def _encode(self, blocks):
+        return blocks.reshape(len(blocks), -1)[:, :3].clone()
+
+    def _decode(self, codes):
+        return codes.mean(dim=1)[:, None, None, None].expand(len(codes), 16, 16, 16).clone()
+
+
+def test_bench_registration_is_generic_and_linear_default_unchanged():
+    """The benchmark uses what a plugin registers whatever its id; a codec without a registration (pca) keeps
+    the single (4096, k) product as its baseline and the plain record keys (no registration fields)."""
     from sdfcodec.bench import bench_codec, roofline_shapes
+    from sdfcodec.plugin import register_bench
 
-    class TwoStage(sdfcodec.Codec):
-        codec_id = "test-bench-two-stage"
-        code_size = 3
-
-        @classmethod
-        def bench_instance(cls, code_size):
-            return cls(), f"nothing to learn ({code_size})"
-
-        def roofline_shapes(self, operation):
-            return [(4096, 7), (7, 3)] if operation == "encode" else [(3, 4096)]
-
-        def _encode(self, blocks):
-            return blocks.reshape(len(blocks), -1)[:, :3].clone()
-
-        def _decode(self, codes):
-            return codes.mean(dim=1)[:, None, None, None].expand(len(codes), 16, 16, 16).clone()
-
-    sdfcodec.register_codec(TwoStage, replace=True)
+    sdfcodec.register_codec(_TwoStage, replace=True)
+    register_bench(_TwoStage, instance=lambda code_size: (_TwoStage(), f"nothing to learn ({code_size})"),
+                   roofline_shapes=lambda c, op: [(4096, 7), (7, 3)] if op == "encode" else [(3, 4096)])
     recs = bench_codec("test-bench-two-stage", [5], [2], min_time=0.005)
     assert [r["roofline_shapes"] for r in recs] == [[[4096, 7], [7, 3]], [[3, 4096]]]
     assert recs[0]["weights"] == "nothing to learn (5)" and recs[0]["code_size"] == 3
     _check_timing_fields(recs)
+    with pytest.raises(errors.RegistrationError):
+        register_bench("test-bench-two-stage")
+    with pytest.raises(errors.CodecTypeError):
+        register_bench(3, instance=lambda k: None)
 
     pca = bench_codec("pca", [32], [2], min_time=0.005)
     assert set(pca[0]) == {"codec", "code_size", "operation", "batch", "device", "blocks_per_s", "baseline",
@@ -446,6 +486,28 @@ def test_bench_hooks_are_generic_and_linear_default_unchanged():
     assert pca[0]["baseline"] == "numpy matmul"
     assert roofline_shapes(sdfcodec.get_codec("raw"), "encode") == [(4096, 4096)]
     _check_timing_fields(pca)
+
+
+def test_spec1_bench_hooks_on_the_class_still_work_deprecated():
+    """Spec 1 let a codec declare ``bench_instance``/``roofline_shapes`` methods; they keep working, warned."""
+    from sdfcodec.bench import bench_codec
+
+    class Legacy(sdfcodec.Codec):
+        codec_id = "test-bench-legacy"
+        code_size = 3
+        _encode, _decode = _TwoStage._encode, _TwoStage._decode
+
+        @classmethod
+        def bench_instance(cls, code_size):
+            return cls(), "legacy"
+
+        def roofline_shapes(self, operation):
+            return [(4096, 5)] if operation == "encode" else [(5, 4096)]
+
+    sdfcodec.register_codec(Legacy, replace=True)
+    with pytest.warns(DeprecationWarning, match="register_bench"):
+        recs = bench_codec("test-bench-legacy", [3], [2], min_time=0.005)
+    assert [r["roofline_shapes"] for r in recs] == [[[4096, 5]], [[5, 4096]]] and recs[0]["weights"] == "legacy"
 
 
 @pytest.mark.slow

@@ -34,12 +34,6 @@ FOREIGN = {
     ("_exchange", "OSError"),  # the errno of a failed renameat2 syscall, raised as os.rename would
     ("make_temp_dir", "OSError"),  # the file system kept colliding or dropping locks, as os.mkdir reports it
 }
-# Fixed on the registry branch of issue 14 (registry.py is converted there); drop these when it is merged.
-PENDING = {
-    ("get_codec", "TypeError"),
-    ("register_codec", "TypeError"),
-    ("register_codec", "ValueError"),
-}
 
 
 def _exception_name(node: ast.Raise) -> str | None:
@@ -51,12 +45,16 @@ def _exception_name(node: ast.Raise) -> str | None:
 
 
 def _handled_here(name: str, try_nodes: list[ast.Try]) -> bool:
-    """True when an enclosing ``try`` body has a handler for ``name`` itself: the raise is local control flow
-    (it is caught and turned into an SDFCodecError a few lines down) and never reaches a caller."""
+    """True when an enclosing ``try`` body has a handler for ``name`` (or for every Exception) that does not
+    re-raise it: the raise is local control flow (caught and turned into an SDFCodecError, or a conformance
+    failure, a few lines down) and never reaches a caller."""
     for t in try_nodes:
         for h in t.handlers:
             types = h.type.elts if isinstance(h.type, ast.Tuple) else [h.type]
-            if any(isinstance(ty, ast.Name) and ty.id == name for ty in types):
+            catches = any(ty is None or (isinstance(ty, ast.Name) and ty.id in (name, "Exception", "BaseException"))
+                          for ty in types)
+            reraises = any(isinstance(n, ast.Raise) and n.exc is None for n in ast.walk(h))
+            if catches and not reraises:
                 return True
     return False
 
@@ -82,7 +80,7 @@ def _bare_raises(path: Path, root: Path = ROOT) -> list[str]:
             allowed = (name in ANYWHERE
                        or (fname == "__getattr__" and name == "AttributeError")  # the attribute protocol
                        or (name in VALIDATOR_ERRORS and _decorator_names(fn) & VALIDATOR_DECORATORS)
-                       or (fname, name) in FOREIGN | PENDING
+                       or (fname, name) in FOREIGN
                        or _handled_here(name, tries))
             if not allowed:
                 found.append(f"{path.relative_to(root)}:{node.lineno}: raise {name} in {fname}()")
@@ -118,10 +116,15 @@ def test_scan_catches_a_bare_raise(tmp_path):
         "        raise KeyError(x)\n"                  # caught below: local control flow
         "    except KeyError:\n"
         "        raise LookupError(x) from None\n"     # flagged: escapes
+        "    try:\n"
+        "        raise TypeError(x)\n"                 # flagged: the handler re-raises it
+        "    except Exception:\n"
+        "        raise\n"
         "    raise NotImplementedError\n"
         "def __getattr__(name):\n"
         "    raise AttributeError(name)\n")
-    assert _bare_raises(src, tmp_path) == ["m.py:3: raise ValueError in f()", "m.py:7: raise LookupError in f()"]
+    assert _bare_raises(src, tmp_path) == ["m.py:3: raise ValueError in f()", "m.py:7: raise LookupError in f()",
+                                           "m.py:9: raise TypeError in f()"]
 
 
 @pytest.mark.parametrize("name", [n for n in errors.__all__ if not issubclass(getattr(errors, n), Warning)])

@@ -147,7 +147,7 @@ def test_float16_codes(tmp_path, volume, pca64, map_path):
                              code_dtype="float16") as m:
         m.write_volume(volume)
     m16 = sdfcodec.open_map(path)
-    assert str(m16._codes.dtype) == "float16"
+    assert str(m16.reader.codes_array.dtype) == "float16"
     d16, d32 = m16.decode_region(), sdfcodec.open_map(map_path).decode_region()
     # float16 keeps ~3 significant digits of each code: the extra error is small against the codec's own
     extra = np.sqrt(np.mean((d16 - d32) ** 2))
@@ -411,3 +411,88 @@ def test_fusion_weights_are_optional_and_lossless(tmp_path):
     assert not m.has_weights and m.header.extensions == []
     with pytest.raises(errors.FormatError, match="no fusion weights"):
         m.read_weights(coords)
+
+
+class _KeyCounter(zarr.storage.WrapperStore):
+    """A read-through store that records every key it is asked for (as search's counting store does)."""
+
+    def __init__(self, store, keys: list | None = None):
+        super().__init__(store)
+        self.keys: list[str] = [] if keys is None else keys
+
+    def _with_store(self, store):
+        return type(self)(store, self.keys)
+
+    async def get(self, key, prototype=None, byte_range=None):
+        self.keys.append(key)
+        return await self._store.get(key, prototype, byte_range)
+
+    async def get_partial_values(self, prototype, key_ranges):
+        self.keys.extend(k for k, _ in key_ranges)
+        return await self._store.get_partial_values(prototype, key_ranges)
+
+
+def test_with_store_reads_through_the_wrapper_and_shares_the_codec(map_path):
+    """Map.with_store: the same map over a wrapped store (header, limits, codec cache shared); what it reads
+    goes through the wrapper, its decodes equal the map's, and closing it leaves the map open."""
+    m = sdfcodec.open_map(map_path, max_decode_bytes=1 << 30)
+    wrappers: list[_KeyCounter] = []
+    view = m.with_store(lambda s: wrappers.append(_KeyCounter(s)) or wrappers[-1])
+    assert isinstance(view, sdfcodec.Map) and not view.writable
+    assert view.header is m.header and view.max_decode_bytes == m.max_decode_bytes == 1 << 30
+    assert view.reader.group.store is wrappers[0]
+    keys = wrappers[0].keys
+    assert "zarr.json" in keys or any(k.endswith("zarr.json") for k in keys)  # the arrays' metadata, re-read
+    # the codec cache is shared: loaded through the view (reading codec/ through the wrapper), loaded for both
+    assert m.reader.cache.codec is None
+    codec = view.codec
+    assert m.codec is codec and any(k.startswith("codec/") for k in keys)
+    n = len(keys)
+    coords, codes = view.read_codes(((0, 16), (0, 16), (0, 16)), level=32)
+    assert len(keys) > n and any(k.startswith("codes/") for k in keys[n:])
+    c2, z2 = m.read_codes(((0, 16), (0, 16), (0, 16)), level=32)
+    np.testing.assert_array_equal(coords, c2)
+    np.testing.assert_array_equal(codes, z2)
+    np.testing.assert_array_equal(view.decode_region(), m.decode_region())
+    # the other way round: a codec loaded through the map first is the view's
+    m2 = sdfcodec.open_map(map_path)
+    c = m2.codec
+    assert m2.with_store(lambda s: s).codec is c
+    view.close()
+    assert m.block_states().shape == m.grid_blocks  # the map still reads
+    with pytest.raises(errors.InvalidValueError, match="closed"):
+        view.block_states()
+    m.close()
+    # a map being written cannot be viewed: commit it first
+    with sdfcodec.create_map(map_path.parent / "w.sdfz", codec=c, voxel_size=VS, truncation=TRUNC) as w:
+        with pytest.raises(errors.InvalidValueError, match="being written"):
+            w.with_store(lambda s: s)
+        w.mark_empty([[0, 0, 0]])
+
+
+def test_mapfile_is_a_deprecated_alias():
+    """The old module still imports the public names, with a DeprecationWarning on (first) import."""
+    code = ("import warnings; warnings.simplefilter('error', DeprecationWarning); import sdfcodec\n"
+            "try:\n    import sdfcodec.mapfile\nexcept DeprecationWarning as e:\n    print('warned', e)\n"
+            "warnings.simplefilter('ignore', DeprecationWarning)\n"
+            "import sdfcodec.mapfile as mf, sdfcodec.map as mp\n"
+            "assert mf.Map is mp.Map and mf.open_map is mp.open_map and mf.state_digest is mp.state_digest\n"
+            "assert mf.create_map is sdfcodec.create_map and mf.update_map is sdfcodec.update_map\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.startswith("warned sdfcodec.mapfile is deprecated")
+
+
+def test_map_package_imports_no_cycle_and_no_deprecated_module():
+    """The map package never imports the dask layer (sdfcodec.scale imports the package's reader and writer, not
+    the other way round) and the package's own modules do not import the deprecated sdfcodec.mapfile."""
+    code = textwrap.dedent("""
+        import sys, warnings
+        warnings.simplefilter("error", DeprecationWarning)
+        import sdfcodec.map, sdfcodec.map.stores, sdfcodec.map.format, sdfcodec.map.reader, sdfcodec.map.writer
+        assert "sdfcodec.scale" not in sys.modules, "the map package imported sdfcodec.scale"
+        import sdfcodec.scale, sdfcodec.verify, sdfcodec.mapfield, sdfcodec.cli
+        assert "sdfcodec.mapfile" not in sys.modules
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

@@ -304,3 +304,32 @@ def test_agrees_with_evo(shared_data, ref_name, est_name):
                 tol = 1e-6 * max(1.0, abs(theirs[k])) if k == "sse" else 1e-6
                 assert abs(getattr(ours, k) - theirs[k]) <= tol, (ours_rel, delta, all_pairs, align, k)
     assert worst < 1e-6
+
+
+def test_old_import_paths_are_the_moved_objects():
+    """Trajectories live in sdfcodec.trajectory and rotations in sdfcodec.geometry; sdfcodec.metrics re-exports
+    the very same objects (no copies that could drift apart)."""
+    from sdfcodec import geometry, trajectory
+
+    for name in ("Trajectory", "read_tum", "write_tum", "associate", "association_indices", "align_trajectory"):
+        assert getattr(metrics, name) is getattr(trajectory, name), name
+    for name in ("umeyama_alignment", "quaternion_to_matrix", "matrix_to_quaternion", "rotation_angle",
+                 "check_pose"):
+        assert getattr(metrics, name) is getattr(geometry, name), name
+    assert set(metrics.__all__) <= set(dir(metrics))
+
+
+def test_se3_helpers(rng):
+    from sdfcodec import geometry
+
+    poses = np.stack([geometry.se3_exp(rng.normal(scale=0.5, size=6)) for _ in range(5)])
+    np.testing.assert_allclose(geometry.se3_compose(geometry.se3_inverse(poses), poses), np.tile(np.eye(4), (5, 1, 1)),
+                               atol=1e-12)
+    np.testing.assert_allclose(geometry.se3_compose(poses, poses[::-1]), poses @ poses[::-1], atol=1e-12)
+    assert all(geometry.check_pose(p) is None for p in poses)
+    assert "reflection" in geometry.check_pose(np.diag([1.0, 1.0, -1.0, 1.0]))
+    for r in (geometry.rot_x(0.3), geometry.rot_y(-1.2), geometry.rot_z(2.0), geometry.rotation_to((1, -2, 0.5))):
+        np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
+    w = rng.normal(size=3)
+    np.testing.assert_allclose(geometry.hat(w) @ np.array([1.0, 2.0, 3.0]), np.cross(w, [1.0, 2.0, 3.0]))

@@ -81,10 +81,10 @@ def test_map_bytes_match_disk(quick):
 
 def test_map_error_matches_codec(quick, blocks):
     """The error read back from the float32 map is the codec's own round-trip error on the same blocks."""
-    from sdfcodec.models import default_codec
+    from sdfcodec import pretrained_codec
 
     rd, work, res = quick
-    c = default_codec("pca", 64)
+    c = pretrained_codec("pca", 64)
     y = np.asarray(c.decode(c.encode(blocks)))
     mse = float(((y.astype(np.float64) - blocks) ** 2).mean())
     p = next(p for p in res["points"] if p["codec"] == "pca-64" and p["setting"] == "float32")

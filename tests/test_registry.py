@@ -135,9 +135,9 @@ def test_register_codec_validates():
         def _decode(self, c):
             return c
 
-    with pytest.raises(ValueError, match="codec_id"):
+    with pytest.raises(errors.RegistrationError, match="codec_id"):
         sdfcodec.register_codec(NoId)
-    with pytest.raises(TypeError):
+    with pytest.raises(errors.CodecTypeError):
         sdfcodec.register_codec(object)  # type: ignore[arg-type]
 
 
@@ -153,3 +153,93 @@ def test_model_file_round_trip_and_no_pickles(tmp_path):
     np.savez(tmp_path / "plain.npz", a=np.zeros(3))
     with pytest.raises(errors.FormatError, match="not an sdfcodec model"):
         sdfcodec.load_model(tmp_path / "plain.npz")
+    assert back == codec
+
+
+def test_registry_and_model_errors_are_sdfcodec_errors(tmp_path):
+    """Every deliberate error of the registry and of model files is an SDFCodecError that still derives from
+    the built-in it replaced (ValueError, TypeError, FileNotFoundError); a missing model is not a missing map."""
+    class Dup(sdfcodec.Codec):
+        codec_id = "test-dup"
+        code_size = 1
+        _encode = _decode = staticmethod(lambda x: x)
+
+    class Dup2(Dup):
+        pass
+
+    sdfcodec.register_codec(Dup, replace=True)
+    with pytest.raises(errors.RegistrationError, match="already registered") as e:
+        sdfcodec.register_codec(Dup2)
+    assert isinstance(e.value, ValueError)
+    with pytest.raises(errors.CodecTypeError) as e:
+        sdfcodec.get_codec(3)  # type: ignore[arg-type]
+    assert isinstance(e.value, TypeError)
+    with pytest.raises(errors.ModelNotFoundError, match="no such file") as e:
+        sdfcodec.load_model(tmp_path / "missing.npz")
+    assert isinstance(e.value, FileNotFoundError) and not isinstance(e.value, errors.MapNotFoundError)
+    with pytest.raises(errors.NotFittedError):
+        sdfcodec.save_model(sdfcodec.get_codec("pca"), tmp_path / "unfitted.npz")
+
+
+def test_optional_hooks_are_public_and_spec1_names_still_work():
+    """The decode-on-read and streamed-fit hooks are public methods (decode_affine, decode_bound, fit_batches);
+    a codec written against spec 1's underscore names keeps working, with a DeprecationWarning, and so do
+    callers of the old names."""
+    import warnings
+
+    with pytest.warns(DeprecationWarning, match="'_decode_bound'.*'decode_bound'"):
+        class Old(sdfcodec.Codec):
+            codec_id = "test-old-hooks"
+            code_size = 4096
+            requires_fit = True
+
+            def _encode(self, b):
+                return b.reshape(len(b), -1).clone()
+
+            def _decode(self, c):
+                return c.reshape(len(c), 16, 16, 16).clone()
+
+            def _decode_bound(self, codes):
+                return max(float(codes.abs().max()), super()._decode_bound(codes) or 0.0)
+
+            def _decode_affine(self, codes, scale, offset):
+                return super()._decode_affine(codes, scale, offset)  # the default, through the old name
+
+            def _fit_stream(self, batches):
+                self.seen_ = sum(len(b) for b in batches)
+
+            def state_dict(self):
+                return {"seen": np.array(self.seen_)} if hasattr(self, "seen_") else {}
+
+    codec = Old().fit_stream([analytic_blocks(3), analytic_blocks(2)])
+    assert codec.seen_ == 5
+    codes = torch.from_numpy(codec.encode(analytic_blocks(2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        assert codec.decode_bound(codes) == float(codes.abs().max())
+        out = codec.decode_core(codes, scale=2.0, offset=-1.0)
+    assert torch.allclose(out, 2 * codes.reshape(-1, 16, 16, 16) - 1)
+    with pytest.warns(DeprecationWarning, match="call decode_bound"):  # a caller of the old name
+        assert sdfcodec.pretrained_codec("pca", 8)._decode_bound(codes[:, :8]) > 0
+
+    pca = sdfcodec.pretrained_codec("pca", 8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # the built-in codecs use the public names only
+        assert pca.decode_bound(codes[:, :8]) > 0 and sdfcodec.get_codec("raw").decode_bound(codes) is None
+        pca.decode_core(codes[:, :8], scale=0.14, offset=-0.04)
+        sdfcodec.get_codec("pca", code_size=4).fit_stream([analytic_blocks(20)])
+
+
+def test_toolkit_is_the_plugin_authors_import():
+    """sdfcodec.plugin holds what plugins need; the huge-page allocator left codec.__all__ (still reachable
+    from sdfcodec.codec, deprecated)."""
+    import sdfcodec.codec
+    import sdfcodec.plugin as plugin
+
+    assert "empty" not in sdfcodec.codec.__all__ and set(plugin.__all__) <= set(dir(plugin))
+    with pytest.warns(DeprecationWarning, match="sdfcodec.plugin.empty"):
+        assert sdfcodec.codec.empty is plugin.empty
+    t = plugin.empty((2, 3), torch.device("cpu"))
+    assert t.shape == (2, 3) and t.dtype == torch.float32
+    x, was_numpy = plugin.as_float_tensor(np.zeros((1, 2)), "x", (None, 2))
+    assert was_numpy and isinstance(plugin.like_input(x, was_numpy), np.ndarray)

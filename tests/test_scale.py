@@ -21,6 +21,7 @@ import zarr
 
 import sdfcodec
 from sdfcodec import errors
+from sdfcodec.map import MapReader
 from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
 from sdfcodec.testing import analytic_blocks, analytic_scene
 
@@ -187,8 +188,8 @@ def test_decoded_values_are_checked_unless_the_codec_bound_proves_them_finite(tm
     coords = np.array([[0, 0, 0], [1, 0, 0]])
     codes = np.full((2, 8), 1e6, np.float32)
     checked = []
-    real = sdfcodec.Map._decoded
-    monkeypatch.setattr(sdfcodec.Map, "_decoded", lambda self, v: (checked.append(len(v)), real(self, v))[1])
+    real = MapReader.decoded
+    monkeypatch.setattr(MapReader, "decoded", lambda self, v: (checked.append(len(v)), real(self, v))[1])
     for name, codec in (("sane", pca), ("huge", huge)):
         with sdfcodec.create_map(tmp_path / f"{name}.sdfz", codec=codec, voxel_size=VS, truncation=TRUNC) as w:
             w.write_codes(coords, codes if name == "huge" else np.ones((2, 8), np.float32))

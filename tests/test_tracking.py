@@ -200,6 +200,15 @@ def test_se3_exp_matches_matrix_exponential():
         np.testing.assert_allclose(se3_exp(xi), expm(twist), atol=1e-12)
 
 
+def test_moved_names_keep_their_tracking_import_path():
+    """se3_exp lives in sdfcodec.geometry and DenseField in sdfcodec.densefield; sdfcodec.tracking re-exports
+    the same objects."""
+    from sdfcodec import densefield, geometry, tracking
+
+    assert tracking.se3_exp is geometry.se3_exp and tracking.DenseField is densefield.DenseField
+    assert isinstance(densefield.DenseField(np.zeros((4, 4, 4)), 0.02), FieldSampler)
+
+
 def test_backproject_pixels():
     depth = torch.zeros(6, 8)
     depth[2, 5] = 2.0

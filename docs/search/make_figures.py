@@ -22,7 +22,8 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec import search as S
-from sdfcodec.models import default_codec
+from sdfcodec.bench import bench_search
+from sdfcodec import pretrained_codec
 from sdfcodec.search_cli import format_summary, search_command
 
 HERE = Path(__file__).resolve().parent
@@ -89,8 +90,8 @@ def pr(rooms_n: int = 12, tilted_n: int = 8, solid_n: int = 6) -> None:
 
     fitted = sdfcodec.get_codec("pca", code_size=128).fit(synthetic_blocks(20000, seed=0))
     log("pca-128 fitted on 20000 synthetic blocks")
-    codecs = {"pca-32": default_codec("pca", 32), "pca-64": default_codec("pca", 64),
-              "pca-128": default_codec("pca", 128), "synthetic-fit pca-64": fitted.prefix(64)}
+    codecs = {"pca-32": pretrained_codec("pca", 32), "pca-64": pretrained_codec("pca", 64),
+              "pca-128": pretrained_codec("pca", 128), "synthetic-fit pca-64": fitted.prefix(64)}
     levels = {"pca-32": [32], "pca-64": [32, 64], "pca-128": [32, 64, 128], "synthetic-fit pca-64": [64]}
     queries = {"floor": {"shape": "floor"}, "floor, paper's 15 offsets": {"shape": "floor", "offsets": 15}}
     truths = ("floor", "floor-vs-none", "floor-majority", "up")
@@ -103,7 +104,7 @@ def pr(rooms_n: int = 12, tilted_n: int = 8, solid_n: int = 6) -> None:
     tq = {"floor": {"shape": "floor"}, "floor, cone 10 deg x 16": {"shape": "floor", "rotations": "cone:10:16"},
           "floor, cone 10 deg x 48": {"shape": "floor", "rotations": "cone:10:48"},
           "floor, true up": {"shape": "floor", "up": "room"}}
-    trecs = S.evaluate_retrieval(tilted, {"pca-64": default_codec("pca", 64)}, queries=tq,
+    trecs = S.evaluate_retrieval(tilted, {"pca-64": pretrained_codec("pca", 64)}, queries=tq,
                                  truths=("floor", "floor-vs-none"), progress=log)
     for r in trecs:
         r["scenes"] = "tilted up to 10 deg"
@@ -114,7 +115,7 @@ def pr(rooms_n: int = 12, tilted_n: int = 8, solid_n: int = 6) -> None:
     sq = {"floor, solid, paper's 15 offsets": {"shape": "floor", "behind": "solid"},
           "floor, solid, 17 offsets": {"shape": "floor", "behind": "solid", "offsets": "lattice"},
           "floor (unobserved-behind model)": {"shape": "floor"}}
-    srecs = S.evaluate_retrieval(solid, {"pca-64": default_codec("pca", 64)}, queries=sq,
+    srecs = S.evaluate_retrieval(solid, {"pca-64": pretrained_codec("pca", 64)}, queries=sq,
                                  truths=("floor", "floor-vs-none"), progress=log)
     for r in srecs:
         r["scenes"] = "solid-behind"
@@ -174,8 +175,8 @@ def _pr_figure(records: list[dict]) -> None:
 def bench() -> None:
     """Search throughput (kernel and whole-map) and bytes read at level 32 of a 128-element map."""
     machine = _machine()
-    recs = S.bench_search((64, 128), batches=(65536, 1 << 20), map_blocks=200_000,
-                          map_levels={64: [64], 128: [32, 128]}, progress=print)
+    recs = bench_search((64, 128), batches=(65536, 1 << 20), map_blocks=200_000,
+                        map_levels={64: [64], 128: [32, 128]}, progress=print)
     import os
 
     (HERE / "bench.json").write_text(json.dumps({"command": "python docs/search/make_figures.py bench",
@@ -198,7 +199,7 @@ def room() -> None:
     lab = S.synthetic_room(3, geometry="rich")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "room-64.sdfz"
-        with sdfcodec.create_map(path, codec=default_codec("pca", 64), voxel_size=lab.voxel_size,
+        with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=lab.voxel_size,
                                  origin=tuple(lab.origin)) as w:
             w.write_volume(lab.volume)
         out = Path(tmp) / "out"
@@ -235,7 +236,7 @@ def kitchen() -> None:
             w.write_blocks(fused.coords, fused.tsdf)
         m_raw = sdfcodec.open_map(raw)
         p64 = tmp / "kitchen-64.sdfz"
-        with sdfcodec.create_map(p64, codec=default_codec("pca", 64), voxel_size=0.02, origin=m_raw.origin) as w:
+        with sdfcodec.create_map(p64, codec=pretrained_codec("pca", 64), voxel_size=0.02, origin=m_raw.origin) as w:
             for coords, blocks in m_raw.iter_blocks():
                 w.write_blocks(coords, blocks)
         for name, path in (("pca-64", p64), ("raw", raw)):

@@ -14,14 +14,15 @@ Usage::
     codes = ae.encode(blocks)                                       # (N, 64) float32 in (0, 1)
 
 ``sdfcodec train DATASET --codec ae --code-size 64 -o MODEL`` trains with the defaults (Adam). The shipped
-AE-64 (``sdfcodec/models/ae-64.npz``, float16 weights) loads with :func:`default_ae`.
+AE-64 (``models/ae-64.npz`` in this package, float16 weights) loads with :meth:`AECodec.pretrained`
+(``sdfcodec.pretrained_codec("ae", 64)``).
 
 The code is not prefix-ordered: every element of a code feeds every decoder unit.
 """
 
 from __future__ import annotations
 
-from importlib import resources
+import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -29,17 +30,20 @@ import numpy as np
 import torch
 
 from sdfcodec import Codec
-from sdfcodec.errors import InvalidValueError, MapNotFoundError
-from sdfcodec.model import load_model, load_state_file, save_model, save_state_file
+from sdfcodec.errors import InvalidValueError
+from sdfcodec.plugin import (TrainableCodec, load_shipped_model, load_state_file, register_bench, save_model,
+                             save_state_file, shipped_model_file)
 
-from .network import N_VOXELS, OUTPUTS, Inference, check_state
+from .network import N_VOXELS, OUTPUTS, Inference, build_module, check_state, export_state, module_state
 from .train import TrainConfig, TrainResult, train_autoencoder, write_curves
 
 __all__ = ["AECodec", "TrainConfig", "TrainResult", "train_autoencoder", "write_curves", "default_ae",
-           "shipped_model_path", "save_model_float16", "bench_records"]
+           "shipped_model_path", "save_model_float16", "bench_records", "SHIPPED_MODEL"]
+
+SHIPPED_MODEL = "ae-64.npz"  # in this package's models/
 
 
-class AECodec(Codec):
+class AECodec(TrainableCodec):
     """Autoencoder codec.
 
     Parameters
@@ -92,10 +96,7 @@ class AECodec(Codec):
         self._check_params()
         return TrainConfig.from_dict({**(self.training or {}), **overrides})
 
-    # -- fitting ------------------------------------------------------------------------------------
-    def _fit(self, blocks: np.ndarray) -> None:
-        self.fit_validated(blocks)
-
+    # -- fitting (fit and fit_dataset come from TrainableCodec) ----------------------------------------
     def fit_validated(self, train: Any, validation: Any | None = None, *, checkpoint: str | Path | None = None,
                       resume: bool = False, report: str | Path | None = None, progress: bool | None = None,
                       **overrides: Any) -> "AECodec":
@@ -133,16 +134,9 @@ class AECodec(Codec):
             self.write_training_report(report)
         return self
 
-    def fit_dataset(self, dataset: Any, *, max_train: int | None = None, **kwargs: Any) -> "AECodec":
-        """Train on an :class:`sdfcodec.dataset.Dataset`'s ``train`` split, early-stopping on its
-        ``validation`` split (the paper's protocol); ``kwargs`` as :meth:`fit_validated`."""
-        return self.fit_validated(dataset.load("train", max_train), dataset.load("validation"), **kwargs)
-
     def write_training_report(self, prefix: str | Path) -> list[Path]:
         """Write the learning curves of the last fit to ``<prefix>.curves.json`` / ``.curves.png``."""
-        if not hasattr(self, "history_"):
-            raise InvalidValueError("no learning curves: this codec was loaded, not trained in this process")
-        return write_curves(self.history_, prefix, title=f"ae-{self.code_size} ({self.output} output)")
+        return write_curves(self._require_history(), prefix, title=f"ae-{self.code_size} ({self.output} output)")
 
     # -- state --------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, np.ndarray]:
@@ -155,25 +149,33 @@ class AECodec(Codec):
         self._net = Inference(arrays, self.output)
         return self
 
+    # -- ready-made weights -------------------------------------------------------------------------
     @classmethod
-    def shipped(cls, code_size: int = 64) -> "AECodec":
-        """The trained model shipped with sdfcodec at ``code_size`` (see :func:`default_ae`)."""
-        return default_ae(code_size)
+    def pretrained(cls, code_size: int | None = None, **options: Any) -> "AECodec":
+        """The shipped trained AE (``models/ae-64.npz``; only ``code_size=64``, the default, is shipped: train
+        other sizes with ``sdfcodec train``). The weights are stored as float16 and computed in float32. A
+        fresh codec each call (sharing the read-only arrays), so callers may change its ``training``.
 
-    # -- benchmark hooks (sdfcodec.bench) -----------------------------------------------------------
+        Raises:
+            InvalidValueError: another size, or options given.
+            ModelNotFoundError: the model file is not installed.
+        """
+        k = 64 if code_size is None else code_size
+        if k != 64:
+            raise InvalidValueError(f"only ae-64 is shipped, not ae-{k}: train it with `sdfcodec train DATASET "
+                                    f"--codec ae --code-size {k} -o MODEL` and load it with --model")
+        if options:
+            raise InvalidValueError(f"the shipped ae-64 takes no options, got {sorted(options)}")
+        base = load_shipped_model(__name__, SHIPPED_MODEL)
+        return cls(**{n: v for n, v in base.get_config().items() if n != "id"}).load_state_dict(base.state_dict())
+
     @classmethod
-    def bench_instance(cls, code_size: int) -> tuple["AECodec", str]:
-        """For ``sdfcodec bench``: the shipped AE-64 at 64, else untrained weights of the paper's shapes
-        (no training; speed does not depend on the values). Returns the codec and where its weights come from."""
-        from .bench import ae_bench_instance
-
-        return ae_bench_instance(code_size)
-
-    def roofline_shapes(self, operation: str) -> list[tuple[int, int]]:
-        """For ``sdfcodec bench``: right-hand shapes of the two matrix products of ``operation``."""
-        from .bench import ae_roofline_shapes
-
-        return ae_roofline_shapes(self.code_size, self.hidden, operation)
+    def untrained(cls, code_size: int = 64, hidden: int = 512, output: str = "sigmoid", seed: int = 0) -> "AECodec":
+        """A ready codec with the network's initial (untrained) weights, deterministic by ``seed`` (seeds
+        torch's global generator, as training does): for timing, where the values do not matter."""
+        torch.manual_seed(seed)
+        state = export_state(module_state(build_module(code_size, hidden, output)))
+        return cls(code_size=code_size, hidden=hidden, output=output).load_state_dict(state)
 
     # -- encode / decode ----------------------------------------------------------------------------
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
@@ -185,40 +187,16 @@ class AECodec(Codec):
 
 # -- shipped weights --------------------------------------------------------------------------------------
 def shipped_model_path(name: str) -> Path:
-    """Path of a model file shipped in :mod:`sdfcodec.models` (e.g. ``"ae-64.npz"``).
-
-    Raises
-    ------
-    MapNotFoundError
-        The file is not in the installed package.
-    """
-    ref = resources.files("sdfcodec.models") / name
-    if not ref.is_file():
-        raise MapNotFoundError(f"no shipped model {name!r} in sdfcodec.models; train one with "
-                               "`python examples/train_ae_models.py` or `sdfcodec train` and pass it with --model")
-    return Path(str(ref))
-
-
-_SHIPPED: dict[str, Codec] = {}
-
-
-def _shipped(name: str) -> Codec:
-    if name not in _SHIPPED:
-        _SHIPPED[name] = load_model(shipped_model_path(name))
-    return _SHIPPED[name]
+    """Deprecated: :func:`sdfcodec.plugin.shipped_model_file` ``("sdfcodec_ae", name)``, the path of a model
+    file in this package's ``models/`` (raises :class:`~sdfcodec.errors.ModelNotFoundError` when absent)."""
+    warnings.warn("sdfcodec_ae.shipped_model_path is deprecated: use "
+                  "sdfcodec.plugin.shipped_model_file('sdfcodec_ae', name)", DeprecationWarning, stacklevel=2)
+    return shipped_model_file(__name__, name)
 
 
 def default_ae(code_size: int = 64) -> AECodec:
-    """The shipped trained AE (only ``code_size=64`` is shipped; train other sizes with ``sdfcodec train``).
-
-    The weights are stored as float16 and computed in float32. Returns a fresh codec each call (sharing the
-    read-only arrays), so callers may change its ``training`` without affecting others.
-    """
-    if code_size != 64:
-        raise InvalidValueError(f"only ae-64 is shipped, not ae-{code_size}: train it with `sdfcodec train DATASET "
-                                f"--codec ae --code-size {code_size} -o MODEL` and load it with --model")
-    base = _shipped("ae-64.npz")
-    return AECodec(**{k: v for k, v in base.get_config().items() if k != "id"}).load_state_dict(base.state_dict())
+    """The shipped trained AE: :meth:`AECodec.pretrained` (only ``code_size=64`` is shipped)."""
+    return AECodec.pretrained(code_size)
 
 
 def save_model_float16(codec: Codec, path: str | Path, keep_float32: tuple[str, ...] = ()) -> Path:
@@ -234,7 +212,23 @@ def save_model_float16(codec: Codec, path: str | Path, keep_float32: tuple[str, 
     return path
 
 
-def __getattr__(name: str) -> Any:  # bench_records imports sdfcodec.bench lazily
+# -- benchmark registration (spec/codec-plugins.md, section 5) --------------------------------------------
+def _bench_instance(code_size: int) -> tuple[Codec, str]:
+    from .bench import ae_bench_instance
+
+    return ae_bench_instance(code_size)
+
+
+def _roofline(codec: Codec, operation: str) -> list[tuple[int, int]]:
+    from .bench import ae_roofline_shapes
+
+    return ae_roofline_shapes(codec.code_size, codec.hidden, operation)  # type: ignore[attr-defined]
+
+
+register_bench(AECodec, instance=_bench_instance, roofline_shapes=_roofline)
+
+
+def __getattr__(name: str) -> Any:  # bench_records imports this plugin's bench module lazily
     if name == "bench_records":
         from .bench import bench_records
 

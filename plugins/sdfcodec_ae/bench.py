@@ -1,11 +1,10 @@
 """Throughput of the ``ae``, ``parallel`` and ``sequential`` codecs beside their matrix-product roofline.
 
-``sdfcodec bench --codec ae|parallel|sequential`` measures these codecs through the two optional benchmark
-hooks of :mod:`sdfcodec.bench` (no codec id is special-cased there): each class's ``bench_instance`` builds a
-ready codec without training (the shipped weights where they exist: ae-64, parallel and sequential 64 + 64;
-else untrained weights of the same shapes, since speed does not depend on the values) and each codec's
-``roofline_shapes`` lists the matrix products an operation cannot avoid, timed as plain numpy in the same
-run:
+``sdfcodec bench --codec ae|parallel|sequential`` measures these codecs through what their plugins register
+with the benchmark (:func:`sdfcodec.plugin.register_bench`; no codec id is special-cased anywhere): a ready
+codec without training (the shipped weights where they exist: ae-64, parallel and sequential 64 + 64; else
+untrained weights of the same shapes, since speed does not depend on the values) and the matrix products an
+operation cannot avoid, timed as plain numpy in the same run:
 
 =============================  ========================================================================
 operation                      matrix products per batch of ``B`` blocks (``h`` hidden, ``d``/``k`` codes)
@@ -25,20 +24,16 @@ element-wise mix). :func:`bench_records` is the Python entry point used by ``exa
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable
 
-import torch
-
-import sdfcodec
-from sdfcodec.bench import bench_codec_instance, roofline_shapes
-from sdfcodec.codec import Codec
+from sdfcodec import Codec
 from sdfcodec.errors import SDFCodecError
-from sdfcodec.registry import get_codec_class
+from sdfcodec.plugin import bench_codec_instance, bench_instance, roofline_shapes
 
-from .network import N_VOXELS, build_module, export_state, module_state
+from .network import N_VOXELS
 
 __all__ = ["bench_records", "bench_codec_instance", "roofline_shapes", "ae_roofline_shapes", "random_ae",
-           "ae_bench_instance"]
+           "ae_bench_instance", "UNTRAINED"]
 
 UNTRAINED = "untrained (random init; speed does not depend on the values)"
 
@@ -51,10 +46,11 @@ def ae_roofline_shapes(code_size: int, hidden: int, operation: str) -> list[tupl
 
 
 def random_ae(code_size: int, hidden: int = 512, output: str = "sigmoid", seed: int = 0) -> Codec:
-    """An ``ae`` codec with its initial (untrained) weights, deterministic by ``seed``."""
-    torch.manual_seed(seed)
-    state = export_state(module_state(build_module(code_size, hidden, output)))
-    return sdfcodec.get_codec("ae", code_size=code_size, hidden=hidden, output=output).load_state_dict(state)
+    """An ``ae`` codec with its initial (untrained) weights, deterministic by ``seed``
+    (:meth:`sdfcodec_ae.AECodec.untrained`)."""
+    from . import AECodec
+
+    return AECodec.untrained(code_size, hidden, output, seed)
 
 
 def ae_bench_instance(code_size: int) -> tuple[Codec, str]:
@@ -63,7 +59,7 @@ def ae_bench_instance(code_size: int) -> tuple[Codec, str]:
         try:
             from . import default_ae
 
-            return default_ae(64), "shipped sdfcodec/models/ae-64.npz"
+            return default_ae(64), "shipped sdfcodec_ae/models/ae-64.npz"
         except SDFCodecError:
             pass
     return random_ae(code_size), UNTRAINED
@@ -71,20 +67,24 @@ def ae_bench_instance(code_size: int) -> tuple[Codec, str]:
 
 def bench_records(codec_id: str, code_size: int, batches: Iterable[int], *, device: str = "cpu",
                   weight: str | float = "block", min_time: float = 0.2,
-                  progress: Callable[[str], None] | None = None) -> list[dict]:
-    """Benchmark records for ``ae-<code_size>`` or ``parallel``/``sequential`` ``<code_size> + <code_size>``.
+                  progress: Callable[[str], None] | None = None, **options: Any) -> list[dict]:
+    """Benchmark records for ``ae-<code_size>`` or ``parallel``/``sequential`` ``<code_size> + <code_size>``
+    (or any codec, built by :func:`sdfcodec.bench.bench_instance`).
 
     Parameters
     ----------
-    codec_id : {"ae", "parallel", "sequential"}
+    codec_id : str
+        e.g. ``"ae"``, ``"parallel"``, ``"sequential"``.
     code_size : int
-        AE code size; for the mixtures, the size of each part (64: the shipped 64 + 64).
+        Nominal code size: the AE's; for the mixtures, the size of each part (64: the shipped 64 + 64).
     batches : iterable of int
         Batch sizes (blocks per call).
     device : str
         Torch device of the blocks and codes.
     weight : "block" or float
-        Mixing weight mode of the mixtures (ignored by ``ae``).
+        Mixing weight mode of the mixtures (an option their benchmark instance takes; ``ae`` takes none).
+    **options
+        Further options for the codec's benchmark instance (:func:`sdfcodec.plugin.register_bench`).
 
     Returns
     -------
@@ -94,9 +94,6 @@ def bench_records(codec_id: str, code_size: int, batches: Iterable[int], *, devi
         shapes"``), ``baseline_blocks_per_s``, ``ratio_to_baseline``, ``us_per_block``, ``roofline_shapes``,
         ``weights`` (where the weights come from) and ``torch_threads``.
     """
-    if codec_id not in ("ae", "parallel", "sequential"):
-        raise SDFCodecError(f"bench_records measures 'ae', 'parallel' and 'sequential', not {codec_id!r}")
-    cls = get_codec_class(codec_id)
-    codec, weights = cls.bench_instance(code_size) if codec_id == "ae" else cls.bench_instance(code_size, weight)
+    codec, weights = bench_instance(codec_id, code_size, weight=weight, **options)
     return bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights, name=codec_id,
                                 progress=progress)

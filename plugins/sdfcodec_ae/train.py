@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
-from sdfcodec.model import load_state_file, save_state_file
+from sdfcodec.plugin import load_state_file, save_state_file
 
 from .network import LAYERS, N_VOXELS, build_module, export_state, module_state
 

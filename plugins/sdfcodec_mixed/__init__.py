@@ -25,14 +25,16 @@ candidates; for sequential, ``w = 0`` is the PCA part alone). :func:`weight_stat
 ends at 0 or 1; the paper found mixing rarely pays (mostly one part or the other).
 
 The PCA part defaults to the shipped eigenshapes (``pca="default"``: the first ``pca_size`` components of
-``sdfcodec.models.default_codec("pca", ...)``), so fitting only trains the autoencoder; ``pca="fit"`` fits
+``sdfcodec.pretrained_codec("pca", ...)``), so fitting only trains the autoencoder; ``pca="fit"`` fits
 the PCA part on the training blocks instead. Either way the learned state holds the PCA arrays as well as
 the network's, so a map is self-contained. State names: ``pca.components``, ``pca.mean``,
 ``pca.explained_variance`` (see the ``pca`` codec) and ``ae.<layer>.weight`` / ``ae.<layer>.bias`` (see the
 ``ae`` codec). These codecs are not prefix-ordered.
 
-Both parts come from the public registry (``sdfcodec.get_codec("pca" | "ae")``), as any third-party mixture
-would build them.
+Both parts come from the public registry (``sdfcodec.get_codec("pca" | "ae")``,
+``sdfcodec.pretrained_codec``), as any third-party mixture would build them: this plugin never imports
+another. Shipped weights: the parallel 64 + 64 pairs the shipped eigenshapes with the shipped AE-64; the
+sequential 64 + 64 is ``models/sequential-64-64.npz`` in this package. ``pretrained()`` serves both.
 """
 
 from __future__ import annotations
@@ -46,12 +48,15 @@ import torch
 
 import sdfcodec
 from sdfcodec import Codec
-from sdfcodec.errors import InvalidValueError, ShapeError
+from sdfcodec.errors import InvalidValueError, SDFCodecError, ShapeError
+from sdfcodec.plugin import TrainableCodec, get_codec_class, load_shipped_model, pretrained_codec, register_bench
 
 __all__ = ["ParallelCodec", "SequentialCodec", "weight_stats", "parallel_weight", "sequential_weight",
-           "default_parallel", "default_sequential"]
+           "default_parallel", "default_sequential", "SHIPPED_SEQUENTIAL"]
 
 _N = 16 ** 3
+SHIPPED_SEQUENTIAL = "sequential-64-64.npz"  # in this package's models/
+UNTRAINED = "untrained (random init; speed does not depend on the values)"
 _EPS = 1e-12  # |p - a|^2 (or |a|^2) below this: the parts agree, any w gives the same block
 
 
@@ -101,7 +106,7 @@ def weight_stats(codes: Any, tol: float = 1e-6) -> dict[str, float]:
             "mean": float(w.mean()) if len(w) else math.nan, "median": float(np.median(w)) if len(w) else math.nan}
 
 
-class _Mixture(Codec):
+class _Mixture(TrainableCodec):
     """Shared machinery of :class:`ParallelCodec` and :class:`SequentialCodec` (see the module docstring).
 
     Parameters
@@ -124,6 +129,7 @@ class _Mixture(Codec):
     requires_fit = True
     code_sizes = (129,)
     _ae_output: ClassVar[str]
+    _shipped_phrase: ClassVar[str]  # where the shipped 64 + 64's weights come from, for benchmark records
 
     def __init__(self, pca_size: int = 64, ae_size: int = 64, weight: str | float = "block",
                  pca: str = "default", hidden: int = 512, training: dict | None = None):
@@ -191,15 +197,10 @@ class _Mixture(Codec):
 
     def _pca_part(self, blocks: np.ndarray | None) -> Codec:
         if self.pca == "default":
-            from sdfcodec.models import default_codec
-
-            return default_codec("pca", self.pca_size)
+            return pretrained_codec("pca", self.pca_size)
         if blocks is None:
             raise InvalidValueError(f"{self.codec_id} with pca='fit' needs training blocks")
         return self._new_pca().fit(blocks)
-
-    def _fit(self, blocks: np.ndarray) -> None:
-        self.fit_validated(blocks)
 
     def fit_validated(self, train: Any, validation: Any | None = None, *, checkpoint: str | Path | None = None,
                       resume: bool = False, report: str | Path | None = None, progress: bool | None = None,
@@ -224,24 +225,31 @@ class _Mixture(Codec):
         self.history_ = ae.history_
         return self
 
-    def fit_dataset(self, dataset: Any, *, max_train: int | None = None, **kwargs: Any) -> "_Mixture":
-        """Train on a :class:`sdfcodec.dataset.Dataset` (``train`` split, early stopping on ``validation``)."""
-        return self.fit_validated(dataset.load("train", max_train), dataset.load("validation"), **kwargs)
-
     def write_training_report(self, prefix: str | Path) -> list[Path]:
-        """Learning curves of the autoencoder part's last fit (see :meth:`sdfcodec_ae.AECodec.write_training_report`)."""
+        """Learning curves of the autoencoder part's last fit (the ``ae`` codec's ``write_training_report``)."""
         return self.ae_.write_training_report(prefix)
 
     @classmethod
-    def shipped(cls, code_size: int | None = None, weight: str | float = "block") -> "_Mixture":
-        """The shipped 64 + 64 model. ``code_size``: None, 64 (the size of each part), or the full code size
-        (129 with ``weight="block"``, 128 with a fixed weight)."""
+    def pretrained(cls, code_size: int | None = None, weight: str | float = "block", **options: Any) -> "_Mixture":
+        """The shipped 64 + 64 model with mixing ``weight``. ``code_size``: None, 64 (the size of each part), or
+        the full code size (129 with ``weight="block"``, 128 with a fixed weight). A fresh codec each call.
+
+        Raises:
+            InvalidValueError: another size, or unknown options.
+            ModelNotFoundError: a shipped model file is not installed.
+        """
         full = 64 + 64 + int(weight == "block")
         if code_size not in (None, 64, full):
             raise InvalidValueError(f"only {cls.codec_id} 64 + 64 is shipped (code size {full} with weight="
                                     f"{weight!r}), not code size {code_size}; train other sizes with "
                                     f"sdfcodec.get_codec({cls.codec_id!r}, pca_size=..., ae_size=...).fit(...)")
-        return default_parallel(weight) if cls.codec_id == "parallel" else default_sequential(weight)
+        if options:
+            raise InvalidValueError(f"the shipped {cls.codec_id} 64 + 64 takes only weight=, got {sorted(options)}")
+        return cls._shipped_model(weight)
+
+    @classmethod
+    def _shipped_model(cls, weight: str | float) -> "_Mixture":
+        raise NotImplementedError
 
     def _ae_inputs(self, pca_codec: Codec, blocks: np.ndarray) -> np.ndarray:
         """What the autoencoder part trains on: the blocks (parallel) or their PCA residuals (sequential)."""
@@ -265,37 +273,6 @@ class _Mixture(Codec):
             parts[head][rest] = v
         return self._set_parts(self._new_pca().load_state_dict(parts["pca"]),
                                self._new_ae().load_state_dict(parts["ae"]))
-
-    # -- benchmark hooks (sdfcodec.bench) -----------------------------------------------------------
-    @classmethod
-    def bench_instance(cls, code_size: int = 64, weight: str | float = "block") -> tuple["_Mixture", str]:
-        """For ``sdfcodec bench``: a ready ``code_size + code_size`` mixture without training. At 64 the
-        shipped model when installed; else the shipped eigenshapes' first ``code_size`` components beside an
-        untrained autoencoder of the paper's shapes (speed does not depend on the values). Returns the codec
-        and where its weights come from."""
-        from sdfcodec.errors import SDFCodecError
-        from sdfcodec.models import default_codec
-        from sdfcodec_ae.bench import UNTRAINED, random_ae
-
-        if code_size == 64:
-            try:
-                shipped = "sequential-64-64.npz" if cls.codec_id == "sequential" else "eigenshapes + ae-64.npz"
-                return cls.shipped(weight=weight), f"shipped ({shipped})"
-            except SDFCodecError:
-                pass
-        ae = random_ae(code_size, 512, cls._ae_output)
-        mix = cls.from_parts(default_codec("pca", code_size), ae, weight=weight)
-        return mix, f"shipped eigenshapes; ae {UNTRAINED}"
-
-    def roofline_shapes(self, operation: str) -> list[tuple[int, int]]:
-        """For ``sdfcodec bench``: right-hand shapes of the matrix products of ``operation`` (the PCA part's
-        and the autoencoder's; see :mod:`sdfcodec_ae.bench` for the table)."""
-        kp, ka, h = self.pca_size, self.ae_size, self.hidden
-        p_enc, p_dec = [(_N, kp)], [(kp, _N)]
-        a_enc, a_dec = [(_N, h), (h, ka)], [(ka, h), (h, _N)]
-        if operation == "decode":
-            return p_dec + a_dec
-        return self._encode_shapes(p_enc, p_dec, a_enc, a_dec)
 
     def _encode_shapes(self, p_enc: list, p_dec: list, a_enc: list, a_dec: list) -> list:
         raise NotImplementedError
@@ -322,6 +299,11 @@ class ParallelCodec(_Mixture):
 
     codec_id = "parallel"
     _ae_output = "sigmoid"
+    _shipped_phrase = "shipped (eigenshapes + ae-64.npz)"
+
+    @classmethod
+    def _shipped_model(cls, weight: str | float) -> "ParallelCodec":
+        return default_parallel(weight)
 
     def _encode_shapes(self, p_enc: list, p_dec: list, a_enc: list, a_dec: list) -> list:
         return p_enc + a_enc + ((p_dec + a_dec) if self.per_block else [])
@@ -351,6 +333,11 @@ class SequentialCodec(_Mixture):
 
     codec_id = "sequential"
     _ae_output = "tanh"
+    _shipped_phrase = "shipped (sequential-64-64.npz)"
+
+    @classmethod
+    def _shipped_model(cls, weight: str | float) -> "SequentialCodec":
+        return default_sequential(weight)
 
     def _encode_shapes(self, p_enc: list, p_dec: list, a_enc: list, a_dec: list) -> list:
         return p_enc + p_dec + a_enc + (a_dec if self.per_block else [])
@@ -380,18 +367,45 @@ class SequentialCodec(_Mixture):
 # -- shipped 64 + 64 models -------------------------------------------------------------------------------
 def default_parallel(weight: str | float = "block") -> ParallelCodec:
     """The shipped parallel 64 + 64: the shipped eigenshapes (first 64) beside the shipped AE-64."""
-    from sdfcodec.models import default_codec
-    from sdfcodec_ae import default_ae
-
-    return ParallelCodec.from_parts(default_codec("pca", 64), default_ae(64), weight=weight)
+    return ParallelCodec.from_parts(pretrained_codec("pca", 64), pretrained_codec("ae", 64), weight=weight)
 
 
 def default_sequential(weight: str | float = "block") -> SequentialCodec:
-    """The shipped sequential 64 + 64 (``sdfcodec/models/sequential-64-64.npz``: the shipped eigenshapes' first
-    64 and a tanh AE-64 trained on their residuals)."""
-    from sdfcodec_ae import shipped_model_path
-
-    base = sdfcodec.load_model(shipped_model_path("sequential-64-64.npz"))
+    """The shipped sequential 64 + 64 (``models/sequential-64-64.npz`` in this package: the shipped
+    eigenshapes' first 64 and a tanh AE-64 trained on their residuals)."""
+    base = load_shipped_model(__name__, SHIPPED_SEQUENTIAL)
     cfg = {k: v for k, v in base.get_config().items() if k != "id"}
     cfg["weight"] = weight
     return SequentialCodec(**cfg).load_state_dict(base.state_dict())
+
+
+# -- benchmark registration (spec/codec-plugins.md, section 5; the table is in sdfcodec_ae.bench) ------------
+def _bench_instance(cls: type[_Mixture]) -> Any:
+    def build(code_size: int = 64, weight: str | float = "block") -> tuple[_Mixture, str]:
+        """A ready ``code_size + code_size`` mixture without training: at 64 the shipped model when installed;
+        else the shipped eigenshapes' first ``code_size`` components beside an untrained autoencoder of the
+        paper's shapes (speed does not depend on the values)."""
+        if code_size == 64:
+            try:
+                return cls.pretrained(weight=weight), cls._shipped_phrase
+            except SDFCodecError:
+                pass
+        ae = get_codec_class("ae").untrained(code_size, 512, cls._ae_output)  # type: ignore[attr-defined]
+        mix = cls.from_parts(pretrained_codec("pca", code_size), ae, weight=weight)
+        return mix, f"shipped eigenshapes; ae {UNTRAINED}"
+    return build
+
+
+def _roofline(codec: Codec, operation: str) -> list[tuple[int, int]]:
+    """Right-hand shapes of the matrix products of ``operation``: the PCA part's and the autoencoder's."""
+    assert isinstance(codec, _Mixture)
+    kp, ka, h = codec.pca_size, codec.ae_size, codec.hidden
+    p_enc, p_dec = [(_N, kp)], [(kp, _N)]
+    a_enc, a_dec = [(_N, h), (h, ka)], [(ka, h), (h, _N)]
+    if operation == "decode":
+        return p_dec + a_dec
+    return codec._encode_shapes(p_enc, p_dec, a_enc, a_dec)
+
+
+for _cls in (ParallelCodec, SequentialCodec):
+    register_bench(_cls, instance=_bench_instance(_cls), roofline_shapes=_roofline)

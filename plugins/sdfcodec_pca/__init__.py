@@ -17,6 +17,11 @@ distances equal reconstruction distances (what descriptor search relies on), as 
 Both are affine maps, so encode and decode are each one batched matrix product (``torch.addmm``) on the
 input's device. Components are sorted by explained variance, so any code prefix decodes
 (``prefix_ordered``): the first 32 of a 128-slot code give a 32-slot reconstruction.
+
+Shipped weights: ``models/pca-128.npz`` in this package, the default eigenshapes (128 principal components of
+normalised 16^3 blocks at voxel size 0.02 m, truncation [-0.04, 0.1] m), trained by ``make default-model``
+(``examples/train_default_model.py``) on synthetic blocks plus real sub-volumes fused from 7-Scenes
+redkitchen. :meth:`PCACodec.pretrained` serves them; its prefixes serve pca-1 .. pca-128.
 """
 
 from __future__ import annotations
@@ -29,12 +34,13 @@ from scipy.linalg import eigh
 from sklearn.decomposition import PCA
 
 from sdfcodec import Codec
-from sdfcodec.codec import empty
 from sdfcodec.errors import InvalidValueError, ShapeError
+from sdfcodec.plugin import empty, load_shipped_model
 
-__all__ = ["PCACodec"]
+__all__ = ["PCACodec", "SHIPPED_MODEL"]
 
 _N = 16 ** 3
+SHIPPED_MODEL = "pca-128.npz"  # in this package's models/
 
 
 class PCACodec(Codec):
@@ -83,7 +89,7 @@ class PCACodec(Codec):
         self.load_state_dict({"components": pca.components_, "mean": pca.mean_,
                               "explained_variance": pca.explained_variance_})
 
-    def _fit_stream(self, batches: Iterator[np.ndarray]) -> None:
+    def fit_batches(self, batches: Iterator[np.ndarray]) -> None:
         """One pass over the data accumulating the mean and the 4096 x 4096 second moment (float64), then the
         top eigenvectors of the covariance: exact PCA (as sklearn's full SVD) in bounded memory (~260 MB)."""
         n_comp = self._n_components()
@@ -130,7 +136,7 @@ class PCACodec(Codec):
         self.components_, self.mean_, self.explained_variance_ = comp, mean, var
         self._affine = self._build_affine()
         dec_w, dec_b = self._affine[2].astype(np.float64), self._affine[3].astype(np.float64)
-        # |x_j| <= sum_i |code_i| max_j |D_ij| + max_j |d_j|: what _decode_bound evaluates per batch
+        # |x_j| <= sum_i |code_i| max_j |D_ij| + max_j |d_j|: what decode_bound evaluates per batch
         self._row_max, self._bias_max = np.abs(dec_w).max(axis=1), float(np.abs(dec_b).max())
         self._device_cache: dict[Any, tuple[Any, ...]] = {}
         return self
@@ -186,15 +192,33 @@ class PCACodec(Codec):
         return out.load_state_dict({"components": self.components_[:c], "mean": self.mean_,
                                     "explained_variance": self.explained_variance_[:c]})
 
+    @classmethod
+    def pretrained(cls, code_size: int | None = None, **options: Any) -> "PCACodec":
+        """The shipped eigenshapes (``models/pca-128.npz``) cut to their first ``code_size`` components
+        (None: 64; 1..128); a fresh codec each call. ``options`` must be empty (the shipped basis fixes them).
+
+        Raises:
+            InvalidValueError: ``code_size`` outside 1..128, or options given.
+            ModelNotFoundError: the model file is not installed.
+        """
+        if options:
+            raise InvalidValueError(f"the shipped PCA model takes no options, got {sorted(options)}")
+        base = load_shipped_model(__name__, SHIPPED_MODEL)
+        k = 64 if code_size is None else code_size
+        if not 1 <= k <= base.code_size:
+            raise InvalidValueError(f"the shipped PCA model has {base.code_size} components; code_size must be in "
+                                    f"1..{base.code_size}, got {k} (train a larger one with `sdfcodec train`)")
+        return base.prefix(k)
+
     # -- encode / decode: one affine map each ---------------------------------------------------------
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
         enc_w, enc_b, _, _ = self._on(blocks.device)
         return torch.addmm(enc_b, blocks.reshape(len(blocks), _N), enc_w)
 
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
-        return self._decode_affine(codes, 1.0, 0.0)
+        return self.decode_affine(codes, 1.0, 0.0)
 
-    def _decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
+    def decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
         # the output scaling (map readers: normalised -> metres) is folded into the decode layer: no extra pass
         n, k = codes.shape
         dec = self._decoder(codes.device, scale, offset)
@@ -209,7 +233,7 @@ class PCACodec(Codec):
         out = empty((n, _N), codes.device)
         return torch.addmm(dec_b, codes, dec_w[:k], out=out).reshape(n, 16, 16, 16)
 
-    def _decode_bound(self, codes: torch.Tensor) -> float:
+    def decode_bound(self, codes: torch.Tensor) -> float:
         # max |code| * sum_i max_j |D_ij| + max |d|: one min/max pass over the codes, no temporaries
         if not len(codes):
             return 0.0

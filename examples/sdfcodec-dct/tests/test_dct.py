@@ -1,21 +1,22 @@
-"""The plugin runs sdfcodec's public conformance suite, as every codec plugin must."""
+"""The plugin runs sdfcodec's public conformance suite, one test per named check, as every codec plugin must."""
 
 from pathlib import Path
 
 import numpy as np
-import pytest
 from scipy.fft import dctn
 
 import sdfcodec
-from sdfcodec.testing import analytic_blocks, check_codec
+from sdfcodec.testing import analytic_blocks, parametrize_codec_checks
 
 GOLDEN = Path(__file__).parent / "golden"
+SIZES = (32, 128)
 
 
-@pytest.mark.parametrize("code_size", [32, 128])
-def test_conformance(code_size):
-    # the golden fixtures were written once (regen_golden=True) and are checked in: they freeze the format
-    check_codec(sdfcodec.get_codec("dct", code_size=code_size), golden=GOLDEN / f"dct-{code_size}")
+# the golden fixtures were written once (pytest --regen-golden) and are checked in: they freeze the format
+@parametrize_codec_checks([sdfcodec.get_codec("dct", code_size=k) for k in SIZES],
+                          golden=[GOLDEN / f"dct-{k}" for k in SIZES])
+def test_conformance(codec, check, regen_golden):
+    check(codec, regen_golden=regen_golden)
 
 
 def test_codes_are_scipy_dct_coefficients():

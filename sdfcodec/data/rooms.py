@@ -1,0 +1,279 @@
+"""Synthetic labelled rooms: furnished rooms sampled as TSDFs with exact distances and analytic per-block
+labels (which blocks hold floor, which face up), for retrieval experiments with known ground truth
+(:func:`sdfcodec.search.evaluate_retrieval`, ``docs/search.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Sequence
+
+import numpy as np
+
+from .._validate import BLOCK
+from ..errors import InvalidValueError
+from ..geometry import rot_x, rot_z
+
+__all__ = ["LabelledRoom", "synthetic_room"]
+
+
+@dataclass
+class LabelledRoom:
+    """A synthetic room TSDF with analytic ground truth (from :func:`synthetic_room`).
+
+    Attributes
+    ----------
+    volume : np.ndarray
+        ``(X, Y, Z)`` float32 metres, truncated; voxel ``(i, j, k)`` at ``origin + voxel_size * (i, j, k)``.
+    origin : np.ndarray
+        ``(3,)`` float64 metres (use it as the map's origin).
+    voxel_size : float
+    truncation : tuple of float
+    scene : sdfcodec.data.render.RoomScene
+        The room's exact primitives, posed in the same world frame, with labels (floor, wall, ceiling,
+        furniture).
+    rotation : np.ndarray
+        ``(3, 3)`` room-to-world rotation (yaw, then tilt); the room's interior is
+        ``rotation @ [0, size]`` per axis.
+    size : tuple of float
+        Interior extent metres (room frame).
+    up : np.ndarray
+        ``(3,)`` the room's up direction in the world (``rotation @ z``).
+    behind : str
+        How voxels behind surfaces were stored (see the :mod:`sdfcodec.search` docstring).
+    """
+
+    volume: np.ndarray
+    origin: np.ndarray
+    voxel_size: float
+    truncation: tuple[float, float]
+    scene: Any
+    rotation: np.ndarray
+    size: tuple[float, float, float]
+    up: np.ndarray
+    behind: str
+
+    _OBSERVED_MARGIN = 0.15  # metres beyond the interior still observed (inside the 0.2 m slabs)
+
+    def observed(self, points: np.ndarray) -> np.ndarray:
+        """``(...)`` bool: points inside the room's observed region (interior plus 0.15 m, within the slabs)."""
+        local = np.asarray(points, dtype=np.float64) @ self.rotation  # world -> room frame (R^T p)
+        mg = self._OBSERVED_MARGIN
+        return np.all((local >= -mg) & (local <= np.asarray(self.size) + mg), axis=-1)
+
+    def block_labels(self, coords: np.ndarray, up_tolerance_deg: float = 20.0) -> dict:
+        """Per block, what its surface is: fractions of its *surface voxels* (voxels within one voxel of the
+        exact surface, so that both blocks on either side of a surface that passes between them count it: a
+        mesh of that surface needs both) that are
+
+        ``"floor"``
+            nearest to the floor primitive (``RoomScene.floor_blocks``'s definition);
+        ``"up"``
+            on an upward-facing surface (the exact SDF's gradient within ``up_tolerance_deg`` of ``up``):
+            the floor and the tops of furniture (tables, cabinets, cylinders) alike.
+
+        Also ``"floor_cover"`` and ``"up_cover"``: the fraction of the block's 256 columns (along the grid
+        axis nearest ``up``) holding such a surface voxel, and ``"surface_voxels"``: the count. Blocks without
+        surface voxels get fractions 0.
+
+        Parameters
+        ----------
+        coords : np.ndarray
+            ``(N, 3)`` int block indices.
+
+        Returns
+        -------
+        dict of str to np.ndarray
+            ``(N,)`` float32 fractions (``"floor"``, ``"up"``, ``"floor_cover"``, ``"up_cover"``) and int64
+            counts (``"surface_voxels"``).
+        """
+        from .render import LABELS
+
+        coords = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
+        vs = self.voxel_size
+        band = vs
+        n = len(coords)
+        # the volume holds the exact distance wherever it is within the truncation, so surface voxels come
+        # from it; only they are evaluated primitive by primitive (nearest label, gradient)
+        pad = [(0, (-s) % BLOCK) for s in self.volume.shape]
+        vol = np.pad(self.volume, pad, constant_values=self.truncation[1])
+        g = [s // BLOCK for s in vol.shape]
+        view = vol.reshape(g[0], BLOCK, g[1], BLOCK, g[2], BLOCK).transpose(0, 2, 4, 1, 3, 5)
+        blk = view[tuple(coords.T)].reshape(n, -1)  # (n, 4096)
+        surf = np.abs(blk) <= band
+        which, vox = np.nonzero(surf)
+        local = np.stack(np.unravel_index(vox, (BLOCK,) * 3), -1)
+        pts = self.origin + vs * (BLOCK * coords[which] + local).astype(np.float64)  # (S, 3)
+        prim_label = np.array([LABELS.index(lab) for lab in self.scene.labels])
+        h = 0.25 * vs
+        reach = band + 2 * h  # surface points and their gradient stencils are this close to their surface
+        _, nearest = _union_at(self.scene.primitives, pts, reach)
+        is_floor = prim_label[nearest] == LABELS.index("floor")
+        grad = np.zeros_like(pts)
+        for ax in range(3):  # the exact SDF's gradient, central differences a quarter voxel apart
+            e = np.zeros(3)
+            e[ax] = h
+            grad[:, ax] = (_union_at(self.scene.primitives, pts + e, reach)[0]
+                           - _union_at(self.scene.primitives, pts - e, reach)[0]) / (2 * h)
+        upward = grad @ self.up >= math.cos(math.radians(up_tolerance_deg)) * np.maximum(np.linalg.norm(grad, axis=1),
+                                                                                           1e-12)
+        n_surf = np.bincount(which, minlength=n)
+        denom = np.maximum(n_surf, 1)
+        axis = int(np.argmax(np.abs(self.up)))
+        col = np.delete(local, axis, axis=1) @ np.array([BLOCK, 1])  # column index 0..255 across the up axis
+
+        def cover(mask: np.ndarray) -> np.ndarray:
+            cells = np.unique(which[mask] * BLOCK * BLOCK + col[mask])
+            return (np.bincount(cells // (BLOCK * BLOCK), minlength=n) / (BLOCK * BLOCK)).astype(np.float32)
+
+        return {"floor": (np.bincount(which, weights=is_floor, minlength=n) / denom).astype(np.float32),
+                "up": (np.bincount(which, weights=upward, minlength=n) / denom).astype(np.float32),
+                "floor_cover": cover(is_floor), "up_cover": cover(upward), "surface_voxels": n_surf.astype(np.int64)}
+
+
+def _aabb(prim) -> tuple[np.ndarray, np.ndarray] | None:
+    """World bounding box ``(lo, hi)`` of a Box/Cylinder/Sphere primitive (None for others)."""
+    from ..sdf import Box, Cylinder, Sphere
+
+    c = np.asarray(prim.center, np.float64)
+    if isinstance(prim, Sphere):
+        return c - prim.radius, c + prim.radius
+    if isinstance(prim, Box):
+        half = np.asarray(prim.half, np.float64)
+    elif isinstance(prim, Cylinder):
+        half = np.array([prim.radius, prim.radius, prim.half_height])
+    else:
+        return None
+    ext = half if prim.rotation is None else np.abs(np.asarray(prim.rotation, np.float64)) @ half
+    return c - ext, c + ext
+
+
+def _union_at(primitives: Sequence, points: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Union distance ``(S,)`` and index of the nearest primitive ``(S,)`` at points ``(S, 3)``, evaluating each
+    primitive only at points within ``reach`` of its bounding box (exact wherever the union is below
+    ``reach``; ``+inf`` and index 0 where no primitive is that close)."""
+    d = np.full(len(points), np.inf)
+    idx = np.zeros(len(points), np.int64)
+    for k, prim in enumerate(primitives):
+        box = _aabb(prim)
+        sel = (np.flatnonzero(np.all((points >= box[0] - reach) & (points <= box[1] + reach), axis=1))
+               if box is not None else np.arange(len(points)))
+        if not len(sel):
+            continue
+        dk = prim(points[sel])
+        closer = dk < d[sel]
+        d[sel[closer]] = dk[closer]
+        idx[sel[closer]] = k
+    return d, idx
+
+
+def _sample_union(primitives: Sequence, shape: tuple[int, int, int], voxel_size: float, origin: np.ndarray,
+                  reach: float) -> np.ndarray:
+    """Union (minimum) distance of primitives on a lattice, metres float32, evaluating each primitive only
+    within ``reach`` metres of its bounding box: elsewhere it cannot bring the union below ``reach`` (the
+    distances are 1-Lipschitz), and the result there is ``+inf``."""
+    from ..sdf import grid_points
+
+    d = np.full(shape, np.inf, np.float32)
+    for prim in primitives:
+        box = _aabb(prim)
+        if box is None:
+            lo_i, hi_i = np.zeros(3, int), np.asarray(shape)
+        else:
+            lo_i = np.clip(np.floor((box[0] - reach - origin) / voxel_size).astype(int), 0, shape)
+            hi_i = np.clip(np.ceil((box[1] + reach - origin) / voxel_size).astype(int) + 1, 0, shape)
+        if np.any(hi_i <= lo_i):
+            continue
+        for x0 in range(lo_i[0], hi_i[0], BLOCK):  # slabs of x: bounded memory
+            x1 = min(x0 + BLOCK, hi_i[0])
+            sub = (slice(x0, x1), slice(lo_i[1], hi_i[1]), slice(lo_i[2], hi_i[2]))
+            pts = grid_points((x1 - x0, hi_i[1] - lo_i[1], hi_i[2] - lo_i[2]), voxel_size,
+                              origin + voxel_size * np.array([x0, lo_i[1], lo_i[2]]))
+            np.minimum(d[sub], prim(pts).astype(np.float32), out=d[sub])
+    return d
+
+
+def _pose(prim, rot: np.ndarray):
+    """A primitive of :mod:`sdfcodec.sdf` rotated about the world origin by ``rot``."""
+    from ..sdf import Box, Cylinder, Sphere
+
+    if isinstance(prim, (Box, Cylinder)):
+        r = rot if prim.rotation is None else rot @ np.asarray(prim.rotation, np.float64)
+        return replace(prim, center=tuple(rot @ np.asarray(prim.center, np.float64)), rotation=r)
+    if isinstance(prim, Sphere):
+        return replace(prim, center=tuple(rot @ np.asarray(prim.center, np.float64)))
+    raise InvalidValueError(f"cannot pose a {type(prim).__name__}")
+
+
+def synthetic_room(seed: int = 0, *, geometry: str = "normal", size: Sequence[float] | None = None,
+                   voxel_size: float = 0.02, truncation: tuple[float, float] = (-0.04, 0.1), tilt_deg: float = 0.0,
+                   yaw: bool = True, behind: str = "unobserved") -> LabelledRoom:
+    """A furnished room (``sdfcodec.data.render.room_scene`` with a ceiling) sampled as a TSDF with exact
+    distances, randomly posed, for retrieval experiments with known labels.
+
+    The floor lands at a random height inside its blocks (the grid's origin is shifted by a random fraction
+    of a block), the room is turned by a random yaw about ``z`` (when ``yaw``) and tilted by an angle uniform
+    in ``[0, tilt_deg]`` about a random horizontal axis. Voxels behind surfaces follow ``behind``; so do those
+    outside the room's observed region (more than 0.15 m beyond its interior): free space ``d_max`` for
+    ``"unobserved"`` (the unobserved space around a fused room), solid ``d_min`` for ``"solid"`` (the room is
+    a cavity in solid ground).
+
+    Parameters
+    ----------
+    seed : int
+        Deterministic seed (furniture, size, pose).
+    geometry : {"poor", "normal", "rich"}
+        Furniture (see ``room_scene``): a table and 4 boxes/cylinders for "normal"; 10 pieces including
+        rotated boxes, lying cylinders and balls for "rich".
+    size : sequence of 3 floats, optional
+        Interior metres; default uniform in ``[3, 5] x [3, 4.2] x [2.3, 2.8]``.
+    voxel_size, truncation :
+        Metres.
+    tilt_deg : float
+        Largest tilt of the room's up direction from the grid's ``+z``, degrees.
+    yaw : bool
+        Random rotation about ``z``.
+    behind : {"unobserved", "solid"}
+
+    Returns
+    -------
+    LabelledRoom
+    """
+    from ..sdf import grid_points
+    from ..search.shapes import BEHIND, truncate  # here: sdfcodec.search imports this module
+    from .render import RoomScene, room_scene
+
+    if behind not in BEHIND:
+        raise InvalidValueError(f"behind must be one of {BEHIND}, got {behind!r}")
+    rng = np.random.default_rng([seed, 7])
+    if size is None:
+        size = (rng.uniform(3.0, 5.0), rng.uniform(3.0, 4.2), rng.uniform(2.3, 2.8))
+    size = tuple(float(s) for s in size)
+    keep_out = max(0.0, min(1.15, (min(size[:2]) - 0.4) / 2 - 0.01))
+    room = room_scene(seed, geometry=geometry, ceiling=True, size=size, keep_out=keep_out)
+    rot = rot_z(rng.uniform(0, 2 * math.pi)) if yaw else np.eye(3)
+    if tilt_deg > 0:
+        axis_angle = rng.uniform(0, 2 * math.pi)
+        tilt = rng.uniform(0.0, tilt_deg)
+        rot = rot_z(axis_angle) @ rot_x(math.radians(tilt)) @ rot_z(-axis_angle) @ rot
+    posed = RoomScene([_pose(p, rot) for p in room.primitives], list(room.labels), room.size, room.seed, room.geometry)
+    mg = LabelledRoom._OBSERVED_MARGIN
+    corners = np.array([[x, y, z] for x in (-mg, size[0] + mg) for y in (-mg, size[1] + mg)
+                        for z in (-mg, size[2] + mg)]) @ rot.T
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    origin = lo - rng.uniform(0, BLOCK * voxel_size, 3)  # the floor at a random height within its block
+    shape = tuple(int(n) for n in np.ceil((hi - origin) / voxel_size) + 1)
+    lab = LabelledRoom(volume=np.empty(shape, np.float32), origin=origin, voxel_size=float(voxel_size),
+                       truncation=tuple(truncation), scene=posed, rotation=rot, size=size, up=rot[:, 2].copy(),
+                       behind=behind)
+    raw = _sample_union(posed.primitives, shape, voxel_size, origin, reach=truncation[1] + voxel_size)
+    for x0 in range(0, shape[0], BLOCK):  # slabs of x: bounded memory
+        n = min(BLOCK, shape[0] - x0)
+        pts = grid_points((n, shape[1], shape[2]), voxel_size, origin + np.array([x0 * voxel_size, 0.0, 0.0]))
+        d = truncate(raw[x0:x0 + n], truncation, behind)  # +inf (far from every surface) becomes d_max
+        # beyond the room's slabs: never observed (free, like a fused map) or, for solid scenes, the room is
+        # a cavity in solid ground (the slabs' far sides would otherwise be more surfaces)
+        d[~lab.observed(pts)] = truncation[1] if behind == "unobserved" else truncation[0]
+        lab.volume[x0:x0 + n] = d
+    return lab

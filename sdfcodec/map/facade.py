@@ -1,0 +1,413 @@
+"""The map as users see it: :class:`Map` (read and write one map), :func:`open_map`, :func:`create_map` and
+:func:`update_map`. ``Map`` holds a :class:`~sdfcodec.map.reader.MapReader` (``Map.reader``) and, while
+being written, a :class:`~sdfcodec.map.writer.MapWriter` (``Map.writer``), and delegates to them.
+
+The format, crash safety and the limits on untrusted maps: ``sdfcodec.map`` and spec/map-format.md.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+import torch
+import zarr
+import zarr.abc.store
+
+from .._validate import BLOCK
+from ..codec import Codec
+from ..errors import InvalidValueError, ReadOnlyError
+from ..header import MapHeader
+from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
+from .reader import CodecCache, MapReader, open_reader
+from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
+
+__all__ = ["Map", "open_map", "create_map", "update_map"]
+
+
+class Map:
+    """An open sdfcodec map. Get one from :func:`open_map` (read) or :func:`create_map` (write).
+
+    Geometry: voxel ``(i, j, k)`` lies at world position ``origin + voxel_size * (i, j, k)``; block
+    ``(bx, by, bz)`` covers voxels ``[16 bx, 16 bx + 16)`` on each axis. Decoded values are metres.
+
+    ``reader`` (:class:`~sdfcodec.map.reader.MapReader`) reads and decodes; ``writer`` is the
+    :class:`~sdfcodec.map.writer.MapWriter` of a map being written (ReadOnlyError otherwise).
+    """
+
+    def __init__(self, group: zarr.Group, header: MapHeader, location: str, *,
+                 max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES):
+        self.reader = MapReader(group, header, location, max_decode_bytes=max_decode_bytes)
+        self._writer: MapWriter | None = None
+        self._close_on_exit = False
+
+    @classmethod
+    def _of(cls, reader: MapReader, writer: MapWriter | None = None) -> "Map":
+        m = cls.__new__(cls)
+        m.reader, m._writer, m._close_on_exit = reader, writer, False
+        return m
+
+    # -- what the map is ------------------------------------------------------------------------------
+    @property
+    def header(self) -> MapHeader:
+        return self.reader.header
+
+    @property
+    def location(self) -> str:
+        return self.reader.location
+
+    @property
+    def max_decode_bytes(self) -> int:
+        return self.reader.max_decode_bytes
+
+    @property
+    def voxel_size(self) -> float:
+        return self.header.voxel_size
+
+    @property
+    def truncation(self) -> tuple[float, float]:
+        return self.reader.truncation
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        return self.header.origin
+
+    @property
+    def shape_voxels(self) -> tuple[int, int, int]:
+        return self.header.shape_voxels
+
+    @property
+    def grid_blocks(self) -> tuple[int, int, int]:
+        return self.header.grid_blocks
+
+    @property
+    def code_size(self) -> int:
+        return self.header.codes.size
+
+    @property
+    def writable(self) -> bool:
+        return self._writer is not None
+
+    @property
+    def writer(self) -> MapWriter:
+        """The writer of a map being written (from :func:`create_map` or :func:`update_map`)."""
+        if self._writer is None:
+            raise ReadOnlyError(f"{self.location} is open read-only; write with sdfcodec.create_map(...)")
+        return self._writer
+
+    @property
+    def codec(self) -> Codec:
+        """The codec that wrote the map, with its learned state (loaded on first use).
+
+        Raises:
+            UnknownCodecError: its plugin is not installed (names the id and the package to install).
+        """
+        return self.reader.codec
+
+    def with_store(self, wrap: Callable[[zarr.abc.store.Store], zarr.abc.store.Store]) -> "Map":
+        """The same map re-opened read-only over ``wrap(store)`` (``store``: the one this map reads through),
+        e.g. a store that counts the keys read. It shares the header, the limits and the codec cache (a codec
+        loaded through either map is then loaded for both); closing it leaves this map open. A map being
+        written raises InvalidValueError (commit it first)."""
+        return Map._of(self.reader.with_store(wrap))
+
+    # -- reading --------------------------------------------------------------------------------------
+    def block_states(self) -> np.ndarray:
+        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
+        return self.reader.block_states()
+
+    def count_states(self) -> dict[str, int]:
+        return self.reader.count_states()
+
+    def read_codes(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Codes of the coded blocks touching ``region``.
+
+        Returns:
+            ``coords`` ``(N, 3)`` int64 block indices and ``codes`` ``(N, L)`` float32, ``L = level or D``.
+            Only the chunks holding the first ``L`` code elements are read.
+        """
+        return self.reader.read_codes(region, units=units, level=level)
+
+    def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
+                   ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Yield ``(coords (n, 3) int64, codes (n, L) float32)`` for every coded block, ``chunks_per_batch``
+        chunks of the block grid at a time (bounded memory), in grid order; only the chunks holding the first
+        ``L = level or D`` elements are read, and the next ``prefetch`` batches are read ahead concurrently."""
+        return self.reader.iter_codes(level=level, chunks_per_batch=chunks_per_batch, prefetch=prefetch)
+
+    def iter_decoded(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
+                     device: str | torch.device | None = None, batch_blocks: int = 8192, prefetch: int = 2
+                     ) -> Iterator[tuple[np.ndarray, Any]]:
+        """Decode on read: yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) float32 metres)`` for every coded
+        block touching ``region`` (default: the whole map), a group of chunks at a time, in grid order.
+
+        This is the pipeline every decoding reader uses (:meth:`iter_blocks`, :meth:`decode_region`,
+        :meth:`to_dask`): the chunks holding coded blocks are grouped (consecutive chunks until they hold about
+        ``batch_blocks`` blocks, capped by ``max_decode_bytes``); while the calling thread decodes one group
+        in a single batched call, ``prefetch`` worker threads fetch the next groups (each group's chunks
+        concurrently through Zarr's async I/O: local files, HTTP or S3 alike), decompress them and, when
+        ``device`` is CUDA, copy their codes into pinned host memory and start the host-to-device copy on a
+        side stream (non-blocking), so transfers overlap decoding. Empty and unobserved blocks are not
+        yielded (they decode to ``d_max``).
+
+        Args:
+            region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open voxels, or closed metres with ``units="m"``;
+                every coded block with a voxel in it is yielded, whole.
+            level: decode only the first ``level`` code elements (prefix-ordered codecs).
+            device: ``None``: decode on the CPU and yield numpy arrays; otherwise yield torch tensors on it.
+            batch_blocks: about how many blocks one decode call gets. prefetch: groups read ahead (0: none).
+
+        Values are metres, exactly as :meth:`iter_blocks` and :meth:`decode_region` give them; codecs with a
+        decode halo see their neighbours (decoded chunk by chunk, each with its neighbourhood).
+        """
+        return self.reader.iter_decoded(region, units=units, level=level, device=device, batch_blocks=batch_blocks,
+                                        prefetch=prefetch)
+
+    def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
+                    chunks_per_batch: int | None = None) -> Iterator[tuple[np.ndarray, Any]]:
+        """Yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) metres)`` for every coded block, a group of
+        chunks at a time (bounded memory): :meth:`iter_decoded` over the whole map. ``blocks`` is numpy, or a
+        tensor on ``device``. ``chunks_per_batch``: fixed number of chunks per group (default: about 8192
+        blocks per group). Codecs with a decode halo get their neighbours' context, as in :meth:`decode_region`."""
+        return self.reader.iter_blocks(level=level, device=device, chunks_per_batch=chunks_per_batch)
+
+    def to_dask(self, level: int | None = None):
+        """A lazy dask array of the decoded map: shape :attr:`shape_voxels`, float32 metres (``d_max`` where no
+        block is coded), one dask chunk per chunk of the code array (``16 * chunk_blocks`` voxels per axis),
+        each decoded on demand by :meth:`decode_region`. It pickles (a worker process reopens the map by its
+        path or URL), so it computes on a ``dask.distributed`` cluster. See :func:`sdfcodec.scale.map_to_dask`."""
+        from ..scale import map_to_dask  # dask is imported only by those who use it
+
+        return map_to_dask(self, level=level)
+
+    def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
+                      device: str | torch.device | None = None) -> Any:
+        """Decode a region to a dense TSDF in metres.
+
+        Args:
+            region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open, in voxels (default: the whole map) or, with
+                ``units="m"``, closed bounds in metres (the voxels whose centres lie inside).
+            level: decode only the first ``level`` code elements (prefix-ordered codecs only).
+            device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
+
+        Returns:
+            ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``. Codecs with
+            a decode halo (e.g. ``gaussian-blur``) see their neighbour blocks, so there are no seams.
+        """
+        return self.reader.decode_region(region, units=units, level=level, device=device)
+
+    def info(self) -> dict[str, Any]:
+        """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""
+        h = self.header
+        dense = int(np.prod(h.shape_voxels)) * 4
+        root = self.reader.local_root()
+        on_disk = _dir_bytes(root) if root is not None else None
+        state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
+        counts = self.count_states()
+        return {
+            "location": self.location,
+            "format_version": h.format_version,
+            "codec": h.codec.config,
+            "code_size": h.codes.size,
+            "code_dtype": h.codes.dtype,
+            "levels": h.codes.levels,
+            "voxel_size": h.voxel_size,
+            "truncation": [h.truncation.d_min, h.truncation.d_max],
+            "origin": list(h.origin),
+            "shape_voxels": list(h.shape_voxels),
+            "grid_blocks": list(h.grid_blocks),
+            "blocks": counts,
+            "code_bytes_raw": counts["coded"] * h.codes.stored_bytes(),
+            "bytes_on_disk": on_disk,
+            "dense_float32_bytes": dense,
+            "codec_state_bytes": state_bytes,
+            "ratio_dense_to_disk": (dense / on_disk) if on_disk else None,
+            # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
+            "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
+            "provenance": h.provenance.model_dump(),
+        }
+
+    @property
+    def has_weights(self) -> bool:
+        """True when the map stores fusion weights."""
+        return self.reader.has_weights
+
+    def read_weights(self, coords: Any) -> np.ndarray:
+        """Fusion weights ``(N, 16, 16, 16)`` float32 of blocks ``coords`` (0 where none were written)."""
+        return self.reader.read_weights(coords)
+
+    def close(self) -> None:
+        """Release the map: a read-only map lets go of the version it holds (a replaced version is removed once
+        its last reader closes it), and further reads raise. Dropping the object does the same. A map being
+        written must be committed or aborted first."""
+        if self._writer is not None:
+            raise InvalidValueError(f"{self.location} is being written: commit() or abort() it before close()")
+        self.reader.close()
+
+    # -- writing (maps from create_map / update_map) --------------------------------------------------
+    def write_volume(self, volume: Any, *, offset: Sequence[int] = (0, 0, 0), batch_size: int = 16384,
+                     progress: Callable[[int], None] | None = None) -> None:
+        """Encode a dense TSDF ``(X, Y, Z)`` in metres, placed at voxel ``offset`` (multiples of 16).
+
+        The map's extent grows to hold it (``shape_voxels`` records the true extent; the far faces are padded
+        with free space). Values outside the truncation are clipped with a warning; NaN/Inf are refused.
+
+        A dask array (e.g. ``dask.array.from_zarr`` of a volume larger than memory) is encoded chunk by chunk by
+        dask's scheduler, or a ``dask.distributed`` cluster if a client is active, each task writing its chunks
+        of codes into this map's temporary directory (:func:`sdfcodec.scale.write_volume_dask`).
+        """
+        w = self.writer
+        if is_dask_array(volume):
+            from ..scale import write_volume_dask
+
+            return write_volume_dask(self, volume, offset=offset)
+        # checked here, not in the writer: the clipping warning then names the caller's line
+        w.write_volume(check_volume(volume, self.truncation), offset=offset, batch_size=batch_size,
+                       progress=progress)
+
+    def write_blocks(self, coords: Any, blocks: Any, *, weights: Any = None, batch_size: int = 16384,
+                     progress: Callable[[int], None] | None = None) -> None:
+        """Encode blocks ``(N, 16, 16, 16)`` in metres at block indices ``coords`` ``(N, 3)`` (non-negative).
+
+        ``weights`` ``(N, 16, 16, 16)``, optional: per-voxel fusion weights (observation counts), stored
+        losslessly up to 2048 as float16 in the optional ``weights`` array (extension "fusion-weights").
+        """
+        w = self.writer
+        c = check_coords(coords)
+        b = check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
+        w.write_blocks(c, b, weights=weights, batch_size=batch_size, progress=progress)
+
+    def write_codes(self, coords: Any, codes: Any) -> None:
+        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords``."""
+        self.writer.write_codes(coords, codes)
+
+    def mark_empty(self, coords: Any) -> None:
+        """Record blocks as observed free space (no code stored)."""
+        self.writer.mark_empty(coords)
+
+    def commit(self) -> None:
+        """Finish writing and move the map into place atomically; the object then reads the committed map."""
+        final = self.writer.commit()
+        self._writer = None
+        self.reader = open_reader(final, max_decode_bytes=self.max_decode_bytes, cache=self.reader.cache)
+
+    def abort(self) -> None:
+        """Discard everything written; the previous map at the path (if any) is untouched."""
+        if self._writer is not None:
+            self._writer.abort()
+            self._writer = None
+
+    def __enter__(self) -> "Map":
+        # a map opened for reading is closed on leaving the block; one being written is committed (and stays
+        # open for reading, e.g. for info())
+        self._close_on_exit = self._writer is None
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._close_on_exit:
+            self.close()
+            return
+        if self._writer is None:
+            return
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+
+    def __repr__(self) -> str:
+        mode = "writing" if self._writer else "read-only"
+        return (f"<sdfcodec.Map {self.location!r} {mode} codec={self.header.codec.id}-{self.code_size} "
+                f"voxels={self.shape_voxels} voxel_size={self.voxel_size}>")
+
+
+def _writing(w: MapWriter) -> Map:
+    """The facade of a map being written: its reader reads the writer's arrays and block states."""
+    reader = MapReader(w.group, w.header, w.location, max_decode_bytes=w.max_state_bytes, cache=CodecCache(w.codec),
+                       live=w)
+    return Map._of(reader, w)
+
+
+def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
+               truncation: tuple[float, float] = (-0.04, 0.1), origin: Sequence[float] = (0.0, 0.0, 0.0),
+               shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
+               chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
+               device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None) -> Map:
+    """Start writing a new map at ``path`` (a local directory). Use as a context manager::
+
+        with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
+            m.write_volume(tsdf)          # metres, (X, Y, Z)
+
+    Everything is written to a hidden sibling directory and moved into place on commit (leaving the block
+    without an exception); on an exception, or if the process dies, nothing at ``path`` changes. Replacing a
+    map (``overwrite``) swaps the new version in atomically; readers of the old one keep reading it.
+
+    Args:
+        codec: a fitted codec instance (its config and learned state are stored in the map).
+        voxel_size: voxel edge in metres. truncation: ``(d_min, d_max)`` metres. origin: world position of
+            voxel (0, 0, 0). shape_voxels: initial extent (grows with the data written).
+        code_dtype: ``"float32"``, ``"float16"`` or ``"int8"`` code storage (int8: each block's code quantised
+            with its own offset and scale, spec section 4a; a quarter of float32's bytes, readers before
+            sdfcodec 0.2 refuse such maps by the extension they require).
+        chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
+        overwrite: replace an existing map at ``path`` (atomically, on commit).
+        device: where encoding runs.
+    """
+    return _writing(create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
+                                  shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
+                                  chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
+                                  source=source))
+
+
+def update_map(path: str | os.PathLike, *, device: str | torch.device = "cpu", tool: str | None = None,
+               wait: float = LOCK_TIMEOUT, max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
+    """Start adding or replacing blocks of the existing map at ``path`` (a local directory). Use as a context
+    manager, with the same write methods as :func:`create_map`::
+
+        with sdfcodec.update_map("room.sdfz") as m:
+            m.write_blocks(coords, blocks)      # new blocks grow the map; existing ones are replaced
+            m.mark_empty(cleared)
+
+    The current version is copied (hard links: writers only ever replace files) into a hidden sibling
+    directory, changed there, and swapped into place atomically on commit. Until then, and if anything fails
+    or the process dies, the map at ``path`` stays exactly as it was; readers that opened it keep reading the
+    version they opened. One update at a time: a second waits up to ``wait`` seconds for the first.
+
+    Args:
+        device: where encoding runs. tool: recorded as the map's provenance tool (default: kept).
+        wait: seconds to wait for another update of the same map to finish.
+        max_decode_bytes: limit for reading the current version (see :func:`open_map`) and for growing it.
+
+    Raises:
+        MapNotFoundError: no map at ``path``. MapBusyError: another update held it for ``wait`` seconds.
+        FormatError, UnknownCodecError: the current map is unreadable, or its codec plugin is missing (the
+        codec is needed to encode the new blocks).
+    """
+    return _writing(update_writer(path, device=device, tool=tool, wait=wait, max_decode_bytes=max_decode_bytes))
+
+
+def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
+             max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
+    """Open a map read-only: a local directory, a ``.zip``, a URL (``http(s)://``, ``s3://``, ``file://``...
+    through fsspec) or any Zarr store. Reads only the header and array metadata; data is read on demand.
+
+    A local directory map is held at the version opened (Linux): a writer replacing it meanwhile changes
+    nothing this object reads; open the path again to see the new version. ``close()`` (or dropping the object,
+    or leaving a ``with`` block) lets the old version go.
+
+    ``max_decode_bytes`` bounds what one call may allocate (a decoded region, a dense read of codes, the
+    block states, one chunk, the codec state): maps whose header or array metadata name more are refused with
+    FormatError before anything is read. Opening never runs code from the map.
+    """
+    return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes))
+
+
+def _dir_bytes(path: str) -> int | None:
+    p = Path(path)
+    if p.is_file():
+        return p.stat().st_size
+    if not p.is_dir():
+        return None
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())

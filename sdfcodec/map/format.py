@@ -1,0 +1,189 @@
+"""What a map's arrays and inputs must look like (spec/map-format.md): array metadata checks, the allowed Zarr
+codecs and the compressors a writer uses, the codec-state digest, the code layout of a new map, and the checks
+on volumes, block coordinates and codes that readers and writers (the dask writer too) share.
+
+Pure functions of their arguments: nothing here opens or reads a store.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+import zarr
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCodec
+
+from ..codec import Codec
+from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
+from ..header import CodesSpec
+
+__all__ = ["DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
+           "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "Region", "compressors", "state_digest", "code_layout",
+           "check_array_metadata", "chunk_ranges", "check_coords", "check_volume", "check_codes", "free_space",
+           "is_dask_array"]
+
+#: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
+#: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
+#: or mistaken header cannot make a reader allocate without bound.
+DEFAULT_MAX_DECODE_BYTES = 8 << 30
+#: The Zarr codecs a map's arrays may use (spec section 4): anything else (sharding, numcodecs.* such as
+#: pickle, variable-length types) is refused before a chunk is read.
+ALLOWED_ZARR_CODECS = (BytesCodec, BloscCodec, ZstdCodec, GzipCodec, Crc32cCodec)
+#: A read may touch at most max(MIN_CHUNKS_PER_READ, max_decode_bytes // BYTES_PER_CHUNK) chunks.
+MIN_CHUNKS_PER_READ, BYTES_PER_CHUNK = 64, 4096
+EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
+#: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
+FINITE_BOUND = 1e37
+#: How codes may be stored (spec sections 4 and 4a).
+CODE_DTYPES = ("float32", "float16", "int8")
+#: ``((x0, x1), (y0, y1), (z0, z1))``: half-open voxels, or closed metres.
+Region = Sequence[Sequence[float]]
+
+
+def compressors() -> list:
+    """The compressor chain of every array a map writes: Blosc/zstd, then a CRC32C checksum (spec section 4)."""
+    return [BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"), Crc32cCodec()]
+
+
+def state_digest(state: dict[str, np.ndarray]) -> str:
+    """SHA-256 of a codec state: for each array by sorted name, ``name NUL dtype NUL shape-json NUL`` then
+    its little-endian C-order bytes (spec/map-format.md, "Codec state")."""
+    h = hashlib.sha256()
+    for name in sorted(state):
+        a = np.ascontiguousarray(state[name])
+        a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+        h.update(f"{name}\0{a.dtype.str}\0{json.dumps(list(a.shape))}\0".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: int | None) -> CodesSpec:
+    """The ``codes`` layout of a new map for ``codec``: chunk shape and prefix levels (defaults when None)."""
+    size = codec.code_size
+    if chunk_code is None:
+        # a prefix level of 32 elements reads only its own chunk along the code axis
+        chunk_code = 32 if codec.prefix_ordered and size > 32 else size
+    chunk_code = min(chunk_code, size)
+    levels = sorted({*range(chunk_code, size, chunk_code), size}) if codec.prefix_ordered else [size]
+    if chunk_blocks is None:
+        # the largest of 16, 8, 4 blocks per axis that keeps an uncompressed chunk at or below 2 MiB (pca-64: 16,
+        # 512 KiB; raw 4096-element codes: 4). Zarr costs about 1 ms per chunk read on top of its bytes, so
+        # decoding a whole map from 16^3-block chunks fetches 4x faster than from 8^3 ones (docs/scale.md); a
+        # map read mostly in small remote regions may prefer chunk_blocks=8 (less transferred per region)
+        itemsize = np.dtype(dtype).itemsize
+        chunk_blocks = next((c for c in (16, 8) if c ** 3 * chunk_code * itemsize <= 2 << 20), 4)
+    return CodesSpec(size=size, dtype=dtype, chunk_blocks=chunk_blocks, chunk_code=chunk_code,
+                     prefix_ordered=codec.prefix_ordered, levels=levels)
+
+
+def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shape: tuple | None = None,
+                         chunks: tuple | None = None, zero_fill: bool = False) -> tuple[int, bool]:
+    """Validate an array's metadata against the spec *before* reading from it (``where`` names it in errors).
+
+    Returns:
+        ``(chunk_bytes, blosc_first)``: the decoded size of one chunk, and whether Blosc decodes its bytes
+        first (then a chunk's Blosc header can be checked against that size unread, :class:`GuardStore`).
+    """
+    try:
+        dt = np.dtype(arr.dtype)
+        codecs = tuple(arr.metadata.codecs)
+        ch = tuple(int(c) for c in arr.chunks)
+        fill = arr.metadata.fill_value
+    except Exception as e:  # noqa: BLE001 - irregular chunk grids, data types numpy lacks...
+        raise FormatError(f"{where} has metadata this reader cannot use ({type(e).__name__}: {e})") from e
+    if dt.kind not in "biuf" or dt.itemsize > 8:
+        raise FormatError(f"{where} has data type {dt}; map arrays hold plain numbers only")
+    if dtype is not None and dt != np.dtype(dtype):
+        raise FormatError(f"{where} has data type {dt}, expected {np.dtype(dtype)}")
+    if shape is not None and tuple(arr.shape) != tuple(shape):
+        raise FormatError(f"{where} has shape {tuple(arr.shape)}, expected {tuple(shape)} (from the header)")
+    if chunks is not None and ch != tuple(chunks):
+        raise FormatError(f"{where} has chunks {ch}, expected {tuple(chunks)} (from the header)")
+    bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs
+           if not isinstance(c, ALLOWED_ZARR_CODECS)]
+    if bad:
+        raise FormatError(f"{where} uses Zarr codec(s) {bad}, which a map may not use (allowed: bytes, blosc, "
+                          "zstd, gzip, crc32c)")
+    if not codecs or not isinstance(codecs[-1], Crc32cCodec):
+        raise FormatError(f"{where} has no crc32c checksum codec (spec section 4): it cannot be verified")
+    # the chunk size is checked when reading, so that a small limit still lets a map open and say what is too big
+    chunk_bytes = math.prod(ch) * dt.itemsize
+    if zero_fill and not (np.ndim(fill) == 0 and np.asarray(fill) == 0):
+        raise FormatError(f"{where} has fill value {fill!r}; the spec requires 0")
+    first = next((c for c in codecs if not isinstance(c, BytesCodec)), None)
+    return chunk_bytes, isinstance(first, BloscCodec)
+
+
+def chunk_ranges(arr: zarr.Array, sel: tuple) -> list[range]:
+    """Chunk indices per axis that reading ``arr[sel]`` touches (``sel``: ints and step-1 slices)."""
+    ranges = []
+    for s, n, c in zip(sel, arr.shape, arr.chunks):
+        start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
+        ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
+    return ranges
+
+
+def is_dask_array(x: Any) -> bool:
+    """True for a dask array (checked without importing dask)."""
+    return type(x).__module__.split(".")[0] == "dask" and hasattr(x, "chunks") and hasattr(x, "dask")
+
+
+def check_coords(coords: Any) -> np.ndarray:
+    """Block indices ``(N, 3)`` as int64: integers (or integral floats), non-negative, no duplicates."""
+    c = np.asarray(coords)
+    if c.ndim != 2 or c.shape[1] != 3:
+        raise ShapeError(f"block coords must have shape (N, 3), got {c.shape}")
+    if c.dtype.kind not in "iu":
+        if c.dtype.kind == "f" and np.all(np.isfinite(c)) and np.all(c == np.round(c)):
+            c = c.astype(np.int64)
+        else:
+            raise ShapeError(f"block coords must be integers, got dtype {c.dtype}")
+    if len(c) and c.min() < 0:
+        raise InvalidValueError("block coords must be non-negative (move the map origin to cover negative "
+                                f"positions); got minimum {int(c.min())}")
+    if len(np.unique(c, axis=0)) != len(c):
+        raise InvalidValueError("block coords hold duplicates; write each block once per call")
+    return c.astype(np.int64)
+
+
+def free_space(v: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: which normalised blocks ``(N, 16, 16, 16)`` hold only free space (stored as ``empty``)."""
+    return (v >= 1.0 - EMPTY_EPS).reshape(len(v), -1).all(axis=1)
+
+
+def check_codes(codes: np.ndarray) -> None:
+    """Refuse NaN/Inf codes out of an encoder before they are stored."""
+    if not np.isfinite(codes).all():
+        raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
+
+
+def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | None = None,
+                 name: str = "volume", *, stacklevel: int = 3) -> np.ndarray:
+    """A dense ``(X, Y, Z)`` volume (or an array of the given ``shape``) of metres as float32: floating point,
+    finite, clipped to ``truncation`` with a warning (attributed ``stacklevel`` frames up: the caller's
+    caller by default, i.e. the user code calling the writing method)."""
+    if isinstance(volume, torch.Tensor):
+        volume = volume.detach().cpu().numpy()
+    v = np.asarray(volume)
+    if v.dtype.kind != "f":
+        raise DTypeError(f"{name} must be floating point metres, got dtype {v.dtype}")
+    if shape is None and v.ndim != 3:
+        raise ShapeError(f"{name} must be a dense (X, Y, Z) array of metres, got shape {v.shape}")
+    if shape is not None and v.shape != shape:
+        raise ShapeError(f"{name} must have shape {shape}, got {v.shape}")
+    finite = np.isfinite(v)
+    if not finite.all():
+        raise InvalidValueError(f"{name} holds {int((~finite).sum())} NaN/Inf value(s); replace unobserved "
+                                f"voxels with d_max (e.g. np.nan_to_num(v, nan={truncation[1]}))")
+    d_min, d_max = truncation
+    outside = int(((v < d_min) | (v > d_max)).sum())
+    if outside:
+        warnings.warn(f"{outside} value(s) of {name} lie outside the truncation [{d_min}, {d_max}] m and were "
+                      "clipped to it", SDFCodecWarning, stacklevel=stacklevel)
+        v = np.clip(v, d_min, d_max)
+    return v.astype(np.float32, copy=False)

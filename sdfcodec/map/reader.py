@@ -1,0 +1,759 @@
+"""The map reader: :class:`MapReader` reads one open map's header-checked arrays (the codes of a region or a
+level, block states, fusion weights), loads its codec, and decodes through the streaming pipeline to blocks
+or dense voxels. :class:`sdfcodec.Map` is a thin facade over it; ``MapField``, search, verify and the dask
+path (``sdfcodec.scale``) call it directly as ``Map.reader``.
+
+Maps are untrusted input: opening one never runs code from it, and every size the header or the array
+metadata names is checked against ``max_decode_bytes`` before anything that large is allocated.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import itertools
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+import torch
+import zarr
+import zarr.abc.store
+from zarr.core.sync import sync as zarr_sync
+
+from .._validate import BLOCK, empty
+from ..codec import Codec
+from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, SDFCodecError, ShapeError
+from ..header import BlockState, MapHeader, parse_header
+from ..quantize import dequantize_codes
+from ..registry import get_codec_class
+from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, FINITE_BOUND, MIN_CHUNKS_PER_READ, Region,
+                     check_array_metadata, check_coords, chunk_ranges, state_digest)
+from .stores import GuardStore, PinnedStore, open_store, unguarded
+
+__all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
+
+Box = tuple[slice, slice, slice]  # a block box: half-open block index ranges per axis
+
+
+class CodecCache:
+    """Holds the codec of a map once loaded; shared by readers of the same map (:meth:`MapReader.with_store`),
+    so a codec loaded through one is loaded for all."""
+
+    def __init__(self, codec: Codec | None = None):
+        self.codec = codec
+
+
+class DeviceFeed:
+    """Brings a group's host codes to the decode device (the staging step of the read pipeline).
+
+    ``stage`` runs in the worker thread that fetched the group; ``ready`` in the thread that decodes it. On CUDA,
+    ``stage`` copies the codes into pinned (page-locked) host memory and starts a non-blocking host-to-device
+    copy on a side stream, recording an event; ``ready`` makes the decoding stream wait for that event (on the
+    GPU, not the host) and tells the caching allocator that the decoding stream uses the tensor. The copy of
+    the next group thus overlaps the decode of the current one. On the CPU the codes are used as they are.
+    """
+
+    def __init__(self, dev: torch.device):
+        self.cuda = dev.type == "cuda"
+        if self.cuda and dev.index is None:
+            dev = torch.device("cuda", torch.cuda.current_device())
+        self.dev = dev
+        self.stream = torch.cuda.Stream(device=dev) if self.cuda else None
+
+    def stage(self, codes: np.ndarray) -> tuple[torch.Tensor, Any, Any]:
+        t = torch.from_numpy(codes)
+        if not self.cuda:
+            return (t if self.dev.type == "cpu" else t.to(self.dev)), None, None
+        host = t.pin_memory()
+        with torch.cuda.device(self.dev), torch.cuda.stream(self.stream):
+            on_dev = host.to(self.dev, non_blocking=True)
+            done = torch.cuda.Event()
+            done.record(self.stream)
+        # ``host`` travels with the group until ``ready``: the pinned buffer outlives its copy (the caching host
+        # allocator would also hold it until the copy's event, but nothing depends on that)
+        return on_dev, done, host
+
+    def ready(self, staged: tuple[torch.Tensor, Any, Any]) -> torch.Tensor:
+        on_dev, done, _host = staged
+        if done is not None:
+            current = torch.cuda.current_stream(self.dev)
+            current.wait_event(done)
+            on_dev.record_stream(current)
+        return on_dev
+
+
+class MapReader:
+    """Reads one open map (a Zarr group whose header is ``header``); see the module docstring.
+
+    ``live``: for a map being written, the writer (anything with ``state`` ``(Bx, By, Bz)`` uint8 and
+    ``grid``), whose block states are read instead of the ``state`` array, which is written on commit.
+    ``source``: ``(path, URL or store; storage options)`` to reopen the map by in another process (None for
+    a map being written). Arrays (after :meth:`_check_arrays`): ``codes_array``, ``state_array``,
+    ``code_scale_array`` (int8 maps), ``weights_array`` (maps with fusion weights), else None.
+    """
+
+    def __init__(self, group: zarr.Group, header: MapHeader, location: str, *,
+                 max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
+                 live: Any = None, source: tuple[Any, dict | None] | None = None, owns_store: bool = True):
+        self.group, self.header, self.location, self.max_decode_bytes = group, header, location, max_decode_bytes
+        self.live, self.source = live, source
+        self._cache = cache if cache is not None else CodecCache()
+        self._owns_store, self._closed = owns_store, False
+        self._chunk_bytes: dict[str, int] = {}
+        self.codes_array = self.state_array = self.code_scale_array = self.weights_array = None
+        if live is None:
+            self._check_arrays()
+        else:  # a map being written: its arrays are the writer's, checked as they were made
+            self.codes_array = group["codes"]
+            self.code_scale_array = live.code_scale
+
+    # -- geometry (the header's) ---------------------------------------------------------------------
+    @property
+    def voxel_size(self) -> float:
+        return self.header.voxel_size
+
+    @property
+    def truncation(self) -> tuple[float, float]:
+        return self.header.truncation.d_min, self.header.truncation.d_max
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        return self.header.origin
+
+    @property
+    def shape_voxels(self) -> tuple[int, int, int]:
+        return self.header.shape_voxels
+
+    @property
+    def grid_blocks(self) -> tuple[int, int, int]:
+        return self.header.grid_blocks
+
+    @property
+    def cache(self) -> CodecCache:
+        """The codec cache (shared with the readers :meth:`with_store` makes)."""
+        return self._cache
+
+    @property
+    def pinned_fd(self) -> int | None:
+        """The directory descriptor holding the version of a local map this reader reads (None otherwise)."""
+        inner = unguarded(self.group.store)
+        return inner.fd if isinstance(inner, PinnedStore) else None
+
+    def with_store(self, wrap: Callable[[zarr.abc.store.Store], zarr.abc.store.Store]) -> "MapReader":
+        """The same map read through ``wrap(store)`` (e.g. a store counting what is read), sharing header,
+        limits and codec cache; closing it leaves this reader's store open. The arrays' metadata is read
+        again, through the wrapper."""
+        if self.live is not None:
+            raise InvalidValueError(f"{self.location} is still being written; leave the create_map block (commit) "
+                                    "and open the map with sdfcodec.open_map")
+        self._check_open()
+        group = zarr.open_group(wrap(self.group.store), mode="r", path=self.group.path or None, zarr_format=3)
+        return MapReader(group, self.header, self.location, max_decode_bytes=self.max_decode_bytes,
+                         cache=self._cache, source=self.source, owns_store=False)
+
+    def member(self, path: str, kind: type = zarr.Array) -> Any:
+        """The array (or group) at ``path``, or None when absent; unreadable metadata is a FormatError."""
+        try:
+            node = self.group[path]
+        except KeyError:
+            return None
+        except SDFCodecError:
+            raise
+        except Exception as e:  # zarr's many ways to say its metadata is malformed
+            raise FormatError(f"{self.location}: the metadata of '{path}' is invalid ({type(e).__name__}: {e}); "
+                              "the map is corrupted: restore it from a copy or re-encode") from e
+        if not isinstance(node, kind):
+            raise FormatError(f"{self.location}: '{path}' must be a Zarr {kind.__name__.lower()}")
+        return node
+
+    def check_array(self, arr: zarr.Array, *, dtype: Any = None, shape: tuple | None = None,
+                    chunks: tuple | None = None, zero_fill: bool = False) -> None:
+        """Validate an array's metadata against the spec and the reader's limits *before* reading from it, and
+        register its chunk size with the guard store (a chunk claiming more is refused unread)."""
+        chunk_bytes, blosc_first = check_array_metadata(arr, f"{self.location}: array '{arr.path}'", dtype=dtype,
+                                                        shape=shape, chunks=chunks, zero_fill=zero_fill)
+        # the chunk size is checked when reading (read), so that a small limit still lets a map open and say
+        # what is too big
+        self._chunk_bytes[arr.path] = chunk_bytes
+        store = self.group.store
+        if isinstance(store, GuardStore):
+            store.limits[arr.path] = (chunk_bytes, blosc_first)
+
+    def _check_arrays(self) -> None:
+        h = self.header
+        state_bytes = math.prod(h.grid_blocks)
+        if state_bytes > self.max_decode_bytes:
+            raise FormatError(f"{self.location}: header field grid_blocks {h.grid_blocks} needs {state_bytes} bytes "
+                              f"of block states, above the reader's limit of {self.max_decode_bytes} bytes (raise "
+                              "max_decode_bytes in open_map() if the map is genuine)")
+        codes, state = self.member("codes"), self.member("state")
+        if codes is None or state is None:
+            missing = "codes" if codes is None else "state"
+            raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec map")
+        cb = h.codes.chunk_blocks
+        self.check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size),
+                         chunks=(cb, cb, cb, h.codes.chunk_code), zero_fill=True)
+        self.check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
+        self.code_scale_array = None
+        if h.codes.dtype == "int8":
+            self.code_scale_array = self.member("code_scale")
+            if self.code_scale_array is None:
+                raise FormatError(f"{self.location}: map has int8 codes but lacks array 'code_scale' (spec section "
+                                  "4a); it is incomplete")
+            self.check_array(self.code_scale_array, dtype=np.float32, shape=(*h.grid_blocks, 2),
+                             chunks=(cb, cb, cb, 2), zero_fill=True)
+        self.weights_array = None
+        if any(e.name == "fusion-weights" for e in h.extensions):
+            self.weights_array = self.member("weights")
+            if self.weights_array is not None:
+                self.check_array(self.weights_array, dtype=np.float16, shape=(*h.grid_blocks, 4096))
+        self.codes_array, self.state_array = codes, state
+
+    # -- reading --------------------------------------------------------------------------------------
+    def read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
+        """Read ``arr[sel]``; a chunk that fails its checksum or decompression becomes a ChecksumError
+        naming the chunk."""
+        self._check_read(arr, sel)
+        try:
+            return np.asarray(arr[sel])
+        except Exception as exc:  # find the chunk(s) to name: slow path, errors only
+            raise self._chunk_error(arr, sel, exc) from exc
+
+    def read_many(self, arr: zarr.Array, sels: Sequence[tuple]) -> list[np.ndarray]:
+        """Read ``arr[sel]`` for every selection concurrently (one batch of Zarr's async I/O: the chunks are
+        fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`."""
+        if len(sels) == 1:
+            return [self.read(arr, sels[0])]
+        for sel in sels:
+            self._check_read(arr, sel)
+        aarr = arr.async_array
+
+        async def gather():
+            return await asyncio.gather(*(aarr.getitem(sel) for sel in sels), return_exceptions=True)
+
+        out = []
+        for sel, res in zip(sels, zarr_sync(gather())):
+            if isinstance(res, BaseException):
+                if not isinstance(res, Exception):
+                    raise res
+                raise self._chunk_error(arr, sel, res) from res
+            out.append(np.asarray(res))
+        return out
+
+    def _chunk_error(self, arr: zarr.Array, sel: tuple, exc: Exception) -> Exception:
+        return ChecksumError(f"{self.location}: {self._bad_chunks(arr, sel)} of array '{arr.path}' is "
+                             f"corrupted or truncated ({type(exc).__name__}: {exc}); the map cannot be "
+                             "trusted there: restore it from a copy or re-encode")
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise InvalidValueError(f"{self.location}: the map was closed; open it again with sdfcodec.open_map")
+
+    def _check_read(self, arr: zarr.Array, sel: tuple) -> None:
+        """The limits on one read (module docstring): open map, chunk size, number of chunks touched."""
+        self._check_open()
+        chunk_bytes = self._chunk_bytes.get(arr.path, 0)
+        if chunk_bytes > self.max_decode_bytes:
+            raise InvalidValueError(f"{self.location}: array '{arr.path}' has chunks of {chunk_bytes} bytes, above the "
+                                    f"limit of {self.max_decode_bytes} bytes; raise max_decode_bytes in open_map() "
+                                    "if the map is genuine")
+        # each chunk costs a request and a task however small it is: a read may touch only so many (a hostile
+        # chunk grid of 1-element chunks would otherwise take hours to read a modest array)
+        n_chunks = math.prod(len(r) for r in chunk_ranges(arr, sel))
+        max_chunks = max(MIN_CHUNKS_PER_READ, self.max_decode_bytes // BYTES_PER_CHUNK)
+        if n_chunks > max_chunks:
+            raise InvalidValueError(f"{self.location}: reading array '{arr.path}' there touches {n_chunks} chunks, above "
+                                    f"the limit of {max_chunks} for max_decode_bytes={self.max_decode_bytes}; read a "
+                                    "smaller region, or raise max_decode_bytes if the map is genuine")
+
+    def _bad_chunks(self, arr: zarr.Array, sel: tuple) -> str:
+        # probe chunk by chunk, but boundedly: naming five is enough, and probing is one request per chunk
+        bad, probed = [], 0
+        for idx in itertools.product(*chunk_ranges(arr, sel)):
+            if len(bad) > 5 or probed >= 256:
+                break
+            probed += 1
+            try:
+                arr.blocks[idx]
+            except Exception:  # noqa: BLE001
+                bad.append("chunk c/" + "/".join(map(str, idx)))
+        if not bad:
+            return "a chunk"
+        return ", ".join(bad[:5]) + (" and more" if len(bad) > 5 else "")
+
+    def block_states(self) -> np.ndarray:
+        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
+        if self.live is not None:
+            return self.live.state.copy()
+        return self._valid_states(self.read(self.state_array, (slice(None),) * 3))
+
+    def count_states(self) -> dict[str, int]:
+        """Number of blocks per state name (``unobserved``, ``empty``, ``coded``)."""
+        counts = np.bincount(self.block_states().ravel(), minlength=3)
+        return {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
+
+    @property
+    def codec(self) -> Codec:
+        """The codec that wrote the map, with its learned state (loaded on first use).
+
+        Raises:
+            UnknownCodecError: its plugin is not installed (names the id and the package to install).
+        """
+        if self._cache.codec is None:
+            self._cache.codec = self._load_codec()
+        return self._cache.codec
+
+    def _load_codec(self) -> Codec:
+        h, where = self.header, self.location
+        spec = h.codec
+        cls = get_codec_class(spec.id, package_hint=spec.package)
+        try:
+            codec = cls.from_config(spec.config)
+        except Exception as e:  # a hostile or stale config: the plugin's own error, whatever its type
+            raise FormatError(f"{where}: header field codec.config is not a valid {spec.id!r} configuration "
+                              f"({type(e).__name__}: {e})") from e
+        state = {}
+        if spec.state_arrays:
+            total = 0
+            for name in spec.state_arrays:
+                arr = self.member(f"codec/{name}")
+                if arr is None:
+                    raise FormatError(f"{where}: codec state array 'codec/{name}' (listed in codec.state_arrays) "
+                                      "is missing")
+                self.check_array(arr)
+                total += math.prod(arr.shape) * np.dtype(arr.dtype).itemsize
+                if total > self.max_decode_bytes:
+                    raise FormatError(f"{where}: the codec state is over {self.max_decode_bytes} bytes, the reader's "
+                                      "limit (raise max_decode_bytes in open_map() if the map is genuine)")
+                state[name] = self.read(arr, (slice(None),) * arr.ndim)
+        if spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
+            raise ChecksumError(f"{where}: the codec state under codec/ does not match the digest "
+                                "in the header; the map's codec arrays were altered or corrupted")
+        try:
+            if state:
+                codec = codec.load_state_dict(state)
+            fitted = codec.is_fitted
+        except Exception as e:
+            raise FormatError(f"{where}: the codec state under codec/ does not fit codec {spec.id!r} "
+                              f"({type(e).__name__}: {e})") from e
+        if not fitted:
+            raise FormatError(f"{where}: codec {spec.id!r} needs learned state, which the map does not store")
+        if codec.code_size != h.codes.size:
+            raise FormatError(f"{where}: header field codes.size is {h.codes.size}, but the codec makes codes of "
+                              f"{codec.code_size} elements")
+        if h.codes.prefix_ordered and not codec.prefix_ordered:
+            raise FormatError(f"{where}: header field codes.prefix_ordered is true, but codec {spec.id!r} codes "
+                              "are not prefix-ordered")
+        return codec
+
+    def level(self, level: int | None) -> int:
+        """A code prefix level checked against the map: ``level`` itself, or the full code size for None."""
+        size = self.header.codes.size
+        if level is None or level == size:
+            return size
+        if not self.header.codes.prefix_ordered:
+            raise InvalidValueError(f"codec {self.header.codec.id!r} codes are not prefix-ordered, so level "
+                                    f"{level} cannot be decoded; omit the level (full size {size})")
+        if not isinstance(level, (int, np.integer)) or not 1 <= level <= size:
+            raise InvalidValueError(f"level must be an int in 1..{size}, got {level!r}")
+        return int(level)
+
+    def block_box(self, region: Region | None, units: str) -> tuple[tuple[int, int], ...]:
+        """Region (``units`` ``"voxels"`` or ``"m"``; None: the whole map) -> validated half-open voxel bounds
+        per axis."""
+        shape = self.shape_voxels
+        if region is None:
+            return tuple((0, n) for n in shape)
+        if len(region) != 3 or any(len(r) != 2 for r in region):
+            raise ShapeError(f"region must be ((x0, x1), (y0, y1), (z0, z1)), got {region!r}")
+        if units in ("m", "metres", "meters"):
+            o, vs = self.origin, self.voxel_size
+            # voxels whose centre lies in [lo, hi]; 1e-9 guards against rounding at exact voxel positions
+            vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.floor((hi - oo) / vs + 1e-9)) + 1)
+                        for (lo, hi), oo in zip(region, o))
+        elif units in ("voxels", "vox"):
+            vox = tuple((int(lo), int(hi)) for lo, hi in region)
+        else:
+            raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
+        for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):
+            if not 0 <= lo < hi <= n:
+                raise InvalidValueError(f"region {region!r} ({units}) is outside the map on axis {'xyz'[axis]}: "
+                                        f"voxels [{lo}, {hi}) vs extent [0, {n})")
+        return vox
+
+    def read_codes(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`sdfcodec.Map.read_codes`: ``(coords (N, 3) int64, codes (N, L) float32)``."""
+        lv = self.level(level)
+        box = self.block_range(self.block_box(region, units))
+        return self.codes_in(box, lv)
+
+    @staticmethod
+    def block_range(vox: tuple[tuple[int, int], ...]) -> Box:
+        """Half-open voxel bounds per axis -> the block box of every block with a voxel in them."""
+        return tuple(slice(lo // BLOCK, -(-hi // BLOCK)) for lo, hi in vox)  # type: ignore[return-value]
+
+    def codes_in(self, box: Box, level: int, states: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(coords (N, 3) int64, codes (N, level) float32)`` of the coded blocks in block box ``box``, read
+        densely in one go (bounded by ``max_decode_bytes``); ``states``: the whole map's, if already read."""
+        state = (self.block_states() if states is None else states)[box]
+        local = np.argwhere(state == BlockState.CODED)
+        if not len(local):
+            return np.zeros((0, 3), np.int64), np.zeros((0, level), np.float32)
+        nbytes = state.size * self.header.codes.stored_bytes(level)
+        if nbytes > self.max_decode_bytes:
+            raise InvalidValueError(f"reading the codes of blocks {[(s.start, s.stop) for s in box]} densely needs "
+                                    f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
+                                    " GiB; read a smaller region, use iter_codes(), or raise max_decode_bytes")
+        codes = self.read(self.codes_array, (*box, slice(0, level)))[tuple(local.T)]
+        params = (None if self.code_scale_array is None
+                  else self.read(self.code_scale_array, (*box, slice(0, 2)))[tuple(local.T)])
+        coords = local + np.array([s.start for s in box], dtype=np.int64)
+        return coords, self._code_values(coords, codes, params)
+
+    def _code_values(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> np.ndarray:
+        """Stored ``codes`` of blocks ``coords`` as float32 (dequantised with their ``code_scale`` rows
+        ``params`` for int8 maps), refusing NaN/Inf (a corrupted but checksum-valid chunk) by naming a block."""
+        out = codes.astype(np.float32, copy=False) if params is None else dequantize_codes(codes, params)
+        finite = np.isfinite(out).all(axis=1)
+        if not finite.all():
+            bad = coords[~finite]
+            raise FormatError(f"{self.location}: {len(bad)} coded block(s) hold NaN/Inf code values, e.g. block "
+                              f"{tuple(int(v) for v in bad[0])}; the map is corrupted there (`sdfcodec verify` lists "
+                              "them): restore it from a copy or re-encode those blocks")
+        return out
+
+    # -- the decode-on-read pipeline ------------------------------------------------------------------
+    # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
+    # to_dask, the tracker's map field): the chunks of the code array that hold coded blocks of a block box are
+    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently, through
+    # Zarr's async I/O, which also decompresses them off the calling thread) and stages their codes for the
+    # device (pinned host memory + an asynchronous copy on CUDA) while the calling thread decodes the current
+    # group in one batched call.
+
+    def grid(self) -> tuple[int, int, int]:
+        """The block grid: the header's, or for a map being written, as far as it has grown."""
+        return self.live.grid if self.live is not None else self.grid_blocks
+
+    def states_in(self, box: Box) -> np.ndarray:
+        """Block states of a block box: only the state chunks it touches are read."""
+        if self.live is not None:
+            return self.live.state[box]
+        return self._valid_states(self.read(self.state_array, box))
+
+    def _valid_states(self, state: np.ndarray) -> np.ndarray:
+        if state.size and state.max() > BlockState.CODED:
+            raise FormatError(f"{self.location}: state array holds reserved value {int(state.max())} "
+                              "(valid: 0 unobserved, 1 empty, 2 coded)")
+        return state
+
+    def _chunk_groups(self, box: Box, states: np.ndarray, level: int, *,
+                      batch_blocks: int | None = None, chunks_per_group: int | None = None) -> list[np.ndarray]:
+        """Chunk indices ``(G, 3)`` (of the block axes of ``codes``) holding coded blocks inside ``box``, in grid
+        order, grouped: ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold
+        that many coded blocks. A group never holds more than ``max_decode_bytes`` of codes and decoded blocks.
+        A sparse map (or a hostile, huge and empty grid) costs what it stores, not its extent."""
+        spec = self.header.codes
+        cb = spec.chunk_blocks
+        b0 = np.array([s.start for s in box], dtype=np.int64)
+        n = np.array(states.shape, dtype=np.int64)
+        if not n.all():
+            return []
+        lead = b0 % cb
+        # coded blocks per chunk, summed axis by axis between chunk boundaries: time and memory follow the block
+        # states, never the chunks' volume (a hostile 256^3-block chunk over a thin box costs nothing extra)
+        counts = states == BlockState.CODED
+        for ax in range(3):
+            starts = np.r_[0, np.arange(cb - lead[ax] if lead[ax] else cb, n[ax], cb)]
+            counts = np.add.reduceat(counts, starts, axis=ax, dtype=np.int32)
+        idx = np.argwhere(counts)
+        if not len(idx):
+            return []
+        per_block = counts[tuple(idx.T)]
+        idx += b0 // cb
+        read = -(-level // spec.chunk_code) * spec.chunk_code * np.dtype(spec.dtype).itemsize
+        cap = max(1, self.max_decode_bytes // (cb ** 3 * (read + 4 * BLOCK ** 3)))
+        if chunks_per_group is not None:
+            cap, target = min(cap, chunks_per_group), None
+        else:
+            target = batch_blocks
+        groups, start, acc = [], 0, 0
+        for i, c in enumerate(per_block.tolist()):
+            acc += c
+            if (target is not None and acc >= target) or i + 1 - start >= cap:
+                groups.append(idx[start:i + 1])
+                start, acc = i + 1, 0
+        if start < len(idx):
+            groups.append(idx[start:])
+        return groups
+
+    def _fetch_group(self, chunks: np.ndarray, b0: np.ndarray, b1: np.ndarray, states: np.ndarray, level: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Codes ``(n, level)`` float32 and block coords ``(n, 3)`` of the coded blocks of the given chunks
+        inside the block box ``[b0, b1)`` (``states`` covers that box): the chunks are read concurrently."""
+        cb = self.header.codes.chunk_blocks
+        sels, locs, los = [], [], []
+        for c in chunks:
+            lo, hi = np.maximum(c * cb, b0), np.minimum(c * cb + cb, b1)
+            sub = states[tuple(slice(int(a), int(b)) for a, b in zip(lo - b0, hi - b0))]
+            sels.append((*(slice(int(a), int(b)) for a, b in zip(lo, hi)), slice(0, level)))
+            locs.append(np.argwhere(sub == BlockState.CODED))
+            los.append(lo)
+        arrays = self.read_many(self.codes_array, sels)
+        codes = np.concatenate([a[tuple(loc.T)] for a, loc in zip(arrays, locs)])
+        coords = np.concatenate([loc + lo for loc, lo in zip(locs, los)]).astype(np.int64, copy=False)
+        params = None
+        if self.code_scale_array is not None:
+            scales = self.read_many(self.code_scale_array, [(*sel[:3], slice(0, 2)) for sel in sels])
+            params = np.concatenate([a[tuple(loc.T)] for a, loc in zip(scales, locs)])
+        return coords, self._code_values(coords, codes, params)
+
+    def fetch_stream(self, box: Box, level: int, *, states: np.ndarray | None = None,
+                      stage: Callable[[np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
+                      chunks_per_group: int | None = None, prefetch: int = 2) -> Iterator[tuple[np.ndarray, Any]]:
+        """Yield ``(coords, codes)`` per group of chunks (see :meth:`_chunk_groups`), ``codes`` passed through
+        ``stage`` in the fetching thread. Up to ``prefetch`` further groups are fetched (and staged) by a
+        thread pool while the caller works on the one yielded; with one group, everything runs inline."""
+        if isinstance(prefetch, bool) or not isinstance(prefetch, (int, np.integer)) or prefetch < 0:
+            raise InvalidValueError(f"prefetch must be an int >= 0 (groups read ahead), got {prefetch!r}")
+        for name, v in (("batch_blocks", batch_blocks), ("chunks_per_batch", chunks_per_group)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+                raise InvalidValueError(f"{name} must be an int >= 1, got {v!r}")
+        if states is None:
+            states = self.states_in(box)
+        groups = self._chunk_groups(box, states, level, batch_blocks=batch_blocks, chunks_per_group=chunks_per_group)
+        b0 = np.array([s.start for s in box], dtype=np.int64)
+        b1 = b0 + np.array(states.shape, dtype=np.int64)
+
+        def job(chunks: np.ndarray) -> tuple[np.ndarray, Any]:
+            coords, codes = self._fetch_group(chunks, b0, b1, states, level)
+            return coords, (stage(codes) if stage is not None else codes)
+
+        if len(groups) <= 1 or prefetch == 0:
+            for g in groups:
+                yield job(g)
+            return
+        pool = ThreadPoolExecutor(max_workers=int(prefetch), thread_name_prefix="sdfcodec-read")
+        pending: collections.deque = collections.deque()
+        todo = iter(groups)
+        finished = False
+        try:
+            for g in itertools.islice(todo, int(prefetch)):
+                pending.append(pool.submit(job, g))
+            while pending:
+                result = pending.popleft().result()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.append(pool.submit(job, nxt))
+                yield result
+            finished = True
+        finally:
+            # abandoned early (an error, a consumer that stopped): do not wait for reads nobody will use
+            for f in pending:
+                f.cancel()
+            pool.shutdown(wait=finished, cancel_futures=True)
+
+    def decode_stream(self, box: Box, level: int, dev: torch.device, *, metres: bool,
+                      **kw) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+        """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
+        batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`)."""
+        self.codec  # loaded (and its state checked) here, before any thread starts
+        feed = DeviceFeed(dev)
+        for coords, staged in self.fetch_stream(box, level, stage=feed.stage, **kw):
+            yield coords, self.decode_codes(feed.ready(staged), metres=metres)
+
+    def decode_codes(self, codes: torch.Tensor, *, metres: bool) -> torch.Tensor:
+        """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
+        into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised. NaN/Inf out of the
+        codec (a corrupted or hostile learned state) are refused: proven impossible by the codec's bound on
+        its outputs when it gives one (no pass over the output), else checked on the output."""
+        codec = self.codec
+        d_min, d_max = self.truncation
+        scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
+        v = codec.decode_core(codes, scale=scale, offset=offset)
+        bound = codec.decode_bound(codes)
+        if bound is not None and math.isfinite(bound) and bound * scale + abs(offset) < FINITE_BOUND:
+            return v
+        return self.decoded(v)
+
+    def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
+                   ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`sdfcodec.Map.iter_codes`: ``(coords (n, 3) int64, codes (n, L) float32)`` per batch."""
+        lv = self.level(level)
+        box = tuple(slice(0, n) for n in self.grid())
+        yield from self.fetch_stream(box, lv, chunks_per_group=chunks_per_batch, batch_blocks=None,
+                                     prefetch=prefetch)
+
+    def iter_decoded(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
+                     device: str | torch.device | None = None, batch_blocks: int = 8192, prefetch: int = 2
+                     ) -> Iterator[tuple[np.ndarray, Any]]:
+        """:meth:`sdfcodec.Map.iter_decoded`: ``(coords (n, 3) int64, blocks (n, 16, 16, 16)
+        float32 metres)`` per group of chunks (numpy, or torch on ``device``)."""
+        lv = self.level(level)
+        box = self.block_range(self.block_box(region, units))
+        yield from self.decoded_blocks(box, lv, device, batch_blocks=batch_blocks, prefetch=prefetch)
+
+    def decoded_blocks(self, box: Box, level: int, device: str | torch.device | None,
+                       **kw) -> Iterator[tuple[np.ndarray, Any]]:
+        """:meth:`_decoded_metres` on ``device``, as numpy when ``device`` is None (decoded on the CPU)."""
+        dev = torch.device(device) if device is not None else torch.device("cpu")
+        for coords, blocks in self._decoded_metres(box, level, dev, **kw):
+            yield coords, blocks if device is not None else blocks.numpy()
+
+    def _decoded_metres(self, box: Box, level: int, dev: torch.device, **kw
+                        ) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+        if not self.codec.halo:
+            yield from self.decode_stream(box, level, dev, metres=True, **kw)
+            return
+        # a halo codec's blocks need their neighbours' core decodes: chunk by chunk, decode the bounding box of
+        # its coded blocks with context (the same pipeline, reading the neighbouring chunks too)
+        states = self.states_in(box)
+        b0 = np.array([s.start for s in box], dtype=np.int64)
+        cb = self.header.codes.chunk_blocks
+        for (chunk,) in self._chunk_groups(box, states, level, chunks_per_group=1):
+            lo, hi = np.maximum(chunk * cb, b0), np.minimum(chunk * cb + cb, b0 + states.shape)
+            sub = states[tuple(slice(int(a), int(b)) for a, b in zip(lo - b0, hi - b0))]
+            coords = np.argwhere(sub == BlockState.CODED) + lo
+            vlo, vhi = coords.min(axis=0) * BLOCK, (coords.max(axis=0) + 1) * BLOCK
+            vol = self.decode_voxels(vlo, vhi, level, dev)
+            view = _block_view(vol, [(h - l) // BLOCK for l, h in zip(vlo, vhi)])
+            rel = torch.from_numpy(coords - vlo // BLOCK).to(dev)
+            yield coords, view[rel[:, 0], rel[:, 1], rel[:, 2]]
+
+    def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
+                    chunks_per_batch: int | None = None) -> Iterator[tuple[np.ndarray, Any]]:
+        """:meth:`sdfcodec.Map.iter_blocks`: :meth:`iter_decoded` over the whole map."""
+        lv = self.level(level)
+        box = tuple(slice(0, n) for n in self.grid())
+        kw = {} if chunks_per_batch is None else {"chunks_per_group": chunks_per_batch, "batch_blocks": None}
+        yield from self.decoded_blocks(box, lv, device, **kw)
+
+    def decoded(self, v: torch.Tensor) -> torch.Tensor:
+        """Refuse NaN/Inf out of the codec (a corrupted or hostile learned state) rather than return them."""
+        # fast path: one reduction (NaN/Inf propagate into the sum); the exact test only when it is not finite
+        if not bool(torch.isfinite(v.sum())) and not bool(torch.isfinite(v).all()):
+            raise FormatError(f"{self.location}: codec {self.header.codec.id!r} decoded NaN/Inf values; its learned "
+                              "state in the map is broken: restore the map from a copy or re-encode it")
+        return v
+
+    def _to_metres(self, v: torch.Tensor) -> torch.Tensor:
+        d_min, d_max = self.truncation
+        return v.mul_(d_max - d_min).add_(d_min)
+
+    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *, metres: bool
+                    ) -> torch.Tensor:
+        """Core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the grid, in metres
+        or normalised: free space (``d_max`` or 1.0) wherever no coded block is."""
+        free = self.truncation[1] if metres else 1.0
+        grid_hi = np.asarray(self.grid_blocks) * BLOCK
+        clo, chi = np.maximum(lo, 0), np.minimum(hi, grid_hi)
+        if np.any(chi <= clo):
+            return empty(tuple(int(n) for n in hi - lo), dev).fill_(free)
+        box = self.block_range(tuple(zip(clo.tolist(), chi.tolist())))
+        b0 = np.array([s.start for s in box])
+        nb = [s.stop - s.start for s in box]
+        tmp = empty(tuple(n * BLOCK for n in nb), dev).fill_(free)
+        view = _block_view(tmp, nb)
+        for coords, core in self.decode_stream(box, level, dev, metres=metres):
+            idx = torch.from_numpy(coords - b0).to(dev)
+            view[idx[:, 0], idx[:, 1], idx[:, 2]] = core
+        src = tuple(slice(int(a - o * BLOCK), int(b - o * BLOCK)) for a, b, o in zip(clo, chi, b0))
+        if np.array_equal(clo, lo) and np.array_equal(chi, hi):
+            return tmp[src]  # inside the grid (always, without a halo): a view, no copy
+        out = empty(tuple(int(n) for n in hi - lo), dev).fill_(free)
+        out[tuple(slice(int(a - l), int(b - l)) for a, b, l in zip(clo, chi, lo))] = tmp[src]
+        return out
+
+    def decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device) -> torch.Tensor:
+        """Final decoded metres of voxels ``[lo, hi)`` inside the grid, neighbour context included."""
+        h = self.codec.halo
+        if not h:  # metres straight out of the decode
+            return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True)
+        core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev, metres=False)
+        return self._to_metres(self.codec.decode_context(core[None])[0])
+
+    def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
+                      device: str | torch.device | None = None) -> Any:
+        """:meth:`sdfcodec.Map.decode_region`: ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres."""
+        lv = self.level(level)
+        vox = self.block_box(region, units)
+        box = self.block_range(vox)
+        nbytes = 4 * int(np.prod([(s.stop - s.start) * BLOCK + 2 * 16 for s in box]))
+        if nbytes > self.max_decode_bytes:
+            raise InvalidValueError(f"decoding {region or 'the whole map'} needs {nbytes / 2**30:.1f} GiB, above the "
+                                    f"limit of {self.max_decode_bytes / 2**30:.1f} GiB; decode a smaller region or "
+                                    "raise max_decode_bytes in open_map()")
+        dev = torch.device(device) if device is not None else torch.device("cpu")
+        lo, hi = np.array([v[0] for v in vox]), np.array([v[1] for v in vox])
+        out = self.decode_voxels(lo, hi, lv, dev)
+        return out.contiguous() if device is not None else np.ascontiguousarray(out.numpy())
+
+    def local_root(self) -> str | None:
+        """The directory (or zip) this map reads from: the pinned version for maps opened by path."""
+        inner = unguarded(self.group.store)
+        if isinstance(inner, zarr.storage.LocalStore):
+            return str(inner.root)
+        if isinstance(inner, zarr.storage.ZipStore):
+            return str(inner.path)
+        return None
+
+    @property
+    def has_weights(self) -> bool:
+        """True when the map stores fusion weights."""
+        if self.live is not None:
+            return "weights" in self.group
+        return self.weights_array is not None
+
+    def read_weights(self, coords: Any) -> np.ndarray:
+        """:meth:`sdfcodec.Map.read_weights`: ``(N, 16, 16, 16)`` float32 fusion weights of blocks ``coords``."""
+        if not self.has_weights:
+            raise FormatError(f"{self.location} stores no fusion weights (write them with write_blocks(weights=...),"
+                              " e.g. `sdfcodec fuse --weights`)")
+        c = check_coords(coords)
+        if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
+            raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
+        arr = self.weights_array if self.live is None else self.group["weights"]
+        out = np.zeros((len(c), 4096), np.float32)
+        for i, (x, y, z) in enumerate(c):
+            out[i] = self.read(arr, (int(x), int(y), int(z), slice(None)))
+        return out.reshape(len(c), BLOCK, BLOCK, BLOCK)
+
+    def close(self) -> None:
+        """Further reads raise; a reader that owns a pinned local store lets go of the version it holds."""
+        self._closed = True
+        inner = unguarded(self.group.store)
+        if self._owns_store and isinstance(inner, PinnedStore):
+            inner.close_pin()
+
+
+def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
+                max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None) -> MapReader:
+    """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there)."""
+    loc = str(path_or_url)
+    try:
+        store = open_store(path_or_url, loc, storage_options)
+        group = zarr.open_group(store, mode="r", zarr_format=3)
+        raw = group.attrs.get("sdfcodec")
+    except (MapNotFoundError, FormatError):
+        raise
+    except (FileNotFoundError, NotADirectoryError) as e:
+        raise MapNotFoundError(f"no map at {loc}") from e
+    except SDFCodecError:
+        raise
+    except Exception as e:
+        raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
+    header = parse_header(raw, where=loc)
+    inner = unguarded(store)
+    # how another process reopens it: the store object itself, the map directory's path (not the pinned
+    # /proc/self/fd one), or the location as given
+    source = (path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
+              str(inner.path) if isinstance(inner, PinnedStore) else loc, storage_options)
+    return MapReader(group, header, loc, max_decode_bytes=max_decode_bytes, cache=cache, source=source)
+
+
+def _block_view(vol: torch.Tensor, nb) -> torch.Tensor:
+    """``(16 bx, 16 by, 16 bz)`` -> a ``(bx, by, bz, 16, 16, 16)`` view of the same memory."""
+    return vol.view(nb[0], BLOCK, nb[1], BLOCK, nb[2], BLOCK).permute(0, 2, 4, 1, 3, 5)

@@ -1,0 +1,393 @@
+"""The map writer: :class:`MapWriter` holds a map being written in its hidden temporary directory (a new map
+from :func:`create_writer`, or a copy of the current version from :func:`update_writer`), encodes volumes and
+blocks into it, and commits it into place atomically (or aborts, leaving the previous map untouched;
+``sdfcodec._atomic``, spec section 9). :class:`sdfcodec.Map` is the facade users write through; the dask
+encoder (``sdfcodec.scale``) writes chunks into :attr:`MapWriter.tmp` with :func:`store_code_chunk`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+import zarr
+
+from .. import __version__, _atomic
+from .._validate import BLOCK, as_float_tensor
+from ..blocks import check_truncation, normalise, split_blocks
+from ..codec import Codec
+from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
+                      ShapeError,
+                      VersionError)
+from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
+                      Extension, MapHeader, Provenance, Truncation, now_iso)
+from ..quantize import quantize_codes
+from ..registry import codec_package
+from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
+                     free_space, state_digest)
+from .reader import open_reader
+from .stores import CowLocalStore, is_url
+
+__all__ = ["MapWriter", "create_writer", "update_writer", "store_code_chunk", "LOCK_TIMEOUT"]
+
+#: How long a writer waits for another process's update of the same map to finish before giving up.
+LOCK_TIMEOUT = 60.0
+
+
+def store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
+                     local: np.ndarray, codes: np.ndarray, had: bool) -> None:
+    """Write float32 ``codes`` ``(n, D)`` of the blocks at ``local`` (indices inside the chunk ``box`` of the block
+    axes) into that chunk of ``codes_arr``, quantised to int8 with their ``[offset, scale]`` rows in ``scale_arr``
+    when the map stores int8 codes: one write per array (each chunk read first only when it already ``had``
+    codes). The single-process writer and the dask encoder both write through here."""
+    shape = [s.stop - s.start for s in box]
+    idx = tuple(local.T)
+    buf = np.asarray(codes_arr[box]) if had else np.zeros((*shape, codes_arr.shape[3]), dtype=codes_arr.dtype)
+    if scale_arr is None:
+        buf[idx] = codes.astype(codes_arr.dtype)
+    else:
+        q, params = quantize_codes(codes, per="block")
+        sbuf = np.asarray(scale_arr[box]) if had else np.zeros((*shape, 2), dtype=np.float32)
+        buf[idx], sbuf[idx] = q, params
+        scale_arr[box] = sbuf
+    codes_arr[box] = buf
+
+
+class MapWriter:
+    """State of a map being written into its temporary directory (``.NAME.tmp-*``, locked while we live).
+
+    ``update`` is set for :func:`update_writer`: the temporary directory starts as a copy of the current
+    version (whose directory identity is ``update["source"]``), the grid and block states start from it, and the
+    writer lock ``update["lock"]`` is held from the copy to the swap so no other update is lost.
+
+    ``state`` ``(Bx, By, Bz)`` uint8 and ``grid`` are the block states and grid so far (the ``state`` array is
+    written on commit). The write methods take checked input (``sdfcodec.map.format.check_volume``): the
+    facade checks it, so that its warnings point at the user's call.
+    """
+
+    def __init__(self, final: Path, tmp: Path, tmp_fd: int, group: zarr.Group, codec: Codec, header_kw: dict,
+                 codes_spec: CodesSpec, overwrite: bool, device: torch.device, *, header: MapHeader,
+                 max_state_bytes: int = DEFAULT_MAX_DECODE_BYTES, grid: tuple | None = None,
+                 state: np.ndarray | None = None, update: dict | None = None):
+        self.final, self.tmp, self.tmp_fd, self.group, self.codec = final, tmp, tmp_fd, group, codec
+        self.header, self.location = header, str(final)  # the header as opened (the final one is made on commit)
+        self.header_kw, self.codes_spec, self.overwrite, self.device = header_kw, codes_spec, overwrite, device
+        self.max_state_bytes, self.update = max_state_bytes, update
+        self.shape_voxels = tuple(header_kw.pop("shape_voxels"))
+        self.grid = tuple(grid) if grid is not None else tuple(-(-n // BLOCK) for n in self.shape_voxels)
+        self.state = state if state is not None else np.zeros(self.grid, dtype=np.uint8)
+        self.codes = group["codes"]
+        self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
+
+    def grow_voxels(self, need: tuple[int, int, int]) -> None:
+        shape = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
+        grid = tuple(max(g, -(-n // BLOCK)) for g, n in zip(self.grid, shape))
+        if math.prod(grid) > self.max_state_bytes or max(shape) > 2**31 - 1:
+            raise InvalidValueError(f"writing there would grow the map to {grid} blocks ({shape} voxels), whose block "
+                                    f"states alone exceed the limit of {self.max_state_bytes} bytes; check the block "
+                                    "coordinates or offset (or move the map's origin)")
+        self.shape_voxels = shape
+        if grid != self.grid:
+            state = np.zeros(grid, dtype=np.uint8)
+            state[tuple(slice(0, n) for n in self.grid)] = self.state
+            self.state, self.grid = state, grid
+            self.codes.resize((*grid, self.codes_spec.size))
+            if self.code_scale is not None:
+                self.code_scale.resize((*grid, 2))
+
+    def grow_blocks(self, max_coord: np.ndarray) -> None:
+        """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
+        need = tuple((int(m) + 1) * BLOCK if int(m) >= g else n
+                     for m, g, n in zip(max_coord, self.grid, self.shape_voxels))
+        self.grow_voxels(need)
+
+    @property
+    def truncation(self) -> tuple[float, float]:
+        """``(d_min, d_max)`` metres of the map being written."""
+        t = self.header_kw["truncation"]
+        return t.d_min, t.d_max
+
+    def write_volume(self, vol: np.ndarray, *, offset: Sequence[int] = (0, 0, 0), batch_size: int = 16384,
+                     progress: Callable[[int], None] | None = None) -> None:
+        """Encode a checked dense volume ``(X, Y, Z)`` float32 metres placed at voxel ``offset`` (multiples of
+        16): the grid grows to hold it, the far faces padded with free space."""
+        off = np.asarray(offset, dtype=np.int64)
+        if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
+            raise ShapeError(f"offset must be three non-negative multiples of {BLOCK} voxels, got {tuple(offset)}")
+        self.grow_voxels(tuple(int(o + n) for o, n in zip(off, vol.shape)))
+        blocks = split_blocks(vol, fill=self.truncation[1])
+        gb = blocks.shape[:3]
+        flat = blocks.reshape(-1, BLOCK, BLOCK, BLOCK)
+        coords = np.stack(np.meshgrid(*[np.arange(n) for n in gb], indexing="ij"), -1).reshape(-1, 3) + off // BLOCK
+        self.put_blocks(coords, flat, batch_size=batch_size, progress=progress)
+
+    def write_blocks(self, coords: np.ndarray, blocks: np.ndarray, *, weights: Any = None, batch_size: int = 16384,
+                     progress: Callable[[int], None] | None = None) -> None:
+        """Encode checked blocks ``(N, 16, 16, 16)`` float32 metres at checked block indices ``coords`` ``(N, 3)``
+        int64, with optional fusion weights ``(N, 16, 16, 16)`` (non-negative)."""
+        if weights is not None:
+            wt, _ = as_float_tensor(weights, "weights", (len(coords), BLOCK, BLOCK, BLOCK))
+            if len(coords) and float(wt.min()) < 0:
+                raise InvalidValueError("weights must be non-negative (observation counts)")
+        if len(coords):
+            self.grow_blocks(coords.max(axis=0))
+        self.put_blocks(coords, blocks, batch_size=batch_size, progress=progress)
+        if weights is not None:
+            self.put_weights(coords, wt.numpy())
+
+    def write_codes(self, coords: Any, codes: Any) -> None:
+        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``."""
+        c = check_coords(coords)
+        z, _ = as_float_tensor(codes, "codes", (len(c), self.codes_spec.size))
+        if len(c):
+            self.grow_blocks(c.max(axis=0))
+        self.put_codes(c, z.numpy())
+
+    def mark_empty(self, coords: Any) -> None:
+        """Record blocks ``(N, 3)`` as observed free space (no code stored)."""
+        c = check_coords(coords)
+        if len(c):
+            self.grow_blocks(c.max(axis=0))
+            self.set_state(c, BlockState.EMPTY)
+
+    def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
+        if "weights" not in self.group:
+            self.group.create_array("weights", shape=(*self.grid, 4096), dtype="float16", fill_value=0,
+                                    chunks=(4, 4, 4, 4096), compressors=compressors(),
+                                    dimension_names=["bx", "by", "bz", "voxel"])
+        arr = self.group["weights"]
+        if tuple(arr.shape[:3]) != self.grid:
+            arr.resize((*self.grid, 4096))
+        # float16 counts are exact to 2048 frames and saturate at its maximum beyond
+        w16 = np.minimum(weights.reshape(len(weights), 4096), 65504).astype(np.float16)
+        for (x, y, z), row in zip(coords, w16):
+            arr[int(x), int(y), int(z)] = row
+
+    def set_state(self, coords: np.ndarray, value: int) -> None:
+        self.state[tuple(coords.T)] = value
+
+    def put_blocks(self, coords: np.ndarray, blocks_m: np.ndarray, *, batch_size: int,
+                   progress: Callable[[int], None] | None) -> None:
+        d_min, d_max = self.truncation
+        for i in range(0, len(coords), batch_size):
+            c = coords[i:i + batch_size]
+            v = normalise(blocks_m[i:i + batch_size], d_min, d_max)
+            empty = free_space(v)
+            self.set_state(c[empty], BlockState.EMPTY)
+            if (~empty).any():
+                codes = self.codec.encode(torch.from_numpy(np.ascontiguousarray(v[~empty])).to(self.device))
+                self.put_codes(c[~empty], codes.cpu().numpy())
+            if progress is not None:
+                progress(len(c))
+
+    def put_codes(self, coords: np.ndarray, codes: np.ndarray) -> None:
+        """Scatter codes into whole chunks: one write per touched chunk (read first only if it had data)."""
+        if not len(coords):
+            return
+        check_codes(codes)
+        cb = self.codes_spec.chunk_blocks
+        chunk_of = coords // cb
+        order = np.lexsort(chunk_of.T[::-1])
+        coords, codes, chunk_of = coords[order], codes[order], chunk_of[order]
+        bounds = np.flatnonzero(np.any(np.diff(chunk_of, axis=0) != 0, axis=1)) + 1
+        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(coords)]):
+            ch = chunk_of[lo]
+            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, self.grid))
+            had = bool((self.state[box] == BlockState.CODED).any())
+            store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had)
+        self.set_state(coords, BlockState.CODED)
+
+    def commit(self) -> Path:
+        st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0,
+                                     chunks=tuple(min(64, max(1, n)) for n in self.grid),
+                                     compressors=compressors(), overwrite=True)
+        st[...] = self.state
+        extensions = []
+        if "weights" in self.group:
+            if tuple(self.group["weights"].shape[:3]) != self.grid:
+                self.group["weights"].resize((*self.grid, 4096))
+            extensions.append(Extension(name="fusion-weights", required=False))
+        if self.code_scale is not None:
+            extensions.append(Extension(name=INT8_EXTENSION, required=True))
+        header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
+                           extensions=extensions, **self.header_kw)
+        # the header goes last: until the swap below nobody sees any of this anyway
+        self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
+        try:
+            lock = self.update["lock"] if self.update else _atomic.WriterLock(self.final, LOCK_TIMEOUT).acquire()
+        except BaseException:
+            self.abort()
+            raise
+        try:
+            exists = os.path.lexists(self.final)
+            if self.update and (not exists or _stat_id(self.final) != self.update["source"]):
+                raise FormatError(f"{self.final} was replaced or removed by something other than sdfcodec while "
+                                  "this update ran; nothing was written: update it again")
+            if exists and not self.overwrite:
+                raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
+            # on failure either call leaves everything as it was (the new version still at self.tmp)
+            if exists:
+                _atomic.swap_into_place(self.tmp, self.final)
+            else:
+                os.rename(self.tmp, self.final)
+        except BaseException:
+            self.abort()
+            raise
+        finally:
+            lock.release()
+        os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
+        self.tmp_fd = None
+        _atomic.collect(self.final)  # the version replaced, if nobody reads it, and dead writers' leftovers
+        return self.final
+
+    def abort(self) -> None:
+        if self.tmp_fd is not None:
+            _rmtree(self.tmp)
+            os.close(self.tmp_fd)
+            self.tmp_fd = None
+        if self.update:
+            self.update["lock"].release()
+
+
+def _stat_id(p: Path) -> tuple[int, int]:
+    st = os.stat(p)
+    return st.st_dev, st.st_ino
+
+
+def _rmtree(p: Path) -> None:
+    if p.is_dir():
+        shutil.rmtree(p, ignore_errors=True)
+    elif p.exists():
+        p.unlink()
+
+
+def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
+    pkg = codec_package(codec.codec_id)
+    if pkg is None:
+        top = type(codec).__module__.split(".")[0]
+        pkg = (metadata.packages_distributions().get(top) or [None])[0]
+    try:
+        version = metadata.version(pkg) if pkg else None
+    except metadata.PackageNotFoundError:
+        version = None
+    return pkg, version
+
+
+
+def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
+                  truncation: tuple[float, float] = (-0.04, 0.1), origin: Sequence[float] = (0.0, 0.0, 0.0),
+                  shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
+                  chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
+                  device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None
+                  ) -> MapWriter:
+    """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
+    arguments); commit or abort the writer returned."""
+    final = Path(path)
+    if is_url(str(path)):
+        raise InvalidValueError(f"maps are written to local paths; got URL {path} (write locally, then upload)")
+    if final.exists() and not overwrite:
+        raise MapExistsError(f"{final} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    if final.suffix == ".zip":
+        raise InvalidValueError("writing zip maps is not supported; write a directory map and zip its contents")
+    if not codec.is_fitted:
+        raise NotFittedError(f"{codec!r} needs fitting: call fit(blocks), load_state_dict(...), "
+                             "or pass a trained model (--model PATH)")
+    if code_dtype not in CODE_DTYPES:
+        raise InvalidValueError(f"code_dtype must be one of {', '.join(CODE_DTYPES)}, got {code_dtype!r}")
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise InvalidValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
+    check_truncation(*truncation)
+    if len(origin) != 3 or not np.all(np.isfinite(origin)):
+        raise InvalidValueError(f"origin must be three finite numbers (metres), got {origin!r}")
+    spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code)
+    state = codec.state_dict()
+    pkg, pkg_version = _distribution_of(codec)
+    header_kw = dict(
+        voxel_size=float(voxel_size), truncation=Truncation(d_min=truncation[0], d_max=truncation[1]),
+        origin=tuple(float(o) for o in origin),
+        codec=CodecSpec(id=codec.codec_id, config=codec.get_config(), package=pkg, package_version=pkg_version,
+                        state_arrays=sorted(state), state_sha256=state_digest(state) if state else None),
+        provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
+    )
+    bad_names = [n for n in state if not re.fullmatch(STATE_NAME_PATTERN, n)]
+    if bad_names:
+        raise InvalidValueError(f"codec {codec.codec_id!r} state array names {bad_names} cannot be stored in a map: "
+                                f"names must match {STATE_NAME_PATTERN} (a plugin bug)")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    _atomic.collect(final)  # leftovers of writers killed earlier
+    tmp, tmp_fd = _atomic.make_temp_dir(final)
+    try:
+        group = zarr.open_group(CowLocalStore(str(tmp)), mode="w", zarr_format=3)
+        grid = tuple(-(-int(n) // BLOCK) for n in shape_voxels)
+        cb, cc = spec.chunk_blocks, spec.chunk_code
+        group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
+                           chunks=(cb, cb, cb, cc), compressors=compressors(),
+                           dimension_names=["bx", "by", "bz", "code"])
+        if code_dtype == "int8":
+            group.create_array("code_scale", shape=(*grid, 2), dtype="float32", fill_value=0, chunks=(cb, cb, cb, 2),
+                               compressors=compressors(), dimension_names=["bx", "by", "bz", "offset_scale"])
+        cgroup = group.create_group("codec")
+        for name, arr in state.items():
+            arr = np.ascontiguousarray(arr)
+            a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
+                                    compressors=compressors())
+            a[...] = arr
+        header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=grid, codes=spec,
+                           extensions=[Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else [], **header_kw)
+    except BaseException:
+        _rmtree(tmp)
+        os.close(tmp_fd)
+        raise
+    return MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
+                     overwrite, torch.device(device), header=header)
+
+
+
+def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu", tool: str | None = None,
+                  wait: float = LOCK_TIMEOUT, max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> MapWriter:
+    """Start changing the map at ``path``: a hard-linked copy of its current version in a temporary directory,
+    the writer lock held until commit or abort (:func:`sdfcodec.update_map` documents the arguments)."""
+    final = Path(path)
+    if is_url(str(path)) or final.is_file():
+        raise InvalidValueError(f"only local directory maps can be updated, got {path} (copy it locally first)")
+    if not final.exists():
+        raise MapNotFoundError(f"no map at {final}; create it with sdfcodec.create_map")
+    lock = _atomic.WriterLock(final, wait).acquire()
+    tmp = tmp_fd = None
+    try:
+        src = open_reader(final, max_decode_bytes=max_decode_bytes)
+        h = src.header
+        unknown = [e.name for e in h.extensions if e.name not in KNOWN_EXTENSIONS]
+        if unknown:
+            raise VersionError(f"{final} uses extension(s) {unknown} that this sdfcodec cannot keep consistent "
+                               "while changing blocks; update it with a newer sdfcodec")
+        codec = src.codec  # checks the state digest; the codec encodes the new blocks
+        states = src.block_states()
+        root = src.local_root()
+        source_id = _stat_id(Path(root))
+        tmp, tmp_fd = _atomic.make_temp_dir(final)
+        _atomic.link_tree(root, tmp)
+        src.close()
+        group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
+        prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
+        header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
+                         provenance=prov, shape_voxels=h.shape_voxels)
+        writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
+                         max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
+                         update={"lock": lock, "source": source_id}, header=h)
+    except BaseException:
+        if tmp is not None:
+            _rmtree(tmp)
+            os.close(tmp_fd)
+        lock.release()
+        raise
+    return writer
+

@@ -1,0 +1,108 @@
+"""Descriptor search and selective expansion of compressed maps (the paper's section V-C, Fig. 7).
+
+Similar blocks get similar codes, so a map's codes double as shape descriptors. A *query model* is a small set
+of descriptors made by encoding shapes of interest with the map's own codec: the paper's floor model is the
+TSDF of a horizontal plane at 15 offsets across a block. :func:`search` scores every coded block of a map by
+its minimum squared distance to the set (one matrix product per streamed batch of chunks), selects by
+threshold and/or top-k, and :func:`expand` decodes only the selected blocks (as blocks, a dense sub-volume or
+a mesh). Nothing else of the map is decoded.
+
+Conventions
+-----------
+* Block voxel ``(i, j, k)`` sits at ``(i, j, k)`` voxel units inside its block; shapes are posed about the
+  block's centre ``(7.5, 7.5, 7.5)``, and the 15 plane offsets are the midpoints of 15 equal parts of the
+  block's extent ``[-0.5, 15.5]`` (its voxels' cells), 1.07 voxels apart, so every plane that crosses a block
+  is within 0.53 voxels of one of them.
+* ``up`` is the world direction of "up" in the map's grid (default ``+z``). The shapes are defined with
+  ``+z`` up and rotated onto ``up``: for a map whose gravity is not the grid's ``-z`` (the 7-Scenes kitchen),
+  pass the true up direction.
+* ``behind``: how the shapes treat voxels more than ``|d_min|`` behind a surface. ``"unobserved"`` (default)
+  stores them as free space ``d_max``, which is what fusion produces (a camera never sees behind a surface,
+  see ``sdfcodec/fusion.py``); ``"solid"`` clips them to ``d_min``, as a truncated exact SDF of a solid
+  (``write_volume(sample_volume(...))``) does. Use the one that matches how the map was made.
+* Scores are squared Euclidean distances between codes (float32). For ``pca`` maps (``mean="dataset"``)
+  they equal squared distances between the blocks' projections onto the first ``L`` eigenshapes, in
+  normalised units (``v = (d - d_min) / (d_max - d_min)``, summed over the 4096 voxels); for ``raw`` maps
+  they are exact squared voxel distances.
+
+Prefix levels
+-------------
+For prefix-ordered codecs (PCA), a query encoded with the map's codec and cut to its first ``L`` elements is
+compared with the first ``L`` elements of the map's codes, reading only the code chunks that hold them (a
+level-32 search of a 128-element map reads a quarter of the code bytes). Maps with different code sizes whose
+bases share their leading components (pca-32/64/128 prefixes of one basis) give the same level-``L``
+scores. Codecs whose codes are not prefix-ordered (``raw``, ``ae``) are searched at their full size only.
+
+Bytes read are counted by wrapping the map's Zarr store (:class:`CountingStore`): what the search actually
+fetched, per array (``codes``, ``state``, ``codec``, metadata), for any store (local, zip, HTTP...).
+
+Query models are saved as ``.npz`` files of plain arrays (:func:`save_query`, :func:`load_query`, never
+pickles): the descriptors, optionally the normalised shape blocks (so the model can be re-encoded for any
+map), and JSON metadata in a uint8 array.
+
+Evaluation helpers (:func:`synthetic_room`, :func:`evaluate_retrieval`, and ``sdfcodec.bench.bench_search``)
+produce the precision/recall curves and throughput figures of ``docs/search.md``.
+
+Layout (one job per module; every name below is re-exported here, so ``from sdfcodec.search import ...``
+works as before):
+
+* :mod:`sdfcodec.search.shapes`: the built-in query shapes and rotation sets;
+* :mod:`sdfcodec.search.query`: query models, their ``.npz`` files, resolving a query for a map;
+* :mod:`sdfcodec.search.engine`: the counting store, the scoring kernel, :func:`search` and :func:`expand`;
+* :mod:`sdfcodec.search.metrics`: precision/recall of retrieval on labelled rooms;
+* the labelled rooms themselves are :mod:`sdfcodec.data.rooms`, the rotations :mod:`sdfcodec.geometry`, and
+  the search benchmark ``sdfcodec.bench.bench_search`` (``sdfcodec.search.bench_search`` still works, with a
+  :class:`DeprecationWarning`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+from ..data.rooms import LabelledRoom, synthetic_room
+from ..geometry import axis_rotations, rotation_to
+from .engine import CountingStore, Expansion, SearchResult, auto_threshold, expand, search
+from .metrics import TRUTH, evaluate_retrieval, operating_points, pr_curve
+from .query import QueryModel, build_query, load_query, save_query
+from .shapes import BEHIND, QUERY_NAMES, ConeRotations, cone_rotations, plane_offsets, query_blocks
+
+__all__ = [
+    "QUERY_NAMES",
+    "BEHIND",
+    "ConeRotations",
+    "QueryModel",
+    "SearchResult",
+    "Expansion",
+    "CountingStore",
+    "axis_rotations",
+    "cone_rotations",
+    "rotation_to",
+    "plane_offsets",
+    "query_blocks",
+    "build_query",
+    "save_query",
+    "load_query",
+    "auto_threshold",
+    "search",
+    "expand",
+    "LabelledRoom",
+    "synthetic_room",
+    "TRUTH",
+    "pr_curve",
+    "operating_points",
+    "evaluate_retrieval",
+    "bench_search",
+]
+
+
+def __getattr__(name: str) -> Any:
+    # the search benchmark moved to the benchmark module; resolved lazily because sdfcodec.bench imports the
+    # conformance toolkit, which a plain search does not need
+    if name == "bench_search":
+        warnings.warn("sdfcodec.search.bench_search moved to sdfcodec.bench.bench_search; import it from there",
+                      DeprecationWarning, stacklevel=2)
+        from ..bench import bench_search
+
+        return bench_search
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

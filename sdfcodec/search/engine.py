@@ -1,0 +1,472 @@
+"""Searching and expanding a map: the store wrapper that counts the bytes a search reads
+(:class:`CountingStore`), the scoring kernel (:class:`Scorer`), :func:`search` (score every coded block against
+a query model, select by threshold and/or top-k, with :func:`auto_threshold`) and :func:`expand` (decode only
+the selected blocks). See :mod:`sdfcodec.search` for the conventions and units.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import zarr
+import zarr.abc.store
+
+from .._validate import BLOCK
+from ..codec import Codec
+from ..errors import InvalidValueError, ShapeError
+from ..header import BlockState
+from ..map import Map, open_map
+from .query import QueryModel, build_query, resolve_query
+
+__all__ = [
+    "AUTO_FRACTION",
+    "CountingStore",
+    "Scorer",
+    "SearchResult",
+    "Expansion",
+    "auto_threshold",
+    "search",
+    "expand",
+]
+
+
+# ----------------------------------------------------------------------------------------- store counting
+class CountingStore(zarr.storage.WrapperStore):
+    """A read-through Zarr store wrapper that counts the bytes it returns, per top-level array name
+    (``codes``, ``state``, ``codec``, ``weights``) and ``meta`` for ``zarr.json`` metadata documents."""
+
+    def __init__(self, store: zarr.abc.store.Store):
+        super().__init__(store)
+        self.bytes: dict[str, int] = {}
+        self.keys: list[str] = []
+
+    def _count(self, key: str, buf) -> None:
+        if buf is None:
+            return
+        kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
+        self.bytes[kind] = self.bytes.get(kind, 0) + len(buf)
+        self.keys.append(key)
+
+    async def get(self, key, prototype, byte_range=None):
+        buf = await self._store.get(key, prototype, byte_range)
+        self._count(key, buf)
+        return buf
+
+    async def get_partial_values(self, prototype, key_ranges):
+        out = await self._store.get_partial_values(prototype, key_ranges)
+        for (key, _), buf in zip(key_ranges, out):
+            self._count(key, buf)
+        return out
+
+
+def _counting_view(m: Map) -> tuple[Map, CountingStore]:
+    """The same map read through a :class:`CountingStore` (shares the header and any loaded codec)."""
+    if m.writable:
+        raise InvalidValueError(f"{m.location} is still being written; leave the create_map block (commit) and "
+                                "search the map with sdfcodec.open_map")
+    made: list[CountingStore] = []
+
+    def wrap(store):
+        made.append(CountingStore(store))
+        return made[0]
+
+    view = m.with_store(wrap)  # shares the header and the codec cache: a codec loaded by either serves both
+    return view, made[0]
+
+
+def _code_chunk_bytes(m: Map, level: int | None = None) -> int | None:
+    """Bytes on disk of the map's code chunks holding elements ``[0, level)`` (all when None); local
+    directory maps only (None otherwise)."""
+    root = Path(m.location) / "codes" / "c"
+    if "://" in m.location or not root.is_dir():
+        return None
+    cc = m.header.codes.chunk_code
+    last = -(-(level or m.code_size) // cc)
+    total = 0
+    for f in root.rglob("*"):
+        if f.is_file() and f.name.isdigit() and int(f.name) < last:
+            total += f.stat().st_size
+    return total
+
+
+# ---------------------------------------------------------------------------------------------- searching
+@dataclass
+class SearchResult:
+    """What :func:`search` found.
+
+    Attributes
+    ----------
+    coords : np.ndarray
+        ``(N, 3)`` int64 block indices of the selected blocks, best (lowest score) first.
+    scores : np.ndarray
+        ``(N,)`` float32 minimum squared code distance of each to the query's descriptors (see the
+        :mod:`sdfcodec.search` docstring for units).
+    nearest : np.ndarray
+        ``(N,)`` int64 index of the nearest descriptor (into ``query.descriptors``; for the floor model, which
+        plane offset).
+    level : int
+        Code elements compared (``L``).
+    query : QueryModel
+        The model as used (encoded with the map's codec).
+    threshold, top :
+        The selection asked for (None: not used).
+    stats : dict
+        ``blocks_scored`` (every coded block), ``selected``, ``descriptors``, ``level``, ``code_size``,
+        ``bytes_read`` (dict per array: ``codes``, ``state``, ``codec``, ``meta``), ``code_bytes_read``,
+        ``code_bytes_full`` (all code chunks of the map on disk; local maps, else None),
+        ``code_bytes_level`` (the chunks holding the first ``L`` elements), ``seconds``, ``blocks_per_s``,
+        ``device``.
+    all_coords, all_scores : np.ndarray or None
+        Every coded block and its score (``keep_scores=True`` only): ``(B, 3)`` int64 and ``(B,)`` float32.
+    """
+
+    coords: np.ndarray
+    scores: np.ndarray
+    nearest: np.ndarray
+    level: int
+    query: QueryModel
+    threshold: float | None
+    top: int | None
+    stats: dict = field(default_factory=dict)
+    all_coords: np.ndarray | None = None
+    all_scores: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.coords)
+
+    def to_json(self, blocks: bool = True) -> dict:
+        """JSON-able summary; with ``blocks``, every selected block as ``{"coords": [x, y, z], "score": s}``."""
+        out = {"query": self.query.name, "level": self.level, "threshold": self.threshold, "top": self.top,
+               **{k: v for k, v in self.stats.items()}}
+        if blocks:
+            out["blocks"] = [{"coords": [int(c) for c in xyz], "score": float(s)}
+                             for xyz, s in zip(self.coords, self.scores)]
+        return out
+
+
+def _default_device(device: str | torch.device | None) -> torch.device:
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+class Scorer:
+    """Minimum squared distance of codes to descriptors: ``min_m |c|^2 - 2 c.q_m + |q_m|^2``, one matrix
+    product per batch. numpy's BLAS on the CPU, torch on other devices.
+
+    ``descriptors``: ``(M, L)`` float32 (cast), the query's first ``L`` elements; ``device``: where to score.
+    The kernel of :func:`search`, and what ``sdfcodec.bench.bench_search`` times."""
+
+    def __init__(self, descriptors: np.ndarray, device: torch.device):
+        q = np.ascontiguousarray(descriptors, dtype=np.float32)
+        self.device = device
+        self.qq = np.einsum("ij,ij->i", q, q)
+        self.qt = np.ascontiguousarray(-2.0 * q.T)  # (L, M): the -2 folded into the product
+        if device.type != "cpu":
+            self.tqt = torch.from_numpy(self.qt).to(device)
+            self.tqq = torch.from_numpy(self.qq).to(device)
+
+    def __call__(self, codes: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """``(n, L)`` float32 codes -> scores ``(n,)`` float32 and nearest index ``(n,)`` int64 (numpy)."""
+        if self.device.type == "cpu":
+            c = np.asarray(codes, dtype=np.float32)
+            g = c @ self.qt
+            g += self.qq
+            idx = g.argmin(axis=1)
+            s = np.take_along_axis(g, idx[:, None], axis=1)[:, 0]
+            s += np.einsum("ij,ij->i", c, c)
+            np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
+            return s, idx
+        c = (codes if isinstance(codes, torch.Tensor) else torch.from_numpy(np.asarray(codes))).to(self.device)
+        g = torch.addmm(self.tqq, c, self.tqt)
+        s, idx = g.min(dim=1)
+        s = (s + (c * c).sum(dim=1)).clamp_(min=0.0)
+        return s.cpu().numpy(), idx.cpu().numpy()
+
+
+def _search_level(m: Map, query: QueryModel, level: int | None) -> int:
+    size, prefix = m.code_size, m.header.codes.prefix_ordered
+    if level is None:
+        level = min(size, query.code_size)
+    if isinstance(level, bool) or not isinstance(level, (int, np.integer)) or not 1 <= level <= size:
+        raise InvalidValueError(f"level must be an int in 1..{size} (the map's code size), got {level!r}")
+    if level < size and not prefix:
+        raise InvalidValueError(f"the map's {m.header.codec.id!r} codes are not prefix-ordered, so their first "
+                                f"{level} of {size} elements are not a coarser descriptor and a prefix search is "
+                                f"meaningless; search at the full size (omit level / --level), or encode the map "
+                                "with a prefix-ordered codec such as pca")
+    if level > query.code_size:
+        raise InvalidValueError(f"level {level} exceeds the query's {query.code_size}-element descriptors; use a "
+                                f"level <= {query.code_size}")
+    return int(level)
+
+
+#: :func:`auto_threshold`'s fraction of the model's median nearest-neighbour squared distance.
+AUTO_FRACTION = 0.15
+
+
+def auto_threshold(model: QueryModel, level: int | None = None, codec: Codec | None = None) -> float:
+    """A default threshold from the model's own resolution: ``AUTO_FRACTION`` (0.15) times the median squared
+    distance between each descriptor and its nearest other descriptor, over the first ``level`` elements.
+    For a built-in model sampled over extra rotations, the spacing is that of its unrotated shapes (rebuilt
+    with ``codec``, the one that made the descriptors), so rotation sampling does not tighten the threshold.
+
+    For the default floor model (17 planes a voxel apart) this gives 7.2 / 12.8 / 16.8 at levels 32 / 64 / 128
+    with the shipped eigenshapes, close to the thresholds that maximise F1 on synthetic rooms (6.9 / 13.0 /
+    23.7, docs/search.md). It is a heuristic: pick a threshold from a PR curve, or use ``top``, when it
+    matters.
+
+    Raises
+    ------
+    InvalidValueError
+        The model has a single descriptor (no spacing to scale from): give a threshold or ``top``.
+    """
+    spec = model.spec
+    if spec is not None and spec.get("rotations", "none") != "none" and codec is not None:
+        model = build_query(spec["shape"], codec=codec, voxel_size=model.voxel_size, truncation=model.truncation,
+                            up=spec["up"], offsets=spec["offsets"], behind=spec["behind"], keep_blocks=False)
+    q = model.descriptors[:, :level] if level else model.descriptors
+    if len(q) < 2:
+        raise InvalidValueError(f"query model {model.name!r} has one descriptor, so no automatic threshold can be "
+                                "derived; pass threshold= (--threshold) or top= (--top)")
+    d = np.einsum("ij,ij->i", q, q)[:, None] - 2 * q @ q.T + np.einsum("ij,ij->i", q, q)[None]
+    np.fill_diagonal(d, np.inf)
+    return float(AUTO_FRACTION * np.median(np.maximum(d.min(axis=1), 0.0)))
+
+
+def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | None = None,
+           threshold: float | str | None = None, top: int | None = None, device: str | torch.device | None = None,
+           keep_scores: bool = False, chunks_per_batch: int = 8) -> SearchResult:
+    """Score every coded block of a map against a query model and select the closest.
+
+    Streams the map's codes a few chunks at a time (``Map.iter_codes``), reading only the code chunks that
+    hold the first ``level`` elements; memory is bounded by the batch plus the selection (and, with
+    ``keep_scores``, 28 bytes per coded block).
+
+    Parameters
+    ----------
+    map : Map or path
+        A committed map (open_map), or its path/URL.
+    query : str, path, QueryModel or np.ndarray
+        A built-in name (:data:`QUERY_NAMES`; built for this map with :func:`build_query` defaults), the path
+        of a saved model (``.npz``), a :class:`QueryModel` (re-encoded with the map's codec when it has
+        blocks; descriptors-only models must agree with the map's codec), or user blocks ``(N, 16, 16, 16)``
+        in metres.
+    level : int, optional
+        Compare the first ``level`` code elements (prefix-ordered codecs; default: all the map and query
+        have in common).
+    threshold : float or "auto", optional
+        Select blocks whose score is ``<= threshold``; ``"auto"``: :func:`auto_threshold` of the model.
+    top : int, optional
+        Select at most ``top`` best blocks (with ``threshold``: the best ``top`` under it). With neither,
+        every coded block is returned.
+    device : str or torch.device, optional
+        Where the distances are computed; default CUDA when available, else the CPU.
+    keep_scores : bool
+        Also return every coded block's coordinates and score (for pictures and PR curves).
+    chunks_per_batch : int
+        Code chunks read per step (memory vs. call overhead).
+
+    Returns
+    -------
+    SearchResult
+
+    Raises
+    ------
+    InvalidValueError
+        A prefix level on a map whose codes are not prefix-ordered, a bad level/threshold/top, or a
+        descriptors-only model made by another codec.
+    """
+    t0 = time.perf_counter()
+    m = map if isinstance(map, Map) else open_map(map)
+    if threshold is not None and threshold != "auto" and (isinstance(threshold, (str, bool)) or not (
+            np.isfinite(threshold) and threshold >= 0)):
+        raise InvalidValueError(f"threshold must be a finite squared distance >= 0 or 'auto', got {threshold!r}")
+    if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
+        raise InvalidValueError(f"top must be a positive int, got {top!r}")
+    view, store = _counting_view(m)
+    codec = view.codec  # loads (and counts) the codec state unless the map already holds it
+    model = resolve_query(query, m, codec)
+    lv = _search_level(m, model, level)
+    if threshold == "auto":
+        threshold = auto_threshold(model, lv, codec)
+    dev = _default_device(device)
+    scorer = Scorer(model.descriptors[:, :lv], dev)
+
+    sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
+    all_c, all_s = [], []
+    n_scored = 0
+    for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
+        s, idx = scorer(codes)
+        n_scored += len(s)
+        if keep_scores:
+            all_c.append(coords)
+            all_s.append(s)
+        keep = np.ones(len(s), bool) if threshold is None else s <= threshold
+        if not keep.any():
+            continue
+        sel_c = np.concatenate([sel_c, coords[keep]])
+        sel_s = np.concatenate([sel_s, s[keep]])
+        sel_i = np.concatenate([sel_i, idx[keep]])
+        if top is not None and len(sel_s) > top:
+            # running top-k: memory stays O(top + batch)
+            part = np.argpartition(sel_s, top - 1)[:top]
+            sel_c, sel_s, sel_i = sel_c[part], sel_s[part], sel_i[part]
+    order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
+    sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
+    if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here
+        sel_c, sel_s, sel_i = sel_c[:top], sel_s[:top], sel_i[:top]
+    seconds = time.perf_counter() - t0
+    stats = {
+        "map": m.location, "codec": m.header.codec.id, "code_size": m.code_size, "level": lv,
+        "descriptors": len(model), "blocks_scored": n_scored, "selected": int(len(sel_c)),
+        "bytes_read": dict(store.bytes), "code_bytes_read": int(store.bytes.get("codes", 0)),
+        "code_bytes_level": _code_chunk_bytes(m, lv), "code_bytes_full": _code_chunk_bytes(m),
+        "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
+    }
+    return SearchResult(
+        coords=sel_c, scores=sel_s.astype(np.float32), nearest=sel_i, level=lv, query=model, threshold=threshold,
+        top=top, stats=stats,
+        all_coords=np.concatenate(all_c) if all_c else (np.zeros((0, 3), np.int64) if keep_scores else None),
+        all_scores=np.concatenate(all_s) if all_s else (np.zeros(0, np.float32) if keep_scores else None))
+
+
+# ---------------------------------------------------------------------------------------------- expanding
+@dataclass
+class Expansion:
+    """Selected blocks decoded from a map (:func:`expand`).
+
+    Attributes
+    ----------
+    coords : np.ndarray
+        ``(N, 3)`` int64 block indices.
+    blocks : np.ndarray
+        ``(N, 16, 16, 16)`` float32 metres (voxels ``(x, y, z)``), decoded at ``level``.
+    origin : np.ndarray
+        ``(3,)`` float64 metres, world position of the map's voxel ``(0, 0, 0)``.
+    voxel_size : float
+    truncation : tuple of float
+    level : int
+    dense : np.ndarray or None
+        ``as_="dense"``: ``(16 nx, 16 ny, 16 nz)`` float32 metres over the selected blocks' bounding box,
+        ``d_max`` wherever no selected block is (nothing else is decoded).
+    dense_offset : np.ndarray or None
+        ``(3,)`` int64 map voxel index of ``dense[0, 0, 0]`` (world position ``origin + voxel_size * offset``).
+    mesh : open3d.geometry.TriangleMesh or None
+        ``as_="mesh"``: marching-cubes mesh of the selected blocks (world metres).
+    stats : dict
+        ``blocks_decoded``, ``coded_blocks`` (in the whole map), ``code_bytes_read`` (chunks fetched to get
+        the selected codes), ``code_bytes_full`` (all code chunks on disk; local maps), ``bytes_read`` (per
+        array), ``seconds``.
+    """
+
+    coords: np.ndarray
+    blocks: np.ndarray
+    origin: np.ndarray
+    voxel_size: float
+    truncation: tuple[float, float]
+    level: int
+    dense: np.ndarray | None = None
+    dense_offset: np.ndarray | None = None
+    mesh: Any = None
+    stats: dict = field(default_factory=dict)
+
+
+def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, as_: str = "blocks", *,
+           level: int | None = None, device: str | torch.device | None = None) -> Expansion:
+    """Decode only the selected blocks of a map.
+
+    Parameters
+    ----------
+    map : Map or path
+        The map that was searched.
+    selection : SearchResult or np.ndarray
+        A search result, or block indices ``(N, 3)`` of coded blocks.
+    as_ : {"blocks", "dense", "mesh"}
+        ``"blocks"``: the decoded blocks; ``"dense"``: also a dense sub-volume over their bounding box;
+        ``"mesh"``: also a marching-cubes mesh (``sdfcodec.fusion.mesh_from_blocks``, open3d).
+    level : int, optional
+        Decode from the first ``level`` code elements (default: the full code, the best reconstruction,
+        whatever level the search compared).
+    device : str or torch.device, optional
+        Where to decode (default CUDA when available, else the CPU); results are numpy.
+
+    Returns
+    -------
+    Expansion
+    """
+    t0 = time.perf_counter()
+    if as_ not in ("blocks", "dense", "mesh"):
+        raise InvalidValueError(f"as_ must be 'blocks', 'dense' or 'mesh', got {as_!r}")
+    m = map if isinstance(map, Map) else open_map(map)
+    coords = selection.coords if isinstance(selection, SearchResult) else np.asarray(selection)
+    if coords.ndim != 2 or coords.shape[1] != 3 or coords.dtype.kind not in "iu":
+        raise ShapeError(f"selected block coords must be an integer (N, 3) array, got {coords.shape} {coords.dtype}")
+    coords = coords.astype(np.int64)
+    view, store = _counting_view(m)
+    lv = view.reader.level(level)
+    dev = _default_device(device)
+    states = view.block_states()
+    grid = np.asarray(m.grid_blocks)
+    if len(coords) and (coords.min() < 0 or np.any(coords >= grid)):
+        raise InvalidValueError(f"selected blocks lie outside the map's block grid {tuple(grid)}")
+    if len(coords) and np.any(states[tuple(coords.T)] != BlockState.CODED):
+        raise InvalidValueError("some selected blocks are not coded in this map (empty or unobserved): select from "
+                                "a search of this map")
+    codec = view.codec
+    d_min, d_max = m.truncation
+    blocks = np.empty((len(coords), BLOCK, BLOCK, BLOCK), np.float32)
+    if codec.halo:
+        # codecs that need neighbour context: decode each block's region (the map reader adds the context)
+        for i, c in enumerate(coords):
+            region = tuple((int(a) * BLOCK, min(int(a + 1) * BLOCK, n)) for a, n in zip(c, m.shape_voxels))
+            out = view.decode_region(region, level=lv, device=dev).cpu().numpy()
+            blocks[i] = d_max
+            blocks[i][tuple(slice(0, s) for s in out.shape)] = out
+    elif len(coords):
+        # group the selected blocks by code chunk: each chunk holding one is read once, at level lv
+        cb = m.header.codes.chunk_blocks
+        arr = view.reader.codes_array
+        chunk_of = coords // cb
+        order = np.lexsort(chunk_of.T[::-1])
+        bounds = np.flatnonzero(np.any(np.diff(chunk_of[order], axis=0) != 0, axis=1)) + 1
+        codes = np.empty((len(coords), lv), np.float32)
+        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(order)]):
+            idx = order[lo:hi]
+            ch = chunk_of[idx[0]]
+            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
+            chunk = view.reader.read(arr, (*box, slice(0, lv)))
+            codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
+        for i in range(0, len(coords), 65536):
+            v = codec.decode(torch.from_numpy(codes[i:i + 65536]).to(dev))
+            blocks[i:i + 65536] = (v * (d_max - d_min) + d_min).cpu().numpy()
+    out = Expansion(coords=coords, blocks=blocks, origin=np.asarray(m.origin, np.float64), voxel_size=m.voxel_size,
+                    truncation=m.truncation, level=lv)
+    if as_ == "dense" and len(coords):
+        lo, hi = coords.min(axis=0), coords.max(axis=0) + 1
+        nbytes = int(np.prod(hi - lo)) * BLOCK ** 3 * 4
+        if nbytes > m.max_decode_bytes:
+            raise InvalidValueError(f"the selected blocks' bounding box needs {nbytes / 2**30:.1f} GiB as a dense "
+                                    f"volume, above the limit of {m.max_decode_bytes / 2**30:.1f} GiB; use "
+                                    "as_='blocks' or raise max_decode_bytes in open_map()")
+        dense = np.full(tuple(int(n) * BLOCK for n in hi - lo), d_max, np.float32)
+        for c, b in zip(coords - lo, blocks):
+            dense[c[0] * BLOCK:(c[0] + 1) * BLOCK, c[1] * BLOCK:(c[1] + 1) * BLOCK, c[2] * BLOCK:(c[2] + 1) * BLOCK] = b
+        out.dense, out.dense_offset = dense, lo * BLOCK
+    elif as_ == "dense":
+        out.dense, out.dense_offset = np.full((0, 0, 0), d_max, np.float32), np.zeros(3, np.int64)
+    if as_ == "mesh":
+        from ..fusion import mesh_from_blocks
+
+        out.mesh = mesh_from_blocks(coords, blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
+    out.stats = {"blocks_decoded": int(len(coords)), "coded_blocks": int((states == BlockState.CODED).sum()),
+                 "level": lv, "code_bytes_read": int(store.bytes.get("codes", 0)),
+                 "code_bytes_full": _code_chunk_bytes(m), "bytes_read": dict(store.bytes),
+                 "seconds": time.perf_counter() - t0}
+    return out

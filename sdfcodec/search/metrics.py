@@ -1,0 +1,188 @@
+"""Retrieval metrics: precision/recall of finding labelled blocks in maps of synthetic rooms
+(:func:`evaluate_retrieval`, with the ground-truth definitions :data:`TRUTH`), and the curve summaries
+(:func:`pr_curve`, :func:`operating_points`) behind the figures of ``docs/search.md``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from ..codec import Codec
+from ..data.rooms import LabelledRoom
+from ..errors import InvalidValueError
+from ..map import open_map
+from .engine import search
+from .query import build_query
+
+__all__ = [
+    "TRUTH",
+    "pr_curve",
+    "operating_points",
+    "evaluate_retrieval",
+]
+
+
+def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
+    return (lab[kind] >= 0.9) & (lab[f"{kind}_cover"] >= 0.9)
+
+
+#: Ground-truth definitions for :func:`evaluate_retrieval`: ``name -> f(block_labels) -> (positive, negative)``
+#: boolean masks (blocks in neither are left out of precision and recall). A *clean floor block*: >= 90 % of
+#: its surface voxels are nearest the floor and the floor covers >= 90 % of its cross-section; a *partial* one
+#: holds some floor but is not clean (floor slivers and blocks shared with walls or furniture).
+#:
+#: ``"floor"``: clean floor blocks against all others (partial ones count as false positives when retrieved);
+#: ``"floor-vs-none"``: clean floor blocks against blocks holding no floor at all (partial ones left out);
+#: ``"floor-majority"``: blocks whose surface is at least half floor (``RoomScene.floor_blocks``) against all
+#: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others.
+TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
+    "floor": lambda lab: (_clean(lab), ~_clean(lab)),
+    "floor-vs-none": lambda lab: (_clean(lab), lab["floor"] == 0),
+    "floor-majority": lambda lab: (lab["floor"] >= 0.5, lab["floor"] < 0.5),
+    "up": lambda lab: (_clean(lab, "up"), ~_clean(lab, "up")),
+}
+
+
+# ------------------------------------------------------------------------------------- evaluation: metrics
+def pr_curve(scores: np.ndarray, labels: np.ndarray) -> dict:
+    """Precision and recall of "score <= t" for every distinct threshold ``t``.
+
+    Parameters
+    ----------
+    scores : np.ndarray
+        ``(N,)`` lower is more similar.
+    labels : np.ndarray
+        ``(N,)`` bool ground truth.
+
+    Returns
+    -------
+    dict
+        ``thresholds``, ``precision``, ``recall`` ``(T,)`` float64 arrays (ascending thresholds), and
+        ``positives`` (count).
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    y = np.asarray(labels, dtype=bool)
+    order = np.argsort(s, kind="stable")
+    s, y = s[order], y[order]
+    tp = np.cumsum(y)
+    k = np.arange(1, len(s) + 1)
+    last = np.r_[np.flatnonzero(np.diff(s) > 0), len(s) - 1]  # the last index of each distinct score
+    pos = max(int(y.sum()), 1)
+    return {"thresholds": s[last], "precision": tp[last] / k[last], "recall": tp[last] / pos,
+            "positives": int(y.sum())}
+
+
+def operating_points(curve: dict, target: float = 0.9) -> dict:
+    """Summaries of a :func:`pr_curve`: average precision (``ap``: precision summed over recall steps), the
+    best F1 and its threshold, the highest precision at recall ``>= target`` and the highest recall at
+    precision ``>= target`` with their thresholds (None when unreachable)."""
+    p, r, t = curve["precision"], curve["recall"], curve["thresholds"]
+    ap = float(np.sum(np.diff(np.r_[0.0, r]) * p))
+    f1 = np.where(p + r > 0, 2 * p * r / np.maximum(p + r, 1e-12), 0.0)
+    i = int(np.argmax(f1))
+    out = {"ap": ap, "best_f1": float(f1[i]), "best_f1_threshold": float(t[i]),
+           "best_f1_precision": float(p[i]), "best_f1_recall": float(r[i])}
+    # the best of one measure where the other reaches the target (None when it never does)
+    for name, ok, best in (("precision_at_recall", r >= target, p), ("recall_at_precision", p >= target, r)):
+        j = np.flatnonzero(ok)[np.argmax(best[ok])] if ok.any() else None
+        out[name] = None if j is None else float(best[j])
+        out[f"{name}_threshold"] = None if j is None else float(t[j])
+    return out
+
+
+def evaluate_retrieval(rooms: Sequence[LabelledRoom], codecs: Mapping[str, Codec], *,
+                       queries: Mapping[str, Mapping[str, Any]] | None = None,
+                       levels: Mapping[str, Sequence[int]] | None = None, truths: Sequence[str] = ("floor",),
+                       workdir: str | os.PathLike | None = None, keep_curves: bool = True,
+                       progress: Callable[[str], None] | None = None) -> list[dict]:
+    """Precision/recall of retrieving labelled blocks from maps of synthetic rooms.
+
+    Each room is written as a map per codec (``create_map`` + ``write_volume``: the real pipeline), each map
+    searched with each query at each level (every coded block scored), and the scores of all rooms pooled
+    (one threshold for all rooms). Ground truth: :data:`TRUTH` definitions of
+    :meth:`LabelledRoom.block_labels`.
+
+    Parameters
+    ----------
+    rooms : sequence of LabelledRoom
+    codecs : mapping of str to Codec
+        Name (e.g. ``"pca-64"``) -> fitted codec.
+    queries : mapping of str to dict, optional
+        Name -> :func:`build_query` keyword arguments (``shape`` and options; ``map`` is added). Default:
+        ``{"floor": {"shape": "floor"}}``. ``"up": "room"`` uses each room's true up direction.
+    levels : mapping of str to sequence of int, optional
+        Codec name -> levels to search at (default: the full size).
+    truths : sequence of str
+        Keys of :data:`TRUTH`.
+    workdir : path, optional
+        Where maps are written (default: a temporary directory, removed afterwards).
+    keep_curves : bool
+        Include the PR curve arrays in the records.
+
+    Returns
+    -------
+    list of dict
+        One record per (codec, query, level, truth): ``codec``, ``code_size``, ``query``, ``level``,
+        ``descriptors``, ``truth``, ``rooms``, ``blocks`` (counted in precision/recall), ``positives``,
+        ``partial`` (blocks holding some floor but not clean floor), the :func:`operating_points` fields,
+        ``partial_selected`` (partial blocks under the best-F1 threshold) and, with ``keep_curves``, ``curve``
+        (``thresholds``, ``precision``, ``recall`` lists).
+    """
+    import tempfile
+
+    from ..map import create_map
+
+    queries = queries or {"floor": {"shape": "floor"}}
+    for t in truths:
+        if t not in TRUTH:
+            raise InvalidValueError(f"unknown truth {t!r}; choose from {sorted(TRUTH)}")
+    tmp = tempfile.TemporaryDirectory(prefix="sdfcodec-eval-") if workdir is None else None
+    root = Path(tmp.name if tmp else workdir)
+    pooled: dict[tuple, list] = {}
+    try:
+        for r_i, room in enumerate(rooms):
+            labels = None
+            for cname, codec in codecs.items():
+                path = root / f"room{r_i}-{cname}.sdfz"
+                with create_map(path, codec=codec, voxel_size=room.voxel_size, truncation=room.truncation,
+                                origin=tuple(room.origin), overwrite=True, tool="sdfcodec.search.evaluate") as w:
+                    w.write_volume(room.volume)
+                m = open_map(path)
+                for qname, kw in queries.items():
+                    kw = dict(kw)
+                    if isinstance(kw.get("up"), str) and kw["up"] == "room":
+                        kw["up"] = room.up
+                    model = build_query(kw.pop("shape", "floor"), map=m, **kw)
+                    for lv in (levels or {}).get(cname, [m.code_size]):
+                        res = search(m, model, level=lv, keep_scores=True, device="cpu")
+                        if labels is None or not np.array_equal(labels["coords"], res.all_coords):
+                            labels = {"coords": res.all_coords, **room.block_labels(res.all_coords)}
+                        partial = (labels["floor"] > 0) & ~_clean(labels)
+                        for t in truths:
+                            pos, neg = TRUTH[t](labels)
+                            keep = pos | neg
+                            pooled.setdefault((cname, m.code_size, qname, lv, len(model), t), []).append(
+                                (res.all_scores[keep], pos[keep], partial[keep], res.all_scores[partial]))
+                if progress:
+                    progress(f"room {r_i + 1}/{len(rooms)} {cname}")
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    records = []
+    for (cname, size, qname, lv, n_desc, t), parts in pooled.items():
+        s = np.concatenate([p[0] for p in parts])
+        y = np.concatenate([p[1] for p in parts])
+        partial_scores = np.concatenate([p[3] for p in parts])
+        curve = pr_curve(s, y)
+        ops = operating_points(curve)
+        rec = {"codec": cname, "code_size": size, "query": qname, "level": lv, "descriptors": n_desc, "truth": t,
+               "rooms": len(parts), "blocks": int(len(s)), "positives": int(y.sum()), "partial": len(partial_scores),
+               **ops, "partial_selected": int((partial_scores <= ops["best_f1_threshold"]).sum())}
+        if keep_curves:
+            rec["curve"] = {k: np.asarray(curve[k]).tolist() for k in ("thresholds", "precision", "recall")}
+        records.append(rec)
+    return records

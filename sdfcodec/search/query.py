@@ -1,0 +1,301 @@
+"""Query models: descriptor sets made by encoding shapes with a map's codec (:func:`build_query`), their
+``.npz`` files of plain arrays (:func:`save_query`, :func:`load_query`, never pickles), and turning any query
+a search accepts into a model for one map (:func:`resolve_query`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .._validate import BLOCK
+from ..blocks import check_truncation, normalise
+from ..codec import Codec
+from ..errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
+from ..map import Map, state_digest
+from .shapes import (QUERY_NAMES, check_query_name, dedupe_blocks, probe_blocks, query_blocks, rotate_blocks,
+                     rotation_set)
+
+__all__ = [
+    "QUERY_FORMAT",
+    "QUERY_VERSION",
+    "QueryModel",
+    "build_query",
+    "save_query",
+    "load_query",
+    "resolve_query",
+]
+
+_QUERY_META = "__sdfcodec_query__"
+QUERY_FORMAT = "sdfcodec-query"
+QUERY_VERSION = 1
+
+
+# -------------------------------------------------------------------------------------------- query model
+@dataclass
+class QueryModel:
+    """A descriptor set: shapes of interest encoded with a map's codec.
+
+    Attributes
+    ----------
+    name : str
+        Free-text name (``"floor"`` for the built-in floor model).
+    descriptors : np.ndarray
+        ``(M, D)`` float32 codes of the shapes, from the codec described by ``codec_config``.
+    codec_config : dict
+        ``get_config()`` of the codec that encoded them (JSON).
+    codec_state_sha256 : str or None
+        Digest of that codec's learned state (``sdfcodec.map.state_digest``), None without state.
+    voxel_size : float
+        Metres per voxel the shapes were sampled at.
+    truncation : tuple of float
+        ``(d_min, d_max)`` metres the shapes were truncated and normalised with.
+    blocks : np.ndarray or None
+        ``(M, 16, 16, 16)`` float32 normalised shape blocks. With them, :func:`search` re-encodes the model
+        with any map's codec; without them, the descriptors are used only on maps whose codec agrees.
+    rotations : np.ndarray or None
+        ``(M, 3, 3)`` float32 shape-to-grid rotations (built-in shapes).
+    positions : np.ndarray or None
+        ``(M, 3)`` float32 shape positions in voxels (built-in shapes; see :func:`query_blocks`).
+    spec : dict or None
+        How a built-in query was made (``{"shape", "up", "rotations", "offsets", "behind"}``): a map with a
+        different voxel size or truncation gets the query rebuilt from it.
+    probe_codes : np.ndarray or None
+        ``(6, D)`` float32 codes of fixed probe blocks under the same codec, used to check that a map's codec
+        agrees with the one that made descriptors-only models.
+    """
+
+    name: str
+    descriptors: np.ndarray
+    codec_config: dict
+    codec_state_sha256: str | None
+    voxel_size: float
+    truncation: tuple[float, float]
+    blocks: np.ndarray | None = None
+    rotations: np.ndarray | None = None
+    positions: np.ndarray | None = None
+    spec: dict | None = None
+    probe_codes: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.descriptors = np.ascontiguousarray(self.descriptors, dtype=np.float32)
+        if self.descriptors.ndim != 2 or not len(self.descriptors):
+            raise ShapeError(f"descriptors must have shape (M, D) with M >= 1, got {self.descriptors.shape}")
+        if not np.isfinite(self.descriptors).all():
+            raise InvalidValueError("descriptors hold NaN or infinite values")
+        m = len(self.descriptors)
+        if self.blocks is not None:
+            self.blocks = np.asarray(self.blocks, dtype=np.float32)
+            if self.blocks.shape != (m, BLOCK, BLOCK, BLOCK):
+                raise ShapeError(f"blocks must have shape ({m}, 16, 16, 16) to match the descriptors, got "
+                                 f"{self.blocks.shape}")
+        self.truncation = (float(self.truncation[0]), float(self.truncation[1]))
+
+    def __len__(self) -> int:
+        return len(self.descriptors)
+
+    @property
+    def code_size(self) -> int:
+        """``D``, the descriptors' length."""
+        return int(self.descriptors.shape[1])
+
+    @property
+    def up(self) -> np.ndarray:
+        """``(3,)`` float64 unit up direction of a built-in query (``+z`` otherwise)."""
+        u = np.asarray((self.spec or {}).get("up", (0.0, 0.0, 1.0)), dtype=np.float64)
+        return u / np.linalg.norm(u)
+
+    def matches_codec(self, codec: Codec, state_sha256: str | None = None) -> bool:
+        """True when ``codec`` is the one that made the descriptors (same config and state digest)."""
+        sha = state_sha256 if state_sha256 is not None else (state_digest(codec.state_dict())
+                                                               if codec.state_dict() else None)
+        return codec.get_config() == self.codec_config and sha == self.codec_state_sha256
+
+    def without_blocks(self) -> "QueryModel":
+        """A copy holding only descriptors (small; usable on maps whose codec agrees, checked by probes)."""
+        return replace(self, blocks=None)
+
+
+def _codec_sha(codec: Codec) -> str | None:
+    state = codec.state_dict()
+    return state_digest(state) if state else None
+
+
+def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, codec: Codec | None = None,
+                voxel_size: float | None = None, truncation: tuple[float, float] | None = None,
+                up: Sequence[float] = (0.0, 0.0, 1.0), rotations: Any = None, offsets: int | str = "auto",
+                behind: str = "unobserved", keep_blocks: bool = True, name: str | None = None) -> QueryModel:
+    """Build a query model by encoding shapes with a codec (the map's own, for searching that map).
+
+    Parameters
+    ----------
+    shape : str or np.ndarray
+        A built-in name (:data:`QUERY_NAMES`, see :func:`query_blocks`), or user blocks ``(N, 16, 16, 16)`` in
+        metres (e.g. blocks cut from a map with ``Map.iter_blocks``), truncated to the map's range.
+    map : Map, optional
+        The map the query is for: its codec, voxel size and truncation are used.
+    codec, voxel_size, truncation :
+        Instead of ``map``: a fitted codec, metres per voxel (default 0.02) and ``(d_min, d_max)`` metres
+        (default ``(-0.04, 0.1)``).
+    up, rotations, offsets, behind :
+        See :func:`query_blocks`. For user blocks, ``rotations`` resamples them (exactly for the 24 axis
+        rotations, trilinearly otherwise) and ``up``, ``offsets``, ``behind`` are unused.
+    keep_blocks : bool
+        Store the normalised shape blocks in the model (re-encodable for other maps; 16 KiB each).
+    name : str, optional
+        Model name (default: the shape name, or ``"blocks"``).
+
+    Returns
+    -------
+    QueryModel
+        ``descriptors`` ``(M, D)`` float32 on the CPU.
+    """
+    if map is not None:
+        codec = map.codec
+        voxel_size, truncation = map.voxel_size, map.truncation
+    if codec is None:
+        raise InvalidValueError("build_query needs the map (map=...) or a fitted codec (codec=...) to encode with")
+    voxel_size = 0.02 if voxel_size is None else float(voxel_size)
+    truncation = (-0.04, 0.1) if truncation is None else tuple(float(t) for t in truncation)
+    check_truncation(*truncation)
+    rot = pos = spec = None
+    if isinstance(shape, str):
+        v, rot, pos = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up, rotations=rotations,
+                                   offsets=offsets, behind=behind)
+        _, rot_json = rotation_set(rotations)
+        spec = {"shape": shape, "up": [float(u) for u in np.asarray(up, dtype=np.float64) / np.linalg.norm(up)],
+                "rotations": rot_json, "offsets": offsets if isinstance(offsets, str) else int(offsets),
+                "behind": behind}
+        name = name or shape
+    else:
+        b = np.asarray(shape)
+        if b.dtype.kind != "f":
+            raise InvalidValueError(f"query blocks must be floating-point metres, got dtype {b.dtype}")
+        if b.ndim == 3:
+            b = b[None]
+        if b.ndim != 4 or b.shape[1:] != (BLOCK, BLOCK, BLOCK) or not len(b):
+            raise ShapeError(f"query blocks must have shape (N, 16, 16, 16) (metres), got {b.shape}")
+        if not np.isfinite(b).all():
+            raise InvalidValueError("query blocks hold NaN or infinite values")
+        v = normalise(np.clip(b, *truncation), *truncation)
+        mats, _ = rotation_set(rotations)
+        if len(mats) > 1 or not np.allclose(mats[0], np.eye(3)):
+            v = dedupe_blocks(rotate_blocks(v, mats))[0]
+        name = name or "blocks"
+    codes = np.asarray(codec.encode(v), dtype=np.float32)
+    probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
+    return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
+                      codec_state_sha256=_codec_sha(codec), voxel_size=voxel_size, truncation=truncation,
+                      blocks=v if keep_blocks else None, rotations=rot, positions=pos, spec=spec, probe_codes=probes)
+
+
+def save_query(model: QueryModel, path: str | os.PathLike) -> Path:
+    """Write a query model as ``.npz`` (plain arrays, compressed, atomic); returns the path.
+
+    Layout: ``descriptors`` and, when present, ``blocks``, ``rotations``, ``positions``, ``probe_codes``, plus
+    ``__sdfcodec_query__``, a uint8 array of UTF-8 JSON ``{"format": "sdfcodec-query", "version": 1, "name",
+    "codec_config", "codec_state_sha256", "voxel_size", "truncation", "spec"}``.
+    """
+    from ..model import save_state_file
+
+    meta = {"format": QUERY_FORMAT, "version": QUERY_VERSION, "name": model.name, "codec_config": model.codec_config,
+            "codec_state_sha256": model.codec_state_sha256, "voxel_size": model.voxel_size,
+            "truncation": list(model.truncation), "spec": model.spec}
+    arrays = {"descriptors": model.descriptors,
+              _QUERY_META: np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)}
+    for key in ("blocks", "rotations", "positions", "probe_codes"):
+        if getattr(model, key) is not None:
+            arrays[key] = getattr(model, key)
+    save_state_file(path, arrays)
+    return Path(path)
+
+
+def load_query(path: str | os.PathLike) -> QueryModel:
+    """Read a query model written by :func:`save_query` (never unpickles).
+
+    Raises
+    ------
+    FormatError
+        Not a query model, or its metadata is broken. ``VersionError`` for a newer format version.
+    """
+    from ..model import load_meta_file
+
+    if not Path(path).is_file():
+        raise InvalidValueError(f"no query model at {path}: give a built-in query ({', '.join(QUERY_NAMES)}) or the "
+                                "path of a model written by sdfcodec.search.save_query")
+    meta, arrays = load_meta_file(path, _QUERY_META, QUERY_FORMAT, QUERY_VERSION, "query model",
+                                  "sdfcodec.search.save_query")
+    if "descriptors" not in arrays:
+        raise FormatError(f"{path}: query model lacks its descriptors array")
+    try:
+        return QueryModel(name=str(meta["name"]), descriptors=arrays["descriptors"], codec_config=meta["codec_config"],
+                          codec_state_sha256=meta["codec_state_sha256"], voxel_size=float(meta["voxel_size"]),
+                          truncation=tuple(meta["truncation"]), blocks=arrays.get("blocks"),
+                          rotations=arrays.get("rotations"), positions=arrays.get("positions"),
+                          spec=meta.get("spec"), probe_codes=arrays.get("probe_codes"))
+    except KeyError as e:
+        raise FormatError(f"{path}: query metadata lacks {e}") from e
+
+
+# ------------------------------------------------------------------------------------- resolving a query
+def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
+    """Any query :func:`sdfcodec.search.search` accepts (a built-in name, the path of a saved model, a
+    :class:`QueryModel`, user blocks ``(N, 16, 16, 16)`` metres) -> a model for the map ``m`` whose descriptors
+    come from ``codec`` (the map's) or agree with it (re-encoded, rebuilt for the map's geometry, or checked
+    with the probe codes)."""
+    if isinstance(query, (str, os.PathLike)) and not (isinstance(query, str) and query in QUERY_NAMES):
+        p = Path(query)
+        if p.suffix == ".npz" or p.is_file():
+            query = load_query(p)
+        elif isinstance(query, str):
+            check_query_name(query)  # raises the "unknown query" error naming the built-ins
+    if isinstance(query, str):
+        return build_query(query, map=m)
+    if isinstance(query, np.ndarray):
+        return build_query(query, map=m)
+    if not isinstance(query, QueryModel):
+        raise InvalidValueError(f"query must be a built-in name {QUERY_NAMES}, the path of a saved query model, "
+                                f"a QueryModel or blocks (N, 16, 16, 16); got {type(query).__name__}")
+    same_geometry = (math.isclose(query.voxel_size, m.voxel_size, rel_tol=1e-6)
+                     and np.allclose(query.truncation, m.truncation, rtol=1e-6, atol=1e-9))
+    if not same_geometry and query.spec is not None:
+        s = query.spec
+        return build_query(s["shape"], map=m, up=s["up"], rotations=s["rotations"], offsets=s["offsets"],
+                           behind=s["behind"], keep_blocks=query.blocks is not None, name=query.name)
+    if not same_geometry:
+        warnings.warn(f"query model {query.name!r} was made for voxel size {query.voxel_size} m and truncation "
+                      f"{query.truncation}, but the map has {m.voxel_size} m and {m.truncation}; its blocks are "
+                      "used as they are (rebuild the model for this map to compare like with like)",
+                      SDFCodecWarning, stacklevel=3)
+    if query.matches_codec(codec, m.header.codec.state_sha256):
+        return query
+    if query.blocks is not None:
+        return replace(query, descriptors=np.asarray(codec.encode(query.blocks), dtype=np.float32),
+                       codec_config=codec.get_config(), codec_state_sha256=_codec_sha(codec),
+                       probe_codes=np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)),
+                                              dtype=np.float32))
+    # descriptors only: usable where the map's codec encodes the probe blocks to the same leading elements
+    if query.probe_codes is None:
+        raise InvalidValueError(f"query model {query.name!r} holds neither shape blocks nor probe codes, and its "
+                                f"codec ({query.codec_config}) is not the map's; rebuild it with "
+                                "build_query(..., map=the_map)")
+    k = min(query.code_size, m.code_size)
+    if not m.header.codes.prefix_ordered and query.code_size != m.code_size:
+        raise InvalidValueError(f"query model {query.name!r} has {query.code_size}-element descriptors but the map's "
+                                f"{m.header.codec.id!r} codes ({m.code_size}) are not prefix-ordered; rebuild the "
+                                "model with build_query(..., map=the_map)")
+    mine = np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)), dtype=np.float32)[:, :k]
+    theirs = query.probe_codes[:, :k]
+    if not np.allclose(mine, theirs, rtol=1e-3, atol=1e-3 * max(1.0, float(np.abs(theirs).max()))):
+        raise InvalidValueError(f"query model {query.name!r} was encoded by a different codec or basis than the map "
+                                f"{m.location} (their first {k} code elements disagree), so its descriptors cannot "
+                                "be compared with the map's codes; rebuild it with build_query(..., map=the_map), or "
+                                "keep its blocks (keep_blocks=True) so it can be re-encoded")
+    return query

@@ -1,0 +1,338 @@
+"""Query shapes: the normalised TSDF blocks of the built-in queries (floor, ceiling, wall, edge, corner) and
+the rotation sets a query model can be made invariant to.
+
+Shapes are posed about the block's centre ``(7.5, 7.5, 7.5)`` (voxel ``i`` at position ``i``), defined with
+``+z`` up and rotated onto the map's ``up``; ``behind`` says how voxels more than ``|d_min|`` behind a surface
+are stored (see :mod:`sdfcodec.search`). Rotations themselves come from :mod:`sdfcodec.geometry`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from .._validate import BLOCK
+from ..blocks import check_truncation, normalise
+from ..errors import InvalidValueError, ShapeError
+from ..geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
+
+__all__ = [
+    "QUERY_NAMES",
+    "BEHIND",
+    "ConeRotations",
+    "cone_rotations",
+    "rotation_set",
+    "plane_offsets",
+    "query_blocks",
+    "check_query_name",
+    "truncate",
+    "dedupe_blocks",
+    "rotate_blocks",
+    "probe_blocks",
+]
+
+#: The built-in named queries (see :func:`query_blocks`).
+QUERY_NAMES: tuple[str, ...] = ("floor", "ceiling", "wall", "edge", "corner")
+#: Ways of treating voxels more than ``|d_min|`` behind a surface (see the :mod:`sdfcodec.search` docstring).
+BEHIND: tuple[str, ...] = ("unobserved", "solid")
+
+_CENTRE = (BLOCK - 1) / 2.0  # 7.5: the block's centre in voxel units (voxel i at position i)
+
+
+# ------------------------------------------------------------------------------------------------ rotations
+@dataclass(frozen=True)
+class ConeRotations:
+    """Random rotations within a cone: the shape's ``+z`` tilted to a direction uniform on the spherical cap
+    of half-angle ``angle_deg`` about ``+z`` (then mapped onto ``up``), after a spin about ``+z`` uniform in
+    ``[0, 360)`` degrees when ``spin`` (which makes walls and edges invariant to yaw). The identity is always
+    the first of the ``count`` rotations. Deterministic given ``seed``."""
+
+    angle_deg: float = 10.0
+    count: int = 16
+    spin: bool = True
+    seed: int = 0
+
+    def to_json(self) -> dict:
+        return {"cone": float(self.angle_deg), "count": int(self.count), "spin": bool(self.spin),
+                "seed": int(self.seed)}
+
+
+def cone_rotations(angle_deg: float = 10.0, count: int = 16, *, spin: bool = True, seed: int = 0) -> np.ndarray:
+    """Rotations within a cone (see :class:`ConeRotations`).
+
+    Returns
+    -------
+    np.ndarray
+        ``(count, 3, 3)`` float64, the identity first.
+    """
+    if not (0.0 <= angle_deg <= 180.0) or int(count) < 1:
+        raise InvalidValueError(f"a cone needs 0 <= angle_deg <= 180 and count >= 1, got {angle_deg}, {count}")
+    rng = np.random.default_rng(seed)
+    out = [np.eye(3)]
+    cos_a = math.cos(math.radians(angle_deg))
+    for _ in range(int(count) - 1):
+        cz = rng.uniform(cos_a, 1.0)  # uniform on the cap: cos(theta) uniform
+        phi = rng.uniform(0.0, 2 * math.pi)
+        sz = math.sqrt(max(0.0, 1.0 - cz * cz))
+        tilt = rotation_to((sz * math.cos(phi), sz * math.sin(phi), cz))
+        psi = rng.uniform(0.0, 2 * math.pi) if spin else 0.0
+        out.append(tilt @ rot_z(psi))
+    return np.stack(out)
+
+
+def rotation_set(rotations: Any) -> tuple[np.ndarray, Any]:
+    """A ``rotations`` argument (see :func:`query_blocks`) -> ``((R, 3, 3) float64 matrices, JSON description)``
+    (the description is what a saved query model's ``spec`` records)."""
+    if rotations is None or rotations == "none":
+        return np.eye(3)[None], "none"
+    if isinstance(rotations, str):
+        if rotations == "axis":
+            return axis_rotations(), "axis"
+        if rotations.startswith("cone"):
+            # "cone", "cone:ANGLE" or "cone:ANGLE:COUNT" (CLI-friendly)
+            parts = rotations.split(":")[1:]
+            try:
+                if len(parts) > 2:
+                    raise ValueError("too many fields")
+                cone = ConeRotations(angle_deg=float(parts[0]) if parts else 10.0,
+                                     count=int(parts[1]) if len(parts) > 1 else 16)
+            except ValueError as e:
+                raise InvalidValueError(f"bad cone rotations {rotations!r}; write cone:ANGLE_DEG[:COUNT]") from e
+            return rotation_set(cone)
+        raise InvalidValueError(f"rotations must be None, 'axis', 'cone[:ANGLE[:COUNT]]', a ConeRotations or "
+                                f"(R, 3, 3) matrices; got {rotations!r}")
+    if isinstance(rotations, ConeRotations):
+        return (cone_rotations(rotations.angle_deg, rotations.count, spin=rotations.spin, seed=rotations.seed),
+                rotations.to_json())
+    if isinstance(rotations, Mapping) and "cone" in rotations:
+        return rotation_set(ConeRotations(rotations["cone"], rotations.get("count", 16), rotations.get("spin", True),
+                                           rotations.get("seed", 0)))
+    if isinstance(rotations, Mapping) and "matrices" in rotations:  # as stored in a saved model's spec
+        rotations = rotations["matrices"]
+    r = np.asarray(rotations, dtype=np.float64)
+    if r.ndim == 2:
+        r = r[None]
+    if r.ndim != 3 or r.shape[1:] != (3, 3):
+        raise ShapeError(f"rotation matrices must have shape (R, 3, 3), got {r.shape}")
+    if not np.allclose(r @ r.transpose(0, 2, 1), np.eye(3), atol=1e-6) or np.any(np.linalg.det(r) < 0):
+        raise InvalidValueError("rotation matrices must be orthonormal with determinant +1")
+    return r, {"matrices": r.tolist()}
+
+
+
+# ------------------------------------------------------------------------------------------- query shapes
+def _offsets(n: int) -> np.ndarray:
+    """``n`` offsets (voxels, relative to the block centre): midpoints of ``n`` equal parts of ``[-8, 8]``."""
+    return -BLOCK / 2 + (np.arange(n) + 0.5) * BLOCK / n
+
+
+def _lattice_offsets(voxel_size: float, truncation: tuple[float, float]) -> np.ndarray:
+    """One plane offset per voxel step, midway between the heights where a voxel layer crosses ``d_min``
+    (relative to the block centre, voxels): 17 offsets covering surfaces from half a voxel outside the block's
+    voxel layers on either side. With ``behind="unobserved"`` a layer's value jumps from ``d_min`` to ``d_max``
+    where it crosses ``|d_min|`` behind the surface, so a plane is only close to model planes on the same side
+    of every jump: this puts exactly one in each interval, at most half a voxel from any plane in it."""
+    frac = (-truncation[0] / voxel_size) % 1.0
+    t = np.arange(-2, BLOCK + 1) + frac + 0.5  # voxel coordinates (voxel i at i)
+    t = t[(t >= -1.0) & (t < BLOCK)]
+    return t - _CENTRE
+
+
+def _plane(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    return q[..., 2] - pos[2]  # solid below, free above (+z)
+
+
+def _edge(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Concave edge along z: free where x > pos_x and y > pos_y (two walls seen from inside)."""
+    x, y = q[..., 0] - pos[0], q[..., 1] - pos[1]
+    nearest = np.minimum(x, y)
+    return np.where(nearest > 0, nearest, -np.sqrt(np.minimum(x, 0) ** 2 + np.minimum(y, 0) ** 2))
+
+
+def _corner(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Concave corner: free where x, y, z exceed pos (floor and two walls seen from inside)."""
+    x, y, z = (q[..., i] - pos[i] for i in range(3))
+    nearest = np.minimum(np.minimum(x, y), z)
+    depth = np.sqrt(np.minimum(x, 0) ** 2 + np.minimum(y, 0) ** 2 + np.minimum(z, 0) ** 2)
+    return np.where(nearest > 0, nearest, -depth)
+
+
+def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray, np.ndarray]:
+    """``(sdf(q (..., 3), pos (3,)) in voxels, positions (P, 3), base orientations (B, 3, 3))``; ``offsets``:
+    plane offsets (voxels from the block centre) of the plane family."""
+    if name in ("floor", "ceiling", "wall"):
+        pos = np.zeros((len(offsets), 3))
+        pos[:, 2] = offsets
+        if name == "floor":
+            base = np.eye(3)[None]
+        elif name == "ceiling":
+            base = rot_x(math.pi)[None]  # normal -z: solid above, free below
+        else:  # normals +x, +y, -x, -y: +z turned onto each horizontal axis
+            base = np.stack([rot_z(k * math.pi / 2) @ rot_y(math.pi / 2) for k in range(4)])
+        return _plane, pos, base
+    if name == "edge":
+        o = _offsets(5)
+        pos = np.array([(a, b, 0.0) for a in o for b in o])
+        return _edge, pos, axis_rotations()  # the 12 axis-aligned concave edges of a room (deduplicated later)
+    if name == "corner":
+        o = _offsets(4)
+        pos = np.array([(a, b, c) for a in o for b in o for c in o])
+        return _corner, pos, axis_rotations()  # the 8 axis-aligned concave corners
+    check_query_name(name)
+    raise AssertionError(name)  # check_query_name raised: every built-in name is handled above
+
+
+def truncate(d: np.ndarray, truncation: tuple[float, float], behind: str) -> np.ndarray:
+    """Signed distances (any shape, metres) -> truncated float32 metres, with voxels more than ``|d_min|``
+    behind a surface per ``behind`` (see the package docstring)."""
+    d_min, d_max = truncation
+    out = np.clip(d, d_min, d_max)
+    if behind == "unobserved":
+        out = np.where(d < d_min, d_max, out)
+    elif behind != "solid":
+        raise InvalidValueError(f"behind must be one of {BEHIND}, got {behind!r}")
+    return out.astype(np.float32)
+
+
+def dedupe_blocks(blocks: np.ndarray, *extra: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Drop repeated blocks ``(N, 16, 16, 16)`` (equal to 1e-4 normalised), keeping first occurrences in order;
+    the ``extra`` arrays (first axis ``N``) are cut to the same rows. Returns ``(blocks, *extra)``."""
+    key = np.round(blocks.reshape(len(blocks), -1), 4)
+    _, first = np.unique(key, axis=0, return_index=True)
+    keep = np.sort(first)
+    return (blocks[keep], *(e[keep] for e in extra))
+
+
+def plane_offsets(offsets: int | str = "auto", *, voxel_size: float = 0.02,
+                  truncation: tuple[float, float] = (-0.04, 0.1), behind: str = "unobserved") -> np.ndarray:
+    """The plane offsets of the floor, ceiling and wall models, voxels from the block centre ``(7.5, 7.5, 7.5)``.
+
+    ``offsets``: an int ``n`` (the midpoints of ``n`` equal parts of the block's extent ``[-0.5, 15.5]``; the
+    paper's model is 15); ``"lattice"`` (one per voxel step, midway between the jumps of an unobserved-behind
+    field: 17); ``"auto"``: ``"lattice"`` for ``behind="unobserved"``, 15 for ``"solid"`` (whose field
+    changes continuously with the offset, so evenly spaced planes suffice).
+
+    Returns
+    -------
+    np.ndarray
+        ``(n,)`` float64, ascending.
+    """
+    if offsets == "auto":
+        offsets = "lattice" if behind == "unobserved" else 15
+    if offsets == "lattice":
+        return _lattice_offsets(voxel_size, truncation)
+    if isinstance(offsets, bool) or not isinstance(offsets, (int, np.integer)) or offsets < 1:
+        raise InvalidValueError(f"offsets must be a positive int, 'lattice' or 'auto', got {offsets!r}")
+    return _offsets(int(offsets))
+
+
+def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float, float] = (-0.04, 0.1),
+                 up: Sequence[float] = (0.0, 0.0, 1.0), rotations: Any = None, offsets: int | str = "auto",
+                 behind: str = "unobserved") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The normalised TSDF blocks of a built-in query shape.
+
+    Shapes (defined with ``+z`` up, then rotated onto ``up``):
+
+    ``"floor"``
+        A horizontal plane, solid below and free space above, at heights spanning the block
+        (:func:`plane_offsets`: the paper's model has 15; the default for fused, unobserved-behind maps has
+        17, one per voxel step, because their field jumps where a layer passes ``|d_min|`` behind the floor).
+    ``"ceiling"``
+        The same plane upside down (solid above).
+    ``"wall"``
+        Vertical planes facing ``+x``, ``+y``, ``-x``, ``-y`` at ``offsets`` positions (60 descriptors).
+    ``"edge"``
+        The 12 axis-aligned concave edges of a room (floor-wall, wall-wall, ceiling-wall) at 5 x 5 positions.
+    ``"corner"``
+        The 8 axis-aligned concave corners of a room at 4 x 4 x 4 positions.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`QUERY_NAMES`.
+    voxel_size : float
+        Metres per voxel of the map the query is for.
+    truncation : tuple of float
+        ``(d_min, d_max)`` metres of that map.
+    up : sequence of 3 floats
+        Up direction in the map's grid (normalised on use).
+    rotations : None, "axis", "cone[:ANGLE[:COUNT]]", ConeRotations or (R, 3, 3) array
+        Extra rotations (about ``up``'s frame) the model should be invariant to; each shape is sampled at
+        every one. ``"axis"``: the 24 rotations of the cube (a floor model then also holds ceilings and
+        walls); a cone: tilts within an angle plus a spin about ``up``.
+    offsets : int, "lattice" or "auto"
+        Plane offsets across the block (:func:`plane_offsets`; 15 in the paper).
+    behind : {"unobserved", "solid"}
+        See the :mod:`sdfcodec.search` docstring.
+
+    Returns
+    -------
+    blocks : np.ndarray
+        ``(M, 16, 16, 16)`` float32 normalised values in ``[0, 1]``, duplicates removed.
+    rotations : np.ndarray
+        ``(M, 3, 3)`` float32, each block's shape-to-grid rotation.
+    positions : np.ndarray
+        ``(M, 3)`` float32 voxels, the shape's position parameters in its own frame relative to the block
+        centre ``(7.5, 7.5, 7.5)`` (for planes: ``(0, 0, offset)``, the plane passing ``offset`` voxels from the
+        centre along its normal).
+    """
+    check_truncation(*truncation)
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise InvalidValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
+    if behind not in BEHIND:
+        raise InvalidValueError(f"behind must be one of {BEHIND}, got {behind!r}")
+    sdf, pos, base = _shape_family(name, plane_offsets(offsets, voxel_size=voxel_size, truncation=truncation,
+                                                       behind=behind))
+    extra, _ = rotation_set(rotations)
+    r_up = rotation_to(up)
+    grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
+    blocks, rots, poss = [], [], []
+    for e in extra:
+        for b in base:
+            r = r_up @ e @ b
+            q = grid @ r  # grid-to-shape coordinates: R^T p for each voxel position p
+            for p in pos:
+                blocks.append(truncate(sdf(q, p) * voxel_size, truncation, behind))
+                rots.append(r)
+                poss.append(p)
+    v = normalise(np.stack(blocks), *truncation)
+    return dedupe_blocks(v, np.asarray(rots, np.float32), np.asarray(poss, np.float32))
+
+
+def rotate_blocks(v: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """Resample normalised blocks ``(N, 16, 16, 16)`` under each rotation about the block centre (trilinear,
+    nearest value beyond the block) -> ``(R * N, 16, 16, 16)``."""
+    from scipy.ndimage import map_coordinates
+
+    grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
+    out = []
+    for r in rotations:
+        src = (grid @ r + _CENTRE).reshape(-1, 3).T  # the rotated block at p shows the original at R^T p
+        exact = np.allclose(src, np.round(src), atol=1e-9)
+        for b in v:
+            out.append(map_coordinates(b, np.round(src) if exact else src, order=0 if exact else 1,
+                                       mode="nearest").reshape(BLOCK, BLOCK, BLOCK))
+    return np.stack(out).astype(np.float32)
+
+
+def probe_blocks(voxel_size: float, truncation: tuple[float, float]) -> np.ndarray:
+    """Six fixed, generic blocks (tilted planes, a corner, a ball): encoding them tells whether two codecs
+    agree, for models that carry descriptors only. ``(6, 16, 16, 16)`` normalised float32."""
+    grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
+    ds = []
+    for k, (a, b) in enumerate(((0.3, 0.2), (1.1, -0.4), (2.0, 0.9), (-0.7, 2.5))):
+        n = np.array([math.sin(a) * math.cos(b), math.sin(a) * math.sin(b), math.cos(a)])
+        ds.append(grid @ n - (k - 1.5) * 2.0)
+    ds.append(_corner(grid @ rot_z(0.4) @ rot_x(0.3), np.array([-2.0, 1.0, -3.0])))
+    ds.append(np.linalg.norm(grid - np.array([2.0, -1.0, 1.5]), axis=-1) - 5.0)
+    return normalise(np.stack([truncate(d * voxel_size, truncation, "solid") for d in ds]), *truncation)
+
+
+def check_query_name(name: str) -> None:
+    """Raise :class:`InvalidValueError` naming the built-in queries unless ``name`` is one of them."""
+    if name not in QUERY_NAMES:
+        raise InvalidValueError(f"unknown query {name!r}; built-in queries are {', '.join(QUERY_NAMES)} (or pass "
+                                "blocks, a QueryModel or the path of a saved one)")
