@@ -82,13 +82,12 @@ def test_search_floors(tmp_path, capsys):
 
 
 def test_search_floors_on_a_given_map_with_top(tmp_path, capsys):
-    from sdfcodec.models import default_codec
     from sdfcodec.sdf import Plane, sample_volume
 
     # a map of a single horizontal plane at z = 0.5 m: every coded block is floor, so top-k selects k of them
     vol = sample_volume(Plane((0, 0, 1), 0.5), (64, 64, 64), 0.02)
     path = tmp_path / "plane.sdfz"
-    with sdfcodec.create_map(path, codec=default_codec("pca", 32), voxel_size=0.02) as mp:
+    with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", 32), voxel_size=0.02) as mp:
         mp.write_volume(vol)
     coded = sdfcodec.open_map(path).count_states()["coded"]
     out = run("search_floors.py", str(path), "--top", "5", capsys=capsys)
