@@ -104,9 +104,13 @@ def _report(summary: Any, as_json: bool, line: Callable[[], str]) -> None:
         out.print(line())
 
 
-def _refuse_existing(path: Path, overwrite: bool) -> None:
+def _refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) -> None:
     if path.exists() and not overwrite:
         raise MapExistsError(f"{path} exists; pass --overwrite to replace it")
+    if map_output:  # before any work: --overwrite replaces a map, never a directory or file that is not one
+        from .map.writer import check_replaceable
+
+        check_replaceable(path)
 
 
 @app.callback()
@@ -239,7 +243,7 @@ def encode_cmd(
     from .model import load_model
     from .registry import get_codec
 
-    _refuse_existing(output, overwrite)
+    _refuse_existing(output, overwrite, map_output=True)
     src_map = None
     in_path = Path(input)
     if "://" in input or in_path.is_dir():
@@ -365,7 +369,7 @@ def fuse_cmd(
     from .map import create_map
     from .registry import get_codec
 
-    _refuse_existing(output, overwrite)
+    _refuse_existing(output, overwrite, map_output=True)
     trunc = _pair(truncation, "--truncation")
     fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, quiet=as_json)
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,

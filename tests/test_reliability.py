@@ -209,6 +209,64 @@ def test_overwrite_keeps_old_version_for_its_readers(small_map, tmp_path, pca16)
     assert _hidden(tmp_path) == []
 
 
+def _tree(p: Path) -> dict[str, bytes]:
+    return {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
+
+
+def test_overwrite_replaces_only_maps(small_map, tmp_path, pca16):
+    """--overwrite is for maps: a directory of other files, a plain file, a FIFO or a symbolic link at the
+    output path is refused before anything is written and left exactly as it was (a mistyped output path
+    must not delete a user's data); an empty directory or a map is replaced."""
+    data = tmp_path / "photos"
+    (data / "2026").mkdir(parents=True)
+    (data / "2026" / "a.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    (data / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {}}')  # not ours
+    plain = tmp_path / "notes.txt"
+    plain.write_text("keep me")
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    link = tmp_path / "link.sdfz"
+    link.symlink_to(small_map)
+    before = {p: _tree(p) for p in (data,)}
+    for target, what in ((data, "not an sdfcodec map"), (plain, "not a directory"), (fifo, "not a directory"),
+                         (link, "symbolic link")):
+        with pytest.raises(errors.MapExistsError, match=what):
+            with sdfcodec.create_map(target, codec=pca16, voxel_size=VS, truncation=TRUNC, overwrite=True) as m:
+                m.write_blocks([[0, 0, 0]], _blocks(1))
+    assert _tree(data) == before[data] and plain.read_text() == "keep me"
+    assert fifo.is_fifo() and link.is_symlink() and os.readlink(link) == str(small_map)
+    assert _hidden(tmp_path) == []
+    # the command line refuses before it reads its input
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.full((16, 16, 16), TRUNC[1], np.float32))
+    r = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "encode", str(vol), str(data), "--overwrite",
+                        "--codec", "raw"], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "not an sdfcodec map" in r.stderr and "Traceback" not in r.stderr
+    assert _tree(data) == before[data]
+    # an empty directory and a map are replaced
+    empty = tmp_path / "empty.sdfz"
+    empty.mkdir()
+    for target in (empty, small_map):
+        with sdfcodec.create_map(target, codec=pca16, voxel_size=0.05, truncation=TRUNC, overwrite=True) as m:
+            m.write_blocks([[0, 0, 0]], _blocks(1))
+        assert sdfcodec.open_map(target).voxel_size == 0.05
+
+
+def test_overwrite_refuses_a_map_replaced_by_other_data_while_writing(small_map, tmp_path, pca16):
+    """The check is made again at commit, under the writer lock: a map that something else replaced by a
+    non-map directory while the new version was written is not swapped out."""
+    with pytest.raises(errors.MapExistsError, match="not an sdfcodec map"):
+        with sdfcodec.create_map(small_map, codec=pca16, voxel_size=VS, truncation=TRUNC, overwrite=True) as m:
+            m.write_blocks([[0, 0, 0]], _blocks(1))
+            import shutil
+
+            shutil.rmtree(small_map)
+            small_map.mkdir()
+            (small_map / "thesis.tex").write_text("\\documentclass{article}")
+    assert (small_map / "thesis.tex").read_text() == "\\documentclass{article}"
+    assert sorted(p.name for p in small_map.iterdir()) == ["thesis.tex"] and _hidden(tmp_path) == []
+
+
 # -- bad arrays ---------------------------------------------------------------------------------------------
 
 def test_bad_arrays_are_clear_errors(small_map, pca16, tmp_path):

@@ -34,9 +34,9 @@ from ..registry import codec_package
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
                      free_space, state_digest)
 from .reader import open_reader
-from .stores import CowLocalStore, is_url
+from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
-__all__ = ["MapWriter", "create_writer", "update_writer", "store_code_chunk", "LOCK_TIMEOUT"]
+__all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "store_code_chunk", "LOCK_TIMEOUT"]
 
 #: How long a writer waits for another process's update of the same map to finish before giving up.
 LOCK_TIMEOUT = 60.0
@@ -233,6 +233,8 @@ class MapWriter:
                                   "this update ran; nothing was written: update it again")
             if exists and not self.overwrite:
                 raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
+            if exists and not self.update:
+                check_replaceable(self.final)
             # on failure either call leaves everything as it was (the new version still at self.tmp)
             if exists:
                 _atomic.swap_into_place(self.tmp, self.final)
@@ -282,6 +284,33 @@ def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
 
 
 
+def check_replaceable(final: Path) -> None:
+    """Raise :class:`MapExistsError` unless ``final`` is something ``overwrite`` may replace: nothing, an empty
+    directory, or a directory holding an sdfcodec map (a ``zarr.json`` group document with an ``sdfcodec``
+    header). Anything else (a directory of other files, a plain file, a device, a FIFO, a symbolic link) is
+    refused: overwrite exists to replace a map, and a typo in the output path must never delete a user's data."""
+    if not os.path.lexists(final):
+        return
+    what = None
+    if os.path.islink(final):
+        what = "a symbolic link (replace its target map, or remove the link)"
+    elif not final.is_dir():
+        what = "not a directory" if final.is_file() else "not a directory (a device, FIFO or socket)"
+    elif any(final.iterdir()):
+        doc = final / "zarr.json"
+        try:
+            ok = doc.is_file() and not doc.is_symlink() and doc.stat().st_size <= MAX_METADATA_BYTES
+            meta = json.loads(doc.read_bytes()) if ok else None
+        except (OSError, ValueError):
+            meta = None
+        if not (isinstance(meta, dict) and meta.get("node_type") == "group"
+                and isinstance(meta.get("attributes"), dict) and "sdfcodec" in meta["attributes"]):
+            what = "a directory that is not an sdfcodec map (no zarr.json group with an sdfcodec header)"
+    if what:
+        raise MapExistsError(f"{final} exists and is {what}; overwrite replaces only sdfcodec maps, so nothing "
+                             "was changed: remove it yourself or choose another output path")
+
+
 def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   truncation: tuple[float, float] = (-0.04, 0.1), origin: Sequence[float] = (0.0, 0.0, 0.0),
                   shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
@@ -293,8 +322,9 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     final = Path(path)
     if is_url(str(path)):
         raise InvalidValueError(f"maps are written to local paths; got URL {path} (write locally, then upload)")
-    if final.exists() and not overwrite:
+    if os.path.lexists(final) and not overwrite:
         raise MapExistsError(f"{final} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    check_replaceable(final)
     if final.suffix == ".zip":
         raise InvalidValueError("writing zip maps is not supported; write a directory map and zip its contents")
     if not codec.is_fitted:
