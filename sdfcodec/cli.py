@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import sys
@@ -17,7 +18,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from . import __version__
-from .errors import InvalidValueError, MapExistsError, SDFCodecError
+from .errors import InputNotFoundError, InvalidValueError, MapExistsError, SDFCodecError
 
 __all__ = ["app", "main"]
 
@@ -44,10 +45,11 @@ def _cli(fn: Callable) -> Callable:
         warnings.showwarning = show
         try:
             return fn(*args, **kwargs)
-        except SDFCodecError as e:
-            _fail(str(e))
+        # file errors first: one that names its file (InputNotFoundError too) prints "reason: path", not "[Errno 2]"
         except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
             _fail(f"{e.strerror or e}: {e.filename}" if getattr(e, "filename", None) else str(e))
+        except SDFCodecError as e:
+            _fail(str(e))
         finally:
             warnings.showwarning = old
 
@@ -249,7 +251,7 @@ def encode_cmd(
         vs, trunc, org = src_map.voxel_size, src_map.truncation, src_map.origin
     else:
         if not in_path.exists():
-            raise FileNotFoundError(2, "no such input file", str(in_path))
+            raise InputNotFoundError(errno.ENOENT, "no such input file", str(in_path))
         vol, meta = _load_volume(in_path, key)
         vs = voxel_size if voxel_size is not None else meta.get("voxel_size")
         if vs is None:

@@ -31,7 +31,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .errors import SDFCodecError, UnknownCodecError
+from .errors import InvalidValueError, SDFCodecError, UnknownCodecError
 from .map import Map, create_map, open_map
 from .registry import get_codec, pretrained_codec
 
@@ -264,7 +264,7 @@ def run_demo(out: Path, *, voxel_size: float = 0.02, code_sizes=(32, 64, 128), p
     from rich.console import Console
 
     if 64 not in code_sizes:
-        raise ValueError("code_sizes must include 64 (the map the demo searches and tracks against)")
+        raise InvalidValueError("code_sizes must include 64 (the map the demo searches and tracks against)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     console = console if console is not None else Console(stderr=True)

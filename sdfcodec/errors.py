@@ -22,6 +22,10 @@ __all__ = [
     "MapExistsError",
     "MapNotFoundError",
     "ReadOnlyError",
+    "InputNotFoundError",
+    "OutOfRangeError",
+    "MissingDependencyError",
+    "SamplingError",
     "MapBusyError",
 ]
 
@@ -80,6 +84,28 @@ class MapNotFoundError(SDFCodecError, FileNotFoundError):
 
 class ReadOnlyError(SDFCodecError, PermissionError):
     """A write was attempted on a map opened read-only."""
+
+
+class InputNotFoundError(SDFCodecError, FileNotFoundError):
+    """An input file the caller named (a volume to encode, a depth image...) does not exist.
+
+    Raised like the built-in, ``InputNotFoundError(errno.ENOENT, "no such input file", path)``, so ``filename``
+    and ``strerror`` are set as for any missing file.
+    """
+
+
+class OutOfRangeError(SDFCodecError, IndexError):
+    """An index (a frame number...) is outside the collection; an IndexError, so ``for`` loops and ``except
+    IndexError`` keep working."""
+
+
+class MissingDependencyError(SDFCodecError, ImportError):
+    """An optional dependency (e.g. open3d for fusion and rendering) is not installed; the message names the
+    extra to install (``pip install 'sdfcodec[fusion]'``)."""
+
+
+class SamplingError(SDFCodecError, RuntimeError):
+    """A random generator could not draw what was asked for within its retry budget (the message says what)."""
 
 
 class MapBusyError(SDFCodecError, TimeoutError):

@@ -4,8 +4,8 @@
 (attributes ``tsdf`` and ``weight``, 16^3-voxel blocks, allocated only around observed surfaces) and
 returns the allocated blocks as :class:`FusedBlocks` in the project's conventions: distances in metres
 truncated to ``[d_min, d_max]``, voxels indexed ``(x, y, z)``, unobserved voxels (weight 0) set to
-``d_max`` (free space, DESIGN.md). :func:`mesh_from_blocks` turns blocks (fused, or decoded from a map)
-back into a triangle mesh with open3d's marching cubes.
+``d_max`` (what unobserved voxels decode to, spec/map-format.md). :func:`mesh_from_blocks` turns blocks
+(fused, or decoded from a map) back into a triangle mesh with open3d's marching cubes.
 
 How open3d's symmetric truncation becomes the paper's asymmetric one
 ------------------------------------------------------------------
@@ -59,7 +59,7 @@ import numpy as np
 
 from ._validate import BLOCK
 from .blocks import check_truncation, normalise
-from .errors import InvalidValueError, SDFCodecWarning, ShapeError
+from .errors import InvalidValueError, MissingDependencyError, SDFCodecWarning, ShapeError
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 
 __all__ = ["FusedBlocks", "fuse", "mesh_from_blocks"]
@@ -150,7 +150,7 @@ def _open3d():
     try:
         import open3d as o3d
     except ImportError as exc:  # open3d comes with the optional 'fusion' extra
-        raise ImportError("TSDF fusion needs open3d: pip install 'sdfcodec[fusion]'") from exc
+        raise MissingDependencyError("TSDF fusion needs open3d: pip install 'sdfcodec[fusion]'") from exc
     return o3d
 
 

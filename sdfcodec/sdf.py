@@ -14,6 +14,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .errors import InvalidValueError
+
 __all__ = ["Plane", "Sphere", "Box", "Cylinder", "Scene", "grid_points", "sample_volume", "Barrel", "ConcaveCorner"]
 
 
@@ -84,7 +86,7 @@ class Scene:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         if not self.primitives:
-            raise ValueError("a Scene needs at least one primitive")
+            raise InvalidValueError("a Scene needs at least one primitive")
         out = self.primitives[0](points)
         for prim in self.primitives[1:]:
             out = np.minimum(out, prim(points))
@@ -93,7 +95,7 @@ class Scene:
 
 def grid_points(shape: Sequence[int], voxel_size: float, origin: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """World positions ``(X, Y, Z, 3)`` of the voxels of a lattice; voxel ``(i, j, k)`` is at
-    ``origin + voxel_size * (i, j, k)`` (DESIGN.md convention)."""
+    ``origin + voxel_size * (i, j, k)`` (the map format's convention, spec/map-format.md)."""
     axes = [np.arange(n, dtype=np.float64) * voxel_size + o for n, o in zip(shape, origin)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
@@ -137,8 +139,8 @@ class Barrel:
         r_cap = np.asarray(self.cap_radius, np.float64)
         h = np.asarray(self.half_height, np.float64)
         if np.any(h <= 0) or np.any(r_cap <= 0) or np.any(r_cap > r_mid) or np.any(r_mid - r_cap > h):
-            raise ValueError("a Barrel needs half_height > 0 and 0 < cap_radius <= radius <= cap_radius + "
-                             "half_height (a larger bulge would bend the profile arc past a semicircle)")
+            raise InvalidValueError("a Barrel needs half_height > 0 and 0 < cap_radius <= radius <= cap_radius + "
+                                    "half_height (a larger bulge would bend the profile arc past a semicircle)")
         p = _local(points, np.asarray(self.center, np.float64), self.rotation)
         # component-wise arithmetic throughout: reductions over a length-3 axis are slow in numpy
         x, y = p[..., 0], p[..., 1]
@@ -195,7 +197,7 @@ class ConcaveCorner:
     def __call__(self, points: np.ndarray) -> np.ndarray:
         k = np.asarray(self.planes)
         if not np.all((k == 2) | (k == 3)):
-            raise ValueError(f"a ConcaveCorner has 2 or 3 planes, got {self.planes}")
+            raise InvalidValueError(f"a ConcaveCorner has 2 or 3 planes, got {self.planes}")
         p = _local(points, np.asarray(self.center, np.float64), self.rotation)
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
         # with 2 planes local z plays no part: +inf never wins the min and never counts as solid

@@ -25,6 +25,37 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
+def _pin_examples() -> bool:
+    """Keep Hypothesis from mining literals out of the loaded modules (deterministic profile only).
+
+    Hypothesis (>= 6.131) draws a few percent of its integers, floats and strings from the literals of the
+    *local modules loaded at that moment*. Which modules are loaded depends on the tests that ran before, so a
+    derandomized test drew other examples alone than late in the full suite: there test_fuzz_geometry drew
+    grids of 5 x 2^20 x 3 blocks that took 20-40 s each, alone it drew others (10 s for the whole test). Any
+    edit that adds or moves a literal anywhere in the package changed the examples too. The tests list their own
+    special values (test_fuzz.SPECIAL), so nothing is lost. There is no public switch; where the hook is missing
+    (another Hypothesis), tests/test_fuzz.py::test_examples_are_pinned fails and says so.
+    """
+    try:
+        from hypothesis.internal.conjecture import providers
+    except ImportError:  # pragma: no cover - a Hypothesis without the provider module
+        return False
+    empty = getattr(providers, "_local_constants", None)
+    if not hasattr(providers, "_get_local_constants") or empty is None or len(empty):
+        return False  # pragma: no cover - another Hypothesis
+    providers._get_local_constants = lambda: empty  # noqa: SLF001 - no public switch exists
+    return True
+
+
+EXAMPLES_PINNED = os.environ.get("HYPOTHESIS_PROFILE", "deterministic") == "deterministic" and _pin_examples()
+
+
+@pytest.fixture
+def examples_pinned() -> bool:
+    """Whether Hypothesis's examples are independent of the modules loaded (see _pin_examples)."""
+    return EXAMPLES_PINNED
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """Path to ../shared/data; skips the test when it is not there (users do not have it)."""
@@ -33,17 +64,23 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-@pytest.fixture(scope="module")
+# The two fixtures below are built once per session (five modules use them): the volume is read-only so a test
+# that changed it in place would fail there instead of leaking into the next module; tests only encode and
+# decode with the codec, never refit it.
+@pytest.fixture(scope="session")
 def volume() -> np.ndarray:
     """The exact analytic scene (sdfcodec.testing.analytic_scene) sampled at 2 cm, truncation (-0.04, 0.1) m:
-    90 x 70 x 45 voxels, a multiple neither of 16 (padding, true extent) nor of small chunks."""
+    float32 metres, 90 x 70 x 45 voxels, a multiple neither of 16 (padding, true extent) nor of small chunks;
+    read-only."""
     from sdfcodec.sdf import sample_volume
     from sdfcodec.testing import analytic_scene
 
-    return sample_volume(analytic_scene(), (90, 70, 45), 0.02, truncation=(-0.04, 0.1))
+    vol = sample_volume(analytic_scene(), (90, 70, 45), 0.02, truncation=(-0.04, 0.1))
+    vol.setflags(write=False)
+    return vol
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def pca64():
     """A pca-64 codec fitted on 800 analytic blocks (seed 11)."""
     import sdfcodec
@@ -55,3 +92,4 @@ def pca64():
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+

@@ -158,13 +158,12 @@ def test_bench_json_records():
 
 def test_encode_uses_shipped_model_by_default(volume_file, tmp_path):
     from sdfcodec.map import state_digest
-    from sdfcodec.models import default_codec
 
     src, _ = volume_file
     r = run("encode", src, tmp_path / "d.sdfz", "--voxel-size", VS, "--code-size", 32)
     assert r.exit_code == 0, r.output
     m = sdfcodec.open_map(tmp_path / "d.sdfz")
-    assert m.header.codec.state_sha256 == state_digest(default_codec("pca", 32).state_dict())
+    assert m.header.codec.state_sha256 == state_digest(sdfcodec.pretrained_codec("pca", 32).state_dict())
     r = run("encode", src, tmp_path / "f.sdfz", "--voxel-size", VS, "--code-size", 32, "--fit")
     assert r.exit_code == 0 and "fitting" in r.stderr
     assert sdfcodec.open_map(tmp_path / "f.sdfz").header.codec.state_sha256 != m.header.codec.state_sha256

@@ -82,13 +82,12 @@ def test_search_floors(tmp_path, capsys):
 
 
 def test_search_floors_on_a_given_map_with_top(tmp_path, capsys):
-    from sdfcodec.models import default_codec
     from sdfcodec.sdf import Plane, sample_volume
 
     # a map of a single horizontal plane at z = 0.5 m: every coded block is floor, so top-k selects k of them
     vol = sample_volume(Plane((0, 0, 1), 0.5), (64, 64, 64), 0.02)
     path = tmp_path / "plane.sdfz"
-    with sdfcodec.create_map(path, codec=default_codec("pca", 32), voxel_size=0.02) as mp:
+    with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", 32), voxel_size=0.02) as mp:
         mp.write_volume(vol)
     coded = sdfcodec.open_map(path).count_states()["coded"]
     out = run("search_floors.py", str(path), "--top", "5", capsys=capsys)
@@ -115,3 +114,21 @@ def test_read_over_http(capsys):
     assert requests >= 3
     # a 64^3-voxel corner needs one chunk of blocks (8^3 blocks = 128^3 voxels) of a map 200 voxels long
     assert 0 < fetched < 0.6 * codes
+
+
+def test_cited_documents_exist():
+    """Code and docs cite documents of this repository only: every spec/... or docs/... path they name exists,
+    and nothing cites a design page that lives outside it (DESIGN.md)."""
+    cite = re.compile(r"(?<![\w/.])((?:spec|docs)/[\w./-]+\.(?:md|json|py|png))")
+    files = [ROOT / "README.md", *[p for d in ("sdfcodec", "plugins", "docs", "spec", "examples")
+                                   for p in (ROOT / d).rglob("*") if p.suffix in (".py", ".md")]]
+    missing, outside = [], []
+    for f in files:
+        text = f.read_text(errors="replace")
+        for n, line in enumerate(text.splitlines(), 1):
+            where = f"{f.relative_to(ROOT)}:{n}"
+            missing += [f"{where}: {c}" for c in cite.findall(line) if not (ROOT / c.rstrip(".")).exists()]
+            if "DESIGN.md" in line:
+                outside.append(where)
+    assert not missing, "cited documents that are not in the repository:\n" + "\n".join(missing)
+    assert not outside, "DESIGN.md is not in the repository; cite spec/ or docs/ instead:\n" + "\n".join(outside)

@@ -13,6 +13,7 @@ import resource
 import shutil
 import signal
 import tempfile
+import time
 from pathlib import Path
 
 import google_crc32c
@@ -28,12 +29,20 @@ from sdfcodec.verify import verify_map
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 LIMIT = 64 << 20  # max_decode_bytes for the fuzzed reads: every allocation the header could ask for is below it
+# the geometry fuzzer's limit: a read may touch at most 1024 chunks of at most 4 MiB. Its grids go up to 2^31
+# blocks a side, so with LIMIT the reads it allows (16384 chunks, re-read by each of a dozen calls) made single
+# cases take 20-40 s; a smaller limit puts the same checks at the same places and bounds the work that passes them
+GEOMETRY_LIMIT = 4 << 20
 HEADROOM = 2 << 30  # address space allowed beyond what the process uses when the fuzzing starts
 PER_EXAMPLE_S = 20
-COUNTS = {"cases": 0, "worked": 0, "refused": 0}
+# per fuzz test: cases run and their outcomes; CASES: (seconds, test, case) of every case, for the slow-case report
+COUNTS: dict[str, dict[str, int]] = {}
+CASES: list[tuple[float, str, str]] = []
 # no shrinking: it can take minutes on a failure; the report still shows every draw of the failing case
 # SDFCODEC_FUZZ_EXAMPLES=2000 make test for a long run; CI's default keeps the file near a minute
 EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "120"))
+EXPECTED = {"header": EXAMPLES, "array_metadata": EXAMPLES, "chunk_bytes": EXAMPLES, "codes_and_state_values": EXAMPLES,
+            "geometry": max(1, EXAMPLES // 2)}  # cases each fuzz test runs (hypothesis's max_examples)
 SETTINGS = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
                     phases=(Phase.explicit, Phase.generate),
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
@@ -81,8 +90,10 @@ def _alarm(signum, frame):
     raise Hang(f"an operation took more than {PER_EXAMPLE_S} s")
 
 
-def _exercise(path: Path) -> str:
-    """Everything a reader does with a map; returns "worked" or "refused" (an SDFCodecError somewhere)."""
+def _exercise(path: Path, limit: int = LIMIT) -> tuple[str, bool]:
+    """Everything a reader does with a map (reading at most ``limit`` bytes at once). Returns "worked" or
+    "refused" (an SDFCodecError somewhere), and whether the map opened and its block states could be read (the
+    checks past open_map ran on data)."""
     outcome = "worked"
 
     def attempt(fn):
@@ -93,9 +104,10 @@ def _exercise(path: Path) -> str:
             outcome = "refused"
             return None
 
-    m = attempt(lambda: sdfcodec.open_map(path, max_decode_bytes=LIMIT))
+    m = attempt(lambda: sdfcodec.open_map(path, max_decode_bytes=limit))
+    read = False
     if m is not None:
-        attempt(m.block_states)
+        read = attempt(m.block_states) is not None
         attempt(m.count_states)
         attempt(m.read_codes)
         attempt(lambda: m.read_codes(level=4))
@@ -106,13 +118,16 @@ def _exercise(path: Path) -> str:
         attempt(m.info)
         attempt(lambda: m.read_weights([[0, 0, 0]]))
         m.close()
-    rep = verify_map(path, max_decode_bytes=LIMIT, decode_blocks=64)
+    rep = verify_map(path, max_decode_bytes=limit, decode_blocks=64)
     internal = [p for p in rep.problems if p.where == "verify"]
     assert not internal, internal  # verify itself must not fail on any input
-    return outcome
+    return outcome, read
 
 
-def _run_case(base: Path, mutate) -> None:
+def _run_case(base: Path, mutate, test: str, case: str = "", limit: int = LIMIT) -> None:
+    """Copy the map, ``mutate`` the copy, exercise it under the time limit, and count the outcome under ``test``
+    (``case`` describes the draw for the slow-case report)."""
+    t0 = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-fuzz-"))
     try:
         path = tmp / "m.sdfz"
@@ -121,12 +136,15 @@ def _run_case(base: Path, mutate) -> None:
         old = signal.signal(signal.SIGALRM, _alarm)
         signal.setitimer(signal.ITIMER_REAL, PER_EXAMPLE_S)
         try:
-            outcome = _exercise(path)
+            outcome, read = _exercise(path, limit)
         finally:
             signal.setitimer(signal.ITIMER_REAL, 0)
             signal.signal(signal.SIGALRM, old)
-        COUNTS["cases"] += 1
-        COUNTS[outcome] += 1
+        counts = COUNTS.setdefault(test, {"cases": 0, "worked": 0, "refused": 0, "read": 0})
+        counts["cases"] += 1
+        counts[outcome] += 1
+        counts["read"] += read
+        CASES.append((time.perf_counter() - t0, test, case))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -202,7 +220,7 @@ def test_fuzz_header(base_map, bounded_memory, data):
     def mutate(p: Path) -> None:
         (p / "zarr.json").write_text(json.dumps(doc))
 
-    _run_case(base_map, mutate)
+    _run_case(base_map, mutate, "header")
 
 
 @SETTINGS
@@ -225,7 +243,7 @@ def test_fuzz_array_metadata(base_map, bounded_memory, data):
     def mutate(p: Path) -> None:
         (p / name).write_text(raw)
 
-    _run_case(base_map, mutate)
+    _run_case(base_map, mutate, "array_metadata", name)
 
 
 @SETTINGS
@@ -260,7 +278,7 @@ def test_fuzz_chunk_bytes(base_map, bounded_memory, data):
         else:
             (p / name).write_bytes(bytes(b))
 
-    _run_case(base_map, mutate)
+    _run_case(base_map, mutate, "chunk_bytes", f"{how} {name}")
 
 
 @SETTINGS
@@ -284,10 +302,10 @@ def test_fuzz_codes_and_state_values(base_map, bounded_memory, data):
             flat.reshape(-1)[index % flat.size] = v
         arr[...] = flat
 
-    _run_case(base_map, mutate)
+    _run_case(base_map, mutate, "codes_and_state_values", f"{which}[{index}] = {value}")
 
 
-@settings(SETTINGS, max_examples=max(1, EXAMPLES // 4))  # ~0.8 s a case: absurd grids are slow to refuse
+@settings(SETTINGS, max_examples=EXPECTED["geometry"])
 @given(data=st.data())
 def test_fuzz_geometry(base_map, bounded_memory, data):
     """Hostile but *consistent* sizes: header and array metadata agree on a grid, code size and chunk shapes
@@ -313,14 +331,38 @@ def test_fuzz_geometry(base_map, bounded_memory, data):
                                   ("weights", [*grid, 4096], weights_chunks)):
             meta = json.loads((p / name / "zarr.json").read_text())
             meta["shape"] = shp
+            if meta["chunk_grid"]["configuration"]["chunk_shape"] != chunks:
+                # chunks cut for the old shape are damaged data (test_fuzz_chunk_bytes's job), and every read
+                # would stop at them: without them the array is consistent, all fill value (unobserved)
+                shutil.rmtree(p / name / "c", ignore_errors=True)
             meta["chunk_grid"]["configuration"]["chunk_shape"] = chunks
             (p / name / "zarr.json").write_text(json.dumps(meta))
 
-    _run_case(base_map, mutate)
+    _run_case(base_map, mutate, "geometry", f"grid {grid} ({shape_voxels} voxels) codes {size}/{chunk_code} in "
+                                            f"{cb}^3-block chunks{' prefix' if prefix else ''}, state chunks "
+                                            f"{state_chunks}, weights chunks {weights_chunks}", GEOMETRY_LIMIT)
+
+
+def test_examples_are_pinned(examples_pinned):
+    """The fuzzers draw the same examples in any selection of tests and any state of the package's literals
+    (tests/conftest.py, _pin_examples): a case that is slow or fails in the full suite is slow or fails alone."""
+    if os.environ.get("HYPOTHESIS_PROFILE", "deterministic") != "deterministic":
+        pytest.skip("another Hypothesis profile: examples vary on purpose")
+    assert examples_pinned, "this Hypothesis lacks the hook that tests/conftest.py _pin_examples replaces: update it"
 
 
 def test_fuzz_counts():
-    """Runs after the fuzz tests (file order): report how many cases ran."""
+    """Runs after the fuzz tests (file order): each fuzzer that ran in this session ran all its examples, some
+    of them were refused (its mutations reach the checks) and some were read (past open_map, so the checks
+    there ran too; a reader that refused every map would pass the fuzzers otherwise). The mutations of an
+    existing map also leave some maps fully usable; the geometry fuzzer's hostile grids never quite do (some
+    call of the dozen always hits a limit), so for it reading the block states is the bar."""
     print(f"fuzz: {COUNTS}")
-    if COUNTS["cases"]:
-        assert COUNTS["worked"] + COUNTS["refused"] == COUNTS["cases"]
+    for seconds, test, case in sorted(CASES, reverse=True)[:5]:
+        print(f"slowest fuzz case: {seconds:6.2f} s  {test}  {case}")
+    if not COUNTS:
+        pytest.skip("no fuzz test ran in this session (run the file, not this test alone)")
+    for test, counts in COUNTS.items():
+        assert counts["cases"] == EXPECTED[test], (test, counts)
+        assert counts["refused"] and counts["read"], (test, counts)
+        assert counts["worked"] or test == "geometry", (test, counts)

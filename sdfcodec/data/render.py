@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InvalidValueError, MapExistsError
+from ..errors import InvalidValueError, MapExistsError, MissingDependencyError
 from ..metrics import Trajectory, write_tum
 from ..sdf import Box, Cylinder, Plane, Scene, Sphere
 from .sequences import TUM_DEPTH_SCALE, Intrinsics, write_depth_png
@@ -242,7 +242,7 @@ class RoomScene:
         ----------
         coords : np.ndarray
             ``(N, 3)`` int block indices; voxel ``(i, j, k)`` of block ``c`` is at
-            ``origin + voxel_size * (16 c + (i, j, k))`` (DESIGN.md).
+            ``origin + voxel_size * (16 c + (i, j, k))`` (spec/map-format.md).
         origin : array-like
             ``(3,)`` metres, the world position of voxel (0, 0, 0) of block (0, 0, 0).
         voxel_size : float
@@ -529,7 +529,8 @@ def _open3d():
     try:
         import open3d as o3d
     except ImportError as exc:
-        raise ImportError("rendering synthetic sequences needs open3d: pip install 'sdfcodec[fusion]'") from exc
+        raise MissingDependencyError("rendering synthetic sequences needs open3d: pip install 'sdfcodec[fusion]'") \
+            from exc
     return o3d
 
 

@@ -57,7 +57,7 @@ from typing import Iterator, Literal
 
 import numpy as np
 
-from ..errors import FormatError, InvalidValueError, SDFCodecWarning
+from ..errors import FormatError, InvalidValueError, MissingDependencyError, OutOfRangeError, SDFCodecWarning
 
 # one implementation of trajectories, TUM files and rotations for the whole package: sdfcodec.metrics
 # (re-exported here because sequences carry their ground truth as a Trajectory)
@@ -306,7 +306,8 @@ def _open3d():
     try:
         import open3d as o3d
     except ImportError as exc:  # only the optional 'fusion' extra brings open3d
-        raise ImportError("reading and writing depth images needs open3d: pip install 'sdfcodec[fusion]'") from exc
+        raise MissingDependencyError("reading and writing depth images needs open3d: pip install 'sdfcodec[fusion]'") \
+            from exc
     return o3d
 
 
@@ -423,7 +424,7 @@ class Sequence:
         if i < 0:
             i += len(self)
         if not 0 <= i < len(self):
-            raise IndexError(f"frame {index} out of range for a sequence of {len(self)} frames")
+            raise OutOfRangeError(f"frame {index} out of range for a sequence of {len(self)} frames")
         return self.read_frame(i)
 
     def read_frame(self, i: int) -> Frame:

@@ -43,7 +43,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..blocks import BLOCK, check_truncation, normalise
-from ..errors import InvalidValueError
+from ..errors import InvalidValueError, SamplingError
 from ..sdf import Barrel, Box, ConcaveCorner, Plane, grid_points
 
 __all__ = ["CATEGORIES", "SyntheticShape", "synthetic_blocks", "synthetic_shapes"]
@@ -221,7 +221,7 @@ def _generate(n, seed, voxel_size, categories, weights, truncation, *, want_shap
                         shapes[todo[j]] = _make_shape(name, params, j)
                 todo = todo[~ok]
             else:  # pragma: no cover - the central anchoring makes a miss rare; 100 misses in a row is a bug
-                raise RuntimeError(f"could not draw {name} blocks with a zero crossing after {_MAX_REDRAWS} tries")
+                raise SamplingError(f"could not draw {name} blocks with a zero crossing after {_MAX_REDRAWS} tries")
     if blocks is not None:
         blocks = blocks.reshape(n, BLOCK, BLOCK, BLOCK)
     return blocks, np.asarray(cats, dtype=str)[cat_idx], shapes

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..codec import Codec
+from ..errors import InvalidValueError
 from ..registry import get_codec
 from ._checks import CHECKS, Case, CheckOptions
 from ._data import analytic_blocks
@@ -263,8 +264,8 @@ def parametrize_codec_checks(codecs: CodecLike | Sequence[CodecLike], *,
     goldens = list(golden) if isinstance(golden, (list, tuple)) else [golden] * len(entries)
     if len(goldens) != len(entries) or (golden is not None and not isinstance(golden, (list, tuple))
                                         and len(entries) != 1):
-        raise ValueError(f"golden: give one directory (or None) per codec; {len(entries)} codecs, "
-                         f"golden={golden!r}")
+        raise InvalidValueError(f"golden: give one directory (or None) per codec; {len(entries)} codecs, "
+                                f"golden={golden!r}")
     labels = list(ids) if ids is not None else [_label(e, i) for i, e in enumerate(entries)]
     if ids is None:  # the same codec id twice gets a counter
         labels = [lb if labels.count(lb) == 1 else f"{lb}-{i}" for i, lb in enumerate(labels)]
