@@ -25,7 +25,7 @@ from zarr.core.buffer import Buffer, default_buffer_prototype
 from .. import _atomic
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-__all__ = ["MAX_METADATA_BYTES", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
+__all__ = ["MAX_METADATA_BYTES", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
            "unguarded", "chunk_read_limit"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
@@ -105,8 +105,10 @@ class GuardStore(zarr.storage.WrapperStore):
 
 _KINDS = ((stat.S_ISLNK, "a symbolic link"), (stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
           (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
-_DIR_FLAGS = os.O_RDONLY | os.O_DIRECTORY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
-_FILE_FLAGS = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+_FILE_FLAGS = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+_DIR_FLAGS = _FILE_FLAGS | getattr(os, "O_DIRECTORY", 0)
+#: Keys can be resolved from a directory descriptor (POSIX): elsewhere local maps are read by Zarr's LocalStore.
+HAVE_DIR_FD = {os.open, os.stat} <= os.supports_dir_fd and hasattr(os, "O_NOFOLLOW") and hasattr(os, "pread")
 
 
 def _kind(mode: int) -> str:
@@ -389,6 +391,8 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
         raise MapNotFoundError(f"no map at {loc}")
     if p.is_file():
         return GuardStore(zarr.storage.ZipStore(p, mode="r"))
-    if _atomic.HAVE_PROC_FD:
+    if _atomic.HAVE_PROC_FD and HAVE_DIR_FD:
         return GuardStore(PinnedStore.pin(p, follow_symlinks=follow_symlinks))
-    return GuardStore(SafeLocalStore(p, follow_symlinks=follow_symlinks))
+    if HAVE_DIR_FD:
+        return GuardStore(SafeLocalStore(p, follow_symlinks=follow_symlinks))
+    return GuardStore(zarr.storage.LocalStore(p, read_only=True))
