@@ -210,6 +210,8 @@ CASES = [
     ("codes-metadata-linked-to-dev-zero", link("codes/zarr.json", "/dev/zero"), r"/dev/zero", None, "base"),
     ("root-metadata-linked-to-dev-zero", link("zarr.json", "/dev/zero"), r"/dev/zero", None, "base"),
     # special files: refused before they are opened
+    ("map-path-is-fifo", fifo(""), r"no map at|not a directory|FIFO", r"no map at|FIFO|directory", "base"),
+    ("map-path-linked-to-dev-zero", link("", "/dev/zero"), r"no map at|not a directory", None, "base"),
     ("chunk-fifo", fifo(CHUNK), r"FIFO", None, "base"),
     ("second-code-chunk-fifo", fifo(CHUNK2), r"FIFO", None, "base"),
     ("codes-metadata-fifo", fifo("codes/zarr.json"), r"FIFO", None, "base"),

@@ -391,6 +391,9 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
         raise MapNotFoundError(f"no map at {loc}")
     if p.is_file():
         return GuardStore(zarr.storage.ZipStore(p, mode="r"))
+    if not p.is_dir():  # a FIFO, device or socket: never opened
+        raise MapNotFoundError(f"no map at {loc}: it is {_kind(os.stat(p).st_mode)}, neither a map directory nor "
+                               "a zip file")
     if _atomic.HAVE_PROC_FD and HAVE_DIR_FD:
         return GuardStore(PinnedStore.pin(p, follow_symlinks=follow_symlinks))
     if HAVE_DIR_FD:
