@@ -322,13 +322,16 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
 
 
 def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None = None,
-               max_decode_bytes: int | None = None, decode_blocks: int = DEFAULT_DECODE_BLOCKS) -> VerifyReport:
+               max_decode_bytes: int | None = None, decode_blocks: int = DEFAULT_DECODE_BLOCKS,
+               follow_symlinks: bool = False) -> VerifyReport:
     """Check the map at ``path_or_url`` end to end (see the module docstring); never raises for a bad map.
 
     Args:
         storage_options: passed to fsspec for URLs.
         max_decode_bytes: the reader's allocation limit (default: :data:`sdfcodec.map.DEFAULT_MAX_DECODE_BYTES`).
         decode_blocks: how many coded blocks to decode with the codec (0: none, only load it).
+        follow_symlinks: follow symbolic links inside a local map, as ``open_map(..., follow_symlinks=True)``
+            does (by default each one is a problem: spec section 9a).
     """
     from .map import DEFAULT_MAX_DECODE_BYTES, Map
     from .map.stores import open_store
@@ -337,7 +340,8 @@ def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None =
     loc = str(path_or_url)
     rep = VerifyReport(location=loc)
     try:
-        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, open_store)
+        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map,
+                lambda p, l, o: open_store(p, l, o, follow_symlinks=follow_symlinks))
     except Exception as e:  # noqa: BLE001 - a bug in verify itself: reported, never a traceback
         rep.problem("verify", f"internal error while checking ({type(e).__name__}: {e}); please report it")
     return rep

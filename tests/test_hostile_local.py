@@ -395,7 +395,9 @@ def test_case_count():
 
 def test_follow_symlinks_opt_in(maps, tmp_path):
     """``open_map(..., follow_symlinks=True)`` reads a map whose chunk files are links (e.g. into a shared
-    store of identical chunks), still refusing links to devices."""
+    store of identical chunks), still refusing links to devices; so does ``verify_map``."""
+    from sdfcodec.verify import verify_map
+
     path = tmp_path / "linked.sdfz"
     shutil.copytree(maps["base"], path, symlinks=True)
     keep = tmp_path / "chunk.bin"
@@ -404,6 +406,7 @@ def test_follow_symlinks_opt_in(maps, tmp_path):
     with pytest.raises(SDFCodecError, match=LINK):
         sdfcodec.open_map(path).decode_region()
     assert np.array_equal(sdfcodec.open_map(path, follow_symlinks=True).decode_region(), maps["base_ref"])
+    assert not verify_map(path).ok and verify_map(path, follow_symlinks=True).ok
     link(CHUNK, "/dev/zero")(path, {})
     with pytest.raises(SDFCodecError, match="character device"):
         sdfcodec.open_map(path, follow_symlinks=True).decode_region()
