@@ -24,7 +24,7 @@ from ..header import CodesSpec
 
 __all__ = ["DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
-           "code_layout", "check_array_metadata", "chunk_ranges", "check_coords", "check_volume", "check_codes", "free_space",
+           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes", "free_space",
            "is_dask_array"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
@@ -169,6 +169,23 @@ def check_coords(coords: Any) -> np.ndarray:
     if len(np.unique(c, axis=0)) != len(c):
         raise InvalidValueError("block coords hold duplicates; write each block once per call")
     return c.astype(np.int64)
+
+
+def unstored_suspects(coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None,
+                      spec: CodesSpec) -> list[tuple[str, tuple[int, ...], int]]:
+    """The chunks that may be missing under coded blocks ``coords`` (n, 3) with stored ``codes`` (n, L) (and int8
+    ``params`` (n, 2)): Zarr reads a chunk that is not stored as its fill value 0, so only a block with an
+    all-zero stretch of one code chunk (or an all-zero ``[offset, scale]`` row) can lie in one. One pass over
+    the codes. Returns ``(array name, chunk coords, row of a block in it)`` per suspect block."""
+    if not len(coords):
+        return []
+    cb = spec.chunk_blocks
+    zero = np.logical_and.reduceat(codes == 0, np.arange(0, codes.shape[1], spec.chunk_code), axis=1)
+    out = [("codes", tuple(int(v) for v in coords[r] // cb) + (int(k),), int(r)) for r, k in zip(*np.nonzero(zero))]
+    if params is not None:
+        out += [("code_scale", tuple(int(v) for v in coords[r] // cb) + (0,), int(r))
+                for r in np.flatnonzero((params == 0).all(axis=1))]
+    return out
 
 
 def free_space(v: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ from ..header import BlockState, MapHeader, parse_header
 from ..quantize import dequantize_codes
 from ..registry import get_codec_class
 from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, chunk_ranges, state_digest)
+                     check_array_metadata, check_coords, chunk_ranges, state_digest, unstored_suspects)
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -432,28 +432,21 @@ class MapReader:
         return out
 
     def _check_stored(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> None:
-        """Refuse coded blocks ``coords`` (n, 3) whose code chunk (or ``code_scale`` chunk) is not stored: Zarr
-        reads a missing chunk as its fill value 0, so only blocks with an all-zero stretch of one code chunk
-        ``codes`` (n, L) (or all-zero ``params`` (n, 2)) can lie in one, and only those chunks are looked up."""
-        if self.live is not None or not len(coords):
+        """Refuse coded blocks ``coords`` (n, 3) whose code (or ``code_scale``) chunk is not stored: Zarr reads it
+        as zeros. Only the chunks :func:`~sdfcodec.map.format.unstored_suspects` names are looked up."""
+        if self.live is not None:
             return  # a map being written: its chunks are the writer's
-        spec = self.header.codes
-        cb = spec.chunk_blocks
-        zero = np.logical_and.reduceat(codes == 0, np.arange(0, codes.shape[1], spec.chunk_code), axis=1)
-        suspects = [(self.codes_array, tuple(int(v) for v in coords[r] // cb) + (int(k),), r)
-                    for r, k in zip(*np.nonzero(zero))]
-        if params is not None and self.code_scale_array is not None:
-            suspects += [(self.code_scale_array, tuple(int(v) for v in coords[r] // cb) + (0,), r)
-                         for r in np.flatnonzero((params == 0).all(axis=1))]
-        seen: set[tuple] = set()
-        for arr, chunk, row in suspects:
+        seen: set[str] = set()
+        for name, chunk, row in unstored_suspects(coords, codes, params, self.header.codes):
+            arr = self.codes_array if name == "codes" else self.code_scale_array
             key = f"{arr.path}/{arr.metadata.encode_chunk_key(chunk)}"
-            if key not in seen:
-                seen.add(key)
-                if not zarr_sync(self.group.store.exists(key)):
-                    raise FormatError(f"{self.location}: chunk {key} of array '{arr.path}' is missing, but block "
-                                      f"{tuple(int(v) for v in coords[row])} in it is coded (the state array says "
-                                      "so); the map is incomplete there: restore it from a copy or re-encode")
+            if key in seen:
+                continue
+            seen.add(key)
+            if not zarr_sync(self.group.store.exists(key)):
+                raise FormatError(f"{self.location}: chunk {key} of array '{arr.path}' is missing, but block "
+                                  f"{tuple(int(v) for v in coords[row])} in it is coded (the state array says "
+                                  "so); the map is incomplete there: restore it from a copy or re-encode")
 
     # -- the decode-on-read pipeline ------------------------------------------------------------------
     # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
