@@ -4,11 +4,12 @@ What is checked (spec/map-format.md):
 
 * the header validates against the schema (format and version first), and the arrays' metadata matches it
   (shapes, dtypes, chunk layout, fill values, allowed Zarr codecs with a crc32c checksum);
-* every stored chunk of every array reads back: its checksum matches and it decompresses;
+* every stored chunk of every array reads back: its checksum matches and it decompresses, and it is a regular
+  file inside the map (no symbolic link, FIFO, device, socket or directory: spec section 9a);
 * block states hold only defined values; every coded block has its code chunks and finite code values;
 * the codec state under ``codec/`` matches ``codec.state_sha256``, and the listed arrays are all there;
 * the codec plugin is installed, accepts the stored configuration and state, and decodes the stored codes
-  (up to ``decode_blocks`` of them) to finite blocks.
+  (up to ``decode_blocks`` of them) to finite blocks within :data:`sdfcodec.map.format.DECODE_LIMIT`.
 
 Problems name the header field, array chunk (``codes/c/0/0/0/1``) or block they are about. Notes are things
 the spec discourages without making the map invalid (stray files, codes stored for blocks that are not coded).
@@ -26,7 +27,7 @@ import numpy as np
 import torch
 import zarr
 
-from .errors import MapNotFoundError, SDFCodecError
+from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError
 from .header import BlockState, parse_header
 
 __all__ = ["Problem", "VerifyReport", "verify_map", "verify_command"]
@@ -143,6 +144,12 @@ def _iter_chunks(rep: VerifyReport, arr: zarr.Array, listing: Any = False):
         rep.chunks_checked[arr.path] += 1
         try:
             data = np.asarray(arr.blocks[coords])
+        except FormatError as e:
+            if isinstance(e, ChecksumError):
+                rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({e})")
+            else:  # the store refused the file itself (a link, a FIFO, a directory...); the message says which
+                rep.problem(key, f"is refused: {e}")
+            data = None
         except Exception as e:  # noqa: BLE001 - whatever the checksum or decompressor says
             msg = str(e) or type(e).__name__
             rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({msg})")
@@ -230,6 +237,7 @@ def _check_code_array(rep: VerifyReport, codes, states: np.ndarray | None) -> No
 
 def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
     from .map import state_digest
+    from .map.format import DECODE_LIMIT
 
     spec = m.header.codec
     rep.codec = spec.id
@@ -289,15 +297,19 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
         return
     try:
         done = 0
-        for _, codes in m.iter_codes():
+        for coords, codes in m.iter_codes():
             z = codes[: decode_blocks - done]
             out = codec.decode(torch.from_numpy(np.ascontiguousarray(z)))
             out = out.numpy() if isinstance(out, torch.Tensor) else np.asarray(out)
             if out.shape != (len(z), 16, 16, 16):
                 rep.problem("codec", f"decoded {len(z)} codes to shape {out.shape}, expected ({len(z)}, 16, 16, 16)")
                 return
-            if not np.isfinite(out).all():
-                rep.problem("codec", "decodes stored codes to NaN/Inf values")
+            sane = (np.abs(out) <= DECODE_LIMIT).reshape(len(z), -1).all(axis=1)  # False for NaN too
+            if not sane.all():
+                bad = coords[: len(z)][~sane]
+                what = "NaN/Inf" if not np.isfinite(out[~sane]).all() else f"absurd (beyond {DECODE_LIMIT:g})"
+                rep.problem("codec", f"decodes the stored codes of {len(bad)} block(s) to {what} values, block(s) "
+                                     f"{_blocks_text(bad)}: the codes or the codec state are corrupted")
                 return
             done += len(z)
             if done >= decode_blocks:
@@ -310,13 +322,16 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
 
 
 def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None = None,
-               max_decode_bytes: int | None = None, decode_blocks: int = DEFAULT_DECODE_BLOCKS) -> VerifyReport:
+               max_decode_bytes: int | None = None, decode_blocks: int = DEFAULT_DECODE_BLOCKS,
+               follow_symlinks: bool = False) -> VerifyReport:
     """Check the map at ``path_or_url`` end to end (see the module docstring); never raises for a bad map.
 
     Args:
         storage_options: passed to fsspec for URLs.
         max_decode_bytes: the reader's allocation limit (default: :data:`sdfcodec.map.DEFAULT_MAX_DECODE_BYTES`).
         decode_blocks: how many coded blocks to decode with the codec (0: none, only load it).
+        follow_symlinks: follow symbolic links inside a local map, as ``open_map(..., follow_symlinks=True)``
+            does (by default each one is a problem: spec section 9a).
     """
     from .map import DEFAULT_MAX_DECODE_BYTES, Map
     from .map.stores import open_store
@@ -325,7 +340,8 @@ def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None =
     loc = str(path_or_url)
     rep = VerifyReport(location=loc)
     try:
-        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, open_store)
+        _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map,
+                lambda p, l, o: open_store(p, l, o, follow_symlinks=follow_symlinks))
     except Exception as e:  # noqa: BLE001 - a bug in verify itself: reported, never a traceback
         rep.problem("verify", f"internal error while checking ({type(e).__name__}: {e}); please report it")
     return rep

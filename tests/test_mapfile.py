@@ -496,3 +496,29 @@ def test_map_package_imports_no_cycle_and_no_deprecated_module():
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_safe_local_store_reads_like_zarrs_local_store(map_path):
+    """The store local maps are read through (regular files only, bounded reads) returns what Zarr's own
+    LocalStore returns, byte ranges included, and None for keys that are not stored."""
+    from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.core.sync import sync
+
+    from sdfcodec.map.stores import SafeLocalStore
+
+    safe, plain = SafeLocalStore(map_path), zarr.storage.LocalStore(map_path, read_only=True)
+    proto = default_buffer_prototype()
+    keys = sorted(sync(_keys(plain)))
+    assert keys and sorted(sync(_keys(safe))) == keys
+    for key in keys[:6] + ["codes/c/9/9/9/9", "nothing/zarr.json"]:
+        for rng in (None, RangeByteRequest(3, 11), OffsetByteRequest(5), SuffixByteRequest(4)):
+            a, b = sync(safe.get(key, proto, rng)), sync(plain.get(key, proto, rng))
+            assert (a is None and b is None) or a.to_bytes() == b.to_bytes(), (key, rng)
+        assert sync(safe.exists(key)) == sync(plain.exists(key))
+    with pytest.raises(errors.FormatError, match="more than the 10 allowed"):
+        safe.read_file("zarr.json", max_bytes=10)
+
+
+async def _keys(store) -> list[str]:
+    return [k async for k in store.list()]

@@ -389,7 +389,7 @@ def update_map(path: str | os.PathLike, *, device: str | torch.device = "cpu", t
 
 
 def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
-             max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES) -> Map:
+             max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, follow_symlinks: bool = False) -> Map:
     """Open a map read-only: a local directory, a ``.zip``, a URL (``http(s)://``, ``s3://``, ``file://``...
     through fsspec) or any Zarr store. Reads only the header and array metadata; data is read on demand.
 
@@ -399,9 +399,11 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
 
     ``max_decode_bytes`` bounds what one call may allocate (a decoded region, a dense read of codes, the
     block states, one chunk, the codec state): maps whose header or array metadata name more are refused with
-    FormatError before anything is read. Opening never runs code from the map.
+    FormatError before anything is read. Opening never runs code from the map. A local map's files must be
+    regular files inside it: symbolic links are refused unless ``follow_symlinks`` (spec section 9a).
     """
-    return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes))
+    return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes,
+                               follow_symlinks=follow_symlinks))
 
 
 def _dir_bytes(path: str) -> int | None:

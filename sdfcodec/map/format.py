@@ -23,8 +23,8 @@ from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning
 from ..header import CodesSpec
 
 __all__ = ["DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
-           "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "Region", "compressors", "state_digest", "code_layout",
-           "check_array_metadata", "chunk_ranges", "check_coords", "check_volume", "check_codes", "free_space",
+           "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
+           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes", "free_space",
            "is_dask_array"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
@@ -39,6 +39,11 @@ MIN_CHUNKS_PER_READ, BYTES_PER_CHUNK = 64, 4096
 EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
 #: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
 FINITE_BOUND = 1e37
+#: Decoded normalised values (0 at d_min, 1 at d_max) a reader accepts: anything beyond +-DECODE_LIMIT (1000
+#: truncation ranges, 140 m at the paper's defaults) is absurd output of corrupted codes or a corrupted codec
+#: state, refused like NaN/Inf (spec section 9a). A codec whose ``decode_bound`` is at most this skips the
+#: pass over its output.
+DECODE_LIMIT = 1e3
 #: How codes may be stored (spec sections 4 and 4a).
 CODE_DTYPES = ("float32", "float16", "int8")
 #: ``((x0, x1), (y0, y1), (z0, z1))``: half-open voxels, or closed metres.
@@ -111,6 +116,21 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
                           "zstd, gzip, crc32c)")
     if not codecs or not isinstance(codecs[-1], Crc32cCodec):
         raise FormatError(f"{where} has no crc32c checksum codec (spec section 4): it cannot be verified")
+    for c in codecs:
+        # maps are little-endian (spec section 9a): a big-endian re-declaration would decode garbage silently
+        endian = getattr(getattr(c, "endian", None), "value", getattr(c, "endian", None))
+        if isinstance(c, BytesCodec) and dt.itemsize > 1 and endian != "little":
+            raise FormatError(f"{where} declares byte order {endian!r} in its bytes codec; map arrays are "
+                              "little-endian (spec section 9a)")
+    try:
+        enc = arr.metadata.chunk_key_encoding
+        enc_name, sep = getattr(enc, "name", None), getattr(enc, "separator", None)
+    except Exception as e:  # noqa: BLE001
+        raise FormatError(f"{where} has an unreadable chunk_key_encoding ({type(e).__name__}: {e})") from e
+    if enc_name != "default" or sep != "/":
+        # another encoding names other files: every stored chunk would read as missing (zeros)
+        raise FormatError(f"{where} has chunk_key_encoding {enc_name!r} with separator {sep!r}; map arrays use "
+                          "'default' with '/' (spec section 9a), so its stored chunks would not be found")
     # the chunk size is checked when reading, so that a small limit still lets a map open and say what is too big
     chunk_bytes = math.prod(ch) * dt.itemsize
     if zero_fill and not (np.ndim(fill) == 0 and np.asarray(fill) == 0):
@@ -149,6 +169,23 @@ def check_coords(coords: Any) -> np.ndarray:
     if len(np.unique(c, axis=0)) != len(c):
         raise InvalidValueError("block coords hold duplicates; write each block once per call")
     return c.astype(np.int64)
+
+
+def unstored_suspects(coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None,
+                      spec: CodesSpec) -> list[tuple[str, tuple[int, ...], int]]:
+    """The chunks that may be missing under coded blocks ``coords`` (n, 3) with stored ``codes`` (n, L) (and int8
+    ``params`` (n, 2)): Zarr reads a chunk that is not stored as its fill value 0, so only a block with an
+    all-zero stretch of one code chunk (or an all-zero ``[offset, scale]`` row) can lie in one. One pass over
+    the codes. Returns ``(array name, chunk coords, row of a block in it)`` per suspect block."""
+    if not len(coords):
+        return []
+    cb = spec.chunk_blocks
+    zero = np.logical_and.reduceat(codes == 0, np.arange(0, codes.shape[1], spec.chunk_code), axis=1)
+    out = [("codes", tuple(int(v) for v in coords[r] // cb) + (int(k),), int(r)) for r, k in zip(*np.nonzero(zero))]
+    if params is not None:
+        out += [("code_scale", tuple(int(v) for v in coords[r] // cb) + (0,), int(r))
+                for r in np.flatnonzero((params == 0).all(axis=1))]
+    return out
 
 
 def free_space(v: np.ndarray) -> np.ndarray:

@@ -4,7 +4,9 @@ or dense voxels. :class:`sdfcodec.Map` is a thin facade over it; ``MapField``, s
 path (``sdfcodec.scale``) call it directly as ``Map.reader``.
 
 Maps are untrusted input: opening one never runs code from it, and every size the header or the array
-metadata names is checked against ``max_decode_bytes`` before anything that large is allocated.
+metadata names is checked against ``max_decode_bytes`` before anything that large is allocated. A coded block
+whose code chunk is not stored is an error naming the chunk (Zarr alone would read zeros), and decoded values
+beyond :data:`~sdfcodec.map.format.DECODE_LIMIT` or non-finite are refused naming the blocks (spec section 9a).
 """
 
 from __future__ import annotations
@@ -29,8 +31,8 @@ from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundE
 from ..header import BlockState, MapHeader, parse_header
 from ..quantize import dequantize_codes
 from ..registry import get_codec_class
-from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, FINITE_BOUND, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, chunk_ranges, state_digest)
+from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
+                     check_array_metadata, check_coords, chunk_ranges, state_digest, unstored_suspects)
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -244,6 +246,8 @@ class MapReader:
         return out
 
     def _chunk_error(self, arr: zarr.Array, sel: tuple, exc: Exception) -> Exception:
+        if isinstance(exc, FormatError) and not isinstance(exc, ChecksumError):
+            return exc  # the store refused a file (a link, a FIFO, a directory...): its message names the key
         return ChecksumError(f"{self.location}: {self._bad_chunks(arr, sel)} of array '{arr.path}' is "
                              f"corrupted or truncated ({type(exc).__name__}: {exc}); the map cannot be "
                              "trusted there: restore it from a copy or re-encode")
@@ -421,6 +425,7 @@ class MapReader:
     def _code_values(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> np.ndarray:
         """Stored ``codes`` of blocks ``coords`` as float32 (dequantised with their ``code_scale`` rows
         ``params`` for int8 maps), refusing NaN/Inf (a corrupted but checksum-valid chunk) by naming a block."""
+        self._check_stored(coords, codes, params)
         out = codes.astype(np.float32, copy=False) if params is None else dequantize_codes(codes, params)
         finite = np.isfinite(out).all(axis=1)
         if not finite.all():
@@ -429,6 +434,23 @@ class MapReader:
                               f"{tuple(int(v) for v in bad[0])}; the map is corrupted there (`sdfcodec verify` lists "
                               "them): restore it from a copy or re-encode those blocks")
         return out
+
+    def _check_stored(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> None:
+        """Refuse coded blocks ``coords`` (n, 3) whose code (or ``code_scale``) chunk is not stored: Zarr reads it
+        as zeros. Only the chunks :func:`~sdfcodec.map.format.unstored_suspects` names are looked up."""
+        if self.live is not None:
+            return  # a map being written: its chunks are the writer's
+        seen: set[str] = set()
+        for name, chunk, row in unstored_suspects(coords, codes, params, self.header.codes):
+            arr = self.codes_array if name == "codes" else self.code_scale_array
+            key = f"{arr.path}/{arr.metadata.encode_chunk_key(chunk)}"
+            if key in seen:
+                continue
+            seen.add(key)
+            if not zarr_sync(self.group.store.exists(key)):
+                raise FormatError(f"{self.location}: chunk {key} of array '{arr.path}' is missing, but block "
+                                  f"{tuple(int(v) for v in coords[row])} in it is coded (the state array says "
+                                  "so); the map is incomplete there: restore it from a copy or re-encode")
 
     # -- the decode-on-read pipeline ------------------------------------------------------------------
     # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
@@ -567,21 +589,22 @@ class MapReader:
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed = DeviceFeed(dev)
         for coords, staged in self.fetch_stream(box, level, stage=feed.stage, **kw):
-            yield coords, self.decode_codes(feed.ready(staged), metres=metres)
+            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords)
 
-    def decode_codes(self, codes: torch.Tensor, *, metres: bool) -> torch.Tensor:
+    def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None) -> torch.Tensor:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
-        into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised. NaN/Inf out of the
-        codec (a corrupted or hostile learned state) are refused: proven impossible by the codec's bound on
-        its outputs when it gives one (no pass over the output), else checked on the output."""
+        into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised. NaN/Inf or absurd values
+        (normalised beyond +-DECODE_LIMIT) out of the codec (corrupted codes or learned state) are refused,
+        naming a block of ``coords`` (n, 3) when given: proven impossible by the codec's bound on its outputs
+        when it gives one within the limit (no pass over the output), else checked on the output."""
         codec = self.codec
         d_min, d_max = self.truncation
         scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
         v = codec.decode_core(codes, scale=scale, offset=offset)
         bound = codec.decode_bound(codes)
-        if bound is not None and math.isfinite(bound) and bound * scale + abs(offset) < FINITE_BOUND:
+        if bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT:
             return v
-        return self.decoded(v)
+        return self.decoded(v, scale=scale, offset=offset, coords=coords)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -635,13 +658,23 @@ class MapReader:
         kw = {} if chunks_per_batch is None else {"chunks_per_group": chunks_per_batch, "batch_blocks": None}
         yield from self.decoded_blocks(box, lv, device, **kw)
 
-    def decoded(self, v: torch.Tensor) -> torch.Tensor:
-        """Refuse NaN/Inf out of the codec (a corrupted or hostile learned state) rather than return them."""
-        # fast path: one reduction (NaN/Inf propagate into the sum); the exact test only when it is not finite
-        if not bool(torch.isfinite(v.sum())) and not bool(torch.isfinite(v).all()):
-            raise FormatError(f"{self.location}: codec {self.header.codec.id!r} decoded NaN/Inf values; its learned "
-                              "state in the map is broken: restore the map from a copy or re-encode it")
-        return v
+    def decoded(self, v: torch.Tensor, *, scale: float = 1.0, offset: float = 0.0,
+                coords: np.ndarray | None = None) -> torch.Tensor:
+        """Refuse NaN/Inf or absurd values in decodes ``v`` (n, 16, 16, 16) (``scale * normalised + offset``)
+        out of the codec rather than return them; ``coords`` (n, 3) name the blocks."""
+        lo, hi = offset - DECODE_LIMIT * scale, offset + DECODE_LIMIT * scale
+        vmin, vmax = torch.aminmax(v) if v.numel() else (v.new_zeros(()) + offset,) * 2  # one pass; NaN propagates
+        if bool(vmin >= lo) and bool(vmax <= hi):
+            return v
+        flat = v.reshape(len(v), -1)
+        bad = (~((flat >= lo) & (flat <= hi)).all(dim=1)).nonzero().flatten().cpu().numpy()
+        what = ("NaN/Inf values" if not bool(torch.isfinite(flat[bad]).all()) else
+                f"absurd values (beyond {DECODE_LIMIT:g} truncation ranges)")
+        b0 = None if coords is None or not len(bad) else coords[bad[0]]
+        where = "" if b0 is None else (f" for {len(bad)} block(s), e.g. block {tuple(int(c) for c in b0)} in chunk "
+                                       "c/" + "/".join(str(int(c) // self.header.codes.chunk_blocks) for c in b0))
+        raise FormatError(f"{self.location}: codec {self.header.codec.id!r} decoded {what}{where}; the stored codes "
+                          "or the codec's learned state are corrupted: restore the map from a copy or re-encode it")
 
     def _to_metres(self, v: torch.Tensor) -> torch.Tensor:
         d_min, d_max = self.truncation
@@ -734,11 +767,12 @@ class MapReader:
 
 
 def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
-                max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None) -> MapReader:
+                max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
+                follow_symlinks: bool = False) -> MapReader:
     """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there)."""
     loc = str(path_or_url)
     try:
-        store = open_store(path_or_url, loc, storage_options)
+        store = open_store(path_or_url, loc, storage_options, follow_symlinks=follow_symlinks)
         group = zarr.open_group(store, mode="r", zarr_format=3)
         raw = group.attrs.get("sdfcodec")
     except (MapNotFoundError, FormatError):

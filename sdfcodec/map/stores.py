@@ -1,6 +1,7 @@
 """The stores a map is read and written through: a guard against oversize metadata and decompression bombs, a
-local store pinned to one version of a map directory, the copy-on-write store writers use, URL detection, and
-opening the right store for a path or URL. (Search counts what it reads with its own wrapper, through
+local store that reads only regular files inside the map directory (bounded while reading), the same pinned to
+one version of a map directory, the copy-on-write store writers use, URL detection, and opening the right
+store for a path or URL. (Search counts what it reads with its own wrapper, through
 ``Map.with_store``.)
 
 Nothing here knows the map format beyond the sizes it is told (:class:`GuardStore.limits`); the checks of the
@@ -10,21 +11,31 @@ format itself live in :mod:`sdfcodec.map.format`.
 from __future__ import annotations
 
 import asyncio
+import errno
 import os
+import stat
 import weakref
 from pathlib import Path
 
 import zarr
 import zarr.abc.store
-from zarr.core.buffer import Buffer
+from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
+from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-__all__ = ["MAX_METADATA_BYTES", "GuardStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "unguarded"]
+__all__ = ["MAX_METADATA_BYTES", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
+           "unguarded", "chunk_read_limit"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
 MAX_METADATA_BYTES = 16 << 20
+
+
+def chunk_read_limit(chunk_bytes: int) -> int:
+    """Most bytes a stored chunk of ``chunk_bytes`` decoded bytes may take: compression can grow incompressible
+    data a little, never to twice its size plus 1 MiB."""
+    return 2 * chunk_bytes + (1 << 20)
 
 
 def is_url(s: str) -> bool:
@@ -35,7 +46,9 @@ def is_url(s: str) -> bool:
 class GuardStore(zarr.storage.WrapperStore):
     """Read-side wrapper around any store: refuses oversize metadata documents, and chunks whose Blosc header
     claims more bytes than the chunk's shape holds (a decompression bomb), before anything that large is
-    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first)."""
+    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first).
+    Over a :class:`SafeLocalStore` the size bounds hold while reading (a file growing meanwhile, or anything
+    that is not a regular file, is refused), not only from ``stat``."""
 
     def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None):
         super().__init__(store)
@@ -46,9 +59,9 @@ class GuardStore(zarr.storage.WrapperStore):
 
     def _local_size(self, key: str) -> int | None:
         inner = self._store
-        if isinstance(inner, zarr.storage.LocalStore):
+        if isinstance(inner, zarr.storage.LocalStore) and not isinstance(inner, SafeLocalStore):
             try:
-                return os.stat(inner.root / key).st_size
+                return os.lstat(inner.root / key).st_size  # never follows a link to a device or FIFO
             except OSError:
                 return None
         return None
@@ -61,16 +74,26 @@ class GuardStore(zarr.storage.WrapperStore):
     async def get(self, key, prototype=None, byte_range=None):
         meta = key == "zarr.json" or key.endswith("/zarr.json")
         limit = None if meta else next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
-        size = self._local_size(key) if (meta or limit) else None
-        if meta and size is not None and size > MAX_METADATA_BYTES:
-            raise FormatError(f"{key} is {size} bytes, more than any map metadata ({MAX_METADATA_BYTES}); refused")
-        if limit and size is not None and size > 2 * limit[0] + (1 << 20):
-            raise ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
-        buf = await self._store.get(key, prototype, byte_range)
+
+        def meta_error(size: int) -> Exception:
+            return FormatError(f"{key} is {size} bytes, more than any map metadata ({MAX_METADATA_BYTES}); refused")
+
+        def chunk_error(size: int) -> Exception:
+            return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
+
+        cap, too_big = ((MAX_METADATA_BYTES, meta_error) if meta else
+                        (chunk_read_limit(limit[0]), chunk_error) if limit else (None, None))
+        if isinstance(self._store, SafeLocalStore):
+            buf = await self._store.get_bounded(key, prototype, byte_range, cap, too_big)
+        else:
+            size = self._local_size(key) if cap is not None else None
+            if cap is not None and size is not None and size > cap:
+                raise too_big(size)
+            buf = await self._store.get(key, prototype, byte_range)
         if buf is None or byte_range is not None:
             return buf
         if meta and len(buf) > MAX_METADATA_BYTES:
-            raise FormatError(f"{key} is {len(buf)} bytes, more than any map metadata ({MAX_METADATA_BYTES}); refused")
+            raise meta_error(len(buf))
         if limit and limit[1] and len(buf) >= 16:
             # Blosc header: bytes 4..8 hold the uncompressed size, which decompression would allocate
             claimed = int.from_bytes(bytes(buf.as_numpy_array()[4:8]), "little")
@@ -80,21 +103,216 @@ class GuardStore(zarr.storage.WrapperStore):
         return buf
 
 
-class PinnedStore(zarr.storage.LocalStore):
-    """A read-only local store over one version of a map directory, held open by a file descriptor and read
-    through ``/proc/self/fd/N``: a writer that swaps in a new version cannot mix it into what this reader
-    sees, and the held version is not removed while this store lives (``sdfcodec._atomic``)."""
+_KINDS = ((stat.S_ISLNK, "a symbolic link"), (stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+          (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+_FILE_FLAGS = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+_DIR_FLAGS = _FILE_FLAGS | getattr(os, "O_DIRECTORY", 0)
+#: Keys can be resolved from a directory descriptor (POSIX): elsewhere local maps are read by Zarr's LocalStore.
+HAVE_DIR_FD = {os.open, os.stat} <= os.supports_dir_fd and hasattr(os, "O_NOFOLLOW") and hasattr(os, "pread")
 
-    def __init__(self, root, *, read_only: bool = True, _path: Path | None = None, _fd: int | None = None):
+
+def _kind(mode: int) -> str:
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
+
+
+class SafeLocalStore(zarr.storage.LocalStore):
+    """A read-only local store that reads only regular files inside its root directory (spec section 9a).
+
+    Every key is resolved one path segment at a time from a directory descriptor of the root: a symbolic link
+    anywhere on the way (a chunk, or a whole ``codes/`` folder, linked to another map's) is refused naming the
+    key and where the link leads, unless ``follow_symlinks``; a FIFO, device or socket is refused from its
+    ``stat`` before it is opened (opening a FIFO blocks), and again from ``fstat`` after opening it without
+    blocking; a directory where a file should be is refused. Reads are bounded while they happen: at most the
+    size ``fstat`` gave (checked against the caller's cap), and a file that grew meanwhile is refused."""
+
+    def __init__(self, root, *, read_only: bool = True, follow_symlinks: bool = False):
         super().__init__(root, read_only=True)
+        self.follow_symlinks = bool(follow_symlinks)
+
+    @property
+    def label(self) -> str:
+        """How errors name the map directory."""
+        return str(self.root)
+
+    def _root_fd(self) -> tuple[int, bool]:
+        """A descriptor of the root directory and whether the caller closes it."""
+        return os.open(self.root, _DIR_FLAGS), True
+
+    def with_read_only(self, read_only: bool = False):
+        if not read_only:
+            raise ReadOnlyError(f"{self.label} is open read-only")
+        return self
+
+    def _refuse(self, key: str, where: str, what: str, dir_fd: int, name: str) -> FormatError:
+        link, on = "", ("" if where == key else f"{key}: ")
+        if what == "a symbolic link":
+            try:
+                link = f" (to {os.readlink(name, dir_fd=dir_fd)})"
+            except OSError:
+                pass
+            return FormatError(f"{self.label}: {on}'{where}' is a symbolic link{link}; a map's files must be "
+                               "regular files inside its directory, so it is refused (open_map(..., "
+                               "follow_symlinks=True) follows links)")
+        return FormatError(f"{self.label}: {on}'{where}' is {what}, not a regular file; a map holds only regular "
+                           "files and directories, so it is refused (without opening it)")
+
+    def _lookup(self, key: str, fds: list[int]) -> tuple[int, str, os.stat_result] | None:
+        """The directory descriptor holding ``key``'s last segment, that segment and its ``stat`` (links not
+        followed unless ``follow_symlinks``); None when nothing is there. Opened descriptors go into ``fds``."""
+        parts = key.split("/")
+        if any(p in ("", ".", "..") for p in parts):
+            raise FormatError(f"{self.label}: {key!r} is no plain store key; refused")
+        fd, own = self._root_fd()
+        if own:
+            fds.append(fd)
+        nofollow = 0 if self.follow_symlinks else os.O_NOFOLLOW
+        for i, part in enumerate(parts):
+            try:
+                st = os.stat(part, dir_fd=fd, follow_symlinks=self.follow_symlinks)
+            except FileNotFoundError:
+                return None
+            except OSError as e:
+                if e.errno == errno.ELOOP:  # a link loop, followed
+                    raise self._refuse(key, "/".join(parts[:i + 1]), "a symbolic link", fd, part) from e
+                if e.errno == errno.ENOTDIR:
+                    return None
+                raise
+            if i == len(parts) - 1:
+                return fd, part, st
+            if not stat.S_ISDIR(st.st_mode):
+                if stat.S_ISREG(st.st_mode):
+                    return None  # a file where a folder should be: nothing is stored under it
+                raise self._refuse(key, "/".join(parts[:i + 1]), _kind(st.st_mode), fd, part)
+            try:
+                fd = os.open(part, _DIR_FLAGS | nofollow, dir_fd=fd)
+            except OSError as e:  # replaced between stat and open
+                raise FormatError(f"{self.label}: {key}: '{'/'.join(parts[:i + 1])}' changed while being "
+                                  f"opened ({e}); refused") from e
+            fds.append(fd)
+        return None
+
+    def read_file(self, key: str, byte_range=None, max_bytes: int | None = None,
+                  too_big=None) -> bytes | None:
+        """The bytes of ``key`` (``byte_range``: a Zarr byte request), or None when nothing is stored there.
+
+        Raises:
+            FormatError: a link, FIFO, device, socket or directory at the key or on its way; a file that
+                changed while read. ``too_big(size)`` (default a FormatError): more than ``max_bytes`` to read.
+        """
+        fds: list[int] = []
+        try:
+            found = self._lookup(key, fds)
+            if found is None:
+                return None
+            dfd, name, st = found
+            if not stat.S_ISREG(st.st_mode):
+                raise self._refuse(key, key, _kind(st.st_mode), dfd, name)
+            fd = os.open(name, _FILE_FLAGS | (0 if self.follow_symlinks else os.O_NOFOLLOW), dir_fd=dfd)
+            fds.append(fd)
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):  # swapped for something else since the stat above
+                raise self._refuse(key, key, _kind(st.st_mode), dfd, name)
+            size = st.st_size
+            start, stop = _byte_span(byte_range, size)
+            if max_bytes is not None and stop - start > max_bytes:
+                raise (too_big(stop - start) if too_big is not None else FormatError(
+                    f"{self.label}: {key} is {stop - start} bytes, more than the {max_bytes} allowed; refused"))
+            out = bytearray()
+            while len(out) < stop - start:
+                piece = os.pread(fd, stop - start - len(out), start + len(out))
+                if not piece:
+                    break
+                out += piece
+            if len(out) != stop - start or (byte_range is None and os.pread(fd, 1, size)):
+                raise FormatError(f"{self.label}: {key} changed size while being read ({size} bytes at first); "
+                                  "refused: a map must not be written in place while it is read")
+            return bytes(out)
+        except FileNotFoundError:
+            return None
+        finally:
+            for fd in reversed(fds):
+                os.close(fd)
+
+    async def get_bounded(self, key, prototype=None, byte_range=None, max_bytes: int | None = None,
+                          too_big=None) -> Buffer | None:
+        """:meth:`get`, reading at most ``max_bytes`` (see :meth:`read_file`)."""
+        if prototype is None:
+            prototype = default_buffer_prototype()
+        data = await asyncio.to_thread(self.read_file, key, byte_range, max_bytes, too_big)
+        return None if data is None else prototype.buffer.from_bytes(data)
+
+    async def get(self, key, prototype=None, byte_range=None):
+        return await self.get_bounded(key, prototype, byte_range)
+
+    async def get_partial_values(self, prototype, key_ranges):
+        return list(await asyncio.gather(*(self.get_bounded(k, prototype, r) for k, r in key_ranges)))
+
+    def _exists(self, key: str) -> bool:
+        fds: list[int] = []
+        try:
+            found = self._lookup(key, fds)
+            return found is not None and stat.S_ISREG(found[2].st_mode)
+        except FormatError:
+            return False
+        finally:
+            for fd in reversed(fds):
+                os.close(fd)
+
+    async def exists(self, key: str) -> bool:
+        return await asyncio.to_thread(self._exists, key)
+
+    def _listing(self, prefix: str) -> list[str]:
+        # every entry but directories (links and special files too, so that `verify` names them), links to
+        # directories not descended into
+        base = os.path.join(str(self.root), prefix.strip("/")) if prefix.strip("/") else str(self.root)
+        root = str(self.root).rstrip("/") + "/"
+        out = []
+        for dirpath, dirnames, filenames in os.walk(base, followlinks=False):
+            rel = dirpath[len(root):] if dirpath.startswith(root) else ""
+            links = [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]
+            for name in filenames + links:
+                out.append(f"{rel}/{name}" if rel else name)
+        return sorted(out)
+
+    async def list(self):
+        for key in await asyncio.to_thread(self._listing, ""):
+            yield key
+
+    async def list_prefix(self, prefix: str):
+        for key in await asyncio.to_thread(self._listing, prefix):
+            yield key
+
+
+def _byte_span(byte_range, size: int) -> tuple[int, int]:
+    """``[start, stop)`` of a Zarr byte request within a file of ``size`` bytes (None: all of it)."""
+    if byte_range is None:
+        return 0, size
+    if isinstance(byte_range, RangeByteRequest):
+        return min(byte_range.start, size), min(max(byte_range.start, byte_range.end), size)
+    if isinstance(byte_range, OffsetByteRequest):
+        return min(byte_range.offset, size), size
+    if isinstance(byte_range, SuffixByteRequest):
+        return max(0, size - byte_range.suffix), size
+    raise InvalidValueError(f"unknown byte request {byte_range!r}")
+
+
+class PinnedStore(SafeLocalStore):
+    """A read-only :class:`SafeLocalStore` over one version of a map directory, held open by a file descriptor
+    (keys are resolved from it; Zarr's own paths go through ``/proc/self/fd/N``): a writer that swaps in a new
+    version cannot mix it into what this reader sees, and the held version is not removed while this store
+    lives (``sdfcodec._atomic``)."""
+
+    def __init__(self, root, *, read_only: bool = True, follow_symlinks: bool = False, _path: Path | None = None,
+                 _fd: int | None = None):
+        super().__init__(root, read_only=True, follow_symlinks=follow_symlinks)
         self._path, self._fd, self._closed = _path, _fd, False
         self._release = (weakref.finalize(self, _atomic.release_pin, _fd, _path, os.getpid())
                          if _fd is not None else None)
 
     @classmethod
-    def pin(cls, path: Path) -> "PinnedStore":
+    def pin(cls, path: Path, follow_symlinks: bool = False) -> "PinnedStore":
         fd = _atomic.pin_dir(path)
-        return cls(f"/proc/self/fd/{fd}", _path=path, _fd=fd)
+        return cls(f"/proc/self/fd/{fd}", follow_symlinks=follow_symlinks, _path=path, _fd=fd)
 
     @property
     def path(self) -> Path | None:
@@ -106,31 +324,30 @@ class PinnedStore(zarr.storage.LocalStore):
         """The directory descriptor holding the pinned version."""
         return self._fd
 
+    @property
+    def label(self) -> str:
+        return str(self._path)
+
+    def _root_fd(self) -> tuple[int, bool]:
+        self._check_open()
+        return (self._fd, False) if self._fd is not None else super()._root_fd()
+
     def close_pin(self) -> None:
         self._closed = True
         if self._release is not None:
             self._release()
 
-    def with_read_only(self, read_only: bool = False):
-        if not read_only:
-            raise ReadOnlyError(f"{self._path} is open read-only")
-        return self
-
     def __reduce__(self):
         # the descriptor means nothing in another process: pin the map there afresh
-        return (PinnedStore.pin, (self._path,))
+        return (PinnedStore.pin, (self._path, self.follow_symlinks))
 
     def _check_open(self) -> None:
         if self._closed:
             raise InvalidValueError(f"{self._path}: the map was closed; open it again with sdfcodec.open_map")
 
-    async def get(self, key, prototype=None, byte_range=None):
+    async def get_bounded(self, key, prototype=None, byte_range=None, max_bytes=None, too_big=None):
         self._check_open()
-        return await super().get(key, prototype, byte_range)
-
-    async def get_partial_values(self, prototype, key_ranges):
-        self._check_open()
-        return await super().get_partial_values(prototype, key_ranges)
+        return await super().get_bounded(key, prototype, byte_range, max_bytes, too_big)
 
     async def exists(self, key: str) -> bool:
         self._check_open()
@@ -160,9 +377,10 @@ def unguarded(store: zarr.abc.store.Store) -> zarr.abc.store.Store:
 
 
 def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
-               storage_options: dict | None) -> GuardStore:
+               storage_options: dict | None, *, follow_symlinks: bool = False) -> GuardStore:
     """The guarded read-only store of a map: any Zarr store as given, a URL through fsspec, a ``.zip`` file, or
-    a local directory (pinned at its current version where ``/proc/self/fd`` exists). ``loc`` is
+    a local directory (a :class:`SafeLocalStore`, pinned at its current version where ``/proc/self/fd``
+    exists; ``follow_symlinks`` lets it follow symbolic links inside the map). ``loc`` is
     ``str(path_or_url)``. Raises MapNotFoundError for a local path that does not exist."""
     if isinstance(path_or_url, zarr.abc.store.Store):
         return GuardStore(path_or_url)
@@ -173,6 +391,11 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
         raise MapNotFoundError(f"no map at {loc}")
     if p.is_file():
         return GuardStore(zarr.storage.ZipStore(p, mode="r"))
-    if _atomic.HAVE_PROC_FD:
-        return GuardStore(PinnedStore.pin(p))
+    if not p.is_dir():  # a FIFO, device or socket: never opened
+        raise MapNotFoundError(f"no map at {loc}: it is {_kind(os.stat(p).st_mode)}, neither a map directory nor "
+                               "a zip file")
+    if _atomic.HAVE_PROC_FD and HAVE_DIR_FD:
+        return GuardStore(PinnedStore.pin(p, follow_symlinks=follow_symlinks))
+    if HAVE_DIR_FD:
+        return GuardStore(SafeLocalStore(p, follow_symlinks=follow_symlinks))
     return GuardStore(zarr.storage.LocalStore(p, read_only=True))

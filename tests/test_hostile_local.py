@@ -1,0 +1,412 @@
+"""Hostile local maps (issue 21, items 2 and 4): a small valid map is copied and edited the way an attacker or a
+broken disk would (metadata rewritten, chunk files and folders deleted, replaced, symlinked to another map or to
+/dev/zero, FIFOs, sockets, big-endian re-declarations, huge values...). Every case must end, within its timeout,
+in a clean ``SDFCodecError`` naming what is wrong for every read (open, info, codes, decode, blocks, search) that
+fails, a decode that fails (nothing silently wrong), and a ``verify`` report with a matching problem; the maps a
+case links to still decode bit for bit.
+
+Each case runs its probes in a forked child that the test kills after ``TIMEOUT`` s: a FIFO opened for reading
+blocks in a thread no signal can interrupt, so only a separate process bounds it.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import re
+import shutil
+import socket
+import traceback
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+import sdfcodec
+from sdfcodec.errors import SDFCodecError
+from sdfcodec.map.format import state_digest
+
+TIMEOUT = 30.0
+VS, TRUNC = 0.02, (-0.04, 0.1)
+CHUNK = "codes/c/0/0/0/0"  # holds coded blocks of the base map (checked by the fixture)
+CHUNK2 = "codes/c/0/0/0/1"  # the same blocks' code elements 32..63
+STATE_CHUNK = "state/c/0/0/0"
+MEAN_CHUNK = "codec/mean/c/0"
+
+
+def _volume(shift: float) -> np.ndarray:
+    from sdfcodec.sdf import sample_volume
+    from sdfcodec.testing import analytic_scene
+
+    v = sample_volume(analytic_scene(), (48, 40, 36), VS, truncation=TRUNC)
+    return np.clip(v + shift, *TRUNC).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    """The base map (float32 pca-64, 2^3-block chunks, two code chunks per block), a donor map (other data, for
+    links to point at) and an int8 map, with their reference decodes."""
+    from sdfcodec.testing import analytic_blocks
+    from sdfcodec.verify import verify_map
+
+    root = tmp_path_factory.mktemp("hostile")
+    codec = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=11))
+    out = {"root": root}
+    for name, shift, dtype in (("base", 0.0, "float32"), ("donor", 0.013, "float32"), ("int8", 0.0, "int8")):
+        path = root / f"{name}.sdfz"
+        with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
+                                 code_dtype=dtype) as m:
+            m.write_volume(_volume(shift))
+        out[name] = path
+        out[name + "_ref"] = sdfcodec.open_map(path).decode_region()
+    for name in ("base", "donor", "int8"):
+        assert (out[name] / CHUNK).is_file() and (out[name] / CHUNK2).is_file()
+        assert verify_map(out[name]).ok
+    return out
+
+
+# -- edits -----------------------------------------------------------------------------------------------
+def _clear(p: Path) -> None:
+    if p.is_symlink() or p.is_file() or (p.exists() and not p.is_dir()):
+        p.unlink()
+    elif p.is_dir():
+        shutil.rmtree(p)
+
+
+def link(key: str, target) -> callable:
+    """Replace ``key`` by a symbolic link to ``target(ctx)`` (a path)."""
+    def edit(path: Path, ctx: dict) -> None:
+        _clear(path / key)
+        os.symlink(target(ctx) if callable(target) else target, path / key)
+    return edit
+
+
+def donor(key: str):
+    return lambda ctx: str(ctx["donor"] / key)
+
+
+def fifo(key: str):
+    def edit(path: Path, ctx: dict) -> None:
+        _clear(path / key)
+        os.mkfifo(path / key)
+    return edit
+
+
+def sock(key: str):
+    def edit(path: Path, ctx: dict) -> None:
+        _clear(path / key)
+        cwd = os.getcwd()
+        os.chdir((path / key).parent)  # socket paths are limited to ~100 characters: bind a relative name
+        try:
+            s = socket.socket(socket.AF_UNIX)
+            s.bind(Path(key).name)
+            ctx.setdefault("sockets", []).append(s)
+        finally:
+            os.chdir(cwd)
+    return edit
+
+
+def as_dir(key: str):
+    def edit(path: Path, ctx: dict) -> None:
+        _clear(path / key)
+        (path / key).mkdir()
+    return edit
+
+
+def delete(key: str):
+    return lambda path, ctx: _clear(path / key)
+
+
+def meta(array: str, fn):
+    """Edit the zarr.json of ``array`` ("" for the root group) with ``fn(doc)``."""
+    def edit(path: Path, ctx: dict) -> None:
+        p = path / array / "zarr.json" if array else path / "zarr.json"
+        doc = json.loads(p.read_text())
+        fn(doc)
+        p.write_text(json.dumps(doc))
+    return edit
+
+
+def header(fn):
+    return meta("", lambda doc: fn(doc["attributes"]["sdfcodec"]))
+
+
+def _set(d: dict, dotted: str, value) -> None:
+    *head, last = dotted.split(".")
+    for k in head:
+        d = d[k]
+    d[last] = value
+
+
+def codes_values(value):
+    """Store ``value`` in every code of the coded blocks, with valid checksums (written through zarr)."""
+    def edit(path: Path, ctx: dict) -> None:
+        states = zarr.open_array(path / "state", mode="r")[...]
+        arr = zarr.open_array(path / "codes", mode="r+")
+        codes = arr[...]
+        codes[states == 2] = value
+        arr[...] = codes
+    return edit
+
+
+def codec_state(name: str, fn):
+    """Rewrite codec state array ``name`` with ``fn(values)`` and update the header's digest to match, so that
+    only the decoded values can give it away."""
+    def edit(path: Path, ctx: dict) -> None:
+        arr = zarr.open_array(path / "codec" / name, mode="r+")
+        arr[...] = fn(arr[...])
+        group = zarr.open_group(path, mode="r")
+        state = {n: zarr.open_array(path / "codec" / n, mode="r")[...]
+                 for n in group.attrs["sdfcodec"]["codec"]["state_arrays"]}
+        header(lambda h: _set(h, "codec.state_sha256", state_digest(state)))(path, ctx)
+    return edit
+
+
+def append_bytes(key: str, n: int):
+    def edit(path: Path, ctx: dict) -> None:
+        with open(path / key, "ab") as f:
+            f.write(os.urandom(n))
+    return edit
+
+
+def overwrite_bytes(key: str, fn):
+    def edit(path: Path, ctx: dict) -> None:
+        data = (path / key).read_bytes()
+        (path / key).write_bytes(fn(data))
+    return edit
+
+
+def _bytes_codec(doc: dict) -> dict:
+    return next(c for c in doc["codecs"] if c["name"] == "bytes")
+
+
+def _blosc_claims(data: bytes) -> bytes:
+    return data[:4] + (2**31 - 1).to_bytes(4, "little") + data[8:]
+
+
+LINK = r"symbolic link"
+# (id, edit, what decode errors must say, what a verify problem must say (None: the same), map)
+CASES = [
+    # links leaving the map (or staying inside it: a writer never makes one, so readers refuse them all)
+    ("chunk-linked-to-other-map", link(CHUNK, donor(CHUNK)), LINK, None, "base"),
+    ("second-code-chunk-linked-to-other-map", link(CHUNK2, donor(CHUNK2)), LINK, None, "base"),
+    ("codes-folder-linked-to-other-map", link("codes", donor("codes")), r"'codes' is a symbolic link", None, "base"),
+    ("codes-chunk-folder-linked", link("codes/c", donor("codes/c")), r"'codes/c' is a symbolic link", None, "base"),
+    ("state-folder-linked", link("state", donor("state")), r"'state' is a symbolic link", None, "base"),
+    ("state-chunk-linked", link(STATE_CHUNK, donor(STATE_CHUNK)), LINK, None, "base"),
+    ("codes-metadata-linked", link("codes/zarr.json", donor("codes/zarr.json")), LINK, None, "base"),
+    ("root-metadata-linked", link("zarr.json", donor("zarr.json")), LINK, None, "base"),
+    ("codec-folder-linked", link("codec", donor("codec")), r"'codec' is a symbolic link", None, "base"),
+    ("codec-state-chunk-linked", link(MEAN_CHUNK, donor(MEAN_CHUNK)), LINK, None, "base"),
+    ("chunk-linked-inside-map", link(CHUNK, "1"), LINK, None, "base"),
+    ("chunk-link-dangling", link(CHUNK, "/nonexistent/sdfcodec-chunk"), LINK, None, "base"),
+    ("chunk-link-loop", link(CHUNK, "0"), LINK, None, "base"),
+    ("chunk-linked-to-outside-file", link(CHUNK, lambda ctx: str(ctx["outside"])), LINK, None, "base"),
+    ("chunk-linked-to-dev-zero", link(CHUNK, "/dev/zero"), r"/dev/zero", None, "base"),
+    ("chunk-linked-to-dev-urandom", link(CHUNK, "/dev/urandom"), r"/dev/urandom", None, "base"),
+    ("chunk-linked-to-dev-null", link(CHUNK, "/dev/null"), r"/dev/null", None, "base"),
+    ("codes-metadata-linked-to-dev-zero", link("codes/zarr.json", "/dev/zero"), r"/dev/zero", None, "base"),
+    ("root-metadata-linked-to-dev-zero", link("zarr.json", "/dev/zero"), r"/dev/zero", None, "base"),
+    # special files: refused before they are opened
+    ("map-path-is-fifo", fifo(""), r"no map at|not a directory|FIFO", r"no map at|FIFO|directory", "base"),
+    ("map-path-linked-to-dev-zero", link("", "/dev/zero"), r"no map at|not a directory", None, "base"),
+    ("chunk-fifo", fifo(CHUNK), r"FIFO", None, "base"),
+    ("second-code-chunk-fifo", fifo(CHUNK2), r"FIFO", None, "base"),
+    ("codes-metadata-fifo", fifo("codes/zarr.json"), r"FIFO", None, "base"),
+    ("root-metadata-fifo", fifo("zarr.json"), r"FIFO", None, "base"),
+    ("state-chunk-fifo", fifo(STATE_CHUNK), r"FIFO", None, "base"),
+    ("codec-state-chunk-fifo", fifo(MEAN_CHUNK), r"FIFO", None, "base"),
+    ("codes-folder-fifo", fifo("codes"), r"FIFO", None, "base"),
+    ("chunk-socket", sock(CHUNK), r"socket", None, "base"),
+    # directories where files belong
+    ("chunk-is-directory", as_dir(CHUNK), r"codes/c/0/0/0/0.*directory", r"codes/c/0/0/0/0", "base"),
+    ("second-code-chunk-is-directory", as_dir(CHUNK2), r"codes/c/0/0/0/1.*directory", r"codes/c/0/0/0/1", "base"),
+    ("codes-metadata-is-directory", as_dir("codes/zarr.json"), r"directory", None, "base"),
+    ("state-chunk-is-directory", as_dir(STATE_CHUNK), r"directory", None, "base"),
+    ("codec-state-chunk-is-directory", as_dir(MEAN_CHUNK), r"directory", None, "base"),
+    # chunks missing under coded blocks
+    ("code-chunk-deleted", delete(CHUNK), r"codes/c/0/0/0/0 .*missing", r"codes/c/0/0/0/0", "base"),
+    ("second-code-chunk-deleted", delete(CHUNK2), r"codes/c/0/0/0/1 .*missing", r"codes/c/0/0/0/1", "base"),
+    ("all-code-chunks-deleted", delete("codes/c"), r"codes/c/\d/\d/\d/\d .*missing", r"missing", "base"),
+    ("int8-code-chunk-deleted", delete(CHUNK), r"codes/c/0/0/0/0 .*missing", r"codes/c/0/0/0/0", "int8"),
+    ("int8-code-scale-chunk-deleted", delete("code_scale/c/0/0/0/0"), r"code_scale/c/0/0/0/0 .*missing",
+     r"code_scale/c/0/0/0/0", "int8"),
+    ("codes-metadata-deleted", delete("codes/zarr.json"), r"lacks array 'codes'", None, "base"),
+    ("codec-state-chunk-deleted", delete(MEAN_CHUNK), r"digest", r"state_sha256|codec", "base"),
+    # chunk key encodings that name other files (every chunk would read as missing)
+    ("codes-key-separator-dot", meta("codes", lambda d: _set(d, "chunk_key_encoding.configuration.separator", ".")),
+     r"chunk_key_encoding", None, "base"),
+    ("codes-key-encoding-v2", meta("codes", lambda d: d.update(chunk_key_encoding={"name": "v2", "configuration":
+                                                                                   {"separator": "."}})),
+     r"chunk_key_encoding", None, "base"),
+    ("state-key-separator-dot", meta("state", lambda d: _set(d, "chunk_key_encoding.configuration.separator", ".")),
+     r"chunk_key_encoding", None, "base"),
+    ("codec-state-key-separator-dot",
+     meta("codec/mean", lambda d: _set(d, "chunk_key_encoding.configuration.separator", ".")),
+     r"chunk_key_encoding", None, "base"),
+    # byte order, data types and the other array fields
+    ("codes-big-endian", meta("codes", lambda d: _bytes_codec(d).update(configuration={"endian": "big"})),
+     r"byte order 'big'", None, "base"),
+    ("codec-state-big-endian", meta("codec/components", lambda d: _bytes_codec(d).update(
+        configuration={"endian": "big"})), r"byte order 'big'", None, "base"),
+    ("int8-code-scale-big-endian", meta("code_scale", lambda d: _bytes_codec(d).update(
+        configuration={"endian": "big"})), r"byte order 'big'", None, "int8"),
+    ("codes-dtype-float64", meta("codes", lambda d: d.update(data_type="float64")), r"data type float64", None,
+     "base"),
+    ("codes-dtype-int32", meta("codes", lambda d: d.update(data_type="int32")), r"data type int32", None, "base"),
+    ("state-dtype-int16", meta("state", lambda d: d.update(data_type="int16")), r"data type int16", None, "base"),
+    ("codes-fill-value-nonzero", meta("codes", lambda d: d.update(fill_value=0.5)), r"fill value", None, "base"),
+    ("codes-chunk-shape-changed", meta("codes", lambda d: _set(d, "chunk_grid.configuration.chunk_shape",
+                                                               [1, 1, 1, 64])), r"chunks", None, "base"),
+    ("codes-shape-changed", meta("codes", lambda d: d.update(shape=[3, 3, 3, 32])), r"shape", None, "base"),
+    ("codes-without-checksum", meta("codes", lambda d: d.update(codecs=d["codecs"][:-1])), r"crc32c", None, "base"),
+    ("codes-pickle-codec", meta("codes", lambda d: d["codecs"].insert(1, {"name": "numcodecs.pickle"})),
+     r"pickle|Zarr codec|metadata", None, "base"),
+    # values: checksum-valid but absurd or non-finite
+    ("codes-3e38", codes_values(3e38), r"absurd", None, "base"),
+    ("codes-1e6", codes_values(1e6), r"absurd", None, "base"),
+    ("codes-nan", codes_values(np.nan), r"NaN/Inf", None, "base"),
+    ("codes-inf", codes_values(np.inf), r"NaN/Inf", None, "base"),
+    ("codec-mean-huge", codec_state("mean", lambda a: a + 1e30), r"absurd", None, "base"),
+    ("codec-components-nan", codec_state("components", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7,
+                                                                           np.nan, a)), r"NaN", None, "base"),
+    # sizes and bytes
+    ("chunk-padded-3mib", append_bytes(CHUNK, 3 << 20), r"bytes on disk", None, "base"),
+    ("metadata-over-16mib", overwrite_bytes("codes/zarr.json", lambda b: b + b" " * (17 << 20)),
+     r"more than any map metadata", None, "base"),
+    ("chunk-truncated", overwrite_bytes(CHUNK, lambda b: b[: len(b) // 2]), r"corrupted or truncated|checksum",
+     r"checksum|truncated", "base"),
+    ("chunk-garbage", overwrite_bytes(CHUNK, lambda b: os.urandom(len(b))), r"corrupted|checksum", None, "base"),
+    ("chunk-blosc-header-bomb", overwrite_bytes(CHUNK, _blosc_claims), r"claims \d+ bytes|corrupted",
+     r"claims|checksum", "base"),
+    # header fields
+    ("header-grid-blocks-huge", header(lambda h: h.update(grid_blocks=[2**31 - 1] * 3)), r"grid_blocks", None,
+     "base"),
+    ("header-codes-dtype-mismatch", header(lambda h: _set(h, "codes.dtype", "float16")), r"data type", None, "base"),
+    ("header-truncation-inverted", header(lambda h: h.update(truncation={"d_min": 0.1, "d_max": -0.04})),
+     r"truncation|d_min", None, "base"),
+]
+
+
+# -- probes (in the forked child) ------------------------------------------------------------------------
+def _probes(path: str) -> dict:
+    from sdfcodec.search import search
+    from sdfcodec.verify import verify_map
+
+    def decode():
+        return float(np.asarray(sdfcodec.open_map(path).decode_region(), np.float64).sum())
+
+    def blocks():
+        return sum(len(c) for c, _ in sdfcodec.open_map(path).iter_blocks())
+
+    probes = {
+        "open": lambda: sdfcodec.open_map(path).grid_blocks,
+        "info": lambda: sorted(sdfcodec.open_map(path).info()),
+        "codes": lambda: len(sdfcodec.open_map(path).read_codes()[0]),
+        "decode": decode,
+        "blocks": blocks,
+        "search": lambda: len(search(path, "floor").coords),
+    }
+    out = {}
+    for name, fn in probes.items():
+        try:
+            fn()
+            out[name] = ["ok"]
+        except SDFCodecError as e:
+            out[name] = ["error", type(e).__name__, str(e)]
+        except BaseException as e:  # noqa: BLE001 - what the test fails on
+            out[name] = ["foreign", type(e).__name__, "".join(traceback.format_exception(e))[-2000:]]
+    try:
+        rep = verify_map(path)
+        out["verify"] = ["ok" if rep.ok else "problems", [str(p) for p in rep.problems]]
+    except BaseException as e:  # noqa: BLE001
+        out["verify"] = ["foreign", type(e).__name__, "".join(traceback.format_exception(e))[-2000:]]
+    return out
+
+
+def _child(path: str, conn) -> None:
+    import torch
+
+    # the parent's OpenMP threads did not survive the fork: a parallel region would wait for them forever
+    torch.set_num_threads(1)
+    try:
+        conn.send_bytes(json.dumps(_probes(path)).encode())
+    finally:
+        conn.close()
+        os._exit(0)  # skip pytest's and atexit's teardown in the fork
+
+
+def run_probes(path: Path) -> dict:
+    """The probes' outcomes, from a forked child killed after TIMEOUT seconds (a hang fails the test)."""
+    ctx = multiprocessing.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(str(path), send), daemon=True)
+    proc.start()
+    send.close()
+    try:
+        if not recv.poll(TIMEOUT):
+            pytest.fail(f"the probes hung on {path.name} (no result after {TIMEOUT:.0f} s)")
+        return json.loads(recv.recv_bytes())
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join(5)
+        recv.close()
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_hostile_local_case(case, maps, tmp_path):
+    name, edit, expect, verify_expect, which = case
+    path = tmp_path / "case.sdfz"
+    shutil.copytree(maps[which], path, symlinks=True)
+    outside = tmp_path / "outside.bin"
+    outside.write_bytes(os.urandom(4096))
+    ctx = {"donor": maps["donor"], "outside": outside}
+    edit(path, ctx)
+    try:
+        res = run_probes(path)
+    finally:
+        for s in ctx.get("sockets", []):
+            s.close()
+    foreign = {k: v for k, v in res.items() if v[0] == "foreign"}
+    assert not foreign, f"{name}: foreign exceptions {foreign}"
+    # nothing silently wrong: the decode is refused, naming what is wrong; so is every other read that fails
+    assert res["decode"][0] == "error", f"{name}: decoded without an error: {res}"
+    assert re.search(expect, res["decode"][2]), f"{name}: decode error does not say {expect!r}: {res['decode']}"
+    for probe in ("open", "info", "codes", "blocks", "search"):
+        if res[probe][0] == "error":
+            assert res[probe][2].strip() and "\n" not in res[probe][2].strip(), (probe, res[probe])
+    assert res["blocks"][0] == "error", f"{name}: iter_blocks decoded without an error"
+    status, problems = res["verify"]
+    assert status == "problems", f"{name}: verify passed the map"
+    pattern = verify_expect or expect
+    assert any(re.search(pattern, p) for p in problems), f"{name}: no verify problem says {pattern!r}: {problems}"
+    # the maps a case points into are untouched, and still decode bit for bit
+    for other in ("donor", which):
+        assert np.array_equal(sdfcodec.open_map(maps[other]).decode_region(), maps[other + "_ref"]), other
+
+
+def test_case_count():
+    """docs/reliability.md quotes this count."""
+    assert len(CASES) >= 40 and len({c[0] for c in CASES}) == len(CASES)
+
+
+def test_follow_symlinks_opt_in(maps, tmp_path):
+    """``open_map(..., follow_symlinks=True)`` reads a map whose chunk files are links (e.g. into a shared
+    store of identical chunks), still refusing links to devices; so does ``verify_map``."""
+    from sdfcodec.verify import verify_map
+
+    path = tmp_path / "linked.sdfz"
+    shutil.copytree(maps["base"], path, symlinks=True)
+    keep = tmp_path / "chunk.bin"
+    shutil.copy(path / CHUNK, keep)
+    link(CHUNK, str(keep))(path, {})
+    with pytest.raises(SDFCodecError, match=LINK):
+        sdfcodec.open_map(path).decode_region()
+    assert np.array_equal(sdfcodec.open_map(path, follow_symlinks=True).decode_region(), maps["base_ref"])
+    assert not verify_map(path).ok and verify_map(path, follow_symlinks=True).ok
+    link(CHUNK, "/dev/zero")(path, {})
+    with pytest.raises(SDFCodecError, match="character device"):
+        sdfcodec.open_map(path, follow_symlinks=True).decode_region()
