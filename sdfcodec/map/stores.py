@@ -19,6 +19,7 @@ import zarr.abc.store
 from zarr.core.buffer import Buffer
 
 from .. import _atomic
+from .remote import remote_store
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
 __all__ = ["MAX_METADATA_BYTES", "GuardStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "unguarded"]
@@ -166,8 +167,10 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
     ``str(path_or_url)``. Raises MapNotFoundError for a local path that does not exist."""
     if isinstance(path_or_url, zarr.abc.store.Store):
         return GuardStore(path_or_url)
-    if is_url(loc):
-        return GuardStore(zarr.storage.FsspecStore.from_url(loc, read_only=True, storage_options=storage_options))
+    if is_url(loc):  # http(s) and s3: bounded, timed and retried reads (sdfcodec.map.remote)
+        limits: dict[str, tuple[int, bool]] = {}
+        return GuardStore(remote_store(loc, storage_options, limits=limits, max_metadata_bytes=MAX_METADATA_BYTES),
+                          limits)
     p = Path(loc)
     if not p.exists():
         raise MapNotFoundError(f"no map at {loc}")
