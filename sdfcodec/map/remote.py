@@ -217,7 +217,11 @@ class RemoteStore(zarr.storage.WrapperStore):
                 raise _Refused(f"HTTP {resp.status} {resp.reason or ''}".rstrip())
             length = resp.content_length
             enc = resp.headers.get("Content-Encoding", "identity").strip().lower()
-            return await _bounded(resp.content.read, length, enc, limit)
+            try:
+                return await _bounded(resp.content.read, length, enc, limit)
+            except aiohttp.ClientPayloadError as e:  # aiohttp's word for a body cut short
+                declared = f"the {length} bytes declared" if length is not None else "the end of the body"
+                raise _Transient(f"truncated body (the connection closed before {declared}; {_short(e)})") from e
 
     async def _fetch_s3(self, key: str, limit: int) -> bytes | None:
         from botocore.exceptions import ClientError
@@ -265,7 +269,10 @@ async def _bounded(read, length: int | None, encoding: str, limit: int) -> bytes
         got += len(piece)
         if got > limit:
             raise _Refused(f"the server sent more than {limit} bytes, more than this object can be")
-        buf += decoder.feed(piece, limit + 1 - len(buf)) if decoder else piece
+        if decoder:
+            decoder.feed(piece, buf, limit + 1)
+        else:
+            buf += piece
         if len(buf) > limit:
             raise _Refused(f"the body decodes ({encoding}) to more than {limit} bytes, more than this object "
                            "can be (a decompression bomb?)")
@@ -283,21 +290,21 @@ class _Decoder:
     def __init__(self, wbits: int | None):
         self.wbits, self.d, self.done = wbits, None, False
 
-    def feed(self, data: bytes, max_out: int) -> bytes:
-        out = bytearray()
-        while data and len(out) < max_out:
+    def feed(self, data: bytes, buf: bytearray, max_len: int) -> None:
+        """Decode ``data`` onto ``buf``, stopping once ``buf`` holds ``max_len`` bytes; decoded in steps of at
+        most 1 MiB, so that nothing beyond ``buf`` is ever large."""
+        while data and len(buf) < max_len:
             if self.d is None:
                 wbits = self.wbits if self.wbits is not None else (15 if data[0] & 0x0F == 8 else -15)
                 self.d, self.done = zlib.decompressobj(wbits), False
             try:
-                out += self.d.decompress(data, max_out - len(out))
+                buf += self.d.decompress(data, min(1 << 20, max_len - len(buf)))
             except zlib.error as e:
                 raise _Refused(f"the body is not valid {'gzip' if self.wbits else 'deflate'} ({e})") from None
             if self.d.eof:
                 data, self.d, self.done = self.d.unused_data, None, True
             else:
                 data = self.d.unconsumed_tail
-        return bytes(out)
 
 
 def _transient_status(e: BaseException, r: RemoteLimits) -> str | None:
@@ -314,6 +321,8 @@ def _transient_status(e: BaseException, r: RemoteLimits) -> str | None:
     if aiohttp is not None:
         if isinstance(e, aiohttp.TooManyRedirects):
             return None
+        if isinstance(e, aiohttp.ClientResponseError):  # raised by the parser: we never raise_for_status
+            return f"malformed HTTP response ({_short(e)[:120]})"
         if isinstance(e, (aiohttp.ClientPayloadError, aiohttp.ServerDisconnectedError)):
             return f"connection lost mid-response ({type(e).__name__})"
         if isinstance(e, aiohttp.ClientConnectionError):
