@@ -201,14 +201,25 @@ class RemoteStore(zarr.storage.WrapperStore):
     async def _fetch_http(self, key: str, limit: int) -> bytes | None:
         import aiohttp
 
+        try:
+            return await self._get_http(key, limit)
+        except aiohttp.TooManyRedirects:
+            raise _Refused(f"more than {int(self.remote.max_redirects)} redirects (a redirect loop?)") from None
+
+    async def _get_http(self, key: str, limit: int) -> bytes | None:
+        import aiohttp
+
         fs, r = self._store.fs, self.remote
         url = f"{self._store.path.rstrip('/')}/{key}"
         session = await fs.set_session()
         kw = dict(fs.kwargs)  # request options from storage_options (headers, auth, ...)
         kw.pop("timeout", None)
+        headers = dict(kw.pop("headers", None) or {})
+        if not any(k.lower() == "accept-encoding" for k in headers):
+            headers["Accept-Encoding"] = "gzip, deflate"  # the encodings decoded here (aiohttp may offer more)
         timeout = aiohttp.ClientTimeout(total=None, connect=r.connect_timeout, sock_read=r.read_timeout)
         async with session.get(fs.encode_url(url), timeout=timeout, max_redirects=int(r.max_redirects),
-                               auto_decompress=False, **kw) as resp:
+                               auto_decompress=False, headers=headers, **kw) as resp:
             if resp.status in _MISSING_HTTP:
                 return None
             if resp.status in _TRANSIENT_HTTP:
@@ -319,8 +330,6 @@ def _transient_status(e: BaseException, r: RemoteLimits) -> str | None:
     except ImportError:  # pragma: no cover - fsspec's HTTP needs it
         aiohttp = None
     if aiohttp is not None:
-        if isinstance(e, aiohttp.TooManyRedirects):
-            return None
         if isinstance(e, aiohttp.ClientResponseError):  # raised by the parser: we never raise_for_status
             return f"malformed HTTP response ({_short(e)[:120]})"
         if isinstance(e, (aiohttp.ClientPayloadError, aiohttp.ServerDisconnectedError)):
