@@ -232,7 +232,7 @@ class RemoteStore(zarr.storage.WrapperStore):
                 return await _bounded(resp.content.read, length, enc, limit)
             except aiohttp.ClientPayloadError as e:  # aiohttp's word for a body cut short
                 declared = f"the {length} bytes declared" if length is not None else "the end of the body"
-                raise _Transient(f"truncated body (the connection closed before {declared}; {_short(e)})") from e
+                raise _Transient(f"truncated body (the connection closed before {declared})") from e
 
     async def _fetch_s3(self, key: str, limit: int) -> bytes | None:
         from botocore.exceptions import ClientError
