@@ -11,6 +11,7 @@ shut down when its test ends.
 
 from __future__ import annotations
 
+import gzip
 import http.client
 import http.server
 import json
@@ -188,7 +189,7 @@ class HostileServer:
         if fault is None or status != 200:
             return self.send(h, status, headers, body, len(body))
         if fault in ("gzip_ok", "deflate_ok"):  # a legitimate encoded body (deflate: zlib-wrapped)
-            enc = zlib.compress(body) if fault == "deflate_ok" else __import__("gzip").compress(body)
+            enc = zlib.compress(body) if fault == "deflate_ok" else gzip.compress(body)
             return self.send(h, status, {**headers, "Content-Encoding": fault[:-3]}, enc, len(enc))
         if fault == "truncate":  # the right length declared, half sent
             return self.send(h, status, headers, body[: len(body) // 2], len(body))

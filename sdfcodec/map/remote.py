@@ -8,9 +8,10 @@ makes: metadata documents and chunks) with its own, which
   limit is refused unread, the bytes actually received are counted, and a ``Content-Encoding`` of gzip or
   deflate is decoded here, incrementally, never past the limit (a decompression bomb stops at limit + 1
   bytes). An object's limit is what the reader allows it to be: a metadata document at most
-  ``max_metadata_bytes`` (the guard's ``MAX_METADATA_BYTES``), a chunk at most the largest encoding of its decoded size (array metadata) plus
-  slack, anything else ``RemoteLimits.max_object_bytes``;
-- retry transient failures (HTTP 5xx/429/408, S3 ``InternalError``/``SlowDown``..., connection resets,
+  ``max_metadata_bytes`` (the guard's ``MAX_METADATA_BYTES``), a chunk at most the largest encoding of its
+  decoded size (:func:`encoded_bound` of the size its array's checked metadata gives), anything else
+  ``RemoteLimits.max_object_bytes``;
+- retry transient failures (HTTP 500/502-504/408/429, S3 ``InternalError``/``SlowDown``..., connection resets,
   truncated bodies, timeouts) with exponential backoff and jitter, and after the last try raise one
   :class:`~sdfcodec.errors.RemoteReadError` naming the object, the status and the number of tries, saying
   the failure is the server's or the network's, not the map's.
@@ -44,7 +45,7 @@ _STREAM_PIECE = 1 << 16  # bytes read from the socket at a time: the most a body
 _TRANSIENT_HTTP = {408, 425, 429, 500, 502, 503, 504}
 _MISSING_HTTP = {404, 410}
 _TRANSIENT_S3 = {"InternalError", "ServiceUnavailable", "SlowDown", "RequestTimeout", "Throttling",
-                 "ThrottlingException", "RequestTimeTooSkewed", "OperationAborted"}
+                 "ThrottlingException", "OperationAborted"}
 _MISSING_S3 = {"NoSuchKey", "NotFound", "404", "NoSuchBucket", "NoSuchVersion"}
 
 
