@@ -5,7 +5,8 @@ read either decodes exactly what the local map decodes or ends, within its time 
 ``SDFCodecError`` naming the object; the bomb and huge-length cases also have their peak memory measured in a
 subprocess. The ``slow`` variant injects >= 500 random faults and counts the outcomes.
 
-Every server binds 127.0.0.1 only, each of its loops is bounded (bytes, seconds, or a stop event), and it is
+moto offers no fault injection of its own (its ``moto_api`` has state transitions and a recorder), hence the
+proxy. Every server binds 127.0.0.1 only, each of its loops is bounded (bytes, seconds, or a stop event), and it is
 shut down when its test ends.
 """
 
@@ -342,6 +343,14 @@ def test_http_short_length_is_caught(small_map, http_server):
     http_server.plan = lambda p, n: "short_length" if p == obj else None
     with pytest.raises((errors.ChecksumError, errors.RemoteReadError), match="c/0/0/0/0"):
         _read(f"{http_server.address}/x.sdfz", {"remote_limits": FAST})
+
+
+def test_connection_refused_is_retried_then_one_line():
+    with socket.socket() as s:  # a port nobody listens on (bound, never listening)
+        s.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{s.getsockname()[1]}/x.sdfz"
+        with pytest.raises(errors.RemoteReadError, match=r"x\.sdfz/zarr\.json: connection failed .* on each of 3 tries"):
+            _read(url, {"remote_limits": FAST})
 
 
 def test_remote_limits_are_checked_and_documented_defaults(small_map, http_server):
