@@ -128,3 +128,13 @@ class CodecTypeError(SDFCodecError, TypeError):
 class ModelNotFoundError(SDFCodecError, FileNotFoundError):
     """No model file (trained codec, state ``.npz``) at the given path, or no shipped model for a codec or
     size: the message says how to train or where to pass one."""
+
+
+__all__ += ["RemoteReadError"]
+
+
+class RemoteReadError(SDFCodecError, OSError):
+    """An object of a remote map (HTTP(S), S3) could not be read: a transient failure that outlasted every
+    try (5xx, reset, timeout), or a response refused unread (too large, a redirect loop, a client error).
+    The message names the object's URL, the status and the number of tries; it says nothing about whether
+    the map itself is intact."""

@@ -62,6 +62,19 @@ def codec_package(codec_id: str) -> str | None:
     return entry.package if entry else None
 
 
+# PEP 508 distribution names: the only package names worth printing after "pip install"
+_DIST_NAME = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9._-]{0,98}[A-Za-z0-9])?")
+
+
+def _install_hint(package: str | None) -> str:
+    """The install advice for a missing codec whose package a map's header names. The header is untrusted: a
+    name that is not a valid distribution name (spaces, options, URLs, control characters) is not printed,
+    and a valid one is said to come from the header, not from sdfcodec."""
+    if not isinstance(package, str) or not _DIST_NAME.fullmatch(package):
+        return ""
+    return f" (the map's header names package {package!r} as its provider: pip install {package})"
+
+
 def get_codec_class(codec_id: str, *, package_hint: str | None = None) -> type[Codec]:
     """Load the class of ``codec_id``.
 
@@ -77,7 +90,7 @@ def get_codec_class(codec_id: str, *, package_hint: str | None = None) -> type[C
     ep = eps.get(codec_id)
     if ep is None:
         installed = ", ".join(sorted(set(eps) | set(_runtime))) or "none"
-        where = f" (provided by package {package_hint!r}: pip install {package_hint})" if package_hint else ""
+        where = _install_hint(package_hint)
         raise UnknownCodecError(f"codec {codec_id!r} is not installed{where}; installed codecs: {installed}")
     try:
         cls = ep.load()

@@ -311,14 +311,17 @@ def s3(monkeypatch):
     opts = {"key": "testing", "secret": "testing", "endpoint_url": f"http://{host}:{port}",
             "client_kwargs": {"region_name": "eu-west-1"}, "skip_instance_cache": True}
     fetched: list[tuple[str, int]] = []
-    real = s3fs.S3FileSystem._cat_file
+    from sdfcodec.map.remote import RemoteStore  # every object a remote map reads, one try each
 
-    async def counting(self, path, *args, **kwargs):
-        data = await real(self, path, *args, **kwargs)
-        fetched.append((path, len(data)))
+    real = RemoteStore.fetch
+
+    async def counting(self, key):
+        data = await real(self, key)
+        if data is not None:
+            fetched.append((f"{self.inner.path.rstrip('/')}/{key}", len(data)))
         return data
 
-    monkeypatch.setattr(s3fs.S3FileSystem, "_cat_file", counting)
+    monkeypatch.setattr(RemoteStore, "fetch", counting)
     fs = s3fs.S3FileSystem(**opts)
     fs.mkdir("maps")
     yield fs, opts, fetched

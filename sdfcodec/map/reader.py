@@ -28,6 +28,7 @@ from zarr.core.sync import sync as zarr_sync
 from .._validate import BLOCK, empty
 from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, SDFCodecError, ShapeError
+from ..errors import RemoteReadError
 from ..header import BlockState, MapHeader, parse_header
 from ..quantize import dequantize_codes
 from ..registry import get_codec_class
@@ -221,6 +222,8 @@ class MapReader:
         self._check_read(arr, sel)
         try:
             return np.asarray(arr[sel])
+        except RemoteReadError:  # the server or the network failed, not the chunk: its own message
+            raise
         except Exception as exc:  # find the chunk(s) to name: slow path, errors only
             raise self._chunk_error(arr, sel, exc) from exc
 
@@ -239,7 +242,7 @@ class MapReader:
         out = []
         for sel, res in zip(sels, zarr_sync(gather())):
             if isinstance(res, BaseException):
-                if not isinstance(res, Exception):
+                if not isinstance(res, Exception) or isinstance(res, RemoteReadError):
                     raise res
                 raise self._chunk_error(arr, sel, res) from res
             out.append(np.asarray(res))

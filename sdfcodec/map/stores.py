@@ -23,6 +23,7 @@ from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteReques
 from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
+from .remote import remote_store
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
 __all__ = ["MAX_METADATA_BYTES", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
@@ -384,8 +385,10 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
     ``str(path_or_url)``. Raises MapNotFoundError for a local path that does not exist."""
     if isinstance(path_or_url, zarr.abc.store.Store):
         return GuardStore(path_or_url)
-    if is_url(loc):
-        return GuardStore(zarr.storage.FsspecStore.from_url(loc, read_only=True, storage_options=storage_options))
+    if is_url(loc):  # http(s) and s3: bounded, timed and retried reads (sdfcodec.map.remote)
+        limits: dict[str, tuple[int, bool]] = {}
+        return GuardStore(remote_store(loc, storage_options, limits=limits, max_metadata_bytes=MAX_METADATA_BYTES),
+                          limits)
     p = Path(loc)
     if not p.exists():
         raise MapNotFoundError(f"no map at {loc}")
