@@ -244,6 +244,10 @@ def s3_proxy(small_map):
     server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
     host, port = server.get_host_and_port()
+    # moto's buckets are process-wide state shared with other modules' servers: start from an empty S3
+    import urllib.request
+
+    urllib.request.urlopen(urllib.request.Request(f"http://{host}:{port}/moto-api/reset", method="POST"), timeout=10)
     base = {"key": "testing", "secret": "testing", "client_kwargs": {"region_name": "eu-west-1"},
             "skip_instance_cache": True}
     fs = s3fs.S3FileSystem(endpoint_url=f"http://{host}:{port}", **base)

@@ -307,6 +307,11 @@ def s3(monkeypatch):
     server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
     host, port = server.get_host_and_port()
+    # moto keeps its buckets in process-wide state, shared by every server in this process (other test modules
+    # start their own): start from an empty S3 through moto's documented reset endpoint
+    import urllib.request
+
+    urllib.request.urlopen(urllib.request.Request(f"http://{host}:{port}/moto-api/reset", method="POST"), timeout=10)
     # not us-east-1: s3fs would send it as a bucket location constraint, which S3 (and moto) refuse
     opts = {"key": "testing", "secret": "testing", "endpoint_url": f"http://{host}:{port}",
             "client_kwargs": {"region_name": "eu-west-1"}, "skip_instance_cache": True}
