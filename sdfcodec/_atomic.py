@@ -138,7 +138,9 @@ def pin_dir(path: Path, timeout: float = 30.0) -> int:
 
 def release_pin(fd: int, final: Path, owner_pid: int) -> None:
     """Let go of a pinned version; when it was replaced meanwhile and this was its last reader, remove it now
-    (rather than at the next commit). Never raises: it runs from finalizers."""
+    (rather than at the next commit), and with it whatever else nobody holds (:func:`collect`: a writer
+    killed after the swap left its own leftovers, which no commit may come to collect). Never raises: it runs
+    from finalizers."""
     try:
         # a forked child shares the lock with its parent: only the process that took it may clean up
         if os.getpid() == owner_pid and not same_dir(fd, final) and _try_lock(fd, fcntl.LOCK_EX) is True:
@@ -151,6 +153,7 @@ def release_pin(fd: int, final: Path, owner_pid: int) -> None:
                 if (st.st_dev, st.st_ino) == ident:
                     shutil.rmtree(entry.path, ignore_errors=True)
                     break
+            collect(final)
     except Exception:  # noqa: BLE001 - best effort; the next commit collects what is left
         pass
     finally:

@@ -9,6 +9,8 @@ Protocol: one JSON object per line on stdin, one reply per line on stdout.
    "kill_at_step": n|null, "out": file|null}            -> {"pid": pid}
   {"job": "read", "path": ..., "out": file, "stop": file, "deadline": t, "seed": s}   -> {"pid": pid}
   {"job": "updates", "path": ..., "gen": g, "cid": c, "count": k, "out": file}        -> {"pid": pid}
+  {"job": "tiny", "path": ..., "gen": g, "out": file|null}  (gen 0 creates)           -> {"pid": pid}
+  {"job": "tiny_read", "path": ..., "out": file, "stop": file, "deadline": t, "seed": s} -> {"pid": pid}
   {"job": "wait", "pid": pid}                                                         -> {"pid": pid, "status": s}
   {"job": "quit"}
 ``status`` is the child's exit code, or minus the signal that killed it (-9 for SIGKILL).
@@ -16,6 +18,13 @@ Protocol: one JSON object per line on stdin, one reply per line on stdout.
 The maps hold constant blocks of the lossless ``raw`` codec; what a map must contain is a function of a
 content id ``cid`` (:func:`content`), and each write records ``{"gen": ..., "cid": ...}`` as its provenance
 tool, so a reader can tell which version it sees and check every block of it.
+
+The ``tiny`` jobs keep updates as small and fast as they get (issue 21: readers must really see swaps): a map of
+16 constant blocks in two chunks, and generation g rewrites one block, ``(g - 1) % 16`` (:func:`tiny_value`).
+``tiny_read`` readers never stop at the first problem: they count reads, verifies, errors and mixed versions.
+
+Run as ``reliability_worker.py faults KIND DIR`` it is instead the child of tests/test_writes.py that writes
+maps where writes really fail (see :func:`faults_main`).
 """
 
 from __future__ import annotations
@@ -164,6 +173,89 @@ def read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
     return {"ops": ops, "gens": sorted(gens), "held_across_swap": held}
 
 
+TINY_N, TINY_CB = 16, 2
+
+
+def tiny_coord(i: int) -> tuple[int, int, int]:
+    return (i % 4, (i // 4) % 2, i // 8)
+
+
+def tiny_value(i: int, gen: int) -> float:
+    """Metres filling block i of tiny generation ``gen``: set by the last update k <= gen that wrote it."""
+    last = 0 if gen < i + 1 else gen - (gen - 1 - i) % TINY_N
+    return -0.03 + 0.0011 * (last % 60)
+
+
+def tiny_write(path: str, gen: int) -> None:
+    """Generation 0: create the tiny map. gen > 0: update gen - 1 -> gen, one block."""
+    raw = sdfcodec.get_codec("raw")
+    if gen == 0:
+        cs = [tiny_coord(i) for i in range(TINY_N)]
+        blocks = np.stack([np.full((16, 16, 16), tiny_value(i, 0), np.float32) for i in range(TINY_N)])
+        with sdfcodec.create_map(path, codec=raw, voxel_size=VS, truncation=TRUNC, chunk_blocks=TINY_CB,
+                                 overwrite=True, tool=tag(0, 0)) as m:
+            m.write_blocks(cs, blocks)
+        return
+    i = (gen - 1) % TINY_N
+    with sdfcodec.update_map(path, tool=tag(gen, gen)) as m:
+        m.write_blocks([tiny_coord(i)], np.full((1, 16, 16, 16), tiny_value(i, gen), np.float32))
+
+
+def tiny_check(m: sdfcodec.Map, gen: int) -> list[str]:
+    """What in the open map is not tiny generation ``gen`` (states, codes, and the decoded blocks)."""
+    bad = []
+    states = m.block_states()
+    want = {tiny_coord(i) for i in range(TINY_N)}
+    got = {tuple(int(v) for v in c) for c in np.argwhere(states == 2)}
+    if got != want or (states == 1).any():
+        bad.append(f"gen {gen}: coded blocks {sorted(got ^ want)[:4]} differ")
+    coords, codes = m.read_codes()
+    metres = codes * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
+    index = {tiny_coord(i): i for i in range(TINY_N)}
+    for c, row in zip(coords, metres):
+        i = index.get(tuple(int(v) for v in c))
+        if i is None or np.abs(row - tiny_value(i, gen)).max() > TOL:
+            bad.append(f"gen {gen}: block {tuple(int(v) for v in c)} code holds {row[0]:.4f}")
+    dec = m.decode_region(((0, 64), (0, 32), (0, 32)))
+    for i in range(TINY_N):
+        x, y, z = (16 * v for v in tiny_coord(i))
+        blk = dec[x:x + 16, y:y + 16, z:z + 16]
+        if np.abs(blk - tiny_value(i, gen)).max() > TOL:
+            bad.append(f"gen {gen}: decoded block {tiny_coord(i)} holds {float(blk.mean()):.4f}")
+    return bad
+
+
+def tiny_read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
+    """Open, check (codes, states, decode) and now and then verify the tiny map, over and over, holding each
+    open map a random while so that updates swap under it. Counts instead of stopping at a problem."""
+    from pathlib import Path
+
+    from sdfcodec.verify import verify_map
+
+    rng = random.Random(seed)
+    reads = verifies = 0
+    errors, mixed, held = [], [], set()
+    while time.time() < deadline and not os.path.exists(stop):
+        try:
+            with sdfcodec.open_map(path) as m:
+                gen = json.loads(m.header.provenance.tool)["gen"]
+                pinned = m.reader.pinned_fd
+                time.sleep(rng.uniform(0, 0.06))  # let a writer swap in a new version under this open map
+                mixed += tiny_check(m, gen)  # everything read is of the version opened, after a swap too
+                if not _atomic.same_dir(pinned, Path(path)):
+                    held.add(gen)  # the update gen -> gen + 1 completed while this reader held gen
+            reads += 1
+            if rng.random() < 0.25:
+                rep = verify_map(path, decode_blocks=TINY_N)
+                verifies += 1
+                if not rep.ok:
+                    errors.append("verify: " + "; ".join(str(p) for p in rep.problems)[:300])
+        except Exception as e:  # noqa: BLE001 - counted: the test requires none
+            errors.append(f"{type(e).__name__}: {e}"[:300])
+    return {"reads": reads, "verifies": verifies, "errors": errors[:20], "n_errors": len(errors),
+            "mixed": mixed[:20], "n_mixed": len(mixed), "held_gens": sorted(held)}
+
+
 def updates(path: str, gen: int, cid: int, count: int) -> dict:
     for k in range(1, count + 1):
         write("update", path, gen + k, cid + k, ["float32", 4])
@@ -183,6 +275,14 @@ def _child(cmd: dict) -> int:
             result = read_loop(cmd["path"], cmd["stop"], cmd["deadline"], cmd["seed"])
         elif cmd["job"] == "updates":
             result = updates(cmd["path"], cmd["gen"], cmd["cid"], cmd["count"])
+        elif cmd["job"] == "tiny":
+            counter = [0]
+            _install_step_kill(cmd.get("kill_at_step"), counter)
+            t0 = time.perf_counter()
+            tiny_write(cmd["path"], cmd["gen"])
+            result = {"steps": counter[0], "seconds": time.perf_counter() - t0}
+        elif cmd["job"] == "tiny_read":
+            result = tiny_read_loop(cmd["path"], cmd["stop"], cmd["deadline"], cmd["seed"])
         else:
             raise ValueError(cmd["job"])
         code = 0
