@@ -75,6 +75,13 @@ def _write_output(output: Path, tmp: Path, write: Callable[[Path], bool]) -> boo
                 pass
 
 
+class _PlainWriter:
+    """A file seen only through its ``write`` (numpy then writes with it, chunk by chunk)."""
+
+    def __init__(self, f: Any):
+        self.write = f.write
+
+
 def _progress() -> Progress:
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                     TextColumn("{task.fields[rate]}"), console=err, transient=True)
@@ -360,7 +367,9 @@ def decode_cmd(
         vol = vol.cpu().numpy()
     def save(tmp: Path) -> bool:
         with open(tmp, "wb") as f:
-            np.save(f, vol)
+            # through Python's write, not numpy's C-level tofile: a short write then raises OSError with its
+            # errno (ENOSPC, EFBIG...) instead of numpy's errno-less "requested and written"
+            np.save(_PlainWriter(f), vol)
         return True
 
     _write_output(output, output.with_name(f".{output.name}.tmp"), save)
@@ -432,9 +441,15 @@ def mesh_cmd(
         _fail(f"{map_path} has no coded blocks: nothing to mesh")
     mesh = mesh_from_blocks(np.concatenate(coords), np.concatenate(blocks), origin=m.origin,
                             voxel_size=m.voxel_size, truncation=m.truncation)
+    def write_mesh(tmp: Path) -> bool:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+            return False
+        # open3d reports success even when the disk filled up under it (a truncated file): read it back
+        back = o3d.io.read_triangle_mesh(str(tmp))
+        return len(back.vertices) == len(mesh.vertices) and len(back.triangles) == len(mesh.triangles)
+
     existed = output.exists()
-    if not _write_output(output, output.with_name(f".tmp-{output.name}"),
-                         lambda tmp: o3d.io.write_triangle_mesh(str(tmp), mesh)):
+    if not _write_output(output, output.with_name(f".tmp-{output.name}"), write_mesh):
         if output.suffix.lower() not in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb"):
             _fail(f"could not write {output}: unsupported extension; use .ply, .obj or .stl")
         # open3d reports only failure, not why: with a known format it is the file system

@@ -295,7 +295,116 @@ def _child(cmd: dict) -> int:
     return code
 
 
+# -- writes that really fail: the child of tests/test_writes.py ---------------------------------------------
+
+def noise_blocks(n: int, seed: int) -> np.ndarray:
+    """``(n, 16, 16, 16)`` float32 metres of uniform noise: incompressible, 16 KiB per block as raw codes."""
+    return np.random.default_rng(seed).uniform(*TRUNC, size=(n, 16, 16, 16)).astype(np.float32)
+
+
+def noise_map(path, n: int, seed: int = 0) -> None:
+    """A raw map of ``n`` noise blocks in a row along x (chunks of 4 blocks)."""
+    coords = [(i, 0, 0) for i in range(n)]
+    with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC,
+                             chunk_blocks=4) as m:
+        m.write_blocks(coords, noise_blocks(n, seed))
+
+
+def snapshot(path) -> tuple[dict, np.ndarray]:
+    """Every file's bytes, and the decoded volume, of the map at ``path``."""
+    from pathlib import Path
+
+    p = Path(path)
+    files = {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
+    with sdfcodec.open_map(p) as m:
+        return files, np.asarray(m.decode_region())
+
+
+def hidden_left(directory) -> list[str]:
+    return sorted(n for n in os.listdir(directory) if n.startswith("."))
+
+
+def write_cases(d: str, grow_blocks: int) -> dict:
+    """Try every kind of write that must fail where ``d`` has no room (or no permission) for it; ``d/a.sdfz``
+    is an existing map. Returns, per case, how it ended: the error's type, errno and message, whether the
+    previous map is byte- and decode-identical, and what hidden files were left in ``d``."""
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    a = Path(d) / "a.sdfz"
+    runner = CliRunner()
+    before = snapshot(a)
+    results = {}
+
+    def outcome(name: str, exc: BaseException | None, extra: dict | None = None) -> None:
+        files, vol = snapshot(a)
+        results[name] = {"type": type(exc).__name__ if exc else None, "errno": getattr(exc, "errno", None),
+                         "sdfcodec_error": isinstance(exc, sdfcodec.errors.SDFCodecError),
+                         "message": str(exc) if exc else None, "map_unchanged": files == before[0],
+                         "decodes_identically": bool(np.array_equal(vol, before[1])),
+                         "hidden_left": hidden_left(d), **(extra or {})}
+
+    def attempt(name: str, fn) -> None:
+        try:
+            fn()
+            outcome(name, None)
+        except Exception as e:  # noqa: BLE001 - reported
+            outcome(name, e)
+
+    def update() -> None:
+        with sdfcodec.update_map(a, wait=2) as m:
+            m.write_blocks([(i, 1, 0) for i in range(grow_blocks)], noise_blocks(grow_blocks, 7))
+
+    def transcode_in_place() -> None:
+        src = sdfcodec.open_map(a)
+        try:
+            with sdfcodec.create_map(a, codec=src.codec, voxel_size=src.voxel_size, truncation=src.truncation,
+                                     code_dtype="float32", chunk_blocks=2, overwrite=True) as m:
+                for coords, blocks in src.iter_blocks():
+                    m.write_blocks(coords, np.clip(blocks, *TRUNC))
+        finally:
+            src.close()
+
+    def create_new() -> None:
+        with sdfcodec.create_map(Path(d) / "new.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=VS) as m:
+            m.write_blocks([(i, 0, 0) for i in range(grow_blocks)], noise_blocks(grow_blocks, 8))
+
+    attempt("update_map", update)
+    attempt("transcode", transcode_in_place)
+    attempt("create_map", create_new)
+    results["create_map"]["new_map_exists"] = os.path.lexists(Path(d) / "new.sdfz")
+    for name, args, out in (("cli_encode", ["encode", str(a), str(a), "--overwrite", "--codec", "raw"], None),
+                            ("cli_decode", ["decode", str(a), str(Path(d) / "a.npy")], Path(d) / "a.npy"),
+                            ("cli_mesh", ["mesh", str(a), str(Path(d) / "a.ply")], Path(d) / "a.ply")):
+        r = runner.invoke(app, args)
+        exc = r.exception if not isinstance(r.exception, SystemExit) else None
+        outcome(name, exc, {"exit_code": r.exit_code, "stderr": r.stderr,
+                            "output_exists": bool(out and os.path.lexists(out))})
+    return results
+
+
+def faults_main(kind: str, d: str) -> None:
+    """``enospc``: ``d`` is an empty, small file system (a 1 MiB tmpfs): fill most of it with a map, then try
+    the writes that need more room. ``existing``: ``d`` holds ``a.sdfz`` and writes fail for another reason
+    (the directory is not writable by this process, a file size limit). Prints the results of
+    :func:`write_cases` as JSON."""
+    if kind == "enospc":
+        noise_map(os.path.join(d, "a.sdfz"), 36)  # ~600 KiB of incompressible codes
+        res = write_cases(d, grow_blocks=64)
+    elif kind == "existing":
+        res = write_cases(d, grow_blocks=8)
+    else:
+        raise ValueError(kind)
+    print("RESULTS " + json.dumps(res))
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["faults"]:
+        faults_main(sys.argv[2], sys.argv[3])
+        return
     for line in sys.stdin:
         cmd = json.loads(line)
         if cmd["job"] == "quit":
