@@ -254,7 +254,10 @@ def _snap(p: Path) -> tuple[dict, np.ndarray]:
     return rw.snapshot(p)
 
 
-def _inject(monkeypatch, tmp_path, codec, kind: str, all_errnos: bool) -> dict:
+ALL_OPS = ("create", "overwrite", "update", "transcode")
+
+
+def _inject(monkeypatch, tmp_path, codec, kind: str, all_errnos: bool, ops: tuple = ALL_OPS) -> dict:
     """For each op and each n up to its count of writes (or steps): fail the n-th and check the outcome. It
     must be a WriteFailedError with both maps untouched, or (where the code has a way around the failure: a
     copy where a hard link fails, a replaced version left for the garbage collection when renaming it away
@@ -268,7 +271,7 @@ def _inject(monkeypatch, tmp_path, codec, kind: str, all_errnos: bool) -> dict:
     shutil.copytree(d, pristine)
     errnos = (errno.ENOSPC, errno.EACCES, errno.EIO)
     stats = {"cases": 0, "failed_cleanly": 0, "worked_around": 0}
-    for op in ("create", "overwrite", "update", "transcode"):
+    for op in ops:
         scratch = tmp_path / f"count-{op}"
         shutil.copytree(d, scratch)
         with monkeypatch.context() as mp:
@@ -312,9 +315,12 @@ def _inject(monkeypatch, tmp_path, codec, kind: str, all_errnos: bool) -> dict:
 
 @pytest.mark.parametrize("kind", ["write", "step"])
 def test_every_write_failing_in_turn(monkeypatch, tmp_path, pca8, kind):
-    stats = _inject(monkeypatch, tmp_path, pca8, kind, all_errnos=False)
+    # the step variant on the two commit paths (create: a rename into place; update: the exchange and the
+    # hard-linked copy) here; all four kinds of write, with every errno at every step, in the slow variant
+    ops = ALL_OPS if kind == "write" else ("create", "update")
+    stats = _inject(monkeypatch, tmp_path, pca8, kind, all_errnos=False, ops=ops)
     print(f"fault injection ({kind}):", stats)
-    assert stats["cases"] >= 80 and stats["failed_cleanly"] >= 40
+    assert stats["cases"] >= 50 and stats["failed_cleanly"] >= 30
 
 
 @pytest.mark.slow
