@@ -349,3 +349,17 @@ def test_failed_writer_takes_no_more_writes(tmp_path, pca8, monkeypatch):
     with sdfcodec.update_map(tmp_path / "a.sdfz", wait=0.5) as m2:  # the update lock was released
         m2.mark_empty([[3, 3, 3]])
     assert [n for n in os.listdir(tmp_path) if n.startswith(".")] == []
+
+
+def test_temporary_directory_stays_locked_while_written(tmp_path, pca8):
+    """The writer's temporary directory is the one it locked from start to commit: another writer's garbage
+    collection meanwhile must not take it (Zarr's mode "w" used to remove and re-make it, dropping the lock)."""
+    path = tmp_path / "m.sdfz"
+    m = sdfcodec.create_map(path, codec=pca8, voxel_size=VS, truncation=TRUNC)
+    assert _atomic.same_dir(m.writer.tmp_fd, m.writer.tmp)
+    assert _atomic.collect(path) == 0 and m.writer.tmp.is_dir()  # a second lock in this process: refused
+    m.write_blocks([[0, 0, 0]], _blocks(1, 4))
+    assert _atomic.collect(path) == 0
+    m.commit()
+    assert sdfcodec.open_map(path).count_states()["coded"] == 1
+    assert [n for n in os.listdir(tmp_path) if n.startswith(".")] == []

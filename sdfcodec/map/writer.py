@@ -12,7 +12,6 @@ import json
 import math
 import os
 import re
-import shutil
 from importlib import metadata
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -361,10 +360,7 @@ def _stat_id(p: Path) -> tuple[int, int]:
 
 
 def _rmtree(p: Path) -> None:
-    if p.is_dir():
-        shutil.rmtree(p, ignore_errors=True)
-    elif p.exists():
-        p.unlink()
+    _atomic.remove_tree(p)
 
 
 def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
@@ -487,7 +483,9 @@ def _collect_quietly(final: Path) -> None:
 def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype: str,
                shape_voxels: Sequence[int]) -> zarr.Group:
     """The arrays of a new, empty map in ``tmp``: ``codes`` (and ``code_scale`` for int8), ``codec/`` state."""
-    group = zarr.open_group(CowLocalStore(str(tmp)), mode="w", zarr_format=3)
+    # "w-", not "w": "w" clears the store by removing and re-making its root, which would leave the
+    # temporary directory unlocked (our lock is on the inode removed) for another writer's garbage collection
+    group = zarr.open_group(CowLocalStore(str(tmp)), mode="w-", zarr_format=3)
     grid = _grid_of(shape_voxels)
     cb, cc = spec.chunk_blocks, spec.chunk_code
     group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
