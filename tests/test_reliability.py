@@ -654,8 +654,9 @@ def test_concurrent_readers_long(server, tmp_path):
 
 def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_readers: int, seed: int) -> dict:
     """Readers decode and verify a tiny map nonstop while updates of one block each are SIGKILLed at random
-    moments (up to 1.2x an uninterrupted update's duration): many complete, and swap under a reader. After
-    every kill the map must verify and be exactly the old or the new generation."""
+    moments: a delay up to ``scale`` x an uninterrupted update's duration, ``scale`` adapting so that about half
+    the updates complete (how long an update takes depends on the machine's load). Many complete and swap
+    under a reader. After every kill the map must verify and be exactly the old or the new generation."""
     path = tmp_path / "t.sdfz"
     assert server.run(job="tiny", path=str(path), gen=0, out=None) == 0
     stop = tmp_path / "stop"
@@ -676,9 +677,10 @@ def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_rea
             gen += 1
         dur = float(np.median(durations))
         rng = np.random.default_rng(seed)
+        scale = 1.5
         for _ in range(n_kills):
             pid = server.call(job="tiny", path=str(path), gen=gen + 1, out=None)["pid"]
-            time.sleep(rng.uniform(0, 1.2 * dur))
+            time.sleep(rng.uniform(0, scale * dur))
             try:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
@@ -696,6 +698,7 @@ def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_rea
             if now == gen + 1:
                 stats["completed"] += 1
                 stats["completed_by_killed_writer"] += status == -signal.SIGKILL
+            scale = scale / 1.1 if now == gen + 1 else scale * 1.1
             gen = now
         time.sleep(0.3)  # the readers see the last version too
     finally:
@@ -707,7 +710,7 @@ def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_rea
         assert status == 0 and "error" not in res, res.get("error")
         results.append(res)
     held = set().union(*[r["held_gens"] for r in results])
-    stats.update(update_seconds=round(dur, 3), generations=gen, readers=n_readers,
+    stats.update(update_seconds=round(dur, 3), final_delay_scale=round(scale, 2), generations=gen, readers=n_readers,
                  reads=sum(r["reads"] for r in results), verifies=sum(r["verifies"] for r in results),
                  errors=sum(r["n_errors"] for r in results), mixed_versions=sum(r["n_mixed"] for r in results),
                  updates_completed_under_a_reader=len(held))
