@@ -157,7 +157,8 @@ class WriteFailedError(SDFCodecError, OSError):
             if inner is None:
                 where = f" ({err.filename})"
             else:
-                where = f" (writing {inner.group(1)})" if inner.group(1) else " (making its hidden temporary copy)"
+                key = re.sub(r"\.[0-9a-f]{32}\.partial$", "", inner.group(1) or "")  # the file being written
+                where = f" (writing {key})" if key else " (making its hidden temporary copy)"
         advice = cls.ADVICE.get(name, "check the file system and run again")
         return cls(f"could not finish {doing} {path}: {reason}{where}; {outcome}. What to do: {advice}",
                    err.errno, err.strerror, str(err.filename) if err.filename else str(path))
