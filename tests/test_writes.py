@@ -92,17 +92,12 @@ def test_disk_full_for_real():
                                capture_output=True, text=True)
         if probe.returncode != 0:
             pytest.skip(f"cannot mount a tmpfs in a user namespace here: {probe.stderr.strip()}")
-        proc = subprocess.run(["unshare", "-rm", "sh", "-c", f'mount -t tmpfs -o size=1m tmpfs "$0" && exec "$1" '
-                               f'"$2" faults enospc "$0"', str(d), sys.executable, str(HERE / "reliability_worker.py")],
+        proc = subprocess.run(["unshare", "-rm", "sh", "-c", 'mount -t tmpfs -o size=1m tmpfs "$0" && exec "$1" '
+                               '"$2" faults enospc "$0"', str(d), sys.executable, str(HERE / "reliability_worker.py")],
                               capture_output=True, text=True, env=_env(), timeout=300)
         _check_cases(_results(proc), d, errno.ENOSPC, "No space left on device")
     finally:
         shutil.rmtree(d, ignore_errors=True)
-
-
-def _existing_map_case(d: Path, run_child) -> dict:
-    rw.noise_map(d / "a.sdfz", 6)
-    return run_child()
 
 
 def test_read_only_directory_for_real():
@@ -127,7 +122,7 @@ def test_read_only_directory_for_real():
 
 def test_file_size_limit_for_real(tmp_path):
     """EFBIG from RLIMIT_FSIZE (20 kB) in the child: every chunk of two or more noise blocks passes it."""
-    rw.noise_map(tmp_path / "a.sdfz", 6)  # written before the limit: 16 KiB chunks... of 4 blocks, bigger
+    rw.noise_map(tmp_path / "a.sdfz", 6)  # written before the limit (its chunks of 4 blocks pass it)
 
     def limit() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
