@@ -36,12 +36,13 @@ from pathlib import Path
 from .errors import MapBusyError
 
 __all__ = ["HAVE_PROC_FD", "hidden_path", "make_temp_dir", "pin_dir", "release_pin", "swap_into_place",
-           "collect", "WriterLock", "write_new_file", "link_tree", "same_dir", "dir_id"]
+           "collect", "WriterLock", "write_new_file", "link_tree", "same_dir", "dir_id", "remove_tree"]
 
 #: Readers can hold a directory through ``/proc/self/fd`` (Linux). Elsewhere they read by path and must reopen
 #: a map after it was replaced (documented in spec section 9).
 HAVE_PROC_FD = os.path.isdir("/proc/self/fd")
 _HIDDEN_RE = re.compile(r"(tmp|old)-[0-9a-f]{8,32}")
+_TEMP_NAME_RE = re.compile(r"\..+\.tmp-[0-9a-f]{8,32}")
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
 _renameat2_fn = None
@@ -138,7 +139,9 @@ def pin_dir(path: Path, timeout: float = 30.0) -> int:
 
 def release_pin(fd: int, final: Path, owner_pid: int) -> None:
     """Let go of a pinned version; when it was replaced meanwhile and this was its last reader, remove it now
-    (rather than at the next commit). Never raises: it runs from finalizers."""
+    (rather than at the next commit), and with it whatever else nobody holds (:func:`collect`: a writer
+    killed after the swap left its own leftovers, which no commit may come to collect). Never raises: it runs
+    from finalizers."""
     try:
         # a forked child shares the lock with its parent: only the process that took it may clean up
         if os.getpid() == owner_pid and not same_dir(fd, final) and _try_lock(fd, fcntl.LOCK_EX) is True:
@@ -151,6 +154,7 @@ def release_pin(fd: int, final: Path, owner_pid: int) -> None:
                 if (st.st_dev, st.st_ino) == ident:
                     shutil.rmtree(entry.path, ignore_errors=True)
                     break
+            collect(final)
     except Exception:  # noqa: BLE001 - best effort; the next commit collects what is left
         pass
     finally:
@@ -280,8 +284,13 @@ class WriterLock:
 def write_new_file(path: Path, data, exclusive: bool = False) -> int:
     """Write ``data`` (bytes-like) as the file ``path`` without ever writing into an existing file: into a new
     file renamed over ``path`` (``exclusive``: linked to it, FileExistsError when it exists). Returns the
-    bytes written. Hard links an update shares with the previous version thus stay intact."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    bytes written. Hard links an update shares with the previous version thus stay intact.
+
+    Inside a writer's temporary directory ``.NAME.tmp-<hex>`` the missing folders are made below it, never
+    the temporary directory itself: Zarr writes several keys at once, and when one write fails the others run
+    on after the writer was aborted; they must fail (FileNotFoundError) rather than bring back the directory
+    the abort removed."""
+    _make_parents(path.parent)
     tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.partial")
     try:
         with open(tmp, "xb") as f:
@@ -295,6 +304,35 @@ def write_new_file(path: Path, data, exclusive: bool = False) -> int:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _make_parents(d: Path) -> None:
+    top = next((a for a in (d, *d.parents) if _TEMP_NAME_RE.fullmatch(a.name)), None)
+    if top is None:
+        d.mkdir(parents=True, exist_ok=True)
+        return
+    for sub in [top / rel for rel in reversed(d.relative_to(top).parents)][1:] + ([d] if d != top else []):
+        try:
+            os.mkdir(sub)
+        except FileExistsError:
+            pass
+
+
+def remove_tree(path: Path, settle: float = 2.0) -> None:
+    """Remove the directory (or file) ``path`` for good: again after short waits, for up to ``settle`` s, while
+    something still re-creates entries inside it (an aborted writer's Zarr writes still running)."""
+    deadline = time.monotonic() + settle
+    while True:
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path, ignore_errors=True)
+        elif os.path.lexists(path):
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+        if not os.path.lexists(path) or time.monotonic() >= deadline:
+            return
+        time.sleep(0.01)
 
 
 def link_tree(src: Path | str, dst: Path) -> None:

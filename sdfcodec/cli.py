@@ -18,7 +18,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from . import __version__
-from .errors import InputNotFoundError, InvalidValueError, MapExistsError, SDFCodecError
+from .errors import InputNotFoundError, InvalidValueError, MapExistsError, SDFCodecError, WriteFailedError
 
 __all__ = ["app", "main"]
 
@@ -54,6 +54,34 @@ def _cli(fn: Callable) -> Callable:
             warnings.showwarning = old
 
     return wrapper
+
+
+def _write_output(output: Path, tmp: Path, write: Callable[[Path], bool]) -> bool:
+    """Write a file output through ``write(tmp)`` (False: the writer refused, e.g. an unknown mesh format), then
+    rename it over ``output``: never a half-written file at ``output``, and no ``tmp`` left on any failure. A
+    refused write (disk full, permission, I/O error) is a WriteFailedError naming ``output``."""
+    outcome = "the file there is unchanged" if output.exists() else "nothing was written there"
+    ok = False
+    try:
+        ok = write(tmp)
+        if ok:
+            tmp.replace(output)
+        return ok
+    except OSError as e:
+        raise WriteFailedError.from_os_error(e, output, "writing", f"{outcome} and no temporary file is left") from e
+    finally:
+        if not ok:
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+
+
+class _PlainWriter:
+    """A file seen only through its ``write`` (numpy then writes with it, chunk by chunk)."""
+
+    def __init__(self, f: Any):
+        self.write = f.write
 
 
 def _progress() -> Progress:
@@ -339,10 +367,14 @@ def decode_cmd(
         vol = m.decode_region(_region(region), units=units, level=level, device=None if device == "cpu" else device)
     if not isinstance(vol, np.ndarray):
         vol = vol.cpu().numpy()
-    tmp = output.with_name(f".{output.name}.tmp")
-    with open(tmp, "wb") as f:  # written beside the output, then renamed: never a half-written .npy
-        np.save(f, vol)
-    tmp.replace(output)
+    def save(tmp: Path) -> bool:
+        with open(tmp, "wb") as f:
+            # through Python's write, not numpy's C-level tofile: a short write then raises OSError with its
+            # errno (ENOSPC, EFBIG...) instead of numpy's errno-less "requested and written"
+            np.save(_PlainWriter(f), vol)
+        return True
+
+    _write_output(output, output.with_name(f".{output.name}.tmp"), save)
     summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
                "voxel_size": m.voxel_size, "origin": list(m.origin)}
     _report(summary, as_json, lambda: f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
@@ -411,10 +443,23 @@ def mesh_cmd(
         _fail(f"{map_path} has no coded blocks: nothing to mesh")
     mesh = mesh_from_blocks(np.concatenate(coords), np.concatenate(blocks), origin=m.origin,
                             voxel_size=m.voxel_size, truncation=m.truncation)
-    tmp = output.with_name(f".tmp-{output.name}")
-    if not o3d.io.write_triangle_mesh(str(tmp), mesh):
-        _fail(f"could not write {output} (unsupported extension? use .ply, .obj or .stl)")
-    tmp.replace(output)
+    def write_mesh(tmp: Path) -> bool:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+            return False
+        # open3d reports success even when the disk filled up under it (a truncated file): read it back
+        back = o3d.io.read_triangle_mesh(str(tmp))
+        return len(back.vertices) == len(mesh.vertices) and len(back.triangles) == len(mesh.triangles)
+
+    existed = output.exists()
+    if not _write_output(output, output.with_name(f".tmp-{output.name}"), write_mesh):
+        if output.suffix.lower() not in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb"):
+            _fail(f"could not write {output}: unsupported extension; use .ply, .obj or .stl")
+        # open3d reports only failure, not why: with a known format it is the file system
+        raise WriteFailedError(f"could not finish writing {output}: open3d could not write the file (is the disk "
+                               f"full or the directory not writable?); "
+                               f"{'the file there is unchanged' if existed else 'nothing was written there'} and "
+                               "no temporary file is left. What to do: free space or fix the directory's "
+                               "permissions, or write elsewhere", None, None, str(output))
     summary = {"output": str(output), "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
     _report(summary, as_json, lambda: (
         f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles"))

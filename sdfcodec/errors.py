@@ -138,3 +138,63 @@ class RemoteReadError(SDFCodecError, OSError):
     try (5xx, reset, timeout), or a response refused unread (too large, a redirect loop, a client error).
     The message names the object's URL, the status and the number of tries; it says nothing about whether
     the map itself is intact."""
+
+
+# -- writes that fail in the file system (issue 21) ---------------------------------------------------------
+__all__ += ["WriteFailedError"]
+
+
+class WriteFailedError(SDFCodecError, OSError):
+    """Writing a map or an output file failed in the file system: the disk or quota is full (``ENOSPC``,
+    ``EDQUOT``), a file would pass the size limit (``EFBIG``), no permission or a read-only file system
+    (``EACCES``, ``EPERM``, ``EROFS``), an I/O error (``EIO``)...
+
+    The message names the path and what to do. ``errno``, ``strerror`` and ``filename`` are those of the
+    underlying ``OSError`` (also chained as ``__cause__``). sdfcodec raises it only once the previous map (or
+    file) at the path is known to be unchanged and its own temporary files are removed.
+    """
+
+    #: what to do, by errno name; anything else gets the generic advice
+    ADVICE = {
+        "ENOSPC": "the file system is full: free space there (or write elsewhere) and run again",
+        "EDQUOT": "your disk quota is used up: free space (or write elsewhere) and run again",
+        "EFBIG": "a file would pass the file size limit of this process or file system (`ulimit -f`): raise the "
+                 "limit or write elsewhere",
+        "EACCES": "no permission to write there: fix the directory's permissions or write elsewhere",
+        "EPERM": "the operation is not permitted there: fix the directory's permissions or write elsewhere",
+        "EROFS": "the file system is read-only: write elsewhere",
+        "EIO": "the storage device reported an I/O error: check the disk (e.g. `dmesg`) and write elsewhere",
+    }
+
+    def __init__(self, message: str, errno: int | None = None, strerror: str | None = None,
+                 filename: str | None = None):
+        super().__init__(message)
+        self.errno, self.strerror, self.filename = errno, strerror, filename
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+    def __reduce__(self):  # keep errno and filename when the error crosses processes (dask workers)
+        return type(self), (str(self), self.errno, self.strerror, self.filename)
+
+    @classmethod
+    def from_os_error(cls, err: OSError, path, doing: str, outcome: str) -> "WriteFailedError":
+        """The error for ``err`` raised while ``doing`` (e.g. "writing the map") at ``path``; ``outcome`` says
+        what the caller left behind (e.g. "the previous map is unchanged")."""
+        import errno as _errno
+        import re
+
+        name = _errno.errorcode.get(err.errno or 0, "")
+        reason = err.strerror or str(err) or type(err).__name__
+        where = ""
+        if err.filename and str(err.filename) != str(path):
+            # a file inside the writer's hidden temporary copy (removed by now): name it relative to the map
+            inner = re.search(r"/\.[^/]+\.(?:tmp|old)-[0-9a-f]+(?:/(.+))?$", str(err.filename))
+            if inner is None:
+                where = f" ({err.filename})"
+            else:
+                key = re.sub(r"\.[0-9a-f]{32}\.partial$", "", inner.group(1) or "")  # the file being written
+                where = f" (writing {key})" if key else " (making its hidden temporary copy)"
+        advice = cls.ADVICE.get(name, "check the file system and run again")
+        return cls(f"could not finish {doing} {path}: {reason}{where}; {outcome}. What to do: {advice}",
+                   err.errno, err.strerror, str(err.filename) if err.filename else str(path))

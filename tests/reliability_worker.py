@@ -9,6 +9,8 @@ Protocol: one JSON object per line on stdin, one reply per line on stdout.
    "kill_at_step": n|null, "out": file|null}            -> {"pid": pid}
   {"job": "read", "path": ..., "out": file, "stop": file, "deadline": t, "seed": s}   -> {"pid": pid}
   {"job": "updates", "path": ..., "gen": g, "cid": c, "count": k, "out": file}        -> {"pid": pid}
+  {"job": "tiny", "path": ..., "gen": g, "out": file|null}  (gen 0 creates)           -> {"pid": pid}
+  {"job": "tiny_read", "path": ..., "out": file, "stop": file, "deadline": t, "seed": s} -> {"pid": pid}
   {"job": "wait", "pid": pid}                                                         -> {"pid": pid, "status": s}
   {"job": "quit"}
 ``status`` is the child's exit code, or minus the signal that killed it (-9 for SIGKILL).
@@ -16,6 +18,13 @@ Protocol: one JSON object per line on stdin, one reply per line on stdout.
 The maps hold constant blocks of the lossless ``raw`` codec; what a map must contain is a function of a
 content id ``cid`` (:func:`content`), and each write records ``{"gen": ..., "cid": ...}`` as its provenance
 tool, so a reader can tell which version it sees and check every block of it.
+
+The ``tiny`` jobs keep updates as small and fast as they get (issue 21: readers must really see swaps): a map of
+16 constant blocks in two chunks, and generation g rewrites one block, ``(g - 1) % 16`` (:func:`tiny_value`).
+``tiny_read`` readers never stop at the first problem: they count reads, verifies, errors and mixed versions.
+
+Run as ``reliability_worker.py faults KIND DIR`` it is instead the child of tests/test_writes.py that writes
+maps where writes really fail (see :func:`faults_main`).
 """
 
 from __future__ import annotations
@@ -164,6 +173,89 @@ def read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
     return {"ops": ops, "gens": sorted(gens), "held_across_swap": held}
 
 
+TINY_N, TINY_CB = 16, 2
+
+
+def tiny_coord(i: int) -> tuple[int, int, int]:
+    return (i % 4, (i // 4) % 2, i // 8)
+
+
+def tiny_value(i: int, gen: int) -> float:
+    """Metres filling block i of tiny generation ``gen``: set by the last update k <= gen that wrote it."""
+    last = 0 if gen < i + 1 else gen - (gen - 1 - i) % TINY_N
+    return -0.03 + 0.0011 * (last % 60)
+
+
+def tiny_write(path: str, gen: int) -> None:
+    """Generation 0: create the tiny map. gen > 0: update gen - 1 -> gen, one block."""
+    raw = sdfcodec.get_codec("raw")
+    if gen == 0:
+        cs = [tiny_coord(i) for i in range(TINY_N)]
+        blocks = np.stack([np.full((16, 16, 16), tiny_value(i, 0), np.float32) for i in range(TINY_N)])
+        with sdfcodec.create_map(path, codec=raw, voxel_size=VS, truncation=TRUNC, chunk_blocks=TINY_CB,
+                                 overwrite=True, tool=tag(0, 0)) as m:
+            m.write_blocks(cs, blocks)
+        return
+    i = (gen - 1) % TINY_N
+    with sdfcodec.update_map(path, tool=tag(gen, gen)) as m:
+        m.write_blocks([tiny_coord(i)], np.full((1, 16, 16, 16), tiny_value(i, gen), np.float32))
+
+
+def tiny_check(m: sdfcodec.Map, gen: int) -> list[str]:
+    """What in the open map is not tiny generation ``gen`` (states, codes, and the decoded blocks)."""
+    bad = []
+    states = m.block_states()
+    want = {tiny_coord(i) for i in range(TINY_N)}
+    got = {tuple(int(v) for v in c) for c in np.argwhere(states == 2)}
+    if got != want or (states == 1).any():
+        bad.append(f"gen {gen}: coded blocks {sorted(got ^ want)[:4]} differ")
+    coords, codes = m.read_codes()
+    metres = codes * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
+    index = {tiny_coord(i): i for i in range(TINY_N)}
+    for c, row in zip(coords, metres):
+        i = index.get(tuple(int(v) for v in c))
+        if i is None or np.abs(row - tiny_value(i, gen)).max() > TOL:
+            bad.append(f"gen {gen}: block {tuple(int(v) for v in c)} code holds {row[0]:.4f}")
+    dec = m.decode_region(((0, 64), (0, 32), (0, 32)))
+    for i in range(TINY_N):
+        x, y, z = (16 * v for v in tiny_coord(i))
+        blk = dec[x:x + 16, y:y + 16, z:z + 16]
+        if np.abs(blk - tiny_value(i, gen)).max() > TOL:
+            bad.append(f"gen {gen}: decoded block {tiny_coord(i)} holds {float(blk.mean()):.4f}")
+    return bad
+
+
+def tiny_read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
+    """Open, check (codes, states, decode) and now and then verify the tiny map, over and over, holding each
+    open map a random while so that updates swap under it. Counts instead of stopping at a problem."""
+    from pathlib import Path
+
+    from sdfcodec.verify import verify_map
+
+    rng = random.Random(seed)
+    reads = verifies = 0
+    errors, mixed, held = [], [], set()
+    while time.time() < deadline and not os.path.exists(stop):
+        try:
+            with sdfcodec.open_map(path) as m:
+                gen = json.loads(m.header.provenance.tool)["gen"]
+                pinned = m.reader.pinned_fd
+                time.sleep(rng.uniform(0, 0.06))  # let a writer swap in a new version under this open map
+                mixed += tiny_check(m, gen)  # everything read is of the version opened, after a swap too
+                if not _atomic.same_dir(pinned, Path(path)):
+                    held.add(gen)  # the update gen -> gen + 1 completed while this reader held gen
+            reads += 1
+            if rng.random() < 0.25:
+                rep = verify_map(path, decode_blocks=TINY_N)
+                verifies += 1
+                if not rep.ok:
+                    errors.append("verify: " + "; ".join(str(p) for p in rep.problems)[:300])
+        except Exception as e:  # noqa: BLE001 - counted: the test requires none
+            errors.append(f"{type(e).__name__}: {e}"[:300])
+    return {"reads": reads, "verifies": verifies, "errors": errors[:20], "n_errors": len(errors),
+            "mixed": mixed[:20], "n_mixed": len(mixed), "held_gens": sorted(held)}
+
+
 def updates(path: str, gen: int, cid: int, count: int) -> dict:
     for k in range(1, count + 1):
         write("update", path, gen + k, cid + k, ["float32", 4])
@@ -183,6 +275,14 @@ def _child(cmd: dict) -> int:
             result = read_loop(cmd["path"], cmd["stop"], cmd["deadline"], cmd["seed"])
         elif cmd["job"] == "updates":
             result = updates(cmd["path"], cmd["gen"], cmd["cid"], cmd["count"])
+        elif cmd["job"] == "tiny":
+            counter = [0]
+            _install_step_kill(cmd.get("kill_at_step"), counter)
+            t0 = time.perf_counter()
+            tiny_write(cmd["path"], cmd["gen"])
+            result = {"steps": counter[0], "seconds": time.perf_counter() - t0}
+        elif cmd["job"] == "tiny_read":
+            result = tiny_read_loop(cmd["path"], cmd["stop"], cmd["deadline"], cmd["seed"])
         else:
             raise ValueError(cmd["job"])
         code = 0
@@ -195,7 +295,116 @@ def _child(cmd: dict) -> int:
     return code
 
 
+# -- writes that really fail: the child of tests/test_writes.py ---------------------------------------------
+
+def noise_blocks(n: int, seed: int) -> np.ndarray:
+    """``(n, 16, 16, 16)`` float32 metres of uniform noise: incompressible, 16 KiB per block as raw codes."""
+    return np.random.default_rng(seed).uniform(*TRUNC, size=(n, 16, 16, 16)).astype(np.float32)
+
+
+def noise_map(path, n: int, seed: int = 0) -> None:
+    """A raw map of ``n`` noise blocks in a row along x (chunks of 4 blocks)."""
+    coords = [(i, 0, 0) for i in range(n)]
+    with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC,
+                             chunk_blocks=4) as m:
+        m.write_blocks(coords, noise_blocks(n, seed))
+
+
+def snapshot(path) -> tuple[dict, np.ndarray]:
+    """Every file's bytes, and the decoded volume, of the map at ``path``."""
+    from pathlib import Path
+
+    p = Path(path)
+    files = {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
+    with sdfcodec.open_map(p) as m:
+        return files, np.asarray(m.decode_region())
+
+
+def hidden_left(directory) -> list[str]:
+    return sorted(n for n in os.listdir(directory) if n.startswith("."))
+
+
+def write_cases(d: str, grow_blocks: int) -> dict:
+    """Try every kind of write that must fail where ``d`` has no room (or no permission) for it; ``d/a.sdfz``
+    is an existing map. Returns, per case, how it ended: the error's type, errno and message, whether the
+    previous map is byte- and decode-identical, and what hidden files were left in ``d``."""
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    a = Path(d) / "a.sdfz"
+    runner = CliRunner()
+    before = snapshot(a)
+    results = {}
+
+    def outcome(name: str, exc: BaseException | None, extra: dict | None = None) -> None:
+        files, vol = snapshot(a)
+        results[name] = {"type": type(exc).__name__ if exc else None, "errno": getattr(exc, "errno", None),
+                         "sdfcodec_error": isinstance(exc, sdfcodec.errors.SDFCodecError),
+                         "message": str(exc) if exc else None, "map_unchanged": files == before[0],
+                         "decodes_identically": bool(np.array_equal(vol, before[1])),
+                         "hidden_left": hidden_left(d), **(extra or {})}
+
+    def attempt(name: str, fn) -> None:
+        try:
+            fn()
+            outcome(name, None)
+        except Exception as e:  # noqa: BLE001 - reported
+            outcome(name, e)
+
+    def update() -> None:
+        with sdfcodec.update_map(a, wait=2) as m:
+            m.write_blocks([(i, 1, 0) for i in range(grow_blocks)], noise_blocks(grow_blocks, 7))
+
+    def transcode_in_place() -> None:
+        src = sdfcodec.open_map(a)
+        try:
+            with sdfcodec.create_map(a, codec=src.codec, voxel_size=src.voxel_size, truncation=src.truncation,
+                                     code_dtype="float32", chunk_blocks=2, overwrite=True) as m:
+                for coords, blocks in src.iter_blocks():
+                    m.write_blocks(coords, np.clip(blocks, *TRUNC))
+        finally:
+            src.close()
+
+    def create_new() -> None:
+        with sdfcodec.create_map(Path(d) / "new.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=VS) as m:
+            m.write_blocks([(i, 0, 0) for i in range(grow_blocks)], noise_blocks(grow_blocks, 8))
+
+    attempt("update_map", update)
+    attempt("transcode", transcode_in_place)
+    attempt("create_map", create_new)
+    results["create_map"]["new_map_exists"] = os.path.lexists(Path(d) / "new.sdfz")
+    for name, args, out in (("cli_encode", ["encode", str(a), str(a), "--overwrite", "--codec", "raw"], None),
+                            ("cli_decode", ["decode", str(a), str(Path(d) / "a.npy")], Path(d) / "a.npy"),
+                            ("cli_mesh", ["mesh", str(a), str(Path(d) / "a.ply")], Path(d) / "a.ply")):
+        r = runner.invoke(app, args)
+        exc = r.exception if not isinstance(r.exception, SystemExit) else None
+        outcome(name, exc, {"exit_code": r.exit_code, "stderr": r.stderr,
+                            "output_exists": bool(out and os.path.lexists(out))})
+    return results
+
+
+def faults_main(kind: str, d: str) -> None:
+    """``enospc``: ``d`` is an empty, small file system (a 1 MiB tmpfs): fill most of it with a map, then try
+    the writes that need more room. ``existing``: ``d`` holds ``a.sdfz`` and writes fail for another reason
+    (the directory is not writable by this process, a file size limit). Prints the results of
+    :func:`write_cases` as JSON."""
+    if kind == "enospc":
+        noise_map(os.path.join(d, "a.sdfz"), 36)  # ~600 KiB of incompressible codes
+        res = write_cases(d, grow_blocks=64)
+    elif kind == "existing":
+        res = write_cases(d, grow_blocks=8)
+    else:
+        raise ValueError(kind)
+    print("RESULTS " + json.dumps(res))
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["faults"]:
+        faults_main(sys.argv[2], sys.argv[3])
+        return
     for line in sys.stdin:
         cmd = json.loads(line)
         if cmd["job"] == "quit":

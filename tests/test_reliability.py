@@ -460,6 +460,12 @@ class Versions:
         return {"job": "write", "op": op, "path": str(self.path), "gen": gen, "cid": cid, "layout": layout,
                 "kill_at_step": kill_at_step, "out": str(out) if out else None}
 
+    def advance(self, op: str) -> None:
+        """Record that ``op`` completed (without checking the map: the next :meth:`check` does)."""
+        new_gen, new_cid, new_layout = self.next(op)
+        self.gens[new_gen] = (new_cid, new_layout)
+        self.gen = new_gen
+
     def check(self, op: str) -> bool:
         """After a writer ended (killed or not): the map verifies and is exactly the old or the new version.
         Returns True when it is the new one (and moves along)."""
@@ -522,35 +528,74 @@ def test_sigkill_at_random_times_long(server, tmp_path):
     print("random-time kills (long):", stats)
 
 
+def _versions_left(directory: Path, name: str) -> list[str]:
+    """Hidden temporaries and replaced versions of map ``name`` (not its lock file)."""
+    import re
+
+    return [n for n in _hidden(directory) if re.fullmatch(rf"\.{re.escape(name)}\.(tmp|old)-[0-9a-f]+", n)]
+
+
 def _kill_at_steps(server: Server, tmp_path: Path, per_op: int | None) -> dict:
-    """Kill each kind of write just before each of its last file-system steps (the commit: exchange, renames,
-    lock release, garbage collection) and a few earlier ones; per_op None: every step."""
+    """Kill each kind of write just before each of its last file-system steps up to the end of its commit
+    (exchange, renames, lock release) and a few earlier ones, and at a few steps of the garbage collection
+    after it; per_op None: every step.
+
+    Every other kill point (and each of the last few of the commit) has a reader holding the map open across
+    the kill. Afterwards every hidden sibling
+    must go (issue 21): where the kill came after the swap, the reader's close removes the version it held and
+    the killed writer's leftovers; otherwise the next commit removes everything (temporaries, replaced
+    versions, the lock file)."""
     v = Versions(server, tmp_path / "s.sdfz")
-    tried = 0
+    tried = collected_by_reader = collected_by_commit = 0
     rng = np.random.default_rng(3)
+    out = tmp_path / "steps.json"
     for op in ("update", "create", "transcode"):
-        out = tmp_path / "steps.json"
+        # with a reader holding the old version the commit's collection removes nothing: its steps end the
+        # commit; without one, the removal of the old version adds steps (total > commit_end)
+        reader = sdfcodec.open_map(v.path)
+        assert server.run(**v.command(op, None, out)) == 0
+        commit_end = json.loads(out.read_text())["steps"]
+        assert v.check(op)
+        reader.close()
         assert server.run(**v.command(op, None, out)) == 0
         total = json.loads(out.read_text())["steps"]
         assert v.check(op)
         steps = range(1, total + 1)
         if per_op is not None:
-            tail = list(range(max(1, total - 11), total + 1))
-            early = rng.choice(np.arange(1, max(2, total - 11)), size=min(per_op - len(tail), max(1, total - 12)),
-                               replace=False).tolist()
-            steps = sorted(set(tail) | set(early))
+            tail = list(range(max(1, commit_end - 11), commit_end + 1))
+            early = rng.choice(np.arange(1, max(2, commit_end - 11)),
+                               size=min(per_op - len(tail), max(1, commit_end - 12)), replace=False).tolist()
+            gc_steps = rng.choice(np.arange(commit_end + 1, total + 1), size=min(3, total - commit_end),
+                                  replace=False).tolist() if total > commit_end else []
+            steps = sorted(set(tail) | set(early) | set(gc_steps))
         for n in steps:
+            # a reader at every other step, and at each of the last few (the swap and after it)
+            with_reader = n <= commit_end and (n % 2 == 0 or n > commit_end - 4)
+            reader = sdfcodec.open_map(v.path) if with_reader else None
             status = server.run(**v.command(op, int(n)))
             assert status in (0, -signal.SIGKILL)
             v.check(op)
+            swapped = reader is not None and not rw._atomic.same_dir(reader.reader.pinned_fd, v.path)
+            if reader is not None:
+                reader.close()
+            if swapped:  # the reader was the last to hold the replaced version: its close collects
+                assert _versions_left(v.path.parent, v.path.name) == [], (op, n, _hidden(v.path.parent))
+                collected_by_reader += 1
+            if _hidden(v.path.parent):  # a dead lock file, a temporary, a replaced version: the next commit
+                assert server.run(**v.command("update", None)) == 0
+                v.advance("update")  # checked with the next kill point's v.check
+                assert _hidden(v.path.parent) == [], (op, n, _hidden(v.path.parent))
+                collected_by_commit += 1
             tried += 1
-    return {"step_kill_points": tried}
+    return {"step_kill_points": tried, "collected_by_reader_close": collected_by_reader,
+            "collected_by_next_commit": collected_by_commit}
 
 
 def test_sigkill_at_commit_steps_leaves_old_or_new(server, tmp_path):
     stats = _kill_at_steps(server, tmp_path, per_op=14)
     print("step kills:", stats)
     assert stats["step_kill_points"] >= 30
+    assert stats["collected_by_reader_close"] >= 3 and stats["collected_by_next_commit"] >= 3
 
 
 @pytest.mark.slow
@@ -603,3 +648,90 @@ def test_concurrent_readers_see_whole_versions(server, tmp_path):
 @pytest.mark.slow
 def test_concurrent_readers_long(server, tmp_path):
     print("concurrency (long):", _concurrent(server, tmp_path, n_readers=4, n_updates=80, time_limit=300))
+
+
+# -- readers while a killed writer's tiny updates really complete (issue 21 item 5) ----------------------------
+
+def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_readers: int, seed: int) -> dict:
+    """Readers decode and verify a tiny map nonstop while updates of one block each are SIGKILLed at random
+    moments: a delay up to ``scale`` x an uninterrupted update's duration, ``scale`` adapting so that about half
+    the updates complete (how long an update takes depends on the machine's load). Many complete and swap
+    under a reader. After every kill the map must verify and be exactly the old or the new generation."""
+    path = tmp_path / "t.sdfz"
+    assert server.run(job="tiny", path=str(path), gen=0, out=None) == 0
+    stop = tmp_path / "stop"
+    readers = []
+    gen = 0
+    durations = []
+    stats = {"kill_points": n_kills, "killed": 0, "completed": 0, "completed_by_killed_writer": 0, "damaged": 0}
+    try:
+        for r in range(n_readers):
+            out = tmp_path / f"tiny_reader{r}.json"
+            pid = server.call(job="tiny_read", path=str(path), out=str(out), stop=str(stop),
+                              deadline=time.time() + 900, seed=seed + r)["pid"]
+            readers.append((pid, out))
+        for _ in range(3):  # how long an update takes (under the readers' load)
+            t0 = time.perf_counter()
+            assert server.run(job="tiny", path=str(path), gen=gen + 1, out=None) == 0
+            durations.append(time.perf_counter() - t0)
+            gen += 1
+        dur = float(np.median(durations))
+        rng = np.random.default_rng(seed)
+        scale = 1.5
+        for _ in range(n_kills):
+            pid = server.call(job="tiny", path=str(path), gen=gen + 1, out=None)["pid"]
+            time.sleep(rng.uniform(0, scale * dur))
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            status = server.call(job="wait", pid=pid)["status"]
+            assert status in (0, -signal.SIGKILL), f"writer failed on its own (status {status})"
+            stats["killed"] += status == -signal.SIGKILL
+            with sdfcodec.open_map(path) as m:
+                now = json.loads(m.header.provenance.tool)["gen"]
+                bad = rw.tiny_check(m, now) if now in (gen, gen + 1) else [f"generation {now}"]
+            rep = verify_map(path, decode_blocks=rw.TINY_N)
+            if bad or not rep.ok:
+                stats["damaged"] += 1
+            assert not bad and rep.ok, (bad, [str(p) for p in rep.problems])
+            if now == gen + 1:
+                stats["completed"] += 1
+                stats["completed_by_killed_writer"] += status == -signal.SIGKILL
+            scale = scale / 1.1 if now == gen + 1 else scale * 1.1
+            gen = now
+        time.sleep(0.3)  # the readers see the last version too
+    finally:
+        stop.touch()
+    results = []
+    for pid, out in readers:
+        status = server.call(job="wait", pid=pid, timeout=120)["status"]
+        res = json.loads(out.read_text())
+        assert status == 0 and "error" not in res, res.get("error")
+        results.append(res)
+    held = set().union(*[r["held_gens"] for r in results])
+    stats.update(update_seconds=round(dur, 3), final_delay_scale=round(scale, 2), generations=gen, readers=n_readers,
+                 reads=sum(r["reads"] for r in results), verifies=sum(r["verifies"] for r in results),
+                 errors=sum(r["n_errors"] for r in results), mixed_versions=sum(r["n_mixed"] for r in results),
+                 updates_completed_under_a_reader=len(held))
+    assert stats["errors"] == 0, [e for r in results for e in r["errors"]][:5]
+    assert stats["mixed_versions"] == 0, [e for r in results for e in r["mixed"]][:5]
+    # what killed writers and replaced versions left goes with the next commit and the readers' closes
+    assert server.run(job="tiny", path=str(path), gen=gen + 1, out=None) == 0
+    assert _hidden(tmp_path) == [], _hidden(tmp_path)
+    return stats
+
+
+def test_sigkill_tiny_updates_under_readers(server, tmp_path):
+    stats = _kill_tiny_under_readers(server, tmp_path, n_kills=40, n_readers=3, seed=21)
+    print("tiny updates killed under readers:", stats)
+    assert stats["completed"] >= 8 and stats["killed"] >= 8  # kills land inside updates, and updates complete
+    assert stats["updates_completed_under_a_reader"] >= 5  # swaps really happen under open readers
+    assert stats["reads"] >= 40 and stats["verifies"] >= 5
+
+
+@pytest.mark.slow
+def test_sigkill_tiny_updates_under_readers_long(server, tmp_path):
+    stats = _kill_tiny_under_readers(server, tmp_path, n_kills=240, n_readers=4, seed=22)
+    print("tiny updates killed under readers (long):", stats)
+    assert stats["updates_completed_under_a_reader"] >= 30

@@ -7,11 +7,11 @@ encoder (``sdfcodec.scale``) writes chunks into :attr:`MapWriter.tmp` with :func
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
-import shutil
 from importlib import metadata
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -25,8 +25,7 @@ from .._validate import BLOCK, as_float_tensor
 from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
-                      ShapeError,
-                      VersionError)
+                      SDFCodecError, ShapeError, VersionError, WriteFailedError)
 from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
                       Extension, MapHeader, Provenance, Truncation, now_iso)
 from ..quantize import quantize_codes
@@ -41,13 +40,52 @@ __all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "
 #: How long a writer waits for another process's update of the same map to finish before giving up.
 LOCK_TIMEOUT = 60.0
 
+_UNCHANGED = "the previous map there is unchanged and no temporary files are left"
+_NOTHING = "nothing was written there and no temporary files are left"
+
+
+@contextlib.contextmanager
+def _write_errors(final: Path, doing: str, outcome: str, cleanup: Callable[[], None] | None = None):
+    """Turn an ``OSError`` from the file system (disk full, permission, I/O error...) into a
+    :class:`WriteFailedError` naming ``final``, after ``cleanup()`` (which removes the temporary copy: the
+    message promises ``outcome``). sdfcodec's own errors pass through unchanged (MapBusyError and
+    MapExistsError are OSErrors too)."""
+    try:
+        yield
+    except SDFCodecError:
+        raise
+    except OSError as e:
+        if cleanup is not None:
+            cleanup()
+        raise WriteFailedError.from_os_error(e, final, doing, outcome) from e
+
+
+def _final_of(tmp: str | os.PathLike) -> Path:
+    """The map path a writer's temporary directory ``.NAME.tmp-<hex>`` stands for."""
+    p = Path(tmp)
+    m = re.fullmatch(r"\.(.+)\.tmp-[0-9a-f]+", p.name)
+    return p.with_name(m.group(1)) if m else p
+
 
 def store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
                      local: np.ndarray, codes: np.ndarray, had: bool) -> None:
     """Write float32 ``codes`` ``(n, D)`` of the blocks at ``local`` (indices inside the chunk ``box`` of the block
     axes) into that chunk of ``codes_arr``, quantised to int8 with their ``[offset, scale]`` rows in ``scale_arr``
     when the map stores int8 codes: one write per array (each chunk read first only when it already ``had``
-    codes). The single-process writer and the dask encoder both write through here."""
+    codes). The single-process writer and the dask encoder both write through here.
+
+    Raises:
+        WriteFailedError: the file system refused the write (the dask encoder's tasks raise it; the writer
+            that owns the temporary directory removes it when aborted)."""
+    root = getattr(codes_arr.store, "root", None)
+    final = _final_of(root) if root is not None else Path(str(codes_arr.store))
+    with _write_errors(final, "writing the map", "nothing at that path changes; the write is aborted and its "
+                       "temporary copy removed"):
+        _store_code_chunk(codes_arr, scale_arr, box, local, codes, had)
+
+
+def _store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
+                      local: np.ndarray, codes: np.ndarray, had: bool) -> None:
     shape = [s.stop - s.start for s in box]
     idx = tuple(local.T)
     buf = np.asarray(codes_arr[box]) if had else np.zeros((*shape, codes_arr.shape[3]), dtype=codes_arr.dtype)
@@ -71,6 +109,10 @@ class MapWriter:
     ``state`` ``(Bx, By, Bz)`` uint8 and ``grid`` are the block states and grid so far (the ``state`` array is
     written on commit). The write methods take checked input (``sdfcodec.map.format.check_volume``): the
     facade checks it, so that its warnings point at the user's call.
+
+    A write the file system refuses (disk full, permission, I/O error) aborts the writer, removing its
+    temporary directory, and raises :class:`~sdfcodec.errors.WriteFailedError`: the map at the path is then
+    exactly as it was, and the writer takes no further writes.
     """
 
     def __init__(self, final: Path, tmp: Path, tmp_fd: int, group: zarr.Group, codec: Codec, header_kw: dict,
@@ -86,8 +128,29 @@ class MapWriter:
         self.state = state if state is not None else np.zeros(self.grid, dtype=np.uint8)
         self.codes = group["codes"]
         self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
+        if update:
+            self.doing = "updating the map"
+        else:
+            self.doing = "replacing the map" if os.path.lexists(final) else "creating the map"
+        self.outcome = _UNCHANGED if self.doing != "creating the map" else _NOTHING
+        self.failed: str | None = None  # why the writer aborted itself (further writes are refused)
 
-    def grow_voxels(self, need: tuple[int, int, int]) -> None:
+    @contextlib.contextmanager
+    def _writing(self):
+        """Around every step that writes: a refused write aborts the writer (see the class docstring)."""
+        if self.failed is not None or self.tmp_fd is None:
+            why = f" after a failed write ({self.failed})" if self.failed else ""
+            raise InvalidValueError(f"the writer of {self.final} was aborted{why}; nothing more can be written "
+                                    "through it: start again with create_map or update_map")
+        try:
+            with _write_errors(self.final, self.doing, self.outcome, cleanup=self.abort):
+                yield
+        except WriteFailedError as e:
+            self.failed = f"{e.strerror or 'error'}"
+            self.abort()  # also when the error came from a dask task (store_code_chunk)
+            raise
+
+    def _grow_voxels(self, need: tuple[int, int, int]) -> None:
         shape = tuple(max(a, b) for a, b in zip(self.shape_voxels, need))
         grid = tuple(max(g, -(-n // BLOCK)) for g, n in zip(self.grid, shape))
         if math.prod(grid) > self.max_state_bytes or max(shape) > 2**31 - 1:
@@ -107,7 +170,7 @@ class MapWriter:
         """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
         need = tuple((int(m) + 1) * BLOCK if int(m) >= g else n
                      for m, g, n in zip(max_coord, self.grid, self.shape_voxels))
-        self.grow_voxels(need)
+        self._grow_voxels(need)
 
     @property
     def truncation(self) -> tuple[float, float]:
@@ -115,14 +178,23 @@ class MapWriter:
         t = self.header_kw["truncation"]
         return t.d_min, t.d_max
 
+    def grow_voxels(self, need: tuple[int, int, int]) -> None:
+        """Grow the extent to at least ``need`` voxels (the grid and the arrays with it)."""
+        with self._writing():
+            self._grow_voxels(need)
+
     def write_volume(self, vol: np.ndarray, *, offset: Sequence[int] = (0, 0, 0), batch_size: int = 16384,
                      progress: Callable[[int], None] | None = None) -> None:
         """Encode a checked dense volume ``(X, Y, Z)`` float32 metres placed at voxel ``offset`` (multiples of
         16): the grid grows to hold it, the far faces padded with free space."""
+        with self._writing():
+            self._write_volume(vol, offset, batch_size, progress)
+
+    def _write_volume(self, vol, offset, batch_size, progress) -> None:
         off = np.asarray(offset, dtype=np.int64)
         if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
             raise ShapeError(f"offset must be three non-negative multiples of {BLOCK} voxels, got {tuple(offset)}")
-        self.grow_voxels(tuple(int(o + n) for o, n in zip(off, vol.shape)))
+        self._grow_voxels(tuple(int(o + n) for o, n in zip(off, vol.shape)))
         blocks = split_blocks(vol, fill=self.truncation[1])
         gb = blocks.shape[:3]
         flat = blocks.reshape(-1, BLOCK, BLOCK, BLOCK)
@@ -137,25 +209,31 @@ class MapWriter:
             wt, _ = as_float_tensor(weights, "weights", (len(coords), BLOCK, BLOCK, BLOCK))
             if len(coords) and float(wt.min()) < 0:
                 raise InvalidValueError("weights must be non-negative (observation counts)")
+        with self._writing():
+            self._write_blocks(coords, blocks, None if weights is None else wt, batch_size, progress)
+
+    def _write_blocks(self, coords, blocks, wt, batch_size, progress) -> None:
         if len(coords):
             self.grow_blocks(coords.max(axis=0))
         self.put_blocks(coords, blocks, batch_size=batch_size, progress=progress)
-        if weights is not None:
+        if wt is not None:
             self.put_weights(coords, wt.numpy())
 
     def write_codes(self, coords: Any, codes: Any) -> None:
         """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``."""
         c = check_coords(coords)
         z, _ = as_float_tensor(codes, "codes", (len(c), self.codes_spec.size))
-        if len(c):
-            self.grow_blocks(c.max(axis=0))
-        self.put_codes(c, z.numpy())
+        with self._writing():
+            if len(c):
+                self.grow_blocks(c.max(axis=0))
+            self.put_codes(c, z.numpy())
 
     def mark_empty(self, coords: Any) -> None:
         """Record blocks ``(N, 3)`` as observed free space (no code stored)."""
         c = check_coords(coords)
         if len(c):
-            self.grow_blocks(c.max(axis=0))
+            with self._writing():
+                self.grow_blocks(c.max(axis=0))
             self.set_state(c, BlockState.EMPTY)
 
     def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
@@ -202,10 +280,40 @@ class MapWriter:
             ch = chunk_of[lo]
             box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, self.grid))
             had = bool((self.state[box] == BlockState.CODED).any())
-            store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had)
+            _store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had)
         self.set_state(coords, BlockState.CODED)
 
     def commit(self) -> Path:
+        """Write the block states and the header, then swap the new version into place (spec section 9).
+
+        On any failure before the swap (a refused write: :class:`~sdfcodec.errors.WriteFailedError`) the writer
+        is aborted: the map at the path is exactly as it was and the temporary directory is gone. After the
+        swap nothing can fail: collecting the replaced version is best effort (the next commit, or its last
+        reader, collects what is left)."""
+        with self._writing():
+            try:
+                self._finish()
+                lock = self.update["lock"] if self.update else _atomic.WriterLock(self.final, LOCK_TIMEOUT).acquire()
+            except BaseException:
+                self.abort()
+                raise
+            try:
+                self._swap()
+            except BaseException:
+                self.abort()
+                raise
+            finally:
+                lock.release()
+        os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
+        self.tmp_fd = None
+        try:
+            _atomic.collect(self.final)  # the version replaced, if nobody reads it, and dead writers' leftovers
+        except OSError:
+            pass
+        return self.final
+
+    def _finish(self) -> None:
+        """The ``state`` array and the header (last: until the swap nobody sees any of this anyway)."""
         st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0,
                                      chunks=tuple(min(64, max(1, n)) for n in self.grid),
                                      compressors=compressors(), overwrite=True)
@@ -219,36 +327,23 @@ class MapWriter:
             extensions.append(Extension(name=INT8_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
-        # the header goes last: until the swap below nobody sees any of this anyway
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
-        try:
-            lock = self.update["lock"] if self.update else _atomic.WriterLock(self.final, LOCK_TIMEOUT).acquire()
-        except BaseException:
-            self.abort()
-            raise
-        try:
-            exists = os.path.lexists(self.final)
-            if self.update and (not exists or _stat_id(self.final) != self.update["source"]):
-                raise FormatError(f"{self.final} was replaced or removed by something other than sdfcodec while "
-                                  "this update ran; nothing was written: update it again")
-            if exists and not self.overwrite:
-                raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
-            if exists and not self.update:
-                check_replaceable(self.final)
-            # on failure either call leaves everything as it was (the new version still at self.tmp)
-            if exists:
-                _atomic.swap_into_place(self.tmp, self.final)
-            else:
-                os.rename(self.tmp, self.final)
-        except BaseException:
-            self.abort()
-            raise
-        finally:
-            lock.release()
-        os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
-        self.tmp_fd = None
-        _atomic.collect(self.final)  # the version replaced, if nobody reads it, and dead writers' leftovers
-        return self.final
+
+    def _swap(self) -> None:
+        """Under the writer lock: check the path still holds what we may replace, then swap or rename."""
+        exists = os.path.lexists(self.final)
+        if self.update and (not exists or _stat_id(self.final) != self.update["source"]):
+            raise FormatError(f"{self.final} was replaced or removed by something other than sdfcodec while "
+                              "this update ran; nothing was written: update it again")
+        if exists and not self.overwrite:
+            raise MapExistsError(f"{self.final} appeared while writing; nothing was replaced (use overwrite)")
+        if exists and not self.update:
+            check_replaceable(self.final)
+        # on failure either call leaves everything as it was (the new version still at self.tmp)
+        if exists:
+            _atomic.swap_into_place(self.tmp, self.final)
+        else:
+            os.rename(self.tmp, self.final)
 
     def abort(self) -> None:
         if self.tmp_fd is not None:
@@ -265,10 +360,7 @@ def _stat_id(p: Path) -> tuple[int, int]:
 
 
 def _rmtree(p: Path) -> None:
-    if p.is_dir():
-        shutil.rmtree(p, ignore_errors=True)
-    elif p.exists():
-        p.unlink()
+    _atomic.remove_tree(p)
 
 
 def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
@@ -351,34 +443,64 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     if bad_names:
         raise InvalidValueError(f"codec {codec.codec_id!r} state array names {bad_names} cannot be stored in a map: "
                                 f"names must match {STATE_NAME_PATTERN} (a plugin bug)")
-    final.parent.mkdir(parents=True, exist_ok=True)
-    _atomic.collect(final)  # leftovers of writers killed earlier
-    tmp, tmp_fd = _atomic.make_temp_dir(final)
-    try:
-        group = zarr.open_group(CowLocalStore(str(tmp)), mode="w", zarr_format=3)
-        grid = tuple(-(-int(n) // BLOCK) for n in shape_voxels)
-        cb, cc = spec.chunk_blocks, spec.chunk_code
-        group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
-                           chunks=(cb, cb, cb, cc), compressors=compressors(),
-                           dimension_names=["bx", "by", "bz", "code"])
-        if code_dtype == "int8":
-            group.create_array("code_scale", shape=(*grid, 2), dtype="float32", fill_value=0, chunks=(cb, cb, cb, 2),
-                               compressors=compressors(), dimension_names=["bx", "by", "bz", "offset_scale"])
-        cgroup = group.create_group("codec")
-        for name, arr in state.items():
-            arr = np.ascontiguousarray(arr)
-            a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
-                                    compressors=compressors())
-            a[...] = arr
-        header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=grid, codes=spec,
-                           extensions=[Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else [], **header_kw)
-    except BaseException:
+    doing, outcome = ("replacing the map", _UNCHANGED) if os.path.lexists(final) else ("creating the map", _NOTHING)
+    with _write_errors(final, doing, outcome):
+        final.parent.mkdir(parents=True, exist_ok=True)
+        _collect_quietly(final)  # leftovers of writers killed earlier
+        tmp, tmp_fd = _atomic.make_temp_dir(final)
+
+    def discard() -> None:
         _rmtree(tmp)
         os.close(tmp_fd)
+
+    try:
+        with _write_errors(final, doing, outcome, cleanup=discard):
+            group = _new_group(tmp, codec, state, spec, code_dtype, shape_voxels)
+        header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
+                           codes=spec, extensions=[Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else [],
+                           **header_kw)
+    except WriteFailedError:
+        raise  # already cleaned up
+    except BaseException:
+        discard()
         raise
     return MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
                      overwrite, torch.device(device), header=header)
 
+
+def _grid_of(shape_voxels: Sequence[int]) -> tuple[int, int, int]:
+    """Blocks per axis holding ``shape_voxels``."""
+    return tuple(-(-int(n) // BLOCK) for n in shape_voxels)
+
+
+def _collect_quietly(final: Path) -> None:
+    try:
+        _atomic.collect(final)
+    except OSError:
+        pass  # garbage collection is best effort: a later commit tries again
+
+
+def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype: str,
+               shape_voxels: Sequence[int]) -> zarr.Group:
+    """The arrays of a new, empty map in ``tmp``: ``codes`` (and ``code_scale`` for int8), ``codec/`` state."""
+    # "w-", not "w": "w" clears the store by removing and re-making its root, which would leave the
+    # temporary directory unlocked (our lock is on the inode removed) for another writer's garbage collection
+    group = zarr.open_group(CowLocalStore(str(tmp)), mode="w-", zarr_format=3)
+    grid = _grid_of(shape_voxels)
+    cb, cc = spec.chunk_blocks, spec.chunk_code
+    group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
+                       chunks=(cb, cb, cb, cc), compressors=compressors(),
+                       dimension_names=["bx", "by", "bz", "code"])
+    if code_dtype == "int8":
+        group.create_array("code_scale", shape=(*grid, 2), dtype="float32", fill_value=0, chunks=(cb, cb, cb, 2),
+                           compressors=compressors(), dimension_names=["bx", "by", "bz", "offset_scale"])
+    cgroup = group.create_group("codec")
+    for name, arr in state.items():
+        arr = np.ascontiguousarray(arr)
+        a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
+                                compressors=compressors())
+        a[...] = arr
+    return group
 
 
 def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu", tool: str | None = None,
@@ -390,8 +512,16 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         raise InvalidValueError(f"only local directory maps can be updated, got {path} (copy it locally first)")
     if not final.exists():
         raise MapNotFoundError(f"no map at {final}; create it with sdfcodec.create_map")
-    lock = _atomic.WriterLock(final, wait).acquire()
+    with _write_errors(final, "updating the map", _UNCHANGED):
+        lock = _atomic.WriterLock(final, wait).acquire()
     tmp = tmp_fd = None
+
+    def discard() -> None:
+        if tmp is not None:
+            _rmtree(tmp)
+            os.close(tmp_fd)
+        lock.release()
+
     try:
         src = open_reader(final, max_decode_bytes=max_decode_bytes)
         h = src.header
@@ -403,21 +533,22 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         states = src.block_states()
         root = src.local_root()
         source_id = _stat_id(Path(root))
-        tmp, tmp_fd = _atomic.make_temp_dir(final)
-        _atomic.link_tree(root, tmp)
-        src.close()
-        group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
+        with _write_errors(final, "updating the map", _UNCHANGED, cleanup=discard):
+            _collect_quietly(final)  # leftovers of writers killed earlier
+            tmp, tmp_fd = _atomic.make_temp_dir(final)
+            _atomic.link_tree(root, tmp)
+            src.close()
+            group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
                          provenance=prov, shape_voxels=h.shape_voxels)
         writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id}, header=h)
+    except WriteFailedError:
+        raise  # already cleaned up
     except BaseException:
-        if tmp is not None:
-            _rmtree(tmp)
-            os.close(tmp_fd)
-        lock.release()
+        discard()
         raise
     return writer
 
