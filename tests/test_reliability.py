@@ -57,6 +57,19 @@ def small_map(tmp_path, pca16) -> Path:
     return path
 
 
+def _kill_after(server, pid: int, delay: float) -> int:
+    """SIGKILL the worker's writer ``pid`` after ``delay`` s (unless it ended first); its exit status, which
+    must be success or the kill (a writer that fails on its own is a bug)."""
+    time.sleep(delay)
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    status = server.call(job="wait", pid=pid)["status"]
+    assert status in (0, -signal.SIGKILL), f"writer failed on its own (status {status})"
+    return status
+
+
 def _hidden(directory: Path) -> list[str]:
     return sorted(p.name for p in directory.iterdir() if p.name.startswith("."))
 
@@ -499,13 +512,7 @@ def _kill_at_random_times(server: Server, path: Path, n_kills: int, seed: int) -
     for i in range(n_kills):
         op = Versions.OPS[i % len(Versions.OPS)]
         pid = server.call(**v.command(op, None))["pid"]
-        time.sleep(rng.uniform(0, 1.1 * durations[op]))
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        status = server.call(job="wait", pid=pid)["status"]
-        assert status in (0, -signal.SIGKILL), f"writer failed on its own (status {status})"
+        status = _kill_after(server, pid, rng.uniform(0, 1.1 * durations[op]))
         killed += status == -signal.SIGKILL
         completed += v.check(op)
     # whatever killed writers left (temporaries, replaced versions, a lock file) goes with the next commit
@@ -680,13 +687,7 @@ def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_rea
         scale = 1.5
         for _ in range(n_kills):
             pid = server.call(job="tiny", path=str(path), gen=gen + 1, out=None)["pid"]
-            time.sleep(rng.uniform(0, scale * dur))
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            status = server.call(job="wait", pid=pid)["status"]
-            assert status in (0, -signal.SIGKILL), f"writer failed on its own (status {status})"
+            status = _kill_after(server, pid, rng.uniform(0, scale * dur))
             stats["killed"] += status == -signal.SIGKILL
             with sdfcodec.open_map(path) as m:
                 now = json.loads(m.header.provenance.tool)["gen"]
