@@ -427,7 +427,7 @@ CASES = [
      r"zarr\.json|UTF-8|metadata", None, "base"),
     ("root-metadata-bom", overwrite_bytes("zarr.json", lambda b: b"\xef\xbb\xbf" + b),
      r"zarr\.json|BOM|metadata", None, "base"),
-    ("root-metadata-duplicate-keys", overwrite_bytes("zarr.json", _duplicate_header), r"duplicate", None, "base"),
+    ("root-metadata-duplicate-keys", overwrite_bytes("zarr.json", _duplicate_header), r"twice", None, "base"),
     ("root-metadata-deeply-nested", raw("zarr.json", _nested(200_000)), r"zarr\.json|nested|metadata", None,
      "base"),
     ("codes-metadata-empty", raw("codes/zarr.json", b""), r"codes|metadata", None, "base"),

@@ -40,27 +40,29 @@ def chunk_read_limit(chunk_bytes: int) -> int:
     return 2 * chunk_bytes + (1 << 20)
 
 
-def _no_duplicates(pairs: list[tuple[str, object]]) -> dict:
-    seen = dict(pairs)
-    if len(seen) != len(pairs):
-        dup = next(k for i, (k, _) in enumerate(pairs) if k in dict(pairs[:i]))
-        raise ValueError(f"duplicate key {dup!r}")
-    return seen
-
-
 def check_metadata_document(key: str, data: bytes) -> None:
     """Refuse a ``zarr.json`` that is not one plain JSON object in UTF-8: a byte order mark, other encodings
     and duplicate keys (which parsers resolve differently, so two readers could see two maps) are refused
     here, nesting beyond the parser's recursion limit too, all as one-line FormatErrors naming ``key``."""
+    def no_duplicates(pairs: list[tuple[str, object]]) -> dict:
+        seen = dict(pairs)
+        if len(seen) != len(pairs):
+            dup = next(k for i, (k, _) in enumerate(pairs) if k in dict(pairs[:i]))
+            raise FormatError(f"{key} has the key {dup!r} twice in one object (parsers would disagree on which "
+                              "counts); refused")
+        return seen
+
     if data.startswith(b"\xef\xbb\xbf"):
         raise FormatError(f"{key} starts with a byte order mark; a map's metadata is plain UTF-8 JSON; refused")
     try:
-        doc = json.loads(data.decode("utf-8"), object_pairs_hook=_no_duplicates)
+        doc = json.loads(data.decode("utf-8"), object_pairs_hook=no_duplicates)
+    except FormatError:
+        raise
     except UnicodeDecodeError as e:
         raise FormatError(f"{key} is not UTF-8 ({e.reason} at byte {e.start}); refused") from None
     except RecursionError:
         raise FormatError(f"{key} is nested too deeply to be map metadata; refused") from None
-    except ValueError as e:  # JSONDecodeError, or a duplicate key
+    except ValueError as e:  # JSONDecodeError
         raise FormatError(f"{key} is not valid map metadata JSON ({str(e).splitlines()[0]}); refused") from None
     if not isinstance(doc, dict):
         raise FormatError(f"{key} holds a JSON {type(doc).__name__}, not the object Zarr metadata is; refused")
