@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
@@ -151,6 +152,17 @@ def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
+def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
+    """(dotted location, value) of the header's numeric fields that are present, list items included."""
+    for path in ("voxel_size", "truncation.d_min", "truncation.d_max", "origin", "block_size", "shape_voxels",
+                 "grid_blocks", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels"):
+        value: Any = raw
+        for key in path.split("."):
+            value = value.get(key) if isinstance(value, dict) else None
+        for i, v in enumerate(value) if isinstance(value, list) else [(None, value)]:
+            yield (path if i is None else f"{path}.{i}"), v
+
+
 def parse_header(raw: Any, where: str = "map") -> MapHeader:
     """Validate a header dict. Checks the format name and version *before* anything else, so a map from a
     newer sdfcodec is refused with both versions named, and unknown required extensions are refused."""
@@ -174,6 +186,10 @@ def parse_header(raw: Any, where: str = "map") -> MapHeader:
                 and ext["name"] not in KNOWN_EXTENSIONS:
             raise VersionError(f"{where}: needs extension {ext.get('name')!r}, which this sdfcodec "
                                f"(format version {FORMAT_VERSION}) does not know; upgrade sdfcodec")
+    for loc, value in _number_fields(raw):
+        # lax validation would read the string "0.02" (or true) as a number: a header stores JSON numbers
+        if isinstance(value, (str, bool)):
+            raise FormatError(f"{where}: invalid header field {loc}: a JSON number is required, got {value!r}")
     try:
         return MapHeader.model_validate(raw)
     except ValidationError as e:

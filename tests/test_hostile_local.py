@@ -1,6 +1,9 @@
 """Hostile local maps (issue 21, items 2 and 4): a small valid map is copied and edited the way an attacker or a
 broken disk would (metadata rewritten, chunk files and folders deleted, replaced, symlinked to another map or to
-/dev/zero, FIFOs, sockets, big-endian re-declarations, huge values...). Every case must end, within its timeout,
+/dev/zero, FIFOs, sockets, big-endian re-declarations, huge values, header fields of the wrong type or
+inconsistent with the arrays, ``zarr.json`` documents that are no UTF-8 JSON object or have duplicate keys,
+hostile int8 scales, codec state of the wrong shape, chunks emptied, bit-flipped or garbage under a valid
+checksum...). Every case must end, within its timeout,
 in a clean ``SDFCodecError`` naming what is wrong for every read (open, info, codes, decode, blocks, search) that
 fails, a decode that fails (nothing silently wrong), and a ``verify`` report with a matching problem; the maps a
 case links to still decode bit for bit.
@@ -186,6 +189,93 @@ def _blosc_claims(data: bytes) -> bytes:
     return data[:4] + (2**31 - 1).to_bytes(4, "little") + data[8:]
 
 
+def raw(key: str, data: bytes):
+    """Replace the bytes of ``key`` by ``data``."""
+    def edit(path: Path, ctx: dict) -> None:
+        (path / key).write_bytes(data)
+    return edit
+
+
+def flip_byte(key: str):
+    """Flip one bit of a byte in the middle of ``key`` (the checksum then disagrees)."""
+    return overwrite_bytes(key, lambda b: b[: len(b) // 2] + bytes([b[len(b) // 2] ^ 0x10]) + b[len(b) // 2 + 1:])
+
+
+def _with_crc32c(body: bytes) -> bytes:
+    import google_crc32c
+
+    return body + np.array([google_crc32c.value(body)], "<u4").tobytes()
+
+
+def garbage_with_checksum(key: str):
+    """Random bytes where Blosc data belongs, under a checksum that matches them."""
+    return overwrite_bytes(key, lambda b: _with_crc32c(os.urandom(max(len(b) - 4, 16))))
+
+
+def array_values(name: str, fn):
+    """Rewrite array ``name`` with ``fn(values)`` through zarr (valid chunks and checksums)."""
+    def edit(path: Path, ctx: dict) -> None:
+        arr = zarr.open_array(path / name, mode="r+")
+        arr[...] = fn(arr[...])
+    return edit
+
+
+def replace_codec_state(name: str, values, listed: bool = True):
+    """Write codec state array ``name`` anew as ``values`` (any shape/dtype), list it in ``state_arrays`` when
+    ``listed`` and update the header's digest to match."""
+    def edit(path: Path, ctx: dict) -> None:
+        from sdfcodec.map.format import compressors
+
+        _clear(path / "codec" / name)
+        values_ = np.asarray(values)  # stored the way a writer stores codec state (checksummed, one chunk)
+        arr = zarr.create_array(path / "codec" / name, shape=values_.shape, dtype=values_.dtype,
+                                chunks=values_.shape or (1,), compressors=compressors(), zarr_format=3)
+        arr[...] = values_
+        group = zarr.open_group(path, mode="r")
+        names = list(group.attrs["sdfcodec"]["codec"]["state_arrays"])
+        if listed and name not in names:
+            names.append(name)
+        state = {n: zarr.open_array(path / "codec" / n, mode="r")[...] for n in names}
+
+        def fix(h):
+            h["codec"]["state_arrays"] = names
+            h["codec"]["state_sha256"] = state_digest(state)
+        header(fix)(path, ctx)
+    return edit
+
+
+def _del(dotted: str):
+    def fn(d: dict) -> None:
+        *head, last = dotted.split(".")
+        for k in head:
+            d = d[k]
+        del d[last]
+    return fn
+
+
+def _column(col: int, fn):
+    """``fn`` applied to column ``col`` of the int8 map's (offset, scale) pairs."""
+    def apply(a: np.ndarray) -> np.ndarray:
+        a = a.copy()
+        a[..., col] = fn(a[..., col])
+        return a
+    return apply
+
+
+def _nested(depth: int) -> bytes:
+    return (b'{"zarr_format": 3, "node_type": "group", "attributes": {"x": ' + b"[" * depth + b"]" * depth
+            + b"}}")
+
+
+def _duplicate_header(b: bytes) -> bytes:
+    """The root document with a second ``attributes`` key: a parser keeping the first sees other voxels."""
+    doc = json.loads(b)
+    other = json.loads(b)
+    other["attributes"]["sdfcodec"]["voxel_size"] = 0.5
+    body = json.dumps(doc)[1:-1]
+    return ("{" + json.dumps("attributes") + ": " + json.dumps(other["attributes"]) + ", " + body + "}").encode()
+
+
 LINK = r"symbolic link"
 # (id, edit, what decode errors must say, what a verify problem must say (None: the same), map)
 CASES = [
@@ -287,6 +377,115 @@ CASES = [
     ("header-codes-dtype-mismatch", header(lambda h: _set(h, "codes.dtype", "float16")), r"data type", None, "base"),
     ("header-truncation-inverted", header(lambda h: h.update(truncation={"d_min": 0.1, "d_max": -0.04})),
      r"truncation|d_min", None, "base"),
+    # header fields: wrong types, non-finite or inconsistent values, fields missing, the future
+    ("header-voxel-size-zero", header(lambda h: h.update(voxel_size=0.0)), r"voxel_size", None, "base"),
+    ("header-voxel-size-negative", header(lambda h: h.update(voxel_size=-0.02)), r"voxel_size", None, "base"),
+    ("header-voxel-size-nan", header(lambda h: h.update(voxel_size=float("nan"))), r"voxel_size", None, "base"),
+    ("header-voxel-size-string", header(lambda h: h.update(voxel_size="0.02")), r"voxel_size", None, "base"),
+    ("header-voxel-size-missing", header(_del("voxel_size")), r"voxel_size", None, "base"),
+    ("header-truncation-nan", header(lambda h: _set(h, "truncation.d_max", float("nan"))), r"truncation|d_max",
+     None, "base"),
+    ("header-truncation-equal", header(lambda h: h.update(truncation={"d_min": 0.05, "d_max": 0.05})),
+     r"truncation|d_min", None, "base"),
+    ("header-origin-nan", header(lambda h: h.update(origin=[float("nan"), 0.0, 0.0])), r"origin", None, "base"),
+    ("header-origin-inf", header(lambda h: h.update(origin=[0.0, float("inf"), 0.0])), r"origin", None, "base"),
+    ("header-origin-two-values", header(lambda h: h.update(origin=[0.0, 0.0])), r"origin", None, "base"),
+    ("header-grid-blocks-smaller-than-arrays", header(lambda h: h.update(grid_blocks=[2, 3, 3])),
+     r"grid_blocks|shape", None, "base"),
+    ("header-shape-voxels-beyond-grid", header(lambda h: h.update(shape_voxels=[480, 40, 36])),
+     r"shape_voxels|grid_blocks", None, "base"),
+    ("header-block-size-8", header(lambda h: h.update(block_size=8)), r"block_size|block", None, "base"),
+    ("header-format-version-future", header(lambda h: h.update(format_version=99)), r"format_version|version",
+     None, "base"),
+    ("header-format-name-wrong", header(lambda h: h.update(format="other-map")), r"format", None, "base"),
+    ("header-unknown-required-extension", header(lambda h: h.setdefault("extensions", []).append(
+        {"name": "x-future-transform", "required": True})), r"x-future-transform", None, "base"),
+    ("header-codec-id-unknown", header(lambda h: (_set(h, "codec.id", "no-such-codec"),
+                                                  _set(h, "codec.config.id", "no-such-codec"))),
+     r"no-such-codec", None, "base"),
+    ("header-codec-config-unknown-field", header(lambda h: _set(h, "codec.config.__class__", "os.system")),
+     r"__class__|config", None, "base"),
+    ("header-codec-config-code-size-mismatch", header(lambda h: _set(h, "codec.config.code_size", 32)),
+     r"does not fit|code_size|size", None, "base"),
+    ("header-state-arrays-dotdot", header(lambda h: _set(h, "codec.state_arrays", ["../codes", "mean"])),
+     r"\.\.|state_arrays|codes", None, "base"),
+    ("header-state-arrays-absolute", header(lambda h: _set(h, "codec.state_arrays", ["/etc/passwd"])),
+     r"/etc/passwd|state_arrays", None, "base"),
+    ("header-state-digest-wrong", header(lambda h: _set(h, "codec.state_sha256", "0" * 64)), r"digest",
+     r"state_sha256|digest", "base"),
+    ("header-codes-size-mismatch", header(lambda h: _set(h, "codes.size", 32)), r"size|shape", None, "base"),
+    ("header-codes-levels-beyond-size", header(lambda h: _set(h, "codes.levels", [32, 64, 1000])), r"levels",
+     None, "base"),
+    ("header-codes-chunk-code-zero", header(lambda h: _set(h, "codes.chunk_code", 0)), r"chunk_code|chunks",
+     None, "base"),
+    ("header-codec-missing", header(_del("codec")), r"codec", None, "base"),
+    ("header-missing", meta("", lambda d: d["attributes"].pop("sdfcodec")), r"sdfcodec|header", None, "base"),
+    ("header-is-a-list", meta("", lambda d: d["attributes"].update(sdfcodec=[1, 2, 3])), r"sdfcodec|header",
+     None, "base"),
+    # zarr.json documents that are not the JSON objects they must be
+    ("root-metadata-not-utf8", overwrite_bytes("zarr.json", lambda b: b.replace(b"0.02", b"0.0\xff2")),
+     r"zarr\.json|UTF-8|metadata", None, "base"),
+    ("root-metadata-bom", overwrite_bytes("zarr.json", lambda b: b"\xef\xbb\xbf" + b),
+     r"zarr\.json|BOM|metadata", None, "base"),
+    ("root-metadata-duplicate-keys", overwrite_bytes("zarr.json", _duplicate_header), r"twice", None, "base"),
+    ("root-metadata-deeply-nested", raw("zarr.json", _nested(200_000)), r"zarr\.json|nested|metadata", None,
+     "base"),
+    ("codes-metadata-empty", raw("codes/zarr.json", b""), r"codes|metadata", None, "base"),
+    ("codes-metadata-json-array", raw("codes/zarr.json", b"[3, 3, 3, 64]"), r"codes|metadata", None, "base"),
+    ("root-metadata-json-null", raw("zarr.json", b"null"), r"zarr\.json|metadata|map", None, "base"),
+    ("codes-metadata-not-utf8", overwrite_bytes("codes/zarr.json", lambda b: b"\xff\xfe" + b),
+     r"codes|UTF-8|metadata", None, "base"),
+    # int8 scales and offsets: checksum-valid but unusable
+    ("int8-scale-nan", array_values("code_scale", _column(1, lambda c: np.full_like(c, np.nan))), r"NaN|scale",
+     None, "int8"),
+    ("int8-scale-huge", array_values("code_scale", _column(1, lambda c: np.full_like(c, 1e30))),
+     r"absurd|scale", None, "int8"),
+    ("int8-scale-negative", array_values("code_scale", _column(1, lambda c: -c)), r"negative int8 scale", None,
+     "int8"),
+    ("int8-code-scale-metadata-deleted", delete("code_scale/zarr.json"), r"lacks array 'code_scale'", None,
+     "int8"),
+    ("int8-offset-inf", array_values("code_scale", _column(0, lambda c: np.full_like(c, np.inf))),
+     r"NaN|Inf|offset|scale", None, "int8"),
+    ("int8-offset-huge", array_values("code_scale", _column(0, lambda c: np.full_like(c, 3e38))),
+     r"absurd|offset|scale", None, "int8"),
+    ("int8-code-scale-dtype-float64", meta("code_scale", lambda d: d.update(data_type="float64")),
+     r"data type float64", None, "int8"),
+    ("int8-code-scale-shape-wrong", meta("code_scale", lambda d: d.update(shape=[3, 3, 3, 3])), r"shape", None,
+     "int8"),
+    ("int8-code-scale-without-checksum", meta("code_scale", lambda d: d.update(codecs=d["codecs"][:-1])),
+     r"crc32c", None, "int8"),
+    # block states: reserved values, wrong shape, no checksum
+    ("state-reserved-value", array_values("state", lambda s: np.where(s == 2, 7, s).astype(s.dtype)),
+     r"state", None, "base"),
+    ("state-shape-wrong", meta("state", lambda d: d.update(shape=[3, 3, 4])), r"shape", None, "base"),
+    ("state-without-checksum", meta("state", lambda d: d.update(codecs=d["codecs"][:-1])), r"crc32c", None,
+     "base"),
+    ("state-shape-over-limits", meta("state", lambda d: (d.update(shape=[2**40] * 3), _set(
+        d, "chunk_grid.configuration.chunk_shape", [2**20] * 3))), r"shape|grid_blocks|limit", None, "base"),
+    ("codes-shape-over-limits", meta("codes", lambda d: d.update(shape=[2**40, 2**40, 2**40, 64])),
+     r"shape|limit", None, "base"),
+    # codec state arrays missing, extra or of the wrong shape/dtype (digests made to match)
+    ("codec-state-array-missing", delete("codec/mean"), r"mean", None, "base"),
+    ("codec-mean-wrong-length", replace_codec_state("mean", np.zeros(4095, np.float32)), r"mean|shape", None,
+     "base"),
+    ("codec-components-wrong-shape", replace_codec_state("components", np.zeros((32, 4096), np.float32)),
+     r"components|shape", None, "base"),
+    ("codec-explained-variance-2d", replace_codec_state("explained_variance", np.ones((8, 8), np.float32)),
+     r"explained_variance|shape", None, "base"),
+    ("codec-mean-metadata-says-float64", meta("codec/mean", lambda d: d.update(data_type="float64")),
+     r"mean|float64|digest|corrupted", None, "base"),
+    # chunk files emptied, with a flipped bit, or garbage under a valid checksum
+    ("chunk-empty-file", raw(CHUNK, b""), r"codes/c/0/0/0/0|corrupted|truncated|checksum", None, "base"),
+    ("chunk-one-flipped-bit", flip_byte(CHUNK), r"checksum|corrupted", None, "base"),
+    ("chunk-garbage-under-valid-checksum", garbage_with_checksum(CHUNK), r"corrupted|claims|Blosc|codes",
+     None, "base"),
+    ("state-chunk-empty-file", raw(STATE_CHUNK, b""), r"state|corrupted|truncated|checksum", None, "base"),
+    ("state-chunk-one-flipped-bit", flip_byte(STATE_CHUNK), r"checksum|corrupted", None, "base"),
+    ("codec-state-chunk-empty-file", raw(MEAN_CHUNK, b""), r"mean|corrupted|truncated|checksum|digest", None,
+     "base"),
+    ("int8-code-scale-chunk-flipped-bit", flip_byte("code_scale/c/0/0/0/0"), r"checksum|corrupted", None, "int8"),
+    ("int8-code-chunk-garbage-under-valid-checksum", garbage_with_checksum(CHUNK),
+     r"corrupted|claims|Blosc|codes", None, "int8"),
 ]
 
 
@@ -390,7 +589,7 @@ def test_hostile_local_case(case, maps, tmp_path):
 
 def test_case_count():
     """docs/reliability.md quotes this count."""
-    assert len(CASES) >= 40 and len({c[0] for c in CASES}) == len(CASES)
+    assert len(CASES) >= 100 and len({c[0] for c in CASES}) == len(CASES)
 
 
 def test_follow_symlinks_opt_in(maps, tmp_path):

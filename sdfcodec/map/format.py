@@ -21,11 +21,12 @@ from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCode
 from ..codec import Codec
 from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..header import CodesSpec
+from ..quantize import dequantize_codes
 
 __all__ = ["DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
-           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes", "free_space",
-           "is_dask_array"]
+           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
+           "code_values", "free_space", "is_dask_array"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
 #: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
@@ -197,6 +198,18 @@ def check_codes(codes: np.ndarray) -> None:
     """Refuse NaN/Inf codes out of an encoder before they are stored."""
     if not np.isfinite(codes).all():
         raise InvalidValueError("the codec produced NaN/Inf codes; the input or the codec state is broken")
+
+
+def code_values(codes: np.ndarray, params: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Stored ``codes`` (N, k) as float32 values (dequantised with their ``(offset, scale)`` rows ``params``
+    (N, 2) for int8 maps), and ``(N,)`` bool: which rows are usable. A row is not when a value is NaN/Inf, or
+    when its int8 scale is negative: writers store ``(max - min) / 254``, so only a corrupted (checksum-valid)
+    chunk holds one, and it would decode mirrored codes within every bound."""
+    if params is None:
+        out = codes.astype(np.float32, copy=False)
+        return out, np.isfinite(out).all(axis=1)
+    out = dequantize_codes(codes, params)
+    return out, np.isfinite(out).all(axis=1) & ~(params[:, 1] < 0)
 
 
 def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | None = None,

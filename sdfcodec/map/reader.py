@@ -30,10 +30,9 @@ from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, SDFCodecError, ShapeError
 from ..errors import RemoteReadError
 from ..header import BlockState, MapHeader, parse_header
-from ..quantize import dequantize_codes
 from ..registry import get_codec_class
 from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, chunk_ranges, state_digest, unstored_suspects)
+                     check_array_metadata, check_coords, chunk_ranges, code_values, state_digest, unstored_suspects)
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -427,15 +426,14 @@ class MapReader:
 
     def _code_values(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> np.ndarray:
         """Stored ``codes`` of blocks ``coords`` as float32 (dequantised with their ``code_scale`` rows
-        ``params`` for int8 maps), refusing NaN/Inf (a corrupted but checksum-valid chunk) by naming a block."""
+        ``params`` for int8 maps), refusing NaN/Inf or a negative scale (a corrupted, checksum-valid chunk)."""
         self._check_stored(coords, codes, params)
-        out = codes.astype(np.float32, copy=False) if params is None else dequantize_codes(codes, params)
-        finite = np.isfinite(out).all(axis=1)
+        out, finite = code_values(codes, params)
         if not finite.all():
             bad = coords[~finite]
-            raise FormatError(f"{self.location}: {len(bad)} coded block(s) hold NaN/Inf code values, e.g. block "
-                              f"{tuple(int(v) for v in bad[0])}; the map is corrupted there (`sdfcodec verify` lists "
-                              "them): restore it from a copy or re-encode those blocks")
+            raise FormatError(f"{self.location}: {len(bad)} coded block(s) hold NaN/Inf code values (or a negative "
+                              f"int8 scale), e.g. block {tuple(int(v) for v in bad[0])}; the map is corrupted there "
+                              "(`sdfcodec verify` lists them): restore it from a copy or re-encode those blocks")
         return out
 
     def _check_stored(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> None:

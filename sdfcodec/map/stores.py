@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import json
 import os
 import stat
 import weakref
@@ -27,7 +28,7 @@ from .remote import remote_store
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
 __all__ = ["MAX_METADATA_BYTES", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
-           "unguarded", "chunk_read_limit"]
+           "unguarded", "chunk_read_limit", "check_metadata_document"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
 MAX_METADATA_BYTES = 16 << 20
@@ -37,6 +38,34 @@ def chunk_read_limit(chunk_bytes: int) -> int:
     """Most bytes a stored chunk of ``chunk_bytes`` decoded bytes may take: compression can grow incompressible
     data a little, never to twice its size plus 1 MiB."""
     return 2 * chunk_bytes + (1 << 20)
+
+
+def check_metadata_document(key: str, data: bytes) -> None:
+    """Refuse a ``zarr.json`` that is not one plain JSON object in UTF-8: a byte order mark, other encodings
+    and duplicate keys (which parsers resolve differently, so two readers could see two maps) are refused
+    here, nesting beyond the parser's recursion limit too, all as one-line FormatErrors naming ``key``."""
+    def no_duplicates(pairs: list[tuple[str, object]]) -> dict:
+        seen = dict(pairs)
+        if len(seen) != len(pairs):
+            dup = next(k for i, (k, _) in enumerate(pairs) if k in dict(pairs[:i]))
+            raise FormatError(f"{key} has the key {dup!r} twice in one object (parsers would disagree on which "
+                              "counts); refused")
+        return seen
+
+    if data.startswith(b"\xef\xbb\xbf"):
+        raise FormatError(f"{key} starts with a byte order mark; a map's metadata is plain UTF-8 JSON; refused")
+    try:
+        doc = json.loads(data.decode("utf-8"), object_pairs_hook=no_duplicates)
+    except FormatError:
+        raise
+    except UnicodeDecodeError as e:
+        raise FormatError(f"{key} is not UTF-8 ({e.reason} at byte {e.start}); refused") from None
+    except RecursionError:
+        raise FormatError(f"{key} is nested too deeply to be map metadata; refused") from None
+    except ValueError as e:  # JSONDecodeError
+        raise FormatError(f"{key} is not valid map metadata JSON ({str(e).splitlines()[0]}); refused") from None
+    if not isinstance(doc, dict):
+        raise FormatError(f"{key} holds a JSON {type(doc).__name__}, not the object Zarr metadata is; refused")
 
 
 def is_url(s: str) -> bool:
@@ -95,6 +124,8 @@ class GuardStore(zarr.storage.WrapperStore):
             return buf
         if meta and len(buf) > MAX_METADATA_BYTES:
             raise meta_error(len(buf))
+        if meta:
+            check_metadata_document(key, buf.to_bytes())
         if limit and limit[1] and len(buf) >= 16:
             # Blosc header: bytes 4..8 hold the uncompressed size, which decompression would allocate
             claimed = int.from_bytes(bytes(buf.as_numpy_array()[4:8]), "little")
