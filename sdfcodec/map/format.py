@@ -110,6 +110,9 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
         raise FormatError(f"{where} has shape {tuple(arr.shape)}, expected {tuple(shape)} (from the header)")
     if chunks is not None and ch != tuple(chunks):
         raise FormatError(f"{where} has chunks {ch}, expected {tuple(chunks)} (from the header)")
+    if len(ch) != len(arr.shape) or any(c < 1 for c in ch):
+        # Zarr accepts a zero chunk edge in metadata; every chunk index computation would divide by it
+        raise FormatError(f"{where} has chunk shape {ch}; every chunk edge must be >= 1, one per axis")
     bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs
            if not isinstance(c, ALLOWED_ZARR_CODECS)]
     if bad:
