@@ -92,7 +92,8 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     """Validate an array's metadata against the spec *before* reading from it (``where`` names it in errors).
 
     Returns:
-        ``(chunk_bytes, blosc_first)``: the decoded size of one chunk, and whether Blosc decodes its bytes
+        ``(chunk_bytes, blosc_frame)``: the decoded size of one chunk, and whether a stored chunk is one Blosc
+        frame followed by its CRC32C (the writers' chain; then the frame can be checked unread); formerly: whether Blosc decodes its bytes
         first (then a chunk's Blosc header can be checked against that size unread, :class:`GuardStore`).
     """
     try:
@@ -139,8 +140,11 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     chunk_bytes = math.prod(ch) * dt.itemsize
     if zero_fill and not (np.ndim(fill) == 0 and np.asarray(fill) == 0):
         raise FormatError(f"{where} has fill value {fill!r}; the spec requires 0")
-    first = next((c for c in codecs if not isinstance(c, BytesCodec)), None)
-    return chunk_bytes, isinstance(first, BloscCodec)
+    # the writers' chain (bytes, blosc, crc32c): a stored chunk is one Blosc frame and its 4-byte checksum, so
+    # the guard can check the frame's structure before the C decompressor trusts it
+    blosc_frame = (len(codecs) == 3 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+                   and isinstance(codecs[2], Crc32cCodec))
+    return chunk_bytes, blosc_frame
 
 
 def chunk_ranges(arr: zarr.Array, sel: tuple) -> list[range]:

@@ -27,7 +27,7 @@ from .. import _atomic
 from .remote import remote_store
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-__all__ = ["MAX_METADATA_BYTES", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
+__all__ = ["MAX_METADATA_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
            "unguarded", "chunk_read_limit", "check_metadata_document"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
@@ -126,13 +126,46 @@ class GuardStore(zarr.storage.WrapperStore):
             raise meta_error(len(buf))
         if meta:
             check_metadata_document(key, buf.to_bytes())
-        if limit and limit[1] and len(buf) >= 16:
-            # Blosc header: bytes 4..8 hold the uncompressed size, which decompression would allocate
-            claimed = int.from_bytes(bytes(buf.as_numpy_array()[4:8]), "little")
-            if claimed > limit[0]:
-                raise ChecksumError(f"chunk {key} claims {claimed} bytes uncompressed, more than its shape holds "
-                                    f"({limit[0]}); refused without decompressing")
+        if limit and limit[1]:
+            problem = blosc_frame_problem(bytes(buf.as_numpy_array()[:-4]), limit[0])
+            if problem:
+                raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without "
+                                    "decompressing")
         return buf
+
+
+def blosc_frame_problem(frame: bytes, max_nbytes: int) -> str | None:
+    """What is wrong with the structure of a Blosc (version 1 format) frame, or None. The C decompressor trusts
+    the frame's header and block offsets: a frame cut short, or with a tampered header, would make it read or
+    write outside its buffers (a crash, not an error) or allocate what the header claims (a bomb). Checked:
+    the header's compressed size is the frame's, the uncompressed size fits the chunk, and the block-start table
+    and each block's first stream length lie inside the frame."""
+    if len(frame) < 16:
+        return f"{len(frame)} bytes, shorter than a Blosc header"
+    flags = frame[2]
+    nbytes, blocksize, cbytes = (int.from_bytes(frame[i:i + 4], "little") for i in (4, 8, 12))
+    if nbytes > max_nbytes:
+        return f"it claims {nbytes} bytes uncompressed, more than its shape holds ({max_nbytes})"
+    if cbytes != len(frame):
+        return f"its header gives {cbytes} compressed bytes, the chunk holds {len(frame)}"
+    if flags & 0x02:  # stored uncompressed (memcpyed): the data follows the header
+        return None if cbytes == nbytes + 16 else f"a stored frame of {nbytes} bytes cannot be {cbytes} long"
+    if nbytes == 0:
+        return None
+    if blocksize == 0 or blocksize > max(nbytes, 1 << 31):
+        return f"block size {blocksize} for {nbytes} bytes"
+    nblocks = -(-nbytes // blocksize)
+    table = 16 + 4 * nblocks
+    if table > cbytes:
+        return f"{nblocks} blocks do not fit their offset table in {cbytes} bytes"
+    for i in range(nblocks):
+        start = int.from_bytes(frame[16 + 4 * i:20 + 4 * i], "little", signed=True)
+        if not table <= start <= cbytes - 4:
+            return f"block {i} starts at byte {start}, outside the frame's data [{table}, {cbytes - 4}]"
+        first = int.from_bytes(frame[start:start + 4], "little", signed=True)
+        if first > cbytes - start - 4:
+            return f"block {i}'s first stream claims {first} bytes, past the end of the frame"
+    return None
 
 
 _KINDS = ((stat.S_ISLNK, "a symbolic link"), (stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
