@@ -309,7 +309,7 @@ def test_bad_arrays_are_clear_errors(small_map, pca16, tmp_path):
     # NaN codes in a stored (checksum-valid) chunk: a clear error naming the block, never NaN metres
     _set_codes(small_map, [[2, 1, 0]], [np.full(16, np.inf)])
     r = sdfcodec.open_map(small_map)
-    with pytest.raises(errors.FormatError, match=r"NaN/Inf code values, e.g. block \(2, 1, 0\)"):
+    with pytest.raises(errors.FormatError, match=r"NaN/Inf code values.*, e.g. block \(2, 1, 0\)"):
         r.decode_region()
     with pytest.raises(errors.FormatError, match="NaN/Inf"):
         r.read_codes()
