@@ -50,6 +50,11 @@ def _cli(fn: Callable) -> Callable:
             _fail(f"{e.strerror or e}: {e.filename}" if getattr(e, "filename", None) else str(e))
         except SDFCodecError as e:
             _fail(str(e))
+        except OSError as e:  # any other file-system failure (a full disk under an output, a path through a file)
+            name = errno.errorcode.get(e.errno or 0, "")
+            advice = WriteFailedError.ADVICE.get(name, "check the path and the file system and run again")
+            where = f": {e.filename}" if getattr(e, "filename", None) else ""
+            _fail(f"{e.strerror or e}{where}; {advice}")
         finally:
             warnings.showwarning = old
 

@@ -231,3 +231,16 @@ def test_track_cli_against_a_compressed_map(tmp_path):
     est, gt = read_tum(tmp_path / "traj.txt"), read_tum(seq / "groundtruth.txt")
     assert len(est) == 8
     assert ate(gt, est).mean < 0.05  # started from ground truth, an 8-frame slow pan stays within centimetres
+
+
+def test_file_system_failures_are_one_line(tmp_path):
+    """An output the file system refuses, in a command without a dedicated write path (here: search --out under
+    a plain file), is one line on stderr and exit status 1, never a traceback."""
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.full((32, 32, 32), 0.1, np.float32) - np.linspace(0, 0.14, 32, dtype=np.float32)[None, None, :])
+    r = run("encode", str(vol), str(tmp_path / "m.sdfz"), "--codec", "raw", "--voxel-size", "0.02")
+    assert r.exit_code == 0, r.output
+    (tmp_path / "afile").write_text("not a directory")
+    r = run("search", str(tmp_path / "m.sdfz"), "--query", "floor", "--out", str(tmp_path / "afile" / "sub"))
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    assert r.output.startswith("error: ") and "afile" in r.output and r.output.count("\n") == 1, r.output
