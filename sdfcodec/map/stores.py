@@ -127,14 +127,15 @@ class GuardStore(zarr.storage.WrapperStore):
         if meta:
             check_metadata_document(key, buf.to_bytes())
         if limit and limit[1]:
-            problem = blosc_frame_problem(bytes(buf.as_numpy_array()[:-4]), limit[0])
+            # a view, not a copy: only the header, the offset table and a few stream lengths are read
+            problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
             if problem:
                 raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without "
                                     "decompressing")
         return buf
 
 
-def blosc_frame_problem(frame: bytes, max_nbytes: int) -> str | None:
+def blosc_frame_problem(frame: bytes | memoryview, max_nbytes: int) -> str | None:
     """What is wrong with the structure of a Blosc (version 1 format) frame, or None. The C decompressor trusts
     the frame's header and block offsets: a frame cut short, or with a tampered header, would make it read or
     write outside its buffers (a crash, not an error) or allocate what the header claims (a bomb). Checked:
