@@ -14,7 +14,7 @@ import torch
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty"]  # public through sdfcodec.plugin
+__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty"]  # public through sdfcodec.plugin
 
 BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 
@@ -55,6 +55,25 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
         raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
                                 "(replace unobserved voxels with the truncation distance d_max)")
     return t, was_numpy
+
+
+def check_weights(weights: Any, n: int, device: torch.device) -> torch.Tensor:
+    """Per-voxel error weights ``(n, 16, 16, 16)`` as float32 on ``device``: floating point, bool (an
+    observation mask) or integer (observation counts); finite and non-negative.
+
+    Raises:
+        ShapeError, DTypeError: not ``(n, 16, 16, 16)``, or not a number type.
+        InvalidValueError: NaN, infinite or negative weights.
+    """
+    if isinstance(weights, np.ndarray) and weights.dtype.kind in "biu":
+        weights = weights.astype(np.float32)
+    elif isinstance(weights, torch.Tensor) and not weights.is_floating_point() and not weights.is_complex():
+        weights = weights.to(torch.float32)
+    w, _ = as_float_tensor(weights, "weights", (n, BLOCK, BLOCK, BLOCK))
+    if w.numel() and bool(w.min() < 0):
+        raise InvalidValueError(f"weights must be non-negative (0 = unobserved), got {int((w < 0).sum())} negative "
+                                "value(s)")
+    return w.to(device)
 
 
 def like_input(t: torch.Tensor, was_numpy: bool) -> Any:

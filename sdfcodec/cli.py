@@ -333,7 +333,7 @@ def encode_cmd(
             m.mark_empty(np.argwhere(src_map.block_states() == 1))
             for coords, blocks in src_map.iter_blocks():
                 # a lossy decode overshoots the truncation a little: clip quietly, that is not bad input
-                m.write_blocks(coords, np.clip(blocks, *trunc))
+                m.write_blocks(coords, np.clip(blocks, *trunc), observed=src_map.read_observed(coords))
                 prog.advance(task, len(coords))
         else:
             nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
@@ -394,7 +394,7 @@ def fuse_cmd(
     truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
     depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 storage of the field (int8: per-block offset and scale)."),
-    weights: bool = typer.Option(False, "--weights", help="Also store the per-voxel fusion weights."),
+    weights: bool = typer.Option(True, "--weights/--no-weights", help="Store the per-voxel fusion weights (which voxels were observed: transcoding keeps them as a mask)."),
     overwrite: bool = typer.Option(False, "--overwrite"),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
@@ -412,7 +412,8 @@ def fuse_cmd(
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse",
                     source=str(sequence)) as m:
-        m.write_blocks(fused.coords, fused.tsdf, weights=fused.weights if weights else None)
+        observation = {"weights": fused.weights} if weights else {"observed": fused.weights > 0}
+        m.write_blocks(fused.coords, fused.tsdf, **observation)
     info = m.info()
     summary = {"output": str(output), "frames_integrated": fused.frames_integrated,
                "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],

@@ -9,8 +9,8 @@ The public ``fit`` / ``encode`` / ``decode`` of this base class check and conver
 that follow it (numpy in, numpy out; a tensor in, a tensor on its device out).
 
 Optional public hooks, each with a default that is correct for every codec (spec section 4):
-:meth:`Codec.decode_affine`, :meth:`Codec.decode_bound` (decode on read) and :meth:`Codec.fit_batches`
-(streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained`. Benchmark shapes are
+:meth:`Codec.decode_affine`, :meth:`Codec.decode_bound` (decode on read), :meth:`Codec.encode_weighted`
+(per-voxel error weights: unobserved voxels and surfaces) and :meth:`Codec.fit_batches` (streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained`. Benchmark shapes are
 registered with :func:`sdfcodec.bench.register_bench`, not declared here. Plugin authors import their tools
 from :mod:`sdfcodec.plugin`; :func:`sdfcodec.testing.check_codec` checks the contract.
 """
@@ -26,7 +26,7 @@ from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping
 import numpy as np
 import torch
 
-from ._validate import BLOCK, as_float_tensor, like_input
+from ._validate import BLOCK, as_float_tensor, check_weights, like_input
 from .errors import InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
 __all__ = ["Codec", "BLOCK"]
@@ -147,16 +147,20 @@ class Codec(abc.ABC):
         self.fit_batches(checked)
         return self
 
-    def encode(self, blocks: Any) -> Any:
+    def encode(self, blocks: Any, weights: Any = None) -> Any:
         """Encode normalised blocks ``(N, 16, 16, 16)`` to codes ``(N, code_size)`` (float32).
 
-        numpy in gives numpy out; a torch tensor gives a tensor on the same device.
+        ``weights``, optional: ``(N, 16, 16, 16)`` finite, non-negative per-voxel weights of the error (spec
+        section 4a): the codec makes the error small where the weight is large, and a voxel of weight 0 (not
+        observed) does not matter at all; they go to :meth:`encode_weighted`. numpy in gives numpy out; a torch
+        tensor gives a tensor on the same device.
         """
         self._check_fitted()
         t, was_numpy = as_float_tensor(blocks, "blocks", (None, BLOCK, BLOCK, BLOCK))
+        w = None if weights is None else check_weights(weights, len(t), t.device)
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, self.code_size)), was_numpy)
-        return like_input(self._encode(t), was_numpy)
+        return like_input(self._encode(t) if w is None else self.encode_weighted(t, w), was_numpy)
 
     def _checked_codes(self, codes: Any) -> tuple[torch.Tensor, bool]:
         """``codes`` as a float32 tensor, checked: finite, ``(N, k)`` with ``k == code_size`` or, for prefix-ordered
@@ -231,6 +235,14 @@ class Codec(abc.ABC):
         NaN/Inf (a broken learned state) with a pass over the output; a finite bound proves them finite
         without it (PCA: from the codes and its basis)."""
         return None
+
+    def encode_weighted(self, blocks: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Hook: codes ``(N, code_size)`` for checked blocks ``(N, 16, 16, 16)`` float32 that minimise the
+        weighted error ``sum_j weights_j (x_j - decode(code)_j)^2`` of each block as well as the codec can, for
+        checked weights of the same shape (finite, >= 0; a block of all-zero weights gets ``_encode``'s code).
+        :meth:`encode` calls it when given weights. The default ignores the weights (``_encode(blocks)``): every
+        codec accepts them; a codec that can use them overrides it (PCA solves the weighted least squares)."""
+        return self._encode(blocks)
 
     def fit_batches(self, batches: Iterator[np.ndarray]) -> None:
         """Hook: learn from an iterator of checked float32 numpy batches ``(N_i, 16, 16, 16)``

@@ -41,6 +41,9 @@ __all__ = ["PCACodec", "SHIPPED_MODEL"]
 
 _N = 16 ** 3
 SHIPPED_MODEL = "pca-128.npz"  # in this package's models/
+#: Relative Tikhonov weight of the weighted encode (towards the plain projection), times the mean weight.
+RIDGE = 1e-4
+_GRAM_TABLE_MAX_K = 128  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
 
 
 class PCACodec(Codec):
@@ -217,6 +220,52 @@ class PCACodec(Codec):
 
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         return self.decode_affine(codes, 1.0, 0.0)
+
+    def encode_weighted(self, blocks: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """The weighted least-squares code of each block: ``c = argmin sum_j w_j (x_j - (c D + d)_j)^2 +
+        lam |c - c0|^2`` with ``c0`` the plain projection and ``lam = RIDGE * mean(w)`` (a block of zero weights
+        keeps ``c0``; the ridge keeps the normal equations well posed when few voxels are observed).
+
+        Batched: the Gram matrices ``D diag(w) D^T`` of all blocks come from one matrix product of the weights
+        with the precomputed outer products of the basis columns (upper triangles only), then one batched
+        Cholesky solve; no loop over blocks."""
+        n = len(blocks)
+        x = blocks.reshape(n, _N)
+        w = weights.reshape(n, _N)
+        c0 = self._encode(blocks)
+        dec_w, dec_b = self._on(blocks.device)[2:]
+        k = c0.shape[1]
+        out = torch.empty_like(c0)
+        step = max(1, min(n, (64 << 20) // (4 * k * k)))  # Gram matrices of one batch: <= 64 MiB
+        for i in range(0, n, step):
+            sl = slice(i, i + step)
+            gram = self._gram(w[sl], dec_w)
+            lam = RIDGE * w[sl].mean(dim=1).clamp_min(1e-12)
+            gram.diagonal(dim1=1, dim2=2).add_(lam[:, None])
+            rhs = torch.addmm(lam[:, None] * c0[sl], w[sl] * (x[sl] - dec_b), dec_w.T)
+            chol, info = torch.linalg.cholesky_ex(gram)
+            sol = torch.cholesky_solve(rhs[:, :, None], chol)[:, :, 0]
+            # a numerically singular system (never seen; guard anyway): keep the plain projection there
+            out[sl] = torch.where((info == 0)[:, None] & torch.isfinite(sol).all(dim=1, keepdim=True), sol, c0[sl])
+        return out
+
+    def _gram(self, w: torch.Tensor, dec_w: torch.Tensor) -> torch.Tensor:
+        """``(n, k, k)`` Gram matrices ``D diag(w_i) D^T`` for weights ``w`` ``(n, 4096)``."""
+        k = dec_w.shape[0]
+        if k > _GRAM_TABLE_MAX_K:  # the outer-product table would be too large: one product per block
+            return torch.einsum("ki,ni,li->nkl", dec_w, w, dec_w)
+        key = ("gram", w.device)
+        table = self._device_cache.get(key)
+        if table is None:
+            iu = torch.triu_indices(k, k, device=w.device)
+            table = ((dec_w[iu[0]] * dec_w[iu[1]]).T.contiguous(), iu)  # (4096, k (k + 1) / 2)
+            self._device_cache[key] = table
+        outer, iu = table
+        g = w @ outer
+        gram = torch.empty((len(w), k, k), dtype=w.dtype, device=w.device)
+        gram[:, iu[0], iu[1]] = g
+        gram[:, iu[1], iu[0]] = g
+        return gram
 
     def decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
         # the output scaling (map readers: normalised -> metres) is folded into the decode layer: no extra pass

@@ -21,6 +21,7 @@ from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
 from ..header import MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
+from .observed import read_observed
 from .reader import CodecCache, MapReader, open_reader
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
@@ -239,6 +240,14 @@ class Map:
         """Fusion weights ``(N, 16, 16, 16)`` float32 of blocks ``coords`` (0 where none were written)."""
         return self.reader.read_weights(coords)
 
+    def read_observed(self, coords: Any) -> np.ndarray:
+        """Which voxels of blocks ``coords`` ``(N, 3)`` were observed: ``(N, 16, 16, 16)`` bool, from the fusion
+        weights (> 0) or the observation mask the map stores; all True for a map that stores neither."""
+        c = check_coords(coords)
+        if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
+            raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
+        return read_observed(self.reader, c)
+
     def close(self) -> None:
         """Release the map: a read-only map lets go of the version it holds (a replaced version is removed once
         its last reader closes it), and further reads raise. Dropping the object does the same. A map being
@@ -268,17 +277,21 @@ class Map:
         w.write_volume(check_volume(volume, self.truncation), offset=offset, batch_size=batch_size,
                        progress=progress)
 
-    def write_blocks(self, coords: Any, blocks: Any, *, weights: Any = None, batch_size: int = 16384,
-                     progress: Callable[[int], None] | None = None) -> None:
+    def write_blocks(self, coords: Any, blocks: Any, *, weights: Any = None, observed: Any = None,
+                     batch_size: int = 16384, progress: Callable[[int], None] | None = None) -> None:
         """Encode blocks ``(N, 16, 16, 16)`` in metres at block indices ``coords`` ``(N, 3)`` (non-negative).
 
         ``weights`` ``(N, 16, 16, 16)``, optional: per-voxel fusion weights (observation counts), stored
         losslessly up to 2048 as float16 in the optional ``weights`` array (extension "fusion-weights").
+        ``observed`` ``(N, 16, 16, 16)`` bool, optional: which voxels were observed, when there are no weights
+        to store (weights imply ``weights > 0``). Either way the map stores the observation mask (extension
+        "observation-mask"), the codec ignores unobserved voxels, and they decode to ``d_max``
+        (:mod:`sdfcodec.map.observed`).
         """
         w = self.writer
         c = check_coords(coords)
         b = check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
-        w.write_blocks(c, b, weights=weights, batch_size=batch_size, progress=progress)
+        w.write_blocks(c, b, weights=weights, observed=observed, batch_size=batch_size, progress=progress)
 
     def write_codes(self, coords: Any, codes: Any) -> None:
         """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords``."""

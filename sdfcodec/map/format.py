@@ -26,7 +26,7 @@ from ..quantize import dequantize_codes
 __all__ = ["DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
            "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
-           "code_values", "free_space", "is_dask_array"]
+           "code_values", "free_space", "is_dask_array", "check_decoded"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
 #: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
@@ -244,3 +244,23 @@ def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | No
                       "clipped to it", SDFCodecWarning, stacklevel=stacklevel)
         v = np.clip(v, d_min, d_max)
     return v.astype(np.float32, copy=False)
+
+
+def check_decoded(v: torch.Tensor, *, scale: float, offset: float, coords: np.ndarray | None, location: str,
+                  codec_id: str, chunk_blocks: int) -> torch.Tensor:
+    """``v`` (n, 16, 16, 16) decodes (``scale * normalised + offset``) out of the codec, refused when they hold
+    NaN/Inf or absurd values (beyond :data:`DECODE_LIMIT` truncation ranges) rather than returned: a
+    :class:`FormatError` naming a block of ``coords`` (n, 3) and its chunk."""
+    lo, hi = offset - DECODE_LIMIT * scale, offset + DECODE_LIMIT * scale
+    vmin, vmax = torch.aminmax(v) if v.numel() else (v.new_zeros(()) + offset,) * 2  # one pass; NaN propagates
+    if bool(vmin >= lo) and bool(vmax <= hi):
+        return v
+    flat = v.reshape(len(v), -1)
+    bad = (~((flat >= lo) & (flat <= hi)).all(dim=1)).nonzero().flatten().cpu().numpy()
+    what = ("NaN/Inf values" if not bool(torch.isfinite(flat[bad]).all()) else
+            f"absurd values (beyond {DECODE_LIMIT:g} truncation ranges)")
+    b0 = None if coords is None or not len(bad) else coords[bad[0]]
+    where = "" if b0 is None else (f" for {len(bad)} block(s), e.g. block {tuple(int(c) for c in b0)} in chunk "
+                                   "c/" + "/".join(str(int(c) // chunk_blocks) for c in b0))
+    raise FormatError(f"{location}: codec {codec_id!r} decoded {what}{where}; the stored codes or the codec's "
+                      "learned state are corrupted: restore the map from a copy or re-encode it")

@@ -27,12 +27,14 @@ from zarr.core.sync import sync as zarr_sync
 
 from .._validate import BLOCK, empty
 from ..codec import Codec
-from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, SDFCodecError, ShapeError
-from ..errors import RemoteReadError
+from ..errors import (ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError,
+                      ShapeError)
 from ..header import BlockState, MapHeader, parse_header
 from ..registry import get_codec_class
 from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, chunk_ranges, code_values, state_digest, unstored_suspects)
+                     check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, state_digest,
+                     unstored_suspects)
+from .observed import MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, read_block_rows, restore_unobserved
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -105,12 +107,11 @@ class MapReader:
         self._cache = cache if cache is not None else CodecCache()
         self._owns_store, self._closed = owns_store, False
         self._chunk_bytes: dict[str, int] = {}
-        self.codes_array = self.state_array = self.code_scale_array = self.weights_array = None
+        self.codes_array = self.state_array = self.code_scale_array = self.weights_array = self.mask_array = None
         if live is None:
             self._check_arrays()
         else:  # a map being written: its arrays are the writer's, checked as they were made
-            self.codes_array = group["codes"]
-            self.code_scale_array = live.code_scale
+            self.codes_array, self.code_scale_array = group["codes"], live.code_scale
 
     # -- geometry (the header's) ---------------------------------------------------------------------
     @property
@@ -212,6 +213,13 @@ class MapReader:
             self.weights_array = self.member("weights")
             if self.weights_array is not None:
                 self.check_array(self.weights_array, dtype=np.float16, shape=(*h.grid_blocks, 4096))
+        if any(e.name == MASK_EXTENSION for e in h.extensions):
+            self.mask_array = self.member(MASK_ARRAY)
+            if self.mask_array is None:
+                raise FormatError(f"{self.location}: map lists the observation mask but lacks array '{MASK_ARRAY}' "
+                                  "(spec section 6b); it is incomplete")
+            self.check_array(self.mask_array, dtype=np.uint8, shape=(*h.grid_blocks, MASK_BYTES),
+                             chunks=(cb, cb, cb, MASK_BYTES))
         self.codes_array, self.state_array = codes, state
 
     # -- reading --------------------------------------------------------------------------------------
@@ -589,8 +597,12 @@ class MapReader:
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed = DeviceFeed(dev)
+        mask = self.mask_array if self.live is None else self.live.mask
+        free = self.truncation[1] if metres else 1.0
         for coords, staged in self.fetch_stream(box, level, stage=feed.stage, **kw):
-            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords)
+            out = self.decode_codes(feed.ready(staged), metres=metres, coords=coords)
+            # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
+            yield coords, out if mask is None else restore_unobserved(out, read_block_rows(self, mask, coords), free)
 
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None) -> torch.Tensor:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
@@ -605,7 +617,8 @@ class MapReader:
         bound = codec.decode_bound(codes)
         if bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT:
             return v
-        return self.decoded(v, scale=scale, offset=offset, coords=coords)
+        return check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
+                             codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -658,24 +671,6 @@ class MapReader:
         box = tuple(slice(0, n) for n in self.grid())
         kw = {} if chunks_per_batch is None else {"chunks_per_group": chunks_per_batch, "batch_blocks": None}
         yield from self.decoded_blocks(box, lv, device, **kw)
-
-    def decoded(self, v: torch.Tensor, *, scale: float = 1.0, offset: float = 0.0,
-                coords: np.ndarray | None = None) -> torch.Tensor:
-        """Refuse NaN/Inf or absurd values in decodes ``v`` (n, 16, 16, 16) (``scale * normalised + offset``)
-        out of the codec rather than return them; ``coords`` (n, 3) name the blocks."""
-        lo, hi = offset - DECODE_LIMIT * scale, offset + DECODE_LIMIT * scale
-        vmin, vmax = torch.aminmax(v) if v.numel() else (v.new_zeros(()) + offset,) * 2  # one pass; NaN propagates
-        if bool(vmin >= lo) and bool(vmax <= hi):
-            return v
-        flat = v.reshape(len(v), -1)
-        bad = (~((flat >= lo) & (flat <= hi)).all(dim=1)).nonzero().flatten().cpu().numpy()
-        what = ("NaN/Inf values" if not bool(torch.isfinite(flat[bad]).all()) else
-                f"absurd values (beyond {DECODE_LIMIT:g} truncation ranges)")
-        b0 = None if coords is None or not len(bad) else coords[bad[0]]
-        where = "" if b0 is None else (f" for {len(bad)} block(s), e.g. block {tuple(int(c) for c in b0)} in chunk "
-                                       "c/" + "/".join(str(int(c) // self.header.codes.chunk_blocks) for c in b0))
-        raise FormatError(f"{self.location}: codec {self.header.codec.id!r} decoded {what}{where}; the stored codes "
-                          "or the codec's learned state are corrupted: restore the map from a copy or re-encode it")
 
     def _to_metres(self, v: torch.Tensor) -> torch.Tensor:
         d_min, d_max = self.truncation
@@ -754,10 +749,7 @@ class MapReader:
         if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
             raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
         arr = self.weights_array if self.live is None else self.group["weights"]
-        out = np.zeros((len(c), 4096), np.float32)
-        for i, (x, y, z) in enumerate(c):
-            out[i] = self.read(arr, (int(x), int(y), int(z), slice(None)))
-        return out.reshape(len(c), BLOCK, BLOCK, BLOCK)
+        return read_block_rows(self, arr, c).astype(np.float32).reshape(len(c), BLOCK, BLOCK, BLOCK)
 
     def close(self) -> None:
         """Further reads raise; a reader that owns a pinned local store lets go of the version it holds."""

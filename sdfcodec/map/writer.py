@@ -21,7 +21,7 @@ import torch
 import zarr
 
 from .. import __version__, _atomic
-from .._validate import BLOCK, as_float_tensor
+from .._validate import BLOCK, as_float_tensor, check_weights
 from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
@@ -32,6 +32,7 @@ from ..quantize import quantize_codes
 from ..registry import codec_package
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
                      free_space, state_digest)
+from .observed import MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, error_weights, pack_mask, store_mask_chunk
 from .reader import open_reader
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
@@ -86,6 +87,10 @@ def store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: t
 
 def _store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
                       local: np.ndarray, codes: np.ndarray, had: bool) -> None:
+    # readers refuse a coded block whose chunk is missing (spec 9a), so a chunk equal to the fill value (raw
+    # codes of solid blocks are all 0) must be stored too: Zarr skips writing those by default
+    codes_arr = codes_arr.with_config({"write_empty_chunks": True})
+    scale_arr = None if scale_arr is None else scale_arr.with_config({"write_empty_chunks": True})
     shape = [s.stop - s.start for s in box]
     idx = tuple(local.T)
     buf = np.asarray(codes_arr[box]) if had else np.zeros((*shape, codes_arr.shape[3]), dtype=codes_arr.dtype)
@@ -128,6 +133,8 @@ class MapWriter:
         self.state = state if state is not None else np.zeros(self.grid, dtype=np.uint8)
         self.codes = group["codes"]
         self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
+        self.mask = group[MASK_ARRAY] if MASK_ARRAY in group else None  # observation mask, once one is written
+        self.surface_weight = SURFACE_WEIGHT  # error weight near surfaces (sdfcodec.map.observed); 0: none
         if update:
             self.doing = "updating the map"
         else:
@@ -165,6 +172,8 @@ class MapWriter:
             self.codes.resize((*grid, self.codes_spec.size))
             if self.code_scale is not None:
                 self.code_scale.resize((*grid, 2))
+            if self.mask is not None:
+                self.mask.resize((*grid, MASK_BYTES))
 
     def grow_blocks(self, max_coord: np.ndarray) -> None:
         """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
@@ -201,23 +210,27 @@ class MapWriter:
         coords = np.stack(np.meshgrid(*[np.arange(n) for n in gb], indexing="ij"), -1).reshape(-1, 3) + off // BLOCK
         self.put_blocks(coords, flat, batch_size=batch_size, progress=progress)
 
-    def write_blocks(self, coords: np.ndarray, blocks: np.ndarray, *, weights: Any = None, batch_size: int = 16384,
-                     progress: Callable[[int], None] | None = None) -> None:
+    def write_blocks(self, coords: np.ndarray, blocks: np.ndarray, *, weights: Any = None, observed: Any = None,
+                     batch_size: int = 16384, progress: Callable[[int], None] | None = None) -> None:
         """Encode checked blocks ``(N, 16, 16, 16)`` float32 metres at checked block indices ``coords`` ``(N, 3)``
-        int64, with optional fusion weights ``(N, 16, 16, 16)`` (non-negative)."""
+        int64, with optional fusion weights ``(N, 16, 16, 16)`` (non-negative; stored, and ``weights > 0`` is
+        the observation mask) or an observation mask ``observed`` ``(N, 16, 16, 16)`` bool alone."""
+        wt = obs = None
         if weights is not None:
-            wt, _ = as_float_tensor(weights, "weights", (len(coords), BLOCK, BLOCK, BLOCK))
-            if len(coords) and float(wt.min()) < 0:
-                raise InvalidValueError("weights must be non-negative (observation counts)")
+            wt = check_weights(weights, len(coords), torch.device("cpu"))
+            obs = wt.numpy() > 0
+        if observed is not None:
+            o = np.asarray(observed)
+            if o.shape != (len(coords), BLOCK, BLOCK, BLOCK) or o.dtype != bool:
+                raise ShapeError(f"observed must be a bool array of shape ({len(coords)}, 16, 16, 16), got "
+                                 f"{o.dtype} {o.shape}")
+            obs = o if obs is None else obs & o
         with self._writing():
-            self._write_blocks(coords, blocks, None if weights is None else wt, batch_size, progress)
-
-    def _write_blocks(self, coords, blocks, wt, batch_size, progress) -> None:
-        if len(coords):
-            self.grow_blocks(coords.max(axis=0))
-        self.put_blocks(coords, blocks, batch_size=batch_size, progress=progress)
-        if wt is not None:
-            self.put_weights(coords, wt.numpy())
+            if len(coords):
+                self.grow_blocks(coords.max(axis=0))
+            self.put_blocks(coords, blocks, batch_size=batch_size, progress=progress, observed=obs)
+            if wt is not None:
+                self.put_weights(coords, wt.numpy())
 
     def write_codes(self, coords: Any, codes: Any) -> None:
         """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``."""
@@ -253,7 +266,9 @@ class MapWriter:
         self.state[tuple(coords.T)] = value
 
     def put_blocks(self, coords: np.ndarray, blocks_m: np.ndarray, *, batch_size: int,
-                   progress: Callable[[int], None] | None) -> None:
+                   progress: Callable[[int], None] | None, observed: np.ndarray | None = None) -> None:
+        """Encode blocks (metres) with error weights (:func:`~sdfcodec.map.observed.error_weights`: the
+        observation mask ``observed`` (N, 16, 16, 16) bool, and the surface), storing the mask with them."""
         d_min, d_max = self.truncation
         for i in range(0, len(coords), batch_size):
             c = coords[i:i + batch_size]
@@ -261,26 +276,40 @@ class MapWriter:
             empty = free_space(v)
             self.set_state(c[empty], BlockState.EMPTY)
             if (~empty).any():
-                codes = self.codec.encode(torch.from_numpy(np.ascontiguousarray(v[~empty])).to(self.device))
-                self.put_codes(c[~empty], codes.cpu().numpy())
+                obs = None if observed is None else observed[i:i + batch_size][~empty]
+                x = np.ascontiguousarray(v[~empty])
+                w = error_weights(x, obs, (d_min, d_max), self.header_kw["voxel_size"], self.surface_weight)
+                codes = self.codec.encode(torch.from_numpy(x).to(self.device),
+                                          weights=None if w is None else torch.from_numpy(w).to(self.device))
+                self.put_codes(c[~empty], codes.cpu().numpy(), masks=None if obs is None else pack_mask(obs))
             if progress is not None:
                 progress(len(c))
 
-    def put_codes(self, coords: np.ndarray, codes: np.ndarray) -> None:
-        """Scatter codes into whole chunks: one write per touched chunk (read first only if it had data)."""
+    def put_codes(self, coords: np.ndarray, codes: np.ndarray, masks: np.ndarray | None = None) -> None:
+        """Scatter codes (and their packed observation masks ``(n, 512)`` uint8, None: fully observed) into whole
+        chunks: one write per touched chunk and array (read first only if it had data)."""
         if not len(coords):
             return
         check_codes(codes)
+        if masks is not None and self.mask is None:
+            self.mask = self.group.create_array(MASK_ARRAY, shape=(*self.grid, MASK_BYTES), dtype="uint8",
+                                                fill_value=255, chunks=(*(self.codes_spec.chunk_blocks,) * 3,
+                                                                        MASK_BYTES),
+                                                compressors=compressors(), dimension_names=["bx", "by", "bz", "byte"])
         cb = self.codes_spec.chunk_blocks
         chunk_of = coords // cb
         order = np.lexsort(chunk_of.T[::-1])
         coords, codes, chunk_of = coords[order], codes[order], chunk_of[order]
+        masks = None if masks is None else masks[order]
         bounds = np.flatnonzero(np.any(np.diff(chunk_of, axis=0) != 0, axis=1)) + 1
         for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(coords)]):
             ch = chunk_of[lo]
             box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, self.grid))
             had = bool((self.state[box] == BlockState.CODED).any())
             _store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had)
+            if self.mask is not None:
+                store_mask_chunk(self.mask, box, coords[lo:hi] - ch * cb, None if masks is None else masks[lo:hi],
+                                 had)
         self.set_state(coords, BlockState.CODED)
 
     def commit(self) -> Path:
@@ -325,6 +354,10 @@ class MapWriter:
             extensions.append(Extension(name="fusion-weights", required=False))
         if self.code_scale is not None:
             extensions.append(Extension(name=INT8_EXTENSION, required=True))
+        if self.mask is not None:
+            if tuple(self.mask.shape[:3]) != self.grid:
+                self.mask.resize((*self.grid, MASK_BYTES))
+            extensions.append(Extension(name=MASK_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())

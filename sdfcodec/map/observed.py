@@ -1,0 +1,119 @@
+"""Which voxels a map observed, and how that steers encoding (spec/map-format.md, section 6b).
+
+A fused map knows which voxels some frame saw (fusion weight > 0). The rest, above all the space more than
+``|d_min|`` behind each surface, reads ``d_max`` although nothing was seen there: a fused block is a thin
+negative band behind a surface followed by a step back to ``d_max``, which a low-dimensional code cannot
+follow, so the band washes out and the zero crossing moves (measured: docs/surface.md). Two things fix it:
+
+- **Error weights** (:func:`error_weights`): the codec encodes each block by weighted least squares
+  (:meth:`sdfcodec.Codec.encode_weighted`), with weight 0 on unobserved voxels (their value does not matter)
+  and ``1 + SURFACE_WEIGHT`` within ``SURFACE_BAND_VOXELS`` voxels of the surface (the two voxels around a zero
+  crossing decide where the surface is; the far free space is easy and need not dominate the fit).
+- **The observation mask** (extension ``observation-mask``): one bit per voxel of each coded block, packed
+  (``numpy.packbits`` of the C-order voxels, 512 bytes per block before compression), in the array
+  ``observed`` chunked like ``codes``; readers put ``d_max`` back on every unobserved voxel after decoding, so
+  what the codec made of them never shows. Blocks written without one read as fully observed (fill 255).
+
+Both are the writer's and reader's business; codecs only see weights.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+import zarr
+
+from .._validate import BLOCK
+
+__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights",
+           "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "store_mask_chunk", "read_observed"]
+
+MASK_EXTENSION = "observation-mask"
+MASK_ARRAY = "observed"
+MASK_BYTES = BLOCK ** 3 // 8  # 512: one bit per voxel
+#: Voxels this close to the surface (``|d| < SURFACE_BAND_VOXELS * voxel_size``) weigh ``1 + SURFACE_WEIGHT``.
+SURFACE_BAND_VOXELS = 1.5
+SURFACE_WEIGHT = 50.0
+
+
+def error_weights(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float], voxel_size: float,
+                  surface_weight: float = SURFACE_WEIGHT) -> np.ndarray | None:
+    """Per-voxel error weights ``(N, 16, 16, 16)`` float32 for normalised blocks ``v`` ``(N, 16, 16, 16)``:
+    0 where ``observed`` ``(N, 16, 16, 16)`` bool is False, ``1 + surface_weight`` near the surface, 1 elsewhere.
+    None (encode unweighted) when there is no mask and ``surface_weight`` is 0."""
+    if observed is None and not surface_weight:
+        return None
+    d_min, d_max = truncation
+    w = np.ones(v.shape, dtype=np.float32)
+    if surface_weight:
+        # |d| < band metres  <=>  |v - v0| < band / (d_max - d_min), v0 the normalised zero
+        v0, half = -d_min / (d_max - d_min), SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
+        w += np.float32(surface_weight) * (np.abs(v - np.float32(v0)) < half)
+    if observed is not None:
+        w *= observed
+    return w
+
+
+def pack_mask(observed: np.ndarray) -> np.ndarray:
+    """``(N, 16, 16, 16)`` bool -> ``(N, 512)`` uint8 (C-order voxels, most significant bit first)."""
+    return np.packbits(np.asarray(observed, dtype=bool).reshape(len(observed), -1), axis=1)
+
+
+def unpack_mask(rows: np.ndarray) -> np.ndarray:
+    """``(N, 512)`` uint8 -> ``(N, 16, 16, 16)`` bool (the inverse of :func:`pack_mask`)."""
+    return np.unpackbits(np.asarray(rows, dtype=np.uint8), axis=1).astype(bool).reshape(len(rows), BLOCK, BLOCK,
+                                                                                      BLOCK)
+
+
+def restore_unobserved(blocks: torch.Tensor, rows: np.ndarray, free: float) -> torch.Tensor:
+    """Set the unobserved voxels of decoded ``blocks`` ``(n, 16, 16, 16)`` (any device) to ``free``, in place;
+    ``rows`` ``(n, 512)`` uint8 packed masks. Fully observed blocks (rows of 255) cost nothing."""
+    partial = np.flatnonzero((rows != 255).any(axis=1))
+    if len(partial):
+        unobs = torch.from_numpy(~unpack_mask(rows[partial])).to(blocks.device)
+        idx = torch.from_numpy(partial).to(blocks.device)
+        sub = blocks[idx]
+        sub.masked_fill_(unobs, free)
+        blocks[idx] = sub
+    return blocks
+
+
+def read_block_rows(reader: Any, arr: zarr.Array, coords: np.ndarray) -> np.ndarray:
+    """``(n, R)`` rows of blocks ``coords`` ``(n, 3)`` of a per-block array ``arr`` ``(Bx, By, Bz, R)`` (the mask,
+    fusion weights), read through ``reader`` (a :class:`~sdfcodec.map.reader.MapReader`: its checked,
+    concurrent reads), one read per chunk touched."""
+    out = np.empty((len(coords), arr.shape[3]), dtype=arr.dtype)
+    if not len(coords):
+        return out
+    cb = np.asarray(arr.chunks[:3])
+    keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    sels = [tuple(slice(int(c) * b, min(int(c) * b + b, g)) for c, b, g in zip(k, cb, arr.shape)) for k in keys]
+    for i, a in enumerate(reader.read_many(arr, [(*s, slice(None)) for s in sels])):
+        rows = np.flatnonzero(inverse == i)
+        out[rows] = a[tuple((coords[rows] - keys[i] * cb).T)]
+    return out
+
+
+def store_mask_chunk(arr: zarr.Array, box: tuple[slice, ...], local: np.ndarray, rows: np.ndarray | None,
+                     had: bool) -> None:
+    """Write mask ``rows`` ``(n, 512)`` (None: fully observed) of the blocks at ``local`` inside chunk ``box``
+    (read first only when the chunk ``had`` coded blocks)."""
+    shape = [s.stop - s.start for s in box]
+    buf = np.asarray(arr[box]) if had else np.full((*shape, MASK_BYTES), 255, dtype=np.uint8)
+    buf[tuple(local.T)] = 255 if rows is None else rows
+    arr[box] = buf
+
+
+def read_observed(reader: Any, coords: np.ndarray) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool: which voxels of blocks ``coords`` ``(n, 3)`` (checked, inside the grid) were
+    observed: fusion weight > 0 where the map stores weights, else its observation mask, else all of them."""
+    arr = reader.weights_array if reader.live is None else reader.group.get("weights")
+    if arr is not None:
+        return (read_block_rows(reader, arr, coords) > 0).reshape(len(coords), BLOCK, BLOCK, BLOCK)
+    mask = reader.mask_array if reader.live is None else reader.live.mask
+    if mask is not None:
+        return unpack_mask(read_block_rows(reader, mask, coords))
+    return np.ones((len(coords), BLOCK, BLOCK, BLOCK), dtype=bool)
