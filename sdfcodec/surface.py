@@ -1,6 +1,6 @@
 """Surface fidelity of a compressed map: where its surfaces are, against the original's (docs/surface.md).
 
-Robots care where surfaces are, so a decoded TSDF is judged by its surfaces (DESIGN.md, "Fidelity"):
+Robots care where surfaces are, so a decoded TSDF is judged by its surfaces:
 
 - Surface points of a dense volume are the zero crossings along each grid axis between neighbouring voxels
   ``a``, ``b`` whose signs differ (one ``< 0``, the other ``>= 0``) and whose values differ by less than
@@ -272,7 +272,7 @@ def compare_maps(original_map: Any, decoded_map: Any, *, level: int | None = Non
     width = _band_width(band, vs)
     nx, ny, nz = (int(n) for n in original_map.shape_voxels)
     weights = bool(original_map.has_weights)
-    stats, p_orig, p_dec = _Band(), [], []
+    stats, p_orig, p_dec = _Band(), [np.zeros((0, 3))], [np.zeros((0, 3))]  # an empty map has no slab
     for x0, own, x1 in _slabs(nx, int(slab)):
         region = ((x0, x1), (0, ny), (0, nz))
         a = np.asarray(original_map.decode_region(region))
@@ -301,7 +301,12 @@ def compare_command(original: str, decoded: str, *, level: int | None = None, qu
 
     from .map import open_map
 
-    a, b = open_map(original), open_map(decoded)
+    a = open_map(original)
+    try:
+        b = open_map(decoded)
+    except BaseException:
+        a.close()
+        raise
     try:
         with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                       console=Console(stderr=True), transient=True, disable=quiet) as prog:
