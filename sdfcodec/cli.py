@@ -780,6 +780,19 @@ def demo_cmd(
     out.print(f"report: {out_dir / 'report.md'} ({time.perf_counter() - t0:.0f} s)")
 
 
+@app.command("compare")
+@_cli
+def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="The original (lossless) map."),
+                decoded: str = typer.Argument(..., metavar="DECODED", help="The map to judge, on the same grid."),
+                level: Optional[int] = typer.Option(None, "--level", help="Decode DECODED at this prefix level."),
+                as_json: bool = typer.Option(False, "--json", help="Machine-readable output (metres).")) -> None:
+    """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md)."""
+    from .surface import compare_command, metrics_table
+
+    summary = compare_command(original, decoded, level=level, quiet=as_json)
+    _report(summary, as_json, lambda: metrics_table(summary))
+
+
 def main() -> None:
     app()
 
