@@ -330,11 +330,7 @@ def encode_cmd(
         if src_map is not None:
             total = src_map.count_states()["coded"]
             task = prog.add_task("transcoding", total=total, rate="")
-            m.mark_empty(np.argwhere(src_map.block_states() == 1))
-            for coords, blocks in src_map.iter_blocks():
-                # a lossy decode overshoots the truncation a little: clip quietly, that is not bad input
-                m.write_blocks(coords, np.clip(blocks, *trunc), observed=src_map.read_observed(coords))
-                prog.advance(task, len(coords))
+            m.write_map(src_map, progress=lambda n: prog.advance(task, n))
         else:
             nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
             task = prog.add_task("encoding", total=nblocks, rate="")
@@ -412,8 +408,7 @@ def fuse_cmd(
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse",
                     source=str(sequence)) as m:
-        observation = {"weights": fused.weights} if weights else {"observed": fused.weights > 0}
-        m.write_blocks(fused.coords, fused.tsdf, **observation)
+        m.write_blocks(fused.coords, fused.tsdf, **({"weights": fused.weights} if weights else {"observed": fused.weights > 0}))
     info = m.info()
     summary = {"output": str(output), "frames_integrated": fused.frames_integrated,
                "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],

@@ -110,10 +110,7 @@ def _transcode(src: Map, path: Path, codec, advance: Callable[[int], None]) -> t
     t0 = time.perf_counter()
     with create_map(path, codec=codec, voxel_size=src.voxel_size, truncation=src.truncation, origin=src.origin,
                     shape_voxels=src.shape_voxels, overwrite=True, tool="sdfcodec demo", source=src.location) as m:
-        m.mark_empty(np.argwhere(src.block_states() == 1))
-        for coords, blocks in src.iter_blocks():
-            m.write_blocks(coords, np.clip(blocks, *src.truncation))
-            advance(len(coords))
+        m.write_map(src, progress=advance)
     return open_map(path), time.perf_counter() - t0
 
 
@@ -314,7 +311,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     raw_path = out / "room-raw.sdfz"
     with create_map(raw_path, codec=get_codec("raw"), voxel_size=voxel_size, truncation=TRUNC,
                     origin=tuple(fused.origin), overwrite=True, tool="sdfcodec demo", source=str(seq_dir)) as m:
-        m.write_blocks(fused.coords, fused.tsdf)
+        m.write_blocks(fused.coords, fused.tsdf, weights=fused.weights)
     raw = open_map(raw_path)
     timings["fuse_s"] = time.perf_counter() - t0
     log(f"fused into {len(fused)} blocks in {timings['fuse_s']:.1f} s -> {raw_path}")

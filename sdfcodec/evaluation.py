@@ -336,7 +336,7 @@ def _roundtrip(codec, fused, work: Path, name: str):
     path = work / f"{name}.sdfz"
     with create_map(path, codec=codec, voxel_size=fused.voxel_size, truncation=fused.truncation,
                     origin=tuple(fused.origin), overwrite=True, tool="sdfcodec eval") as m:
-        m.write_blocks(fused.coords, fused.tsdf)
+        m.write_blocks(fused.coords, fused.tsdf, observed=fused.weights > 0)
     return open_map(path)
 
 

@@ -275,7 +275,7 @@ class MapField:
                     pick = np.isin(all_c @ strides, todo @ strides)
                     cc, zz = all_c[pick], all_z[pick]
                     # the map readers' decode step: NaN/Inf refused, then the same float ops as decode_region
-                    dec = self.map.reader.decode_codes(torch.from_numpy(zz).to(dev), metres=True)
+                    dec = self.map.reader.decode_codes(torch.from_numpy(zz).to(dev), metres=True, coords=cc)
                     rel = torch.from_numpy(cc - b0).to(dev)
                     view[rel[:, 0], rel[:, 1], rel[:, 2]] = dec
                     self.blocks_decoded += len(cc)

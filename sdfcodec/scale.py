@@ -37,6 +37,7 @@ from .codec import Codec
 from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
 from .map.format import check_codes, free_space, state_digest
+from .map.observed import encode_blocks
 from .map.reader import MapReader, open_reader
 from .map.stores import CowLocalStore
 from .map.writer import MapWriter, create_writer, store_code_chunk
@@ -229,8 +230,8 @@ _WORKER_CODECS: dict[str, Codec] = {}
 
 
 def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple, had: bool,
-                  truncation: tuple[float, float], code_dtype: str, device: str
-                  ) -> tuple[tuple, np.ndarray, int]:
+                  truncation: tuple[float, float], code_dtype: str, device: str, voxel_size: float,
+                  surface_weight: float) -> tuple[tuple, np.ndarray, int]:
     """One dask task: encode the blocks of one volume chunk (all inside one chunk of the code array, whose
     block box is ``cbox``) and write that chunk of codes into the map's temporary directory ``tmp``.
     Returns ``(b0, block states of the chunk's blocks, number of values clipped)``."""
@@ -253,7 +254,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
     empty = free_space(norm)
     states = np.where(empty, BlockState.EMPTY, BlockState.CODED).astype(np.uint8).reshape(gb)
     if not empty.all():
-        codes = spec.get().encode(torch.from_numpy(np.ascontiguousarray(norm[~empty])).to(device)).cpu().numpy()
+        codes = encode_blocks(spec.get(), norm[~empty], None, truncation, voxel_size, surface_weight, device)
         check_codes(codes)
         store = CowLocalStore(tmp)
         arr = zarr.open_array(store, path="codes", mode="r+")
@@ -309,7 +310,7 @@ def write_volume_dask(m: Any, volume: Any, *, offset: Sequence[int] = (0, 0, 0),
         cbox = tuple((int(a), int(min(a + cb, g))) for a, g in zip(c0, w.grid))
         had = bool((w.state[tuple(slice(a, b) for a, b in cbox)] == BlockState.CODED).any())
         tasks.append(encode(part, spec, str(w.tmp), tuple(int(b) for b in b0), cbox, had, truncation,
-                            spec_c.dtype, str(w.device)))
+                            spec_c.dtype, str(w.device), w.header_kw["voxel_size"], w.surface_weight))
     results = dask.compute(*tasks, scheduler=scheduler) if tasks else ()
     failed = next((r[0] for r in results if len(r) == 1), None)
     if failed is not None:

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import DTypeError, InvalidValueError, ShapeError
+from .map.observed import MASK_EXTENSION
 
 __all__ = ["surface_points", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_command",
            "metrics_table", "JUMP", "SLAB"]
@@ -227,13 +228,13 @@ def _check_pair(original: Any, decoded: Any) -> None:
 
 
 def _observed(m: Any, idx: tuple[np.ndarray, ...], x0: int) -> np.ndarray:
-    """Whether the voxels at slab indices ``idx`` (slab starting at voxel ``x0``) of map ``m`` have a
-    fusion weight above 0; blocks are read only where the band has voxels."""
+    """Whether the voxels at slab indices ``idx`` (slab starting at voxel ``x0``) of map ``m`` were observed
+    (fusion weight above 0, or the map's observation mask); blocks are read only where the band has voxels."""
     g = np.stack([idx[0] + x0, idx[1], idx[2]], axis=1)
     coords, inverse = np.unique(g // 16, axis=0, return_inverse=True)
-    w = m.read_weights(coords)
+    w = m.read_observed(coords)
     local = g % 16
-    return w[inverse.reshape(-1), local[:, 0], local[:, 1], local[:, 2]] > 0
+    return w[inverse.reshape(-1), local[:, 0], local[:, 1], local[:, 2]]
 
 
 def _slabs(nx: int, slab: int) -> Iterator[tuple[int, int, int]]:
@@ -252,7 +253,7 @@ def compare_maps(original_map: Any, decoded_map: Any, *, level: int | None = Non
 
     Each slab is decoded with one voxel of overlap, so crossings across slab borders are counted exactly once;
     memory for the volumes is two slabs of ``slab x Y x Z`` float32 (the surface points are held whole). If
-    the original stores fusion weights, voxels of weight 0 are unobserved and left out of the band.
+    the original stores fusion weights or an observation mask, its unobserved voxels are left out of the band.
 
     Args:
         original_map, decoded_map: maps with the same voxel size, origin and extent (``shape_voxels``).
@@ -271,7 +272,7 @@ def compare_maps(original_map: Any, decoded_map: Any, *, level: int | None = Non
     o = _check_geometry(vs, original_map.origin, jump)
     width = _band_width(band, vs)
     nx, ny, nz = (int(n) for n in original_map.shape_voxels)
-    weights = bool(original_map.has_weights)
+    weights = bool(original_map.has_weights) or any(e.name == MASK_EXTENSION for e in original_map.header.extensions)
     stats, p_orig, p_dec = _Band(), [np.zeros((0, 3))], [np.zeros((0, 3))]  # an empty map has no slab
     for x0, own, x1 in _slabs(nx, int(slab)):
         region = ((x0, x1), (0, ny), (0, nz))

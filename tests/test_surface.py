@@ -237,8 +237,11 @@ def test_compare_maps_leaves_weight_zero_voxels_out_of_the_band(tmp_path):
         m.write_blocks(coords, blocks[tuple(coords.T)], weights=wblocks[tuple(coords.T)])
     a, b = sdfcodec.open_map(tmp_path / "w.sdfz"), _write(tmp_path / "d.sdfz", dec)
     assert a.has_weights and np.array_equal(assemble_blocks(split_blocks(weights, 0.0)), weights)
+    # weight-0 voxels are unobserved: the map decodes them to d_max (spec 6b), and they are out of the band
+    assert (a.decode_region()[20:30] == TRUNC[1]).all()
     dense = compare_volumes(a.decode_region(), b.decode_region(), VS, observed=weights > 0)
-    assert dense.n_band < compare_volumes(a.decode_region(), b.decode_region(), VS).n_band
+    full = compare_volumes(vol, b.decode_region(), VS)
+    assert 0 < dense.n_band < full.n_band
     _assert_same(compare_maps(a, b, slab=16), dense)
 
 

@@ -7,6 +7,7 @@ The format, crash safety and the limits on untrusted maps: ``sdfcodec.map`` and 
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
@@ -21,7 +22,7 @@ from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
 from ..header import MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
-from .observed import read_observed
+from .observed import SURFACE_WEIGHT, read_observed
 from .reader import CodecCache, MapReader, open_reader
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
@@ -293,6 +294,20 @@ class Map:
         b = check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
         w.write_blocks(c, b, weights=weights, observed=observed, batch_size=batch_size, progress=progress)
 
+    def write_map(self, source: "Map", *, progress: Callable[[int], None] | None = None) -> None:
+        """Transcode every block of the map ``source`` (same voxel size and truncation) into this one: its empty
+        blocks stay empty, its coded blocks are decoded (clipped to the truncation: a lossy decode overshoots a
+        little) and encoded here with their observation (fusion weights or mask), ``progress(n)`` per batch."""
+        if (source.voxel_size, source.truncation) != (self.voxel_size, self.truncation):
+            raise InvalidValueError(f"cannot transcode {source.location} (voxel size {source.voxel_size} m, truncation "
+                                    f"{source.truncation}) into a map with {self.voxel_size} m, {self.truncation}: "
+                                    "create the new map with the source's voxel size and truncation")
+        self.mark_empty(np.argwhere(source.block_states() == 1))
+        for coords, blocks in source.iter_blocks():
+            self.write_blocks(coords, np.clip(blocks, *self.truncation), observed=source.read_observed(coords))
+            if progress is not None:
+                progress(len(coords))
+
     def write_codes(self, coords: Any, codes: Any) -> None:
         """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords``."""
         self.writer.write_codes(coords, codes)
@@ -347,7 +362,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                truncation: tuple[float, float] = (-0.04, 0.1), origin: Sequence[float] = (0.0, 0.0, 0.0),
                shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
-               device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None) -> Map:
+               device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
+               surface_weight: float = SURFACE_WEIGHT) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -367,11 +383,19 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
         overwrite: replace an existing map at ``path`` (atomically, on commit).
         device: where encoding runs.
+        surface_weight: extra error weight of voxels near the surface when encoding (the codec fits
+            ``1 + surface_weight`` there, 1 elsewhere, 0 on unobserved voxels; :mod:`sdfcodec.map.observed`);
+            0 encodes every observed voxel alike.
     """
-    return _writing(create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
+    if isinstance(surface_weight, bool) or not isinstance(surface_weight, (int, float)) or not (
+            math.isfinite(surface_weight) and surface_weight >= 0):
+        raise InvalidValueError(f"surface_weight must be a finite number >= 0, got {surface_weight!r}")
+    writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
-                                  source=source))
+                                  source=source)
+    writer.surface_weight = float(surface_weight)
+    return _writing(writer)
 
 
 def update_map(path: str | os.PathLike, *, device: str | torch.device = "cpu", tool: str | None = None,

@@ -27,7 +27,7 @@ import zarr
 
 from .._validate import BLOCK
 
-__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights",
+__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "encode_blocks",
            "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "store_mask_chunk", "read_observed"]
 
 MASK_EXTENSION = "observation-mask"
@@ -42,8 +42,10 @@ def error_weights(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[
                   surface_weight: float = SURFACE_WEIGHT) -> np.ndarray | None:
     """Per-voxel error weights ``(N, 16, 16, 16)`` float32 for normalised blocks ``v`` ``(N, 16, 16, 16)``:
     0 where ``observed`` ``(N, 16, 16, 16)`` bool is False, ``1 + surface_weight`` near the surface, 1 elsewhere.
-    None (encode unweighted) when there is no mask and ``surface_weight`` is 0."""
-    if observed is None and not surface_weight:
+    None (encode unweighted, the plain projection) without a mask: blocks of dense volumes (exact SDFs, observed
+    everywhere) encode exactly as before the observation mask, and their code distances stay reconstruction
+    distances (what descriptor search relies on)."""
+    if observed is None:
         return None
     d_min, d_max = truncation
     w = np.ones(v.shape, dtype=np.float32)
@@ -51,9 +53,16 @@ def error_weights(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[
         # |d| < band metres  <=>  |v - v0| < band / (d_max - d_min), v0 the normalised zero
         v0, half = -d_min / (d_max - d_min), SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
         w += np.float32(surface_weight) * (np.abs(v - np.float32(v0)) < half)
-    if observed is not None:
-        w *= observed
-    return w
+    return w * observed
+
+
+def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
+                  voxel_size: float, surface_weight: float, device: Any) -> np.ndarray:
+    """Codes ``(N, k)`` float32 numpy of normalised blocks ``v`` ``(N, 16, 16, 16)``, encoded on ``device`` with
+    the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes."""
+    w = error_weights(v, observed, truncation, voxel_size, surface_weight)
+    x = torch.from_numpy(np.ascontiguousarray(v)).to(device)
+    return codec.encode(x, weights=None if w is None else torch.from_numpy(w).to(device)).cpu().numpy()
 
 
 def pack_mask(observed: np.ndarray) -> np.ndarray:

@@ -597,16 +597,13 @@ class MapReader:
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed = DeviceFeed(dev)
-        mask = self.mask_array if self.live is None else self.live.mask
-        free = self.truncation[1] if metres else 1.0
         for coords, staged in self.fetch_stream(box, level, stage=feed.stage, **kw):
-            out = self.decode_codes(feed.ready(staged), metres=metres, coords=coords)
-            # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
-            yield coords, out if mask is None else restore_unobserved(out, read_block_rows(self, mask, coords), free)
+            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords)
 
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None) -> torch.Tensor:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
-        into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised. NaN/Inf or absurd values
+        into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
+        masked map set to free space (``coords`` (n, 3), the blocks, are required there). NaN/Inf or absurd values
         (normalised beyond +-DECODE_LIMIT) out of the codec (corrupted codes or learned state) are refused,
         naming a block of ``coords`` (n, 3) when given: proven impossible by the codec's bound on its outputs
         when it gives one within the limit (no pass over the output), else checked on the output."""
@@ -615,10 +612,16 @@ class MapReader:
         scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
         v = codec.decode_core(codes, scale=scale, offset=offset)
         bound = codec.decode_bound(codes)
-        if bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT:
+        if bound is None or not math.isfinite(bound) or bound > DECODE_LIMIT:
+            v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
+                              codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
+        mask = self.mask_array if self.live is None else self.live.mask
+        if mask is None:
             return v
-        return check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
-                             codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
+        if coords is None:
+            raise InvalidValueError(f"{self.location} has an observation mask: decode_codes needs the blocks' coords")
+        # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
+        return restore_unobserved(v, read_block_rows(self, mask, coords), d_max if metres else 1.0)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:

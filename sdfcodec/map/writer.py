@@ -32,7 +32,7 @@ from ..quantize import quantize_codes
 from ..registry import codec_package
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
                      free_space, state_digest)
-from .observed import MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, error_weights, pack_mask, store_mask_chunk
+from .observed import MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask, store_mask_chunk
 from .reader import open_reader
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
@@ -277,11 +277,9 @@ class MapWriter:
             self.set_state(c[empty], BlockState.EMPTY)
             if (~empty).any():
                 obs = None if observed is None else observed[i:i + batch_size][~empty]
-                x = np.ascontiguousarray(v[~empty])
-                w = error_weights(x, obs, (d_min, d_max), self.header_kw["voxel_size"], self.surface_weight)
-                codes = self.codec.encode(torch.from_numpy(x).to(self.device),
-                                          weights=None if w is None else torch.from_numpy(w).to(self.device))
-                self.put_codes(c[~empty], codes.cpu().numpy(), masks=None if obs is None else pack_mask(obs))
+                codes = encode_blocks(self.codec, v[~empty], obs, (d_min, d_max), self.header_kw["voxel_size"],
+                                      self.surface_weight, self.device)
+                self.put_codes(c[~empty], codes, masks=None if obs is None else pack_mask(obs))
             if progress is not None:
                 progress(len(c))
 

@@ -20,7 +20,6 @@ from ..blocks import check_truncation, normalise
 from ..codec import Codec
 from ..errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..map import Map, state_digest
-from ..map.observed import error_weights
 from .shapes import (QUERY_NAMES, check_query_name, dedupe_blocks, probe_blocks, query_blocks, rotate_blocks,
                      rotation_set)
 
@@ -190,18 +189,11 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
         if len(mats) > 1 or not np.allclose(mats[0], np.eye(3)):
             v = dedupe_blocks(rotate_blocks(v, mats))[0]
         name = name or "blocks"
-    codes = encode_like_a_map(codec, v, voxel_size, truncation)
-    probes = encode_like_a_map(codec, probe_blocks(voxel_size, truncation), voxel_size, truncation)
+    codes = np.asarray(codec.encode(v), dtype=np.float32)
+    probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
     return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
                       codec_state_sha256=_codec_sha(codec), voxel_size=voxel_size, truncation=truncation,
                       blocks=v if keep_blocks else None, rotations=rot, positions=pos, spec=spec, probe_codes=probes)
-
-
-def encode_like_a_map(codec, v: np.ndarray, voxel_size: float, truncation: tuple[float, float]) -> np.ndarray:
-    """Codes ``(N, k)`` float32 of fully observed normalised blocks ``v`` ``(N, 16, 16, 16)`` encoded the way a map
-    writer encodes them (with its error weights near the surface, :func:`sdfcodec.map.observed.error_weights`),
-    so that query descriptors and map codes come from the same fit."""
-    return np.asarray(codec.encode(v, weights=error_weights(v, None, truncation, voxel_size)), dtype=np.float32)
 
 
 def save_query(model: QueryModel, path: str | os.PathLike) -> Path:
@@ -285,10 +277,10 @@ def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
     if query.matches_codec(codec, m.header.codec.state_sha256):
         return query
     if query.blocks is not None:
-        vs, tr = query.voxel_size, query.truncation
-        return replace(query, descriptors=encode_like_a_map(codec, query.blocks, vs, tr),
+        return replace(query, descriptors=np.asarray(codec.encode(query.blocks), dtype=np.float32),
                        codec_config=codec.get_config(), codec_state_sha256=_codec_sha(codec),
-                       probe_codes=encode_like_a_map(codec, probe_blocks(vs, tr), vs, tr))
+                       probe_codes=np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)),
+                                              dtype=np.float32))
     # descriptors only: usable where the map's codec encodes the probe blocks to the same leading elements
     if query.probe_codes is None:
         raise InvalidValueError(f"query model {query.name!r} holds neither shape blocks nor probe codes, and its "
@@ -299,8 +291,7 @@ def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
         raise InvalidValueError(f"query model {query.name!r} has {query.code_size}-element descriptors but the map's "
                                 f"{m.header.codec.id!r} codes ({m.code_size}) are not prefix-ordered; rebuild the "
                                 "model with build_query(..., map=the_map)")
-    mine = encode_like_a_map(codec, probe_blocks(query.voxel_size, query.truncation), query.voxel_size,
-                             query.truncation)[:, :k]
+    mine = np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)), dtype=np.float32)[:, :k]
     theirs = query.probe_codes[:, :k]
     if not np.allclose(mine, theirs, rtol=1e-3, atol=1e-3 * max(1.0, float(np.abs(theirs).max()))):
         raise InvalidValueError(f"query model {query.name!r} was encoded by a different codec or basis than the map "

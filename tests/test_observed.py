@@ -1,0 +1,194 @@
+"""Observed-aware encoding: per-voxel error weights in the codec contract, PCA's weighted least squares, the
+observation mask a map stores and its readers restore (sdfcodec.map.observed, spec section 6b)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import sdfcodec
+from sdfcodec.blocks import normalise
+from sdfcodec.cli import app
+from sdfcodec.errors import DTypeError, FormatError, InvalidValueError, ShapeError
+from sdfcodec.map.observed import MASK_EXTENSION, error_weights, pack_mask, unpack_mask
+from sdfcodec.surface import compare_volumes
+
+TRUNC, VS = (-0.04, 0.1), 0.02
+
+
+def fused_like(sdf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What fusion makes of an exact SDF (metres): truncated to ``[d_min, d_max]``, observed only down to
+    ``d_min`` behind the surface (deeper voxels unobserved, reading ``d_max``)."""
+    observed = sdf >= TRUNC[0]
+    return np.where(observed, np.clip(sdf, *TRUNC), TRUNC[1]).astype(np.float32), observed
+
+
+def scene(n: int = 64) -> np.ndarray:
+    """Exact SDF (metres) of a floor, a wall and a box, voxel centres at index * VS."""
+    p = np.stack(np.meshgrid(*[np.arange(n) * VS] * 3, indexing="ij"), -1)
+    floor = p[..., 2] - 0.31
+    wall = p[..., 0] - 0.23
+    box = np.max(np.abs(p - np.array([0.8, 0.7, 0.5])) - np.array([0.15, 0.2, 0.12]), axis=-1)
+    return np.minimum(np.minimum(floor, wall), box).astype(np.float32)
+
+
+def weighted_lstsq(codec, x: np.ndarray, w: np.ndarray, ridge: float) -> np.ndarray:
+    """Independent reference: ``argmin sum w (x - (c D + d))^2 + lam |c - c0|^2`` by numpy's lstsq on the
+    stacked system, ``lam = ridge * mean(w)``, in float64."""
+    state = codec.state_dict()
+    dec_w, dec_b = state["components"].astype(np.float64), state["mean"].astype(np.float64)
+    out = []
+    for xi, wi in zip(x.reshape(len(x), -1).astype(np.float64), w.reshape(len(w), -1).astype(np.float64)):
+        c0 = (xi - dec_b) @ dec_w.T
+        lam = ridge * wi.mean()
+        a = np.vstack([np.sqrt(wi)[:, None] * dec_w.T, np.sqrt(lam) * np.eye(len(dec_w))])
+        b = np.concatenate([np.sqrt(wi) * (xi - dec_b), np.sqrt(lam) * c0])
+        out.append(np.linalg.lstsq(a, b, rcond=None)[0])
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def blocks_and_mask():
+    vol, obs = fused_like(scene())
+    v = normalise(vol, *TRUNC).reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
+    o = obs.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
+    keep = ~(v >= 1 - 1e-6).reshape(len(v), -1).all(axis=1)
+    return v[keep], o[keep]
+
+
+def test_pca_weighted_encode_is_the_weighted_least_squares(blocks_and_mask):
+    import sdfcodec_pca
+
+    v, obs = blocks_and_mask
+    codec = sdfcodec.pretrained_codec("pca", 32)
+    w = error_weights(v[:6], obs[:6], TRUNC, VS)
+    got = codec.encode(v[:6], weights=w)
+    ref = weighted_lstsq(codec, v[:6], w, sdfcodec_pca.RIDGE)
+    # float32 normal equations against float64 lstsq: the codes agree closely, the objective to 0.1 %
+    np.testing.assert_allclose(got, ref, rtol=0, atol=5e-3 * np.abs(ref).max())
+    state = codec.state_dict()
+    err = lambda c: (w.reshape(6, -1) * (c @ state["components"] + state["mean"] - v[:6].reshape(6, -1)) ** 2  # noqa: E731
+                     ).sum(axis=1)
+    assert np.all(err(got) <= err(ref) * 1.001 + 1e-6)
+    assert np.all(err(got) < err(codec.encode(v[:6])))  # and far better than the plain projection
+
+
+def test_zero_weights_keep_the_plain_code_and_torch_follows_the_device(blocks_and_mask):
+    v, _ = blocks_and_mask
+    codec = sdfcodec.pretrained_codec("pca", 64)
+    np.testing.assert_allclose(codec.encode(v[:3], weights=np.zeros(v[:3].shape, np.float32)), codec.encode(v[:3]),
+                               atol=1e-5)
+    t = codec.encode(torch.from_numpy(v[:3]), weights=torch.ones(v[:3].shape, dtype=torch.bool))
+    assert isinstance(t, torch.Tensor) and t.shape == (3, 64)
+    np.testing.assert_allclose(t.numpy(), codec.encode(v[:3]), atol=1e-4)  # uniform weights: the projection
+
+
+@pytest.mark.parametrize("bad, error", [
+    (lambda s: -np.ones(s, np.float32), InvalidValueError),
+    (lambda s: np.full(s, np.nan, np.float32), InvalidValueError),
+    (lambda s: np.ones((s[0], 8, 8, 8), np.float32), ShapeError),
+    (lambda s: np.ones((s[0] + 1, *s[1:]), np.float32), ShapeError),
+    (lambda s: np.full(s, "a"), DTypeError),
+])
+def test_bad_weights_are_clear_errors(blocks_and_mask, bad, error):
+    v, _ = blocks_and_mask
+    with pytest.raises(error, match="weights"):
+        sdfcodec.pretrained_codec("pca", 32).encode(v[:2], weights=bad(v[:2].shape))
+
+
+def test_codecs_without_the_hook_ignore_the_weights(blocks_and_mask):
+    v, obs = blocks_and_mask
+    raw = sdfcodec.get_codec("raw")
+    np.testing.assert_array_equal(raw.encode(v[:2], weights=obs[:2]), raw.encode(v[:2]))
+
+
+def test_mask_packing_round_trips(rng):
+    m = rng.random((5, 16, 16, 16)) < 0.4
+    rows = pack_mask(m)
+    assert rows.shape == (5, 512) and rows.dtype == np.uint8
+    np.testing.assert_array_equal(unpack_mask(rows), m)
+    assert (pack_mask(np.ones((1, 16, 16, 16), bool)) == 255).all()
+
+
+def write(path, vol, obs, k=64, **kw):
+    blocks = vol.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
+    o = None if obs is None else obs.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
+    coords = np.argwhere(np.ones((4, 4, 4), bool))
+    with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", k), voxel_size=VS, truncation=TRUNC,
+                             **kw) as m:
+        m.write_blocks(coords, blocks, observed=o)
+    return sdfcodec.open_map(path)
+
+
+def test_mask_restores_unobserved_voxels_and_keeps_the_surface(tmp_path):
+    exact = scene()
+    vol, obs = fused_like(exact)
+    masked = write(tmp_path / "masked.sdfz", vol, obs)
+    plain = write(tmp_path / "plain.sdfz", vol, None)
+    assert {"name": MASK_EXTENSION, "required": True} in [e.model_dump() for e in masked.header.extensions]
+    assert MASK_EXTENSION not in [e.name for e in plain.header.extensions]
+    dm, dp = masked.decode_region(), plain.decode_region()
+    assert (dm[~obs] == TRUNC[1]).all()  # every unobserved voxel reads d_max, exactly
+    np.testing.assert_array_equal(masked.read_observed(np.argwhere(np.ones((4, 4, 4), bool))).shape, (64, 16, 16, 16))
+    # surfaces against the analytic ones (the exact SDF's zero crossings), an independent expectation
+    good, bad = compare_volumes(exact, dm, VS), compare_volumes(exact, dp, VS)
+    assert good.chamfer_l1 < 0.25 * VS and good.f_score_1 > 0.95, good
+    assert bad.chamfer_l1 > 2 * good.chamfer_l1, (good, bad)
+
+
+def test_blocks_rewritten_without_a_mask_read_as_observed(tmp_path):
+    vol, obs = fused_like(scene())
+    write(tmp_path / "m.sdfz", vol, obs)
+    with sdfcodec.update_map(tmp_path / "m.sdfz") as m:
+        m.write_blocks(np.array([[0, 0, 0]]), vol[:16, :16, :16][None])
+    got = sdfcodec.open_map(tmp_path / "m.sdfz")
+    assert not obs[:16, :16, :16].all() and got.read_observed(np.array([[0, 0, 0]])).all()
+    partial = [b for b in np.argwhere(np.ones((4, 4, 4), bool))[1:]
+               if not obs[tuple(slice(16 * i, 16 * i + 16) for i in b)].all()]
+    assert partial
+    b = partial[0]
+    np.testing.assert_array_equal(got.read_observed(b[None])[0], obs[tuple(slice(16 * i, 16 * i + 16) for i in b)])
+
+
+def test_map_without_its_mask_array_is_refused(tmp_path):
+    import shutil
+
+    vol, obs = fused_like(scene())
+    write(tmp_path / "m.sdfz", vol, obs)
+    shutil.rmtree(tmp_path / "m.sdfz" / "observed")
+    with pytest.raises(FormatError, match="observed"):
+        sdfcodec.open_map(tmp_path / "m.sdfz")
+
+
+def test_fuse_stores_weights_and_transcoding_keeps_the_mask(tmp_path):
+    vol, obs = fused_like(scene())
+    src = tmp_path / "raw.sdfz"
+    blocks = vol.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
+    weights = obs.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16) * 3.0
+    with sdfcodec.create_map(src, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks(np.argwhere(np.ones((4, 4, 4), bool)), blocks, weights=weights)
+    res = CliRunner().invoke(app, ["encode", str(src), str(tmp_path / "p.sdfz"), "--codec", "pca", "--json"])
+    assert res.exit_code == 0, res.output
+    out = sdfcodec.open_map(tmp_path / "p.sdfz")
+    assert MASK_EXTENSION in [e.name for e in out.header.extensions] and not out.has_weights
+    assert (out.decode_region()[~obs] == TRUNC[1]).all()
+    assert json.loads(res.output)["blocks"]["coded"] == out.count_states()["coded"]
+
+
+def test_mesh_of_a_masked_map_has_no_false_surfaces(tmp_path):
+    import open3d as o3d
+
+    exact = scene()
+    vol, obs = fused_like(exact)
+    write(tmp_path / "m.sdfz", vol, obs)
+    res = CliRunner().invoke(app, ["mesh", str(tmp_path / "m.sdfz"), str(tmp_path / "m.ply")])
+    assert res.exit_code == 0, res.output
+    verts = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).vertices)
+    assert len(verts) > 1000
+    # every vertex lies on the analytic surface (within a voxel), none where solid meets unobserved space
+    idx = np.clip(np.round(verts / VS).astype(int), 0, exact.shape[0] - 1)
+    assert np.abs(exact[tuple(idx.T)]).max() < 1.5 * VS
