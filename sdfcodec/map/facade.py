@@ -244,10 +244,7 @@ class Map:
     def read_observed(self, coords: Any) -> np.ndarray:
         """Which voxels of blocks ``coords`` ``(N, 3)`` were observed: ``(N, 16, 16, 16)`` bool, from the fusion
         weights (> 0) or the observation mask the map stores; all True for a map that stores neither."""
-        c = check_coords(coords)
-        if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
-            raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
-        return read_observed(self.reader, c)
+        return read_observed(self.reader, check_coords(coords, grid=self.grid_blocks))
 
     def close(self) -> None:
         """Release the map: a read-only map lets go of the version it holds (a replaced version is removed once

@@ -161,8 +161,9 @@ def is_dask_array(x: Any) -> bool:
     return type(x).__module__.split(".")[0] == "dask" and hasattr(x, "chunks") and hasattr(x, "dask")
 
 
-def check_coords(coords: Any) -> np.ndarray:
-    """Block indices ``(N, 3)`` as int64: integers (or integral floats), non-negative, no duplicates."""
+def check_coords(coords: Any, grid: Sequence[int] | None = None) -> np.ndarray:
+    """Block indices ``(N, 3)`` as int64: integers (or integral floats), non-negative, no duplicates, and inside
+    ``grid`` (blocks per axis) when given (reads of existing blocks)."""
     c = np.asarray(coords)
     if c.ndim != 2 or c.shape[1] != 3:
         raise ShapeError(f"block coords must have shape (N, 3), got {c.shape}")
@@ -176,6 +177,8 @@ def check_coords(coords: Any) -> np.ndarray:
                                 f"positions); got minimum {int(c.min())}")
     if len(np.unique(c, axis=0)) != len(c):
         raise InvalidValueError("block coords hold duplicates; write each block once per call")
+    if grid is not None and len(c) and np.any(c >= np.asarray(grid)):
+        raise InvalidValueError(f"block coords outside the map's grid {tuple(grid)}")
     return c.astype(np.int64)
 
 

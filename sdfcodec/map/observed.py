@@ -26,9 +26,11 @@ import torch
 import zarr
 
 from .._validate import BLOCK
+from ..errors import FormatError
 
 __all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "encode_blocks",
-           "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "store_mask_chunk", "read_observed"]
+           "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "store_mask_chunk", "read_observed",
+           "checked_mask_array"]
 
 MASK_EXTENSION = "observation-mask"
 MASK_ARRAY = "observed"
@@ -72,21 +74,37 @@ def pack_mask(observed: np.ndarray) -> np.ndarray:
 
 def unpack_mask(rows: np.ndarray) -> np.ndarray:
     """``(N, 512)`` uint8 -> ``(N, 16, 16, 16)`` bool (the inverse of :func:`pack_mask`)."""
-    return np.unpackbits(np.asarray(rows, dtype=np.uint8), axis=1).astype(bool).reshape(len(rows), BLOCK, BLOCK,
-                                                                                      BLOCK)
+    # unpackbits gives bytes of 0 and 1: valid bools as they are, no converting copy
+    return np.unpackbits(np.asarray(rows, dtype=np.uint8), axis=1).view(bool).reshape(len(rows), BLOCK, BLOCK, BLOCK)
 
 
 def restore_unobserved(blocks: torch.Tensor, rows: np.ndarray, free: float) -> torch.Tensor:
     """Set the unobserved voxels of decoded ``blocks`` ``(n, 16, 16, 16)`` (any device) to ``free``, in place;
-    ``rows`` ``(n, 512)`` uint8 packed masks. Fully observed blocks (rows of 255) cost nothing."""
-    partial = np.flatnonzero((rows != 255).any(axis=1))
-    if len(partial):
-        unobs = torch.from_numpy(~unpack_mask(rows[partial])).to(blocks.device)
-        idx = torch.from_numpy(partial).to(blocks.device)
-        sub = blocks[idx]
-        sub.masked_fill_(unobs, free)
-        blocks[idx] = sub
+    ``rows`` ``(n, 512)`` uint8 packed masks. A batch of fully observed blocks (rows of 255) costs one pass over
+    the rows; otherwise one in-place select over the batch (no gather and scatter of the partial blocks)."""
+    if (rows != 255).any():
+        observed = torch.from_numpy(unpack_mask(rows)).to(blocks.device)
+        torch.where(observed, blocks, torch.tensor(free, dtype=blocks.dtype, device=blocks.device), out=blocks)
     return blocks
+
+
+def checked_mask_array(reader: Any) -> zarr.Array | None:
+    """The observation mask of the map ``reader`` opens (a :class:`~sdfcodec.map.reader.MapReader`), its
+    metadata checked against the header; None when the header lists no ``observation-mask``.
+
+    Raises:
+        FormatError: the header lists the mask but the array is missing, or has the wrong dtype, shape or chunks.
+    """
+    h = reader.header
+    if not any(e.name == MASK_EXTENSION for e in h.extensions):
+        return None
+    arr = reader.member(MASK_ARRAY)
+    if arr is None:
+        raise FormatError(f"{reader.location}: map lists the observation mask but lacks array '{MASK_ARRAY}' (spec "
+                          "section 6b); it is incomplete")
+    cb = h.codes.chunk_blocks
+    reader.check_array(arr, dtype=np.uint8, shape=(*h.grid_blocks, MASK_BYTES), chunks=(cb, cb, cb, MASK_BYTES))
+    return arr
 
 
 def read_block_rows(reader: Any, arr: zarr.Array, coords: np.ndarray) -> np.ndarray:
@@ -119,10 +137,9 @@ def store_mask_chunk(arr: zarr.Array, box: tuple[slice, ...], local: np.ndarray,
 def read_observed(reader: Any, coords: np.ndarray) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: which voxels of blocks ``coords`` ``(n, 3)`` (checked, inside the grid) were
     observed: fusion weight > 0 where the map stores weights, else its observation mask, else all of them."""
-    arr = reader.weights_array if reader.live is None else reader.group.get("weights")
+    arr, mask = reader.observation_arrays()
     if arr is not None:
         return (read_block_rows(reader, arr, coords) > 0).reshape(len(coords), BLOCK, BLOCK, BLOCK)
-    mask = reader.mask_array if reader.live is None else reader.live.mask
     if mask is not None:
         return unpack_mask(read_block_rows(reader, mask, coords))
     return np.ones((len(coords), BLOCK, BLOCK, BLOCK), dtype=bool)

@@ -34,7 +34,7 @@ from ..registry import get_codec_class
 from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
                      check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, state_digest,
                      unstored_suspects)
-from .observed import MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, read_block_rows, restore_unobserved
+from .observed import checked_mask_array, read_block_rows, restore_unobserved
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -213,13 +213,7 @@ class MapReader:
             self.weights_array = self.member("weights")
             if self.weights_array is not None:
                 self.check_array(self.weights_array, dtype=np.float16, shape=(*h.grid_blocks, 4096))
-        if any(e.name == MASK_EXTENSION for e in h.extensions):
-            self.mask_array = self.member(MASK_ARRAY)
-            if self.mask_array is None:
-                raise FormatError(f"{self.location}: map lists the observation mask but lacks array '{MASK_ARRAY}' "
-                                  "(spec section 6b); it is incomplete")
-            self.check_array(self.mask_array, dtype=np.uint8, shape=(*h.grid_blocks, MASK_BYTES),
-                             chunks=(cb, cb, cb, MASK_BYTES))
+        self.mask_array = checked_mask_array(self)
         self.codes_array, self.state_array = codes, state
 
     # -- reading --------------------------------------------------------------------------------------
@@ -547,10 +541,10 @@ class MapReader:
         return coords, self._code_values(coords, codes, params)
 
     def fetch_stream(self, box: Box, level: int, *, states: np.ndarray | None = None,
-                      stage: Callable[[np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
+                      stage: Callable[[np.ndarray, np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
                       chunks_per_group: int | None = None, prefetch: int = 2) -> Iterator[tuple[np.ndarray, Any]]:
-        """Yield ``(coords, codes)`` per group of chunks (see :meth:`_chunk_groups`), ``codes`` passed through
-        ``stage`` in the fetching thread. Up to ``prefetch`` further groups are fetched (and staged) by a
+        """Yield ``(coords, codes)`` per group of chunks (see :meth:`_chunk_groups`), ``codes`` replaced by
+        ``stage(coords, codes)`` in the fetching thread when given. Up to ``prefetch`` further groups are fetched (and staged) by a
         thread pool while the caller works on the one yielded; with one group, everything runs inline."""
         if isinstance(prefetch, bool) or not isinstance(prefetch, (int, np.integer)) or prefetch < 0:
             raise InvalidValueError(f"prefetch must be an int >= 0 (groups read ahead), got {prefetch!r}")
@@ -565,7 +559,7 @@ class MapReader:
 
         def job(chunks: np.ndarray) -> tuple[np.ndarray, Any]:
             coords, codes = self._fetch_group(chunks, b0, b1, states, level)
-            return coords, (stage(codes) if stage is not None else codes)
+            return coords, (stage(coords, codes) if stage is not None else codes)
 
         if len(groups) <= 1 or prefetch == 0:
             for g in groups:
@@ -596,14 +590,21 @@ class MapReader:
         """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
-        feed = DeviceFeed(dev)
-        for coords, staged in self.fetch_stream(box, level, stage=feed.stage, **kw):
-            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords)
+        feed, mask = DeviceFeed(dev), self.observation_arrays()[1]
 
-    def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None) -> torch.Tensor:
+        def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None]:
+            # a masked map's rows are read here too, in the fetching thread, beside their codes
+            return feed.stage(codes), None if mask is None else read_block_rows(self, mask, coords)
+
+        for coords, (staged, rows) in self.fetch_stream(box, level, stage=stage, **kw):
+            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords, mask_rows=rows)
+
+    def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
+                     mask_rows: np.ndarray | None = None) -> torch.Tensor:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
-        masked map set to free space (``coords`` (n, 3), the blocks, are required there). NaN/Inf or absurd values
+        masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
+        ``mask_rows`` (n, 512) are read unless given). NaN/Inf or absurd values
         (normalised beyond +-DECODE_LIMIT) out of the codec (corrupted codes or learned state) are refused,
         naming a block of ``coords`` (n, 3) when given: proven impossible by the codec's bound on its outputs
         when it gives one within the limit (no pass over the output), else checked on the output."""
@@ -615,13 +616,14 @@ class MapReader:
         if bound is None or not math.isfinite(bound) or bound > DECODE_LIMIT:
             v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
                               codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
-        mask = self.mask_array if self.live is None else self.live.mask
+        mask = self.observation_arrays()[1]
         if mask is None:
             return v
         if coords is None:
             raise InvalidValueError(f"{self.location} has an observation mask: decode_codes needs the blocks' coords")
+        rows = read_block_rows(self, mask, coords) if mask_rows is None else mask_rows
         # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
-        return restore_unobserved(v, read_block_rows(self, mask, coords), d_max if metres else 1.0)
+        return restore_unobserved(v, rows, d_max if metres else 1.0)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -736,23 +738,25 @@ class MapReader:
             return str(inner.path)
         return None
 
+    def observation_arrays(self) -> tuple[zarr.Array | None, zarr.Array | None]:
+        """``(fusion weights, observation mask)`` arrays, None where the map has none: the checked ones, or, for
+        a map being written, the writer's as they are now (it creates them on the first write that needs them)."""
+        if self.live is None:
+            return self.weights_array, self.mask_array
+        return self.group.get("weights"), self.live.mask
+
     @property
     def has_weights(self) -> bool:
         """True when the map stores fusion weights."""
-        if self.live is not None:
-            return "weights" in self.group
-        return self.weights_array is not None
+        return self.observation_arrays()[0] is not None
 
     def read_weights(self, coords: Any) -> np.ndarray:
         """:meth:`sdfcodec.Map.read_weights`: ``(N, 16, 16, 16)`` float32 fusion weights of blocks ``coords``."""
         if not self.has_weights:
             raise FormatError(f"{self.location} stores no fusion weights (write them with write_blocks(weights=...),"
                               " e.g. `sdfcodec fuse --weights`)")
-        c = check_coords(coords)
-        if len(c) and np.any(c >= np.asarray(self.grid_blocks)):
-            raise InvalidValueError(f"block coords outside the map's grid {self.grid_blocks}")
-        arr = self.weights_array if self.live is None else self.group["weights"]
-        return read_block_rows(self, arr, c).astype(np.float32).reshape(len(c), BLOCK, BLOCK, BLOCK)
+        c = check_coords(coords, grid=self.grid_blocks)
+        return read_block_rows(self, self.observation_arrays()[0], c).astype(np.float32).reshape(len(c), BLOCK, BLOCK, BLOCK)
 
     def close(self) -> None:
         """Further reads raise; a reader that owns a pinned local store lets go of the version it holds."""
