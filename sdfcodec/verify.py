@@ -378,9 +378,10 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
         counts = np.bincount(states.ravel(), minlength=3)
         rep.blocks = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
     _check_codes(rep, m, states)
-    if m.has_weights:
-        for _ in _iter_chunks(rep, m.reader.weights_array):
-            pass
+    for arr in m.reader.observation_arrays():  # fusion weights, observation mask: every chunk read and checked
+        if arr is not None:
+            for _ in _iter_chunks(rep, arr):
+                pass
     _check_codec(rep, m, decode_blocks)
     m.close()
 

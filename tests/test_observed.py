@@ -192,3 +192,20 @@ def test_mesh_of_a_masked_map_has_no_false_surfaces(tmp_path):
     # every vertex lies on the analytic surface (within a voxel), none where solid meets unobserved space
     idx = np.clip(np.round(verts / VS).astype(int), 0, exact.shape[0] - 1)
     assert np.abs(exact[tuple(idx.T)]).max() < 1.5 * VS
+
+
+def test_a_damaged_mask_chunk_is_found_by_verify_and_refused_by_reads(tmp_path):
+    from sdfcodec.errors import ChecksumError
+    from sdfcodec.verify import verify_map
+
+    vol, obs = fused_like(scene())
+    write(tmp_path / "m.sdfz", vol, obs)
+    assert verify_map(tmp_path / "m.sdfz").ok
+    chunk = next(p for p in (tmp_path / "m.sdfz" / "observed" / "c").rglob("*") if p.is_file())
+    raw = bytearray(chunk.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(raw))
+    rep = verify_map(tmp_path / "m.sdfz")
+    assert not rep.ok and any("observed" in f"{p.where} {p.message}" for p in rep.problems), rep.problems
+    with pytest.raises(ChecksumError, match="observed"):
+        sdfcodec.open_map(tmp_path / "m.sdfz").decode_region()
