@@ -29,7 +29,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import DTypeError, InvalidValueError, ShapeError
-from .map.observed import MASK_EXTENSION
 
 __all__ = ["surface_points", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_command",
            "metrics_table", "JUMP", "SLAB"]
@@ -272,7 +271,7 @@ def compare_maps(original_map: Any, decoded_map: Any, *, level: int | None = Non
     o = _check_geometry(vs, original_map.origin, jump)
     width = _band_width(band, vs)
     nx, ny, nz = (int(n) for n in original_map.shape_voxels)
-    weights = bool(original_map.has_weights) or any(e.name == MASK_EXTENSION for e in original_map.header.extensions)
+    weights = any(a is not None for a in original_map.reader.observation_arrays())  # fusion weights or a mask
     stats, p_orig, p_dec = _Band(), [np.zeros((0, 3))], [np.zeros((0, 3))]  # an empty map has no slab
     for x0, own, x1 in _slabs(nx, int(slab)):
         region = ((x0, x1), (0, ny), (0, nz))
