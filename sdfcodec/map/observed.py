@@ -29,7 +29,7 @@ from .._validate import BLOCK
 from ..errors import FormatError
 
 __all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "encode_blocks",
-           "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "store_mask_chunk", "read_observed",
+           "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",
            "checked_mask_array"]
 
 MASK_EXTENSION = "observation-mask"
@@ -122,6 +122,20 @@ def read_block_rows(reader: Any, arr: zarr.Array, coords: np.ndarray) -> np.ndar
         rows = np.flatnonzero(inverse == i)
         out[rows] = a[tuple((coords[rows] - keys[i] * cb).T)]
     return out
+
+
+def write_block_rows(arr: zarr.Array, coords: np.ndarray, rows: np.ndarray) -> None:
+    """Write ``rows`` ``(n, R)`` of blocks ``coords`` ``(n, 3)`` into a per-block array ``arr`` ``(Bx, By, Bz, R)``:
+    one read and one write per chunk touched (the inverse of :func:`read_block_rows`)."""
+    cb = np.asarray(arr.chunks[:3])
+    keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    for i, k in enumerate(keys):
+        box = tuple(slice(int(c) * b, min(int(c) * b + b, g)) for c, b, g in zip(k, cb, arr.shape))
+        sel = np.flatnonzero(inverse == i)
+        buf = np.asarray(arr[box])
+        buf[tuple((coords[sel] - k * cb).T)] = rows[sel]
+        arr[box] = buf
 
 
 def store_mask_chunk(arr: zarr.Array, box: tuple[slice, ...], local: np.ndarray, rows: np.ndarray | None,

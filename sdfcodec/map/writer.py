@@ -32,7 +32,8 @@ from ..quantize import quantize_codes
 from ..registry import codec_package
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
                      free_space, state_digest)
-from .observed import MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask, store_mask_chunk
+from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
+                       store_mask_chunk, write_block_rows)
 from .reader import open_reader
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
@@ -259,8 +260,7 @@ class MapWriter:
             arr.resize((*self.grid, 4096))
         # float16 counts are exact to 2048 frames and saturate at its maximum beyond
         w16 = np.minimum(weights.reshape(len(weights), 4096), 65504).astype(np.float16)
-        for (x, y, z), row in zip(coords, w16):
-            arr[int(x), int(y), int(z)] = row
+        write_block_rows(arr, coords, w16)  # one write per chunk, not one per block
 
     def set_state(self, coords: np.ndarray, value: int) -> None:
         self.state[tuple(coords.T)] = value
