@@ -15,6 +15,13 @@ Records of a registered codec also carry ``roofline_shapes``, ``weights`` and ``
 of others keep the original keys (see :func:`bench_codec`). Every record carries ``paper_us_per_block``
 (405, 645) and ``speedup_vs_paper`` (those divided by ``us_per_block``, :func:`vs_paper`).
 
+Codecs with a weighted encode (:meth:`~sdfcodec.Codec.encode_weighted`, the one map writers use for fused maps)
+also get ``"encode-weighted"`` records: the same blocks with the error weights a fused map gives them
+(:func:`fused_style_weights`), with ``ratio_to_encode`` (plain encode time over weighted encode time, the plain
+one timed just before in the same run). Its roofline is what an exact weighted least-squares fit of a linear
+code of size ``k`` cannot avoid: the plain projection, the Gram matrices ``(B, 4096) @ (4096, k (k + 1) / 2)``
+and the weighted right-hand sides ``(B, 4096) @ (4096, k)``.
+
 Decode on read (:func:`bench_decode_on_read`) has a second roofline, memory-copy bandwidth: ``np.copyto``
 between two 64 MiB buffers, timed in the same run, expressed as the blocks/s at which the decoded float32
 blocks (16 KiB each) could merely be copied (``memcpy_blocks_per_s``): no decoder that writes its output can
@@ -36,13 +43,13 @@ from .codec import Codec
 from .errors import CodecTypeError, InvalidValueError, RegistrationError
 from .registry import get_codec, get_codec_class
 
-__all__ = ["time_call", "bench_codec", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
+__all__ = ["time_call", "bench_codec", "fused_style_weights", "has_weighted_encode", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
            "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
 _BLOCK_BYTES = 4 * _N  # one decoded float32 block
-_OPS = ("encode", "decode")
+_OPS = ("encode", "decode", "encode-weighted")
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:
@@ -158,7 +165,10 @@ def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
     """The ``(m, n)`` right-hand shapes of the matrix products ``operation`` needs: those registered for the
     codec (:func:`register_bench`), else the single product of a linear codec."""
     if operation not in _OPS:
-        raise InvalidValueError(f"operation must be 'encode' or 'decode', got {operation!r}")
+        raise InvalidValueError(f"operation must be one of {', '.join(map(repr, _OPS))}, got {operation!r}")
+    k = codec.code_size
+    if operation == "encode-weighted":  # the same for every codec: what an exact weighted fit of k numbers needs
+        return [(_N, k), (_N, k * (k + 1) // 2), (_N, k)]
     spec = _spec(type(codec))
     if spec is not None and spec.roofline_shapes is not None:
         shapes = [(int(m), int(n)) for m, n in spec.roofline_shapes(codec, operation)]
@@ -166,7 +176,6 @@ def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
             raise InvalidValueError(f"roofline_shapes({codec!r}, {operation!r}) must be a non-empty list of "
                                     f"positive (m, n) shapes, got {shapes}")
         return shapes
-    k = codec.code_size
     return [(_N, k)] if operation == "encode" else [(k, _N)]
 
 
@@ -179,6 +188,22 @@ def _roofline_fn(shapes: list[tuple[int, int]], batch: int) -> Callable[[], obje
         for a, m in zip(lhs, mats):
             a @ m
     return run
+
+
+def fused_style_weights(v: np.ndarray, voxel_size: float = 0.02) -> np.ndarray:
+    """The error weights ``(N, 16, 16, 16)`` float32 a fused map gives normalised exact blocks ``v`` (default
+    truncation): voxels clipped to ``d_min`` (more than ``|d_min|`` behind a surface) unobserved, as a camera
+    leaves them, the rest weighted as :func:`sdfcodec.map.observed.error_weights` weights them."""
+    from .map.observed import error_weights
+
+    return error_weights(v, v > 0, (-0.04, 0.1), voxel_size)
+
+
+def has_weighted_encode(codec: Codec | type[Codec]) -> bool:
+    """Whether ``codec`` (an instance or a class) overrides :meth:`~sdfcodec.Codec.encode_weighted` (else its
+    encode ignores weights)."""
+    cls = codec if isinstance(codec, type) else type(codec)
+    return cls.encode_weighted is not Codec.encode_weighted
 
 
 def _has_hooks(codec: Codec) -> bool:
@@ -202,19 +227,27 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
     for b in batches:
         x = torch.from_numpy(np.concatenate([data] * -(-b // len(data)))[:b]).to(dev)
         codes = codec.encode(x)
-        for op, fn in (("encode", lambda: (codec.encode(x), sync())),
-                       ("decode", lambda: (codec.decode(codes), sync()))):
+        ops = [("encode", lambda: (codec.encode(x), sync())), ("decode", lambda: (codec.decode(codes), sync()))]
+        if has_weighted_encode(codec):
+            w = torch.from_numpy(fused_style_weights(x.cpu().numpy())).to(dev)
+            ops.append(("encode-weighted", lambda: (codec.encode(x, weights=w), sync())))
+        plain_t = None
+        for op, fn in ops:
             if progress:
                 progress(f"{name}-{codec.code_size} {op} batch {b}")
             shapes = roofline_shapes(codec, op)
             t = time_call(fn, min_time)
             tb = time_call(_roofline_fn(shapes, b), min_time)
+            plain_t = t if op == "encode" else plain_t
             rec: dict[str, Any] = {
                 "codec": name, "code_size": codec.code_size, "operation": op, "batch": b, "device": str(dev),
                 "blocks_per_s": b / t, "baseline": "numpy matmul of the layer shapes" if extra else "numpy matmul",
                 "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
                 **vs_paper(1e6 * t / b),
             }
+            if op == "encode-weighted":
+                rec.update(ratio_to_encode=plain_t / t, roofline_shapes=[list(s) for s in shapes],
+                           baseline="numpy matmuls of an exact weighted least-squares fit")
             if extra:
                 rec.update(roofline_shapes=[list(s) for s in shapes], weights=weights,
                            torch_threads=torch.get_num_threads())

@@ -136,7 +136,11 @@ def test_bench_json_records():
     recs = json.loads(r.stdout)
     assert {(x["operation"], x["batch"]) for x in recs} == {
         ("encode", 1), ("decode", 1), ("encode", 64), ("decode", 64), ("decode-on-read", 300),
-        ("decode-on-read-http", 300), ("search", 8192)}
+        ("decode-on-read-http", 300), ("search", 8192), ("encode-weighted", 1), ("encode-weighted", 64)}
+    for x in (x for x in recs if x["operation"] == "encode-weighted"):  # beside the plain encode of the batch
+        plain = next(y for y in recs if y["operation"] == "encode" and y["batch"] == x["batch"])
+        assert x["ratio_to_encode"] == pytest.approx(x["us_per_block"] ** -1 / plain["us_per_block"] ** -1, rel=1e-9)
+        assert x["roofline_shapes"] == [[4096, 32], [4096, 32 * 33 // 2], [4096, 32]]
     assert all(x["blocks_per_s"] > 0 and x["baseline_blocks_per_s"] > 0 for x in recs)
     for x in recs:  # the paper's 405-645 us per block against ours
         assert x["speedup_vs_paper"] == pytest.approx([405 / x["us_per_block"], 645 / x["us_per_block"]])

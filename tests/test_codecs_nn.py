@@ -484,6 +484,9 @@ def test_bench_registration_is_generic_and_linear_default_unchanged():
                            "baseline_blocks_per_s", "ratio_to_baseline", "us_per_block", "paper_us_per_block",
                            "speedup_vs_paper"}
     assert pca[0]["baseline"] == "numpy matmul"
+    weighted = [r for r in pca if r["operation"] == "encode-weighted"]  # pca overrides encode_weighted
+    assert len(weighted) == 1 and weighted[0]["roofline_shapes"] == [[4096, 32], [4096, 528], [4096, 32]]
+    assert [r["operation"] for r in recs] == ["encode", "decode"]  # no weighted encode: no weighted record
     assert roofline_shapes(sdfcodec.get_codec("raw"), "encode") == [(4096, 4096)]
     _check_timing_fields(pca)
 
