@@ -2,11 +2,13 @@
 
 :func:`track_command` tracks a depth sequence against any map (decoded lazily through
 :class:`~sdfcodec.mapfield.MapField`, or densely) and writes a TUM trajectory. :func:`eval_command` runs the
-whole of Table 1: for each sequence it fuses the ground-truth map from the ground-truth poses, compresses and
-decompresses it with each method, measures the reconstruction error over the non-empty (coded) blocks, tracks
-the sequence from the ground-truth start pose in the decoded map, and reports the ATE; then it aggregates
-across sequences (mean +- std among sequences), writes ``eval.json``, a Markdown table in the paper's layout
-and the pictures.
+whole of Table 1: for each sequence it fuses the ground-truth map from the ground-truth poses, writes it
+losslessly (the ``raw`` codec: "Original data", the reference of every comparison), compresses and decompresses
+it with each method, measures the reconstruction error over the non-empty (coded) blocks and the surface metrics
+against the lossless map (:func:`sdfcodec.surface.compare_volumes`, band restricted to the observed voxels),
+tracks the sequence from the ground-truth start pose in the decoded map, and reports the ATE and its ratio to
+the lossless map's; then it aggregates across sequences (mean +- std among sequences), writes ``eval.json``, a
+Markdown table in the paper's layout and the pictures.
 
 Sequences are given as a path (TUM RGB-D or 7-Scenes layout, see :func:`sdfcodec.data.sequences.open_sequence`;
 e.g. the paper's ``rgbd_dataset_freiburg1_teddy``) or as ``synthetic:<preset>`` (rendered on the fly by
@@ -14,7 +16,8 @@ e.g. the paper's ``rgbd_dataset_freiburg1_teddy``) or as ``synthetic:<preset>`` 
 
 Units: reconstruction errors are in normalised units ``v = (d - d_min) / (d_max - d_min)`` (what codecs see);
 ``mse`` is the mean squared error per voxel, ``block_sse`` the sum of squared errors per block (16^3 voxels),
-averaged over blocks. ATE in metres, without alignment (the tracker starts in the map's frame).
+averaged over blocks. ATE in metres, without alignment (the tracker starts in the map's frame). Surface metrics
+(:data:`SURFACE_FIELDS`) in metres or fractions, ``null`` in JSON where not finite (no surface on one side).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ __all__ = [
     "build_codec",
     "resolve_sequence",
     "markdown_table",
+    "SURFACE_FIELDS",
 ]
 
 
@@ -80,6 +84,8 @@ DEFAULT_METHODS = tuple(METHODS)
 #:   better on fast-noisy but worse on slow-noisy;
 #: - ``constant_velocity=True``: the camera moves smoothly; predicting the next pose keeps it in the basin.
 EVAL_TRACKER_CONFIG: dict[str, Any] = {"max_final_update": None, "plateau_margin": 0.02, "constant_velocity": True}
+#: the :class:`sdfcodec.surface.SurfaceMetrics` fields stored per method (against the lossless map)
+SURFACE_FIELDS = ("chamfer_l1", "f_score_1", "f_score_2", "sign_agreement", "near_surface_rmse", "near_surface_bias")
 PAPER_SEQUENCES = ("freiburg1_teddy", "freiburg1_room", "freiburg1_desk", "freiburg1_desk2", "freiburg1_360",
                    "freiburg1_plant")
 
@@ -340,6 +346,21 @@ def _roundtrip(codec, fused, work: Path, name: str):
     return open_map(path)
 
 
+def _observed_volume(fused, shape: tuple[int, ...]) -> np.ndarray:
+    """The fused voxels with weight > 0, as a dense ``shape`` bool volume on the map's lattice."""
+    grid = [-(-n // BLOCK) for n in shape]
+    obs = np.zeros((grid[0], grid[1], grid[2], BLOCK, BLOCK, BLOCK), dtype=bool)
+    c = fused.coords
+    obs[c[:, 0], c[:, 1], c[:, 2]] = fused.weights > 0
+    obs = obs.transpose(0, 3, 1, 4, 2, 5).reshape(grid[0] * BLOCK, grid[1] * BLOCK, grid[2] * BLOCK)
+    return obs[: shape[0], : shape[1], : shape[2]]
+
+
+def _finite(x: float | None) -> float | None:
+    """``x`` as a float, ``None`` where it is not finite (JSON has no inf/NaN)."""
+    return float(x) if x is not None and np.isfinite(x) else None
+
+
 def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequence[str] | None = None,
                  frames: int | None = 60, stride: int = 1, size: tuple[int, int] | None = (320, 240),
                  voxel_size: float = 0.02, truncation: tuple[float, float] = (-0.04, 0.1),
@@ -375,10 +396,14 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
     -------
     dict
         ``{"sequences": {name: {"frames", "blocks", "methods": {key: {...}}}}, "aggregate": {key: {...}},
-        "skipped": {key: reason}, "settings": {...}}``.
+        "skipped": {key: reason}, "settings": {...}}``. Per method: reconstruction error (``mse``,
+        ``block_sse``), the :data:`SURFACE_FIELDS` against the lossless map, ATE statistics and ``ate_ratio``
+        (mean ATE over the lossless map's mean ATE on the same sequence; ``None`` when "original" is not run).
     """
     from .fusion import fuse
     from .densefield import DenseField
+    from .registry import get_codec
+    from .surface import compare_volumes
 
     say = log or (lambda s: None)
     out = Path(out_dir)
@@ -409,34 +434,44 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
         work.mkdir(parents=True, exist_ok=True)
         d_min, d_max = truncation
         entry: dict[str, Any] = {"path": str(path), "frames": len(seq), "methods": {}}
-        coded = None
+        # the reference of every row: the lossless map (its coded blocks are the non-empty ones)
+        t_ref = time.perf_counter()
+        lossless = _roundtrip(codecs.get("original") or get_codec("raw"), fused, work, "original")
+        orig_vol = lossless.decode_region()
+        coded = np.argwhere(lossless.block_states() == BlockState.CODED)
+        observed = _observed_volume(fused, orig_vol.shape)
+        entry["blocks"] = int(len(coded))
+        t_ref = time.perf_counter() - t_ref
         for k in keys:
             if k not in codecs:
                 continue
             t0 = time.perf_counter()
-            m = _roundtrip(codecs[k], fused, work, k)
-            vol = m.decode_region()
-            if coded is None:  # the original's coded blocks: the non-empty ones
-                coded = np.argwhere(m.block_states() == BlockState.CODED)
-                orig_vol = vol
-                entry["blocks"] = int(len(coded))
+            m = lossless if k == "original" else _roundtrip(codecs[k], fused, work, k)
+            vol = orig_vol if k == "original" else m.decode_region()
             a = (_blocks_of(vol, coded) - d_min) / (d_max - d_min)
             b = (_blocks_of(orig_vol, coded) - d_min) / (d_max - d_min)
             sq = ((a - b) ** 2).reshape(len(coded), -1)
+            surf = compare_volumes(orig_vol, vol, voxel_size, origin=m.origin, observed=observed).to_dict()
             field = DenseField(vol, voxel_size, m.origin, truncation)
             poses, res, secs = _track(field, seq, seq.poses[0], progress=progress, label=f"{name} {k}")
             ate = _ate(seq, poses)
             entry["methods"][k] = {
                 "mse": float(sq.mean()), "block_sse": float(sq.sum(1).mean()),
                 "block_sse_std": float(sq.sum(1).std()),
+                **{f: surf[f] for f in SURFACE_FIELDS},
                 "ate_mean": ate["mean"], "ate_std": ate["std"], "ate_median": ate["median"],
                 "ate_rmse": ate["rmse"], "ate_max": ate["max"], "ate_errors": ate["errors"],
                 "failures": sum(not r.success for r in res), "tracking_s": secs,
                 "frames_per_s": len(seq) / max(secs, 1e-9), "bytes_on_disk": m.info().get("bytes_on_disk"),
-                "seconds": time.perf_counter() - t0}
-            say(f"  {k:18s} mse {sq.mean():.5f}  ATE mean {ate['mean'] * 100:.2f} cm  median "
+                "seconds": time.perf_counter() - t0 + (t_ref if k == "original" else 0.0)}
+            ch = surf["chamfer_l1"]
+            say(f"  {k:18s} mse {sq.mean():.5f}  Chamfer {'-' if ch is None else f'{ch * 1000:.2f}'} mm  "
+                f"F@1 {surf['f_score_1']:.3f}  ATE mean {ate['mean'] * 100:.2f} cm  median "
                 f"{ate['median'] * 100:.2f} cm  ({len(seq) / max(secs, 1e-9):.1f} frames/s)")
             slices.setdefault(name, {})[k] = _slice(vol, voxel_size, m.origin)
+        ref = entry["methods"].get("original", {}).get("ate_mean")
+        for r in entry["methods"].values():
+            r["ate_ratio"] = _finite(r["ate_mean"] / ref) if ref else None
         results["sequences"][name] = entry
     results["aggregate"] = _aggregate(results, keys)
     (out / "eval.json").write_text(json.dumps(results, indent=1))
@@ -461,40 +496,61 @@ def _slice(vol: np.ndarray, voxel_size: float, origin) -> np.ndarray:
     return vol[:, :, k].copy()
 
 
+#: the per-method fields that :func:`_aggregate` averages over sequences
+AGGREGATED = ("mse", "block_sse", "ate_mean", "ate_median", "ate_ratio") + SURFACE_FIELDS
+
+
 def _aggregate(results: dict, keys: list[str]) -> dict[str, Any]:
+    """Mean and population std among sequences of each :data:`AGGREGATED` field; ``None`` where a sequence has
+    no finite value (e.g. no surface on one side: Chamfer-L1 inf)."""
     agg = {}
     for k in keys:
         rows = [s["methods"][k] for s in results["sequences"].values() if k in s["methods"]]
         if not rows:
             continue
-        col = {f: np.array([r[f] for r in rows]) for f in ("mse", "block_sse", "ate_mean", "ate_median")}
-        agg[k] = {f"{f}_mean": float(v.mean()) for f, v in col.items()}
-        agg[k].update({f"{f}_std": float(v.std()) for f, v in col.items()})
+        col = {f: np.array([np.nan if r.get(f) is None else r[f] for r in rows], dtype=np.float64)
+               for f in AGGREGATED}
+        agg[k] = {f"{f}_mean": _finite(v.mean()) for f, v in col.items()}
+        agg[k].update({f"{f}_std": _finite(v.std()) for f, v in col.items()})
         agg[k]["sequences"] = len(rows)
     return agg
 
 
+def _fmt(x: float | None, spec: str, scale: float = 1.0) -> str:
+    """``x * scale`` formatted with ``spec``; ``-`` for None (not finite)."""
+    return "-" if x is None else f"{x * scale:{spec}}"
+
+
 def markdown_table(results: dict) -> str:
     """Table 1 in the paper's layout: method, reconstruction error (per-block SSE, normalised) +- sigma among
-    sequences, mean ATE +- sigma among sequences, median ATE; then one table per sequence."""
+    sequences, mean ATE +- sigma among sequences, median ATE, then the surface metrics against the lossless map
+    (Chamfer-L1 in mm +- sigma, F-score at one voxel) and the mean ATE over the lossless map's (mean +- sigma of
+    the per-sequence ratios); then one table per sequence."""
     lines = ["| Reconstruction Method | Reconstruction Error (block SSE) ± σ | MSE per voxel | Mean ATE [m] ± σ "
-             "| Median ATE [m] |", "|---|---|---|---|---|"]
+             "| Median ATE [m] | Chamfer-L1 [mm] ± σ | F@1 voxel | ATE / lossless ± σ |",
+             "|---|---|---|---|---|---|---|---|"]
     agg = results["aggregate"]
     for k, a in agg.items():
         rec = "-" if k in ("original",) else f"{a['block_sse_mean']:.2f} ± {a['block_sse_std']:.2f}"
         mse = "-" if k in ("original",) else f"{a['mse_mean']:.5f}"
+        ch = "-" if a["chamfer_l1_mean"] is None else (f"{a['chamfer_l1_mean'] * 1000:.2f} ± "
+                                                         f"{a['chamfer_l1_std'] * 1000:.2f}")
+        ratio = "-" if a["ate_ratio_mean"] is None else f"{a['ate_ratio_mean']:.2f} ± {a['ate_ratio_std']:.2f}"
         lines.append(f"| {METHODS[k].label} | {rec} | {mse} | {a['ate_mean_mean']:.4f} ± {a['ate_mean_std']:.4f} "
-                     f"| {a['ate_median_mean']:.4f} |")
+                     f"| {a['ate_median_mean']:.4f} | {ch} | {_fmt(a['f_score_1_mean'], '.3f')} | {ratio} |")
     for k, why in results["skipped"].items():
-        lines.append(f"| {METHODS[k].label} | skipped: {why.splitlines()[0][:120]} | | | |")
+        lines.append(f"| {METHODS[k].label} | skipped: {why.splitlines()[0][:120]} | | | | | | |")
     out = ["\n".join(lines), ""]
     for name, s in results["sequences"].items():
         rows = [f"**{name}** ({s['frames']} frames, {s.get('blocks', 0)} non-empty blocks)", "",
-                "| Method | block SSE | MSE | ATE mean [m] | ATE std [m] | ATE median [m] | failed frames | frames/s |",
-                "|---|---|---|---|---|---|---|---|"]
+                "| Method | block SSE | MSE | Chamfer-L1 [mm] | F@1 voxel | ATE mean [m] | ATE std [m] "
+                "| ATE median [m] | ATE / lossless | failed frames | frames/s |",
+                "|---|---|---|---|---|---|---|---|---|---|---|"]
         for k, r in s["methods"].items():
-            rows.append(f"| {METHODS[k].label} | {r['block_sse']:.2f} | {r['mse']:.5f} | {r['ate_mean']:.4f} | "
-                        f"{r['ate_std']:.4f} | {r['ate_median']:.4f} | {r['failures']} | {r['frames_per_s']:.1f} |")
+            rows.append(f"| {METHODS[k].label} | {r['block_sse']:.2f} | {r['mse']:.5f} | "
+                        f"{_fmt(r['chamfer_l1'], '.2f', 1000)} | {_fmt(r['f_score_1'], '.3f')} | {r['ate_mean']:.4f} | "
+                        f"{r['ate_std']:.4f} | {r['ate_median']:.4f} | {_fmt(r.get('ate_ratio'), '.2f')} | "
+                        f"{r['failures']} | {r['frames_per_s']:.1f} |")
         out += ["\n".join(rows), ""]
     return "\n".join(out)
 
@@ -510,16 +566,24 @@ def _figures(results: dict, slices: dict, fig_dir: Path, truncation) -> list[Pat
     agg = results["aggregate"]
     ks = [k for k in agg if k != "original"]
     if ks:
-        fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
+        fig, ax = plt.subplots(1, 3, figsize=(15, 3.8))
         x = np.arange(len(ks))
-        ax[0].bar(x, [agg[k]["block_sse_mean"] for k in ks], yerr=[agg[k]["block_sse_std"] for k in ks])
+
+        def col(f: str, scale: float = 1.0) -> list[float]:  # None (not finite) plots as no bar
+            return [np.nan if agg[k][f] is None else agg[k][f] * scale for k in ks]
+
+        ax[0].bar(x, col("block_sse_mean"), yerr=col("block_sse_std"))
         ax[0].set_ylabel("per-block SSE (normalised)")
-        ax[1].bar(x, [agg[k]["mse_mean"] for k in ks], yerr=[agg[k]["mse_std"] for k in ks], color="C1")
+        ax[1].bar(x, col("mse_mean"), yerr=col("mse_std"), color="C1")
         ax[1].set_ylabel("MSE per voxel (normalised)")
+        ax[2].bar(x, col("chamfer_l1_mean", 1000), yerr=col("chamfer_l1_std", 1000), color="C2")
+        ax[2].set_ylabel("Chamfer-L1 vs lossless [mm]")
+        ax[2].set_yscale("log")  # the blur's vanished surfaces are two orders above the codecs
         for a in ax:
             a.set_xticks(x, [METHODS[k].label.replace("PCA 64+NN 64", "64+64") for k in ks], rotation=35,
                          ha="right", fontsize=8)
-        fig.suptitle("Reconstruction error over non-empty blocks (mean ± std among sequences)")
+        fig.suptitle("Reconstruction error over non-empty blocks, surface error against the lossless map "
+                     "(mean ± std among sequences)")
         fig.tight_layout()
         p = fig_dir / "reconstruction_error.png"
         fig.savefig(p, dpi=110)

@@ -48,8 +48,61 @@ def test_eval_end_to_end(tiny_eval):
     md = (out / "eval.md").read_text()
     assert md == markdown_table(res)
     assert "| PCA 32 |" in md and "| NN 32 | skipped:" in md and "Reconstruction Error" in md
+    assert "| Chamfer-L1 [mm] ± σ | F@1 voxel | ATE / lossless ± σ |" in md
+    assert "| Chamfer-L1 [mm] | F@1 voxel |" in md and "| ATE / lossless |" in md
+    # the lossless row against itself: Chamfer 0, F = 1, ATE ratio 1 (aggregate and per sequence)
+    assert "| 0.00 ± 0.00 | 1.000 | 1.00 ± 0.00 |" in md.split("| Original data |")[1].splitlines()[0]
     for name in ("reconstruction_error.png", "ate_slow-clean.png", "slice_slow-clean.png"):
         assert (out / "eval" / name).stat().st_size > 1000 and (docs / "eval" / name).is_file()
+
+
+def test_eval_surface_metrics_and_ate_ratio(tiny_eval):
+    """The surface metrics of a row are compare_volumes of its decoded map against the lossless map, the band
+    restricted to the voxels the lossless map records as observed; ate_ratio is over the lossless row's ATE."""
+    import sdfcodec
+    from sdfcodec.surface import compare_volumes
+    from sdfcodec.evaluation import SURFACE_FIELDS
+    from sdfcodec.header import BlockState
+
+    out, _, res = tiny_eval
+    rows = res["sequences"]["slow-clean"]["methods"]
+    maps = out / "maps" / "slow-clean"
+    ref = sdfcodec.open_map(maps / "original.sdfz")
+    a = ref.decode_region()
+    coded = np.argwhere(ref.block_states() == BlockState.CODED)
+    obs = np.zeros(tuple(16 * g for g in ref.grid_blocks), dtype=bool)
+    for c, o in zip(coded, ref.read_observed(coded)):
+        obs[16 * c[0]:16 * c[0] + 16, 16 * c[1]:16 * c[1] + 16, 16 * c[2]:16 * c[2] + 16] = o
+    obs = obs[:a.shape[0], :a.shape[1], :a.shape[2]]
+    assert 0 < obs.sum() < obs.size
+    for k in ("pca-32", "blur-9"):
+        b = sdfcodec.open_map(maps / f"{k}.sdfz").decode_region()
+        want = compare_volumes(a, b, ref.voxel_size, origin=ref.origin, observed=obs).to_dict()
+        for f in SURFACE_FIELDS:
+            assert rows[k][f] == pytest.approx(want[f], rel=1e-9, abs=1e-12), (k, f)
+        assert rows[k]["ate_ratio"] == pytest.approx(rows[k]["ate_mean"] / rows["original"]["ate_mean"])
+    assert 0 < rows["pca-32"]["chamfer_l1"] < 0.02 and 0.5 < rows["pca-32"]["f_score_1"] < 1
+    # the 9^3 blur lifts the thin negative band ([-4, 0] cm) above zero: its surfaces all but vanish
+    assert rows["blur-9"]["chamfer_l1"] > rows["pca-32"]["chamfer_l1"] and rows["blur-9"]["f_score_1"] < 0.5
+    o = rows["original"]
+    assert o["chamfer_l1"] == 0.0 and o["f_score_1"] == o["f_score_2"] == o["sign_agreement"] == 1.0
+    assert o["near_surface_rmse"] == 0.0 and o["ate_ratio"] == 1.0
+    agg = res["aggregate"]["pca-32"]  # one sequence: the mean is the row, the std 0
+    assert agg["chamfer_l1_mean"] == rows["pca-32"]["chamfer_l1"] and agg["chamfer_l1_std"] == 0.0
+    assert agg["ate_ratio_mean"] == rows["pca-32"]["ate_ratio"] and agg["f_score_1_std"] == 0.0
+
+
+def test_markdown_table_without_a_surface():
+    """A decoded map with no surface (Chamfer-L1 inf: null in the record) prints '-', not inf or nan."""
+    row = {"mse": 0.01, "block_sse": 41.0, "chamfer_l1": None, "f_score_1": 0.0, "ate_mean": 0.02,
+           "ate_std": 0.001, "ate_median": 0.02, "ate_ratio": None, "failures": 0, "frames_per_s": 10.0}
+    res = {"sequences": {"s": {"frames": 3, "blocks": 1, "methods": {"pca-64": row}}}, "skipped": {}}
+    from sdfcodec.evaluation import _aggregate
+
+    res["aggregate"] = _aggregate(res, ["pca-64"])
+    md = markdown_table(res)
+    assert "| PCA 64 | 41.00 | 0.01000 | - | 0.000 | 0.0200 |" in md
+    assert md.splitlines()[2].endswith("| - | 0.000 | - |") and "nan" not in md and "inf" not in md
 
 
 def test_eval_rejects_unknown_method(tmp_path):
