@@ -129,12 +129,12 @@ def test_mask_packing_round_trips(rng):
     assert (pack_mask(np.ones((1, 16, 16, 16), bool)) == 255).all()
 
 
-def write(path, vol, obs, k=64, **kw):
+def write(path, vol, obs, k=64, codec=None, **kw):
     blocks = vol.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
     o = None if obs is None else obs.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
     coords = np.argwhere(np.ones((4, 4, 4), bool))
-    with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", k), voxel_size=VS, truncation=TRUNC,
-                             **kw) as m:
+    with sdfcodec.create_map(path, codec=codec or sdfcodec.pretrained_codec("pca", k), voxel_size=VS,
+                             truncation=TRUNC, **kw) as m:
         m.write_blocks(coords, blocks, observed=o)
     return sdfcodec.open_map(path)
 
@@ -153,6 +153,26 @@ def test_mask_restores_unobserved_voxels_and_keeps_the_surface(tmp_path):
     good, bad = compare_volumes(exact, dm, VS), compare_volumes(exact, dp, VS)
     assert good.chamfer_l1 < 0.25 * VS and good.f_score_1 > 0.95, good
     assert bad.chamfer_l1 > 2 * good.chamfer_l1, (good, bad)
+
+
+def test_halo_codecs_leave_unobserved_voxels_unobserved(tmp_path):
+    # the blur's context pass spreads observed values into unobserved space after the core decode: the reader
+    # restores them again on the final values; observed voxels keep what the blur makes of them
+    vol, obs = fused_like(scene())
+    blur = sdfcodec.get_codec("gaussian-blur")
+    masked = write(tmp_path / "masked.sdfz", vol, obs, codec=blur)
+    plain = write(tmp_path / "plain.sdfz", vol, None, codec=blur)  # the same values: fused_like put d_max there
+    dm, dp = masked.decode_region(), plain.decode_region()
+    assert (dp[~obs] != TRUNC[1]).any()  # without the mask the blur reaches into unobserved space
+    assert (dm[~obs] == TRUNC[1]).all()
+    np.testing.assert_array_equal(dm[obs], dp[obs])
+    part = masked.decode_region(((5, 40), (3, 64), (17, 50)))  # a region cutting through blocks
+    box = np.s_[5:40, 3:64, 17:50]
+    assert (part[~obs[box]] == TRUNC[1]).all()
+    np.testing.assert_allclose(part, dm[box], rtol=0, atol=1e-6)  # the blur's float sums depend on the region
+    for coords, blocks in masked.iter_blocks():  # block by block too
+        o = masked.read_observed(coords)
+        assert (blocks[~o] == TRUNC[1]).all()
 
 
 def test_blocks_rewritten_without_a_mask_read_as_observed(tmp_path):

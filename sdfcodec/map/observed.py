@@ -27,9 +27,10 @@ import zarr
 
 from .._validate import BLOCK
 from ..errors import FormatError
+from ..header import BlockState
 
 __all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "encode_blocks",
-           "pack_mask", "unpack_mask", "restore_unobserved", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",
+           "pack_mask", "unpack_mask", "restore_unobserved", "restore_unobserved_voxels", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",
            "checked_mask_array"]
 
 MASK_EXTENSION = "observation-mask"
@@ -96,6 +97,32 @@ def restore_unobserved(blocks: torch.Tensor, rows: np.ndarray, free: float) -> t
         observed = torch.from_numpy(unpack_mask(rows)).to(blocks.device)
         torch.where(observed, blocks, torch.tensor(free, dtype=blocks.dtype, device=blocks.device), out=blocks)
     return blocks
+
+
+def restore_unobserved_voxels(reader: Any, vol: torch.Tensor, lo: np.ndarray, hi: np.ndarray,
+                              free: float) -> torch.Tensor:
+    """Set the unobserved voxels of ``vol``, the dense decode of voxels ``[lo, hi)`` (inside the grid) of the map
+    ``reader`` opens, to ``free``, in place; a map without a mask is left as it is. For halo codecs: their
+    context pass spreads values from observed voxels into unobserved ones after the core decode restored them,
+    so the restore happens again on the final values (one read of the mask rows of the coded blocks there)."""
+    mask = reader.observation_arrays()[1]
+    if mask is None:
+        return vol
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    box = reader.block_range(tuple(zip(lo.tolist(), hi.tolist())))
+    b0 = np.array([s.start for s in box], dtype=np.int64)
+    coords = np.argwhere(reader.states_in(box) == BlockState.CODED) + b0
+    rows = read_block_rows(reader, mask, coords)
+    partial = (rows != 255).any(axis=1)
+    for c, observed in zip(coords[partial], unpack_mask(rows[partial])):
+        v0 = c * BLOCK
+        a, b = np.maximum(v0, lo), np.minimum(v0 + BLOCK, hi)
+        if np.any(b <= a):
+            continue
+        sub = vol[tuple(slice(int(x - l), int(y - l)) for x, y, l in zip(a, b, lo))]  # a view: filled in place
+        seen = observed[tuple(slice(int(x - o), int(y - o)) for x, y, o in zip(a, b, v0))]
+        sub.masked_fill_(torch.from_numpy(~seen).to(vol.device), free)
+    return vol
 
 
 def checked_mask_array(reader: Any) -> zarr.Array | None:

@@ -34,7 +34,7 @@ from ..registry import get_codec_class
 from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
                      check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, state_digest,
                      unstored_suspects)
-from .observed import checked_mask_array, read_block_rows, restore_unobserved
+from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -711,7 +711,8 @@ class MapReader:
         if not h:  # metres straight out of the decode
             return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True)
         core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev, metres=False)
-        return self._to_metres(self.codec.decode_context(core[None])[0])
+        out = self._to_metres(self.codec.decode_context(core[None])[0])
+        return restore_unobserved_voxels(self, out, lo, hi, self.truncation[1])  # the context spread into them
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
                       device: str | torch.device | None = None) -> Any:
