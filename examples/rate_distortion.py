@@ -2,7 +2,7 @@
 as float32, float16 and int8 in a real map; int8 with per-component scales simulated), ZFP, a 3-D DCT
 truncation baseline and Blosc-compressed float16 raw blocks. Writes docs/rate-distortion.json, docs/rate-distortion.png and docs/rate-distortion.md.
 
-    python examples/rate_distortion.py                 # kitchen + synthetic room (about a minute)
+    python examples/rate_distortion.py                 # kitchen + synthetic room (a few minutes)
     python examples/rate_distortion.py --quick         # a small synthetic map only (the test's path)
 
 Data sets (normalised units v = (d - d_min) / (d_max - d_min), d in [-0.04, 0.1] m, so 1 unit = 0.14 m):
@@ -10,10 +10,25 @@ Data sets (normalised units v = (d - d_min) / (d_max - d_min), d in [-0.04, 0.1]
 ``kitchen``
     7-Scenes redkitchen fused at 2 cm (``sdfcodec.fusion.fuse``), the allocated blocks of the second half along
     x (``coords[:, 0] > grid_shape[0] // 2``): the split the shipped PCA was *not* trained on, exactly as
-    ``examples/eval_codecs.py`` takes it. The fused blocks are cached in ``--workdir``.
+    ``examples/eval_codecs.py`` takes it. The fused blocks and their observation (fusion weight > 0) are cached
+    in ``--workdir``.
 ``synthetic``
     ``sdfcodec.data.render.room_scene(seed=0, geometry="rich", ceiling=True)`` sampled at 2 cm with a 16 cm
-    margin (``eval_codecs.py``'s "synthetic map"); ``--quick`` takes a small corner of it.
+    margin (``eval_codecs.py``'s "synthetic map"), an exact SDF observed everywhere.
+``synthetic (quick)``
+    ``--quick``: a small corner of that room made fused-like (:func:`fused_like`: voxels at ``d_min``, more
+    than 4 cm behind a surface, unobserved and read ``d_max``, as fusion leaves them), so the test exercises
+    the fused-map path below.
+
+Fused-map data sets (those with an observation: the kitchen, the quick corner) are measured as sdfcodec now
+stores fused maps, too: each learned codec is also written **surface-true** (``write_blocks(...,
+observed=...)``: observation mask, surface-weighted least squares, unobserved voxels decode to ``d_max``;
+docs/surface.md), its bytes counting the mask chunks (``observed/``) with the codes; the plain maps (no
+observation, every voxel fitted alike) are what every other method is compared with on the MSE. And every
+point of a fused-map data set gets the **surface metrics** of ``sdfcodec.surface.compare_volumes`` against
+the lossless blocks (Chamfer-L1, F-score at 1 and 2 voxels, sign agreement, near-surface RMSE and bias; the
+band over observed voxels only), on the dense volume of the data set's blocks (blocks no method codes read
+``d_max``): a point's ``surface`` dict, metres.
 
 Every method is measured on the same non-empty blocks (blocks that are not all free space, i.e. what a map
 codes); an empty block stores no code in any method, only its state. Errors: per-voxel MSE and per-block SSE
@@ -21,7 +36,8 @@ codes); an empty block stores no code in any method, only its state. Errors: per
 
 * learned codecs, float32 / float16 / int8 codes: a real map is written with ``sdfcodec.create_map(...,
   code_dtype=...)`` and ``write_blocks``; bytes = (chunk files of ``codes/``, ``code_scale/`` (int8: a float32
-  offset and scale per block, spec section 4a) and ``state/``) / coded blocks, read from the file system. The
+  offset and scale per block, spec section 4a), ``state/`` and, surface-true, ``observed/``) / coded blocks,
+  read from the file system. The
   codec's learned state (``codec/``) and the Zarr metadata documents (``zarr.json``) are per map, not per
   block, and are reported separately. The error is that of the blocks decoded from the map
   (``Map.iter_decoded``).
@@ -65,37 +81,48 @@ DCT_KS = (16, 32, 64, 128, 256, 512, 1024, 2048, 4096)
 
 
 # ----------------------------------------------------------------------------------------------- data sets
-def kitchen_blocks(path: Path, workdir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Held-out (second half along x) allocated blocks of the fused kitchen: coords (shifted to start at 0) and
-    metres. Cached in ``workdir``."""
-    cache = workdir / "kitchen-heldout.npz"
+def kitchen_blocks(path: Path, workdir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held-out (second half along x) allocated blocks of the fused kitchen: coords (shifted to start at 0),
+    metres and the observation (fusion weight > 0). Cached in ``workdir``."""
+    cache = workdir / "kitchen-heldout-observed.npz"
     if cache.exists():
         z = np.load(cache)
-        coords, tsdf = z["coords"], z["tsdf"]
+        coords, tsdf, observed = z["coords"], z["tsdf"], np.unpackbits(z["observed"], axis=1).astype(bool)
     else:
         from sdfcodec.fusion import fuse
 
         fused = fuse(path, voxel_size=VS, truncation=TRUNC)
         held = fused.select(fused.coords[:, 0] > fused.grid_shape[0] // 2)  # as eval_codecs.py
-        coords, tsdf = held.coords, held.tsdf
+        coords, tsdf, observed = held.coords, held.tsdf, (held.weights > 0).reshape(len(held.coords), -1)
         workdir.mkdir(parents=True, exist_ok=True)
-        np.savez(cache, coords=coords, tsdf=tsdf)
-    return coords - coords.min(axis=0), tsdf.astype(np.float32)
+        np.savez(cache, coords=coords, tsdf=tsdf, observed=np.packbits(observed, axis=1))
+    return (coords - coords.min(axis=0), tsdf.astype(np.float32),
+            np.ascontiguousarray(observed.reshape(len(coords), BLOCK, BLOCK, BLOCK)))
 
 
 def synthetic_blocks(quick: bool) -> tuple[np.ndarray, np.ndarray]:
     """The furnished room of eval_codecs.py's "synthetic map" cut into blocks: all grid blocks (coords, metres).
-    ``quick``: a 64 x 64 x 48-voxel corner (floor, two walls, some furniture)."""
+    ``quick``: a 64 x 64 x 48-voxel corner (floor, two walls, some furniture), sampled with the lattice moved by
+    0.3 voxel so that no wall lies on voxel centres (where the exact distance is 0, the side a crossing falls on
+    is a rounding accident, which would dominate its surface metrics)."""
     from sdfcodec.blocks import split_blocks
     from sdfcodec.data.render import room_scene
     from sdfcodec.sdf import sample_volume
 
     room, margin = room_scene(seed=0, geometry="rich", ceiling=True), 0.16
     shape = (64, 64, 48) if quick else tuple(int(round((s + 2 * margin) / VS)) for s in (4.0, 3.2, 2.5))
-    vol = sample_volume(room.sdf, shape, VS, origin=(-margin,) * 3, truncation=TRUNC)
+    shift = 0.3 * VS if quick else 0.0
+    vol = sample_volume(room.sdf, shape, VS, origin=(-margin + shift,) * 3, truncation=TRUNC)
     b = split_blocks(vol, fill=TRUNC[1])
     coords = np.argwhere(np.ones(b.shape[:3], bool)).astype(np.int64)
     return coords, np.ascontiguousarray(b.reshape(-1, BLOCK, BLOCK, BLOCK), dtype=np.float32)
+
+
+def fused_like(tsdf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An exact truncated SDF as fusion would leave it: voxels at ``d_min`` (more than ``|d_min|`` behind a
+    surface, where fusion never integrates) unobserved, reading ``d_max``. Returns (metres, observed)."""
+    observed = tsdf > TRUNC[0] + 1e-6
+    return np.where(observed, tsdf, np.float32(TRUNC[1])).astype(np.float32), observed
 
 
 def normalised(tsdf: np.ndarray) -> np.ndarray:
@@ -114,12 +141,46 @@ def block_sse(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def point(dataset: str, codec: str, setting: str, bytes_per_block: float, x: np.ndarray, y: np.ndarray,
-          **extra) -> dict:
+          ref: "SurfaceReference | None" = None, **extra) -> dict:
+    """One measured point; with ``ref`` (a fused-map data set) also its surface metrics."""
     sse = block_sse(x, y)
-    return {"dataset": dataset, "codec": codec, "setting": setting, "bytes_per_block": float(bytes_per_block),
-            "ratio": FLOAT32_BLOCK_BYTES / float(bytes_per_block), "mse_voxel": float(sse.mean() / NV),
-            "sse_block": float(sse.mean()), "max_abs_error": float(np.abs(np.asarray(y, np.float64) - x).max()),
-            "blocks": int(len(x)), **extra}
+    out = {"dataset": dataset, "codec": codec, "setting": setting, "bytes_per_block": float(bytes_per_block),
+           "ratio": FLOAT32_BLOCK_BYTES / float(bytes_per_block), "mse_voxel": float(sse.mean() / NV),
+           "sse_block": float(sse.mean()), "max_abs_error": float(np.abs(np.asarray(y, np.float64) - x).max()),
+           "blocks": int(len(x)), **extra}
+    if ref is not None:
+        out["surface"] = ref.metrics(y)
+    return out
+
+
+# --------------------------------------------------------------------------------------- surface metrics
+class SurfaceReference:
+    """The lossless blocks of a fused-map data set as one dense volume (metres, blocks no method codes at
+    ``d_max``) with its observation, to judge decoded blocks by their surfaces (``compare_volumes``)."""
+
+    def __init__(self, coords: np.ndarray, tsdf: np.ndarray, observed: np.ndarray, coded: np.ndarray):
+        self.coords = coords[coded]
+        self.shape = tuple(int(n) * BLOCK for n in coords.max(axis=0) + 1)
+        self.original = self._dense(tsdf[coded])
+        self.observed = np.zeros(self.shape, bool)
+        self._scatter(self.observed, observed[coded])
+
+    def _scatter(self, vol: np.ndarray, blocks: np.ndarray) -> None:
+        g = vol.reshape(self.shape[0] // BLOCK, BLOCK, self.shape[1] // BLOCK, BLOCK, self.shape[2] // BLOCK, BLOCK)
+        g[self.coords[:, 0], :, self.coords[:, 1], :, self.coords[:, 2], :] = blocks
+
+    def _dense(self, metres: np.ndarray) -> np.ndarray:
+        vol = np.full(self.shape, TRUNC[1], np.float32)
+        self._scatter(vol, metres)
+        return vol
+
+    def metrics(self, y: np.ndarray) -> dict:
+        """``SurfaceMetrics.to_dict()`` (metres) of the decoded non-empty blocks ``y`` (normalised, in the
+        order of the coded blocks)."""
+        from sdfcodec.surface import compare_volumes
+
+        decoded = self._dense(np.asarray(y, np.float32) * (TRUNC[1] - TRUNC[0]) + TRUNC[0])
+        return compare_volumes(self.original, decoded, VS, observed=self.observed).to_dict()
 
 
 # ------------------------------------------------------------------------------------------ map byte counts
@@ -127,7 +188,7 @@ def map_bytes(path: Path) -> dict:
     """Bytes on disk of a committed map directory, by part: chunk files of codes/ (with code_scale/ of int8 maps)
     and state/, the codec's learned
     state (codec/, its metadata included), the Zarr metadata documents of codes/, state/ and the group, other."""
-    out = {"codes": 0, "state": 0, "codec_state": 0, "metadata": 0, "other": 0}
+    out = {"codes": 0, "state": 0, "mask": 0, "codec_state": 0, "metadata": 0, "other": 0}
     for dirpath, _, files in os.walk(path):
         rel = Path(dirpath).relative_to(path)
         top = rel.parts[0] if rel.parts else ""
@@ -141,6 +202,8 @@ def map_bytes(path: Path) -> dict:
                 out["codes"] += n
             elif top == "state":
                 out["state"] += n
+            elif top == "observed":
+                out["mask"] += n
             else:
                 out["other"] += n
     out["total"] = sum(out.values())
@@ -171,42 +234,48 @@ def compressed_size(a: np.ndarray, chunk: int) -> int:
 
 
 def measure_learned(name: str, codec, dataset: str, coords: np.ndarray, tsdf: np.ndarray, x: np.ndarray,
-                    coded: np.ndarray, workdir: Path) -> list[dict]:
-    """float32, float16 and int8 maps (stored bytes, decoded error), and int8 with per-component scales
-    simulated from the float32 codes."""
+                    coded: np.ndarray, workdir: Path, observed: np.ndarray | None = None,
+                    ref: SurfaceReference | None = None) -> list[dict]:
+    """float32, float16 and int8 maps (stored bytes, decoded error), plain and, given the blocks'
+    ``observed`` voxels, surface-true; and int8 with per-component scales simulated from the plain float32
+    codes."""
     import sdfcodec
     from sdfcodec.quantize import dequantize_codes, quantize_codes
 
     pts, codes32, state_bytes = [], None, None
     index = {tuple(c): i for i, c in enumerate(coords[coded])}
-    for dtype in ("float32", "float16", "int8"):
-        path = workdir / "maps" / f"{dataset}-{name.replace(' ', '_').replace('+', '_')}-{dtype}.sdfz"
-        with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, code_dtype=dtype,
-                                 overwrite=True, tool="examples/rate_distortion.py") as m:
-            m.write_blocks(coords, tsdf)
-        b = map_bytes(path)
-        m = sdfcodec.open_map(path)
-        n = m.count_states()["coded"]
-        assert n == len(x), f"{name} {dtype}: map coded {n} blocks, expected {len(x)}"
-        y = np.empty_like(x)
-        for c, blocks in m.iter_decoded():
-            y[[index[tuple(cc)] for cc in c]] = normalised(blocks)
-        if dtype == "float32":
-            cc, codes32 = m.read_codes()
-            order = [index[tuple(c)] for c in cc]
-            codes32 = codes32[np.argsort(order)]
-            state_bytes = b["state"]
-        m.close()
-        setting = "int8 per-block" if dtype == "int8" else dtype
-        pts.append(point(dataset, name, setting, (b["codes"] + b["state"]) / n, x, y, code_size=codec.code_size,
-                         kind="map", map=str(path.relative_to(workdir)), map_bytes=b,
-                         codec_state_bytes=b["codec_state"], metadata_bytes=b["metadata"],
-                         bytes_per_block_with_codec_state=(b["codes"] + b["state"] + b["codec_state"]) / n))
+    modes = ("plain",) if observed is None else ("plain", "surface-true")
+    for mode in modes:
+        for dtype in ("float32", "float16", "int8"):
+            tag = "" if mode == "plain" else "-surface-true"
+            path = workdir / "maps" / f"{dataset}-{name.replace(' ', '_').replace('+', '_')}-{dtype}{tag}.sdfz"
+            with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, code_dtype=dtype,
+                                     overwrite=True, tool="examples/rate_distortion.py") as m:
+                m.write_blocks(coords, tsdf, observed=None if mode == "plain" else observed)
+            b = map_bytes(path)
+            m = sdfcodec.open_map(path)
+            n = m.count_states()["coded"]
+            assert n == len(x), f"{name} {dtype} {mode}: map coded {n} blocks, expected {len(x)}"
+            y = np.empty_like(x)
+            for c, blocks in m.iter_decoded():
+                y[[index[tuple(cc)] for cc in c]] = normalised(blocks)
+            if dtype == "float32" and mode == "plain":
+                cc, codes32 = m.read_codes()
+                order = [index[tuple(c)] for c in cc]
+                codes32 = codes32[np.argsort(order)]
+                state_bytes = b["state"]
+            m.close()
+            setting = ("int8 per-block" if dtype == "int8" else dtype) + tag.replace("-", " ", 1)
+            stored = b["codes"] + b["state"] + b["mask"]
+            pts.append(point(dataset, name, setting, stored / n, x, y, ref, code_size=codec.code_size,
+                             kind="map", surface_true=mode != "plain", map=str(path.relative_to(workdir)),
+                             map_bytes=b, codec_state_bytes=b["codec_state"], metadata_bytes=b["metadata"],
+                             bytes_per_block_with_codec_state=(stored + b["codec_state"]) / n))
     q, scales = quantize_codes(codes32, per="component")
     deq = dequantize_codes(q, scales, per="component")
     est = compressed_size(q, 512) + compressed_size(scales, 1 << 20)
     y = np.concatenate([np.asarray(codec.decode(deq[i:i + 4096])) for i in range(0, len(deq), 4096)])
-    pts.append(point(dataset, name, "int8 per-component (simulated)", (est + state_bytes) / len(x), x, y,
+    pts.append(point(dataset, name, "int8 per-component (simulated)", (est + state_bytes) / len(x), x, y, ref,
                      code_size=codec.code_size, kind="simulated",
                      raw_bytes_per_block=(q.nbytes + scales.nbytes) / len(x),
                      compressed_codes_and_scales_bytes=est, state_bytes=state_bytes))
@@ -228,15 +297,15 @@ def zfp_roundtrip(x: np.ndarray, **mode) -> tuple[np.ndarray, np.ndarray]:
     return y, n
 
 
-def zfp_points(dataset: str, x: np.ndarray, quick: bool) -> list[dict]:
+def zfp_points(dataset: str, x: np.ndarray, quick: bool, ref: SurfaceReference | None = None) -> list[dict]:
     pts = []
     for r in ((0.25, 0.5, 2.0) if quick else ZFP_RATES):
         y, n = zfp_roundtrip(x, rate=r)
-        pts.append(point(dataset, "zfp fixed-rate", f"rate {r:g} bit/value", n.mean(), x, y, kind="zfp", rate=r,
-                         payload_bytes_per_block=float(n.mean() - ZFP_HEADER)))
+        pts.append(point(dataset, "zfp fixed-rate", f"rate {r:g} bit/value", n.mean(), x, y, ref, kind="zfp",
+                         rate=r, payload_bytes_per_block=float(n.mean() - ZFP_HEADER)))
     for t in ((0.05, 0.005) if quick else ZFP_TOLERANCES):
         y, n = zfp_roundtrip(x, tolerance=t)
-        pts.append(point(dataset, "zfp fixed-accuracy", f"tolerance {t:g}", n.mean(), x, y, kind="zfp",
+        pts.append(point(dataset, "zfp fixed-accuracy", f"tolerance {t:g}", n.mean(), x, y, ref, kind="zfp",
                          tolerance=t, payload_bytes_per_block=float(n.mean() - ZFP_HEADER)))
     return pts
 
@@ -262,16 +331,17 @@ def dct_truncate(x: np.ndarray, keep: int, dtype=np.float16, return_coefficients
     return (y, stored) if return_coefficients else y
 
 
-def baseline_points(dataset: str, x: np.ndarray, quick: bool) -> list[dict]:
-    pts = zfp_points(dataset, x, quick)
+def baseline_points(dataset: str, x: np.ndarray, quick: bool, ref: SurfaceReference | None = None) -> list[dict]:
+    pts = zfp_points(dataset, x, quick, ref)
     for k in ((64, 256, 4096) if quick else DCT_KS):
         y, coef = dct_truncate(x, k, return_coefficients=True)
-        pts.append(point(dataset, "dct float16", f"K={k}", 2 * k, x, y, kind="dct", keep=k))
+        pts.append(point(dataset, "dct float16", f"K={k}", 2 * k, x, y, ref, kind="dct", keep=k))
+        packed = dict(pts[-1]["surface"]) if ref is not None else None  # the same decoded blocks
         pts.append(point(dataset, "dct float16 + blosc", f"K={k}", compressed_size(coef, 512) / len(x), x, y,
-                         kind="dct", keep=k))
+                         kind="dct", keep=k, **({} if packed is None else {"surface": packed})))
     h = x.astype(np.float16)
     pts.append(point(dataset, "blosc float16 raw", "zstd 3, shuffle, 64-block chunks",
-                     compressed_size(h, 64) / len(x), x, h.astype(np.float32), kind="raw"))
+                     compressed_size(h, 64) / len(x), x, h.astype(np.float32), ref, kind="raw"))
     return pts
 
 
@@ -354,8 +424,23 @@ def plot(points: list[dict], datasets: list[str], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(datasets), figsize=(7.5 * len(datasets), 8.5), squeeze=False)
-    for ax, ds in zip(axes[0], datasets):
+    surf = [ds for ds in datasets if any("surface" in p for p in points if p["dataset"] == ds)]
+    rows = 2 if surf else 1
+    fig, axes = plt.subplots(rows, len(datasets), figsize=(7.5 * len(datasets), 8.5 + 6 * (rows - 1)), squeeze=False)
+    panels = [(0, d, "mse_voxel") for d in datasets] + [(1, d, "chamfer_mm") for d in surf]
+    for r in range(1, rows):
+        for ax, ds in zip(axes[r], datasets):
+            if ds not in surf:
+                ax.set_axis_off()
+
+    def value(p: dict, metric: str) -> float:
+        if metric == "mse_voxel":
+            return p["mse_voxel"]
+        c = p["surface"]["chamfer_l1"]
+        return float("nan") if c is None else 1000 * c
+
+    for row, ds, metric in panels:
+        ax = axes[row][datasets.index(ds)]
         P = [p for p in points if p["dataset"] == ds]
         series: dict[tuple[str, str], list[dict]] = {}
         for p in P:
@@ -365,18 +450,22 @@ def plot(points: list[dict], datasets: list[str], path: Path) -> None:
             else:
                 key = (fam, "")
             series.setdefault(key, []).append(p)
-        ls = {"float32": "-", "float16": "--", "int8 per-block": ":", "int8 per-component": "-."}
+        ls = {"float32": "-", "float16": "--", "int8 per-block": ":", "int8 per-component": "-.",
+              "float32 surface-true": (0, (5, 1, 1, 1)), "float16 surface-true": (0, (3, 1)),
+              "int8 per-block surface-true": (0, (1, 2))}
         for (fam, setting), S in sorted(series.items()):
             S = sorted(S, key=lambda p: p["bytes_per_block"])
             color, marker = STYLE.get(fam, ("C9", "."))
             sim = S[0]["kind"] == "simulated"
             label = f"{fam} {setting}".strip() + (" (sim.)" if sim else "")
-            ax.plot([p["bytes_per_block"] for p in S], [p["mse_voxel"] for p in S], ls.get(setting, "-"),
-                    color=color, marker=marker, label=label, alpha=0.5 if sim else 1)
+            true = setting.endswith("surface-true")
+            ax.plot([p["bytes_per_block"] for p in S], [value(p, metric) for p in S], linestyle=ls.get(setting, "-"),
+                    color=color, marker=marker, label=label, alpha=0.5 if sim else 1,
+                    mfc="white" if true else color)
             if fam == "pca":
                 for p in S:
-                    if setting == "float32":
-                        ax.annotate(p["codec"][4:], (p["bytes_per_block"], p["mse_voxel"]), fontsize=7,
+                    if setting in ("float32", "float32 surface-true"):
+                        ax.annotate(p["codec"][4:], (p["bytes_per_block"], value(p, metric)), fontsize=7,
                                     xytext=(3, 3), textcoords="offset points")
         for b, txt in ((256, "64:1"), (128, "128:1")):
             ax.axvline(b, color="0.8", lw=0.8, zorder=0)
@@ -385,19 +474,79 @@ def plot(points: list[dict], datasets: list[str], path: Path) -> None:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("bytes per block stored (dense float32 block = 16384)")
-        ax.set_ylabel("per-voxel MSE (normalised units)")
+        ax.set_ylabel("per-voxel MSE (normalised units)" if metric == "mse_voxel" else
+                      "Chamfer-L1 of the surfaces vs the lossless blocks (mm)")
         n = P[0]["blocks"] if P else 0
-        ax.set_title(f"{ds} ({n} non-empty blocks)")
+        ax.set_title(f"{ds} ({n} non-empty blocks)" + ("" if metric == "mse_voxel" else ": surfaces"))
         ax.grid(True, which="both", alpha=0.25)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8)
-    fig.tight_layout(rect=(0, 0.2, 1, 1))
+    ax0 = max((a for a in axes[0]), key=lambda a: len(a.get_legend_handles_labels()[1]))
+    handles, labels = ax0.get_legend_handles_labels()
+    spare = [ax for r in range(1, rows) for ax, ds in zip(axes[r], datasets) if ds not in surf]
+    if spare:  # an empty panel (a data set without surfaces) holds the legend
+        spare[0].legend(handles, labels, loc="center", ncol=2, fontsize=8)
+        fig.tight_layout()
+    else:
+        fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8)
+        fig.tight_layout(rect=(0, 0.2 / rows, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def fmt(v: float) -> str:
     return f"{v:.3g}" if v < 1e3 else f"{v:,.0f}"
+
+
+def chamfer_mm(p: dict) -> str:
+    c = p["surface"]["chamfer_l1"]
+    return "inf" if c is None else f"{1000 * c:.2f}"
+
+
+def surface_md(res: dict) -> list[str]:
+    """The surfaces section: per fused-map data set, the best Chamfer-L1 of each method family within 256 and
+    128 B/block (measured points only, nothing interpolated), and our float32 codecs plain against
+    surface-true."""
+    L = []
+    for ds in res["datasets"]:
+        P = [p for p in res["points"] if p["dataset"] == ds and "surface" in p]
+        if not P:
+            continue
+        if not L:
+            L += ["## Surfaces: Chamfer-L1 and F-score on fused maps", "",
+                  "Fused-map data sets only (those with an observation). Every point's surfaces against the lossless "
+                  "blocks' (`sdfcodec.surface.compare_volumes`; docs/surface.md): Chamfer-L1 and F@1 voxel (2 cm). "
+                  "*plain*: maps written without the observation (every voxel fitted alike, as ZFP, the DCT and "
+                  "Blosc see them); *surface-true*: with it (mask, surface-weighted fit, unobserved voxels decode "
+                  "to d_max), its mask chunks counted in the bytes.", ""]
+        fams = (("ours, surface-true maps", lambda p: p.get("surface_true", False)),
+                ("ours, plain maps", lambda p: p["kind"] == "map" and not p.get("surface_true", False)),
+                ("zfp (either mode)", lambda p: p["kind"] == "zfp"),
+                ("dct / blosc", lambda p: p["kind"] in ("dct", "raw")))
+        L += [f"### {ds}", "", "| within | " + " | ".join(f for f, _ in fams) + " |",
+              "|---|" + "---|" * len(fams)]
+        for budget in (256, 128):
+            cells = []
+            for _, keep in fams:
+                fit = [p for p in P if keep(p) and p["bytes_per_block"] <= budget
+                       and p["surface"]["chamfer_l1"] is not None]
+                if not fit:
+                    cells.append("none fits")
+                    continue
+                b = min(fit, key=lambda p: p["surface"]["chamfer_l1"])
+                cells.append(f"{chamfer_mm(b)} mm, F@1 {b['surface']['f_score_1']:.3f} ({b['codec']} {b['setting']}, "
+                             f"{b['bytes_per_block']:.0f} B)")
+            L.append(f"| {FLOAT32_BLOCK_BYTES // budget}:1 ({budget} B/block) | " + " | ".join(cells) + " |")
+        L += ["", "| codec | plain: B/block, MSE, Chamfer-L1 (mm), F@1 | surface-true: B/block, MSE, Chamfer-L1 "
+              "(mm), F@1 |", "|---|---|---|"]
+        for name in dict.fromkeys(p["codec"] for p in P if p["kind"] == "map"):
+            cells = []
+            for st in (False, True):
+                q = next((p for p in P if p["codec"] == name and p["kind"] == "map" and
+                          p.get("surface_true", False) == st and p["setting"].startswith("float32")), None)
+                cells.append("-" if q is None else f"{q['bytes_per_block']:.1f}, {q['mse_voxel']:.3g}, "
+                             f"{chamfer_mm(q)}, {q['surface']['f_score_1']:.3f}")
+            L.append(f"| {name} float32 | " + " | ".join(cells) + " |")
+        L.append("")
+    return L
 
 
 def write_md(res: dict, path: Path, png: str) -> None:
@@ -409,7 +558,9 @@ def write_md(res: dict, path: Path, png: str) -> None:
          "`create_map(code_dtype=...)` (the codec's learned state and the Zarr metadata are per map and listed "
          "separately), for ZFP the zfpy stream length of each 16^3 block (16 of those bytes are zfpy's header), "
          "for the DCT 2 bytes per kept coefficient, for raw float16 the Blosc/zstd chunks; int8 per-block maps "
-         "count their `code_scale/` chunks (a float32 offset and scale per block) with the codes. **int8 with per-component scales is "
+         "count their `code_scale/` chunks (a float32 offset and scale per block) with the codes, surface-true maps "
+         "their `observed/` chunks (the observation mask, one bit per voxel before compression). "
+         "**int8 with per-component scales is "
          "simulated** (quantised from the stored float32 codes; compressed size estimated with the map's "
          "Blosc/zstd through numcodecs): the map format stores per-block scales only.", "",
          f"Data sets: {'; '.join(f'`{k}`: {v}' for k, v in res['datasets'].items())}.", "",
@@ -458,16 +609,20 @@ def write_md(res: dict, path: Path, png: str) -> None:
           "headerless 0.25 bit/value point at exactly 128 B. The 'measured at exactly' lines are the fair "
           "comparison. zfpy 1.0.1 corrupts the heap at 0.125 bit/value (8 bits per zfp block) on these blocks, so "
           "the script refuses rates below 10/64 bit/value.", ""]
+    L += surface_md(res)
     L += ["## All points", ""]
     for ds in res["datasets"]:
         P = [p for p in res["points"] if p["dataset"] == ds]
+        surf = all("surface" in p for p in P)
         L += [f"### {ds} ({P[0]['blocks']} non-empty blocks)", "",
-              "| codec | setting | bytes/block | ratio to float32 | MSE/voxel | SSE/block | max abs error | codec state (B, per map) |",
-              "|---|---|---:|---:|---:|---:|---:|---:|"]
+              "| codec | setting | bytes/block | ratio to float32 | MSE/voxel | SSE/block | max abs error | "
+              + ("Chamfer-L1 (mm) | F@1 voxel | " if surf else "") + "codec state (B, per map) |",
+              "|---|---|---:|---:|---:|---:|---:|" + ("---:|---:|" if surf else "") + "---:|"]
         for p in sorted(P, key=lambda p: (p["kind"] not in ("map", "simulated"), p["codec"], p["bytes_per_block"])):
             cs = f"{p['codec_state_bytes']:,}" if "codec_state_bytes" in p else ""
+            sf = f"{chamfer_mm(p)} | {p['surface']['f_score_1']:.3f} | " if surf else ""
             L.append(f"| {p['codec']} | {p['setting']} | {p['bytes_per_block']:.1f} | {p['ratio']:.1f} | "
-                     f"{p['mse_voxel']:.3g} | {p['sse_block']:.3g} | {p['max_abs_error']:.3g} | {cs} |")
+                     f"{p['mse_voxel']:.3g} | {p['sse_block']:.3g} | {p['max_abs_error']:.3g} | {sf}{cs} |")
         L.append("")
     m = res["machine"]
     L += ["## Run", "",
@@ -498,29 +653,33 @@ def main(argv: list[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     data, descr = {}, {}
     if a.quick:
-        data["synthetic (quick)"] = synthetic_blocks(True)
-        descr["synthetic (quick)"] = "a 64 x 64 x 48-voxel corner of room_scene(seed=0, geometry='rich', ceiling=True) at 2 cm"
+        coords, tsdf = synthetic_blocks(True)
+        data["synthetic (quick)"] = (coords, *fused_like(tsdf))
+        descr["synthetic (quick)"] = ("a 64 x 64 x 48-voxel corner of room_scene(seed=0, geometry='rich', ceiling=True) "
+                                      "at 2 cm, fused-like (voxels at d_min unobserved, read d_max)")
     else:
         if a.kitchen.is_dir():
             data["kitchen"] = kitchen_blocks(a.kitchen, a.workdir)
             descr["kitchen"] = ("7-Scenes redkitchen fused at 2 cm, truncation (-0.04, 0.1) m, held-out second half "
-                                "along x")
+                                "along x, with its observation (fusion weight > 0)")
         else:
             print(f"no kitchen data at {a.kitchen}: skipped", file=sys.stderr)
-        data["synthetic"] = synthetic_blocks(False)
+        data["synthetic"] = (*synthetic_blocks(False), None)
         descr["synthetic"] = "room_scene(seed=0, geometry='rich', ceiling=True) sampled at 2 cm with a 16 cm margin"
     torch.set_grad_enabled(False)
     codecs = learned_codecs(a.quick)
     points = []
-    for ds, (coords, tsdf) in data.items():
+    for ds, (coords, tsdf, observed) in data.items():
         v = normalised(tsdf)
         coded = nonempty_mask(v)
         x = np.ascontiguousarray(v[coded])
-        print(f"{ds}: {len(coords)} blocks, {len(x)} non-empty", flush=True)
+        ref = None if observed is None else SurfaceReference(coords, tsdf, observed, coded)
+        print(f"{ds}: {len(coords)} blocks, {len(x)} non-empty" + ("" if ref is None else ", with an observation"),
+              flush=True)
         for name, codec in codecs.items():
-            points += measure_learned(name, codec, ds, coords, tsdf, x, coded, a.workdir)
+            points += measure_learned(name, codec, ds, coords, tsdf, x, coded, a.workdir, observed, ref)
             print(f"  {name} done ({time.perf_counter() - t0:.0f} s)", flush=True)
-        points += baseline_points(ds, x, a.quick)
+        points += baseline_points(ds, x, a.quick, ref)
         print(f"  baselines done ({time.perf_counter() - t0:.0f} s)", flush=True)
     cmd = "python examples/rate_distortion.py" + ("" if argv is None and len(sys.argv) <= 1 else " " + shlex.join(
         sys.argv[1:] if argv is None else argv))

@@ -5,12 +5,16 @@
 3. Encode the map with the shipped eigenshapes at 32, 64 and 128 elements, and with the shipped AE-64 when
    the ``ae`` plugin and its model are installed.
 4. Measure sizes (codes alone and the whole file on disk, against the dense float32 volume), reconstruction
-   errors (against the fused map, and against the exact analytic distance of the room) and timings.
+   errors (against the fused map, and against the exact analytic distance of the room), the surface metrics
+   of every map against the fused one (:func:`sdfcodec.surface.compare_volumes` with the fused map's
+   observation: Chamfer-L1, F-score at 1 and 2 voxels, sign agreement, near-surface RMSE and bias) and
+   timings.
 5. Search the pca-64 map for floors with the codes alone and expand only the selected blocks; count the
    blocks decoded and the bytes read against the whole map, and score the selection against the room's
    analytic floor.
-6. Track part of the sequence with the SDF Tracker against the original map and against the pca-64 map
-   decoded on demand (:class:`~sdfcodec.mapfield.MapField`), and report the ATE against ground truth.
+6. Track part of the sequence with the SDF Tracker against every map: the pca-64 map decoded on demand
+   (:class:`~sdfcodec.mapfield.MapField`), the others decoded densely; report the ATE against ground truth
+   beside each map's bytes and surface metrics.
 7. Write ``report.md``, ``results.json`` and pictures: meshes, a field slice per codec, the floor selection,
    the trajectories against ground truth, error against bytes.
 
@@ -133,6 +137,23 @@ def _coded_mask(m: Map) -> np.ndarray:
     return full[:m.shape_voxels[0], :m.shape_voxels[1], :m.shape_voxels[2]]
 
 
+def _observed_mask(m: Map) -> np.ndarray:
+    """Voxel mask of what the map observed (fusion weights above 0 or its observation mask) in its coded
+    blocks, at the map's voxel shape; empty and unobserved blocks are False (they hold no surface)."""
+    coords = np.argwhere(m.block_states() == 2)
+    nb = m.block_states().shape
+    full = np.zeros((nb[0], 16, nb[1], 16, nb[2], 16), bool)
+    if len(coords):
+        full[coords[:, 0], :, coords[:, 1], :, coords[:, 2], :] = m.read_observed(coords)
+    full = full.reshape(nb[0] * 16, nb[1] * 16, nb[2] * 16)
+    return full[:m.shape_voxels[0], :m.shape_voxels[1], :m.shape_voxels[2]]
+
+
+def _stores_mask(m: Map) -> bool:
+    """Whether the map stores an observation (fusion weights or a mask)."""
+    return any(a is not None for a in m.reader.observation_arrays())
+
+
 # ------------------------------------------------------------------------------------------------ pictures
 def _plt():
     import matplotlib
@@ -170,19 +191,26 @@ def _slice_picture(fields: dict[str, np.ndarray], z: int, height_m: float, path:
 
 def _error_bytes_picture(rows: list[dict], dense_bytes: int, path: Path) -> None:
     plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), constrained_layout=True)
     raw = rows[0]
-    for ax, key in ((axes[0], "mse_vs_fused"), (axes[1], "rmse_near_vs_exact_mm")):
+
+    def value(r: dict, key: str) -> float:
+        if key == "chamfer_mm":
+            c = r["surface"]["chamfer_l1"]
+            return float("nan") if c is None else 1000 * c
+        return r[key]
+
+    for ax, key in ((axes[0], "mse_vs_fused"), (axes[1], "rmse_near_vs_exact_mm"), (axes[2], "chamfer_mm")):
         for r in rows[1:]:
-            colour = "tab:blue" if r["codec"] == "pca" else "tab:orange"
-            ax.plot([r["code_bytes"], r["bytes_on_disk"]], [r[key]] * 2, "-", color=colour, alpha=0.35)
-            ax.plot(r["code_bytes"], r[key], "o", color=colour, mfc="white")
-            ax.plot(r["bytes_on_disk"], r[key], "o", color=colour)
-            ax.annotate(r["map"], (r["code_bytes"], r[key]), textcoords="offset points", xytext=(-6, 5), ha="right",
+            colour, y = ("tab:blue" if r["codec"] == "pca" else "tab:orange"), value(r, key)
+            ax.plot([r["code_bytes"], r["bytes_on_disk"]], [y] * 2, "-", color=colour, alpha=0.35)
+            ax.plot(r["code_bytes"], y, "o", color=colour, mfc="white")
+            ax.plot(r["bytes_on_disk"], y, "o", color=colour)
+            ax.annotate(r["map"], (r["code_bytes"], y), textcoords="offset points", xytext=(-6, 5), ha="right",
                         fontsize=8)
-        ax.plot(raw["bytes_on_disk"], raw[key], "s", color="grey")
-        ax.annotate("raw (lossless)", (raw["bytes_on_disk"], raw[key]), textcoords="offset points", xytext=(-6, 5),
-                    ha="right", fontsize=8, color="grey")
+        ax.plot(raw["bytes_on_disk"], value(raw, key), "s", color="grey")
+        ax.annotate("raw (lossless)", (raw["bytes_on_disk"], value(raw, key)), textcoords="offset points",
+                    xytext=(-6, 5), ha="right", fontsize=8, color="grey")
         ax.axvline(dense_bytes, color="k", lw=0.8, ls=":")
         ax.annotate("dense\nfloat32", (dense_bytes, 0.02), xycoords=("data", "axes fraction"),
                     textcoords="offset points", xytext=(-4, 0), ha="right", fontsize=8)
@@ -192,10 +220,15 @@ def _error_bytes_picture(rows: list[dict], dense_bytes: int, path: Path) -> None
         ax.grid(alpha=0.3, which="both")
     axes[0].set_ylabel("per-voxel MSE vs the fused map (normalised)")
     axes[1].set_ylabel("RMSE near surfaces vs the exact room (mm)")
+    axes[2].set_ylabel("Chamfer-L1 of the surfaces vs the fused map (mm)")
     fig.suptitle("error against bytes: hollow = codes only, filled = whole map file (with the codec's basis or "
                  "weights); blue pca, orange ae")
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+_STYLES = {"raw": ("tab:green", "-"), "pca-32": ("tab:purple", ":"), "pca-64": ("tab:blue", "--"),
+           "pca-128": ("tab:cyan", "-."), "ae-64": ("tab:orange", ":")}
 
 
 def _trajectory_picture(gt: np.ndarray, tracks: dict[str, dict], path: Path) -> None:
@@ -203,9 +236,8 @@ def _trajectory_picture(gt: np.ndarray, tracks: dict[str, dict], path: Path) -> 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
     ax = axes[0]
     ax.plot(gt[:, 0, 3], gt[:, 1, 3], "k-", lw=2.5, alpha=0.4, label="ground truth")
-    styles = {"original": ("tab:green", "-"), "pca-64": ("tab:blue", "--")}
     for name, t in tracks.items():
-        c, ls = styles.get(name, ("tab:red", ":"))
+        c, ls = _STYLES.get(name, ("tab:red", ":"))
         p = t["poses"]
         ax.plot(p[:, 0, 3], p[:, 1, 3], ls, color=c, lw=1.3, label=f"{t['label']} (ATE {1000 * t['ate_rmse']:.1f} mm)")
     ax.plot(gt[0, 0, 3], gt[0, 1, 3], "ko", ms=5)
@@ -216,7 +248,7 @@ def _trajectory_picture(gt: np.ndarray, tracks: dict[str, dict], path: Path) -> 
     ax.legend(fontsize=8)
     ax = axes[1]
     for name, t in tracks.items():
-        c, ls = styles.get(name, ("tab:red", ":"))
+        c, ls = _STYLES.get(name, ("tab:red", ":"))
         ax.plot(t["frame_index"], 1000 * np.asarray(t["errors"]), ls, color=c, label=t["label"])
     ax.set_xlabel("frame")
     ax.set_ylabel("position error (mm)")
@@ -241,11 +273,11 @@ def run_demo(out: Path, *, voxel_size: float = 0.02, code_sizes=(32, 64, 128), p
         Metres per voxel of the fused map.
     code_sizes : sequence of int
         PCA code sizes (prefixes of the shipped 128-element eigenshapes); 64 must be among them (it is the
-        map that is searched and tracked against).
+        map that is searched, and tracked against with blocks decoded on demand).
     preset, frames : str, int
         The synthetic sequence (:data:`sdfcodec.data.render.PRESETS`) and its length.
     track_frames, track_stride : int
-        Track every ``track_stride``-th rendered frame, at most ``track_frames`` of them.
+        Track every ``track_stride``-th rendered frame, at most ``track_frames`` of them, against every map.
     ae : bool
         Also encode with the shipped AE-64 (skipped, with a note in the report, when it is not installed).
     progress : bool
@@ -283,6 +315,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     from .metrics import Trajectory, ate
     from .search import expand, search
     from .search_cli import search_picture
+    from .surface import compare_volumes
     from .tracking import DenseField, SDFTracker, TrackerConfig
     from .evaluation import EVAL_TRACKER_CONFIG
     from .viz import render_mesh, save_png
@@ -336,10 +369,21 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     def rmse_exact_mm(vol: np.ndarray) -> float:
         return 1000 * float(np.sqrt(np.mean((vol[near] - exact) ** 2)))
 
+    # surfaces against the fused (lossless) map, its unobserved voxels left out of the band
+    observed = _observed_mask(raw)
+    timings["surface_s"] = 0.0
+
+    def surface(vol: np.ndarray) -> dict:
+        t1 = time.perf_counter()
+        got = compare_volumes(dense_raw, vol, voxel_size, origin=raw.origin, observed=observed).to_dict()
+        timings["surface_s"] += time.perf_counter() - t1
+        return got
+
     rows = [{"map": "raw", "codec": "raw (fused, float32)", "code_size": 4096, "bytes_on_disk": raw_info["bytes_on_disk"],
              "code_bytes": raw_info["bytes_on_disk"] - raw_info["codec_state_bytes"], "codec_state_bytes": raw_info["codec_state_bytes"],
              "encode_s": timings["fuse_s"], "decode_s": None, "mse_vs_fused": 0.0,
-             "rmse_near_vs_exact_mm": rmse_exact_mm(dense_raw)}]
+             "rmse_near_vs_exact_mm": rmse_exact_mm(dense_raw), "stores_observation": _stores_mask(raw),
+             "surface": surface(dense_raw)}]
     fields = {"fused (raw)": dense_raw}
     maps: dict[str, Map] = {"raw": raw}
     codecs: list[tuple[str, Any]] = [(f"pca-{k}", pretrained_codec("pca", k)) for k in code_sizes]
@@ -368,12 +412,14 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
             # where the error sits: mean decoded-minus-fused within 5 cm in front of / behind fused surfaces
             "bias_front_mm": 1000 * float(np.mean((dense - dense_raw)[front])),
             "bias_behind_mm": 1000 * float(np.mean((dense - dense_raw)[behind])),
+            "stores_observation": _stores_mask(m), "surface": surface(dense),
         })
         fields[name] = dense
         maps[name] = m
         r = rows[-1]
         log(f"{name}: codes {dense_bytes / r['code_bytes']:.0f}:1, file {dense_bytes / r['bytes_on_disk']:.0f}:1 against "
             f"dense float32; MSE {r['mse_vs_fused']:.2e} vs fused, {r['rmse_near_vs_exact_mm']:.1f} mm RMSE vs exact; "
+            f"surfaces vs fused: Chamfer-L1 {_mm(r['surface']['chamfer_l1'])}, F@1 {r['surface']['f_score_1']:.3f}; "
             f"encode {t_enc:.1f} s, decode {t_dec:.2f} s")
     timings["encode_s"] = sum(r["encode_s"] for r in rows[1:])
 
@@ -426,13 +472,16 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
             advance()
     k = tseq.intrinsics
     cfg = TrackerConfig(**EVAL_TRACKER_CONFIG)
-    fields_t = {
-        "original": ("original map (dense)", lambda: DenseField(dense_raw, voxel_size, raw.origin, raw.truncation)),
-        "pca-64": ("pca-64, decoded on demand", lambda: MapField(pca64, cache_bytes=64 << 20)),
-    }
+    # every map: pca-64 with blocks decoded on demand into a bounded cache (what a robot would run), the
+    # others from their dense decodes (cheaper on a small room; the same field values)
     tracks: dict[str, dict] = {}
-    for name, (label, make) in fields_t.items():
-        field = make()
+    for name in maps:
+        if name == "pca-64":
+            label, field = "pca-64, decoded on demand", MapField(pca64, cache_bytes=64 << 20)
+        else:
+            label = f"{name} (dense)" if name != "raw" else "raw, the fused map (dense)"
+            field = DenseField(fields["fused (raw)" if name == "raw" else name], voxel_size, raw.origin,
+                               raw.truncation)
         with bars.stage(f"tracking against {name}", len(depths)) as advance:
             def bar_depths():
                 for d in depths:
@@ -449,6 +498,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
                         "ate_rmse": float(st.rmse), "ate_mean": float(st.mean), "ate_max": float(st.max),
                         "failures": tracked.failures, "seconds": secs, "frames_per_s": len(depths) / secs,
                         "cache": field.stats() if isinstance(field, MapField) else None}
+        next(r for r in rows if r["map"] == name)["ate_rmse"] = float(st.rmse)
         log(f"tracked {len(depths)} frames against {label}: ATE RMSE {1000 * st.rmse:.1f} mm, "
             f"{len(depths) / secs:.1f} frames/s, {len(tracked.failures)} failed")
     timings["track_s"] = time.perf_counter() - t0
@@ -484,7 +534,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     summary = {"preset": preset, "frames": frames, "voxel_size": voxel_size, "shape_voxels": list(raw.shape_voxels),
                "coded_blocks": coded, "empty_blocks": counts["empty"], "dense_float32_bytes": dense_bytes,
                "timings": timings, "machine": machine, "maps": rows, "ae_note": ae_note, "search": search_info,
-               "tracking": {"frames": len(depths), "stride": track_stride,
+               "tracking": {"frames": len(depths), "stride": track_stride, "maps": list(tracks),
                             **{n: {k2: v for k2, v in t.items() if k2 != "poses"} for n, t in tracks.items()}},
                "pictures": pics}
     (out / "results.json").write_text(json.dumps(summary, indent=2))
@@ -494,6 +544,33 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
 
 def _kib(n: float | None) -> str:
     return "-" if n is None else f"{n / 1024:,.0f} KiB"
+
+
+def _mm(metres: float | None, fmt: str = ".2f") -> str:
+    """Metres as millimetres; None (a non-finite metric of ``SurfaceMetrics.to_dict``) as "n/a"."""
+    return "n/a" if metres is None else f"{1000 * metres:{fmt}} mm"
+
+
+def _frac(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
+def _ate_cell(r: dict, base: float | None) -> str:
+    a = r.get("ate_rmse")
+    if a is None:
+        return "-"
+    return f"{1000 * a:.1f} mm" + ("" if base is None or r["map"] == "raw" or base <= 0 else f" ({a / base:.1f}x)")
+
+
+def _looser(se: dict) -> str:
+    """A clause on the looser thresholds that found more floor at no loss of precision, if any did."""
+    better = [p for p in se["pr_at"] if p["threshold"] > se["threshold"] and p["precision"] >= se["precision"]
+              and p["recall"] > se["recall"]]
+    if not better:
+        return ""
+    b = max(better, key=lambda p: p["recall"])
+    return (f"; on this fused room a looser one found more floor at no loss of precision ({b['threshold']:g}: "
+            f"recall {b['recall']:.2f}, precision {b['precision']:.2f})")
 
 
 def _report(s: dict, raw: Map) -> str:
@@ -509,29 +586,59 @@ def _report(s: dict, raw: Map) -> str:
         f"Whole run: **{t['total_s']:.0f} s** on {mc['cpus']} CPU cores (1-minute load average "
         f"{mc['load_avg_1min_start']:.1f} at the start, {mc['load_avg_1min_end']:.1f} at the end; other processes "
         "share the machine when it is above the core count).", "",
-        "## Compression and reconstruction", "",
-        "| map | code | codes | file on disk | dense : codes | dense : file | MSE vs fused | RMSE vs exact | "
-        "encode | decode |", "|---|---|---|---|---|---|---|---|---|---|"]
+        "## Compression, surfaces and tracking", "",
+        "| map | codes | file on disk | dense : codes | dense : file | MSE vs fused | RMSE vs exact | Chamfer-L1 | "
+        "F@1 voxel | F@2 voxels | sign agreement | band RMSE / bias | ATE RMSE |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    base = next((r.get("ate_rmse") for r in rows if r["map"] == "raw"), None)
     for r in rows:
-        dec = f"{r['decode_s']:.2f} s" if r["decode_s"] is not None else "-"
-        enc = f"{r['encode_s']:.1f} s" + (" (fusion)" if r["map"] == "raw" else "")
-        L.append(f"| {r['map']} | {r['code_size']} | {_kib(r['code_bytes'])} | {_kib(r['bytes_on_disk'])} | "
+        sf = r["surface"]
+        L.append(f"| {r['map']} | {_kib(r['code_bytes'])} | {_kib(r['bytes_on_disk'])} | "
                  f"{dense / r['code_bytes']:.0f} : 1 | {dense / r['bytes_on_disk']:.0f} : 1 | {r['mse_vs_fused']:.2e} | "
-                 f"{r['rmse_near_vs_exact_mm']:.1f} mm | {enc} | {dec} |")
+                 f"{r['rmse_near_vs_exact_mm']:.1f} mm | {_mm(sf['chamfer_l1'])} | {_frac(sf['f_score_1'])} | "
+                 f"{_frac(sf['f_score_2'])} | {_frac(sf['sign_agreement'])} | {_mm(sf['near_surface_rmse'], '.1f')} / "
+                 f"{_mm(sf['near_surface_bias'], '+.1f')} | {_ate_cell(r, base)} |")
     pca = [r for r in rows if r["codec"] == "pca"]
+    n_orig, n_band = rows[0]["surface"]["n_original"], rows[0]["surface"]["n_band"]
     L += ["", "*codes*: the map on disk without the codec's state (compressed float32 code chunks, block states, "
-          "metadata; `ratio_dense_to_codes` of `sdfcodec info`); "
+          "the observation mask, metadata; `ratio_dense_to_codes` of `sdfcodec info`); "
           "*file on disk*: the whole self-contained map directory, codes plus the codec's state "
           + (f"(the {pca[0]['code_size']}-component basis alone is {_kib(pca[0]['codec_state_bytes'])}; in a small "
              "room it dominates the file, in a building it is a fixed cost next to the codes). " if pca else ". ")
           + "*MSE vs fused*: per-voxel squared error over the coded blocks in normalised units "
           "(distance / 0.14 m), the codec's own loss. *RMSE vs exact*: against the analytic distance of the room at "
-          "voxels within 5 cm of a fused surface, so it includes the fusion's own error (the raw row).", ""]
-    worst = max(rows[1:], key=lambda r: r["bias_behind_mm"])
-    L += [f"Where the error sits: averaged over voxels within 5 cm of a fused surface, {worst['map']} decodes "
-          f"{worst['bias_behind_mm']:+.1f} mm off behind surfaces against {worst['bias_front_mm']:+.1f} mm in front "
-          "(every map: `bias_behind_mm`, `bias_front_mm` in results.json). Fusion leaves voxels more than 4 cm "
-          "behind a surface unobserved (d_max), a step from -0.04 to 0.1 m that short codes smooth over.", ""]
+          "voxels within 5 cm of a fused surface, so it includes the fusion's own error (the raw row). "
+          f"*Surfaces* (docs/surface.md), against the fused map's {n_orig:,} surface points (zero crossings along "
+          "the grid axes): *Chamfer-L1* is the mean of the two directed mean nearest-neighbour distances, *F@1 "
+          f"voxel* / *F@2 voxels* the F-score at {1000 * s['voxel_size']:.0f} / {2000 * s['voxel_size']:.0f} mm; "
+          f"*sign agreement* and *band RMSE / bias* (decoded minus fused) are over the {n_band:,} observed voxels "
+          f"within {2000 * s['voxel_size']:.0f} mm of the fused surface. *ATE RMSE*: the tracking error of "
+          "the next section against the renderer's ground truth (in brackets: against the raw map's).", ""]
+    masked = [r["map"] for r in rows[1:] if r.get("stores_observation")]
+    lossy = rows[1:]
+    if lossy:
+        best = min(lossy, key=lambda r: np.inf if r["surface"]["chamfer_l1"] is None else r["surface"]["chamfer_l1"])
+        worst = max(lossy, key=lambda r: abs(r["bias_behind_mm"]) + abs(r["bias_front_mm"]))
+        L += [f"Closest surfaces: {best['map']} (Chamfer-L1 {_mm(best['surface']['chamfer_l1'])}, F@1 "
+              f"{_frac(best['surface']['f_score_1'])} at {_kib(best['bytes_on_disk'])} on disk). Where the error "
+              f"sits: averaged over voxels within 5 cm of a fused surface, the largest bias is {worst['map']}'s, "
+              f"{worst['bias_behind_mm']:+.1f} mm behind surfaces and {worst['bias_front_mm']:+.1f} mm in front; "
+              + ", ".join(f"{r['map']} {r['bias_behind_mm']:+.1f} / {r['bias_front_mm']:+.1f} mm"
+                          for r in lossy if r is not worst)
+              + " (behind / in front; `bias_behind_mm`, `bias_front_mm` in results.json)."
+              + ((" " + ("Every compressed map" if len(masked) == len(lossy) else ", ".join(masked))
+                  + " stores the fused map's observation mask: its unobserved voxels decode to d_max, so the step "
+                  "from the band behind a surface to unobserved space is no surface, and the PCA codes are fitted "
+                  "to the observed voxels only (surface-weighted least squares, docs/surface.md).") if masked else ""),
+              ""]
+    L += ["Code length and speed (encode: transcoding the fused map into a new map file, for PCA with the "
+          "surface-weighted fit; decode: the whole map to a dense volume):", "",
+          "| map | code elements | encode | decode |", "|---|---|---|---|"]
+    for r in rows:
+        dec = f"{r['decode_s']:.2f} s" if r["decode_s"] is not None else "-"
+        enc = f"{r['encode_s']:.1f} s" + (" (fusion)" if r["map"] == "raw" else "")
+        L.append(f"| {r['map']} | {r['code_size']} | {enc} | {dec} |")
+    L.append("")
     if s["ae_note"]:
         L += [f"AE-64: {s['ae_note']}.", ""]
     L += ["![error against bytes](error-vs-bytes.png)", "",
@@ -557,17 +664,17 @@ def _report(s: dict, raw: Map) -> str:
           "thresholds (no further reads): "
           + "; ".join(f"{p['threshold']:g}: {p['selected']} selected, precision {p['precision']:.2f}, recall "
                       f"{p['recall']:.2f}" for p in se["pr_at"])
-          + ". The automatic threshold is calibrated on exact synthetic rooms; floors fused from noisy depth score "
-          "further from the clean planes, so here a looser threshold finds more floor at the same precision.", "",
+          + ". The automatic threshold is a heuristic, close to the best-F1 thresholds on exact synthetic rooms "
+          "(docs/search.md)" + _looser(se) + ".", "",
           "![floor selection](floors.png)", "",
           "## Tracking against the compressed map", "",
           f"The SDF Tracker followed {tr['frames']} frames (stride {tr['stride']} through the sequence) from the first "
-          "ground-truth pose, once in the original (fused, lossless) map decoded densely, once in the pca-64 map "
-          "with blocks decoded on demand into a bounded cache. ATE: absolute trajectory error against the "
-          "renderer's ground truth, no alignment.", "",
+          "ground-truth pose in every map: the pca-64 map with blocks decoded on demand into a bounded cache, the "
+          "others decoded densely. ATE: absolute trajectory error against the renderer's ground truth, no "
+          "alignment.", "",
           "| map | ATE RMSE | ATE mean | ATE max | failed frames | frames/s | blocks decoded |",
           "|---|---|---|---|---|---|---|"]
-    for name in ("original", "pca-64"):
+    for name in tr["maps"]:
         x = tr[name]
         dec = "all (dense)" if x["cache"] is None else f"{x['cache']['blocks_decoded']} ({x['cache']['misses']} misses, hit rate {x['cache']['hit_rate']:.3f})"
         L.append(f"| {x['label']} | {1000 * x['ate_rmse']:.1f} mm | {1000 * x['ate_mean']:.1f} mm | "
@@ -576,7 +683,8 @@ def _report(s: dict, raw: Map) -> str:
           "| stage | seconds |", "|---|---|"]
     for key, label in (("render_s", "render"), ("fuse_s", "fuse"), ("exact_sdf_s", "exact distance (reference)"),
                        ("encode_s", "encode (all codecs)"), ("search_s", "search + expand + floor truth"),
-                       ("track_s", "tracking (both maps)"), ("pictures_s", "pictures"), ("total_s", "total")):
+                       ("surface_s", "surface metrics (all maps)"), ("track_s", f"tracking ({len(tr['maps'])} maps)"),
+                       ("pictures_s", "pictures"), ("total_s", "total")):
         L.append(f"| {label} | {t[key]:.1f} |")
     L += ["", "Everything here is measured in the run that wrote this report (`sdfcodec demo`); the numbers are "
           "also in `results.json`.", ""]

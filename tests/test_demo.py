@@ -1,5 +1,7 @@
 """``sdfcodec demo`` on a short sequence: every stage runs, and the report's numbers agree with the maps it
-wrote (recomputed here from the map files, not from the demo's own variables)."""
+wrote (recomputed here from the map files, not from the demo's own variables: the errors with numpy, the
+surface metrics with ``compare_maps`` on the map files where the demo used ``compare_volumes`` on its dense
+decodes)."""
 
 from __future__ import annotations
 
@@ -10,6 +12,10 @@ from typer.testing import CliRunner
 
 import sdfcodec
 from sdfcodec.cli import app
+from sdfcodec.surface import compare_maps
+
+SURFACE_KEYS = {"chamfer_l1", "f_score_1", "f_score_2", "precision_1", "recall_1", "precision_2", "recall_2",
+                "sign_agreement", "near_surface_rmse", "near_surface_bias", "n_original", "n_decoded", "n_band"}
 
 
 def test_demo_short_run(tmp_path):
@@ -20,7 +26,7 @@ def test_demo_short_run(tmp_path):
     for png in ("slice.png", "floors.png", "trajectory.png", "error-vs-bytes.png", "mesh-raw.png", "mesh-pca-64.png"):
         assert (out / png).stat().st_size > 5_000, png
     report = (out / "report.md").read_text()
-    for section in ("## Compression and reconstruction", "## Searching the compressed map",
+    for section in ("## Compression, surfaces and tracking", "## Searching the compressed map",
                     "## Tracking against the compressed map", "## Timings", "load average"):
         assert section in report
 
@@ -32,7 +38,12 @@ def test_demo_short_run(tmp_path):
     assert names[:4] == ["raw", "pca-32", "pca-64", "pca-128"]
     assert ("ae-64" in names) != bool(res["ae_note"])  # either encoded or skipped with a reason
     coded = np.kron(raw.block_states() == 2, np.ones((16, 16, 16), bool))[tuple(slice(0, n) for n in dense.shape)]
-    mses = {}
+    # the lossless map against itself: no surface moved
+    s0 = res["maps"][0]["surface"]
+    assert set(s0) == SURFACE_KEYS
+    assert s0["chamfer_l1"] == 0 and s0["f_score_1"] == s0["f_score_2"] == s0["sign_agreement"] == 1
+    assert s0["near_surface_rmse"] == 0 and s0["n_decoded"] == s0["n_original"] > 1000 and s0["n_band"] > 0
+    mses, chamfer = {}, {}
     for row in res["maps"][1:]:
         m = sdfcodec.open_map(out / f"room-{row['map']}.sdfz")
         assert m.code_size == row["code_size"]
@@ -40,8 +51,18 @@ def test_demo_short_run(tmp_path):
         assert np.isclose(row["mse_vs_fused"], mse, rtol=1e-4)
         mses[row["map"]] = mse
         assert f"| {row['map']} | {row['code_size']} |" in report
-    # longer prefixes of one basis reconstruct better
+        if row["codec"] != "pca":
+            continue
+        want = compare_maps(raw, m).to_dict()
+        got = row["surface"]
+        assert set(got) == SURFACE_KEYS
+        for key, v in want.items():
+            assert np.isclose(got[key], v, rtol=1e-9, atol=0), (row["map"], key, got[key], v)
+        chamfer[row["map"]] = got["chamfer_l1"]
+        assert f"| {1000 * got['chamfer_l1']:.2f} mm | {got['f_score_1']:.3f} |" in report
+    # longer prefixes of one basis reconstruct better, surfaces included
     assert mses["pca-32"] > mses["pca-64"] > mses["pca-128"] > 0
+    assert 0 < chamfer["pca-128"] <= chamfer["pca-32"] < 0.02  # surface-true codes: well under a voxel
 
     se = res["search"]
     assert se["coded_blocks"] == res["coded_blocks"]
@@ -52,9 +73,14 @@ def test_demo_short_run(tmp_path):
 
     tr = res["tracking"]
     assert tr["frames"] == 5
-    for name in ("original", "pca-64"):
-        assert len(tr[name]["errors"]) == 5
-        assert 0 <= tr[name]["ate_rmse"] < 0.2  # tracked, not lost
+    assert tr["maps"] == names  # every map is tracked, and its ATE sits in its row
+    for row in res["maps"]:
+        x = tr[row["map"]]
+        assert len(x["errors"]) == 5
+        assert 0 <= x["ate_rmse"] < 0.2  # tracked, not lost
+        assert row["ate_rmse"] == x["ate_rmse"]
+        assert np.isclose(x["ate_rmse"], np.sqrt(np.mean(np.square(x["errors"]))), rtol=1e-6)
+    assert tr["pca-64"]["cache"] is not None and tr["raw"]["cache"] is None  # pca-64 decoded on demand
     cache = tr["pca-64"]["cache"]
     assert 0 < cache["blocks_decoded"] and cache["coded_blocks"] == res["coded_blocks"]
     summary = json.loads(r.stdout)

@@ -1,6 +1,7 @@
 """examples/rate_distortion.py: its --quick path runs on a small synthetic map, and what it measures holds up
 against expectations computed here independently (ZFP's error bound, DCT losslessness and Parseval, bytes on
-disk, float16 and int8 storage; the int8 quantiser itself is tested in test_int8_codes.py)."""
+disk, float16 and int8 storage, the surface metrics of the fused-like quick map against compare_volumes and
+the map's own decode; the int8 quantiser itself is tested in test_int8_codes.py)."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ def quick(rd, tmp_path_factory):
 @pytest.fixture(scope="module")
 def blocks(rd):
     coords, tsdf = rd.synthetic_blocks(True)
-    v = rd.normalised(tsdf)
+    v = rd.normalised(rd.fused_like(tsdf)[0])  # the quick data set is fused-like
     return np.ascontiguousarray(v[rd.nonempty_mask(v)])
 
 
@@ -54,19 +55,22 @@ def test_quick_writes_outputs(quick):
 
 
 def test_map_bytes_match_disk(quick):
-    """The bytes counted per map are the files on disk: codes + state + codec state + metadata = du."""
+    """The bytes counted per map are the files on disk: codes + state + mask + codec state + metadata = du."""
     rd, work, res = quick
     maps = [p for p in res["points"] if p["kind"] == "map"]
-    assert len(maps) == 6  # pca-16, pca-64 x float32, float16, int8
+    assert len(maps) == 12  # pca-16, pca-64 x float32, float16, int8 x plain, surface-true
     for p in maps:
         path = work / p["map"]
         total = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
         b = p["map_bytes"]
         assert b["total"] == total and b["other"] == 0
-        assert b["codes"] + b["state"] + b["codec_state"] + b["metadata"] == total
-        assert p["bytes_per_block"] * p["blocks"] == pytest.approx(b["codes"] + b["state"])
+        assert b["codes"] + b["state"] + b["mask"] + b["codec_state"] + b["metadata"] == total
+        assert p["bytes_per_block"] * p["blocks"] == pytest.approx(b["codes"] + b["state"] + b["mask"])
+        # the mask: one bit per voxel before compression, stored only by the surface-true maps
+        assert (b["mask"] > 0) == p["surface_true"] and b["mask"] < 512 * p["blocks"] + 4096
         # the codec state is the PCA basis (k x 4096), mean and variances, at least their raw float32 bytes
         assert b["codec_state"] >= 4 * (p["code_size"] * 4096 + 4096) * 0.5
+    maps = [p for p in maps if not p["surface_true"]]
     # float16 codes take about half the bytes of float32 ones for the same codec
     for k in (16, 64):
         f32 = next(p for p in maps if p["codec"] == f"pca-{k}" and p["setting"] == "float32")
@@ -121,3 +125,44 @@ def test_dct(rd, blocks):
         y = rd.dct_truncate(blocks, k, dtype=np.float64).astype(np.float64)
         sse = ((y - x) ** 2).reshape(len(x), -1).sum(1)
         assert sse == pytest.approx((c[:, order[k:]] ** 2).sum(1), rel=1e-4, abs=1e-6)
+
+
+def test_surface_metrics_fused_like(quick, blocks):
+    """Every point of the fused-like quick map has surface metrics; a map point's equal compare_volumes on the
+    map's own dense decode (an independent path: Map.decode_region, not the script's block scatter), a
+    near-lossless point has no surface moved, and the surface-true maps keep surfaces closer than plain ones."""
+    import sdfcodec
+    from sdfcodec.surface import compare_volumes
+
+    rd, work, res = quick
+    P = res["points"]
+    assert all(set(p["surface"]) >= {"chamfer_l1", "f_score_1", "f_score_2", "sign_agreement"} for p in P)
+    n = {p["surface"]["n_original"] for p in P}
+    assert len(n) == 1 and n.pop() > 1000  # one reference for every point
+    # the reference: the data set's blocks as a dense volume, with the fused-like observation
+    coords, tsdf = rd.synthetic_blocks(True)
+    tsdf, observed = rd.fused_like(tsdf)
+    shape = tuple(int(k) * 16 for k in coords.max(axis=0) + 1)
+    original, obs = np.full(shape, 0.1, np.float32), np.zeros(shape, bool)
+    for c, t, o in zip(coords, tsdf, observed):
+        sl = tuple(slice(16 * int(k), 16 * int(k) + 16) for k in c)
+        original[sl], obs[sl] = t, o
+    for setting in ("float32", "float32 surface-true", "int8 per-block surface-true"):
+        p = next(p for p in P if p["codec"] == "pca-64" and p["setting"] == setting)
+        m = sdfcodec.open_map(work / p["map"])
+        dec = np.full(shape, 0.1, np.float32)
+        d = m.decode_region()
+        dec[tuple(slice(0, k) for k in d.shape)] = d
+        # blocks the map does not code decode to d_max both ways (the map's extent may stop short of the grid)
+        want = compare_volumes(original, dec, 0.02, observed=obs).to_dict()
+        for key, v in want.items():
+            assert p["surface"][key] == pytest.approx(v, rel=1e-5, abs=1e-7), (setting, key)
+    blosc = next(p for p in P if p["codec"] == "blosc float16 raw")["surface"]
+    assert blosc["chamfer_l1"] < 1e-4 and blosc["f_score_1"] == 1.0  # float16 rounding moves no surface
+    for k in (16, 64):
+        plain = next(p for p in P if p["codec"] == f"pca-{k}" and p["setting"] == "float32")
+        true = next(p for p in P if p["codec"] == f"pca-{k}" and p["setting"] == "float32 surface-true")
+        assert true["surface"]["chamfer_l1"] < plain["surface"]["chamfer_l1"]
+        assert true["surface"]["f_score_1"] > plain["surface"]["f_score_1"]
+    md = (work / "rate-distortion.md").read_text()
+    assert "## Surfaces" in md and "Chamfer-L1 (mm) | F@1 voxel" in md
