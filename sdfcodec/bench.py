@@ -39,17 +39,20 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
-from .codec import Codec
+from .codec import Codec, uses_weights
 from .errors import CodecTypeError, InvalidValueError, RegistrationError
 from .registry import get_codec, get_codec_class
 
-__all__ = ["time_call", "bench_codec", "fused_style_weights", "has_weighted_encode", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
+__all__ = ["time_call", "bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
            "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
 _BLOCK_BYTES = 4 * _N  # one decoded float32 block
 _OPS = ("encode", "decode", "encode-weighted")
+#: "encode-weighted" is timed for code sizes whose exact-fit roofline table (4096 x k (k + 1) / 2 float32)
+#: fits in this (k <= 361); beyond it (raw: k = 4096, lossless, its weighted encode is its encode) it is not
+_MAX_GRAM_TABLE_BYTES = 1 << 30
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:
@@ -199,13 +202,6 @@ def fused_style_weights(v: np.ndarray, voxel_size: float = 0.02) -> np.ndarray:
     return error_weights(v, v > 0, (-0.04, 0.1), voxel_size)
 
 
-def has_weighted_encode(codec: Codec | type[Codec]) -> bool:
-    """Whether ``codec`` (an instance or a class) overrides :meth:`~sdfcodec.Codec.encode_weighted` (else its
-    encode ignores weights)."""
-    cls = codec if isinstance(codec, type) else type(codec)
-    return cls.encode_weighted is not Codec.encode_weighted
-
-
 def _has_hooks(codec: Codec) -> bool:
     return _spec(type(codec)) is not None
 
@@ -228,7 +224,7 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
         x = torch.from_numpy(np.concatenate([data] * -(-b // len(data)))[:b]).to(dev)
         codes = codec.encode(x)
         ops = [("encode", lambda: (codec.encode(x), sync())), ("decode", lambda: (codec.decode(codes), sync()))]
-        if has_weighted_encode(codec):
+        if uses_weights(codec) and 4 * _N * codec.code_size * (codec.code_size + 1) // 2 <= _MAX_GRAM_TABLE_BYTES:
             w = torch.from_numpy(fused_style_weights(x.cpu().numpy())).to(dev)
             ops.append(("encode-weighted", lambda: (codec.encode(x, weights=w), sync())))
         plain_t = None

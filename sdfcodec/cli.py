@@ -693,7 +693,8 @@ def bench_cmd(
     shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
     mixtures --sizes is the size of each part (64: code 64+64+1).
     """
-    from .bench import PAPER_US_PER_BLOCK, bench_codec, has_weighted_encode, vs_paper
+    from .bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
+    from .codec import uses_weights
     from .registry import get_codec_class
 
     ks = [int(s) for s in sizes.split(",")]
@@ -705,7 +706,7 @@ def bench_cmd(
     do_search = search and codec_id == "pca"
     n_search = 8192 if quick else 65536
     with _progress() as prog:
-        task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + has_weighted_encode(get_codec_class(codec_id))) + (n_read > 0) + do_search), rate="")
+        task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search), rate="")
         step = lambda s: prog.update(task, advance=1, description=s)  # noqa: E731
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
                               read_blocks=n_read, http=http)

@@ -29,7 +29,7 @@ import torch
 from ._validate import BLOCK, as_float_tensor, check_weights, like_input
 from .errors import InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
-__all__ = ["Codec", "BLOCK"]
+__all__ = ["Codec", "BLOCK", "uses_weights"]
 
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
@@ -324,3 +324,10 @@ def __getattr__(name: str) -> Any:
 
         return empty
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def uses_weights(codec: Codec | type[Codec]) -> bool:
+    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.encode_weighted`, i.e. its encode fits
+    the error weights it is given rather than ignoring them."""
+    cls = codec if isinstance(codec, type) else type(codec)
+    return cls.encode_weighted is not Codec.encode_weighted

@@ -26,5 +26,10 @@ class RawCodec(Codec):
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
         return blocks.reshape(len(blocks), 4096).clone()
 
+    def encode_weighted(self, blocks: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        # lossless: every weighting has the same best code, the block itself; overriding the hook says so, so
+        # map writers store the voxels as they are rather than filling unobserved space for a lossy codec
+        return self._encode(blocks)
+
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         return codes.reshape(len(codes), 16, 16, 16).clone()

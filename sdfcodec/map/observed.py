@@ -26,10 +26,11 @@ import torch
 import zarr
 
 from .._validate import BLOCK
+from ..codec import uses_weights
 from ..errors import FormatError
 from ..header import BlockState
 
-__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "encode_blocks",
+__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "fill_unobserved", "encode_blocks",
            "pack_mask", "unpack_mask", "restore_unobserved", "restore_unobserved_voxels", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",
            "checked_mask_array"]
 
@@ -69,11 +70,45 @@ def error_weights(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[
     return w
 
 
+def fill_unobserved(v: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """A copy of normalised blocks ``v`` ``(N, 16, 16, 16)`` whose unobserved voxels (``observed`` False) hold the
+    mean of their nearest observed voxels, grown one face-neighbour layer at a time inside each block (the
+    space behind a surface becomes solid, what the observed band there says); blocks with nothing observed
+    are left as they are. For codecs that cannot use error weights: what they are given to encode then has no
+    step from the band behind a surface to ``d_max``, which no short code follows (docs/surface.md)."""
+    x = np.array(v, dtype=np.float32)
+    todo = np.flatnonzero(~observed.reshape(len(x), -1).all(axis=1) & observed.reshape(len(x), -1).any(axis=1))
+    if not len(todo):
+        return x
+    val = torch.from_numpy(x[todo] * observed[todo])
+    known = torch.from_numpy(np.ascontiguousarray(observed[todo])).to(torch.float32)
+    while True:
+        total, count = torch.zeros_like(val), torch.zeros_like(val)
+        for axis in (1, 2, 3):  # sums over the known face neighbours, by shifted slices
+            n = val.shape[axis]
+            for dst, src in ((slice(1, n), slice(0, n - 1)), (slice(0, n - 1), slice(1, n))):
+                d, s_ = [slice(None)] * 4, [slice(None)] * 4
+                d[axis], s_[axis] = dst, src
+                total[tuple(d)] += val[tuple(s_)]
+                count[tuple(d)] += known[tuple(s_)]
+        new = (count > 0) & (known == 0)
+        if not bool(new.any()):
+            break
+        val = torch.where(new, total / count.clamp_min(1), val)
+        known = torch.where(new, torch.ones_like(known), known)
+    x[todo] = val.numpy()
+    return x
+
+
 def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
                   voxel_size: float, surface_weight: float, device: Any) -> np.ndarray:
     """Codes ``(N, k)`` float32 numpy of normalised blocks ``v`` ``(N, 16, 16, 16)``, encoded on ``device`` with
-    the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes."""
+    the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes.
+    A codec that ignores weights (:func:`sdfcodec.codec.uses_weights`) encodes the blocks with their
+    unobserved voxels filled from the observed ones (:func:`fill_unobserved`) instead."""
     w = error_weights(v, observed, truncation, voxel_size, surface_weight)
+    if w is not None and not uses_weights(codec):
+        v, w = fill_unobserved(v, observed), None
     x = torch.from_numpy(np.ascontiguousarray(v)).to(device)
     return codec.encode(x, weights=None if w is None else torch.from_numpy(w).to(device)).cpu().numpy()
 
