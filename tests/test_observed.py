@@ -243,6 +243,24 @@ def test_fuse_stores_weights_and_transcoding_keeps_the_mask(tmp_path):
     assert json.loads(res.output)["blocks"]["coded"] == out.count_states()["coded"]
 
 
+def test_transcoding_a_map_without_observation_encodes_plainly(tmp_path):
+    # an exact SDF stored lossless records no observation: transcoded, it is encoded as its volume is (plain
+    # projection, no mask), so its code distances stay reconstruction distances
+    exact = np.clip(scene(), *TRUNC)
+    src = tmp_path / "exact.sdfz"
+    with sdfcodec.create_map(src, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC) as m:
+        m.write_volume(exact)
+    with sdfcodec.create_map(tmp_path / "t.sdfz", codec=sdfcodec.pretrained_codec("pca", 32), voxel_size=VS,
+                             truncation=TRUNC) as t:
+        t.write_map(sdfcodec.open_map(src))
+    with sdfcodec.create_map(tmp_path / "d.sdfz", codec=sdfcodec.pretrained_codec("pca", 32), voxel_size=VS,
+                             truncation=TRUNC) as d:
+        d.write_volume(exact)
+    tc, dc = (dict((tuple(c), z) for cs, zs in mm.iter_codes() for c, z in zip(cs, zs)) for mm in (t, d))
+    assert MASK_EXTENSION not in [e.name for e in t.header.extensions] and tc.keys() == dc.keys()
+    np.testing.assert_allclose(np.array([tc[k] for k in dc]), np.array(list(dc.values())), atol=1e-4)
+
+
 def test_mesh_of_a_masked_map_has_no_false_surfaces(tmp_path):
     import open3d as o3d
 

@@ -300,8 +300,11 @@ class Map:
                                     f"{source.truncation}) into a map with {self.voxel_size} m, {self.truncation}: "
                                     "create the new map with the source's voxel size and truncation")
         self.mark_empty(np.argwhere(source.block_states() == 1))
+        # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
+        knows = any(a is not None for a in source.reader.observation_arrays())
         for coords, blocks in source.iter_blocks():
-            self.write_blocks(coords, np.clip(blocks, *self.truncation), observed=source.read_observed(coords))
+            self.write_blocks(coords, np.clip(blocks, *self.truncation),
+                              observed=source.read_observed(coords) if knows else None)
             if progress is not None:
                 progress(len(coords))
 
