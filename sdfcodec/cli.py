@@ -310,18 +310,19 @@ def encode_cmd(
 
     fitted_on = None
     if not codec.is_fitted:
-        # asked to (--fit), or no shipped model: learn the basis from the input's own non-empty blocks
+        # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
+        from .map.observed import fit_codec
+        observed = None
         if src_map is not None:
-            sample = np.concatenate([b for _, b in src_map.iter_blocks()] or [np.zeros((0, 16, 16, 16))])
+            pairs = list(src_map.iter_blocks())
+            sample = np.concatenate([b for _, b in pairs] or [np.zeros((0, 16, 16, 16))])
+            if src_map.records_observation and pairs:
+                observed = src_map.read_observed(np.concatenate([c for c, _ in pairs]))
         else:
             sample = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
-        v = normalise(sample, *trunc)
-        v = v[~(v >= 1 - 1e-6).reshape(len(v), -1).all(axis=1)]
-        if len(v) > fit_max_blocks:
-            v = v[np.random.default_rng(0).choice(len(v), fit_max_blocks, replace=False)]
-        err.print(f"fitting {codec!r} on {len(v)} non-empty blocks of the input (pass --model to use a trained one)")
-        codec.fit(v)
-        fitted_on = len(v)
+        fitted_on = fit_codec(codec, normalise(sample, *trunc), observed, trunc, vs, max_blocks=fit_max_blocks,
+                              log=lambda n: err.print(f"fitting {codec!r} on {n} non-empty blocks of the input "
+                                                      "(pass --model to use a trained one)"))
 
     shape = src_map.shape_voxels if src_map is not None else (0, 0, 0)
     with _progress() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,

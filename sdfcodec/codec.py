@@ -129,13 +129,21 @@ class Codec(abc.ABC):
         return self
 
     # -- the public, checked surface -----------------------------------------------------------------
-    def fit(self, blocks: Any) -> "Codec":
-        """Learn the codec's state from normalised blocks ``(N, 16, 16, 16)``; returns ``self``."""
+    def fit(self, blocks: Any, weights: Any = None) -> "Codec":
+        """Learn the codec's state from normalised blocks ``(N, 16, 16, 16)``; returns ``self``.
+
+        ``weights``, optional: per-voxel error weights of the blocks, as :meth:`encode` takes them (0 where a
+        voxel was not observed); a codec that can learn from them (hook :meth:`fit_weighted`) minimises the
+        weighted error of its weighted encode, the others ignore them."""
         if self.requires_fit:
             t, _ = as_float_tensor(blocks, "blocks", (None, BLOCK, BLOCK, BLOCK))
             if t.shape[0] == 0:
                 raise ShapeError("fit needs at least one block, got an empty batch")
-            self._fit(t.cpu().numpy())
+            if weights is None:
+                self._fit(t.cpu().numpy())
+            else:
+                w = check_weights(weights, len(t), torch.device("cpu"))
+                self.fit_weighted(t.cpu().numpy(), np.ascontiguousarray(w.numpy()))
         return self
 
     def fit_stream(self, batches: Iterable[Any]) -> "Codec":
@@ -243,6 +251,13 @@ class Codec(abc.ABC):
         :meth:`encode` calls it when given weights. The default ignores the weights (``_encode(blocks)``): every
         codec accepts them; a codec that can use them overrides it (PCA solves the weighted least squares)."""
         return self._encode(blocks)
+
+    def fit_weighted(self, blocks: np.ndarray, weights: np.ndarray) -> None:
+        """Hook: learn from checked float32 numpy blocks ``(N, 16, 16, 16)`` and checked weights of the same
+        shape (finite, >= 0) the state whose weighted encode (:meth:`encode_weighted`) makes the weighted error
+        small; :meth:`fit` calls it when given weights. The default ignores the weights (``_fit(blocks)``); PCA
+        overrides it (weighted alternating least squares)."""
+        self._fit(blocks)
 
     def fit_batches(self, batches: Iterator[np.ndarray]) -> None:
         """Hook: learn from an iterator of checked float32 numpy batches ``(N_i, 16, 16, 16)``

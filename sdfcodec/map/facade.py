@@ -241,6 +241,11 @@ class Map:
         """Fusion weights ``(N, 16, 16, 16)`` float32 of blocks ``coords`` (0 where none were written)."""
         return self.reader.read_weights(coords)
 
+    @property
+    def records_observation(self) -> bool:
+        """True when the map knows which voxels were observed (it stores fusion weights or a mask)."""
+        return any(a is not None for a in self.reader.observation_arrays())
+
     def read_observed(self, coords: Any) -> np.ndarray:
         """Which voxels of blocks ``coords`` ``(N, 3)`` were observed: ``(N, 16, 16, 16)`` bool, from the fusion
         weights (> 0) or the observation mask the map stores; all True for a map that stores neither."""
@@ -301,7 +306,7 @@ class Map:
                                     "create the new map with the source's voxel size and truncation")
         self.mark_empty(np.argwhere(source.block_states() == 1))
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
-        knows = any(a is not None for a in source.reader.observation_arrays())
+        knows = source.records_observation
         for coords, blocks in source.iter_blocks():
             self.write_blocks(coords, np.clip(blocks, *self.truncation),
                               observed=source.read_observed(coords) if knows else None)

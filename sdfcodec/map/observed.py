@@ -26,11 +26,11 @@ import torch
 import zarr
 
 from .._validate import BLOCK
-from ..codec import uses_weights
+from ..codec import Codec, uses_weights
 from ..errors import FormatError
 from ..header import BlockState
 
-__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "fill_unobserved", "encode_blocks",
+__all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "fill_unobserved", "encode_blocks", "fit_codec",
            "pack_mask", "unpack_mask", "restore_unobserved", "restore_unobserved_voxels", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",
            "checked_mask_array"]
 
@@ -111,6 +111,31 @@ def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, trunca
         v, w = fill_unobserved(v, observed), None
     x = torch.from_numpy(np.ascontiguousarray(v)).to(device)
     return codec.encode(x, weights=None if w is None else torch.from_numpy(w).to(device)).cpu().numpy()
+
+
+def fit_codec(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
+              voxel_size: float, *, max_blocks: int, surface_weight: float = SURFACE_WEIGHT, seed: int = 0,
+              log: Any = None) -> int:
+    """Fit ``codec`` on the non-empty ones of normalised blocks ``v`` ``(N, 16, 16, 16)`` (at most
+    ``max_blocks``, sampled with ``seed``) as a map writer will encode them: with the error weights of their
+    observation ``observed`` (``(N, 16, 16, 16)`` bool, None: a dense volume, observed everywhere) when the
+    codec learns from weights (:meth:`~sdfcodec.Codec.fit_weighted`), else on the blocks filled as
+    :func:`encode_blocks` fills them for it. ``log(n)`` is called with the number of blocks before fitting;
+    returns that number."""
+    keep = ~(v >= 1 - 1e-6).reshape(len(v), -1).all(axis=1)
+    if len(np.flatnonzero(keep)) > max_blocks:
+        keep = np.sort(np.random.default_rng(seed).choice(np.flatnonzero(keep), max_blocks, replace=False))
+    v, observed = v[keep], None if observed is None else observed[keep]
+    if log is not None:
+        log(len(v))
+    w = error_weights(v, observed, truncation, voxel_size, surface_weight)
+    if w is None:
+        codec.fit(v)
+    elif type(codec).fit_weighted is not Codec.fit_weighted:
+        codec.fit(v, weights=w)
+    else:
+        codec.fit(v if uses_weights(codec) else fill_unobserved(v, observed))
+    return len(v)
 
 
 def pack_mask(observed: np.ndarray) -> np.ndarray:
