@@ -23,8 +23,9 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/sdfcodec demo --out demo-out
 
+# two workers (pytest-xdist): most tests are single-threaded Python or wait on subprocesses; about 1.5-2x on 2 cores
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
 
 # Retrain the shipped eigenshapes (plugins/sdfcodec_pca/models/pca-128.npz) and rewrite docs/default-model.*
 default-model: $(STAMP)

@@ -134,7 +134,7 @@ def _report(summary: Any, as_json: bool, line: Callable[[], str]) -> None:
     if as_json:
         _print_json(summary)
     else:
-        out.print(line())
+        out.print(line(), markup=False)  # results are plain text: "[m]" in a table header is a unit, not markup
 
 
 def _refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) -> None:
@@ -765,8 +765,8 @@ def demo_cmd(
     """Render, fuse, compress, search and track a synthetic room; write OUT/report.md with tables and pictures.
 
     Built-in data only, nothing downloaded. Encodes with the shipped eigenshapes at 32/64/128 (and the shipped
-    AE-64 when its plugin is installed), searches the pca-64 map for floors and expands only them, and tracks
-    the sequence against the original map and against the pca-64 map decoded on demand.
+    AE-64 when its plugin is installed), measures every map's surfaces against the original, searches the
+    pca-64 map for floors and expands only them, and tracks the sequence against every map (pca-64 on demand).
     """
     from .demo import run_demo
 

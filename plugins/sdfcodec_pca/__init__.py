@@ -131,7 +131,8 @@ class PCACodec(Codec):
         weighted error: weighted alternating least squares from the plain PCA, grown in nested stages (the first
         ``k / 4``, then ``k / 2``, then all ``k`` components, each stage refitting only its new components with
         the earlier ones fixed, ``WEIGHTED_FIT_ITERATIONS`` times), so every code prefix stays a fitted basis
-        of its own (``prefix_ordered``); each stage's new components are ordered by the variance of their codes.
+        of its own (``prefix_ordered``); each stage's new components are ordered by the variance of their codes
+        (``explained_variance``: that variance when the stage was fitted, decreasing within each stage).
         Needs ``mean="dataset"``; memory: about three copies of the blocks."""
         if self.mean != "dataset":
             raise InvalidValueError("pca fits weights only with mean='dataset' (the block-mean slot is no "
@@ -141,6 +142,7 @@ class PCACodec(Codec):
         x, w = torch.from_numpy(blocks.reshape(n, _N)), torch.from_numpy(weights.reshape(n, _N))
         comp = torch.from_numpy(self.components_.copy())
         mean = torch.from_numpy(self.mean_.copy())
+        explained = torch.zeros(k)  # per stage: the variance of its new components' codes, when it was fitted
         fixed = 0
         for stop in sorted({max(1, k // 4), max(1, k // 2), k}):
             for _ in range(WEIGHTED_FIT_ITERATIONS):
@@ -152,9 +154,10 @@ class PCACodec(Codec):
             new = rot[:, order].T.float() @ comp[fixed:stop]
             signs = torch.sign(new[torch.arange(len(new)), new.abs().argmax(dim=1)])
             comp[fixed:stop] = new * signs[:, None]
+            explained[fixed:stop] = var[order].float().clamp_min(0)
             fixed = stop
-        var = self._weighted_codes(x, w, comp, mean).var(dim=0)
-        self.load_state_dict({"components": comp.numpy(), "mean": mean.numpy(), "explained_variance": var.numpy()})
+        self.load_state_dict({"components": comp.numpy(), "mean": mean.numpy(),
+                              "explained_variance": explained.numpy()})
 
     def _weighted_codes(self, x: torch.Tensor, w: torch.Tensor, comp: torch.Tensor, mean: torch.Tensor
                         ) -> torch.Tensor:
