@@ -38,12 +38,15 @@ def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
 #: ``"floor"``: clean floor blocks against all others (partial ones count as false positives when retrieved);
 #: ``"floor-vs-none"``: clean floor blocks against blocks holding no floor at all (partial ones left out);
 #: ``"floor-majority"``: blocks whose surface is at least half floor (``RoomScene.floor_blocks``) against all
-#: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others.
+#: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others; ``"wall"``,
+#: ``"ceiling"``: clean wall or ceiling blocks (the same 90 % / 90 % rule) against all others.
 TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
     "floor": lambda lab: (_clean(lab), ~_clean(lab)),
     "floor-vs-none": lambda lab: (_clean(lab), lab["floor"] == 0),
     "floor-majority": lambda lab: (lab["floor"] >= 0.5, lab["floor"] < 0.5),
     "up": lambda lab: (_clean(lab, "up"), ~_clean(lab, "up")),
+    "wall": lambda lab: (_clean(lab, "wall"), ~_clean(lab, "wall")),
+    "ceiling": lambda lab: (_clean(lab, "ceiling"), ~_clean(lab, "ceiling")),
 }
 
 
