@@ -470,7 +470,7 @@ def mesh_cmd(
 @_cli
 def search_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
-    query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, or a saved query (.npz)."),
+    query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, pole, like:X,Y,Z[;X,Y,Z] (blocks like these), or a saved query (.npz)."),
     level: Optional[int] = typer.Option(None, "--level", help="Match only the first K code elements."),
     threshold: Optional[float] = typer.Option(None, "--threshold", help="Select blocks scoring at most this."),
     top: Optional[int] = typer.Option(None, "--top", help="Select the K best-scoring blocks."),

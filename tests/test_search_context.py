@@ -187,3 +187,36 @@ def test_cli_flags_messages_and_hint(tmp_path, pca64):
     assert r.exit_code != 0 and "unobserved, solid" in r.stderr
     r = run(app, ["search", str(tmp_path / "p.sdfz"), "--level", "65"])
     assert r.exit_code != 0 and "1..64" in r.stderr
+
+
+def test_up_is_estimated_from_a_tilted_map_and_a_given_up_wins(tmp_path, pca64):
+    # an exact floor tilted 7 degrees about x over a 96 x 96 footprint: no up in the header
+    n = np.array([0.0, -math.sin(math.radians(7.0)), math.cos(math.radians(7.0))])
+    vol = sample_volume(Plane(n, 0.45), (96, 96, 64), VS, truncation=TRUNC)
+    m = _map(tmp_path / "tilted.sdfz", vol, pca64)
+    c = map_context(m)
+    assert "estimated" in c.up_source
+    assert math.degrees(math.acos(min(1.0, float(np.dot(c.up, n))))) < 1.5
+    assert map_context(m, up=(0, 0, 1)).up == (0.0, 0.0, 1.0)
+
+
+def test_pole_and_blocks_like_these(tmp_path, pca64):
+    from sdfcodec.sdf import Cylinder, grid_points
+
+    shape = (64, 64, 64)
+    floor_h = 0.13
+    scene = Scene([Box((0.64, 0.64, floor_h - 1.0), (2.0, 2.0, 1.0)), Cylinder((0.3, 0.3, 0.64), 0.07, 1.0)])
+    m = _map(tmp_path / "pole.sdfz", sample_volume(scene, shape, VS, truncation=TRUNC), pca64)
+    d_pole = np.abs(Cylinder((0.3, 0.3, 0.64), 0.07, 1.0)(grid_points(shape, VS)))
+    near = np.argwhere(d_pole <= 0.6 * VS) // 16
+    pole_blocks = {tuple(int(v) for v in r) for r in np.unique(near, axis=0) if r[2] >= 1}  # above the floor's
+    floor_blocks = _plane_blocks((0, 0, 1), floor_h, shape) - {(0, 0, 0)}  # the pole stands on (0, 0, 0)
+    got = _selected(S.search(m, "pole", threshold="auto"))
+    assert pole_blocks <= got and not (got & floor_blocks)
+    # blocks like a floor block: its own code is the descriptor (score 0); the other pure floor blocks of this
+    # exact map are the same block, so they tie with it, and the pole's floor block comes after them
+    res = S.search(m, "like:2,2,0", top=len(floor_blocks))
+    assert res.scores[0] == 0.0 and (2, 2, 0) in _selected(res)
+    assert _selected(res) == floor_blocks
+    with pytest.raises(InvalidValueError, match="coded block"):
+        S.search(m, "like:3,3,3", top=3)

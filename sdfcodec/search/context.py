@@ -7,7 +7,8 @@
   (a fused-style field is a thin band behind each surface, then a step back to ``d_max``; an exact SDF is solid
   behind). The two families are far apart in code space, so the vote is clear on any map with planes.
 * ``up``: the header's ``up`` field (spec section 3, written by ``sdfcodec fuse`` for sequences that record
-  their gravity), else the grid's ``+z``.
+  their gravity), else estimated from the map's level surfaces (:func:`estimate_up`; ``+z`` when they say the
+  map is level within a degree, or when too few blocks look level).
 * ``weighted``: whether the map's blocks were encoded surface-true (weighted least squares,
   :func:`sdfcodec.map.observed.error_weights`); a query for it is encoded the same way, with the mask of what a
   camera would observe of each shape, so that its codes compare like with like.
@@ -18,6 +19,7 @@ Each value says where it came from (``*_source``), for the search's JSON and tex
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -30,10 +32,16 @@ from ..map import Map
 from ..map.observed import MASK_EXTENSION
 from .shapes import BEHIND
 
-__all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE"]
+__all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE", "UP_CONE_DEG", "LEVEL_DEG", "MIN_UP_VOTES", "estimate_up"]
 
 #: Coded blocks scored to tell a fused-style field from an exact SDF when the map records neither.
 VOTE_SAMPLE = 8192
+#: :func:`estimate_up`: the cone (degrees about the grid's +z) searched for level surfaces.
+UP_CONE_DEG = 15.0
+#: :func:`estimate_up`: estimates closer than this (degrees) to +z keep +z.
+LEVEL_DEG = 1.0
+#: :func:`estimate_up`: fewer votes than this keep +z.
+MIN_UP_VOTES = 8
 
 
 @dataclass(frozen=True)
@@ -105,6 +113,51 @@ def _behind_vote(m: Map, sample: int = VOTE_SAMPLE) -> tuple[float, int]:
     return float((su[voters] < ss[voters]).mean()), int(voters.sum())
 
 
+def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[float, float, float], str]:
+    """The up direction of a map that records none, from its level surfaces: up to ``sample`` coded blocks are
+    scored against a floor model sampled over a cone of :data:`UP_CONE_DEG` about ``+z`` (the grid's up), the
+    blocks under its calibrated threshold each vote for their nearest descriptor's normal, and the mean of the
+    votes is refined twice, with cones of 4 and 2 degrees about it. An estimate within :data:`LEVEL_DEG` of ``+z``, or
+    fewer than :data:`MIN_UP_VOTES` votes, keeps ``+z``. Returns ``(up, where it came from)``."""
+    from .engine import ObservedScorer, Scorer, calibrate_threshold, score_codes
+    from .query import build_query
+
+    codec = m.codec
+    lv = m.header.codes.levels[0] if m.header.codes.prefix_ordered else m.code_size
+    masked = any(a is not None for a in m.reader.observation_arrays())
+    batches = []
+    n = 0
+    for coords, codes in m.iter_codes(level=lv):
+        batches.append((codes, m.read_observed(coords) if masked else None))
+        n += len(codes)
+        if n >= sample:
+            break
+    up = np.array([0.0, 0.0, 1.0])
+    votes = 0
+    for cone in (f"cone:{UP_CONE_DEG:g}:48", "cone:4:16", "cone:2:16"):
+        model = build_query("floor", map=m, behind=behind, up=tuple(up), rotations=cone, keep_blocks=False)
+        scorer = Scorer(model.descriptors[:, :lv], torch.device("cpu"))
+        obs = ObservedScorer(model.descriptors[:, :lv], codec, m.truncation, m.voxel_size) if masked else None
+        t, _ = calibrate_threshold(model, codec, lv, scorer, obs)
+        normals = []
+        for codes, seen in batches:
+            sc, idx = score_codes(scorer, obs, codes, seen)
+            normals.append(model.rotations[idx[sc <= t]][:, :, 2])
+        nv = np.concatenate(normals) if normals else np.zeros((0, 3))
+        votes = len(nv)
+        if votes < MIN_UP_VOTES:
+            return (0.0, 0.0, 1.0), (f"default: the grid's +z (the map records no up direction and only {votes} "
+                                     "blocks look level enough to estimate one; pass --up x,y,z)")
+        est = nv.mean(axis=0)
+        up = est / np.linalg.norm(est)
+    tilt = math.degrees(math.acos(min(1.0, float(up[2]))))
+    if tilt < LEVEL_DEG:
+        return (0.0, 0.0, 1.0), (f"the grid's +z: the map records no up direction, and its {votes} level-looking "
+                                 f"blocks put up {tilt:.1f} degrees from +z (under {LEVEL_DEG:g}: level)")
+    return tuple(float(u) for u in up), (f"estimated from the map's {votes} level-looking blocks ({tilt:.1f} degrees "
+                                         "from the grid's +z; the map records no up direction: pass --up to override)")
+
+
 def map_context(m: Map, *, behind: str | None = None, up: Sequence[float] | str | None = None) -> MapContext:
     """The query context of map ``m`` (module docstring); ``behind`` / ``up`` given override the map's."""
     h = m.header
@@ -133,5 +186,5 @@ def map_context(m: Map, *, behind: str | None = None, up: Sequence[float] | str 
     elif h.up is not None:
         u, u_src = check_up(h.up), "the map's header (recorded when it was made, e.g. from the sequence's gravity)"
     else:
-        u, u_src = (0.0, 0.0, 1.0), "default: the grid's +z (the map records no up direction; pass --up x,y,z)"
+        u, u_src = estimate_up(m, b)
     return MapContext(behind=b, behind_source=b_src, up=u, up_source=u_src, weighted=weighted)

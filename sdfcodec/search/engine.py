@@ -33,6 +33,7 @@ __all__ = [
     "CALIBRATION_QUANTILE",
     "CALIBRATION_SAMPLES",
     "calibrate_threshold",
+    "score_codes",
     "SearchResult",
     "Expansion",
     "auto_threshold",
@@ -313,8 +314,10 @@ def _cone_angle(rotations: Any) -> float:
     return 0.0
 
 
-def _score(scorer: "Scorer", observed_scorer: ObservedScorer | None, codes: np.ndarray,
-           observed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def score_codes(scorer: "Scorer", observed_scorer: ObservedScorer | None, codes: np.ndarray,
+                observed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Scores and nearest descriptors of codes ``(n, L)``: the code scores of ``scorer``, replaced for partly
+    observed blocks (``observed`` ``(n, 16, 16, 16)`` bool, None: all observed) by ``observed_scorer``'s."""
     s, idx = scorer(codes)
     if observed_scorer is not None and observed is not None:
         partial = ~observed.reshape(len(observed), -1).all(axis=1)
@@ -356,7 +359,7 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
                             truncation=model.truncation, up=spec["up"], tilt_deg=tilt, behind=spec["behind"],
                             stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
     codes = encode_query_blocks(codec, v, seen, model.truncation, model.voxel_size, bool(spec.get("weighted")))
-    s, _ = _score(scorer, observed_scorer, codes[:, :level], seen if spec.get("weighted") else None)
+    s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if spec.get("weighted") else None)
     q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
     return float(q[2]), {"method": "calibrated", "samples": CALIBRATION_SAMPLES, "quantile": CALIBRATION_QUANTILE,
                          "tilt_deg": tilt, "simulated": {"q50": float(q[0]), "q90": float(q[1]),
@@ -431,7 +434,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     all_c, all_s = [], []
     n_scored = 0
     for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
-        s, idx = _score(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
+        s, idx = score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
         n_scored += len(s)
         if keep_scores:
             all_c.append(coords)

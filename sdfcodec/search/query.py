@@ -29,6 +29,7 @@ __all__ = [
     "QueryModel",
     "build_query",
     "encode_query_blocks",
+    "like_blocks",
     "save_query",
     "load_query",
     "resolve_query",
@@ -247,6 +248,39 @@ def encode_query_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None
     return np.asarray(codec.encode(v, weights=w), dtype=np.float32)
 
 
+def like_blocks(m: Map, coords: Any, codec: Codec) -> QueryModel:
+    """A "blocks like these" model: the map's own codes of coded blocks ``coords`` (``(N, 3)`` block indices,
+    or ``"X,Y,Z;X,Y,Z"`` as the CLI's ``--query like:...`` passes them) are the descriptors, so they compare
+    with the map's codes exactly, at any prefix level of a prefix-ordered codec.
+
+    Raises
+    ------
+    InvalidValueError
+        Unparseable coordinates, or a block that is not coded in the map.
+    """
+    from ..header import BlockState
+
+    if isinstance(coords, str):
+        try:
+            coords = [[int(v) for v in part.split(",")] for part in coords.split(";") if part.strip()]
+        except ValueError as e:
+            raise InvalidValueError(f"like: wants block indices X,Y,Z[;X,Y,Z...], got {coords!r}") from e
+    c = np.asarray(coords, dtype=np.int64).reshape(-1, 3) if len(coords) else np.zeros((0, 3), np.int64)
+    if not len(c):
+        raise InvalidValueError("like: needs at least one block index X,Y,Z")
+    states = m.block_states()
+    grid = np.asarray(states.shape)
+    if c.min() < 0 or np.any(c >= grid) or np.any(states[tuple(c.T)] != BlockState.CODED):
+        raise InvalidValueError(f"like: every block must be a coded block of the map (grid {tuple(grid)}); "
+                                f"{c.tolist()} are not all coded")
+    all_c, all_codes = m.read_codes()
+    key = {tuple(r): i for i, r in enumerate(np.asarray(all_c).tolist())}
+    rows = np.asarray([key[tuple(r)] for r in c.tolist()])
+    return QueryModel(name="like " + ";".join(",".join(str(v) for v in r) for r in c.tolist()),
+                      descriptors=np.asarray(all_codes, dtype=np.float32)[rows], codec_config=codec.get_config(),
+                      codec_state_sha256=_codec_sha(codec), voxel_size=m.voxel_size, truncation=m.truncation)
+
+
 def save_query(model: QueryModel, path: str | os.PathLike) -> Path:
     """Write a query model as ``.npz`` (plain arrays, compressed, atomic); returns the path.
 
@@ -305,6 +339,8 @@ def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None
     for a saved model they are refused (it was made with its own)."""
     if isinstance(query, str) and query in QUERY_NAMES:
         return build_query(query, map=m, behind=behind, up=up, tilt=tilt)
+    if isinstance(query, str) and query.startswith("like:"):
+        return like_blocks(m, query[5:], codec)
     if (behind, up, tilt) != (None, None, None):
         raise InvalidValueError("behind, up and tilt shape the built-in queries (floor, ceiling, wall, edge, corner); "
                                 "a saved model or user blocks carry their own: rebuild the model with them instead")

@@ -21,6 +21,7 @@ from ..geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
 
 __all__ = [
     "WALL_YAWS",
+    "POLE_RADII",
     "FUSED_STRETCH",
     "sample_shapes",
     "QUERY_NAMES",
@@ -38,7 +39,9 @@ __all__ = [
 ]
 
 #: The built-in named queries (see :func:`query_blocks`).
-QUERY_NAMES: tuple[str, ...] = ("floor", "ceiling", "wall", "edge", "corner")
+QUERY_NAMES: tuple[str, ...] = ("floor", "ceiling", "wall", "edge", "corner", "pole")
+#: Radii (voxels) of the pole model's vertical cylinders.
+POLE_RADII: tuple[float, ...] = (2.0, 3.5, 6.0, 10.0)
 #: Ways of treating voxels more than ``|d_min|`` behind a surface (see the :mod:`sdfcodec.search` docstring).
 BEHIND: tuple[str, ...] = ("unobserved", "solid")
 
@@ -169,6 +172,11 @@ def _corner(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
     return np.where(nearest > 0, nearest, -depth)
 
 
+def _pole(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Solid vertical cylinder (along z) of radius ``pos[2]`` about the axis ``x = pos[0], y = pos[1]``."""
+    return np.hypot(q[..., 0] - pos[0], q[..., 1] - pos[1]) - pos[2]
+
+
 def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray, np.ndarray]:
     """``(sdf(q (..., 3), pos (3,)) in voxels, positions (P, 3), base orientations (B, 3, 3))``; ``offsets``:
     plane offsets (voxels from the block centre) of the plane family."""
@@ -190,6 +198,10 @@ def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray,
         o = _offsets(4)
         pos = np.array([(a, b, c) for a in o for b in o for c in o])
         return _corner, pos, axis_rotations()  # the 8 axis-aligned concave corners
+    if name == "pole":
+        o = _offsets(5)
+        pos = np.array([(a, b, r) for a in o for b in o for r in POLE_RADII])
+        return _pole, pos, np.eye(3)[None]  # vertical cylinders along up, axis at (a, b), radius r
     check_query_name(name)
     raise AssertionError(name)  # check_query_name raised: every built-in name is handled above
 
@@ -259,6 +271,9 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
         The 12 axis-aligned concave edges of a room (floor-wall, wall-wall, ceiling-wall) at 5 x 5 positions.
     ``"corner"``
         The 8 axis-aligned concave corners of a room at 4 x 4 x 4 positions.
+    ``"pole"``
+        Solid vertical cylinders along ``up`` (poles, table legs, pipes) with :data:`POLE_RADII` radii at
+        5 x 5 axis positions.
 
     Parameters
     ----------
@@ -396,7 +411,10 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
             b = rot_z(rng.uniform(0.0, 2 * math.pi)) @ rot_y(math.pi / 2)
         spin = rot_z(rng.uniform(0.0, 2 * math.pi)) if name in ("floor", "ceiling") else np.eye(3)
         r = r_up @ tilt @ spin @ b
-        if name in ("floor", "ceiling", "wall"):
+        if name == "pole":
+            p = np.array([rng.uniform(-6.0, 6.0), rng.uniform(-6.0, 6.0), rng.uniform(min(POLE_RADII),
+                                                                                      max(POLE_RADII))])
+        elif name in ("floor", "ceiling", "wall"):
             # a plane up to one voxel beyond the block's outer voxel layers is still its surface: the block on
             # each side of a surface between them holds it (its mesh needs both)
             p = np.array([0.0, 0.0, rng.uniform(-_CENTRE - 1.0, _CENTRE + 1.0)])
