@@ -92,7 +92,7 @@ def test_context_from_what_the_map_records(tmp_path, pca64):
     fused_style = np.where(Plane((0, 0, 1), 0.37)(sdfcodec.sdf.grid_points(shape, VS)) < TRUNC[0], TRUNC[1],
                            solid).astype(np.float32)
     c = map_context(_map(tmp_path / "s.sdfz", solid, pca64))
-    assert c.behind == "solid" and not c.weighted and c.up == (0.0, 0.0, 1.0) and "default" in c.up_source
+    assert c.behind == "solid" and not c.weighted and c.up == (0.0, 0.0, 1.0) and "+z" in c.up_source
     c = map_context(_map(tmp_path / "u.sdfz", fused_style, pca64))
     assert c.behind == "unobserved" and "no observation" in c.behind_source and not c.weighted
     # a map that records its observation is fused, whatever its values

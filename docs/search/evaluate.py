@@ -169,6 +169,18 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, up: np.ndarray) -> dic
             "floor_height": float(floor_h)}
 
 
+def _observed_surface(m: sdfcodec.Map, room: S.LabelledRoom, coords: np.ndarray) -> np.ndarray:
+    """Per block, how many voxels within one voxel of the exact surface the fused map observed."""
+    pad = [(0, (-n) % 16) for n in room.volume.shape]
+    vol = np.pad(room.volume, pad, constant_values=room.truncation[1])
+    out = np.zeros(len(coords), np.int64)
+    obs = m.read_observed(coords)
+    for i, c in enumerate(coords):
+        b = vol[tuple(slice(16 * a, 16 * a + 16) for a in c)]
+        out[i] = int(((np.abs(b) <= room.voxel_size) & obs[i]).sum())
+    return out
+
+
 def _pr(selected: np.ndarray, pos: np.ndarray) -> tuple[int, int, int]:
     return int((selected & pos).sum()), int(selected.sum()), int(pos.sum())
 
@@ -235,6 +247,33 @@ def main(argv=None) -> int:
                     if room is not None:
                         lab = room.block_labels(res.all_coords)
                         pos = TRUTH[q](lab)[0]
+                        # the pure truth: mixed blocks left out of both counts
+                        p_pos, p_neg = TRUTH[f"{q}-pure"](lab)
+                        keep = p_pos | p_neg
+                        tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
+                        t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
+                                                                     "blocks": 0, "maps": 0, "thresholds": [],
+                                                                     "behind": set()})
+                        for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
+                                     ("maps", 1)):
+                            t[k] += v
+                        t["thresholds"].append(round(float(res.threshold), 2))
+                        t["behind"].add(res.stats["context"]["behind"])
+                        if kind.startswith("fused"):
+                            # fused maps: clean blocks of which fusion observed too little surface to judge
+                            # (fewer than 64 observed surface voxels, e.g. the block under a floor that passes
+                            # at its top face) are left out
+                            seen = _observed_surface(m, room, res.all_coords) >= 64
+                            keep = seen | ~pos
+                            tp3, ns3, np3 = _pr(sel[keep], pos[keep])
+                            t = tally.setdefault((kind, f"{q} (observed)"), {
+                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
+                                "behind": set()})
+                            for k, v in (("tp", tp3), ("selected", ns3), ("positives", np3),
+                                         ("blocks", int(keep.sum())), ("maps", 1)):
+                                t[k] += v
+                            t["thresholds"].append(round(float(res.threshold), 2))
+                            t["behind"].add(res.stats["context"]["behind"])
                     else:
                         lab = kitchen_labels(raw, res.all_coords, np.asarray(m.header.up))
                         pos = lab[q]

@@ -20,6 +20,7 @@ from .query import build_query
 
 __all__ = [
     "TRUTH",
+    "PURE_MIN_SURFACE",
     "pr_curve",
     "operating_points",
     "evaluate_retrieval",
@@ -28,6 +29,14 @@ __all__ = [
 
 def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
     return (lab[kind] >= 0.9) & (lab[f"{kind}_cover"] >= 0.9)
+
+
+def _pure(lab: dict, kind: str) -> np.ndarray:
+    return (lab[kind] >= 0.9) & (lab["surface_voxels"] >= PURE_MIN_SURFACE)
+
+
+#: The ``*-pure`` truths: a block with at least this many surface voxels, >= 90 % of them on the surface.
+PURE_MIN_SURFACE = 64
 
 
 #: Ground-truth definitions for :func:`evaluate_retrieval`: ``name -> f(block_labels) -> (positive, negative)``
@@ -39,7 +48,10 @@ def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
 #: ``"floor-vs-none"``: clean floor blocks against blocks holding no floor at all (partial ones left out);
 #: ``"floor-majority"``: blocks whose surface is at least half floor (``RoomScene.floor_blocks``) against all
 #: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others; ``"wall"``,
-#: ``"ceiling"``: clean wall or ceiling blocks (the same 90 % / 90 % rule) against all others.
+#: ``"ceiling"``: clean wall or ceiling blocks (the same 90 % / 90 % rule) against all others; ``"floor-pure"``,
+#: ``"wall-pure"``, ``"ceiling-pure"``: blocks whose surface is >= 90 % that surface (at least
+#: :data:`PURE_MIN_SURFACE` surface voxels, however little of the cross-section it covers: a wall crossing a
+#: block obliquely, a tilted floor) against blocks with < 10 % of it; mixed blocks are left out.
 TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
     "floor": lambda lab: (_clean(lab), ~_clean(lab)),
     "floor-vs-none": lambda lab: (_clean(lab), lab["floor"] == 0),
@@ -47,6 +59,7 @@ TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
     "up": lambda lab: (_clean(lab, "up"), ~_clean(lab, "up")),
     "wall": lambda lab: (_clean(lab, "wall"), ~_clean(lab, "wall")),
     "ceiling": lambda lab: (_clean(lab, "ceiling"), ~_clean(lab, "ceiling")),
+    **{f"{k}-pure": (lambda k: lambda lab: (_pure(lab, k), lab[k] < 0.1))(k) for k in ("floor", "wall", "ceiling")},
 }
 
 
