@@ -32,14 +32,17 @@ from ..map import Map
 from ..map.observed import MASK_EXTENSION
 from .shapes import BEHIND
 
-__all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE", "UP_CONE_DEG", "LEVEL_DEG", "MIN_UP_VOTES", "estimate_up"]
+__all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE", "UP_CONE_DEG", "LEVEL_DEG", "MIN_UP_VOTES", "UP_CALIBRATION_SAMPLES", "estimate_up"]
 
 #: Coded blocks scored to tell a fused-style field from an exact SDF when the map records neither.
 VOTE_SAMPLE = 8192
 #: :func:`estimate_up`: the cone (degrees about the grid's +z) searched for level surfaces.
 UP_CONE_DEG = 15.0
-#: :func:`estimate_up`: estimates closer than this (degrees) to +z keep +z.
-LEVEL_DEG = 1.0
+#: :func:`estimate_up`: estimates closer than this (degrees) to +z keep +z: a plane this far from level rises
+#: half a voxel across a block, within the half voxel the models' offset lattice tolerates (1.79 degrees).
+LEVEL_DEG = math.degrees(math.atan(0.5 / 16))
+#: :func:`estimate_up`: simulated instances per calibrated threshold (a direction needs fewer than a search).
+UP_CALIBRATION_SAMPLES = 96
 #: :func:`estimate_up`: fewer votes than this keep +z.
 MIN_UP_VOTES = 8
 
@@ -135,10 +138,12 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     up = np.array([0.0, 0.0, 1.0])
     votes = 0
     for cone in (f"cone:{UP_CONE_DEG:g}:48", "cone:4:16", "cone:2:16"):
-        model = build_query("floor", map=m, behind=behind, up=tuple(up), rotations=cone, keep_blocks=False)
+        # unstretched shapes: a direction does not need fusion's stretches (6 times fewer descriptors)
+        model = build_query("floor", map=m, behind=behind, up=tuple(up), rotations=cone, keep_blocks=False,
+                            stretch=(1.0,))
         scorer = Scorer(model.descriptors[:, :lv], torch.device("cpu"))
         obs = ObservedScorer(model.descriptors[:, :lv], codec, m.truncation, m.voxel_size) if masked else None
-        t, _ = calibrate_threshold(model, codec, lv, scorer, obs)
+        t, _ = calibrate_threshold(model, codec, lv, scorer, obs, samples=UP_CALIBRATION_SAMPLES)
         normals = []
         for codes, seen in batches:
             sc, idx = score_codes(scorer, obs, codes, seen)
@@ -153,7 +158,7 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     tilt = math.degrees(math.acos(min(1.0, float(up[2]))))
     if tilt < LEVEL_DEG:
         return (0.0, 0.0, 1.0), (f"the grid's +z: the map records no up direction, and its {votes} level-looking "
-                                 f"blocks put up {tilt:.1f} degrees from +z (under {LEVEL_DEG:g}: level)")
+                                 f"blocks put up {tilt:.1f} degrees from +z (under {LEVEL_DEG:.2f}: level)")
     return tuple(float(u) for u in up), (f"estimated from the map's {votes} level-looking blocks ({tilt:.1f} degrees "
                                          "from the grid's +z; the map records no up direction: pass --up to override)")
 

@@ -328,7 +328,8 @@ def score_codes(scorer: "Scorer", observed_scorer: ObservedScorer | None, codes:
 
 
 def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
-                        observed_scorer: ObservedScorer | None = None) -> tuple[float, dict]:
+                        observed_scorer: ObservedScorer | None = None, samples: int = CALIBRATION_SAMPLES
+                        ) -> tuple[float, dict]:
     """An automatic threshold calibrated for the map being searched: :data:`CALIBRATION_SAMPLES` clean
     instances of the model's shape with continuous parameters (plane offsets anywhere in the block, any wall
     yaw, tilts within the model's cone; :func:`sdfcodec.search.shapes.sample_shapes`) are made at the map's
@@ -355,13 +356,13 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
         return t, {"method": "model spacing", "fraction": AUTO_FRACTION,
                    "why": "a model without a built-in shape: AUTO_FRACTION of its descriptors' median spacing"}
     tilt = _cone_angle(spec.get("rotations"))
-    v, seen = sample_shapes(spec["shape"], CALIBRATION_SAMPLES, voxel_size=model.voxel_size,
+    v, seen = sample_shapes(spec["shape"], int(samples), voxel_size=model.voxel_size,
                             truncation=model.truncation, up=spec["up"], tilt_deg=tilt, behind=spec["behind"],
                             stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
     codes = encode_query_blocks(codec, v, seen, model.truncation, model.voxel_size, bool(spec.get("weighted")))
     s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if spec.get("weighted") else None)
     q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
-    return float(q[2]), {"method": "calibrated", "samples": CALIBRATION_SAMPLES, "quantile": CALIBRATION_QUANTILE,
+    return float(q[2]), {"method": "calibrated", "samples": int(samples), "quantile": CALIBRATION_QUANTILE,
                          "tilt_deg": tilt, "simulated": {"q50": float(q[0]), "q90": float(q[1]),
                                                          f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]),
                                                          "max": float(q[3])}}

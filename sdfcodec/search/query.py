@@ -134,7 +134,8 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
                 voxel_size: float | None = None, truncation: tuple[float, float] | None = None,
                 up: Sequence[float] | None = None, rotations: Any = None, offsets: int | str = "auto",
                 behind: str | None = None, keep_blocks: bool = True, name: str | None = None,
-                tilt: float | None = None, weighted: bool | None = None) -> QueryModel:
+                tilt: float | None = None, weighted: bool | None = None,
+                stretch: Sequence[float] | None = None) -> QueryModel:
     """Build a query model by encoding shapes with a codec (the map's own, for searching that map).
 
     Parameters
@@ -161,6 +162,9 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
         Encode the shapes surface-true (weighted least squares with :func:`sdfcodec.map.observed.error_weights`
         and the mask of what a camera in front of each shape observes), as maps with an observation mask encode
         their blocks. Default: when the map records its observation.
+    stretch : sequence of float, optional
+        Field stretches to sample the shapes at (:func:`query_blocks`); default :data:`FUSED_STRETCH` for
+        weighted queries with unobserved space behind (fused maps), else 1.
     keep_blocks : bool
         Store the normalised shape blocks in the model (re-encodable for other maps; 16 KiB each).
     name : str, optional
@@ -201,7 +205,9 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
     seen = None
     if isinstance(shape, str):
         # a map that records its observation was fused: its fields hold projective distances, stretched
-        stretch = FUSED_STRETCH if weighted and behind == "unobserved" else (1.0,)
+        if stretch is None:
+            stretch = FUSED_STRETCH if weighted and behind == "unobserved" else (1.0,)
+        stretch = tuple(float(x) for x in stretch)
         v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
                                          rotations=rotations, offsets=offsets, behind=behind, return_observed=True,
                                          stretch=stretch)

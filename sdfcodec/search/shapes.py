@@ -221,8 +221,9 @@ def truncate(d: np.ndarray, truncation: tuple[float, float], behind: str) -> np.
 def dedupe_blocks(blocks: np.ndarray, *extra: np.ndarray) -> tuple[np.ndarray, ...]:
     """Drop repeated blocks ``(N, 16, 16, 16)`` (equal to 1e-4 normalised), keeping first occurrences in order;
     the ``extra`` arrays (first axis ``N``) are cut to the same rows. Returns ``(blocks, *extra)``."""
-    key = np.round(blocks.reshape(len(blocks), -1), 4)
-    _, first = np.unique(key, axis=0, return_index=True)
+    key = np.ascontiguousarray(np.round(blocks.reshape(len(blocks), -1), 4) + 0.0)  # + 0.0: -0.0 equals 0.0
+    rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()  # one bytes key per row
+    _, first = np.unique(rows, return_index=True)
     keep = np.sort(first)
     return (blocks[keep], *(e[keep] for e in extra))
 
