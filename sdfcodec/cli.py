@@ -407,7 +407,7 @@ def fuse_cmd(
     trunc = _pair(truncation, "--truncation")
     fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, quiet=as_json)
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
-                    origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse",
+                    origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse", up=fused.up,
                     source=str(sequence)) as m:
         m.write_blocks(fused.coords, fused.tsdf, **({"weights": fused.weights} if weights else {"observed": fused.weights > 0}))
     info = m.info()
@@ -471,10 +471,13 @@ def mesh_cmd(
 @_cli
 def search_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
-    query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, or a saved query (.npz)."),
+    query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, pole, like:X,Y,Z[;X,Y,Z] (blocks like these), or a saved query (.npz)."),
     level: Optional[int] = typer.Option(None, "--level", help="Match only the first K code elements."),
     threshold: Optional[float] = typer.Option(None, "--threshold", help="Select blocks scoring at most this."),
     top: Optional[int] = typer.Option(None, "--top", help="Select the K best-scoring blocks."),
+    behind: Optional[str] = typer.Option(None, "--behind", help="solid (exact SDF) or unobserved (fused); default: what the map records."),
+    up: Optional[str] = typer.Option(None, "--up", help="Up direction x,y,z in the map's grid; default: the map's header, else 0,0,1."),
+    tilt: Optional[float] = typer.Option(None, "--tilt", help="Also match surfaces tilted up to DEG degrees from level."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
     no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
@@ -485,7 +488,7 @@ def search_cmd(
     from .search_cli import format_summary, search_command
 
     summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
-                             overwrite=overwrite)
+                             overwrite=overwrite, behind=behind, up=up, tilt=tilt)
     _report(summary, as_json, lambda: format_summary(summary))
 
 

@@ -62,7 +62,10 @@ from .blocks import check_truncation, normalise
 from .errors import InvalidValueError, MissingDependencyError, SDFCodecWarning, ShapeError
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 
-__all__ = ["FusedBlocks", "fuse", "mesh_from_blocks"]
+__all__ = ["FusedBlocks", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up"]
+
+#: 7-Scenes' gravity file: the gravity vector in the first camera's frame, three numbers.
+GRAVITY_FILE = "gravity-direction.txt"
 
 
 @dataclass
@@ -90,6 +93,9 @@ class FusedBlocks:
         Frames fused, and frames passed over (no pose).
     seconds : float
         Wall-clock time of the fusion loop (reading + integration).
+    up : np.ndarray or None
+        ``(3,)`` float64 unit vector, the world's up direction (minus gravity) when the sequence records its
+        gravity (:func:`sequence_up`); None otherwise. ``sdfcodec fuse`` stores it in the map's header.
     """
 
     coords: np.ndarray
@@ -101,6 +107,7 @@ class FusedBlocks:
     frames_integrated: int = 0
     frames_skipped: int = 0
     seconds: float = 0.0
+    up: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.coords.shape[0])
@@ -187,6 +194,39 @@ def _progress_bar(total: int | None):
     return progress, progress.add_task("fuse", total=total)
 
 
+def sequence_up(sequence: Sequence) -> np.ndarray | None:
+    """The world's up direction of a sequence that records its gravity, else None.
+
+    7-Scenes sequences may hold :data:`GRAVITY_FILE`, the gravity vector in the first frame's camera axes; with
+    the first frame's camera-to-world pose ``R`` it is ``up = -R g / |g|`` in world axes (the map's grid axes:
+    fusion only shifts the origin). TUM sequences record no gravity here (their accelerometer samples are not
+    read), nor do frames without a file: None.
+
+    Raises
+    ------
+    FormatError
+        The gravity file exists but does not hold three finite numbers of non-zero length.
+    """
+    from .errors import FormatError
+
+    path = Path(sequence.path) / GRAVITY_FILE
+    if not path.is_file():
+        return None
+    try:
+        g = np.loadtxt(path, dtype=np.float64).reshape(-1)
+    except ValueError as e:
+        raise FormatError(f"{path}: not three numbers ({e})") from e
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or np.linalg.norm(g) < 1e-9:
+        raise FormatError(f"{path}: gravity must be three finite numbers of non-zero length, got {g.tolist()}")
+    # the gravity file is in the sequence's first camera (frame-000000), whichever frames this Sequence holds
+    first = [e.pose for e in sequence.entries if Path(e.path).name.startswith("frame-000000.")]
+    pose = first[0] if first else None
+    if pose is None:
+        return None
+    up = -(np.asarray(pose, dtype=np.float64)[:3, :3] @ g)
+    return up / np.linalg.norm(up)
+
+
 def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 0.02,
          truncation: tuple[float, float] = (-0.04, 0.1), *, depth_max: float | None = 4.0,
          origin: np.ndarray | None = None, intrinsics: Intrinsics | None = None, device: str = "CPU:0",
@@ -244,7 +284,9 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
         raise InvalidValueError(f"depth_max must be positive metres or None, got {depth_max}")
     if isinstance(sequence, (str, Path)):
         sequence = open_sequence(sequence)
+    up = None
     if isinstance(sequence, Sequence):
+        up = sequence_up(sequence)
         intrinsics = sequence.intrinsics
         frames: Iterable[Frame] = _prefetched(sequence)
         total: int | None = len(sequence)
@@ -333,7 +375,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
         out_origin = anchor
     return FusedBlocks(coords=coords, tsdf=tsdf, weights=w, origin=np.asarray(out_origin, dtype=np.float64),
                        voxel_size=float(voxel_size), truncation=(d_min, d_max), frames_integrated=integrated,
-                       frames_skipped=skipped, seconds=seconds)
+                       frames_skipped=skipped, seconds=seconds, up=up)
 
 
 def mesh_from_blocks(coords: np.ndarray, tsdf: np.ndarray, *, origin, voxel_size: float,

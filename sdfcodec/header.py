@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
 from .errors import FormatError, VersionError
 
@@ -135,6 +135,19 @@ class MapHeader(_Model):
     codes: CodesSpec
     extensions: list[Extension] = Field(default_factory=list)
     provenance: Provenance
+    up: tuple[float, float, float] | None = Field(
+        None, description="OPTIONAL unit vector: the world's up direction (opposite gravity) in the map's grid "
+                          "axes, when the writer knew it (e.g. sdfcodec fuse of a sequence with a gravity file); "
+                          "omitted when unknown")
+
+    @model_serializer(mode="wrap")
+    def _omit_unknown_up(self, handler):
+        # an unknown up direction is left out, not written as null: headers without it stay byte-identical to
+        # those of writers that predate the field, and readers that predate it open them
+        out = handler(self)
+        if isinstance(out, dict) and out.get("up", 0) is None:
+            out.pop("up")
+        return out
 
     @model_validator(mode="after")
     def _consistent(self) -> "MapHeader":
@@ -145,6 +158,8 @@ class MapHeader(_Model):
         if (self.codes.dtype == "int8") != bool(int8) or any(not e.required for e in int8):
             raise ValueError(f"codes.dtype 'int8' and the required extension {INT8_EXTENSION!r} go together "
                              f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
+        if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
+            raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self
 
 
@@ -155,7 +170,7 @@ def now_iso() -> str:
 def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
     """(dotted location, value) of the header's numeric fields that are present, list items included."""
     for path in ("voxel_size", "truncation.d_min", "truncation.d_max", "origin", "block_size", "shape_voxels",
-                 "grid_blocks", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels"):
+                 "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels"):
         value: Any = raw
         for key in path.split("."):
             value = value.get(key) if isinstance(value, dict) else None

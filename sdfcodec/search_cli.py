@@ -22,7 +22,7 @@ from .errors import InvalidValueError, MapExistsError
 from .map import Map, open_map
 from .search import Expansion, SearchResult, expand, search
 
-__all__ = ["search_command", "format_summary", "search_picture", "top_down"]
+__all__ = ["search_command", "format_summary", "search_picture", "top_down", "empty_hint"]
 
 
 def _basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -141,7 +141,8 @@ def search_picture(m: Map, result: SearchResult, path: str | os.PathLike, *, mes
 def search_command(map_path: str | os.PathLike, query: str = "floor", level: int | None = None,
                    threshold: float | None = None, top: int | None = None, out_dir: str | os.PathLike | None = None,
                    as_json: bool = False, device: str | None = None, *, mesh: bool = True,
-                   overwrite: bool = False) -> dict:
+                   overwrite: bool = False, behind: str | None = None, up: Any = None,
+                   tilt: float | None = None) -> dict:
     """Everything ``sdfcodec search`` does; returns a JSON-able summary.
 
     Parameters
@@ -167,6 +168,9 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
         With ``out_dir``, decode the selected blocks and write their mesh.
     overwrite : bool
         Replace existing files in ``out_dir``.
+    behind, up, tilt :
+        For built-in queries: ``"solid"`` / ``"unobserved"``, the up direction (``"x,y,z"`` or 3 numbers) and
+        a tilt allowance in degrees (see :func:`sdfcodec.search.build_query`); default: what the map records.
 
     Returns
     -------
@@ -174,8 +178,12 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
         ``map``, ``codec``, ``code_size``, ``level``, ``query``, ``descriptors``, ``threshold``,
         ``threshold_mode`` ("given", "auto" or "none"), ``top``, ``coded_blocks``, ``selected``,
         ``code_bytes_read``, ``code_bytes_level``, ``code_bytes_full``, ``bytes_read``, ``seconds``,
-        ``blocks_per_s``, ``device``, and when written ``picture``, ``mesh``, ``expanded`` (``blocks_decoded``,
-        ``code_bytes_read``, ``triangles``); with ``as_json`` also ``blocks``.
+        ``blocks_per_s``, ``device``, ``threshold_info`` (how the threshold was chosen: ``method``
+        "calibrated", "model spacing" or "given", and for calibrated ones the simulated scores), ``context``
+        (``behind``, ``up``, each with where it came from, ``weighted_encoding``), ``observed_scoring``,
+        ``hint`` (what to try, when nothing was selected), and when written ``picture``, ``mesh``,
+        ``expanded`` (``blocks_decoded``, ``code_bytes_read``, ``triangles``); with ``as_json`` also
+        ``blocks``.
     """
     m = open_map(map_path)
     out = Path(out_dir) if out_dir is not None else None
@@ -185,14 +193,17 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
             raise MapExistsError(f"{clash[0]} exists; pass --overwrite to replace it or choose another --out")
     mode = "given" if threshold is not None else ("none" if top is not None else "auto")
     res = search(m, query, level=level, threshold="auto" if mode == "auto" else threshold, top=top, device=device,
-                 keep_scores=out is not None)
+                 keep_scores=True, behind=behind, up=up, tilt=tilt)
     summary: dict[str, Any] = {
         "map": str(map_path), "codec": m.header.codec.id, "code_size": m.code_size, "level": res.level,
         "query": res.query.name, "descriptors": len(res.query), "threshold": res.threshold, "threshold_mode": mode,
         "top": top, "coded_blocks": res.stats["blocks_scored"], "selected": len(res),
         **{k: res.stats[k] for k in ("code_bytes_read", "code_bytes_level", "code_bytes_full", "bytes_read",
-                                     "seconds", "blocks_per_s", "device")},
+                                     "seconds", "blocks_per_s", "device", "threshold_info", "context",
+                                     "observed_scoring")},
     }
+    if not len(res):
+        summary["hint"] = empty_hint(res, mode, query)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         exp: Expansion | None = None
@@ -214,13 +225,38 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
     return summary
 
 
+def empty_hint(res: SearchResult, mode: str, query: str) -> str:
+    """What to try when a search selected nothing: the best score against the threshold, and the flags that
+    change the query model or the selection."""
+    best = float(res.all_scores.min()) if res.all_scores is not None and len(res.all_scores) else None
+    if best is None:
+        return "the map has no coded blocks to search"
+    ctx = res.stats.get("context") or {}
+    tips = [f"the best block scores {best:.4g} against threshold {res.threshold:.4g}"]
+    tips.append("try --top 20 to see the closest blocks, or --threshold above the best score")
+    if ctx:
+        if ctx.get("up_source", "").startswith("default"):
+            tips.append("the map records no up direction: pass --up x,y,z (opposite gravity), or --tilt 10 if the map "
+                        "is only roughly level")
+        other = "solid" if ctx.get("behind") == "unobserved" else "unobserved"
+        tips.append(f"the query assumes behind={ctx.get('behind')} ({ctx.get('behind_source')}); --behind {other} "
+                    "if that is wrong")
+    return "; ".join(tips)
+
+
 def format_summary(s: dict) -> str:
     """Human-readable lines for a :func:`search_command` summary."""
     def kib(n):
         return "n/a" if n is None else f"{n / 1024:.1f} KiB"
 
-    sel = (f"threshold {s['threshold']:.4g} ({s['threshold_mode']})" if s.get("threshold") is not None
-           else "no threshold")
+    info = s.get("threshold_info") or {}
+    how = s["threshold_mode"]
+    if info.get("method") == "calibrated":
+        how = (f"calibrated on this map: keeps {info['quantile']:.0%} of {info['samples']} simulated clean "
+               f"{s['query']} blocks")
+    elif info.get("method") == "model spacing":
+        how = "auto: from the model's descriptor spacing"
+    sel = f"threshold {s['threshold']:.4g} ({how})" if s.get("threshold") is not None else "no threshold"
     if s.get("top"):
         sel += f", top {s['top']}"
     lines = [
@@ -230,6 +266,11 @@ def format_summary(s: dict) -> str:
         f"({s['blocks_per_s'] or 0:,.0f} blocks/s on {s['device']})",
         f"code bytes read {kib(s['code_bytes_read'])} of {kib(s['code_bytes_full'])} for a full read",
     ]
+    ctx = s.get("context")
+    if ctx:
+        lines.insert(1, f"behind={ctx['behind']} ({ctx['behind_source']}); up={ctx['up']} ({ctx['up_source']})")
+    if s.get("hint"):
+        lines.append(f"nothing selected: {s['hint']}")
     if "expanded" in s:
         e = s["expanded"]
         lines.append(f"expanded {e['blocks_decoded']} blocks ({kib(e['code_bytes_read'])} of codes read), "

@@ -74,7 +74,9 @@ class LabelledRoom:
             the floor and the tops of furniture (tables, cabinets, cylinders) alike.
 
         Also ``"floor_cover"`` and ``"up_cover"``: the fraction of the block's 256 columns (along the grid
-        axis nearest ``up``) holding such a surface voxel, and ``"surface_voxels"``: the count. Blocks without
+        axis nearest ``up``) holding such a surface voxel, and ``"surface_voxels"``: the count. ``"wall"`` and
+        ``"ceiling"``: the fractions nearest a wall or the ceiling primitive, with ``"wall_cover"`` and
+        ``"ceiling_cover"`` across the grid axis nearest that surface's mean normal in the block. Blocks without
         surface voxels get fractions 0.
 
         Parameters
@@ -127,9 +129,24 @@ class LabelledRoom:
             cells = np.unique(which[mask] * BLOCK * BLOCK + col[mask])
             return (np.bincount(cells // (BLOCK * BLOCK), minlength=n) / (BLOCK * BLOCK)).astype(np.float32)
 
-        return {"floor": (np.bincount(which, weights=is_floor, minlength=n) / denom).astype(np.float32),
-                "up": (np.bincount(which, weights=upward, minlength=n) / denom).astype(np.float32),
-                "floor_cover": cover(is_floor), "up_cover": cover(upward), "surface_voxels": n_surf.astype(np.int64)}
+        out = {"floor": (np.bincount(which, weights=is_floor, minlength=n) / denom).astype(np.float32),
+               "up": (np.bincount(which, weights=upward, minlength=n) / denom).astype(np.float32),
+               "floor_cover": cover(is_floor), "up_cover": cover(upward), "surface_voxels": n_surf.astype(np.int64)}
+        for name in ("wall", "ceiling"):
+            # cover across the grid axis nearest the block's mean normal of that surface (walls face any way)
+            is_lab = prim_label[nearest] == LABELS.index(name)
+            g_sum = np.zeros((n, 3))
+            np.add.at(g_sum, which[is_lab], grad[is_lab])
+            ax_b = np.argmax(np.abs(g_sum), axis=1)[which]
+            cells = np.unique(which[is_lab] * 3 * BLOCK * BLOCK + ax_b[is_lab] * BLOCK * BLOCK
+                              + np.take_along_axis(np.stack([local[:, 1] * BLOCK + local[:, 2],
+                                                             local[:, 0] * BLOCK + local[:, 2],
+                                                             local[:, 0] * BLOCK + local[:, 1]], 1),
+                                                   ax_b[:, None], 1)[is_lab, 0])
+            out[name] = (np.bincount(which, weights=is_lab, minlength=n) / denom).astype(np.float32)
+            out[f"{name}_cover"] = (np.bincount(cells // (3 * BLOCK * BLOCK), minlength=n)
+                                    / (BLOCK * BLOCK)).astype(np.float32)
+        return out
 
 
 def _aabb(prim) -> tuple[np.ndarray, np.ndarray] | None:
@@ -264,6 +281,10 @@ def synthetic_room(seed: int = 0, *, geometry: str = "normal", size: Sequence[fl
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     origin = lo - rng.uniform(0, BLOCK * voxel_size, 3)  # the floor at a random height within its block
     shape = tuple(int(n) for n in np.ceil((hi - origin) / voxel_size) + 1)
+    if behind == "solid":
+        # whole blocks: a map pads a volume's last blocks with free space (d_max), which against the solid
+        # around a solid room would be a surface that is not in the scene (a false wall or ceiling)
+        shape = tuple(-(-n // BLOCK) * BLOCK for n in shape)
     lab = LabelledRoom(volume=np.empty(shape, np.float32), origin=origin, voxel_size=float(voxel_size),
                        truncation=tuple(truncation), scene=posed, rotation=rot, size=size, up=rot[:, 2].copy(),
                        behind=behind)

@@ -304,6 +304,8 @@ class Map:
             raise InvalidValueError(f"cannot transcode {source.location} (voxel size {source.voxel_size} m, truncation "
                                     f"{source.truncation}) into a map with {self.voxel_size} m, {self.truncation}: "
                                     "create the new map with the source's voxel size and truncation")
+        if source.header.up is not None and self.writer.header_kw.get("up") is None:
+            self.writer.header_kw["up"] = source.header.up  # the gravity direction travels with the map
         self.mark_empty(np.argwhere(source.block_states() == 1))
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
@@ -368,7 +370,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
-               surface_weight: float = SURFACE_WEIGHT) -> Map:
+               surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -391,7 +393,15 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         surface_weight: extra error weight of voxels near the surface when encoding (the codec fits
             ``1 + surface_weight`` there, 1 elsewhere, 0 on unobserved voxels; :mod:`sdfcodec.map.observed`);
             0 encodes every observed voxel alike.
+        up: the world's up direction (opposite gravity) in the grid's axes, when known: recorded in the header
+            (optional field ``up``, spec section 3) for descriptor search; normalised here.
     """
+    up_unit = None
+    if up is not None:
+        u = np.asarray(up, dtype=np.float64).reshape(-1)
+        if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+            raise InvalidValueError(f"up must be three finite numbers of non-zero length, got {up!r}")
+        up_unit = tuple(float(x) for x in u / np.linalg.norm(u))
     if isinstance(surface_weight, bool) or not isinstance(surface_weight, (int, float)) or not (
             math.isfinite(surface_weight) and surface_weight >= 0):
         raise InvalidValueError(f"surface_weight must be a finite number >= 0, got {surface_weight!r}")
@@ -400,6 +410,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source)
     writer.surface_weight = float(surface_weight)
+    if up_unit is not None:
+        writer.header_kw["up"] = up_unit
     return _writing(writer)
 
 

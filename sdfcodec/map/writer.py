@@ -572,7 +572,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
             group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
-                         provenance=prov, shape_voxels=h.shape_voxels)
+                         provenance=prov, shape_voxels=h.shape_voxels, up=h.up)
         writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id}, header=h)

@@ -13,13 +13,24 @@ Conventions
   block's centre ``(7.5, 7.5, 7.5)``, and the 15 plane offsets are the midpoints of 15 equal parts of the
   block's extent ``[-0.5, 15.5]`` (its voxels' cells), 1.07 voxels apart, so every plane that crosses a block
   is within 0.53 voxels of one of them.
-* ``up`` is the world direction of "up" in the map's grid (default ``+z``). The shapes are defined with
-  ``+z`` up and rotated onto ``up``: for a map whose gravity is not the grid's ``-z`` (the 7-Scenes kitchen),
-  pass the true up direction.
-* ``behind``: how the shapes treat voxels more than ``|d_min|`` behind a surface. ``"unobserved"`` (default)
-  stores them as free space ``d_max``, which is what fusion produces (a camera never sees behind a surface,
-  see ``sdfcodec/fusion.py``); ``"solid"`` clips them to ``d_min``, as a truncated exact SDF of a solid
-  (``write_volume(sample_volume(...))``) does. Use the one that matches how the map was made.
+* ``up`` is the world direction of "up" in the map's grid. The shapes are defined with ``+z`` up and rotated
+  onto ``up``. By default it comes from the map (:func:`sdfcodec.search.context.map_context`): the header's
+  optional ``up`` field (``sdfcodec fuse`` records a 7-Scenes sequence's gravity there), else an estimate from
+  the map's level surfaces (``+z`` when they say the map is level within a degree). ``up=`` / ``--up`` wins.
+* ``behind``: how the shapes treat voxels more than ``|d_min|`` behind a surface. ``"unobserved"`` stores them
+  as free space ``d_max``, which is what fusion produces (a camera never sees behind a surface, see
+  ``sdfcodec/fusion.py``); ``"solid"`` clips them to ``d_min``, as a truncated exact SDF of a solid
+  (``write_volume(sample_volume(...))``) does. By default it comes from the map: ``"unobserved"`` for maps
+  that record their observation (fusion weights, observation mask) or were written by ``sdfcodec fuse``, else
+  a vote of the map's plane-like blocks between the two plane families. ``behind=`` / ``--behind`` wins.
+* Maps with an observation mask were encoded surface-true (weighted least squares,
+  :func:`sdfcodec.map.observed.error_weights`). Their queries are encoded the same way, with the mask of what
+  a camera would observe of each shape, and sampled at fusion's projective stretches
+  (:data:`~sdfcodec.search.shapes.FUSED_STRETCH`); partly observed blocks are scored on their observed voxels
+  only (:class:`~sdfcodec.search.engine.ObservedScorer`).
+* ``threshold="auto"`` (the CLI's default) is calibrated on the map searched
+  (:func:`~sdfcodec.search.engine.calibrate_threshold`): clean instances of the query's shape with continuous
+  parameters, stored, encoded and scored the map's way; the threshold keeps 99 % of them.
 * Scores are squared Euclidean distances between codes (float32). For ``pca`` maps (``mean="dataset"``)
   they equal squared distances between the blocks' projections onto the first ``L`` eigenshapes, in
   normalised units (``v = (d - d_min) / (d_max - d_min)``, summed over the 4096 voxels); for ``raw`` maps
@@ -48,7 +59,9 @@ works as before):
 
 * :mod:`sdfcodec.search.shapes`: the built-in query shapes and rotation sets;
 * :mod:`sdfcodec.search.query`: query models, their ``.npz`` files, resolving a query for a map;
-* :mod:`sdfcodec.search.engine`: the counting store, the scoring kernel, :func:`search` and :func:`expand`;
+* :mod:`sdfcodec.search.context`: what a query must know about the map (behind, up, surface-true encoding);
+* :mod:`sdfcodec.search.engine`: the counting store, the scoring kernels, the calibrated threshold,
+  :func:`search` and :func:`expand`;
 * :mod:`sdfcodec.search.metrics`: precision/recall of retrieval on labelled rooms;
 * the labelled rooms themselves are :mod:`sdfcodec.data.rooms`, the rotations :mod:`sdfcodec.geometry`, and
   the search benchmark ``sdfcodec.bench.bench_search`` (``sdfcodec.search.bench_search`` still works, with a
@@ -62,7 +75,8 @@ from typing import Any
 
 from ..data.rooms import LabelledRoom, synthetic_room
 from ..geometry import axis_rotations, rotation_to
-from .engine import CountingStore, Expansion, SearchResult, auto_threshold, expand, search
+from .context import MapContext, estimate_up, map_context
+from .engine import CountingStore, Expansion, SearchResult, auto_threshold, calibrate_threshold, expand, search
 from .metrics import TRUTH, evaluate_retrieval, operating_points, pr_curve
 from .query import QueryModel, build_query, load_query, save_query
 from .shapes import BEHIND, QUERY_NAMES, ConeRotations, cone_rotations, plane_offsets, query_blocks
@@ -84,6 +98,10 @@ __all__ = [
     "save_query",
     "load_query",
     "auto_threshold",
+    "calibrate_threshold",
+    "MapContext",
+    "map_context",
+    "estimate_up",
     "search",
     "expand",
     "LabelledRoom",

@@ -28,6 +28,12 @@ __all__ = [
     "AUTO_FRACTION",
     "CountingStore",
     "Scorer",
+    "ObservedScorer",
+    "MIN_OBSERVED_SURFACE",
+    "CALIBRATION_QUANTILE",
+    "CALIBRATION_SAMPLES",
+    "calibrate_threshold",
+    "score_codes",
     "SearchResult",
     "Expansion",
     "auto_threshold",
@@ -190,6 +196,58 @@ class Scorer:
         return s.cpu().numpy(), idx.cpu().numpy()
 
 
+#: Partly observed blocks with fewer observed voxels near a surface than this (a 4 x 4 patch) keep their code
+#: score: no surface of theirs was seen to compare with a shape.
+MIN_OBSERVED_SURFACE = 16
+
+
+class ObservedScorer:
+    """Scores of partly observed blocks (maps with an observation mask), compared where they were observed.
+
+    A masked map encodes a block by weighted least squares with weight 0 on its unobserved voxels, so what its
+    code decodes to there is an extrapolation, and two codes of the same observed surface can be far apart.
+    For such blocks the score is ``min_m 4096 / n_obs * sum_j o_j (x_j - q_mj)^2``: the squared distance
+    between the block's reconstruction ``x`` and each descriptor's reconstruction ``q_m`` over the block's
+    ``n_obs`` observed voxels ``o``, scaled to a whole block (so it is on the scale of code scores: for a fully
+    observed block of an orthonormal codec such as pca it equals the code score). Two matrix products per batch
+    after decoding the partial blocks. Blocks with fewer than :data:`MIN_OBSERVED_SURFACE` observed voxels near
+    a surface keep their code score."""
+
+    def __init__(self, descriptors: np.ndarray, codec: Codec, truncation: tuple[float, float], voxel_size: float):
+        from ..map.observed import SURFACE_BAND_VOXELS
+
+        self.codec = codec
+        q = self._decode(np.asarray(descriptors, np.float32))
+        self.qt = np.ascontiguousarray(q.T)
+        self.qq = np.ascontiguousarray((q * q).T)
+        d_min, d_max = truncation
+        self.v0 = -d_min / (d_max - d_min)
+        self.half = SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
+
+    def _decode(self, codes: np.ndarray) -> np.ndarray:
+        k = self.codec.code_size
+        if codes.shape[1] < k and not self.codec.prefix_ordered:
+            codes = np.pad(codes, ((0, 0), (0, k - codes.shape[1])))
+        with torch.no_grad():
+            out = self.codec.decode(torch.from_numpy(np.ascontiguousarray(codes)))
+        return np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
+
+    def __call__(self, codes: np.ndarray, observed: np.ndarray, fallback: np.ndarray, fallback_idx: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """``(n, L)`` codes, ``(n, 16, 16, 16)`` bool observed voxels, and their code scores and nearest
+        indices -> masked scores ``(n,)`` float32 and nearest indices ``(n,)`` int64."""
+        x = self._decode(codes)
+        o = observed.reshape(len(codes), -1).astype(np.float32)
+        ox = o * x
+        d = (ox * x).sum(axis=1)[:, None] - 2.0 * (ox @ self.qt) + o @ self.qq
+        idx = d.argmin(axis=1)
+        n_obs = np.maximum(o.sum(axis=1), 1.0)
+        s = np.maximum(np.take_along_axis(d, idx[:, None], axis=1)[:, 0], 0.0) * (x.shape[1] / n_obs)
+        seen_surface = ((np.abs(x - self.v0) < self.half) & (o > 0)).sum(axis=1)
+        ok = seen_surface >= MIN_OBSERVED_SURFACE
+        return (np.where(ok, s, fallback).astype(np.float32), np.where(ok, idx, fallback_idx).astype(np.int64))
+
+
 def _search_level(m: Map, query: QueryModel, level: int | None) -> int:
     size, prefix = m.code_size, m.header.codes.prefix_ordered
     if level is None:
@@ -240,9 +298,80 @@ def auto_threshold(model: QueryModel, level: int | None = None, codec: Codec | N
     return float(AUTO_FRACTION * np.median(np.maximum(d.min(axis=1), 0.0)))
 
 
+#: :func:`calibrate_threshold`: the share of simulated clean instances of the query's shape kept.
+CALIBRATION_QUANTILE = 0.99
+#: :func:`calibrate_threshold`: how many instances are simulated.
+CALIBRATION_SAMPLES = 256
+
+
+def _cone_angle(rotations: Any) -> float:
+    """The cone angle (degrees) of a built-in model's rotations as its spec records them (0: none)."""
+    if isinstance(rotations, dict) and "cone" in rotations:
+        return float(rotations["cone"])
+    if isinstance(rotations, str) and rotations.startswith("cone"):
+        parts = rotations.split(":")
+        return float(parts[1]) if len(parts) > 1 else 10.0
+    return 0.0
+
+
+def score_codes(scorer: "Scorer", observed_scorer: ObservedScorer | None, codes: np.ndarray,
+                observed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Scores and nearest descriptors of codes ``(n, L)``: the code scores of ``scorer``, replaced for partly
+    observed blocks (``observed`` ``(n, 16, 16, 16)`` bool, None: all observed) by ``observed_scorer``'s."""
+    s, idx = scorer(codes)
+    if observed_scorer is not None and observed is not None:
+        partial = ~observed.reshape(len(observed), -1).all(axis=1)
+        if partial.any():
+            s[partial], idx[partial] = observed_scorer(np.asarray(codes)[partial], observed[partial], s[partial],
+                                                       idx[partial])
+    return s, idx
+
+
+def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
+                        observed_scorer: ObservedScorer | None = None, samples: int = CALIBRATION_SAMPLES
+                        ) -> tuple[float, dict]:
+    """An automatic threshold calibrated for the map being searched: :data:`CALIBRATION_SAMPLES` clean
+    instances of the model's shape with continuous parameters (plane offsets anywhere in the block, any wall
+    yaw, tilts within the model's cone; :func:`sdfcodec.search.shapes.sample_shapes`) are made at the map's
+    voxel size and truncation, stored the map's way (``behind``), encoded with the map's codec the map's way
+    (plain, or surface-true with their observation mask), and scored against the model exactly as the map's
+    blocks are; the threshold keeps :data:`CALIBRATION_QUANTILE` of them. It follows the codec, code size,
+    level, truncation and model resolution of each search, with no constant taken from any room.
+
+    Models without a built-in shape (user blocks) fall back to :func:`auto_threshold` (the model's spacing).
+
+    Returns
+    -------
+    threshold : float
+    info : dict
+        ``method`` ("calibrated" or "model spacing"), and for calibrated thresholds ``samples``,
+        ``quantile``, ``simulated`` (the simulated scores' 50/90/95/100 % quantiles) and ``tilt_deg``.
+    """
+    from .query import encode_query_blocks
+    from .shapes import sample_shapes
+
+    spec = model.spec
+    if spec is None or "shape" not in spec:
+        t = auto_threshold(model, level, codec)
+        return t, {"method": "model spacing", "fraction": AUTO_FRACTION,
+                   "why": "a model without a built-in shape: AUTO_FRACTION of its descriptors' median spacing"}
+    tilt = _cone_angle(spec.get("rotations"))
+    v, seen = sample_shapes(spec["shape"], int(samples), voxel_size=model.voxel_size,
+                            truncation=model.truncation, up=spec["up"], tilt_deg=tilt, behind=spec["behind"],
+                            stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
+    codes = encode_query_blocks(codec, v, seen, model.truncation, model.voxel_size, bool(spec.get("weighted")))
+    s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if spec.get("weighted") else None)
+    q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
+    return float(q[2]), {"method": "calibrated", "samples": int(samples), "quantile": CALIBRATION_QUANTILE,
+                         "tilt_deg": tilt, "simulated": {"q50": float(q[0]), "q90": float(q[1]),
+                                                         f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]),
+                                                         "max": float(q[3])}}
+
+
 def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | None = None,
            threshold: float | str | None = None, top: int | None = None, device: str | torch.device | None = None,
-           keep_scores: bool = False, chunks_per_batch: int = 8) -> SearchResult:
+           keep_scores: bool = False, chunks_per_batch: int = 8, behind: str | None = None, up: Any = None,
+           tilt: float | None = None) -> SearchResult:
     """Score every coded block of a map against a query model and select the closest.
 
     Streams the map's codes a few chunks at a time (``Map.iter_codes``), reading only the code chunks that
@@ -292,18 +421,21 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         raise InvalidValueError(f"top must be a positive int, got {top!r}")
     view, store = _counting_view(m)
     codec = view.codec  # loads (and counts) the codec state unless the map already holds it
-    model = resolve_query(query, m, codec)
+    model = resolve_query(query, m, codec, behind=behind, up=up, tilt=tilt)
     lv = _search_level(m, model, level)
-    if threshold == "auto":
-        threshold = auto_threshold(model, lv, codec)
     dev = _default_device(device)
     scorer = Scorer(model.descriptors[:, :lv], dev)
+    masked = any(a is not None for a in view.reader.observation_arrays())
+    obs_scorer = ObservedScorer(model.descriptors[:, :lv], codec, m.truncation, m.voxel_size) if masked else None
+    threshold_info = {"method": "given"} if threshold not in (None, "auto") else None
+    if threshold == "auto":
+        threshold, threshold_info = calibrate_threshold(model, codec, lv, scorer, obs_scorer)
 
     sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
     all_c, all_s = [], []
     n_scored = 0
     for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
-        s, idx = scorer(codes)
+        s, idx = score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
         n_scored += len(s)
         if keep_scores:
             all_c.append(coords)
@@ -329,6 +461,8 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "bytes_read": dict(store.bytes), "code_bytes_read": int(store.bytes.get("codes", 0)),
         "code_bytes_level": _code_chunk_bytes(m, lv), "code_bytes_full": _code_chunk_bytes(m),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
+        "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
+        "observed_scoring": masked,
     }
     return SearchResult(
         coords=sel_c, scores=sel_s.astype(np.float32), nearest=sel_i, level=lv, query=model, threshold=threshold,

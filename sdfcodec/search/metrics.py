@@ -20,6 +20,7 @@ from .query import build_query
 
 __all__ = [
     "TRUTH",
+    "PURE_MIN_SURFACE",
     "pr_curve",
     "operating_points",
     "evaluate_retrieval",
@@ -30,6 +31,14 @@ def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
     return (lab[kind] >= 0.9) & (lab[f"{kind}_cover"] >= 0.9)
 
 
+def _pure(lab: dict, kind: str) -> np.ndarray:
+    return (lab[kind] >= 0.9) & (lab["surface_voxels"] >= PURE_MIN_SURFACE)
+
+
+#: The ``*-pure`` truths: a block with at least this many surface voxels, >= 90 % of them on the surface.
+PURE_MIN_SURFACE = 64
+
+
 #: Ground-truth definitions for :func:`evaluate_retrieval`: ``name -> f(block_labels) -> (positive, negative)``
 #: boolean masks (blocks in neither are left out of precision and recall). A *clean floor block*: >= 90 % of
 #: its surface voxels are nearest the floor and the floor covers >= 90 % of its cross-section; a *partial* one
@@ -38,12 +47,19 @@ def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
 #: ``"floor"``: clean floor blocks against all others (partial ones count as false positives when retrieved);
 #: ``"floor-vs-none"``: clean floor blocks against blocks holding no floor at all (partial ones left out);
 #: ``"floor-majority"``: blocks whose surface is at least half floor (``RoomScene.floor_blocks``) against all
-#: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others.
+#: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others; ``"wall"``,
+#: ``"ceiling"``: clean wall or ceiling blocks (the same 90 % / 90 % rule) against all others; ``"floor-pure"``,
+#: ``"wall-pure"``, ``"ceiling-pure"``: blocks whose surface is >= 90 % that surface (at least
+#: :data:`PURE_MIN_SURFACE` surface voxels, however little of the cross-section it covers: a wall crossing a
+#: block obliquely, a tilted floor) against blocks with < 10 % of it; mixed blocks are left out.
 TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
     "floor": lambda lab: (_clean(lab), ~_clean(lab)),
     "floor-vs-none": lambda lab: (_clean(lab), lab["floor"] == 0),
     "floor-majority": lambda lab: (lab["floor"] >= 0.5, lab["floor"] < 0.5),
     "up": lambda lab: (_clean(lab, "up"), ~_clean(lab, "up")),
+    "wall": lambda lab: (_clean(lab, "wall"), ~_clean(lab, "wall")),
+    "ceiling": lambda lab: (_clean(lab, "ceiling"), ~_clean(lab, "ceiling")),
+    **{f"{k}-pure": (lambda k: lambda lab: (_pure(lab, k), lab[k] < 0.1))(k) for k in ("floor", "wall", "ceiling")},
 }
 
 

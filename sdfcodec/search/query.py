@@ -20,7 +20,7 @@ from ..blocks import check_truncation, normalise
 from ..codec import Codec
 from ..errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..map import Map, state_digest
-from .shapes import (QUERY_NAMES, check_query_name, dedupe_blocks, probe_blocks, query_blocks, rotate_blocks,
+from .shapes import (FUSED_STRETCH, QUERY_NAMES, check_query_name, dedupe_blocks, probe_blocks, query_blocks, rotate_blocks,
                      rotation_set)
 
 __all__ = [
@@ -28,6 +28,8 @@ __all__ = [
     "QUERY_VERSION",
     "QueryModel",
     "build_query",
+    "encode_query_blocks",
+    "like_blocks",
     "save_query",
     "load_query",
     "resolve_query",
@@ -130,8 +132,10 @@ def _codec_sha(codec: Codec) -> str | None:
 
 def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, codec: Codec | None = None,
                 voxel_size: float | None = None, truncation: tuple[float, float] | None = None,
-                up: Sequence[float] = (0.0, 0.0, 1.0), rotations: Any = None, offsets: int | str = "auto",
-                behind: str = "unobserved", keep_blocks: bool = True, name: str | None = None) -> QueryModel:
+                up: Sequence[float] | None = None, rotations: Any = None, offsets: int | str = "auto",
+                behind: str | None = None, keep_blocks: bool = True, name: str | None = None,
+                tilt: float | None = None, weighted: bool | None = None,
+                stretch: Sequence[float] | None = None) -> QueryModel:
     """Build a query model by encoding shapes with a codec (the map's own, for searching that map).
 
     Parameters
@@ -146,7 +150,21 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
         (default ``(-0.04, 0.1)``).
     up, rotations, offsets, behind :
         See :func:`query_blocks`. For user blocks, ``rotations`` resamples them (exactly for the 24 axis
-        rotations, trilinearly otherwise) and ``up``, ``offsets``, ``behind`` are unused.
+        rotations, trilinearly otherwise) and ``up``, ``offsets``, ``behind`` are unused. ``up`` and ``behind``
+        default to what the map records (:func:`sdfcodec.search.context.map_context`: its header's up
+        direction, else ``+z``; ``"unobserved"`` for fused maps, ``"solid"`` for exact SDFs); without a map, to
+        ``+z`` and ``"unobserved"``.
+    tilt : float, optional
+        Degrees: also sample the shapes tilted within a cone of this angle about ``up`` (a spin about it
+        included), for surfaces up to that far from level. Shorthand for ``rotations="cone:TILT:COUNT"`` with
+        16 rotations up to 5 degrees and 48 beyond; not with ``rotations``.
+    weighted : bool, optional
+        Encode the shapes surface-true (weighted least squares with :func:`sdfcodec.map.observed.error_weights`
+        and the mask of what a camera in front of each shape observes), as maps with an observation mask encode
+        their blocks. Default: when the map records its observation.
+    stretch : sequence of float, optional
+        Field stretches to sample the shapes at (:func:`query_blocks`); default :data:`FUSED_STRETCH` for
+        weighted queries with unobserved space behind (fused maps), else 1.
     keep_blocks : bool
         Store the normalised shape blocks in the model (re-encodable for other maps; 16 KiB each).
     name : str, optional
@@ -157,22 +175,48 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
     QueryModel
         ``descriptors`` ``(M, D)`` float32 on the CPU.
     """
+    context = None
     if map is not None:
+        from .context import map_context
+
         codec = map.codec
         voxel_size, truncation = map.voxel_size, map.truncation
+        if isinstance(shape, str) or weighted is None:
+            context = map_context(map, behind=behind if isinstance(shape, str) else "solid", up=up)
+            behind, up = context.behind, context.up
+            weighted = context.weighted if weighted is None else bool(weighted)
     if codec is None:
         raise InvalidValueError("build_query needs the map (map=...) or a fitted codec (codec=...) to encode with")
+    from .context import check_up
+
+    up = check_up((0.0, 0.0, 1.0) if up is None else up)
+    behind = "unobserved" if behind is None else behind
+    weighted = bool(weighted)
+    if tilt is not None:
+        if rotations is not None:
+            raise InvalidValueError("give tilt= or rotations=, not both (tilt is a cone of rotations)")
+        if isinstance(tilt, bool) or not isinstance(tilt, (int, float)) or not 0 <= tilt <= 90:
+            raise InvalidValueError(f"tilt must be degrees in [0, 90], got {tilt!r}")
+        rotations = None if tilt == 0 else f"cone:{float(tilt):g}:{16 if tilt <= 5 else 48}"
     voxel_size = 0.02 if voxel_size is None else float(voxel_size)
     truncation = (-0.04, 0.1) if truncation is None else tuple(float(t) for t in truncation)
     check_truncation(*truncation)
     rot = pos = spec = None
+    seen = None
     if isinstance(shape, str):
-        v, rot, pos = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up, rotations=rotations,
-                                   offsets=offsets, behind=behind)
+        # a map that records its observation was fused: its fields hold projective distances, stretched
+        if stretch is None:
+            stretch = FUSED_STRETCH if weighted and behind == "unobserved" else (1.0,)
+        stretch = tuple(float(x) for x in stretch)
+        v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
+                                         rotations=rotations, offsets=offsets, behind=behind, return_observed=True,
+                                         stretch=stretch)
         _, rot_json = rotation_set(rotations)
-        spec = {"shape": shape, "up": [float(u) for u in np.asarray(up, dtype=np.float64) / np.linalg.norm(up)],
-                "rotations": rot_json, "offsets": offsets if isinstance(offsets, str) else int(offsets),
-                "behind": behind}
+        spec = {"shape": shape, "up": list(up), "rotations": rot_json,
+                "offsets": offsets if isinstance(offsets, str) else int(offsets), "behind": behind,
+                "weighted": weighted, "stretch": list(stretch)}
+        if context is not None:
+            spec["context"] = context.to_json()
         name = name or shape
     else:
         b = np.asarray(shape)
@@ -189,11 +233,58 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
         if len(mats) > 1 or not np.allclose(mats[0], np.eye(3)):
             v = dedupe_blocks(rotate_blocks(v, mats))[0]
         name = name or "blocks"
-    codes = np.asarray(codec.encode(v), dtype=np.float32)
+    codes = encode_query_blocks(codec, v, seen, truncation, voxel_size, weighted)
     probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
     return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
                       codec_state_sha256=_codec_sha(codec), voxel_size=voxel_size, truncation=truncation,
                       blocks=v if keep_blocks else None, rotations=rot, positions=pos, spec=spec, probe_codes=probes)
+
+
+def encode_query_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
+                        voxel_size: float, weighted: bool) -> np.ndarray:
+    """Codes ``(N, D)`` float32 of normalised query blocks ``v``: the plain projection, or with ``weighted`` the
+    surface-true encoding a masked map's writer uses (:func:`sdfcodec.map.observed.error_weights`, ``observed``
+    ``(N, 16, 16, 16)`` bool, all observed when None), so query codes and map codes compare like with like."""
+    if not weighted:
+        return np.asarray(codec.encode(v), dtype=np.float32)
+    from ..map.observed import SURFACE_WEIGHT, error_weights
+
+    obs = np.ones(v.shape, bool) if observed is None else observed
+    w = error_weights(v, obs, truncation, voxel_size, SURFACE_WEIGHT)
+    return np.asarray(codec.encode(v, weights=w), dtype=np.float32)
+
+
+def like_blocks(m: Map, coords: Any, codec: Codec) -> QueryModel:
+    """A "blocks like these" model: the map's own codes of coded blocks ``coords`` (``(N, 3)`` block indices,
+    or ``"X,Y,Z;X,Y,Z"`` as the CLI's ``--query like:...`` passes them) are the descriptors, so they compare
+    with the map's codes exactly, at any prefix level of a prefix-ordered codec.
+
+    Raises
+    ------
+    InvalidValueError
+        Unparseable coordinates, or a block that is not coded in the map.
+    """
+    from ..header import BlockState
+
+    if isinstance(coords, str):
+        try:
+            coords = [[int(v) for v in part.split(",")] for part in coords.split(";") if part.strip()]
+        except ValueError as e:
+            raise InvalidValueError(f"like: wants block indices X,Y,Z[;X,Y,Z...], got {coords!r}") from e
+    c = np.asarray(coords, dtype=np.int64).reshape(-1, 3) if len(coords) else np.zeros((0, 3), np.int64)
+    if not len(c):
+        raise InvalidValueError("like: needs at least one block index X,Y,Z")
+    states = m.block_states()
+    grid = np.asarray(states.shape)
+    if c.min() < 0 or np.any(c >= grid) or np.any(states[tuple(c.T)] != BlockState.CODED):
+        raise InvalidValueError(f"like: every block must be a coded block of the map (grid {tuple(grid)}); "
+                                f"{c.tolist()} are not all coded")
+    all_c, all_codes = m.read_codes()
+    key = {tuple(r): i for i, r in enumerate(np.asarray(all_c).tolist())}
+    rows = np.asarray([key[tuple(r)] for r in c.tolist()])
+    return QueryModel(name="like " + ";".join(",".join(str(v) for v in r) for r in c.tolist()),
+                      descriptors=np.asarray(all_codes, dtype=np.float32)[rows], codec_config=codec.get_config(),
+                      codec_state_sha256=_codec_sha(codec), voxel_size=m.voxel_size, truncation=m.truncation)
 
 
 def save_query(model: QueryModel, path: str | os.PathLike) -> Path:
@@ -245,11 +336,20 @@ def load_query(path: str | os.PathLike) -> QueryModel:
 
 
 # ------------------------------------------------------------------------------------- resolving a query
-def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
+def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None, up: Any = None,
+                  tilt: float | None = None) -> QueryModel:
     """Any query :func:`sdfcodec.search.search` accepts (a built-in name, the path of a saved model, a
     :class:`QueryModel`, user blocks ``(N, 16, 16, 16)`` metres) -> a model for the map ``m`` whose descriptors
     come from ``codec`` (the map's) or agree with it (re-encoded, rebuilt for the map's geometry, or checked
-    with the probe codes)."""
+    with the probe codes). ``behind``, ``up``, ``tilt`` (see :func:`build_query`) apply to built-in names;
+    for a saved model they are refused (it was made with its own)."""
+    if isinstance(query, str) and query in QUERY_NAMES:
+        return build_query(query, map=m, behind=behind, up=up, tilt=tilt)
+    if isinstance(query, str) and query.startswith("like:"):
+        return like_blocks(m, query[5:], codec)
+    if (behind, up, tilt) != (None, None, None):
+        raise InvalidValueError("behind, up and tilt shape the built-in queries (floor, ceiling, wall, edge, corner); "
+                                "a saved model or user blocks carry their own: rebuild the model with them instead")
     if isinstance(query, (str, os.PathLike)) and not (isinstance(query, str) and query in QUERY_NAMES):
         p = Path(query)
         if p.suffix == ".npz" or p.is_file():
@@ -268,7 +368,8 @@ def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
     if not same_geometry and query.spec is not None:
         s = query.spec
         return build_query(s["shape"], map=m, up=s["up"], rotations=s["rotations"], offsets=s["offsets"],
-                           behind=s["behind"], keep_blocks=query.blocks is not None, name=query.name)
+                           behind=s["behind"], keep_blocks=query.blocks is not None, name=query.name,
+                           weighted=s.get("weighted"))
     if not same_geometry:
         warnings.warn(f"query model {query.name!r} was made for voxel size {query.voxel_size} m and truncation "
                       f"{query.truncation}, but the map has {m.voxel_size} m and {m.truncation}; its blocks are "
@@ -276,8 +377,16 @@ def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
                       SDFCodecWarning, stacklevel=3)
     if query.matches_codec(codec, m.header.codec.state_sha256):
         return query
+    if query.spec is not None and query.blocks is not None:  # a built-in shape: rebuilt as it was made
+        s = query.spec
+        return build_query(s["shape"], map=m, up=s["up"], rotations=s["rotations"], offsets=s["offsets"],
+                           behind=s["behind"], name=query.name, weighted=s.get("weighted"))
     if query.blocks is not None:
-        return replace(query, descriptors=np.asarray(codec.encode(query.blocks), dtype=np.float32),
+        from .context import map_context
+
+        weighted = map_context(m, behind="solid").weighted
+        return replace(query, descriptors=encode_query_blocks(codec, query.blocks, None, query.truncation,
+                                                              query.voxel_size, weighted),
                        codec_config=codec.get_config(), codec_state_sha256=_codec_sha(codec),
                        probe_codes=np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)),
                                               dtype=np.float32))
@@ -295,7 +404,10 @@ def resolve_query(query: Any, m: Map, codec: Codec) -> QueryModel:
     theirs = query.probe_codes[:, :k]
     if not np.allclose(mine, theirs, rtol=1e-3, atol=1e-3 * max(1.0, float(np.abs(theirs).max()))):
         raise InvalidValueError(f"query model {query.name!r} was encoded by a different codec or basis than the map "
-                                f"{m.location} (their first {k} code elements disagree), so its descriptors cannot "
+                                f"{m.location} (model: {query.codec_config.get('id')!r} state "
+                                f"{(query.codec_state_sha256 or 'none')[:16]}; map: {m.header.codec.id!r} state "
+                                f"{(m.header.codec.state_sha256 or 'none')[:16]}; their first {k} code elements "
+                                "disagree), so its descriptors cannot "
                                 "be compared with the map's codes; rebuild it with build_query(..., map=the_map), or "
                                 "keep its blocks (keep_blocks=True) so it can be re-encoded")
     return query

@@ -20,6 +20,10 @@ from ..errors import InvalidValueError, ShapeError
 from ..geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
 
 __all__ = [
+    "WALL_YAWS",
+    "POLE_RADII",
+    "FUSED_STRETCH",
+    "sample_shapes",
     "QUERY_NAMES",
     "BEHIND",
     "ConeRotations",
@@ -35,10 +39,18 @@ __all__ = [
 ]
 
 #: The built-in named queries (see :func:`query_blocks`).
-QUERY_NAMES: tuple[str, ...] = ("floor", "ceiling", "wall", "edge", "corner")
+QUERY_NAMES: tuple[str, ...] = ("floor", "ceiling", "wall", "edge", "corner", "pole")
+#: Radii (voxels) of the pole model's vertical cylinders.
+POLE_RADII: tuple[float, ...] = (2.0, 3.5, 6.0, 10.0)
 #: Ways of treating voxels more than ``|d_min|`` behind a surface (see the :mod:`sdfcodec.search` docstring).
 BEHIND: tuple[str, ...] = ("unobserved", "solid")
 
+#: Field stretches of a fused map's surfaces: fusion stores projective distances (along the camera's axis), so a
+#: surface seen at angle theta from its normal has its field stretched by 1 / cos(theta) along the normal; these
+#: cover views up to 66 degrees (stretch 2.5). Query shapes for fused maps are sampled at each.
+FUSED_STRETCH: tuple[float, ...] = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5)
+#: Wall normals sampled about up: any horizontal normal is within 7.5 degrees of one.
+WALL_YAWS = 24
 _CENTRE = (BLOCK - 1) / 2.0  # 7.5: the block's centre in voxel units (voxel i at position i)
 
 
@@ -160,6 +172,11 @@ def _corner(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
     return np.where(nearest > 0, nearest, -depth)
 
 
+def _pole(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Solid vertical cylinder (along z) of radius ``pos[2]`` about the axis ``x = pos[0], y = pos[1]``."""
+    return np.hypot(q[..., 0] - pos[0], q[..., 1] - pos[1]) - pos[2]
+
+
 def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray, np.ndarray]:
     """``(sdf(q (..., 3), pos (3,)) in voxels, positions (P, 3), base orientations (B, 3, 3))``; ``offsets``:
     plane offsets (voxels from the block centre) of the plane family."""
@@ -170,8 +187,8 @@ def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray,
             base = np.eye(3)[None]
         elif name == "ceiling":
             base = rot_x(math.pi)[None]  # normal -z: solid above, free below
-        else:  # normals +x, +y, -x, -y: +z turned onto each horizontal axis
-            base = np.stack([rot_z(k * math.pi / 2) @ rot_y(math.pi / 2) for k in range(4)])
+        else:  # any horizontal normal: +z turned onto WALL_YAWS directions about up, 15 degrees apart
+            base = np.stack([rot_z(2 * math.pi * k / WALL_YAWS) @ rot_y(math.pi / 2) for k in range(WALL_YAWS)])
         return _plane, pos, base
     if name == "edge":
         o = _offsets(5)
@@ -181,6 +198,10 @@ def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray,
         o = _offsets(4)
         pos = np.array([(a, b, c) for a in o for b in o for c in o])
         return _corner, pos, axis_rotations()  # the 8 axis-aligned concave corners
+    if name == "pole":
+        o = _offsets(5)
+        pos = np.array([(a, b, r) for a in o for b in o for r in POLE_RADII])
+        return _pole, pos, np.eye(3)[None]  # vertical cylinders along up, axis at (a, b), radius r
     check_query_name(name)
     raise AssertionError(name)  # check_query_name raised: every built-in name is handled above
 
@@ -200,8 +221,9 @@ def truncate(d: np.ndarray, truncation: tuple[float, float], behind: str) -> np.
 def dedupe_blocks(blocks: np.ndarray, *extra: np.ndarray) -> tuple[np.ndarray, ...]:
     """Drop repeated blocks ``(N, 16, 16, 16)`` (equal to 1e-4 normalised), keeping first occurrences in order;
     the ``extra`` arrays (first axis ``N``) are cut to the same rows. Returns ``(blocks, *extra)``."""
-    key = np.round(blocks.reshape(len(blocks), -1), 4)
-    _, first = np.unique(key, axis=0, return_index=True)
+    key = np.ascontiguousarray(np.round(blocks.reshape(len(blocks), -1), 4) + 0.0)  # + 0.0: -0.0 equals 0.0
+    rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()  # one bytes key per row
+    _, first = np.unique(rows, return_index=True)
     keep = np.sort(first)
     return (blocks[keep], *(e[keep] for e in extra))
 
@@ -231,7 +253,8 @@ def plane_offsets(offsets: int | str = "auto", *, voxel_size: float = 0.02,
 
 def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float, float] = (-0.04, 0.1),
                  up: Sequence[float] = (0.0, 0.0, 1.0), rotations: Any = None, offsets: int | str = "auto",
-                 behind: str = "unobserved") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 behind: str = "unobserved", return_observed: bool = False,
+                 stretch: Sequence[float] = (1.0,)) -> tuple[np.ndarray, ...]:
     """The normalised TSDF blocks of a built-in query shape.
 
     Shapes (defined with ``+z`` up, then rotated onto ``up``):
@@ -243,11 +266,15 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
     ``"ceiling"``
         The same plane upside down (solid above).
     ``"wall"``
-        Vertical planes facing ``+x``, ``+y``, ``-x``, ``-y`` at ``offsets`` positions (60 descriptors).
+        Vertical planes with :data:`WALL_YAWS` (24) horizontal normals 15 degrees apart (any wall is within 7.5
+        degrees of one) at ``offsets`` positions.
     ``"edge"``
         The 12 axis-aligned concave edges of a room (floor-wall, wall-wall, ceiling-wall) at 5 x 5 positions.
     ``"corner"``
         The 8 axis-aligned concave corners of a room at 4 x 4 x 4 positions.
+    ``"pole"``
+        Solid vertical cylinders along ``up`` (poles, table legs, pipes) with :data:`POLE_RADII` radii at
+        5 x 5 axis positions.
 
     Parameters
     ----------
@@ -267,6 +294,11 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
         Plane offsets across the block (:func:`plane_offsets`; 15 in the paper).
     behind : {"unobserved", "solid"}
         See the :mod:`sdfcodec.search` docstring.
+    return_observed : bool
+        Also return which voxels a fused map would have observed (see ``observed`` below).
+    stretch : sequence of float
+        Field stretches to sample each shape at (1: an exact distance field; :data:`FUSED_STRETCH` for fused
+        maps).
 
     Returns
     -------
@@ -278,6 +310,11 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
         ``(M, 3)`` float32 voxels, the shape's position parameters in its own frame relative to the block
         centre ``(7.5, 7.5, 7.5)`` (for planes: ``(0, 0, offset)``, the plane passing ``offset`` voxels from the
         centre along its normal).
+    observed : np.ndarray
+        With ``return_observed`` only: ``(M, 16, 16, 16)`` bool, the voxels a camera in front of the surface
+        observes (for ``behind="unobserved"`` all but those more than ``|d_min|`` behind it; all for
+        ``"solid"``). A map with an observation mask encodes its blocks weighted by theirs
+        (:func:`sdfcodec.map.observed.error_weights`); a query for it is encoded the same way.
     """
     check_truncation(*truncation)
     if not (np.isfinite(voxel_size) and voxel_size > 0):
@@ -289,17 +326,23 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
     extra, _ = rotation_set(rotations)
     r_up = rotation_to(up)
     grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
-    blocks, rots, poss = [], [], []
+    blocks, rots, poss, seen = [], [], [], []
     for e in extra:
         for b in base:
             r = r_up @ e @ b
             q = grid @ r  # grid-to-shape coordinates: R^T p for each voxel position p
             for p in pos:
-                blocks.append(truncate(sdf(q, p) * voxel_size, truncation, behind))
-                rots.append(r)
-                poss.append(p)
+                for st in stretch:
+                    d = sdf(q, p) * (voxel_size * float(st))
+                    blocks.append(truncate(d, truncation, behind))
+                    # what a camera in front of the surface observes: everything but the space more than |d_min|
+                    # behind it (fusion updates voxels down to d_min); an exact SDF is observed everywhere
+                    seen.append(d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))
+                    rots.append(r)
+                    poss.append(p)
     v = normalise(np.stack(blocks), *truncation)
-    return dedupe_blocks(v, np.asarray(rots, np.float32), np.asarray(poss, np.float32))
+    out = dedupe_blocks(v, np.asarray(rots, np.float32), np.asarray(poss, np.float32), np.stack(seen))
+    return out if return_observed else out[:3]
 
 
 def rotate_blocks(v: np.ndarray, rotations: np.ndarray) -> np.ndarray:
@@ -336,3 +379,49 @@ def check_query_name(name: str) -> None:
     if name not in QUERY_NAMES:
         raise InvalidValueError(f"unknown query {name!r}; built-in queries are {', '.join(QUERY_NAMES)} (or pass "
                                 "blocks, a QueryModel or the path of a saved one)")
+
+
+def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation: tuple[float, float] = (-0.04, 0.1),
+                  up: Sequence[float] = (0.0, 0.0, 1.0), tilt_deg: float = 0.0, behind: str = "unobserved",
+                  stretch: tuple[float, float] = (1.0, 1.0), seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` random instances of a built-in shape, with continuous parameters where a model samples a
+    lattice: plane offsets uniform from one voxel below the block's voxels to one above, any wall yaw, edge and corner positions uniform
+    within 6 voxels of the centre, each tilted uniformly within ``tilt_deg`` of ``up`` (random axis) and spun
+    about it, the field stretched by a factor uniform in ``stretch`` (see :data:`FUSED_STRETCH`). What a map's
+    clean instances of the shape look like, to calibrate a threshold on.
+
+    Returns
+    -------
+    blocks, observed : np.ndarray
+        ``(count, 16, 16, 16)`` float32 normalised values and bool observed voxels (see :func:`query_blocks`).
+    """
+    check_query_name(name)
+    rng = np.random.default_rng([int(seed), 17])
+    sdf, _, base = _shape_family(name, np.zeros(1))
+    r_up = rotation_to(up)
+    grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
+    cos_t = math.cos(math.radians(tilt_deg))
+    vs, seen = [], []
+    for _ in range(int(count)):
+        cz = rng.uniform(cos_t, 1.0)
+        phi = rng.uniform(0.0, 2 * math.pi)
+        sz = math.sqrt(max(0.0, 1.0 - cz * cz))
+        tilt = rotation_to((sz * math.cos(phi), sz * math.sin(phi), cz))
+        b = base[rng.integers(len(base))]
+        if name == "wall":
+            b = rot_z(rng.uniform(0.0, 2 * math.pi)) @ rot_y(math.pi / 2)
+        spin = rot_z(rng.uniform(0.0, 2 * math.pi)) if name in ("floor", "ceiling") else np.eye(3)
+        r = r_up @ tilt @ spin @ b
+        if name == "pole":
+            p = np.array([rng.uniform(-6.0, 6.0), rng.uniform(-6.0, 6.0), rng.uniform(min(POLE_RADII),
+                                                                                      max(POLE_RADII))])
+        elif name in ("floor", "ceiling", "wall"):
+            # a plane up to one voxel beyond the block's outer voxel layers is still its surface: the block on
+            # each side of a surface between them holds it (its mesh needs both)
+            p = np.array([0.0, 0.0, rng.uniform(-_CENTRE - 1.0, _CENTRE + 1.0)])
+        else:
+            p = rng.uniform(-6.0, 6.0, 3)
+        d = sdf(grid @ r, p) * voxel_size * rng.uniform(*stretch)
+        vs.append(truncate(d, truncation, behind))
+        seen.append(d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))
+    return normalise(np.stack(vs), *truncation), np.stack(seen)

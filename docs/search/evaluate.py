@@ -1,0 +1,319 @@
+"""Search with the CLI's defaults on maps nobody tuned on: precision and recall per room kind and query.
+
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 5000 5001 ...] [--out docs/search/eval.json]
+
+Every map is searched exactly as ``sdfcodec search MAP --query Q`` does with no flags (``threshold="auto"``:
+the calibrated threshold, ``behind`` and ``up`` from the map); precision and recall of the selection are
+pooled over the rooms of a kind. Room kinds:
+
+* ``exact``: exact truncated SDFs of furnished rooms (``sdfcodec.data.rooms.synthetic_room(behind="solid")``,
+  primitives of ``sdfcodec.sdf``), layouts ``poor``, ``normal``, ``rich``, written with ``write_volume`` (what
+  ``sdfcodec encode room.npy`` does);
+* ``exact-open``: the issue's analytic scene, a floor over solid ground with two boxes, a sphere and a
+  cylinder, 160 x 160 x 64 voxels, no walls (only floor truth);
+* ``exact-tilted``: exact rooms tilted by up to 10 degrees;
+* ``fused`` / ``fused-tilted``: rooms rendered as depth frames along a camera path and fused
+  (``sdfcodec.fusion.fuse``), encoded with their observation (what ``sdfcodec fuse`` + ``sdfcodec encode``
+  do); the tilted ones turned by up to 10 degrees with their camera path;
+* ``kitchen``: the real 7-Scenes kitchen, fused, up from its gravity file; labels from plane fits on the
+  lossless map (``kitchen_labels``).
+
+Truth per block: a *clean* floor / wall / ceiling block has >= 90 % of its surface voxels nearest that surface
+and the surface covers >= 90 % of its cross-section (``sdfcodec.search.metrics.TRUTH``); every other block is
+a negative. Codec: the shipped pca-64, searched at its full level.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import sdfcodec
+from sdfcodec import pretrained_codec
+from sdfcodec import search as S
+from sdfcodec.search.metrics import TRUTH
+
+HERE = Path(__file__).resolve().parent
+# ../shared/data from the repository root (a worktree one level deeper finds it one level up)
+KITCHEN = next((p for p in (HERE.parents[i] / "shared" / "data" / "7scenes-redkitchen" for i in (2, 3)) if p.is_dir()),
+               HERE.parents[2] / "shared" / "data" / "7scenes-redkitchen")
+QUERIES = ("floor", "wall", "ceiling")
+
+
+def _write(path: Path, room: S.LabelledRoom, codec) -> sdfcodec.Map:
+    with sdfcodec.create_map(path, codec=codec, voxel_size=room.voxel_size, truncation=room.truncation,
+                             origin=tuple(room.origin), overwrite=True) as w:
+        w.write_volume(room.volume)
+    return sdfcodec.open_map(path)
+
+
+def open_room(seed: int) -> S.LabelledRoom:
+    """The issue's analytic scene: a floor over solid ground, two boxes, a sphere, a cylinder (160 x 160 x 64)."""
+    from sdfcodec.data.render import RoomScene
+    from sdfcodec.data.rooms import LabelledRoom
+    from sdfcodec.sdf import Box, Cylinder, Sphere, sample_volume, Scene
+
+    rng = np.random.default_rng([seed, 3])
+    vs, shape = 0.02, (160, 160, 64)
+    h = rng.uniform(0.2, 0.5)  # floor height in the grid
+    prims = [Box((1.6, 1.6, h - 1.0), (3.0, 3.0, 1.0))]
+    labels = ["floor"]
+    for _ in range(2):
+        c = rng.uniform(0.6, 2.6, 2)
+        half = rng.uniform(0.15, 0.35, 3)
+        prims.append(Box((c[0], c[1], h + half[2]), tuple(half)))
+        labels.append("furniture")
+    c = rng.uniform(0.6, 2.6, 2)
+    r = rng.uniform(0.15, 0.3)
+    prims.append(Sphere((c[0], c[1], h + r), r))
+    c = rng.uniform(0.6, 2.6, 2)
+    prims.append(Cylinder((c[0], c[1], h + 0.3), rng.uniform(0.1, 0.25), 0.3))
+    labels += ["furniture", "furniture"]
+    vol = sample_volume(Scene(prims), shape, vs, (0.0, 0.0, 0.0))
+    scene = RoomScene(prims, labels, (3.2, 3.2, 1.28), seed, "open")
+    return LabelledRoom(volume=vol, origin=np.zeros(3), voxel_size=vs, truncation=(-0.04, 0.1), scene=scene,
+                        rotation=np.eye(3), size=(3.2, 3.2, 1.28), up=np.array([0.0, 0.0, 1.0]), behind="solid")
+
+
+def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120) -> tuple[sdfcodec.Map, S.LabelledRoom]:
+    """Render a furnished room with a ceiling along a camera path, fuse it, encode it with its observation."""
+    from sdfcodec.data.render import DEFAULT_INTRINSICS, Renderer, RoomScene, camera_path, room_scene
+    from sdfcodec.data.rooms import LabelledRoom
+    from sdfcodec.data.sequences import Frame
+    from sdfcodec.fusion import fuse
+    from sdfcodec.geometry import rot_x, rot_z
+    from sdfcodec.sdf import grid_points
+
+    rng = np.random.default_rng([seed, 11])
+    scene = room_scene(seed, geometry=("normal", "rich")[seed % 2], ceiling=True)
+    rot = np.eye(3)
+    if tilt_deg:
+        a = rng.uniform(0, 2 * math.pi)
+        rot = rot_z(a) @ rot_x(math.radians(rng.uniform(0.5 * tilt_deg, tilt_deg))) @ rot_z(-a)
+    from sdfcodec.data.rooms import _pose  # noqa: the evaluation poses primitives as synthetic_room does
+    posed = RoomScene([_pose(p, rot) for p in scene.primitives], list(scene.labels), scene.size, seed, scene.geometry)
+    poses = camera_path(scene, frames, 3.0)
+    lift = np.eye(4)
+    lift[:3, :3] = rot
+    poses = lift @ poses
+    renderer = Renderer(posed)
+    fr = [Frame(index=i, timestamp=i / 30, depth=renderer.render(p), pose=p, path=Path(f"f{i}")) for i, p in
+          enumerate(poses)]
+    fused = fuse(fr, voxel_size=0.02, truncation=(-0.04, 0.1), intrinsics=DEFAULT_INTRINSICS, quiet=True)
+    with sdfcodec.create_map(path, codec=codec, voxel_size=0.02, origin=tuple(fused.origin), overwrite=True,
+                             tool="sdfcodec fuse (evaluation)") as w:
+        w.write_blocks(fused.coords, fused.tsdf, weights=fused.weights)
+    m = sdfcodec.open_map(path)
+    # exact distances on the fused grid, for the labels
+    shape = tuple(int(n) for n in m.shape_voxels)
+    from sdfcodec.data.rooms import _sample_union  # noqa: the same sampler as synthetic_room
+    raw = _sample_union(posed.primitives, shape, 0.02, np.asarray(m.origin), reach=0.12)
+    vol = np.clip(raw, -0.04, 0.1).astype(np.float32)
+    lab = LabelledRoom(volume=vol, origin=np.asarray(m.origin), voxel_size=0.02, truncation=(-0.04, 0.1),
+                       scene=posed, rotation=rot, size=scene.size, up=rot[:, 2].copy(), behind="unobserved")
+    del grid_points
+    return m, lab
+
+
+def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, up: np.ndarray) -> dict:
+    """Labels of the kitchen's blocks from plane fits on the lossless map: each block's observed zero crossings
+    (between observed neighbours differing by < 0.1 m) are fitted with a plane (SVD). A block is *planar* when
+    it has >= 64 crossings and their rms distance to the plane is < 0.5 voxel; its normal points along the
+    field's mean gradient. Floor: planar, normal within 10 degrees of up, and its plane within 0.1 m of the
+    floor height, the lowest height along up where >= 5 planar up-facing blocks lie within 0.1 m. Wall: planar,
+    normal within 10 degrees of horizontal. Ceiling: none is in view."""
+    vs = raw.voxel_size
+    blocks = S.expand(raw, coords, device="cpu").blocks
+    obs = raw.read_observed(coords)
+    n_up, rms, height, npts, horiz = [], [], [], [], []
+    for c, b, o in zip(coords, blocks, obs):
+        pts = []
+        for ax in range(3):
+            a, bb = np.take(b, range(15), axis=ax), np.take(b, range(1, 16), axis=ax)
+            ok = np.take(o, range(15), axis=ax) & np.take(o, range(1, 16), axis=ax)
+            cross = (np.sign(a) != np.sign(bb)) & ok & (np.abs(a - bb) < 0.1)
+            idx = np.argwhere(cross).astype(np.float64)
+            idx[:, ax] += a[cross] / (a[cross] - bb[cross])
+            pts.append(idx)
+        p = np.concatenate(pts)
+        npts.append(len(p))
+        if len(p) < 3:
+            n_up.append(0.0), rms.append(9.0), height.append(0.0), horiz.append(0.0)
+            continue
+        w = np.asarray(raw.origin) + vs * (16 * c + p)
+        mu = w.mean(axis=0)
+        _, sv, vt = np.linalg.svd(w - mu, full_matrices=False)
+        n = vt[2]
+        grad = np.stack(np.gradient(b), -1)[(np.abs(b) < 0.02) & o].mean(axis=0)
+        n = n if n @ grad >= 0 else -n
+        n_up.append(float(n @ up))
+        horiz.append(float(abs(n @ up)))
+        rms.append(float(sv[2] / math.sqrt(len(p)) / vs))
+        height.append(float(mu @ up))
+    n_up, rms, height, npts, horiz = map(np.asarray, (n_up, rms, height, npts, horiz))
+    planar = (npts >= 64) & (rms < 0.5)
+    cos10 = math.cos(math.radians(10))
+    upward = planar & (n_up >= cos10)
+    hs = np.sort(height[upward])
+    floor_h = next((h for h in hs if np.sum(np.abs(hs - h) <= 0.1) >= 5), hs[0] if len(hs) else 0.0)
+    floor = upward & (np.abs(height - floor_h) <= 0.1)
+    wall = planar & (horiz <= math.sin(math.radians(10)))
+    return {"floor": floor, "wall": wall, "ceiling": np.zeros(len(coords), bool), "upward": upward,
+            "floor_height": float(floor_h)}
+
+
+def _observed_surface(m: sdfcodec.Map, room: S.LabelledRoom, coords: np.ndarray) -> np.ndarray:
+    """Per block, how many voxels within one voxel of the exact surface the fused map observed."""
+    pad = [(0, (-n) % 16) for n in room.volume.shape]
+    vol = np.pad(room.volume, pad, constant_values=room.truncation[1])
+    out = np.zeros(len(coords), np.int64)
+    obs = m.read_observed(coords)
+    for i, c in enumerate(coords):
+        b = vol[tuple(slice(16 * a, 16 * a + 16) for a in c)]
+        out[i] = int(((np.abs(b) <= room.voxel_size) & obs[i]).sum())
+    return out
+
+
+def _pr(selected: np.ndarray, pos: np.ndarray) -> tuple[int, int, int]:
+    return int((selected & pos).sum()), int(selected.sum()), int(pos.sum())
+
+
+def _search(m: sdfcodec.Map, q: str):
+    res = S.search(m, q, threshold="auto", keep_scores=True, device="cpu")  # the CLI's defaults
+    sel = np.zeros(len(res.all_coords), bool)
+    key = {tuple(c): i for i, c in enumerate(res.all_coords.tolist())}
+    for c in res.coords.tolist():
+        sel[key[tuple(c)]] = True
+    return res, sel
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[5000, 5001, 5002])
+    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused", "fused-tilted",
+                                                     "kitchen"])
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    codec = pretrained_codec("pca", 64)
+    tally: dict = {}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for kind in args.kinds:
+            items = []
+            if kind == "kitchen":
+                if not KITCHEN.is_dir():
+                    print("no kitchen data; skipped", file=sys.stderr)
+                    continue
+                from sdfcodec.fusion import fuse
+                fused = fuse(KITCHEN, voxel_size=0.02, truncation=(-0.04, 0.1), quiet=True)
+                rawp = tmp / "kitchen-raw.sdfz"
+                with sdfcodec.create_map(rawp, codec=sdfcodec.get_codec("raw"), voxel_size=0.02,
+                                         origin=tuple(fused.origin), up=fused.up, tool="sdfcodec fuse") as w:
+                    w.write_blocks(fused.coords, fused.tsdf, weights=fused.weights)
+                raw = sdfcodec.open_map(rawp)
+                p64 = tmp / "kitchen-pca64.sdfz"
+                with sdfcodec.create_map(p64, codec=codec, voxel_size=0.02, origin=raw.origin,
+                                         tool="sdfcodec encode") as w:
+                    w.write_map(raw)
+                items.append((sdfcodec.open_map(p64), None, raw))
+            for seed in args.seeds:
+                path = tmp / f"{kind}-{seed}.sdfz"
+                if kind == "exact":
+                    for g in ("poor", "normal", "rich"):
+                        room = S.synthetic_room(seed, geometry=g, behind="solid")
+                        items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec), room, None))
+                elif kind == "exact-open":
+                    room = open_room(seed)
+                    items.append((_write(path, room, codec), room, None))
+                elif kind == "exact-tilted":
+                    room = S.synthetic_room(seed, geometry=("normal", "rich")[seed % 2], behind="solid", tilt_deg=10)
+                    items.append((_write(path, room, codec), room, None))
+                elif kind in ("fused", "fused-tilted"):
+                    m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec)
+                    items.append((m, room, None))
+            for m, room, raw in items:
+                for q in QUERIES:
+                    if kind == "exact-open" and q != "floor":
+                        continue
+                    res, sel = _search(m, q)
+                    if room is not None:
+                        lab = room.block_labels(res.all_coords)
+                        pos = TRUTH[q](lab)[0]
+                        # the pure truth: mixed blocks left out of both counts
+                        p_pos, p_neg = TRUTH[f"{q}-pure"](lab)
+                        keep = p_pos | p_neg
+                        tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
+                        t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
+                                                                     "blocks": 0, "maps": 0, "thresholds": [],
+                                                                     "behind": set()})
+                        for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
+                                     ("maps", 1)):
+                            t[k] += v
+                        t["thresholds"].append(round(float(res.threshold), 2))
+                        t["behind"].add(res.stats["context"]["behind"])
+                        if kind.startswith("fused"):
+                            # fused maps: clean blocks of which fusion observed too little surface to judge
+                            # (fewer than 64 observed surface voxels, e.g. the block under a floor that passes
+                            # at its top face) are left out
+                            seen = _observed_surface(m, room, res.all_coords) >= 64
+                            keep = seen | ~pos
+                            tp3, ns3, np3 = _pr(sel[keep], pos[keep])
+                            t = tally.setdefault((kind, f"{q} (observed)"), {
+                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
+                                "behind": set()})
+                            for k, v in (("tp", tp3), ("selected", ns3), ("positives", np3),
+                                         ("blocks", int(keep.sum())), ("maps", 1)):
+                                t[k] += v
+                            t["thresholds"].append(round(float(res.threshold), 2))
+                            t["behind"].add(res.stats["context"]["behind"])
+                    else:
+                        lab = kitchen_labels(raw, res.all_coords, np.asarray(m.header.up))
+                        pos = lab[q]
+                        if q == "floor":  # also: every up-facing plane (floor and furniture tops alike)
+                            tp, ns, npos = _pr(sel, lab["upward"])
+                            t = tally.setdefault(("kitchen (floor + tops)", q), {
+                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
+                                "behind": set()})
+                            for k, v in (("tp", tp), ("selected", ns), ("positives", npos), ("blocks", len(sel)),
+                                         ("maps", 1)):
+                                t[k] += v
+                            t["thresholds"].append(round(float(res.threshold), 2))
+                            t["behind"].add(res.stats["context"]["behind"])
+                    tp, ns, npos = _pr(sel, pos)
+                    t = tally.setdefault((kind, q), {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0,
+                                                     "thresholds": [], "behind": set()})
+                    t["tp"] += tp
+                    t["selected"] += ns
+                    t["positives"] += npos
+                    t["blocks"] += len(sel)
+                    t["maps"] += 1
+                    t["thresholds"].append(round(float(res.threshold), 2))
+                    t["behind"].add(res.stats["context"]["behind"])
+            print(f"{kind} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    rows = []
+    print("| rooms | query | maps | blocks | positives | selected | precision | recall | behind | thresholds |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for (kind, q), t in tally.items():
+        p = t["tp"] / t["selected"] if t["selected"] else float("nan")
+        r = t["tp"] / t["positives"] if t["positives"] else float("nan")
+        rows.append({"kind": kind, "query": q, **{k: v for k, v in t.items() if k != "behind"},
+                     "behind": sorted(t["behind"]), "precision": p, "recall": r})
+        print(f"| {kind} | {q} | {t['maps']} | {t['blocks']} | {t['positives']} | {t['selected']} | {p:.3f} | {r:.3f} | "
+              f"{', '.join(sorted(t['behind']))} | {min(t['thresholds']):.1f}-{max(t['thresholds']):.1f} |")
+    if args.out:
+        import os
+        args.out.write_text(json.dumps({"seeds": args.seeds, "load": os.getloadavg(), "rows": rows,
+                                        "seconds": time.perf_counter() - t0}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
