@@ -219,7 +219,8 @@ def test_pole_and_blocks_like_these(tmp_path, pca64):
     # blocks like a floor block: its own code is the descriptor (score 0); the other pure floor blocks of this
     # exact map are the same block, so they tie with it, and the pole's floor block comes after them
     res = S.search(m, "like:2,2,0", top=len(floor_blocks))
-    assert res.scores[0] == 0.0 and (2, 2, 0) in _selected(res)
+    # 0 up to the float32 rounding of |a|^2 + |b|^2 - 2 a.b (the scoring kernel's product form)
+    assert res.scores[0] <= 1e-3 and (2, 2, 0) in _selected(res)
     assert _selected(res) == floor_blocks
     with pytest.raises(InvalidValueError, match="coded block"):
         S.search(m, "like:3,3,3", top=3)

@@ -1,6 +1,6 @@
 """Search with the CLI's defaults on maps nobody tuned on: precision and recall per room kind and query.
 
-    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 5000 5001 ...] [--out docs/search/eval.json]
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 5000 5001 ...] [--out docs/search/eval-defaults.json]
 
 Every map is searched exactly as ``sdfcodec search MAP --query Q`` does with no flags (``threshold="auto"``:
 the calibrated threshold, ``behind`` and ``up`` from the map); precision and recall of the selection are
