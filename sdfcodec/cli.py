@@ -312,12 +312,14 @@ def encode_cmd(
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
         from .map.observed import fit_codec
-        sample, observed = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16) if src_map is None else [], None
-        if src_map is not None and (pairs := list(src_map.iter_blocks())):
-            sample = np.concatenate([b for _, b in pairs])
-            observed = src_map.read_observed(np.concatenate([c for c, _ in pairs])) if src_map.records_observation else None
-        fitted_on = fit_codec(codec, normalise(np.asarray(sample, np.float32).reshape(-1, 16, 16, 16), *trunc), observed, trunc,
-                              vs, max_blocks=fit_max_blocks, log=lambda n: err.print(f"fitting {codec!r} on {n} non-empty blocks of the input (pass --model to use a trained one)"))
+        sample, observed = np.zeros((0, 16, 16, 16), np.float32), None
+        if src_map is None:
+            sample = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
+        elif pairs := list(src_map.iter_blocks()):
+            sample, coords = np.concatenate([b for _, b in pairs]), np.concatenate([c for c, _ in pairs])
+            observed = src_map.read_observed(coords) if src_map.records_observation else None
+        fitted_on = fit_codec(codec, normalise(sample, *trunc), observed, trunc, vs, max_blocks=fit_max_blocks, log=lambda n:
+                              err.print(f"fitting {codec!r} on {n} non-empty blocks of the input (pass --model to use a trained one)"))
 
     shape = src_map.shape_voxels if src_map is not None else (0, 0, 0)
     with _progress() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,

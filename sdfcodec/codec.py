@@ -29,7 +29,7 @@ import torch
 from ._validate import BLOCK, as_float_tensor, check_weights, like_input
 from .errors import InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
-__all__ = ["Codec", "BLOCK", "uses_weights"]
+__all__ = ["Codec", "BLOCK", "uses_weights", "learns_weights"]
 
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
@@ -344,5 +344,15 @@ def __getattr__(name: str) -> Any:
 def uses_weights(codec: Codec | type[Codec]) -> bool:
     """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.encode_weighted`, i.e. its encode fits
     the error weights it is given rather than ignoring them."""
+    return _overrides(codec, "encode_weighted")
+
+
+def learns_weights(codec: Codec | type[Codec]) -> bool:
+    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.fit_weighted`, i.e. its fit minimises
+    the weighted error rather than ignoring the weights."""
+    return _overrides(codec, "fit_weighted")
+
+
+def _overrides(codec: Codec | type[Codec], hook: str) -> bool:
     cls = codec if isinstance(codec, type) else type(codec)
-    return cls.encode_weighted is not Codec.encode_weighted
+    return getattr(cls, hook) is not getattr(Codec, hook)

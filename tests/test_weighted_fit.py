@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 import sdfcodec
-from sdfcodec.blocks import normalise
 from sdfcodec.errors import InvalidValueError, ShapeError
 from sdfcodec.map.observed import error_weights
 from sdfcodec.testing import analytic_blocks

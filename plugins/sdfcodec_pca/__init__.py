@@ -333,15 +333,14 @@ class PCACodec(Codec):
         bias terms ``D diag(w_i) d`` ``(n, k)`` and the weight sums ``(n,)``."""
         dec_w, dec_b = self._on(device)[2:]
         k = dec_w.shape[0]
-        bias_cols = (dec_w * dec_b).T  # (4096, k)
         if k > _GRAM_TABLE_MAX_K:  # the outer-product table would be too large: one product per block
-            return torch.einsum("ki,ni,li->nkl", dec_w, w, dec_w), w @ bias_cols, w.sum(dim=1)
+            return torch.einsum("ki,ni,li->nkl", dec_w, w, dec_w), w @ (dec_w * dec_b).T, w.sum(dim=1)
         key = ("normal-terms", device)
         cached = self._device_cache.get(key)
         if cached is None:
             iu = torch.triu_indices(k, k, device=device)
             ones = torch.ones((_N, 1), dtype=dec_w.dtype, device=device)
-            cached = (torch.cat([(dec_w[iu[0]] * dec_w[iu[1]]).T, bias_cols, ones], dim=1).contiguous(), iu)
+            cached = (torch.cat([(dec_w[iu[0]] * dec_w[iu[1]]).T, (dec_w * dec_b).T, ones], dim=1).contiguous(), iu)
             self._device_cache[key] = cached  # (4096, k (k + 1) / 2 + k + 1)
         table, iu = cached
         g = w @ table

@@ -26,7 +26,7 @@ import torch
 import zarr
 
 from .._validate import BLOCK
-from ..codec import Codec, uses_weights
+from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
 from ..header import BlockState
 
@@ -131,7 +131,7 @@ def fit_codec(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation
     w = error_weights(v, observed, truncation, voxel_size, surface_weight)
     if w is None:
         codec.fit(v)
-    elif type(codec).fit_weighted is not Codec.fit_weighted:
+    elif learns_weights(codec):
         codec.fit(v, weights=w)
     else:
         codec.fit(v if uses_weights(codec) else fill_unobserved(v, observed))
