@@ -1,0 +1,5 @@
+"""``python -m sdfcodec.cli``: the same as the ``sdfcodec`` command."""
+
+from . import main
+
+main()

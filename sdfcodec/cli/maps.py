@@ -1,0 +1,311 @@
+"""The commands that read and write map files: codecs, info, encode, decode, mesh, search, verify, compare."""
+
+from __future__ import annotations
+
+import errno
+import json
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError, WriteFailedError
+from .common import (app, cli, err, fail, human_bytes, load_volume, out, parse_pair, parse_region, parse_triple,
+                     PlainWriter, print_json, progress_bar, refuse_existing, report, write_output)
+
+__all__: list[str] = []  # commands register on the app; nothing to import from here
+
+
+@app.command("codecs")
+@cli
+def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+    """List installed codecs: id, code sizes, prefix-ordered, needs fitting, providing package."""
+    from ..registry import get_codec_class, list_codecs
+
+    rows = []
+    for entry in list_codecs():
+        row: dict[str, Any] = {"id": entry.id, "package": entry.package, "version": entry.version}
+        try:
+            cls = get_codec_class(entry.id)
+            row.update(code_sizes=list(cls.code_sizes), prefix_ordered=cls.prefix_ordered,
+                       requires_fit=cls.requires_fit, status="ok")
+        except SDFCodecError as e:  # one broken plugin is reported, the rest still listed
+            row.update(code_sizes=None, prefix_ordered=None, requires_fit=None, status=f"failed: {e}")
+        rows.append(row)
+    if as_json:
+        print_json(rows)
+        return
+    table = Table(title="installed sdfcodec codecs")
+    for col in ("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"):
+        table.add_column(col)
+    for r in rows:
+        yn = {True: "yes", False: "no", None: "?"}
+        table.add_row(r["id"], ", ".join(map(str, r["code_sizes"] or [])) or "?", yn[r["prefix_ordered"]],
+                      yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}", r["status"])
+    out.print(table)
+
+
+@app.command("info")
+@cli
+def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+             as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+    """Show a map's header, blocks by state, bytes on disk and ratio to a dense float32 volume."""
+    from ..map import open_map
+
+    info = open_map(map_path).info()
+    if as_json:
+        print_json(info)
+        return
+    table = Table(show_header=False, title=f"map {map_path}")
+    b = info["blocks"]
+    rows = [
+        ("format version", str(info["format_version"])),
+        ("codec", json.dumps(info["codec"])),
+        ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"),
+        ("voxel size", f"{info['voxel_size']} m"),
+        ("truncation", f"[{info['truncation'][0]}, {info['truncation'][1]}] m"),
+        ("origin", f"{info['origin']} m"),
+        ("extent", f"{info['shape_voxels']} voxels, {info['grid_blocks']} blocks"),
+        ("blocks", f"{b['coded']} coded, {b['empty']} empty, {b['unobserved']} unobserved"),
+        ("dense float32", human_bytes(info["dense_float32_bytes"])),
+        ("codes (uncompressed)", human_bytes(info["code_bytes_raw"])),
+    ]
+    if info["bytes_on_disk"] is not None:
+        rows += [("on disk", f"{human_bytes(info['bytes_on_disk'])} (codec state {human_bytes(info['codec_state_bytes'])})"),
+                 ("ratio dense : disk", f"{info['ratio_dense_to_disk']:.1f} : 1"),
+                 ("ratio dense : disk without codec state", f"{info['ratio_dense_to_codes']:.1f} : 1")]
+    for k, v in rows:
+        table.add_row(k, v)
+    out.print(table)
+
+
+@app.command("encode")
+@cli
+def encode_cmd(
+    input: str = typer.Argument(..., metavar="INPUT", help=".npy/.npz dense TSDF in metres, or a map to transcode."),
+    output: Path = typer.Argument(..., metavar="OUTPUT", help="Map to write (a directory, e.g. room.sdfz)."),
+    codec_id: Optional[str] = typer.Option(None, "--codec", help="Codec id (see `sdfcodec codecs`); default pca."),
+    code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length (e.g. 32, 64, 128)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Trained codec (.npz from `sdfcodec train`)."),
+    voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="Voxel edge in metres (volumes)."),
+    truncation: Optional[str] = typer.Option(None, "--truncation", help="d_min,d_max in metres [-0.04,0.1]."),
+    origin: Optional[str] = typer.Option(None, "--origin", help="x,y,z metres of voxel (0,0,0) [0,0,0]."),
+    key: Optional[str] = typer.Option(None, "--key", help="Array name inside an .npz input."),
+    code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 code storage (int8: per-block offset and scale, a quarter of float32)."),
+    fit: bool = typer.Option(False, "--fit", help="Fit the codec on the input instead of the shipped model."),
+    fit_max_blocks: int = typer.Option(100_000, "--fit-max-blocks", help="Blocks sampled to fit a codec."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
+    device: str = typer.Option("cpu", "--device", help="Torch device to encode on (cpu, cuda)."),
+    as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
+) -> None:
+    """Encode a dense TSDF volume (or transcode a map) into a compressed map.
+
+    The codec comes from --model, else (pca) the shipped default eigenshapes cut to --code-size (default 64),
+    else it is fitted on the input's non-empty blocks (also with --fit); the map stores it either way.
+    """
+    from ..blocks import normalise, split_blocks
+    from ..map import create_map, open_map
+    from ..map.format import check_volume
+    from ..model import load_model
+    from ..registry import get_codec
+
+    refuse_existing(output, overwrite, map_output=True)
+    src_map = None
+    in_path = Path(input)
+    if "://" in input or in_path.is_dir():
+        src_map = open_map(input)
+        vs, trunc, org = src_map.voxel_size, src_map.truncation, src_map.origin
+    else:
+        if not in_path.exists():
+            raise InputNotFoundError(errno.ENOENT, "no such input file", str(in_path))
+        vol, meta = load_volume(in_path, key)
+        vs = voxel_size if voxel_size is not None else meta.get("voxel_size")
+        if vs is None:
+            fail(f"{in_path} does not record its voxel size: pass --voxel-size (metres)")
+        trunc = parse_pair(truncation, "--truncation") if truncation else tuple(meta.get("truncation", (-0.04, 0.1)))
+        org = parse_triple(origin, "--origin") or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
+        vol = check_volume(vol, trunc)
+
+    if model is not None:
+        codec = load_model(model)
+        if codec_id and codec_id != codec.codec_id:
+            raise InvalidValueError(f"--codec {codec_id} contradicts the model {model} (codec {codec.codec_id})")
+        if code_size and code_size != codec.code_size:
+            raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
+                                    f"(code size {codec.code_size})")
+    elif (codec_id or "pca") == "pca" and not fit:
+        from ..registry import pretrained_codec
+
+        codec = pretrained_codec("pca", code_size or 64)
+    else:
+        params = {"code_size": code_size} if code_size else {}
+        codec = get_codec(codec_id or "pca", **params)
+
+    fitted_on = None
+    if not codec.is_fitted:
+        # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
+        from ..map.observed import fit_codec
+        sample, observed = np.zeros((0, 16, 16, 16), np.float32), None
+        if src_map is None:
+            sample = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
+        elif pairs := list(src_map.iter_blocks()):
+            sample, coords = np.concatenate([b for _, b in pairs]), np.concatenate([c for c, _ in pairs])
+            observed = src_map.read_observed(coords) if src_map.records_observation else None
+        fitted_on = fit_codec(codec, normalise(sample, *trunc), observed, trunc, vs, max_blocks=fit_max_blocks, log=lambda n:
+                              err.print(f"fitting {codec!r} on {n} non-empty blocks of the input (pass --model to use a trained one)"))
+
+    shape = src_map.shape_voxels if src_map is not None else (0, 0, 0)
+    with progress_bar() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,
+                                         shape_voxels=shape, code_dtype=code_dtype, overwrite=overwrite,
+                                         device=device, tool="sdfcodec encode", source=str(input)) as m:
+        if src_map is not None:
+            total = src_map.count_states()["coded"]
+            task = prog.add_task("transcoding", total=total, rate="")
+            m.write_map(src_map, progress=lambda n: prog.advance(task, n))
+        else:
+            nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
+            task = prog.add_task("encoding", total=nblocks, rate="")
+            m.write_volume(vol, progress=lambda n: prog.advance(task, n))
+    info = m.info()
+    summary = {"output": str(output), "codec": codec.get_config(), "fitted_on_blocks": fitted_on,
+               "blocks": info["blocks"], "bytes_on_disk": info["bytes_on_disk"],
+               "ratio_dense_to_disk": info["ratio_dense_to_disk"]}
+    report(summary, as_json, lambda: (
+        f"wrote {output}: {info['blocks']['coded']} coded blocks, {human_bytes(info['bytes_on_disk'])} on disk, "
+        f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32"))
+
+
+@app.command("decode")
+@cli
+def decode_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    output: Path = typer.Argument(..., metavar="OUTPUT.npy", help="Dense TSDF (metres) to write."),
+    level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
+    region: Optional[str] = typer.Option(None, "--region", help="x0:x1,y0:y1,z0:z1 (half-open voxels, or metres)."),
+    units: str = typer.Option("voxels", "--units", help="Units of --region: voxels or m."),
+    device: str = typer.Option("cpu", "--device", help="Torch device to decode on."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
+    as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
+) -> None:
+    """Decode a map (or a region of it) to a dense .npy volume in metres, free space where nothing is coded."""
+    from ..map import open_map
+
+    if output.suffix != ".npy":
+        fail(f"OUTPUT must end in .npy, got {output}")
+    refuse_existing(output, overwrite)
+    m = open_map(map_path)
+    with progress_bar() as prog:
+        prog.add_task("decoding", total=None, rate="")
+        vol = m.decode_region(parse_region(region), units=units, level=level, device=None if device == "cpu" else device)
+    if not isinstance(vol, np.ndarray):
+        vol = vol.cpu().numpy()
+    def save(tmp: Path) -> bool:
+        with open(tmp, "wb") as f:
+            # through Python's write, not numpy's C-level tofile: a short write then raises OSError with its
+            # errno (ENOSPC, EFBIG...) instead of numpy's errno-less "requested and written"
+            np.save(PlainWriter(f), vol)
+        return True
+
+    write_output(output, output.with_name(f".{output.name}.tmp"), save)
+    summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
+               "voxel_size": m.voxel_size, "origin": list(m.origin)}
+    report(summary, as_json, lambda: f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
+
+
+@app.command("mesh")
+@cli
+def mesh_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    output: Path = typer.Argument(..., metavar="OUT.ply", help="Triangle mesh to write (.ply, .obj, .stl...)."),
+    level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Extract the zero level set of a map as a triangle mesh (marching cubes on the decoded blocks)."""
+    import open3d as o3d
+
+    from ..fusion import mesh_from_blocks
+    from ..map import open_map
+
+    refuse_existing(output, overwrite)
+    m = open_map(map_path)
+    coords, blocks = [], []
+    for c, b in m.iter_blocks(level=level):
+        coords.append(c)
+        blocks.append(b)
+    if not coords:
+        fail(f"{map_path} has no coded blocks: nothing to mesh")
+    mesh = mesh_from_blocks(np.concatenate(coords), np.concatenate(blocks), origin=m.origin,
+                            voxel_size=m.voxel_size, truncation=m.truncation)
+    def write_mesh(tmp: Path) -> bool:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+            return False
+        # open3d reports success even when the disk filled up under it (a truncated file): read it back
+        back = o3d.io.read_triangle_mesh(str(tmp))
+        return len(back.vertices) == len(mesh.vertices) and len(back.triangles) == len(mesh.triangles)
+
+    existed = output.exists()
+    if not write_output(output, output.with_name(f".tmp-{output.name}"), write_mesh):
+        if output.suffix.lower() not in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb"):
+            fail(f"could not write {output}: unsupported extension; use .ply, .obj or .stl")
+        # open3d reports only failure, not why: with a known format it is the file system
+        raise WriteFailedError(f"could not finish writing {output}: open3d could not write the file (is the disk "
+                               f"full or the directory not writable?); "
+                               f"{'the file there is unchanged' if existed else 'nothing was written there'} and "
+                               "no temporary file is left. What to do: free space or fix the directory's "
+                               "permissions, or write elsewhere", None, None, str(output))
+    summary = {"output": str(output), "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
+    report(summary, as_json, lambda: (
+        f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles"))
+
+
+@app.command("search")
+@cli
+def search_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, pole, like:X,Y,Z[;X,Y,Z] (blocks like these), or a saved query (.npz)."),
+    level: Optional[int] = typer.Option(None, "--level", help="Match only the first K code elements."),
+    threshold: Optional[float] = typer.Option(None, "--threshold", help="Select blocks scoring at most this."),
+    top: Optional[int] = typer.Option(None, "--top", help="Select the K best-scoring blocks."),
+    behind: Optional[str] = typer.Option(None, "--behind", help="solid (exact SDF) or unobserved (fused); default: what the map records."),
+    up: Optional[str] = typer.Option(None, "--up", help="Up direction x,y,z in the map's grid; default: the map's header, else 0,0,1."),
+    tilt: Optional[float] = typer.Option(None, "--tilt", help="Also match surfaces tilted up to DEG degrees from level."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
+    device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
+    no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
+    overwrite: bool = typer.Option(False, "--overwrite"),
+    as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
+) -> None:
+    """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""
+    from ..search_cli import format_summary, search_command
+
+    summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
+                             overwrite=overwrite, behind=behind, up=up, tilt=tilt)
+    report(summary, as_json, lambda: format_summary(summary))
+
+
+@app.command("verify")
+@cli
+def verify_cmd(
+    map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable report."),
+) -> None:
+    """Check a map: header, every chunk's checksum, codec state digest, states against codes, and a decode."""
+    from ..verify import verify_command
+
+    raise typer.Exit(verify_command(map_path, as_json))
+
+
+@app.command("compare")
+@cli
+def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="The original (lossless) map."),
+                decoded: str = typer.Argument(..., metavar="DECODED", help="The map to judge, on the same grid."),
+                level: Optional[int] = typer.Option(None, "--level", help="Decode DECODED at this prefix level."),
+                as_json: bool = typer.Option(False, "--json", help="Machine-readable output (metres).")) -> None:
+    """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md)."""
+    from ..surface import compare_command, metrics_table
+
+    summary = compare_command(original, decoded, level=level, quiet=as_json)
+    report(summary, as_json, lambda: metrics_table(summary))
