@@ -23,7 +23,7 @@ from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning
 from ..header import CodesSpec
 from ..quantize import dequantize_codes
 
-__all__ = ["DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
+__all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
            "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded"]
@@ -267,3 +267,32 @@ def check_decoded(v: torch.Tensor, *, scale: float, offset: float, coords: np.nd
                                    "c/" + "/".join(str(int(c) // chunk_blocks) for c in b0))
     raise FormatError(f"{location}: codec {codec_id!r} decoded {what}{where}; the stored codes or the codec's "
                       "learned state are corrupted: restore the map from a copy or re-encode it")
+
+
+def region_voxels(region: Region | None, units: str, shape: Sequence[int], origin: Sequence[float],
+                  voxel_size: float) -> tuple[tuple[int, int], ...]:
+    """Region (``units`` ``"voxels"`` or ``"m"``; None: the whole extent ``shape``) -> validated half-open voxel
+    bounds per axis.
+
+    Raises:
+        ShapeError: not three (lo, hi) pairs. InvalidValueError: unknown units, or a region outside the map.
+    """
+    if region is None:
+        return tuple((0, int(n)) for n in shape)
+    if len(region) != 3 or any(len(r) != 2 for r in region):
+        raise ShapeError(f"region must be ((x0, x1), (y0, y1), (z0, z1)), got {region!r}")
+    if units in ("m", "metres", "meters"):
+        vs = voxel_size
+        # voxels whose centre lies in [lo, hi]; 1e-9 guards against rounding at exact voxel positions
+        vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.floor((hi - oo) / vs + 1e-9)) + 1)
+                    for (lo, hi), oo in zip(region, origin))
+    elif units in ("voxels", "vox"):
+        vox = tuple((int(lo), int(hi)) for lo, hi in region)
+    else:
+        raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
+    for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):
+        if not 0 <= lo < hi <= n:
+            raise InvalidValueError(f"region {region!r} ({units}) is outside the map on axis {'xyz'[axis]}: "
+                                    f"voxels [{lo}, {hi}) vs extent [0, {n})")
+    return vox
+

@@ -27,13 +27,12 @@ from zarr.core.sync import sync as zarr_sync
 
 from .._validate import BLOCK, empty
 from ..codec import Codec
-from ..errors import (ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError,
-                      ShapeError)
+from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
 from ..header import BlockState, MapHeader, parse_header
-from ..registry import get_codec_class
 from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, state_digest,
+                     check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, region_voxels,
                      unstored_suspects)
+from .codec_state import load_codec
 from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
@@ -315,51 +314,8 @@ class MapReader:
             UnknownCodecError: its plugin is not installed (names the id and the package to install).
         """
         if self._cache.codec is None:
-            self._cache.codec = self._load_codec()
+            self._cache.codec = load_codec(self)
         return self._cache.codec
-
-    def _load_codec(self) -> Codec:
-        h, where = self.header, self.location
-        spec = h.codec
-        cls = get_codec_class(spec.id, package_hint=spec.package)
-        try:
-            codec = cls.from_config(spec.config)
-        except Exception as e:  # a hostile or stale config: the plugin's own error, whatever its type
-            raise FormatError(f"{where}: header field codec.config is not a valid {spec.id!r} configuration "
-                              f"({type(e).__name__}: {e})") from e
-        state = {}
-        if spec.state_arrays:
-            total = 0
-            for name in spec.state_arrays:
-                arr = self.member(f"codec/{name}")
-                if arr is None:
-                    raise FormatError(f"{where}: codec state array 'codec/{name}' (listed in codec.state_arrays) "
-                                      "is missing")
-                self.check_array(arr)
-                total += math.prod(arr.shape) * np.dtype(arr.dtype).itemsize
-                if total > self.max_decode_bytes:
-                    raise FormatError(f"{where}: the codec state is over {self.max_decode_bytes} bytes, the reader's "
-                                      "limit (raise max_decode_bytes in open_map() if the map is genuine)")
-                state[name] = self.read(arr, (slice(None),) * arr.ndim)
-        if spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
-            raise ChecksumError(f"{where}: the codec state under codec/ does not match the digest "
-                                "in the header; the map's codec arrays were altered or corrupted")
-        try:
-            if state:
-                codec = codec.load_state_dict(state)
-            fitted = codec.is_fitted
-        except Exception as e:
-            raise FormatError(f"{where}: the codec state under codec/ does not fit codec {spec.id!r} "
-                              f"({type(e).__name__}: {e})") from e
-        if not fitted:
-            raise FormatError(f"{where}: codec {spec.id!r} needs learned state, which the map does not store")
-        if codec.code_size != h.codes.size:
-            raise FormatError(f"{where}: header field codes.size is {h.codes.size}, but the codec makes codes of "
-                              f"{codec.code_size} elements")
-        if h.codes.prefix_ordered and not codec.prefix_ordered:
-            raise FormatError(f"{where}: header field codes.prefix_ordered is true, but codec {spec.id!r} codes "
-                              "are not prefix-ordered")
-        return codec
 
     def level(self, level: int | None) -> int:
         """A code prefix level checked against the map: ``level`` itself, or the full code size for None."""
@@ -375,26 +331,8 @@ class MapReader:
 
     def block_box(self, region: Region | None, units: str) -> tuple[tuple[int, int], ...]:
         """Region (``units`` ``"voxels"`` or ``"m"``; None: the whole map) -> validated half-open voxel bounds
-        per axis."""
-        shape = self.shape_voxels
-        if region is None:
-            return tuple((0, n) for n in shape)
-        if len(region) != 3 or any(len(r) != 2 for r in region):
-            raise ShapeError(f"region must be ((x0, x1), (y0, y1), (z0, z1)), got {region!r}")
-        if units in ("m", "metres", "meters"):
-            o, vs = self.origin, self.voxel_size
-            # voxels whose centre lies in [lo, hi]; 1e-9 guards against rounding at exact voxel positions
-            vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.floor((hi - oo) / vs + 1e-9)) + 1)
-                        for (lo, hi), oo in zip(region, o))
-        elif units in ("voxels", "vox"):
-            vox = tuple((int(lo), int(hi)) for lo, hi in region)
-        else:
-            raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
-        for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):
-            if not 0 <= lo < hi <= n:
-                raise InvalidValueError(f"region {region!r} ({units}) is outside the map on axis {'xyz'[axis]}: "
-                                        f"voxels [{lo}, {hi}) vs extent [0, {n})")
-        return vox
+        per axis (:func:`~sdfcodec.map.format.region_voxels`)."""
+        return region_voxels(region, units, self.shape_voxels, self.origin, self.voxel_size)
 
     def read_codes(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
