@@ -22,6 +22,27 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 pytest_plugins = ["sdfcodec.testing.pytest_plugin"]
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config):
+    """Query models the search builds are cached on disk (sdfcodec.search.cache): the suite keeps them in a
+    directory of its own, made fresh per run (xdist workers inherit it), never in the user's ~/.cache."""
+    import tempfile
+
+    from sdfcodec.search.cache import CACHE_ENV
+
+    if CACHE_ENV not in os.environ:
+        os.environ[CACHE_ENV] = config._sdfcodec_cache = tempfile.mkdtemp(prefix="sdfcodec-test-cache-")  # noqa: SLF001
+
+
+def pytest_unconfigure(config):
+    import shutil
+
+    made = getattr(config, "_sdfcodec_cache", None)
+    if made:
+        shutil.rmtree(made, ignore_errors=True)
+        os.environ.pop("SDFCODEC_CACHE_DIR", None)
+
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 

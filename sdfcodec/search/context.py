@@ -20,6 +20,7 @@ Each value says where it came from (``*_source``), for the search's JSON and tex
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -163,8 +164,21 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
                                          "from the grid's +z; the map records no up direction: pass --up to override)")
 
 
+#: Contexts already worked out, per open map version (a reader pins one version, so its blocks cannot change
+#: under it) and per override: a search builds several models for one map, and each asks.
+_CONTEXTS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
+
+
 def map_context(m: Map, *, behind: str | None = None, up: Sequence[float] | str | None = None) -> MapContext:
     """The query context of map ``m`` (module docstring); ``behind`` / ``up`` given override the map's."""
+    key = (behind, up if up is None or isinstance(up, str) else tuple(float(u) for u in np.ravel(up)))
+    known = _CONTEXTS.setdefault(m.reader, {})
+    if key not in known:
+        known[key] = _work_out_context(m, behind, up)
+    return known[key]
+
+
+def _work_out_context(m: Map, behind: str | None, up: Sequence[float] | str | None) -> MapContext:
     h = m.header
     names = {e.name for e in h.extensions}
     behind = None if behind == "auto" else behind

@@ -6,6 +6,7 @@ the selected blocks). See :mod:`sdfcodec.search` for the conventions and units.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
-from ..map import Map, open_map
+from ..map import Map, open_map, state_digest
 from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
@@ -347,14 +348,30 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
         ``method`` ("calibrated" or "model spacing"), and for calibrated thresholds ``samples``,
         ``quantile``, ``simulated`` (the simulated scores' 50/90/95/100 % quantiles) and ``tilt_deg``.
     """
-    from .query import encode_query_blocks
-    from .shapes import sample_shapes
 
     spec = model.spec
     if spec is None or "shape" not in spec:
         t = auto_threshold(model, level, codec)
         return t, {"method": "model spacing", "fraction": AUTO_FRACTION,
                    "why": "a model without a built-in shape: AUTO_FRACTION of its descriptors' median spacing"}
+    from .cache import cache_key, cached_threshold
+
+    # the calibration depends on nothing but what the key names (the simulated instances are seeded): cached
+    key = cache_key("threshold", spec={k: v for k, v in spec.items() if k != "context"},
+                    descriptors=model.descriptors[:, :level], codec=codec.get_config(),
+                    state=state_digest(codec.state_dict()) if codec.state_dict() else None, level=level,
+                    samples=int(samples), observed=observed_scorer is not None, voxel_size=model.voxel_size,
+                    truncation=list(model.truncation))
+    t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples))
+    return t, json.loads(json.dumps(info))  # a copy: the caller may add to its report
+
+
+def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
+               observed_scorer: ObservedScorer | None, samples: int) -> tuple[float, dict]:
+    from .query import encode_query_blocks
+    from .shapes import sample_shapes
+
+    spec = model.spec
     tilt = _cone_angle(spec.get("rotations"))
     v, seen = sample_shapes(spec["shape"], int(samples), voxel_size=model.voxel_size,
                             truncation=model.truncation, up=spec["up"], tilt_deg=tilt, behind=spec["behind"],

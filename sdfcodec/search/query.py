@@ -201,43 +201,79 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
     voxel_size = 0.02 if voxel_size is None else float(voxel_size)
     truncation = (-0.04, 0.1) if truncation is None else tuple(float(t) for t in truncation)
     check_truncation(*truncation)
-    rot = pos = spec = None
-    seen = None
     if isinstance(shape, str):
         # a map that records its observation was fused: its fields hold projective distances, stretched
         if stretch is None:
             stretch = FUSED_STRETCH if weighted and behind == "unobserved" else (1.0,)
         stretch = tuple(float(x) for x in stretch)
-        v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
-                                         rotations=rotations, offsets=offsets, behind=behind, return_observed=True,
-                                         stretch=stretch)
-        _, rot_json = rotation_set(rotations)
-        spec = {"shape": shape, "up": list(up), "rotations": rot_json,
-                "offsets": offsets if isinstance(offsets, str) else int(offsets), "behind": behind,
-                "weighted": weighted, "stretch": list(stretch)}
+        model = _shape_model(shape, codec, voxel_size, truncation, up, rotations, offsets, behind, weighted, stretch,
+                             keep_blocks)
+        spec = dict(model.spec)
         if context is not None:
             spec["context"] = context.to_json()
-        name = name or shape
-    else:
-        b = np.asarray(shape)
-        if b.dtype.kind != "f":
-            raise InvalidValueError(f"query blocks must be floating-point metres, got dtype {b.dtype}")
-        if b.ndim == 3:
-            b = b[None]
-        if b.ndim != 4 or b.shape[1:] != (BLOCK, BLOCK, BLOCK) or not len(b):
-            raise ShapeError(f"query blocks must have shape (N, 16, 16, 16) (metres), got {b.shape}")
-        if not np.isfinite(b).all():
-            raise InvalidValueError("query blocks hold NaN or infinite values")
-        v = normalise(np.clip(b, *truncation), *truncation)
-        mats, _ = rotation_set(rotations)
-        if len(mats) > 1 or not np.allclose(mats[0], np.eye(3)):
-            v = dedupe_blocks(rotate_blocks(v, mats))[0]
-        name = name or "blocks"
-    codes = encode_query_blocks(codec, v, seen, truncation, voxel_size, weighted)
+        return replace(model, name=name or shape, spec=spec)
+    b = np.asarray(shape)
+    if b.dtype.kind != "f":
+        raise InvalidValueError(f"query blocks must be floating-point metres, got dtype {b.dtype}")
+    if b.ndim == 3:
+        b = b[None]
+    if b.ndim != 4 or b.shape[1:] != (BLOCK, BLOCK, BLOCK) or not len(b):
+        raise ShapeError(f"query blocks must have shape (N, 16, 16, 16) (metres), got {b.shape}")
+    if not np.isfinite(b).all():
+        raise InvalidValueError("query blocks hold NaN or infinite values")
+    v = normalise(np.clip(b, *truncation), *truncation)
+    mats, _ = rotation_set(rotations)
+    if len(mats) > 1 or not np.allclose(mats[0], np.eye(3)):
+        v = dedupe_blocks(rotate_blocks(v, mats))[0]
+    return _model(name or "blocks", encode_query_blocks(codec, v, None, truncation, voxel_size, weighted), codec,
+                  voxel_size, truncation, v if keep_blocks else None)
+
+
+def _model(name: str, codes: np.ndarray, codec: Codec, voxel_size: float, truncation: tuple[float, float],
+           blocks: np.ndarray | None, rotations: np.ndarray | None = None, positions: np.ndarray | None = None,
+           spec: dict | None = None) -> QueryModel:
     probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
     return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
                       codec_state_sha256=_codec_sha(codec), voxel_size=voxel_size, truncation=truncation,
-                      blocks=v if keep_blocks else None, rotations=rot, positions=pos, spec=spec, probe_codes=probes)
+                      blocks=blocks, rotations=rotations, positions=positions, spec=spec, probe_codes=probes)
+
+
+def _shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[float, float], up: tuple,
+                 rotations: Any, offsets: int | str, behind: str, weighted: bool, stretch: tuple[float, ...],
+                 keep_blocks: bool) -> QueryModel:
+    """The model of a built-in shape, from the query cache (:mod:`sdfcodec.search.cache`) when it holds one made
+    with the same codec and parameters (rotations given as arrays are not cached)."""
+    from .cache import cache_key, cached_model
+
+    _, rot_json = rotation_set(rotations)
+    spec = {"shape": shape, "up": list(up), "rotations": rot_json,
+            "offsets": offsets if isinstance(offsets, str) else int(offsets), "behind": behind,
+            "weighted": weighted, "stretch": list(stretch)}
+
+    def build() -> QueryModel:
+        v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
+                                         rotations=rotations, offsets=offsets, behind=behind, return_observed=True,
+                                         stretch=stretch)
+        codes = encode_query_blocks(codec, v, seen, truncation, voxel_size, weighted)
+        return _model(shape, codes, codec, voxel_size, truncation, v if keep_blocks else None, rot, pos, dict(spec))
+
+    if not (rotations is None or isinstance(rotations, str)):
+        return build()
+    config, sha = codec.get_config(), _codec_sha(codec)
+    key = cache_key("query", spec=spec, codec=config, state=sha, voxel_size=voxel_size, truncation=truncation,
+                    keep_blocks=keep_blocks)
+
+    def valid(q: QueryModel) -> bool:  # a file is only trusted to be what its key says after this check
+        return (q.codec_config == config and q.codec_state_sha256 == sha and q.spec == spec
+                and q.voxel_size == voxel_size and tuple(q.truncation) == truncation
+                and (q.blocks is not None) == keep_blocks and q.descriptors.ndim == 2
+                and q.descriptors.shape[1] == codec.code_size and q.descriptors.dtype == np.float32
+                and bool(np.isfinite(q.descriptors).all()))
+
+    q = cached_model(key, build, valid)
+    # a copy: callers may write into what they get without changing the cached model
+    return replace(q, descriptors=q.descriptors.copy(), spec=dict(q.spec),
+                   blocks=None if q.blocks is None else q.blocks.copy())
 
 
 def encode_query_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],

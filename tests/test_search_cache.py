@@ -1,0 +1,150 @@
+"""The query cache (sdfcodec.search.cache): a cached model or threshold is exactly what building it gives, it is
+used across processes (a fresh memory, the same directory), keyed by everything the model depends on, and a
+damaged or foreign cache file is never trusted."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import sdfcodec
+from sdfcodec import pretrained_codec
+from sdfcodec.search import cache
+from sdfcodec.search import engine, query
+from sdfcodec.search.query import build_query
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+
+
+@pytest.fixture
+def fresh_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path / "cache"))
+    cache.clear_memory_cache()
+    yield tmp_path / "cache" / "queries"
+    cache.clear_memory_cache()
+
+
+@pytest.fixture
+def count_builds(monkeypatch):
+    """How often shapes were sampled (each model build samples once)."""
+    calls = []
+    real = query.query_blocks
+    monkeypatch.setattr(query, "query_blocks", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
+def _uncached(**kw):
+    """The model built with the disk and memory caches off."""
+    import os
+
+    old = os.environ.get(cache.CACHE_ENV)
+    os.environ[cache.CACHE_ENV] = "off"
+    cache.clear_memory_cache()
+    try:
+        return build_query("floor", **kw)
+    finally:
+        cache.clear_memory_cache()
+        if old is None:
+            del os.environ[cache.CACHE_ENV]
+        else:
+            os.environ[cache.CACHE_ENV] = old
+
+
+def test_cached_model_equals_a_fresh_build_and_is_reused_across_processes(fresh_cache, count_builds):
+    codec = pretrained_codec("pca", 32)
+    kw = dict(codec=codec, voxel_size=VS, truncation=TRUNC, up=(0.0, 0.0, 1.0), behind="solid")
+    ref = _uncached(**kw)
+    n0 = len(count_builds)
+    first = build_query("floor", **kw)
+    assert len(count_builds) == n0 + 1 and len(list(fresh_cache.glob("*.npz"))) == 1
+    again = build_query("floor", **kw)  # from memory
+    cache.clear_memory_cache()  # a new process: memory empty, the directory kept
+    disk = build_query("floor", **kw)
+    assert len(count_builds) == n0 + 1  # neither rebuilt the shapes
+    for m in (first, again, disk):
+        np.testing.assert_array_equal(m.descriptors, ref.descriptors)
+        np.testing.assert_array_equal(m.blocks, ref.blocks)
+        assert m.spec == ref.spec and m.codec_state_sha256 == ref.codec_state_sha256
+    again.descriptors[:] = 0  # a caller writing into its copy changes nothing cached
+    np.testing.assert_array_equal(build_query("floor", **kw).descriptors, ref.descriptors)
+
+
+@pytest.mark.parametrize("change", [dict(voxel_size=0.03), dict(truncation=(-0.05, 0.1)), dict(up=(0.0, 0.6, 0.8)),
+                                    dict(behind="unobserved"), dict(rotations="cone:5:16"), dict(code_size=64),
+                                    dict(keep_blocks=False)])
+def test_key_names_everything_the_model_depends_on(fresh_cache, change):
+    kw = dict(codec=pretrained_codec("pca", 32), voxel_size=VS, truncation=TRUNC, up=(0.0, 0.0, 1.0), behind="solid")
+    build_query("floor", **kw)
+    if "code_size" in change:
+        kw["codec"] = pretrained_codec("pca", change.pop("code_size"))
+    kw.update(change)
+    got = build_query("floor", **kw)
+    ref = _uncached(**kw)
+    np.testing.assert_array_equal(got.descriptors, ref.descriptors)
+    assert got.spec == ref.spec and (got.blocks is None) == (ref.blocks is None)
+
+
+def test_damaged_or_foreign_cache_files_are_rebuilt(fresh_cache, count_builds):
+    codec = pretrained_codec("pca", 32)
+    kw = dict(codec=codec, voxel_size=VS, truncation=TRUNC, up=(0.0, 0.0, 1.0), behind="solid")
+    ref = build_query("floor", **kw)
+    (path,) = fresh_cache.glob("*.npz")
+    other = build_query("wall", **kw)  # a valid query file, but another model than the key names
+    for content in (b"not an npz", None):
+        if content is None:
+            query.save_query(other, path)
+        else:
+            path.write_bytes(content)
+        cache.clear_memory_cache()
+        n = len(count_builds)
+        got = build_query("floor", **kw)
+        assert len(count_builds) == n + 1  # rebuilt, not trusted
+        np.testing.assert_array_equal(got.descriptors, ref.descriptors)
+        np.testing.assert_array_equal(query.load_query(path).descriptors, ref.descriptors)  # and replaced
+
+
+def test_disk_cache_off_and_unwritable(tmp_path, monkeypatch, count_builds):
+    codec = pretrained_codec("pca", 32)
+    kw = dict(codec=codec, voxel_size=VS, truncation=TRUNC, up=(0.0, 0.0, 1.0), behind="solid")
+    monkeypatch.setenv(cache.CACHE_ENV, "off")
+    cache.clear_memory_cache()
+    build_query("floor", **kw)
+    assert cache.cache_dir() is None
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache directory would go")
+    monkeypatch.setenv(cache.CACHE_ENV, str(blocker))
+    cache.clear_memory_cache()
+    n = len(count_builds)
+    m = build_query("floor", **kw)  # cannot write: works, from memory afterwards
+    build_query("floor", **kw)
+    assert len(count_builds) == n + 1 and len(m) > 1
+    cache.clear_memory_cache()
+
+
+def test_calibrated_threshold_is_cached_and_equal(fresh_cache, tmp_path, monkeypatch):
+    import torch
+
+    from sdfcodec.sdf import Plane, Scene, sample_volume
+    from sdfcodec.search import shapes
+
+    codec = pretrained_codec("pca", 64)
+    vol = sample_volume(Scene([Plane((0, 0, 1), 0.31)]), (32, 32, 32), VS)
+    with sdfcodec.create_map(tmp_path / "p.sdfz", codec=codec, voxel_size=VS, truncation=TRUNC, up=(0, 0, 1)) as w:
+        w.write_volume(vol)
+    model = build_query("floor", map=sdfcodec.open_map(tmp_path / "p.sdfz"))
+    calls = []
+    real = shapes.sample_shapes
+    monkeypatch.setattr(shapes, "sample_shapes", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cpu = torch.device("cpu")
+    t1, info1 = engine.calibrate_threshold(model, codec, 64, engine.Scorer(model.descriptors, cpu))
+    cache.clear_memory_cache()
+    t2, info2 = engine.calibrate_threshold(model, codec, 64, engine.Scorer(model.descriptors, cpu))  # the disk
+    t3, _ = engine.calibrate_threshold(model, codec, 32, engine.Scorer(model.descriptors[:, :32], cpu))
+    assert calls == [1, 1]  # level 64 once, level 32 once
+    assert t1 == t2 and info1 == info2 and info1["method"] == "calibrated" and t3 != t1
+    cache.clear_memory_cache()
+    monkeypatch.setenv(cache.CACHE_ENV, "off")
+    t4, info4 = engine.calibrate_threshold(model, codec, 64, engine.Scorer(model.descriptors, cpu))
+    assert (t4, info4) == (t1, info1) and calls == [1, 1, 1]  # what the cache held is what calibrating gives
