@@ -37,7 +37,7 @@ import numpy as np
 from .errors import InvalidValueError, MissingDependencyError
 from .map import Map, open_map
 
-__all__ = ["write_recording", "up_rotation", "score_colours", "ENTITIES", "RERUN_VERSION"]
+__all__ = ["write_recording", "require_rerun", "up_rotation", "score_colours", "ENTITIES", "RERUN_VERSION"]
 
 #: The rerun-sdk release the recordings are written with (pinned by the ``view`` extra).
 RERUN_VERSION = "0.41.0"
@@ -55,7 +55,8 @@ _STOPS = np.array([[253, 231, 37], [122, 209, 81], [34, 168, 132], [42, 120, 142
                   np.float64)
 
 
-def _rerun():
+def require_rerun():
+    """The ``rerun`` module, or a MissingDependencyError naming the extra that installs it."""
     try:
         import rerun as rr
     except ImportError as exc:
@@ -143,7 +144,7 @@ def write_recording(map: Map | str | os.PathLike, path: str | os.PathLike, *, qu
         ``ate_rmse``, ``ate_mean``, ``ate_max`` in metres), and ``entities``: each entity written and how
         many items it holds.
     """
-    rr = _rerun()
+    rr = require_rerun()
     from .fusion import mesh_from_blocks
 
     m = map if isinstance(map, Map) else open_map(map)

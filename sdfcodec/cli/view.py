@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from .common import app, cli, refuse_existing, report, write_output
+from .common import app, cli, err, refuse_existing, report, write_output
 
 __all__: list[str] = []  # the command registers on the app; nothing to import from here
 
@@ -31,8 +31,15 @@ def view_cmd(
     """Write a Rerun recording (.rrd) of a map: its mesh, with --query the code-space search scores as colours and
     the selected blocks, with --trajectory the camera path (against --groundtruth). Positions in metres, the
     map's up (its header's, else +z) shown up. Needs rerun-sdk: pip install 'sdfcodec[view]'."""
-    from ..errors import InputNotFoundError, InvalidValueError
-    from ..view import write_recording
+    from ..errors import InputNotFoundError, InvalidValueError, MissingDependencyError
+    from ..view import require_rerun, write_recording
+
+    try:
+        require_rerun()
+    except MissingDependencyError as e:
+        # printed without rich markup: the shared error printer would read "[view]" in the advice as a style tag
+        err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(1)
 
     if output.suffix != ".rrd":
         raise InvalidValueError(f"the recording must end in .rrd (the viewer opens it by its suffix), got {output}")
