@@ -85,3 +85,27 @@ def test_demo_short_run(tmp_path):
     assert 0 < cache["blocks_decoded"] and cache["coded_blocks"] == res["coded_blocks"]
     summary = json.loads(r.stdout)
     assert summary["maps"] == res["maps"]
+
+
+def test_selection_mesh_keeps_a_floor_on_a_block_seam(tmp_path):
+    """A floor exactly between two layers of blocks (z = 15.5 voxels): a mesh of the blocks below it alone has
+    no cube across the seam, so no floor (the fragments of the old floors.png panel (b)); selection_mesh keeps
+    it, over the chosen blocks' footprint and no further than a voxel beyond."""
+    from sdfcodec.sdf import Plane, Scene, sample_volume
+    from sdfcodec.search import expand
+    from sdfcodec.search_cli import selection_mesh
+
+    vs = 0.02
+    vol = sample_volume(Scene([Plane((0, 0, 1), 15.5 * vs)]), (64, 64, 48), vs)
+    path = tmp_path / "seam.sdfz"
+    with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=vs) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    below = np.array([(i, j, 0) for i in (0, 1) for j in (0, 1)])
+    assert len(expand(m, below, as_="mesh").mesh.triangles) == 0  # the seam cubes need the blocks above
+    mesh = selection_mesh(m, below)
+    v = np.asarray(mesh.vertices)
+    np.testing.assert_allclose(v[:, 2], 15.5 * vs, atol=1e-4)  # the floor, nothing of the neighbours' own
+    side = 2 * 16 * vs
+    assert side ** 2 <= mesh.get_surface_area() <= (side + vs) ** 2
+    assert v[:, :2].max() <= side + vs and v[:, :2].min() >= 0
