@@ -73,6 +73,21 @@ def test_demo_short_run(tmp_path):
 
     tr = res["tracking"]
     assert tr["frames"] == 5
+    try:
+        from rerun.chunk import RrdReader
+    except ImportError:  # without the view extra the report says why there is no recording
+        assert res["view_note"] and "sdfcodec[view]" in report and not (out / "view.rrd").exists()
+    else:
+        assert res["view_note"] is None and "`rerun view.rrd`" in report
+        got = {c.entity_path: c.to_record_batch() for c in RrdReader(out / "view.rrd").stream().to_chunks()}
+        scores = got["/world/map/search/scores"].column("score")[0].as_py()
+        assert len(scores) == se["coded_blocks"]
+        assert len(got["/world/map/search/selected"].column("Boxes3D:centers")[0]) == se["selected"]
+        est = np.asarray(got["/world/map/trajectory/estimate"].column("Points3D:positions")[0].as_py())
+        assert est.shape == (5, 3)
+        gt = np.asarray(got["/world/map/trajectory/groundtruth"].column("Points3D:positions")[0].as_py())
+        # the recorded positions' distances are the tracking errors the report gives for pca-64
+        np.testing.assert_allclose(np.linalg.norm(est - gt, axis=1), tr["pca-64"]["errors"], atol=1e-6)
     assert tr["maps"] == names  # every map is tracked, and its ATE sits in its row
     for row in res["maps"]:
         x = tr[row["map"]]
