@@ -172,6 +172,10 @@ def write_recording(map: Map | str | os.PathLike, path: str | os.PathLike, *, qu
                                "up_source": "header" if up is not None else "default +z (the map records no up)",
                                "entities": {}}
     ent = summary["entities"]
+    # open the file ourselves first: a missing or read-only directory is then the OSError it is (naming the
+    # file), where rerun's sink would raise a bare RuntimeError
+    with open(path, "wb"):
+        pass
     rec = rr.RecordingStream(application_id, make_default=False, make_thread_default=False)
     rec.save(str(path))
     with rec:  # leaving the block flushes and finalises the file sink (the .rrd's footer)

@@ -214,8 +214,10 @@ def mesh_picture(mesh, path: str | Path, *, title: str | None = None, up=(0.0, 0
     own = ax is None
     if own:
         plt = _plt()
-        fig, ax = plt.subplots(figsize=(width / 100, height / 100 + 0.5), dpi=100, constrained_layout=True)
-    ax.imshow(rendered.image)
+        # the image one to one in pixels under a title strip: no layout engine, no resampling (cheap to save)
+        fig = plt.figure(figsize=(width / 100, height / 100 + 0.4), dpi=100)
+        ax = fig.add_axes((0.0, 0.0, 1.0, height / (height + 40.0)))
+    ax.imshow(rendered.image, interpolation="none")
     ax.set_axis_off()
     if rendered.metres_per_pixel is not None:
         draw_scale_bar(ax, rendered.metres_per_pixel, width, height)

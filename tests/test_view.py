@@ -149,6 +149,8 @@ def test_view_command_line_piped(small_map, tmp_path, monkeypatch):
     assert r.exit_code == 1 and "--groundtruth needs --trajectory" in r.output
     r = runner.invoke(app, ["view", str(small_map), "--trajectory", str(tmp_path / "nosuch.txt"), "-o", str(tmp_path / "w.rrd")])
     assert r.exit_code == 1 and "nosuch.txt" in r.output
+    r = runner.invoke(app, ["view", str(small_map), "-o", str(tmp_path / "no" / "w.rrd")])
+    assert r.exit_code == 1 and "w.rrd" in r.output and len(r.output.strip().splitlines()) == 1
     r = runner.invoke(app, ["view", str(small_map), "-o", str(tmp_path / "w.ply")])
     assert r.exit_code == 1 and ".rrd" in r.output
     # rerun hidden from the import system, as on an install without the extra
