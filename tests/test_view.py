@@ -19,7 +19,7 @@ from sdfcodec.fusion import mesh_from_blocks
 from sdfcodec.search import search
 from sdfcodec.view import up_rotation, write_recording
 
-rr = pytest.importorskip("rerun", reason="rerun-sdk (the view extra) is not installed")
+pytest.importorskip("rerun", reason="rerun-sdk (the view extra) is not installed")
 from rerun.chunk import RrdReader  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
