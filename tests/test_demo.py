@@ -124,3 +124,28 @@ def test_selection_mesh_keeps_a_floor_on_a_block_seam(tmp_path):
     side = 2 * 16 * vs
     assert side ** 2 <= mesh.get_surface_area() <= (side + vs) ** 2
     assert v[:, :2].max() <= side + vs and v[:, :2].min() >= 0
+
+
+def test_mesh_pictures_are_upright():
+    """A tall tower on a floor, tinted by height (sand high, blue low): its top must sit above the floor in the
+    picture, in the default orthographic view and in a perspective one (open3d's pinhole rays once turned every
+    picture by 180 degrees)."""
+    import open3d as o3d
+
+    from sdfcodec.viz import render_view
+
+    floor = o3d.geometry.TriangleMesh.create_box(3, 2, 0.02)
+    tower = o3d.geometry.TriangleMesh.create_box(0.3, 0.3, 1.5)
+    tower.translate((1.35, 0.85, 0))
+    mesh = floor + tower
+    mesh.compute_vertex_normals()
+    for view in ({}, {"eye": (-1.5, -2.5, 2.5), "target": (1.5, 1.0, 0.0)}):
+        r = render_view(mesh, width=160, height=120, **view)
+        img = r.image.astype(int)
+        hit = img.sum(-1) < 3 * 250
+        sand = hit & (img[..., 0] > img[..., 2] + 20)  # the tower's upper part
+        blue = hit & (img[..., 2] > img[..., 0] + 20)  # the floor
+        rows = np.arange(img.shape[0])[:, None] * np.ones(img.shape[1])
+        assert sand.sum() > 20 and blue.sum() > 200, view
+        assert rows[sand].min() < rows[blue].min(), view  # the tower's top rises above the floor's far edge
+    assert r.metres_per_pixel is None and render_view(mesh, width=160, height=120).metres_per_pixel > 0
