@@ -67,7 +67,7 @@ def small_map(tmp_path_factory, volume) -> Path:
 def cli(*args) -> subprocess.CompletedProcess:
     env = {"PYTHONPATH": f"{ROOT}:{ROOT / 'plugins'}", "PATH": "/usr/bin:/bin", "COLUMNS": "200"}
     return subprocess.run([sys.executable, "-m", "sdfcodec.cli", *map(str, args)], capture_output=True, text=True,
-                          env=env, timeout=120)
+                          env=env, cwd=ROOT, timeout=120)
 
 
 def test_view_command_records_mesh_search_and_trajectory(small_map, tmp_path):
