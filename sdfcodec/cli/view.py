@@ -13,6 +13,7 @@ from .common import app, cli, err, refuse_existing, report, write_output
 __all__: list[str] = []  # the command registers on the app; nothing to import from here
 
 
+# the docstring is the help, read as rich markup: a backslash before "[view]" keeps the extra's name from reading as a style tag
 @app.command("view")
 @cli
 def view_cmd(
@@ -30,7 +31,7 @@ def view_cmd(
 ) -> None:
     """Write a Rerun recording (.rrd) of a map: its mesh, with --query the code-space search scores as colours and
     the selected blocks, with --trajectory the camera path (against --groundtruth). Positions in metres, the
-    map's up (its header's, else +z) shown up. Needs rerun-sdk: pip install 'sdfcodec[view]'."""
+    map's up (its header's, else +z) shown up. Needs rerun-sdk: pip install 'sdfcodec\\[view]'."""
     from ..errors import InputNotFoundError, InvalidValueError, MissingDependencyError
     from ..view import require_rerun, write_recording
 
