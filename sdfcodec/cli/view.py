@@ -13,7 +13,8 @@ from .common import app, cli, err, refuse_existing, report, write_output
 __all__: list[str] = []  # the command registers on the app; nothing to import from here
 
 
-# the docstring is the help, read as rich markup: a backslash before "[view]" keeps the extra's name from reading as a style tag
+# the docstring is the help, read as rich markup: a backslash before "[view]" keeps the extra's name from
+# reading as a style tag
 @app.command("view")
 @cli
 def view_cmd(
