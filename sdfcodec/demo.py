@@ -15,8 +15,10 @@
 6. Track part of the sequence with the SDF Tracker against every map: the pca-64 map decoded on demand
    (:class:`~sdfcodec.mapfield.MapField`), the others decoded densely; report the ATE against ground truth
    beside each map's bytes and surface metrics.
-7. Write ``report.md``, ``results.json`` and pictures: meshes, a field slice per codec, the floor selection,
-   the trajectories against ground truth, error against bytes.
+7. Write ``report.md``, ``results.json``, pictures (meshes, a field slice per codec, the floor selection,
+   the trajectories against ground truth, error against bytes: :mod:`sdfcodec.demo_pictures`) and, when
+   rerun-sdk is installed, ``view.rrd``: a Rerun recording of the pca-64 map, its floor search and the
+   tracked trajectory against ground truth (:func:`sdfcodec.view.write_recording`).
 
 Nothing is downloaded; every figure in the report is measured in the run that writes it. Progress bars go to
 stderr (rich); each finished stage logs one line.
@@ -154,111 +156,6 @@ def _stores_mask(m: Map) -> bool:
     return any(a is not None for a in m.reader.observation_arrays())
 
 
-# ------------------------------------------------------------------------------------------------ pictures
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _slice_picture(fields: dict[str, np.ndarray], z: int, height_m: float, path: Path) -> None:
-    """Top row: the distance on a horizontal slice per map; bottom row: each decoded slice minus the fused one."""
-    plt = _plt()
-    names = list(fields)
-    ref = fields[names[0]][:, :, z]
-    fig, axes = plt.subplots(2, len(names), figsize=(3.0 * len(names), 5.6), constrained_layout=True, squeeze=False)
-    for i, name in enumerate(names):
-        sl = fields[name][:, :, z]
-        im = axes[0, i].imshow(sl.T, origin="lower", cmap="RdBu", vmin=TRUNC[0], vmax=TRUNC[1])
-        axes[0, i].set_title(name)
-        if i == 0:
-            axes[1, i].text(0.5, 0.5, "each map minus\nthe fused one \u2192", ha="center", va="center",
-                            transform=axes[1, i].transAxes)
-        else:
-            di = axes[1, i].imshow((sl - ref).T, origin="lower", cmap="PuOr", vmin=-0.03, vmax=0.03)
-        for ax in axes[:, i]:
-            ax.set_axis_off()
-    fig.colorbar(im, ax=axes[0, :], shrink=0.8, label="distance (m)")
-    if len(names) > 1:
-        fig.colorbar(di, ax=axes[1, :], shrink=0.8, label="error (m)")
-    fig.suptitle(f"horizontal slice {height_m:.2f} m above the floor")
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
-def _error_bytes_picture(rows: list[dict], dense_bytes: int, path: Path) -> None:
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), constrained_layout=True)
-    raw = rows[0]
-
-    def value(r: dict, key: str) -> float:
-        if key == "chamfer_mm":
-            c = r["surface"]["chamfer_l1"]
-            return float("nan") if c is None else 1000 * c
-        return r[key]
-
-    for ax, key in ((axes[0], "mse_vs_fused"), (axes[1], "rmse_near_vs_exact_mm"), (axes[2], "chamfer_mm")):
-        for r in rows[1:]:
-            colour, y = ("tab:blue" if r["codec"] == "pca" else "tab:orange"), value(r, key)
-            ax.plot([r["code_bytes"], r["bytes_on_disk"]], [y] * 2, "-", color=colour, alpha=0.35)
-            ax.plot(r["code_bytes"], y, "o", color=colour, mfc="white")
-            ax.plot(r["bytes_on_disk"], y, "o", color=colour)
-            ax.annotate(r["map"], (r["code_bytes"], y), textcoords="offset points", xytext=(-6, 5), ha="right",
-                        fontsize=8)
-        ax.plot(raw["bytes_on_disk"], value(raw, key), "s", color="grey")
-        ax.annotate("raw (lossless)", (raw["bytes_on_disk"], value(raw, key)), textcoords="offset points",
-                    xytext=(-6, 5), ha="right", fontsize=8, color="grey")
-        ax.axvline(dense_bytes, color="k", lw=0.8, ls=":")
-        ax.annotate("dense\nfloat32", (dense_bytes, 0.02), xycoords=("data", "axes fraction"),
-                    textcoords="offset points", xytext=(-4, 0), ha="right", fontsize=8)
-        ax.set_xscale("log")
-        ax.set_ylim(bottom=0)
-        ax.set_xlabel("bytes (log scale)")
-        ax.grid(alpha=0.3, which="both")
-    axes[0].set_ylabel("per-voxel MSE vs the fused map (normalised)")
-    axes[1].set_ylabel("RMSE near surfaces vs the exact room (mm)")
-    axes[2].set_ylabel("Chamfer-L1 of the surfaces vs the fused map (mm)")
-    fig.suptitle("error against bytes: hollow = codes only, filled = whole map file (with the codec's basis or "
-                 "weights); blue pca, orange ae")
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
-_STYLES = {"raw": ("tab:green", "-"), "pca-32": ("tab:purple", ":"), "pca-64": ("tab:blue", "--"),
-           "pca-128": ("tab:cyan", "-."), "ae-64": ("tab:orange", ":")}
-
-
-def _trajectory_picture(gt: np.ndarray, tracks: dict[str, dict], path: Path) -> None:
-    plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
-    ax = axes[0]
-    ax.plot(gt[:, 0, 3], gt[:, 1, 3], "k-", lw=2.5, alpha=0.4, label="ground truth")
-    for name, t in tracks.items():
-        c, ls = _STYLES.get(name, ("tab:red", ":"))
-        p = t["poses"]
-        ax.plot(p[:, 0, 3], p[:, 1, 3], ls, color=c, lw=1.3, label=f"{t['label']} (ATE {1000 * t['ate_rmse']:.1f} mm)")
-    ax.plot(gt[0, 0, 3], gt[0, 1, 3], "ko", ms=5)
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title("camera positions from above (dot: start)")
-    ax.legend(fontsize=8)
-    ax = axes[1]
-    for name, t in tracks.items():
-        c, ls = _STYLES.get(name, ("tab:red", ":"))
-        ax.plot(t["frame_index"], 1000 * np.asarray(t["errors"]), ls, color=c, label=t["label"])
-    ax.set_xlabel("frame")
-    ax.set_ylabel("position error (mm)")
-    ax.set_title("absolute trajectory error per frame")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
 # --------------------------------------------------------------------------------------------------- demo
 def run_demo(out: Path, *, voxel_size: float = 0.02, code_sizes=(32, 64, 128), preset: str = "slow-noisy",
              frames: int = 120, track_frames: int = 60, track_stride: int = 2, ae: bool = True,
@@ -318,7 +215,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     from .surface import compare_volumes
     from .tracking import DenseField, SDFTracker, TrackerConfig
     from .evaluation import EVAL_TRACKER_CONFIG
-    from .viz import render_mesh, save_png
+    from .demo_pictures import error_bytes_picture, mesh_figure, slice_picture, trajectory_picture
 
     timings: dict[str, float] = {}
     log = bars.log
@@ -506,25 +403,32 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
     # 6. pictures ----------------------------------------------------------------------------------------
     t0 = time.perf_counter()
     pics: dict[str, str] = {}
-    with bars.stage("drawing pictures", 5) as advance:
+    meshes: dict[str, Any] = {}
+    with bars.stage("drawing pictures", 6) as advance:
         for name in ("raw", "pca-64"):
             m = maps[name]
             cs, bs = zip(*m.iter_blocks())
-            mesh = mesh_from_blocks(np.concatenate(cs), np.concatenate(bs), origin=m.origin, voxel_size=m.voxel_size,
-                                    truncation=m.truncation)
-            pics[f"mesh-{name}"] = save_png(render_mesh(mesh, width=640, height=480), out / f"mesh-{name}.png").name
+            meshes[name] = mesh_from_blocks(np.concatenate(cs), np.concatenate(bs), origin=m.origin,
+                                            voxel_size=m.voxel_size, truncation=m.truncation)
+            pics[f"mesh-{name}"] = mesh_figure(m, out / f"mesh-{name}.png", title=_mesh_title(
+                next(r for r in rows if r["map"] == name)), mesh=meshes[name]).name
             advance()
         z = min(max(int(round((1.0 - raw.origin[2]) / voxel_size)), 0), raw.shape_voxels[2] - 1)
-        _slice_picture(fields, z, raw.origin[2] + z * voxel_size, out / "slice.png")
+        slice_picture(fields, z, raw.origin[2] + z * voxel_size, out / "slice.png", origin=raw.origin,
+                      voxel_size=voxel_size, truncation=TRUNC)
         pics["slice"] = "slice.png"
         advance()
-        pics["floors"] = search_picture(pca64, res, out / "floors.png", mesh=exp.mesh,
+        pics["floors"] = search_picture(pca64, res, out / "floors.png", mesh=exp.mesh, device="cpu",
                                         title="floor search in the pca-64 map").name
         advance()
-        _trajectory_picture(gt, tracks, out / "trajectory.png")
+        trajectory_picture(gt, tracks, out / "trajectory.png")
         pics["trajectory"] = "trajectory.png"
-        _error_bytes_picture(rows, dense_bytes, out / "error-vs-bytes.png")
+        error_bytes_picture(rows, dense_bytes, out / "error-vs-bytes.png")
         pics["error_vs_bytes"] = "error-vs-bytes.png"
+        advance()
+        view_note = _write_view(out / "view.rrd", pca64, res, tracks["pca-64"]["poses"], gt, meshes["pca-64"])
+        if view_note is None:
+            pics["view"] = "view.rrd"
         advance()
     timings["pictures_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
@@ -536,10 +440,37 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
                "timings": timings, "machine": machine, "maps": rows, "ae_note": ae_note, "search": search_info,
                "tracking": {"frames": len(depths), "stride": track_stride, "maps": list(tracks),
                             **{n: {k2: v for k2, v in t.items() if k2 != "poses"} for n, t in tracks.items()}},
-               "pictures": pics}
+               "pictures": pics, "view_note": view_note}
     (out / "results.json").write_text(json.dumps(summary, indent=2))
     (out / "report.md").write_text(_report(summary, raw))
     return summary
+
+
+def _mesh_title(r: dict) -> str:
+    """Which map, its size on disk and its surfaces' Chamfer-L1 against the fused map."""
+    sf = r["surface"]
+    what = "the fused map (lossless)" if r["map"] == "raw" else f"the {r['map']} map"
+    chamfer = "reference" if r["map"] == "raw" else f"Chamfer-L1 {_mm(sf['chamfer_l1'])} vs fused"
+    return f"{what}: {_kib(r['bytes_on_disk'])} on disk, {chamfer}"
+
+
+def _write_view(path: Path, m: Map, res: Any, tracked: np.ndarray, gt: np.ndarray, mesh: Any) -> str | None:
+    """The demo's Rerun recording: the pca-64 map, its floor search, the tracked trajectory against ground truth.
+    Returns None when written, else why not (rerun-sdk, an optional extra, not installed)."""
+    from .errors import MissingDependencyError
+    from .metrics import Trajectory
+    from .view import write_recording
+
+    tmp = path.with_name(f".tmp-{path.name}")
+    try:
+        write_recording(m, tmp, search_result=res, trajectory=Trajectory.from_poses(tracked),
+                        groundtruth=Trajectory.from_poses(gt), mesh=mesh, application_id="sdfcodec-demo")
+    except MissingDependencyError as e:
+        tmp.unlink(missing_ok=True)
+        path.unlink(missing_ok=True)  # a recording from an earlier run would not match this report
+        return str(e)
+    tmp.replace(path)
+    return None
 
 
 def _kib(n: float | None) -> str:
@@ -679,12 +610,21 @@ def _report(s: dict, raw: Map) -> str:
         dec = "all (dense)" if x["cache"] is None else f"{x['cache']['blocks_decoded']} ({x['cache']['misses']} misses, hit rate {x['cache']['hit_rate']:.3f})"
         L.append(f"| {x['label']} | {1000 * x['ate_rmse']:.1f} mm | {1000 * x['ate_mean']:.1f} mm | "
                  f"{1000 * x['ate_max']:.1f} mm | {len(x['failures'])} | {x['frames_per_s']:.1f} | {dec} |")
-    L += ["", "![trajectory](trajectory.png)", "", "## Timings", "",
+    L += ["", "![trajectory](trajectory.png)", "", "## 3-D view", ""]
+    if s.get("view_note") is None:
+        L += ["[view.rrd](view.rrd) is a Rerun recording of the pca-64 map: its mesh coloured by each block's floor "
+              "score, every block's score as a point, the selected blocks as boxes, and the pca-64 tracked "
+              "trajectory (blue) against ground truth (green) with each pose's error (red), in metres. Open it "
+              "with `rerun view.rrd` (the viewer comes with `pip install 'sdfcodec[view]'`); `sdfcodec view` "
+              "writes one for any map.", ""]
+    else:
+        L += [f"No 3-D recording was written: {s['view_note']}.", ""]
+    L += ["## Timings", "",
           "| stage | seconds |", "|---|---|"]
     for key, label in (("render_s", "render"), ("fuse_s", "fuse"), ("exact_sdf_s", "exact distance (reference)"),
                        ("encode_s", "encode (all codecs)"), ("search_s", "search + expand + floor truth"),
                        ("surface_s", "surface metrics (all maps)"), ("track_s", f"tracking ({len(tr['maps'])} maps)"),
-                       ("pictures_s", "pictures"), ("total_s", "total")):
+                       ("pictures_s", "pictures and the 3-D recording"), ("total_s", "total")):
         L.append(f"| {label} | {t[key]:.1f} |")
     L += ["", "Everything here is measured in the run that wrote this report (`sdfcodec demo`); the numbers are "
           "also in `results.json`.", ""]

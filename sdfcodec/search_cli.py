@@ -22,7 +22,7 @@ from .errors import InvalidValueError, MapExistsError
 from .map import Map, open_map
 from .search import Expansion, SearchResult, expand, search
 
-__all__ = ["search_command", "format_summary", "search_picture", "top_down", "empty_hint"]
+__all__ = ["search_command", "format_summary", "search_picture", "selection_mesh", "top_down", "empty_hint"]
 
 
 def _basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,13 +75,55 @@ def top_down(m: Map, coords: np.ndarray, values: np.ndarray, up=(0.0, 0.0, 1.0),
     return raster, extent
 
 
+def selection_mesh(m: Map, coords: np.ndarray, *, level: int | None = None, device: str | None = None):
+    """The mesh of the blocks ``coords`` whole: decoded with their coded neighbours, meshed, and cut back to
+    the blocks (one voxel beyond them).
+
+    Marching cubes needs both sides of a block face: the cubes between a block and an absent neighbour are
+    missing from a mesh of the blocks alone, so a floor lying on a block seam (z = 0 on a grid with its
+    origin one block below) shows as fragments. The neighbours supply the far side; the cut keeps their own
+    surfaces out.
+    """
+    from .fusion import mesh_from_blocks
+
+    sel = np.asarray(coords, np.int64).reshape(-1, 3)
+    states = m.block_states()
+    grid = np.asarray(states.shape)
+    offs = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+    near = np.unique((sel[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
+    near = near[np.all((near >= 0) & (near < grid), axis=1)]
+    near = near[states[tuple(near.T)] == 2]  # coded blocks only (BlockState.CODED)
+    exp = expand(m, near, as_="blocks", level=level, device=device)
+    mesh = mesh_from_blocks(exp.coords, exp.blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
+    if not len(mesh.triangles):
+        return mesh
+    chosen = np.zeros(tuple(grid), bool)
+    chosen[tuple(sel.T)] = True
+    # a triangle stays when its centre lies within a chosen block's extent (voxels 16c - 0.5 .. 16c + 15.5)
+    # widened by one voxel: the seam cubes straddle the extents' common face
+    tri = np.asarray(mesh.triangles)
+    q = (np.asarray(mesh.vertices)[tri].mean(1) - np.asarray(m.origin)) / m.voxel_size
+    keep = np.zeros(len(tri), bool)
+    for d in offs[np.all(offs != 0, axis=1)]:
+        b = np.clip(np.floor((q + 0.5 + d) / 16).astype(np.int64), 0, grid - 1)
+        keep |= chosen[tuple(b.T)]
+    mesh.triangles = type(mesh.triangles)(tri[keep])
+    mesh.remove_unreferenced_vertices()
+    mesh.compute_vertex_normals()
+    return mesh
+
+
 def search_picture(m: Map, result: SearchResult, path: str | os.PathLike, *, mesh: Any = None, up=None,
-                   title: str | None = None) -> Path:
+                   title: str | None = None, whole_blocks: bool = True, device: str | None = None) -> Path:
     """The paper's Fig. 7 for a search: (a) the map from above, each cell coloured by the smallest descriptor
-    distance of its blocks (log scale), selected cells outlined; (b) the expanded blocks' mesh rendered from
-    above at an angle (or, without a mesh, the selected cells).
+    distance of its blocks (log scale), selected cells outlined; (b) the selected blocks decoded and meshed,
+    in a level orthographic view from above and to the side with a scale bar in metres (or, without a mesh,
+    the selected cells).
 
     Needs ``result`` from ``search(..., keep_scores=True)``. ``up`` defaults to the query's up direction.
+    Panel (b) is drawn when ``mesh`` (e.g. the expansion's) has triangles; with ``whole_blocks`` (default) it
+    shows :func:`selection_mesh` of the selection instead, which keeps the surfaces on block seams that a mesh
+    of the selected blocks alone loses.
     """
     import matplotlib
 
@@ -117,11 +159,14 @@ def search_picture(m: Map, result: SearchResult, path: str | os.PathLike, *, mes
     ax.set_aspect("equal")
     ax = axes[1]
     if has_mesh:
-        from .viz import render_mesh
+        from .viz import mesh_picture
 
-        ax.imshow(render_mesh(mesh, width=800, height=600, up=tuple(up)))
-        ax.set_title(f"(b) the {len(result)} selected blocks, decoded and meshed")
-        ax.set_axis_off()
+        how = "decoded and meshed whole" if whole_blocks else "decoded and meshed"
+        if whole_blocks:
+            mesh = selection_mesh(m, result.coords, level=result.level, device=device)
+        # the mesh's own heights (at least 1 m of tint) and the map's up: a level view, not the query's tilt
+        mesh_picture(mesh, None, up=tuple(up), width=800, height=600, ax=ax,
+                     title=f"(b) the {len(result)} selected blocks, {how}")
     else:
         ax.set_facecolor("#e6e6e6")
         ax.imshow(np.where(np.isnan(dist), np.nan, np.where(sel > 0.5, 1.0, 0.25)).T, origin="lower", extent=extent,

@@ -73,6 +73,21 @@ def test_demo_short_run(tmp_path):
 
     tr = res["tracking"]
     assert tr["frames"] == 5
+    try:
+        from rerun.chunk import RrdReader
+    except ImportError:  # without the view extra the report says why there is no recording
+        assert res["view_note"] and "sdfcodec[view]" in report and not (out / "view.rrd").exists()
+    else:
+        assert res["view_note"] is None and "`rerun view.rrd`" in report
+        got = {c.entity_path: c.to_record_batch() for c in RrdReader(out / "view.rrd").stream().to_chunks()}
+        scores = got["/world/map/search/scores"].column("score")[0].as_py()
+        assert len(scores) == se["coded_blocks"]
+        assert len(got["/world/map/search/selected"].column("Boxes3D:centers")[0]) == se["selected"]
+        est = np.asarray(got["/world/map/trajectory/estimate"].column("Points3D:positions")[0].as_py())
+        assert est.shape == (5, 3)
+        gt = np.asarray(got["/world/map/trajectory/groundtruth"].column("Points3D:positions")[0].as_py())
+        # the recorded positions' distances are the tracking errors the report gives for pca-64
+        np.testing.assert_allclose(np.linalg.norm(est - gt, axis=1), tr["pca-64"]["errors"], atol=1e-6)
     assert tr["maps"] == names  # every map is tracked, and its ATE sits in its row
     for row in res["maps"]:
         x = tr[row["map"]]
@@ -85,3 +100,52 @@ def test_demo_short_run(tmp_path):
     assert 0 < cache["blocks_decoded"] and cache["coded_blocks"] == res["coded_blocks"]
     summary = json.loads(r.stdout)
     assert summary["maps"] == res["maps"]
+
+
+def test_selection_mesh_keeps_a_floor_on_a_block_seam(tmp_path):
+    """A floor exactly between two layers of blocks (z = 15.5 voxels): a mesh of the blocks below it alone has
+    no cube across the seam, so no floor (the fragments of the old floors.png panel (b)); selection_mesh keeps
+    it, over the chosen blocks' footprint and no further than a voxel beyond."""
+    from sdfcodec.sdf import Plane, Scene, sample_volume
+    from sdfcodec.search import expand
+    from sdfcodec.search_cli import selection_mesh
+
+    vs = 0.02
+    vol = sample_volume(Scene([Plane((0, 0, 1), 15.5 * vs)]), (64, 64, 48), vs)
+    path = tmp_path / "seam.sdfz"
+    with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=vs) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    below = np.array([(i, j, 0) for i in (0, 1) for j in (0, 1)])
+    assert len(expand(m, below, as_="mesh").mesh.triangles) == 0  # the seam cubes need the blocks above
+    mesh = selection_mesh(m, below)
+    v = np.asarray(mesh.vertices)
+    np.testing.assert_allclose(v[:, 2], 15.5 * vs, atol=1e-4)  # the floor, nothing of the neighbours' own
+    side = 2 * 16 * vs
+    assert side ** 2 <= mesh.get_surface_area() <= (side + vs) ** 2
+    assert v[:, :2].max() <= side + vs and v[:, :2].min() >= 0
+
+
+def test_mesh_pictures_are_upright():
+    """A tall tower on a floor, tinted by height (sand high, blue low): its top must sit above the floor in the
+    picture, in the default orthographic view and in a perspective one (open3d's pinhole rays once turned every
+    picture by 180 degrees)."""
+    import open3d as o3d
+
+    from sdfcodec.viz import render_view
+
+    floor = o3d.geometry.TriangleMesh.create_box(3, 2, 0.02)
+    tower = o3d.geometry.TriangleMesh.create_box(0.3, 0.3, 1.5)
+    tower.translate((1.35, 0.85, 0))
+    mesh = floor + tower
+    mesh.compute_vertex_normals()
+    for view in ({}, {"eye": (-1.5, -2.5, 2.5), "target": (1.5, 1.0, 0.0)}):
+        r = render_view(mesh, width=160, height=120, **view)
+        img = r.image.astype(int)
+        hit = img.sum(-1) < 3 * 250
+        sand = hit & (img[..., 0] > img[..., 2] + 20)  # the tower's upper part
+        blue = hit & (img[..., 2] > img[..., 0] + 20)  # the floor
+        rows = np.arange(img.shape[0])[:, None] * np.ones(img.shape[1])
+        assert sand.sum() > 20 and blue.sum() > 200, view
+        assert rows[sand].min() < rows[blue].min(), view  # the tower's top rises above the floor's far edge
+    assert r.metres_per_pixel is None and render_view(mesh, width=160, height=120).metres_per_pixel > 0

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 from . import maps, work  # noqa: F401  (each module registers its commands on the app)
+from . import view  # noqa: F401  (sdfcodec view: a Rerun recording of a map)
 from .common import app
 
 __all__ = ["app", "main"]
