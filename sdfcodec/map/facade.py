@@ -208,6 +208,9 @@ class Map:
         root = self.reader.local_root()
         on_disk = _dir_bytes(root) if root is not None else None
         state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
+        code_bytes = (sum(_dir_bytes(str(Path(root) / a)) or 0 for a in ("codes", "code_scale"))
+                      if on_disk is not None else None)
+        ref = h.codec.state_reference
         counts = self.count_states()
         return {
             "location": self.location,
@@ -230,6 +233,10 @@ class Map:
             # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
             "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
             "provenance": h.provenance.model_dump(),
+            "code_bytes_on_disk": code_bytes,
+            "codec_state": ({"stored": "reference", "model": ref.model, "sha256": ref.sha256} if ref is not None
+                            else {"stored": "embedded", "sha256": h.codec.state_sha256}),
+            "state_warning": _state_warning(state_bytes, code_bytes) if ref is None else None,
         }
 
     @property
@@ -370,7 +377,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
-               surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None) -> Map:
+               surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
+               codec_state: str = "embedded") -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -395,6 +403,11 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             0 encodes every observed voxel alike.
         up: the world's up direction (opposite gravity) in the grid's axes, when known: recorded in the header
             (optional field ``up``, spec section 3) for descriptor search; normalised here.
+        codec_state: ``"embedded"`` (default: the learned state is stored in the map, which is then
+            self-contained) or ``"reference"``: only the name and digest of the shipped model the codec holds
+            (``pretrained_codec``) are stored, for collections of maps that share one codec; readers need that
+            model in the installed plugin (spec section 6c; raises InvalidValueError for a codec that holds no
+            shipped model's state).
     """
     up_unit = None
     if up is not None:
@@ -408,7 +421,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
-                                  source=source)
+                                  source=source, codec_state=codec_state)
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit
@@ -458,6 +471,17 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
     """
     return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes,
                                follow_symlinks=follow_symlinks))
+
+
+def _state_warning(state_bytes: int | None, code_bytes: int | None) -> str | None:
+    """One line when the stored codec state outweighs the stored codes (None otherwise, or unknown: remote maps)."""
+    if state_bytes is None or code_bytes is None or state_bytes <= code_bytes:
+        return None
+    mib = 1 << 20
+    return (f"the stored codec state ({state_bytes / mib:.2f} MiB) outweighs the codes ({code_bytes / mib:.2f} MiB) "
+            f"by {(state_bytes - code_bytes) / mib:.2f} MiB; for maps that share a shipped model, store it by "
+            "reference (sdfcodec encode --codec-state reference, create_map(codec_state='reference'); readers then "
+            "need that model in the installed plugin)")
 
 
 def _dir_bytes(path: str) -> int | None:
