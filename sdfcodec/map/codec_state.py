@@ -12,15 +12,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..codec import Codec
-from ..errors import ChecksumError, FormatError, InvalidValueError, ModelNotFoundError, StateReferenceError
+from ..errors import (ChecksumError, FormatError, InvalidValueError, ModelNotFoundError, SDFCodecError,
+                      StateReferenceError)
 from ..header import StateReference
-from ..registry import get_codec_class
+from ..registry import describe_shipped, get_codec_class
 from .format import state_digest
 
 if TYPE_CHECKING:
     from .reader import MapReader
 
-__all__ = ["load_codec", "shipped_reference", "resolve_reference", "describe_shipped"]
+__all__ = ["load_codec", "shipped_reference", "shipped_model_of", "resolve_reference"]
 
 #: (codec class, model, code size) -> (digest, state): a shipped model's state is cut and hashed once per process
 #: (ae-64: 0.16 s to load, 0.03 s to hash on 2 cores), however many maps name it.
@@ -35,19 +36,26 @@ def _shipped(cls: type[Codec], model: str, code_size: int) -> tuple[str, dict[st
     return _RESOLVED[key]
 
 
-def describe_shipped(cls: type[Codec]) -> str:
-    """The models ``cls``'s plugin ships, with their code sizes, for messages: ``"pca-128 (code sizes 1-128)"``;
-    ``"none"``, or ``"unknown"`` when the plugin does not list them."""
-    models = cls.shipped_models()
-    if models is None:
-        return "unknown (the plugin does not list its shipped models)"
-    parts = []
-    for name, sizes in sorted(models.items()):
-        s = sorted(sizes)
-        run = len(s) > 2 and s == list(range(s[0], s[-1] + 1))
-        parts.append(f"{name} (code size{'s' if len(s) > 1 else ''} "
-                     f"{f'{s[0]}-{s[-1]}' if run else ', '.join(map(str, s))})")
-    return ", ".join(parts) or "none"
+def _find_shipped(cls: type[Codec], code_size: int, digest: str) -> str | None:
+    for name, sizes in sorted((cls.shipped_models() or {}).items()):
+        if code_size in sizes:
+            try:
+                if _shipped(cls, name, code_size)[0] == digest:
+                    return name
+            except ModelNotFoundError:
+                continue
+    return None
+
+
+def shipped_model_of(codec_id: str, code_size: int, digest: str | None) -> str | None:
+    """The name of the model the installed plugin of ``codec_id`` ships whose state at ``code_size`` has
+    ``digest``; None when there is none, or the plugin is not installed or cannot be loaded."""
+    if digest is None:
+        return None
+    try:
+        return _find_shipped(get_codec_class(codec_id), code_size, digest)
+    except SDFCodecError:
+        return None
 
 
 def shipped_reference(codec: Codec) -> StateReference:
@@ -59,13 +67,9 @@ def shipped_reference(codec: Codec) -> StateReference:
     """
     cls, size = type(codec), codec.code_size
     digest = state_digest(codec.state_dict())
-    for name, sizes in sorted((cls.shipped_models() or {}).items()):
-        if size in sizes:
-            try:
-                if _shipped(cls, name, size)[0] == digest:
-                    return StateReference(model=name, sha256=digest)
-            except ModelNotFoundError:
-                continue
+    name = _find_shipped(cls, size, digest)
+    if name is not None:
+        return StateReference(model=name, sha256=digest)
     raise InvalidValueError(f"codec {codec.codec_id!r} (code size {size}) does not hold the state of a model its "
                             f"plugin ships (shipped: {describe_shipped(cls)}), so its state cannot be stored by "
                             "reference: store it in the map (codec_state='embedded', CLI --codec-state embedded)")

@@ -21,6 +21,7 @@ from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
 from ..header import MapHeader
+from .codec_state import shipped_model_of
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, read_observed
 from .reader import CodecCache, MapReader, open_reader
@@ -236,7 +237,7 @@ class Map:
             "code_bytes_on_disk": code_bytes,
             "codec_state": ({"stored": "reference", "model": ref.model, "sha256": ref.sha256} if ref is not None
                             else {"stored": "embedded", "sha256": h.codec.state_sha256}),
-            "state_warning": _state_warning(state_bytes, code_bytes) if ref is None else None,
+            "state_warning": _state_warning(state_bytes, code_bytes, h) if ref is None else None,
         }
 
     @property
@@ -473,15 +474,20 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
                                follow_symlinks=follow_symlinks))
 
 
-def _state_warning(state_bytes: int | None, code_bytes: int | None) -> str | None:
-    """One line when the stored codec state outweighs the stored codes (None otherwise, or unknown: remote maps)."""
+def _state_warning(state_bytes: int | None, code_bytes: int | None, h: MapHeader) -> str | None:
+    """One line when the stored codec state outweighs the stored codes (None otherwise, or unknown: remote maps),
+    with what to do: store it by reference when it is a shipped model's state, else use a shipped model."""
     if state_bytes is None or code_bytes is None or state_bytes <= code_bytes:
         return None
     mib = 1 << 20
+    model = shipped_model_of(h.codec.id, h.codes.size, h.codec.state_sha256)
+    todo = (f"it is the shipped model {model}'s: for maps that share it, store it by reference (sdfcodec encode "
+            "--codec-state reference; create_map(codec_state='reference')), readers then need that model in the "
+            "installed plugin" if model is not None else
+            "it is no shipped model's (fitted or trained): encode with a shipped model (sdfcodec codecs; without "
+            "--fit) and store that by reference (--codec-state reference), or accept the cost for a one-off map")
     return (f"the stored codec state ({state_bytes / mib:.2f} MiB) outweighs the codes ({code_bytes / mib:.2f} MiB) "
-            f"by {(state_bytes - code_bytes) / mib:.2f} MiB; for maps that share a shipped model, store it by "
-            "reference (sdfcodec encode --codec-state reference, create_map(codec_state='reference'); readers then "
-            "need that model in the installed plugin)")
+            f"by {(state_bytes - code_bytes) / mib:.2f} MiB; {todo}")
 
 
 def _dir_bytes(path: str) -> int | None:
