@@ -112,10 +112,13 @@ def test_by_reference_decodes_identically_smaller_and_verifies(ae_maps, tmp_path
     assert json.loads(run("info", ref, "--json").stdout)["codec_state"] == {"stored": "reference", "model": "ae-64",
                                                                            "sha256": digest}
 
-    # back to a self-contained map on a machine that has the model (transcoding re-encodes: lossy, close)
-    r = run("encode", ref, tmp_path / "back.sdfz", "--codec", "ae", "--codec-state", "embedded")
+    # back to a self-contained map where the model is installed: the same codec, so the codes are copied
+    r = run("encode", ref, tmp_path / "back.sdfz", "--codec", "ae", "--code-size", 64, "--codec-state", "embedded")
     assert r.exit_code == 0, r.output
-    assert sdfcodec.open_map(tmp_path / "back.sdfz").header.codec.state_arrays
+    back = sdfcodec.open_map(tmp_path / "back.sdfz")
+    assert back.header.codec.state_arrays and back.header.codec.state_reference is None
+    (c1, z1), (c2, z2) = sdfcodec.open_map(emb).read_codes(), back.read_codes()
+    assert np.array_equal(c1, c2) and np.array_equal(z1, z2)
 
 
 def _tampered(src: Path, dst: Path, **ref) -> Path:
@@ -136,7 +139,8 @@ def test_a_reference_that_does_not_resolve_is_one_clear_error(ae_maps, tmp_path)
     bad = "0" * 64
     tampered = _tampered(ref, tmp_path / "t.sdfz", sha256=bad)
     line = one_error_line(run("decode", tampered, tmp_path / "t.npy"))
-    assert "'ae-64'" in line and bad in line and "different state" in line and "--codec-state embedded" in line
+    assert "'ae-64'" in line and bad in line and "different state" in line
+    assert "--codec ae --code-size 64 --codec-state embedded" in line
     r = run("verify", tampered)
     assert r.exit_code != 0 and "codec.state_reference" in r.stdout and bad in r.stdout, r.output
     with pytest.raises(errors.StateReferenceError, match="install the version of the plugin"):

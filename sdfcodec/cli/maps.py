@@ -174,7 +174,7 @@ def encode_cmd(
             task = prog.add_task("encoding", total=nblocks, rate="")
             m.write_volume(vol, progress=lambda n: prog.advance(task, n))
     info = m.info()
-    if info["state_warning"]:
+    if info["state_warning"] and not as_json:  # --json carries it in the summary, stdout stays one document
         err.print(f"warning: {output}: {info['state_warning']}", markup=False)
     summary = {"output": str(output), "codec": codec.get_config(), "fitted_on_blocks": fitted_on,
                "codec_state": info["codec_state"], "state_warning": info["state_warning"],

@@ -103,8 +103,8 @@ def resolve_reference(cls: type[Codec], ref: StateReference, code_size: int, whe
     raise StateReferenceError(
         f"{where}: the codec state is stored by reference to model {ref.model!r} of codec {cls.codec_id!r} with "
         f"sha256 {ref.sha256}, and {why}. What to do: install the version of the plugin that ships that model, "
-        "or, on a machine that has it, re-store the map with its state embedded (sdfcodec encode MAP OUT "
-        "--codec-state embedded)")
+        f"or, on a machine that has it, re-store the map with its state embedded, codes copied unchanged "
+        f"(sdfcodec encode MAP OUT --codec {cls.codec_id} --code-size {code_size} --codec-state embedded)")
 
 
 def load_codec(reader: MapReader) -> Codec:

@@ -23,7 +23,7 @@ from ..errors import InvalidValueError, ReadOnlyError
 from ..header import MapHeader
 from .codec_state import shipped_model_of
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
-from .observed import SURFACE_WEIGHT, read_observed
+from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
@@ -307,7 +307,9 @@ class Map:
     def write_map(self, source: "Map", *, progress: Callable[[int], None] | None = None) -> None:
         """Transcode every block of the map ``source`` (same voxel size and truncation) into this one: its empty
         blocks stay empty, its coded blocks are decoded (clipped to the truncation: a lossy decode overshoots a
-        little) and encoded here with their observation (fusion weights or mask), ``progress(n)`` per batch."""
+        little) and encoded here with their observation (fusion weights or mask), ``progress(n)`` per batch.
+        When this map has the source's very codec (class, configuration and state) and float codes of the same
+        type, the codes are copied, not re-encoded: lossless, e.g. to store a state by reference or embed it."""
         if (source.voxel_size, source.truncation) != (self.voxel_size, self.truncation):
             raise InvalidValueError(f"cannot transcode {source.location} (voxel size {source.voxel_size} m, truncation "
                                     f"{source.truncation}) into a map with {self.voxel_size} m, {self.truncation}: "
@@ -317,6 +319,13 @@ class Map:
         self.mark_empty(np.argwhere(source.block_states() == 1))
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
+        dtype = self.header.codes.dtype
+        if dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec:
+            for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
+                self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
+                if progress is not None:
+                    progress(len(coords))
+            return
         for coords, blocks in source.iter_blocks():
             self.write_blocks(coords, np.clip(blocks, *self.truncation),
                               observed=source.read_observed(coords) if knows else None)

@@ -234,14 +234,15 @@ class MapWriter:
             if wt is not None:
                 self.put_weights(coords, wt.numpy())
 
-    def write_codes(self, coords: Any, codes: Any) -> None:
-        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``."""
+    def write_codes(self, coords: Any, codes: Any, masks: np.ndarray | None = None) -> None:
+        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``,
+        with their packed observation masks ``(N, 512)`` uint8 (None: observed everywhere)."""
         c = check_coords(coords)
         z, _ = as_float_tensor(codes, "codes", (len(c), self.codes_spec.size))
         with self._writing():
             if len(c):
                 self.grow_blocks(c.max(axis=0))
-            self.put_codes(c, z.numpy())
+            self.put_codes(c, z.numpy(), masks=masks)
 
     def mark_empty(self, coords: Any) -> None:
         """Record blocks ``(N, 3)`` as observed free space (no code stored)."""
