@@ -493,8 +493,8 @@ def _state_warning(state_bytes: int | None, code_bytes: int | None, h: MapHeader
     todo = (f"it is the shipped model {model}'s: for maps that share it, store it by reference (sdfcodec encode "
             "--codec-state reference; create_map(codec_state='reference')), readers then need that model in the "
             "installed plugin" if model is not None else
-            "it is no shipped model's (fitted or trained): encode with a shipped model (sdfcodec codecs; without "
-            "--fit) and store that by reference (--codec-state reference), or accept the cost for a one-off map")
+            "it is no shipped model's (fitted or trained): encode with a shipped model (no --fit or --model) and "
+            "store that by reference (--codec-state reference), or accept the cost for a one-off map")
     return (f"the stored codec state ({state_bytes / mib:.2f} MiB) outweighs the codes ({code_bytes / mib:.2f} MiB) "
             f"by {(state_bytes - code_bytes) / mib:.2f} MiB; {todo}")
 
