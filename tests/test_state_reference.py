@@ -139,7 +139,7 @@ def test_a_reference_that_does_not_resolve_is_one_clear_error(ae_maps, tmp_path)
     bad = "0" * 64
     tampered = _tampered(ref, tmp_path / "t.sdfz", sha256=bad)
     line = one_error_line(run("decode", tampered, tmp_path / "t.npy"))
-    assert "'ae-64'" in line and bad in line and "different state" in line
+    assert "'ae-64'" in line and bad in line and "ships it with another state" in line
     assert "--codec ae --code-size 64 --codec-state embedded" in line
     r = run("verify", tampered)
     assert r.exit_code != 0 and "codec.state_reference" in r.stdout and bad in r.stdout, r.output

@@ -15,7 +15,7 @@ from ..codec import Codec
 from ..errors import (ChecksumError, FormatError, InvalidValueError, ModelNotFoundError, SDFCodecError,
                       StateReferenceError)
 from ..header import StateReference
-from ..registry import describe_shipped, get_codec_class
+from ..registry import describe_shipped, get_codec_class, list_codecs
 from .format import state_digest
 
 if TYPE_CHECKING:
@@ -83,8 +83,11 @@ def resolve_reference(cls: type[Codec], ref: StateReference, code_size: int, whe
     Raises:
         StateReferenceError: no shipped model gives that state (names the model, the digest and what to do).
     """
-    models = cls.shipped_models() or {}
-    found = None
+    found = failed = None
+    try:
+        models = cls.shipped_models() or {}
+    except Exception as e:  # noqa: BLE001 - a broken plugin listing is reported, not raised as its own type
+        models, failed = {}, f"{type(e).__name__}: {e}"
     for name in [ref.model] + sorted(n for n in models if n != ref.model):
         if code_size not in models.get(name, ()):
             continue
@@ -92,19 +95,25 @@ def resolve_reference(cls: type[Codec], ref: StateReference, code_size: int, whe
             digest, state = _shipped(cls, name, code_size)
         except ModelNotFoundError:
             continue
+        except Exception as e:  # noqa: BLE001
+            failed = f"{type(e).__name__}: {e}"
+            continue
         if name == ref.model:
             found = digest
         if digest == ref.sha256:
             return state
-    version = getattr(cls, "__module__", "?").split(".")[0]
-    why = (f"the installed one gives a different state (sha256 {found[:16]}...)" if found is not None else
-           f"the installed plugin ({version}) does not ship it at code size {code_size} (it ships: "
-           f"{describe_shipped(cls)})")
+    entry = next((e for e in list_codecs() if e.id == cls.codec_id), None)
+    plugin = f"{entry.package} {entry.version}" if entry is not None and entry.package else cls.__module__
+    if found is not None:
+        why = f"the installed plugin ({plugin}) ships it with another state (sha256 {found})"
+    else:
+        why = (f"the installed plugin ({plugin}) does not ship it at code size {code_size} (it ships: "
+               f"{describe_shipped(cls)}{f'; listing its models failed: {failed}' if failed else ''})")
     raise StateReferenceError(
         f"{where}: the codec state is stored by reference to model {ref.model!r} of codec {cls.codec_id!r} with "
         f"sha256 {ref.sha256}, and {why}. What to do: install the version of the plugin that ships that model, "
         f"or, on a machine that has it, re-store the map with its state embedded, codes copied unchanged "
-        f"(sdfcodec encode MAP OUT --codec {cls.codec_id} --code-size {code_size} --codec-state embedded)")
+        f"(sdfcodec encode {where} OUT --codec {cls.codec_id} --code-size {code_size} --codec-state embedded)")
 
 
 def load_codec(reader: MapReader) -> Codec:
@@ -139,7 +148,8 @@ def load_codec(reader: MapReader) -> Codec:
                 raise FormatError(f"{where}: the codec state is over {reader.max_decode_bytes} bytes, the reader's "
                                   "limit (raise max_decode_bytes in open_map() if the map is genuine)")
             state[name] = reader.read(arr, (slice(None),) * arr.ndim)
-    if spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
+    # a referenced state was matched against the digest when resolved (state_sha256 equals it)
+    if spec.state_reference is None and spec.state_sha256 is not None and state_digest(state) != spec.state_sha256:
         raise ChecksumError(f"{where}: the codec state under codec/ does not match the digest "
                             "in the header; the map's codec arrays were altered or corrupted")
     try:
