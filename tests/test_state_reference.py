@@ -215,3 +215,21 @@ def test_choose_codec_fits_only_without_a_shipped_model():
     assert codec.is_fitted and why is None
     assert sdfcodec.get_codec("raw").shipped_models() == {}
     assert type(sdfcodec.get_codec("ae")).shipped_models() == {"ae-64": (64,)}
+
+
+def test_listed_shipped_states_are_what_pretrained_gives():
+    """Each built-in plugin's listing (what references resolve through) gives exactly the state ``pretrained``
+    serves at that size, the 64 + 64 mixtures at both code sizes (per-block and fixed weight)."""
+    from sdfcodec.registry import get_codec_class
+
+    cases = [("pca", "pca-128", 1, {}), ("pca", "pca-128", 64, {}), ("pca", "pca-128", 128, {}),
+             ("ae", "ae-64", 64, {}), ("parallel", "parallel-64-64", 129, {}),
+             ("sequential", "sequential-64-64", 129, {}), ("sequential", "sequential-64-64", 128, {"weight": 0.5})]
+    for cid, model, k, opts in cases:
+        cls = get_codec_class(cid)
+        assert k in cls.shipped_models()[model]
+        served = sdfcodec.pretrained_codec(cid, None if opts else k, **opts)
+        assert served.code_size == k
+        assert state_digest(cls.shipped_state(model, k)) == state_digest(served.state_dict()), (cid, k)
+    with pytest.raises(errors.ModelNotFoundError, match="no model 'ae-64' at code size 32"):
+        get_codec_class("ae").shipped_state("ae-64", 32)
