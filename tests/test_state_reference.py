@@ -195,6 +195,10 @@ def test_pca_reference_names_the_cut_state(volume, tmp_path):
     with pytest.raises(errors.InvalidValueError, match="cannot be stored by reference"):
         sdfcodec.create_map(tmp_path / "x.sdfz", codec=other, voxel_size=VS, codec_state="reference")
     assert not (tmp_path / "x.sdfz").exists()
+    # the CLI refuses before fitting anything
+    line = one_error_line(run("encode", volume, tmp_path / "y.sdfz", "--voxel-size", VS, "--fit",
+                              "--codec-state", "reference"))
+    assert "needs a shipped model" in line and "--fit" in line and not (tmp_path / "y.sdfz").exists()
 
 
 def test_choose_codec_fits_only_without_a_shipped_model():

@@ -147,6 +147,12 @@ def encode_cmd(
     else:  # the shipped model at that size, unless --fit or the plugin ships none (then why_fit says so)
         codec, why_fit = choose_codec(codec_id or "pca", code_size, fit=fit)
 
+    if codec_state not in ("embedded", "reference"):
+        raise InvalidValueError(f"--codec-state must be embedded or reference, got {codec_state!r}")
+    if codec_state == "reference" and not codec.is_fitted:  # refused before spending the fit
+        raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
+                                f"({why_fit}); drop --fit, pick a shipped size, or store the state "
+                                "(--codec-state embedded)")
     fitted_on = None
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
