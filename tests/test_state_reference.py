@@ -195,6 +195,12 @@ def test_pca_reference_names_the_cut_state(volume, tmp_path):
     with pytest.raises(errors.InvalidValueError, match="cannot be stored by reference"):
         sdfcodec.create_map(tmp_path / "x.sdfz", codec=other, voxel_size=VS, codec_state="reference")
     assert not (tmp_path / "x.sdfz").exists()
+    # a codec without state has nothing to reference: a plain map, readable by readers without the extension
+    with sdfcodec.create_map(tmp_path / "raw.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=VS,
+                             codec_state="reference") as m:
+        m.write_volume(np.load(volume)[:16, :16, :16])
+    h = sdfcodec.open_map(tmp_path / "raw.sdfz").header
+    assert h.extensions == [] and h.codec.state_reference is None and h.codec.state_arrays == []
     # the CLI refuses before fitting anything
     line = one_error_line(run("encode", volume, tmp_path / "y.sdfz", "--voxel-size", VS, "--fit",
                               "--codec-state", "reference"))

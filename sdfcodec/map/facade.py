@@ -417,7 +417,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             self-contained) or ``"reference"``: only the name and digest of the shipped model the codec holds
             (``pretrained_codec``) are stored, for collections of maps that share one codec; readers need that
             model in the installed plugin (spec section 6c; raises InvalidValueError for a codec that holds no
-            shipped model's state).
+            shipped model's state; a codec without learned state stores nothing either way).
     """
     up_unit = None
     if up is not None:

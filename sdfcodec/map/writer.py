@@ -468,8 +468,9 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         raise InvalidValueError(f"codec_state must be 'embedded' or 'reference', got {codec_state!r}")
     spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code)
     state = codec.state_dict()
-    # by reference: the header names the shipped model and its digest, and no state array is written
-    ref = shipped_reference(codec) if codec_state == "reference" else None
+    # by reference: the header names the shipped model and its digest, and no state array is written; a codec
+    # that learns nothing stores nothing either way, so its map stays plain (no extension older readers refuse)
+    ref = shipped_reference(codec) if codec_state == "reference" and state else None
     pkg, pkg_version = _distribution_of(codec)
     header_kw = dict(
         voxel_size=float(voxel_size), truncation=Truncation(d_min=truncation[0], d_max=truncation[1]),
