@@ -10,7 +10,8 @@ that follow it (numpy in, numpy out; a tensor in, a tensor on its device out).
 
 Optional public hooks, each with a default that is correct for every codec (spec section 4):
 :meth:`Codec.decode_affine`, :meth:`Codec.decode_bound` (decode on read), :meth:`Codec.encode_weighted`
-(per-voxel error weights: unobserved voxels and surfaces) and :meth:`Codec.fit_batches` (streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained`. Benchmark shapes are
+(per-voxel error weights: unobserved voxels and surfaces) and :meth:`Codec.fit_batches` (streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained` and listed by
+:meth:`Codec.shipped_models` / :meth:`Codec.shipped_state`. Benchmark shapes are
 registered with :func:`sdfcodec.bench.register_bench`, not declared here. Plugin authors import their tools
 from :mod:`sdfcodec.plugin`; :func:`sdfcodec.testing.check_codec` checks the contract.
 """
@@ -283,6 +284,29 @@ class Codec(abc.ABC):
         raise ModelNotFoundError(f"codec {getattr(cls, 'codec_id', cls.__qualname__)!r} ships no trained model: "
                                  "train one with `sdfcodec train` and pass it with --model")
 
+    @classmethod
+    def shipped_models(cls) -> dict[str, tuple[int, ...]] | None:
+        """The trained models this codec's plugin ships and :meth:`pretrained` serves: stable model name (e.g.
+        ``"pca-128"``) -> the code sizes (``code_size`` of the codec served) it gives, without loading any of them.
+        The default: ``{}`` (none) for a codec that does not override :meth:`pretrained`, ``None`` (cannot tell)
+        for one that does. Maps that store their codec state by reference name these models (spec/map-format.md,
+        section 6c), so a name MUST NOT be reused for other weights."""
+        return None if _overrides(cls, "pretrained") else {}
+
+    @classmethod
+    def shipped_state(cls, model: str, code_size: int) -> dict[str, np.ndarray]:
+        """The learned state (read-only arrays) a codec of ``code_size`` gets from shipped ``model``: what
+        ``pretrained(code_size).state_dict()`` holds. The default builds that codec when :meth:`shipped_models`
+        lists the model at that size; a plugin MAY override it to cut the arrays without building a codec.
+
+        Raises:
+            ModelNotFoundError: the plugin does not ship ``model``, or not at ``code_size``, or its file is missing.
+        """
+        sizes = (cls.shipped_models() or {}).get(model)
+        if sizes is None or code_size not in sizes:
+            raise ModelNotFoundError(f"codec {cls.codec_id!r} ships no model {model!r} at code size {code_size}")
+        return cls.pretrained(code_size).state_dict()
+
     # -- configuration -------------------------------------------------------------------------------
     @classmethod
     def _param_names(cls) -> list[str]:
@@ -355,4 +379,6 @@ def learns_weights(codec: Codec | type[Codec]) -> bool:
 
 def _overrides(codec: Codec | type[Codec], hook: str) -> bool:
     cls = codec if isinstance(codec, type) else type(codec)
-    return getattr(cls, hook) is not getattr(Codec, hook)
+    # classmethods are bound anew on each access: compare the functions underneath
+    mine, base = getattr(cls, hook), getattr(Codec, hook)
+    return getattr(mine, "__func__", mine) is not getattr(base, "__func__", base)

@@ -198,3 +198,12 @@ class WriteFailedError(SDFCodecError, OSError):
         advice = cls.ADVICE.get(name, "check the file system and run again")
         return cls(f"could not finish {doing} {path}: {reason}{where}; {outcome}. What to do: {advice}",
                    err.errno, err.strerror, str(err.filename) if err.filename else str(path))
+
+
+__all__ += ["StateReferenceError"]
+
+
+class StateReferenceError(FormatError):
+    """A map stores its codec state by reference to a shipped model (spec/map-format.md, section 6c) that the
+    installed plugin does not ship, or ships with another state: the message names the model and its digest and
+    says what to do (install the plugin version that ships it, or re-store the map with the state embedded)."""

@@ -15,8 +15,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serial
 
 from .errors import FormatError, VersionError
 
-__all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "parse_header",
-           "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION", "MAX_EXTENT"]
+__all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
+           "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
+           "STATE_REFERENCE_EXTENSION", "MAX_EXTENT"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -26,9 +27,15 @@ MAX_EXTENT = 2**31 - 1
 STATE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 FORMAT_VERSION = 1
 #: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a);
-#: "int8-codes": 8-bit codes with a per-block ``code_scale`` array (spec section 4a), required when used.
-KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights", "int8-codes", "observation-mask"})
+#: "int8-codes": 8-bit codes with a per-block ``code_scale`` array (spec section 4a), required when used;
+#: "codec-state-reference": the codec state named by a shipped model instead of stored (spec section 6c), required.
+KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights", "int8-codes", "observation-mask",
+                                              "codec-state-reference"})
 INT8_EXTENSION = "int8-codes"
+STATE_REFERENCE_EXTENSION = "codec-state-reference"
+#: Shipped model names in a state reference: plain words, never a path (a reader looks the name up among the
+#: models its installed plugin ships, nowhere else).
+MODEL_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$"
 
 
 class BlockState:
@@ -58,6 +65,16 @@ class Truncation(_Model):
         return self
 
 
+class StateReference(_Model):
+    """The codec state by reference: a model the codec's installed plugin ships, checked by the digest of the
+    state it gives at the map's code size (spec section 6c)."""
+
+    model: str = Field(pattern=MODEL_NAME_PATTERN, max_length=255,
+                       description="name of a model the codec's plugin ships (Codec.shipped_models), never a path")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$",
+                        description="state digest (section 6) of the arrays that model gives a codec of this size")
+
+
 class CodecSpec(_Model):
     """Which codec wrote the codes, its configuration and a digest of its learned state."""
 
@@ -69,11 +86,27 @@ class CodecSpec(_Model):
         default_factory=list, description="names of the arrays under codec/")
     state_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$",
                                      description="SHA-256 over the learned state (see spec)")
+    state_reference: StateReference | None = Field(
+        None, description="OPTIONAL (extension codec-state-reference): the state is not stored under codec/ but is "
+                          "that of a model the plugin ships; omitted when the state is stored")
+
+    @model_serializer(mode="wrap")
+    def _omit_no_reference(self, handler):
+        # a stored state leaves the field out, not null: headers of embedded maps stay byte-identical to those
+        # written before the field existed
+        out = handler(self)
+        if isinstance(out, dict) and out.get("state_reference", 0) is None:
+            out.pop("state_reference")
+        return out
 
     @model_validator(mode="after")
     def _id_matches(self) -> "CodecSpec":
         if self.config.get("id") != self.id:
             raise ValueError(f"codec.config.id ({self.config.get('id')!r}) differs from codec.id ({self.id!r})")
+        ref = self.state_reference
+        if ref is not None and (self.state_arrays or self.state_sha256 != ref.sha256):
+            raise ValueError("a codec state by reference stores no arrays (state_arrays must be empty) and "
+                             "state_sha256 must equal state_reference.sha256")
         return self
 
 
@@ -158,6 +191,10 @@ class MapHeader(_Model):
         if (self.codes.dtype == "int8") != bool(int8) or any(not e.required for e in int8):
             raise ValueError(f"codes.dtype 'int8' and the required extension {INT8_EXTENSION!r} go together "
                              f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
+        refs = [e for e in self.extensions if e.name == STATE_REFERENCE_EXTENSION]
+        if (self.codec.state_reference is not None) != bool(refs) or any(not e.required for e in refs):
+            raise ValueError(f"codec.state_reference and the required extension {STATE_REFERENCE_EXTENSION!r} go "
+                             f"together (extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self

@@ -16,10 +16,11 @@ from importlib import metadata
 from typing import Any, Mapping
 
 from .codec import Codec
-from .errors import CodecTypeError, PluginLoadError, RegistrationError, UnknownCodecError
+from .errors import (CodecTypeError, InvalidValueError, ModelNotFoundError, PluginLoadError, RegistrationError,
+                     UnknownCodecError)
 
 __all__ = ["list_codecs", "get_codec", "get_codec_class", "register_codec", "codec_package", "pretrained_codec",
-           "CodecEntry"]
+           "choose_codec", "describe_shipped", "CodecEntry"]
 
 ENTRY_POINT_GROUP = "sdfcodec.codecs"
 _ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
@@ -133,6 +134,50 @@ def pretrained_codec(codec_id: str, code_size: int | None = None, **options: Any
         ModelNotFoundError: the codec ships no model (or none at that size).
     """
     return get_codec_class(codec_id).pretrained(code_size, **options)
+
+
+def describe_shipped(cls: type[Codec]) -> str:
+    """The models ``cls``'s plugin ships with their code sizes, for messages: ``"pca-128 (code sizes 1-128)"``;
+    ``"none"``, or ``"unknown ..."`` when the plugin does not list them (:meth:`Codec.shipped_models`)."""
+    models = cls.shipped_models()
+    if models is None:
+        return "unknown (the plugin does not list its shipped models)"
+    parts = []
+    for name, sizes in sorted(models.items()):
+        s = sorted(sizes)
+        run = len(s) > 2 and s == list(range(s[0], s[-1] + 1))
+        parts.append(f"{name} (code size{'s' if len(s) > 1 else ''} "
+                     f"{f'{s[0]}-{s[-1]}' if run else ', '.join(map(str, s))})")
+    return ", ".join(parts) or "none"
+
+
+def choose_codec(codec_id: str = "pca", code_size: int | None = None, *, fit: bool = False
+                 ) -> tuple[Codec, str | None]:
+    """The codec to encode with when no trained model is given (what ``sdfcodec encode`` uses): the model the
+    plugin ships at ``code_size`` (None: the codec's default), else a new codec of that size, unfitted if it
+    learns (also with ``fit``), to be fitted on the data.
+
+    Returns:
+        ``(codec, why)``: ``why`` is None when the codec is ready (shipped, or it learns nothing), else one line
+        saying why it must be fitted (naming the sizes the plugin ships, when it lists them).
+    Raises:
+        UnknownCodecError / PluginLoadError: as :func:`get_codec_class`.
+    """
+    cls = get_codec_class(codec_id)
+    if not fit:
+        try:
+            return cls.pretrained(code_size), None
+        # spec/codec-plugins.md section 7: no model at all, or none at this size (we pass no options)
+        except (ModelNotFoundError, InvalidValueError):
+            pass
+    codec = get_codec(codec_id, **({"code_size": code_size} if code_size is not None else {}))
+    if codec.is_fitted:
+        return codec, None
+    if fit:
+        return codec, "asked to fit (--fit) instead of using the shipped model"
+    size = "its default code size" if code_size is None else f"code size {code_size}"
+    return codec, (f"codec {codec_id!r} ships no model at {size} (shipped: {describe_shipped(cls)}); "
+                   "pass --model to use a trained one")
 
 
 def register_codec(cls: type[Codec], *, replace: bool = False) -> type[Codec]:

@@ -7,7 +7,8 @@ What is checked (spec/map-format.md):
 * every stored chunk of every array reads back: its checksum matches and it decompresses, and it is a regular
   file inside the map (no symbolic link, FIFO, device, socket or directory: spec section 9a);
 * block states hold only defined values; every coded block has its code chunks and finite code values;
-* the codec state under ``codec/`` matches ``codec.state_sha256``, and the listed arrays are all there;
+* the codec state under ``codec/`` matches ``codec.state_sha256``, and the listed arrays are all there (a state
+  by reference: the installed plugin ships the model named, and its state has the digest named);
 * the codec plugin is installed, accepts the stored configuration and state, and decodes the stored codes
   (up to ``decode_blocks`` of them) to finite blocks within :data:`sdfcodec.map.format.DECODE_LIMIT`.
 
@@ -27,7 +28,7 @@ import numpy as np
 import torch
 import zarr
 
-from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError
+from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from .header import BlockState, parse_header
 
 __all__ = ["Problem", "VerifyReport", "verify_map", "verify_command"]
@@ -289,9 +290,9 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
     if not complete:
         return
     try:
-        codec = m.codec
+        codec = m.codec  # a state by reference resolves here: the shipped model's state against its digest
     except SDFCodecError as e:
-        rep.problem("codec", str(e))
+        rep.problem("header field codec.state_reference" if isinstance(e, StateReferenceError) else "codec", str(e))
         return
     if decode_blocks <= 0:
         return

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from sdfcodec import Codec
-from sdfcodec.errors import InvalidValueError
+from sdfcodec.errors import InvalidValueError, ModelNotFoundError
 from sdfcodec.plugin import (TrainableCodec, load_shipped_model, load_state_file, register_bench, save_model,
                              save_state_file, shipped_model_file)
 
@@ -168,6 +168,15 @@ class AECodec(TrainableCodec):
             raise InvalidValueError(f"the shipped ae-64 takes no options, got {sorted(options)}")
         base = load_shipped_model(__name__, SHIPPED_MODEL)
         return cls(**{n: v for n, v in base.get_config().items() if n != "id"}).load_state_dict(base.state_dict())
+
+    @classmethod
+    def shipped_models(cls) -> dict[str, tuple[int, ...]]:
+        """``{"ae-64": (64,)}`` (``{}`` when the file is not installed); nothing is loaded."""
+        try:
+            shipped_model_file(__name__, SHIPPED_MODEL)
+        except ModelNotFoundError:
+            return {}
+        return {SHIPPED_MODEL.removesuffix(".npz"): (64,)}
 
     @classmethod
     def untrained(cls, code_size: int = 64, hidden: int = 512, output: str = "sigmoid", seed: int = 0) -> "AECodec":

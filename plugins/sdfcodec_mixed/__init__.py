@@ -48,8 +48,9 @@ import torch
 
 import sdfcodec
 from sdfcodec import Codec
-from sdfcodec.errors import InvalidValueError, SDFCodecError, ShapeError
-from sdfcodec.plugin import TrainableCodec, get_codec_class, load_shipped_model, pretrained_codec, register_bench
+from sdfcodec.errors import InvalidValueError, ModelNotFoundError, SDFCodecError, ShapeError
+from sdfcodec.plugin import (TrainableCodec, get_codec_class, load_shipped_model, pretrained_codec, register_bench,
+                             shipped_model_file)
 
 __all__ = ["ParallelCodec", "SequentialCodec", "weight_stats", "parallel_weight", "sequential_weight",
            "default_parallel", "default_sequential", "SHIPPED_SEQUENTIAL"]
@@ -248,6 +249,23 @@ class _Mixture(TrainableCodec):
         return cls._shipped_model(weight)
 
     @classmethod
+    def shipped_models(cls) -> dict[str, tuple[int, ...]]:
+        """``{"<id>-64-64": (128, 129)}``: the shipped 64 + 64 with a fixed or a per-block weight (``{}`` when its
+        parts are not installed); nothing is loaded."""
+        return {f"{cls.codec_id}-64-64": (128, 129)} if cls._shipped_installed() else {}
+
+    @classmethod
+    def shipped_state(cls, model: str, code_size: int) -> dict[str, np.ndarray]:
+        """The shipped 64 + 64's arrays (the same for every weight, hence for code sizes 128 and 129)."""
+        if code_size not in cls.shipped_models().get(model, ()):
+            raise ModelNotFoundError(f"codec {cls.codec_id!r} ships no model {model!r} at code size {code_size}")
+        return cls._shipped_model("block").state_dict()
+
+    @classmethod
+    def _shipped_installed(cls) -> bool:
+        raise NotImplementedError
+
+    @classmethod
     def _shipped_model(cls, weight: str | float) -> "_Mixture":
         raise NotImplementedError
 
@@ -302,6 +320,10 @@ class ParallelCodec(_Mixture):
     _shipped_phrase = "shipped (eigenshapes + ae-64.npz)"
 
     @classmethod
+    def _shipped_installed(cls) -> bool:
+        return all(get_codec_class(c).shipped_models() for c in ("pca", "ae"))
+
+    @classmethod
     def _shipped_model(cls, weight: str | float) -> "ParallelCodec":
         return default_parallel(weight)
 
@@ -334,6 +356,13 @@ class SequentialCodec(_Mixture):
     codec_id = "sequential"
     _ae_output = "tanh"
     _shipped_phrase = "shipped (sequential-64-64.npz)"
+
+    @classmethod
+    def _shipped_installed(cls) -> bool:
+        try:
+            return bool(shipped_model_file(__name__, SHIPPED_SEQUENTIAL))
+        except ModelNotFoundError:
+            return False
 
     @classmethod
     def _shipped_model(cls, weight: str | float) -> "SequentialCodec":

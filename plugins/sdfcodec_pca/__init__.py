@@ -34,8 +34,8 @@ from scipy.linalg import eigh
 from sklearn.decomposition import PCA
 
 from sdfcodec import Codec
-from sdfcodec.errors import InvalidValueError, ShapeError
-from sdfcodec.plugin import empty, load_shipped_model
+from sdfcodec.errors import InvalidValueError, ModelNotFoundError, ShapeError
+from sdfcodec.plugin import empty, load_shipped_model, shipped_model_file
 
 __all__ = ["PCACodec", "SHIPPED_MODEL", "RIDGE", "WEIGHTED_FIT_ITERATIONS"]
 
@@ -306,6 +306,16 @@ class PCACodec(Codec):
             raise InvalidValueError(f"the shipped PCA model has {base.code_size} components; code_size must be in "
                                     f"1..{base.code_size}, got {k} (train a larger one with `sdfcodec train`)")
         return base.prefix(k)
+
+    @classmethod
+    def shipped_models(cls) -> dict[str, tuple[int, ...]]:
+        """``{"pca-128": (1, ..., 128)}``: the shipped eigenshapes serve every prefix, each a different state
+        (the first k components); ``{}`` when the file is not installed. Nothing is loaded."""
+        try:
+            shipped_model_file(__name__, SHIPPED_MODEL)
+        except ModelNotFoundError:
+            return {}
+        return {SHIPPED_MODEL.removesuffix(".npz"): tuple(range(1, 129))}
 
     # -- encode / decode: one affine map each ---------------------------------------------------------
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:

@@ -76,6 +76,11 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
         rows += [("on disk", f"{human_bytes(info['bytes_on_disk'])} (codec state {human_bytes(info['codec_state_bytes'])})"),
                  ("ratio dense : disk", f"{info['ratio_dense_to_disk']:.1f} : 1"),
                  ("ratio dense : disk without codec state", f"{info['ratio_dense_to_codes']:.1f} : 1")]
+    cs = info["codec_state"]
+    rows.append(("codec state", f"by reference to shipped model {cs['model']} (sha256 {cs['sha256']})"
+                 if cs["stored"] == "reference" else f"embedded (sha256 {cs['sha256']})"))
+    if info["state_warning"]:
+        rows.append(("warning", info["state_warning"]))
     for k, v in rows:
         table.add_row(k, v)
     out.print(table)
@@ -96,20 +101,23 @@ def encode_cmd(
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 code storage (int8: per-block offset and scale, a quarter of float32)."),
     fit: bool = typer.Option(False, "--fit", help="Fit the codec on the input instead of the shipped model."),
     fit_max_blocks: int = typer.Option(100_000, "--fit-max-blocks", help="Blocks sampled to fit a codec."),
+    codec_state: str = typer.Option("embedded", "--codec-state", help="embedded: the map stores the codec's learned state (self-contained); reference: only the name and digest of the shipped model (readers need it in the installed plugin)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     device: str = typer.Option("cpu", "--device", help="Torch device to encode on (cpu, cuda)."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
-    The codec comes from --model, else (pca) the shipped default eigenshapes cut to --code-size (default 64),
-    else it is fitted on the input's non-empty blocks (also with --fit); the map stores it either way.
+    The codec comes from --model, else the model its plugin ships at --code-size (pca: the eigenshapes cut to
+    it, default 64; ae: ae-64; parallel, sequential: 64 + 64), else it is fitted on the input's non-empty
+    blocks (also with --fit). The map stores the codec's state, or with --codec-state reference only a
+    reference to the shipped model.
     """
     from ..blocks import normalise, split_blocks
     from ..map import create_map, open_map
     from ..map.format import check_volume
     from ..model import load_model
-    from ..registry import get_codec
+    from ..registry import choose_codec
 
     refuse_existing(output, overwrite, map_output=True)
     src_map = None
@@ -128,6 +136,7 @@ def encode_cmd(
         org = parse_triple(origin, "--origin") or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
         vol = check_volume(vol, trunc)
 
+    why_fit = "the model given needs fitting"
     if model is not None:
         codec = load_model(model)
         if codec_id and codec_id != codec.codec_id:
@@ -135,14 +144,15 @@ def encode_cmd(
         if code_size and code_size != codec.code_size:
             raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
                                     f"(code size {codec.code_size})")
-    elif (codec_id or "pca") == "pca" and not fit:
-        from ..registry import pretrained_codec
+    else:  # the shipped model at that size, unless --fit or the plugin ships none (then why_fit says so)
+        codec, why_fit = choose_codec(codec_id or "pca", code_size, fit=fit)
 
-        codec = pretrained_codec("pca", code_size or 64)
-    else:
-        params = {"code_size": code_size} if code_size else {}
-        codec = get_codec(codec_id or "pca", **params)
-
+    if codec_state not in ("embedded", "reference"):
+        raise InvalidValueError(f"--codec-state must be embedded or reference, got {codec_state!r}")
+    if codec_state == "reference" and not codec.is_fitted:  # refused before spending the fit
+        raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
+                                f"({why_fit}); drop --fit, pick a shipped size, or store the state "
+                                "(--codec-state embedded)")
     fitted_on = None
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
@@ -154,12 +164,13 @@ def encode_cmd(
             sample, coords = np.concatenate([b for _, b in pairs]), np.concatenate([c for c, _ in pairs])
             observed = src_map.read_observed(coords) if src_map.records_observation else None
         fitted_on = fit_codec(codec, normalise(sample, *trunc), observed, trunc, vs, max_blocks=fit_max_blocks, log=lambda n:
-                              err.print(f"fitting {codec!r} on {n} non-empty blocks of the input (pass --model to use a trained one)"))
+                              err.print(f"fitting {codec!r} on {n} non-empty blocks of the input: {why_fit}", markup=False))
 
     shape = src_map.shape_voxels if src_map is not None else (0, 0, 0)
     with progress_bar() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,
                                          shape_voxels=shape, code_dtype=code_dtype, overwrite=overwrite,
-                                         device=device, tool="sdfcodec encode", source=str(input)) as m:
+                                         device=device, tool="sdfcodec encode", source=str(input),
+                                         codec_state=codec_state) as m:
         if src_map is not None:
             total = src_map.count_states()["coded"]
             task = prog.add_task("transcoding", total=total, rate="")
@@ -169,7 +180,10 @@ def encode_cmd(
             task = prog.add_task("encoding", total=nblocks, rate="")
             m.write_volume(vol, progress=lambda n: prog.advance(task, n))
     info = m.info()
+    if info["state_warning"] and not as_json:  # --json carries it in the summary, stdout stays one document
+        err.print(f"warning: {output}: {info['state_warning']}", markup=False)
     summary = {"output": str(output), "codec": codec.get_config(), "fitted_on_blocks": fitted_on,
+               "codec_state": info["codec_state"], "state_warning": info["state_warning"],
                "blocks": info["blocks"], "bytes_on_disk": info["bytes_on_disk"],
                "ratio_dense_to_disk": info["ratio_dense_to_disk"]}
     report(summary, as_json, lambda: (

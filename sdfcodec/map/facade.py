@@ -21,8 +21,9 @@ from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
 from ..header import MapHeader
+from .codec_state import shipped_model_of
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
-from .observed import SURFACE_WEIGHT, read_observed
+from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
@@ -208,6 +209,9 @@ class Map:
         root = self.reader.local_root()
         on_disk = _dir_bytes(root) if root is not None else None
         state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
+        code_bytes = (sum(_dir_bytes(str(Path(root) / a)) or 0 for a in ("codes", "code_scale"))
+                      if on_disk is not None else None)
+        ref = h.codec.state_reference
         counts = self.count_states()
         return {
             "location": self.location,
@@ -230,6 +234,10 @@ class Map:
             # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
             "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
             "provenance": h.provenance.model_dump(),
+            "code_bytes_on_disk": code_bytes,
+            "codec_state": ({"stored": "reference", "model": ref.model, "sha256": ref.sha256} if ref is not None
+                            else {"stored": "embedded", "sha256": h.codec.state_sha256}),
+            "state_warning": _state_warning(state_bytes, code_bytes, h) if ref is None else None,
         }
 
     @property
@@ -299,7 +307,9 @@ class Map:
     def write_map(self, source: "Map", *, progress: Callable[[int], None] | None = None) -> None:
         """Transcode every block of the map ``source`` (same voxel size and truncation) into this one: its empty
         blocks stay empty, its coded blocks are decoded (clipped to the truncation: a lossy decode overshoots a
-        little) and encoded here with their observation (fusion weights or mask), ``progress(n)`` per batch."""
+        little) and encoded here with their observation (fusion weights or mask), ``progress(n)`` per batch.
+        When this map has the source's very codec (class, configuration and state) and float codes of the same
+        type, the codes are copied, not re-encoded: lossless, e.g. to store a state by reference or embed it."""
         if (source.voxel_size, source.truncation) != (self.voxel_size, self.truncation):
             raise InvalidValueError(f"cannot transcode {source.location} (voxel size {source.voxel_size} m, truncation "
                                     f"{source.truncation}) into a map with {self.voxel_size} m, {self.truncation}: "
@@ -309,6 +319,13 @@ class Map:
         self.mark_empty(np.argwhere(source.block_states() == 1))
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
+        dtype = self.header.codes.dtype
+        if dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec:
+            for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
+                self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
+                if progress is not None:
+                    progress(len(coords))
+            return
         for coords, blocks in source.iter_blocks():
             self.write_blocks(coords, np.clip(blocks, *self.truncation),
                               observed=source.read_observed(coords) if knows else None)
@@ -370,7 +387,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
-               surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None) -> Map:
+               surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
+               codec_state: str = "embedded") -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -395,6 +413,11 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             0 encodes every observed voxel alike.
         up: the world's up direction (opposite gravity) in the grid's axes, when known: recorded in the header
             (optional field ``up``, spec section 3) for descriptor search; normalised here.
+        codec_state: ``"embedded"`` (default: the learned state is stored in the map, which is then
+            self-contained) or ``"reference"``: only the name and digest of the shipped model the codec holds
+            (``pretrained_codec``) are stored, for collections of maps that share one codec; readers need that
+            model in the installed plugin (spec section 6c; raises InvalidValueError for a codec that holds no
+            shipped model's state; a codec without learned state stores nothing either way).
     """
     up_unit = None
     if up is not None:
@@ -408,7 +431,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
-                                  source=source)
+                                  source=source, codec_state=codec_state)
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit
@@ -458,6 +481,22 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
     """
     return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes,
                                follow_symlinks=follow_symlinks))
+
+
+def _state_warning(state_bytes: int | None, code_bytes: int | None, h: MapHeader) -> str | None:
+    """One line when the stored codec state outweighs the stored codes (None otherwise, or unknown: remote maps),
+    with what to do: store it by reference when it is a shipped model's state, else use a shipped model."""
+    if state_bytes is None or code_bytes is None or state_bytes <= code_bytes:
+        return None
+    mib = 1 << 20
+    model = shipped_model_of(h.codec.id, h.codes.size, h.codec.state_sha256)
+    todo = (f"it is the shipped model {model}'s: for maps that share it, store it by reference (sdfcodec encode "
+            "--codec-state reference; create_map(codec_state='reference')), readers then need that model in the "
+            "installed plugin" if model is not None else
+            "it is no shipped model's (fitted or trained): encode with a shipped model (no --fit or --model) and "
+            "store that by reference (--codec-state reference), or accept the cost for a one-off map")
+    return (f"the stored codec state ({state_bytes / mib:.2f} MiB) outweighs the codes ({code_bytes / mib:.2f} MiB) "
+            f"by {(state_bytes - code_bytes) / mib:.2f} MiB; {todo}")
 
 
 def _dir_bytes(path: str) -> int | None:

@@ -26,10 +26,11 @@ from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, BlockState, CodecSpec, CodesSpec,
-                      Extension, MapHeader, Provenance, Truncation, now_iso)
+from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION, BlockState,
+                      CodecSpec, CodesSpec, Extension, MapHeader, Provenance, Truncation, now_iso)
 from ..quantize import quantize_codes
 from ..registry import codec_package
+from .codec_state import shipped_reference
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
                      free_space, state_digest)
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
@@ -233,14 +234,15 @@ class MapWriter:
             if wt is not None:
                 self.put_weights(coords, wt.numpy())
 
-    def write_codes(self, coords: Any, codes: Any) -> None:
-        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``."""
+    def write_codes(self, coords: Any, codes: Any, masks: np.ndarray | None = None) -> None:
+        """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``,
+        with their packed observation masks ``(N, 512)`` uint8 (None: observed everywhere)."""
         c = check_coords(coords)
         z, _ = as_float_tensor(codes, "codes", (len(c), self.codes_spec.size))
         with self._writing():
             if len(c):
                 self.grow_blocks(c.max(axis=0))
-            self.put_codes(c, z.numpy())
+            self.put_codes(c, z.numpy(), masks=masks)
 
     def mark_empty(self, coords: Any) -> None:
         """Record blocks ``(N, 3)`` as observed free space (no code stored)."""
@@ -356,6 +358,8 @@ class MapWriter:
             if tuple(self.mask.shape[:3]) != self.grid:
                 self.mask.resize((*self.grid, MASK_BYTES))
             extensions.append(Extension(name=MASK_EXTENSION, required=True))
+        if self.header_kw["codec"].state_reference is not None:
+            extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
@@ -438,8 +442,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   truncation: tuple[float, float] = (-0.04, 0.1), origin: Sequence[float] = (0.0, 0.0, 0.0),
                   shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                   chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
-                  device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None
-                  ) -> MapWriter:
+                  device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
+                  codec_state: str = "embedded") -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -460,14 +464,20 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     check_truncation(*truncation)
     if len(origin) != 3 or not np.all(np.isfinite(origin)):
         raise InvalidValueError(f"origin must be three finite numbers (metres), got {origin!r}")
+    if codec_state not in ("embedded", "reference"):
+        raise InvalidValueError(f"codec_state must be 'embedded' or 'reference', got {codec_state!r}")
     spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code)
     state = codec.state_dict()
+    # by reference: the header names the shipped model and its digest, and no state array is written; a codec
+    # that learns nothing stores nothing either way, so its map stays plain (no extension older readers refuse)
+    ref = shipped_reference(codec) if codec_state == "reference" and state else None
     pkg, pkg_version = _distribution_of(codec)
     header_kw = dict(
         voxel_size=float(voxel_size), truncation=Truncation(d_min=truncation[0], d_max=truncation[1]),
         origin=tuple(float(o) for o in origin),
         codec=CodecSpec(id=codec.codec_id, config=codec.get_config(), package=pkg, package_version=pkg_version,
-                        state_arrays=sorted(state), state_sha256=state_digest(state) if state else None),
+                        state_arrays=[] if ref else sorted(state), state_sha256=state_digest(state) if state else None,
+                        state_reference=ref),
         provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
     )
     bad_names = [n for n in state if not re.fullmatch(STATE_NAME_PATTERN, n)]
@@ -486,10 +496,11 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
 
     try:
         with _write_errors(final, doing, outcome, cleanup=discard):
-            group = _new_group(tmp, codec, state, spec, code_dtype, shape_voxels)
+            group = _new_group(tmp, codec, {} if ref else state, spec, code_dtype, shape_voxels)
+        extensions = [Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else []
+        extensions += [Extension(name=STATE_REFERENCE_EXTENSION)] if ref else []
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
-                           codes=spec, extensions=[Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else [],
-                           **header_kw)
+                           codes=spec, extensions=extensions, **header_kw)
     except WriteFailedError:
         raise  # already cleaned up
     except BaseException:
