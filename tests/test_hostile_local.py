@@ -37,6 +37,7 @@ CHUNK = "codes/c/0/0/0/0"  # holds coded blocks of the base map (checked by the 
 CHUNK2 = "codes/c/0/0/0/1"  # the same blocks' code elements 32..63
 STATE_CHUNK = "state/c/0/0/0"
 MEAN_CHUNK = "codec/mean/c/0"
+COMPONENTS_CHUNK = "codec/components/c/0/0"  # 1 MiB: two 512 KiB Blosc blocks when split
 
 
 def _volume(shift: float) -> np.ndarray:
@@ -210,6 +211,40 @@ def _with_crc32c(body: bytes) -> bytes:
 def garbage_with_checksum(key: str):
     """Random bytes where Blosc data belongs, under a checksum that matches them."""
     return overwrite_bytes(key, lambda b: _with_crc32c(os.urandom(max(len(b) - 4, 16))))
+
+
+def _split_frame(body: bytes) -> bytearray:
+    """The chunk's data (a map's Blosc/zstd frame without its checksum) re-compressed as a Blosc frame whose
+    blocks are split into one stream per byte of the float32 type (lz4, shuffled; c-blosc picks 512 KiB blocks
+    then): the layout in which a block's later streams carry lengths of their own (zstd frames, as the writers
+    make them, are not split)."""
+    from numcodecs import Blosc
+
+    data = np.frombuffer(Blosc().decode(body), "<f4")
+    frame = bytearray(Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE).encode(data))
+    assert not frame[2] & 0x12 and frame[3] == 4, "expected a split, compressed frame"
+    return frame
+
+
+def _stream_at(frame: bytes, block: int, stream: int) -> int:
+    """Byte offset of the length of ``stream`` of ``block`` in a split Blosc frame."""
+    pos = int.from_bytes(frame[16 + 4 * block:20 + 4 * block], "little")
+    for _ in range(stream):
+        pos += 4 + int.from_bytes(frame[pos:pos + 4], "little", signed=True)
+    return pos
+
+
+def blosc_stream(key: str, block: int, stream: int, fn):
+    """Re-compress ``key`` as a split Blosc frame, set the length of ``stream`` of ``block`` (-1: the last
+    block) to ``fn(length, frame)`` and recompute the CRC32C, so that only the frame's structure is wrong."""
+    def edit(path: Path, ctx: dict) -> None:
+        frame = _split_frame((path / key).read_bytes()[:-4])
+        nblocks = (len(frame) and -(-int.from_bytes(frame[4:8], "little") // int.from_bytes(frame[8:12], "little")))
+        at = _stream_at(frame, block % nblocks, stream)
+        old = int.from_bytes(frame[at:at + 4], "little", signed=True)
+        frame[at:at + 4] = int(fn(old, frame)).to_bytes(4, "little", signed=True)
+        (path / key).write_bytes(_with_crc32c(bytes(frame)))
+    return edit
 
 
 def array_values(name: str, fn):
@@ -486,6 +521,15 @@ CASES = [
     ("int8-code-scale-chunk-flipped-bit", flip_byte("code_scale/c/0/0/0/0"), r"checksum|corrupted", None, "int8"),
     ("int8-code-chunk-garbage-under-valid-checksum", garbage_with_checksum(CHUNK),
      r"corrupted|claims|Blosc|codes", None, "int8"),
+    # Blosc frames split into streams, a later stream's length tampered under a recomputed CRC32C
+    ("chunk-blosc-later-stream-huge", blosc_stream(CHUNK, 0, 2, lambda n, f: 2**30), r"stream 2 claims",
+     None, "base"),
+    ("chunk-blosc-later-stream-negative", blosc_stream(CHUNK, 0, 3, lambda n, f: -8), r"stream 3 claims",
+     None, "base"),
+    ("chunk-blosc-last-stream-one-past-end", blosc_stream(CHUNK, -1, 3, lambda n, f: n + 1),
+     r"stream 3 claims", None, "base"),
+    ("codec-state-chunk-blosc-later-stream", blosc_stream(COMPONENTS_CHUNK, 1, 2, lambda n, f: len(f)),
+     r"block 1's stream 2 claims", None, "base"),
 ]
 
 
@@ -609,3 +653,47 @@ def test_follow_symlinks_opt_in(maps, tmp_path):
     link(CHUNK, "/dev/zero")(path, {})
     with pytest.raises(SDFCodecError, match="character device"):
         sdfcodec.open_map(path, follow_symlinks=True).decode_region()
+
+
+def test_blosc_split_streams_are_walked(maps, tmp_path):
+    """A Blosc block split into streams (shuffled, by c-blosc's own rule) has a length per stream; the read guard
+    walks every one of every block: a valid split frame reads as before (a map chunk re-compressed that way
+    decodes bit for bit), and each stream's length set past the frame, negative, or one byte too long is
+    named, block and stream, before the decompressor sees it."""
+    from sdfcodec.map.stores import blosc_frame_problem
+
+    from numcodecs import Blosc
+
+    body = (maps["base"] / MEAN_CHUNK).read_bytes()[:-4]
+    # 2.3 blocks of 512 KiB: two split into 4 streams, the short last one a single stream (c-blosc's rule)
+    data = (np.arange(300_000) % 97).astype("<f4")
+    frame = bytearray(Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE).encode(data))
+    nbytes, blocksize = (int.from_bytes(frame[i:i + 4], "little") for i in (4, 8))
+    nblocks = -(-nbytes // blocksize)
+    assert nblocks == 3 and not frame[2] & 0x12 and blosc_frame_problem(bytes(frame), nbytes) is None
+    assert _stream_at(frame, 2, 1) == len(frame)  # the last block has one stream, ending the frame
+    for block in range(nblocks):
+        for stream in range(4 if block < 2 else 1):
+            at = _stream_at(frame, block, stream)
+            old = int.from_bytes(frame[at:at + 4], "little", signed=True)
+            for new, what in ((len(frame), "claims"), (-1, "claims"), (old + len(frame) - at, "claims")):
+                bad = bytearray(frame)
+                bad[at:at + 4] = new.to_bytes(4, "little", signed=True)
+                problem = blosc_frame_problem(bytes(bad), nbytes)
+                assert problem is not None and f"block {block}'s stream {stream}" in problem, (block, stream, new)
+    # the last stream of the frame ends exactly at its end: one byte more is past it, one less is not
+    at = _stream_at(frame, nblocks - 1, 0)
+    old = int.from_bytes(frame[at:at + 4], "little", signed=True)
+    assert at + 4 + old == len(frame)
+    for delta, ok in ((1, False), (-1, True)):
+        bad = bytearray(frame)
+        bad[at:at + 4] = (old + delta).to_bytes(4, "little", signed=True)
+        assert (blosc_frame_problem(bytes(bad), nbytes) is None) == ok, delta
+    # a frame that does not split (flag 0x10) is walked as one stream per block: its valid zstd frames pass
+    assert body[2] & 0x10 and blosc_frame_problem(body, nbytes) is None
+    # end to end: the same map with both chunks re-compressed as split frames decodes bit for bit
+    path = tmp_path / "split.sdfz"
+    shutil.copytree(maps["base"], path)
+    for key in (MEAN_CHUNK, COMPONENTS_CHUNK, CHUNK):
+        (path / key).write_bytes(_with_crc32c(bytes(_split_frame((path / key).read_bytes()[:-4]))))
+    assert np.array_equal(sdfcodec.open_map(path).decode_region(), maps["base_ref"])
