@@ -697,3 +697,113 @@ def test_blosc_split_streams_are_walked(maps, tmp_path):
     for key in (MEAN_CHUNK, COMPONENTS_CHUNK, CHUNK):
         (path / key).write_bytes(_with_crc32c(bytes(_split_frame((path / key).read_bytes()[:-4]))))
     assert np.array_equal(sdfcodec.open_map(path).decode_region(), maps["base_ref"])
+
+
+# -- zip maps (read-only): members bounded as local files are ---------------------------------------------
+def _zip_map(src: Path, dest: Path, replace: dict | None = None, method=None) -> Path:
+    """``src``'s files as a deflated zip map at ``dest``; ``replace`` maps a key to the bytes stored instead
+    (``method``: a zipfile compression constant for those members)."""
+    import zipfile
+
+    replace = replace or {}
+    with zipfile.ZipFile(dest, "w", zipfile.ZIP_DEFLATED) as z:
+        for p in sorted(src.rglob("*")):
+            if p.is_file():
+                key = p.relative_to(src).as_posix()
+                if key in replace:
+                    z.writestr(key, replace[key], compress_type=method or zipfile.ZIP_DEFLATED)
+                else:
+                    z.write(p, key)
+    return dest
+
+
+def _declare_size(zip_path: Path, key: str, size: int) -> None:
+    """Make the zip's central directory declare ``size`` uncompressed bytes for member ``key`` (a lie)."""
+    data = bytearray(zip_path.read_bytes())
+    at = data.find(b"PK\x01\x02" + bytes(24)[:0])
+    while at >= 0:
+        n = int.from_bytes(data[at + 28:at + 30], "little")
+        if data[at + 46:at + 46 + n].decode() == key:
+            data[at + 24:at + 28] = size.to_bytes(4, "little")
+            zip_path.write_bytes(bytes(data))
+            return
+        at = data.find(b"PK\x01\x02", at + 4)
+    raise AssertionError(f"{key} not in {zip_path}")
+
+
+BOMB = bytes(64 << 20)  # 64 MiB of zeros: deflates to about 64 kB
+
+
+def _zip_bomb_chunk(m, d):
+    return _zip_map(m, d, {CHUNK: BOMB})
+
+
+def _zip_bomb_chunk_lying(m, d):
+    _zip_map(m, d, {CHUNK: BOMB})
+    _declare_size(d, CHUNK, len((m / CHUNK).read_bytes()))
+    return d
+
+
+def _zip_bomb_metadata_lying(m, d):
+    _zip_map(m, d, {"codes/zarr.json": (m / "codes" / "zarr.json").read_bytes() + b" " * (64 << 20)})
+    _declare_size(d, "codes/zarr.json", len((m / "codes" / "zarr.json").read_bytes()))
+    return d
+
+
+def _zip_bzip2_chunk(m, d):
+    import zipfile
+
+    return _zip_map(m, d, {CHUNK: (m / CHUNK).read_bytes()}, method=zipfile.ZIP_BZIP2)
+
+
+ZIP_CASES = [
+    ("zip-chunk-deflate-bomb", _zip_bomb_chunk, r"codes/c/0/0/0/0 is 67108864 bytes"),
+    ("zip-chunk-deflate-bomb-declaring-a-small-size", _zip_bomb_chunk_lying, r"codes/c/0/0/0/0 is damaged"),
+    ("zip-chunk-larger-than-its-chunk", lambda m, d: _zip_map(m, d, {CHUNK: (m / CHUNK).read_bytes()
+                                                                      + os.urandom(3 << 20)}),
+     r"codes/c/0/0/0/0 is \d+ bytes on disk, far more"),
+    ("zip-metadata-deflate-bomb", lambda m, d: _zip_map(m, d, {"codes/zarr.json": b" " * (64 << 20)}),
+     r"zarr\.json is 67108864 bytes, more than any map metadata"),
+    ("zip-metadata-bomb-declaring-a-small-size", _zip_bomb_metadata_lying, r"codes/zarr\.json is damaged"),
+    ("zip-chunk-bzip2", _zip_bzip2_chunk, r"compression method 12"),
+]
+
+
+@pytest.mark.parametrize("case", ZIP_CASES, ids=[c[0] for c in ZIP_CASES])
+def test_hostile_zip_case(case, maps, tmp_path):
+    """A map stored as a ``.zip`` is read through the same bounds as a directory: a member's declared size is
+    checked against its chunk's (or the metadata) bound before it is opened, at most that many bytes are
+    decompressed, so a deflate bomb that lies about its size ends at the declared size and fails its CRC-32,
+    and members of other compression methods are refused. Every read fails cleanly, ``verify`` names the
+    member, and the Python heap of a refused read stays under twice the chunk's bound plus 2 MiB."""
+    import tracemalloc
+
+    from sdfcodec.map.stores import chunk_read_limit
+
+    name, build, expect = case
+    good = _zip_map(maps["base"], tmp_path / "good.zip")
+    assert np.array_equal(sdfcodec.open_map(good).decode_region(), maps["base_ref"])
+    path = build(maps["base"], tmp_path / "case.zip")
+    res = run_probes(path)
+    foreign = {k: v for k, v in res.items() if v[0] == "foreign"}
+    assert not foreign, f"{name}: foreign exceptions {foreign}"
+    assert res["decode"][0] == "error" and re.search(expect, res["decode"][2]), (name, res["decode"])
+    status, problems = res["verify"]
+    assert status == "problems" and any(re.search(expect, p) for p in problems), (name, problems)
+    def peak_of(fn) -> int:
+        tracemalloc.start()
+        try:
+            fn()
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    def refused():
+        with pytest.raises(SDFCodecError):
+            sdfcodec.open_map(path).decode_region()
+
+    good_peak = peak_of(lambda: sdfcodec.open_map(good).decode_region())
+    peak = peak_of(refused)
+    chunk_bound = chunk_read_limit(len(np.zeros((2, 2, 2, 32), np.float32).tobytes()))
+    print(f"{name}: refused read peak {peak / 2**20:.1f} MiB, good read {good_peak / 2**20:.1f} MiB")
+    assert peak < good_peak + 2 * chunk_bound, f"{name}: a refused read took {peak} bytes ({good_peak} good)"
