@@ -248,6 +248,9 @@ class SafeLocalStore(zarr.storage.LocalStore):
             return FormatError(f"{self.label}: {on}'{where}' is a symbolic link{link}; a map's files must be "
                                "regular files inside its directory, so it is refused (open_map(..., "
                                "follow_symlinks=True) follows links)")
+        if what == "a directory":
+            return FormatError(f"{self.label}: {on}'{where}' is a directory where a file (a chunk or a metadata "
+                               "document) belongs; refused")
         return FormatError(f"{self.label}: {on}'{where}' is {what}, not a regular file; a map holds only regular "
                            "files and directories, so it is refused (without opening it)")
 
