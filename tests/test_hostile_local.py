@@ -843,3 +843,33 @@ def test_unwritten_state_chunks_are_told_from_lost_ones(tmp_path):
     assert np.array_equal(sub, ref[: 16 * 64])
     problems = [str(p) for p in verify_map(lost).problems]
     assert any(p.startswith("state/c/2/0/0: is missing, but chunk(s) codes/c/8/0/0/0") for p in problems), problems
+
+
+def test_cli_follow_symlinks_option(maps, tmp_path):
+    """``sdfcodec --follow-symlinks COMMAND`` reaches every reader of the command (decode, info, verify): a map
+    whose chunk is a link to a copy of itself is refused without the option and read with it (bit for bit);
+    a link to a device stays refused with it. The option lasts for one invocation."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    runner = CliRunner()
+    path = tmp_path / "linked.sdfz"
+    shutil.copytree(maps["base"], path, symlinks=True)
+    keep = tmp_path / "chunk.bin"
+    shutil.copy(path / CHUNK, keep)
+    link(CHUNK, str(keep))(path, {})
+    out = tmp_path / "out.npy"
+    r = runner.invoke(app, ["decode", str(path), str(out)])
+    assert r.exit_code == 1 and "symbolic link" in r.output and not out.exists(), r.output
+    r = runner.invoke(app, ["verify", str(path)])
+    assert r.exit_code == 1 and "symbolic link" in r.output, r.output
+    r = runner.invoke(app, ["--follow-symlinks", "decode", str(path), str(out)])
+    assert r.exit_code == 0, r.output
+    assert np.array_equal(np.load(out), sdfcodec.open_map(maps["base"]).decode_region())
+    r = runner.invoke(app, ["--follow-symlinks", "verify", str(path)])
+    assert r.exit_code == 0 and "OK" in r.output, r.output
+    assert runner.invoke(app, ["verify", str(path)]).exit_code == 1  # the next invocation without it refuses again
+    link(CHUNK, "/dev/zero")(path, {})
+    r = runner.invoke(app, ["--follow-symlinks", "verify", str(path)])
+    assert r.exit_code == 1 and "character device" in r.output, r.output

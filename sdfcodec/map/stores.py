@@ -27,10 +27,10 @@ from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteReques
 from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
-from .remote import remote_store
+from .remote import remote_store, set_default_limits
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-__all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
+__all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
            "unguarded", "chunk_read_limit", "check_metadata_document"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
@@ -548,6 +548,26 @@ def unguarded(store: zarr.abc.store.Store) -> zarr.abc.store.Store:
     return store.inner if isinstance(store, GuardStore) else store
 
 
+#: Whether local reads of this process follow symbolic links inside a map unless told to (``set_read_defaults``).
+_FOLLOW_SYMLINKS = [False]
+
+
+def set_read_defaults(*, follow_symlinks: bool = False, remote_limits: dict | None = None) -> None:
+    """Defaults for every map this process opens from now on (the ``sdfcodec`` command's root options
+    ``--follow-symlinks``, ``--remote-timeout`` and ``--remote-tries`` set them, so that every command and the
+    library functions they call read maps alike): ``follow_symlinks`` as if each ``open_map`` and
+    ``verify_map`` passed it (an explicit ``True`` there still follows links when this is False), and
+    ``remote_limits`` fields of :class:`~sdfcodec.map.remote.RemoteLimits` replacing its defaults (a map's own
+    ``storage_options["remote_limits"]`` override them field by field). Called with no arguments: the
+    built-in defaults again.
+
+    Raises:
+        InvalidValueError: an unknown remote limit or a value out of range.
+    """
+    set_default_limits(remote_limits)
+    _FOLLOW_SYMLINKS[0] = bool(follow_symlinks)
+
+
 def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
                storage_options: dict | None, *, follow_symlinks: bool = False) -> GuardStore:
     """The guarded read-only store of a map: any Zarr store as given, a URL through fsspec, a ``.zip`` file, or
@@ -556,6 +576,7 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
     ``str(path_or_url)``. Raises MapNotFoundError for a local path that does not exist."""
     if isinstance(path_or_url, zarr.abc.store.Store):
         return GuardStore(path_or_url)
+    follow_symlinks = follow_symlinks or _FOLLOW_SYMLINKS[0]
     if is_url(loc):  # http(s) and s3: bounded, timed and retried reads (sdfcodec.map.remote)
         limits: dict[str, tuple[int, bool]] = {}
         return GuardStore(remote_store(loc, storage_options, limits=limits, max_metadata_bytes=MAX_METADATA_BYTES),
