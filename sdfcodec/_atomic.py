@@ -285,7 +285,9 @@ def write_file(path: Path | str, write, doing: str = "writing") -> Path:
     """Write the file ``path`` (a trajectory, a model, a picture, a mesh: any output that is not a map)
     through ``write(tmp)``, into a hidden sibling ``.NAME.<hex>.partial.EXT`` (the extension kept, so that
     writers that pick a format by it still do), then rename it over ``path``: nobody ever sees a half-written
-    file, and a failed write leaves the previous file (if any) as it was and no temporary.
+    file, and a failed write leaves the previous file (if any) as it was and no temporary. ``write`` returning
+    False means it failed without saying why (open3d): a file system without a free block is then called
+    full (ENOSPC), anything else an I/O error.
 
     Raises:
         WriteFailedError: any OSError while writing or renaming (disk full, no permission, a file too large,
@@ -297,7 +299,9 @@ def write_file(path: Path | str, write, doing: str = "writing") -> Path:
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.partial{path.suffix}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        write(tmp)
+        if write(tmp) is False:
+            code = errno.ENOSPC if os.statvfs(path.parent).f_bavail == 0 else errno.EIO
+            raise WriteFailedError.from_os_error(OSError(code, os.strerror(code), str(path)), path, doing, outcome)
         os.replace(tmp, path)
     except BaseException as e:
         try:

@@ -161,6 +161,9 @@ def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
     """Without a valid header: still check every chunk of every array found."""
     try:
         arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+    except SDFCodecError as e:  # the store refused a member (a link, a FIFO...): its own message
+        rep.problem("map", f"its arrays cannot be listed: {e}")
+        return
     except Exception as e:  # noqa: BLE001
         rep.problem("map", f"its arrays cannot be listed ({type(e).__name__}: {e})")
         return
