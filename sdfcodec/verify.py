@@ -191,8 +191,6 @@ def _absent(m, key: str) -> str:
 
 
 def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
-    from .map.presence import state_chunk_regions
-
     arr = m.reader.state_array
     states = np.zeros(m.grid_blocks, np.uint8)
     ok = True
@@ -204,22 +202,24 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
         box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, arr.chunks, data.shape))
         states[box] = data
     if listing is not None:  # a state chunk not stored where code chunks are: its blocks would vanish
-        code_listing = [_chunk_keys(a) for a in (m.reader.codes_array, m.reader.code_scale_array) if a is not None]
-        everything = tuple(slice(0, n) for n in arr.shape)
-        for idx, region in state_chunk_regions(arr.chunks, arr.shape, everything):
-            if idx in listing[0]:
-                continue
+        # walked from the stored code chunks (bounded by the files there), not over every state chunk position
+        # (a hostile grid has billions): the state chunk holding each code chunk's first block must be stored
+        lost: dict[tuple[int, ...], list[str]] = {}
+        for codes in (m.reader.codes_array, m.reader.code_scale_array):
+            found = None if codes is None else _chunk_keys(codes)
+            for c, k in ({} if found is None else found[0]).items():
+                idx = tuple(v * n // s for v, n, s in zip(c[:3], codes.chunks, arr.chunks))
+                if idx not in listing[0]:
+                    lost.setdefault(idx, []).append(k)
+        for idx, under in sorted(lost.items())[:_SHOWN * 4]:
             key = f"{arr.path}/{arr.metadata.encode_chunk_key(idx)}"
-            under = sorted(k for found in code_listing if found is not None for c, k in found[0].items()
-                           if all(r.start <= v * n < r.stop for v, n, r in zip(c[:3], m.reader.codes_array.chunks,
-                                                                                region)))
+            region = [(v * s, min((v + 1) * s, n)) for v, s, n in zip(idx, arr.chunks, arr.shape)]
             what = _absent(m, key)
-            if under or what != "is missing":
-                rep.problem(key, f"{what}, but chunk(s) {', '.join(under[:3])}{' and more' if len(under) > 3 else ''}"
-                                 f" of its blocks {[(r.start, r.stop) for r in region]} are stored: its block states "
-                                 "are lost (they would read as unobserved, and the coded blocks vanish)" if under
-                            else what)
-                ok = False
+            more = f" and {len(under) - 3} more" if len(under) > 3 else ""
+            rep.problem(key, f"{what}, but chunk(s) {', '.join(sorted(under)[:3])}{more} of its blocks {region} are "
+                             "stored: its block states are lost (they would read as unobserved, and the coded blocks "
+                             "vanish)")
+            ok = False
     if not ok:
         return None
     bad = np.argwhere(states > BlockState.CODED)

@@ -20,7 +20,11 @@ from zarr.core.sync import sync as zarr_sync
 
 from ..errors import FormatError
 
-__all__ = ["state_chunk_regions", "check_state_chunks"]
+__all__ = ["state_chunk_regions", "check_state_chunks", "MAX_PROBES"]
+
+#: Code chunks looked up per missing state chunk: a writer's layout has 8^3 code chunks under a state chunk
+#: (64^3 blocks in 8^3-block chunks); a hostile layout of 1-block chunks would otherwise mean 262,144 lookups.
+MAX_PROBES = 4096
 
 
 def state_chunk_regions(state_chunks: tuple[int, ...], grid: tuple[int, ...], box: tuple[slice, ...]
@@ -69,7 +73,8 @@ def check_state_chunks(reader: Any, box: tuple[slice, ...], state: np.ndarray) -
             if codes is None:
                 continue
             cb = codes.chunks[:3]
-            chunks = list(itertools.product(*(range(r.start // c, -(-r.stop // c)) for r, c in zip(region, cb))))
+            chunks = list(itertools.islice(itertools.product(*(range(r.start // c, -(-r.stop // c))
+                                                               for r, c in zip(region, cb))), MAX_PROBES))
             code_keys = [f"{codes.path}/{codes.metadata.encode_chunk_key((*c, 0))}" for c in chunks]
             found = [k for k, ok in zip(code_keys, zarr_sync(_exist(store, code_keys))) if ok]
             if found:
