@@ -33,7 +33,7 @@ import time
 import uuid
 from pathlib import Path
 
-from .errors import MapBusyError
+from .errors import MapBusyError, WriteFailedError
 
 __all__ = ["HAVE_PROC_FD", "hidden_path", "make_temp_dir", "pin_dir", "release_pin", "swap_into_place",
            "collect", "WriterLock", "write_new_file", "link_tree", "same_dir", "dir_id", "remove_tree"]
@@ -279,6 +279,39 @@ class WriterLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def write_file(path: Path | str, write, doing: str = "writing") -> Path:
+    """Write the file ``path`` (a trajectory, a model, a picture, a mesh: any output that is not a map)
+    through ``write(tmp)``, into a hidden sibling ``.NAME.<hex>.partial.EXT`` (the extension kept, so that
+    writers that pick a format by it still do), then rename it over ``path``: nobody ever sees a half-written
+    file, and a failed write leaves the previous file (if any) as it was and no temporary. ``write`` returning
+    False means it failed without saying why (open3d): a file system without a free block is then called
+    full (ENOSPC), anything else an I/O error.
+
+    Raises:
+        WriteFailedError: any OSError while writing or renaming (disk full, no permission, a file too large,
+            an I/O error), naming ``path`` and saying what to do.
+    """
+    path = Path(path)
+    outcome = ("the file there is unchanged" if os.path.lexists(path) else "nothing was written there") + \
+        " and no temporary file is left"
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.partial{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if write(tmp) is False:
+            code = errno.ENOSPC if os.statvfs(path.parent).f_bavail == 0 else errno.EIO
+            raise WriteFailedError.from_os_error(OSError(code, os.strerror(code), str(path)), path, doing, outcome)
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        if isinstance(e, OSError) and not isinstance(e, WriteFailedError):
+            raise WriteFailedError.from_os_error(e, path, doing, outcome) from e
+        raise
+    return path
 
 
 def write_new_file(path: Path, data, exclusive: bool = False) -> int:

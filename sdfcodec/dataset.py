@@ -26,7 +26,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec
 
-from .errors import FormatError, InvalidValueError, MapExistsError, MapNotFoundError, VersionError
+from .errors import FormatError, InvalidValueError, MapExistsError, MapNotFoundError, VersionError, WriteFailedError
 
 __all__ = ["Dataset", "build_dataset", "open_dataset", "SPLITS"]
 
@@ -86,8 +86,9 @@ def build_dataset(path: str | os.PathLike, sources: Iterable[tuple[str, Iterable
     written beside ``path`` and moved into place when complete.
     """
     final = Path(path)
-    if final.exists() and not overwrite:
+    if os.path.lexists(final) and not overwrite:
         raise MapExistsError(f"{final} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    _check_replaceable(final)
     parts, counts = [], {}
     for name, batches in sources:
         n0 = sum(len(p) for p in parts)
@@ -117,9 +118,9 @@ def build_dataset(path: str | os.PathLike, sources: Iterable[tuple[str, Iterable
         raise InvalidValueError(f"{n_batches} batches cannot be split {proportions}; add data")
     bounds = np.cumsum([0, nb_train, nb_val, nb_test]) * batch_size
 
-    final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
+        final.parent.mkdir(parents=True, exist_ok=True)
         group = zarr.open_group(zarr.storage.LocalStore(str(tmp)), mode="w", zarr_format=3)
         for split, lo, hi in zip(SPLITS, bounds[:-1], bounds[1:]):
             arr = group.create_array(split, shape=(int(hi - lo), 16, 16, 16), dtype="float16",
@@ -131,13 +132,35 @@ def build_dataset(path: str | os.PathLike, sources: Iterable[tuple[str, Iterable
             "truncation": list(truncation), "sources": counts,
             "splits": {s: int(h - lo) for s, lo, h in zip(SPLITS, bounds[:-1], bounds[1:])},
         }
+        _check_replaceable(final)  # again: something else may have been put there meanwhile
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(e, OSError) and not isinstance(e, WriteFailedError):
+            outcome = ("the data set there is unchanged" if final.exists() else "nothing was written there")
+            raise WriteFailedError.from_os_error(e, final, "writing the data set",
+                                                 f"{outcome} and no temporary files are left") from e
         raise
     return open_dataset(final)
+
+
+def _check_replaceable(final: Path) -> None:
+    """Refuse to replace anything at ``final`` but a data set or an empty directory (``overwrite`` must never
+    delete a directory of other files, a plain file, a device or a link's target)."""
+    if not os.path.lexists(final):
+        return
+    if final.is_symlink() or not final.is_dir():
+        raise MapExistsError(f"{final} exists and is not a data set directory; refusing to replace it (remove it "
+                             "yourself or write elsewhere)")
+    if not any(final.iterdir()):
+        return
+    try:
+        open_dataset(final)
+    except (FormatError, MapNotFoundError, VersionError) as e:
+        raise MapExistsError(f"{final} exists and is not an sdfcodec data set ({e}); refusing to replace it "
+                             "(remove it yourself or write elsewhere)") from None
 
 
 def open_dataset(path: str | os.PathLike) -> Dataset:

@@ -474,19 +474,22 @@ def eval_command(sequences: Sequence[str], out_dir: str | Path, *, methods: Sequ
             r["ate_ratio"] = _finite(r["ate_mean"] / ref) if ref else None
         results["sequences"][name] = entry
     results["aggregate"] = _aggregate(results, keys)
-    (out / "eval.json").write_text(json.dumps(results, indent=1))
+    from ._atomic import write_file  # each output whole or not at all; a refused write names its file
+
+    text = json.dumps(results, indent=1)
+    write_file(out / "eval.json", lambda tmp: tmp.write_text(text), "writing the results")
     figs = _figures(results, slices, out / "eval", truncation)
     md = markdown_table(results)
-    (out / "eval.md").write_text(md)
+    write_file(out / "eval.md", lambda tmp: tmp.write_text(md), "writing the results")
     results["figures"] = [str(f) for f in figs]
     if docs_dir is not None:
         import shutil
 
         d = Path(docs_dir)
-        (d / "eval").mkdir(parents=True, exist_ok=True)
-        (d / "eval.json").write_text(json.dumps(results, indent=1))
+        text = json.dumps(results, indent=1)
+        write_file(d / "eval.json", lambda tmp: tmp.write_text(text), "writing the results")
         for f in figs:
-            shutil.copy(f, d / "eval" / Path(f).name)
+            write_file(d / "eval" / Path(f).name, lambda tmp, f=f: shutil.copy(f, tmp), "copying the figure")
     return results
 
 
@@ -561,6 +564,8 @@ def _figures(results: dict, slices: dict, fig_dir: Path, truncation) -> list[Pat
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ._atomic import write_file
+
     fig_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     agg = results["aggregate"]
@@ -586,7 +591,7 @@ def _figures(results: dict, slices: dict, fig_dir: Path, truncation) -> list[Pat
                      "(mean ± std among sequences)")
         fig.tight_layout()
         p = fig_dir / "reconstruction_error.png"
-        fig.savefig(p, dpi=110)
+        write_file(p, lambda tmp, fig=fig: fig.savefig(tmp, dpi=110), "writing the figure")
         plt.close(fig)
         paths.append(p)
     for name, s in results["sequences"].items():
@@ -601,7 +606,7 @@ def _figures(results: dict, slices: dict, fig_dir: Path, truncation) -> list[Pat
         ax.legend(fontsize=7, ncol=2)
         fig.tight_layout()
         p = fig_dir / f"ate_{name}.png"
-        fig.savefig(p, dpi=110)
+        write_file(p, lambda tmp, fig=fig: fig.savefig(tmp, dpi=110), "writing the figure")
         plt.close(fig)
         paths.append(p)
     for name, sl in slices.items():
@@ -618,7 +623,7 @@ def _figures(results: dict, slices: dict, fig_dir: Path, truncation) -> list[Pat
         fig.colorbar(im, ax=list(ax), shrink=0.8, label="distance [m]")
         fig.suptitle(f"{name}: slice z = 0.5 m through the decoded field (cf. the paper's Fig. 5)", fontsize=9)
         p = fig_dir / f"slice_{name}.png"
-        fig.savefig(p, dpi=110)
+        write_file(p, lambda tmp, fig=fig: fig.savefig(tmp, dpi=110), "writing the figure")
         plt.close(fig)
         paths.append(p)
     return paths

@@ -9,8 +9,6 @@ through :mod:`sdfcodec.plugin`; a missing file raises :class:`~sdfcodec.errors.M
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Mapping
 
@@ -26,21 +24,20 @@ MODEL_FORMAT = "sdfcodec-model"
 MODEL_VERSION = 1
 
 
-def save_state_file(path: str | Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """Write plain arrays to ``path`` (.npz, compressed), atomically (temp file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
+def save_state_file(path: str | Path, arrays: Mapping[str, np.ndarray], doing: str = "writing") -> None:
+    """Write plain arrays to ``path`` (.npz, compressed), atomically (temp file, then rename).
+
+    Raises:
+        WriteFailedError: the file system refused the write (disk full, permission...); nothing is left at
+            ``path`` but what was there before.
+    """
+    from ._atomic import write_file
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "xb") as f:  # an ordinary file (mode 0666 less the umask), shareable like any model
             np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; a model is an ordinary, shareable file
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    write_file(path, write, doing)
 
 
 def load_state_file(path: str | Path) -> dict[str, np.ndarray]:
@@ -89,7 +86,7 @@ def save_model(codec: Codec, path: str | Path) -> Path:
     meta = json.dumps({"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": codec.get_config()})
     arrays = dict(codec.state_dict())
     arrays[_META] = np.frombuffer(meta.encode(), dtype=np.uint8)
-    save_state_file(path, arrays)
+    save_state_file(path, arrays, "saving the model")
     return Path(path)
 
 

@@ -176,11 +176,12 @@ def search_picture(m: Map, result: SearchResult, path: str | os.PathLike, *, mes
         ax.set_xlabel("m")
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    from ._atomic import write_file
+
+    try:
+        return write_file(path, lambda tmp: fig.savefig(tmp, dpi=90), "writing the picture")
+    finally:
+        plt.close(fig)
 
 
 def search_command(map_path: str | os.PathLike, query: str = "floor", level: int | None = None,
@@ -256,8 +257,14 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
             exp = expand(m, res, as_="mesh", device=device)
             import open3d as o3d
 
-            ply = out / "expanded.ply"
-            o3d.io.write_triangle_mesh(str(ply), exp.mesh)
+            from ._atomic import write_file
+
+            def write_mesh(tmp: Path) -> bool:
+                # open3d answers False, or True on a full disk: the file must read back whole
+                return (o3d.io.write_triangle_mesh(str(tmp), exp.mesh) and
+                        len(o3d.io.read_triangle_mesh(str(tmp)).triangles) == len(exp.mesh.triangles))
+
+            ply = write_file(out / "expanded.ply", write_mesh, "writing the mesh")
             summary["mesh"] = str(ply)
             summary["expanded"] = {"blocks_decoded": exp.stats["blocks_decoded"],
                                    "code_bytes_read": exp.stats["code_bytes_read"],

@@ -249,9 +249,10 @@ def write_tum(path: PathLike, trajectory: Trajectory, header: str | None = None)
         lines.append(f"# {columns}")
     for t, p, q in zip(traj.timestamps, traj.positions, traj.quaternions):
         lines.append(" ".join(repr(float(v)) for v in (t, *p, *q)))
-    out = Path(path)
-    out.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return out
+    from ._atomic import write_file
+
+    text = "\n".join(lines) + "\n"
+    return write_file(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "writing the trajectory")
 
 
 # ------------------------------------------------------------------------------------------- association

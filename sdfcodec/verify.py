@@ -162,6 +162,9 @@ def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
     """Without a valid header: still check every chunk of every array found."""
     try:
         arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+    except SDFCodecError as e:  # the store refused a member (a link, a FIFO...): its own message
+        rep.problem("map", f"its arrays cannot be listed: {e}")
+        return
     except Exception as e:  # noqa: BLE001
         rep.problem("map", f"its arrays cannot be listed ({type(e).__name__}: {e})")
         return
@@ -173,15 +176,51 @@ def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
             rep.problem(arr.path, f"cannot be read ({type(e).__name__}: {e})")
 
 
+def _absent(m, key: str) -> str:
+    """What a chunk key that is not listed holds, as the reads say it: "is missing", or why the store refuses
+    what is there instead (a directory where the chunk file belongs, a link, a FIFO...)."""
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.core.sync import sync
+
+    try:
+        found = sync(m.reader.group.store.get(key, default_buffer_prototype()))
+    except SDFCodecError as e:
+        return f"is refused: {e}"
+    except Exception:  # noqa: BLE001 - whatever else is there, it is no readable chunk
+        return "is missing"
+    return "is missing" if found is None else "is not listed by the store, yet reads"
+
+
 def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
+    arr = m.reader.state_array
     states = np.zeros(m.grid_blocks, np.uint8)
     ok = True
-    for coords, key, data in _iter_chunks(rep, m.reader.state_array):
+    listing = _chunk_keys(arr)
+    for coords, key, data in _iter_chunks(rep, arr, listing):
         if data is None:
             ok = False
             continue
-        box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, m.reader.state_array.chunks, data.shape))
+        box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, arr.chunks, data.shape))
         states[box] = data
+    if listing is not None:  # a state chunk not stored where code chunks are: its blocks would vanish
+        # walked from the stored code chunks (bounded by the files there), not over every state chunk position
+        # (a hostile grid has billions): the state chunk holding each code chunk's first block must be stored
+        lost: dict[tuple[int, ...], list[str]] = {}
+        for codes in (m.reader.codes_array, m.reader.code_scale_array):
+            found = None if codes is None else _chunk_keys(codes)
+            for c, k in ({} if found is None else found[0]).items():
+                idx = tuple(v * n // s for v, n, s in zip(c[:3], codes.chunks, arr.chunks))
+                if idx not in listing[0]:
+                    lost.setdefault(idx, []).append(k)
+        for idx, under in sorted(lost.items())[:_SHOWN * 4]:
+            key = f"{arr.path}/{arr.metadata.encode_chunk_key(idx)}"
+            region = [(v * s, min((v + 1) * s, n)) for v, s, n in zip(idx, arr.chunks, arr.shape)]
+            what = _absent(m, key)
+            more = f" and {len(under) - 3} more" if len(under) > 3 else ""
+            rep.problem(key, f"{what}, but chunk(s) {', '.join(sorted(under)[:3])}{more} of its blocks {region} are "
+                             "stored: its block states are lost (they would read as unobserved, and the coded blocks "
+                             "vanish)")
+            ok = False
     if not ok:
         return None
     bad = np.argwhere(states > BlockState.CODED)
@@ -197,10 +236,10 @@ def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
     reads back, holds finite values for coded blocks, and is present wherever a block is coded."""
     for arr in (m.reader.codes_array, m.reader.code_scale_array):
         if arr is not None:
-            _check_code_array(rep, arr, states)
+            _check_code_array(rep, m, arr, states)
 
 
-def _check_code_array(rep: VerifyReport, codes, states: np.ndarray | None) -> None:
+def _check_code_array(rep: VerifyReport, m, codes, states: np.ndarray | None) -> None:
     cb, cc = codes.chunks[0], codes.chunks[3]
     n_code_chunks = codes.cdata_shape[3]
     stored: set[tuple[int, ...]] = set()
@@ -231,9 +270,11 @@ def _check_code_array(rep: VerifyReport, codes, states: np.ndarray | None) -> No
             coords = (*map(int, chunk), k)
             if coords not in stored:
                 inside = coded[(coded // cb == chunk).all(axis=1)]
-                rep.problem(f"{codes.path}/{codes.metadata.encode_chunk_key(coords)}",
-                            f"is missing, but block(s) {_blocks_text(inside)} are coded: their elements "
-                            f"[{k * cc}, {min((k + 1) * cc, codes.shape[3])}) would read as zeros")
+                key = f"{codes.path}/{codes.metadata.encode_chunk_key(coords)}"
+                what, span = _absent(m, key), f"[{k * cc}, {min((k + 1) * cc, codes.shape[3])})"
+                rep.problem(key, f"is missing, but block(s) {_blocks_text(inside)} are coded: their elements "
+                                 f"{span} would read as zeros" if what == "is missing" else
+                            f"{what}; block(s) {_blocks_text(inside)} are coded there (elements {span})")
 
 
 def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
@@ -355,6 +396,9 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
         raw = group.attrs.get("sdfcodec")
     except MapNotFoundError as e:
         rep.problem("map", str(e))
+        return
+    except (FileNotFoundError, NotADirectoryError):  # zarr's GroupNotFoundError: what open_map says too
+        rep.problem("map", f"no map at {loc}")
         return
     except SDFCodecError as e:
         rep.problem("map", str(e))

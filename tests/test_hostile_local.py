@@ -37,6 +37,7 @@ CHUNK = "codes/c/0/0/0/0"  # holds coded blocks of the base map (checked by the 
 CHUNK2 = "codes/c/0/0/0/1"  # the same blocks' code elements 32..63
 STATE_CHUNK = "state/c/0/0/0"
 MEAN_CHUNK = "codec/mean/c/0"
+COMPONENTS_CHUNK = "codec/components/c/0/0"  # 1 MiB: two 512 KiB Blosc blocks when split
 
 
 def _volume(shift: float) -> np.ndarray:
@@ -212,6 +213,40 @@ def garbage_with_checksum(key: str):
     return overwrite_bytes(key, lambda b: _with_crc32c(os.urandom(max(len(b) - 4, 16))))
 
 
+def _split_frame(body: bytes) -> bytearray:
+    """The chunk's data (a map's Blosc/zstd frame without its checksum) re-compressed as a Blosc frame whose
+    blocks are split into one stream per byte of the float32 type (lz4, shuffled; c-blosc picks 512 KiB blocks
+    then): the layout in which a block's later streams carry lengths of their own (zstd frames, as the writers
+    make them, are not split)."""
+    from numcodecs import Blosc
+
+    data = np.frombuffer(Blosc().decode(body), "<f4")
+    frame = bytearray(Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE).encode(data))
+    assert not frame[2] & 0x12 and frame[3] == 4, "expected a split, compressed frame"
+    return frame
+
+
+def _stream_at(frame: bytes, block: int, stream: int) -> int:
+    """Byte offset of the length of ``stream`` of ``block`` in a split Blosc frame."""
+    pos = int.from_bytes(frame[16 + 4 * block:20 + 4 * block], "little")
+    for _ in range(stream):
+        pos += 4 + int.from_bytes(frame[pos:pos + 4], "little", signed=True)
+    return pos
+
+
+def blosc_stream(key: str, block: int, stream: int, fn):
+    """Re-compress ``key`` as a split Blosc frame, set the length of ``stream`` of ``block`` (-1: the last
+    block) to ``fn(length, frame)`` and recompute the CRC32C, so that only the frame's structure is wrong."""
+    def edit(path: Path, ctx: dict) -> None:
+        frame = _split_frame((path / key).read_bytes()[:-4])
+        nblocks = (len(frame) and -(-int.from_bytes(frame[4:8], "little") // int.from_bytes(frame[8:12], "little")))
+        at = _stream_at(frame, block % nblocks, stream)
+        old = int.from_bytes(frame[at:at + 4], "little", signed=True)
+        frame[at:at + 4] = int(fn(old, frame)).to_bytes(4, "little", signed=True)
+        (path / key).write_bytes(_with_crc32c(bytes(frame)))
+    return edit
+
+
 def array_values(name: str, fn):
     """Rewrite array ``name`` with ``fn(values)`` through zarr (valid chunks and checksums)."""
     def edit(path: Path, ctx: dict) -> None:
@@ -311,8 +346,8 @@ CASES = [
     ("codes-folder-fifo", fifo("codes"), r"FIFO", None, "base"),
     ("chunk-socket", sock(CHUNK), r"socket", None, "base"),
     # directories where files belong
-    ("chunk-is-directory", as_dir(CHUNK), r"codes/c/0/0/0/0.*directory", r"codes/c/0/0/0/0", "base"),
-    ("second-code-chunk-is-directory", as_dir(CHUNK2), r"codes/c/0/0/0/1.*directory", r"codes/c/0/0/0/1", "base"),
+    ("chunk-is-directory", as_dir(CHUNK), r"codes/c/0/0/0/0.*directory where a file", None, "base"),
+    ("second-code-chunk-is-directory", as_dir(CHUNK2), r"codes/c/0/0/0/1.*directory where a file", None, "base"),
     ("codes-metadata-is-directory", as_dir("codes/zarr.json"), r"directory", None, "base"),
     ("state-chunk-is-directory", as_dir(STATE_CHUNK), r"directory", None, "base"),
     ("codec-state-chunk-is-directory", as_dir(MEAN_CHUNK), r"directory", None, "base"),
@@ -323,6 +358,10 @@ CASES = [
     ("int8-code-chunk-deleted", delete(CHUNK), r"codes/c/0/0/0/0 .*missing", r"codes/c/0/0/0/0", "int8"),
     ("int8-code-scale-chunk-deleted", delete("code_scale/c/0/0/0/0"), r"code_scale/c/0/0/0/0 .*missing",
      r"code_scale/c/0/0/0/0", "int8"),
+    ("state-chunk-deleted", delete(STATE_CHUNK), r"state/c/0/0/0 of array 'state' is missing",
+     r"state/c/0/0/0: is missing, but chunk\(s\) codes/c/0/0/0/0", "base"),
+    ("int8-state-chunk-deleted", delete(STATE_CHUNK), r"state/c/0/0/0 of array 'state' is missing",
+     r"state/c/0/0/0: is missing", "int8"),
     ("codes-metadata-deleted", delete("codes/zarr.json"), r"lacks array 'codes'", None, "base"),
     ("codec-state-chunk-deleted", delete(MEAN_CHUNK), r"digest", r"state_sha256|codec", "base"),
     # chunk key encodings that name other files (every chunk would read as missing)
@@ -486,6 +525,15 @@ CASES = [
     ("int8-code-scale-chunk-flipped-bit", flip_byte("code_scale/c/0/0/0/0"), r"checksum|corrupted", None, "int8"),
     ("int8-code-chunk-garbage-under-valid-checksum", garbage_with_checksum(CHUNK),
      r"corrupted|claims|Blosc|codes", None, "int8"),
+    # Blosc frames split into streams, a later stream's length tampered under a recomputed CRC32C
+    ("chunk-blosc-later-stream-huge", blosc_stream(CHUNK, 0, 2, lambda n, f: 2**30), r"stream 2 claims",
+     None, "base"),
+    ("chunk-blosc-later-stream-negative", blosc_stream(CHUNK, 0, 3, lambda n, f: -8), r"stream 3 claims",
+     None, "base"),
+    ("chunk-blosc-last-stream-one-past-end", blosc_stream(CHUNK, -1, 3, lambda n, f: n + 1),
+     r"stream 3 claims", None, "base"),
+    ("codec-state-chunk-blosc-later-stream", blosc_stream(COMPONENTS_CHUNK, 1, 2, lambda n, f: len(f)),
+     r"block 1's stream 2 claims", None, "base"),
 ]
 
 
@@ -609,3 +657,219 @@ def test_follow_symlinks_opt_in(maps, tmp_path):
     link(CHUNK, "/dev/zero")(path, {})
     with pytest.raises(SDFCodecError, match="character device"):
         sdfcodec.open_map(path, follow_symlinks=True).decode_region()
+
+
+def test_blosc_split_streams_are_walked(maps, tmp_path):
+    """A Blosc block split into streams (shuffled, by c-blosc's own rule) has a length per stream; the read guard
+    walks every one of every block: a valid split frame reads as before (a map chunk re-compressed that way
+    decodes bit for bit), and each stream's length set past the frame, negative, or one byte too long is
+    named, block and stream, before the decompressor sees it."""
+    from sdfcodec.map.stores import blosc_frame_problem
+
+    from numcodecs import Blosc
+
+    body = (maps["base"] / MEAN_CHUNK).read_bytes()[:-4]
+    # 2.3 blocks of 512 KiB: two split into 4 streams, the short last one a single stream (c-blosc's rule)
+    data = (np.arange(300_000) % 97).astype("<f4")
+    frame = bytearray(Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE).encode(data))
+    nbytes, blocksize = (int.from_bytes(frame[i:i + 4], "little") for i in (4, 8))
+    nblocks = -(-nbytes // blocksize)
+    assert nblocks == 3 and not frame[2] & 0x12 and blosc_frame_problem(bytes(frame), nbytes) is None
+    assert _stream_at(frame, 2, 1) == len(frame)  # the last block has one stream, ending the frame
+    for block in range(nblocks):
+        for stream in range(4 if block < 2 else 1):
+            at = _stream_at(frame, block, stream)
+            old = int.from_bytes(frame[at:at + 4], "little", signed=True)
+            for new, what in ((len(frame), "claims"), (-1, "claims"), (old + len(frame) - at, "claims")):
+                bad = bytearray(frame)
+                bad[at:at + 4] = new.to_bytes(4, "little", signed=True)
+                problem = blosc_frame_problem(bytes(bad), nbytes)
+                assert problem is not None and f"block {block}'s stream {stream}" in problem, (block, stream, new)
+    # the last stream of the frame ends exactly at its end: one byte more is past it, one less is not
+    at = _stream_at(frame, nblocks - 1, 0)
+    old = int.from_bytes(frame[at:at + 4], "little", signed=True)
+    assert at + 4 + old == len(frame)
+    for delta, ok in ((1, False), (-1, True)):
+        bad = bytearray(frame)
+        bad[at:at + 4] = (old + delta).to_bytes(4, "little", signed=True)
+        assert (blosc_frame_problem(bytes(bad), nbytes) is None) == ok, delta
+    # a frame that does not split (flag 0x10) is walked as one stream per block: its valid zstd frames pass
+    assert body[2] & 0x10 and blosc_frame_problem(body, nbytes) is None
+    # end to end: the same map with both chunks re-compressed as split frames decodes bit for bit
+    path = tmp_path / "split.sdfz"
+    shutil.copytree(maps["base"], path)
+    for key in (MEAN_CHUNK, COMPONENTS_CHUNK, CHUNK):
+        (path / key).write_bytes(_with_crc32c(bytes(_split_frame((path / key).read_bytes()[:-4]))))
+    assert np.array_equal(sdfcodec.open_map(path).decode_region(), maps["base_ref"])
+
+
+# -- zip maps (read-only): members bounded as local files are ---------------------------------------------
+def _zip_map(src: Path, dest: Path, replace: dict | None = None, method=None) -> Path:
+    """``src``'s files as a deflated zip map at ``dest``; ``replace`` maps a key to the bytes stored instead
+    (``method``: a zipfile compression constant for those members)."""
+    import zipfile
+
+    replace = replace or {}
+    with zipfile.ZipFile(dest, "w", zipfile.ZIP_DEFLATED) as z:
+        for p in sorted(src.rglob("*")):
+            if p.is_file():
+                key = p.relative_to(src).as_posix()
+                if key in replace:
+                    z.writestr(key, replace[key], compress_type=method or zipfile.ZIP_DEFLATED)
+                else:
+                    z.write(p, key)
+    return dest
+
+
+def _declare_size(zip_path: Path, key: str, size: int) -> None:
+    """Make the zip's central directory declare ``size`` uncompressed bytes for member ``key`` (a lie)."""
+    data = bytearray(zip_path.read_bytes())
+    at = data.find(b"PK\x01\x02" + bytes(24)[:0])
+    while at >= 0:
+        n = int.from_bytes(data[at + 28:at + 30], "little")
+        if data[at + 46:at + 46 + n].decode() == key:
+            data[at + 24:at + 28] = size.to_bytes(4, "little")
+            zip_path.write_bytes(bytes(data))
+            return
+        at = data.find(b"PK\x01\x02", at + 4)
+    raise AssertionError(f"{key} not in {zip_path}")
+
+
+BOMB = bytes(64 << 20)  # 64 MiB of zeros: deflates to about 64 kB
+
+
+def _zip_bomb_chunk(m, d):
+    return _zip_map(m, d, {CHUNK: BOMB})
+
+
+def _zip_bomb_chunk_lying(m, d):
+    _zip_map(m, d, {CHUNK: BOMB})
+    _declare_size(d, CHUNK, len((m / CHUNK).read_bytes()))
+    return d
+
+
+def _zip_bomb_metadata_lying(m, d):
+    _zip_map(m, d, {"codes/zarr.json": (m / "codes" / "zarr.json").read_bytes() + b" " * (64 << 20)})
+    _declare_size(d, "codes/zarr.json", len((m / "codes" / "zarr.json").read_bytes()))
+    return d
+
+
+def _zip_bzip2_chunk(m, d):
+    import zipfile
+
+    return _zip_map(m, d, {CHUNK: (m / CHUNK).read_bytes()}, method=zipfile.ZIP_BZIP2)
+
+
+ZIP_CASES = [
+    ("zip-chunk-deflate-bomb", _zip_bomb_chunk, r"codes/c/0/0/0/0 is 67108864 bytes"),
+    ("zip-chunk-deflate-bomb-declaring-a-small-size", _zip_bomb_chunk_lying, r"codes/c/0/0/0/0 is damaged"),
+    ("zip-chunk-larger-than-its-chunk", lambda m, d: _zip_map(m, d, {CHUNK: (m / CHUNK).read_bytes()
+                                                                      + os.urandom(3 << 20)}),
+     r"codes/c/0/0/0/0 is \d+ bytes on disk, far more"),
+    ("zip-metadata-deflate-bomb", lambda m, d: _zip_map(m, d, {"codes/zarr.json": b" " * (64 << 20)}),
+     r"zarr\.json is 67108864 bytes, more than any map metadata"),
+    ("zip-metadata-bomb-declaring-a-small-size", _zip_bomb_metadata_lying, r"codes/zarr\.json is damaged"),
+    ("zip-chunk-bzip2", _zip_bzip2_chunk, r"compression method 12"),
+]
+
+
+@pytest.mark.parametrize("case", ZIP_CASES, ids=[c[0] for c in ZIP_CASES])
+def test_hostile_zip_case(case, maps, tmp_path):
+    """A map stored as a ``.zip`` is read through the same bounds as a directory: a member's declared size is
+    checked against its chunk's (or the metadata) bound before it is opened, at most that many bytes are
+    decompressed, so a deflate bomb that lies about its size ends at the declared size and fails its CRC-32,
+    and members of other compression methods are refused. Every read fails cleanly, ``verify`` names the
+    member, and the Python heap of a refused read stays under twice the chunk's bound plus 2 MiB."""
+    import tracemalloc
+
+    from sdfcodec.map.stores import chunk_read_limit
+
+    name, build, expect = case
+    good = _zip_map(maps["base"], tmp_path / "good.zip")
+    assert np.array_equal(sdfcodec.open_map(good).decode_region(), maps["base_ref"])
+    path = build(maps["base"], tmp_path / "case.zip")
+    res = run_probes(path)
+    foreign = {k: v for k, v in res.items() if v[0] == "foreign"}
+    assert not foreign, f"{name}: foreign exceptions {foreign}"
+    assert res["decode"][0] == "error" and re.search(expect, res["decode"][2]), (name, res["decode"])
+    status, problems = res["verify"]
+    assert status == "problems" and any(re.search(expect, p) for p in problems), (name, problems)
+    def peak_of(fn) -> int:
+        tracemalloc.start()
+        try:
+            fn()
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    def refused():
+        with pytest.raises(SDFCodecError):
+            sdfcodec.open_map(path).decode_region()
+
+    good_peak = peak_of(lambda: sdfcodec.open_map(good).decode_region())
+    peak = peak_of(refused)
+    chunk_bound = chunk_read_limit(len(np.zeros((2, 2, 2, 32), np.float32).tobytes()))
+    print(f"{name}: refused read peak {peak / 2**20:.1f} MiB, good read {good_peak / 2**20:.1f} MiB")
+    assert peak < good_peak + 2 * chunk_bound, f"{name}: a refused read took {peak} bytes ({good_peak} good)"
+
+
+def test_unwritten_state_chunks_are_told_from_lost_ones(tmp_path):
+    """Writers leave unwritten a state chunk whose blocks are all unobserved (Zarr stores no chunk equal to the
+    fill value): such a map reads and verifies. A state chunk deleted where code chunks are stored is an error
+    naming it, for reads and ``verify`` (its coded blocks used to read as unobserved: they vanished)."""
+    from sdfcodec.testing import analytic_blocks
+    from sdfcodec.verify import verify_map
+
+    codec = sdfcodec.get_codec("pca", code_size=16).fit(analytic_blocks(100, seed=3))
+    blocks = np.clip(analytic_blocks(3, seed=5), 0, 1) * 0.14 - 0.04  # metres within the truncation
+    coords = np.array([[0, 0, 0], [65, 0, 0], [129, 0, 0]])  # state chunks of 64 blocks: 0, 1 and 2 hold one each
+    path = tmp_path / "long.sdfz"
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks(coords[[0, 2]], blocks[[0, 2]])
+    assert sorted(p.name for p in (path / "state" / "c").iterdir()) == ["0", "2"]  # chunk 1: never written
+    m = sdfcodec.open_map(path)
+    assert m.grid_blocks[0] == 130 and m.count_states()["coded"] == 2
+    ref = m.decode_region()
+    assert verify_map(path).ok
+    lost = tmp_path / "lost.sdfz"
+    shutil.copytree(path, lost)
+    (lost / "state" / "c" / "2" / "0" / "0").unlink()
+    with pytest.raises(SDFCodecError, match=r"state/c/2/0/0 of array 'state' is missing, but chunk codes/c/8/0/0/0"):
+        sdfcodec.open_map(lost).decode_region()
+    with pytest.raises(SDFCodecError, match=r"state/c/2/0/0"):
+        sdfcodec.open_map(lost).read_codes()
+    # a region that touches only the sound state chunks still reads
+    sub = sdfcodec.open_map(lost).decode_region(((0, 16 * 64), (0, 16), (0, 16)))
+    assert np.array_equal(sub, ref[: 16 * 64])
+    problems = [str(p) for p in verify_map(lost).problems]
+    assert any(p.startswith("state/c/2/0/0: is missing, but chunk(s) codes/c/8/0/0/0") for p in problems), problems
+
+
+def test_cli_follow_symlinks_option(maps, tmp_path):
+    """``sdfcodec --follow-symlinks COMMAND`` reaches every reader of the command (decode, info, verify): a map
+    whose chunk is a link to a copy of itself is refused without the option and read with it (bit for bit);
+    a link to a device stays refused with it. The option lasts for one invocation."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    runner = CliRunner()
+    path = tmp_path / "linked.sdfz"
+    shutil.copytree(maps["base"], path, symlinks=True)
+    keep = tmp_path / "chunk.bin"
+    shutil.copy(path / CHUNK, keep)
+    link(CHUNK, str(keep))(path, {})
+    out = tmp_path / "out.npy"
+    r = runner.invoke(app, ["decode", str(path), str(out)])
+    assert r.exit_code == 1 and "symbolic link" in r.output and not out.exists(), r.output
+    r = runner.invoke(app, ["verify", str(path)])
+    assert r.exit_code == 1 and "symbolic link" in r.output, r.output
+    r = runner.invoke(app, ["--follow-symlinks", "decode", str(path), str(out)])
+    assert r.exit_code == 0, r.output
+    assert np.array_equal(np.load(out), sdfcodec.open_map(maps["base"]).decode_region())
+    r = runner.invoke(app, ["--follow-symlinks", "verify", str(path)])
+    assert r.exit_code == 0 and "OK" in r.output, r.output
+    assert runner.invoke(app, ["verify", str(path)]).exit_code == 1  # the next invocation without it refuses again
+    link(CHUNK, "/dev/zero")(path, {})
+    r = runner.invoke(app, ["--follow-symlinks", "verify", str(path)])
+    assert r.exit_code == 1 and "character device" in r.output, r.output

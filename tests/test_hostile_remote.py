@@ -370,6 +370,58 @@ def test_remote_limits_are_checked_and_documented_defaults(small_map, http_serve
     assert encoded_bound(131072) < 2 * 131072
 
 
+def test_cli_remote_options_bound_a_drip(small_map, http_server):
+    """``sdfcodec --remote-timeout SECONDS --remote-tries N COMMAND`` sets the remote limits of every read the
+    command makes: a server dripping the map's ``zarr.json`` (2 B/s, 20 s in all) ends ``info`` after 2 tries
+    of 1 s, in one line that counts them, instead of the default 4 tries of 60 s."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+    from sdfcodec.map.remote import default_limits
+    from sdfcodec.map.stores import set_read_defaults
+
+    runner = CliRunner()
+    url = f"{http_server.address}/x.sdfz"
+    http_server.plan = lambda p, n: "drip" if p == "/x.sdfz/zarr.json" else None
+    try:
+        for cmd in ("info", "verify"):
+            t = time.monotonic()
+            r = runner.invoke(app, ["--remote-timeout", "1", "--remote-tries", "2", cmd, url])
+            took = time.monotonic() - t
+            assert r.exit_code == 1, r.output
+            assert re.search(r"x\.sdfz/zarr\.json: no complete response within the timeouts .* on each of 2 tries",
+                             r.output), r.output
+            assert took < 2 * 1 + 2 * 0.5 * 1.25 + 3, f"{cmd}: {took:.1f} s"
+        assert default_limits().tries == 2  # set for the process by the last invocation...
+        http_server.plan = lambda p, n: None
+        r = runner.invoke(app, ["info", url])
+        assert r.exit_code == 0, r.output
+        assert default_limits() == RemoteLimits()  # ...and back to the defaults by the next one
+        r = runner.invoke(app, ["--remote-tries", "0", "info", url])
+        assert r.exit_code == 1 and "--remote-tries must be a whole number >= 1" in r.output, r.output
+    finally:
+        set_read_defaults()
+        http_server.plan = lambda p, n: None
+
+
+def test_verify_says_no_map_at_for_a_missing_remote_map(http_server):
+    """``verify`` of a URL where nothing is says what ``info`` says, "no map at URL", without zarr's class
+    names (it said "not a readable Zarr v3 group (GroupNotFoundError: ...WrapperStore(FsspecStore...")."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+    from sdfcodec.verify import verify_map
+
+    http_server.plan = lambda p, n: None
+    url = f"{http_server.address}/nosuch.sdfz"
+    rep = verify_map(url, storage_options={"remote_limits": FAST})
+    assert [str(p) for p in rep.problems] == [f"map: no map at {url}"]
+    r = CliRunner().invoke(app, ["verify", url])
+    assert r.exit_code == 1 and f"no map at {url}" in r.output and "Error" not in r.output, r.output
+    r = CliRunner().invoke(app, ["info", url])
+    assert r.exit_code == 1 and f"no map at {url}" in r.output, r.output
+
+
 # -- S3 through moto -------------------------------------------------------------------------------------
 
 S3_FAILING = [

@@ -265,6 +265,31 @@ def test_overwrite_replaces_only_maps(small_map, tmp_path, pca16):
         assert sdfcodec.open_map(target).voxel_size == 0.05
 
 
+def test_overwrite_refuses_a_device(small_map, tmp_path, pca16):
+    """Issue 21: ``encode --overwrite`` onto ``/dev/full`` renamed the device node and put a map in its place.
+    A character device with /dev/full's numbers (made here, so that no real device is at risk) is refused by
+    the library and the CLI, and stays the same device."""
+    import stat as stat_mod
+
+    dev = tmp_path / "full"
+    try:
+        os.mknod(dev, 0o600 | stat_mod.S_IFCHR, os.makedev(1, 7))
+    except OSError as e:
+        pytest.skip(f"cannot make a device node here ({e})")
+    before = os.lstat(dev)
+    with pytest.raises(errors.MapExistsError, match="not a directory"):
+        with sdfcodec.create_map(dev, codec=pca16, voxel_size=VS, truncation=TRUNC, overwrite=True) as m:
+            m.write_blocks([[0, 0, 0]], _blocks(1))
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.full((16, 16, 16), TRUNC[1], np.float32))
+    r = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "encode", str(vol), str(dev), "--overwrite",
+                        "--codec", "raw", "--voxel-size", "0.02"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and "a device, FIFO or socket" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    after = os.lstat(dev)
+    assert stat_mod.S_ISCHR(after.st_mode) and (after.st_ino, after.st_rdev) == (before.st_ino, before.st_rdev)
+    assert _hidden(tmp_path) == []
+
+
 def test_overwrite_refuses_a_map_replaced_by_other_data_while_writing(small_map, tmp_path, pca16):
     """The check is made again at commit, under the writer lock: a map that something else replaced by a
     non-map directory while the new version was written is not swapped out."""

@@ -358,3 +358,116 @@ def test_temporary_directory_stays_locked_while_written(tmp_path, pca8):
     m.commit()
     assert sdfcodec.open_map(path).count_states()["coded"] == 1
     assert [n for n in os.listdir(tmp_path) if n.startswith(".")] == []
+
+
+# -- outputs that are not maps: trajectories, models, data sets, search pictures and meshes -----------------
+
+_OTHER_OUTPUTS = r'''
+import errno, json, os, sys
+from pathlib import Path
+import numpy as np
+import sdfcodec
+from sdfcodec.errors import WriteFailedError
+
+d, map_path = Path(sys.argv[1]), sys.argv[2]
+old = d / "old.txt"
+from sdfcodec.trajectory import Trajectory, write_tum
+rng = np.random.default_rng(0)
+traj = Trajectory(np.arange(20000) * 0.1, rng.normal(size=(20000, 3)), np.tile([0.0, 0, 0, 1], (20000, 1)))
+small = Trajectory(np.arange(3) * 0.1, np.zeros((3, 3)), np.tile([0.0, 0, 0, 1], (3, 1)))
+write_tum(old, small)
+before = old.read_bytes()
+with open(d / "filler", "wb", buffering=0) as f:  # fill the file system to the last byte
+    for piece in (bytes(1 << 16), bytes(4096), b"x"):
+        try:
+            while f.write(piece):
+                pass
+        except OSError:
+            pass
+
+def model():
+    from sdfcodec.model import save_model
+    from sdfcodec.testing import analytic_blocks
+    save_model(sdfcodec.get_codec("pca", code_size=16).fit(analytic_blocks(64, seed=1)), d / "model.npz")
+
+def dataset():
+    from sdfcodec.dataset import build_dataset
+    from sdfcodec.testing import analytic_blocks
+    build_dataset(d / "ds", [("a", [analytic_blocks(60, seed=2)])], batch_size=20)
+
+def search(mesh=True):
+    from sdfcodec.search_cli import search_command
+    search_command(map_path, "floor", out_dir=d / "search", top=8, mesh=mesh)
+
+cases = {"trajectory": (lambda: write_tum(d / "traj.txt", traj), d / "traj.txt"),
+         "trajectory_replacing": (lambda: write_tum(old, traj), old),
+         "model": (model, d / "model.npz"), "dataset": (dataset, d / "ds"),
+         "search": (search, d / "search" / "expanded.ply"),
+         "search_picture": (lambda: search(mesh=False), d / "search" / "search.png")}
+out = {}
+for name, (fn, path) in cases.items():
+    try:
+        fn()
+        out[name] = {"type": None}
+    except BaseException as e:
+        out[name] = {"type": type(e).__name__, "errno": getattr(e, "errno", None), "message": str(e),
+                     "sdfcodec_error": isinstance(e, sdfcodec.errors.SDFCodecError), "path": str(path)}
+    out[name]["left"] = sorted(p.name for p in d.rglob("*") if p.name not in ("filler", "old.txt", "search"))
+    out[name]["old_unchanged"] = old.read_bytes() == before
+print("RESULTS " + json.dumps(out))
+'''
+
+
+def test_other_outputs_on_a_full_disk(tmp_path):
+    """Library functions writing outputs other than maps, on a real full file system (a tmpfs in a private
+    mount namespace, filled to the last byte): a trajectory (new, and replacing one), a model, a data set, a
+    search's mesh and picture. Each is one WriteFailedError (ENOSPC) naming its file; nothing half-written or hidden is
+    left, and a trajectory file it was replacing is byte-identical (before: a raw OSError, a truncated file)."""
+    if shutil.which("unshare") is None:
+        pytest.skip("no unshare(1) here to mount a small tmpfs")
+    from sdfcodec.sdf import sample_volume
+
+    map_path = tmp_path / "room.sdfz"
+    vol = sample_volume(sdfcodec.testing.analytic_scene(), (48, 40, 36), VS, truncation=TRUNC)
+    codec = sdfcodec.get_codec("pca", code_size=16).fit(analytic_blocks(100, seed=3))
+    with sdfcodec.create_map(map_path, codec=codec, voxel_size=VS, truncation=TRUNC) as m:
+        m.write_volume(vol)
+    d = _world_readable_tmp()
+    try:
+        proc = subprocess.run(["unshare", "-rm", "sh", "-c", 'mount -t tmpfs -o size=1m tmpfs "$0" && exec "$1" -c '
+                               '"$2" "$0" "$3"', str(d), sys.executable, _OTHER_OUTPUTS, str(map_path)],
+                              capture_output=True, text=True, env=_env(), timeout=300)
+        if proc.returncode != 0 and "mount" in proc.stderr and "RESULTS" not in proc.stdout:
+            pytest.skip(f"cannot mount a tmpfs in a user namespace here: {proc.stderr.strip()[:200]}")
+        res = _results(proc)
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+    assert sorted(res) == ["dataset", "model", "search", "search_picture", "trajectory", "trajectory_replacing"]
+    for name, r in res.items():
+        assert r["type"] == "WriteFailedError" and r["sdfcodec_error"] and r["errno"] == errno.ENOSPC, (name, r)
+        assert r["path"] in r["message"] and "No space left on device" in r["message"], (name, r)
+        assert "What to do" in r["message"] and "\n" not in r["message"], (name, r)
+        assert r["left"] == [], (name, r)  # no output, no temporary (the data set's hidden directory neither)
+        assert r["old_unchanged"], (name, r)
+    assert "the file there is unchanged" in res["trajectory_replacing"]["message"]
+
+
+def test_dataset_overwrite_replaces_only_a_data_set(tmp_path):
+    """``build_dataset(..., overwrite=True)`` replaces a data set, never a directory of other files or a
+    plain file (it used to delete whatever directory was there)."""
+    from sdfcodec.dataset import build_dataset, open_dataset
+
+    src = [("a", [analytic_blocks(60, seed=2)])]
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "keep.jpg").write_bytes(b"precious")
+    plain = tmp_path / "notes.txt"
+    plain.write_text("keep")
+    for target in (other, plain):
+        with pytest.raises(errors.MapExistsError, match="refusing to replace it"):
+            build_dataset(target, src, batch_size=20, overwrite=True)
+    assert (other / "keep.jpg").read_bytes() == b"precious" and plain.read_text() == "keep"
+    ds = tmp_path / "ds"
+    build_dataset(ds, src, batch_size=20)
+    build_dataset(ds, [("b", [analytic_blocks(80, seed=4)])], batch_size=20, overwrite=True)
+    assert open_dataset(ds).meta["sources"] == {"b": 80}

@@ -148,10 +148,27 @@ def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) ->
 
 
 @app.callback()
-def _root(version: bool = typer.Option(False, "--version", help="Print the version and exit.")) -> None:
+def _root(version: bool = typer.Option(False, "--version", help="Print the version and exit."),
+          follow_symlinks: bool = typer.Option(
+              False, "--follow-symlinks", help="Follow symbolic links inside local maps (refused by default)."),
+          remote_timeout: float = typer.Option(
+              None, "--remote-timeout", metavar="SECONDS",
+              help="Total time for one try of one object of a remote map (default 60)."),
+          remote_tries: int = typer.Option(
+              None, "--remote-tries", metavar="N", help="Tries per object of a remote map (default 4).")) -> None:
     if version:
         out.print(f"sdfcodec {__version__}")
         raise typer.Exit()
+    # a process default, not arguments: every command (and the library functions that open maps for it:
+    # verify, search, compare, track, eval, the tracker's map field) reads through sdfcodec.map.stores
+    from ..map.stores import set_read_defaults
+
+    limits = {k: v for k, v in (("total_timeout", remote_timeout), ("tries", remote_tries)) if v is not None}
+    try:
+        set_read_defaults(follow_symlinks=follow_symlinks, remote_limits=limits)
+    except SDFCodecError as e:
+        fail(str(e).replace("remote_limits.total_timeout", "--remote-timeout")
+             .replace("remote_limits.tries", "--remote-tries").replace("remote_limits timeouts", "--remote-timeout"))
 
 
 def human_bytes(n: float | None) -> str:

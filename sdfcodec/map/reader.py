@@ -33,6 +33,7 @@ from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MI
                      check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, region_voxels,
                      unstored_suspects)
 from .codec_state import load_codec
+from .presence import check_state_chunks
 from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
@@ -106,6 +107,7 @@ class MapReader:
         self._cache = cache if cache is not None else CodecCache()
         self._owns_store, self._closed = owns_store, False
         self._chunk_bytes: dict[str, int] = {}
+        self.state_chunks_checked: set[tuple[int, ...]] = set()  # state chunks found present or legitimately absent
         self.codes_array = self.state_array = self.code_scale_array = self.weights_array = self.mask_array = None
         if live is None:
             self._check_arrays()
@@ -299,7 +301,7 @@ class MapReader:
         """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
         if self.live is not None:
             return self.live.state.copy()
-        return self._valid_states(self.read(self.state_array, (slice(None),) * 3))
+        return self._valid_states(self.read(self.state_array, (slice(None),) * 3), (slice(None),) * 3)
 
     def count_states(self) -> dict[str, int]:
         """Number of blocks per state name (``unobserved``, ``empty``, ``coded``)."""
@@ -409,12 +411,13 @@ class MapReader:
         """Block states of a block box: only the state chunks it touches are read."""
         if self.live is not None:
             return self.live.state[box]
-        return self._valid_states(self.read(self.state_array, box))
+        return self._valid_states(self.read(self.state_array, box), box)
 
-    def _valid_states(self, state: np.ndarray) -> np.ndarray:
+    def _valid_states(self, state: np.ndarray, box: Box) -> np.ndarray:
         if state.size and state.max() > BlockState.CODED:
             raise FormatError(f"{self.location}: state array holds reserved value {int(state.max())} "
                               "(valid: 0 unobserved, 1 empty, 2 coded)")
+        check_state_chunks(self, box, state)  # a lost state chunk must not read as unobserved (spec 9a)
         return state
 
     def _chunk_groups(self, box: Box, states: np.ndarray, level: int, *,

@@ -36,7 +36,8 @@ from zarr.core.buffer import default_buffer_prototype
 
 from ..errors import InvalidValueError, RemoteReadError
 
-__all__ = ["RemoteLimits", "RemoteStore", "remote_store", "encoded_bound", "LIMITS_KEY"]
+__all__ = ["RemoteLimits", "RemoteStore", "remote_store", "encoded_bound", "LIMITS_KEY", "set_default_limits",
+           "default_limits"]
 
 #: The ``storage_options`` key that holds the :class:`RemoteLimits` of a read (removed before fsspec sees it).
 LIMITS_KEY = "remote_limits"
@@ -47,6 +48,9 @@ _MISSING_HTTP = {404, 410}
 _TRANSIENT_S3 = {"InternalError", "ServiceUnavailable", "SlowDown", "RequestTimeout", "Throttling",
                  "ThrottlingException", "OperationAborted"}
 _MISSING_S3 = {"NoSuchKey", "NotFound", "404", "NoSuchBucket", "NoSuchVersion"}
+#: Fields of :class:`RemoteLimits` that replace its defaults for every remote read of this process (the CLI's
+#: --remote-timeout and --remote-tries set them); a map's own ``storage_options`` still override them.
+_PROCESS_LIMITS: dict[str, float] = {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,7 +88,7 @@ class RemoteLimits:
     def of(cls, value: "RemoteLimits | dict | None") -> "RemoteLimits":
         """``value`` as limits: itself, a dict of field values (unknown names are an error), or the defaults."""
         if value is None:
-            return cls()
+            return cls(**_PROCESS_LIMITS)
         if isinstance(value, cls):
             return value
         if isinstance(value, dict):
@@ -93,9 +97,32 @@ class RemoteLimits:
             if unknown:
                 raise InvalidValueError(f"storage_options['{LIMITS_KEY}'] has unknown fields {unknown}; known: "
                                         f"{sorted(known)}")
-            return cls(**value)
+            return cls(**{**_PROCESS_LIMITS, **value})
         raise InvalidValueError(f"storage_options['{LIMITS_KEY}'] must be a RemoteLimits or a dict, got "
                                 f"{type(value).__name__}")
+
+
+def set_default_limits(fields: dict | None = None) -> None:
+    """Make ``fields`` (of :class:`RemoteLimits`, e.g. ``{"total_timeout": 5, "tries": 2}``) the defaults of every
+    remote read this process makes from now on (None or ``{}``: the built-in defaults again). A map's
+    ``storage_options["remote_limits"]`` still override them field by field; maps reopened in other processes
+    (dask workers that are not forks) carry only their own ``storage_options``.
+
+    Raises:
+        InvalidValueError: an unknown field or a value :class:`RemoteLimits` refuses.
+    """
+    fields = dict(fields or {})
+    known = {f.name for f in dataclasses.fields(RemoteLimits)}
+    if set(fields) - known:
+        raise InvalidValueError(f"unknown remote limits {sorted(set(fields) - known)}; known: {sorted(known)}")
+    RemoteLimits(**fields)  # checked before it applies
+    _PROCESS_LIMITS.clear()
+    _PROCESS_LIMITS.update(fields)
+
+
+def default_limits() -> RemoteLimits:
+    """The limits a remote read of this process gets when its map's ``storage_options`` set none."""
+    return RemoteLimits(**_PROCESS_LIMITS)
 
 
 def encoded_bound(decoded_bytes: int) -> int:

@@ -16,18 +16,21 @@ import json
 import os
 import stat
 import weakref
+import zipfile
+import zlib
 from pathlib import Path
 
+import numpy as np
 import zarr
 import zarr.abc.store
 from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
 from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
-from .remote import remote_store
+from .remote import remote_store, set_default_limits
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-__all__ = ["MAX_METADATA_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
+__all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
            "unguarded", "chunk_read_limit", "check_metadata_document"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
@@ -113,7 +116,7 @@ class GuardStore(zarr.storage.WrapperStore):
 
         cap, too_big = ((MAX_METADATA_BYTES, meta_error) if meta else
                         (chunk_read_limit(limit[0]), chunk_error) if limit else (None, None))
-        if isinstance(self._store, SafeLocalStore):
+        if isinstance(self._store, (SafeLocalStore, SafeZipStore)):
             buf = await self._store.get_bounded(key, prototype, byte_range, cap, too_big)
         else:
             size = self._local_size(key) if cap is not None else None
@@ -139,11 +142,13 @@ def blosc_frame_problem(frame: bytes | memoryview, max_nbytes: int) -> str | Non
     """What is wrong with the structure of a Blosc (version 1 format) frame, or None. The C decompressor trusts
     the frame's header and block offsets: a frame cut short, or with a tampered header, would make it read or
     write outside its buffers (a crash, not an error) or allocate what the header claims (a bomb). Checked:
-    the header's compressed size is the frame's, the uncompressed size fits the chunk, and the block-start table
-    and each block's first stream length lie inside the frame."""
+    the header's compressed size is the frame's, the uncompressed size fits the chunk, the type size is not 0,
+    the block-start table lies inside the frame, and every stream of every block (a block is split into one
+    stream per byte of the type size when shuffled, by the decompressor's own rule) has its 4-byte length and
+    that many bytes inside the frame."""
     if len(frame) < 16:
         return f"{len(frame)} bytes, shorter than a Blosc header"
-    flags = frame[2]
+    flags, typesize = frame[2], frame[3]
     nbytes, blocksize, cbytes = (int.from_bytes(frame[i:i + 4], "little") for i in (4, 8, 12))
     if nbytes > max_nbytes:
         return f"it claims {nbytes} bytes uncompressed, more than its shape holds ({max_nbytes})"
@@ -153,19 +158,43 @@ def blosc_frame_problem(frame: bytes | memoryview, max_nbytes: int) -> str | Non
         return None if cbytes == nbytes + 16 else f"a stored frame of {nbytes} bytes cannot be {cbytes} long"
     if nbytes == 0:
         return None
+    if typesize == 0:  # the decompressor divides the block size by it
+        return "its type size is 0"
     if blocksize == 0 or blocksize > max(nbytes, 1 << 31):
         return f"block size {blocksize} for {nbytes} bytes"
     nblocks = -(-nbytes // blocksize)
     table = 16 + 4 * nblocks
     if table > cbytes:
         return f"{nblocks} blocks do not fit their offset table in {cbytes} bytes"
-    for i in range(nblocks):
-        start = int.from_bytes(frame[16 + 4 * i:20 + 4 * i], "little", signed=True)
-        if not table <= start <= cbytes - 4:
-            return f"block {i} starts at byte {start}, outside the frame's data [{table}, {cbytes - 4}]"
-        first = int.from_bytes(frame[start:start + 4], "little", signed=True)
-        if first > cbytes - start - 4:
-            return f"block {i}'s first stream claims {first} bytes, past the end of the frame"
+    data = np.frombuffer(frame, dtype=np.uint8)
+    starts = data[16:table].view("<i4").astype(np.int64)
+    outside = np.flatnonzero((starts < table) | (starts > cbytes - 4))
+    if outside.size:
+        i = int(outside[0])
+        return f"block {i} starts at byte {int(starts[i])}, outside the frame's data [{table}, {cbytes - 4}]"
+    # c-blosc's blosc_d: a block is split into `typesize` streams unless the frame says not to (flag 0x10),
+    # the type is wider than 16 bytes, a stream would hold under 128 bytes, or it is the short last block
+    leftover = nbytes % blocksize
+    split = not flags & 0x10 and typesize <= 16 and blocksize // typesize >= 128
+    nsplits = np.full(nblocks, typesize if split else 1, dtype=np.int64)
+    if leftover:
+        nsplits[-1] = 1
+    pos = starts.copy()  # walked in step over all blocks at once: at most 16 rounds, each vectorised
+    for j in range(int(nsplits.max())):
+        live = np.flatnonzero(nsplits > j)
+        at = pos[live]
+        short = np.flatnonzero(at > cbytes - 4)
+        if short.size:
+            i = int(live[short[0]])
+            return f"block {i}'s stream {j} starts at byte {int(pos[i])}, past the end of the frame ({cbytes})"
+        idx = at[:, None] + np.arange(4)
+        lengths = data[idx].astype(np.int64) @ np.array([1, 1 << 8, 1 << 16, 1 << 24], dtype=np.int64)
+        lengths = np.where(lengths >= 1 << 31, lengths - (1 << 32), lengths)  # a signed int32
+        bad = np.flatnonzero((lengths < 0) | (lengths > cbytes - at - 4))
+        if bad.size:
+            i, n = int(live[bad[0]]), int(lengths[bad[0]])
+            return f"block {i}'s stream {j} claims {n} bytes, past the end of the frame"
+        pos[live] = at + 4 + lengths
     return None
 
 
@@ -219,6 +248,9 @@ class SafeLocalStore(zarr.storage.LocalStore):
             return FormatError(f"{self.label}: {on}'{where}' is a symbolic link{link}; a map's files must be "
                                "regular files inside its directory, so it is refused (open_map(..., "
                                "follow_symlinks=True) follows links)")
+        if what == "a directory":
+            return FormatError(f"{self.label}: {on}'{where}' is a directory where a file (a chunk or a metadata "
+                               "document) belongs; refused")
         return FormatError(f"{self.label}: {on}'{where}' is {what}, not a regular file; a map holds only regular "
                            "files and directories, so it is refused (without opening it)")
 
@@ -362,6 +394,80 @@ def _byte_span(byte_range, size: int) -> tuple[int, int]:
     raise InvalidValueError(f"unknown byte request {byte_range!r}")
 
 
+#: Most bytes a zip member that is neither metadata nor a chunk of a checked array may hold (what a remote
+#: object of no known kind may, ``RemoteLimits.max_object_bytes``).
+MAX_OTHER_MEMBER_BYTES = 256 << 20
+
+
+class SafeZipStore(zarr.storage.ZipStore):
+    """A read-only Zarr zip store whose reads are bounded while they happen, as a local map's are: a member's
+    size declared in the zip's directory is checked against the caller's cap before it is opened (a deflate
+    bomb that declares its size), at most that many bytes are decompressed (a member that lies about its size
+    ends at the declared size and then fails its CRC-32), only stored or deflated members are read (bzip2 and
+    LZMA decompress unbounded steps), and a damaged member is one clear error naming it."""
+
+    def __init__(self, path, *, mode: str = "r", read_only: bool | None = None, **kwargs):
+        super().__init__(path, mode="r", read_only=True)
+
+    @property
+    def label(self) -> str:
+        """How errors name the zip file."""
+        return str(self.path)
+
+    def read_member(self, key: str, byte_range=None, max_bytes: int | None = None, too_big=None) -> bytes | None:
+        """The bytes of member ``key`` (``byte_range``: a Zarr byte request), or None when there is none.
+
+        Raises:
+            FormatError: a directory entry or an unsupported compression method at the key.
+            ChecksumError: a member whose bytes do not decompress to its declared size and CRC-32.
+            ``too_big(size)`` (default a FormatError): a member declaring more than ``max_bytes``.
+        """
+        if not self._is_open:
+            self._sync_open()
+        cap = MAX_OTHER_MEMBER_BYTES if max_bytes is None else max_bytes
+        with self._lock:
+            try:
+                info = self._zf.getinfo(key)
+            except KeyError:
+                return None
+            where = f"{self.label}: member {key}"
+            if info.is_dir():
+                raise FormatError(f"{where} is a directory where a file belongs; refused")
+            if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+                raise FormatError(f"{where} uses zip compression method {info.compress_type}; a zip map's "
+                                  "members must be stored or deflated; refused")
+            size = info.file_size
+            if size > cap:  # the whole member, whatever part is asked for: seeking decompresses the rest
+                raise (too_big(size) if too_big is not None and max_bytes is not None else FormatError(
+                    f"{where} declares {size} bytes, more than the {cap} allowed; refused unread"))
+            start, stop = _byte_span(byte_range, size)
+            try:
+                with self._zf.open(info) as f:
+                    if start:
+                        f.seek(start)
+                    data = f.read(stop - start)  # at most the declared size is decompressed
+            except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
+                raise ChecksumError(f"{where} is damaged ({e}); refused") from None
+            if len(data) != stop - start:
+                raise ChecksumError(f"{where} holds {start + len(data)} bytes, not the {size} its zip entry "
+                                    "declares; refused")
+            return data
+
+    async def get_bounded(self, key, prototype=None, byte_range=None, max_bytes: int | None = None,
+                          too_big=None) -> Buffer | None:
+        """:meth:`get`, reading at most ``max_bytes`` (see :meth:`read_member`)."""
+        if prototype is None:
+            prototype = default_buffer_prototype()
+        data = await asyncio.to_thread(self.read_member, key, byte_range, max_bytes, too_big)
+        return None if data is None else prototype.buffer.from_bytes(data)
+
+    async def get(self, key, prototype=None, byte_range=None):
+        return await self.get_bounded(key, prototype, byte_range)
+
+    async def get_partial_values(self, prototype, key_ranges):
+        return [await self.get_bounded(k, prototype, r) for k, r in key_ranges]
+
+
 class PinnedStore(SafeLocalStore):
     """A read-only :class:`SafeLocalStore` over one version of a map directory, held open by a file descriptor
     (keys are resolved from it; Zarr's own paths go through ``/proc/self/fd/N``): a writer that swaps in a new
@@ -442,6 +548,26 @@ def unguarded(store: zarr.abc.store.Store) -> zarr.abc.store.Store:
     return store.inner if isinstance(store, GuardStore) else store
 
 
+#: Whether local reads of this process follow symbolic links inside a map unless told to (``set_read_defaults``).
+_FOLLOW_SYMLINKS = [False]
+
+
+def set_read_defaults(*, follow_symlinks: bool = False, remote_limits: dict | None = None) -> None:
+    """Defaults for every map this process opens from now on (the ``sdfcodec`` command's root options
+    ``--follow-symlinks``, ``--remote-timeout`` and ``--remote-tries`` set them, so that every command and the
+    library functions they call read maps alike): ``follow_symlinks`` as if each ``open_map`` and
+    ``verify_map`` passed it (an explicit ``True`` there still follows links when this is False), and
+    ``remote_limits`` fields of :class:`~sdfcodec.map.remote.RemoteLimits` replacing its defaults (a map's own
+    ``storage_options["remote_limits"]`` override them field by field). Called with no arguments: the
+    built-in defaults again.
+
+    Raises:
+        InvalidValueError: an unknown remote limit or a value out of range.
+    """
+    set_default_limits(remote_limits)
+    _FOLLOW_SYMLINKS[0] = bool(follow_symlinks)
+
+
 def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
                storage_options: dict | None, *, follow_symlinks: bool = False) -> GuardStore:
     """The guarded read-only store of a map: any Zarr store as given, a URL through fsspec, a ``.zip`` file, or
@@ -450,6 +576,7 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
     ``str(path_or_url)``. Raises MapNotFoundError for a local path that does not exist."""
     if isinstance(path_or_url, zarr.abc.store.Store):
         return GuardStore(path_or_url)
+    follow_symlinks = follow_symlinks or _FOLLOW_SYMLINKS[0]
     if is_url(loc):  # http(s) and s3: bounded, timed and retried reads (sdfcodec.map.remote)
         limits: dict[str, tuple[int, bool]] = {}
         return GuardStore(remote_store(loc, storage_options, limits=limits, max_metadata_bytes=MAX_METADATA_BYTES),
@@ -458,7 +585,7 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
     if not p.exists():
         raise MapNotFoundError(f"no map at {loc}")
     if p.is_file():
-        return GuardStore(zarr.storage.ZipStore(p, mode="r"))
+        return GuardStore(SafeZipStore(p))
     if not p.is_dir():  # a FIFO, device or socket: never opened
         raise MapNotFoundError(f"no map at {loc}: it is {_kind(os.stat(p).st_mode)}, neither a map directory nor "
                                "a zip file")
