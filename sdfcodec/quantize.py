@@ -185,8 +185,8 @@ def fit_rate_model(codes: np.ndarray, compress: Callable[[np.ndarray], int], sha
         raise InvalidValueError("no coded blocks to fit a rate model on")
     shp = np.ones(z.shape[1]) if shape is None else np.asarray(shape, np.float64)
     span = float(np.abs(z).max() / shp.min()) if z.size else 1.0
-    lo = max(span / (QMAX16 - 1), 2.0 ** -8)
-    grid = [s for s in (steps if steps is not None else 2.0 ** np.arange(-8, 3.5, 0.5)) if s >= lo]
+    lo = max(span / (QMAX16 - 1), 1e-12)
+    grid = sorted({lo, *(s for s in (steps if steps is not None else 2.0 ** np.arange(-10, 3.5, 0.5)) if s > lo)})
     points = [(float(s), compress(np.rint(z / (s * shp)).astype(np.int16)) / len(z)) for s in grid]
     floor = compress(np.zeros(z.shape, np.int16)) / len(z)
     return RateModel(points, floor)
@@ -195,10 +195,15 @@ def fit_rate_model(codes: np.ndarray, compress: Callable[[np.ndarray], int], sha
 def step_for_bytes(model: RateModel, codes_bytes: float, other_bytes: float = 0.0) -> float:
     """The step whose codes take ``codes_bytes`` per block by ``model``; raises when that is below the floor
     (all codes 0), naming the smallest reachable total (``floor + other_bytes``: what the mask, weights and
-    states take on top)."""
+    states take on top), or above what the finest step int16 codes hold gives (naming the largest)."""
     if not codes_bytes > model.floor * 1.02:
         raise InvalidValueError(f"a target of {codes_bytes + other_bytes:.1f} bytes per coded block is below what "
                                 f"this codec can reach on this map: at least {model.floor + other_bytes:.1f} "
                                 f"(codes {model.floor:.1f} when every code quantises to 0, plus "
                                 f"{other_bytes:.1f} of observation mask, weights and block states)")
+    finest = model.points[0]
+    if codes_bytes > finest[1]:
+        raise InvalidValueError(f"a target of {codes_bytes + other_bytes:.1f} bytes per coded block is above what "
+                                f"int16 codes take on this map: at most {finest[1] + other_bytes:.1f} (at their "
+                                f"finest step {finest[0]:.4g}, +-{QMAX16} steps); store float32 codes instead")
     return model.step_for(codes_bytes)

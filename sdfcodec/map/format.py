@@ -27,7 +27,7 @@ __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
            "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
-           "QUANT_CLEVEL"]
+           "QUANT_CLEVEL", "mask_compressors"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
 #: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
@@ -67,6 +67,13 @@ def code_compressors(dtype: str) -> list:
     if dtype == "int16":
         return [BloscCodec(cname="zstd", clevel=QUANT_CLEVEL, shuffle="bitshuffle"), Crc32cCodec()]
     return compressors()
+
+
+def mask_compressors() -> list:
+    """The chain of the observation mask ``observed``: packed bits gain nothing from a byte shuffle, and zstd
+    level 5 of Blosc stores the kitchen map's mask in 73.8 B per coded block against 80.7 at level 3 (issue 16,
+    docs/rate-distortion.md); readers decode any allowed Blosc settings, so old readers read it."""
+    return [BloscCodec(cname="zstd", clevel=5, shuffle="noshuffle"), Crc32cCodec()]
 
 
 def state_digest(state: dict[str, np.ndarray]) -> str:

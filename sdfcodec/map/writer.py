@@ -31,7 +31,7 @@ from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, STATE_N
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
-                     code_layout, compressors, free_space, state_digest)
+                     code_layout, compressors, free_space, mask_compressors, state_digest)
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
                        store_mask_chunk, write_block_rows)
 from .reader import open_reader
@@ -295,7 +295,8 @@ class MapWriter:
             self.mask = self.group.create_array(MASK_ARRAY, shape=(*self.grid, MASK_BYTES), dtype="uint8",
                                                 fill_value=255, chunks=(*(self.codes_spec.chunk_blocks,) * 3,
                                                                         MASK_BYTES),
-                                                compressors=compressors(), dimension_names=["bx", "by", "bz", "byte"])
+                                                compressors=mask_compressors(),
+                                                dimension_names=["bx", "by", "bz", "byte"])
         cb = self.codes_spec.chunk_blocks
         chunk_of = coords // cb
         order = np.lexsort(chunk_of.T[::-1])
