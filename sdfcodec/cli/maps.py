@@ -145,6 +145,7 @@ def encode_cmd(
         params = {"code_size": code_size} if code_size else {}
         codec = get_codec(codec_id or "pca", **params)
 
+    _check_quantised_options(codec, step, target_bytes, code_dtype)  # before a fit, which may take long
     fitted_on = None
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
@@ -224,6 +225,25 @@ def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float],
     return codes, None if obs is None else pack_mask(obs), n_coded
 
 
+def _check_quantised_options(codec: Any, step: Optional[float], target: Optional[float], code_dtype: str) -> None:
+    """Refuse bad ``--step`` / ``--target-bytes`` input (checked before any fit or encode)."""
+    if step is None and target is None:
+        return
+    from ..map.rate import check_target
+    from ..quantize import check_quantisable, check_step
+
+    if step is not None and target is not None:
+        raise InvalidValueError("--step and --target-bytes both choose the step: pass one of them")
+    if code_dtype not in ("float32", "int16"):
+        raise InvalidValueError(f"--step/--target-bytes store int16 codes; --code-dtype {code_dtype} contradicts "
+                                "them (leave --code-dtype out)")
+    if step is not None:
+        check_step(step, codec.code_size, "--step")
+    else:
+        check_target(target)
+    check_quantisable(codec)
+
+
 def _encode_quantised(write: Any, codec: Any, step: Optional[float], target: Optional[float], code_dtype: str,
                       sample: Any, output: Path) -> tuple[Any, Optional[dict]]:
     """``encode --step S`` / ``--target-bytes B``: int16 codes at step S, or at the step a rate model fitted on a
@@ -232,23 +252,16 @@ def _encode_quantised(write: Any, codec: Any, step: Optional[float], target: Opt
     if step is None and target is None:
         return write(), None
     from ..map.format import code_layout, mask_compressors
-    from ..map.rate import (check_target, codes_rate_model, correct_step, mask_bytes_estimate,
-                            metadata_bytes_estimate, plan_step, stored_bytes)
-    from ..quantize import check_quantisable, check_step
+    from ..map.rate import (codes_rate_model, correct_step, mask_bytes_estimate, metadata_bytes_estimate,
+                            plan_step, stored_bytes)
 
-    if step is not None and target is not None:
-        raise InvalidValueError("--step and --target-bytes both choose the step: pass one of them")
-    if code_dtype not in ("float32", "int16"):
-        raise InvalidValueError(f"--step/--target-bytes store int16 codes; --code-dtype {code_dtype} contradicts "
-                                "them (leave --code-dtype out)")
-    check_quantisable(codec)
+    _check_quantised_options(codec, step, target, code_dtype)
     if step is not None:
-        check_step(step, codec.code_size, "--step")
         m = write(step)
         got = stored_bytes(output)
         return m, {"step": float(step), "bytes_per_coded_block": got["total"],
                    "codes_bytes_per_coded_block": got["codes"]}
-    t = check_target(target)
+    t = float(target)
     codes, packed, n_coded = sample()
     if not len(codes):
         raise InvalidValueError("the input has no coded blocks (all free space): there are no codes to rate-control")

@@ -1,0 +1,149 @@
+"""Rate-distortion of step-quantised (int16) codes against float32, float16 and int8 code storage on a fused map
+(issue 16, item 1; docs/rate-distortion.md, "Quantised codes").
+
+    python examples/quantised_codes.py KITCHEN.sdfz [--sizes 32,64,128] [--steps ...] [--out docs/quantised-codes.json]
+
+KITCHEN.sdfz is a lossless fused map (codec raw, with fusion weights: ``sdfcodec fuse`` of the 7-Scenes
+redkitchen frames). Every point is a real map: the lossless map transcoded (``Map.write_map``, which encodes
+with the observation and the surface weight) into a pca-K map with the shipped eigenshapes, then measured:
+
+* bytes per coded block: every file of the map but its codec state (``codec/``), divided by the coded blocks
+  ("all-in": codes, observation mask, block states, Zarr metadata), and the ``codes/`` files alone;
+* surfaces: ``sdfcodec.surface.compare_volumes`` of the decoded map against the lossless one over the observed
+  voxels (Chamfer-L1 in mm, F-score at 1 voxel);
+* MSE: mean squared error in normalised units (1 = the truncation range) over the observed voxels of coded
+  blocks; max error: largest absolute error there, in metres;
+* speed: encode (the transcode, best of ``--repeat``) and decode (``decode_region``, best of ``--repeat``) in
+  coded blocks per second, float32 and int16 maps timed interleaved in the same run.
+
+``--allocated`` adds int16 points whose step per component follows the codec's explained variance (step_j =
+s * (var_0 / var_j)^(1/4): coarser steps for weaker components) at the same scales ``s``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import sdfcodec
+from sdfcodec.map.rate import stored_bytes
+from sdfcodec.surface import compare_volumes
+
+DEFAULT_STEPS = (0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64)
+
+
+def observed_volume(raw: sdfcodec.Map) -> np.ndarray:
+    """The lossless map's observation as a dense bool volume (unobserved blocks: False)."""
+    obs = np.zeros(raw.shape_voxels, bool)
+    coords = np.argwhere(raw.block_states() == 2)
+    for c, o in zip(coords, raw.read_observed(coords)):
+        s = tuple(slice(16 * a, 16 * a + 16) for a in c)
+        sh = obs[s].shape
+        obs[s] = o[:sh[0], :sh[1], :sh[2]]
+    return obs
+
+
+def coded_voxels(m: sdfcodec.Map) -> np.ndarray:
+    mask = np.zeros(m.shape_voxels, bool)
+    for c in np.argwhere(m.block_states() == 2):
+        mask[tuple(slice(16 * a, 16 * a + 16) for a in c)] = True
+    return mask
+
+
+def write(path: Path, raw: sdfcodec.Map, codec, **kw) -> float:
+    t = time.perf_counter()
+    with sdfcodec.create_map(path, codec=codec, voxel_size=raw.voxel_size, truncation=raw.truncation,
+                             origin=raw.origin, shape_voxels=raw.shape_voxels, overwrite=True, **kw) as m:
+        m.write_map(raw)
+    return time.perf_counter() - t
+
+
+def measure(path: Path, orig: np.ndarray, obs: np.ndarray, region: np.ndarray, repeat: int) -> dict:
+    m = sdfcodec.open_map(path)
+    n = m.count_states()["coded"]
+    best = np.inf
+    for _ in range(repeat):
+        t = time.perf_counter()
+        dec = m.decode_region()
+        best = min(best, time.perf_counter() - t)
+    d_min, d_max = m.truncation
+    sel = obs & region
+    err = dec[sel] - orig[sel]
+    sm = compare_volumes(orig, dec, m.voxel_size, origin=m.origin, observed=obs).to_dict()
+    b = stored_bytes(path)
+    return {"bytes_all_in": b["total"], "bytes_codes": b["codes"], "bytes_mask": b["mask"],
+            "mse": float(np.mean((err / (d_max - d_min)) ** 2)), "max_error_m": float(np.abs(err).max()),
+            "chamfer_mm": 1000 * sm["chamfer_l1"], "f1": sm["f_score_1"], "decode_blocks_per_s": n / best,
+            "coded_blocks": n}
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("kitchen")
+    ap.add_argument("--sizes", default="32,64,128")
+    ap.add_argument("--steps", default=",".join(map(str, DEFAULT_STEPS)))
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--allocated", action="store_true")
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    raw = sdfcodec.open_map(a.kitchen)
+    orig = raw.decode_region()
+    obs = observed_volume(raw)
+    work = Path(tempfile.mkdtemp(prefix="quantised-codes-"))
+    rows: list[dict] = []
+    t_all = time.perf_counter()
+    try:
+        for k in (int(s) for s in a.sizes.split(",")):
+            codec = sdfcodec.pretrained_codec("pca", k)
+            var = np.asarray(codec.state_dict()["explained_variance"][:k], np.float64)
+            region = None
+            variants = [("float32", {}), ("float16", {"code_dtype": "float16"}), ("int8", {"code_dtype": "int8"})]
+            variants += [(f"int16 step {s:g}", {"code_dtype": "int16", "code_step": s})
+                         for s in map(float, a.steps.split(","))]
+            if a.allocated:
+                variants += [(f"int16 allocated {s:g}", {"code_dtype": "int16",
+                                                          "code_step": s * (var[0] / var) ** 0.25})
+                             for s in map(float, a.steps.split(","))]
+            enc_f32 = None
+            for name, kw in variants:
+                path = work / f"pca{k}-{len(rows)}.sdfz"
+                # encode timed interleaved with float32: a float32 write right before each other variant
+                times, ref = [], []
+                for _ in range(a.repeat if name == "float32" or name.startswith("int16 step") else 1):
+                    if name != "float32":
+                        ref.append(write(work / "ref.sdfz", raw, codec))
+                    times.append(write(path, raw, codec, **kw))
+                if region is None:
+                    region = coded_voxels(sdfcodec.open_map(path))
+                row = {"codec": f"pca-{k}", "storage": name, **measure(path, orig, obs, region, a.repeat)}
+                n = row["coded_blocks"]
+                row["encode_blocks_per_s"] = n / min(times)
+                if name == "float32":
+                    enc_f32 = row["encode_blocks_per_s"]
+                    dec_f32 = row["decode_blocks_per_s"]
+                else:
+                    row["encode_vs_float32_same_run"] = min(ref) / min(times)
+                    row["decode_vs_float32"] = row["decode_blocks_per_s"] / dec_f32
+                rows.append(row)
+                print(json.dumps({k2: (round(v, 5) if isinstance(v, float) else v) for k2, v in row.items()}),
+                      flush=True)
+                shutil.rmtree(path, ignore_errors=True)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    meta = {"input": os.path.abspath(a.kitchen), "wall_s": time.perf_counter() - t_all,
+            "load_avg": os.getloadavg(), "cpus": os.cpu_count()}
+    if a.out:
+        Path(a.out).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+    print(json.dumps(meta))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
