@@ -84,6 +84,41 @@ def measure(path: Path, orig: np.ndarray, obs: np.ndarray, region: np.ndarray, r
             "coded_blocks": n}
 
 
+def storage_speed(kitchen: sdfcodec.Map, k: int, step: float, tiles: int, repeat: int, work: Path) -> dict:
+    """Code storage alone, float32 against int16 at ``step``, timed interleaved (best of ``repeat``): writing
+    already-encoded codes (``write_codes``: quantise, compress, store) and reading them back (``read_codes``:
+    decompress, dequantise), on the kitchen's pca-k codes tiled ``tiles`` times along x (the codec's own encode
+    and decode are the same for both storages and left out)."""
+    ref = work / "speed-src.sdfz"
+    codec = sdfcodec.pretrained_codec("pca", k)
+    write(ref, kitchen, codec)
+    coords, z = sdfcodec.open_map(ref).read_codes()
+    span = coords[:, 0].max() + 1
+    cc = np.concatenate([coords + [span * i, 0, 0] for i in range(tiles)])
+    zz = np.concatenate([z] * tiles)
+    t = {"float32": ([], []), "int16": ([], [])}
+    for _ in range(repeat):
+        for name, kw in (("float32", {}), ("int16", {"code_dtype": "int16", "code_step": step})):
+            p = work / f"speed-{name}.sdfz"
+            t0 = time.perf_counter()
+            with sdfcodec.create_map(p, codec=codec, voxel_size=kitchen.voxel_size, truncation=kitchen.truncation,
+                                     overwrite=True, **kw) as m:
+                m.write_codes(cc, zz)
+            t[name][0].append(time.perf_counter() - t0)
+            m = sdfcodec.open_map(p)
+            t0 = time.perf_counter()
+            m.read_codes()
+            t[name][1].append(time.perf_counter() - t0)
+    n = len(cc)
+    out = {"codec": f"pca-{k}", "step": step, "blocks": n}
+    for name, (w, r) in t.items():
+        out[f"{name}_write_blocks_per_s"] = n / min(w)
+        out[f"{name}_read_blocks_per_s"] = n / min(r)
+    out["write_int16_vs_float32"] = min(t["float32"][0]) / min(t["int16"][0])
+    out["read_int16_vs_float32"] = min(t["float32"][1]) / min(t["int16"][1])
+    return out
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("kitchen")
@@ -92,6 +127,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--allocated", action="store_true")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--speed-tiles", type=int, default=0, help="also time code storage alone (storage_speed)")
     a = ap.parse_args(argv)
     raw = sdfcodec.open_map(a.kitchen)
     orig = raw.decode_region()
@@ -99,7 +135,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     work = Path(tempfile.mkdtemp(prefix="quantised-codes-"))
     rows: list[dict] = []
     t_all = time.perf_counter()
+    speed = []
     try:
+        for k in (int(s) for s in a.sizes.split(",")) if a.speed_tiles else ():
+            for st in (0.04, 0.32):
+                speed.append(storage_speed(raw, k, st, a.speed_tiles, max(a.repeat, 3), work))
+                print(json.dumps(speed[-1]), flush=True)
         for k in (int(s) for s in a.sizes.split(",")):
             codec = sdfcodec.pretrained_codec("pca", k)
             var = np.asarray(codec.state_dict()["explained_variance"][:k], np.float64)
@@ -111,7 +152,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 variants += [(f"int16 allocated {s:g}", {"code_dtype": "int16",
                                                           "code_step": s * (var[0] / var) ** 0.25})
                              for s in map(float, a.steps.split(","))]
-            enc_f32 = None
             for name, kw in variants:
                 path = work / f"pca{k}-{len(rows)}.sdfz"
                 # encode timed interleaved with float32: a float32 write right before each other variant
@@ -126,7 +166,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 n = row["coded_blocks"]
                 row["encode_blocks_per_s"] = n / min(times)
                 if name == "float32":
-                    enc_f32 = row["encode_blocks_per_s"]
                     dec_f32 = row["decode_blocks_per_s"]
                 else:
                     row["encode_vs_float32_same_run"] = min(ref) / min(times)
@@ -140,7 +179,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     meta = {"input": os.path.abspath(a.kitchen), "wall_s": time.perf_counter() - t_all,
             "load_avg": os.getloadavg(), "cpus": os.cpu_count()}
     if a.out:
-        Path(a.out).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+        Path(a.out).write_text(json.dumps({"meta": meta, "rows": rows, "storage_speed": speed}, indent=1) + "\n")
     print(json.dumps(meta))
     return rows
 

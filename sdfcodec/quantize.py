@@ -119,14 +119,18 @@ def check_step(step: Any, size: int, what: str = "step") -> np.ndarray:
 def quantise_step(codes: np.ndarray, step: Sequence[float], offset: Sequence[float]) -> np.ndarray:
     """``rint((codes - offset) / step)`` as int16 ``(N, k)``; codes beyond ``QMAX16`` steps are refused with the
     smallest step that would hold them (clipping would break the ``step / 2`` bound silently)."""
-    z = np.asarray(codes, dtype=np.float64)
+    z = np.asarray(codes)
     st, off = np.asarray(step, np.float64), np.asarray(offset, np.float64)
     if z.ndim != 2 or z.shape[1] != len(st):
         raise ShapeError(f"codes must have shape (N, {len(st)}), got {z.shape}")
-    if not np.isfinite(z).all():
-        raise InvalidValueError("codes hold NaN/Inf values; they cannot be quantised")
-    q = np.rint((z - off) / st)
-    if q.size and np.abs(q).max() > QMAX16:
+    # in place on one float64 copy: this runs on every chunk written, and temporaries cost more than the math
+    q = np.subtract(z, off, dtype=np.float64)
+    q /= st
+    np.rint(q, out=q)
+    if q.size and not max(q.max(), -q.min()) <= QMAX16:  # also catches NaN/Inf (they compare False)
+        z = np.asarray(z, dtype=np.float64)
+        if not np.isfinite(z).all():
+            raise InvalidValueError("codes hold NaN/Inf values; they cannot be quantised")
         j = int(np.argmax(np.abs(q).max(axis=0)))
         need = float(np.abs(z[:, j] - off[j]).max()) / (QMAX16 - 0.5)
         raise InvalidValueError(f"code element {j} reaches {float(np.abs(z[:, j] - off[j]).max()):.6g} from its "
@@ -141,7 +145,9 @@ def dequantise_step(q: np.ndarray, step: Sequence[float], offset: Sequence[float
     q = np.asarray(q)
     n = q.shape[1]
     st, off = np.asarray(step, np.float64)[:n], np.asarray(offset, np.float64)[:n]
-    return (off + st * q).astype(np.float32)
+    out = np.multiply(q, st, dtype=np.float64)
+    out += off
+    return out.astype(np.float32)
 
 
 class RateModel:
