@@ -1,7 +1,9 @@
 """Rate-distortion of step-quantised (int16) codes against float32, float16 and int8 code storage on a fused map
 (issue 16, item 1; docs/rate-distortion.md, "Quantised codes").
 
-    python examples/quantised_codes.py KITCHEN.sdfz [--sizes 32,64,128] [--steps ...] [--out docs/quantised-codes.json]
+    python examples/quantised_codes.py KITCHEN.sdfz [--sizes 32,64,128] [--steps ...] [--allocated]
+        [--speed-tiles 16] [--out docs/quantised-codes.json]
+    python examples/quantised_codes.py docs/quantised-codes.json --render     # the tables again
 
 KITCHEN.sdfz is a lossless fused map (codec raw, with fusion weights: ``sdfcodec fuse`` of the 7-Scenes
 redkitchen frames). Every point is a real map: the lossless map transcoded (``Map.write_map``, which encodes
@@ -119,6 +121,26 @@ def storage_speed(kitchen: sdfcodec.Map, k: int, step: float, tiles: int, repeat
     return out
 
 
+def markdown(doc: dict) -> str:
+    """The tables of docs/rate-distortion.md, "Quantised codes", from the JSON this script writes."""
+    lines = ["| codec | codes | B/block all-in | B/block codes | MSE | max error (cm) | Chamfer-L1 (mm) | F@1 | "
+             "decode (blocks/s) | encode, x float32 | decode, x float32 |", "|" + "---|" * 11]
+    for r in doc["rows"]:
+        lines.append(f"| {r['codec']} | {r['storage']} | {r['bytes_all_in']:.1f} | {r['bytes_codes']:.1f} | "
+                     f"{r['mse']:.5f} | {100 * r['max_error_m']:.1f} | {r['chamfer_mm']:.2f} | {r['f1']:.3f} | "
+                     f"{r['decode_blocks_per_s']:.0f} | {r.get('encode_vs_float32_same_run', 1.0):.2f} | "
+                     f"{r.get('decode_vs_float32', 1.0):.2f} |")
+    if doc.get("storage_speed"):
+        lines += ["", "| codec | step | blocks | write float32 / int16 (blocks/s) | int16 / float32 | "
+                  "read float32 / int16 (blocks/s) | int16 / float32 |", "|" + "---|" * 7]
+        for r in doc["storage_speed"]:
+            lines.append(f"| {r['codec']} | {r['step']:g} | {r['blocks']} | {r['float32_write_blocks_per_s']:.0f} / "
+                         f"{r['int16_write_blocks_per_s']:.0f} | {r['write_int16_vs_float32']:.2f} | "
+                         f"{r['float32_read_blocks_per_s']:.0f} / {r['int16_read_blocks_per_s']:.0f} | "
+                         f"{r['read_int16_vs_float32']:.2f} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("kitchen")
@@ -128,7 +150,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--allocated", action="store_true")
     ap.add_argument("--out", default=None)
     ap.add_argument("--speed-tiles", type=int, default=0, help="also time code storage alone (storage_speed)")
+    ap.add_argument("--render", action="store_true", help="print the tables of KITCHEN (here: the JSON) and stop")
     a = ap.parse_args(argv)
+    if a.render:
+        print(markdown(json.loads(Path(a.kitchen).read_text())))
+        return []
     raw = sdfcodec.open_map(a.kitchen)
     orig = raw.decode_region()
     obs = observed_volume(raw)
@@ -181,6 +207,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if a.out:
         Path(a.out).write_text(json.dumps({"meta": meta, "rows": rows, "storage_speed": speed}, indent=1) + "\n")
     print(json.dumps(meta))
+    print(markdown({"rows": rows, "storage_speed": speed}))
     return rows
 
 
