@@ -121,15 +121,88 @@ def storage_speed(kitchen: sdfcodec.Map, k: int, step: float, tiles: int, repeat
     return out
 
 
+def sz3_rows(orig: np.ndarray, obs: np.ndarray, region: np.ndarray, n_coded: int, voxel_size: float,
+             origin, truncation, bounds_m=(0.01, 0.02, 0.04), repeat: int = 3) -> list[dict]:
+    """SZ3 (pysz, absolute error bound) on the whole dense lossless volume, for reference: bytes per coded block =
+    the compressed stream / coded blocks (no mask: SZ3 codes the field itself); distortion as for the maps."""
+    import pysz
+
+    rows = []
+    d_min, d_max = truncation
+    vol = np.ascontiguousarray(orig, dtype=np.float32)
+    for e in bounds_m:
+        cfg = pysz.szConfig()
+        cfg.errorBoundMode = pysz.szErrorBoundMode.ABS
+        cfg.absErrorBound = e
+        comp, _ = pysz.sz.compress(vol, cfg)
+        best = np.inf
+        for _ in range(repeat):
+            t = time.perf_counter()
+            dec, _ = pysz.sz.decompress(comp, np.float32, vol.shape)
+            best = min(best, time.perf_counter() - t)
+        dec = np.clip(dec, d_min, d_max)
+        sel = obs & region
+        err = dec[sel] - orig[sel]
+        sm = compare_volumes(orig, dec, voxel_size, origin=origin, observed=obs).to_dict()
+        rows.append({"codec": "sz3 (pysz 1.1.0)", "storage": f"abs bound {100 * e:g} cm",
+                     "bytes_all_in": comp.nbytes / n_coded, "bytes_codes": comp.nbytes / n_coded, "bytes_mask": 0.0,
+                     "mse": float(np.mean((err / (d_max - d_min)) ** 2)), "max_error_m": float(np.abs(err).max()),
+                     "chamfer_mm": 1000 * sm["chamfer_l1"], "f1": sm["f_score_1"],
+                     "decode_blocks_per_s": n_coded / best, "coded_blocks": n_coded})
+    return rows
+
+
+def mask_bytes(kitchen: sdfcodec.Map, rooms: list[str], work: Path) -> list[dict]:
+    """Bytes per coded block of the observation mask (``observed/`` files) as the writer stores it now (Blosc
+    zstd 5, no shuffle) and as it did before (``compressors()``: zstd 3, byte shuffle), on the kitchen and on
+    fused synthetic rooms (``.npz`` with ``coords``, ``tsdf`` metres and ``observed``, as /tmp/s15/fusedrooms.py
+    writes them), pca-32 maps (the mask does not depend on the codec)."""
+    import sdfcodec.map.writer as writer_module
+    from sdfcodec.map.format import compressors, mask_compressors
+
+    out = []
+    codec = sdfcodec.pretrained_codec("pca", 32)
+    inputs = [("kitchen", None)] + [(Path(r).stem, r) for r in rooms]
+    for name, src in inputs:
+        row = {"input": name}
+        for label, chain in (("before", compressors), ("now", mask_compressors)):
+            p = work / f"mask-{label}.sdfz"
+            saved = writer_module.mask_compressors
+            writer_module.mask_compressors = chain
+            try:
+                if src is None:
+                    write(p, kitchen, codec)
+                else:
+                    d = np.load(src)
+                    with sdfcodec.create_map(p, codec=codec, voxel_size=0.02, truncation=(-0.04, 0.1),
+                                             origin=tuple(d["origin"]), overwrite=True) as m:
+                        m.write_blocks(d["coords"], d["tsdf"], observed=d["observed"])
+            finally:
+                writer_module.mask_compressors = saved
+            b = stored_bytes(p)
+            row[f"mask_{label}"], row["coded_blocks"] = b["mask"], sdfcodec.open_map(p).count_states()["coded"]
+        out.append(row)
+        print(json.dumps(row), flush=True)
+    return out
+
+
 def markdown(doc: dict) -> str:
     """The tables of docs/rate-distortion.md, "Quantised codes", from the JSON this script writes."""
+    def ratio(r: dict, key: str) -> str:
+        return "1 (ref.)" if r["storage"] == "float32" else (f"{r[key]:.2f}" if key in r else "-")
+
     lines = ["| codec | codes | B/block all-in | B/block codes | MSE | max error (cm) | Chamfer-L1 (mm) | F@1 | "
              "decode (blocks/s) | encode, x float32 | decode, x float32 |", "|" + "---|" * 11]
     for r in doc["rows"]:
         lines.append(f"| {r['codec']} | {r['storage']} | {r['bytes_all_in']:.1f} | {r['bytes_codes']:.1f} | "
                      f"{r['mse']:.5f} | {100 * r['max_error_m']:.1f} | {r['chamfer_mm']:.2f} | {r['f1']:.3f} | "
-                     f"{r['decode_blocks_per_s']:.0f} | {r.get('encode_vs_float32_same_run', 1.0):.2f} | "
-                     f"{r.get('decode_vs_float32', 1.0):.2f} |")
+                     f"{r['decode_blocks_per_s']:.0f} | {ratio(r, 'encode_vs_float32_same_run')} | "
+                     f"{ratio(r, 'decode_vs_float32')} |")
+    if doc.get("mask"):
+        lines += ["", "| input | coded blocks | mask before (zstd 3, byte shuffle) | mask now (zstd 5, no shuffle) |",
+                  "|---|---|---|---|"]
+        lines += [f"| {r['input']} | {r['coded_blocks']} | {r['mask_before']:.1f} | {r['mask_now']:.1f} |"
+                  for r in doc["mask"]]
     if doc.get("storage_speed"):
         lines += ["", "| codec | step | blocks | write float32 / int16 (blocks/s) | int16 / float32 | "
                   "read float32 / int16 (blocks/s) | int16 / float32 |", "|" + "---|" * 7]
@@ -150,6 +223,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--allocated", action="store_true")
     ap.add_argument("--out", default=None)
     ap.add_argument("--speed-tiles", type=int, default=0, help="also time code storage alone (storage_speed)")
+    ap.add_argument("--mask-rooms", default=None, help="comma-separated fused rooms (.npz) for the mask bytes")
+    ap.add_argument("--sz3", action="store_true", help="add SZ3 rows at 1, 2 and 4 cm (needs pysz)")
     ap.add_argument("--render", action="store_true", help="print the tables of KITCHEN (here: the JSON) and stop")
     a = ap.parse_args(argv)
     if a.render:
@@ -161,7 +236,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     work = Path(tempfile.mkdtemp(prefix="quantised-codes-"))
     rows: list[dict] = []
     t_all = time.perf_counter()
-    speed = []
+    speed, masks = [], []
+    if a.mask_rooms is not None:
+        masks = mask_bytes(raw, [r for r in a.mask_rooms.split(",") if r], work)
+    if a.sz3:
+        region = coded_voxels(raw)
+        rows += sz3_rows(orig, obs, region, raw.count_states()["coded"], raw.voxel_size, raw.origin, raw.truncation)
+        for r in rows:
+            print(json.dumps(r), flush=True)
     try:
         for k in (int(s) for s in a.sizes.split(",")) if a.speed_tiles else ():
             for st in (0.04, 0.32):
@@ -205,7 +287,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     meta = {"input": os.path.abspath(a.kitchen), "wall_s": time.perf_counter() - t_all,
             "load_avg": os.getloadavg(), "cpus": os.cpu_count()}
     if a.out:
-        Path(a.out).write_text(json.dumps({"meta": meta, "rows": rows, "storage_speed": speed}, indent=1) + "\n")
+        Path(a.out).write_text(json.dumps({"meta": meta, "rows": rows, "storage_speed": speed, "mask": masks}, indent=1) + "\n")
     print(json.dumps(meta))
     print(markdown({"rows": rows, "storage_speed": speed}))
     return rows

@@ -206,7 +206,7 @@ def step_for_bytes(model: RateModel, codes_bytes: float, other_bytes: float = 0.
         raise InvalidValueError(f"a target of {codes_bytes + other_bytes:.1f} bytes per coded block is below what "
                                 f"this codec can reach on this map: at least {model.floor + other_bytes:.1f} "
                                 f"(codes {model.floor:.1f} when every code quantises to 0, plus "
-                                f"{other_bytes:.1f} of observation mask, weights and block states)")
+                                f"{other_bytes:.1f} of observation mask, weights, block states and metadata)")
     finest = model.points[0]
     if codes_bytes > finest[1]:
         raise InvalidValueError(f"a target of {codes_bytes + other_bytes:.1f} bytes per coded block is above what "
