@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--out", default=None)
     ap.add_argument("--speed-tiles", type=int, default=0, help="also time code storage alone (storage_speed)")
     ap.add_argument("--mask-rooms", default=None, help="comma-separated fused rooms (.npz) for the mask bytes")
-    ap.add_argument("--sz3", action="store_true", help="add SZ3 rows at 1, 2 and 4 cm (needs pysz)")
+    ap.add_argument("--sz3", action="store_true", help="add SZ3 rows at 1, 2 and 4 cm (needs pysz: pip install pysz==1.1.0)")
     ap.add_argument("--render", action="store_true", help="print the tables of KITCHEN (here: the JSON) and stop")
     a = ap.parse_args(argv)
     if a.render:

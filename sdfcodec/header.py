@@ -28,10 +28,11 @@ STATE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 FORMAT_VERSION = 1
 #: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a);
 #: "int8-codes": 8-bit codes with a per-block ``code_scale`` array (spec section 4a), required when used.
-KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights", "int8-codes", "observation-mask", "quantised-codes"})
+KNOWN_EXTENSIONS: frozenset[str] = frozenset({"fusion-weights", "int8-codes", "observation-mask"})
 INT8_EXTENSION = "int8-codes"
 #: "quantised-codes": int16 codes with a per-map step per component in ``codes.quantisation`` (spec section 4b)
 QUANT_EXTENSION = "quantised-codes"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {QUANT_EXTENSION}
 
 
 class BlockState:
