@@ -73,8 +73,9 @@ def store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: t
                      local: np.ndarray, codes: np.ndarray, had: bool, quant: CodeQuantisation | None = None) -> None:
     """Write float32 ``codes`` ``(n, D)`` of the blocks at ``local`` (indices inside the chunk ``box`` of the block
     axes) into that chunk of ``codes_arr``, quantised to int8 with their ``[offset, scale]`` rows in ``scale_arr``
-    when the map stores int8 codes (to int16 with the map's step ``quant`` for int16 codes): one write per array (each chunk read first only when it already ``had``
-    codes). The single-process writer and the dask encoder both write through here.
+    when the map stores int8 codes, to int16 with the map's step and offset ``quant`` for int16 codes: one write
+    per array (each chunk read first only when it already ``had`` codes). The single-process writer and the dask
+    encoder both write through here.
 
     Raises:
         WriteFailedError: the file system refused the write (the dask encoder's tasks raise it; the writer
