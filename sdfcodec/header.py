@@ -17,7 +17,7 @@ from .errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
-           "STATE_REFERENCE_EXTENSION", "MAX_EXTENT"]
+           "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -36,6 +36,9 @@ STATE_REFERENCE_EXTENSION = "codec-state-reference"
 #: Shipped model names in a state reference: plain words, never a path (a reader looks the name up among the
 #: models its installed plugin ships, nowhere else).
 MODEL_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$"
+#: "quantised-codes": int16 codes with a per-map step per component in ``codes.quantisation`` (spec section 4b)
+QUANT_EXTENSION = "quantised-codes"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {QUANT_EXTENSION}
 
 
 class BlockState:
@@ -110,22 +113,40 @@ class CodecSpec(_Model):
         return self
 
 
+class CodeQuantisation(_Model):
+    """int16 codes (spec section 4b): element ``j`` of a stored code ``q`` decodes as ``offset[j] + step[j] * q``."""
+
+    step: list[Annotated[float, Field(gt=0)]] = Field(description="quantisation step per code element (> 0)")
+    offset: list[float] = Field(description="offset per code element")
+
+
 class CodesSpec(_Model):
     """How code vectors are stored in the ``codes`` array."""
 
     size: int = Field(ge=1, le=1 << 16, description="code length D (last axis of codes)")
-    dtype: Literal["float32", "float16", "int8"] = Field(
-        "float32", description="element type of codes; int8 needs the required extension 'int8-codes'")
+    dtype: Literal["float32", "float16", "int8", "int16"] = Field(
+        "float32", description="element type of codes; int8 needs the required extension 'int8-codes', int16 "
+                               "the required extension 'quantised-codes' and 'quantisation'")
     chunk_blocks: int = Field(8, ge=1, le=256, description="blocks per chunk along x, y and z")
     chunk_code: int = Field(ge=1, description="code elements per chunk along the code axis")
     prefix_ordered: bool = Field(description="a code prefix decodes (levels are meaningful)")
     levels: list[int] = Field(description="prefix lengths a reader may request cheaply, ascending, last = size")
+    quantisation: CodeQuantisation | None = Field(
+        None, description="int16 codes only: step and offset per code element (spec section 4b); omitted otherwise")
+
+    @model_serializer(mode="wrap")
+    def _omit_no_quantisation(self, handler):
+        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b
+        out = handler(self)
+        if isinstance(out, dict) and out.get("quantisation", 0) is None:
+            out.pop("quantisation")
+        return out
 
     def stored_bytes(self, level: int | None = None) -> int:
         """Uncompressed bytes of one coded block's first ``level`` (default: all) code elements, with the
         float32 ``[offset, scale]`` pair int8 codes carry (spec section 4a)."""
         n = self.size if level is None else level
-        return n * {"float32": 4, "float16": 2, "int8": 1}[self.dtype] + 8 * (self.dtype == "int8")
+        return n * {"float32": 4, "float16": 2, "int8": 1, "int16": 2}[self.dtype] + 8 * (self.dtype == "int8")
 
     @model_validator(mode="after")
     def _levels(self) -> "CodesSpec":
@@ -133,6 +154,13 @@ class CodesSpec(_Model):
             raise ValueError(f"levels must be ascending, unique and end at size {self.size}, got {self.levels}")
         if self.chunk_code > self.size:
             raise ValueError(f"chunk_code ({self.chunk_code}) exceeds size ({self.size})")
+        q = self.quantisation
+        if (self.dtype == "int16") != (q is not None):
+            raise ValueError(f"codes.quantisation is required with codes.dtype 'int16' and only then (dtype "
+                             f"{self.dtype!r})")
+        if q is not None and not len(q.step) == len(q.offset) == self.size:
+            raise ValueError(f"codes.quantisation needs {self.size} steps and offsets (one per code element), got "
+                             f"{len(q.step)} and {len(q.offset)}")
         return self
 
 
@@ -195,6 +223,10 @@ class MapHeader(_Model):
         if (self.codec.state_reference is not None) != bool(refs) or any(not e.required for e in refs):
             raise ValueError(f"codec.state_reference and the required extension {STATE_REFERENCE_EXTENSION!r} go "
                              f"together (extensions {[e.name for e in self.extensions]})")
+        quant = [e for e in self.extensions if e.name == QUANT_EXTENSION]
+        if (self.codes.dtype == "int16") != bool(quant) or any(not e.required for e in quant):
+            raise ValueError(f"codes.dtype 'int16' and the required extension {QUANT_EXTENSION!r} go together "
+                             f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self
@@ -207,7 +239,8 @@ def now_iso() -> str:
 def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
     """(dotted location, value) of the header's numeric fields that are present, list items included."""
     for path in ("voxel_size", "truncation.d_min", "truncation.d_max", "origin", "block_size", "shape_voxels",
-                 "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels"):
+                 "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels",
+                 "codes.quantisation.step", "codes.quantisation.offset"):
         value: Any = raw
         for key in path.split("."):
             value = value.get(key) if isinstance(value, dict) else None

@@ -231,7 +231,7 @@ _WORKER_CODECS: dict[str, Codec] = {}
 
 def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple, had: bool,
                   truncation: tuple[float, float], code_dtype: str, device: str, voxel_size: float,
-                  surface_weight: float) -> tuple[tuple, np.ndarray, int]:
+                  surface_weight: float, quant: Any = None) -> tuple[tuple, np.ndarray, int]:
     """One dask task: encode the blocks of one volume chunk (all inside one chunk of the code array, whose
     block box is ``cbox``) and write that chunk of codes into the map's temporary directory ``tmp``.
     Returns ``(b0, block states of the chunk's blocks, number of values clipped)``."""
@@ -261,7 +261,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
         scale_arr = zarr.open_array(store, path="code_scale", mode="r+") if code_dtype == "int8" else None
         box = tuple(slice(int(a), int(b)) for a, b in cbox)
         local = np.argwhere(states == BlockState.CODED) + np.asarray(b0) - np.array([a for a, _ in cbox])
-        store_code_chunk(arr, scale_arr, box, local, codes, had)
+        store_code_chunk(arr, scale_arr, box, local, codes, had, quant)
     return b0, states, clipped
 
 
@@ -310,7 +310,8 @@ def write_volume_dask(m: Any, volume: Any, *, offset: Sequence[int] = (0, 0, 0),
         cbox = tuple((int(a), int(min(a + cb, g))) for a, g in zip(c0, w.grid))
         had = bool((w.state[tuple(slice(a, b) for a, b in cbox)] == BlockState.CODED).any())
         tasks.append(encode(part, spec, str(w.tmp), tuple(int(b) for b in b0), cbox, had, truncation,
-                            spec_c.dtype, str(w.device), w.header_kw["voxel_size"], w.surface_weight))
+                            spec_c.dtype, str(w.device), w.header_kw["voxel_size"], w.surface_weight,
+                            spec_c.quantisation))
     results = dask.compute(*tasks, scheduler=scheduler) if tasks else ()
     failed = next((r[0] for r in results if len(r) == 1), None)
     if failed is not None:

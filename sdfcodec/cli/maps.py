@@ -105,6 +105,8 @@ def encode_cmd(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     device: str = typer.Option("cpu", "--device", help="Torch device to encode on (cpu, cuda)."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
+    step: Optional[float] = typer.Option(None, "--step", help="Quantise the codes with this step (int16 codes, entropy-coded; |error| <= step/2 per element; pca, raw)."),
+    target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Choose the step so the map takes about B stored bytes per coded block (everything but the codec state)."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
@@ -153,6 +155,7 @@ def encode_cmd(
         raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
                                 f"({why_fit}); drop --fit, pick a shipped size, or store the state "
                                 "(--codec-state embedded)")
+    _check_quantised_options(codec, step, target_bytes, code_dtype)  # before a fit, which may take long
     fitted_on = None
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
@@ -167,18 +170,27 @@ def encode_cmd(
                               err.print(f"fitting {codec!r} on {n} non-empty blocks of the input: {why_fit}", markup=False))
 
     shape = src_map.shape_voxels if src_map is not None else (0, 0, 0)
-    with progress_bar() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,
-                                         shape_voxels=shape, code_dtype=code_dtype, overwrite=overwrite,
-                                         device=device, tool="sdfcodec encode", source=str(input),
-                                         codec_state=codec_state) as m:
-        if src_map is not None:
-            total = src_map.count_states()["coded"]
-            task = prog.add_task("transcoding", total=total, rate="")
-            m.write_map(src_map, progress=lambda n: prog.advance(task, n))
-        else:
-            nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
-            task = prog.add_task("encoding", total=nblocks, rate="")
-            m.write_volume(vol, progress=lambda n: prog.advance(task, n))
+
+    def write(code_step: Optional[Any] = None, again: bool = False) -> Any:
+        # again: the one rate-control correction pass replaces the map this command just wrote
+        with progress_bar() as prog, create_map(output, codec=codec, voxel_size=vs, truncation=trunc, origin=org,
+                                             shape_voxels=shape, overwrite=overwrite or again, device=device,
+                                             code_dtype="int16" if code_step is not None else code_dtype,
+                                             code_step=code_step, tool="sdfcodec encode", source=str(input),
+                                             codec_state=codec_state) as m:
+            if src_map is not None:
+                total = src_map.count_states()["coded"]
+                task = prog.add_task("transcoding", total=total, rate="")
+                m.write_map(src_map, progress=lambda n: prog.advance(task, n))
+            else:
+                nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
+                task = prog.add_task("encoding", total=nblocks, rate="")
+                m.write_volume(vol, progress=lambda n: prog.advance(task, n))
+        return m
+
+    m, quant = _encode_quantised(write, codec, step, target_bytes, code_dtype,
+                                 lambda: _rate_sample(codec, None if src_map is not None else vol, src_map, trunc,
+                                                      vs, device), output)
     info = m.info()
     if info["state_warning"] and not as_json:  # --json carries it in the summary, stdout stays one document
         err.print(f"warning: {output}: {info['state_warning']}", markup=False)
@@ -186,9 +198,102 @@ def encode_cmd(
                "codec_state": info["codec_state"], "state_warning": info["state_warning"],
                "blocks": info["blocks"], "bytes_on_disk": info["bytes_on_disk"],
                "ratio_dense_to_disk": info["ratio_dense_to_disk"]}
+    if quant is not None:
+        summary["quantisation"] = quant
     report(summary, as_json, lambda: (
         f"wrote {output}: {info['blocks']['coded']} coded blocks, {human_bytes(info['bytes_on_disk'])} on disk, "
-        f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32"))
+        f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32" + ("" if quant is None else
+        f"; codes quantised with step {quant['step']:.4g}: {quant['bytes_per_coded_block']:.1f} stored bytes per "
+        f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes)" +
+        (f", target {quant['target_bytes']:g} after {quant['passes']} pass(es)" if quant.get("target_bytes") else ""))))
+
+
+def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float], vs: float,
+                 device: str) -> tuple[np.ndarray, Any, int]:
+    """Codes (and packed observation masks, or None) of up to ``SAMPLE_BLOCKS`` coded blocks of the input (a
+    volume ``vol``, or the map ``src_map``), encoded as the map writer encodes them: the rate model's sample;
+    and the number of blocks the map will code."""
+    from ..blocks import normalise, split_blocks
+    from ..map.format import free_space
+    from ..map.observed import SURFACE_WEIGHT, encode_blocks, pack_mask
+    from ..map.rate import SAMPLE_BLOCKS
+
+    obs = None
+    if src_map is None:
+        v = normalise(split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16), *trunc)
+        v = v[~free_space(v)]
+        n_coded = len(v)
+        v = v[np.unique(np.linspace(0, len(v) - 1, min(len(v), SAMPLE_BLOCKS)).astype(int))] if len(v) else v
+    else:
+        parts, masks, n, n_coded = [], [], 0, src_map.count_states()["coded"]
+        for coords, blocks in src_map.iter_blocks():
+            parts.append(normalise(np.clip(blocks, *trunc), *trunc))
+            if src_map.records_observation:
+                masks.append(src_map.read_observed(coords))
+            n += len(coords)
+            if n >= SAMPLE_BLOCKS:
+                break
+        v = np.concatenate(parts)[:SAMPLE_BLOCKS] if parts else np.zeros((0, 16, 16, 16), np.float32)
+        obs = np.concatenate(masks)[:SAMPLE_BLOCKS] if masks else None
+    codes = encode_blocks(codec, v, obs, trunc, vs, SURFACE_WEIGHT, device)
+    return codes, None if obs is None else pack_mask(obs), n_coded
+
+
+def _check_quantised_options(codec: Any, step: Optional[float], target: Optional[float], code_dtype: str) -> None:
+    """Refuse bad ``--step`` / ``--target-bytes`` input (checked before any fit or encode)."""
+    if step is None and target is None:
+        return
+    from ..map.rate import check_target
+    from ..quantize import check_quantisable, check_step
+
+    if step is not None and target is not None:
+        raise InvalidValueError("--step and --target-bytes both choose the step: pass one of them")
+    if code_dtype not in ("float32", "int16"):
+        raise InvalidValueError(f"--step/--target-bytes store int16 codes; --code-dtype {code_dtype} contradicts "
+                                "them (leave --code-dtype out)")
+    if step is not None:
+        check_step(step, codec.code_size, "--step")
+    else:
+        check_target(target)
+    check_quantisable(codec)
+
+
+def _encode_quantised(write: Any, codec: Any, step: Optional[float], target: Optional[float], code_dtype: str,
+                      sample: Any, output: Path) -> tuple[Any, Optional[dict]]:
+    """``encode --step S`` / ``--target-bytes B``: int16 codes at step S, or at the step a rate model fitted on a
+    sample of the input's blocks gives for B stored bytes per coded block, rewritten once with a corrected step
+    when the written map misses B by more than 5 %. Neither: ``write()`` as it is. Returns ``(map, summary)``."""
+    if step is None and target is None:
+        return write(), None
+    from ..map.format import code_layout, mask_compressors
+    from ..map.rate import (codes_rate_model, correct_step, mask_bytes_estimate, metadata_bytes_estimate,
+                            plan_step, stored_bytes)
+
+    _check_quantised_options(codec, step, target, code_dtype)
+    if step is not None:
+        m = write(step)
+        got = stored_bytes(output)
+        return m, {"step": float(step), "bytes_per_coded_block": got["total"],
+                   "codes_bytes_per_coded_block": got["codes"]}
+    t = float(target)
+    codes, packed, n_coded = sample()
+    if not len(codes):
+        raise InvalidValueError("the input has no coded blocks (all free space): there are no codes to rate-control")
+    layout = code_layout(codec, "float16", None, None)  # the chunk shape of int16 codes (same item size)
+    model = codes_rate_model(codes, layout.chunk_code, layout.chunk_blocks)
+    other = (mask_bytes_estimate(packed, layout.chunk_blocks, mask_compressors()[0])
+             + metadata_bytes_estimate(codec.code_size) / max(n_coded, 1))
+    s1 = plan_step(t, model, other)
+    m = write(s1)
+    got, passes, s = stored_bytes(output), 1, s1
+    first = {"step": s1, "bytes_per_coded_block": got["total"]}
+    s2 = correct_step(t, model, s1, got)
+    if s2 is not None:
+        m = write(s2, again=True)
+        got, passes, s = stored_bytes(output), 2, s2
+    return m, {"step": s, "target_bytes": t, "bytes_per_coded_block": got["total"],
+               "codes_bytes_per_coded_block": got["codes"], "passes": passes,
+               "model_bytes_per_coded_block": model.bytes_at(s1) + other, "first_pass": first}
 
 
 @app.command("decode")

@@ -3,7 +3,7 @@
 ::
 
     <map>/zarr.json            group; attribute "sdfcodec" = the header (sdfcodec.header.MapHeader)
-    <map>/codes                (Bx, By, Bz, D) float32|float16|int8 code vectors, chunked (c, c, c, chunk_code)
+    <map>/codes                (Bx, By, Bz, D) float32|float16|int8|int16 code vectors, chunked (c, c, c, chunk_code)
     <map>/code_scale           (Bx, By, Bz, 2) float32 [offset, scale] per block, int8 codes only (spec 4a)
     <map>/state                (Bx, By, Bz) uint8 block state (0 unobserved, 1 empty, 2 coded)
     <map>/codec/<name>         the codec's learned state, one array per state_dict entry

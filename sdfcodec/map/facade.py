@@ -388,7 +388,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
-               codec_state: str = "embedded") -> Map:
+               codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -404,7 +404,10 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             voxel (0, 0, 0). shape_voxels: initial extent (grows with the data written).
         code_dtype: ``"float32"``, ``"float16"`` or ``"int8"`` code storage (int8: each block's code quantised
             with its own offset and scale, spec section 4a; a quarter of float32's bytes, readers before
-            sdfcodec 0.2 refuse such maps by the extension they require).
+            sdfcodec 0.2 refuse such maps by the extension they require), or ``"int16"``: codes quantised with
+            one step per map (``code_step``: one number, or one per code element; ``code_offset``: optional,
+            default 0) and entropy-coded, ``|error| <= step / 2`` per element (spec section 4b; codecs with
+            orthonormal codes only, :data:`sdfcodec.quantize.UNIFORM_STEP_CODECS`).
         chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
         overwrite: replace an existing map at ``path`` (atomically, on commit).
         device: where encoding runs.
@@ -431,7 +434,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
-                                  source=source, codec_state=codec_state)
+                                  source=source, codec_state=codec_state, code_step=code_step,
+                                  code_offset=code_offset)
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit

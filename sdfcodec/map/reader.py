@@ -370,7 +370,7 @@ class MapReader:
         """Stored ``codes`` of blocks ``coords`` as float32 (dequantised with their ``code_scale`` rows
         ``params`` for int8 maps), refusing NaN/Inf or a negative scale (a corrupted, checksum-valid chunk)."""
         self._check_stored(coords, codes, params)
-        out, finite = code_values(codes, params)
+        out, finite = code_values(codes, params, self.header.codes.quantisation)
         if not finite.all():
             bad = coords[~finite]
             raise FormatError(f"{self.location}: {len(bad)} coded block(s) hold NaN/Inf code values (or a negative "

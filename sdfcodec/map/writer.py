@@ -26,13 +26,14 @@ from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION, BlockState,
-                      CodecSpec, CodesSpec, Extension, MapHeader, Provenance, Truncation, now_iso)
-from ..quantize import quantize_codes
+from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+                      BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
+                      now_iso)
+from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference
-from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_layout, compressors,
-                     free_space, state_digest)
+from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
+                     code_layout, compressors, free_space, mask_compressors, state_digest)
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
                        store_mask_chunk, write_block_rows)
 from .reader import open_reader
@@ -71,11 +72,12 @@ def _final_of(tmp: str | os.PathLike) -> Path:
 
 
 def store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
-                     local: np.ndarray, codes: np.ndarray, had: bool) -> None:
+                     local: np.ndarray, codes: np.ndarray, had: bool, quant: CodeQuantisation | None = None) -> None:
     """Write float32 ``codes`` ``(n, D)`` of the blocks at ``local`` (indices inside the chunk ``box`` of the block
     axes) into that chunk of ``codes_arr``, quantised to int8 with their ``[offset, scale]`` rows in ``scale_arr``
-    when the map stores int8 codes: one write per array (each chunk read first only when it already ``had``
-    codes). The single-process writer and the dask encoder both write through here.
+    when the map stores int8 codes, to int16 with the map's step and offset ``quant`` for int16 codes: one write
+    per array (each chunk read first only when it already ``had`` codes). The single-process writer and the dask
+    encoder both write through here.
 
     Raises:
         WriteFailedError: the file system refused the write (the dask encoder's tasks raise it; the writer
@@ -84,11 +86,11 @@ def store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: t
     final = _final_of(root) if root is not None else Path(str(codes_arr.store))
     with _write_errors(final, "writing the map", "nothing at that path changes; the write is aborted and its "
                        "temporary copy removed"):
-        _store_code_chunk(codes_arr, scale_arr, box, local, codes, had)
+        _store_code_chunk(codes_arr, scale_arr, box, local, codes, had, quant)
 
 
 def _store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: tuple[slice, ...],
-                      local: np.ndarray, codes: np.ndarray, had: bool) -> None:
+                      local: np.ndarray, codes: np.ndarray, had: bool, quant: CodeQuantisation | None = None) -> None:
     # readers refuse a coded block whose chunk is missing (spec 9a), so a chunk equal to the fill value (raw
     # codes of solid blocks are all 0) must be stored too: Zarr skips writing those by default
     codes_arr = codes_arr.with_config({"write_empty_chunks": True})
@@ -96,7 +98,9 @@ def _store_code_chunk(codes_arr: zarr.Array, scale_arr: zarr.Array | None, box: 
     shape = [s.stop - s.start for s in box]
     idx = tuple(local.T)
     buf = np.asarray(codes_arr[box]) if had else np.zeros((*shape, codes_arr.shape[3]), dtype=codes_arr.dtype)
-    if scale_arr is None:
+    if quant is not None:
+        buf[idx] = quantise_step(codes, quant.step, quant.offset)
+    elif scale_arr is None:
         buf[idx] = codes.astype(codes_arr.dtype)
     else:
         q, params = quantize_codes(codes, per="block")
@@ -295,7 +299,8 @@ class MapWriter:
             self.mask = self.group.create_array(MASK_ARRAY, shape=(*self.grid, MASK_BYTES), dtype="uint8",
                                                 fill_value=255, chunks=(*(self.codes_spec.chunk_blocks,) * 3,
                                                                         MASK_BYTES),
-                                                compressors=compressors(), dimension_names=["bx", "by", "bz", "byte"])
+                                                compressors=mask_compressors(),
+                                                dimension_names=["bx", "by", "bz", "byte"])
         cb = self.codes_spec.chunk_blocks
         chunk_of = coords // cb
         order = np.lexsort(chunk_of.T[::-1])
@@ -306,7 +311,8 @@ class MapWriter:
             ch = chunk_of[lo]
             box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, self.grid))
             had = bool((self.state[box] == BlockState.CODED).any())
-            _store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had)
+            _store_code_chunk(self.codes, self.code_scale, box, coords[lo:hi] - ch * cb, codes[lo:hi], had,
+                              self.codes_spec.quantisation)
             if self.mask is not None:
                 store_mask_chunk(self.mask, box, coords[lo:hi] - ch * cb, None if masks is None else masks[lo:hi],
                                  had)
@@ -354,6 +360,8 @@ class MapWriter:
             extensions.append(Extension(name="fusion-weights", required=False))
         if self.code_scale is not None:
             extensions.append(Extension(name=INT8_EXTENSION, required=True))
+        if self.codes_spec.quantisation is not None:
+            extensions.append(Extension(name=QUANT_EXTENSION, required=True))
         if self.mask is not None:
             if tuple(self.mask.shape[:3]) != self.grid:
                 self.mask.resize((*self.grid, MASK_BYTES))
@@ -443,7 +451,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                   chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                   device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
-                  codec_state: str = "embedded") -> MapWriter:
+                  codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -466,7 +474,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         raise InvalidValueError(f"origin must be three finite numbers (metres), got {origin!r}")
     if codec_state not in ("embedded", "reference"):
         raise InvalidValueError(f"codec_state must be 'embedded' or 'reference', got {codec_state!r}")
-    spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code)
+    spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code, _quantisation(codec, code_dtype, code_step,
+                                                                                  code_offset))
     state = codec.state_dict()
     # by reference: the header names the shipped model and its digest, and no state array is written; a codec
     # that learns nothing stores nothing either way, so its map stays plain (no extension older readers refuse)
@@ -497,7 +506,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     try:
         with _write_errors(final, doing, outcome, cleanup=discard):
             group = _new_group(tmp, codec, {} if ref else state, spec, code_dtype, shape_voxels)
-        extensions = [Extension(name=INT8_EXTENSION)] if code_dtype == "int8" else []
+        extensions = [Extension(name=n) for n, d in ((INT8_EXTENSION, "int8"), (QUANT_EXTENSION, "int16"))
+                      if code_dtype == d]
         extensions += [Extension(name=STATE_REFERENCE_EXTENSION)] if ref else []
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
                            codes=spec, extensions=extensions, **header_kw)
@@ -508,6 +518,24 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         raise
     return MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
                      overwrite, torch.device(device), header=header)
+
+
+def _quantisation(codec: Codec, code_dtype: str, step: Any, offset: Any) -> CodeQuantisation | None:
+    """The step and offset of int16 codes (spec section 4b), checked; None for the other code types."""
+    if code_dtype != "int16":
+        if step is not None or offset is not None:
+            raise InvalidValueError(f"a code step (or offset) quantises int16 codes only; code_dtype is "
+                                    f"{code_dtype!r}: pass code_dtype='int16' (CLI: --step implies it)")
+        return None
+    check_quantisable(codec)
+    if step is None:
+        raise InvalidValueError("int16 codes need a quantisation step: pass code_step (one number, or one per "
+                                "code element; CLI: --step or --target-bytes)")
+    st = check_step(step, codec.code_size)
+    off = np.zeros(codec.code_size) if offset is None else np.asarray(offset, dtype=np.float64)
+    if off.shape != (codec.code_size,) or not np.isfinite(off).all():
+        raise InvalidValueError(f"code_offset must be {codec.code_size} finite numbers, got shape {off.shape}")
+    return CodeQuantisation(step=[float(v) for v in st], offset=[float(v) for v in off])
 
 
 def _grid_of(shape_voxels: Sequence[int]) -> tuple[int, int, int]:
@@ -531,7 +559,7 @@ def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype
     grid = _grid_of(shape_voxels)
     cb, cc = spec.chunk_blocks, spec.chunk_code
     group.create_array("codes", shape=(*grid, spec.size), dtype=code_dtype, fill_value=0,
-                       chunks=(cb, cb, cb, cc), compressors=compressors(),
+                       chunks=(cb, cb, cb, cc), compressors=code_compressors(code_dtype),
                        dimension_names=["bx", "by", "bz", "code"])
     if code_dtype == "int8":
         group.create_array("code_scale", shape=(*grid, 2), dtype="float32", fill_value=0, chunks=(cb, cb, cb, 2),
