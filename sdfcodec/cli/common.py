@@ -224,6 +224,12 @@ def working(description: str) -> Iterator[None]:
         yield
 
 
+def heartbeat(description: str, as_json: bool) -> contextlib.AbstractContextManager:
+    """Around library work that draws its own bars on a terminal (fusion, eval, the demo): :func:`working`'s
+    lines where those bars cannot show (stderr not a terminal), nothing on a terminal or with ``--json``."""
+    return contextlib.nullcontext() if live_progress() or as_json else working(description)
+
+
 def say(text: str) -> None:
     """A command's summary sentence on stdout: through rich on a terminal (wrapped to the window), else as one
     plain line (never wrapped at 80 columns)."""

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import contextlib
 import time
 from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
 import typer
-from .common import (app, check_code_size, cli, err, fail, live_progress, note_target, parse_pair, print_json,
-                     print_table, progress_bar, refuse_existing, report, say, working)
+from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_pair,
+                     print_json, print_table, progress_bar, refuse_existing, report, say)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -38,7 +37,7 @@ def fuse_cmd(
 
     refuse_existing(output, overwrite, map_output=True)
     trunc = parse_pair(truncation, "--truncation")
-    with working(f"fusing {sequence}") if not (live_progress() or as_json) else contextlib.nullcontext():
+    with heartbeat(f"fusing {sequence}", as_json):
         # fusion draws its own bar on a terminal; without one, the CLI's progress lines
         fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max,
                      quiet=as_json or not live_progress())
@@ -125,7 +124,7 @@ def eval_cmd(
         assert len(wh) == 2
     except (ValueError, AssertionError):
         fail(f"--size must look like 320x240, got {size!r}")
-    with working("evaluating") if not (live_progress() or as_json) else contextlib.nullcontext():
+    with heartbeat("evaluating", as_json):
         results = eval_command(sequences, out_dir, methods=methods.split(",") if methods else None,
                                frames=frames or None, stride=stride, size=wh, voxel_size=voxel_size,
                                docs_dir=docs_dir, progress=not as_json,
@@ -338,7 +337,7 @@ def demo_cmd(
     from ..demo import run_demo
 
     t0 = time.perf_counter()
-    with working("demo") if not (live_progress() or as_json) else contextlib.nullcontext():
+    with heartbeat("demo", as_json):
         summary = run_demo(out_dir, voxel_size=voxel_size, frames=frames, track_frames=track_frames,
                            track_stride=track_stride, ae=ae, console=err)
     if as_json:
