@@ -9,13 +9,30 @@
 
 from __future__ import annotations
 
+import importlib
+from typing import Any
+
 __version__ = "0.1.0"
 
 from . import errors
-from .codec import Codec
-from .map import Map, create_map, open_map, update_map
-from .model import load_model, save_model
-from .registry import get_codec, list_codecs, pretrained_codec, register_codec
 
 __all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "pretrained_codec", "open_map", "create_map",
            "update_map", "load_model", "save_model", "errors", "__version__"]
+
+# Where each public name lives. They load on first use (PEP 562), not at `import sdfcodec`: the codec contract
+# imports torch (about 2 s), which `sdfcodec --help`, `--version` and `info` on a local map never need.
+_LAZY = {"Codec": ".codec", "Map": ".map", "create_map": ".map", "open_map": ".map", "update_map": ".map",
+         "load_model": ".model", "save_model": ".model", "get_codec": ".registry", "list_codecs": ".registry",
+         "pretrained_codec": ".registry", "register_codec": ".registry"}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'sdfcodec' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+    globals()[name] = value  # once loaded, a plain module attribute (no further __getattr__ calls)
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

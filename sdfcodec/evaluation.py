@@ -153,7 +153,9 @@ def _open(path: Path, frames: int | None, stride: int):
 
 
 # ------------------------------------------------------------------------------------------------- tracking
-def _progress(enabled: bool):
+def _progress(enabled: Any):
+    if callable(enabled):  # the caller's own progress display (the CLI's: a line every ~10 s on a pipe)
+        return enabled()
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -204,10 +206,22 @@ def _ate(seq, poses: np.ndarray) -> dict[str, Any] | None:
     return out
 
 
+def _rpe(seq, poses: np.ndarray) -> dict[str, Any] | None:
+    """Frame-to-frame translational RPE (metres) over consecutive frames that both have ground truth."""
+    from .metrics import rpe
+    from .trajectory import Trajectory
+
+    gt = seq.poses
+    ok = np.isfinite(gt).all(axis=(1, 2))
+    if ok.sum() < 2:
+        return None
+    return rpe(Trajectory.from_poses(gt[ok]), Trajectory.from_poses(poses[ok]), delta=1).as_dict()
+
+
 def track_command(map_path: str | Path, sequence: str | Path, output: str | Path, *, level: int | None = None,
                   device: str | None = None, cache_mb: float = 256.0, dense: bool = False,
                   start: str = "groundtruth", frames: int | None = None, stride: int = 1,
-                  progress: bool = True) -> dict[str, Any]:
+                  progress: Any = True) -> dict[str, Any]:
     """Track a depth sequence against a map and write the trajectory (``sdfcodec track``).
 
     Parameters
@@ -231,14 +245,15 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
         ground truth) or the identity.
     frames, stride : optional
         Track only every ``stride``-th frame, at most ``frames`` of them.
-    progress : bool
-        Show a progress bar with frames/s.
+    progress : bool or callable
+        Show a progress bar with frames/s; a callable returns the progress display to use (the CLI's).
 
     Returns
     -------
     dict
-        ``output, frames, seconds, frames_per_s, failures, ate`` (metres, when the sequence has ground truth;
-        ``None`` otherwise), ``cache`` (MapField statistics; ``None`` when dense).
+        ``output, frames, seconds, frames_per_s, failures, ate`` and ``rpe`` (frame-to-frame translation; both
+        metres, when the sequence has ground truth; ``None`` otherwise), ``cache`` (MapField statistics;
+        ``None`` when dense).
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
@@ -268,7 +283,7 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     return {"output": str(output), "frames": len(seq), "seconds": secs, "frames_per_s": len(seq) / max(secs, 1e-9),
             "failures": [i for i, r in enumerate(results) if not r.success],
             "start": "groundtruth" if start_pose is p0 else "identity",
-            "ate": _ate(seq, poses), "cache": None if dense else field.stats()}
+            "ate": _ate(seq, poses), "rpe": _rpe(seq, poses), "cache": None if dense else field.stats()}
 
 
 def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: int = 30, level: int | None = None,

@@ -297,7 +297,8 @@ def empty_hint(res: SearchResult, mode: str, query: str) -> str:
 
 
 def format_summary(s: dict) -> str:
-    """Human-readable lines for a :func:`search_command` summary."""
+    """Human-readable lines for a :func:`search_command` summary: the details first, then one sentence with the
+    headline figures as the last line (what ``| tail -1`` gives)."""
     def kib(n):
         return "n/a" if n is None else f"{n / 1024:.1f} KiB"
 
@@ -314,8 +315,6 @@ def format_summary(s: dict) -> str:
     lines = [
         f"{s['map']}: {s['codec']}-{s['code_size']}, query '{s['query']}' ({s['descriptors']} descriptors) at level "
         f"{s['level']}, {sel}",
-        f"selected {s['selected']} of {s['coded_blocks']} coded blocks in {s['seconds']:.3f} s "
-        f"({s['blocks_per_s'] or 0:,.0f} blocks/s on {s['device']})",
         f"code bytes read {kib(s['code_bytes_read'])} of {kib(s['code_bytes_full'])} for a full read",
     ]
     ctx = s.get("context")
@@ -323,10 +322,13 @@ def format_summary(s: dict) -> str:
         lines.insert(1, f"behind={ctx['behind']} ({ctx['behind_source']}); up={ctx['up']} ({ctx['up_source']})")
     if s.get("hint"):
         lines.append(f"nothing selected: {s['hint']}")
+    headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}' in "
+                f"{s['seconds']:.3f} s ({s['blocks_per_s'] or 0:,.0f} blocks/s on {s['device']})")
     if "expanded" in s:
         e = s["expanded"]
-        lines.append(f"expanded {e['blocks_decoded']} blocks ({kib(e['code_bytes_read'])} of codes read), "
-                     f"mesh {e['triangles']:,} triangles" + (f" -> {s['mesh']}" if s.get("mesh") else ""))
-    if "picture" in s:
-        lines.append(f"picture -> {s['picture']}")
-    return "\n".join(lines)
+        headline += (f", expanded {e['blocks_decoded']} ({kib(e['code_bytes_read'])} of codes read, "
+                     f"{e['triangles']:,} triangles)")
+    wrote = [p for p in (s.get("mesh"), s.get("picture")) if p]
+    if wrote:
+        headline += "; wrote " + " and ".join(map(str, wrote))
+    return "\n".join(lines + [headline])

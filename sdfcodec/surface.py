@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from .errors import DTypeError, InvalidValueError, ShapeError
 
 __all__ = ["surface_points", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_command",
-           "metrics_table", "JUMP", "SLAB"]
+           "metrics_table", "metrics_rows", "metrics_title", "metrics_sentence", "JUMP", "SLAB"]
 
 JUMP = 0.1  #: metres; neighbours that differ by this much or more are no surface (d_min -> unobserved d_max)
 SLAB = 128  #: voxels along x that :func:`compare_maps` decodes at a time (plus a one-voxel overlap)
@@ -324,6 +324,30 @@ def metrics_table(summary: dict[str, Any]) -> Any:
     """A rich Table of a :func:`compare_command` summary (distances in mm, F-scores in [0, 1])."""
     from rich.table import Table
 
+    t = Table(title=metrics_title(summary))
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    for name, value in metrics_rows(summary):
+        t.add_row(name, value)
+    return t
+
+
+def metrics_title(summary: dict[str, Any]) -> str:
+    """What a :func:`compare_command` summary compares: ``DECODED (level K) against ORIGINAL``."""
+    return f"{summary['decoded']} (level {summary['level']}) against {summary['original']}"
+
+
+def metrics_sentence(summary: dict[str, Any]) -> str:
+    """The headline figures of a :func:`compare_command` summary in one sentence (mm)."""
+    rows = dict(metrics_rows(summary))
+    vs_mm = 1000 * summary["voxel_size"]
+    return (f"{metrics_title(summary)}: Chamfer-L1 {rows['Chamfer-L1 (mm)']} mm, F-score "
+            f"{rows[f'F-score @ 1 voxel ({vs_mm:g} mm)']} at 1 voxel, near-surface RMSE "
+            f"{rows['near-surface RMSE (mm)']} mm")
+
+
+def metrics_rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
+    """``(metric, value)`` rows of a :func:`compare_command` summary (distances in mm, F-scores in [0, 1])."""
     def mm(v: float | None) -> str:  # None: a band statistic of an empty band
         return "n/a" if v is None else f"{1000 * v:.3f}"
 
@@ -331,9 +355,6 @@ def metrics_table(summary: dict[str, Any]) -> Any:
         return "n/a" if v is None else f"{v:.4f}"
 
     vs_mm = 1000 * summary["voxel_size"]
-    t = Table(title=f"{summary['decoded']} (level {summary['level']}) against {summary['original']}")
-    t.add_column("metric")
-    t.add_column("value", justify="right")
     chamfer = summary["chamfer_l1"]
     rows = [("Chamfer-L1 (mm)", "inf" if chamfer is None else f"{1000 * chamfer:.3f}"),
             (f"F-score @ 1 voxel ({vs_mm:g} mm)", frac(summary["f_score_1"])),
@@ -344,6 +365,4 @@ def metrics_table(summary: dict[str, Any]) -> Any:
             ("surface points (original)", str(summary["n_original"])),
             ("surface points (decoded)", str(summary["n_decoded"])),
             ("band voxels", str(summary["n_band"]))]
-    for name, value in rows:
-        t.add_row(name, value)
-    return t
+    return rows

@@ -301,7 +301,7 @@ def test_map_round_trip(which, small_ae, small_seq, tmp_path):
     ref_vol = ref.reshape(2, 2, 2, 16, 16, 16).transpose(0, 3, 1, 4, 2, 5).reshape(32, 32, 32) * 0.14 - 0.04
     coded = ~(v >= 1 - 1e-6).reshape(2, 16, 2, 16, 2, 16).all(axis=(1, 3, 5))
     mask = np.repeat(np.repeat(np.repeat(coded, 16, 0), 16, 1), 16, 2)
-    assert np.allclose(dec[mask], ref_vol[mask], atol=1e-4)
+    assert np.allclose(dec[mask], np.clip(ref_vol, -0.04, 0.1)[mask], atol=1e-4)  # reads are truncated
 
 
 def test_mixture_with_fitted_pca(tiny):

@@ -46,7 +46,7 @@ def independent_decode(volume: np.ndarray, codec, level: int | None = None) -> n
                     continue  # empty block: stores no code, decodes as free space
                 c = (v - mu) @ w.T
                 out[sl] = ((c[:k] @ w[:k] + mu) * (d_max - d_min) + d_min).reshape(16, 16, 16)
-    return out[:X, :Y, :Z]
+    return np.clip(out[:X, :Y, :Z], d_min, d_max)  # a decoded TSDF is truncated to [d_min, d_max]
 
 
 def test_decode_matches_independent_projection(map_path, volume, pca64):
@@ -75,9 +75,11 @@ def test_region_in_voxels_and_metres(map_path):
     part = m.decode_region(((10, 40), (3, 70), (20, 21)))
     # decoding fewer blocks per batch may change float32 summation order: equal to rounding, not bitwise
     assert np.allclose(part, full[10:40, 3:70, 20:21], rtol=0, atol=1e-6)
-    # metres: voxels whose centres lie in the closed box; origin is (1.0, -2.0, 0.5)
-    metres = m.decode_region(((1.2, 1.5), (-2.0, -1.9), (0.9, 0.9)), units="m")
-    assert np.allclose(metres, full[10:26, 0:6, 20:21], rtol=0, atol=1e-6)
+    # metres: voxels whose centres lie in the half-open box [lo, hi), like voxel ranges; origin (1.0, -2.0, 0.5)
+    metres = m.decode_region(((1.2, 1.5), (-2.0, -1.9), (0.9, 0.92)), units="m")
+    assert np.allclose(metres, full[10:25, 0:5, 20:21], rtol=0, atol=1e-6)
+    with pytest.raises(errors.InvalidValueError, match="holds no voxel on axis z"):
+        m.decode_region(((1.2, 1.5), (-2.0, -1.9), (0.9, 0.9)), units="m")
     with pytest.raises(errors.InvalidValueError, match="outside the map on axis x"):
         m.decode_region(((0, 91), (0, 1), (0, 1)))
 

@@ -52,7 +52,7 @@ def projected(volume: np.ndarray, codec, level: int | None = None) -> np.ndarray
             continue
         c = (v - mu) @ w.T
         out[sl] = ((c[:k] @ w[:k] + mu) * (D_MAX - D_MIN) + D_MIN).reshape(16, 16, 16)
-    return out
+    return np.clip(out, D_MIN, D_MAX)  # a decoded TSDF is truncated to [d_min, d_max], as the map reader does
 
 
 def coded_blocks(volume: np.ndarray) -> set[tuple[int, int, int]]:

@@ -1,21 +1,35 @@
 """What every ``sdfcodec`` command shares: the typer app, the consoles, the one-line error wrapper, argument
 parsers, safe output files and the report printer. Commands live in :mod:`sdfcodec.cli.maps` (map files) and
-:mod:`sdfcodec.cli.work` (fusion, tracking, evaluation, training, benchmarks, the demo)."""
+:mod:`sdfcodec.cli.work` (fusion, tracking, evaluation, training, benchmarks, the demo).
+
+Output rules, decided here and nowhere else. On a terminal: rich tables and live progress bars. On a pipe or a
+file (stdout not a terminal): nothing wrapped or cut, tables as tab-separated lines (``# `` before a title or
+caption line, then a header row, then one row a line) that ``tail``, ``cut -f`` and ``awk -F'\t'`` can use, and
+each command's summary as one line. Progress (stderr not a terminal): one line every
+``SDFCODEC_PROGRESS_SECONDS`` seconds (default 10; what, how far, rate), none for work that ends sooner.
+``--json`` prints only JSON on stdout, whatever it is connected to. Ctrl-C ends a command with status 130 and one
+line saying whether its output changed (outputs are written beside and renamed: never half-written)."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import json
+import os
 import sys
+import threading
+import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+from rich.text import Text
 
 from .. import __version__
 from ..errors import MapExistsError, SDFCodecError, WriteFailedError
@@ -30,7 +44,8 @@ err = Console(stderr=True, soft_wrap=True)
 
 
 def fail(msg: str, code: int = 1) -> None:
-    err.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
+    # the message as plain text, never markup: "pip install 'sdfcodec[fusion]'" must keep its "[fusion]"
+    err.print(Text.assemble(("error:", "bold red"), " ", str(msg)), highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -40,12 +55,15 @@ def cli(fn: Callable) -> Callable:
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         def show(message, category, filename, lineno, file=None, line=None):
-            err.print(f"[yellow]warning:[/] {message}", highlight=False, soft_wrap=True)
+            err.print(Text.assemble(("warning:", "yellow"), " ", str(message)), highlight=False, soft_wrap=True)
 
         old = warnings.showwarning
         warnings.showwarning = show
+        _targets.clear()  # one command per process, but CliRunner runs many in one
         try:
             return fn(*args, **kwargs)
+        except KeyboardInterrupt:  # Ctrl-C: the shell's 128 + SIGINT, and what became of the output
+            fail(_interrupted(), 130)
         # file errors first: one that names its file (InputNotFoundError too) prints "reason: path", not "[Errno 2]"
         except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
             fail(f"{e.strerror or e}: {e.filename}" if getattr(e, "filename", None) else str(e))
@@ -90,9 +108,164 @@ class PlainWriter:
         self.write = f.write
 
 
-def progress_bar() -> Progress:
+class _RateColumn(ProgressColumn):
+    """The task's ``rate`` field when a caller sets one, else its measured speed in ``unit``/s."""
+
+    def __init__(self, unit: str):
+        super().__init__()
+        self.unit = unit
+
+    def render(self, task: Any) -> Text:
+        rate = task.fields.get("rate")
+        if isinstance(rate, str) and rate:
+            return Text(rate)
+        speed = task.finished_speed or task.speed
+        return Text(f"{speed:,.1f} {self.unit}/s" if speed else "")
+
+
+def progress_seconds() -> float:
+    """Seconds between progress lines on a pipe: ``SDFCODEC_PROGRESS_SECONDS`` (default 10; tests shorten it)."""
+    try:
+        return max(float(os.environ.get("SDFCODEC_PROGRESS_SECONDS", "10")), 0.05)
+    except ValueError:
+        return 10.0
+
+
+class LineProgress:
+    """Progress without a terminal: every :func:`progress_seconds` one line on stderr per unfinished task
+    (``encoding: 1,024 of 4,096 blocks (25%), 310.2 blocks/s, 10 s, about 10 s left``); nothing when the work
+    ends sooner. The part of rich's :class:`~rich.progress.Progress` the commands use (``add_task``,
+    ``advance``, ``update``, a context manager); fields such as ``rate`` are accepted and ignored."""
+
+    def __init__(self, unit: str = "blocks", every: float | None = None):
+        self.unit, self.every = unit, every or progress_seconds()
+        self.tasks: dict[int, dict[str, Any]] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> "LineProgress":
+        # a thread, not the callers' advance calls: work with no callback (one long decode) is reported too
+        self._thread = threading.Thread(target=self._run, name="sdfcodec-progress", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def add_task(self, description: str, total: float | None = None, **fields: Any) -> int:
+        task = len(self.tasks)
+        self.tasks[task] = {"description": description, "total": total, "completed": 0.0,
+                            "start": time.monotonic()}
+        return task
+
+    def advance(self, task: int, advance: float = 1) -> None:
+        self.tasks[task]["completed"] += advance
+
+    def update(self, task: int, *, advance: float | None = None, completed: float | None = None,
+               total: float | None = None, description: str | None = None, **fields: Any) -> None:
+        t = self.tasks[task]
+        if completed is not None:
+            t["completed"] = completed
+        if advance is not None:
+            t["completed"] += advance
+        if total is not None:
+            t["total"] = total
+        if description is not None:
+            t["description"] = description
+
+    def line(self, task: int) -> str | None:
+        """The progress line of ``task`` now (None once it is complete)."""
+        t = self.tasks[task]
+        done, total, secs = t["completed"], t["total"], time.monotonic() - t["start"]
+        if total is not None and done >= total:
+            return None
+        if not done:
+            return f"{t['description']}: {secs:.0f} s so far"
+        rate = done / max(secs, 1e-9)
+        text = f"{t['description']}: {done:,.0f}"
+        if total:
+            text += f" of {total:,.0f} {self.unit} ({100 * done / total:.0f}%)"
+        else:
+            text += f" {self.unit}"
+        text += f", {rate:,.1f} {self.unit}/s, {secs:.0f} s"
+        if total:
+            text += f", about {(total - done) / rate:.0f} s left"
+        return text
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every):
+            for task in list(self.tasks):
+                text = self.line(task)
+                if text is not None:
+                    sys.stderr.write(text + "\n")
+                    sys.stderr.flush()
+
+
+def live_progress() -> bool:
+    """Whether stderr is a terminal (live bars), not a pipe or a file (:class:`LineProgress`)."""
+    return err.is_terminal
+
+
+def progress_bar(unit: str = "blocks") -> Progress | LineProgress:
+    """A live bar on a terminal (stderr); :class:`LineProgress` (a line every ~10 s) when stderr is not one."""
+    if not live_progress():
+        return LineProgress(unit)
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    TextColumn("{task.fields[rate]}"), console=err, transient=True)
+                    _RateColumn(unit), console=err, transient=True)
+
+
+@contextlib.contextmanager
+def working(description: str) -> Iterator[None]:
+    """Work with no measure of how far it is (one call into the library): a pulsing bar on a terminal, a line
+    every ~10 s (``fusing: 20 s so far``) without one."""
+    with progress_bar() as prog:
+        prog.add_task(description, total=None, rate="")
+        yield
+
+
+def heartbeat(description: str, as_json: bool) -> contextlib.AbstractContextManager:
+    """Around library work that draws its own bars on a terminal (fusion, eval, the demo): :func:`working`'s
+    lines where those bars cannot show (stderr not a terminal), nothing on a terminal or with ``--json``."""
+    return contextlib.nullcontext() if live_progress() or as_json else working(description)
+
+
+def say(text: str) -> None:
+    """A command's summary sentence on stdout: through rich on a terminal (wrapped to the window), else as one
+    plain line (never wrapped at 80 columns)."""
+    if out.is_terminal:
+        out.print(text, markup=False, highlight=False)
+    else:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+
+
+def print_table(columns: Sequence[str] | None, rows: Sequence[Sequence[Any]], *, title: str | None = None,
+                caption: str | None = None, justify: str = "left", min_width: int | None = None) -> None:
+    """A table on stdout: rich on a terminal (cells fold, never cut to "..."); on a pipe tab-separated lines,
+    ``# title`` and ``# caption`` lines first, then the header (``columns``; None: a key-value table without
+    one), then one line per row, so that ``| tail -1`` is the last row."""
+    cells = [["" if c is None else str(c) for c in row] for row in rows]
+    if not out.is_terminal:
+        lines = [f"# {t}" for t in (title, *(caption or "").splitlines()) if t]
+        if columns is not None:
+            lines.append("\t".join(columns))
+        lines += ["\t".join(c.replace("\t", " ").replace("\n", " ") for c in row) for row in cells]
+        sys.stdout.write("".join(line + "\n" for line in lines))
+        sys.stdout.flush()
+        return
+    table = Table(title=title, show_header=columns is not None, caption=caption, caption_justify="left")
+    ncols = len(columns) if columns is not None else max((len(r) for r in cells), default=0)
+    for i in range(ncols):
+        name = columns[i] if columns is not None else ""
+        # as wide as the widest word: a figure or an id folds onto a second line at worst, never loses its end
+        widest = max([len(w) for w in name.split()] + [len(r[i]) for r in cells if i < len(r)] or [0])
+        table.add_column(name, justify=justify, overflow="fold",  # type: ignore[arg-type]
+                         min_width=min(widest, 40))
+    for row in cells:
+        table.add_row(*row)
+    out.print(table, width=max(out.width, min_width) if min_width else None, crop=False)
 
 
 def parse_triple(text: str | None, name: str) -> tuple[float, float, float] | None:
@@ -126,6 +299,29 @@ def parse_region(text: str | None) -> tuple | None:
     return tuple(parts)
 
 
+def check_code_size(codec_id: str, code_size: int) -> int | None:
+    """``--code-size`` for ``codec_id``: a positive whole number (0 or -1 is refused, never read as "default"),
+    one of the sizes of a codec whose code length is fixed (raw: 4096); returns what to pass on (None for a fixed
+    size, which the codec takes no parameter for)."""
+    import inspect
+
+    from ..errors import InvalidValueError
+
+    if code_size < 1:  # before the registry (and torch) is imported: a typo costs no start-up
+        raise InvalidValueError(f"--code-size must be a positive number of code elements (e.g. 32, 64, 128), "
+                                f"got {code_size}")
+    from ..registry import get_codec_class
+
+    cls = get_codec_class(codec_id)
+    if "code_size" in inspect.signature(cls.__init__).parameters:
+        return code_size
+    sizes = ", ".join(map(str, cls.code_sizes)) or "a size of its own"
+    if code_size not in cls.code_sizes:
+        raise InvalidValueError(f"codec {codec_id!r} makes codes of {sizes} elements only, not {code_size}; "
+                                "drop --code-size")
+    return None
+
+
 def print_json(obj: Any) -> None:
     sys.stdout.write(json.dumps(obj, indent=2, default=str) + "\n")
 
@@ -135,10 +331,39 @@ def report(summary: Any, as_json: bool, line: Callable[[], str]) -> None:
     if as_json:
         print_json(summary)
     else:
-        out.print(line(), markup=False)  # results are plain text: "[m]" in a table header is a unit, not markup
+        say(line())  # results are plain text: "[m]" in a table header is a unit, not markup
+
+
+_targets: list[tuple[Path, tuple | None]] = []  # the outputs of the running command, as they were at its start
+
+
+def _stat(path: Path) -> tuple | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
+
+
+def note_target(path: Path) -> None:
+    """Remember ``path`` as an output of the running command, so that Ctrl-C can say what became of it."""
+    _targets.append((Path(path), _stat(Path(path))))
+
+
+def _interrupted() -> str:
+    """What Ctrl-C left: each output unchanged, not created, or (the rename came first) written in full."""
+    said = []
+    for path, before in _targets:
+        now = _stat(path)
+        if now == before:
+            said.append(f"{path} {'was not created' if before is None else 'is unchanged'}")
+        else:
+            said.append(f"{path} was {'written' if before is None else 'replaced'} in full before the interrupt")
+    return "interrupted" + (": " + "; ".join(said) if said else "")
 
 
 def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) -> None:
+    note_target(path)
     if path.exists() and not overwrite:
         raise MapExistsError(f"{path} exists; pass --overwrite to replace it")
     if map_output:  # before any work: --overwrite replaces a map, never a directory or file that is not one
@@ -147,8 +372,15 @@ def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) ->
         check_replaceable(path)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        say(f"sdfcodec {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root(version: bool = typer.Option(False, "--version", help="Print the version and exit."),
+def _root(version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
+                                       help="Print the version and exit."),
           follow_symlinks: bool = typer.Option(
               False, "--follow-symlinks", help="Follow symbolic links inside local maps (refused by default)."),
           remote_timeout: float = typer.Option(
@@ -156,11 +388,9 @@ def _root(version: bool = typer.Option(False, "--version", help="Print the versi
               help="Total time for one try of one object of a remote map (default 60)."),
           remote_tries: int = typer.Option(
               None, "--remote-tries", metavar="N", help="Tries per object of a remote map (default 4).")) -> None:
-    if version:
-        out.print(f"sdfcodec {__version__}")
-        raise typer.Exit()
-    # a process default, not arguments: every command (and the library functions that open maps for it:
-    # verify, search, compare, track, eval, the tracker's map field) reads through sdfcodec.map.stores
+    # --version is eager: handled while the options are parsed, before click asks for a command
+    # the read options are a process default, not arguments: every command (and the library functions that open
+    # maps for it: verify, search, compare, track, eval, the tracker's map field) reads through sdfcodec.map.stores
     from ..map.stores import set_read_defaults
 
     limits = {k: v for k, v in (("total_timeout", remote_timeout), ("tries", remote_tries)) if v is not None}
@@ -182,7 +412,7 @@ def human_bytes(n: float | None) -> str:
 
 
 def load_volume(path: Path, key: str | None) -> tuple[np.ndarray, dict[str, Any]]:
-    """A dense TSDF from ..npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation)."""
+    """A dense TSDF from .npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation)."""
     meta: dict[str, Any] = {}
     if path.suffix == ".npy":
         vol = np.load(path, allow_pickle=False, mmap_mode="r")

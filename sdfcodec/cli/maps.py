@@ -9,11 +9,10 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
-from rich.table import Table
-
 from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError, WriteFailedError
-from .common import (app, cli, err, fail, human_bytes, load_volume, out, parse_pair, parse_region, parse_triple,
-                     PlainWriter, print_json, progress_bar, refuse_existing, report, write_output)
+from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_pair, parse_region,
+                     parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
+                     working, write_output)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -37,14 +36,11 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
     if as_json:
         print_json(rows)
         return
-    table = Table(title="installed sdfcodec codecs")
-    for col in ("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"):
-        table.add_column(col)
-    for r in rows:
-        yn = {True: "yes", False: "no", None: "?"}
-        table.add_row(r["id"], ", ".join(map(str, r["code_sizes"] or [])) or "?", yn[r["prefix_ordered"]],
-                      yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}", r["status"])
-    out.print(table)
+    yn = {True: "yes", False: "no", None: "?"}
+    print_table(("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"),
+                [(r["id"], ", ".join(map(str, r["code_sizes"] or [])) or "?", yn[r["prefix_ordered"]],
+                  yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}".strip(), r["status"])
+                 for r in rows], title="installed sdfcodec codecs")
 
 
 @app.command("info")
@@ -58,7 +54,6 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
     if as_json:
         print_json(info)
         return
-    table = Table(show_header=False, title=f"map {map_path}")
     b = info["blocks"]
     rows = [
         ("format version", str(info["format_version"])),
@@ -81,9 +76,7 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
                  if cs["stored"] == "reference" else f"embedded (sha256 {cs['sha256']})"))
     if info["state_warning"]:
         rows.append(("warning", info["state_warning"]))
-    for k, v in rows:
-        table.add_row(k, v)
-    out.print(table)
+    print_table(None, rows, title=f"map {map_path}")
 
 
 @app.command("encode")
@@ -121,6 +114,8 @@ def encode_cmd(
     from ..model import load_model
     from ..registry import choose_codec
 
+    if code_size is not None and model is None:  # 0 or -1 is an error, never the default 64
+        code_size = check_code_size(codec_id or "pca", code_size)
     refuse_existing(output, overwrite, map_output=True)
     src_map = None
     in_path = Path(input)
@@ -300,7 +295,8 @@ def _encode_quantised(write: Any, codec: Any, step: Optional[float], target: Opt
 @cli
 def decode_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
-    output: Path = typer.Argument(..., metavar="OUTPUT.npy", help="Dense TSDF (metres) to write."),
+    output: Path = typer.Argument(..., metavar="OUTPUT", help="Dense TSDF (metres) to write: .npy (the array), or "
+                                  ".npz (tsdf, voxel_size, origin, truncation: `encode` reads it back without flags)."),
     level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
     region: Optional[str] = typer.Option(None, "--region", help="x0:x1,y0:y1,z0:z1 (half-open voxels, or metres)."),
     units: str = typer.Option("voxels", "--units", help="Units of --region: voxels or m."),
@@ -308,29 +304,41 @@ def decode_cmd(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
-    """Decode a map (or a region of it) to a dense .npy volume in metres, free space where nothing is coded."""
-    from ..map import open_map
+    """Decode a map (or a region of it) to a dense volume in metres, free space where nothing is coded.
 
-    if output.suffix != ".npy":
-        fail(f"OUTPUT must end in .npy, got {output}")
+    Metre regions are half-open like voxel ones: the voxels whose centres lie in [x0, x1) x [y0, y1) x [z0, z1).
+    """
+    from ..map import open_map
+    from ..map.format import region_voxels
+
+    if output.suffix not in (".npy", ".npz"):
+        fail(f"OUTPUT must end in .npy or .npz, got {output}")
     refuse_existing(output, overwrite)
     m = open_map(map_path)
-    with progress_bar() as prog:
-        prog.add_task("decoding", total=None, rate="")
-        vol = m.decode_region(parse_region(region), units=units, level=level, device=None if device == "cpu" else device)
+    box = parse_region(region)
+    lo = [a for a, _ in region_voxels(box, units, m.shape_voxels, m.origin, m.voxel_size)]
+    origin = [float(o + a * m.voxel_size) for o, a in zip(m.origin, lo)]  # where voxel (0, 0, 0) of OUTPUT lies
+    with working("decoding"):
+        vol = m.decode_region(box, units=units, level=level, device=None if device == "cpu" else device)
     if not isinstance(vol, np.ndarray):
         vol = vol.cpu().numpy()
     def save(tmp: Path) -> bool:
         with open(tmp, "wb") as f:
-            # through Python's write, not numpy's C-level tofile: a short write then raises OSError with its
-            # errno (ENOSPC, EFBIG...) instead of numpy's errno-less "requested and written"
-            np.save(PlainWriter(f), vol)
+            if output.suffix == ".npz":  # the names encode reads back (load_volume)
+                np.savez(f, tsdf=vol, voxel_size=np.float64(m.voxel_size), origin=np.array(origin),
+                         truncation=np.array(m.truncation, dtype=np.float64))
+            else:
+                # through Python's write, not numpy's C-level tofile: a short write then raises OSError with its
+                # errno (ENOSPC, EFBIG...) instead of numpy's errno-less "requested and written"
+                np.save(PlainWriter(f), vol)
         return True
 
     write_output(output, output.with_name(f".{output.name}.tmp"), save)
     summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
-               "voxel_size": m.voxel_size, "origin": list(m.origin)}
-    report(summary, as_json, lambda: f"wrote {output}: {vol.shape} float32 metres (level {summary['level']})")
+               "voxel_size": m.voxel_size, "origin": origin, "truncation": list(m.truncation)}
+    report(summary, as_json, lambda: (
+        f"wrote {output}: {' x '.join(map(str, vol.shape))} voxels of float32 metres (level {summary['level']}, "
+        f"voxel {m.voxel_size} m, origin {tuple(round(o, 6) for o in origin)} m)"))
 
 
 @app.command("mesh")
@@ -424,7 +432,11 @@ def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="Th
                 level: Optional[int] = typer.Option(None, "--level", help="Decode DECODED at this prefix level."),
                 as_json: bool = typer.Option(False, "--json", help="Machine-readable output (metres).")) -> None:
     """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md)."""
-    from ..surface import compare_command, metrics_table
+    from ..surface import compare_command, metrics_rows, metrics_sentence, metrics_title
 
     summary = compare_command(original, decoded, level=level, quiet=as_json)
-    report(summary, as_json, lambda: metrics_table(summary))
+    if as_json:
+        print_json(summary)
+        return
+    print_table(("metric", "value"), metrics_rows(summary), title=metrics_title(summary))
+    report(summary, False, lambda: metrics_sentence(summary))

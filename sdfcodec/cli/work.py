@@ -8,9 +8,8 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
-from rich.table import Table
-
-from .common import app, cli, err, fail, out, parse_pair, print_json, progress_bar, refuse_existing, report
+from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_pair,
+                     print_json, print_table, progress_bar, refuse_existing, report, say)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -38,7 +37,10 @@ def fuse_cmd(
 
     refuse_existing(output, overwrite, map_output=True)
     trunc = parse_pair(truncation, "--truncation")
-    fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, quiet=as_json)
+    with heartbeat(f"fusing {sequence}", as_json):
+        # fusion draws its own bar on a terminal; without one, the CLI's progress lines
+        fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max,
+                     quiet=as_json or not live_progress())
     with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse", up=fused.up,
                     source=str(sequence)) as m:
@@ -71,11 +73,27 @@ def track_cmd(
     """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
     from ..evaluation import track_command
 
+    note_target(output)
     summary = track_command(map_path, sequence, output, level=level, device=device, cache_mb=cache_mb, dense=dense,
-                            start=start, frames=frames, stride=stride, progress=not as_json)
-    report(summary, as_json, lambda: f"wrote {output}: " + ", ".join(
-        f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()
-        if not isinstance(v, (dict, list))))
+                            start=start, frames=frames, stride=stride,
+                            progress=False if as_json else (lambda: progress_bar("frames")))
+    report(summary, as_json, lambda: _track_sentence(summary, map_path, sequence))
+
+
+def _track_sentence(s: dict[str, Any], map_path: str, sequence: str) -> str:
+    """``sdfcodec track``'s summary: frames, ATE/RPE against the ground truth when there is one, speed, file."""
+    text = f"tracked {s['frames']} frames of {sequence} in {map_path} ({s['frames_per_s']:.1f} frames/s, " \
+           f"{s['seconds']:.1f} s, start {s['start']})"
+    if s.get("failures"):
+        text += f", {len(s['failures'])} frame(s) lost"
+    if s.get("ate"):
+        text += f": ATE RMSE {1000 * s['ate']['rmse']:.1f} mm (max {1000 * s['ate']['max']:.1f} mm)"
+        if s.get("rpe"):
+            text += f", RPE {1000 * s['rpe']['rmse']:.2f} mm/frame"
+        text += " against the ground truth"
+    else:
+        text += ": no ground truth in the sequence, so no ATE"
+    return text + f"; wrote {s['output']}"
 
 
 @app.command("eval")
@@ -106,10 +124,11 @@ def eval_cmd(
         assert len(wh) == 2
     except (ValueError, AssertionError):
         fail(f"--size must look like 320x240, got {size!r}")
-    results = eval_command(sequences, out_dir, methods=methods.split(",") if methods else None,
-                           frames=frames or None, stride=stride, size=wh, voxel_size=voxel_size, docs_dir=docs_dir,
-                           progress=not as_json, log=None if as_json else (lambda s_: err.print(s_, highlight=False)),
-                           models=models)
+    with heartbeat("evaluating", as_json):
+        results = eval_command(sequences, out_dir, methods=methods.split(",") if methods else None,
+                               frames=frames or None, stride=stride, size=wh, voxel_size=voxel_size,
+                               docs_dir=docs_dir, progress=not as_json,
+                               log=None if as_json else (lambda s_: err.print(s_, highlight=False)), models=models)
     report(results, as_json, lambda: markdown_table(results))
 
 
@@ -163,7 +182,7 @@ def dataset_cmd(
     if as_json:
         print_json(ds.meta)
     else:
-        out.print(f"wrote {output}: {ds.meta['splits']} blocks from {ds.meta['sources']}")
+        say(f"wrote {output}: {ds.meta['splits']} blocks from {ds.meta['sources']}")
 
 
 @app.command("train")
@@ -183,6 +202,8 @@ def train_cmd(
     from ..model import save_model
     from ..registry import get_codec
 
+    if code_size is not None:  # 0 or -1 is an error, never the default
+        code_size = check_code_size(codec_id, code_size)
     refuse_existing(output, overwrite)
     ds = open_dataset(dataset)
     codec = get_codec(codec_id, **({"code_size": code_size} if code_size else {}))
@@ -258,7 +279,7 @@ def bench_cmd(
         fail(f"--read must be >= 0, got {n_read}")
     do_search = search and codec_id == "pca"
     n_search = 8192 if quick else 65536
-    with progress_bar() as prog:
+    with progress_bar("steps") as prog:
         task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search), rate="")
         step = lambda s: prog.update(task, advance=1, description=s)  # noqa: E731
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
@@ -282,25 +303,18 @@ def bench_cmd(
                 f"(B,{m})x({m},{n})" for m, n in r["roofline_shapes"]))
             if "weights" in r:  # registered codecs: where the timed weights come from
                 lines.setdefault((r["code_size"], "weights"), f"code {r['code_size']} weights: {r['weights']}")
-        table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmuls of the codec's layer "
-                            "shapes, same run)", caption="\n".join(lines.values()), caption_justify="left")
+        title = f"{codec_id} throughput on {device} (baseline: numpy matmuls of the codec's layer shapes, same run)"
     else:
-        table = Table(title=f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)")
+        lines, title = {}, f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)"
     reads = [f"{r['operation']} code {r['code_size']}: memory-copy roofline {r['memcpy_blocks_per_s']:,.0f} "
              f"blocks/s (ratio {r['ratio_to_memcpy']:.2f}), in-memory decode {r['in_memory_decode_blocks_per_s']:,.0f} "
              f"blocks/s (ratio {r['ratio_to_in_memory_decode']:.2f})" for r in records if "memcpy_blocks_per_s" in r]
-    if reads:
-        table.caption = "\n".join(([table.caption] if table.caption else []) + reads)
-        table.caption_justify = "left"
     rows = [(str(r["code_size"]), r["operation"], str(r["batch"]), f"{r['blocks_per_s']:,.0f}",
              f"{r['baseline_blocks_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}", f"{r['us_per_block']:.2f}",
              f"{PAPER_US_PER_BLOCK[0] / r['us_per_block']:,.0f}x") for r in records]
-    for i, col in enumerate(("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper")):
-        # as wide as the widest figure: a figure is never cut, whatever the terminal
-        table.add_column(col, justify="right", min_width=max(*(len(w) for w in col.split()), *(len(r[i]) for r in rows)))
-    for row in rows:
-        table.add_row(*row)
-    out.print(table, width=max(out.width, 120), crop=False)  # ~120 columns wide: never truncate figures
+    print_table(("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper"), rows,
+                title=title, caption="\n".join([*lines.values(), *reads]) or None, justify="right",
+                min_width=120)  # ~120 columns on a terminal; on a pipe tab-separated, never cut
 
 
 @app.command("demo")
@@ -323,9 +337,10 @@ def demo_cmd(
     from ..demo import run_demo
 
     t0 = time.perf_counter()
-    summary = run_demo(out_dir, voxel_size=voxel_size, frames=frames, track_frames=track_frames,
-                       track_stride=track_stride, ae=ae, console=err)
+    with heartbeat("demo", as_json):
+        summary = run_demo(out_dir, voxel_size=voxel_size, frames=frames, track_frames=track_frames,
+                           track_stride=track_stride, ae=ae, console=err)
     if as_json:
         print_json(summary)
         return
-    out.print(f"report: {out_dir / 'report.md'} ({time.perf_counter() - t0:.0f} s)")
+    say(f"report: {out_dir / 'report.md'} ({time.perf_counter() - t0:.0f} s)")

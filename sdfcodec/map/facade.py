@@ -157,7 +157,7 @@ class Map:
         yielded (they decode to ``d_max``).
 
         Args:
-            region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open voxels, or closed metres with ``units="m"``;
+            region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open voxels, or half-open metres with ``units="m"``;
                 every coded block with a voxel in it is yielded, whole.
             level: decode only the first ``level`` code elements (prefix-ordered codecs).
             device: ``None``: decode on the CPU and yield numpy arrays; otherwise yield torch tensors on it.
@@ -192,7 +192,7 @@ class Map:
 
         Args:
             region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open, in voxels (default: the whole map) or, with
-                ``units="m"``, closed bounds in metres (the voxels whose centres lie inside).
+                ``units="m"``, half-open bounds in metres (the voxels whose centres lie in [lo, hi)).
             level: decode only the first ``level`` code elements (prefix-ordered codecs only).
             device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
 

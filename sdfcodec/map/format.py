@@ -52,7 +52,7 @@ CODE_DTYPES = ("float32", "float16", "int8", "int16")
 #: 9 4 % fewer, but level 9 halves the transcode speed and level 5 costs 1.3-1.8x level 3's compress time
 #: (docs/rate-distortion.md, "Quantised codes"); the issue asks for >= 0.8x the speed of float32 codes
 QUANT_CLEVEL = 3
-#: ``((x0, x1), (y0, y1), (z0, z1))``: half-open voxels, or closed metres.
+#: ``((x0, x1), (y0, y1), (z0, z1))``: half-open voxels, or half-open metres (the voxels whose centres lie inside).
 Region = Sequence[Sequence[float]]
 
 
@@ -266,11 +266,14 @@ def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | No
         raise ShapeError(f"{name} must be a dense (X, Y, Z) array of metres, got shape {v.shape}")
     if shape is not None and v.shape != shape:
         raise ShapeError(f"{name} must have shape {shape}, got {v.shape}")
+    d_min, d_max = truncation
+    if not d_min < d_max:  # before any clipping: a reversed range would clip everything, then be refused
+        raise InvalidValueError(f"truncation must be d_min,d_max with d_min < d_max (metres, e.g. -0.04,0.1), "
+                                f"got [{d_min}, {d_max}]")
     finite = np.isfinite(v)
     if not finite.all():
         raise InvalidValueError(f"{name} holds {int((~finite).sum())} NaN/Inf value(s); replace unobserved "
                                 f"voxels with d_max (e.g. np.nan_to_num(v, nan={truncation[1]}))")
-    d_min, d_max = truncation
     outside = int(((v < d_min) | (v > d_max)).sum())
     if outside:
         warnings.warn(f"{outside} value(s) of {name} lie outside the truncation [{d_min}, {d_max}] m and were "
@@ -313,14 +316,18 @@ def region_voxels(region: Region | None, units: str, shape: Sequence[int], origi
         raise ShapeError(f"region must be ((x0, x1), (y0, y1), (z0, z1)), got {region!r}")
     if units in ("m", "metres", "meters"):
         vs = voxel_size
-        # voxels whose centre lies in [lo, hi]; 1e-9 guards against rounding at exact voxel positions
-        vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.floor((hi - oo) / vs + 1e-9)) + 1)
+        # half-open like voxel ranges: the voxels whose centre lies in [lo, hi), so that -1:1 at 2 cm is 100
+        # voxels and adjacent ranges share none; 1e-9 guards against rounding at exact voxel positions
+        vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.ceil((hi - oo) / vs - 1e-9)))
                     for (lo, hi), oo in zip(region, origin))
     elif units in ("voxels", "vox"):
         vox = tuple((int(lo), int(hi)) for lo, hi in region)
     else:
         raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
     for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):
+        if hi <= lo:
+            raise InvalidValueError(f"region {region!r} ({units}) holds no voxel on axis {'xyz'[axis]}: "
+                                    f"voxels [{lo}, {hi}) (ranges are half-open: lo <= x < hi)")
         if not 0 <= lo < hi <= n:
             raise InvalidValueError(f"region {region!r} ({units}) is outside the map on axis {'xyz'[axis]}: "
                                     f"voxels [{lo}, {hi}) vs extent [0, {n})")

@@ -557,6 +557,8 @@ class MapReader:
         if bound is None or not math.isfinite(bound) or bound > DECODE_LIMIT:
             v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
                               codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
+        if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
+            v = v.clamp_(d_min, d_max)
         mask = self.observation_arrays()[1]
         if mask is None:
             return v
@@ -620,7 +622,7 @@ class MapReader:
 
     def _to_metres(self, v: torch.Tensor) -> torch.Tensor:
         d_min, d_max = self.truncation
-        return v.mul_(d_max - d_min).add_(d_min)
+        return v.mul_(d_max - d_min).add_(d_min).clamp_(d_min, d_max)  # truncated, as decode_codes' metres
 
     def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *, metres: bool
                     ) -> torch.Tensor:

@@ -596,7 +596,8 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
             codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
         for i in range(0, len(coords), 65536):
             v = codec.decode(torch.from_numpy(codes[i:i + 65536]).to(dev))
-            blocks[i:i + 65536] = (v * (d_max - d_min) + d_min).cpu().numpy()
+            # truncated to [d_min, d_max] as the map reader's decodes (a lossy decode may overshoot)
+            blocks[i:i + 65536] = (v * (d_max - d_min) + d_min).clamp_(d_min, d_max).cpu().numpy()
     out = Expansion(coords=coords, blocks=blocks, origin=np.asarray(m.origin, np.float64), voxel_size=m.voxel_size,
                     truncation=m.truncation, level=lv)
     if as_ == "dense" and len(coords):
