@@ -60,6 +60,7 @@ __all__ = ["BLOCK_BYTES", "fuse_to_map", "fusion_codec", "lattice_origin"]
 
 #: Bytes a block takes in the working set: float32 distance and float32 weight per voxel.
 BLOCK_BYTES = BLOCK ** 3 * 8
+PAGE_SLICE = 512  # blocks read out of the grid and written into the map at a time
 
 
 def fusion_codec(codec_id: str = "raw", code_size: int | None = None) -> Any:
@@ -254,16 +255,22 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
             need_mb = (budget - len(order) + needed) * BLOCK_BYTES / 2**20
             raise InvalidValueError(f"frame {frame_no} alone touches more blocks than a working set of {working_set_mb}"
                                     f" MiB holds; give --working-set-mb of at least {math.ceil(need_mb)}")
-        buf = o3d.core.Tensor(act[order], o3d.core.int64, dev)
-        keys = hm.key_tensor()[buf].cpu().numpy().astype(np.int64)
-        tsdf, w = grid_blocks(buf)
-        if len(keys) and keys.min() < 0:
-            raise InvalidValueError(f"the fused surface reaches below origin={anchor.tolist()}; pass a lower origin")
-        m.write_blocks(keys, tsdf, weights=w)
-        stored.add(keys)
-        hm.erase(o3d.core.Tensor(keys.astype(np.int32), o3d.core.int32, dev))
-        last_seen[act[order]] = -1
-        stats["blocks_paged_out"] += len(keys)
+        # in slices: the copies of a slice on its way into the map (distances, weights, their normalised and
+        # error-weight forms, the encoder's tensors) stay a few tens of MiB beside the working set
+        for lo in range(0, len(order), PAGE_SLICE):
+            sl = act[order[lo:lo + PAGE_SLICE]]
+            buf = o3d.core.Tensor(sl, o3d.core.int64, dev)
+            keys = hm.key_tensor()[buf].cpu().numpy().astype(np.int64)
+            if keys.min() < 0:
+                raise InvalidValueError(f"the fused surface reaches below origin={anchor.tolist()}; pass a lower "
+                                        "origin")
+            tsdf, w = grid_blocks(buf)
+            m.write_blocks(keys, tsdf, weights=w)
+            del tsdf, w
+            stored.add(keys)
+            hm.erase(o3d.core.Tensor(keys.astype(np.int32), o3d.core.int32, dev))
+            last_seen[sl] = -1
+            stats["blocks_paged_out"] += len(keys)
         stats["page_outs"] += 1
         stats["page_out_s"] += time.perf_counter() - t0
 
@@ -271,10 +278,10 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
         """Activate the frame's blocks ``coords`` that are not in the working set, with the map's content where
         ``back`` (bool) says it holds them (**page-in**) and zeros elsewhere (a new block, as open3d starts one).
         Set explicitly because open3d's hash map reuses the buffers of erased blocks without clearing them."""
-        t0 = time.perf_counter()
         s = np.zeros((len(coords), BLOCK, BLOCK, BLOCK), dtype=np.float32)
         w = np.zeros_like(s)
         if back.any():
+            t0 = time.perf_counter()
             reader, held = m.reader, coords[back]
             state = m.writer.state[tuple(held.T)]
             wb = read_block_rows(reader, reader.observation_arrays()[0], held).astype(np.float32)
@@ -289,11 +296,11 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
             w[back] = wb.reshape(len(held), BLOCK, BLOCK, BLOCK)
             stats["blocks_paged_in"] += len(held)
             stats["page_ins"] += 1
+            stats["page_in_s"] += time.perf_counter() - t0
         buf, _ = hm.activate(o3d.core.Tensor(coords.astype(np.int32), o3d.core.int32, dev))
         buf = buf.to(o3d.core.int64)
         vbg.attribute("tsdf")[buf] = o3d.core.Tensor(to_open3d_order(s), device=dev)
         vbg.attribute("weight")[buf] = o3d.core.Tensor(to_open3d_order(w), device=dev)
-        stats["page_in_s"] += time.perf_counter() - t0
 
     target = max(1, int(low_water * budget))
     progress, task = fusion_progress(total) if not quiet else (None, None)
@@ -345,10 +352,11 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
             raise InvalidValueError("no frame with a pose to fuse; open the sequence with its ground truth")
         # the working set that is left goes into the map too
         flushed = int(hm.size())
-        if flushed:
-            act = hm.active_buf_indices().to(o3d.core.int64)
-            keys = hm.key_tensor()[act].cpu().numpy().astype(np.int64)
-            tsdf, w = grid_blocks(act)
+        act = hm.active_buf_indices().to(o3d.core.int64).cpu().numpy()
+        for lo in range(0, len(act), PAGE_SLICE):
+            buf = o3d.core.Tensor(act[lo:lo + PAGE_SLICE], o3d.core.int64, dev)
+            keys = hm.key_tensor()[buf].cpu().numpy().astype(np.int64)
+            tsdf, w = grid_blocks(buf)
             m.write_blocks(keys, tsdf, weights=w)
             stored.add(keys)
     if skipped:
