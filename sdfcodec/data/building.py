@@ -302,9 +302,14 @@ def building_path(layout: BuildingLayout, frames: int) -> np.ndarray:
 
 def building_sequence(preset: str, seed: int = 0, frames: int | None = None):
     """The scene and camera poses of a building preset (a key of :data:`BUILDINGS`): ``(RoomScene, poses
-    (frames, 4, 4))``; ``frames`` None takes the preset's."""
+    (frames, 4, 4))``. ``frames`` None takes the preset's walk; fewer take its first ``frames`` poses (the same
+    speed, as a room preset's first frames are: ``eval --frames 60`` sees the start of the building), more walk
+    the same route slower."""
     if preset not in BUILDINGS:
         raise InvalidValueError(f"unknown building preset {preset!r}; one of {sorted(BUILDINGS)}")
     per_side, n = BUILDINGS[preset]
     scene, layout = building_scene(seed, per_side)
-    return scene, building_path(layout, n if frames is None else int(frames))
+    if frames is not None and int(frames) < 1:
+        raise InvalidValueError(f"frames must be at least 1, got {frames!r}")
+    want = n if frames is None else int(frames)
+    return scene, building_path(layout, max(n, want))[:want]
