@@ -62,7 +62,8 @@ from .blocks import check_truncation, normalise
 from .errors import InvalidValueError, MissingDependencyError, SDFCodecWarning, ShapeError
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 
-__all__ = ["FusedBlocks", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up"]
+__all__ = ["FusedBlocks", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
+           "to_open3d_order", "open3d_module"]
 
 #: 7-Scenes' gravity file: the gravity vector in the first camera's frame, three numbers.
 GRAVITY_FILE = "gravity-direction.txt"
@@ -153,7 +154,7 @@ class FusedBlocks:
                                 truncation=self.truncation, weights=self.weights, weight_threshold=weight_threshold)
 
 
-def _open3d():
+def open3d_module():
     try:
         import open3d as o3d
     except ImportError as exc:  # open3d comes with the optional 'fusion' extra
@@ -161,7 +162,7 @@ def _open3d():
     return o3d
 
 
-def _prefetched(seq: Sequence, ahead: int = 6) -> Iterator[Frame]:
+def prefetched_frames(seq: Sequence, ahead: int = 6) -> Iterator[Frame]:
     """Frames of ``seq`` in order, decoded by a worker thread ``ahead`` frames in advance (PNG decoding
     releases the GIL, so it overlaps with integration)."""
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="sdfcodec-read") as pool:
@@ -178,7 +179,7 @@ def _prefetched(seq: Sequence, ahead: int = 6) -> Iterator[Frame]:
                 f.cancel()
 
 
-def _progress_bar(total: int | None):
+def fusion_progress(total: int | None):
     """A rich progress bar on stderr showing frames done and frames per second."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn, TimeRemainingColumn
@@ -272,7 +273,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     ShapeError
         A depth image that does not match the intrinsics.
     """
-    o3d = _open3d()
+    o3d = open3d_module()
     d_min, d_max = (float(v) for v in truncation)
     check_truncation(d_min, d_max)
     if not (d_min < 0.0 < d_max):
@@ -288,7 +289,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     if isinstance(sequence, Sequence):
         up = sequence_up(sequence)
         intrinsics = sequence.intrinsics
-        frames: Iterable[Frame] = _prefetched(sequence)
+        frames: Iterable[Frame] = prefetched_frames(sequence)
         total: int | None = len(sequence)
     else:
         if intrinsics is None:
@@ -318,7 +319,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     mult = half / voxel_size
     dmax_shifted = (1e6 if depth_max is None else float(depth_max)) - float(shift)
 
-    progress, task = _progress_bar(total) if not quiet else (None, None)
+    progress, task = fusion_progress(total) if not quiet else (None, None)
     integrated = skipped = 0
     t0 = time.perf_counter()
     try:
@@ -408,7 +409,7 @@ def mesh_from_blocks(coords: np.ndarray, tsdf: np.ndarray, *, origin, voxel_size
     open3d.geometry.TriangleMesh
         Legacy mesh, vertices in world metres, with vertex normals.
     """
-    o3d = _open3d()
+    o3d = open3d_module()
     d_min, d_max = (float(v) for v in truncation)
     check_truncation(d_min, d_max)
     coords = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
@@ -432,8 +433,8 @@ def mesh_from_blocks(coords: np.ndarray, tsdf: np.ndarray, *, origin, voxel_size
         # dividing by the larger truncation keeps values in open3d's usual [-1, 1]
         scale = np.float32(max(-d_min, d_max))
         # back to open3d's [z, y, x] voxel order inside a block
-        vbg.attribute("tsdf")[buf] = o3d.core.Tensor(_to_open3d_order(tsdf / scale))
-        vbg.attribute("weight")[buf] = o3d.core.Tensor(_to_open3d_order(w))
+        vbg.attribute("tsdf")[buf] = o3d.core.Tensor(to_open3d_order(tsdf / scale))
+        vbg.attribute("weight")[buf] = o3d.core.Tensor(to_open3d_order(w))
     try:
         mesh = vbg.extract_triangle_mesh(float(weight_threshold)).to_legacy()
     except RuntimeError:
@@ -461,6 +462,6 @@ def _has_crossing(tsdf: np.ndarray, w: np.ndarray, weight_threshold: float) -> b
     return False
 
 
-def _to_open3d_order(blocks: np.ndarray) -> np.ndarray:
+def to_open3d_order(blocks: np.ndarray) -> np.ndarray:
     """``(N, 16, 16, 16)`` voxels ``(x, y, z)`` -> open3d's ``(N, 16, 16, 16, 1)`` ``[z, y, x]`` float32."""
     return np.ascontiguousarray(blocks.transpose(0, 3, 2, 1)[..., None], dtype=np.float32)

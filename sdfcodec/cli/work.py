@@ -24,24 +24,45 @@ def fuse_cmd(
     depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 storage of the field (int8: per-block offset and scale)."),
     weights: bool = typer.Option(True, "--weights/--no-weights", help="Store the per-voxel fusion weights (which voxels were observed: transcoding keeps them as a mask)."),
+    codec_id: str = typer.Option("raw", "--codec", help="Codec of the map: raw (lossless), pca (the shipped eigenshapes), or another fitted one."),
+    code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length of --codec pca (default 64)."),
+    working_set_mb: Optional[float] = typer.Option(None, "--working-set-mb", help="Fuse online: at most this many MiB of dense blocks in memory, the rest paged out into the map (32 KiB a block)."),
     overwrite: bool = typer.Option(False, "--overwrite"),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a lossless `raw` map.
+    """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a map (lossless `raw` by default).
 
-    Transcode it afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz --codec pca`.
+    SEQUENCE may be synthetic:PRESET (e.g. synthetic:building). With --working-set-mb the fusion is online and
+    memory-bounded (sdfcodec.online): blocks leave the working set into the map, encoded with --codec, and come
+    back when the camera returns. Otherwise transcode afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz`.
     """
+    from ..evaluation import resolve_sequence
     from ..fusion import fuse
     from ..map import create_map
-    from ..registry import get_codec
+    from ..online import fusion_codec, fuse_to_map
 
     refuse_existing(output, overwrite, map_output=True)
     trunc = parse_pair(truncation, "--truncation")
+    sequence = str(resolve_sequence(sequence, Path(output).parent / ".sdfcodec-sequences"))
+    codec = fusion_codec(codec_id, code_size)
+    if working_set_mb is not None:
+        if not weights:
+            fail("--working-set-mb stores the fusion weights (a block paged back in resumes from them): drop --no-weights")
+        with heartbeat(f"fusing {sequence} online", as_json):
+            summary = fuse_to_map(sequence, output, codec=codec, working_set_mb=working_set_mb,
+                                  voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, code_dtype=code_dtype,
+                                  overwrite=overwrite, quiet=as_json or not live_progress())
+        report(summary, as_json, lambda: (
+            f"wrote {output}: {summary['frames_integrated']} frames ({summary['frames_per_s']:.1f} frames/s), "
+            f"{summary['blocks']['coded']} coded blocks; paged out {summary['blocks_paged_out']}, in "
+            f"{summary['blocks_paged_in']}; peak working set {summary['peak_working_set_blocks']} blocks "
+            f"({summary['peak_working_set_mib']:.0f} MiB), peak RSS {summary['peak_rss_mib']:.0f} MiB"))
+        return
     with heartbeat(f"fusing {sequence}", as_json):
         # fusion draws its own bar on a terminal; without one, the CLI's progress lines
         fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max,
                      quiet=as_json or not live_progress())
-    with create_map(output, codec=get_codec("raw"), voxel_size=voxel_size, truncation=trunc,
+    with create_map(output, codec=codec, voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse", up=fused.up,
                     source=str(sequence)) as m:
         m.write_blocks(fused.coords, fused.tsdf, **({"weights": fused.weights} if weights else {"observed": fused.weights > 0}))

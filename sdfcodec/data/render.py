@@ -20,16 +20,18 @@ SDF with :meth:`RoomScene.load`). Everything is deterministic given ``seed``.
 
 Presets (:data:`PRESETS`) pick the motion, the sensor model and the scene:
 
-=================  =======  ===========  ========  ==========
-preset             frames   deg / frame  geometry  noise
-=================  =======  ===========  ========  ==========
-``slow-clean``     180      1.5          normal    none
-``slow-noisy``     180      1.5          normal    kinect
-``fast-clean``     60       6.0          normal    none
-``fast-noisy``     60       6.0          normal    kinect
-``poor-geometry``  180      1.5          poor      none
-``rich-geometry``  180      1.5          rich      none
-=================  =======  ===========  ========  ==========
+==================  =======  ===========  ========  ==========
+preset              frames   deg / frame  geometry  noise
+==================  =======  ===========  ========  ==========
+``slow-clean``      180      1.5          normal    none
+``slow-noisy``      180      1.5          normal    kinect
+``fast-clean``      60       6.0          normal    none
+``fast-noisy``      60       6.0          normal    kinect
+``poor-geometry``   180      1.5          poor      none
+``rich-geometry``   180      1.5          rich      none
+``building``        10,000   (walk)       building  none
+``building-small``  600      (walk)       building  none
+==================  =======  ===========  ========  ==========
 
 "slow" moves about 2 cm and 1.5 degrees per frame at 30 Hz (TUM's fr1/desk is similar), "fast" four times
 that. "poor" is an empty room (floor and walls only: hard for geometric tracking); "rich" adds rotated
@@ -157,6 +159,9 @@ PRESETS: dict[str, Preset] = {
     "fast-noisy": Preset(60, 6.0, "normal", KINECT_NOISE),
     "poor-geometry": Preset(180, 1.5, "poor", None),
     "rich-geometry": Preset(180, 1.5, "rich", None),
+    # multi-room buildings (sdfcodec.data.building): the geometry names the plan, the walk sets the speed
+    "building": Preset(10_000, 0.0, "building", None),
+    "building-small": Preset(600, 0.0, "building-small", None),
 }
 
 
@@ -584,8 +589,13 @@ def render_sequence(out_dir: str | Path, preset: str = "slow-clean", seed: int =
     if (out / "depth.txt").exists() and not overwrite:
         raise MapExistsError(f"{out} already holds a sequence (depth.txt); pass overwrite=True to replace it")
     (out / "depth").mkdir(parents=True, exist_ok=True)
-    scene = room_scene(seed, p.geometry, ceiling=ceiling)
-    poses = camera_path(scene, p.frames, p.degrees_per_frame)
+    if p.geometry.startswith("building"):
+        from .building import building_sequence
+
+        scene, poses = building_sequence(p.geometry, seed, p.frames)
+    else:
+        scene = room_scene(seed, p.geometry, ceiling=ceiling)
+        poses = camera_path(scene, p.frames, p.degrees_per_frame)
     renderer = Renderer(scene)
     rng = np.random.default_rng([seed, 1])  # a stream of its own: the noise does not move the furniture
     stamps = start_time + np.arange(p.frames) / frame_rate
