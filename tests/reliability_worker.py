@@ -41,6 +41,8 @@ import traceback
 import numpy as np
 
 import sdfcodec
+import sdfcodec.map  # noqa: F401  (loaded once here: `import sdfcodec` is lazy, and each forked job would
+import sdfcodec.verify  # noqa: F401  import torch, zarr and the map package again, ~2 s a job)
 from sdfcodec import _atomic
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
