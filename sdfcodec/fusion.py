@@ -53,7 +53,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
@@ -62,7 +62,7 @@ from .blocks import check_truncation, normalise
 from .errors import InvalidValueError, MissingDependencyError, SDFCodecWarning, ShapeError
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 
-__all__ = ["FusedBlocks", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
+__all__ = ["FusedBlocks", "FrameFeed", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
            "to_open3d_order", "open3d_module"]
 
 #: 7-Scenes' gravity file: the gravity vector in the first camera's frame, three numbers.
@@ -228,6 +228,56 @@ def sequence_up(sequence: Sequence) -> np.ndarray | None:
     return up / np.linalg.norm(up)
 
 
+class FrameFeed:
+    """The posed frames of a fusion run as open3d's inputs, shared by :func:`fuse` and the online fusion
+    (:mod:`sdfcodec.online`): each frame's depth shifted by ``shift`` metres (open3d truncates symmetrically; the
+    project's range is not) as an image on ``dev``, and its extrinsic (world to camera, through ``to_o3d``, the
+    world-to-open3d transform). Frames without a pose are counted and passed over; the progress bar (``total``
+    frames; none when ``quiet``) advances per frame. The caller counts what it integrated in ``integrated``."""
+
+    def __init__(self, intrinsics: Any, shift: float, to_o3d: np.ndarray, dev: Any, total: int | None, quiet: bool):
+        self.intrinsics, self.shift, self.to_o3d, self.dev = intrinsics, shift, to_o3d, dev
+        self.total, self.quiet = total, quiet
+        self.integrated = self.skipped = 0
+
+    def inputs(self, frames: Iterable[Frame]) -> Iterator[tuple[Frame, Any, Any]]:
+        """``(frame, image, extrinsic)`` for each posed frame. Raises ShapeError for a depth image whose shape
+        is not the intrinsics'."""
+        o3d = open3d_module()
+        progress, task = fusion_progress(self.total) if not self.quiet else (None, None)
+        h, w = self.intrinsics.height, self.intrinsics.width
+        try:
+            if progress is not None:
+                progress.start()
+            for frame in frames:
+                if progress is not None:
+                    progress.advance(task)
+                if frame.pose is None:
+                    self.skipped += 1
+                    continue
+                depth = np.asarray(frame.depth, dtype=np.float32)
+                if depth.shape != (h, w):
+                    raise ShapeError(f"depth image of frame {frame.index} is {depth.shape} but the intrinsics are "
+                                     f"for (H, W) = ({h}, {w})")
+                # NaN > 0 is false, so missing readings (0 or NaN) become 0 - shift <= 0, which open3d skips
+                shifted = np.where(depth > 0, depth - self.shift, np.float32(0.0))
+                img = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(shifted))).to(self.dev)
+                extrinsic = o3d.core.Tensor(np.linalg.inv(np.asarray(frame.pose, dtype=np.float64)) @ self.to_o3d,
+                                            o3d.core.float64, self.dev)
+                yield frame, img, extrinsic
+        finally:
+            if progress is not None:
+                progress.stop()
+
+    def check(self) -> None:
+        """After the frames: a warning if some had no pose; InvalidValueError if none was integrated."""
+        if self.skipped:
+            warnings.warn(f"fusion passed over {self.skipped} frame(s) without a pose; {self.integrated} were "
+                          "integrated", SDFCodecWarning, stacklevel=3)
+        if self.integrated == 0:
+            raise InvalidValueError("no frame with a pose to fuse; open the sequence with its ground truth")
+
+
 def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 0.02,
          truncation: tuple[float, float] = (-0.04, 0.1), *, depth_max: float | None = 4.0,
          origin: np.ndarray | None = None, intrinsics: Intrinsics | None = None, device: str = "CPU:0",
@@ -319,39 +369,15 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     mult = half / voxel_size
     dmax_shifted = (1e6 if depth_max is None else float(depth_max)) - float(shift)
 
-    progress, task = fusion_progress(total) if not quiet else (None, None)
-    integrated = skipped = 0
+    feed = FrameFeed(intrinsics, shift, to_o3d, dev, total, quiet)
     t0 = time.perf_counter()
-    try:
-        if progress is not None:
-            progress.start()
-        for frame in frames:
-            if progress is not None:
-                progress.advance(task)
-            if frame.pose is None:
-                skipped += 1
-                continue
-            depth = np.asarray(frame.depth, dtype=np.float32)
-            if depth.shape != (intrinsics.height, intrinsics.width):
-                raise ShapeError(f"depth image of frame {frame.index} is {depth.shape} but the intrinsics are for "
-                                 f"(H, W) = ({intrinsics.height}, {intrinsics.width})")
-            # NaN > 0 is false, so missing readings (0 or NaN) become 0 - shift <= 0, which open3d skips
-            shifted = np.where(depth > 0, depth - shift, np.float32(0.0))
-            img = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(shifted))).to(dev)
-            extrinsic = o3d.core.Tensor(np.linalg.inv(np.asarray(frame.pose, dtype=np.float64)) @ to_o3d,
-                                        o3d.core.float64, dev)
-            blocks = vbg.compute_unique_block_coordinates(img, k, extrinsic, 1.0, dmax_shifted, mult)
-            vbg.integrate(blocks, img, k_lookup, extrinsic, 1.0, dmax_shifted, mult)
-            integrated += 1
-    finally:
-        if progress is not None:
-            progress.stop()
+    for _, img, extrinsic in feed.inputs(frames):
+        blocks = vbg.compute_unique_block_coordinates(img, k, extrinsic, 1.0, dmax_shifted, mult)
+        vbg.integrate(blocks, img, k_lookup, extrinsic, 1.0, dmax_shifted, mult)
+        feed.integrated += 1
     seconds = time.perf_counter() - t0
-    if skipped:
-        warnings.warn(f"fusion passed over {skipped} frame(s) without a pose; {integrated} were integrated",
-                      SDFCodecWarning, stacklevel=2)
-    if integrated == 0:
-        raise InvalidValueError("no frame with a pose to fuse; open the sequence with its ground truth")
+    feed.check()
+    integrated, skipped = feed.integrated, feed.skipped
 
     hm = vbg.hashmap()
     idx = hm.active_buf_indices().to(o3d.core.int64)

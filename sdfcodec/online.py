@@ -41,7 +41,6 @@ from __future__ import annotations
 import math
 import resource
 import time
-import warnings
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -51,8 +50,8 @@ import torch
 from ._validate import BLOCK
 from .blocks import check_truncation
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
-from .errors import InvalidValueError, SDFCodecWarning, ShapeError
-from .fusion import fusion_progress, open3d_module, prefetched_frames, sequence_up, to_open3d_order
+from .errors import InvalidValueError
+from .fusion import FrameFeed, open3d_module, prefetched_frames, sequence_up, to_open3d_order
 from .header import BlockState
 from .map.observed import read_block_rows
 
@@ -304,53 +303,33 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
         vbg.attribute("weight")[buf] = o3d.core.Tensor(to_open3d_order(w), device=dev)
 
     target = max(1, int(low_water * budget))
-    progress, task = fusion_progress(total) if not quiet else (None, None)
-    integrated = skipped = 0
+    feed = FrameFeed(intrinsics, shift, to_o3d, dev, total, quiet)
     t_start, cpu_start = time.perf_counter(), time.process_time()
     m = create_map(output, codec=codec, voxel_size=voxel_size, truncation=(d_min, d_max), origin=tuple(anchor),
                    code_dtype=code_dtype, overwrite=overwrite, tool=tool, up=up,
                    source=str(getattr(sequence, "path", "")) or None)
     with m:
-        try:
-            if progress is not None:
-                progress.start()
-            for frame in frames:
-                if progress is not None:
-                    progress.advance(task)
-                if frame.pose is None:
-                    skipped += 1
-                    continue
-                depth = np.asarray(frame.depth, dtype=np.float32)
-                if depth.shape != (intrinsics.height, intrinsics.width):
-                    raise ShapeError(f"depth image of frame {frame.index} is {depth.shape} but the intrinsics are for "
-                                     f"(H, W) = ({intrinsics.height}, {intrinsics.width})")
-                shifted = np.where(depth > 0, depth - shift, np.float32(0.0))
-                img = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(shifted))).to(dev)
-                extrinsic = o3d.core.Tensor(np.linalg.inv(np.asarray(frame.pose, dtype=np.float64)) @ to_o3d,
-                                            o3d.core.float64, dev)
-                keys = vbg.compute_unique_block_coordinates(img, k, extrinsic, 1.0, dmax_shifted, mult)
-                buf, found = hm.find(keys)
-                found_np = found.cpu().numpy().astype(bool)
-                last_seen[buf.to(o3d.core.int64).cpu().numpy()[found_np]] = integrated
-                missing = keys.cpu().numpy().astype(np.int64)[~found_np]
-                if hm.size() + len(missing) > budget:
-                    page_out(m, hm.size() + len(missing) - target, hm.size() + len(missing) - budget, integrated)
-                if len(missing):
-                    if missing.min() < 0:
-                        raise InvalidValueError(f"frame {frame.index} reaches below origin={anchor.tolist()}; pass a "
-                                                "lower origin")
-                    bring_in(m, missing, stored.holds(missing))
-                vbg.integrate(keys, img, k_lookup, extrinsic, 1.0, dmax_shifted, mult)
-                buf, _ = hm.find(keys)
-                last_seen[buf.to(o3d.core.int64).cpu().numpy()] = integrated
-                stats["peak"] = max(stats["peak"], int(hm.size()))
-                integrated += 1
-        finally:
-            if progress is not None:
-                progress.stop()
+        for frame, img, extrinsic in feed.inputs(frames):
+            keys = vbg.compute_unique_block_coordinates(img, k, extrinsic, 1.0, dmax_shifted, mult)
+            buf, found = hm.find(keys)
+            found_np = found.cpu().numpy().astype(bool)
+            last_seen[buf.to(o3d.core.int64).cpu().numpy()[found_np]] = feed.integrated
+            missing = keys.cpu().numpy().astype(np.int64)[~found_np]
+            if hm.size() + len(missing) > budget:
+                page_out(m, hm.size() + len(missing) - target, hm.size() + len(missing) - budget, feed.integrated)
+            if len(missing):
+                if missing.min() < 0:
+                    raise InvalidValueError(f"frame {frame.index} reaches below origin={anchor.tolist()}; pass a "
+                                            "lower origin")
+                bring_in(m, missing, stored.holds(missing))
+            vbg.integrate(keys, img, k_lookup, extrinsic, 1.0, dmax_shifted, mult)
+            buf, _ = hm.find(keys)
+            last_seen[buf.to(o3d.core.int64).cpu().numpy()] = feed.integrated
+            stats["peak"] = max(stats["peak"], int(hm.size()))
+            feed.integrated += 1
         seconds, cpu_seconds = time.perf_counter() - t_start, time.process_time() - cpu_start
-        if integrated == 0:
-            raise InvalidValueError("no frame with a pose to fuse; open the sequence with its ground truth")
+        feed.check()
+        integrated, skipped = feed.integrated, feed.skipped
         # the working set that is left goes into the map too
         flushed = int(hm.size())
         act = hm.active_buf_indices().to(o3d.core.int64).cpu().numpy()
@@ -360,9 +339,6 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
             tsdf, w = grid_blocks(buf)
             m.write_blocks(keys, tsdf, weights=w)
             stored.add(keys)
-    if skipped:
-        warnings.warn(f"fusion passed over {skipped} frame(s) without a pose; {integrated} were integrated",
-                      SDFCodecWarning, stacklevel=2)
     info = m.info()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
     return {"output": str(output), "codec": codec.get_config(), "frames_integrated": integrated,
