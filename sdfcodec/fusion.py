@@ -62,7 +62,7 @@ from .blocks import check_truncation, normalise
 from .errors import InvalidValueError, MissingDependencyError, SDFCodecWarning, ShapeError
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 
-__all__ = ["FusedBlocks", "FrameFeed", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
+__all__ = ["FusedBlocks", "FrameFeed", "check_fusion_parameters", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
            "to_open3d_order", "open3d_module"]
 
 #: 7-Scenes' gravity file: the gravity vector in the first camera's frame, three numbers.
@@ -228,6 +228,22 @@ def sequence_up(sequence: Sequence) -> np.ndarray | None:
     return up / np.linalg.norm(up)
 
 
+def check_fusion_parameters(truncation: Sequence | tuple, voxel_size: float, depth_max: float | None
+                            ) -> tuple[float, float]:
+    """``(d_min, d_max)`` of a fusion run, after checking its truncation (d_min < 0 < d_max, so that surfaces
+    have both signs), voxel size and depth limit; InvalidValueError otherwise."""
+    d_min, d_max = (float(v) for v in truncation)
+    check_truncation(d_min, d_max)
+    if not (d_min < 0.0 < d_max):
+        raise InvalidValueError(f"truncation must satisfy d_min < 0 < d_max so surfaces have both signs, got "
+                                f"[{d_min}, {d_max}]")
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise InvalidValueError(f"voxel_size must be positive metres, got {voxel_size}")
+    if depth_max is not None and not (depth_max > 0):
+        raise InvalidValueError(f"depth_max must be positive metres or None, got {depth_max}")
+    return d_min, d_max
+
+
 class FrameFeed:
     """The posed frames of a fusion run as open3d's inputs, shared by :func:`fuse` and the online fusion
     (:mod:`sdfcodec.online`): each frame's depth shifted by ``shift`` metres (open3d truncates symmetrically; the
@@ -324,15 +340,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
         A depth image that does not match the intrinsics.
     """
     o3d = open3d_module()
-    d_min, d_max = (float(v) for v in truncation)
-    check_truncation(d_min, d_max)
-    if not (d_min < 0.0 < d_max):
-        raise InvalidValueError(f"truncation must satisfy d_min < 0 < d_max so surfaces have both signs, got "
-                                f"[{d_min}, {d_max}]")
-    if not (np.isfinite(voxel_size) and voxel_size > 0):
-        raise InvalidValueError(f"voxel_size must be positive metres, got {voxel_size}")
-    if depth_max is not None and not (depth_max > 0):
-        raise InvalidValueError(f"depth_max must be positive metres or None, got {depth_max}")
+    d_min, d_max = check_fusion_parameters(truncation, voxel_size, depth_max)
     if isinstance(sequence, (str, Path)):
         sequence = open_sequence(sequence)
     up = None

@@ -48,10 +48,9 @@ import numpy as np
 import torch
 
 from ._validate import BLOCK
-from .blocks import check_truncation
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 from .errors import InvalidValueError
-from .fusion import FrameFeed, open3d_module, prefetched_frames, sequence_up, to_open3d_order
+from .fusion import FrameFeed, check_fusion_parameters, open3d_module, prefetched_frames, sequence_up, to_open3d_order
 from .header import BlockState
 from .map.observed import read_block_rows
 
@@ -170,14 +169,7 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
     from .map import create_map
 
     o3d = open3d_module()
-    d_min, d_max = (float(v) for v in truncation)
-    check_truncation(d_min, d_max)
-    if not (d_min < 0.0 < d_max):
-        raise InvalidValueError(f"truncation must satisfy d_min < 0 < d_max, got [{d_min}, {d_max}]")
-    if not (np.isfinite(voxel_size) and voxel_size > 0):
-        raise InvalidValueError(f"voxel_size must be positive metres, got {voxel_size}")
-    if depth_max is not None and not (depth_max > 0):
-        raise InvalidValueError(f"depth_max must be positive metres or None, got {depth_max}")
+    d_min, d_max = check_fusion_parameters(truncation, voxel_size, depth_max)
     if not (np.isfinite(working_set_mb) and working_set_mb > 0):
         raise InvalidValueError(f"working_set_mb must be a positive number of MiB, got {working_set_mb}")
     if not (0.0 < low_water <= 1.0):
