@@ -245,16 +245,42 @@ def check_fusion_parameters(truncation: Sequence | tuple, voxel_size: float, dep
 
 
 class FrameFeed:
-    """The posed frames of a fusion run as open3d's inputs, shared by :func:`fuse` and the online fusion
-    (:mod:`sdfcodec.online`): each frame's depth shifted by ``shift`` metres (open3d truncates symmetrically; the
-    project's range is not) as an image on ``dev``, and its extrinsic (world to camera, through ``to_o3d``, the
-    world-to-open3d transform). Frames without a pose are counted and passed over; the progress bar (``total``
-    frames; none when ``quiet``) advances per frame. The caller counts what it integrated in ``integrated``."""
+    """The posed frames of a fusion run as open3d's inputs, and the integration parameters, shared by
+    :func:`fuse` and the online fusion (:mod:`sdfcodec.online`): each frame's depth shifted by ``shift`` metres
+    (open3d truncates symmetrically; the project's range is not) as an image on ``dev``, and its extrinsic
+    (world to camera, open3d's world starting at ``anchor``). Frames without a pose are counted and passed over;
+    the progress bar (``total`` frames; none when ``quiet``) advances per frame. The caller counts what it
+    integrated in ``integrated``."""
 
-    def __init__(self, intrinsics: Any, shift: float, to_o3d: np.ndarray, dev: Any, total: int | None, quiet: bool):
-        self.intrinsics, self.shift, self.to_o3d, self.dev = intrinsics, shift, to_o3d, dev
-        self.total, self.quiet = total, quiet
+    def __init__(self, intrinsics: Any, truncation: tuple[float, float], voxel_size: float, depth_max: float | None,
+                 anchor: np.ndarray, dev: Any, total: int | None, quiet: bool):
+        o3d = open3d_module()
+        d_min, d_max = truncation
+        # the shift that turns open3d's symmetric band [-T, T] into [d_min, d_max] (module docstring)
+        self.half = 0.5 * (d_max - d_min)
+        self.shift = np.float32(0.5 * (d_max + d_min))
+        self.intrinsics, self.dev, self.total, self.quiet = intrinsics, dev, total, quiet
+        self.k = o3d.core.Tensor(intrinsics.matrix, o3d.core.float64, dev)
+        # open3d's integrate looks up the pixel int(u), int(v) (truncation, not rounding) of a voxel's projection,
+        # while calibrations (OpenCV, TUM, 7-Scenes, our renderer) put pixel centres at integer coordinates.
+        # Shifting the principal point by half a pixel makes int(u + 0.5) the nearest pixel; without it, surfaces
+        # come out about a quarter voxel off on slanted views (measured: -4 mm on the synthetic floor at 2 cm).
+        self.k_lookup = o3d.core.Tensor(intrinsics.matrix + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]),
+                                        o3d.core.float64, dev)
+        # open3d's world is ours minus the anchor, so its block lattice starts at the anchor
+        self.to_o3d = np.eye(4)
+        self.to_o3d[:3, 3] = anchor
+        self.mult = self.half / voxel_size
+        self.dmax_shifted = (1e6 if depth_max is None else float(depth_max)) - float(self.shift)
         self.integrated = self.skipped = 0
+
+    def touched(self, vbg: Any, img: Any, extrinsic: Any) -> Any:
+        """The block keys (open3d tensor) a frame's band reaches."""
+        return vbg.compute_unique_block_coordinates(img, self.k, extrinsic, 1.0, self.dmax_shifted, self.mult)
+
+    def integrate(self, vbg: Any, keys: Any, img: Any, extrinsic: Any) -> None:
+        """Fuse a frame into the blocks ``keys`` of ``vbg`` (they must be allocated)."""
+        vbg.integrate(keys, img, self.k_lookup, extrinsic, 1.0, self.dmax_shifted, self.mult)
 
     def inputs(self, frames: Iterable[Frame]) -> Iterator[tuple[Frame, Any, Any]]:
         """``(frame, image, extrinsic)`` for each posed frame. Raises ShapeError for a depth image whose shape
@@ -358,30 +384,14 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     if not np.all(np.isfinite(anchor)):
         raise InvalidValueError(f"origin must be 3 finite metres, got {origin}")
 
-    # the shift that turns open3d's symmetric band [-T, T] into [d_min, d_max] (module docstring)
-    half = 0.5 * (d_max - d_min)
-    shift = np.float32(0.5 * (d_max + d_min))
     dev = o3d.core.Device(device)
     vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (o3d.core.float32, o3d.core.float32), ((1,), (1,)),
                                         float(voxel_size), BLOCK, int(block_count), dev)
-    k = o3d.core.Tensor(intrinsics.matrix, o3d.core.float64, dev)
-    # open3d's integrate looks up the pixel int(u), int(v) (truncation, not rounding) of a voxel's projection,
-    # while calibrations (OpenCV, TUM, 7-Scenes, our renderer) put pixel centres at integer coordinates.
-    # Shifting the principal point by half a pixel makes int(u + 0.5) the nearest pixel; without it, surfaces
-    # come out about a quarter voxel off on slanted views (measured: -4 mm on the synthetic floor at 2 cm).
-    k_lookup = o3d.core.Tensor(intrinsics.matrix + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]),
-                               o3d.core.float64, dev)
-    # open3d's world is ours minus the anchor, so its block lattice starts at the anchor
-    to_o3d = np.eye(4)
-    to_o3d[:3, 3] = anchor
-    mult = half / voxel_size
-    dmax_shifted = (1e6 if depth_max is None else float(depth_max)) - float(shift)
-
-    feed = FrameFeed(intrinsics, shift, to_o3d, dev, total, quiet)
+    feed = FrameFeed(intrinsics, (d_min, d_max), voxel_size, depth_max, anchor, dev, total, quiet)
+    half, shift = feed.half, feed.shift
     t0 = time.perf_counter()
     for _, img, extrinsic in feed.inputs(frames):
-        blocks = vbg.compute_unique_block_coordinates(img, k, extrinsic, 1.0, dmax_shifted, mult)
-        vbg.integrate(blocks, img, k_lookup, extrinsic, 1.0, dmax_shifted, mult)
+        feed.integrate(vbg, feed.touched(vbg, img, extrinsic), img, extrinsic)
         feed.integrated += 1
     seconds = time.perf_counter() - t0
     feed.check()

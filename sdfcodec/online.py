@@ -208,21 +208,13 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
         if not np.all(np.isfinite(anchor)):
             raise InvalidValueError(f"origin must be 3 finite metres, got {origin}")
 
-    # the shifted band of sdfcodec.fusion (its module docstring): open3d's [-T, T] becomes [d_min, d_max]
-    half = 0.5 * (d_max - d_min)
-    shift = np.float32(0.5 * (d_max + d_min))
     dev = o3d.core.Device(device)
     # capacity fixed at the budget: the hash map never rehashes (which would double its buffers)
     vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (o3d.core.float32, o3d.core.float32), ((1,), (1,)),
                                         float(voxel_size), BLOCK, budget + 1, dev)
     hm = vbg.hashmap()
-    k = o3d.core.Tensor(intrinsics.matrix, o3d.core.float64, dev)
-    k_lookup = o3d.core.Tensor(intrinsics.matrix + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]),
-                               o3d.core.float64, dev)  # pixel centres: see sdfcodec.fusion.fuse
-    to_o3d = np.eye(4)
-    to_o3d[:3, 3] = anchor
-    mult = half / voxel_size
-    dmax_shifted = (1e6 if depth_max is None else float(depth_max)) - float(shift)
+    feed = FrameFeed(intrinsics, (d_min, d_max), voxel_size, depth_max, anchor, dev, total, quiet)
+    half, shift = feed.half, feed.shift
     last_seen = np.full(budget + 1, -1, dtype=np.int64)  # frame each buffer slot was last seen in
     stored = _Stored()
     stats = {"blocks_paged_out": 0, "blocks_paged_in": 0, "page_outs": 0, "page_ins": 0, "peak": 0,
@@ -295,14 +287,13 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
         vbg.attribute("weight")[buf] = o3d.core.Tensor(to_open3d_order(w), device=dev)
 
     target = max(1, int(low_water * budget))
-    feed = FrameFeed(intrinsics, shift, to_o3d, dev, total, quiet)
     t_start, cpu_start = time.perf_counter(), time.process_time()
     m = create_map(output, codec=codec, voxel_size=voxel_size, truncation=(d_min, d_max), origin=tuple(anchor),
                    code_dtype=code_dtype, overwrite=overwrite, tool=tool, up=up,
                    source=str(getattr(sequence, "path", "")) or None)
     with m:
         for frame, img, extrinsic in feed.inputs(frames):
-            keys = vbg.compute_unique_block_coordinates(img, k, extrinsic, 1.0, dmax_shifted, mult)
+            keys = feed.touched(vbg, img, extrinsic)
             buf, found = hm.find(keys)
             found_np = found.cpu().numpy().astype(bool)
             last_seen[buf.to(o3d.core.int64).cpu().numpy()[found_np]] = feed.integrated
@@ -314,7 +305,7 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
                     raise InvalidValueError(f"frame {frame.index} reaches below origin={anchor.tolist()}; pass a "
                                             "lower origin")
                 bring_in(m, missing, stored.holds(missing))
-            vbg.integrate(keys, img, k_lookup, extrinsic, 1.0, dmax_shifted, mult)
+            feed.integrate(vbg, keys, img, extrinsic)
             buf, _ = hm.find(keys)
             last_seen[buf.to(o3d.core.int64).cpu().numpy()] = feed.integrated
             stats["peak"] = max(stats["peak"], int(hm.size()))
