@@ -62,7 +62,7 @@ from .blocks import check_truncation, normalise
 from .errors import InvalidValueError, MissingDependencyError, SDFCodecWarning, ShapeError
 from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
 
-__all__ = ["FusedBlocks", "FrameFeed", "check_fusion_parameters", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
+__all__ = ["FusedBlocks", "FrameFeed", "check_fusion_parameters", "fusion_input", "fuse", "mesh_from_blocks", "GRAVITY_FILE", "sequence_up", "prefetched_frames", "fusion_progress",
            "to_open3d_order", "open3d_module"]
 
 #: 7-Scenes' gravity file: the gravity vector in the first camera's frame, three numbers.
@@ -228,6 +228,21 @@ def sequence_up(sequence: Sequence) -> np.ndarray | None:
     return up / np.linalg.norm(up)
 
 
+def fusion_input(sequence: Sequence | str | Path | Iterable[Frame], intrinsics: Intrinsics | None
+                 ) -> tuple[Sequence | None, Iterable[Frame], Intrinsics, int | None, np.ndarray | None]:
+    """What a fusion run reads: ``(sequence or None, frames, intrinsics, frame count or None, up or None)``. A
+    path is opened; a :class:`Sequence` gives its own intrinsics and gravity and is read ahead
+    (:func:`prefetched_frames`); an iterable of frames needs ``intrinsics`` (InvalidValueError otherwise)."""
+    if isinstance(sequence, (str, Path)):
+        sequence = open_sequence(sequence)
+    if isinstance(sequence, Sequence):
+        return sequence, prefetched_frames(sequence), sequence.intrinsics, len(sequence), sequence_up(sequence)
+    if intrinsics is None:
+        raise InvalidValueError("fusing an iterable of frames needs intrinsics=Intrinsics(...)")
+    total = len(sequence) if hasattr(sequence, "__len__") else None  # type: ignore[arg-type]
+    return None, sequence, intrinsics, total, None
+
+
 def check_fusion_parameters(truncation: Sequence | tuple, voxel_size: float, depth_max: float | None
                             ) -> tuple[float, float]:
     """``(d_min, d_max)`` of a fusion run, after checking its truncation (d_min < 0 < d_max, so that surfaces
@@ -367,19 +382,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     """
     o3d = open3d_module()
     d_min, d_max = check_fusion_parameters(truncation, voxel_size, depth_max)
-    if isinstance(sequence, (str, Path)):
-        sequence = open_sequence(sequence)
-    up = None
-    if isinstance(sequence, Sequence):
-        up = sequence_up(sequence)
-        intrinsics = sequence.intrinsics
-        frames: Iterable[Frame] = prefetched_frames(sequence)
-        total: int | None = len(sequence)
-    else:
-        if intrinsics is None:
-            raise InvalidValueError("fusing an iterable of frames needs intrinsics=Intrinsics(...)")
-        frames = sequence
-        total = len(sequence) if hasattr(sequence, "__len__") else None  # type: ignore[arg-type]
+    sequence, frames, intrinsics, total, up = fusion_input(sequence, intrinsics)
     anchor = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
     if not np.all(np.isfinite(anchor)):
         raise InvalidValueError(f"origin must be 3 finite metres, got {origin}")

@@ -48,9 +48,9 @@ import numpy as np
 import torch
 
 from ._validate import BLOCK
-from .data.sequences import Frame, Intrinsics, Sequence, open_sequence
+from .data.sequences import Frame, Intrinsics, Sequence
 from .errors import InvalidValueError
-from .fusion import FrameFeed, check_fusion_parameters, open3d_module, prefetched_frames, sequence_up, to_open3d_order
+from .fusion import FrameFeed, check_fusion_parameters, fusion_input, open3d_module, to_open3d_order
 from .header import BlockState
 from .map.observed import read_block_rows
 
@@ -183,20 +183,10 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
     budget = int(working_set_mb * 2**20 // BLOCK_BYTES)
     if budget < 1:
         raise InvalidValueError(f"a working set of {working_set_mb} MiB holds no block ({BLOCK_BYTES // 1024} KiB each)")
-    if isinstance(sequence, (str, Path)):
-        sequence = open_sequence(sequence)
-    up = None
-    if isinstance(sequence, Sequence):
-        up = sequence_up(sequence)
-        intrinsics = sequence.intrinsics
-        poses = [e.pose for e in sequence.entries if e.pose is not None]
-        frames: Iterable[Frame] = prefetched_frames(sequence)
-        total: int | None = len(sequence)
-    else:
-        if intrinsics is None or origin is None:
-            raise InvalidValueError("fusing an iterable of frames online needs intrinsics=... and origin=...")
-        poses, frames = [], sequence
-        total = len(sequence) if hasattr(sequence, "__len__") else None  # type: ignore[arg-type]
+    if not isinstance(sequence, (str, Path, Sequence)) and (intrinsics is None or origin is None):
+        raise InvalidValueError("fusing an iterable of frames online needs intrinsics=... and origin=...")
+    sequence, frames, intrinsics, total, up = fusion_input(sequence, intrinsics)
+    poses = [] if sequence is None else [e.pose for e in sequence.entries if e.pose is not None]
     if origin is None:
         if not poses:
             raise InvalidValueError("no frame with a pose to fuse; open the sequence with its ground truth")

@@ -131,11 +131,14 @@ def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]]) -> tup
             pass
     t, info = compute()
     if path is not None:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
             tmp.write_text(json.dumps({"threshold": float(t), "info": info}), encoding="utf-8")
             os.replace(tmp, path)
         except (OSError, TypeError, ValueError):
-            pass
+            try:  # a full or read-only directory: the cache stays in memory, and no half-written file behind
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
     return _remember(_thresholds, key, (t, info))

@@ -28,7 +28,6 @@ import numpy as np
 import torch
 
 from ..errors import InvalidValueError
-from ..header import BlockState
 from ..map import Map
 from ..map.observed import MASK_EXTENSION
 from .shapes import BEHIND

@@ -231,10 +231,12 @@ def build_query(shape: str | np.ndarray = "floor", *, map: Map | None = None, co
 
 def _model(name: str, codes: np.ndarray, codec: Codec, voxel_size: float, truncation: tuple[float, float],
            blocks: np.ndarray | None, rotations: np.ndarray | None = None, positions: np.ndarray | None = None,
-           spec: dict | None = None) -> QueryModel:
+           spec: dict | None = None, sha: str | None = None) -> QueryModel:
+    """``sha``: the codec's state digest when the caller has it already (hashing a large state costs)."""
     probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
     return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
-                      codec_state_sha256=_codec_sha(codec), voxel_size=voxel_size, truncation=truncation,
+                      codec_state_sha256=_codec_sha(codec) if sha is None else sha, voxel_size=voxel_size,
+                      truncation=truncation,
                       blocks=blocks, rotations=rotations, positions=positions, spec=spec, probe_codes=probes)
 
 
@@ -250,16 +252,18 @@ def _shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[
             "offsets": offsets if isinstance(offsets, str) else int(offsets), "behind": behind,
             "weighted": weighted, "stretch": list(stretch)}
 
+    config, sha = codec.get_config(), _codec_sha(codec)
+
     def build() -> QueryModel:
         v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
                                          rotations=rotations, offsets=offsets, behind=behind, return_observed=True,
                                          stretch=stretch)
         codes = encode_query_blocks(codec, v, seen, truncation, voxel_size, weighted)
-        return _model(shape, codes, codec, voxel_size, truncation, v if keep_blocks else None, rot, pos, dict(spec))
+        return _model(shape, codes, codec, voxel_size, truncation, v if keep_blocks else None, rot, pos, dict(spec),
+                      sha=sha)
 
     if not (rotations is None or isinstance(rotations, str)):
         return build()
-    config, sha = codec.get_config(), _codec_sha(codec)
     key = cache_key("query", spec=spec, codec=config, state=sha, voxel_size=voxel_size, truncation=truncation,
                     keep_blocks=keep_blocks)
 
