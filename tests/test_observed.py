@@ -83,9 +83,14 @@ def test_pca_weighted_encode_is_the_weighted_least_squares(blocks_and_mask):
     w = error_weights(v[:6], obs[:6], TRUNC, VS)
     got = codec.encode(v[:6], weights=w)
     ref = weighted_lstsq(codec, v[:6], w, sdfcodec_pca.RIDGE)
-    # float32 normal equations against float64 lstsq: the codes agree closely, the objective to 0.1 %
-    np.testing.assert_allclose(got, ref, rtol=0, atol=5e-3 * np.abs(ref).max())
+    # float32 normal equations against float64 lstsq. A block with few observed voxels is ill-conditioned
+    # (cond ~1e6 here), so the codes themselves may differ along directions the weights barely see, by how
+    # much depends on the BLAS (AMD vs Intel kernels differ): compare what the weights see instead, the
+    # weighted reconstructions, to 0.1 % of the block's weighted norm, and the objective to 0.1 %.
     state = codec.state_dict()
+    seen = lambda c: np.sqrt(w.reshape(6, -1)) * (c @ state["components"])  # noqa: E731
+    norm = np.linalg.norm(np.sqrt(w.reshape(6, -1)) * v[:6].reshape(6, -1), axis=1)
+    assert np.all(np.linalg.norm(seen(got) - seen(ref), axis=1) <= 1e-3 * norm)
     err = lambda c: (w.reshape(6, -1) * (c @ state["components"] + state["mean"] - v[:6].reshape(6, -1)) ** 2  # noqa: E731
                      ).sum(axis=1)
     assert np.all(err(got) <= err(ref) * 1.001 + 1e-6)
