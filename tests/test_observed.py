@@ -104,7 +104,10 @@ def test_zero_weights_keep_the_plain_code_and_torch_follows_the_device(blocks_an
                                atol=1e-5)
     t = codec.encode(torch.from_numpy(v[:3]), weights=torch.ones(v[:3].shape, dtype=torch.bool))
     assert isinstance(t, torch.Tensor) and t.shape == (3, 64)
-    np.testing.assert_allclose(t.numpy(), codec.encode(v[:3]), atol=1e-4)  # uniform weights: the projection
+    # uniform weights: the projection, up to float32 rounding of the normal equations (relative to the codes'
+    # scale: a code of 23 carries ~2e-6 of relative rounding per operation, more on AMD's BLAS kernels)
+    plain = codec.encode(v[:3])
+    np.testing.assert_allclose(t.numpy(), plain, rtol=0, atol=2e-5 * np.abs(plain).max())
 
 
 @pytest.mark.parametrize("bad, error", [
