@@ -159,8 +159,11 @@ class SZ3Field(ArrayBytesCodec):
 
     def _decode_sync(self, chunk_bytes: Buffer, chunk_spec) -> NDBuffer:
         shape = self._check_spec(chunk_spec)
-        field = sz3_decompress(chunk_bytes.as_numpy_array(), tuple(_BLOCK * n for n in shape[:3]),
-                               f"a chunk of the {SZ3_ZARR_CODEC} codes")
+        try:
+            field = sz3_decompress(chunk_bytes.as_numpy_array(), tuple(_BLOCK * n for n in shape[:3]),
+                                   f"the {SZ3_ZARR_CODEC} stream")
+        except FormatError as e:  # a plain error: map readers name the chunk it came from (ChecksumError)
+            raise ValueError(str(e)) from e
         return chunk_spec.prototype.nd_buffer.from_numpy_array(chunks_of(field))
 
     async def _encode_single(self, chunk_array: NDBuffer, chunk_spec) -> Buffer | None:
