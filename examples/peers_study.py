@@ -433,6 +433,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (default: all; "
                                                     "--quick: all but the networks)")
     ap.add_argument("--list", action="store_true", help="list the methods and exit")
+    ap.add_argument("--datasets", default="kitchen,synthetic", help="comma-separated: kitchen, synthetic")
     ap.add_argument("--out", type=Path, default=None, help="docs/ (default), or the work directory with --quick")
     ap.add_argument("--workdir", type=Path, default=None, help="maps and the fused-kitchen cache")
     a = ap.parse_args(argv)
@@ -457,13 +458,15 @@ def main(argv: list[str] | None = None) -> dict:
         coords, tsdf = synthetic_blocks(True)
         sets.append(("synthetic (quick)", coords, *fused_like(tsdf)))
     else:
-        if a.kitchen.is_dir():
+        want = a.datasets.split(",")
+        if "kitchen" in want and a.kitchen.is_dir():
             sets.append(("kitchen", *kitchen_blocks(a.kitchen, work)))
-        else:
+        elif "kitchen" in want:
             print(f"no kitchen data at {a.kitchen}: skipped", file=sys.stderr)
-        coords, tsdf = synthetic_blocks(False)
-        sets.append(("synthetic", coords, *fused_like(tsdf)))
-    points, names = [], []
+        if "synthetic" in want:
+            coords, tsdf = synthetic_blocks(False)
+            sets.append(("synthetic", coords, *fused_like(tsdf)))
+    points, names, res = [], [], {}
     for name, coords, tsdf, observed in sets:
         d = Data(name, coords, tsdf, observed, work)
         print(f"{name}: {d.n} coded blocks", flush=True)
@@ -473,6 +476,11 @@ def main(argv: list[str] | None = None) -> dict:
             p["blocks"] = d.n
         points += d.points
         names.append(name)
+        res = _write(a, argv, out, points, names, t0, load_before)  # after each data set: a long run keeps its part
+    return res
+
+
+def _write(a, argv, out: Path, points: list[dict], names: list[str], t0: float, load_before) -> dict:
     from importlib.metadata import version
 
     cmd = "python examples/peers_study.py" + ("" if argv is None and len(sys.argv) <= 1 else " " + shlex.join(
@@ -489,8 +497,8 @@ def main(argv: list[str] | None = None) -> dict:
     (out / "rd-peers.json").write_text(json.dumps(res, indent=1) + "\n")
     plot(points, names, out / "rd-peers.png")
     replace_section(out / "rate-distortion.md", "peers", markdown(res), title="# Rate-distortion")
-    print(f"wrote {out / 'rd-peers.json'}, rd-peers.png and the 'peers' section of rate-distortion.md in "
-          f"{res['wall_s']:.0f} s")
+    print(f"wrote {out / 'rd-peers.json'}, rd-peers.png and the 'peers' section of rate-distortion.md after "
+          f"{res['wall_s']:.0f} s", flush=True)
     return res
 
 
