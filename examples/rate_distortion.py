@@ -1,6 +1,6 @@
 """Rate-distortion: reconstruction error against bytes per block actually stored, for every learned codec (codes
 as float32, float16 and int8 in a real map; int8 with per-component scales simulated), ZFP, a 3-D DCT
-truncation baseline and Blosc-compressed float16 raw blocks. Writes docs/rate-distortion.json, docs/rate-distortion.png and docs/rate-distortion.md.
+truncation baseline and Blosc-compressed float16 raw blocks. Writes docs/rate-distortion.json, docs/rate-distortion.png and its section ("codecs") of docs/rate-distortion.md.
 
     python examples/rate_distortion.py                 # kitchen + synthetic room (a few minutes)
     python examples/rate_distortion.py --quick         # a small synthetic map only (the test's path)
@@ -64,6 +64,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _page import replace_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUNC, VS, BLOCK = (-0.04, 0.1), 0.02, 16
@@ -550,7 +553,7 @@ def surface_md(res: dict) -> list[str]:
 
 
 def write_md(res: dict, path: Path, png: str) -> None:
-    L = ["# Rate-distortion: our codecs against ZFP, DCT and Blosc", "",
+    L = ["## Storage formats of our codecs against ZFP, DCT truncation and Blosc (examples/rate_distortion.py)", "",
          "Made by (machine, load and wall time at the end):", "", "```", res["command"], "```", "",
          "Method: see the docstring of `examples/rate_distortion.py`. In short: error is per-voxel MSE and per-block "
          "SSE in normalised units (1 = 0.14 m), over the non-empty blocks of each data set; bytes per block are what "
@@ -630,7 +633,8 @@ def write_md(res: dict, path: Path, png: str) -> None:
           f"{m['zfpy']}, numcodecs {m['numcodecs']}, zarr {m['zarr']}. Load average (1, 5, 15 min) before "
           f"{' '.join(f'{v:.2f}' for v in res['load_before'])}, after "
           f"{' '.join(f'{v:.2f}' for v in res['load_after'])}. Wall time {res['wall_s']:.1f} s.", ""]
-    path.write_text("\n".join(L))
+    # only this script's section of the page: the others are made by their own scripts (examples/_page.py)
+    replace_section(path, "codecs", "\n".join(L), title="# Rate-distortion")
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -260,6 +260,15 @@ class Codec(abc.ABC):
         overrides it (weighted alternating least squares)."""
         self._fit(blocks)
 
+    def field_compression(self) -> dict[str, Any] | None:
+        """Hook: how a map stores this codec's codes as a field, or None (the default: codes are stored as they
+        are). A codec whose codes are the block's voxels (``code_size`` 4096, float32, ``_decode`` a reshape)
+        MAY return ``{"name": "sz3", "max_error": e}``: map writers then store each coded block's normalised
+        voxels exactly as given (not ``encode``'s output) and compress the ``codes`` array with SZ3 at the
+        absolute bound ``e`` (normalised units), a chunk's blocks as one 3-D field (spec/map-format.md section
+        4c). The built-in ``sz3`` codec does."""
+        return None
+
     def fit_batches(self, batches: Iterator[np.ndarray]) -> None:
         """Hook: learn from an iterator of checked float32 numpy batches ``(N_i, 16, 16, 16)``
         (:meth:`fit_stream` calls it). The default concatenates them and calls :meth:`fit`, so it needs memory

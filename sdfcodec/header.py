@@ -17,7 +17,8 @@ from .errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
-           "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation"]
+           "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
+           "FieldCompression"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -39,6 +40,10 @@ MODEL_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$"
 #: "quantised-codes": int16 codes with a per-map step per component in ``codes.quantisation`` (spec section 4b)
 QUANT_EXTENSION = "quantised-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {QUANT_EXTENSION}
+#: "field-compression": voxel codes stored through an error-bounded field compressor (SZ3) as the Zarr codec of
+#: ``codes``, a chunk's blocks compressed as one 3-D field, described by ``codes.field_compression`` (spec 4c)
+FIELD_EXTENSION = "field-compression"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {FIELD_EXTENSION}
 
 
 class BlockState:
@@ -120,6 +125,14 @@ class CodeQuantisation(_Model):
     offset: list[float] = Field(description="offset per code element")
 
 
+class FieldCompression(_Model):
+    """Voxel codes compressed as a field (spec section 4c): every stored voxel of a coded block lies within
+    ``max_error`` (normalised units) of the value the writer was given."""
+
+    name: Literal["sz3"] = Field(description="the field compressor; 'sz3': SZ3, absolute error bound")
+    max_error: float = Field(gt=0, le=0.5, description="absolute error bound in normalised units (1 = d_max - d_min)")
+
+
 class CodesSpec(_Model):
     """How code vectors are stored in the ``codes`` array."""
 
@@ -133,13 +146,17 @@ class CodesSpec(_Model):
     levels: list[int] = Field(description="prefix lengths a reader may request cheaply, ascending, last = size")
     quantisation: CodeQuantisation | None = Field(
         None, description="int16 codes only: step and offset per code element (spec section 4b); omitted otherwise")
+    field_compression: FieldCompression | None = Field(
+        None, description="float32 voxel codes (size 4096) only, with the required extension 'field-compression': "
+                          "the error-bounded compressor of the codes array (spec section 4c); omitted otherwise")
 
     @model_serializer(mode="wrap")
     def _omit_no_quantisation(self, handler):
-        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b
+        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b/4c
         out = handler(self)
-        if isinstance(out, dict) and out.get("quantisation", 0) is None:
-            out.pop("quantisation")
+        for key in ("quantisation", "field_compression"):
+            if isinstance(out, dict) and out.get(key, 0) is None:
+                out.pop(key)
         return out
 
     def stored_bytes(self, level: int | None = None) -> int:
@@ -161,6 +178,10 @@ class CodesSpec(_Model):
         if q is not None and not len(q.step) == len(q.offset) == self.size:
             raise ValueError(f"codes.quantisation needs {self.size} steps and offsets (one per code element), got "
                              f"{len(q.step)} and {len(q.offset)}")
+        if self.field_compression is not None and (self.dtype != "float32" or self.size != 4096
+                                                   or self.chunk_code != 4096):
+            raise ValueError("codes.field_compression needs float32 voxel codes: size 4096 in one chunk along the "
+                             f"code axis (got dtype {self.dtype!r}, size {self.size}, chunk_code {self.chunk_code})")
         return self
 
 
@@ -227,6 +248,10 @@ class MapHeader(_Model):
         if (self.codes.dtype == "int16") != bool(quant) or any(not e.required for e in quant):
             raise ValueError(f"codes.dtype 'int16' and the required extension {QUANT_EXTENSION!r} go together "
                              f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
+        field = [e for e in self.extensions if e.name == FIELD_EXTENSION]
+        if (self.codes.field_compression is not None) != bool(field) or any(not e.required for e in field):
+            raise ValueError(f"codes.field_compression and the required extension {FIELD_EXTENSION!r} go together "
+                             f"(extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self
@@ -240,7 +265,7 @@ def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
     """(dotted location, value) of the header's numeric fields that are present, list items included."""
     for path in ("voxel_size", "truncation.d_min", "truncation.d_max", "origin", "block_size", "shape_voxels",
                  "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels",
-                 "codes.quantisation.step", "codes.quantisation.offset"):
+                 "codes.quantisation.step", "codes.quantisation.offset", "codes.field_compression.max_error"):
         value: Any = raw
         for key in path.split("."):
             value = value.get(key) if isinstance(value, dict) else None

@@ -17,6 +17,9 @@ The registry
 Training
     :class:`TrainableCodec`, the shared base of codecs trained with early stopping on a validation split;
     :class:`Dataset` / :func:`open_dataset` (training data sets).
+Error-bounded field compression
+    :func:`sz3_compress` / :func:`sz3_decompress`: SZ3 streams through pysz with an absolute bound, their
+    failures as :class:`~sdfcodec.errors.FormatError` (the ``sz3`` codec; maps use the same functions).
 Benchmarks
     :func:`register_bench` (a ready instance and the roofline shapes), :func:`bench_instance`,
     :func:`bench_codec_instance`, :func:`roofline_shapes`.
@@ -34,6 +37,7 @@ from ._validate import BLOCK, as_float_tensor, empty, like_input
 from .bench import bench_codec_instance, bench_instance, register_bench, roofline_shapes
 from .codec import Codec
 from .dataset import Dataset, open_dataset
+from .map.field import sz3_compress, sz3_decompress
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
@@ -43,7 +47,8 @@ __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty",
            "shipped_model_file", "load_shipped_model",
            "get_codec", "get_codec_class", "pretrained_codec",
            "Codec", "TrainableCodec", "Dataset", "open_dataset",
-           "register_bench", "bench_instance", "bench_codec_instance", "roofline_shapes"]
+           "register_bench", "bench_instance", "bench_codec_instance", "roofline_shapes", "sz3_compress",
+           "sz3_decompress"]
 
 _SHIPPED: dict[tuple[str, str], Codec] = {}
 

@@ -100,6 +100,7 @@ def encode_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
     step: Optional[float] = typer.Option(None, "--step", help="Quantise the codes with this step (int16 codes, entropy-coded; |error| <= step/2 per element; pca, raw)."),
     target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Choose the step so the map takes about B stored bytes per coded block (everything but the codec state)."),
+    max_error: Optional[float] = typer.Option(None, "--max-error", help="Absolute error bound in metres of an error-bounded codec: with --codec sz3 every stored voxel lies within it (SZ3 field compression)."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
@@ -141,6 +142,8 @@ def encode_cmd(
         if code_size and code_size != codec.code_size:
             raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
                                     f"(code size {codec.code_size})")
+    elif max_error is not None:
+        codec = _bounded_codec(codec_id, max_error, trunc)
     else:  # the shipped model at that size, unless --fit or the plugin ships none (then why_fit says so)
         codec, why_fit = choose_codec(codec_id or "pca", code_size, fit=fit)
 
@@ -201,6 +204,18 @@ def encode_cmd(
         f"; codes quantised with step {quant['step']:.4g}: {quant['bytes_per_coded_block']:.1f} stored bytes per "
         f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes)" +
         (f", target {quant['target_bytes']:g} after {quant['passes']} pass(es)" if quant.get("target_bytes") else ""))))
+
+
+def _bounded_codec(codec_id: Optional[str], max_error: float, trunc: tuple[float, float]) -> Any:
+    """The error-bounded codec ``--max-error`` (metres) asks for: sz3 at that bound in normalised units."""
+    from ..registry import get_codec
+
+    if codec_id != "sz3":
+        raise InvalidValueError(f"--max-error bounds the error of an error-bounded codec: pass --codec sz3 (got "
+                                f"--codec {codec_id or 'pca (the default)'})")
+    if not (np.isfinite(max_error) and max_error > 0):
+        raise InvalidValueError(f"--max-error must be a positive number of metres, got {max_error}")
+    return get_codec("sz3", max_error=float(max_error) / (trunc[1] - trunc[0]))
 
 
 def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float], vs: float,

@@ -20,14 +20,15 @@ from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCode
 
 from ..codec import Codec
 from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
-from ..header import CodeQuantisation, CodesSpec
+from ..header import CodeQuantisation, CodesSpec, FieldCompression
 from ..quantize import dequantise_step, dequantize_codes
+from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
 
 __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
            "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
-           "QUANT_CLEVEL", "mask_compressors"]
+           "QUANT_CLEVEL", "mask_compressors", "field_compression_of"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
 #: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
@@ -96,6 +97,9 @@ def code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: 
     """The ``codes`` layout of a new map for ``codec``: chunk shape and prefix levels (defaults when None), and
     the step and offset of int16 codes."""
     size = codec.code_size
+    fc = field_compression_of(codec, dtype)
+    if fc is not None and chunk_blocks is None:
+        chunk_blocks = FIELD_CHUNK_BLOCKS  # SZ3's predictor gains from larger fields (sdfcodec.map.field)
     if chunk_code is None:
         # a prefix level of 32 elements reads only its own chunk along the code axis
         chunk_code = 32 if codec.prefix_ordered and size > 32 else size
@@ -109,17 +113,41 @@ def code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: 
         itemsize = np.dtype(dtype).itemsize
         chunk_blocks = next((c for c in (16, 8) if c ** 3 * chunk_code * itemsize <= 2 << 20), 4)
     return CodesSpec(size=size, dtype=dtype, chunk_blocks=chunk_blocks, chunk_code=chunk_code,
-                     prefix_ordered=codec.prefix_ordered, levels=levels, quantisation=quantisation)
+                     prefix_ordered=codec.prefix_ordered, levels=levels, quantisation=quantisation,
+                     field_compression=fc)
+
+
+def field_compression_of(codec: Codec, dtype: str = "float32") -> FieldCompression | None:
+    """The header's ``codes.field_compression`` for ``codec`` (its :meth:`~sdfcodec.Codec.field_compression`
+    hook), checked: voxel codes stored as float32. None when the codec stores plain codes."""
+    fc = codec.field_compression()
+    if fc is None:
+        return None
+    if codec.code_size != 4096 or dtype != "float32":
+        raise InvalidValueError(f"codec {codec.codec_id!r} asks for field compression, which stores float32 voxel "
+                                f"codes (code size 4096); got code size {codec.code_size}, code dtype {dtype!r}")
+    try:
+        return FieldCompression(**fc)
+    except Exception as e:  # noqa: BLE001 - pydantic's ValidationError: name the codec and the setting
+        first = e.errors()[0] if hasattr(e, "errors") else {"loc": (), "msg": str(e)}
+        where = ".".join(str(p) for p in first["loc"])
+        raise InvalidValueError(f"codec {codec.codec_id!r} asks for an invalid field compression {fc!r}: {where} "
+                                f"{first['msg']} (max_error is in normalised units, 1 = d_max - d_min; at most "
+                                "half the truncation range)") from e
 
 
 def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shape: tuple | None = None,
-                         chunks: tuple | None = None, zero_fill: bool = False) -> tuple[int, bool]:
+                         chunks: tuple | None = None, zero_fill: bool = False,
+                         field: FieldCompression | None = None) -> tuple[int, bool]:
     """Validate an array's metadata against the spec *before* reading from it (``where`` names it in errors).
 
     Returns:
         ``(chunk_bytes, blosc_frame)``: the decoded size of one chunk, and whether a stored chunk is one Blosc
         frame followed by its CRC32C (the writers' chain; then the frame can be checked unread); formerly: whether Blosc decodes its bytes
         first (then a chunk's Blosc header can be checked against that size unread, :class:`GuardStore`).
+
+    ``field``: the header's ``codes.field_compression`` when ``arr`` is a field-compressed ``codes`` array (spec
+    section 4c): its chain must then be exactly SZ3 and CRC32C; anywhere else the SZ3 codec is refused.
     """
     try:
         dt = np.dtype(arr.dtype)
@@ -139,7 +167,8 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     if len(ch) != len(arr.shape) or any(c < 1 for c in ch):
         # Zarr accepts a zero chunk edge in metadata; every chunk index computation would divide by it
         raise FormatError(f"{where} has chunk shape {ch}; every chunk edge must be >= 1, one per axis")
-    bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs
+    fielded = check_field_pipeline(codecs, field, where)
+    bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs[fielded:]
            if not isinstance(c, ALLOWED_ZARR_CODECS)]
     if bad:
         raise FormatError(f"{where} uses Zarr codec(s) {bad}, which a map may not use (allowed: bytes, blosc, "
@@ -163,8 +192,11 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
                           "'default' with '/' (spec section 9a), so its stored chunks would not be found")
     # the chunk size is checked when reading, so that a small limit still lets a map open and say what is too big
     chunk_bytes = math.prod(ch) * dt.itemsize
-    if zero_fill and not (np.ndim(fill) == 0 and np.asarray(fill) == 0):
-        raise FormatError(f"{where} has fill value {fill!r}; the spec requires 0")
+    # a field-compressed codes array is filled with free space (1.0): SZ3 then sees no wall where a chunk at the
+    # grid's edge is padded (spec section 4c)
+    want = 1 if fielded else 0
+    if zero_fill and not (np.ndim(fill) == 0 and np.asarray(fill) == want):
+        raise FormatError(f"{where} has fill value {fill!r}; the spec requires {want}")
     # the writers' chain (bytes, blosc, crc32c): a stored chunk is one Blosc frame and its 4-byte checksum, so
     # the guard can check the frame's structure before the C decompressor trusts it
     blosc_frame = (len(codecs) == 3 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
@@ -211,12 +243,14 @@ def unstored_suspects(coords: np.ndarray, codes: np.ndarray, params: np.ndarray 
                       spec: CodesSpec) -> list[tuple[str, tuple[int, ...], int]]:
     """The chunks that may be missing under coded blocks ``coords`` (n, 3) with stored ``codes`` (n, L) (and int8
     ``params`` (n, 2)): Zarr reads a chunk that is not stored as its fill value 0, so only a block with an
-    all-zero stretch of one code chunk (or an all-zero ``[offset, scale]`` row) can lie in one. One pass over
-    the codes. Returns ``(array name, chunk coords, row of a block in it)`` per suspect block."""
+    all-zero stretch of one code chunk (or an all-zero ``[offset, scale]`` row) can lie in one (all 1.0, free
+    space, in a field-compressed map: its fill value, spec section 4c). One pass over the codes. Returns
+    ``(array name, chunk coords, row of a block in it)`` per suspect block."""
     if not len(coords):
         return []
     cb = spec.chunk_blocks
-    zero = np.logical_and.reduceat(codes == 0, np.arange(0, codes.shape[1], spec.chunk_code), axis=1)
+    fill = 1.0 if spec.field_compression is not None else 0
+    zero = np.logical_and.reduceat(codes == fill, np.arange(0, codes.shape[1], spec.chunk_code), axis=1)
     out = [("codes", tuple(int(v) for v in coords[r] // cb) + (int(k),), int(r)) for r, k in zip(*np.nonzero(zero))]
     if params is not None:
         out += [("code_scale", tuple(int(v) for v in coords[r] // cb) + (0,), int(r))

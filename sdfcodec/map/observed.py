@@ -105,7 +105,11 @@ def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, trunca
     """Codes ``(N, k)`` float32 numpy of normalised blocks ``v`` ``(N, 16, 16, 16)``, encoded on ``device`` with
     the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes.
     A codec that ignores weights (:func:`sdfcodec.codec.uses_weights`) encodes the blocks with their
-    unobserved voxels filled from the observed ones (:func:`fill_unobserved`) instead."""
+    unobserved voxels filled from the observed ones (:func:`fill_unobserved`) instead. A codec whose map stores
+    its voxels as a compressed field (:meth:`~sdfcodec.Codec.field_compression`) gets them exactly as given:
+    the field compressor, not ``encode``, bounds their error (spec/map-format.md section 4c)."""
+    if codec.field_compression() is not None:
+        return np.ascontiguousarray(v, dtype=np.float32).reshape(len(v), -1)
     w = error_weights(v, observed, truncation, voxel_size, surface_weight)
     if w is not None and not uses_weights(codec):
         v, w = fill_unobserved(v, observed), None

@@ -174,11 +174,12 @@ class MapReader:
         return node
 
     def check_array(self, arr: zarr.Array, *, dtype: Any = None, shape: tuple | None = None,
-                    chunks: tuple | None = None, zero_fill: bool = False) -> None:
+                    chunks: tuple | None = None, zero_fill: bool = False, field: Any = None) -> None:
         """Validate an array's metadata against the spec and the reader's limits *before* reading from it, and
         register its chunk size with the guard store (a chunk claiming more is refused unread)."""
         chunk_bytes, blosc_first = check_array_metadata(arr, f"{self.location}: array '{arr.path}'", dtype=dtype,
-                                                        shape=shape, chunks=chunks, zero_fill=zero_fill)
+                                                        shape=shape, chunks=chunks, zero_fill=zero_fill,
+                                                        field=field)
         # the chunk size is checked when reading (read), so that a small limit still lets a map open and say
         # what is too big
         self._chunk_bytes[arr.path] = chunk_bytes
@@ -199,7 +200,7 @@ class MapReader:
             raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec map")
         cb = h.codes.chunk_blocks
         self.check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size),
-                         chunks=(cb, cb, cb, h.codes.chunk_code), zero_fill=True)
+                         chunks=(cb, cb, cb, h.codes.chunk_code), zero_fill=True, field=h.codes.field_compression)
         self.check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
         self.code_scale_array = None
         if h.codes.dtype == "int8":

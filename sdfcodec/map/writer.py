@@ -26,12 +26,13 @@ from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                       BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                       now_iso)
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference
+from .field import compress_codes, refuse_update
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compressors, free_space, mask_compressors, state_digest)
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
@@ -368,6 +369,10 @@ class MapWriter:
             extensions.append(Extension(name=MASK_EXTENSION, required=True))
         if self.header_kw["codec"].state_reference is not None:
             extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
+        if self.codes_spec.field_compression is not None:
+            # the exact voxels written so far become the field-compressed codes: every chunk compressed once
+            compress_codes(self.group, Path(self.tmp), self.state, self.codes_spec.field_compression)
+            extensions.append(Extension(name=FIELD_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
@@ -509,6 +514,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         extensions = [Extension(name=n) for n, d in ((INT8_EXTENSION, "int8"), (QUANT_EXTENSION, "int16"))
                       if code_dtype == d]
         extensions += [Extension(name=STATE_REFERENCE_EXTENSION)] if ref else []
+        extensions += [Extension(name=FIELD_EXTENSION)] if spec.field_compression is not None else []
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
                            codes=spec, extensions=extensions, **header_kw)
     except WriteFailedError:
@@ -599,6 +605,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         if unknown:
             raise VersionError(f"{final} uses extension(s) {unknown} that this sdfcodec cannot keep consistent "
                                "while changing blocks; update it with a newer sdfcodec")
+        refuse_update(final, h.codes.field_compression)
         codec = src.codec  # checks the state digest; the codec encodes the new blocks
         states = src.block_states()
         root = src.local_root()

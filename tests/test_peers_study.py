@@ -1,0 +1,68 @@
+"""examples/peers_study.py --quick on a tiny synthetic map: every method gives points whose figures hold up
+against expectations computed independently (SZ3's and the NanoVDB-style quantiser's error bounds, ZFP's
+fixed-rate payload, bytes on disk of the maps), and the page keeps the sections other scripts wrote."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("pysz", reason="the study's SZ3 methods need pysz (pip install 'sdfcodec[sz3]')")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    spec = importlib.util.spec_from_file_location("peers_study", ROOT / "examples" / "peers_study.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    work = tmp_path_factory.mktemp("peers")
+    (work / "rate-distortion.md").write_text("# Rate-distortion\n\n<!-- section other -->\nkept\n<!-- end other -->\n")
+    res = mod.main(["--quick", "--workdir", str(work), "--out", str(work),
+                    "--methods", "pca,sz3-map,sz3-peer,zfp,dct,nanovdb"])
+    return mod, work, res
+
+
+def test_every_method_measured_with_its_bounds(run):
+    mod, work, res = run
+    P = res["points"]
+    fams = {p["family"] for p in P}
+    assert fams == {"eigenshapes", "sz3-registry", "sz3-peer", "zfp", "dct", "nanovdb"}
+    for p in P:
+        assert p["bytes_per_block"] > 0 and p["mse"] >= 0 and 0 <= p["f1"] <= 1
+        assert p["ratio"] == pytest.approx(16384 / p["bytes_per_block"])
+        assert p["decode_vs_memcpy"] > 0
+    for p in P:
+        if p["family"] in ("sz3-peer", "sz3-registry"):  # the absolute bound, on every observed voxel
+            assert p["max_error_cm"] <= float(p["setting"].split()[1]) * (1 + 1e-4) + 1e-6
+        if p["setting"] == "8-bit":  # a leaf's range / 255 / 2, at most half of 1 / 255 (normalised)
+            assert p["max_error_cm"] <= 14 / 255 / 2 + 1e-6
+        if p["method"] == "zfp fixed-rate (block)":  # rate x 4096 bits, zfpy's 16-byte header not counted
+            assert p["bytes_per_block"] == pytest.approx(float(p["setting"].split()[1]) * 512)
+
+
+def test_maps_bytes_are_the_files_on_disk(run):
+    mod, work, res = run
+    for p in res["points"]:
+        if p["family"] not in ("eigenshapes", "sz3-registry"):
+            continue
+        path = next(work.glob(f"*-{p['method']}-{p['setting']}.sdfz".replace(" ", "_")))
+        files = [os.path.join(d, f) for d, _, fs in os.walk(path) for f in fs]
+        total = sum(os.path.getsize(f) for f in files if f"{os.sep}codec{os.sep}" not in f)
+        assert p["bytes_per_block"] * p["blocks"] == pytest.approx(total)
+        assert p["codec_state_bytes"] == sum(os.path.getsize(f) for f in files if f"{os.sep}codec{os.sep}" in f)
+
+
+def test_outputs_and_sections(run):
+    mod, work, res = run
+    saved = json.loads((work / "rd-peers.json").read_text())
+    assert saved["targets"].keys() == {"synthetic (quick)"}
+    page = (work / "rate-distortion.md").read_text()
+    assert "<!-- section other -->\nkept\n<!-- end other -->" in page  # another script's section is kept
+    assert "<!-- section peers -->" in page and "moonshot" in page and "--quick" in page
+    assert (work / "rd-peers.png").stat().st_size > 10_000
