@@ -447,7 +447,11 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
     import torch
 
-    torch.set_grad_enabled(False)
+    with torch.no_grad():  # a context, not set_grad_enabled: main() is also called in-process by the tests
+        return _study(a, argv)
+
+
+def _study(a, argv) -> dict:
     work = a.workdir or (Path(tempfile.mkdtemp(prefix="rd-peers-")) if a.quick else ROOT / "build" / "rd-peers")
     work.mkdir(parents=True, exist_ok=True)
     out = a.out or (work if a.quick else ROOT / "docs")

@@ -646,9 +646,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--workdir", type=Path, default=ROOT / "build" / "rate-distortion",
                     help="maps written here (kept) and the fused kitchen cache")
     a = ap.parse_args(argv)
-    import numcodecs
     import torch
-    import zarr
     import zfpy  # noqa: F401 - fail at once, with a clear ImportError, when the ZFP reference is missing
 
     t0, load_before = time.perf_counter(), os.getloadavg()
@@ -670,7 +668,15 @@ def main(argv: list[str] | None = None) -> dict:
             print(f"no kitchen data at {a.kitchen}: skipped", file=sys.stderr)
         data["synthetic"] = (*synthetic_blocks(False), None)
         descr["synthetic"] = "room_scene(seed=0, geometry='rich', ceiling=True) sampled at 2 cm with a 16 cm margin"
-    torch.set_grad_enabled(False)
+    with torch.no_grad():  # a context, not set_grad_enabled: main() is also called in-process by the tests
+        return _study(a, argv, data, descr, out, t0, load_before)
+
+
+def _study(a, argv, data, descr, out, t0, load_before) -> dict:
+    import numcodecs
+    import torch
+    import zarr
+
     codecs = learned_codecs(a.quick)
     points = []
     for ds, (coords, tsdf, observed) in data.items():
