@@ -29,7 +29,7 @@ from zarr.abc.codec import ArrayBytesCodec
 from zarr.codecs import Crc32cCodec
 from zarr.core.buffer import Buffer, NDBuffer
 
-from ..errors import FormatError, InvalidValueError, MissingDependencyError
+from ..errors import ChecksumError, FormatError, InvalidValueError, MissingDependencyError
 from ..header import BlockState, FieldCompression
 
 __all__ = ["SZ3_ZARR_CODEC", "SZ3Field", "sz3_compress", "sz3_decompress", "field_compressors", "field_of",
@@ -137,7 +137,7 @@ class SZ3Field(ArrayBytesCodec):
         conf = data.get("configuration") if isinstance(data, dict) else None
         if data.get("name") != SZ3_ZARR_CODEC or not isinstance(conf, dict) or set(conf) != {"max_error"} \
                 or isinstance(conf["max_error"], bool) or not isinstance(conf["max_error"], (int, float)):
-            raise ValueError(f"a {SZ3_ZARR_CODEC} codec needs exactly the configuration {{'max_error': number}}, "
+            raise FormatError(f"a {SZ3_ZARR_CODEC} codec needs exactly the configuration {{'max_error': number}}, "
                              f"got {data!r}")
         return cls(max_error=conf["max_error"])
 
@@ -162,8 +162,8 @@ class SZ3Field(ArrayBytesCodec):
         try:
             field = sz3_decompress(chunk_bytes.as_numpy_array(), tuple(_BLOCK * n for n in shape[:3]),
                                    f"the {SZ3_ZARR_CODEC} stream")
-        except FormatError as e:  # a plain error: map readers name the chunk it came from (ChecksumError)
-            raise ValueError(str(e)) from e
+        except FormatError as e:  # a ChecksumError: map readers re-raise it naming the chunk it came from
+            raise ChecksumError(str(e)) from e
         return chunk_spec.prototype.nd_buffer.from_numpy_array(chunks_of(field))
 
     async def _encode_single(self, chunk_array: NDBuffer, chunk_spec) -> Buffer | None:
