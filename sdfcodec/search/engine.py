@@ -35,6 +35,7 @@ __all__ = [
     "CALIBRATION_SAMPLES",
     "calibrate_threshold",
     "score_codes",
+    "codes_at",
     "SearchResult",
     "Expansion",
     "auto_threshold",
@@ -388,7 +389,7 @@ def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
 def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | None = None,
            threshold: float | str | None = None, top: int | None = None, device: str | torch.device | None = None,
            keep_scores: bool = False, chunks_per_batch: int = 8, behind: str | None = None, up: Any = None,
-           tilt: float | None = None) -> SearchResult:
+           tilt: float | None = None, scene: bool = True) -> SearchResult:
     """Score every coded block of a map against a query model and select the closest.
 
     Streams the map's codes a few chunks at a time (``Map.iter_codes``), reading only the code chunks that
@@ -418,6 +419,12 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         Also return every coded block's coordinates and score (for pictures and PR curves).
     chunks_per_batch : int
         Code chunks read per step (memory vs. call overhead).
+    scene : bool
+        For the built-in floor, ceiling and wall models: after scoring, keep what the query means in the map
+        (:func:`sdfcodec.search.scene.scene_select`: the lowest large up-facing level, the highest down-facing
+        one that closes the map, large vertical patches); the candidates are the blocks under the threshold
+        (the calibrated one when only ``top`` is given) and those up to ``WEAK_FACTOR`` times it that continue
+        their planes. ``False``: the shape score alone (``--shape-only``).
 
     Returns
     -------
@@ -447,6 +454,17 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     threshold_info = {"method": "given"} if threshold not in (None, "auto") else None
     if threshold == "auto":
         threshold, threshold_info = calibrate_threshold(model, codec, lv, scorer, obs_scorer)
+    from .scene import SCENE_QUERIES, WEAK_FACTOR, scene_select
+
+    rot = (model.spec or {}).get("rotations", "none")
+    staged = (bool(scene) and (model.spec or {}).get("shape") in SCENE_QUERIES and model.rotations is not None
+              and (rot == "none" or 0 < _cone_angle(rot) <= 45))  # not "axis": a floor model then holds walls
+    stage_t = threshold
+    if staged and stage_t is None:  # top only: the scene stage still needs to know which blocks are the shape
+        stage_t, _ = calibrate_threshold(model, codec, lv, scorer, obs_scorer)
+    # blocks fusion saw only in part may score up to WEAK_FACTOR times the threshold and still join the plane
+    # they continue (scene stage); fully observed ones are judged by the threshold alone
+    loop_t = (WEAK_FACTOR if masked else 1.0) * stage_t if staged else threshold
 
     sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
     all_c, all_s = [], []
@@ -457,16 +475,26 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         if keep_scores:
             all_c.append(coords)
             all_s.append(s)
-        keep = np.ones(len(s), bool) if threshold is None else s <= threshold
+        keep = np.ones(len(s), bool) if loop_t is None else s <= loop_t
         if not keep.any():
             continue
         sel_c = np.concatenate([sel_c, coords[keep]])
         sel_s = np.concatenate([sel_s, s[keep]])
         sel_i = np.concatenate([sel_i, idx[keep]])
-        if top is not None and len(sel_s) > top:
+        if top is not None and not staged and len(sel_s) > top:
             # running top-k: memory stays O(top + batch)
             part = np.argpartition(sel_s, top - 1)[:top]
             sel_c, sel_s, sel_i = sel_c[part], sel_s[part], sel_i[part]
+    scene_info = None
+    if staged:
+        coded = np.argwhere(view.block_states() == BlockState.CODED)
+        if masked and len(sel_c):
+            weak = (sel_s > stage_t) & view.read_observed(sel_c).reshape(len(sel_c), -1).all(axis=1)
+            sel_c, sel_s, sel_i = sel_c[~weak], sel_s[~weak], sel_i[~weak]  # fully observed: the threshold rules
+        kept, scene_info = scene_select(model.spec["shape"], model, sel_c, sel_s, sel_i, stage_t, coded,
+                                        np.asarray(m.origin, np.float64), m.voxel_size,
+                                        _surface_test(view, codec, lv, stage_t))
+        sel_c, sel_s, sel_i = sel_c[kept], sel_s[kept], sel_i[kept]
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
     if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here
@@ -479,13 +507,50 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "code_bytes_level": _code_chunk_bytes(m, lv), "code_bytes_full": _code_chunk_bytes(m),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
-        "observed_scoring": masked,
+        "observed_scoring": masked, "scene": scene_info,
     }
     return SearchResult(
         coords=sel_c, scores=sel_s.astype(np.float32), nearest=sel_i, level=lv, query=model, threshold=threshold,
         top=top, stats=stats,
         all_coords=np.concatenate(all_c) if all_c else (np.zeros((0, 3), np.int64) if keep_scores else None),
         all_scores=np.concatenate(all_s) if all_s else (np.zeros(0, np.float32) if keep_scores else None))
+
+
+def codes_at(m: Map, coords: np.ndarray, level: int) -> np.ndarray:
+    """The first ``level`` code elements ``(N, level)`` float32 of coded blocks ``coords`` ``(N, 3)``, each code
+    chunk holding one read once."""
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    grid = np.asarray(m.grid_blocks)
+    cb = m.header.codes.chunk_blocks
+    arr = m.reader.codes_array
+    chunk_of = coords // cb
+    order = np.lexsort(chunk_of.T[::-1])
+    bounds = np.flatnonzero(np.any(np.diff(chunk_of[order], axis=0) != 0, axis=1)) + 1
+    codes = np.empty((len(coords), level), np.float32)
+    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(order)]):
+        if lo == hi:
+            continue
+        idx = order[lo:hi]
+        ch = chunk_of[idx[0]]
+        box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
+        chunk = m.reader.read(arr, (*box, slice(0, level)))
+        codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
+    return codes
+
+
+def _surface_test(view: Map, codec: Codec, level: int, t: float):
+    """``coords (N, 3) -> (N,) bool``: whether each coded block holds a surface, i.e. its code is farther than
+    ``t`` (the query's threshold) from the codes of a block of solid and a block of free space. An exact SDF
+    codes the solid around a room too; those blocks are not surfaces above or below anything."""
+    const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
+    ref = Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu"))
+
+    def has_surface(coords: np.ndarray) -> np.ndarray:
+        if not len(coords):
+            return np.zeros(0, bool)
+        return ref(codes_at(view, coords, level))[0] > t
+
+    return has_surface
 
 
 # ---------------------------------------------------------------------------------------------- expanding
@@ -581,19 +646,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
             blocks[i] = d_max
             blocks[i][tuple(slice(0, s) for s in out.shape)] = out
     elif len(coords):
-        # group the selected blocks by code chunk: each chunk holding one is read once, at level lv
-        cb = m.header.codes.chunk_blocks
-        arr = view.reader.codes_array
-        chunk_of = coords // cb
-        order = np.lexsort(chunk_of.T[::-1])
-        bounds = np.flatnonzero(np.any(np.diff(chunk_of[order], axis=0) != 0, axis=1)) + 1
-        codes = np.empty((len(coords), lv), np.float32)
-        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(order)]):
-            idx = order[lo:hi]
-            ch = chunk_of[idx[0]]
-            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
-            chunk = view.reader.read(arr, (*box, slice(0, lv)))
-            codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
+        codes = codes_at(view, coords, lv)
         for i in range(0, len(coords), 65536):
             v = codec.decode(torch.from_numpy(codes[i:i + 65536]).to(dev))
             # truncated to [d_min, d_max] as the map reader's decodes (a lossy decode may overshoot)
