@@ -132,6 +132,9 @@ class LabelledRoom:
         out = {"floor": (np.bincount(which, weights=is_floor, minlength=n) / denom).astype(np.float32),
                "up": (np.bincount(which, weights=upward, minlength=n) / denom).astype(np.float32),
                "floor_cover": cover(is_floor), "up_cover": cover(upward), "surface_voxels": n_surf.astype(np.int64)}
+        for name in ("floor", "wall", "ceiling"):
+            out.update(_section_cover(which, local, nearest, grad, prim_label[nearest] == LABELS.index(name),
+                                      n_surf, name))
         for name in ("wall", "ceiling"):
             # cover across the grid axis nearest the block's mean normal of that surface (walls face any way)
             is_lab = prim_label[nearest] == LABELS.index(name)
@@ -147,6 +150,59 @@ class LabelledRoom:
             out[f"{name}_cover"] = (np.bincount(cells // (3 * BLOCK * BLOCK), minlength=n)
                                     / (BLOCK * BLOCK)).astype(np.float32)
         return out
+
+
+#: :func:`_section_cover`'s cells (voxels a side) on a surface's plane: surface voxels (a band two voxels thick)
+#: fill every cell of this size, at any orientation.
+_CELL = 2.0
+
+
+def _section_cover(which: np.ndarray, local: np.ndarray, nearest: np.ndarray, grad: np.ndarray,
+                   is_label: np.ndarray, n_surf: np.ndarray, name: str) -> dict:
+    """Per block, how a labelled surface spans it, measured in the surface's own plane (whatever its angle to
+    the grid): ``{name}_main``, the share of the block's surface voxels on the label's single largest primitive
+    there; ``{name}_section``, the area (voxels squared) of that primitive's plane inside the block's voxels' cells
+    (``[-0.5, 15.5]`` per axis: a surface passing between two blocks' voxel layers has none); ``{name}_section_cover``, the share of that section the
+    primitive's surface voxels cover (cells of ``_CELL`` voxels). A wall crossing a block obliquely covers its
+    whole section; a wall ending inside the block (a door, a corner with another surface) does not."""
+    n = len(n_surf)
+    main = np.zeros(n, np.float32)
+    section = np.zeros(n, np.float32)
+    cover = np.zeros(n, np.float32)
+    sel = np.flatnonzero(is_label)
+    if len(sel):
+        # the label's largest primitive in each block
+        pair = which[sel] * (int(nearest.max()) + 1) + nearest[sel]
+        u, inv, cnt = np.unique(pair, return_inverse=True, return_counts=True)
+        blk = u // (int(nearest.max()) + 1)
+        best = np.zeros(n, np.int64) - 1
+        best_cnt = np.zeros(n, np.int64)
+        for k in np.argsort(cnt, kind="stable"):
+            best[blk[k]], best_cnt[blk[k]] = u[k] % (int(nearest.max()) + 1), cnt[k]
+        main = (best_cnt / np.maximum(n_surf, 1)).astype(np.float32)
+        ab = np.arange(-15, 16) * _CELL
+        grid_a, grid_b = np.meshgrid(ab, ab, indexing="ij")
+        on = sel[nearest[sel] == best[which[sel]]]  # the voxels of each block's largest primitive
+        on = on[np.argsort(which[on], kind="stable")]
+        starts = np.r_[0, np.flatnonzero(np.diff(which[on])) + 1, len(on)]
+        for lo, hi in zip(starts[:-1], starts[1:]):
+            b = which[on[lo]]
+            pts = local[on[lo:hi]].astype(np.float64)
+            g = grad[on[lo:hi]].sum(axis=0)
+            nrm = g / max(np.linalg.norm(g), 1e-12)
+            e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(nrm, e1)
+            p0 = pts.mean(axis=0)
+            q = p0 + grid_a[..., None] * e1 + grid_b[..., None] * e2
+            inside = np.all((q >= -0.5) & (q <= BLOCK - 0.5), axis=-1)
+            hit = np.zeros(inside.shape, bool)
+            ij = np.round(np.stack([(pts - p0) @ e1, (pts - p0) @ e2], 1) / _CELL).astype(np.int64) + 15
+            ok = np.all((ij >= 0) & (ij < len(ab)), axis=1)
+            hit[ij[ok, 0], ij[ok, 1]] = True
+            section[b] = inside.sum() * _CELL ** 2
+            cover[b] = (hit & inside).sum() / max(int(inside.sum()), 1)
+    return {f"{name}_main": main, f"{name}_section": section, f"{name}_section_cover": cover}
 
 
 def _aabb(prim) -> tuple[np.ndarray, np.ndarray] | None:
