@@ -17,6 +17,8 @@ from ..geometry import rot_x, rot_z
 
 __all__ = ["LabelledRoom", "synthetic_room"]
 
+LABELS_FURNITURE = 3  # sdfcodec.data.render.LABELS.index("furniture"), checked in block_labels
+
 
 @dataclass
 class LabelledRoom:
@@ -108,6 +110,7 @@ class LabelledRoom:
         local = np.stack(np.unravel_index(vox, (BLOCK,) * 3), -1)
         pts = self.origin + vs * (BLOCK * coords[which] + local).astype(np.float64)  # (S, 3)
         prim_label = np.array([LABELS.index(lab) for lab in self.scene.labels])
+        assert LABELS[LABELS_FURNITURE] == "furniture"
         h = 0.25 * vs
         reach = band + 2 * h  # surface points and their gradient stencils are this close to their surface
         _, nearest = _union_at(self.scene.primitives, pts, reach)
@@ -132,6 +135,10 @@ class LabelledRoom:
         out = {"floor": (np.bincount(which, weights=is_floor, minlength=n) / denom).astype(np.float32),
                "up": (np.bincount(which, weights=upward, minlength=n) / denom).astype(np.float32),
                "floor_cover": cover(is_floor), "up_cover": cover(upward), "surface_voxels": n_surf.astype(np.int64)}
+        out.update(_structure_shares(which, nearest, prim_label, n_surf))
+        poles = np.array([_is_pole(p, self.up, vs) for p in self.scene.primitives])
+        side = np.abs(grad @ self.up) <= 0.5 * np.maximum(np.linalg.norm(grad, axis=1), 1e-12)
+        out["pole"] = (np.bincount(which, weights=poles[nearest] & side, minlength=n) / denom).astype(np.float32)
         for name in ("floor", "wall", "ceiling"):
             out.update(_section_cover(which, local, nearest, grad, prim_label[nearest] == LABELS.index(name),
                                       n_surf, name))
@@ -150,6 +157,37 @@ class LabelledRoom:
             out[f"{name}_cover"] = (np.bincount(cells // (3 * BLOCK * BLOCK), minlength=n)
                                     / (BLOCK * BLOCK)).astype(np.float32)
         return out
+
+
+def _structure_shares(which: np.ndarray, nearest: np.ndarray, prim_label: np.ndarray, n_surf: np.ndarray) -> dict:
+    """Per block, how its surface voxels spread over the room's structure (floor, wall and ceiling primitives):
+    ``structure`` (their share), ``structure_parts`` (how many such primitives hold >= 10 % of the surface
+    voxels: 2 on an edge of the room, 3 at a corner) and ``structure_touch`` (how many hold >= 2 %)."""
+    n = len(n_surf)
+    structural = prim_label[nearest] != LABELS_FURNITURE
+    out = {"structure": (np.bincount(which, weights=structural, minlength=n) / np.maximum(n_surf, 1)
+                         ).astype(np.float32)}
+    k = int(nearest.max()) + 1 if len(nearest) else 1
+    u, cnt = np.unique(which[structural] * k + nearest[structural], return_counts=True)
+    share = cnt / np.maximum(n_surf[u // k], 1)
+    out["structure_parts"] = np.bincount(u // k, weights=share >= 0.1, minlength=n).astype(np.int64)
+    out["structure_touch"] = np.bincount(u // k, weights=share >= 0.02, minlength=n).astype(np.int64)
+    return out
+
+
+def _is_pole(prim, up: np.ndarray, voxel_size: float) -> bool:
+    """A thin upright primitive: an upright cylinder of radius up to 10 voxels (the pole model's largest), or an
+    upright box (a table leg) whose horizontal half-extents are at most that."""
+    from ..sdf import Box, Cylinder
+
+    axis = np.asarray(prim.rotation, np.float64)[:, 2] if getattr(prim, "rotation", None) is not None else np.eye(3)[2]
+    if abs(float(axis @ up)) < math.cos(math.radians(10)):
+        return False
+    if isinstance(prim, Cylinder):
+        return prim.radius <= 10 * voxel_size
+    if isinstance(prim, Box):
+        return max(prim.half[0], prim.half[1]) <= 10 * voxel_size
+    return False
 
 
 #: :func:`_section_cover`'s cells (voxels a side) on a surface's plane: surface voxels (a band two voxels thick)

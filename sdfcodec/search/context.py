@@ -137,6 +137,8 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
             break
     up = np.array([0.0, 0.0, 1.0])
     votes = 0
+    const = Scorer(np.asarray(codec.encode(np.stack([np.zeros((16,) * 3, np.float32), np.ones((16,) * 3, np.float32)])),
+                              np.float32)[:, :lv], torch.device("cpu"))
     for cone in (f"cone:{UP_CONE_DEG:g}:48", "cone:4:16", "cone:2:16"):
         # unstretched shapes: a direction does not need fusion's stretches (6 times fewer descriptors)
         model = build_query("floor", map=m, behind=behind, up=tuple(up), rotations=cone, keep_blocks=False,
@@ -147,7 +149,9 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
         normals = []
         for codes, seen in batches:
             sc, idx = score_codes(scorer, obs, codes, seen)
-            normals.append(model.rotations[idx[sc <= t]][:, :, 2])
+            # blocks of solid or free space (the solid around an exact room) hold no surface to vote with
+            real = const(codes)[0] > t
+            normals.append(model.rotations[idx[(sc <= t) & real]][:, :, 2])
         nv = np.concatenate(normals) if normals else np.zeros((0, 3))
         votes = len(nv)
         if votes < MIN_UP_VOTES:

@@ -370,7 +370,7 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
 def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
                observed_scorer: ObservedScorer | None, samples: int) -> tuple[float, dict]:
     from .query import encode_query_blocks
-    from .shapes import sample_shapes
+    from .shapes import NEAR_MISSES, sample_shapes
 
     spec = model.spec
     tilt = _cone_angle(spec.get("rotations"))
@@ -378,12 +378,31 @@ def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
                             truncation=model.truncation, up=spec["up"], tilt_deg=tilt, behind=spec["behind"],
                             stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
     codes = encode_query_blocks(codec, v, seen, model.truncation, model.voxel_size, bool(spec.get("weighted")))
-    s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if spec.get("weighted") else None)
+    weighted = bool(spec.get("weighted"))
+    s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if weighted else None)
     q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
-    return float(q[2]), {"method": "calibrated", "samples": int(samples), "quantile": CALIBRATION_QUANTILE,
-                         "tilt_deg": tilt, "simulated": {"q50": float(q[0]), "q90": float(q[1]),
-                                                         f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]),
-                                                         "max": float(q[3])}}
+    info = {"method": "calibrated", "samples": int(samples), "quantile": CALIBRATION_QUANTILE, "tilt_deg": tilt,
+            "simulated": {"q50": float(q[0]), "q90": float(q[1]), f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]),
+                          "max": float(q[3])}}
+    t = float(q[2])
+    others = NEAR_MISSES.get(spec["shape"], ())
+    if others:
+        # shapes the query must not match (an edge model is no plane detector): the threshold also keeps at most
+        # 1 - CALIBRATION_QUANTILE of them
+        per = -(-int(samples) // len(others))
+        vs_, ss_ = zip(*(sample_shapes(o, per, voxel_size=model.voxel_size, truncation=model.truncation,
+                                       up=spec["up"], tilt_deg=tilt, behind=spec["behind"], seed=1 + k,
+                                       stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
+                         for k, o in enumerate(others)))
+        nv, ns = np.concatenate(vs_), np.concatenate(ss_)
+        nc = encode_query_blocks(codec, nv, ns, model.truncation, model.voxel_size, weighted)
+        sn, _ = score_codes(scorer, observed_scorer, nc[:, :level], ns if weighted else None)
+        miss = float(np.quantile(sn, 1.0 - CALIBRATION_QUANTILE))
+        info["near_misses"] = {"shapes": list(others), "samples": int(len(sn)),
+                               f"q{round(100 * (1 - CALIBRATION_QUANTILE))}": miss,
+                               "kept_share_of_clean": float(np.mean(s <= min(t, miss)))}
+        t = min(t, miss)
+    return t, info
 
 
 def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | None = None,
@@ -462,9 +481,8 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     stage_t = threshold
     if staged and stage_t is None:  # top only: the scene stage still needs to know which blocks are the shape
         stage_t, _ = calibrate_threshold(model, codec, lv, scorer, obs_scorer)
-    # blocks fusion saw only in part may score up to WEAK_FACTOR times the threshold and still join the plane
-    # they continue (scene stage); fully observed ones are judged by the threshold alone
-    loop_t = (WEAK_FACTOR if masked else 1.0) * stage_t if staged else threshold
+    # blocks scoring up to WEAK_FACTOR times the threshold may still join the plane they continue (scene stage)
+    loop_t = WEAK_FACTOR * stage_t if staged else threshold
 
     sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
     all_c, all_s = [], []
@@ -486,14 +504,17 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
             part = np.argpartition(sel_s, top - 1)[:top]
             sel_c, sel_s, sel_i = sel_c[part], sel_s[part], sel_i[part]
     scene_info = None
+    surf_t = stage_t if staged else threshold
+    has_surface = _surface_test(view, codec, lv, surf_t) if surf_t is not None else None
+    if has_surface is not None and (model.spec or {}).get("shape") and len(sel_c):
+        # a built-in shape near a block's face is nearly a solid or a free block: blocks that hold no surface (the
+        # solid around an exact room) are no result of any shape query
+        real = has_surface(sel_c)
+        sel_c, sel_s, sel_i = sel_c[real], sel_s[real], sel_i[real]
     if staged:
         coded = np.argwhere(view.block_states() == BlockState.CODED)
-        if masked and len(sel_c):
-            weak = (sel_s > stage_t) & view.read_observed(sel_c).reshape(len(sel_c), -1).all(axis=1)
-            sel_c, sel_s, sel_i = sel_c[~weak], sel_s[~weak], sel_i[~weak]  # fully observed: the threshold rules
         kept, scene_info = scene_select(model.spec["shape"], model, sel_c, sel_s, sel_i, stage_t, coded,
-                                        np.asarray(m.origin, np.float64), m.voxel_size,
-                                        _surface_test(view, codec, lv, stage_t))
+                                        np.asarray(m.origin, np.float64), m.voxel_size, has_surface)
         sel_c, sel_s, sel_i = sel_c[kept], sel_s[kept], sel_i[kept]
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]

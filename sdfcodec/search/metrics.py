@@ -77,6 +77,8 @@ PURE_MIN_SURFACE = 64
 #: ``"wall-pure"``, ``"ceiling-pure"``: blocks whose surface is >= 90 % that surface (at least
 #: :data:`PURE_MIN_SURFACE` surface voxels, however little of the cross-section it covers: a wall crossing a
 #: block obliquely, a tilted floor) against blocks with < 10 % of it; mixed blocks are left out.
+#: ``"edge"``, ``"corner"``: see :func:`_parts`; ``"pole"``: blocks whose surface is >= 90 % the sides of thin
+#: upright primitives (cylinders and table legs up to 10 voxels across the axis) against blocks with < 10 %.
 TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
     "floor": _strict("floor"),
     "floor-vs-none": lambda lab: (_clean(lab), lab["floor"] == 0),
@@ -85,7 +87,21 @@ TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
     "wall": _strict("wall"),
     "ceiling": _strict("ceiling"),
     **{f"{k}-pure": (lambda k: lambda lab: (_pure(lab, k), lab[k] < 0.1))(k) for k in ("floor", "wall", "ceiling")},
+    "edge": lambda lab: _parts(lab, 2),
+    "corner": lambda lab: _parts(lab, 3),
+    "pole": lambda lab: (_pure(lab, "pole"), lab["pole"] < 0.1),
 }
+
+
+def _parts(lab: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Edges (``k`` = 2) and corners (3) of a room: blocks whose surface is >= 90 % the room's structure, on
+    exactly ``k`` floor, wall or ceiling primitives holding >= 10 % each and no other holding 2 %, against blocks
+    not near ``k`` of them; blocks near ``k`` with a smaller share (the edge passes near the block's face) and
+    corners for the edge truth are left out."""
+    near = (lab["structure"] >= 0.9) & (lab["structure_touch"] >= k)
+    pos = (near & (lab["structure_parts"] == k) & (lab["structure_touch"] == k)
+           & (lab["surface_voxels"] >= PURE_MIN_SURFACE))
+    return pos, ~near
 
 
 # ------------------------------------------------------------------------------------- evaluation: metrics

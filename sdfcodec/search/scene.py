@@ -67,9 +67,10 @@ LEVEL_SHARE = 0.2
 WALL_SHARE = 0.2
 #: The fewest blocks of a floor level, a ceiling level or a wall.
 MIN_PATCH_BLOCKS = 3
-#: A floor or ceiling level also holds at least this share of the map's coded blocks: the few blocks of a shelf's
-#: underside at the top of a map that never saw its ceiling are not a ceiling.
-MAP_SHARE = 0.02
+#: A floor or ceiling level also covers at least this share of the map's footprint (the block columns along up
+#: that hold coded blocks): the few blocks of a shelf's underside at the top of a map that never saw its
+#: ceiling are not a ceiling.
+MAP_SHARE = 0.1
 #: A ceiling closes the map from above: at most this share of the map's coded blocks lies above it (a block or
 #: more); a floor, from below. Beyond it the level is not the floor or ceiling the query means.
 BEYOND_SHARE = 0.1
@@ -194,6 +195,19 @@ def plane_levels(comp: np.ndarray, normals: np.ndarray, points: np.ndarray, live
     return level, levels
 
 
+def _footprint(coded: np.ndarray, up: np.ndarray) -> int:
+    """How many block-sized cells across ``up`` hold coded blocks (the map seen from above)."""
+    if not len(coded):
+        return 0
+    ref = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = ref - (ref @ up) * up
+    u /= np.linalg.norm(u)
+    v = np.cross(up, u)
+    c = np.asarray(coded, np.float64)
+    cells = np.round(np.stack([c @ u, c @ v], axis=1)).astype(np.int64)
+    return int(len(np.unique(cells, axis=0)))
+
+
 def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray, nearest: np.ndarray,
                  threshold: float, coded: np.ndarray, origin: np.ndarray, voxel_size: float,
                  has_surface: Any = None) -> tuple[np.ndarray, dict]:
@@ -243,7 +257,7 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
     sizes = np.array([lv["blocks"] for lv in levels])
     least = max(MIN_PATCH_BLOCKS, (LEVEL_SHARE if query != "wall" else WALL_SHARE) * sizes.max())
     if query != "wall":
-        least = max(least, MAP_SHARE * len(coded))
+        least = max(least, MAP_SHARE * _footprint(coded, up))
     large = sizes >= least
     centres = np.asarray(origin) + voxel_size * (BLOCK * np.asarray(coded, np.float64) + (BLOCK - 1) / 2)
     report = []
@@ -258,6 +272,8 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
         margin = (BLOCK + PLANE_TOL_VOXELS) * voxel_size
         order = sorted(range(len(levels)), key=lambda j: sign * report[j]["height"])
         chosen = next((j for j in order if large[j]), None)
+        if chosen is None:
+            info["rejected"] = f"no level of {query}-shaped blocks holds {least:.0f} blocks: no {query} in view"
         if chosen is not None:
             lv = levels[chosen]
             # signed distance of every coded block's centre to the level's plane, along the side it faces
@@ -275,8 +291,8 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
             info["height"] = report[chosen]["height"]
             info["chosen_level"] = int(chosen)
         info["rule"] = (f"{query}: the {end} level of {'up' if query == 'floor' else 'down'}-facing planar patches "
-                        f"holding at least {LEVEL_SHARE:.0%} of the largest level's blocks and "
-                        f"{MAP_SHARE:.0%} of the map's coded blocks ({least:.0f} blocks), with at most {BEYOND_SHARE:.0%} of the map's coded blocks {word} it")
+                        f"holding at least {LEVEL_SHARE:.0%} of the largest level's blocks and covering "
+                        f"{MAP_SHARE:.0%} of the map's footprint ({least:.0f} blocks), with at most {BEYOND_SHARE:.0%} of the map's coded blocks {word} it")
     elif query == "wall":
         keep = (lv_of >= 0) & large[np.maximum(lv_of, 0)]
         info["rule"] = (f"wall: vertical planes (patches grouped by plane) holding at least {WALL_SHARE:.0%} of the "
