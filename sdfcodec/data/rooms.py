@@ -226,7 +226,13 @@ def _section_cover(which: np.ndarray, local: np.ndarray, nearest: np.ndarray, gr
         for lo, hi in zip(starts[:-1], starts[1:]):
             b = which[on[lo]]
             pts = local[on[lo:hi]].astype(np.float64)
-            g = grad[on[lo:hi]].sum(axis=0)
+            gg = grad[on[lo:hi]]
+            # one face of the primitive: a slab thinner than a block shows both faces in it (their gradients
+            # cancel); the face holding more of the block's voxels is the one measured
+            side = gg @ gg[np.argmax(np.abs(gg).max(axis=1))] >= 0
+            if 2 * side.sum() < len(side):
+                side = ~side
+            pts, g = pts[side], gg[side].sum(axis=0)
             nrm = g / max(np.linalg.norm(g), 1e-12)
             e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
             e1 /= np.linalg.norm(e1)

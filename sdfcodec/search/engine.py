@@ -27,6 +27,7 @@ from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
     "AUTO_FRACTION",
+    "SURFACE_SHARE",
     "CountingStore",
     "Scorer",
     "ObservedScorer",
@@ -559,17 +560,22 @@ def codes_at(m: Map, coords: np.ndarray, level: int) -> np.ndarray:
     return codes
 
 
+#: :func:`_surface_test`: a block within this share of the query's threshold of a block of solid or free space
+#: holds no surface (an exact SDF's solid blocks are at 0; a plane clipping a corner is far beyond).
+SURFACE_SHARE = 0.1
+
+
 def _surface_test(view: Map, codec: Codec, level: int, t: float):
     """``coords (N, 3) -> (N,) bool``: whether each coded block holds a surface, i.e. its code is farther than
-    ``t`` (the query's threshold) from the codes of a block of solid and a block of free space. An exact SDF
-    codes the solid around a room too; those blocks are not surfaces above or below anything."""
+    :data:`SURFACE_SHARE` of ``t`` (the query's threshold) from the codes of a block of solid and a block of free
+    space. An exact SDF codes the solid around a room too; those blocks are no surface above or below anything."""
     const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
     ref = Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu"))
 
     def has_surface(coords: np.ndarray) -> np.ndarray:
         if not len(coords):
             return np.zeros(0, bool)
-        return ref(codes_at(view, coords, level))[0] > t
+        return ref(codes_at(view, coords, level))[0] > SURFACE_SHARE * t
 
     return has_surface
 

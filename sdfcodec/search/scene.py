@@ -73,7 +73,7 @@ MIN_PATCH_BLOCKS = 3
 MAP_SHARE = 0.1
 #: A ceiling closes the map from above: at most this share of the map's coded blocks lies above it (a block or
 #: more); a floor, from below. Beyond it the level is not the floor or ceiling the query means.
-BEYOND_SHARE = 0.1
+BEYOND_SHARE = 0.03
 
 
 def block_planes(model: Any, coords: np.ndarray, nearest: np.ndarray, origin: np.ndarray, voxel_size: float
