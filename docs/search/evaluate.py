@@ -18,9 +18,12 @@ pooled over the rooms of a kind. Room kinds:
 * ``kitchen``: the real 7-Scenes kitchen, fused, up from its gravity file; labels from plane fits on the
   lossless map (``kitchen_labels``).
 
-Truth per block: a *clean* floor / wall / ceiling block has >= 90 % of its surface voxels nearest that surface
-and the surface covers >= 90 % of its cross-section (``sdfcodec.search.metrics.TRUTH``); every other block is
-a negative. Codec: the shipped pca-64, searched at its full level.
+Truth per block (``sdfcodec.search.metrics.TRUTH`` on ``LabelledRoom.block_labels``): a *clean* floor / wall /
+ceiling block has >= 90 % of its surface voxels on one such primitive, which covers >= 90 % of its section of
+the block in its own plane; planes only clipping a corner (section under a quarter face) are left out; every
+other block is a negative. *(pure)*: >= 90 % against < 10 %, mixed blocks left out. Edges, corners and poles
+(exact rooms): see ``TRUTH``. Each floor, wall and ceiling search runs with the map-level stage (the CLI's
+default) and without it (``--shape-only``). Codec: the shipped pca-64, searched at its full level.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ HERE = Path(__file__).resolve().parent
 KITCHEN = next((p for p in (HERE.parents[i] / "shared" / "data" / "7scenes-redkitchen" for i in (2, 3)) if p.is_dir()),
                HERE.parents[2] / "shared" / "data" / "7scenes-redkitchen")
 QUERIES = ("floor", "wall", "ceiling")
+PARTS = ("edge", "corner", "pole")
 
 
 def _write(path: Path, room: S.LabelledRoom, codec) -> sdfcodec.Map:
@@ -135,8 +139,9 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     planar blocks facing within 10 degrees of the floor's normal (floor, table and counter tops). *Vertical*:
     blocks whose crossings lie >= 90 % within 2 voxels of their own plane, whose normal is within 10 degrees of
     perpendicular to it (walls, cabinet fronts, appliance sides). *Floor* (strict): >= 64 crossings, >= 90 % of
-    them within 2 voxels of the floor plane. Blocks of either kind with fewer than 64 crossings (a surface
-    passing near a face, or seen in part) are slivers, left out. *Ceiling*: none is in view."""
+    them within 2 voxels of the floor plane. Blocks with fewer than 64 observed crossings (a surface passing
+    near a face, or seen in part) cannot be labelled and are left out of every truth. *Ceiling*: none is in
+    view."""
     vs = raw.voxel_size
     blocks = S.expand(raw, coords, device="cpu").blocks
     obs = raw.read_observed(coords)
@@ -187,8 +192,10 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     floor = enough & (on_floor >= 0.9)
     vertical = (on_own >= 0.9) & (np.abs(normal @ fn) <= math.sin(math.radians(10)))
     upward = planar & (normal @ fn >= cos10)
-    return {"floor": floor, "floor_sliver": ~enough & (npts > 0) & (on_floor >= 0.9),
-            "wall": vertical & enough, "wall_sliver": vertical & ~enough, "ceiling": np.zeros(len(coords), bool),
+    # blocks with fewer crossings than a plane fit needs are left out of every truth: a surface near a face, or
+    # seen in part (fused maps observe a thin band), cannot be labelled from the lossless map
+    return {"floor": floor, "floor_sliver": ~enough, "wall": vertical & enough, "wall_sliver": ~enough,
+            "ceiling": np.zeros(len(coords), bool), "ceiling_sliver": ~enough,
             "upward": upward, "floor_normal": fn,
             "floor_tilt_deg": float(np.degrees(np.arccos(min(1.0, fn @ gravity_up))))}
 
@@ -265,7 +272,10 @@ def main(argv=None) -> int:
                 elif kind in ("fused", "fused-tilted"):
                     m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec)
                     items.append((m, room, None))
-            for (m, room, raw), q, scene in ((it, q, sc) for it in items for q in QUERIES for sc in (True, False)):
+            runs = [(it, q, sc) for it in items for q in QUERIES for sc in (True, False)]
+            if kind in ("exact", "exact-tilted"):  # truths from the primitives' structure (no scene stage)
+                runs += [(it, q, True) for it in items for q in PARTS]
+            for (m, room, raw), q, scene in runs:
                     if kind == "exact-open" and q != "floor":
                         continue
                     res, sel = _search(m, q, scene)
@@ -278,17 +288,18 @@ def main(argv=None) -> int:
                         pos, neg = TRUTH[qn](lab)
                         counted = pos | neg
                         # the pure truth: mixed blocks left out of both counts
-                        p_pos, p_neg = TRUTH[f"{qn}-pure"](lab)
-                        keep = p_pos | p_neg
-                        tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
-                        t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
-                                                                     "blocks": 0, "maps": 0, "thresholds": [],
-                                                                     "behind": set()})
-                        for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
-                                     ("maps", 1)):
-                            t[k] += v
-                        t["thresholds"].append(round(float(res.threshold), 2))
-                        t["behind"].add(res.stats["context"]["behind"])
+                        if f"{qn}-pure" in TRUTH:
+                            p_pos, p_neg = TRUTH[f"{qn}-pure"](lab)
+                            keep = p_pos | p_neg
+                            tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
+                            t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
+                                                                         "blocks": 0, "maps": 0, "thresholds": [],
+                                                                         "behind": set()})
+                            for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
+                                         ("maps", 1)):
+                                t[k] += v
+                            t["thresholds"].append(round(float(res.threshold), 2))
+                            t["behind"].add(res.stats["context"]["behind"])
                         if kind.startswith("fused"):
                             # fused maps: clean blocks of which fusion observed too little surface to judge
                             # (fewer than 64 observed surface voxels, e.g. the block under a floor that passes

@@ -22,6 +22,7 @@ from ..geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
 __all__ = [
     "WALL_YAWS",
     "EDGE_YAWS",
+    "PART_REACH",
     "MIN_SHAPE_SURFACE",
     "NEAR_MISSES",
     "POLE_RADII",
@@ -61,6 +62,10 @@ NEAR_MISSES: dict[str, tuple[str, ...]] = {"edge": ("floor", "wall", "ceiling"),
 #: Wall normals sampled about up: any horizontal normal is within 7.5 degrees of one.
 WALL_YAWS = 24
 _CENTRE = (BLOCK - 1) / 2.0  # 7.5: the block's centre in voxel units (voxel i at position i)
+#: Edges and corners are modelled (and calibrated) with their line or apex within this many voxels of the block's
+#: centre along each axis: every face then fills at least a fifth of the block's surface (an edge near a face
+#: is nearly a plane, which the edge model must not match).
+PART_REACH = 4.0
 #: Yaws about up of the edge and corner models (30 degrees apart, and a right-angled edge repeats every 90: any
 #: edge is within 15 degrees of one).
 EDGE_YAWS = 12
@@ -245,12 +250,12 @@ def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray,
             base = np.stack([rot_z(2 * math.pi * k / WALL_YAWS) @ rot_y(math.pi / 2) for k in range(WALL_YAWS)])
         return _plane, pos, base
     if name == "edge":
-        o = _offsets(5)
+        o = _offsets(5) * (PART_REACH / 6.4)  # within PART_REACH of the centre: both faces fill a share of the block
         pos = np.array([(a, b, 0.0) for a in o for b in o])
         # a room's concave edges at any yaw about up: wall-wall (vertical), floor-wall, ceiling-wall
         return _edge, pos, _yawed(_EDGE_FAMILIES, EDGE_YAWS)
     if name == "corner":
-        o = _offsets(4)
+        o = _offsets(4) * (PART_REACH / 6.0)
         pos = np.array([(a, b, c) for a in o for b in o for c in o])
         return _corner, pos, _yawed(_CORNER_FAMILIES, EDGE_YAWS)  # floor and ceiling corners at any yaw
     if name == "pole":
@@ -443,8 +448,9 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
                   up: Sequence[float] = (0.0, 0.0, 1.0), tilt_deg: float = 0.0, behind: str = "unobserved",
                   stretch: tuple[float, float] = (1.0, 1.0), seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``count`` random instances of a built-in shape, with continuous parameters where a model samples a
-    lattice: plane offsets uniform from one voxel below the block's voxels to one above, any wall yaw, edge and corner positions uniform
-    within 6 voxels of the centre, each tilted uniformly within ``tilt_deg`` of ``up`` (random axis) and spun
+    lattice: plane offsets uniform across the block's extent along their normal (:func:`_extent`; corner slivers
+    redrawn), any wall, edge and corner yaw, edge and corner positions uniform within :data:`PART_REACH` voxels of
+    the centre, each tilted uniformly within ``tilt_deg`` of ``up`` (random axis) and spun
     about it, the field stretched by a factor uniform in ``stretch`` (see :data:`FUSED_STRETCH`). What a map's
     clean instances of the shape look like, to calibrate a threshold on.
 
@@ -485,8 +491,8 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
                 p = np.array([0.0, 0.0, rng.uniform(-ext, ext)])
                 if _surface_voxels(q, p) >= MIN_SHAPE_SURFACE:
                     break
-        else:
-            p = rng.uniform(-6.0, 6.0, 3)
+        else:  # edges and corners: where the model places them
+            p = rng.uniform(-PART_REACH, PART_REACH, 3)
         d = sdf(grid @ r, p) * voxel_size * rng.uniform(*stretch)
         vs.append(truncate(d, truncation, behind))
         seen.append(d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))
