@@ -230,7 +230,7 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
         ``blocks_per_s``, ``device``, ``scene`` (the map-level stage of floor, ceiling and wall searches: its
         rule, the levels or planes found, what it kept or why it kept nothing; None when it did not run),
         ``threshold_info`` (how the threshold was chosen: ``method``
-        "calibrated", "model spacing" or "given", and for calibrated ones the simulated scores), ``context``
+        "calibrated", "calibrated on shifted copies" or "given", and for calibrated ones the simulated scores), ``context``
         (``behind``, ``up``, each with where it came from, ``weighted_encoding``), ``observed_scoring``,
         ``hint`` (what to try, when nothing was selected), and when written ``picture``, ``mesh``,
         ``expanded`` (``blocks_decoded``, ``code_bytes_read``, ``triangles``); with ``as_json`` also
@@ -317,8 +317,9 @@ def format_summary(s: dict) -> str:
     if info.get("method") == "calibrated":
         how = (f"calibrated on this map: keeps {info['quantile']:.0%} of {info['samples']} simulated clean "
                f"{s['query']} blocks")
-    elif info.get("method") == "model spacing":
-        how = "auto: from the model's descriptor spacing"
+    elif info.get("method") == "calibrated on shifted copies":
+        how = (f"calibrated: keeps {info['quantile']:.0%} of {info['samples']} copies of the query's blocks shifted by "
+               f"up to {info['shift_voxels']:g} voxel")
     sel = f"threshold {s['threshold']:.4g} ({how})" if s.get("threshold") is not None else "no threshold"
     if s.get("top"):
         sel += f", top {s['top']}"

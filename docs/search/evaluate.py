@@ -1,6 +1,6 @@
 """Search with the CLI's defaults on maps nobody tuned on: precision and recall per room kind and query.
 
-    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 5000 5001 ...] [--out docs/search/eval-defaults.json]
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 7501 7502 7503] [--jobs 3] [--out docs/search/eval-defaults.json]
 
 Every map is searched exactly as ``sdfcodec search MAP --query Q`` does with no flags (``threshold="auto"``:
 the calibrated threshold, ``behind`` and ``up`` from the map); precision and recall of the selection are
@@ -226,20 +226,15 @@ def _search(m: sdfcodec.Map, q: str, scene: bool = True):
     return res, sel
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[7501, 7502, 7503])
-    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused", "fused-tilted",
-                                                     "kitchen"])
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
+def _tally(kinds: list, seeds: list) -> dict:
+    """Pooled counts per (room kind, query row) over the maps of ``kinds`` made from ``seeds``."""
     codec = pretrained_codec("pca", 64)
     tally: dict = {}
     labels_of: dict = {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        for kind in args.kinds:
+        for kind in kinds:
             items = []
             if kind == "kitchen":
                 if not KITCHEN.is_dir():
@@ -257,7 +252,7 @@ def main(argv=None) -> int:
                                          tool="sdfcodec encode") as w:
                     w.write_map(raw)
                 items.append((sdfcodec.open_map(p64), None, raw))
-            for seed in args.seeds:
+            for seed in seeds:
                 path = tmp / f"{kind}-{seed}.sdfz"
                 if kind == "exact":
                     for g in ("poor", "normal", "rich"):
@@ -341,7 +336,41 @@ def main(argv=None) -> int:
                     t["maps"] += 1
                     t["thresholds"].append(round(float(res.threshold), 2))
                     t["behind"].add(res.stats["context"]["behind"])
-            print(f"{kind} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+            print(f"{kind} {seeds} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    return tally
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[7501, 7502, 7503])
+    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused", "fused-tilted",
+                                                     "kitchen"])
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--jobs", type=int, default=1, help="processes (one task per kind and seed)")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    # one task per kind and seed (the kitchen once), run in --jobs processes; counts are pooled afterwards
+    tasks = [([k], [sd]) for k in args.kinds if k != "kitchen" for sd in args.seeds]
+    tasks += [(["kitchen"], [])] if "kitchen" in args.kinds else []
+    if args.jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(args.jobs) as pool:
+            parts = pool.starmap(_tally, tasks)
+    else:
+        parts = [_tally(*t) for t in tasks]
+    tally: dict = {}
+    for kind in args.kinds:  # rows in the order of the kinds
+        for part in parts:
+            for (k, q), t in part.items():
+                if k.split(" (")[0] != kind:
+                    continue
+                acc = tally.setdefault((k, q), {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0,
+                                                "thresholds": [], "behind": set()})
+                for f in ("tp", "selected", "positives", "blocks", "maps"):
+                    acc[f] += t[f]
+                acc["thresholds"] += t["thresholds"]
+                acc["behind"] |= t["behind"]
     rows = []
     print("| rooms | query | maps | blocks | positives | selected | precision | recall | behind | thresholds |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -354,7 +383,7 @@ def main(argv=None) -> int:
               f"{', '.join(sorted(t['behind']))} | {min(t['thresholds']):.1f}-{max(t['thresholds']):.1f} |")
     if args.out:
         import os
-        args.out.write_text(json.dumps({"seeds": args.seeds, "load": os.getloadavg(), "rows": rows,
+        args.out.write_text(json.dumps({"seeds": args.seeds, "kinds": args.kinds, "load": os.getloadavg(), "rows": rows,
                                         "seconds": time.perf_counter() - t0}, indent=1))
     return 0
 

@@ -233,7 +233,9 @@ def _section_cover(which: np.ndarray, local: np.ndarray, nearest: np.ndarray, gr
             if 2 * side.sum() < len(side):
                 side = ~side
             pts, g = pts[side], gg[side].sum(axis=0)
-            nrm = g / max(np.linalg.norm(g), 1e-12)
+            if np.linalg.norm(g) < 1e-9:  # no direction to measure a section across: left uncovered
+                continue
+            nrm = g / np.linalg.norm(g)
             e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
             e1 /= np.linalg.norm(e1)
             e2 = np.cross(nrm, e1)

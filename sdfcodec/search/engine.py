@@ -341,21 +341,20 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
     blocks are; the threshold keeps :data:`CALIBRATION_QUANTILE` of them. It follows the codec, code size,
     level, truncation and model resolution of each search, with no constant taken from any room.
 
-    Models without a built-in shape (user blocks) fall back to :func:`auto_threshold` (the model's spacing).
+    Models without a built-in shape (user blocks, ``like:``) are calibrated on copies of their blocks shifted by
+    up to half a voxel (:func:`_calibrate_blocks`).
 
     Returns
     -------
     threshold : float
     info : dict
-        ``method`` ("calibrated" or "model spacing"), and for calibrated thresholds ``samples``,
+        ``method`` ("calibrated" or "calibrated on shifted copies"), ``samples``,
         ``quantile``, ``simulated`` (the simulated scores' 50/90/95/100 % quantiles) and ``tilt_deg``.
     """
 
     spec = model.spec
     if spec is None or "shape" not in spec:
-        t = auto_threshold(model, level, codec)
-        return t, {"method": "model spacing", "fraction": AUTO_FRACTION,
-                   "why": "a model without a built-in shape: AUTO_FRACTION of its descriptors' median spacing"}
+        return _calibrate_blocks(model, codec, level, scorer, samples)
     from .cache import cache_key, cached_threshold
 
     # the calibration depends on nothing but what the key names (the simulated instances are seeded): cached
@@ -366,6 +365,37 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
                     truncation=list(model.truncation))
     t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples))
     return t, json.loads(json.dumps(info))  # a copy: the caller may add to its report
+
+
+#: :func:`_calibrate_blocks`: "like these blocks" means the same shape up to this shift (voxels, per axis).
+LIKE_SHIFT = 0.5
+
+
+def _calibrate_blocks(model: QueryModel, codec: Codec, level: int, scorer: "Scorer", samples: int
+                      ) -> tuple[float, dict]:
+    """The threshold of a model of user blocks or of a map's own blocks (``like:``): the model's blocks (decoded
+    from its descriptors when it holds none) shifted by random offsets of up to :data:`LIKE_SHIFT` voxel per axis
+    (trilinear, nearest value beyond the block), encoded with the map's codec and scored against the model; the
+    threshold keeps :data:`CALIBRATION_QUANTILE` of them: "like these" is the same shape up to half a voxel."""
+    from scipy.ndimage import shift as nd_shift
+
+    if model.blocks is not None:
+        v = np.asarray(model.blocks, np.float32)
+    else:
+        codes = model.descriptors
+        if codes.shape[1] < codec.code_size:
+            codes = np.pad(codes, ((0, 0), (0, codec.code_size - codes.shape[1])))
+        with torch.no_grad():
+            v = np.asarray(codec.decode(torch.from_numpy(np.ascontiguousarray(codes))), np.float32)
+    rng = np.random.default_rng(23)
+    pick = rng.integers(len(v), size=int(samples))
+    moved = np.stack([nd_shift(v[i], rng.uniform(-LIKE_SHIFT, LIKE_SHIFT, 3), order=1, mode="nearest") for i in pick])
+    s, _ = scorer(np.asarray(codec.encode(np.clip(moved, 0.0, 1.0)), np.float32)[:, :level])
+    q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
+    return float(q[2]), {"method": "calibrated on shifted copies", "samples": int(samples),
+                         "quantile": CALIBRATION_QUANTILE, "shift_voxels": LIKE_SHIFT,
+                         "simulated": {"q50": float(q[0]), "q90": float(q[1]),
+                                       f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]), "max": float(q[3])}}
 
 
 def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
@@ -486,6 +516,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     loop_t = WEAK_FACTOR * stage_t if staged else threshold
 
     sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
+    sel_q = np.zeros((0, lv), np.float32)
     all_c, all_s = [], []
     n_scored = 0
     for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
@@ -500,17 +531,18 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         sel_c = np.concatenate([sel_c, coords[keep]])
         sel_s = np.concatenate([sel_s, s[keep]])
         sel_i = np.concatenate([sel_i, idx[keep]])
+        sel_q = np.concatenate([sel_q, np.asarray(codes, np.float32)[keep]])  # to tell surfaces from solid
         if top is not None and not staged and len(sel_s) > top:
             # running top-k: memory stays O(top + batch)
             part = np.argpartition(sel_s, top - 1)[:top]
-            sel_c, sel_s, sel_i = sel_c[part], sel_s[part], sel_i[part]
+            sel_c, sel_s, sel_i, sel_q = sel_c[part], sel_s[part], sel_i[part], sel_q[part]
     scene_info = None
     surf_t = stage_t if staged else threshold
     has_surface = _surface_test(view, codec, lv, surf_t) if surf_t is not None else None
     if has_surface is not None and (model.spec or {}).get("shape") and len(sel_c):
         # a built-in shape near a block's face is nearly a solid or a free block: blocks that hold no surface (the
         # solid around an exact room) are no result of any shape query
-        real = has_surface(sel_c)
+        real = has_surface(sel_c, sel_q)
         sel_c, sel_s, sel_i = sel_c[real], sel_s[real], sel_i[real]
     if staged:
         coded = np.argwhere(view.block_states() == BlockState.CODED)
@@ -572,10 +604,10 @@ def _surface_test(view: Map, codec: Codec, level: int, t: float):
     const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
     ref = Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu"))
 
-    def has_surface(coords: np.ndarray) -> np.ndarray:
+    def has_surface(coords: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
         if not len(coords):
             return np.zeros(0, bool)
-        return ref(codes_at(view, coords, level))[0] > SURFACE_SHARE * t
+        return ref(codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
 
     return has_surface
 
