@@ -188,7 +188,7 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
                    threshold: float | None = None, top: int | None = None, out_dir: str | os.PathLike | None = None,
                    as_json: bool = False, device: str | None = None, *, mesh: bool = True,
                    overwrite: bool = False, behind: str | None = None, up: Any = None,
-                   tilt: float | None = None) -> dict:
+                   tilt: float | None = None, scene: bool = True) -> dict:
     """Everything ``sdfcodec search`` does; returns a JSON-able summary.
 
     Parameters
@@ -217,6 +217,9 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
     behind, up, tilt :
         For built-in queries: ``"solid"`` / ``"unobserved"``, the up direction (``"x,y,z"`` or 3 numbers) and
         a tilt allowance in degrees (see :func:`sdfcodec.search.build_query`); default: what the map records.
+    scene : bool
+        Floor, ceiling and wall: the map-level stage after scoring (:mod:`sdfcodec.search.scene`); False is
+        ``--shape-only``.
 
     Returns
     -------
@@ -224,8 +227,10 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
         ``map``, ``codec``, ``code_size``, ``level``, ``query``, ``descriptors``, ``threshold``,
         ``threshold_mode`` ("given", "auto" or "none"), ``top``, ``coded_blocks``, ``selected``,
         ``code_bytes_read``, ``code_bytes_level``, ``code_bytes_full``, ``bytes_read``, ``seconds``,
-        ``blocks_per_s``, ``device``, ``threshold_info`` (how the threshold was chosen: ``method``
-        "calibrated", "model spacing" or "given", and for calibrated ones the simulated scores), ``context``
+        ``blocks_per_s``, ``device``, ``scene`` (the map-level stage of floor, ceiling and wall searches: its
+        rule, the levels or planes found, what it kept or why it kept nothing; None when it did not run),
+        ``threshold_info`` (how the threshold was chosen: ``method``
+        "calibrated", "calibrated on shifted copies" or "given", and for calibrated ones the simulated scores), ``context``
         (``behind``, ``up``, each with where it came from, ``weighted_encoding``), ``observed_scoring``,
         ``hint`` (what to try, when nothing was selected), and when written ``picture``, ``mesh``,
         ``expanded`` (``blocks_decoded``, ``code_bytes_read``, ``triangles``); with ``as_json`` also
@@ -239,14 +244,14 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
             raise MapExistsError(f"{clash[0]} exists; pass --overwrite to replace it or choose another --out")
     mode = "given" if threshold is not None else ("none" if top is not None else "auto")
     res = search(m, query, level=level, threshold="auto" if mode == "auto" else threshold, top=top, device=device,
-                 keep_scores=True, behind=behind, up=up, tilt=tilt)
+                 keep_scores=True, behind=behind, up=up, tilt=tilt, scene=scene)
     summary: dict[str, Any] = {
         "map": str(map_path), "codec": m.header.codec.id, "code_size": m.code_size, "level": res.level,
         "query": res.query.name, "descriptors": len(res.query), "threshold": res.threshold, "threshold_mode": mode,
         "top": top, "coded_blocks": res.stats["blocks_scored"], "selected": len(res),
         **{k: res.stats[k] for k in ("code_bytes_read", "code_bytes_level", "code_bytes_full", "bytes_read",
                                      "seconds", "blocks_per_s", "device", "threshold_info", "context",
-                                     "observed_scoring")},
+                                     "observed_scoring", "scene")},
     }
     if not len(res):
         summary["hint"] = empty_hint(res, mode, query)
@@ -284,6 +289,11 @@ def empty_hint(res: SearchResult, mode: str, query: str) -> str:
     if best is None:
         return "the map has no coded blocks to search"
     ctx = res.stats.get("context") or {}
+    scene = res.stats.get("scene") or {}
+    if scene.get("rejected") or (scene and scene.get("candidates")):
+        why = scene.get("rejected") or "no level or plane of the shape was large enough"
+        return (f"{scene.get('candidates', 0)} blocks are shaped like a {query}, but the map-level stage kept none: "
+                f"{why}; --shape-only selects by shape alone")
     tips = [f"the best block scores {best:.4g} against threshold {res.threshold:.4g}"]
     tips.append("try --top 20 to see the closest blocks, or --threshold above the best score")
     if ctx:
@@ -307,8 +317,9 @@ def format_summary(s: dict) -> str:
     if info.get("method") == "calibrated":
         how = (f"calibrated on this map: keeps {info['quantile']:.0%} of {info['samples']} simulated clean "
                f"{s['query']} blocks")
-    elif info.get("method") == "model spacing":
-        how = "auto: from the model's descriptor spacing"
+    elif info.get("method") == "calibrated on shifted copies":
+        how = (f"calibrated: keeps {info['quantile']:.0%} of {info['samples']} copies of the query's blocks shifted by "
+               f"up to {info['shift_voxels']:g} voxel")
     sel = f"threshold {s['threshold']:.4g} ({how})" if s.get("threshold") is not None else "no threshold"
     if s.get("top"):
         sel += f", top {s['top']}"
@@ -320,6 +331,17 @@ def format_summary(s: dict) -> str:
     ctx = s.get("context")
     if ctx:
         lines.insert(1, f"behind={ctx['behind']} ({ctx['behind_source']}); up={ctx['up']} ({ctx['up_source']})")
+    sc = s.get("scene")
+    if sc:
+        if sc.get("height") is not None:
+            kept = f"kept the level at {sc['height']:.3f} m along up"
+        elif sc.get("rejected"):
+            kept = sc["rejected"]
+        else:
+            kept = f"kept {sc.get('kept', 0)} blocks on large planes"
+        lines.append(f"map-level stage: {sc['rule']}; {sc.get('candidates', 0)} candidates, {kept}"
+                     + (f" ({sc['kept_over_threshold']} partly observed blocks over the threshold joined their plane)"
+                        if sc.get("kept_over_threshold") else ""))
     if s.get("hint"):
         lines.append(f"nothing selected: {s['hint']}")
     headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}' in "

@@ -103,10 +103,15 @@ def test_rotation_sampling():
     # tilted floors: every plane normal of the model lies within the cone about up
     _, r, _ = S.query_blocks("floor", rotations=S.ConeRotations(10.0, 8))
     assert np.all(np.degrees(np.arccos(np.clip(r[:, 2, 2], -1, 1))) <= 10.0 + 1e-4)
-    # the built-in families: ceilings are floors upside down, edges the 12 concave room edges at 5 x 5 places
+    # the built-in families: ceilings are floors upside down; edges: a room's three concave edges (wall-wall,
+    # floor-wall, ceiling-wall) at 12 yaws and 5 x 5 places, each holding two perpendicular faces (its
+    # voxels' free side is a quarter space: free where both faces' distances are positive)
     floor, ceiling = S.query_blocks("floor")[0], S.query_blocks("ceiling")[0]
     np.testing.assert_allclose(ceiling, floor[..., ::-1], atol=1e-6)
-    assert S.query_blocks("edge")[0].shape[0] == 12 * 25
+    edges, er, ep = S.query_blocks("edge")
+    assert edges.shape[0] == 3 * 12 * 25
+    yaws = np.degrees(np.arctan2(er[:, 1, 0], er[:, 0, 0])) % 30.0  # the shape's x axis turned about up
+    np.testing.assert_allclose(np.minimum(yaws, 30.0 - yaws), 0.0, atol=1e-4)  # every 30 degrees
     # an up direction other than +z rotates the whole model onto it
     _, r, _ = S.query_blocks("floor", up=(0.0, 1.0, 1.0))
     np.testing.assert_allclose(r[:, :, 2], np.broadcast_to([0, 2 ** -0.5, 2 ** -0.5], (len(r), 3)), atol=1e-6)
@@ -162,7 +167,7 @@ def test_scores_equal_brute_force_numpy(maps):
     srt = np.sort(expected)
     k = next(i for i in range(len(srt) // 10, len(srt) - 1) if srt[i + 1] - srt[i] > 0.05)
     t = float(srt[k] + srt[k + 1]) / 2  # a threshold in a gap: no float ties at the boundary
-    sel = S.search(m, model, threshold=t)
+    sel = S.search(m, model, threshold=t, scene=False)  # the shape score alone (the scene stage is tested apart)
     assert _key(sel.coords) == _key(idx[expected <= t])
     assert np.all(np.diff(sel.scores) >= 0)
     row = {tuple(c): i for i, c in enumerate(idx)}
@@ -170,9 +175,9 @@ def test_scores_equal_brute_force_numpy(maps):
         i = row[tuple(c)]
         assert abs(s - expected[i]) <= 2e-3 + 1e-4 * expected[i]
         assert abs(d[i, n] - expected[i]) <= 2e-3 + 1e-4 * expected[i]  # the reported descriptor is a nearest one
-    top = S.search(m, model, top=7)
+    top = S.search(m, model, top=7, scene=False)
     np.testing.assert_allclose(top.scores, np.sort(expected)[:7], rtol=1e-4, atol=2e-3)
-    both = S.search(m, model, threshold=t, top=5)
+    both = S.search(m, model, threshold=t, top=5, scene=False)
     assert len(both) == 5 and _key(both.coords) <= _key(sel.coords)
 
 
@@ -247,8 +252,9 @@ class _Counting(zarr.storage.WrapperStore):
 
 def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     m = sdfcodec.open_map(maps[128])
-    full = S.search(m, "floor", top=5)
-    low = S.search(m, "floor", level=32, top=5)
+    # the shape score alone: the scene stage may re-read the chunks of blocks beyond a level (solid or surface?)
+    full = S.search(m, "floor", top=5, scene=False)
+    low = S.search(m, "floor", level=32, top=5, scene=False)
     assert full.stats["code_bytes_read"] == full.stats["code_bytes_full"] > 0
     assert low.stats["code_bytes_read"] == low.stats["code_bytes_level"]
     # the code chunks are 32 elements wide: level 32 reads only the first one along the code axis
@@ -256,7 +262,7 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     assert 0.15 < ratio < 0.35, ratio
     # independently of the search's own counter: which chunk keys the store is asked for
     store = _Counting(zarr.storage.LocalStore(maps[128], read_only=True))
-    S.search(sdfcodec.open_map(store), "floor", level=32, top=5)
+    S.search(sdfcodec.open_map(store), "floor", level=32, top=5, scene=False)
     keys = [k for k in store.keys if k.startswith("codes/c/")]
     assert keys and all(k.endswith("/0") for k in keys)
     # bounded memory: codes are scored a batch of chunks at a time, never the whole map at once
@@ -272,7 +278,8 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     with sdfcodec.create_map(small, codec=m.codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=4) as w:
         w.write_codes(*m.read_codes())
     ms = sdfcodec.open_map(small)
-    res = S.search(ms, "floor", level=32, chunks_per_batch=1, behind="unobserved", up=(0, 0, 1))  # no estimates
+    res = S.search(ms, "floor", level=32, chunks_per_batch=1, behind="unobserved", up=(0, 0, 1),
+                   scene=False)  # no estimates
     assert max(sizes) <= 4 ** 3 and sum(sizes) == res.stats["blocks_scored"] == m.count_states()["coded"]
     assert len(sizes) > 1
 
@@ -287,8 +294,10 @@ def test_bad_arguments(maps):
         S.search(m, "floor", top=0)
     with pytest.raises(InvalidValueError, match="level"):
         S.search(m, "floor", level=65)
-    with pytest.raises(InvalidValueError, match="one descriptor"):
-        S.search(m, np.full((1, 16, 16, 16), TRUNC[1] / 2, np.float32), threshold="auto")
+    # one user block: its threshold comes from copies of it shifted by up to half a voxel (a constant block is
+    # its own shifted copy, so only blocks coded like it are selected)
+    res = S.search(m, np.full((1, 16, 16, 16), TRUNC[1] / 2, np.float32), threshold="auto")
+    assert res.stats["threshold_info"]["method"] == "calibrated on shifted copies" and res.threshold < 1e-2
 
 
 def test_query_for_another_geometry_is_rebuilt_or_warned(maps, pca128):
@@ -338,7 +347,9 @@ def test_search_command(tmp_path, maps):
     assert summary["selected"] == len(summary["blocks"]) > 0
     for b in summary["blocks"]:
         assert isinstance(b["coords"], list) and len(b["coords"]) == 3 and all(type(v) is int for v in b["coords"])
-        assert b["score"] <= summary["threshold"]
+        assert b["score"] <= 2 * summary["threshold"]  # the scene stage's hysteresis: up to twice it
+    over = sum(b["score"] > summary["threshold"] for b in summary["blocks"])
+    assert over == summary["scene"]["kept_over_threshold"]
     assert (out / "search.png").stat().st_size > 10_000 and (out / "expanded.ply").stat().st_size > 1000
     assert summary["expanded"]["blocks_decoded"] == summary["selected"]
     assert "selected" in format_summary(summary)
@@ -356,7 +367,9 @@ def test_cli_search_json(tmp_path, maps, pca128):
     from sdfcodec.cli import app
 
     runner = CliRunner()
-    r = runner.invoke(app, ["search", str(maps[128]), "--query", "floor", "--level", "32", "--top", "6", "--json"])
+    # --shape-only: the code-space score, which the brute force computes (the scene stage is tested apart)
+    r = runner.invoke(app, ["search", str(maps[128]), "--query", "floor", "--level", "32", "--top", "6", "--json",
+                            "--shape-only"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
     assert out["level"] == 32 and out["code_size"] == 128 and out["selected"] == 6 and len(out["blocks"]) == 6
@@ -379,7 +392,8 @@ def test_cli_search_json(tmp_path, maps, pca128):
     srt = expected[order]
     k = next(i for i in range(20, len(srt) - 1) if srt[i + 1] - srt[i] > 0.05)
     t = float(srt[k] + srt[k + 1]) / 2
-    r = runner.invoke(app, ["search", str(maps[128]), "--level", "32", "--threshold", f"{t!r}", "--json"])
+    r = runner.invoke(app, ["search", str(maps[128]), "--level", "32", "--threshold", f"{t!r}", "--json",
+                            "--shape-only"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
     assert out["threshold_mode"] == "given" and out["selected"] == int((expected <= t).sum())

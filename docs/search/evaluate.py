@@ -1,6 +1,6 @@
 """Search with the CLI's defaults on maps nobody tuned on: precision and recall per room kind and query.
 
-    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 5000 5001 ...] [--out docs/search/eval-defaults.json]
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 7501 7502 7503] [--jobs 3] [--out docs/search/eval-defaults.json]
 
 Every map is searched exactly as ``sdfcodec search MAP --query Q`` does with no flags (``threshold="auto"``:
 the calibrated threshold, ``behind`` and ``up`` from the map); precision and recall of the selection are
@@ -18,9 +18,12 @@ pooled over the rooms of a kind. Room kinds:
 * ``kitchen``: the real 7-Scenes kitchen, fused, up from its gravity file; labels from plane fits on the
   lossless map (``kitchen_labels``).
 
-Truth per block: a *clean* floor / wall / ceiling block has >= 90 % of its surface voxels nearest that surface
-and the surface covers >= 90 % of its cross-section (``sdfcodec.search.metrics.TRUTH``); every other block is
-a negative. Codec: the shipped pca-64, searched at its full level.
+Truth per block (``sdfcodec.search.metrics.TRUTH`` on ``LabelledRoom.block_labels``): a *clean* floor / wall /
+ceiling block has >= 90 % of its surface voxels on one such primitive, which covers >= 90 % of its section of
+the block in its own plane; planes only clipping a corner (section under a quarter face) are left out; every
+other block is a negative. *(pure)*: >= 90 % against < 10 %, mixed blocks left out. Edges, corners and poles
+(exact rooms): see ``TRUTH``. Each floor, wall and ceiling search runs with the map-level stage (the CLI's
+default) and without it (``--shape-only``). Codec: the shipped pca-64, searched at its full level.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ HERE = Path(__file__).resolve().parent
 KITCHEN = next((p for p in (HERE.parents[i] / "shared" / "data" / "7scenes-redkitchen" for i in (2, 3)) if p.is_dir()),
                HERE.parents[2] / "shared" / "data" / "7scenes-redkitchen")
 QUERIES = ("floor", "wall", "ceiling")
+PARTS = ("edge", "corner", "pole")
 
 
 def _write(path: Path, room: S.LabelledRoom, codec) -> sdfcodec.Map:
@@ -122,17 +126,26 @@ def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120)
     return m, lab
 
 
-def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, up: np.ndarray) -> dict:
-    """Labels of the kitchen's blocks from plane fits on the lossless map: each block's observed zero crossings
-    (between observed neighbours differing by < 0.1 m) are fitted with a plane (SVD). A block is *planar* when
-    it has >= 64 crossings and their rms distance to the plane is < 0.5 voxel; its normal points along the
-    field's mean gradient. Floor: planar, normal within 10 degrees of up, and its plane within 0.1 m of the
-    floor height, the lowest height along up where >= 5 planar up-facing blocks lie within 0.1 m. Wall: planar,
-    normal within 10 degrees of horizontal. Ceiling: none is in view."""
+def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray) -> dict:
+    """Labels of the kitchen's blocks from plane fits on the lossless map.
+
+    Each block's observed zero crossings (between observed neighbours differing by < 0.1 m) are fitted with a
+    plane (SVD); a block is *planar* with >= 64 crossings at an rms distance < 0.5 voxel, its normal pointing
+    along the field's mean gradient. The floor plane is fitted to the crossings of the planar blocks facing
+    within 20 degrees of the gravity file's up whose centroids are in the lowest quarter of those blocks along
+    it, then refitted five times to the crossings of planar blocks whose normals are within 10 degrees of the
+    plane's and whose centroids lie within 0.04 m of it (the kitchen's floor is 6 degrees off the recorded
+    gravity, so a height band along gravity would cut it into strips). *Floor*: those blocks. *Up-facing*:
+    planar blocks facing within 10 degrees of the floor's normal (floor, table and counter tops). *Vertical*:
+    blocks whose crossings lie >= 90 % within 2 voxels of their own plane, whose normal is within 10 degrees of
+    perpendicular to it (walls, cabinet fronts, appliance sides). *Floor* (strict): >= 64 crossings, >= 90 % of
+    them within 2 voxels of the floor plane. Blocks with fewer than 64 observed crossings (a surface passing
+    near a face, or seen in part) cannot be labelled and are left out of every truth. *Ceiling*: none is in
+    view."""
     vs = raw.voxel_size
     blocks = S.expand(raw, coords, device="cpu").blocks
     obs = raw.read_observed(coords)
-    n_up, rms, height, npts, horiz = [], [], [], [], []
+    normal, rms, centroid, npts, pts_of = [], [], [], [], []
     for c, b, o in zip(coords, blocks, obs):
         pts = []
         for ax in range(3):
@@ -142,31 +155,49 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, up: np.ndarray) -> dic
             idx = np.argwhere(cross).astype(np.float64)
             idx[:, ax] += a[cross] / (a[cross] - bb[cross])
             pts.append(idx)
-        p = np.concatenate(pts)
+        p = np.asarray(raw.origin) + vs * (16 * c + np.concatenate(pts))
         npts.append(len(p))
+        pts_of.append(p)
         if len(p) < 3:
-            n_up.append(0.0), rms.append(9.0), height.append(0.0), horiz.append(0.0)
+            normal.append(np.zeros(3)), rms.append(9.0), centroid.append(np.zeros(3))
             continue
-        w = np.asarray(raw.origin) + vs * (16 * c + p)
-        mu = w.mean(axis=0)
-        _, sv, vt = np.linalg.svd(w - mu, full_matrices=False)
+        mu = p.mean(axis=0)
+        _, sv, vt = np.linalg.svd(p - mu, full_matrices=False)
         n = vt[2]
         grad = np.stack(np.gradient(b), -1)[(np.abs(b) < 0.02) & o].mean(axis=0)
-        n = n if n @ grad >= 0 else -n
-        n_up.append(float(n @ up))
-        horiz.append(float(abs(n @ up)))
+        normal.append(n if n @ grad >= 0 else -n)
         rms.append(float(sv[2] / math.sqrt(len(p)) / vs))
-        height.append(float(mu @ up))
-    n_up, rms, height, npts, horiz = map(np.asarray, (n_up, rms, height, npts, horiz))
+        centroid.append(mu)
+    normal, rms, centroid, npts = map(np.asarray, (normal, rms, centroid, npts))
     planar = (npts >= 64) & (rms < 0.5)
     cos10 = math.cos(math.radians(10))
-    upward = planar & (n_up >= cos10)
-    hs = np.sort(height[upward])
-    floor_h = next((h for h in hs if np.sum(np.abs(hs - h) <= 0.1) >= 5), hs[0] if len(hs) else 0.0)
-    floor = upward & (np.abs(height - floor_h) <= 0.1)
-    wall = planar & (horiz <= math.sin(math.radians(10)))
-    return {"floor": floor, "wall": wall, "ceiling": np.zeros(len(coords), bool), "upward": upward,
-            "floor_height": float(floor_h)}
+    cand = np.flatnonzero(planar & (normal @ gravity_up >= math.cos(math.radians(20))))
+    h = centroid[cand] @ gravity_up
+    on = cand[h <= np.quantile(h, 0.25)] if len(cand) else cand
+    fn, fd = gravity_up, 0.0
+    for _ in range(6):
+        q = np.concatenate([pts_of[i] for i in on]) if len(on) else np.zeros((0, 3))
+        if len(q) < 3:
+            break
+        mu = q.mean(axis=0)
+        fn = np.linalg.svd(q - mu, full_matrices=False)[2][2]
+        fn = fn if fn @ gravity_up >= 0 else -fn
+        fd = float(fn @ mu)
+        on = np.flatnonzero(planar & (normal @ fn >= cos10) & (np.abs(centroid @ fn - fd) <= 0.04))
+    # a block's crossings on the floor plane, and on its own plane (within 2 voxels)
+    on_floor = np.array([np.mean(np.abs(p @ fn - fd) <= 2 * vs) if len(p) else 0.0 for p in pts_of])
+    on_own = np.array([np.mean(np.abs((p - m) @ n) <= 2 * vs) if len(p) >= 3 else 0.0
+                       for p, n, m in zip(pts_of, normal, centroid)])
+    enough = npts >= 64
+    floor = enough & (on_floor >= 0.9)
+    vertical = (on_own >= 0.9) & (np.abs(normal @ fn) <= math.sin(math.radians(10)))
+    upward = planar & (normal @ fn >= cos10)
+    # blocks with fewer crossings than a plane fit needs are left out of every truth: a surface near a face, or
+    # seen in part (fused maps observe a thin band), cannot be labelled from the lossless map
+    return {"floor": floor, "floor_sliver": ~enough, "wall": vertical & enough, "wall_sliver": ~enough,
+            "ceiling": np.zeros(len(coords), bool), "ceiling_sliver": ~enough,
+            "upward": upward, "floor_normal": fn,
+            "floor_tilt_deg": float(np.degrees(np.arccos(min(1.0, fn @ gravity_up))))}
 
 
 def _observed_surface(m: sdfcodec.Map, room: S.LabelledRoom, coords: np.ndarray) -> np.ndarray:
@@ -185,8 +216,9 @@ def _pr(selected: np.ndarray, pos: np.ndarray) -> tuple[int, int, int]:
     return int((selected & pos).sum()), int(selected.sum()), int(pos.sum())
 
 
-def _search(m: sdfcodec.Map, q: str):
-    res = S.search(m, q, threshold="auto", keep_scores=True, device="cpu")  # the CLI's defaults
+def _search(m: sdfcodec.Map, q: str, scene: bool = True):
+    # the CLI's defaults (scene=False: --shape-only, the code-space score alone)
+    res = S.search(m, q, threshold="auto", keep_scores=True, device="cpu", scene=scene)
     sel = np.zeros(len(res.all_coords), bool)
     key = {tuple(c): i for i, c in enumerate(res.all_coords.tolist())}
     for c in res.coords.tolist():
@@ -194,19 +226,15 @@ def _search(m: sdfcodec.Map, q: str):
     return res, sel
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[5000, 5001, 5002])
-    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused", "fused-tilted",
-                                                     "kitchen"])
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
+def _tally(kinds: list, seeds: list) -> dict:
+    """Pooled counts per (room kind, query row) over the maps of ``kinds`` made from ``seeds``."""
     codec = pretrained_codec("pca", 64)
     tally: dict = {}
+    labels_of: dict = {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        for kind in args.kinds:
+        for kind in kinds:
             items = []
             if kind == "kitchen":
                 if not KITCHEN.is_dir():
@@ -224,7 +252,7 @@ def main(argv=None) -> int:
                                          tool="sdfcodec encode") as w:
                     w.write_map(raw)
                 items.append((sdfcodec.open_map(p64), None, raw))
-            for seed in args.seeds:
+            for seed in seeds:
                 path = tmp / f"{kind}-{seed}.sdfz"
                 if kind == "exact":
                     for g in ("poor", "normal", "rich"):
@@ -239,32 +267,40 @@ def main(argv=None) -> int:
                 elif kind in ("fused", "fused-tilted"):
                     m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec)
                     items.append((m, room, None))
-            for m, room, raw in items:
-                for q in QUERIES:
+            runs = [(it, q, sc) for it in items for q in QUERIES for sc in (True, False)]
+            if kind in ("exact", "exact-tilted"):  # truths from the primitives' structure (no scene stage)
+                runs += [(it, q, True) for it in items for q in PARTS]
+            for (m, room, raw), q, scene in runs:
                     if kind == "exact-open" and q != "floor":
                         continue
-                    res, sel = _search(m, q)
+                    res, sel = _search(m, q, scene)
+                    qn = q
+                    q = q if scene else f"{q} [shape only]"
                     if room is not None:
-                        lab = room.block_labels(res.all_coords)
-                        pos = TRUTH[q](lab)[0]
+                        if id(room) not in labels_of:  # the same coords for every query of a map
+                            labels_of[id(room)] = room.block_labels(res.all_coords)
+                        lab = labels_of[id(room)]
+                        pos, neg = TRUTH[qn](lab)
+                        counted = pos | neg
                         # the pure truth: mixed blocks left out of both counts
-                        p_pos, p_neg = TRUTH[f"{q}-pure"](lab)
-                        keep = p_pos | p_neg
-                        tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
-                        t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
-                                                                     "blocks": 0, "maps": 0, "thresholds": [],
-                                                                     "behind": set()})
-                        for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
-                                     ("maps", 1)):
-                            t[k] += v
-                        t["thresholds"].append(round(float(res.threshold), 2))
-                        t["behind"].add(res.stats["context"]["behind"])
+                        if f"{qn}-pure" in TRUTH:
+                            p_pos, p_neg = TRUTH[f"{qn}-pure"](lab)
+                            keep = p_pos | p_neg
+                            tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
+                            t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
+                                                                         "blocks": 0, "maps": 0, "thresholds": [],
+                                                                         "behind": set()})
+                            for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
+                                         ("maps", 1)):
+                                t[k] += v
+                            t["thresholds"].append(round(float(res.threshold), 2))
+                            t["behind"].add(res.stats["context"]["behind"])
                         if kind.startswith("fused"):
                             # fused maps: clean blocks of which fusion observed too little surface to judge
                             # (fewer than 64 observed surface voxels, e.g. the block under a floor that passes
                             # at its top face) are left out
                             seen = _observed_surface(m, room, res.all_coords) >= 64
-                            keep = seen | ~pos
+                            keep = (seen | ~pos) & counted
                             tp3, ns3, np3 = _pr(sel[keep], pos[keep])
                             t = tally.setdefault((kind, f"{q} (observed)"), {
                                 "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
@@ -275,9 +311,12 @@ def main(argv=None) -> int:
                             t["thresholds"].append(round(float(res.threshold), 2))
                             t["behind"].add(res.stats["context"]["behind"])
                     else:
-                        lab = kitchen_labels(raw, res.all_coords, np.asarray(m.header.up))
-                        pos = lab[q]
-                        if q == "floor":  # also: every up-facing plane (floor and furniture tops alike)
+                        if id(raw) not in labels_of:
+                            labels_of[id(raw)] = kitchen_labels(raw, res.all_coords, np.asarray(m.header.up))
+                        lab = labels_of[id(raw)]
+                        pos = lab[qn]
+                        counted = ~lab.get(f"{qn}_sliver", np.zeros(len(pos), bool))
+                        if qn == "floor":  # also: every up-facing plane (floor and furniture tops alike)
                             tp, ns, npos = _pr(sel, lab["upward"])
                             t = tally.setdefault(("kitchen (floor + tops)", q), {
                                 "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
@@ -287,17 +326,51 @@ def main(argv=None) -> int:
                                 t[k] += v
                             t["thresholds"].append(round(float(res.threshold), 2))
                             t["behind"].add(res.stats["context"]["behind"])
-                    tp, ns, npos = _pr(sel, pos)
+                    tp, ns, npos = _pr(sel[counted], pos[counted])
                     t = tally.setdefault((kind, q), {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0,
                                                      "thresholds": [], "behind": set()})
                     t["tp"] += tp
                     t["selected"] += ns
                     t["positives"] += npos
-                    t["blocks"] += len(sel)
+                    t["blocks"] += int(counted.sum())
                     t["maps"] += 1
                     t["thresholds"].append(round(float(res.threshold), 2))
                     t["behind"].add(res.stats["context"]["behind"])
-            print(f"{kind} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+            print(f"{kind} {seeds} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    return tally
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[7501, 7502, 7503])
+    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused", "fused-tilted",
+                                                     "kitchen"])
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--jobs", type=int, default=1, help="processes (one task per kind and seed)")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    # one task per kind and seed (the kitchen once), run in --jobs processes; counts are pooled afterwards
+    tasks = [([k], [sd]) for k in args.kinds if k != "kitchen" for sd in args.seeds]
+    tasks += [(["kitchen"], [])] if "kitchen" in args.kinds else []
+    if args.jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(args.jobs) as pool:
+            parts = pool.starmap(_tally, tasks)
+    else:
+        parts = [_tally(*t) for t in tasks]
+    tally: dict = {}
+    for kind in args.kinds:  # rows in the order of the kinds
+        for part in parts:
+            for (k, q), t in part.items():
+                if k.split(" (")[0] != kind:
+                    continue
+                acc = tally.setdefault((k, q), {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0,
+                                                "thresholds": [], "behind": set()})
+                for f in ("tp", "selected", "positives", "blocks", "maps"):
+                    acc[f] += t[f]
+                acc["thresholds"] += t["thresholds"]
+                acc["behind"] |= t["behind"]
     rows = []
     print("| rooms | query | maps | blocks | positives | selected | precision | recall | behind | thresholds |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -310,7 +383,7 @@ def main(argv=None) -> int:
               f"{', '.join(sorted(t['behind']))} | {min(t['thresholds']):.1f}-{max(t['thresholds']):.1f} |")
     if args.out:
         import os
-        args.out.write_text(json.dumps({"seeds": args.seeds, "load": os.getloadavg(), "rows": rows,
+        args.out.write_text(json.dumps({"seeds": args.seeds, "kinds": args.kinds, "load": os.getloadavg(), "rows": rows,
                                         "seconds": time.perf_counter() - t0}, indent=1))
     return 0
 

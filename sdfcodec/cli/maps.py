@@ -414,6 +414,7 @@ def search_cmd(
     behind: Optional[str] = typer.Option(None, "--behind", help="solid (exact SDF) or unobserved (fused); default: what the map records."),
     up: Optional[str] = typer.Option(None, "--up", help="Up direction x,y,z in the map's grid; default: the map's header, else 0,0,1."),
     tilt: Optional[float] = typer.Option(None, "--tilt", help="Also match surfaces tilted up to DEG degrees from level."),
+    shape_only: bool = typer.Option(False, "--shape-only", help="Floor, ceiling, wall: select by shape score alone, without the map-level stage (lowest level, closing ceiling, large walls)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
     no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
@@ -424,7 +425,7 @@ def search_cmd(
     from ..search_cli import format_summary, search_command
 
     summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
-                             overwrite=overwrite, behind=behind, up=up, tilt=tilt)
+                             overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
     report(summary, as_json, lambda: format_summary(summary))
 
 

@@ -17,6 +17,8 @@ from ..geometry import rot_x, rot_z
 
 __all__ = ["LabelledRoom", "synthetic_room"]
 
+LABELS_FURNITURE = 3  # sdfcodec.data.render.LABELS.index("furniture"), checked in block_labels
+
 
 @dataclass
 class LabelledRoom:
@@ -108,6 +110,7 @@ class LabelledRoom:
         local = np.stack(np.unravel_index(vox, (BLOCK,) * 3), -1)
         pts = self.origin + vs * (BLOCK * coords[which] + local).astype(np.float64)  # (S, 3)
         prim_label = np.array([LABELS.index(lab) for lab in self.scene.labels])
+        assert LABELS[LABELS_FURNITURE] == "furniture"
         h = 0.25 * vs
         reach = band + 2 * h  # surface points and their gradient stencils are this close to their surface
         _, nearest = _union_at(self.scene.primitives, pts, reach)
@@ -132,6 +135,13 @@ class LabelledRoom:
         out = {"floor": (np.bincount(which, weights=is_floor, minlength=n) / denom).astype(np.float32),
                "up": (np.bincount(which, weights=upward, minlength=n) / denom).astype(np.float32),
                "floor_cover": cover(is_floor), "up_cover": cover(upward), "surface_voxels": n_surf.astype(np.int64)}
+        out.update(_structure_shares(which, nearest, prim_label, n_surf))
+        poles = np.array([_is_pole(p, self.up, vs) for p in self.scene.primitives])
+        side = np.abs(grad @ self.up) <= 0.5 * np.maximum(np.linalg.norm(grad, axis=1), 1e-12)
+        out["pole"] = (np.bincount(which, weights=poles[nearest] & side, minlength=n) / denom).astype(np.float32)
+        for name in ("floor", "wall", "ceiling"):
+            out.update(_section_cover(which, local, nearest, grad, prim_label[nearest] == LABELS.index(name),
+                                      n_surf, name))
         for name in ("wall", "ceiling"):
             # cover across the grid axis nearest the block's mean normal of that surface (walls face any way)
             is_lab = prim_label[nearest] == LABELS.index(name)
@@ -147,6 +157,98 @@ class LabelledRoom:
             out[f"{name}_cover"] = (np.bincount(cells // (3 * BLOCK * BLOCK), minlength=n)
                                     / (BLOCK * BLOCK)).astype(np.float32)
         return out
+
+
+def _structure_shares(which: np.ndarray, nearest: np.ndarray, prim_label: np.ndarray, n_surf: np.ndarray) -> dict:
+    """Per block, how its surface voxels spread over the room's structure (floor, wall and ceiling primitives):
+    ``structure`` (their share), ``structure_parts`` (how many such primitives hold >= 10 % of the surface
+    voxels: 2 on an edge of the room, 3 at a corner) and ``structure_touch`` (how many hold >= 2 %)."""
+    n = len(n_surf)
+    structural = prim_label[nearest] != LABELS_FURNITURE
+    out = {"structure": (np.bincount(which, weights=structural, minlength=n) / np.maximum(n_surf, 1)
+                         ).astype(np.float32)}
+    k = int(nearest.max()) + 1 if len(nearest) else 1
+    u, cnt = np.unique(which[structural] * k + nearest[structural], return_counts=True)
+    share = cnt / np.maximum(n_surf[u // k], 1)
+    out["structure_parts"] = np.bincount(u // k, weights=share >= 0.1, minlength=n).astype(np.int64)
+    out["structure_touch"] = np.bincount(u // k, weights=share >= 0.02, minlength=n).astype(np.int64)
+    return out
+
+
+def _is_pole(prim, up: np.ndarray, voxel_size: float) -> bool:
+    """A thin upright primitive: an upright cylinder of radius up to 10 voxels (the pole model's largest), or an
+    upright box (a table leg) whose horizontal half-extents are at most that."""
+    from ..sdf import Box, Cylinder
+
+    axis = np.asarray(prim.rotation, np.float64)[:, 2] if getattr(prim, "rotation", None) is not None else np.eye(3)[2]
+    if abs(float(axis @ up)) < math.cos(math.radians(10)):
+        return False
+    if isinstance(prim, Cylinder):
+        return prim.radius <= 10 * voxel_size
+    if isinstance(prim, Box):
+        return max(prim.half[0], prim.half[1]) <= 10 * voxel_size
+    return False
+
+
+#: :func:`_section_cover`'s cells (voxels a side) on a surface's plane: surface voxels (a band two voxels thick)
+#: fill every cell of this size, at any orientation.
+_CELL = 2.0
+
+
+def _section_cover(which: np.ndarray, local: np.ndarray, nearest: np.ndarray, grad: np.ndarray,
+                   is_label: np.ndarray, n_surf: np.ndarray, name: str) -> dict:
+    """Per block, how a labelled surface spans it, measured in the surface's own plane (whatever its angle to
+    the grid): ``{name}_main``, the share of the block's surface voxels on the label's single largest primitive
+    there; ``{name}_section``, the area (voxels squared) of that primitive's plane inside the block's voxels' cells
+    (``[-0.5, 15.5]`` per axis: a surface passing between two blocks' voxel layers has none); ``{name}_section_cover``, the share of that section the
+    primitive's surface voxels cover (cells of ``_CELL`` voxels). A wall crossing a block obliquely covers its
+    whole section; a wall ending inside the block (a door, a corner with another surface) does not."""
+    n = len(n_surf)
+    main = np.zeros(n, np.float32)
+    section = np.zeros(n, np.float32)
+    cover = np.zeros(n, np.float32)
+    sel = np.flatnonzero(is_label)
+    if len(sel):
+        # the label's largest primitive in each block
+        pair = which[sel] * (int(nearest.max()) + 1) + nearest[sel]
+        u, inv, cnt = np.unique(pair, return_inverse=True, return_counts=True)
+        blk = u // (int(nearest.max()) + 1)
+        best = np.zeros(n, np.int64) - 1
+        best_cnt = np.zeros(n, np.int64)
+        for k in np.argsort(cnt, kind="stable"):
+            best[blk[k]], best_cnt[blk[k]] = u[k] % (int(nearest.max()) + 1), cnt[k]
+        main = (best_cnt / np.maximum(n_surf, 1)).astype(np.float32)
+        ab = np.arange(-15, 16) * _CELL
+        grid_a, grid_b = np.meshgrid(ab, ab, indexing="ij")
+        on = sel[nearest[sel] == best[which[sel]]]  # the voxels of each block's largest primitive
+        on = on[np.argsort(which[on], kind="stable")]
+        starts = np.r_[0, np.flatnonzero(np.diff(which[on])) + 1, len(on)]
+        for lo, hi in zip(starts[:-1], starts[1:]):
+            b = which[on[lo]]
+            pts = local[on[lo:hi]].astype(np.float64)
+            gg = grad[on[lo:hi]]
+            # one face of the primitive: a slab thinner than a block shows both faces in it (their gradients
+            # cancel); the face holding more of the block's voxels is the one measured
+            side = gg @ gg[np.argmax(np.abs(gg).max(axis=1))] >= 0
+            if 2 * side.sum() < len(side):
+                side = ~side
+            pts, g = pts[side], gg[side].sum(axis=0)
+            if np.linalg.norm(g) < 1e-9:  # no direction to measure a section across: left uncovered
+                continue
+            nrm = g / np.linalg.norm(g)
+            e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(nrm, e1)
+            p0 = pts.mean(axis=0)
+            q = p0 + grid_a[..., None] * e1 + grid_b[..., None] * e2
+            inside = np.all((q >= -0.5) & (q <= BLOCK - 0.5), axis=-1)
+            hit = np.zeros(inside.shape, bool)
+            ij = np.round(np.stack([(pts - p0) @ e1, (pts - p0) @ e2], 1) / _CELL).astype(np.int64) + 15
+            ok = np.all((ij >= 0) & (ij < len(ab)), axis=1)
+            hit[ij[ok, 0], ij[ok, 1]] = True
+            section[b] = inside.sum() * _CELL ** 2
+            cover[b] = (hit & inside).sum() / max(int(inside.sum()), 1)
+    return {f"{name}_main": main, f"{name}_section": section, f"{name}_section_cover": cover}
 
 
 def _aabb(prim) -> tuple[np.ndarray, np.ndarray] | None:

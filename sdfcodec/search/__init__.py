@@ -30,7 +30,9 @@ Conventions
   only (:class:`~sdfcodec.search.engine.ObservedScorer`).
 * ``threshold="auto"`` (the CLI's default) is calibrated on the map searched
   (:func:`~sdfcodec.search.engine.calibrate_threshold`): clean instances of the query's shape with continuous
-  parameters, stored, encoded and scored the map's way; the threshold keeps 99 % of them.
+  parameters, stored, encoded and scored the map's way; the threshold keeps 99 % of them (and, for edges,
+  corners and poles, at most 1 % of near-miss shapes). Floor, ceiling and wall searches then keep what the
+  query means in the map (:mod:`sdfcodec.search.scene`; ``scene=False`` / ``--shape-only`` skips it).
 * Scores are squared Euclidean distances between codes (float32). For ``pca`` maps (``mean="dataset"``)
   they equal squared distances between the blocks' projections onto the first ``L`` eigenshapes, in
   normalised units (``v = (d - d_min) / (d_max - d_min)``, summed over the 4096 voxels); for ``raw`` maps
@@ -62,6 +64,8 @@ works as before):
 * :mod:`sdfcodec.search.context`: what a query must know about the map (behind, up, surface-true encoding);
 * :mod:`sdfcodec.search.engine`: the counting store, the scoring kernels, the calibrated threshold,
   :func:`search` and :func:`expand`;
+* :mod:`sdfcodec.search.scene`: the map-level stage of floor, ceiling and wall searches (the lowest large
+  up-facing level, a ceiling that closes the map, large vertical planes);
 * :mod:`sdfcodec.search.metrics`: precision/recall of retrieval on labelled rooms;
 * the labelled rooms themselves are :mod:`sdfcodec.data.rooms`, the rotations :mod:`sdfcodec.geometry`, and
   the search benchmark ``sdfcodec.bench.bench_search`` (``sdfcodec.search.bench_search`` still works, with a

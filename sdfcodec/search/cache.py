@@ -34,7 +34,7 @@ __all__ = ["CACHE_ENV", "cache_dir", "cache_key", "cached_model", "cached_thresh
 CACHE_ENV = "SDFCODEC_CACHE_DIR"
 #: Bumped whenever the shapes, their encoding or the calibration change in a way the key does not name, so
 #: that files written by an older sdfcodec are not reused.
-BUILD_VERSION = 1
+BUILD_VERSION = 2
 #: Models and thresholds kept in memory per process.
 MEMORY_ENTRIES = 64
 

@@ -32,7 +32,7 @@ from ..map import Map
 from ..map.observed import MASK_EXTENSION
 from .shapes import BEHIND
 
-__all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE", "UP_CONE_DEG", "LEVEL_DEG", "MIN_UP_VOTES", "UP_CALIBRATION_SAMPLES", "estimate_up"]
+__all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE", "UP_CONE_DEG", "LEVEL_DEG", "MIN_UP_VOTES", "UP_CALIBRATION_SAMPLES", "BLOCK_MIDDLE", "estimate_up"]
 
 #: Coded blocks scored to tell a fused-style field from an exact SDF when the map records neither.
 VOTE_SAMPLE = 8192
@@ -43,6 +43,8 @@ UP_CONE_DEG = 15.0
 LEVEL_DEG = math.degrees(math.atan(0.5 / 16))
 #: :func:`estimate_up`: simulated instances per calibrated threshold (a direction needs fewer than a search).
 UP_CALIBRATION_SAMPLES = 96
+#: :func:`estimate_up`: blocks vote when their nearest plane passes within this many voxels of their centre.
+BLOCK_MIDDLE = 6.0
 #: :func:`estimate_up`: fewer votes than this keep +z.
 MIN_UP_VOTES = 8
 
@@ -122,7 +124,7 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     blocks under its calibrated threshold each vote for their nearest descriptor's normal, and the mean of the
     votes is refined twice, with cones of 4 and 2 degrees about it. An estimate within :data:`LEVEL_DEG` of ``+z``, or
     fewer than :data:`MIN_UP_VOTES` votes, keeps ``+z``. Returns ``(up, where it came from)``."""
-    from .engine import ObservedScorer, Scorer, calibrate_threshold, score_codes
+    from .engine import SURFACE_SHARE, ObservedScorer, Scorer, calibrate_threshold, score_codes
     from .query import build_query
 
     codec = m.codec
@@ -137,6 +139,8 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
             break
     up = np.array([0.0, 0.0, 1.0])
     votes = 0
+    const = Scorer(np.asarray(codec.encode(np.stack([np.zeros((16,) * 3, np.float32), np.ones((16,) * 3, np.float32)])),
+                              np.float32)[:, :lv], torch.device("cpu"))
     for cone in (f"cone:{UP_CONE_DEG:g}:48", "cone:4:16", "cone:2:16"):
         # unstretched shapes: a direction does not need fusion's stretches (6 times fewer descriptors)
         model = build_query("floor", map=m, behind=behind, up=tuple(up), rotations=cone, keep_blocks=False,
@@ -147,7 +151,12 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
         normals = []
         for codes, seen in batches:
             sc, idx = score_codes(scorer, obs, codes, seen)
-            normals.append(model.rotations[idx[sc <= t]][:, :, 2])
+            # blocks of solid or free space (the solid around an exact room) hold no surface to vote with
+            real = const(codes)[0] > SURFACE_SHARE * t
+            # only planes crossing the middle half of a block vote: a plane near a face shows too little of its tilt
+            # (a tilted floor clipping many blocks' top layers looks level there)
+            mid = np.abs(model.positions[idx][:, 2]) <= BLOCK_MIDDLE
+            normals.append(model.rotations[idx[(sc <= t) & real & mid]][:, :, 2])
         nv = np.concatenate(normals) if normals else np.zeros((0, 3))
         votes = len(nv)
         if votes < MIN_UP_VOTES:

@@ -27,6 +27,7 @@ from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
     "AUTO_FRACTION",
+    "SURFACE_SHARE",
     "CountingStore",
     "Scorer",
     "ObservedScorer",
@@ -35,6 +36,7 @@ __all__ = [
     "CALIBRATION_SAMPLES",
     "calibrate_threshold",
     "score_codes",
+    "codes_at",
     "SearchResult",
     "Expansion",
     "auto_threshold",
@@ -339,21 +341,20 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
     blocks are; the threshold keeps :data:`CALIBRATION_QUANTILE` of them. It follows the codec, code size,
     level, truncation and model resolution of each search, with no constant taken from any room.
 
-    Models without a built-in shape (user blocks) fall back to :func:`auto_threshold` (the model's spacing).
+    Models without a built-in shape (user blocks, ``like:``) are calibrated on copies of their blocks shifted by
+    up to half a voxel (:func:`_calibrate_blocks`).
 
     Returns
     -------
     threshold : float
     info : dict
-        ``method`` ("calibrated" or "model spacing"), and for calibrated thresholds ``samples``,
+        ``method`` ("calibrated" or "calibrated on shifted copies"), ``samples``,
         ``quantile``, ``simulated`` (the simulated scores' 50/90/95/100 % quantiles) and ``tilt_deg``.
     """
 
     spec = model.spec
     if spec is None or "shape" not in spec:
-        t = auto_threshold(model, level, codec)
-        return t, {"method": "model spacing", "fraction": AUTO_FRACTION,
-                   "why": "a model without a built-in shape: AUTO_FRACTION of its descriptors' median spacing"}
+        return _calibrate_blocks(model, codec, level, scorer, samples)
     from .cache import cache_key, cached_threshold
 
     # the calibration depends on nothing but what the key names (the simulated instances are seeded): cached
@@ -366,10 +367,41 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
     return t, json.loads(json.dumps(info))  # a copy: the caller may add to its report
 
 
+#: :func:`_calibrate_blocks`: "like these blocks" means the same shape up to this shift (voxels, per axis).
+LIKE_SHIFT = 0.5
+
+
+def _calibrate_blocks(model: QueryModel, codec: Codec, level: int, scorer: "Scorer", samples: int
+                      ) -> tuple[float, dict]:
+    """The threshold of a model of user blocks or of a map's own blocks (``like:``): the model's blocks (decoded
+    from its descriptors when it holds none) shifted by random offsets of up to :data:`LIKE_SHIFT` voxel per axis
+    (trilinear, nearest value beyond the block), encoded with the map's codec and scored against the model; the
+    threshold keeps :data:`CALIBRATION_QUANTILE` of them: "like these" is the same shape up to half a voxel."""
+    from scipy.ndimage import shift as nd_shift
+
+    if model.blocks is not None:
+        v = np.asarray(model.blocks, np.float32)
+    else:
+        codes = model.descriptors
+        if codes.shape[1] < codec.code_size:
+            codes = np.pad(codes, ((0, 0), (0, codec.code_size - codes.shape[1])))
+        with torch.no_grad():
+            v = np.asarray(codec.decode(torch.from_numpy(np.ascontiguousarray(codes))), np.float32)
+    rng = np.random.default_rng(23)
+    pick = rng.integers(len(v), size=int(samples))
+    moved = np.stack([nd_shift(v[i], rng.uniform(-LIKE_SHIFT, LIKE_SHIFT, 3), order=1, mode="nearest") for i in pick])
+    s, _ = scorer(np.asarray(codec.encode(np.clip(moved, 0.0, 1.0)), np.float32)[:, :level])
+    q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
+    return float(q[2]), {"method": "calibrated on shifted copies", "samples": int(samples),
+                         "quantile": CALIBRATION_QUANTILE, "shift_voxels": LIKE_SHIFT,
+                         "simulated": {"q50": float(q[0]), "q90": float(q[1]),
+                                       f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]), "max": float(q[3])}}
+
+
 def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
                observed_scorer: ObservedScorer | None, samples: int) -> tuple[float, dict]:
     from .query import encode_query_blocks
-    from .shapes import sample_shapes
+    from .shapes import NEAR_MISSES, sample_shapes
 
     spec = model.spec
     tilt = _cone_angle(spec.get("rotations"))
@@ -377,18 +409,37 @@ def _calibrate(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
                             truncation=model.truncation, up=spec["up"], tilt_deg=tilt, behind=spec["behind"],
                             stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
     codes = encode_query_blocks(codec, v, seen, model.truncation, model.voxel_size, bool(spec.get("weighted")))
-    s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if spec.get("weighted") else None)
+    weighted = bool(spec.get("weighted"))
+    s, _ = score_codes(scorer, observed_scorer, codes[:, :level], seen if weighted else None)
     q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
-    return float(q[2]), {"method": "calibrated", "samples": int(samples), "quantile": CALIBRATION_QUANTILE,
-                         "tilt_deg": tilt, "simulated": {"q50": float(q[0]), "q90": float(q[1]),
-                                                         f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]),
-                                                         "max": float(q[3])}}
+    info = {"method": "calibrated", "samples": int(samples), "quantile": CALIBRATION_QUANTILE, "tilt_deg": tilt,
+            "simulated": {"q50": float(q[0]), "q90": float(q[1]), f"q{round(100 * CALIBRATION_QUANTILE)}": float(q[2]),
+                          "max": float(q[3])}}
+    t = float(q[2])
+    others = NEAR_MISSES.get(spec["shape"], ())
+    if others:
+        # shapes the query must not match (an edge model is no plane detector): the threshold also keeps at most
+        # 1 - CALIBRATION_QUANTILE of them
+        per = -(-int(samples) // len(others))
+        vs_, ss_ = zip(*(sample_shapes(o, per, voxel_size=model.voxel_size, truncation=model.truncation,
+                                       up=spec["up"], tilt_deg=tilt, behind=spec["behind"], seed=1 + k,
+                                       stretch=(min(spec.get("stretch", [1.0])), max(spec.get("stretch", [1.0]))))
+                         for k, o in enumerate(others)))
+        nv, ns = np.concatenate(vs_), np.concatenate(ss_)
+        nc = encode_query_blocks(codec, nv, ns, model.truncation, model.voxel_size, weighted)
+        sn, _ = score_codes(scorer, observed_scorer, nc[:, :level], ns if weighted else None)
+        miss = float(np.quantile(sn, 1.0 - CALIBRATION_QUANTILE))
+        info["near_misses"] = {"shapes": list(others), "samples": int(len(sn)),
+                               f"q{round(100 * (1 - CALIBRATION_QUANTILE))}": miss,
+                               "kept_share_of_clean": float(np.mean(s <= min(t, miss)))}
+        t = min(t, miss)
+    return t, info
 
 
 def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | None = None,
            threshold: float | str | None = None, top: int | None = None, device: str | torch.device | None = None,
            keep_scores: bool = False, chunks_per_batch: int = 8, behind: str | None = None, up: Any = None,
-           tilt: float | None = None) -> SearchResult:
+           tilt: float | None = None, scene: bool = True) -> SearchResult:
     """Score every coded block of a map against a query model and select the closest.
 
     Streams the map's codes a few chunks at a time (``Map.iter_codes``), reading only the code chunks that
@@ -418,6 +469,12 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         Also return every coded block's coordinates and score (for pictures and PR curves).
     chunks_per_batch : int
         Code chunks read per step (memory vs. call overhead).
+    scene : bool
+        For the built-in floor, ceiling and wall models: after scoring, keep what the query means in the map
+        (:func:`sdfcodec.search.scene.scene_select`: the lowest large up-facing level, the highest down-facing
+        one that closes the map, large vertical patches); the candidates are the blocks under the threshold
+        (the calibrated one when only ``top`` is given) and those up to ``WEAK_FACTOR`` times it that continue
+        their planes. ``False``: the shape score alone (``--shape-only``).
 
     Returns
     -------
@@ -447,8 +504,19 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     threshold_info = {"method": "given"} if threshold not in (None, "auto") else None
     if threshold == "auto":
         threshold, threshold_info = calibrate_threshold(model, codec, lv, scorer, obs_scorer)
+    from .scene import SCENE_QUERIES, WEAK_FACTOR, scene_select
+
+    rot = (model.spec or {}).get("rotations", "none")
+    staged = (bool(scene) and (model.spec or {}).get("shape") in SCENE_QUERIES and model.rotations is not None
+              and (rot == "none" or 0 < _cone_angle(rot) <= 45))  # not "axis": a floor model then holds walls
+    stage_t = threshold
+    if staged and stage_t is None:  # top only: the scene stage still needs to know which blocks are the shape
+        stage_t, _ = calibrate_threshold(model, codec, lv, scorer, obs_scorer)
+    # blocks scoring up to WEAK_FACTOR times the threshold may still join the plane they continue (scene stage)
+    loop_t = WEAK_FACTOR * stage_t if staged else threshold
 
     sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
+    sel_q = np.zeros((0, lv), np.float32)
     all_c, all_s = [], []
     n_scored = 0
     for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
@@ -457,16 +525,30 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         if keep_scores:
             all_c.append(coords)
             all_s.append(s)
-        keep = np.ones(len(s), bool) if threshold is None else s <= threshold
+        keep = np.ones(len(s), bool) if loop_t is None else s <= loop_t
         if not keep.any():
             continue
         sel_c = np.concatenate([sel_c, coords[keep]])
         sel_s = np.concatenate([sel_s, s[keep]])
         sel_i = np.concatenate([sel_i, idx[keep]])
-        if top is not None and len(sel_s) > top:
+        sel_q = np.concatenate([sel_q, np.asarray(codes, np.float32)[keep]])  # to tell surfaces from solid
+        if top is not None and not staged and len(sel_s) > top:
             # running top-k: memory stays O(top + batch)
             part = np.argpartition(sel_s, top - 1)[:top]
-            sel_c, sel_s, sel_i = sel_c[part], sel_s[part], sel_i[part]
+            sel_c, sel_s, sel_i, sel_q = sel_c[part], sel_s[part], sel_i[part], sel_q[part]
+    scene_info = None
+    surf_t = stage_t if staged else threshold
+    has_surface = _surface_test(view, codec, lv, surf_t) if surf_t is not None else None
+    if has_surface is not None and (model.spec or {}).get("shape") and len(sel_c):
+        # a built-in shape near a block's face is nearly a solid or a free block: blocks that hold no surface (the
+        # solid around an exact room) are no result of any shape query
+        real = has_surface(sel_c, sel_q)
+        sel_c, sel_s, sel_i = sel_c[real], sel_s[real], sel_i[real]
+    if staged:
+        coded = np.argwhere(view.block_states() == BlockState.CODED)
+        kept, scene_info = scene_select(model.spec["shape"], model, sel_c, sel_s, sel_i, stage_t, coded,
+                                        np.asarray(m.origin, np.float64), m.voxel_size, has_surface)
+        sel_c, sel_s, sel_i = sel_c[kept], sel_s[kept], sel_i[kept]
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
     if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here
@@ -479,13 +561,55 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "code_bytes_level": _code_chunk_bytes(m, lv), "code_bytes_full": _code_chunk_bytes(m),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
-        "observed_scoring": masked,
+        "observed_scoring": masked, "scene": scene_info,
     }
     return SearchResult(
         coords=sel_c, scores=sel_s.astype(np.float32), nearest=sel_i, level=lv, query=model, threshold=threshold,
         top=top, stats=stats,
         all_coords=np.concatenate(all_c) if all_c else (np.zeros((0, 3), np.int64) if keep_scores else None),
         all_scores=np.concatenate(all_s) if all_s else (np.zeros(0, np.float32) if keep_scores else None))
+
+
+def codes_at(m: Map, coords: np.ndarray, level: int) -> np.ndarray:
+    """The first ``level`` code elements ``(N, level)`` float32 of coded blocks ``coords`` ``(N, 3)``, each code
+    chunk holding one read once."""
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    grid = np.asarray(m.grid_blocks)
+    cb = m.header.codes.chunk_blocks
+    arr = m.reader.codes_array
+    chunk_of = coords // cb
+    order = np.lexsort(chunk_of.T[::-1])
+    bounds = np.flatnonzero(np.any(np.diff(chunk_of[order], axis=0) != 0, axis=1)) + 1
+    codes = np.empty((len(coords), level), np.float32)
+    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(order)]):
+        if lo == hi:
+            continue
+        idx = order[lo:hi]
+        ch = chunk_of[idx[0]]
+        box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
+        chunk = m.reader.read(arr, (*box, slice(0, level)))
+        codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
+    return codes
+
+
+#: :func:`_surface_test`: a block within this share of the query's threshold of a block of solid or free space
+#: holds no surface (an exact SDF's solid blocks are at 0; a plane clipping a corner is far beyond).
+SURFACE_SHARE = 0.1
+
+
+def _surface_test(view: Map, codec: Codec, level: int, t: float):
+    """``coords (N, 3) -> (N,) bool``: whether each coded block holds a surface, i.e. its code is farther than
+    :data:`SURFACE_SHARE` of ``t`` (the query's threshold) from the codes of a block of solid and a block of free
+    space. An exact SDF codes the solid around a room too; those blocks are no surface above or below anything."""
+    const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
+    ref = Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu"))
+
+    def has_surface(coords: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
+        if not len(coords):
+            return np.zeros(0, bool)
+        return ref(codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
+
+    return has_surface
 
 
 # ---------------------------------------------------------------------------------------------- expanding
@@ -581,19 +705,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
             blocks[i] = d_max
             blocks[i][tuple(slice(0, s) for s in out.shape)] = out
     elif len(coords):
-        # group the selected blocks by code chunk: each chunk holding one is read once, at level lv
-        cb = m.header.codes.chunk_blocks
-        arr = view.reader.codes_array
-        chunk_of = coords // cb
-        order = np.lexsort(chunk_of.T[::-1])
-        bounds = np.flatnonzero(np.any(np.diff(chunk_of[order], axis=0) != 0, axis=1)) + 1
-        codes = np.empty((len(coords), lv), np.float32)
-        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(order)]):
-            idx = order[lo:hi]
-            ch = chunk_of[idx[0]]
-            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
-            chunk = view.reader.read(arr, (*box, slice(0, lv)))
-            codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
+        codes = codes_at(view, coords, lv)
         for i in range(0, len(coords), 65536):
             v = codec.decode(torch.from_numpy(codes[i:i + 65536]).to(dev))
             # truncated to [d_min, d_max] as the map reader's decodes (a lossy decode may overshoot)

@@ -21,6 +21,7 @@ from .query import build_query
 __all__ = [
     "TRUTH",
     "PURE_MIN_SURFACE",
+    "SLIVER_SECTION",
     "pr_curve",
     "operating_points",
     "evaluate_retrieval",
@@ -28,7 +29,26 @@ __all__ = [
 
 
 def _clean(lab: dict, kind: str = "floor") -> np.ndarray:
+    if f"{kind}_section_cover" in lab:  # the surface's own plane (any angle to the grid)
+        return ((lab[f"{kind}_main"] >= 0.9) & (lab[f"{kind}_section_cover"] >= 0.9)
+                & (lab[f"{kind}_section"] >= SLIVER_SECTION))
     return (lab[kind] >= 0.9) & (lab[f"{kind}_cover"] >= 0.9)
+
+
+def _sliver(lab: dict, kind: str) -> np.ndarray:
+    """Blocks whose surface is that surface alone but only clips a corner: left out of the strict truth."""
+    if f"{kind}_section" not in lab:
+        return np.zeros(len(lab[kind]), bool)
+    return (lab[f"{kind}_main"] >= 0.9) & (lab[f"{kind}_section"] < SLIVER_SECTION)
+
+
+def _strict(kind: str) -> Callable[[dict], tuple[np.ndarray, np.ndarray]]:
+    return lambda lab: (_clean(lab, kind), ~_clean(lab, kind) & ~_sliver(lab, kind))
+
+
+#: The strict truths leave out blocks whose section of the surface's plane is smaller than this (voxels
+#: squared, a quarter of a block face): a plane clipping a block's corner.
+SLIVER_SECTION = 64.0
 
 
 def _pure(lab: dict, kind: str) -> np.ndarray:
@@ -41,10 +61,15 @@ PURE_MIN_SURFACE = 64
 
 #: Ground-truth definitions for :func:`evaluate_retrieval`: ``name -> f(block_labels) -> (positive, negative)``
 #: boolean masks (blocks in neither are left out of precision and recall). A *clean floor block*: >= 90 % of
-#: its surface voxels are nearest the floor and the floor covers >= 90 % of its cross-section; a *partial* one
-#: holds some floor but is not clean (floor slivers and blocks shared with walls or furniture).
+#: its surface voxels lie on the floor, and the floor covers >= 90 % of its section of the block, measured in the
+#: floor's own plane (``LabelledRoom.block_labels``: ``floor_main``, ``floor_section_cover``; a tilted floor or a
+#: wall crossing a block obliquely covers all of its section, a surface ending inside the block does not), a
+#: section of at least :data:`SLIVER_SECTION`; a *partial* one holds some floor but is not clean (blocks shared
+#: with walls or furniture, surfaces ending inside the block). Clean walls and ceilings alike, each on one wall
+#: or ceiling primitive (a block holding two walls is a corner, not a wall block).
 #:
-#: ``"floor"``: clean floor blocks against all others (partial ones count as false positives when retrieved);
+#: ``"floor"``: clean floor blocks against all others but slivers (a surface alone in the block that only
+#: clips its corner, left out; partial ones count as false positives when retrieved);
 #: ``"floor-vs-none"``: clean floor blocks against blocks holding no floor at all (partial ones left out);
 #: ``"floor-majority"``: blocks whose surface is at least half floor (``RoomScene.floor_blocks``) against all
 #: others; ``"up"``: clean upward-facing blocks (floor and furniture tops alike) against all others; ``"wall"``,
@@ -52,15 +77,31 @@ PURE_MIN_SURFACE = 64
 #: ``"wall-pure"``, ``"ceiling-pure"``: blocks whose surface is >= 90 % that surface (at least
 #: :data:`PURE_MIN_SURFACE` surface voxels, however little of the cross-section it covers: a wall crossing a
 #: block obliquely, a tilted floor) against blocks with < 10 % of it; mixed blocks are left out.
+#: ``"edge"``, ``"corner"``: see :func:`_parts`; ``"pole"``: blocks whose surface is >= 90 % the sides of thin
+#: upright primitives (cylinders and table legs up to 10 voxels across the axis) against blocks with < 10 %.
 TRUTH: dict[str, Callable[[dict], tuple[np.ndarray, np.ndarray]]] = {
-    "floor": lambda lab: (_clean(lab), ~_clean(lab)),
+    "floor": _strict("floor"),
     "floor-vs-none": lambda lab: (_clean(lab), lab["floor"] == 0),
     "floor-majority": lambda lab: (lab["floor"] >= 0.5, lab["floor"] < 0.5),
     "up": lambda lab: (_clean(lab, "up"), ~_clean(lab, "up")),
-    "wall": lambda lab: (_clean(lab, "wall"), ~_clean(lab, "wall")),
-    "ceiling": lambda lab: (_clean(lab, "ceiling"), ~_clean(lab, "ceiling")),
+    "wall": _strict("wall"),
+    "ceiling": _strict("ceiling"),
     **{f"{k}-pure": (lambda k: lambda lab: (_pure(lab, k), lab[k] < 0.1))(k) for k in ("floor", "wall", "ceiling")},
+    "edge": lambda lab: _parts(lab, 2),
+    "corner": lambda lab: _parts(lab, 3),
+    "pole": lambda lab: (_pure(lab, "pole"), lab["pole"] < 0.1),
 }
+
+
+def _parts(lab: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Edges (``k`` = 2) and corners (3) of a room: blocks whose surface is >= 90 % the room's structure, on
+    exactly ``k`` floor, wall or ceiling primitives holding >= 10 % each and no other holding 2 %, against blocks
+    not near ``k`` of them; blocks near ``k`` with a smaller share (the edge passes near the block's face) and
+    corners for the edge truth are left out."""
+    near = (lab["structure"] >= 0.9) & (lab["structure_touch"] >= k)
+    pos = (near & (lab["structure_parts"] == k) & (lab["structure_touch"] == k)
+           & (lab["surface_voxels"] >= PURE_MIN_SURFACE))
+    return pos, ~near
 
 
 # ------------------------------------------------------------------------------------- evaluation: metrics

@@ -21,6 +21,10 @@ from ..geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
 
 __all__ = [
     "WALL_YAWS",
+    "EDGE_YAWS",
+    "PART_REACH",
+    "MIN_SHAPE_SURFACE",
+    "NEAR_MISSES",
     "POLE_RADII",
     "FUSED_STRETCH",
     "sample_shapes",
@@ -49,9 +53,32 @@ BEHIND: tuple[str, ...] = ("unobserved", "solid")
 #: surface seen at angle theta from its normal has its field stretched by 1 / cos(theta) along the normal; these
 #: cover views up to 66 degrees (stretch 2.5). Query shapes for fused maps are sampled at each.
 FUSED_STRETCH: tuple[float, ...] = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5)
+#: Shapes a query must not match, for the queries whose clean instances vary more than their model samples (a
+#: threshold keeping 99 % of simulated edges would keep planes too): the calibrated threshold also keeps at most
+#: 1 % of simulated instances of these (:func:`sdfcodec.search.calibrate_threshold`).
+NEAR_MISSES: dict[str, tuple[str, ...]] = {"edge": ("floor", "wall", "ceiling"),
+                                           "corner": ("edge", "floor", "wall"),
+                                           "pole": ("wall", "floor", "edge")}
 #: Wall normals sampled about up: any horizontal normal is within 7.5 degrees of one.
 WALL_YAWS = 24
 _CENTRE = (BLOCK - 1) / 2.0  # 7.5: the block's centre in voxel units (voxel i at position i)
+#: Edges and corners are modelled (and calibrated) with their line or apex within this many voxels of the block's
+#: centre along each axis: every face then fills at least a fifth of the block's surface (an edge near a face
+#: is nearly a plane, which the edge model must not match).
+PART_REACH = 4.0
+#: Yaws about up of the edge and corner models (30 degrees apart, and a right-angled edge repeats every 90: any
+#: edge is within 15 degrees of one).
+EDGE_YAWS = 12
+# the shape-frame families, each turned about up by the yaws: an edge along z (two walls), the same edge lying
+# along y with its second face up (floor and wall) or down (ceiling and wall); a corner of floor and two walls,
+# and of ceiling and two walls
+_EDGE_FAMILIES = (np.eye(3), rot_x(math.pi / 2), rot_x(-math.pi / 2))
+_CORNER_FAMILIES = (np.eye(3), rot_x(math.pi))
+
+
+def _yawed(families: Sequence[np.ndarray], yaws: int) -> np.ndarray:
+    """``(yaws * F, 3, 3)``: each family rotation turned about +z by ``yaws`` equal steps."""
+    return np.stack([rot_z(2 * math.pi * k / yaws) @ f for f in families for k in range(yaws)])
 
 
 # ------------------------------------------------------------------------------------------------ rotations
@@ -153,6 +180,38 @@ def _lattice_offsets(voxel_size: float, truncation: tuple[float, float]) -> np.n
     return t - _CENTRE
 
 
+#: Plane shapes (model descriptors and calibration instances) hold at least this many voxels within one voxel of
+#: their plane: a plane only clipping a block's corner is left out (64: a quarter of a face's voxels).
+MIN_SHAPE_SURFACE = 64
+
+
+def _surface_voxels(q: np.ndarray, p: np.ndarray) -> int:
+    """Voxels of a block (``q``: its voxel positions in the shape's frame) within one voxel of the plane at ``p``."""
+    return int((np.abs(q[..., 2] - p[2]) <= 1.0).sum())
+
+
+def _extent(r: np.ndarray) -> float:
+    """How far (voxels) a plane with normal ``r[:, 2]`` may pass from the block's centre and still hold surface
+    voxels of the block: its voxels' half-extent along the normal, plus one voxel (a plane up to a voxel beyond
+    the outer voxels is the surface of the block on each side of it). 8.5 for axis-aligned planes, up to 13.99
+    for one along a diagonal."""
+    return float(_CENTRE * np.abs(r[:, 2]).sum() + 1.0)
+
+
+def _reach(pos: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Plane positions ``(P, 3)`` (offsets along z, evenly spaced) continued at their spacing to :func:`_extent` of
+    rotation ``r``: a plane oblique to the grid crosses the block farther from its centre than an axis-aligned one."""
+    off = np.sort(pos[:, 2])
+    if len(off) < 2:
+        return pos
+    step = float(off[1] - off[0])
+    ext = _extent(r)
+    lo = off[0] - step * np.arange(1, int(max(0.0, (off[0] + ext) // step)) + 1)
+    hi = off[-1] + step * np.arange(1, int(max(0.0, (ext - off[-1]) // step)) + 1)
+    z = np.concatenate([lo[::-1], off, hi])
+    return np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1)
+
+
 def _plane(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
     return q[..., 2] - pos[2]  # solid below, free above (+z)
 
@@ -191,13 +250,14 @@ def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray,
             base = np.stack([rot_z(2 * math.pi * k / WALL_YAWS) @ rot_y(math.pi / 2) for k in range(WALL_YAWS)])
         return _plane, pos, base
     if name == "edge":
-        o = _offsets(5)
+        o = _offsets(5) * (PART_REACH / 6.4)  # within PART_REACH of the centre: both faces fill a share of the block
         pos = np.array([(a, b, 0.0) for a in o for b in o])
-        return _edge, pos, axis_rotations()  # the 12 axis-aligned concave edges of a room (deduplicated later)
+        # a room's concave edges at any yaw about up: wall-wall (vertical), floor-wall, ceiling-wall
+        return _edge, pos, _yawed(_EDGE_FAMILIES, EDGE_YAWS)
     if name == "corner":
-        o = _offsets(4)
+        o = _offsets(4) * (PART_REACH / 6.0)
         pos = np.array([(a, b, c) for a in o for b in o for c in o])
-        return _corner, pos, axis_rotations()  # the 8 axis-aligned concave corners
+        return _corner, pos, _yawed(_CORNER_FAMILIES, EDGE_YAWS)  # floor and ceiling corners at any yaw
     if name == "pole":
         o = _offsets(5)
         pos = np.array([(a, b, r) for a in o for b in o for r in POLE_RADII])
@@ -269,9 +329,10 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
         Vertical planes with :data:`WALL_YAWS` (24) horizontal normals 15 degrees apart (any wall is within 7.5
         degrees of one) at ``offsets`` positions.
     ``"edge"``
-        The 12 axis-aligned concave edges of a room (floor-wall, wall-wall, ceiling-wall) at 5 x 5 positions.
+        A room's right-angled concave edges (wall-wall, floor-wall, ceiling-wall) at :data:`EDGE_YAWS` (12)
+        yaws about up and 5 x 5 positions.
     ``"corner"``
-        The 8 axis-aligned concave corners of a room at 4 x 4 x 4 positions.
+        A room's concave corners (floor or ceiling with two walls) at 12 yaws and 4 x 4 x 4 positions.
     ``"pole"``
         Solid vertical cylinders along ``up`` (poles, table legs, pipes) with :data:`POLE_RADII` radii at
         5 x 5 axis positions.
@@ -331,7 +392,9 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
         for b in base:
             r = r_up @ e @ b
             q = grid @ r  # grid-to-shape coordinates: R^T p for each voxel position p
-            for p in pos:
+            for p in (_reach(pos, r) if name in ("floor", "ceiling", "wall") else pos):
+                if name in ("floor", "ceiling", "wall") and _surface_voxels(q, p) < MIN_SHAPE_SURFACE:
+                    continue  # a plane clipping a corner: nearly a block of solid or free space, no plane to match
                 for st in stretch:
                     d = sdf(q, p) * (voxel_size * float(st))
                     blocks.append(truncate(d, truncation, behind))
@@ -385,8 +448,9 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
                   up: Sequence[float] = (0.0, 0.0, 1.0), tilt_deg: float = 0.0, behind: str = "unobserved",
                   stretch: tuple[float, float] = (1.0, 1.0), seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``count`` random instances of a built-in shape, with continuous parameters where a model samples a
-    lattice: plane offsets uniform from one voxel below the block's voxels to one above, any wall yaw, edge and corner positions uniform
-    within 6 voxels of the centre, each tilted uniformly within ``tilt_deg`` of ``up`` (random axis) and spun
+    lattice: plane offsets uniform across the block's extent along their normal (:func:`_extent`; corner slivers
+    redrawn), any wall, edge and corner yaw, edge and corner positions uniform within :data:`PART_REACH` voxels of
+    the centre, each tilted uniformly within ``tilt_deg`` of ``up`` (random axis) and spun
     about it, the field stretched by a factor uniform in ``stretch`` (see :data:`FUSED_STRETCH`). What a map's
     clean instances of the shape look like, to calibrate a threshold on.
 
@@ -410,6 +474,9 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
         b = base[rng.integers(len(base))]
         if name == "wall":
             b = rot_z(rng.uniform(0.0, 2 * math.pi)) @ rot_y(math.pi / 2)
+        elif name in ("edge", "corner"):  # any yaw, not only the model's
+            fam = _EDGE_FAMILIES if name == "edge" else _CORNER_FAMILIES
+            b = rot_z(rng.uniform(0.0, 2 * math.pi)) @ fam[rng.integers(len(fam))]
         spin = rot_z(rng.uniform(0.0, 2 * math.pi)) if name in ("floor", "ceiling") else np.eye(3)
         r = r_up @ tilt @ spin @ b
         if name == "pole":
@@ -418,9 +485,14 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
         elif name in ("floor", "ceiling", "wall"):
             # a plane up to one voxel beyond the block's outer voxel layers is still its surface: the block on
             # each side of a surface between them holds it (its mesh needs both)
-            p = np.array([0.0, 0.0, rng.uniform(-_CENTRE - 1.0, _CENTRE + 1.0)])
-        else:
-            p = rng.uniform(-6.0, 6.0, 3)
+            ext = _extent(r)
+            q = grid @ r
+            for _ in range(32):  # a clean instance is more than a corner sliver (the strict truth's rule)
+                p = np.array([0.0, 0.0, rng.uniform(-ext, ext)])
+                if _surface_voxels(q, p) >= MIN_SHAPE_SURFACE:
+                    break
+        else:  # edges and corners: where the model places them
+            p = rng.uniform(-PART_REACH, PART_REACH, 3)
         d = sdf(grid @ r, p) * voxel_size * rng.uniform(*stretch)
         vs.append(truncate(d, truncation, behind))
         seen.append(d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))

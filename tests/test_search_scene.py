@@ -1,0 +1,167 @@
+"""The map-level stage of a search (sdfcodec.search.scene): what a floor, ceiling or wall query means in the map,
+against analytic scenes whose floor, table top, ceiling and wall blocks are known exactly; the plane-section
+truth of the labelled rooms; and the CLI's --shape-only and digest errors."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import sdfcodec
+from sdfcodec import pretrained_codec
+from sdfcodec import search as S
+from sdfcodec.errors import InvalidValueError
+from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+
+
+@pytest.fixture(scope="module")
+def pca64():
+    return pretrained_codec("pca", 64)
+
+
+def _map(path, vol, codec):
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    return sdfcodec.open_map(path)
+
+
+def _near(prim, shape, min_voxels=128) -> set:
+    """Blocks holding at least ``min_voxels`` voxels within 0.6 voxel of a primitive's surface."""
+    d = np.abs(prim(grid_points(shape, VS)))
+    idx, counts = np.unique(np.argwhere(d <= 0.6 * VS) // 16, axis=0, return_counts=True)
+    return {tuple(int(v) for v in r) for r, k in zip(idx, counts) if k >= min_voxels}
+
+
+def _sel(res) -> set:
+    return {tuple(int(v) for v in c) for c in res.coords}
+
+
+@pytest.fixture(scope="module")
+def furnished(tmp_path_factory, pca64):
+    """An exact room corner: a floor over solid ground, a thick shelf (its top and underside are planes), a tall
+    pillar, and a wall along x = 0.45 m, no ceiling."""
+    shape = (96, 96, 96)
+    h = 0.171  # the floor, mid-block
+    floor = Box((1.0, 1.0, h - 1.0), (3.0, 3.0, 1.0))
+    table = Box((1.28, 0.96, 0.95), (0.48, 0.64, 0.1))  # a thick shelf: top at 1.05, underside at 0.85
+    pillar = Box((0.2, 1.7, 1.0), (0.1, 0.1, 1.0))
+    wall = Box((0.45 - 1.0, 1.0, 1.0), (1.0, 3.0, 2.0))  # solid for x < 0.45: a wall facing +x
+    scene = Scene([floor, table, pillar, wall])
+    m = _map(tmp_path_factory.mktemp("scene") / "room.sdfz", sample_volume(scene, shape, VS, truncation=TRUNC), pca64)
+    return SimpleRoom(m, shape, h, floor, table, wall)
+
+
+class SimpleRoom:
+    def __init__(self, m, shape, h, floor, table, wall):
+        self.m, self.shape, self.h = m, shape, h
+        self.floor_blocks = _near(Plane((0, 0, 1), h), shape)
+        self.top_blocks = _near(Plane((0, 0, 1), 1.05), shape) & {(x, y, z) for x in range(2, 6) for y in range(1, 5)
+                                                                    for z in range(2, 5)}
+        self.wall_blocks = _near(Plane((1, 0, 0), 0.45), shape)
+
+
+def test_floor_is_the_lowest_level_not_the_table_top(furnished):
+    room = furnished
+    shape_only = _sel(S.search(room.m, "floor", threshold="auto", scene=False))
+    assert shape_only & room.top_blocks, "the table top is floor-shaped: the shape score alone selects it"
+    res = S.search(room.m, "floor", threshold="auto")
+    got = _sel(res)
+    assert not (got & room.top_blocks)
+    clean = {b for b in room.floor_blocks if b[0] >= 2}  # away from the wall (x < 0.45 m holds both)
+    assert len(got & clean) >= 0.9 * len(clean) and got <= room.floor_blocks
+    sc = res.stats["scene"]
+    assert sc["query"] == "floor" and abs(sc["height"] - room.h) < 2 * VS and "lowest" in sc["rule"]
+
+
+def test_no_ceiling_in_view_selects_none(furnished):
+    room = furnished
+    # the table's underside is a down-facing plane: the shape score alone takes it for a ceiling
+    assert len(S.search(room.m, "ceiling", threshold="auto", scene=False)) > 0
+    res = S.search(room.m, "ceiling", threshold="auto")
+    assert len(res) == 0 and "no ceiling in view" in res.stats["scene"]["rejected"]
+
+
+def test_walls_are_large_vertical_planes(furnished):
+    room = furnished
+    got = _sel(S.search(room.m, "wall", threshold="auto"))
+    shape_only = _sel(S.search(room.m, "wall", threshold="auto", scene=False))
+    table_sides = {b for b in shape_only if b[2] in (2, 3) and b[0] >= 2}  # the shelf's sides
+    assert got <= shape_only and not (got & table_sides)
+    assert len(got & room.wall_blocks) >= 0.8 * len({b for b in room.wall_blocks if b[2] >= 1})
+
+
+def test_scene_stage_units():
+    from sdfcodec.search.scene import plane_components
+
+    # two coplanar rows of blocks, and a third block on a plane 5 voxels off: two patches
+    coords = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    points = (coords * 16 + 7.5) * VS
+    points[3, 2] += 5 * VS
+    lab = plane_components(coords, normals, points, VS)
+    assert lab[0] == lab[1] == lab[2] != lab[3]
+
+
+def test_oblique_wall_blocks_are_clean_in_the_section_truth():
+    from sdfcodec.data.render import RoomScene
+    from sdfcodec.data.rooms import LabelledRoom
+    from sdfcodec.geometry import rot_z
+    from sdfcodec.search.metrics import TRUTH
+
+    yaw = math.radians(35.0)
+    n = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    wall = Box(tuple(n * (0.8 - 0.5) + np.array([0.0, 0.0, 0.64])), (0.5, 3.0, 1.0), rot_z(yaw))  # face n.p = 0.8
+    floor = Box((0.64, 0.64, -0.5 + 0.1), (3.0, 3.0, 0.5))
+    scene = RoomScene([floor, wall], ["floor", "wall"], (1.28, 1.28, 1.28), 0, "poor")
+    shape = (80, 80, 64)
+    vol = np.clip(scene(grid_points(shape, VS)), *TRUNC).astype(np.float32)
+    room = LabelledRoom(volume=vol, origin=np.zeros(3), voxel_size=VS, truncation=TRUNC, scene=scene, rotation=np.eye(3),
+                        size=(1.28, 1.28, 1.28), up=np.array([0.0, 0.0, 1.0]), behind="solid")
+    coords = np.argwhere(np.ones((5, 5, 4), bool))
+    lab = room.block_labels(coords)
+    pos, neg = TRUTH["wall"](lab)
+    # blocks well above the floor that the oblique wall crosses near their centre: whole sections, clean
+    c = (coords * 16 + 7.5) * VS
+    dist = np.abs(c @ n - 0.8) / VS
+    crossing = (dist <= 4.0) & (coords[:, 2] >= 1)
+    assert crossing.sum() >= 4 and pos[crossing].all()
+    assert (lab["wall_section_cover"][crossing] >= 0.9).all()
+    assert not pos[dist > 14.0].any()  # no wall in them
+
+
+def test_cli_shape_only_and_summary(tmp_path, furnished):
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    path = str(furnished.m.location)
+    r = CliRunner().invoke(app, ["search", path, "--json"])
+    s = json.loads(r.stdout)
+    assert r.exit_code == 0 and s["scene"]["query"] == "floor" and s["scene"]["kept"] == s["selected"]
+    r = CliRunner().invoke(app, ["search", path, "--shape-only", "--json"])
+    s2 = json.loads(r.stdout)
+    assert r.exit_code == 0 and s2["scene"] is None and s2["selected"] > s["selected"]
+    r = CliRunner().invoke(app, ["search", path, "--query", "ceiling"])
+    assert r.exit_code == 0 and "map-level stage" in r.stdout and "--shape-only" in r.stdout
+
+
+def test_saved_model_of_another_basis_is_one_line_naming_both_digests(tmp_path, furnished):
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+    from sdfcodec.testing import analytic_blocks
+
+    other = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=4))
+    model = S.build_query("floor", codec=other, keep_blocks=False)
+    S.save_query(model, tmp_path / "other.npz")
+    r = CliRunner().invoke(app, ["search", str(furnished.m.location), "--query", str(tmp_path / "other.npz")])
+    line = r.stderr.strip()
+    assert r.exit_code != 0 and len(line.splitlines()) == 1
+    assert model.codec_state_sha256[:16] in line and furnished.m.header.codec.state_sha256[:16] in line
+    with pytest.raises(InvalidValueError, match="different codec or basis"):
+        S.search(furnished.m, S.load_query(tmp_path / "other.npz"))
