@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from .._validate import BLOCK
+from ..errors import InvalidValueError
 
 __all__ = [
     "SCENE_QUERIES",
@@ -298,7 +299,7 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
         info["rule"] = (f"wall: vertical planes (patches grouped by plane) holding at least {WALL_SHARE:.0%} of the "
                         f"largest one's blocks (and {MIN_PATCH_BLOCKS})")
     else:
-        raise ValueError(f"no scene rule for {query!r}")
+        raise InvalidValueError(f"no scene rule for query {query!r}: the scene stage knows floor, ceiling and wall")
     info["levels"] = sorted(report, key=lambda r: -r["blocks"])[:16]
     info["kept"] = int(keep.sum())
     info["kept_over_threshold"] = int((keep & ~strong).sum())
