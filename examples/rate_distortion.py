@@ -103,18 +103,19 @@ def kitchen_blocks(path: Path, workdir: Path) -> tuple[np.ndarray, np.ndarray, n
             np.ascontiguousarray(observed.reshape(len(coords), BLOCK, BLOCK, BLOCK)))
 
 
-def synthetic_blocks(quick: bool) -> tuple[np.ndarray, np.ndarray]:
+def synthetic_blocks(quick: bool, shift: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The furnished room of eval_codecs.py's "synthetic map" cut into blocks: all grid blocks (coords, metres).
     ``quick``: a 64 x 64 x 48-voxel corner (floor, two walls, some furniture), sampled with the lattice moved by
     0.3 voxel so that no wall lies on voxel centres (where the exact distance is 0, the side a crossing falls on
-    is a rounding accident, which would dominate its surface metrics)."""
+    is a rounding accident, which would dominate its surface metrics). ``shift``: the lattice shift in voxels
+    (default: 0.3 when ``quick``, else 0, as this page's sections were measured)."""
     from sdfcodec.blocks import split_blocks
     from sdfcodec.data.render import room_scene
     from sdfcodec.sdf import sample_volume
 
     room, margin = room_scene(seed=0, geometry="rich", ceiling=True), 0.16
     shape = (64, 64, 48) if quick else tuple(int(round((s + 2 * margin) / VS)) for s in (4.0, 3.2, 2.5))
-    shift = 0.3 * VS if quick else 0.0
+    shift = (0.3 if quick else 0.0) * VS if shift is None else float(shift) * VS
     vol = sample_volume(room.sdf, shape, VS, origin=(-margin + shift,) * 3, truncation=TRUNC)
     b = split_blocks(vol, fill=TRUNC[1])
     coords = np.argwhere(np.ones(b.shape[:3], bool)).astype(np.int64)
