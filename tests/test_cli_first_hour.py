@@ -154,7 +154,9 @@ def test_metre_regions_are_half_open_and_decodes_truncated(scene, tmp_path):
     assert "50 x 50 x 25 voxels" in r.stdout and r.stdout.count("\n") == 1
     part = np.load(tmp_path / "m.npy")
     full = sdfcodec.open_map(map_path).decode_region()
-    assert part.shape == (50, 50, 25) and np.array_equal(part, full[:50, :50, :25])
+    # equal to float32 rounding: BLAS (AMD's at least) sums in another order for another number of blocks
+    assert part.shape == (50, 50, 25)
+    np.testing.assert_allclose(part, full[:50, :50, :25], rtol=0, atol=1e-6)
     assert full.min() >= -0.04 and full.max() <= 0.1
     r = sdfcodec_cli("decode", map_path, tmp_path / "e.npy", "--region", "0:1,0:1,0.5:0.5", "--units", "m")
     assert r.returncode == 1 and "holds no voxel on axis z" in r.stderr and "half-open" in r.stderr
