@@ -51,7 +51,7 @@ import sdfcodec
 ROOT = Path(__file__).resolve().parents[1]
 TRUNC, VS = (-0.04, 0.1), 0.02
 
-# The paper's Table 1 (paper/eigenshapes.tex, table:results): reconstruction error "MSE" +- the standard
+# The paper's Table 1 (the eigenshapes paper, Canelhas et al.): reconstruction error "MSE" +- the standard
 # deviation among data sets, averaged over all non-empty blocks of six TUM freiburg-1 maps.
 PAPER_TABLE1 = {"pca-32": (42.94, 2.63), "pca-64": (33.96, 2.01), "pca-128": (27.29, 1.87),
                 "ae-32": (59.65, 2.78), "ae-64": (49.52, 2.19), "ae-128": (46.19, 2.23),
@@ -441,7 +441,8 @@ def markdown(res: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
+    ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"),
+                    help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
     ap.add_argument("--workdir", default=str(ROOT / "build" / "ae-models"))
     ap.add_argument("--dataset", default=None, help="training data set, for the best fixed w (default: "
                     "WORKDIR/synthetic-real.zarr, else build/default-model/synthetic-real.zarr)")

@@ -1,7 +1,7 @@
 """Fuse a real RGB-D sequence (TUM RGB-D or 7-Scenes layout) into a map, then compress it with the shipped
 eigenshapes and see what it costs.
 
-    python examples/fuse_and_compress.py                                  # ../shared/data/7scenes-redkitchen
+    python examples/fuse_and_compress.py                                  # 7scenes-redkitchen
     python examples/fuse_and_compress.py rgbd_dataset_freiburg1_desk --frames 100 --stride 2
 
 Writes OUT/raw.sdfz (the fused map, lossless) and OUT/pca-K.sdfz, and prints blocks, bytes, ratios and the
@@ -11,6 +11,7 @@ reconstruction error. The same as ``sdfcodec fuse SEQ raw.sdfz`` followed by ``s
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -21,7 +22,8 @@ import sdfcodec
 from sdfcodec.data.sequences import open_sequence
 from sdfcodec.fusion import fuse
 
-DEFAULT_SEQUENCE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes-redkitchen"
+# a TUM RGB-D or 7-Scenes sequence folder: $SDFCODEC_KITCHEN (the 7-Scenes redkitchen), else ./7scenes-redkitchen
+DEFAULT_SEQUENCE = Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"))
 TRUNC = (-0.04, 0.1)
 
 

@@ -1,11 +1,11 @@
 """Fuse the 7-Scenes kitchen, compress it with the shipped eigenshapes, and render both meshes.
 
-    python examples/kitchen_pictures.py [--kitchen ../shared/data/7scenes-redkitchen] [--out docs/img]
+    python examples/kitchen_pictures.py [--kitchen 7scenes-redkitchen] [--out docs/img]
 
 Writes kitchen-raw.png (the fused field, lossless) and kitchen-pca-64.png / kitchen-pca-32.png (decoded from
 64- and 32-element codes), and prints the map sizes. The same as running:
 
-    sdfcodec fuse ../shared/data/7scenes-redkitchen kitchen.sdfz --voxel-size 0.02
+    sdfcodec fuse 7scenes-redkitchen kitchen.sdfz --voxel-size 0.02
     sdfcodec encode kitchen.sdfz kitchen-64.sdfz --code-size 64
     sdfcodec mesh kitchen-64.sdfz kitchen-64.ply
 """
@@ -13,6 +13,7 @@ Writes kitchen-raw.png (the fused field, lossless) and kitchen-pca-64.png / kitc
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -27,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
+    ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"),
+                    help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
     ap.add_argument("--out", default=str(ROOT / "docs" / "img"))
     args = ap.parse_args()
     out = Path(args.out)

@@ -1,6 +1,6 @@
 """Measure the two PCA design choices: where the mean lives, and float16 code storage.
 
-    python examples/pca_choices.py [--train 30000] [--test 5000] [--kitchen ../shared/data/7scenes-redkitchen]
+    python examples/pca_choices.py [--train 30000] [--test 5000] [--kitchen 7scenes-redkitchen]
 
 Fits pca-32/64/128 with mean="dataset" and mean="block" on synthetic blocks, and reports per-voxel MSE and
 per-block sum of squared errors (normalised units) on held-out synthetic blocks, on the built-in analytic room,

@@ -430,7 +430,8 @@ def markdown(res: dict) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--kitchen", type=Path, default=ROOT.parent / "shared" / "data" / "7scenes-redkitchen")
+    ap.add_argument("--kitchen", type=Path, default=Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen")),
+                    help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
     ap.add_argument("--quick", action="store_true", help="a tiny synthetic corner, few settings (the CI test)")
     ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (default: all; "
                                                     "--quick: all but the networks)")

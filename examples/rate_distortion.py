@@ -640,7 +640,8 @@ def write_md(res: dict, path: Path, png: str) -> None:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--kitchen", type=Path, default=ROOT.parent / "shared" / "data" / "7scenes-redkitchen")
+    ap.add_argument("--kitchen", type=Path, default=Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen")),
+                    help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
     ap.add_argument("--quick", action="store_true", help="a small synthetic map only, few settings (tests)")
     ap.add_argument("--out", type=Path, default=None, help="where the json/png/md go (default docs/, "
                                                            "or --workdir with --quick)")

@@ -1,6 +1,6 @@
 """Surfaces and tracking on a compressed real map: the table of docs/surface.md ("Results").
 
-    python examples/surface_study.py --kitchen ../shared/data/7scenes-redkitchen --out build/surface-study
+    python examples/surface_study.py --kitchen 7scenes-redkitchen --out build/surface-study
 
 Fuses the posed depth frames into a lossless map with fusion weights (as `sdfcodec fuse` does), then writes it
 with the shipped PCA basis at 64 and 128 components two ways: **plain** (every voxel fitted alike, unobserved
@@ -15,6 +15,7 @@ prints a markdown table.
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import time
 from pathlib import Path
@@ -32,7 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
+    ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"),
+                    help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
     ap.add_argument("--out", default=str(ROOT / "build" / "surface-study"))
     ap.add_argument("--track", action="store_true", help="also track every frame against each map (~1 min each)")
     args = ap.parse_args()

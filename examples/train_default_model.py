@@ -5,7 +5,7 @@ real blocks.
 
 Reproducible: fixed seeds, nothing downloaded. Steps:
 
-1. Fuse ../shared/data/7scenes-redkitchen at 2 cm (truncation [-0.04, 0.1] m) and split the map in two halves
+1. Fuse 7scenes-redkitchen at 2 cm (truncation [-0.04, 0.1] m) and split the map in two halves
    along x, one block apart: windows sampled from the first half (the paper's sub-volume sampler, every 4
    voxels by default here, six axis orders) join the training data; the allocated non-empty blocks of the second half are
    the held-out real test set. A spatial split, so no held-out surface was seen in training.
@@ -27,6 +27,7 @@ Writes plugins/sdfcodec_pca/models/pca-128.npz, docs/default-model.json and docs
 from __future__ import annotations
 
 import argparse
+import os
 import dataclasses
 import json
 import time
@@ -80,7 +81,8 @@ def masked_windows(part, stride: int) -> tuple[np.ndarray, np.ndarray]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
+    ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"),
+                    help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
     ap.add_argument("--synthetic", type=int, default=60_000)
     ap.add_argument("--real-stride", type=int, default=4,
                     help="window stride on the real half (4: overlapping windows, 8x the paper's 8-voxel count)")

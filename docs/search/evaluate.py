@@ -29,6 +29,7 @@ default) and without it (``--shape-only``). Codec: the shipped pca-64, searched 
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import math
 import sys
@@ -44,9 +45,8 @@ from sdfcodec import search as S
 from sdfcodec.search.metrics import TRUTH
 
 HERE = Path(__file__).resolve().parent
-# ../shared/data from the repository root (a worktree one level deeper finds it one level up)
-KITCHEN = next((p for p in (HERE.parents[i] / "shared" / "data" / "7scenes-redkitchen" for i in (2, 3)) if p.is_dir()),
-               HERE.parents[2] / "shared" / "data" / "7scenes-redkitchen")
+# a 7-Scenes redkitchen sequence folder (frames, poses, gravity): $SDFCODEC_KITCHEN, else ./7scenes-redkitchen
+KITCHEN = Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"))
 QUERIES = ("floor", "wall", "ceiling")
 PARTS = ("edge", "corner", "pole")
 

@@ -13,6 +13,7 @@ the printed output. Everything is measured in the run that writes it; nothing is
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import tempfile
 import time
@@ -28,7 +29,8 @@ from sdfcodec.search_cli import format_summary, search_command
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-KITCHEN = ROOT.parent / "shared" / "data" / "7scenes-redkitchen"
+# a 7-Scenes redkitchen sequence folder (frames, poses, gravity): $SDFCODEC_KITCHEN, else ./7scenes-redkitchen
+KITCHEN = Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"))
 
 
 def _machine() -> dict:
