@@ -183,8 +183,8 @@ def residual_rows(spec: ResidualSpec, orig: np.ndarray, dec: torch.Tensor, obser
     """The stored ``q`` ``(n, 4096)`` (``spec.dtype``) of blocks whose input is ``orig`` ``(n, 16, 16, 16)`` float32
     metres and whose reader decode (full level, no residual) is ``dec`` (same shape, torch, any device);
     ``observed`` and ``crossing`` (``(n, 16, 16, 16)`` bool; None: all observed, no crossings) as in the module
-    docstring. Checked with the reader's arithmetic (:func:`apply_residual`): raises ``RuntimeError`` if a bound
-    still fails after the corrections (a bug, never expected)."""
+    docstring. Checked with the reader's arithmetic (:func:`apply_residual`): raises ``InvalidValueError`` if a
+    bound still fails after the corrections (a bug, never expected)."""
     n = len(orig)
     d_min, d_max = truncation
     o = orig.reshape(n, -1).astype(np.float64)
@@ -219,10 +219,12 @@ def residual_rows(spec: ResidualSpec, orig: np.ndarray, dec: torch.Tensor, obser
         if not bad.any():
             break
     else:
-        raise RuntimeError("the residual stage could not meet its bound after 4 passes (please report this)")
+        raise InvalidValueError("the residual stage could not meet its bound after 4 passes; nothing was stored "
+                                "(a bug: please report it with the input)")
     limit = 127 if spec.dtype == "int8" else 32767
     if np.abs(q).max(initial=0) > limit:
-        raise RuntimeError(f"residual value {int(np.abs(q).max())} beyond {spec.dtype} (please report this)")
+        raise InvalidValueError(f"residual value {int(np.abs(q).max())} beyond {spec.dtype}; nothing was stored (a bug: "
+                                "please report it with the input)")
     return q.astype(spec.dtype)
 
 
