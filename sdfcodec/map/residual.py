@@ -99,8 +99,8 @@ def residual_spec(codec: Any, code_dtype: str, voxel_size: float, truncation: tu
 
 def residual_compressors() -> list:
     """The chain of ``residual``: mostly zeros and small integers. Blosc zstd level 9 without shuffle stores the
-    analytic room's residuals (pca-16, bounds 2 and 10 mm, sign-exact) in 0.68-0.76x the bytes of level 3, bit
-    shuffle in 1.04-1.15x, plain zstd 9 in 0.85-0.90x (docs/error-bounds.md); its decode costs the same."""
+    analytic room's residuals (pca-16; 2 and 10 mm, sign-exact, both) in 0.65-0.76x the bytes of level 3; bit
+    shuffle takes 1.04-1.15x of level 3, plain zstd 9 0.78-0.90x (docs/error-bounds.md)."""
     return [BloscCodec(cname="zstd", clevel=9, shuffle="noshuffle"), Crc32cCodec()]
 
 
