@@ -279,3 +279,19 @@ def test_golden_residual_map_decodes_forever(regen_golden, fused):
     np.testing.assert_array_equal(dec, np.load(GOLDEN / "decoded.npy"))
     assert np.abs(dec - vol)[obs].max() <= 0.01
     assert ((dec < 0) == (vol < 0))[_crossing_voxels(vol, obs)].all()
+
+
+def test_bound_holds_across_devices(maps, volume, pca64, tmp_path):
+    """Written on one device, decoded on another: the writer's margin covers the decode's float32 differences."""
+    torch = pytest.importorskip("torch")
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    dec = sdfcodec.open_map(maps["exact", "e10sign"]).decode_region(device="cuda").cpu().numpy()
+    assert np.abs(dec.astype(np.float64) - volume).max() <= 0.01
+    assert ((dec < 0) == (volume < 0))[_crossing_voxels(volume, None)].all()
+    p = tmp_path / "gpu.sdfz"
+    with sdfcodec.create_map(p, codec=pca64, voxel_size=VS, max_error=0.004, sign_exact=True, device="cuda") as m:
+        m.write_volume(volume)
+    dec = sdfcodec.open_map(p).decode_region()
+    assert np.abs(dec.astype(np.float64) - volume).max() <= 0.004
+    assert ((dec < 0) == (volume < 0))[_crossing_voxels(volume, None)].all()
