@@ -117,8 +117,9 @@ def stored_code_values(codes: np.ndarray, spec: CodesSpec) -> np.ndarray:
     return code_values(codes.astype(spec.dtype), None)[0]
 
 
-def _face(ax: int, index: int) -> tuple:
-    return (slice(None),) * (ax + 1) + (index,)
+def _face(blocks: np.ndarray, ax: int, index: int) -> tuple:
+    """The index of layer ``index`` along voxel axis ``ax`` of the blocks ``blocks`` (indices into the batch)."""
+    return (blocks,) + (slice(None),) * ax + (index,)
 
 
 def crossing_voxels(coords: np.ndarray, blocks: np.ndarray, observed: np.ndarray | None,
@@ -146,12 +147,10 @@ def crossing_voxels(coords: np.ndarray, blocks: np.ndarray, observed: np.ndarray
         j = j[i]
         if not len(i):
             continue
-        last, first = _face(ax, BLOCK - 1), _face(ax, 0)
-        e = crossing_edges(blocks[i][last], blocks[j][first], jump) & obs[i][last] & obs[j][first]
-        for k, f in ((i, last), (j, first)):
-            sub = out[k]
-            sub[f] |= e
-            out[k] = sub
+        last, first = _face(i, ax, BLOCK - 1), _face(j, ax, 0)  # faces only: no copy of whole blocks
+        e = crossing_edges(blocks[last], blocks[first], jump) & obs[last] & obs[first]
+        out[last] |= e  # i (and j) hold each block once: the fancy-index update is exact
+        out[first] |= e
     return out
 
 

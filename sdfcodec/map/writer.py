@@ -48,6 +48,8 @@ __all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "
 #: How long a writer waits for another process's update of the same map to finish before giving up.
 LOCK_TIMEOUT = 60.0
 
+#: Blocks whose residual is computed at once: 1024 blocks' float64 work arrays take 32 MiB each.
+_RESIDUAL_SLAB = 1024
 _UNCHANGED = "the previous map there is unchanged and no temporary files are left"
 _NOTHING = "nothing was written there and no temporary files are left"
 
@@ -316,10 +318,15 @@ class MapWriter:
                                           max_decode_bytes=self.max_state_bytes, live=self)
         stored = torch.from_numpy(stored_code_values(codes, self.codes_spec)).to(self.device)
         dec = self._live_reader.decode_codes(stored, metres=True, coords=coords, mask_rows=packed, residual=False)
-        q = residual_rows(self.header_kw["residual"], blocks_m, dec, observed, crossing, self.truncation)
+        q = np.empty((len(coords), BLOCK ** 3), self.residual.dtype)
+        for i in range(0, len(coords), _RESIDUAL_SLAB):  # a slab at a time: its float64 work arrays stay small
+            sl = slice(i, i + _RESIDUAL_SLAB)
+            q[sl] = residual_rows(self.header_kw["residual"], blocks_m[sl], dec[sl],
+                                  None if observed is None else observed[sl], None if crossing is None else crossing[sl],
+                                  self.truncation)
         # every chunk holding coded blocks is stored, zeros too, so a reader tells a lost chunk from one whose
         # blocks need no correction (spec 6d); Zarr skips all-zero chunks by default
-        write_block_rows(self.residual.with_config({"write_empty_chunks": True}), coords, q.reshape(len(coords), -1))
+        write_block_rows(self.residual.with_config({"write_empty_chunks": True}), coords, q)
 
     def put_codes(self, coords: np.ndarray, codes: np.ndarray, masks: np.ndarray | None = None, *,
                   residual_ok: bool = True) -> None:
