@@ -295,3 +295,21 @@ def test_bound_holds_across_devices(maps, volume, pca64, tmp_path):
     dec = sdfcodec.open_map(p).decode_region()
     assert np.abs(dec.astype(np.float64) - volume).max() <= 0.004
     assert ((dec < 0) == (volume < 0))[_crossing_voxels(volume, None)].all()
+
+
+def test_transcoding_a_map_keeps_the_bound(tmp_path, fused, pca64):
+    """A lossless fused map transcoded with a residual (Map.write_map: decoded and encoded, never the codes
+    copied): the bound holds against the source on its observed voxels, which stay unobserved."""
+    vol, obs = (a[:48, :48, :32] for a in fused)
+    src = tmp_path / "raw.sdfz"
+    _write(src, vol, obs, sdfcodec.get_codec("raw"))
+    with sdfcodec.create_map(tmp_path / "t.sdfz", codec=pca64, voxel_size=VS, max_error=0.005, sign_exact=True) as m:
+        m.write_map(sdfcodec.open_map(src))
+    t = sdfcodec.open_map(tmp_path / "t.sdfz")
+    dec = t.decode_region()
+    # the input of the transcode is the source's decode: raw float32 round trips move the analytic room's exact
+    # zeros (walls on voxel centres) to +-1e-8, across zero either way
+    ref = sdfcodec.open_map(src).decode_region()
+    assert np.abs(dec - ref)[obs].max() <= 0.005 and (dec[~obs] == TRUNC[1]).all()
+    assert ((dec < 0) == (ref < 0))[_crossing_voxels(ref, obs)].all()
+    assert {e.name for e in t.header.extensions} == {"residual-bound", "observation-mask"}
