@@ -24,8 +24,8 @@ metadata); the codec state is reported apart and amortised over a 1M-block map. 
 of the method's decoder over all blocks (best of 3) as a ratio to a memory copy of the same float32 blocks
 timed interleaved with it (``decode_vs_memcpy``: 1 = as fast as copying the decoded bytes).
 
-Methods are entries of :data:`METHODS` (a name and a function giving points), so a new one (e.g. the residual
-error bounds of ``--sign-exact`` / ``--max-error``) is one entry to add.
+Methods are entries of :data:`METHODS` (a name and a function giving points), so a new one is one entry to add
+(``bounds``: pca-64 with the residual stage of ``--max-error`` 1, 2, 4 cm and ``--sign-exact``).
 """
 
 from __future__ import annotations
@@ -161,6 +161,17 @@ def m_sz3_map(d: Data, quick: bool) -> None:
                     [(f"bound {cm:g} cm", {})])
 
 
+def m_bounds(d: Data, quick: bool) -> None:
+    """The shipped eigenshapes with the residual stage (spec 6d): --max-error E, --sign-exact."""
+    import sdfcodec
+
+    k = 16 if quick else 64
+    # the plain map first: the issue's target for --sign-exact is <= 1.5x its bytes
+    sets = [("plain", {})] + [(f"max-error {cm:g} cm", {"max_error": cm / 100}) for cm in ((2,) if quick else (1, 2, 4))]
+    sets.append(("sign-exact", {"sign_exact": True}))
+    _map_points(d, f"pca-{k} + residual", "bounds", sdfcodec.pretrained_codec("pca", k), sets)
+
+
 # ------------------------------------------------------------------------------------------------- peers
 def _dense(d: Data) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
     """The data set's blocks as one dense normalised field (other blocks free space) and its inverse."""
@@ -265,10 +276,10 @@ def m_nanovdb(d: Data, quick: bool) -> None:
 
 #: name -> (function, description). Add an entry to add a method (bounds' residual stages: one entry each).
 METHODS: dict[str, Callable[[Data, bool], None]] = {
-    "pca": m_pca, "networks": m_nn, "sz3-map": m_sz3_map, "sz3-peer": m_sz3_peer, "zfp": m_zfp, "dct": m_dct,
+    "pca": m_pca, "bounds": m_bounds, "networks": m_nn, "sz3-map": m_sz3_map, "sz3-peer": m_sz3_peer, "zfp": m_zfp, "dct": m_dct,
     "nanovdb": m_nanovdb,
 }
-REGISTRY = ("eigenshapes", "networks", "sz3-registry")
+REGISTRY = ("eigenshapes", "bounds", "networks", "sz3-registry")
 
 
 # ----------------------------------------------------------------------------------------------- targets

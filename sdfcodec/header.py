@@ -18,7 +18,7 @@ from .errors import FormatError, VersionError
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
-           "FieldCompression"]
+           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -44,6 +44,10 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {QUANT_EXTENSION}
 #: ``codes``, a chunk's blocks compressed as one 3-D field, described by ``codes.field_compression`` (spec 4c)
 FIELD_EXTENSION = "field-compression"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {FIELD_EXTENSION}
+#: "residual-bound": a per-voxel residual on top of the codes (``--max-error`` / ``--sign-exact`` of block codecs),
+#: the array ``residual`` described by the header field ``residual`` (spec section 6d)
+RESIDUAL_EXTENSION = "residual-bound"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {RESIDUAL_EXTENSION}
 
 
 class BlockState:
@@ -131,6 +135,24 @@ class FieldCompression(_Model):
 
     name: Literal["sz3"] = Field(description="the field compressor; 'sz3': SZ3, absolute error bound")
     max_error: float = Field(gt=0, le=0.5, description="absolute error bound in normalised units (1 = d_max - d_min)")
+
+
+class ResidualSpec(_Model):
+    """The residual stage (spec section 6d): voxel ``i`` of a coded block decodes, at full level, as
+    ``clamp(d_i + step * q_i, d_min, d_max)`` in float32 metres, ``q`` the stored small integers."""
+
+    step: float = Field(gt=0, description="metres per residual unit")
+    dtype: Literal["int8", "int16"] = Field(description="element type of the residual array")
+    max_error: float | None = Field(None, gt=0, description="the writer's bound: every observed voxel of a coded "
+                                                            "block decodes within it (metres); null: none")
+    sign_exact: bool = Field(False, description="every observed voxel touching a surface crossing of the input "
+                                                "decodes with its sign")
+
+    @model_validator(mode="after")
+    def _something(self) -> "ResidualSpec":
+        if self.max_error is None and not self.sign_exact:
+            raise ValueError("a residual stage bounds something: max_error, sign_exact or both")
+        return self
 
 
 class CodesSpec(_Model):
@@ -221,14 +243,18 @@ class MapHeader(_Model):
         None, description="OPTIONAL unit vector: the world's up direction (opposite gravity) in the map's grid "
                           "axes, when the writer knew it (e.g. sdfcodec fuse of a sequence with a gravity file); "
                           "omitted when unknown")
+    residual: ResidualSpec | None = Field(
+        None, description="OPTIONAL, with the required extension 'residual-bound': the residual stage on top of the "
+                          "codes (spec section 6d); omitted otherwise")
 
     @model_serializer(mode="wrap")
     def _omit_unknown_up(self, handler):
         # an unknown up direction is left out, not written as null: headers without it stay byte-identical to
-        # those of writers that predate the field, and readers that predate it open them
+        # those of writers that predate the field, and readers that predate it open them (so is no residual)
         out = handler(self)
-        if isinstance(out, dict) and out.get("up", 0) is None:
-            out.pop("up")
+        for key in ("up", "residual"):
+            if isinstance(out, dict) and out.get(key, 0) is None:
+                out.pop(key)
         return out
 
     @model_validator(mode="after")
@@ -252,6 +278,10 @@ class MapHeader(_Model):
         if (self.codes.field_compression is not None) != bool(field) or any(not e.required for e in field):
             raise ValueError(f"codes.field_compression and the required extension {FIELD_EXTENSION!r} go together "
                              f"(extensions {[e.name for e in self.extensions]})")
+        res = [e for e in self.extensions if e.name == RESIDUAL_EXTENSION]
+        if (self.residual is not None) != bool(res) or any(not e.required for e in res):
+            raise ValueError(f"residual and the required extension {RESIDUAL_EXTENSION!r} go together "
+                             f"(extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self
@@ -265,7 +295,8 @@ def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
     """(dotted location, value) of the header's numeric fields that are present, list items included."""
     for path in ("voxel_size", "truncation.d_min", "truncation.d_max", "origin", "block_size", "shape_voxels",
                  "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels",
-                 "codes.quantisation.step", "codes.quantisation.offset", "codes.field_compression.max_error"):
+                 "codes.quantisation.step", "codes.quantisation.offset", "codes.field_compression.max_error",
+                 "residual.step", "residual.max_error"):
         value: Any = raw
         for key in path.split("."):
             value = value.get(key) if isinstance(value, dict) else None

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-__all__ = ["surface_points", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_command",
+__all__ = ["surface_points", "crossing_edges", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_command",
            "metrics_table", "metrics_rows", "metrics_title", "metrics_sentence", "JUMP", "SLAB"]
 
 JUMP = 0.1  #: metres; neighbours that differ by this much or more are no surface (d_min -> unobserved d_max)
@@ -81,14 +81,23 @@ def _crossings(vol: np.ndarray, jump: float, own_x: int | None = None) -> np.nda
     for ax in range(3):
         lo = vol[(slice(None),) * ax + (slice(0, -1),)][:own_x]
         hi = vol[(slice(None),) * ax + (slice(1, None),)][:own_x]
-        idx = np.nonzero((lo < 0) != (hi < 0))  # signs differ; the jump is checked on these few only
+        idx = np.nonzero(crossing_edges(lo, hi, jump))
         a, b = lo[idx].astype(np.float64), hi[idx].astype(np.float64)
-        keep = np.abs(a - b) < jump
-        a, b = a[keep], b[keep]
-        p = np.stack([i[keep] for i in idx], axis=1).astype(np.float64)
+        p = np.stack(idx, axis=1).astype(np.float64)
         p[:, ax] += a / (a - b)  # a and b have opposite signs (one >= 0): a - b is never 0
         out.append(p)
     return np.concatenate(out).reshape(-1, 3)
+
+
+def crossing_edges(lo: np.ndarray, hi: np.ndarray, jump: float = JUMP) -> np.ndarray:
+    """Which pairs of axis neighbours ``lo``, ``hi`` (two arrays of metres, the same shape) are surface crossings:
+    bool of that shape, True where one is ``< 0``, the other ``>= 0`` and ``|lo - hi| < jump`` (in float64).
+    The one definition of a crossing: surface points sit on these edges, and ``--sign-exact`` keeps the signs
+    of their voxels (:mod:`sdfcodec.map.residual`)."""
+    edge = (lo < 0) != (hi < 0)  # signs differ; the jump is checked on these few only
+    idx = np.nonzero(edge)
+    edge[idx] = np.abs(lo[idx].astype(np.float64) - hi[idx].astype(np.float64)) < jump
+    return edge
 
 
 def _check_volume(volume: Any, name: str) -> np.ndarray:

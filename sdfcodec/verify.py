@@ -425,7 +425,8 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
         counts = np.bincount(states.ravel(), minlength=3)
         rep.blocks = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
     _check_codes(rep, m, states)
-    for arr in m.reader.observation_arrays():  # fusion weights, observation mask: every chunk read and checked
+    # fusion weights, observation mask, residual stage: every chunk read and checked
+    for arr in (*m.reader.observation_arrays(), m.reader.residual_array):
         if arr is not None:
             for _ in _iter_chunks(rep, arr):
                 pass

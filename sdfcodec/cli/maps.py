@@ -74,6 +74,8 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
     cs = info["codec_state"]
     rows.append(("codec state", f"by reference to shipped model {cs['model']} (sha256 {cs['sha256']})"
                  if cs["stored"] == "reference" else f"embedded (sha256 {cs['sha256']})"))
+    if info["residual"] is not None:
+        rows.append(("residual (residual-bound)", _residual_line(info["residual"])))
     if info["state_warning"]:
         rows.append(("warning", info["state_warning"]))
     print_table(None, rows, title=f"map {map_path}")
@@ -100,7 +102,8 @@ def encode_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
     step: Optional[float] = typer.Option(None, "--step", help="Quantise the codes with this step (int16 codes, entropy-coded; |error| <= step/2 per element; pca, raw)."),
     target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Choose the step so the map takes about B stored bytes per coded block (everything but the codec state)."),
-    max_error: Optional[float] = typer.Option(None, "--max-error", help="Absolute error bound in metres of an error-bounded codec: with --codec sz3 every stored voxel lies within it (SZ3 field compression)."),
+    max_error: Optional[float] = typer.Option(None, "--max-error", help="Absolute error bound in metres on observed voxels: with --codec sz3 SZ3's own bound (field compression), with block codecs (pca, ae...) a residual stage on top of the codes (full level only)."),
+    sign_exact: bool = typer.Option(False, "--sign-exact", help="Every voxel touching a surface crossing of the input decodes with its sign (a residual stage on top of the codes; block codecs)."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
@@ -142,7 +145,7 @@ def encode_cmd(
         if code_size and code_size != codec.code_size:
             raise InvalidValueError(f"--code-size {code_size} contradicts the model {model} "
                                     f"(code size {codec.code_size})")
-    elif max_error is not None:
+    elif max_error is not None and codec_id == "sz3":
         codec = _bounded_codec(codec_id, max_error, trunc)
     else:  # the shipped model at that size, unless --fit or the plugin ships none (then why_fit says so)
         codec, why_fit = choose_codec(codec_id or "pca", code_size, fit=fit)
@@ -154,6 +157,12 @@ def encode_cmd(
                                 f"({why_fit}); drop --fit, pick a shipped size, or store the state "
                                 "(--codec-state embedded)")
     _check_quantised_options(codec, step, target_bytes, code_dtype)  # before a fit, which may take long
+    residual_kw = {} if codec.field_compression() is not None and not sign_exact else {
+        "max_error": max_error, "sign_exact": sign_exact}  # sz3's --max-error is its own bound
+    if residual_kw:
+        from ..map.residual import residual_spec
+
+        residual_spec(codec, "int16" if step or target_bytes else code_dtype, vs, trunc, max_error, sign_exact)
     fitted_on = None
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
@@ -175,7 +184,7 @@ def encode_cmd(
                                              shape_voxels=shape, overwrite=overwrite or again, device=device,
                                              code_dtype="int16" if code_step is not None else code_dtype,
                                              code_step=code_step, tool="sdfcodec encode", source=str(input),
-                                             codec_state=codec_state) as m:
+                                             codec_state=codec_state, **residual_kw) as m:
             if src_map is not None:
                 total = src_map.count_states()["coded"]
                 task = prog.add_task("transcoding", total=total, rate="")
@@ -198,21 +207,30 @@ def encode_cmd(
                "ratio_dense_to_disk": info["ratio_dense_to_disk"]}
     if quant is not None:
         summary["quantisation"] = quant
+    if info["residual"] is not None:
+        summary["residual"] = info["residual"]
     report(summary, as_json, lambda: (
         f"wrote {output}: {info['blocks']['coded']} coded blocks, {human_bytes(info['bytes_on_disk'])} on disk, "
         f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32" + ("" if quant is None else
         f"; codes quantised with step {quant['step']:.4g}: {quant['bytes_per_coded_block']:.1f} stored bytes per "
         f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes)" +
-        (f", target {quant['target_bytes']:g} after {quant['passes']} pass(es)" if quant.get("target_bytes") else ""))))
+        (f", target {quant['target_bytes']:g} after {quant['passes']} pass(es)" if quant.get("target_bytes") else ""))
+        + ("" if info["residual"] is None else f"; {_residual_line(info['residual'])}")))
+
+
+def _residual_line(r: dict) -> str:
+    """One phrase for a map's residual stage (``info()["residual"]``)."""
+    what = " and ".join(([f"max error {r['max_error'] * 1000:g} mm"] if r["max_error"] is not None else [])
+                        + (["sign-exact"] if r["sign_exact"] else []))
+    per = "" if r["bytes_per_coded_block"] is None else f", {r['bytes_per_coded_block']:.1f} B per coded block"
+    return f"residual stage ({what}; step {r['step'] * 1000:.4g} mm{per}; holds at {r['holds_at']})"
 
 
 def _bounded_codec(codec_id: Optional[str], max_error: float, trunc: tuple[float, float]) -> Any:
-    """The error-bounded codec ``--max-error`` (metres) asks for: sz3 at that bound in normalised units."""
+    """The codec ``--codec sz3 --max-error`` (metres) asks for: sz3 at that bound in normalised units (other codecs
+    get the bound as a residual stage, :mod:`sdfcodec.map.residual`)."""
     from ..registry import get_codec
 
-    if codec_id != "sz3":
-        raise InvalidValueError(f"--max-error bounds the error of an error-bounded codec: pass --codec sz3 (got "
-                                f"--codec {codec_id or 'pca (the default)'})")
     if not (np.isfinite(max_error) and max_error > 0):
         raise InvalidValueError(f"--max-error must be a positive number of metres, got {max_error}")
     return get_codec("sz3", max_error=float(max_error) / (trunc[1] - trunc[0]))

@@ -238,6 +238,7 @@ class Map:
             "codec_state": ({"stored": "reference", "model": ref.model, "sha256": ref.sha256} if ref is not None
                             else {"stored": "embedded", "sha256": h.codec.state_sha256}),
             "state_warning": _state_warning(state_bytes, code_bytes, h) if ref is None else None,
+            "residual": _residual_info(h, root, counts["coded"]),
         }
 
     @property
@@ -283,6 +284,9 @@ class Map:
         if is_dask_array(volume):
             from ..scale import write_volume_dask
 
+            if self.header.residual is not None:
+                raise InvalidValueError(f"{self.location} has a residual stage (--max-error/--sign-exact), which the "
+                                        "dask encoder does not write: pass a numpy volume (or write_blocks by region)")
             return write_volume_dask(self, volume, offset=offset)
         # checked here, not in the writer: the clipping warning then names the caller's line
         w.write_volume(check_volume(volume, self.truncation), offset=offset, batch_size=batch_size,
@@ -320,7 +324,8 @@ class Map:
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
         dtype = self.header.codes.dtype
-        if dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec:
+        if (dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec
+                and self.header.residual is None):  # a residual needs the voxels: they are decoded and encoded
             for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
                 self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
                 if progress is not None:
@@ -388,7 +393,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
-               codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None) -> Map:
+               codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
+               max_error: float | None = None, sign_exact: bool = False) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -421,6 +427,10 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             (``pretrained_codec``) are stored, for collections of maps that share one codec; readers need that
             model in the installed plugin (spec section 6c; raises InvalidValueError for a codec that holds no
             shipped model's state; a codec without learned state stores nothing either way).
+        max_error: metres; every observed voxel of a coded block decodes within it at full level, through a
+            residual stage on top of the codes (extension ``residual-bound``, spec section 6d; docs/error-bounds.md).
+        sign_exact: every observed voxel touching a surface crossing of the input decodes with its sign (the
+            same residual stage); with ``max_error`` both hold.
     """
     up_unit = None
     if up is not None:
@@ -435,7 +445,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source, codec_state=codec_state, code_step=code_step,
-                                  code_offset=code_offset)
+                                  code_offset=code_offset, max_error=max_error, sign_exact=sign_exact)
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit
@@ -501,6 +511,18 @@ def _state_warning(state_bytes: int | None, code_bytes: int | None, h: MapHeader
             "store that by reference (--codec-state reference), or accept the cost for a one-off map")
     return (f"the stored codec state ({state_bytes / mib:.2f} MiB) outweighs the codes ({code_bytes / mib:.2f} MiB) "
             f"by {(state_bytes - code_bytes) / mib:.2f} MiB; {todo}")
+
+
+def _residual_info(h: MapHeader, root: str | None, coded: int) -> dict[str, Any] | None:
+    """``info()["residual"]``: the residual stage's bound, step and bytes (None for a map without one)."""
+    r = h.residual
+    if r is None:
+        return None
+    nbytes = _dir_bytes(str(Path(root) / "residual")) if root is not None else None
+    return {"extension": "residual-bound", "max_error": r.max_error, "sign_exact": r.sign_exact, "step": r.step,
+            "dtype": r.dtype, "bytes_on_disk": nbytes,
+            "bytes_per_coded_block": None if nbytes is None else nbytes / max(coded, 1),
+            "holds_at": f"full level ({h.codes.size}) only: a prefix level decodes without the residual"}
 
 
 def _dir_bytes(path: str) -> int | None:

@@ -2,7 +2,8 @@
 per coded block (``sdfcodec encode --target-bytes``, issue 16).
 
 "Stored bytes per coded block" counts every file of the map but its codec state (``codec/``): the codes, the
-observation mask, fusion weights, block states and the Zarr metadata, divided by the coded blocks. Two parts:
+observation mask, fusion weights, the residual stage (``--max-error``/``--sign-exact``), block states and the Zarr
+metadata, divided by the coded blocks. Two parts:
 
 * the codes, which fall with the step: :func:`codes_rate_model` measures them on a sample of the map's codes,
   compressed as the ``codes`` array's chunks would be (:func:`~sdfcodec.map.format.code_compressors`);
@@ -26,6 +27,7 @@ from ..errors import InvalidValueError
 from ..quantize import RateModel, fit_rate_model, step_for_bytes
 from .format import QUANT_CLEVEL
 from .observed import MASK_ARRAY
+from .residual import RESIDUAL_ARRAY
 
 __all__ = ["TOLERANCE", "SAMPLE_BLOCKS", "codes_rate_model", "mask_bytes_estimate", "stored_bytes", "plan_step",
            "correct_step", "check_target", "metadata_bytes_estimate"]
@@ -85,7 +87,8 @@ def metadata_bytes_estimate(code_size: int) -> float:
 
 def stored_bytes(path: str | os.PathLike) -> dict[str, float]:
     """Per coded block of the written map at ``path``: ``total`` (every file but ``codec/``), ``codes`` (the
-    ``codes`` array's files), ``mask`` (``observed``) and ``other`` (``total - codes``)."""
+    ``codes`` array's files), ``mask`` (``observed``), ``residual`` (the residual stage of ``--max-error`` /
+    ``--sign-exact``, spec 6d; in ``total`` and ``other`` too) and ``other`` (``total - codes``)."""
     from .facade import open_map
 
     root = Path(path)
@@ -98,7 +101,8 @@ def stored_bytes(path: str | os.PathLike) -> dict[str, float]:
 
     total = size("") - size("codec")
     codes = size("codes")
-    return {"total": total / n, "codes": codes / n, "mask": size(MASK_ARRAY) / n, "other": (total - codes) / n}
+    return {"total": total / n, "codes": codes / n, "mask": size(MASK_ARRAY) / n, "residual": size(RESIDUAL_ARRAY) / n,
+            "other": (total - codes) / n}
 
 
 def plan_step(target: float, model: RateModel, other: float) -> float:

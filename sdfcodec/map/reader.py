@@ -35,6 +35,7 @@ from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MI
 from .codec_state import load_codec
 from .presence import check_state_chunks
 from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
+from .residual import apply_residual, check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
@@ -109,6 +110,8 @@ class MapReader:
         self._chunk_bytes: dict[str, int] = {}
         self.state_chunks_checked: set[tuple[int, ...]] = set()  # state chunks found present or legitimately absent
         self.codes_array = self.state_array = self.code_scale_array = self.weights_array = self.mask_array = None
+        self.residual_array = None
+        self.residual_chunks_checked: set[str] = set()  # residual chunks found stored (under coded blocks)
         if live is None:
             self._check_arrays()
         else:  # a map being written: its arrays are the writer's, checked as they were made
@@ -216,6 +219,7 @@ class MapReader:
             if self.weights_array is not None:
                 self.check_array(self.weights_array, dtype=np.float16, shape=(*h.grid_blocks, 4096))
         self.mask_array = checked_mask_array(self)
+        self.residual_array = checked_residual_array(self)
         self.codes_array, self.state_array = codes, state
 
     # -- reading --------------------------------------------------------------------------------------
@@ -533,23 +537,44 @@ class MapReader:
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed, mask = DeviceFeed(dev), self.observation_arrays()[1]
+        res = self.residual_rows_array(level)
 
-        def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None]:
-            # a masked map's rows are read here too, in the fetching thread, beside their codes
-            return feed.stage(codes), None if mask is None else read_block_rows(self, mask, coords)
+        def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
+            # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals)
+            return (feed.stage(codes), None if mask is None else read_block_rows(self, mask, coords),
+                    None if res is None else self.read_residual(coords))
 
-        for coords, (staged, rows) in self.fetch_stream(box, level, stage=stage, **kw):
-            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords, mask_rows=rows)
+        for coords, (staged, rows, resid) in self.fetch_stream(box, level, stage=stage, **kw):
+            yield coords, self.decode_codes(feed.ready(staged), metres=metres, coords=coords, mask_rows=rows,
+                                            residual_rows=resid)
+
+    def residual_rows_array(self, level: int) -> Any:
+        """The ``residual`` array when a decode at ``level`` applies it (a map with a residual stage, read at full
+        level: the residual was measured against the full decode; spec 6d), else None."""
+        arr = self.live.residual if self.live is not None else self.residual_array
+        return arr if arr is not None and level == self.header.codes.size else None
+
+    def read_residual(self, coords: np.ndarray) -> np.ndarray:
+        """``(n, 4096)`` stored residual rows of coded blocks ``coords`` ``(n, 3)``; a chunk not stored under them
+        is an error naming it (Zarr would read zeros: no correction, the bound silently lost)."""
+        arr = self.live.residual if self.live is not None else self.residual_array
+        rows = read_block_rows(self, arr, coords)
+        if self.live is None:
+            check_residual_stored(self, arr, coords, rows)
+        return rows
 
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
-                     mask_rows: np.ndarray | None = None) -> torch.Tensor:
+                     mask_rows: np.ndarray | None = None, residual: bool = True,
+                     residual_rows: np.ndarray | None = None) -> torch.Tensor:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
         ``mask_rows`` (n, 512) are read unless given). NaN/Inf or absurd values
         (normalised beyond +-DECODE_LIMIT) out of the codec (corrupted codes or learned state) are refused,
         naming a block of ``coords`` (n, 3) when given: proven impossible by the codec's bound on its outputs
-        when it gives one within the limit (no pass over the output), else checked on the output."""
+        when it gives one within the limit (no pass over the output), else checked on the output. Full-length
+        codes of a map with a residual stage get it added last (spec 6d; ``residual_rows`` (n, 4096), read unless
+        given; ``residual=False``: the plain decode, what the writer measures the residual against)."""
         codec = self.codec
         d_min, d_max = self.truncation
         scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
@@ -561,13 +586,19 @@ class MapReader:
         if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
             v = v.clamp_(d_min, d_max)
         mask = self.observation_arrays()[1]
-        if mask is None:
-            return v
-        if coords is None:
-            raise InvalidValueError(f"{self.location} has an observation mask: decode_codes needs the blocks' coords")
-        rows = read_block_rows(self, mask, coords) if mask_rows is None else mask_rows
-        # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
-        return restore_unobserved(v, rows, d_max if metres else 1.0)
+        res = self.residual_rows_array(codes.shape[1]) if residual else None
+        if (mask is not None or res is not None) and coords is None:
+            raise InvalidValueError(f"{self.location} has an observation mask or a residual: decode_codes needs the "
+                                    "blocks' coords")
+        if mask is not None:
+            rows = read_block_rows(self, mask, coords) if mask_rows is None else mask_rows
+            # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
+            v = restore_unobserved(v, rows, d_max if metres else 1.0)
+        if res is not None:
+            step = self.header.residual.step / (1.0 if metres else d_max - d_min)
+            rows = self.read_residual(coords) if residual_rows is None else residual_rows
+            v = apply_residual(v, rows, step, *((d_min, d_max) if metres else (0.0, 1.0)))
+        return v
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:

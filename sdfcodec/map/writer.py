@@ -26,7 +26,8 @@ from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, RESIDUAL_EXTENSION,
+                      STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                       BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                       now_iso)
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
@@ -37,7 +38,9 @@ from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_c
                      code_layout, compressors, free_space, mask_compressors, state_digest)
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
                        store_mask_chunk, write_block_rows)
-from .reader import open_reader
+from .reader import CodecCache, MapReader, open_reader
+from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
+                       stored_code_values)
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
 __all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "store_code_chunk", "LOCK_TIMEOUT"]
@@ -45,6 +48,8 @@ __all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "
 #: How long a writer waits for another process's update of the same map to finish before giving up.
 LOCK_TIMEOUT = 60.0
 
+#: Blocks whose residual is computed at once: 1024 blocks' float64 work arrays take 32 MiB each.
+_RESIDUAL_SLAB = 1024
 _UNCHANGED = "the previous map there is unchanged and no temporary files are left"
 _NOTHING = "nothing was written there and no temporary files are left"
 
@@ -141,6 +146,9 @@ class MapWriter:
         self.codes = group["codes"]
         self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
         self.mask = group[MASK_ARRAY] if MASK_ARRAY in group else None  # observation mask, once one is written
+        # the residual stage (spec 6d): its array is made with the map, its step and bound are in the header
+        self.residual = group[RESIDUAL_ARRAY] if header_kw.get("residual") is not None else None
+        self._live_reader: MapReader | None = None
         self.surface_weight = SURFACE_WEIGHT  # error weight near surfaces (sdfcodec.map.observed); 0: none
         if update:
             self.doing = "updating the map"
@@ -181,6 +189,8 @@ class MapWriter:
                 self.code_scale.resize((*grid, 2))
             if self.mask is not None:
                 self.mask.resize((*grid, MASK_BYTES))
+            if self.residual is not None:
+                self.residual.resize((*grid, self.residual.shape[3]))
 
     def grow_blocks(self, max_coord: np.ndarray) -> None:
         """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
@@ -247,7 +257,7 @@ class MapWriter:
         with self._writing():
             if len(c):
                 self.grow_blocks(c.max(axis=0))
-            self.put_codes(c, z.numpy(), masks=masks)
+            self.put_codes(c, z.numpy(), masks=masks, residual_ok=False)
 
     def mark_empty(self, coords: Any) -> None:
         """Record blocks ``(N, 3)`` as observed free space (no code stored)."""
@@ -277,6 +287,9 @@ class MapWriter:
         """Encode blocks (metres) with error weights (:func:`~sdfcodec.map.observed.error_weights`: the
         observation mask ``observed`` (N, 16, 16, 16) bool, and the surface), storing the mask with them."""
         d_min, d_max = self.truncation
+        spec = self.header_kw.get("residual")
+        # --sign-exact: the crossings of the whole call, so that those across the faces of two batches count too
+        cross = crossing_voxels(coords, blocks_m, observed) if spec is not None and spec.sign_exact else None
         for i in range(0, len(coords), batch_size):
             c = coords[i:i + batch_size]
             v = normalise(blocks_m[i:i + batch_size], d_min, d_max)
@@ -286,16 +299,45 @@ class MapWriter:
                 obs = None if observed is None else observed[i:i + batch_size][~empty]
                 codes = encode_blocks(self.codec, v[~empty], obs, (d_min, d_max), self.header_kw["voxel_size"],
                                       self.surface_weight, self.device)
-                self.put_codes(c[~empty], codes, masks=None if obs is None else pack_mask(obs))
+                packed = None if obs is None else pack_mask(obs)
+                self.put_codes(c[~empty], codes, masks=packed)
+                if spec is not None:
+                    self.put_residual(c[~empty], codes, blocks_m[i:i + batch_size][~empty], obs, packed,
+                                      None if cross is None else cross[i:i + batch_size][~empty])
             if progress is not None:
                 progress(len(c))
 
-    def put_codes(self, coords: np.ndarray, codes: np.ndarray, masks: np.ndarray | None = None) -> None:
+    def put_residual(self, coords: np.ndarray, codes: np.ndarray, blocks_m: np.ndarray, observed: np.ndarray | None,
+                     packed: np.ndarray | None, crossing: np.ndarray | None) -> None:
+        """Store the residual (spec 6d) of blocks ``coords`` ``(n, 3)`` just stored with ``codes`` ``(n, D)``
+        float32: their input ``blocks_m`` ``(n, 16, 16, 16)`` metres against the decode a reader makes of the
+        stored codes (the reader's own ``decode_codes``, here on the writer's device), with their observation
+        ``observed`` (bool, packed ``packed``; None: all) and surface-crossing voxels ``crossing``."""
+        if self._live_reader is None:
+            self._live_reader = MapReader(self.group, self.header, self.location, cache=CodecCache(self.codec),
+                                          max_decode_bytes=self.max_state_bytes, live=self)
+        stored = torch.from_numpy(stored_code_values(codes, self.codes_spec)).to(self.device)
+        dec = self._live_reader.decode_codes(stored, metres=True, coords=coords, mask_rows=packed, residual=False)
+        q = np.empty((len(coords), BLOCK ** 3), self.residual.dtype)
+        for i in range(0, len(coords), _RESIDUAL_SLAB):  # a slab at a time: its float64 work arrays stay small
+            sl = slice(i, i + _RESIDUAL_SLAB)
+            q[sl] = residual_rows(self.header_kw["residual"], blocks_m[sl], dec[sl],
+                                  None if observed is None else observed[sl], None if crossing is None else crossing[sl],
+                                  self.truncation)
+        # every chunk holding coded blocks is stored, zeros too, so a reader tells a lost chunk from one whose
+        # blocks need no correction (spec 6d); Zarr skips all-zero chunks by default
+        write_block_rows(self.residual.with_config({"write_empty_chunks": True}), coords, q)
+
+    def put_codes(self, coords: np.ndarray, codes: np.ndarray, masks: np.ndarray | None = None, *,
+                  residual_ok: bool = True) -> None:
         """Scatter codes (and their packed observation masks ``(n, 512)`` uint8, None: fully observed) into whole
         chunks: one write per touched chunk and array (read first only if it had data)."""
         if not len(coords):
             return
         check_codes(codes)
+        if self.residual is not None and not residual_ok:
+            raise InvalidValueError(f"{self.final} has a residual stage (--max-error/--sign-exact), computed from the "
+                                    "input voxels: write blocks or volumes (write_blocks, write_volume), not codes")
         if masks is not None and self.mask is None:
             self.mask = self.group.create_array(MASK_ARRAY, shape=(*self.grid, MASK_BYTES), dtype="uint8",
                                                 fill_value=255, chunks=(*(self.codes_spec.chunk_blocks,) * 3,
@@ -369,6 +411,10 @@ class MapWriter:
             extensions.append(Extension(name=MASK_EXTENSION, required=True))
         if self.header_kw["codec"].state_reference is not None:
             extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
+        if self.header_kw.get("residual") is not None:
+            if tuple(self.residual.shape[:3]) != self.grid:
+                self.residual.resize((*self.grid, self.residual.shape[3]))
+            extensions.append(Extension(name=RESIDUAL_EXTENSION, required=True))
         if self.codes_spec.field_compression is not None:
             # the exact voxels written so far become the field-compressed codes: every chunk compressed once
             compress_codes(self.group, Path(self.tmp), self.state, self.codes_spec.field_compression)
@@ -456,7 +502,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   shape_voxels: Sequence[int] = (0, 0, 0), code_dtype: str = "float32",
                   chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                   device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
-                  codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None) -> MapWriter:
+                  codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
+                  max_error: float | None = None, sign_exact: bool = False) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -481,6 +528,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         raise InvalidValueError(f"codec_state must be 'embedded' or 'reference', got {codec_state!r}")
     spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code, _quantisation(codec, code_dtype, code_step,
                                                                                   code_offset))
+    residual = residual_spec(codec, code_dtype, voxel_size, truncation, max_error, sign_exact)
     state = codec.state_dict()
     # by reference: the header names the shipped model and its digest, and no state array is written; a codec
     # that learns nothing stores nothing either way, so its map stays plain (no extension older readers refuse)
@@ -493,6 +541,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                         state_arrays=[] if ref else sorted(state), state_sha256=state_digest(state) if state else None,
                         state_reference=ref),
         provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
+        residual=residual,
     )
     bad_names = [n for n in state if not re.fullmatch(STATE_NAME_PATTERN, n)]
     if bad_names:
@@ -510,11 +559,12 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
 
     try:
         with _write_errors(final, doing, outcome, cleanup=discard):
-            group = _new_group(tmp, codec, {} if ref else state, spec, code_dtype, shape_voxels)
+            group = _new_group(tmp, codec, {} if ref else state, spec, code_dtype, shape_voxels, residual)
         extensions = [Extension(name=n) for n, d in ((INT8_EXTENSION, "int8"), (QUANT_EXTENSION, "int16"))
                       if code_dtype == d]
         extensions += [Extension(name=STATE_REFERENCE_EXTENSION)] if ref else []
         extensions += [Extension(name=FIELD_EXTENSION)] if spec.field_compression is not None else []
+        extensions += [Extension(name=RESIDUAL_EXTENSION)] if residual is not None else []
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
                            codes=spec, extensions=extensions, **header_kw)
     except WriteFailedError:
@@ -557,7 +607,7 @@ def _collect_quietly(final: Path) -> None:
 
 
 def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype: str,
-               shape_voxels: Sequence[int]) -> zarr.Group:
+               shape_voxels: Sequence[int], residual: Any = None) -> zarr.Group:
     """The arrays of a new, empty map in ``tmp``: ``codes`` (and ``code_scale`` for int8), ``codec/`` state."""
     # "w-", not "w": "w" clears the store by removing and re-making its root, which would leave the
     # temporary directory unlocked (our lock is on the inode removed) for another writer's garbage collection
@@ -570,6 +620,10 @@ def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype
     if code_dtype == "int8":
         group.create_array("code_scale", shape=(*grid, 2), dtype="float32", fill_value=0, chunks=(cb, cb, cb, 2),
                            compressors=compressors(), dimension_names=["bx", "by", "bz", "offset_scale"])
+    if residual is not None:
+        group.create_array(RESIDUAL_ARRAY, shape=(*grid, BLOCK ** 3), dtype=residual.dtype, fill_value=0,
+                           chunks=(cb, cb, cb, BLOCK ** 3), compressors=residual_compressors(),
+                           dimension_names=["bx", "by", "bz", "voxel"])
     cgroup = group.create_group("codec")
     for name, arr in state.items():
         arr = np.ascontiguousarray(arr)
@@ -618,7 +672,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
             group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
-                         provenance=prov, shape_voxels=h.shape_voxels, up=h.up)
+                         provenance=prov, shape_voxels=h.shape_voxels, up=h.up, residual=h.residual)
         writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id}, header=h)
