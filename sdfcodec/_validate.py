@@ -14,7 +14,7 @@ import torch
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty"]  # public through sdfcodec.plugin
+__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into"]  # public through sdfcodec.plugin
 
 BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 
@@ -87,3 +87,14 @@ def empty(shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
     if device.type == "cpu":
         return torch.from_numpy(np.empty(shape, dtype=np.float32))
     return torch.empty(shape, dtype=torch.float32, device=device)
+
+
+def affine_into(values: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
+    """Write ``scale * values + offset`` into ``out`` in one pass (a copy when ``scale == 1, offset == 0``);
+    ``values`` has ``out``'s number of elements (it is viewed as ``out``'s shape) and its device, and does not
+    overlap it. What a codec's ``decode_into`` does when its decode is a reshape of the codes (raw, sz3)."""
+    src = values.reshape(out.shape)
+    if scale == 1.0 and offset == 0.0:
+        out.copy_(src)
+    else:
+        torch.add(torch.tensor(offset, dtype=out.dtype, device=out.device), src, alpha=scale, out=out)
