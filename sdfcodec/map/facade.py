@@ -193,7 +193,7 @@ class Map:
         return map_to_dask(self, level=level)
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                      device: str | torch.device | None = None) -> Any:
+                      device: str | torch.device | None = None, batch_blocks: int = 8192) -> Any:
         """Decode a region to a dense TSDF in metres.
 
         Args:
@@ -201,6 +201,7 @@ class Map:
                 ``units="m"``, half-open bounds in metres (the voxels whose centres lie in [lo, hi)).
             level: decode only the first ``level`` code elements (prefix-ordered codecs only).
             device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
+            batch_blocks: about how many blocks one decode call gets (the size of the reused decode buffer).
 
         Returns:
             ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``. Codecs with
@@ -208,9 +209,9 @@ class Map:
 
         Blocks are decoded a group of chunks at a time into one reused buffer and copied from there straight
         into the returned volume (vectorised, no per-block copies): peak memory is the output plus one group's
-        decodes (about ``16 KiB x 8192`` blocks), not a second volume.
+        decodes (``16 KiB x batch_blocks``), not a second volume.
         """
-        return self.reader.decode_region(region, units=units, level=level, device=device)
+        return self.reader.decode_region(region, units=units, level=level, device=device, batch_blocks=batch_blocks)
 
     def info(self) -> dict[str, Any]:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""

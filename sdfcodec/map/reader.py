@@ -642,8 +642,8 @@ class MapReader:
         d_min, d_max = self.truncation
         return v.mul_(d_max - d_min).add_(d_min).clamp_(d_min, d_max)  # truncated, as decode_codes' metres
 
-    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *, metres: bool
-                    ) -> torch.Tensor:
+    def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *, metres: bool,
+                    batch_blocks: int = 8192) -> torch.Tensor:
         """Core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the grid, in metres
         or normalised: free space (``d_max`` or 1.0) wherever no coded block is. Blocks are decoded a group at a
         time into one reused buffer and copied from there straight into the volume (:class:`BlockPlacer`): the
@@ -662,21 +662,25 @@ class MapReader:
         placer = BlockPlacer(out, lo, clo, chi)
         placer.fill(np.argwhere(states != BlockState.CODED) + b0, free)
         scratch = BufferRing(1, dev)  # decoded, placed, then overwritten by the next group
-        for coords, core in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take):
+        for coords, core in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
+                                               batch_blocks=batch_blocks):
             placer.place(coords, core)
         return out
 
-    def decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device) -> torch.Tensor:
-        """Final decoded metres of voxels ``[lo, hi)`` inside the grid, neighbour context included."""
+    def decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *,
+                      batch_blocks: int = 8192) -> torch.Tensor:
+        """Final decoded metres of voxels ``[lo, hi)`` inside the grid, neighbour context included; blocks are
+        decoded about ``batch_blocks`` at a time."""
         h = self.codec.halo
         if not h:  # metres straight out of the decode
-            return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True)
-        core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev, metres=False)
+            return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True, batch_blocks=batch_blocks)
+        core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev, metres=False,
+                                batch_blocks=batch_blocks)
         out = self._to_metres(self.codec.decode_context(core[None])[0])
         return restore_unobserved_voxels(self, out, lo, hi, self.truncation[1])  # the context spread into them
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                      device: str | torch.device | None = None) -> Any:
+                      device: str | torch.device | None = None, batch_blocks: int = 8192) -> Any:
         """:meth:`sdfcodec.Map.decode_region`: ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres."""
         lv = self.level(level)
         vox = self.block_box(region, units)
@@ -688,7 +692,7 @@ class MapReader:
                                     "raise max_decode_bytes in open_map()")
         dev = torch.device(device) if device is not None else torch.device("cpu")
         lo, hi = np.array([v[0] for v in vox]), np.array([v[1] for v in vox])
-        out = self.decode_voxels(lo, hi, lv, dev)  # contiguous, exactly the region: returned as it is
+        out = self.decode_voxels(lo, hi, lv, dev, batch_blocks=batch_blocks)  # contiguous, exactly the region: returned as it is
         return out.contiguous() if device is not None else np.ascontiguousarray(out.numpy())
 
     def local_root(self) -> str | None:
