@@ -49,12 +49,20 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
         raise ShapeError(f"{name} must have shape {expected}, got {tuple(t.shape)}{hint}")
     # fast path: one reduction (NaN/Inf propagate into the sum); the exact element test runs only when the sum
     # is not finite, which also covers finite values whose sum overflows; meta tensors hold no values to check
-    if (check_finite and t.numel() and t.device.type != "meta" and not bool(torch.isfinite(t.sum()))
-            and not bool(torch.isfinite(t).all())):
+    if check_finite and t.numel() and t.device.type != "meta" and not _finite_sum(t) and not bool(torch.isfinite(t).all()):
         bad = int((~torch.isfinite(t)).sum())
         raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
                                 "(replace unobserved voxels with the truncation distance d_max)")
     return t, was_numpy
+
+
+def _finite_sum(t: torch.Tensor) -> bool:
+    """Whether the sum of ``t``'s values is finite. CPU tensors are summed by numpy: torch's threaded reduction
+    right after a numpy (OpenBLAS) product waits for the BLAS threads still spinning on the same cores, which
+    cost 26 ms for 4096 codes of 64 on 2 cores (a third of the decode it checked)."""
+    if t.device.type == "cpu":
+        return bool(np.isfinite(t.detach().numpy().sum()))
+    return bool(torch.isfinite(t.sum()))
 
 
 def check_weights(weights: Any, n: int, device: torch.device) -> torch.Tensor:

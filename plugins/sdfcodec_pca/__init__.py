@@ -404,5 +404,9 @@ class PCACodec(Codec):
         # max |code| * sum_i max_j |D_ij| + max |d|: one min/max pass over the codes, no temporaries
         if not len(codes):
             return 0.0
-        lo, hi = torch.aminmax(codes)
+        if codes.device.type == "cpu":  # numpy's: torch's threaded reduction waits for BLAS threads still spinning
+            a = codes.numpy()
+            lo, hi = a.min(), a.max()
+        else:
+            lo, hi = torch.aminmax(codes)
         return max(-float(lo), float(hi)) * float(self._row_max[: codes.shape[1]].sum()) + self._bias_max
