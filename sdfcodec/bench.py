@@ -391,7 +391,8 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
     """Decoding into place (issue 19) beside the preallocated roofline, in interleaved rounds (:func:`interleaved`):
 
     - ``"decode-on-read-into"``: :meth:`sdfcodec.Map.iter_decoded` ``(copy=False)`` of a whole map of
-      ``n_blocks`` coded blocks (read, decompressed, decoded to metres into a ring of reused buffers);
+      ``n_blocks`` coded blocks (read, decompressed, decoded to metres into a ring of reused buffers), and
+      ``"decode-on-read-fresh"`` the same with the default ``copy=True`` (a fresh array per group);
     - ``"decode-region"``: :meth:`sdfcodec.Map.decode_region` of the whole map (blocks placed into one volume);
     - ``"decode-into"``: the same codes in memory, ``codec.decode_core(codes, scale, offset, out=buf)`` in
       batches of ``batch`` into one reused buffer.
@@ -426,8 +427,8 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
             for a, w, o in zip(lhs, mats, outs):
                 np.matmul(a, w, out=o)
 
-        def read() -> None:
-            for _ in m.iter_decoded(device=dev, copy=False):
+        def read(copy: bool) -> None:
+            for _ in m.iter_decoded(device=dev, copy=copy):
                 pass
             sync()
 
@@ -437,7 +438,8 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
                 codec.decode_core(c, scale=d_max - d_min, offset=d_min, out=buf[:len(c)])
             sync()
 
-        cases = {"roofline": roofline, "decode-on-read-into": read,
+        cases = {"roofline": roofline, "decode-on-read-into": lambda: read(False),
+                 "decode-on-read-fresh": lambda: read(True),
                  "decode-region": lambda: (m.decode_region(device=dev), sync()), "decode-into": in_memory}
         timed = interleaved(cases, rounds)
         m.close()

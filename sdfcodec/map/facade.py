@@ -164,8 +164,8 @@ class Map:
             batch_blocks: about how many blocks one decode call gets. prefetch: groups read ahead (0: none).
             copy: True (the default): every yielded ``blocks`` is a fresh array the caller owns. False: the
                 blocks are decoded into a ring of two reused buffers (no allocation, no page faults: the fast
-                path, about 1.3x here), so a yielded array is valid only until the ring wraps: it is overwritten
-                two iterations later, by the decode of the group after next. Copy what you keep, or use the
+                path, see ``sdfcodec bench``'s ``decode-on-read-into``), so a yielded array is valid only until the
+                ring wraps: it is overwritten two iterations later, by the decode of the group after next. Copy what you keep, or use the
                 default. The default is the safe one because ``list(m.iter_decoded())``, ``zip(*...)`` and any
                 caller keeping batches would otherwise silently see later groups' values.
 
