@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from .._validate import BLOCK, empty
+from ..errors import InvalidValueError
 
 __all__ = ["BufferRing", "BlockPlacer"]
 
@@ -70,7 +71,7 @@ class BlockPlacer:
 
     def __init__(self, vol: torch.Tensor, base: Sequence[int], lo: Sequence[int], hi: Sequence[int]):
         if not vol.is_contiguous():
-            raise ValueError("BlockPlacer needs a contiguous volume")
+            raise InvalidValueError("BlockPlacer needs a contiguous volume (torch.empty(...))")
         self.vol = vol
         self.np_vol = vol.numpy() if vol.device.type == "cpu" else None
         self.segments = [_axis_segments(int(a), int(b), int(o)) for a, b, o in zip(lo, hi, base)]
