@@ -451,7 +451,7 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
         us = 1e6 * t / n_blocks
         records.append({
             "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": op,
-            "batch": batch if op == "decode-into" else n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
+            "batch": min(batch, n_blocks) if op == "decode-into" else n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
             "baseline": "numpy matmul of the layer shapes into a preallocated output",
             "baseline_blocks_per_s": n_blocks / tb, "ratio_to_baseline": tb / t, "us_per_block": us, **vs_paper(us),
             "median_blocks_per_s": n_blocks / t_med, "median_baseline_blocks_per_s": n_blocks / tb_med,
