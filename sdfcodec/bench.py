@@ -43,7 +43,8 @@ from .codec import Codec, uses_weights
 from .errors import CodecTypeError, InvalidValueError, RegistrationError
 from .registry import get_codec, get_codec_class
 
-__all__ = ["time_call", "bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
+__all__ = ["time_call", "bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read",
+           "bench_decode_in_place", "memcpy_bytes_per_s",
            "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
@@ -273,6 +274,7 @@ def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int]
                 progress(f"{codec_id}-{codec.code_size} decode-on-read {read_blocks} blocks")
             records += bench_decode_on_read(codec, read_blocks, device=device, min_time=min_time,
                                             name=codec_id, weights=weights, http=http)
+            records += bench_decode_in_place(codec, read_blocks, device=device, name=codec_id)
     return records
 
 
@@ -294,25 +296,17 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     import tempfile
     from pathlib import Path
 
-    from .map import create_map, open_map
-    from .testing import analytic_blocks
+    from .map import open_map
 
     if n_blocks < 1:
         raise InvalidValueError(f"n_blocks must be >= 1, got {n_blocks}")
     d_min, d_max = -0.04, 0.1
-    data = analytic_blocks(512, seed=3)
-    side = int(np.ceil(n_blocks ** (1 / 3)))
-    coords = np.stack(np.unravel_index(np.arange(n_blocks), (side, side, side)), axis=1)
     tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-bench-"))
     dev = None if device == "cpu" else torch.device(device)
     sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
     timed: dict[str, float] = {}
     try:
-        codes = np.asarray(codec.encode(data))  # real codes of 512 analytic blocks, tiled (reading is timed)
-        with create_map(tmp / "bench.sdfz", codec=codec, voxel_size=0.02, truncation=(d_min, d_max)) as m:
-            for i in range(0, n_blocks, 16384):
-                j = min(i + 16384, n_blocks)
-                m.write_codes(coords[i:j], np.concatenate([codes] * -(-(j - i) // len(codes)))[: j - i])
+        _write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
         sources = {"decode-on-read": str(tmp / "bench.sdfz")}
         server = _serve(tmp) if http else None
         if server is not None:
@@ -360,6 +354,109 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
         if weights is not None:
             rec["weights"] = weights
         records.append(rec)
+    return records
+
+
+def _write_bench_map(codec: Codec, n_blocks: int, path: Any, truncation: tuple[float, float]) -> None:
+    """A map of ``n_blocks`` coded blocks filling a cube of blocks in grid order (float32 codes, default chunking):
+    the real codes of 512 analytic blocks, tiled (reading them is what is timed, not encoding)."""
+    from .map import create_map
+    from .testing import analytic_blocks
+
+    side = int(np.ceil(n_blocks ** (1 / 3)))
+    coords = np.stack(np.unravel_index(np.arange(n_blocks), (side, side, side)), axis=1)
+    codes = np.asarray(codec.encode(analytic_blocks(512, seed=3)))
+    with create_map(path, codec=codec, voxel_size=0.02, truncation=truncation) as m:
+        for i in range(0, n_blocks, 16384):
+            j = min(i + 16384, n_blocks)
+            m.write_codes(coords[i:j], np.concatenate([codes] * -(-(j - i) // len(codes)))[: j - i])
+
+
+def interleaved(cases: dict[str, Callable[[], object]], rounds: int) -> dict[str, tuple[float, float]]:
+    """``(best, median)`` seconds per call of each case, over ``rounds`` rounds that each call every case once,
+    in turn (after one warm-up call each): load that comes and goes hits every case alike."""
+    for fn in cases.values():
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    for _ in range(rounds):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {name: (min(t), float(np.median(t))) for name, t in times.items()}
+
+
+def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", rounds: int = 5, batch: int = 4096,
+                          name: str | None = None) -> list[dict]:
+    """Decoding into place (issue 19) beside the preallocated roofline, in interleaved rounds (:func:`interleaved`):
+
+    - ``"decode-on-read-into"``: :meth:`sdfcodec.Map.iter_decoded` ``(copy=False)`` of a whole map of
+      ``n_blocks`` coded blocks (read, decompressed, decoded to metres into a ring of reused buffers), and
+      ``"decode-on-read-fresh"`` the same with the default ``copy=True`` (a fresh array per group);
+    - ``"decode-region"``: :meth:`sdfcodec.Map.decode_region` of the whole map (blocks placed into one volume);
+    - ``"decode-into"``: the same codes in memory, ``codec.decode_core(codes, scale, offset, out=buf)`` in
+      batches of ``batch`` into one reused buffer.
+
+    The baseline is the codec's roofline, the product of its decode shapes for all ``n_blocks`` written into a
+    preallocated output (``np.matmul(..., out=)``: no allocation or page faults timed). Each record has
+    ``blocks_per_s`` and ``ratio_to_baseline`` from the best round, ``median_blocks_per_s`` and
+    ``median_ratio_to_baseline`` from the medians, and ``rounds``."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from .map import open_map
+
+    d_min, d_max = -0.04, 0.1
+    dev = None if device == "cpu" else torch.device(device)
+    sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
+    tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-bench-"))
+    try:
+        _write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
+        m = open_map(tmp / "bench.sdfz")
+        _, codes = m.read_codes()
+        z = torch.from_numpy(codes).to(device)
+        buf = torch.empty((min(batch, n_blocks), _N), device=device)
+        rng = np.random.default_rng(0)
+        shapes = roofline_shapes(codec, "decode")
+        mats = [rng.standard_normal(sh, dtype=np.float32) for sh in shapes]
+        lhs = [rng.standard_normal((n_blocks, sh[0]), dtype=np.float32) for sh in shapes]
+        outs = [np.zeros((n_blocks, sh[1]), np.float32) for sh in shapes]  # touched: faults are not timed
+
+        def roofline() -> None:
+            for a, w, o in zip(lhs, mats, outs):
+                np.matmul(a, w, out=o)
+
+        def read(copy: bool) -> None:
+            for _ in m.iter_decoded(device=dev, copy=copy):
+                pass
+            sync()
+
+        def in_memory() -> None:
+            for i in range(0, n_blocks, batch):
+                c = z[i:i + batch]
+                codec.decode_core(c, scale=d_max - d_min, offset=d_min, out=buf[:len(c)])
+            sync()
+
+        cases = {"roofline": roofline, "decode-on-read-into": lambda: read(False),
+                 "decode-on-read-fresh": lambda: read(True),
+                 "decode-region": lambda: (m.decode_region(device=dev), sync()), "decode-into": in_memory}
+        timed = interleaved(cases, rounds)
+        m.close()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    (tb, tb_med) = timed.pop("roofline")
+    records = []
+    for op, (t, t_med) in timed.items():
+        us = 1e6 * t / n_blocks
+        records.append({
+            "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": op,
+            "batch": min(batch, n_blocks) if op == "decode-into" else n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
+            "baseline": "numpy matmul of the layer shapes into a preallocated output",
+            "baseline_blocks_per_s": n_blocks / tb, "ratio_to_baseline": tb / t, "us_per_block": us, **vs_paper(us),
+            "median_blocks_per_s": n_blocks / t_med, "median_baseline_blocks_per_s": n_blocks / tb_med,
+            "median_ratio_to_baseline": tb_med / t_med, "rounds": rounds, "map_blocks": n_blocks,
+            "torch_threads": torch.get_num_threads()})
     return records
 
 

@@ -9,7 +9,8 @@ The public ``fit`` / ``encode`` / ``decode`` of this base class check and conver
 that follow it (numpy in, numpy out; a tensor in, a tensor on its device out).
 
 Optional public hooks, each with a default that is correct for every codec (spec section 4):
-:meth:`Codec.decode_affine`, :meth:`Codec.decode_bound` (decode on read), :meth:`Codec.encode_weighted`
+:meth:`Codec.decode_affine`, :meth:`Codec.decode_into`, :meth:`Codec.decode_bound` (decode on read),
+:meth:`Codec.encode_weighted`
 (per-voxel error weights: unobserved voxels and surfaces) and :meth:`Codec.fit_batches` (streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained` and listed by
 :meth:`Codec.shipped_models` / :meth:`Codec.shipped_state`. Benchmark shapes are
 registered with :func:`sdfcodec.bench.register_bench`, not declared here. Plugin authors import their tools
@@ -22,15 +23,15 @@ import abc
 import copy
 import inspect
 import warnings
-from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping
+from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
-from ._validate import BLOCK, as_float_tensor, check_weights, like_input
-from .errors import InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
+from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input
+from .errors import DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
-__all__ = ["Codec", "BLOCK", "uses_weights", "learns_weights"]
+__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "uses_weights", "learns_weights"]
 
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
@@ -185,21 +186,74 @@ class Codec(abc.ABC):
                              " (this codec is not prefix-ordered, so a shorter code cannot be decoded)")
         return t, was_numpy
 
-    def decode(self, codes: Any) -> Any:
+    def decode(self, codes: Any, *, out: Any = None) -> Any:
         """Decode codes ``(N, k)`` to normalised blocks ``(N, 16, 16, 16)`` (float32).
 
         ``k`` must equal ``code_size``, or, for prefix-ordered codecs, be any ``1 <= k <= code_size``
-        (a prefix decodes to a coarser block). Output follows the input like :meth:`encode`.
+        (a prefix decodes to a coarser block, so the code length is the prefix level). Output follows the input
+        like :meth:`encode`.
+
+        ``out``, optional: a caller's buffer to decode into, of the kind the result would be (a numpy array for
+        numpy codes, a tensor on the codes' device for tensor codes), float32, C-contiguous, shape
+        ``(N, 16, 16, 16)`` or ``(N, 4096)``, not overlapping the codes; it is filled and returned (the same
+        object), so a loop decoding batch after batch allocates nothing. A codec implementing the optional hook
+        :meth:`decode_into` writes there directly; the others decode and copy (spec section 4).
+
+        Raises:
+            ShapeError, DTypeError, InvalidValueError: bad codes, or an ``out`` of the wrong shape, dtype, kind,
+                device or layout (the message says which).
         """
         t, was_numpy = self._checked_codes(codes)
+        if out is not None:
+            dst = self._checked_out(out, t, was_numpy)
+            if len(t):
+                if self.halo:  # blocks alone have their own faces as context: the plain decode, copied
+                    dst.copy_(self._decode_alone(t))
+                else:
+                    self.decode_into(t, dst, 1.0, 0.0)
+            return out
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
+        return like_input(self._decode_alone(t), was_numpy)
+
+    def _decode_alone(self, t: torch.Tensor) -> torch.Tensor:
+        """``_decode`` of checked codes, halo codecs given each block's own faces, repeated, as context."""
         out = self._decode(t)
         if self.halo:
             # alone, a block has no neighbours: repeat its faces as the context (maps give the real ones)
             h = self.halo
             out = self._decode_context(torch.nn.functional.pad(out[:, None], (h,) * 6, mode="replicate")[:, 0])
-        return like_input(out, was_numpy)
+        return out
+
+    def _checked_out(self, out: Any, codes: torch.Tensor, was_numpy: bool) -> torch.Tensor:
+        """The caller's output buffer ``out`` for checked ``codes`` ``(N, k)``, checked (see :meth:`decode`), as a
+        float32 tensor ``(N, 16, 16, 16)`` sharing its memory."""
+        n = len(codes)
+        if was_numpy != isinstance(out, np.ndarray) or not (was_numpy or isinstance(out, torch.Tensor)):
+            want = "a numpy array (the codes are numpy)" if was_numpy else f"a torch tensor on {codes.device}"
+            raise DTypeError(f"out must be {want}, got {type(out).__name__}")
+        dtype = out.dtype
+        if dtype not in (np.float32, torch.float32):
+            raise DTypeError(f"out must be float32, got {dtype}: decoded blocks are float32")
+        if tuple(out.shape) not in ((n, BLOCK, BLOCK, BLOCK), (n, BLOCK ** 3)):
+            raise ShapeError(f"out must have shape ({n}, 16, 16, 16) or ({n}, 4096) for {n} codes, "
+                             f"got {tuple(out.shape)}")
+        if was_numpy:
+            if not out.flags.c_contiguous or not out.flags.writeable:
+                raise InvalidValueError("out must be a writeable, C-contiguous numpy array (np.empty(...)), got "
+                                        + ("a read-only array" if not out.flags.writeable else "a strided view"))
+            dst = torch.from_numpy(out)
+        else:
+            if out.device != codes.device:
+                raise InvalidValueError(f"out must be on the codes' device {codes.device}, got {out.device}")
+            if not out.is_contiguous():
+                raise InvalidValueError("out must be a contiguous tensor (torch.empty(...)), got a strided view")
+            dst = out.detach()
+        lo, hi = dst.data_ptr(), dst.data_ptr() + 4 * dst.numel()
+        clo, chi = codes.data_ptr(), codes.data_ptr() + codes.element_size() * codes.numel()
+        if dst.numel() and codes.numel() and dst.device.type != "meta" and lo < chi and clo < hi:
+            raise InvalidValueError("out overlaps the codes: decode into a separate buffer")
+        return dst.view(n, BLOCK, BLOCK, BLOCK)
 
     def decode_context(self, padded: Any) -> Any:
         """Finish decoding with neighbour context: ``(N, X + 2h, Y + 2h, Z + 2h)`` normalised values (blocks
@@ -212,16 +266,22 @@ class Codec(abc.ABC):
                              f"got {tuple(t.shape)}")
         return like_input(self._decode_context(t) if h else t, was_numpy)
 
-    def decode_core(self, codes: Any, *, scale: float = 1.0, offset: float = 0.0) -> Any:
+    def decode_core(self, codes: Any, *, scale: float = 1.0, offset: float = 0.0, out: Any = None) -> Any:
         """Decode without neighbour context (what :meth:`decode_context` assembles), as ``scale * v + offset``:
         ``(N, k) -> (N, 16, 16, 16)``. With the defaults it equals :meth:`decode` for codecs with ``halo == 0``;
         map readers pass ``scale = d_max - d_min, offset = d_min`` to get metres in the same pass (codecs whose
-        last step is linear fold it into their weights, see :meth:`decode_affine`)."""
-        if not self.halo and scale == 1.0 and offset == 0.0:
-            return self.decode(codes)
+        last step is linear fold it into their weights, see :meth:`decode_affine`). ``out``: a buffer to decode
+        into, as for :meth:`decode` (filled and returned; the codec's :meth:`decode_into` writes it)."""
         t, was_numpy = self._checked_codes(codes)
+        if out is not None:
+            dst = self._checked_out(out, t, was_numpy)
+            if len(t):
+                self.decode_into(t, dst, float(scale), float(offset))
+            return out
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
+        if not self.halo and scale == 1.0 and offset == 0.0:
+            return like_input(self._decode(t), was_numpy)
         return like_input(self.decode_affine(t, float(scale), float(offset)), was_numpy)
 
     # -- optional public hooks (spec section 4): the defaults are correct for every codec; overriding one only
@@ -237,6 +297,19 @@ class Codec(abc.ABC):
         aliased = out.untyped_storage().data_ptr() == codes.untyped_storage().data_ptr()
         base = torch.tensor(offset, dtype=out.dtype, device=out.device)
         return torch.add(base, out, alpha=scale) if aliased else torch.add(base, out, alpha=scale, out=out)
+
+    def decode_into(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
+        """Hook: write ``scale * _decode(codes) + offset`` into ``out`` ``(N, 16, 16, 16)`` (float32, contiguous,
+        on the codes' device, not overlapping them) for checked float32 codes ``(N, k)``, ``N >= 1``
+        (:meth:`decode` and :meth:`decode_core` call it when given ``out``; map readers decode into reused buffers
+        and into the volumes they fill through it). The default is decode-then-copy (:meth:`decode_affine`, then
+        one copy into ``out``): correct for every codec. A codec that can write its output where it is told
+        SHOULD override it (PCA: one matrix product into ``out``, scale and offset folded in; raw: one fused
+        pass); :class:`DecodesInto` declares the signature, :func:`decodes_into` tells whether a codec does."""
+        if _overrides(self, "decode_affine"):  # the codec's own affine decode (folded, say), then one copy
+            out.copy_(self.decode_affine(codes, scale, offset))
+        else:  # the plain decode, scaled into ``out`` in the one pass the default decode_affine would spend
+            affine_into(self._decode(codes), out, scale, offset)
 
     def decode_bound(self, codes: torch.Tensor) -> float | None:
         """Hook: an upper bound on ``|_decode(codes)|`` over all outputs for checked float32 codes ``(N, k)``,
@@ -372,6 +445,22 @@ def __getattr__(name: str) -> Any:
 
         return empty
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+@runtime_checkable
+class DecodesInto(Protocol):
+    """The optional fast path of decoding into a caller's buffer (spec/codec-plugins.md, section 4): what a
+    codec overriding :meth:`Codec.decode_into` provides. Every :class:`Codec` matches it structurally (the base
+    class falls back to decode-then-copy); :func:`decodes_into` tells whether a codec writes in place."""
+
+    def decode_into(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
+        """Write ``scale * decode(codes) + offset`` into ``out`` ``(N, 16, 16, 16)`` float32."""
+
+
+def decodes_into(codec: Codec | type[Codec]) -> bool:
+    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_into`, i.e. decodes straight
+    into a caller's buffer rather than decoding and copying."""
+    return _overrides(codec, "decode_into")
 
 
 def uses_weights(codec: Codec | type[Codec]) -> bool:

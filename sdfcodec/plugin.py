@@ -4,7 +4,12 @@
 Checked tensors
     :data:`BLOCK` (16), :func:`as_float_tensor` (check shape/dtype/finiteness, convert to float32),
     :func:`like_input` (return a result the way the input came: numpy or a tensor), :func:`empty` (an
-    uninitialised float32 tensor; on the CPU allocated so that large outputs get huge pages).
+    uninitialised float32 tensor; on the CPU allocated so that large outputs get huge pages),
+    :func:`affine_into` (``scale * values + offset`` written into a buffer in one pass: ``decode_into`` of a codec
+    whose decode is a reshape).
+Decoding into a caller's buffer
+    :class:`DecodesInto` (the optional ``decode_into`` hook's signature), :func:`decodes_into` (does a codec
+    override it).
 State and model files
     :func:`save_state_file` / :func:`load_state_file` (plain-array ``.npz``, never pickled),
     :func:`load_meta_file` (a ``.npz`` with a JSON metadata entry), :func:`save_model` / :func:`load_model`.
@@ -33,16 +38,16 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ._validate import BLOCK, as_float_tensor, empty, like_input
+from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
 from .bench import bench_codec_instance, bench_instance, register_bench, roofline_shapes
-from .codec import Codec
+from .codec import Codec, DecodesInto, decodes_into
 from .dataset import Dataset, open_dataset
 from .map.field import sz3_compress, sz3_decompress
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
 
-__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty",
+__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "DecodesInto", "decodes_into",
            "save_state_file", "load_state_file", "load_meta_file", "save_model", "load_model",
            "shipped_model_file", "load_shipped_model",
            "get_codec", "get_codec_class", "pretrained_codec",

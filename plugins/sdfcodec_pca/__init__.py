@@ -381,6 +381,12 @@ class PCACodec(Codec):
 
     def decode_affine(self, codes: torch.Tensor, scale: float, offset: float) -> torch.Tensor:
         # the output scaling (map readers: normalised -> metres) is folded into the decode layer: no extra pass
+        out = empty((len(codes), _N), codes.device)
+        self.decode_into(codes, out, scale, offset)
+        return out.reshape(len(codes), 16, 16, 16)
+
+    def decode_into(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
+        # one matrix product straight into the caller's buffer, the output scaling folded into the decode layer
         n, k = codes.shape
         dec = self._decoder(codes.device, scale, offset)
         if codes.device.type == "cpu":
@@ -389,14 +395,18 @@ class PCACodec(Codec):
             c1 = np.empty((n, k + 1), dtype=np.float32)
             c1[:, 0] = 1.0
             c1[:, 1:] = codes.numpy()
-            return torch.from_numpy(c1 @ dec[0][: k + 1]).reshape(n, 16, 16, 16)
+            np.matmul(c1, dec[0][: k + 1], out=out.numpy().reshape(n, _N))
+            return
         dec_b, dec_w = dec
-        out = empty((n, _N), codes.device)
-        return torch.addmm(dec_b, codes, dec_w[:k], out=out).reshape(n, 16, 16, 16)
+        torch.addmm(dec_b, codes, dec_w[:k], out=out.view(n, _N))
 
     def decode_bound(self, codes: torch.Tensor) -> float:
         # max |code| * sum_i max_j |D_ij| + max |d|: one min/max pass over the codes, no temporaries
         if not len(codes):
             return 0.0
-        lo, hi = torch.aminmax(codes)
+        if codes.device.type == "cpu":  # numpy's: torch's threaded reduction waits for BLAS threads still spinning
+            a = codes.numpy()
+            lo, hi = a.min(), a.max()
+        else:
+            lo, hi = torch.aminmax(codes)
         return max(-float(lo), float(hi)) * float(self._row_max[: codes.shape[1]].sum()) + self._bias_max

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from sdfcodec import Codec
+from sdfcodec.plugin import affine_into
 
 __all__ = ["RawCodec"]
 
@@ -33,3 +34,7 @@ class RawCodec(Codec):
 
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         return codes.reshape(len(codes), 16, 16, 16).clone()
+
+    def decode_into(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
+        # the code is the block: one fused pass (scale * codes + offset) straight into the caller's buffer
+        affine_into(codes, out, scale, offset)

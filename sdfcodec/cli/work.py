@@ -279,7 +279,10 @@ def bench_cmd(
     Decode-on-read times a whole map read and decoded to float32 metres by Map.iter_decoded, from local disk
     and over HTTP from a server on loopback, beside the same roofline, the memory-copy bandwidth of this
     machine (as blocks/s of 16 KiB) and the codec's decode of the same codes in memory (JSON:
-    memcpy_blocks_per_s, in_memory_decode_blocks_per_s). For pca, the search kernel (15 floor descriptors)
+    memcpy_blocks_per_s, in_memory_decode_blocks_per_s). Decoding into place is timed beside the decode product
+    into a preallocated output, in 5 interleaved rounds (best and median): decode-on-read-into
+    (iter_decoded(copy=False)), decode-on-read-fresh (the default copy=True), decode-region (the whole map) and
+    decode-into (decode_core(..., out=) in batches of 4096). For pca, the search kernel (15 floor descriptors)
     is timed beside a numpy product of its shape. Tracking is benchmarked by `sdfcodec eval` instead (it needs
     a sequence and a map of it). Every record has speedup_vs_paper (405 and 645 us/block over ours).
 

@@ -142,8 +142,8 @@ class Map:
         return self.reader.iter_codes(level=level, chunks_per_batch=chunks_per_batch, prefetch=prefetch)
 
     def iter_decoded(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                     device: str | torch.device | None = None, batch_blocks: int = 8192, prefetch: int = 2
-                     ) -> Iterator[tuple[np.ndarray, Any]]:
+                     device: str | torch.device | None = None, batch_blocks: int = 8192, prefetch: int = 2,
+                     copy: bool = True) -> Iterator[tuple[np.ndarray, Any]]:
         """Decode on read: yield ``(coords (n, 3) int64, blocks (n, 16, 16, 16) float32 metres)`` for every coded
         block touching ``region`` (default: the whole map), a group of chunks at a time, in grid order.
 
@@ -162,12 +162,18 @@ class Map:
             level: decode only the first ``level`` code elements (prefix-ordered codecs).
             device: ``None``: decode on the CPU and yield numpy arrays; otherwise yield torch tensors on it.
             batch_blocks: about how many blocks one decode call gets. prefetch: groups read ahead (0: none).
+            copy: True (the default): every yielded ``blocks`` is a fresh array the caller owns. False: the
+                blocks are decoded into a ring of two reused buffers (no allocation, no page faults: the fast
+                path, see ``sdfcodec bench``'s ``decode-on-read-into``), so a yielded array is valid only until the
+                ring wraps: it is overwritten two iterations later, by the decode of the group after next. Copy what you keep, or use the
+                default. The default is the safe one because ``list(m.iter_decoded())``, ``zip(*...)`` and any
+                caller keeping batches would otherwise silently see later groups' values.
 
         Values are metres, exactly as :meth:`iter_blocks` and :meth:`decode_region` give them; codecs with a
         decode halo see their neighbours (decoded chunk by chunk, each with its neighbourhood).
         """
         return self.reader.iter_decoded(region, units=units, level=level, device=device, batch_blocks=batch_blocks,
-                                        prefetch=prefetch)
+                                        prefetch=prefetch, copy=copy)
 
     def iter_blocks(self, *, level: int | None = None, device: str | torch.device | None = None,
                     chunks_per_batch: int | None = None) -> Iterator[tuple[np.ndarray, Any]]:
@@ -187,7 +193,7 @@ class Map:
         return map_to_dask(self, level=level)
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                      device: str | torch.device | None = None) -> Any:
+                      device: str | torch.device | None = None, batch_blocks: int = 8192) -> Any:
         """Decode a region to a dense TSDF in metres.
 
         Args:
@@ -195,12 +201,17 @@ class Map:
                 ``units="m"``, half-open bounds in metres (the voxels whose centres lie in [lo, hi)).
             level: decode only the first ``level`` code elements (prefix-ordered codecs only).
             device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
+            batch_blocks: about how many blocks one decode call gets (the size of the reused decode buffer).
 
         Returns:
             ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``. Codecs with
             a decode halo (e.g. ``gaussian-blur``) see their neighbour blocks, so there are no seams.
+
+        Blocks are decoded a group of chunks at a time into one reused buffer and copied from there straight
+        into the returned volume (vectorised, no per-block copies): peak memory is the output plus one group's
+        decodes (``16 KiB x batch_blocks``), not a second volume.
         """
-        return self.reader.decode_region(region, units=units, level=level, device=device)
+        return self.reader.decode_region(region, units=units, level=level, device=device, batch_blocks=batch_blocks)
 
     def info(self) -> dict[str, Any]:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""

@@ -239,6 +239,52 @@ def check_decode_on_read(case: Case) -> None:
                                            f"largest decoded magnitude {peak:.6g}"
 
 
+def check_decode_out(case: Case) -> None:
+    """Decoding into a caller's buffer (spec/codec-plugins.md 4, ``decode_into``): ``decode(codes, out=buf)`` and
+    ``decode_core(codes, scale, offset, out=buf)`` fill ``buf`` (``(N, 16, 16, 16)`` or ``(N, 4096)``, numpy or a
+    tensor) with what they return without it, at a few prefix levels for prefix-ordered codecs, and return
+    ``buf`` itself; a buffer of the wrong shape, dtype, kind or layout, or overlapping the codes, is refused."""
+    codec, x, atol = case.codec, case.options.blocks, case.options.atol
+    codes = codec.encode(x)
+    n, k = codes.shape
+    levels = [k]
+    if type(codec).prefix_ordered:
+        lv = prefix_levels(k, case.options.max_levels)
+        levels = sorted({lv[0], lv[len(lv) // 2], k})
+    for level in levels:
+        c = np.ascontiguousarray(codes[:, :level])
+        for shape in ((n, 16, 16, 16), (n, 4096)):
+            buf = np.full(shape, np.nan, np.float32)  # NaN: a voxel left unwritten cannot pass
+            got = codec.decode(c, out=buf)
+            assert got is buf, f"decode out=: returned a {type(got).__name__}, not the buffer given"
+            assert_close(buf.reshape(n, 16, 16, 16), codec.decode(c), atol,
+                         f"decode out=: a {level}-element code into a {shape} buffer vs decode without out")
+        buf = np.full((n, 16, 16, 16), np.nan, np.float32)
+        assert codec.decode_core(c, scale=_SCALE, offset=_OFFSET, out=buf) is buf, "decode_core out=: not the buffer"
+        assert_close(buf, codec.decode_core(c, scale=_SCALE, offset=_OFFSET), atol * _SCALE,
+                     f"decode_core out=: a {level}-element code in metres vs decode_core without out")
+    t = torch.from_numpy(codes.copy())
+    tbuf = torch.full((n, 4096), float("nan"))
+    assert codec.decode(t, out=tbuf) is tbuf, "decode out=: a tensor buffer was not returned as given"
+    assert_close(tbuf.reshape(n, 16, 16, 16), codec.decode(codes), atol, "decode out=: tensor codes and buffer")
+    empty_buf = np.empty((0, 16, 16, 16), np.float32)
+    assert codec.decode(codes[:0], out=empty_buf) is empty_buf, "decode out=: an empty batch's buffer not returned"
+    refusals = (
+        (errors.ShapeError, np.empty((n + 1, 16, 16, 16), np.float32), "a buffer for one block more"),
+        (errors.ShapeError, np.empty((n, 16, 16), np.float32), "a buffer of 16^2 blocks"),
+        (errors.DTypeError, np.empty((n, 4096), np.float64), "a float64 buffer"),
+        (errors.DTypeError, torch.empty((n, 4096)), "a tensor buffer for numpy codes"),
+        (errors.InvalidValueError, np.empty((n, 8192), np.float32)[:, ::2], "a strided buffer"),
+    )
+    for exc, bad, what in refusals:
+        assert_raises(exc, lambda: codec.decode(codes, out=bad), f"decode out=: {what}")
+    shared = np.empty(n * 4096, np.float32)  # codes stored inside the buffer they would be decoded into
+    inside = shared[: n * k].reshape(n, k)
+    inside[:] = codes
+    assert_raises(errors.InvalidValueError, lambda: codec.decode(inside, out=shared.reshape(n, 4096)),
+                  "decode out=: a buffer overlapping the codes")
+
+
 def _outputs(codec: Codec, x: np.ndarray, max_levels: int) -> dict[str, Any]:
     """Everything a codec computes from ``x``: codes, decoded blocks (numpy and CPU tensors), decodes at a few
     prefix levels, and ``decode_core`` in metres; used to compare two codecs that must be the same."""
@@ -417,6 +463,7 @@ CHECKS: tuple[tuple[str, Callable[[Case], Any]], ...] = (
     ("fit", check_fit),
     ("round_trip", check_round_trip),
     ("decode_on_read", check_decode_on_read),
+    ("decode_out", check_decode_out),
     ("batch_sizes", check_batch_sizes),
     ("devices", check_devices),
     ("meta_device", check_meta_device),
