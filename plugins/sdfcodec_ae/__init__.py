@@ -27,7 +27,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import torch
+from sdfcodec.plugin import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError, ModelNotFoundError

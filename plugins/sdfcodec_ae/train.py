@@ -35,7 +35,9 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
-import torch
+from sdfcodec.plugin import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from sdfcodec.plugin import load_state_file, save_state_file

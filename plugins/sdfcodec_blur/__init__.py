@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import math
 
-import torch
+from sdfcodec.plugin import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError

@@ -44,7 +44,9 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
-import torch
+from sdfcodec.plugin import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 import sdfcodec
 from sdfcodec import Codec

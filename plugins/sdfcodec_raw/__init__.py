@@ -7,7 +7,9 @@ with float16 code storage it halves the bytes at about 1e-3 normalised error (fl
 
 from __future__ import annotations
 
-import torch
+from sdfcodec.plugin import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 from sdfcodec import Codec
 

@@ -14,7 +14,9 @@ one: ``decode`` is a reshape. Needs ``pip install 'sdfcodec[sz3]'`` (pysz==1.1.0
 from __future__ import annotations
 
 import numpy as np
-import torch
+from sdfcodec.plugin import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 from sdfcodec import Codec
 from sdfcodec.plugin import sz3_compress, sz3_decompress

@@ -14,7 +14,8 @@ import warnings
 from typing import Any, Sequence
 
 import numpy as np
-import torch
+from .._lazy import lazy_module
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 import zarr
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCodec
 

@@ -22,7 +22,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
+from .._lazy import lazy_module
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 import zarr
 
 from .._validate import BLOCK

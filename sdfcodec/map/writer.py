@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import torch
+from .._lazy import lazy_module
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 import zarr
 
 from .. import __version__, _atomic
