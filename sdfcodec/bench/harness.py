@@ -20,6 +20,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
+from ..errors import InvalidValueError
+
 __all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine"]
 
 
@@ -61,7 +63,7 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
     in ``repeats`` interleaved rounds of equal length; see the module docstring. Returns name -> :class:`Timing`.
     A callable that runs asynchronously (CUDA) must synchronise before it returns."""
     if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
+        raise InvalidValueError(f"repeats must be >= 1, got {repeats}")
     names = list(fns)
     calls = {n: _calibrate(fns[n], min_time) for n in names}
     rounds: dict[str, list[float]] = {n: [] for n in names}
