@@ -99,15 +99,18 @@ def test_cli_bench_full_and_compare(tmp_path, smoke):
     from sdfcodec.cli import app
 
     out = tmp_path / "run.json"
-    r = CliRunner().invoke(app, ["bench", "--full", "--quick", "--cases", "search", "--repeats", "2",
+    r = CliRunner().invoke(app, ["bench", "--full", "--quick", "--cases", "search", "--repeats", "2", "--threads", "1",
                                  "--out", str(out)])
     assert r.exit_code == 0, r.output
     doc = json.loads(out.read_text())
     assert doc["schema"] == "sdfcodec-bench/1" and [x["operation"] for x in doc["records"]] == ["search"]
-    assert doc["records"][0]["repeats"] == 2 and doc["mode"] == "quick"
+    assert doc["records"][0]["repeats"] == 2 and doc["mode"] == "quick" and doc["machine"]["torch_threads"] == 1
+    assert {"ratio_to_baseline", "ratio_of_bests", "ratio_paired", "ratio_cpu"} <= set(doc["records"][0])
     (tmp_path / "smoke.json").write_text(json.dumps(smoke))
     r = CliRunner().invoke(app, ["bench", "--compare", str(out), str(tmp_path / "smoke.json"), "--json"])
     assert r.exit_code == 0, r.output
     res = json.loads(r.stdout)
     # the search record differs in batch between the runs: nothing matches, both sides counted unmatched
     assert res["rows"] == [] and res["unmatched"] == 1 + len(smoke["records"]) and res["agree"] is False
+    same = json.loads(CliRunner().invoke(app, ["bench", "--compare", str(out), str(out), "--json"]).stdout)
+    assert same["agree"] and same["worst"] == 0 and same["by_ratio"]["ratio_cpu"]["records"] == 1

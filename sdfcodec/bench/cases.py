@@ -38,7 +38,7 @@ import numpy as np
 
 from .._lazy import lazy_module
 from .codecs import bench_decode_on_read
-from .harness import interleave, load, machine
+from .harness import interleave, load, machine, ratio
 from .search import bench_search
 
 torch = lazy_module("torch")
@@ -90,7 +90,8 @@ class Figure:
 def run_figure(setup: Setup, fig: Figure) -> dict[str, Any]:
     """Time ``fig`` interleaved with its baselines; the record: ``fields``, ``{unit}_per_s`` (median) and
     ``_best``, for the first baseline ``baseline_{unit}_per_s`` and ``ratio_to_baseline`` (ratio of medians),
-    ``ratio_of_bests``; for the others ``{name}_{unit}_per_s`` and ``ratio_to_{name}``; ``load_before/after``."""
+    ``ratio_of_bests``, ``ratio_paired``, ``ratio_cpu``; for the others ``{name}_{unit}_per_s`` and
+    ``ratio_to_{name}``; ``load_before/after``."""
     load0 = load()
     tm = interleave({"candidate": fig.candidate, **fig.baselines}, repeats=setup.repeats, min_time=setup.min_time)
     c, u = tm["candidate"], fig.unit
@@ -101,8 +102,8 @@ def run_figure(setup: Setup, fig: Figure) -> dict[str, Any]:
         key = "baseline" if i == 0 else name
         rec[f"{key}_{u}_per_s"] = w / b.median
         rec["ratio_to_baseline" if i == 0 else f"ratio_to_{name}"] = (fig.work / c.median) / (w / b.median)
-        if i == 0:
-            rec["ratio_of_bests"] = (fig.work / c.best) / (w / b.best)
+        if i == 0:  # the same ratio other ways (harness.ratio), scaled by the work per call of each side
+            rec.update({k: v * fig.work / w for k, v in ratio(c, b).items() if k != "ratio_of_medians"})
     rec.update(load_before=load0, load_after=load())
     return rec
 
@@ -243,7 +244,8 @@ def run_cases(device: str = "cpu", *, quick: bool = False, repeats: int = 5, min
     if unknown:
         raise InvalidValueError(f"unknown bench case(s) {unknown}; the cases are {', '.join(CASES)}")
     mode = "quick" if quick else "full"
-    setup = Setup(device, {**SIZES[mode], **(sizes or {})}, repeats, (0.02 if quick else 0.2) if min_time is None else min_time,
+    min_time = (0.02 if quick else 0.2) if min_time is None else min_time
+    setup = Setup(device, {**SIZES[mode], **(sizes or {})}, repeats, min_time,
                   progress or (lambda s: None))
     setup.dev  # a bad device name fails here, before anything runs
     doc: dict[str, Any] = {"schema": "sdfcodec-bench/1", "command": " ".join(["sdfcodec", *sys.argv[1:]]),

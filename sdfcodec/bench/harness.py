@@ -13,24 +13,27 @@ The machine (:func:`machine`) and its load (``os.getloadavg()``, :func:`load`) a
 
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import statistics
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 from ..errors import InvalidValueError
 
-__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine"]
+__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine", "limit_threads"]
 
 
 @dataclass(frozen=True)
 class Timing:
-    """Seconds per call of one callable, one value per round (``rounds``), and the calls timed per round."""
+    """Seconds per call of one callable, one value per round (``rounds``: wall clock; ``cpu_rounds``: CPU time
+    of this process, all its threads), and the calls timed per round."""
 
     rounds: tuple[float, ...]
     calls: int
+    cpu_rounds: tuple[float, ...] = ()
 
     @property
     def best(self) -> float:
@@ -67,19 +70,33 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
     names = list(fns)
     calls = {n: _calibrate(fns[n], min_time) for n in names}
     rounds: dict[str, list[float]] = {n: [] for n in names}
+    cpu: dict[str, list[float]] = {n: [] for n in names}
     for r in range(repeats):
         for n in (names if r % 2 == 0 else names[::-1]):  # alternate the order: drifting load hits both sides
             fn, k = fns[n], calls[n]
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             for _ in range(k):
                 fn()
             rounds[n].append((time.perf_counter() - t0) / k)
-    return {n: Timing(tuple(rounds[n]), calls[n]) for n in names}
+            cpu[n].append((time.process_time() - c0) / k)
+    return {n: Timing(tuple(rounds[n]), calls[n], tuple(cpu[n])) for n in names}
 
 
 def ratio(candidate: Timing, baseline: Timing) -> dict[str, float]:
-    """Candidate speed over baseline speed (> 1: the candidate is faster), of medians and of bests."""
-    return {"ratio_of_medians": baseline.median / candidate.median, "ratio_of_bests": baseline.best / candidate.best}
+    """Candidate speed over baseline speed (> 1: the candidate is faster), several ways:
+
+    ``ratio_of_medians`` and ``ratio_of_bests`` (wall clock); ``ratio_paired``, the median over rounds of the
+    ratio within a round (a round's candidate and baseline ran back to back, under the same load); and
+    ``ratio_cpu``, of the median CPU seconds per call (the work done, whatever share of the cores the process
+    got: on a loaded machine the steadiest, but it counts every thread's time, so it measures cost, not
+    latency)."""
+    out = {"ratio_of_medians": baseline.median / candidate.median, "ratio_of_bests": baseline.best / candidate.best,
+           "ratio_paired": statistics.median(b / c for b, c in zip(baseline.rounds, candidate.rounds))}
+    if candidate.cpu_rounds and baseline.cpu_rounds:
+        c, b = statistics.median(candidate.cpu_rounds), statistics.median(baseline.cpu_rounds)
+        if c > 0 and b > 0:
+            out["ratio_cpu"] = b / c
+    return out
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:
@@ -116,3 +133,23 @@ def machine(device: str = "cpu") -> dict[str, Any]:
         p = torch.cuda.get_device_properties(torch.device(device))
         info.update(device_name=p.name, device_memory_bytes=p.total_memory, cuda=torch.version.cuda)
     return info
+
+
+@contextlib.contextmanager
+def limit_threads(n: int | None) -> Iterator[None]:
+    """Run the block with ``n`` threads in torch and in numpy's BLAS (None: as configured). On a loaded machine
+    one thread measures steadier: a multi-threaded kernel whose threads are not scheduled together waits at its
+    barriers for the slowest, which a busy machine makes arbitrarily slow."""
+    if n is None:
+        yield
+        return
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        with threadpool_limits(n):
+            yield
+    finally:
+        torch.set_num_threads(before)

@@ -53,7 +53,8 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
         ``blocks_per_s``, ``baseline`` (``"numpy matmul"``, into a preallocated output),
         ``baseline_blocks_per_s``, ``ratio_to_baseline`` (medians; the kernel's bests too, as
         :func:`~sdfcodec.bench.codecs.timed_record`), ``us_per_block``, ``load_before`` and ``load_after``
-        (``os.getloadavg()`` around the timing: this is a shared machine); map records add ``level``, ``code_bytes_read``, ``code_bytes_full``, ``seconds``.
+        (``os.getloadavg()`` around the timing: this is a shared machine); map records add ``level``,
+        ``code_bytes_read``, ``code_bytes_full``, ``seconds``.
     """
     # imported here: this module is imported by the CLI and plugins that never search, and search imports the
     # map reader
@@ -82,12 +83,17 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
             if progress:
                 progress(f"search kernel pca-{k} batch {b}")
             load0 = load()
-            out = np.ones((b, len(q)), np.float32)
-            tm = interleave({"candidate": lambda: (scorer(x), sync()), "baseline": lambda: np.matmul(codes, qt, out=out)},
-                            repeats=repeats, min_time=min_time)
+            if dev.type == "cpu":
+                out = np.ones((b, len(q)), np.float32)
+                base, what = (lambda: np.matmul(codes, qt, out=out)), "numpy matmul"
+            else:  # on a device the roofline is the device's own product of the same shape
+                tq, tout = torch.from_numpy(qt).to(dev), torch.ones((b, len(q)), device=dev)
+                base, what = (lambda: (torch.matmul(x, tq, out=tout), sync())), f"torch matmul on {dev}"
+            tm = interleave({"candidate": lambda: (scorer(x), sync()), "baseline": base}, repeats=repeats,
+                            min_time=min_time)
             records.append(dict(timed_record(tm["candidate"], tm["baseline"], b, codec="pca", code_size=k,
                                              operation="search", batch=b, device=str(dev), descriptors=len(q),
-                                             baseline="numpy matmul"),
+                                             baseline=what),
                                 load_before=load0, load_after=load()))
         if map_blocks > 0:
             tmp = tempfile.TemporaryDirectory(prefix="sdfcodec-bench-") if workdir is None else None

@@ -286,6 +286,8 @@ def bench_cmd(
     compare: Optional[tuple[Path, Path]] = typer.Option(None, "--compare", help="Compare two run files (A B, from "
                                                         "--out) instead: how far every ratio agrees."),
     tolerance: float = typer.Option(0.15, "--tolerance", help="--compare: the disagreement counted as agreeing."),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="Threads for torch and numpy's BLAS "
+                                          "(default: as configured; 1 measures steadier on a loaded machine)."),
 ) -> None:
     """Encode/decode throughput (blocks/s) beside numpy matrix products of the codec's shapes, same run.
 
@@ -304,15 +306,24 @@ def bench_cmd(
     shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
     mixtures --sizes is the size of each part (64: code 64+64+1).
     """
+    from ..bench.harness import limit_threads
+
+    if compare and all(compare):
+        return _bench_compare(compare, tolerance, as_json)
+    with limit_threads(threads):
+        if full:
+            return _bench_full(device, quick, repeats, out or Path(f"bench-{device.replace(':', '-')}.json"), cases,
+                               as_json)
+        return _bench_codec(codec_id, sizes, batches, device, quick, read, http, search, as_json, repeats, out)
+
+
+def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, quick: bool, read: int | None,
+                 http: bool, search: bool, as_json: bool, repeats: int, out: Path | None) -> None:
+    """``sdfcodec bench`` without --full or --compare: a codec's figures (see bench_cmd)."""
     from ..bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
     from ..codec import uses_weights
     from ..registry import get_codec_class
 
-    if compare and all(compare):
-        return _bench_compare(compare, tolerance, as_json)
-    if full:
-        return _bench_full(device, quick, repeats, out or Path(f"bench-{device.replace(':', '-')}.json"), cases,
-                           as_json)
     ks = [int(s) for s in sizes.split(",")]
     bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
                                                                [1, 16, 256, 1024, 4096, 16384, 65536])
@@ -391,8 +402,8 @@ def _bench_full(device: str, quick: bool, repeats: int, out: Path, cases: str | 
     for r in doc["records"]:
         unit = "frames" if "frames_per_s" in r else "blocks"
         what = " ".join(str(r[k]) for k in ("code_size", "dtype", "batch") if k in r)
-        rows.append((r["operation"], what, f"{r[unit + '_per_s']:,.0f} {unit}/s", f"{r['baseline_' + unit + '_per_s']:,.0f}",
-                     f"{r['ratio_to_baseline']:.2f}", r.get("baseline", "")))
+        rows.append((r["operation"], what, f"{r[unit + '_per_s']:,.0f} {unit}/s",
+                     f"{r['baseline_' + unit + '_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}", r.get("baseline", "")))
     print_table(("case", "what", "median", "baseline", "ratio", "baseline is"), rows,
                 title=f"device check on {device} ({doc['machine'].get('device_name', doc['machine']['processor'])})",
                 caption=f"{doc['seconds']} s, load {doc['load_before'][:1]} -> {doc['load_after'][:1]}; JSON: {out}")
@@ -408,9 +419,10 @@ def _bench_compare(paths: tuple[Path, Path], tolerance: float, as_json: bool) ->
         return
     rows = [(" ".join(f"{v}" for v in r["record"].values()), r["ratio"], f"{r['a']:.3f}", f"{r['b']:.3f}",
              f"{100 * r['disagreement']:.1f} %") for r in res["rows"]]
+    kinds = "; ".join(f"{k} worst {100 * v['worst']:.1f} % over {v['records']}" for k, v in res["by_ratio"].items())
     print_table(("record", "ratio", "A", "B", "disagreement"), rows, title=f"{paths[0]} against {paths[1]}",
                 caption=(f"worst {100 * (res['worst'] or 0):.1f} %; within {100 * tolerance:.0f} %: "
-                         f"{'yes' if res['agree'] else 'no'}; {res['unmatched']} record(s) in one run only"))
+                         f"{'yes' if res['agree'] else 'no'}; {res['unmatched']} record(s) in one run only\n{kinds}"))
 
 
 @app.command("demo")
