@@ -46,16 +46,22 @@ def _fresh(code: str, *args: str) -> dict:
 
 def test_info_and_codecs_import_nothing_heavy(small_map):
     """The library calls behind ``info`` and ``codecs``: the map's summary (with the shipped-model lookup of its
-    embedded state) and every installed codec class loaded, its attributes read."""
+    embedded state), every installed codec class loaded, its attributes read, and every shipped model's state
+    loaded (what that lookup does for a map of any codec)."""
     r = _fresh("""
         import json, sys
         import sdfcodec
+        from sdfcodec.registry import get_codec_class
         m = sdfcodec.open_map(sys.argv[1])
         info = m.info()
-        classes = {e.id: sdfcodec.registry.get_codec_class(e.id) for e in sdfcodec.list_codecs()}
+        classes = {e.id: get_codec_class(e.id) for e in sdfcodec.list_codecs()}
+        shipped = {}
+        for cid, cls in classes.items():  # info's lookup of a stored state among the shipped models, every codec
+            for name, sizes in sorted((cls.shipped_models() or {}).items()):
+                shipped[name] = len(cls.shipped_state(name, max(sizes)))
         print(json.dumps({"blocks": info["blocks"], "shape": info["shape_voxels"], "warning": info["state_warning"],
                           "pca": [classes["pca"].prefix_ordered, list(classes["pca"].code_sizes)[:1]],
-                          "ids": sorted(classes)}))
+                          "ids": sorted(classes), "shipped": shipped}))
     """, str(small_map))
     assert r["heavy"] == [], f"importing sdfcodec and reading a map's info imported {r['heavy']}"
     out = json.loads(r["stdout"])
@@ -63,28 +69,41 @@ def test_info_and_codecs_import_nothing_heavy(small_map):
     assert out["shape"] == [48, 32, 32]
     assert "pca-128" in out["warning"]  # the lookup of the shipped model really ran (and found it)
     assert {"pca", "ae", "raw", "parallel", "sequential"} <= set(out["ids"]) and out["pca"][0] is True
+    assert {"pca-128", "ae-64", "parallel-64-64", "sequential-64-64"} <= set(out["shipped"])  # states loaded
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["codecs", "--json"], ["info", "{map}", "--json"],
-                                  ["verify", "{map}", "--decode-blocks", "0", "--json"]])
-def test_cli_light_commands_import_nothing_heavy(small_map, argv):
-    r = _fresh("""
-        import sys
+COMMANDS = [["--help"], ["codecs", "--json"], ["info", "{map}", "--json"],
+            ["verify", "{map}", "--decode-blocks", "0", "--json"]]
+
+
+def test_cli_light_commands_import_nothing_heavy(small_map):
+    """The commands themselves, one after the other in one fresh interpreter (each checked right after it ran)."""
+    r = _fresh(f"""
+        import contextlib, io, json, sys
         from sdfcodec.cli import app
-        try:
-            app(sys.argv[1:])
-        except SystemExit as e:
-            assert not e.code, f"exit status {e.code}"
-    """, *[a.format(map=small_map) for a in argv])
-    assert r["heavy"] == [], f"sdfcodec {' '.join(argv)} imported {r['heavy']}"
-    if argv[0] == "info":
-        info = json.loads(r["stdout"])
-        assert info["code_size"] == 32 and info["blocks"]["coded"] == 10 and info["voxel_size"] == 0.02
-    elif argv[0] == "verify":
-        rep = json.loads(r["stdout"])
-        assert rep["ok"] and rep["decoded_blocks"] == 0
-    elif argv[0] == "codecs":
-        assert {row["id"]: row["status"] for row in json.loads(r["stdout"])}["ae"] == "ok"
+        heavy = set({HEAVY!r})
+        runs = []
+        for argv in json.loads(sys.argv[1]):
+            buf = io.StringIO()
+            with contextlib.redirect_stdout(buf):
+                try:
+                    app(argv)
+                except SystemExit as e:
+                    assert not e.code, f"{{argv}}: exit status {{e.code}}"
+            runs.append({{"argv": argv, "heavy": sorted({{m.split('.')[0] for m in sys.modules}} & heavy),
+                          "out": buf.getvalue()}})
+        print(json.dumps(runs))
+    """, json.dumps([[a.format(map=small_map) for a in argv] for argv in COMMANDS]))
+    runs = json.loads(r["stdout"])
+    assert [x["argv"][0] for x in runs] == ["--help", "codecs", "info", "verify"]
+    for x in runs:
+        assert x["heavy"] == [], f"sdfcodec {' '.join(x['argv'])} imported {x['heavy']}"
+    assert "info" in runs[0]["out"] and "bench" in runs[0]["out"]  # the help lists the commands
+    assert {row["id"]: row["status"] for row in json.loads(runs[1]["out"])}["ae"] == "ok"
+    info = json.loads(runs[2]["out"])
+    assert info["code_size"] == 32 and info["blocks"]["coded"] == 10 and info["voxel_size"] == 0.02
+    rep = json.loads(runs[3]["out"])
+    assert rep["ok"] and rep["decoded_blocks"] == 0 and rep["blocks"]["coded"] == 10
 
 
 def test_lazy_module_stand_in():

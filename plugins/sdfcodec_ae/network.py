@@ -130,7 +130,7 @@ class Inference:
             raise InvalidValueError(f"ae output must be one of {OUTPUTS}, got {output!r}")
         # transposed once: x (B, in) @ W^T (in, out) is the layout addmm wants
         self._host = {n: (np.ascontiguousarray(state[f"{n}.weight"].T), state[f"{n}.bias"]) for n in LAYERS}
-        self._out_act = torch.tanh if output == "tanh" else torch.sigmoid
+        self._tanh = output == "tanh"  # a flag, not torch.tanh: loading a model (a map's info) never imports torch
         self._cache: dict[torch.device, dict[str, tuple[torch.Tensor, torch.Tensor]]] = {}
 
     def _on(self, device: torch.device) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
@@ -152,4 +152,4 @@ class Inference:
         m = self._on(z.device)
         h = torch.sigmoid_(torch.addmm(m["dec1"][1], z, m["dec1"][0]))
         y = torch.addmm(m["dec2"][1], h, m["dec2"][0])
-        return torch.tanh_(y) if self._out_act is torch.tanh else torch.sigmoid_(y)
+        return torch.tanh_(y) if self._tanh else torch.sigmoid_(y)
