@@ -63,6 +63,7 @@ def smoke():
 
 def test_device_check_smoke_on_cpu(smoke):
     recs = smoke["records"]
+    assert smoke["errors"] == []
     assert smoke["machine"]["device"] == "cpu" and len(smoke["load_before"]) == 3 and smoke["sizes"] == TINY
     assert [r["operation"] for r in recs] == ["pca-decode"] * 9 + ["decode-on-read", "search", "tracking"]
     dec = {(r["code_size"], r["dtype"]): r for r in recs if r["operation"] == "pca-decode"}
@@ -86,10 +87,20 @@ def test_device_check_smoke_on_cpu(smoke):
     assert all("load_before" in r and "ratio_to_baseline" in r for r in recs)
 
 
-def test_device_check_errors():
+def test_device_check_errors(monkeypatch):
     with pytest.raises(InvalidValueError, match="unknown bench case"):
         run_cases("cpu", quick=True, cases=["nope"])
     assert list(CASES) == ["pca-decode", "decode-on-read", "search", "tracking"]
+
+    def broken(setup):
+        raise RuntimeError("no such kernel")
+
+    monkeypatch.setitem(CASES, "tracking", broken)  # one case failing on a device costs only its own figures
+    seen = []
+    doc = run_cases("cpu", quick=True, repeats=1, min_time=0.0, sizes=TINY, cases=["search", "tracking"],
+                    checkpoint=lambda d: seen.append(len(d["records"])))
+    assert [r["operation"] for r in doc["records"]] == ["search"] and seen == [1, 1]
+    assert doc["errors"] == [{"case": "tracking", "error": "RuntimeError: no such kernel"}]
 
 
 def test_cli_bench_full_and_compare(tmp_path, smoke):

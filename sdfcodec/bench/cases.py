@@ -233,10 +233,14 @@ CASES: dict[str, Callable[[Setup], list[dict]]] = {
 
 def run_cases(device: str = "cpu", *, quick: bool = False, repeats: int = 5, min_time: float | None = None,
               cases: Iterable[str] | None = None, progress: Callable[[str], None] | None = None,
-              sizes: dict[str, Any] | None = None) -> dict[str, Any]:
+              sizes: dict[str, Any] | None = None, checkpoint: Callable[[dict], None] | None = None
+              ) -> dict[str, Any]:
     """Run the device check; returns the JSON document: ``schema``, ``command``, ``mode``, ``sizes``,
     ``machine``, ``load_before``, ``load_after``, ``seconds``, ``records`` (every case's records, each with
-    ``operation``). ``sizes`` overrides entries of the mode's :data:`SIZES` (tests use tiny ones)."""
+    ``operation``) and ``errors`` (``{"case", "error"}`` of each case that raised: the other cases still run,
+    so one broken path on a device never costs the figures of the rest). ``sizes`` overrides entries of the
+    mode's :data:`SIZES` (tests use tiny ones); ``checkpoint(doc)`` is called after each case (to write what
+    is measured so far)."""
     from ..errors import InvalidValueError
 
     names = list(CASES) if cases is None else list(cases)
@@ -251,8 +255,17 @@ def run_cases(device: str = "cpu", *, quick: bool = False, repeats: int = 5, min
     doc: dict[str, Any] = {"schema": "sdfcodec-bench/1", "command": " ".join(["sdfcodec", *sys.argv[1:]]),
                            "mode": mode, "sizes": setup.sizes, "machine": machine(device), "load_before": load()}
     t0 = time.perf_counter()
-    doc["records"] = [r for n in names for r in CASES[n](setup)]
-    doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1))
-    if not all(math.isfinite(v) for r in doc["records"] for k, v in r.items() if k.endswith("_per_s")):
-        raise InvalidValueError("a benchmark figure is not finite; see the records")  # a timing bug, not data
+    doc.update(records=[], errors=[])
+    for n in names:
+        try:
+            doc["records"] += CASES[n](setup)
+        except Exception as e:  # noqa: BLE001 - reported in the document (and by the CLI's exit status)
+            doc["errors"].append({"case": n, "error": f"{type(e).__name__}: {e}"})
+        doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1))
+        if checkpoint is not None:
+            checkpoint(doc)
+    bad = [r["operation"] for r in doc["records"]
+           if not all(math.isfinite(v) for k, v in r.items() if k.endswith("_per_s"))]
+    if bad:  # a timing bug, not data
+        doc["errors"].append({"case": ",".join(bad), "error": "a figure is not finite"})
     return doc

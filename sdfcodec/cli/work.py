@@ -393,10 +393,14 @@ def _bench_full(device: str, quick: bool, repeats: int, out: Path, cases: str | 
     from ..bench import run_cases
 
     with working(f"device check on {device}"):
-        doc = run_cases(device, quick=quick, repeats=repeats, cases=cases.split(",") if cases else None)
+        doc = run_cases(device, quick=quick, repeats=repeats, cases=cases.split(",") if cases else None,
+                        checkpoint=lambda d: _write_run(out, d))  # what is measured survives a later failure
     _write_run(out, doc)
     if as_json:
         print_json(doc)
+    if doc["errors"]:
+        fail("; ".join(f"case {e['case']} failed: {e['error']}" for e in doc["errors"]) + f" (the rest: {out})")
+    if as_json:
         return
     rows = []
     for r in doc["records"]:
