@@ -10,10 +10,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from ._lazy import lazy_module
-torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
+from ._lazy import lazy_module
 from .errors import DTypeError, InvalidValueError, ShapeError
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty"]  # public through sdfcodec.plugin
 

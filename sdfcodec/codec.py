@@ -25,11 +25,12 @@ import warnings
 from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping
 
 import numpy as np
-from ._lazy import lazy_module
-torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
+from ._lazy import lazy_module
 from ._validate import BLOCK, as_float_tensor, check_weights, like_input
 from .errors import InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["Codec", "BLOCK", "uses_weights", "learns_weights"]
 

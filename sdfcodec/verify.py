@@ -25,12 +25,13 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-from ._lazy import lazy_module
-torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 import zarr
 
+from ._lazy import lazy_module
 from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from .header import BlockState, parse_header
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["Problem", "VerifyReport", "verify_map", "verify_command"]
 

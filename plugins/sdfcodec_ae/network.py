@@ -24,14 +24,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
-from sdfcodec.plugin import lazy_module
-
-torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 from sdfcodec.errors import InvalidValueError, ShapeError
+from sdfcodec.plugin import lazy_module
 
 if TYPE_CHECKING:
     from ._net import AENet
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["LAYERS", "N_VOXELS", "layer_shapes", "check_state", "build_module", "module_state", "export_state",
            "Inference"]

@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import math
 
+from sdfcodec import Codec
+from sdfcodec.errors import InvalidValueError
 from sdfcodec.plugin import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
-
-from sdfcodec import Codec
-from sdfcodec.errors import InvalidValueError
 
 __all__ = ["GaussianBlurCodec"]
 

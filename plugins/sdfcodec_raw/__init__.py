@@ -7,11 +7,10 @@ with float16 code storage it halves the bytes at about 1e-3 normalised error (fl
 
 from __future__ import annotations
 
+from sdfcodec import Codec
 from sdfcodec.plugin import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
-
-from sdfcodec import Codec
 
 __all__ = ["RawCodec"]
 

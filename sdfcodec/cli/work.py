@@ -407,7 +407,8 @@ def _bench_full(device: str, quick: bool, repeats: int, out: Path, cases: str | 
         unit = "frames" if "frames_per_s" in r else "blocks"
         what = " ".join(str(r[k]) for k in ("code_size", "dtype", "batch") if k in r)
         rows.append((r["operation"], what, f"{r[unit + '_per_s']:,.0f} {unit}/s",
-                     f"{r['baseline_' + unit + '_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}", r.get("baseline", "")))
+                     f"{r['baseline_' + unit + '_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}",
+                     r.get("baseline", "")))
     print_table(("case", "what", "median", "baseline", "ratio", "baseline is"), rows,
                 title=f"device check on {device} ({doc['machine'].get('device_name', doc['machine']['processor'])})",
                 caption=f"{doc['seconds']} s, load {doc['load_before'][:1]} -> {doc['load_after'][:1]}; JSON: {out}")

@@ -17,10 +17,9 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from .._lazy import lazy_module
-torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 import zarr
 
+from .._lazy import lazy_module
 from .. import __version__, _atomic
 from .._validate import BLOCK, as_float_tensor, check_weights
 from ..blocks import check_truncation, normalise, split_blocks
@@ -40,6 +39,8 @@ from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, e
                        store_mask_chunk, write_block_rows)
 from .reader import open_reader
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "store_code_chunk", "LOCK_TIMEOUT"]
 
@@ -422,7 +423,6 @@ def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
     except metadata.PackageNotFoundError:
         version = None
     return pkg, version
-
 
 
 def check_replaceable(final: Path) -> None:
