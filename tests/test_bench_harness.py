@@ -125,3 +125,18 @@ def test_cli_bench_full_and_compare(tmp_path, smoke):
     assert res["rows"] == [] and res["unmatched"] == 1 + len(smoke["records"]) and res["agree"] is False
     same = json.loads(CliRunner().invoke(app, ["bench", "--compare", str(out), str(out), "--json"]).stdout)
     assert same["agree"] and same["worst"] == 0 and same["by_ratio"]["ratio_cpu"]["records"] == 1
+
+
+@pytest.mark.gpu
+def test_device_check_on_cuda_writes_the_cpu_keys(smoke):
+    """Where a GPU is present: the device check runs there at tiny sizes, without errors, with the keys the CPU
+    run writes (the H100/H200 figures themselves come from `sdfcodec bench --full --device cuda`)."""
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    doc = run_cases("cuda", quick=True, repeats=1, min_time=0.0, sizes=TINY)
+    assert doc["errors"] == [] and "device_name" in doc["machine"]
+    keys = lambda recs: [sorted(set(r) - {"ratio_cpu"}) for r in recs]  # noqa: E731 (CPU time may read 0)
+    assert keys(doc["records"]) == keys(smoke["records"])
+    assert all(r["device"].startswith("cuda") for r in doc["records"])
