@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from sdfcodec.bench import compare_runs, interleave, run_cases
 from sdfcodec.bench.cases import CASES
@@ -128,13 +129,10 @@ def test_cli_bench_full_and_compare(tmp_path, smoke):
 
 
 @pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_device_check_on_cuda_writes_the_cpu_keys(smoke):
     """Where a GPU is present: the device check runs there at tiny sizes, without errors, with the keys the CPU
     run writes (the H100/H200 figures themselves come from `sdfcodec bench --full --device cuda`)."""
-    import torch
-
-    if not torch.cuda.is_available():
-        pytest.skip("needs a CUDA device")
     doc = run_cases("cuda", quick=True, repeats=1, min_time=0.0, sizes=TINY)
     assert doc["errors"] == [] and "device_name" in doc["machine"]
     keys = lambda recs: [sorted(set(r) - {"ratio_cpu"}) for r in recs]  # noqa: E731 (CPU time may read 0)
