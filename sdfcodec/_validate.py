@@ -10,9 +10,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 
+from ._lazy import lazy_module
 from .errors import DTypeError, InvalidValueError, ShapeError
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into"]  # public through sdfcodec.plugin
 

@@ -26,10 +26,12 @@ import warnings
 from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Protocol, runtime_checkable
 
 import numpy as np
-import torch
 
+from ._lazy import lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input
 from .errors import DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "uses_weights", "learns_weights"]
 

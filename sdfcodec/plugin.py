@@ -25,6 +25,9 @@ Training
 Error-bounded field compression
     :func:`sz3_compress` / :func:`sz3_decompress`: SZ3 streams through pysz with an absolute bound, their
     failures as :class:`~sdfcodec.errors.FormatError` (the ``sz3`` codec; maps use the same functions).
+Light imports
+    :func:`lazy_module` (``torch = lazy_module("torch")``: imported on first attribute access, so that listing
+    codecs and reading map headers never import torch; spec/codec-plugins.md, section 6), :func:`is_tensor`.
 Benchmarks
     :func:`register_bench` (a ready instance and the roofline shapes), :func:`bench_instance`,
     :func:`bench_codec_instance`, :func:`roofline_shapes`.
@@ -38,6 +41,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from ._lazy import is_tensor, lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
 from .bench import bench_codec_instance, bench_instance, register_bench, roofline_shapes
 from .codec import Codec, DecodesInto, decodes_into
@@ -53,7 +57,7 @@ __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "De
            "get_codec", "get_codec_class", "pretrained_codec",
            "Codec", "TrainableCodec", "Dataset", "open_dataset",
            "register_bench", "bench_instance", "bench_codec_instance", "roofline_shapes", "sz3_compress",
-           "sz3_decompress"]
+           "sz3_decompress", "lazy_module", "is_tensor"]
 
 _SHIPPED: dict[tuple[str, str], Codec] = {}
 

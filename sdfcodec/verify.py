@@ -25,11 +25,13 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 import zarr
 
+from ._lazy import lazy_module
 from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from .header import BlockState, parse_header
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["Problem", "VerifyReport", "verify_map", "verify_command"]
 
@@ -434,13 +436,14 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
     m.close()
 
 
-def verify_command(map_path: str, as_json: bool = False) -> int:
-    """Run :func:`verify_map` and print the report (rich text, or JSON with ``as_json``) on stdout.
+def verify_command(map_path: str, as_json: bool = False, *, decode_blocks: int = DEFAULT_DECODE_BLOCKS) -> int:
+    """Run :func:`verify_map` (decoding ``decode_blocks`` coded blocks) and print the report (rich text, or JSON
+    with ``as_json``) on stdout.
 
     Returns:
         The exit status: 0 when the map has no problems, 1 otherwise.
     """
-    rep = verify_map(map_path)
+    rep = verify_map(map_path, decode_blocks=decode_blocks)
     if as_json:
         print(json.dumps(rep.to_dict(), indent=2))
         return 0 if rep.ok else 1

@@ -482,7 +482,9 @@ def test_bench_registration_is_generic_and_linear_default_unchanged():
     pca = bench_codec("pca", [32], [2], min_time=0.005)
     assert set(pca[0]) == {"codec", "code_size", "operation", "batch", "device", "blocks_per_s", "baseline",
                            "baseline_blocks_per_s", "ratio_to_baseline", "us_per_block", "paper_us_per_block",
-                           "speedup_vs_paper"}
+                           "speedup_vs_paper",  # and the interleaved timing's bests, rounds and load (issue 19)
+                           "blocks_per_s_best", "baseline_blocks_per_s_best", "ratio_of_bests", "ratio_paired",
+                           "ratio_cpu", "repeats", "load_before", "load_after"}
     assert pca[0]["baseline"] == "numpy matmul"
     weighted = [r for r in pca if r["operation"] == "encode-weighted"]  # pca overrides encode_weighted
     assert len(weighted) == 1 and weighted[0]["roofline_shapes"] == [[4096, 32], [4096, 528], [4096, 32]]

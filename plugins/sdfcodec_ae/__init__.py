@@ -27,15 +27,16 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import torch
 
 from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError, ModelNotFoundError
-from sdfcodec.plugin import (TrainableCodec, load_shipped_model, load_state_file, register_bench, save_model,
-                             save_state_file, shipped_model_file)
+from sdfcodec.plugin import (TrainableCodec, lazy_module, load_shipped_model, load_state_file, register_bench,
+                             save_model, save_state_file, shipped_model_file)
 
 from .network import N_VOXELS, OUTPUTS, Inference, build_module, check_state, export_state, module_state
 from .train import TrainConfig, TrainResult, train_autoencoder, write_curves
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["AECodec", "TrainConfig", "TrainResult", "train_autoencoder", "write_curves", "default_ae",
            "shipped_model_path", "save_model_float16", "bench_records", "SHIPPED_MODEL"]

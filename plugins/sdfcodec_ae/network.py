@@ -21,12 +21,17 @@ so a batch of ``B`` blocks costs the four matrix products ``(B,4096)(4096,h)``, 
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
-import torch
 
 from sdfcodec.errors import InvalidValueError, ShapeError
+from sdfcodec.plugin import lazy_module
+
+if TYPE_CHECKING:
+    from ._net import AENet
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["LAYERS", "N_VOXELS", "layer_shapes", "check_state", "build_module", "module_state", "export_state",
            "Inference"]
@@ -75,39 +80,14 @@ def check_state(state: Mapping[str, np.ndarray], code_size: int, hidden: int, wh
     return out
 
 
-class _AE(torch.nn.Module):
-    """The trainable module (float32). ``forward(x (B, 4096)) -> (B, 4096)``.
-
-    While training, the input is standardised, ``(x - in_shift) * in_scale`` (buffers; the identity unless
-    set): centred inputs condition the first layer far better than raw blocks, which are mostly 1.0. The
-    standardisation is affine, so :func:`export_state` folds it into ``enc1`` exactly and the stored network
-    is the plain ``4096 - h - d - h - 4096`` one.
-    """
-
-    def __init__(self, code_size: int, hidden: int, output: str):
-        super().__init__()
-        for name, (o, i) in layer_shapes(code_size, hidden).items():
-            setattr(self, name, torch.nn.Linear(i, o))
-        self.out_act = torch.tanh if output == "tanh" else torch.sigmoid
-        self.register_buffer("in_shift", torch.zeros(N_VOXELS))
-        self.register_buffer("in_scale", torch.ones(()))
-
-    def encode(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.enc2(torch.sigmoid(self.enc1((x - self.in_shift) * self.in_scale))))
-
-    def decode(self, z: torch.Tensor) -> torch.Tensor:
-        return self.out_act(self.dec2(torch.sigmoid(self.dec1(z))))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.decode(self.encode(x))
-
-
 def build_module(code_size: int, hidden: int, output: str, state: Mapping[str, np.ndarray] | None = None
-                 ) -> _AE:
+                 ) -> AENet:
     """A trainable :class:`torch.nn.Module` (on CPU, float32), loaded from ``state`` when given."""
     if output not in OUTPUTS:
         raise InvalidValueError(f"ae output must be one of {OUTPUTS}, got {output!r}")
-    net = _AE(code_size, hidden, output)
+    from ._net import AENet  # defines a torch.nn.Module subclass: importing it imports torch
+
+    net = AENet(code_size, hidden, output)
     if state is not None:
         arrays = check_state(state, code_size, hidden)
         net.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in arrays.items()}, strict=False)
@@ -150,7 +130,7 @@ class Inference:
             raise InvalidValueError(f"ae output must be one of {OUTPUTS}, got {output!r}")
         # transposed once: x (B, in) @ W^T (in, out) is the layout addmm wants
         self._host = {n: (np.ascontiguousarray(state[f"{n}.weight"].T), state[f"{n}.bias"]) for n in LAYERS}
-        self._out_act = torch.tanh if output == "tanh" else torch.sigmoid
+        self._tanh = output == "tanh"  # a flag, not torch.tanh: loading a model (a map's info) never imports torch
         self._cache: dict[torch.device, dict[str, tuple[torch.Tensor, torch.Tensor]]] = {}
 
     def _on(self, device: torch.device) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
@@ -172,4 +152,4 @@ class Inference:
         m = self._on(z.device)
         h = torch.sigmoid_(torch.addmm(m["dec1"][1], z, m["dec1"][0]))
         y = torch.addmm(m["dec2"][1], h, m["dec2"][0])
-        return torch.tanh_(y) if self._out_act is torch.tanh else torch.sigmoid_(y)
+        return torch.tanh_(y) if self._tanh else torch.sigmoid_(y)

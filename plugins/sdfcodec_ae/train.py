@@ -35,12 +35,13 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
-import torch
 
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
-from sdfcodec.plugin import load_state_file, save_state_file
+from sdfcodec.plugin import lazy_module, load_state_file, save_state_file
 
 from .network import LAYERS, N_VOXELS, build_module, export_state, module_state
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["TrainConfig", "TrainResult", "train_autoencoder", "write_curves", "CHECKPOINT_FORMAT"]
 

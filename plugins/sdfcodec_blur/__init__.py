@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import math
 
-import torch
-
 from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError
-from sdfcodec.plugin import affine_into
+from sdfcodec.plugin import affine_into, lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["GaussianBlurCodec"]
 

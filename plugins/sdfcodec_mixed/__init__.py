@@ -44,13 +44,14 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
-import torch
 
 import sdfcodec
 from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError, ModelNotFoundError, SDFCodecError, ShapeError
-from sdfcodec.plugin import (TrainableCodec, get_codec_class, load_shipped_model, pretrained_codec, register_bench,
-                             shipped_model_file)
+from sdfcodec.plugin import (TrainableCodec, get_codec_class, lazy_module, load_shipped_model, pretrained_codec,
+                             register_bench, shipped_model_file)
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["ParallelCodec", "SequentialCodec", "weight_stats", "parallel_weight", "sequential_weight",
            "default_parallel", "default_sequential", "SHIPPED_SEQUENTIAL"]

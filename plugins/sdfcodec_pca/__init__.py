@@ -29,13 +29,15 @@ from __future__ import annotations
 from typing import Any, Iterator, Mapping
 
 import numpy as np
-import torch
-from scipy.linalg import eigh
-from sklearn.decomposition import PCA
 
 from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError, ModelNotFoundError, ShapeError
-from sdfcodec.plugin import empty, load_shipped_model, shipped_model_file
+from sdfcodec.plugin import empty, lazy_module, load_shipped_model, shipped_model_file
+
+# imported on first use: listing codecs and reading map headers (the shipped model's digest) never need them
+torch = lazy_module("torch")
+scipy_linalg = lazy_module("scipy.linalg")
+sklearn_decomposition = lazy_module("sklearn.decomposition")
 
 __all__ = ["PCACodec", "SHIPPED_MODEL", "RIDGE", "WEIGHTED_FIT_ITERATIONS"]
 
@@ -96,7 +98,7 @@ def _top_eigenpairs(cov: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
             return vals[order], vecs[:, order].T
         except ArpackNoConvergence:
             pass
-    vals, vecs = eigh(cov, subset_by_index=[cov.shape[0] - k, cov.shape[0] - 1])
+    vals, vecs = scipy_linalg.eigh(cov, subset_by_index=[cov.shape[0] - k, cov.shape[0] - 1])
     return vals[::-1], vecs[:, ::-1].T
 
 
@@ -142,7 +144,8 @@ class PCACodec(Codec):
         if len(x) < n_comp:
             raise ShapeError(f"pca-{self.code_size} needs at least {n_comp} blocks to fit, got {len(x)}; "
                              "fit on more data or use a trained model (--model)")
-        pca = PCA(n_components=n_comp, svd_solver=self.svd_solver, random_state=self.random_state).fit(x)
+        pca = sklearn_decomposition.PCA(n_components=n_comp, svd_solver=self.svd_solver,
+                                        random_state=self.random_state).fit(x)
         self.load_state_dict({"components": pca.components_, "mean": pca.mean_,
                               "explained_variance": pca.explained_variance_})
 

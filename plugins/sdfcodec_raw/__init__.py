@@ -7,10 +7,10 @@ with float16 code storage it halves the bytes at about 1e-3 normalised error (fl
 
 from __future__ import annotations
 
-import torch
-
 from sdfcodec import Codec
-from sdfcodec.plugin import affine_into
+from sdfcodec.plugin import affine_into, lazy_module
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["RawCodec"]
 

@@ -14,10 +14,11 @@ one: ``decode`` is a reshape. Needs ``pip install 'sdfcodec[sz3]'`` (pysz==1.1.0
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from sdfcodec import Codec
-from sdfcodec.plugin import affine_into, sz3_compress, sz3_decompress
+from sdfcodec.plugin import affine_into, lazy_module, sz3_compress, sz3_decompress
+
+torch = lazy_module("torch")  # imported on first use: listing codecs and reading headers never need it
 
 __all__ = ["SZ3Codec"]
 

@@ -452,11 +452,14 @@ def search_cmd(
 def verify_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable report."),
+    # 4096 = sdfcodec.verify.DEFAULT_DECODE_BLOCKS (not imported here: --help stays light)
+    decode_blocks: int = typer.Option(4096, "--decode-blocks", min=0, help="Coded blocks to decode as a check "
+                                      "(0: none; every other check still runs, and torch is never imported)."),
 ) -> None:
     """Check a map: header, every chunk's checksum, codec state digest, states against codes, and a decode."""
     from ..verify import verify_command
 
-    raise typer.Exit(verify_command(map_path, as_json))
+    raise typer.Exit(verify_command(map_path, as_json, decode_blocks=decode_blocks))
 
 
 @app.command("compare")

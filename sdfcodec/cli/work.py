@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -9,7 +10,7 @@ from typing import Any, Optional
 import numpy as np
 import typer
 from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_pair,
-                     print_json, print_table, progress_bar, refuse_existing, report, say)
+                     print_json, print_table, progress_bar, refuse_existing, report, say, working)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -273,8 +274,25 @@ def bench_cmd(
     search: bool = typer.Option(True, "--search/--no-search", help="Also time the descriptor search kernel "
                                 "(pca only: search scores pca codes)."),
     as_json: bool = typer.Option(False, "--json", help="Print records as JSON."),
+    repeats: int = typer.Option(5, "--repeats", min=1, help="Equal rounds per figure, each interleaved with its "
+                                "baselines (best and median reported)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write the run (machine, load, command, records) as one "
+                                       "JSON document (--full: default bench-DEVICE.json)."),
+    full: bool = typer.Option(False, "--full", help="The device check instead: pca decode (fp32/bf16/fp16) beside "
+                              "the GEMM roofline and a device copy, decode on read into the device, search scoring, "
+                              "tracking (sdfcodec.bench.cases); with --quick tiny sizes."),
+    cases: Optional[str] = typer.Option(None, "--cases", help="--full: the cases to run (default all: "
+                                        "pca-decode,decode-on-read,search,tracking)."),
+    compare: Optional[tuple[Path, Path]] = typer.Option(None, "--compare", help="Compare two run files (A B, from "
+                                                        "--out) instead: how far every ratio agrees."),
+    tolerance: float = typer.Option(0.15, "--tolerance", help="--compare: the disagreement counted as agreeing."),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="Threads for torch and numpy's BLAS "
+                                          "(default: as configured; 1 measures steadier on a loaded machine)."),
 ) -> None:
     """Encode/decode throughput (blocks/s) beside numpy matrix products of the codec's shapes, same run.
+
+    Every figure is timed interleaved with its baselines in --repeats equal rounds; blocks/s and ratios are
+    medians (JSON: also the bests, ratio_of_bests), and the load average before and after is recorded.
 
     Decode-on-read times a whole map read and decoded to float32 metres by Map.iter_decoded, from local disk
     and over HTTP from a server on loopback, beside the same roofline, the memory-copy bandwidth of this
@@ -291,6 +309,20 @@ def bench_cmd(
     shipped weights where they exist (ae-64, parallel/sequential 64+64), else untrained ones; for the
     mixtures --sizes is the size of each part (64: code 64+64+1).
     """
+    from ..bench.harness import limit_threads
+
+    if compare and all(compare):
+        return _bench_compare(compare, tolerance, as_json)
+    with limit_threads(threads):
+        if full:
+            return _bench_full(device, quick, repeats, out or Path(f"bench-{device.replace(':', '-')}.json"), cases,
+                               as_json)
+        return _bench_codec(codec_id, sizes, batches, device, quick, read, http, search, as_json, repeats, out)
+
+
+def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, quick: bool, read: int | None,
+                 http: bool, search: bool, as_json: bool, repeats: int, out: Path | None) -> None:
+    """``sdfcodec bench`` without --full or --compare: a codec's figures (see bench_cmd)."""
     from ..bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
     from ..codec import uses_weights
     from ..registry import get_codec_class
@@ -303,17 +335,25 @@ def bench_cmd(
         fail(f"--read must be >= 0, got {n_read}")
     do_search = search and codec_id == "pca"
     n_search = 8192 if quick else 65536
+    from ..bench.harness import load, machine
+
+    doc: dict[str, Any] = {"schema": "sdfcodec-bench/1", "command": " ".join(["sdfcodec", *sys.argv[1:]]),
+                           "mode": "quick" if quick else "codec", "machine": machine(device), "load_before": load()}
+    t0 = time.perf_counter()
     with progress_bar("steps") as prog:
         task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search), rate="")
         step = lambda s: prog.update(task, advance=1, description=s)  # noqa: E731
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
-                              read_blocks=n_read, http=http)
+                              read_blocks=n_read, http=http, repeats=repeats)
         if do_search:
             from ..bench import bench_search
 
             found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
-                                 min_time=0.05 if quick else 0.2, progress=step)
+                                 min_time=0.05 if quick else 0.2, progress=step, repeats=repeats)
             records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
+    doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1), records=records)
+    if out is not None:
+        _write_run(out, doc)
     if as_json:
         print_json(records)
         return
@@ -336,9 +376,61 @@ def bench_cmd(
     rows = [(str(r["code_size"]), r["operation"], str(r["batch"]), f"{r['blocks_per_s']:,.0f}",
              f"{r['baseline_blocks_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}", f"{r['us_per_block']:.2f}",
              f"{PAPER_US_PER_BLOCK[0] / r['us_per_block']:,.0f}x") for r in records]
+    loads = f"load average {doc['load_before'][:1]} before, {doc['load_after'][:1]} after; {repeats} rounds, medians"
     print_table(("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper"), rows,
-                title=title, caption="\n".join([*lines.values(), *reads]) or None, justify="right",
+                title=title, caption="\n".join([*lines.values(), *reads, loads]), justify="right",
                 min_width=120)  # ~120 columns on a terminal; on a pipe tab-separated, never cut
+
+
+def _write_run(path: Path, doc: dict) -> None:
+    import json
+
+    from .._atomic import write_file
+
+    text = json.dumps(doc, indent=1, default=str) + "\n"
+    write_file(path, lambda tmp: tmp.write_text(text) and None, "writing the benchmark run")
+
+
+def _bench_full(device: str, quick: bool, repeats: int, out: Path, cases: str | None, as_json: bool) -> None:
+    """``sdfcodec bench --full``: the device check (sdfcodec.bench.cases) into one JSON document."""
+    from ..bench import run_cases
+
+    with working(f"device check on {device}"):
+        doc = run_cases(device, quick=quick, repeats=repeats, cases=cases.split(",") if cases else None,
+                        checkpoint=lambda d: _write_run(out, d))  # what is measured survives a later failure
+    _write_run(out, doc)
+    if as_json:
+        print_json(doc)
+    if doc["errors"]:
+        fail("; ".join(f"case {e['case']} failed: {e['error']}" for e in doc["errors"]) + f" (the rest: {out})")
+    if as_json:
+        return
+    rows = []
+    for r in doc["records"]:
+        unit = "frames" if "frames_per_s" in r else "blocks"
+        what = " ".join(str(r[k]) for k in ("code_size", "dtype", "batch") if k in r)
+        rows.append((r["operation"], what, f"{r[unit + '_per_s']:,.0f} {unit}/s",
+                     f"{r['baseline_' + unit + '_per_s']:,.0f}", f"{r['ratio_to_baseline']:.2f}",
+                     r.get("baseline", "")))
+    print_table(("case", "what", "median", "baseline", "ratio", "baseline is"), rows,
+                title=f"device check on {device} ({doc['machine'].get('device_name', doc['machine']['processor'])})",
+                caption=f"{doc['seconds']} s, load {doc['load_before'][:1]} -> {doc['load_after'][:1]}; JSON: {out}")
+
+
+def _bench_compare(paths: tuple[Path, Path], tolerance: float, as_json: bool) -> None:
+    """``sdfcodec bench --compare A B``: how far every ratio of two runs agrees."""
+    from ..bench import compare_runs
+
+    res = compare_runs(*paths, tolerance=tolerance)
+    if as_json:
+        print_json(res)
+        return
+    rows = [(" ".join(f"{v}" for v in r["record"].values()), r["ratio"], f"{r['a']:.3f}", f"{r['b']:.3f}",
+             f"{100 * r['disagreement']:.1f} %") for r in res["rows"]]
+    kinds = "; ".join(f"{k} worst {100 * v['worst']:.1f} % over {v['records']}" for k, v in res["by_ratio"].items())
+    print_table(("record", "ratio", "A", "B", "disagreement"), rows, title=f"{paths[0]} against {paths[1]}",
+                caption=(f"worst {100 * (res['worst'] or 0):.1f} %; within {100 * tolerance:.0f} %: "
+                         f"{'yes' if res['agree'] else 'no'}; {res['unmatched']} record(s) in one run only\n{kinds}"))
 
 
 @app.command("demo")

@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
-import torch
 import zarr
 import zarr.abc.store
 
+from .._lazy import lazy_module
 from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
@@ -26,6 +26,8 @@ from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["Map", "open_map", "create_map", "update_map"]
 

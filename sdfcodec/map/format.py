@@ -14,15 +14,17 @@ import warnings
 from typing import Any, Sequence
 
 import numpy as np
-import torch
 import zarr
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCodec
 
+from .._lazy import lazy_module
 from ..codec import Codec
 from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..header import CodeQuantisation, CodesSpec, FieldCompression
 from ..quantize import dequantise_step, dequantize_codes
 from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",

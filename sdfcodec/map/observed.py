@@ -22,13 +22,15 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 import zarr
 
+from .._lazy import lazy_module
 from .._validate import BLOCK
 from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
 from ..header import BlockState
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "error_weights", "fill_unobserved", "encode_blocks", "fit_codec",
            "pack_mask", "unpack_mask", "restore_unobserved", "restore_unobserved_voxels", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",

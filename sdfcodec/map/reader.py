@@ -20,11 +20,11 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
-import torch
 import zarr
 import zarr.abc.store
 from zarr.core.sync import sync as zarr_sync
 
+from .._lazy import lazy_module
 from .._validate import BLOCK, empty
 from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
@@ -38,6 +38,8 @@ from .placement import BlockPlacer, BufferRing
 from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
 from .residual import apply_residual, check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
 

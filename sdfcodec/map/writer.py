@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import torch
 import zarr
 
+from .._lazy import lazy_module
 from .. import __version__, _atomic
 from .._validate import BLOCK, as_float_tensor, check_weights
 from ..blocks import check_truncation, normalise, split_blocks
@@ -42,6 +42,8 @@ from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
+
+torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["MapWriter", "create_writer", "update_writer", "check_replaceable", "store_code_chunk", "LOCK_TIMEOUT"]
 
@@ -467,7 +469,6 @@ def _distribution_of(codec: Codec) -> tuple[str | None, str | None]:
     except metadata.PackageNotFoundError:
         version = None
     return pkg, version
-
 
 
 def check_replaceable(final: Path) -> None:

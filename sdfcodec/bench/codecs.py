@@ -26,26 +26,34 @@ Decode on read (:func:`bench_decode_on_read`) has a second roofline, memory-copy
 between two 64 MiB buffers, timed in the same run, expressed as the blocks/s at which the decoded float32
 blocks (16 KiB each) could merely be copied (``memcpy_blocks_per_s``): no decoder that writes its output can
 beat it.
+
+Timing (:mod:`sdfcodec.bench.harness`): a figure and its baselines are timed interleaved, in ``repeats`` equal
+rounds; ``blocks_per_s`` and ``ratio_to_baseline`` come from the medians, ``blocks_per_s_best`` and
+``ratio_of_bests`` from the bests. The matrix-product roofline writes into preallocated outputs
+(``np.matmul(..., out=)``), as the memory copy does (``np.copyto``): a baseline that allocated and faulted in a
+fresh output per call would be slower than the hardware allows, flattering the codec.
 """
 
 from __future__ import annotations
 
 import inspect
-import time
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable
 
 import numpy as np
-import torch
 
-from .codec import Codec, uses_weights
-from .errors import CodecTypeError, InvalidValueError, RegistrationError
-from .registry import get_codec, get_codec_class
+from .._lazy import lazy_module
+from ..codec import Codec, uses_weights
+from ..errors import CodecTypeError, InvalidValueError, RegistrationError
+from ..registry import get_codec, get_codec_class
+from .harness import Timing, interleave, load, ratio, time_call
 
-__all__ = ["time_call", "bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read",
-           "bench_decode_in_place", "memcpy_bytes_per_s",
-           "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK"]
+torch = lazy_module("torch")  # imported on first use: sdfcodec.plugin imports this module for register_bench
+
+__all__ = ["bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
+           "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK",
+           "roofline_fn", "memcpy_fn", "timed_record", "bench_decode_in_place"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
@@ -54,22 +62,6 @@ _OPS = ("encode", "decode", "encode-weighted")
 #: "encode-weighted" is timed for code sizes whose exact-fit roofline table (4096 x k (k + 1) / 2 float32)
 #: fits in this (k <= 361); beyond it (raw: k = 4096, lossless, its weighted encode is its encode) it is not
 _MAX_GRAM_TABLE_BYTES = 1 << 30
-
-
-def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:
-    """Best seconds per call of ``fn`` over ``repeats`` rounds, each running at least ``min_time``."""
-    fn()  # warm-up: allocations, kernel selection, caches
-    best = float("inf")
-    for _ in range(repeats):
-        n, t0 = 0, time.perf_counter()
-        while True:
-            fn()
-            n += 1
-            dt = time.perf_counter() - t0
-            if dt >= min_time:
-                break
-        best = min(best, dt / n)
-    return best
 
 
 def vs_paper(us_per_block: float) -> dict[str, Any]:
@@ -140,7 +132,7 @@ def bench_instance(codec_id: str, code_size: int, **options: Any) -> tuple[Codec
     """A ready codec ``codec_id`` for timing at nominal ``code_size``, and where its weights come from (None
     when not registered: then ``get_codec(codec_id, code_size=k)``, fitted on 512 analytic blocks when it
     ``requires_fit``; ``options`` are then unused). See :func:`register_bench`."""
-    from .testing import analytic_blocks
+    from ..testing import analytic_blocks
 
     cls = get_codec_class(codec_id)
     spec = _spec(cls)
@@ -157,12 +149,17 @@ def bench_instance(codec_id: str, code_size: int, **options: Any) -> tuple[Codec
     return codec, None
 
 
-def memcpy_bytes_per_s(nbytes: int = 64 << 20, min_time: float = 0.2) -> float:
-    """Memory-copy bandwidth of this machine, now: bytes/s of ``np.copyto`` between two ``nbytes`` buffers
-    (both touched first, so page faults are not timed)."""
+def memcpy_fn(nbytes: int = 64 << 20) -> Callable[[], object]:
+    """One ``np.copyto`` of ``nbytes`` between two preallocated buffers (both touched first, so page faults
+    are not timed): the memory-copy roofline."""
     src = np.ones(max(1, nbytes // 4), np.float32)
     dst = np.zeros_like(src)
-    return src.nbytes / time_call(lambda: np.copyto(dst, src), min_time)
+    return lambda: np.copyto(dst, src)
+
+
+def memcpy_bytes_per_s(nbytes: int = 64 << 20, min_time: float = 0.2) -> float:
+    """Memory-copy bandwidth of this machine, now: bytes/s of :func:`memcpy_fn` (best of 3 rounds)."""
+    return (max(1, nbytes // 4) * 4) / time_call(memcpy_fn(nbytes), min_time)
 
 
 def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
@@ -183,22 +180,37 @@ def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
     return [(_N, k)] if operation == "encode" else [(k, _N)]
 
 
-def _roofline_fn(shapes: list[tuple[int, int]], batch: int) -> Callable[[], object]:
+def roofline_fn(shapes: list[tuple[int, int]], batch: int) -> Callable[[], object]:
+    """The chain of products ``(batch, m) @ (m, n)`` for each of ``shapes``, each into a preallocated output
+    (``np.matmul(..., out=)``): the matrix-product roofline."""
     rng = np.random.default_rng(0)
     mats = [rng.standard_normal(s, dtype=np.float32) for s in shapes]
     lhs = [rng.standard_normal((batch, s[0]), dtype=np.float32) for s in shapes]
+    outs = [np.ones((batch, s[1]), np.float32) for s in shapes]  # ones: touched, so no page fault is timed
 
     def run() -> None:
-        for a, m in zip(lhs, mats):
-            a @ m
+        for a, m, o in zip(lhs, mats, outs):
+            np.matmul(a, m, out=o)
     return run
+
+
+def timed_record(t: Timing, base: Timing, blocks: int, **fields: Any) -> dict[str, Any]:
+    """The timing fields of a record for ``blocks`` blocks per call: ``blocks_per_s`` and
+    ``baseline_blocks_per_s`` (medians), ``ratio_to_baseline`` (ratio of medians), their bests and
+    ``ratio_of_bests``, ``ratio_paired`` and ``ratio_cpu`` (:func:`~sdfcodec.bench.harness.ratio`),
+    ``us_per_block`` (median) with the paper comparison, and ``repeats``."""
+    us = 1e6 * t.median / blocks
+    return {**fields, "blocks_per_s": blocks / t.median, "baseline_blocks_per_s": blocks / base.median,
+            "ratio_to_baseline": base.median / t.median, "us_per_block": us, **vs_paper(us),
+            "blocks_per_s_best": blocks / t.best, "baseline_blocks_per_s_best": blocks / base.best,
+            **{k: v for k, v in ratio(t, base).items() if k != "ratio_of_medians"}, "repeats": len(t.rounds)}
 
 
 def fused_style_weights(v: np.ndarray, voxel_size: float = 0.02) -> np.ndarray:
     """The error weights ``(N, 16, 16, 16)`` float32 a fused map gives normalised exact blocks ``v`` (default
     truncation): voxels clipped to ``d_min`` (more than ``|d_min|`` behind a surface) unobserved, as a camera
     leaves them, the rest weighted as :func:`sdfcodec.map.observed.error_weights` weights them."""
-    from .map.observed import error_weights
+    from ..map.observed import error_weights
 
     return error_weights(v, v > 0, (-0.04, 0.1), voxel_size)
 
@@ -209,11 +221,11 @@ def _has_hooks(codec: Codec) -> bool:
 
 def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = "cpu", min_time: float = 0.2,
                          weights: str | None = None, name: str | None = None,
-                         progress: Callable[[str], None] | None = None) -> list[dict]:
+                         progress: Callable[[str], None] | None = None, repeats: int = 5) -> list[dict]:
     """Encode/decode blocks/s of a ready ``codec`` at each batch size, beside the numpy roofline of its layer
-    shapes (:func:`roofline_shapes`), timed in the same run. Returns records as :func:`bench_codec`'s;
-    ``weights`` (where the codec's weights come from) is recorded when given."""
-    from .testing import analytic_blocks
+    shapes (:func:`roofline_shapes`), interleaved with it in ``repeats`` rounds. Returns records as
+    :func:`bench_codec`'s; ``weights`` (where the codec's weights come from) is recorded when given."""
+    from ..testing import analytic_blocks
 
     data = analytic_blocks(512, seed=3)
     dev = torch.device(device)
@@ -233,15 +245,14 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
             if progress:
                 progress(f"{name}-{codec.code_size} {op} batch {b}")
             shapes = roofline_shapes(codec, op)
-            t = time_call(fn, min_time)
-            tb = time_call(_roofline_fn(shapes, b), min_time)
+            load0 = load()
+            tm = interleave({"candidate": fn, "baseline": roofline_fn(shapes, b)}, repeats=repeats, min_time=min_time)
+            t = tm["candidate"].median
             plain_t = t if op == "encode" else plain_t
-            rec: dict[str, Any] = {
-                "codec": name, "code_size": codec.code_size, "operation": op, "batch": b, "device": str(dev),
-                "blocks_per_s": b / t, "baseline": "numpy matmul of the layer shapes" if extra else "numpy matmul",
-                "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
-                **vs_paper(1e6 * t / b),
-            }
+            rec = timed_record(tm["candidate"], tm["baseline"], b, codec=name, code_size=codec.code_size,
+                               operation=op, batch=b, device=str(dev),
+                               baseline="numpy matmul of the layer shapes" if extra else "numpy matmul")
+            rec.update(load_before=load0, load_after=load())
             if op == "encode-weighted":
                 rec.update(ratio_to_encode=plain_t / t, roofline_shapes=[list(s) for s in shapes],
                            baseline="numpy matmuls of an exact weighted least-squares fit")
@@ -254,12 +265,14 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
 
 def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, device: str = "cpu",
                 min_time: float = 0.2, progress: Callable[[str], None] | None = None,
-                read_blocks: int = 0, http: bool = False) -> list[dict]:
+                read_blocks: int = 0, http: bool = False, repeats: int = 5) -> list[dict]:
     """Encode/decode blocks/s of ``codec_id`` at each code size and batch, beside the numpy matmul roofline.
 
     Returns one record per (code_size, operation, batch) with ``codec``, ``code_size`` (the codec's actual
     code length), ``operation``, ``batch``, ``device``, ``blocks_per_s``, ``baseline``,
-    ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block``; registered codecs
+    ``baseline_blocks_per_s``, ``ratio_to_baseline`` and ``us_per_block`` (medians of ``repeats`` rounds
+    interleaved with the baseline), ``blocks_per_s_best``, ``baseline_blocks_per_s_best``, ``ratio_of_bests``,
+    ``repeats``, ``load_before`` and ``load_after``; registered codecs
     (:func:`register_bench`) add ``roofline_shapes``, ``weights`` and ``torch_threads``. With ``read_blocks > 0``,
     each code size also gets a ``"decode-on-read"`` record (:func:`bench_decode_on_read` over a map of that
     many blocks), and with ``http`` a ``"decode-on-read-http"`` one (the same map served on loopback).
@@ -268,25 +281,26 @@ def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int]
     for k in code_sizes:
         codec, weights = bench_instance(codec_id, k)
         records += bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights,
-                                        name=codec_id, progress=progress)
+                                        name=codec_id, progress=progress, repeats=repeats)
         if read_blocks > 0:
             if progress:
                 progress(f"{codec_id}-{codec.code_size} decode-on-read {read_blocks} blocks")
             records += bench_decode_on_read(codec, read_blocks, device=device, min_time=min_time,
-                                            name=codec_id, weights=weights, http=http)
-            records += bench_decode_in_place(codec, read_blocks, device=device, name=codec_id)
+                                            name=codec_id, weights=weights, http=http, repeats=repeats)
+            records += bench_decode_in_place(codec, read_blocks, device=device, name=codec_id, repeats=repeats)
     return records
 
 
 def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", min_time: float = 0.2,
                          name: str | None = None, weights: str | None = None, prefetch: int = 2,
-                         http: bool = False) -> list[dict]:
+                         http: bool = False, repeats: int = 5) -> list[dict]:
     """Decode on read: blocks/s of :meth:`sdfcodec.Map.iter_decoded` over a whole map of ``n_blocks`` coded
     blocks (codes read, checksummed, decompressed, decoded to float32 metres) from local disk, and with
-    ``http`` also over HTTP from a server on loopback, beside three baselines timed in the same run: the numpy
+    ``http`` also over HTTP from a server on loopback, beside four baselines interleaved with it: the numpy
     roofline of the decode's layer shapes (``baseline``), memory-copy bandwidth (``memcpy_blocks_per_s``, see
-    the module docstring) and the codec's own decode of the same codes already in memory
-    (``in_memory_decode_blocks_per_s``).
+    the module docstring), the codec's own decode of the same codes already in memory on ``device``
+    (``in_memory_decode_blocks_per_s``) and the copy of the codes to ``device`` (from pinned memory to a GPU;
+    ``code_transfer_blocks_per_s``).
 
     The map (float32 codes, default chunking) is written to a temporary directory and removed afterwards.
     Returns one record per source, ``operation`` ``"decode-on-read"`` (local) or ``"decode-on-read-http"``,
@@ -296,7 +310,7 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     import tempfile
     from pathlib import Path
 
-    from .map import open_map
+    from ..map import open_map
 
     if n_blocks < 1:
         raise InvalidValueError(f"n_blocks must be >= 1, got {n_blocks}")
@@ -304,9 +318,19 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-bench-"))
     dev = None if device == "cpu" else torch.device(device)
     sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
-    timed: dict[str, float] = {}
+    timed: dict[str, dict[str, Timing]] = {}
+    loads: dict[str, tuple[list[float], list[float]]] = {}
     try:
         _write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
+        with open_map(tmp / "bench.sdfz") as m:
+            _, codes = m.read_codes()
+        z = torch.from_numpy(codes).to(device)
+        # the codes' transfer to the device (pinned host memory to the GPU; a host copy on the CPU), which no
+        # decode on read into the device's memory avoids
+        host = torch.from_numpy(codes).pin_memory() if z.device.type == "cuda" else torch.from_numpy(codes.copy())
+        baselines = {"roofline": roofline_fn(roofline_shapes(codec, "decode"), n_blocks),
+                     "memcpy": memcpy_fn(), "in-memory": lambda: (codec.decode(z), sync()),
+                     "transfer": lambda: (z.copy_(host, non_blocking=True), sync())}
         sources = {"decode-on-read": str(tmp / "bench.sdfz")}
         server = _serve(tmp) if http else None
         if server is not None:
@@ -321,36 +345,34 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
                     if n != n_blocks:  # the reader lost or invented blocks: the timing would be meaningless
                         raise InvalidValueError(f"decode on read yielded {n} blocks of the {n_blocks} written")
 
-                timed[op] = time_call(read, min_time)
+                load0 = load()
+                timed[op] = interleave({"candidate": read, **baselines}, repeats=repeats, min_time=min_time)
+                loads[op] = (load0, load())
                 m.close()
         finally:
             if server is not None:
                 server.shutdown()
                 server.server_close()
-        m = open_map(tmp / "bench.sdfz")
-        _, codes = m.read_codes()
-        m.close()
-        z = torch.from_numpy(codes).to(device)
-        t_mem = time_call(lambda: (codec.decode(z), sync()), min_time)
-        shapes = roofline_shapes(codec, "decode")
-        tb = time_call(_roofline_fn(shapes, n_blocks), min_time)
-        copy_bps = memcpy_bytes_per_s(min_time=min_time)
         code_bytes = sum(f.stat().st_size for f in (tmp / "bench.sdfz" / "codes").rglob("*") if f.is_file())
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    copy_bytes = max(1, (64 << 20) // 4) * 4  # what memcpy_fn() copies per call
     records = []
-    for op, t in timed.items():
-        us = 1e6 * t / n_blocks
-        rec: dict[str, Any] = {
-            "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": op,
-            "batch": n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
-            "baseline": "numpy matmul of the layer shapes", "baseline_blocks_per_s": n_blocks / tb,
-            "ratio_to_baseline": tb / t, "us_per_block": us, **vs_paper(us),
+    for op, tm in timed.items():
+        t = tm["candidate"].median
+        copy_bps = copy_bytes / tm["memcpy"].median
+        rec = timed_record(tm["candidate"], tm["roofline"], n_blocks, codec=name or codec.codec_id,
+                           code_size=codec.code_size, operation=op, batch=n_blocks, device=str(device),
+                           baseline="numpy matmul of the layer shapes")
+        rec.update({
             "memcpy_bytes_per_s": copy_bps, "memcpy_blocks_per_s": copy_bps / _BLOCK_BYTES,
             "ratio_to_memcpy": (n_blocks / t) / (copy_bps / _BLOCK_BYTES),
-            "in_memory_decode_blocks_per_s": n_blocks / t_mem, "ratio_to_in_memory_decode": t_mem / t,
+            "in_memory_decode_blocks_per_s": n_blocks / tm["in-memory"].median,
+            "ratio_to_in_memory_decode": tm["in-memory"].median / t,
+            "code_transfer_blocks_per_s": n_blocks / tm["transfer"].median,
             "code_bytes_on_disk": code_bytes, "prefetch": prefetch, "torch_threads": torch.get_num_threads(),
-        }
+            "load_before": loads[op][0], "load_after": loads[op][1],
+        })
         if weights is not None:
             rec["weights"] = weights
         records.append(rec)
@@ -360,8 +382,8 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
 def _write_bench_map(codec: Codec, n_blocks: int, path: Any, truncation: tuple[float, float]) -> None:
     """A map of ``n_blocks`` coded blocks filling a cube of blocks in grid order (float32 codes, default chunking):
     the real codes of 512 analytic blocks, tiled (reading them is what is timed, not encoding)."""
-    from .map import create_map
-    from .testing import analytic_blocks
+    from ..map import create_map
+    from ..testing import analytic_blocks
 
     side = int(np.ceil(n_blocks ** (1 / 3)))
     coords = np.stack(np.unravel_index(np.arange(n_blocks), (side, side, side)), axis=1)
@@ -372,23 +394,10 @@ def _write_bench_map(codec: Codec, n_blocks: int, path: Any, truncation: tuple[f
             m.write_codes(coords[i:j], np.concatenate([codes] * -(-(j - i) // len(codes)))[: j - i])
 
 
-def interleaved(cases: dict[str, Callable[[], object]], rounds: int) -> dict[str, tuple[float, float]]:
-    """``(best, median)`` seconds per call of each case, over ``rounds`` rounds that each call every case once,
-    in turn (after one warm-up call each): load that comes and goes hits every case alike."""
-    for fn in cases.values():
-        fn()
-    times: dict[str, list[float]] = {name: [] for name in cases}
-    for _ in range(rounds):
-        for name, fn in cases.items():
-            t0 = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - t0)
-    return {name: (min(t), float(np.median(t))) for name, t in times.items()}
-
-
-def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", rounds: int = 5, batch: int = 4096,
-                          name: str | None = None) -> list[dict]:
-    """Decoding into place (issue 19) beside the preallocated roofline, in interleaved rounds (:func:`interleaved`):
+def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", repeats: int = 5, batch: int = 4096,
+                          name: str | None = None, min_time: float = 0.2) -> list[dict]:
+    """Decoding into place (issue 19) beside the preallocated roofline, in interleaved rounds
+    (:func:`~sdfcodec.bench.harness.interleave`):
 
     - ``"decode-on-read-into"``: :meth:`sdfcodec.Map.iter_decoded` ``(copy=False)`` of a whole map of
       ``n_blocks`` coded blocks (read, decompressed, decoded to metres into a ring of reused buffers), and
@@ -398,14 +407,13 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
       batches of ``batch`` into one reused buffer.
 
     The baseline is the codec's roofline, the product of its decode shapes for all ``n_blocks`` written into a
-    preallocated output (``np.matmul(..., out=)``: no allocation or page faults timed). Each record has
-    ``blocks_per_s`` and ``ratio_to_baseline`` from the best round, ``median_blocks_per_s`` and
-    ``median_ratio_to_baseline`` from the medians, and ``rounds``."""
+    preallocated output (``np.matmul(..., out=)``: no allocation or page faults timed). Records as
+    :func:`timed_record`'s, with ``map_blocks`` and ``torch_threads``."""
     import shutil
     import tempfile
     from pathlib import Path
 
-    from .map import open_map
+    from ..map import open_map
 
     d_min, d_max = -0.04, 0.1
     dev = None if device == "cpu" else torch.device(device)
@@ -417,16 +425,6 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
         _, codes = m.read_codes()
         z = torch.from_numpy(codes).to(device)
         buf = torch.empty((min(batch, n_blocks), _N), device=device)
-        rng = np.random.default_rng(0)
-        shapes = roofline_shapes(codec, "decode")
-        mats = [rng.standard_normal(sh, dtype=np.float32) for sh in shapes]
-        lhs = [rng.standard_normal((n_blocks, sh[0]), dtype=np.float32) for sh in shapes]
-        outs = [np.zeros((n_blocks, sh[1]), np.float32) for sh in shapes]  # touched: faults are not timed
-
-        def roofline() -> None:
-            for a, w, o in zip(lhs, mats, outs):
-                np.matmul(a, w, out=o)
-
         def read(copy: bool) -> None:
             for _ in m.iter_decoded(device=dev, copy=copy):
                 pass
@@ -438,26 +436,22 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
                 codec.decode_core(c, scale=d_max - d_min, offset=d_min, out=buf[:len(c)])
             sync()
 
-        cases = {"roofline": roofline, "decode-on-read-into": lambda: read(False),
-                 "decode-on-read-fresh": lambda: read(True),
-                 "decode-region": lambda: (m.decode_region(device=dev), sync()), "decode-into": in_memory}
-        timed = interleaved(cases, rounds)
+        cases = {"decode-on-read-into": lambda: read(False), "decode-on-read-fresh": lambda: read(True),
+                 "decode-region": lambda: (m.decode_region(device=dev), sync()), "decode-into": in_memory,
+                 "roofline": roofline_fn(roofline_shapes(codec, "decode"), n_blocks)}
+        load0 = load()
+        timed = interleave(cases, repeats=repeats, min_time=min_time)
+        load1 = load()
         m.close()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    (tb, tb_med) = timed.pop("roofline")
-    records = []
-    for op, (t, t_med) in timed.items():
-        us = 1e6 * t / n_blocks
-        records.append({
-            "codec": name or codec.codec_id, "code_size": codec.code_size, "operation": op,
-            "batch": min(batch, n_blocks) if op == "decode-into" else n_blocks, "device": str(device), "blocks_per_s": n_blocks / t,
-            "baseline": "numpy matmul of the layer shapes into a preallocated output",
-            "baseline_blocks_per_s": n_blocks / tb, "ratio_to_baseline": tb / t, "us_per_block": us, **vs_paper(us),
-            "median_blocks_per_s": n_blocks / t_med, "median_baseline_blocks_per_s": n_blocks / tb_med,
-            "median_ratio_to_baseline": tb_med / t_med, "rounds": rounds, "map_blocks": n_blocks,
-            "torch_threads": torch.get_num_threads()})
-    return records
+    base = timed.pop("roofline")
+    return [timed_record(t, base, n_blocks, codec=name or codec.codec_id, code_size=codec.code_size, operation=op,
+                         batch=min(batch, n_blocks) if op == "decode-into" else n_blocks, device=str(device),
+                         baseline="numpy matmul of the layer shapes into a preallocated output",
+                         map_blocks=n_blocks, torch_threads=torch.get_num_threads(), load_before=load0,
+                         load_after=load1)
+            for op, t in timed.items()]
 
 
 def _serve(root: Any):
@@ -478,117 +472,3 @@ def _serve(root: Any):
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), partial(Quiet, directory=str(root)))
     threading.Thread(target=server.serve_forever, daemon=True, name="sdfcodec-bench-http").start()
     return server
-
-
-# ------------------------------------------------------------------------------------------- search benchmark
-def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, batches: Iterable[int] = (65536,),
-                 device: str = "cpu", min_time: float = 0.2, map_blocks: int = 0,
-                 map_levels: dict[int, Iterable[int]] | None = None, workdir: Any = None,
-                 progress: Callable[[str], None] | None = None) -> list[dict]:
-    """Search throughput: the scoring kernel on in-memory codes beside a plain numpy matrix product of the same
-    shape, and (``map_blocks > 0``) whole searches of a map on disk with the bytes they read.
-
-    Codes are random with the shipped eigenshapes' per-component spread (``sqrt(explained_variance)``), so
-    their magnitudes (and compressibility) resemble real ones; descriptors are the floor model.
-
-    Parameters
-    ----------
-    code_sizes : iterable of int
-        Code lengths ``k`` (1..128: prefixes of the shipped pca-128 basis).
-    descriptors : int
-        Model size ``M`` (15: the paper's floor model; other values: planes at that many offsets).
-    batches : iterable of int
-        Blocks per kernel call.
-    device : str
-        Where the kernel runs (the baseline is always numpy on the CPU).
-    min_time : float
-        Seconds per timing round (best of 3, :func:`time_call`).
-    map_blocks : int
-        Coded blocks of the benchmark map (0: skip the map records). The map is dense in a cube of blocks.
-    map_levels : mapping of int to sequence of int, optional
-        Code size -> levels to search its map at (default: the full size; e.g. ``{128: [32, 128]}``).
-    workdir : str or os.PathLike, optional
-        Where the map is written (default: a temporary directory).
-
-    Returns
-    -------
-    list of dict
-        Records like :func:`bench_codec`'s: ``codec``, ``code_size``, ``operation``
-        (``"search"`` for the kernel, ``"search-map"`` for a whole search), ``batch``, ``device``,
-        ``blocks_per_s``, ``baseline`` (``"numpy matmul"``), ``baseline_blocks_per_s``, ``ratio_to_baseline``,
-        ``us_per_block``, ``load_before`` and ``load_after`` (``os.getloadavg()`` around the timing: this is a
-        shared machine); map records add ``level``, ``code_bytes_read``, ``code_bytes_full``, ``seconds``.
-    """
-    # imported here: this module is imported by the CLI and plugins that never search, and search imports the
-    # map reader
-    import math
-    import os
-    import tempfile
-    from pathlib import Path
-
-    from .map import create_map, open_map
-    from .registry import pretrained_codec
-    from .search import build_query, search
-    from .search.engine import Scorer
-
-    records = []
-    dev = torch.device(device)
-    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    rng = np.random.default_rng(0)
-    for k in code_sizes:
-        codec = pretrained_codec("pca", k)
-        spread = np.sqrt(codec.explained_variance_).astype(np.float32)
-        q = build_query("floor", codec=codec, offsets=descriptors).descriptors
-        scorer = Scorer(q, dev)
-        qt = np.ascontiguousarray(q.T)
-        for b in batches:
-            codes = rng.standard_normal((b, k), dtype=np.float32) * spread
-            x = torch.from_numpy(codes).to(dev) if dev.type != "cpu" else codes
-            if progress:
-                progress(f"search kernel pca-{k} batch {b}")
-            load0 = os.getloadavg()
-            t = time_call(lambda: (scorer(x), sync()), min_time)
-            tb = time_call(lambda: codes @ qt, min_time)
-            records.append({"codec": "pca", "code_size": k, "operation": "search", "batch": b, "device": str(dev),
-                            "descriptors": len(q), "blocks_per_s": b / t, "baseline": "numpy matmul",
-                            "baseline_blocks_per_s": b / tb, "ratio_to_baseline": tb / t, "us_per_block": 1e6 * t / b,
-                            "load_before": list(load0), "load_after": list(os.getloadavg())})
-        if map_blocks > 0:
-            tmp = tempfile.TemporaryDirectory(prefix="sdfcodec-bench-") if workdir is None else None
-            try:
-                path = Path(tmp.name if tmp else workdir) / f"bench-pca-{k}.sdfz"
-                side = math.ceil(map_blocks ** (1 / 3))
-                coords = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:map_blocks]
-                if progress:
-                    progress(f"writing a {len(coords)}-block pca-{k} map")
-                with create_map(path, codec=codec, voxel_size=0.02, overwrite=True, tool="sdfcodec.search.bench") as w:
-                    for i in range(0, len(coords), 1 << 16):
-                        c = coords[i:i + (1 << 16)]
-                        w.write_codes(c, rng.standard_normal((len(c), k), dtype=np.float32) * spread)
-                m = open_map(path)
-                m.codec  # load the codec state once, outside the timed searches
-                for lv in (map_levels or {}).get(k, [k]):
-                    if progress:
-                        progress(f"searching the pca-{k} map at level {lv}")
-                    load0 = os.getloadavg()
-                    res = search(m, build_query("floor", codec=codec, offsets=descriptors), level=lv, top=100,
-                                 device=dev)
-                    base_codes = rng.standard_normal((len(coords), lv), dtype=np.float32)
-                    base_q = np.ascontiguousarray(q[:, :lv].T)
-                    tb = time_call(lambda: base_codes @ base_q, min_time)
-                    t = res.stats["seconds"]
-                    records.append({"codec": "pca", "code_size": k, "operation": "search-map", "level": lv,
-                                    "batch": len(coords), "device": str(dev), "descriptors": len(q),
-                                    "blocks_per_s": len(coords) / t, "baseline": "numpy matmul",
-                                    "baseline_blocks_per_s": len(coords) / tb, "ratio_to_baseline": tb / t,
-                                    "us_per_block": 1e6 * t / len(coords), "seconds": t,
-                                    "code_bytes_read": res.stats["code_bytes_read"],
-                                    "code_bytes_full": res.stats["code_bytes_full"],
-                                    "load_before": list(load0), "load_after": list(os.getloadavg())})
-            finally:
-                if tmp is not None:
-                    tmp.cleanup()
-    return records
-
-
-__all__ += ["bench_search"]

@@ -1,0 +1,58 @@
+"""Modules imported on first use, so that light commands start light.
+
+``torch = lazy_module("torch")`` at the top of a module gives a stand-in whose first attribute access
+(``torch.float32``, ``torch.as_tensor(...)``) imports torch (about 2 s here) and forwards to it from then on.
+``sdfcodec info``, ``codecs``, ``verify`` of a header and ``--help`` never touch torch, sklearn or scipy, so
+they start in a fraction of a second. The stand-in is not put in ``sys.modules``: other libraries that ask
+``"torch" in sys.modules`` (numpy's and scikit-learn's array-API checks) keep seeing the truth.
+
+:func:`is_tensor` answers "is this a torch tensor?" without importing torch: if torch was never imported,
+nothing can be a tensor.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import types
+from typing import Any
+
+__all__ = ["lazy_module", "is_tensor", "LazyModule"]
+
+
+class LazyModule(types.ModuleType):
+    """A stand-in for the module ``name`` that imports it on first attribute access."""
+
+    def __init__(self, name: str):
+        super().__init__(name)
+        self.__dict__["_lazy_target"] = None
+
+    def _lazy_load(self) -> types.ModuleType:
+        mod = self.__dict__["_lazy_target"]
+        if mod is None:
+            mod = importlib.import_module(self.__name__)
+            self.__dict__["_lazy_target"] = mod
+        return mod
+
+    def __getattr__(self, attr: str) -> Any:
+        # only called for names not in the stand-in's own __dict__: everything of the real module
+        return getattr(self._lazy_load(), attr)
+
+    def __dir__(self) -> list[str]:
+        return dir(self._lazy_load())
+
+    def __repr__(self) -> str:
+        state = "loaded" if self.__dict__["_lazy_target"] is not None else "not loaded yet"
+        return f"<lazy module {self.__name__!r} ({state})>"
+
+
+def lazy_module(name: str) -> Any:
+    """A stand-in for module ``name`` (e.g. ``"torch"``, ``"sklearn.decomposition"``): imported on first
+    attribute access. When the module is already imported, that module itself."""
+    return sys.modules.get(name) or LazyModule(name)
+
+
+def is_tensor(x: Any) -> bool:
+    """True when ``x`` is a ``torch.Tensor``; never imports torch (no tensor exists before torch is imported)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)

@@ -1,0 +1,155 @@
+"""Timing that holds on a loaded machine: every figure interleaved with its baselines, N equal repetitions.
+
+A figure is a candidate callable and one or more baseline callables (the roofline: a preallocated matrix
+product, a memory copy...). :func:`interleave` times them in rounds: each round runs every callable for the
+same fixed number of calls (calibrated once, before the first round, so that a call group lasts about
+``min_time``), alternating the order from round to round (candidate first, then baselines first), so that a
+burst of load from another process falls on both sides of the ratio. It returns per-round seconds per call;
+:class:`Timing` gives best and median, and :func:`ratio` the ratio of medians (what records call
+``ratio_to_baseline``) and of bests.
+
+The machine (:func:`machine`) and its load (``os.getloadavg()``, :func:`load`) are recorded with every run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import platform
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator, Mapping
+
+from ..errors import InvalidValueError
+
+__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine", "limit_threads"]
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Seconds per call of one callable, one value per round (``rounds``: wall clock; ``cpu_rounds``: CPU time
+    of this process, all its threads), and the calls timed per round."""
+
+    rounds: tuple[float, ...]
+    calls: int
+    cpu_rounds: tuple[float, ...] = ()
+
+    @property
+    def best(self) -> float:
+        return min(self.rounds)
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.rounds)
+
+    def summary(self, per_call: float = 1.0, unit: str = "blocks") -> dict[str, Any]:
+        """``{unit}_per_s`` (from the median) and ``{unit}_per_s_best`` for ``per_call`` units of work per call,
+        with the seconds per call of every round."""
+        return {f"{unit}_per_s": per_call / self.median, f"{unit}_per_s_best": per_call / self.best,
+                "seconds_median": self.median, "seconds_best": self.best, "seconds_rounds": list(self.rounds),
+                "calls_per_round": self.calls}
+
+
+def _calibrate(fn: Callable[[], object], min_time: float) -> int:
+    """Calls per round so that a round of ``fn`` lasts about ``min_time`` (``fn`` warmed up first)."""
+    fn()  # warm-up: allocations, page faults, kernel selection, caches
+    t0 = time.perf_counter()
+    fn()
+    one = max(time.perf_counter() - t0, 1e-7)
+    return max(1, round(min_time / one))
+
+
+def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min_time: float = 0.2
+               ) -> dict[str, Timing]:
+    """Time every callable of ``fns`` (name -> callable; by convention the candidate first, then its baselines)
+    in ``repeats`` interleaved rounds of equal length; see the module docstring. Returns name -> :class:`Timing`.
+    A callable that runs asynchronously (CUDA) must synchronise before it returns."""
+    if repeats < 1:
+        raise InvalidValueError(f"repeats must be >= 1, got {repeats}")
+    names = list(fns)
+    calls = {n: _calibrate(fns[n], min_time) for n in names}
+    rounds: dict[str, list[float]] = {n: [] for n in names}
+    cpu: dict[str, list[float]] = {n: [] for n in names}
+    for r in range(repeats):
+        for n in (names if r % 2 == 0 else names[::-1]):  # alternate the order: drifting load hits both sides
+            fn, k = fns[n], calls[n]
+            c0, t0 = time.process_time(), time.perf_counter()
+            for _ in range(k):
+                fn()
+            rounds[n].append((time.perf_counter() - t0) / k)
+            cpu[n].append((time.process_time() - c0) / k)
+    return {n: Timing(tuple(rounds[n]), calls[n], tuple(cpu[n])) for n in names}
+
+
+def ratio(candidate: Timing, baseline: Timing) -> dict[str, float]:
+    """Candidate speed over baseline speed (> 1: the candidate is faster), several ways:
+
+    ``ratio_of_medians`` and ``ratio_of_bests`` (wall clock); ``ratio_paired``, the median over rounds of the
+    ratio within a round (a round's candidate and baseline ran back to back, under the same load); and
+    ``ratio_cpu``, of the median CPU seconds per call (the work done, whatever share of the cores the process
+    got: on a loaded machine the steadiest, but it counts every thread's time, so it measures cost, not
+    latency)."""
+    out = {"ratio_of_medians": baseline.median / candidate.median, "ratio_of_bests": baseline.best / candidate.best,
+           "ratio_paired": statistics.median(b / c for b, c in zip(baseline.rounds, candidate.rounds))}
+    if candidate.cpu_rounds and baseline.cpu_rounds:
+        c, b = statistics.median(candidate.cpu_rounds), statistics.median(baseline.cpu_rounds)
+        if c > 0 and b > 0:
+            out["ratio_cpu"] = b / c
+    return out
+
+
+def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:
+    """Best seconds per call of ``fn`` alone over ``repeats`` equal rounds of about ``min_time`` each (for a
+    figure without a baseline; figures with one use :func:`interleave`)."""
+    return interleave({"fn": fn}, repeats=repeats, min_time=min_time)["fn"].best
+
+
+def load() -> list[float]:
+    """``os.getloadavg()`` (1, 5 and 15 minute load averages) as a list; [] where the OS has none."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def machine(device: str = "cpu") -> dict[str, Any]:
+    """What the figures were measured on: CPU, cores, the torch threads and version, and the device's name."""
+    info: dict[str, Any] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                            "cpus": os.cpu_count(), "python": platform.python_version()}
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), None)
+        if model:
+            info["processor"] = model
+    except OSError:
+        pass
+    import numpy as np
+    import torch
+
+    info.update(numpy=np.__version__, torch=torch.__version__, torch_threads=torch.get_num_threads(),
+                device=device)
+    if device.startswith("cuda") and torch.cuda.is_available():
+        p = torch.cuda.get_device_properties(torch.device(device))
+        info.update(device_name=p.name, device_memory_bytes=p.total_memory, cuda=torch.version.cuda)
+    return info
+
+
+@contextlib.contextmanager
+def limit_threads(n: int | None) -> Iterator[None]:
+    """Run the block with ``n`` threads in torch and in numpy's BLAS (None: as configured). On a loaded machine
+    one thread measures steadier: a multi-threaded kernel whose threads are not scheduled together waits at its
+    barriers for the slowest, which a busy machine makes arbitrarily slow."""
+    if n is None:
+        yield
+        return
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        with threadpool_limits(n):
+            yield
+    finally:
+        torch.set_num_threads(before)
