@@ -26,7 +26,6 @@ from dataclasses import asdict, dataclass
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
@@ -159,6 +158,8 @@ class _Band:
 
 def _metrics(p_orig: np.ndarray, p_dec: np.ndarray, voxel_size: float, band: _Band) -> SurfaceMetrics:
     inf = np.inf
+    from scipy.spatial import cKDTree  # here: importing this module (map readers do) stays light
+
     d_orig = cKDTree(p_dec).query(p_orig, workers=-1)[0] if len(p_dec) else np.full(len(p_orig), inf)
     d_dec = cKDTree(p_orig).query(p_dec, workers=-1)[0] if len(p_orig) else np.full(len(p_dec), inf)
     chamfer = 0.5 * (float(d_orig.mean()) + float(d_dec.mean())) if len(p_orig) and len(p_dec) else inf

@@ -14,10 +14,12 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-import torch
 
+from .._lazy import lazy_module
 from .._validate import BLOCK, empty
 from ..errors import InvalidValueError
+
+torch = lazy_module("torch")  # imported on first use: reading a header never needs it
 
 __all__ = ["BufferRing", "BlockPlacer"]
 

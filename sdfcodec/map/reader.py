@@ -543,12 +543,10 @@ class MapReader:
         """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`), written into
         ``out_for(n)`` (a contiguous ``(n, 16, 16, 16)`` float32 buffer on ``dev``, e.g. from a
-        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array. (Decoding a group in
-        cache-sized tiles of 256-1024 blocks, truncating each while in cache, measured about half as fast on two
-        cores at load 4.5: the small products cost more than the pass they save.)"""
+        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array (one product per group:
+        cache-sized tiles measured about half as fast on two cores)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
-        feed, mask = DeviceFeed(dev), self.observation_arrays()[1]
-        res = self.residual_rows_array(level)
+        feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
 
         def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
             # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals)

@@ -25,17 +25,19 @@ import math
 from typing import Any
 
 import numpy as np
-import torch
 import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec
 from zarr.core.sync import sync as zarr_sync
 
+from .._lazy import lazy_module
 from .._validate import BLOCK
 from ..errors import FormatError, InvalidValueError
 from ..header import CodesSpec, ResidualSpec
 from ..quantize import quantise_step, quantize_codes
 from ..surface import JUMP, crossing_edges
 from .format import code_values
+
+torch = lazy_module("torch")  # imported on first use: reading a header never needs it
 
 __all__ = ["RESIDUAL_ARRAY", "MARGIN", "SIGN_STEP_VOXELS", "residual_spec", "residual_compressors",
            "stored_code_values", "crossing_voxels", "residual_rows", "apply_residual", "checked_residual_array",
