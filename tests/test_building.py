@@ -25,7 +25,7 @@ from sdfcodec.registry import get_codec, pretrained_codec
 from sdfcodec.surface import compare_maps
 from sdfcodec.verify import verify_map
 
-FRAMES, SIZE = 150, (160, 120)  # the walk's start: corridor, the first room and back out; a quarter of the pixels
+FRAMES, SIZE = 150, (80, 60)  # the walk's start: corridor, the first room and back out; 1/64 of the pixels
 BUDGET_MB = 12.0  # 384 blocks: a frame's blocks fit, the map's do not
 
 

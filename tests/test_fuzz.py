@@ -40,7 +40,7 @@ COUNTS: dict[str, dict[str, int]] = {}
 CASES: list[tuple[float, str, str]] = []
 # no shrinking: it can take minutes on a failure; the report still shows every draw of the failing case
 # SDFCODEC_FUZZ_EXAMPLES=2000 make test for a long run; CI's default keeps the file near a minute
-EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "120"))
+EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "60"))
 EXPECTED = {"header": EXAMPLES, "array_metadata": EXAMPLES, "chunk_bytes": EXAMPLES, "codes_and_state_values": EXAMPLES,
             "geometry": max(1, EXAMPLES // 2)}  # cases each fuzz test runs (hypothesis's max_examples)
 SETTINGS = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
