@@ -434,8 +434,9 @@ def markdown(res: dict) -> str:
         L.append("")
     m = res["machine"]
     L += [f"Run: {m['cpus']} CPUs, Python {m['python']}, pysz {m['pysz']}, zfpy {m['zfpy']}; load average "
-          f"{res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; wall time {res['wall_s']:.0f} s. "
-          "Decode ratios were taken on a machine shared with other jobs: re-measure idle.", ""]
+          f"{res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; wall time {res['wall_s']:.0f} s."
+          + (" Decode ratios were taken under load (more than one job per core): re-measure idle."
+             if max(res["load_before"][0], res["load_after"][0]) > m["cpus"] else ""), ""]
     return "\n".join(L)
 
 
