@@ -407,7 +407,7 @@ def _bench_cli(*args: str):
 
     from sdfcodec.cli import app
 
-    res = CliRunner().invoke(app, ["bench", "--quick", "--read", "0", *args])
+    res = CliRunner().invoke(app, ["bench", "--quick", "--read", "0", "--no-search", "--repeats", "2", *args])
     assert res.exit_code == 0, res.output
     return res
 
