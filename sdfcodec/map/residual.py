@@ -94,7 +94,7 @@ def residual_spec(codec: Any, code_dtype: str, voxel_size: float, truncation: tu
         inner = e * (1 - MARGIN)
         step = inner if sign_exact else 2 * inner
     qmax = math.ceil(rng / step) + 2
-    dtype = "int8" if qmax <= 127 else "int16"
+    dtype = "int8" if qmax <= np.iinfo(np.int8).max else "int16"
     return ResidualSpec(step=step, dtype=dtype, max_error=None if max_error is None else float(max_error),
                         sign_exact=bool(sign_exact))
 
@@ -222,8 +222,7 @@ def residual_rows(spec: ResidualSpec, orig: np.ndarray, dec: torch.Tensor, obser
     else:
         raise InvalidValueError("the residual stage could not meet its bound after 4 passes; nothing was stored "
                                 "(a bug: please report it with the input)")
-    limit = 127 if spec.dtype == "int8" else 32767
-    if np.abs(q).max(initial=0) > limit:
+    if np.abs(q).max(initial=0) > np.iinfo(spec.dtype).max:
         raise InvalidValueError(f"residual value {int(np.abs(q).max())} beyond {spec.dtype}; nothing was stored (a bug: "
                                 "please report it with the input)")
     return q.astype(spec.dtype)
@@ -232,7 +231,7 @@ def residual_rows(spec: ResidualSpec, orig: np.ndarray, dec: torch.Tensor, obser
 def _simulate(d32: np.ndarray, q: np.ndarray, spec: ResidualSpec, d_min: float, d_max: float) -> np.ndarray:
     """What a reader decodes from ``d32`` ``(n, 4096)`` float32 and ``q``: :func:`apply_residual`, as float64."""
     v = torch.from_numpy(d32.copy()).view(-1, BLOCK, BLOCK, BLOCK)
-    limit = 127 if spec.dtype == "int8" else 32767
+    limit = np.iinfo(spec.dtype).max
     rows = np.clip(q, -limit, limit).astype(spec.dtype)
     return apply_residual(v, rows, spec.step, d_min, d_max).numpy().reshape(len(d32), -1).astype(np.float64)
 
