@@ -29,7 +29,6 @@ Cases (sizes in :data:`SIZES`, quick and full):
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
@@ -38,7 +37,7 @@ import numpy as np
 
 from .._lazy import lazy_module
 from .codecs import bench_decode_on_read
-from .harness import interleave, load, machine, ratio
+from .harness import interleave, load, ratio, run_document
 from .search import bench_search
 
 torch = lazy_module("torch")
@@ -193,7 +192,7 @@ def tracking(setup: Setup) -> list[dict]:
     from ..geometry import se3_exp
     from ..sdf import sample_volume
     from ..testing import analytic_scene
-    from ..tracking import SDFTracker
+    from ..tracking import SDFTracker, backproject
 
     w, h = setup.sizes["image"]
     scene = analytic_scene()
@@ -208,9 +207,7 @@ def tracking(setup: Setup) -> list[dict]:
     tracker = SDFTracker(fld, k)
     res = tracker.track(depth, start)
     # the baseline: value and gradient of the field at every pixel's world point, once
-    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
-    z = depth_np.ravel()
-    cam = np.stack([(uu.ravel() - k[2]) / k[0] * z, (vv.ravel() - k[3]) / k[1] * z, z], 1)[z > 0]
+    cam = backproject(depth_np, k).numpy().astype(np.float64)  # the valid pixels' camera-frame points
     pts = torch.from_numpy((cam @ truth[:3, :3].T + truth[:3, 3]).astype(np.float32)).to(setup.dev)
     setup.progress(f"tracking one {w} x {h} frame on {setup.device}")
     fig = Figure({"operation": "tracking", "resolution": [w, h], "success": bool(res.success),
@@ -252,8 +249,7 @@ def run_cases(device: str = "cpu", *, quick: bool = False, repeats: int = 5, min
     setup = Setup(device, {**SIZES[mode], **(sizes or {})}, repeats, min_time,
                   progress or (lambda s: None))
     setup.dev  # a bad device name fails here, before anything runs
-    doc: dict[str, Any] = {"schema": "sdfcodec-bench/1", "command": " ".join(["sdfcodec", *sys.argv[1:]]),
-                           "mode": mode, "sizes": setup.sizes, "machine": machine(device), "load_before": load()}
+    doc: dict[str, Any] = {**run_document(mode, device), "sizes": setup.sizes}
     t0 = time.perf_counter()
     doc.update(records=[], errors=[])
     for n in names:

@@ -17,13 +17,14 @@ import contextlib
 import os
 import platform
 import statistics
+import sys
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Mapping
 
 from ..errors import InvalidValueError
 
-__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine", "limit_threads"]
+__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine", "run_document", "limit_threads"]
 
 
 @dataclass(frozen=True)
@@ -133,6 +134,13 @@ def machine(device: str = "cpu") -> dict[str, Any]:
         p = torch.cuda.get_device_properties(torch.device(device))
         info.update(device_name=p.name, device_memory_bytes=p.total_memory, cuda=torch.version.cuda)
     return info
+
+
+def run_document(mode: str, device: str = "cpu") -> dict[str, Any]:
+    """The head of a run's JSON document (``sdfcodec bench --out``, ``--full``): ``schema``, ``command``,
+    ``mode``, ``machine`` and ``load_before``; the caller adds ``records``, ``load_after`` and ``seconds``."""
+    return {"schema": "sdfcodec-bench/1", "command": " ".join(["sdfcodec", *sys.argv[1:]]), "mode": mode,
+            "machine": machine(device), "load_before": load()}
 
 
 @contextlib.contextmanager

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -298,7 +297,7 @@ def bench_cmd(
     and over HTTP from a server on loopback, beside the same roofline, the memory-copy bandwidth of this
     machine (as blocks/s of 16 KiB) and the codec's decode of the same codes in memory (JSON:
     memcpy_blocks_per_s, in_memory_decode_blocks_per_s). Decoding into place is timed beside the decode product
-    into a preallocated output, in 5 interleaved rounds (best and median): decode-on-read-into
+    into a preallocated output, in the same --repeats rounds: decode-on-read-into
     (iter_decoded(copy=False)), decode-on-read-fresh (the default copy=True), decode-region (the whole map) and
     decode-into (decode_core(..., out=) in batches of 4096). For pca, the search kernel (15 floor descriptors)
     is timed beside a numpy product of its shape. Tracking is benchmarked by `sdfcodec eval` instead (it needs
@@ -335,10 +334,9 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
         fail(f"--read must be >= 0, got {n_read}")
     do_search = search and codec_id == "pca"
     n_search = 8192 if quick else 65536
-    from ..bench.harness import load, machine
+    from ..bench.harness import load, run_document
 
-    doc: dict[str, Any] = {"schema": "sdfcodec-bench/1", "command": " ".join(["sdfcodec", *sys.argv[1:]]),
-                           "mode": "quick" if quick else "codec", "machine": machine(device), "load_before": load()}
+    doc = run_document("quick" if quick else "codec", device)
     t0 = time.perf_counter()
     with progress_bar("steps") as prog:
         task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search), rate="")
