@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 import sdfcodec
-from sdfcodec.blocks import split_blocks
 from sdfcodec.errors import FormatError, InvalidValueError, VersionError, WriteFailedError
 from sdfcodec.surface import compare_volumes
 from sdfcodec.verify import verify_map
@@ -23,27 +22,10 @@ from sdfcodec.verify import verify_map
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import reliability_worker as rw  # noqa: E402
+from _fused_maps import TRUNC, VS, fused_like, write_volume_map  # noqa: E402
 from test_writes import Faults  # noqa: E402
 
-VS, TRUNC = 0.02, (-0.04, 0.1)
 GOLDEN = HERE / "golden" / "maps" / "residual-pca-4"
-
-
-def _fused_like(volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """As fusion leaves an exact SDF: voxels deeper than |d_min| behind a surface unobserved, reading d_max."""
-    observed = volume > TRUNC[0] + 1e-6
-    return np.where(observed, volume, np.float32(TRUNC[1])).astype(np.float32), observed
-
-
-def _write(path: Path, volume: np.ndarray, observed: np.ndarray | None, codec, **kw) -> None:
-    blocks = split_blocks(volume, fill=TRUNC[1])
-    coords = np.argwhere(np.ones(blocks.shape[:3], bool))
-    obs = None
-    if observed is not None:
-        obs = split_blocks(observed.astype(np.float32), fill=1.0).reshape(-1, 16, 16, 16) > 0.5
-    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, shape_voxels=volume.shape,
-                             overwrite=True, **kw) as m:
-        m.write_blocks(coords, blocks.reshape(-1, 16, 16, 16), observed=obs)
 
 
 def _crossing_voxels(vol: np.ndarray, observed: np.ndarray | None) -> np.ndarray:
@@ -65,7 +47,7 @@ def _crossing_voxels(vol: np.ndarray, observed: np.ndarray | None) -> np.ndarray
 
 @pytest.fixture(scope="module")
 def fused(volume):
-    return _fused_like(volume)
+    return fused_like(volume)
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +59,7 @@ def maps(tmp_path_factory, volume, fused, pca64) -> dict:
                      "e10sign": dict(max_error=0.01, sign_exact=True), "plain": {}}.items():
         for kind, (vol, obs) in {"exact": (volume, None), "fused": fused}.items():
             p = d / f"{kind}-{name}.sdfz"
-            _write(p, vol, obs, pca64, **kw)
+            write_volume_map(p, vol, obs, pca64, **kw)
             out[kind, name] = p
     return out
 
@@ -269,7 +251,7 @@ def test_golden_residual_map_decodes_forever(regen_golden, fused):
         shutil.rmtree(GOLDEN, ignore_errors=True)
         GOLDEN.mkdir(parents=True)
         codec = sdfcodec.get_codec("pca", code_size=4).fit(analytic_blocks(200, seed=5))
-        _write(GOLDEN / "map.zarr", vol, obs, codec, max_error=0.01, sign_exact=True)
+        write_volume_map(GOLDEN / "map.zarr", vol, obs, codec, max_error=0.01, sign_exact=True)
         np.save(GOLDEN / "decoded.npy", sdfcodec.open_map(GOLDEN / "map.zarr").decode_region())
     assert (GOLDEN / "map.zarr" / "zarr.json").is_file(), "golden map missing: run pytest --regen-golden once"
     m = sdfcodec.open_map(GOLDEN / "map.zarr")
@@ -302,7 +284,7 @@ def test_transcoding_a_map_keeps_the_bound(tmp_path, fused, pca64):
     copied): the bound holds against the source on its observed voxels, which stay unobserved."""
     vol, obs = (a[:48, :48, :32] for a in fused)
     src = tmp_path / "raw.sdfz"
-    _write(src, vol, obs, sdfcodec.get_codec("raw"))
+    write_volume_map(src, vol, obs, sdfcodec.get_codec("raw"))
     with sdfcodec.create_map(tmp_path / "t.sdfz", codec=pca64, voxel_size=VS, max_error=0.005, sign_exact=True) as m:
         m.write_map(sdfcodec.open_map(src))
     t = sdfcodec.open_map(tmp_path / "t.sdfz")

@@ -22,7 +22,8 @@ from sdfcodec.map.field import chunks_of, field_of, sz3_compress, sz3_decompress
 from sdfcodec.testing import analytic_blocks, parametrize_codec_checks  # noqa: E402
 from sdfcodec.verify import verify_map  # noqa: E402
 
-VS, TRUNC = 0.02, (-0.04, 0.1)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _fused_maps import TRUNC, VS, fused_like, write_volume_map  # noqa: E402
 R = TRUNC[1] - TRUNC[0]
 GOLDEN = Path(__file__).parent / "golden"
 BOUND_M = 0.01
@@ -54,34 +55,15 @@ def test_field_layout_round_trips():
     np.testing.assert_array_equal(chunks_of(f), a)
 
 
-def _fused_like(volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """As fusion leaves an exact SDF: voxels deeper than |d_min| behind a surface unobserved, reading d_max."""
-    observed = volume > TRUNC[0] + 1e-6
-    return np.where(observed, volume, np.float32(TRUNC[1])).astype(np.float32), observed
-
-
-def _write(path: Path, volume: np.ndarray, observed: np.ndarray | None, codec) -> None:
-    from sdfcodec.blocks import split_blocks
-
-    blocks = split_blocks(volume, fill=TRUNC[1])
-    coords = np.argwhere(np.ones(blocks.shape[:3], bool))
-    obs = None
-    if observed is not None:
-        obs = split_blocks(observed.astype(np.float32), fill=1.0).reshape(-1, 16, 16, 16) > 0.5
-    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, shape_voxels=volume.shape,
-                             overwrite=True) as m:
-        m.write_blocks(coords, blocks.reshape(-1, 16, 16, 16), observed=obs)
-
-
 @pytest.fixture(scope="module")
 def fused(volume):
-    return _fused_like(volume)
+    return fused_like(volume)
 
 
 @pytest.fixture(scope="module")
 def sz3_map(tmp_path_factory, fused) -> Path:
     p = tmp_path_factory.mktemp("sz3") / "room.sdfz"
-    _write(p, *fused, sdfcodec.get_codec("sz3", max_error=BOUND_M / R))
+    write_volume_map(p, *fused, sdfcodec.get_codec("sz3", max_error=BOUND_M / R))
     return p
 
 
@@ -106,7 +88,7 @@ def test_map_keeps_the_bound_on_observed_voxels_and_the_observation(sz3_map, fus
     assert rep.ok, str(rep)
     # far smaller than the same map stored losslessly
     raw = tmp_path / "raw.sdfz"
-    _write(raw, vol, observed, sdfcodec.get_codec("raw"))
+    write_volume_map(raw, vol, observed, sdfcodec.get_codec("raw"))
     size = lambda p: sum(f.stat().st_size for f in Path(p).rglob("*") if f.is_file())  # noqa: E731
     assert size(sz3_map) < size(raw) / 4
 
@@ -241,7 +223,7 @@ def test_golden_sz3_map_decodes_forever(regen_golden, fused):
         shutil.rmtree(g, ignore_errors=True)
         g.mkdir(parents=True)
         vol, obs = fused
-        _write(g / "map.zarr", vol[:40, :36, :20], obs[:40, :36, :20], sdfcodec.get_codec("sz3", max_error=0.05))
+        write_volume_map(g / "map.zarr", vol[:40, :36, :20], obs[:40, :36, :20], sdfcodec.get_codec("sz3", max_error=0.05))
         np.save(g / "decoded.npy", sdfcodec.open_map(g / "map.zarr").decode_region())
     assert (g / "map.zarr" / "zarr.json").is_file(), "golden map missing: run pytest --regen-golden once"
     m = sdfcodec.open_map(g / "map.zarr")
