@@ -8,8 +8,10 @@ voxels as if they were free space and left as the codec decodes them: what sdfco
 observation mask) and **surface-true** (the default of `sdfcodec encode MAP OUT --codec pca`: observation
 mask, surface-weighted least squares). For each map: bytes on disk per coded block, the surface metrics
 against the lossless map (sdfcodec.surface.compare_maps) and, with --track, the tracking ATE of the frames
-against it from the first ground-truth pose (sdfcodec track's defaults). Writes OUT/surface-study.json and
-prints a markdown table.
+against it from the first ground-truth pose (sdfcodec track's defaults). Then the same surface metrics for
+surface-true pca-32/64/128 on the **held-out half** alone: the blocks past the middle of the map along x, which
+the shipped basis never saw in training (examples/train_default_model.py trains on the other half), each half
+written as its own map. Writes OUT/surface-study.json and prints two markdown tables.
 """
 
 from __future__ import annotations
@@ -75,8 +77,10 @@ def main() -> None:
                                               progress=False)["ate"]["rmse"]
         rows[name] = row
         print(name, json.dumps({key: row[key] for key in ("chamfer_l1", "f_score_1")}), flush=True)
+    held = held_out(fused, out)
     base = rows["lossless"].get("ate_rmse_m")
-    (out / "surface-study.json").write_text(json.dumps({"rows": rows, "seconds": time.perf_counter() - t0,
+    (out / "surface-study.json").write_text(json.dumps({"rows": rows, "held_out": held,
+                                                        "seconds": time.perf_counter() - t0,
                                                         "frames": fused.frames_integrated}, indent=2))
     print("| map | bytes / coded block | Chamfer-L1 (mm) | F@1 voxel | F@2 voxels | band RMSE / bias (mm) | "
           "sign agreement | ATE (cm) | ATE / lossless |")
@@ -87,6 +91,27 @@ def main() -> None:
         print(f"| {name} | {r['bytes_per_coded_block']:.0f} | {1000 * r['chamfer_l1']:.1f} | {r['f_score_1']:.3f} | "
               f"{r['f_score_2']:.3f} | {1000 * r['near_surface_rmse']:.1f} / {1000 * r['near_surface_bias']:+.1f} | "
               f"{r['sign_agreement']:.3f} | {ate_s} |")
+    print(f"\nheld-out half ({held['coded_blocks']} coded blocks)\n\n| map | Chamfer-L1 (mm) | F@1 voxel | F@2 voxels |\n|---|---|---|---|")
+    for name, r in held["rows"].items():
+        print(f"| {name} | {1000 * r['chamfer_l1']:.2f} | {r['f_score_1']:.3f} | {r['f_score_2']:.3f} |")
+
+
+def held_out(fused, out: Path) -> dict:
+    """Surface metrics of surface-true pca-32/64/128 maps of the held-out half (blocks with x index past the
+    middle plus one, the split of examples/train_default_model.py) against its lossless map."""
+    half = fused.select(fused.coords[:, 0] > fused.grid_shape[0] // 2)
+    maps = {}
+    for name, codec in [("lossless", sdfcodec.get_codec("raw"))] + [
+            (f"pca-{k} surface-true", sdfcodec.pretrained_codec("pca", k)) for k in (32, 64, 128)]:
+        path = out / f"held-out-{name.split()[0]}.sdfz"
+        with sdfcodec.create_map(path, codec=codec, voxel_size=fused.voxel_size, truncation=fused.truncation,
+                                 origin=tuple(fused.origin), overwrite=True) as m:
+            m.write_blocks(half.coords, half.tsdf, weights=half.weights)
+        maps[name] = sdfcodec.open_map(path)
+    rows = {name: compare_maps(maps["lossless"], m).to_dict() for name, m in maps.items() if name != "lossless"}
+    for name, r in rows.items():
+        print("held-out", name, json.dumps({key: r[key] for key in ("chamfer_l1", "f_score_1")}), flush=True)
+    return {"coded_blocks": maps["lossless"].info()["blocks"]["coded"], "rows": rows}
 
 
 if __name__ == "__main__":

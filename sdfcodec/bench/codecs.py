@@ -20,7 +20,9 @@ also get ``"encode-weighted"`` records: the same blocks with the error weights a
 (:func:`fused_style_weights`), with ``ratio_to_encode`` (plain encode time over weighted encode time, the plain
 one timed just before in the same run). Its roofline is what an exact weighted least-squares fit of a linear
 code of size ``k`` cannot avoid: the plain projection, the Gram matrices ``(B, 4096) @ (4096, k (k + 1) / 2)``
-and the weighted right-hand sides ``(B, 4096) @ (4096, k)``.
+and the weighted right-hand sides ``(B, 4096) @ (4096, k)``. ``"encode-masked"`` records time what a map writer
+runs on those blocks (:func:`sdfcodec.map.observed.encode_truncated`: the weighted fit, refitted for the
+reader's truncation), against the same roofline of one fit and with ``ratio_to_encode`` too.
 
 Decode on read (:func:`bench_decode_on_read`) has a second roofline, memory-copy bandwidth: ``np.copyto``
 between two 64 MiB buffers, timed in the same run, expressed as the blocks/s at which the decoded float32
@@ -58,8 +60,8 @@ __all__ = ["bench_codec", "fused_style_weights", "bench_codec_instance", "bench_
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
 _BLOCK_BYTES = 4 * _N  # one decoded float32 block
-_OPS = ("encode", "decode", "encode-weighted")
-#: "encode-weighted" is timed for code sizes whose exact-fit roofline table (4096 x k (k + 1) / 2 float32)
+_OPS = ("encode", "decode", "encode-weighted", "encode-masked")
+#: "encode-weighted" and "encode-masked" are timed for code sizes whose exact-fit roofline table (4096 x k (k + 1) / 2 float32)
 #: fits in this (k <= 361); beyond it (raw: k = 4096, lossless, its weighted encode is its encode) it is not
 _MAX_GRAM_TABLE_BYTES = 1 << 30
 
@@ -168,7 +170,7 @@ def roofline_shapes(codec: Codec, operation: str) -> list[tuple[int, int]]:
     if operation not in _OPS:
         raise InvalidValueError(f"operation must be one of {', '.join(map(repr, _OPS))}, got {operation!r}")
     k = codec.code_size
-    if operation == "encode-weighted":  # the same for every codec: what an exact weighted fit of k numbers needs
+    if operation in ("encode-weighted", "encode-masked"):  # what an exact weighted fit of k numbers needs
         return [(_N, k), (_N, k * (k + 1) // 2), (_N, k)]
     spec = _spec(type(codec))
     if spec is not None and spec.roofline_shapes is not None:
@@ -225,6 +227,7 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
     """Encode/decode blocks/s of a ready ``codec`` at each batch size, beside the numpy roofline of its layer
     shapes (:func:`roofline_shapes`), interleaved with it in ``repeats`` rounds. Returns records as
     :func:`bench_codec`'s; ``weights`` (where the codec's weights come from) is recorded when given."""
+    from ..map.observed import encode_truncated
     from ..testing import analytic_blocks
 
     data = analytic_blocks(512, seed=3)
@@ -240,6 +243,8 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
         if uses_weights(codec) and 4 * _N * codec.code_size * (codec.code_size + 1) // 2 <= _MAX_GRAM_TABLE_BYTES:
             w = torch.from_numpy(fused_style_weights(x.cpu().numpy())).to(dev)
             ops.append(("encode-weighted", lambda: (codec.encode(x, weights=w), sync())))
+            # what a map writer runs on a fused block: the weighted fit refitted for the reader's truncation
+            ops.append(("encode-masked", lambda: (encode_truncated(codec, x, w), sync())))
         plain_t = None
         for op, fn in ops:
             if progress:
@@ -253,7 +258,7 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
                                operation=op, batch=b, device=str(dev),
                                baseline="numpy matmul of the layer shapes" if extra else "numpy matmul")
             rec.update(load_before=load0, load_after=load())
-            if op == "encode-weighted":
+            if op in ("encode-weighted", "encode-masked"):
                 rec.update(ratio_to_encode=plain_t / t, roofline_shapes=[list(s) for s in shapes],
                            baseline="numpy matmuls of an exact weighted least-squares fit")
             if extra:
