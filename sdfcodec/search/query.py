@@ -283,15 +283,14 @@ def _shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[
 def encode_query_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
                         voxel_size: float, weighted: bool) -> np.ndarray:
     """Codes ``(N, D)`` float32 of normalised query blocks ``v``: the plain projection, or with ``weighted`` the
-    surface-true encoding a masked map's writer uses (:func:`sdfcodec.map.observed.error_weights`, ``observed``
+    surface-true encoding a masked map's writer uses (:func:`sdfcodec.map.observed.encode_blocks`, ``observed``
     ``(N, 16, 16, 16)`` bool, all observed when None), so query codes and map codes compare like with like."""
     if not weighted:
         return np.asarray(codec.encode(v), dtype=np.float32)
-    from ..map.observed import SURFACE_WEIGHT, error_weights
+    from ..map.observed import SURFACE_WEIGHT, encode_blocks
 
     obs = np.ones(v.shape, bool) if observed is None else observed
-    w = error_weights(v, obs, truncation, voxel_size, SURFACE_WEIGHT)
-    return np.asarray(codec.encode(v, weights=w), dtype=np.float32)
+    return encode_blocks(codec, v, obs, truncation, voxel_size, SURFACE_WEIGHT, "cpu")
 
 
 def like_blocks(m: Map, coords: Any, codec: Codec) -> QueryModel:
