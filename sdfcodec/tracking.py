@@ -336,6 +336,25 @@ def _backproject(depth: torch.Tensor, k: CameraIntrinsics, stride: int, min_dept
 
 
 # --------------------------------------------------------------------------------------------------- tracker
+def _split(pts: torch.Tensor, chunk: int, workers: int) -> list[torch.Tensor]:
+    """``pts`` (3, N) as column slices (rows stay contiguous) of at most ``chunk`` points, their number a
+    multiple of ``workers`` and their sizes equal to within one, so that every worker gets the same share
+    (a coarse level smaller than one chunk still runs on every core)."""
+    npts = pts.shape[1]
+    n = max(1, -(-npts // chunk))
+    n = -(-n // workers) * workers if npts >= 1024 * workers else n  # tiny levels: threading costs more
+    size = -(-npts // n) if npts else 1
+    return [pts[:, i:i + size] for i in range(0, max(npts, 1), size)]
+
+
+def _conditioning(h: np.ndarray | None) -> float:
+    """Smallest over largest eigenvalue of the (undamped) normal matrix ``h`` (0 when there is none)."""
+    if h is None:
+        return 0.0
+    ev = np.linalg.eigvalsh(h)
+    return float(ev[0] / ev[-1]) if ev[-1] > 0 else 0.0
+
+
 @contextmanager
 def _intra_op_threads(n: int | None):
     """Temporarily set torch's intra-op thread count (None: leave it)."""
@@ -528,42 +547,42 @@ class SDFTracker:
         pose = pose0.copy()
         per_level: list[int] = []
         total = 0
-        residual, inliers, npts, unorm, cond = math.inf, 0, 0, 0.0, 0.0
+        residual, inliers, npts, unorm = math.inf, 0, 0, 0.0
         eye6 = np.eye(6)
         chunk = cfg.chunk_size or (32768 if d.device.type == "cpu" else 1 << 22)
+        h_last = None  # the last finite, normalised H: its conditioning is reported (computed once, at the end)
         for stride, iters in zip(cfg.strides, cfg.iterations):
             pts = _backproject(d, self.intrinsics, stride, cfg.min_depth, cfg.max_depth, self._rays)  # (3, N)
             npts = pts.shape[1]
-            chunks = [pts[:, i:i + chunk] for i in range(0, npts, chunk)]  # rows stay contiguous
+            chunks = _split(pts, chunk, workers)
             done = 0
             for _ in range(iters):
                 if npts < cfg.min_inliers:
-                    return self._fail(initial_pose, per_level + [done], total, residual, 0, npts, unorm, cond,
+                    return self._fail(initial_pose, per_level + [done], total, residual, 0, npts, unorm, h_last,
                                       f"only {npts} valid depth readings at stride {stride} (need "
                                       f"{cfg.min_inliers}); is the depth in metres and within "
                                       f"({cfg.min_depth}, {cfg.max_depth}) m?")
                 h, b, inliers, sq = self._normal_equations(chunks, pose, workers)
                 if not (np.all(np.isfinite(h)) and np.all(np.isfinite(b)) and math.isfinite(sq)):
                     return self._fail(initial_pose, per_level + [done], total, residual, inliers, npts, unorm,
-                                      cond, "the map returned non-finite distances or gradients (FieldSampler "
+                                      h_last, "the map returned non-finite distances or gradients (FieldSampler "
                                       "outputs must be finite everywhere, also where not valid)")
                 if inliers < cfg.min_inliers:
                     return self._fail(initial_pose, per_level + [done], total, residual, inliers, npts, unorm,
-                                      cond, f"only {inliers} of {npts} depth points at stride {stride} fall where "
+                                      h_last, f"only {inliers} of {npts} depth points at stride {stride} fall where "
                                       f"the map is usable (inside the volume, off the truncation plateaus, "
                                       f"need {cfg.min_inliers}); the pose is probably far off the map or lost")
                 residual = math.sqrt(sq / inliers)
                 h /= inliers
                 b /= inliers
-                ev = np.linalg.eigvalsh(h)
-                cond = float(ev[0] / ev[-1]) if ev[-1] > 0 else 0.0
+                h_last = h
                 try:
                     xi = -np.linalg.solve(h + cfg.damping * eye6, b)
                 except np.linalg.LinAlgError:
                     xi = np.full(6, np.nan)
                 if not np.all(np.isfinite(xi)):
                     return self._fail(initial_pose, per_level + [done], total, residual, inliers, npts, unorm,
-                                      cond, "the Gauss-Newton step is not finite (singular normal equations); "
+                                      h_last, "the Gauss-Newton step is not finite (singular normal equations); "
                                       "raise damping or check the map for NaN")
                 pose = pose @ se3_exp(xi)
                 unorm = float(np.linalg.norm(xi))
@@ -572,8 +591,9 @@ class SDFTracker:
                 if unorm < cfg.min_update:
                     break
             per_level.append(done)
+        cond = _conditioning(h_last)
         if cfg.max_final_update is not None and unorm > cfg.max_final_update:
-            return self._fail(initial_pose, per_level, total, residual, inliers, npts, unorm, cond,
+            return self._fail(initial_pose, per_level, total, residual, inliers, npts, unorm, h_last,
                               f"did not converge: the last update was |xi| = {unorm:.3g} (> max_final_update "
                               f"{cfg.max_final_update}), residual {residual * 1000:.1f} mm, {inliers}/{npts} "
                               "inliers; the initial pose is probably too far from the truth for the "
@@ -586,7 +606,8 @@ class SDFTracker:
         return TrackingResult(self._like(pose, initial_pose), True, msg, total, tuple(per_level), residual,
                               inliers, npts, unorm, cond)
 
-    def _fail(self, initial_pose, per_level, total, residual, inliers, npts, unorm, cond, msg) -> TrackingResult:
+    def _fail(self, initial_pose, per_level, total, residual, inliers, npts, unorm, h_last, msg) -> TrackingResult:
+        cond = _conditioning(h_last)
         pose0 = self._pose(initial_pose)
         return TrackingResult(self._like(pose0, initial_pose), False, msg, total, tuple(per_level), residual,
                               inliers, npts, unorm, cond)

@@ -1,0 +1,132 @@
+"""Measurements for the SDF Tracker rows of docs/results.md (issue 19, item 3): frames/s per frame and ATE.
+
+Run: ``.venv/bin/python docs/tracking_measure.py --kitchen DIR --work WORKDIR [--out FILE.json]`` where DIR is a
+7-Scenes redkitchen sequence folder (or set ``$SDFCODEC_KITCHEN``). It fuses the kitchen into a lossless map
+and transcodes it to pca-64 (once, kept in WORKDIR), fuses the synthetic presets likewise, then tracks every
+frame of each sequence from the first ground-truth pose with ``sdfcodec track``'s settings
+(``EVAL_TRACKER_CONFIG``) against a dense field of each map (and a warm ``MapField`` of the kitchen maps).
+Every ``tracker.track`` call is timed on its own: the record holds the median and quartiles of the per-frame
+times (over all frames and over the first 200), the start-up (map open + dense decode, or the cold pass of
+the lazy map) apart, the ATE RMSE against the ground truth, the load before and after and the torch threads.
+Only public API is used, so the same script measures an older checkout (``PYTHONPATH=OLD``) for comparison.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sdfcodec.data.sequences import open_sequence
+from sdfcodec.densefield import DenseField
+from sdfcodec.evaluation import EVAL_TRACKER_CONFIG, resolve_sequence
+from sdfcodec.map import open_map
+from sdfcodec.mapfield import MapField
+from sdfcodec.metrics import ate
+from sdfcodec.tracking import SDFTracker, TrackerConfig
+
+PRESETS = ("slow-clean", "slow-noisy", "fast-clean", "fast-noisy", "poor-geometry", "rich-geometry")
+
+
+def cli(*args: str) -> None:
+    subprocess.run([str(Path(sys.executable).parent / "sdfcodec"), *args, "--json"], check=True, stdout=subprocess.DEVNULL)
+
+
+def maps_for(seq_dir: str, work: Path, name: str, pca: bool) -> dict[str, Path]:
+    raw = work / f"{name}.sdfz"
+    if not raw.exists():
+        cli("fuse", seq_dir, str(raw))
+    out = {"lossless": raw}
+    if pca:
+        out["pca-64"] = work / f"{name}-pca64.sdfz"
+        if not out["pca-64"].exists():
+            cli("encode", str(raw), str(out["pca-64"]), "--codec", "pca", "--code-size", "64")
+    return out
+
+
+def track_all(field, seq, depths, cfg) -> tuple[np.ndarray, np.ndarray, int]:
+    k = seq.intrinsics
+    poses, times, fails = [], [], 0
+    with SDFTracker(field, (k.fx, k.fy, k.cx, k.cy), cfg) as tracker:
+        for i, depth in enumerate(depths):
+            if i == 0:
+                guess = seq.poses[0]
+            elif len(poses) >= 2:  # constant velocity, as sdfcodec track
+                guess = poses[-1] @ (np.linalg.inv(poses[-2]) @ poses[-1])
+            else:
+                guess = poses[-1]
+            t0 = time.perf_counter()
+            res = tracker.track(depth, guess)
+            times.append(time.perf_counter() - t0)
+            fails += not res.success
+            poses.append(np.asarray(res.pose, dtype=np.float64))
+    return np.stack(poses), np.asarray(times), fails
+
+
+def record(name: str, map_name: str, field_kind: str, seq, depths, field, startup_s: float) -> dict:
+    cfg = TrackerConfig(**EVAL_TRACKER_CONFIG)
+    load0 = [round(x, 2) for x in os.getloadavg()]
+    poses, times, fails = track_all(field, seq, depths, cfg)
+    err = ate(seq.poses, poses)
+    q = lambda t: [float(x) for x in np.percentile(t, [25, 50, 75])]
+    r = {"sequence": name, "map": map_name, "field": field_kind, "frames": len(depths),
+         "image": [seq.intrinsics.width, seq.intrinsics.height], "startup_s": startup_s,
+         "frame_s_quartiles": q(times), "fps_median": 1 / float(np.median(times)),
+         "fps_median_first200": 1 / float(np.median(times[:200])), "fps_mean": len(times) / float(times.sum()),
+         "first_frame_s": float(times[0]), "failures": fails, "ate_rmse_m": float(err.rmse),
+         "ate_max_m": float(err.max), "torch_threads": torch.get_num_threads(), "load_before": load0,
+         "load_after": [round(x, 2) for x in os.getloadavg()]}
+    print(json.dumps({k: r[k] for k in ("sequence", "map", "field", "fps_median", "ate_rmse_m", "failures",
+                                        "load_before")}), flush=True)
+    return r
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN"),
+                    help="a 7-Scenes redkitchen sequence folder (default: $SDFCODEC_KITCHEN)")
+    ap.add_argument("--work", type=Path, required=True, help="where the maps and rendered sequences are kept")
+    ap.add_argument("--out", type=Path, help="JSON file to write")
+    ap.add_argument("--only", default="kitchen,synthetic", help="kitchen, synthetic or both")
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    ap.add_argument("--label", default="", help="what was measured (e.g. the commit), stored in the JSON")
+    ap.add_argument("--lazy-frames", type=int, default=200, help="frames of the warm MapField runs")
+    a = ap.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    a.work.mkdir(parents=True, exist_ok=True)
+    records = []
+    todo = []
+    if "kitchen" in a.only:
+        if not a.kitchen:
+            ap.error("give the kitchen sequence with --kitchen DIR or $SDFCODEC_KITCHEN")
+        todo.append(("redkitchen", a.kitchen, True))
+    if "synthetic" in a.only:
+        todo += [(p, str(resolve_sequence(f"synthetic:{p}", a.work / "sequences")), False) for p in PRESETS]
+    for name, seq_dir, is_kitchen in todo:
+        seq = open_sequence(seq_dir)
+        depths = [seq[i].depth for i in range(len(seq))]
+        for map_name, path in maps_for(seq_dir, a.work, name, is_kitchen).items():
+            t0 = time.perf_counter()
+            m = open_map(path)
+            dense = DenseField(m.decode_region(), m.voxel_size, m.origin, m.truncation)
+            records.append(record(name, map_name, "dense", seq, depths, dense, time.perf_counter() - t0))
+            del dense
+            if is_kitchen:  # the lazily decoded map, warmed by one pass over the sequence first
+                t0 = time.perf_counter()
+                lazy = MapField(open_map(path))
+                sub, few = seq[:a.lazy_frames], depths[:a.lazy_frames]
+                track_all(lazy, sub, few, TrackerConfig(**EVAL_TRACKER_CONFIG))
+                records.append(record(name, map_name, "mapfield-warm", sub, few, lazy, time.perf_counter() - t0))
+    doc = {"command": "docs/tracking_measure.py " + " ".join(sys.argv[1:]).replace(str(a.kitchen), "KITCHEN"),
+           "label": a.label, "cpus": os.cpu_count(), "records": records}
+    if a.out:
+        a.out.write_text(json.dumps(doc, indent=1))
+
+
+if __name__ == "__main__":
+    main()
