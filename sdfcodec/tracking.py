@@ -166,6 +166,12 @@ class TrackerConfig(BaseModel):
     strides: tuple[int, ...] = Field((4, 2, 1), description="pixel strides of the coarse-to-fine levels "
                                      "(every stride-th row and column of the depth image is used)")
     iterations: tuple[int, ...] = Field((12, 8, 2), description="maximum Gauss-Newton iterations per level")
+    max_pixels: int | None = Field(76800, ge=1, description="the strides are multiplied by the smallest integer "
+                                   "that leaves at most this many pixels (of the strided grid) at the finest level: "
+                                   "the pyramid follows the number of points rather than the pixels, so 320x240 "
+                                   "images run the original strides 4/2/1 and 640x480 ones 8/4/2 (on 7-Scenes at "
+                                   "640x480 the stride-1 level took two thirds of the time and changed the ATE by "
+                                   "under 0.3%). None: the strides as given")
     min_update: float = Field(1e-4, ge=0, description="a level stops when the twist update norm |xi| "
                               "(metres and radians together) falls below this")
     damping: float = Field(1e-4, ge=0, description="fixed Levenberg damping lambda added to the diagonal of the "
@@ -345,6 +351,18 @@ def _split(pts: torch.Tensor, chunk: int, workers: int) -> list[torch.Tensor]:
     n = -(-n // workers) * workers if npts >= 1024 * workers else n  # tiny levels: threading costs more
     size = -(-npts // n) if npts else 1
     return [pts[:, i:i + size] for i in range(0, max(npts, 1), size)]
+
+
+def _stride_scale(shape: tuple[int, int], finest: int, max_pixels: int | None) -> int:
+    """The smallest integer ``s >= 1`` with at most ``max_pixels`` pixels on the ``(H, W)`` grid strided by
+    ``finest * s`` (1 when ``max_pixels`` is None)."""
+    if max_pixels is None:
+        return 1
+    h, w = shape
+    s = 1
+    while -(-h // (finest * s)) * -(-w // (finest * s)) > max_pixels:
+        s += 1
+    return s
 
 
 def _conditioning(h: np.ndarray | None) -> float:
@@ -551,7 +569,8 @@ class SDFTracker:
         eye6 = np.eye(6)
         chunk = cfg.chunk_size or (32768 if d.device.type == "cpu" else 1 << 22)
         h_last = None  # the last finite, normalised H: its conditioning is reported (computed once, at the end)
-        for stride, iters in zip(cfg.strides, cfg.iterations):
+        scale = _stride_scale(d.shape, cfg.strides[-1], cfg.max_pixels)
+        for stride, iters in zip((s * scale for s in cfg.strides), cfg.iterations):
             pts = _backproject(d, self.intrinsics, stride, cfg.min_depth, cfg.max_depth, self._rays)  # (3, N)
             npts = pts.shape[1]
             chunks = _split(pts, chunk, workers)
