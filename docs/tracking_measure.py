@@ -9,6 +9,9 @@ Every ``tracker.track`` call is timed on its own: the record holds the median an
 times (over all frames and over the first 200), the start-up (map open + dense decode, or the cold pass of
 the lazy map) apart, the ATE RMSE against the ground truth, the load before and after and the torch threads.
 Only public API is used, so the same script measures an older checkout (``PYTHONPATH=OLD``) for comparison.
+
+With ``--bench FILE.json`` it writes docs/results/tracking-bench.json instead: ``benchmark_tracking`` of the
+kitchen's lossless and pca-64 maps (dense, cold and warm MapField; per-frame medians, start-up apart).
 """
 import argparse
 import json
@@ -23,7 +26,7 @@ import torch
 
 from sdfcodec.data.sequences import open_sequence
 from sdfcodec.densefield import DenseField
-from sdfcodec.evaluation import EVAL_TRACKER_CONFIG, resolve_sequence
+from sdfcodec.evaluation import EVAL_TRACKER_CONFIG, benchmark_tracking, resolve_sequence
 from sdfcodec.map import open_map
 from sdfcodec.mapfield import MapField
 from sdfcodec.metrics import ate
@@ -94,11 +97,24 @@ def main() -> None:
     ap.add_argument("--only", default="kitchen,synthetic", help="kitchen, synthetic or both")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--label", default="", help="what was measured (e.g. the commit), stored in the JSON")
+    ap.add_argument("--bench", type=Path, help="write benchmark_tracking of the kitchen maps here instead")
     ap.add_argument("--lazy-frames", type=int, default=200, help="frames of the warm MapField runs")
     a = ap.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
     a.work.mkdir(parents=True, exist_ok=True)
+    if a.bench:
+        if not a.kitchen:
+            ap.error("give the kitchen sequence with --kitchen DIR or $SDFCODEC_KITCHEN")
+        maps = maps_for(a.kitchen, a.work, "redkitchen", True)
+        doc = {"command": f"benchmark_tracking(MAP, KITCHEN, frames={a.lazy_frames})",
+               "load_before": list(os.getloadavg()), "label": a.label}
+        for key, name in (("raw", "lossless"), ("pca64", "pca-64")):
+            doc[key] = benchmark_tracking(maps[name], a.kitchen, frames=a.lazy_frames)
+            print(key, json.dumps({k: v for k, v in doc[key].items() if "cache" not in k}), flush=True)
+        doc["load_after"] = list(os.getloadavg())
+        a.bench.write_text(json.dumps(doc, indent=1))
+        return
     records = []
     todo = []
     if "kitchen" in a.only:

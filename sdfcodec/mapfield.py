@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ._validate import BLOCK
+from .densefield import trilinear
 from .errors import InvalidValueError, ShapeError
 from .header import BlockState
 
@@ -206,11 +207,7 @@ class MapField:
             else:
                 corners = self._pool.index_select(0, idx)
         valid = torch.from_numpy(active).to(self._device)
-        cr = corners.reshape(2, 2, 2, n, 4)
-        f = frac.t()[:, :, None]  # (3, N, 1)
-        cr = torch.lerp(cr[0], cr[1], f[0])
-        cr = torch.lerp(cr[0], cr[1], f[1])
-        vals = torch.lerp(cr[0], cr[1], f[2])  # (N, 4)
+        vals = trilinear(corners, frac)  # (N, 4)
         d_max = self._truncation[1]
         d = torch.where(valid, vals[:, 0], d_max)
         g = torch.where(valid[:, None], vals[:, 1:], 0.0)

@@ -23,7 +23,8 @@ Method (one depth frame):
    and the distance says nothing), the gradient is not vanishing (``|grad D| >= min_gradient_norm``; a true
    distance field has ``|grad D| = 1``), and optionally ``|D| <= max_distance``.
 5. Coarse to fine: pixel strides 4, 2, 1 with at most 12, 8 and 2 iterations; a level stops early when the
-   update norm ``|xi|`` drops below ``1e-4``.
+   update norm ``|xi|`` drops below ``1e-4``. The strides are scaled to the image (``max_pixels``): at most
+   76,800 points at the finest level, so 320x240 images run 4/2/1 and 640x480 ones 8/4/2.
 
 The field's gradient is :class:`~sdfcodec.densefield.DenseField`'s business (see that module).
 
@@ -35,6 +36,11 @@ torch's OpenMP threading of the same small ops degrades badly as soon as anythin
 busy 2-core VM: median 2.5 s against 56 ms per 640x480 frame for the chunk threads). The trilinear gather uses numpy's
 ``take`` on the CPU (zero-copy views of the torch tensors), several times faster than ``index_select``.
 On CUDA the whole image is one chunk and everything stays on the device except the 7x7 normal equations.
+Each point costs one gather (its cell's 8 corners of the field's value-and-gradient table) and a fixed
+number of whole-chunk tensor ops for the residual, the Jacobian rows and the ``(7, n) x (n, 7)`` product of
+the normal equations; there is no per-point Python. Chunks are split evenly over the threads, so a coarse
+level smaller than one chunk still uses every core. Where the time went at 640x480 (7-Scenes redkitchen,
+before ``max_pixels``): the stride-1 level was two thirds of the point evaluations for under 0.3% of the ATE.
 
     field = DenseField(tsdf, voxel_size=0.02, origin=(0, 0, 0))
     tracker = SDFTracker(field, (585.0, 585.0, 320.0, 240.0))
@@ -157,7 +163,8 @@ class CameraIntrinsics:
 
 class TrackerConfig(BaseModel):
     """Every parameter of :class:`SDFTracker` with its default. ``strides``, ``iterations`` and ``min_update``
-    are the original SDF Tracker's; the others are this implementation's choices, described per field.
+    are the original SDF Tracker's (``max_pixels=None`` runs its strides on any image size); the others are
+    this implementation's choices, described per field.
     Invalid values raise :class:`~sdfcodec.errors.InvalidValueError`; JSON round trip with ``model_dump()`` /
     ``TrackerConfig(**d)``."""
 

@@ -416,9 +416,26 @@ def test_input_errors(field, depth):
         CameraIntrinsics(-1.0, 1.0, 0.0, 0.0)
 
 
+def test_pyramid_scales_to_the_image_size():
+    """max_pixels: the finest level of a 640x480 frame is strided by 2 (76,800 points), a 160x120 frame keeps
+    stride 1, and max_pixels=None runs the strides as given."""
+    plane = Plane((0.0, 0.0, -1.0), offset=-1.0)  # the wall z = 1 m, free space towards the camera at the origin
+    origin = (-0.8, -0.7, 0.8)
+    field = DenseField(sample_volume(plane, (82, 72, 22), VOXEL, origin), VOXEL, origin)
+    cfg = {"max_final_update": None}
+    for (w, h), max_pixels, finest in (((640, 480), 76800, 2), ((640, 480), None, 1), ((160, 120), 76800, 1),
+                                       ((640, 480), 20000, 4)):
+        k = (525.0 * w / 640, 525.0 * w / 640, (w - 1) / 2, (h - 1) / 2)
+        res = SDFTracker(field, k, {**cfg, "max_pixels": max_pixels}).track(np.ones((h, w), np.float32), np.eye(4))
+        assert res.success, res.message
+        assert res.points == -(-w // finest) * -(-h // finest), (w, max_pixels, res.points)
+        assert res.residual < 1e-4 and len(res.iterations_per_level) == 3
+
+
 def test_config_defaults_are_the_original_trackers():
     cfg = TrackerConfig()
     assert cfg.strides == (4, 2, 1) and cfg.iterations == (12, 8, 2) and cfg.min_update == 1e-4
+    assert cfg.max_pixels == 320 * 240  # 640x480 images run 8/4/2 (test_pyramid_scales_to_the_image_size)
     assert TrackerConfig(**cfg.model_dump()) == cfg
     assert "huber_delta" in TrackerConfig.model_json_schema()["properties"]
 
