@@ -169,7 +169,6 @@ class MapField:
         if points.ndim != 2 or points.shape[1] != 3:
             raise ShapeError(f"points must have shape (N, 3) (world x, y, z in metres), got {tuple(points.shape)}")
         p = points.to(device=self._device, dtype=torch.float32)
-        n = p.shape[0]
         u = (p - self._origin_t) * (1.0 / self.voxel_size)
         i0f = torch.floor(u)
         c = torch.clamp(i0f, self._lo, self._hi).nan_to_num_(nan=1.0)
