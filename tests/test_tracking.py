@@ -451,6 +451,21 @@ def test_tracks_on_gpu(volume, depth):
     assert trans < 0.005 and rot < 0.5
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_gpu_sampler_and_tracker_match_the_cpu(volume, depth):
+    """The same code on the device: the sampler agrees with the CPU's to float rounding, the pose to 0.1 mm."""
+    cpu, gpu = DenseField(volume, VOXEL, ORIGIN), DenseField(torch.from_numpy(volume).cuda(), VOXEL, ORIGIN)
+    pts = torch.as_tensor(np.random.default_rng(13).uniform(0.0, 1.5, size=(20000, 3)), dtype=torch.float32)
+    for a, b in zip(cpu.sample_with_gradient(pts), gpu.sample_with_gradient(pts.cuda())):
+        np.testing.assert_allclose(b.cpu().numpy(), a.numpy(), atol=1e-5)
+    start = perturb(TRUE_POSE, np.random.default_rng(14), 0.02, 2.0)
+    one = SDFTracker(cpu, K).track(depth, start)
+    two = SDFTracker(gpu, K).track(torch.from_numpy(depth).cuda(), start)
+    assert one.success and two.success and isinstance(two.pose, np.ndarray)
+    np.testing.assert_allclose(two.pose, one.pose, atol=1e-4)
+
+
 @pytest.mark.bench
 def test_benchmark_vga_frames_per_second(scene, field):
     """Frames per second at 640x480 with the default stride pyramid (run: pytest -m bench -s)."""
