@@ -12,8 +12,13 @@ Only public API is used, so the same script measures an older checkout (``PYTHON
 
 With ``--bench FILE.json`` it writes docs/results/tracking-bench.json instead: ``benchmark_tracking`` of the
 kitchen's lossless and pca-64 maps (dense, cold and warm MapField; per-frame medians, start-up apart).
+
+With ``--ab OLD`` (OLD: the ``sdfcodec`` package folder of another checkout) it tracks the first
+``--lazy-frames`` kitchen frames against the lossless map's dense field with both trackers in one process,
+alternating which goes first frame by frame, so both see the same load: wall and CPU time per frame, ATE.
 """
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
@@ -88,6 +93,50 @@ def record(name: str, map_name: str, field_kind: str, seq, depths, field, startu
     return r
 
 
+def load_old(src: Path):
+    """The tracking and densefield modules of the package folder ``src``, imported as ``sdfcodec_old``."""
+    spec = importlib.util.spec_from_file_location("sdfcodec_old", src / "__init__.py",
+                                                  submodule_search_locations=[str(src)])
+    pkg = importlib.util.module_from_spec(spec)
+    sys.modules["sdfcodec_old"] = pkg  # the package's own __init__ is not run: only the two modules are needed
+    import importlib as il
+    return il.import_module("sdfcodec_old.tracking"), il.import_module("sdfcodec_old.densefield")
+
+
+def ab(old_src: Path, kitchen: str, raw: Path, frames: int) -> dict:
+    ot, od = load_old(old_src)
+    seq = open_sequence(kitchen)[:frames]
+    depths = [seq[i].depth for i in range(len(seq))]
+    m = open_map(raw)
+    vol = m.decode_region()
+    k = seq.intrinsics
+    kk = (k.fx, k.fy, k.cx, k.cy)
+    trackers = {"old": ot.SDFTracker(od.DenseField(vol, m.voxel_size, m.origin, m.truncation), kk,
+                                     ot.TrackerConfig(**EVAL_TRACKER_CONFIG)),
+                "new": SDFTracker(DenseField(vol, m.voxel_size, m.origin, m.truncation), kk,
+                                  TrackerConfig(**EVAL_TRACKER_CONFIG))}
+    st = {n: {"poses": [], "wall": [], "cpu": []} for n in trackers}
+    load0 = [round(x, 2) for x in os.getloadavg()]
+    for i, depth in enumerate(depths):
+        for name in (("old", "new") if i % 2 == 0 else ("new", "old")):
+            s = st[name]
+            p = s["poses"]
+            guess = seq.poses[0] if i == 0 else (p[-1] if len(p) < 2 else p[-1] @ np.linalg.inv(p[-2]) @ p[-1])
+            c0, t0 = time.process_time(), time.perf_counter()
+            res = trackers[name].track(depth, guess)
+            s["wall"].append(time.perf_counter() - t0)
+            s["cpu"].append(time.process_time() - c0)
+            p.append(np.asarray(res.pose, dtype=np.float64))
+    out = {"frames": len(depths), "torch_threads": torch.get_num_threads(), "load_before": load0,
+           "load_after": [round(x, 2) for x in os.getloadavg()]}
+    for name, s in st.items():
+        out[name] = {"ate_rmse_m": float(ate(seq.poses, np.stack(s["poses"])).rmse),
+                     "fps_median": 1 / float(np.median(s["wall"])),
+                     "cpu_s_per_frame_median": float(np.median(s["cpu"]))}
+    out["speedup_paired_median"] = float(np.median(np.array(st["old"]["wall"]) / np.array(st["new"]["wall"])))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN"),
@@ -97,12 +146,22 @@ def main() -> None:
     ap.add_argument("--only", default="kitchen,synthetic", help="kitchen, synthetic or both")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--label", default="", help="what was measured (e.g. the commit), stored in the JSON")
+    ap.add_argument("--ab", type=Path, help="the sdfcodec package folder of an older checkout to compare with")
     ap.add_argument("--bench", type=Path, help="write benchmark_tracking of the kitchen maps here instead")
     ap.add_argument("--lazy-frames", type=int, default=200, help="frames of the warm MapField runs")
     a = ap.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
     a.work.mkdir(parents=True, exist_ok=True)
+    if a.ab:
+        if not a.kitchen:
+            ap.error("give the kitchen sequence with --kitchen DIR or $SDFCODEC_KITCHEN")
+        doc = {"command": f"docs/tracking_measure.py --ab OLD --lazy-frames {a.lazy_frames}", "label": a.label,
+               **ab(a.ab, a.kitchen, maps_for(a.kitchen, a.work, "redkitchen", False)["lossless"], a.lazy_frames)}
+        print(json.dumps(doc), flush=True)
+        if a.out:
+            a.out.write_text(json.dumps(doc, indent=1))
+        return
     if a.bench:
         if not a.kitchen:
             ap.error("give the kitchen sequence with --kitchen DIR or $SDFCODEC_KITCHEN")
@@ -138,7 +197,7 @@ def main() -> None:
                 sub, few = seq[:a.lazy_frames], depths[:a.lazy_frames]
                 track_all(lazy, sub, few, TrackerConfig(**EVAL_TRACKER_CONFIG))
                 records.append(record(name, map_name, "mapfield-warm", sub, few, lazy, time.perf_counter() - t0))
-    doc = {"command": "docs/tracking_measure.py " + " ".join(sys.argv[1:]).replace(str(a.kitchen), "KITCHEN"),
+    doc = {"command": "docs/tracking_measure.py --kitchen KITCHEN --work WORK" + (f" --only {a.only}" if a.only else ""),
            "label": a.label, "cpus": os.cpu_count(), "records": records}
     if a.out:
         a.out.write_text(json.dumps(doc, indent=1))
