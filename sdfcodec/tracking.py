@@ -617,7 +617,6 @@ class SDFTracker:
                 if unorm < cfg.min_update:
                     break
             per_level.append(done)
-        cond = _conditioning(h_last)
         if cfg.max_final_update is not None and unorm > cfg.max_final_update:
             return self._fail(initial_pose, per_level, total, residual, inliers, npts, unorm, h_last,
                               f"did not converge: the last update was |xi| = {unorm:.3g} (> max_final_update "
@@ -627,6 +626,7 @@ class SDFTracker:
         # re-orthonormalise the rotation against drift from many compositions
         u, _, vt = np.linalg.svd(pose[:3, :3])
         pose[:3, :3] = u @ vt
+        cond = _conditioning(h_last)
         msg = (f"tracked: {total} iterations {tuple(per_level)}, {inliers}/{npts} inliers, "
                f"residual {residual * 1000:.2f} mm, last update {unorm:.2e}")
         return TrackingResult(self._like(pose, initial_pose), True, msg, total, tuple(per_level), residual,
