@@ -41,7 +41,8 @@ PRESETS = ("slow-clean", "slow-noisy", "fast-clean", "fast-noisy", "poor-geometr
 
 
 def cli(*args: str) -> None:
-    subprocess.run([str(Path(sys.executable).parent / "sdfcodec"), *args, "--json"], check=True, stdout=subprocess.DEVNULL)
+    exe = str(Path(sys.executable).parent / "sdfcodec")
+    subprocess.run([exe, *args, "--json"], check=True, stdout=subprocess.DEVNULL)
 
 
 def maps_for(seq_dir: str, work: Path, name: str, pca: bool) -> dict[str, Path]:
@@ -197,7 +198,7 @@ def main() -> None:
                 sub, few = seq[:a.lazy_frames], depths[:a.lazy_frames]
                 track_all(lazy, sub, few, TrackerConfig(**EVAL_TRACKER_CONFIG))
                 records.append(record(name, map_name, "mapfield-warm", sub, few, lazy, time.perf_counter() - t0))
-    doc = {"command": "docs/tracking_measure.py --kitchen KITCHEN --work WORK" + (f" --only {a.only}" if a.only else ""),
+    doc = {"command": f"docs/tracking_measure.py --kitchen KITCHEN --work WORK --only {a.only}",
            "label": a.label, "cpus": os.cpu_count(), "records": records}
     if a.out:
         a.out.write_text(json.dumps(doc, indent=1))

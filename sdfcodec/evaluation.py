@@ -256,9 +256,11 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     Returns
     -------
     dict
-        ``output, frames, seconds, frames_per_s, failures, ate`` and ``rpe`` (frame-to-frame translation; both
-        metres, when the sequence has ground truth; ``None`` otherwise), ``cache`` (MapField statistics;
-        ``None`` when dense).
+        ``output, frames, seconds`` (tracking only), ``frames_per_s`` (frames over seconds),
+        ``frames_per_s_median`` (one over the median frame time), ``startup_s`` (opening the map and, with
+        ``dense``, decoding it: apart from the frames), ``failures, ate`` and ``rpe`` (frame-to-frame
+        translation; both metres, when the sequence has ground truth; ``None`` otherwise), ``cache``
+        (MapField statistics; ``None`` when dense).
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
@@ -274,18 +276,23 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     seq = open_sequence(path, missing_pose="keep")[::stride]
     if frames is not None:
         seq = seq[:frames]
+    t0 = time.perf_counter()
     m = open_map(map_path)
     if dense:
         field = DenseField(m.decode_region(level=level, device=device), m.voxel_size, m.origin, m.truncation,
                            device=device)
     else:
         field = MapField(m, level=level, device=device, cache_bytes=int(cache_mb * 2**20))
+    startup = time.perf_counter() - t0
     p0 = seq.entries[0].pose
     start_pose = p0 if (start == "groundtruth" and p0 is not None) else np.eye(4)
-    poses, results, secs = _track(field, seq, start_pose, progress=progress, label=f"tracking {Path(path).name}")
+    times: list[float] = []
+    poses, results, secs = _track(field, seq, start_pose, progress=progress, label=f"tracking {Path(path).name}",
+                                  times=times)
     write_tum(output, Trajectory.from_poses(poses, seq.timestamps),
               header=f"sdfcodec track {map_path} {sequence}")
     return {"output": str(output), "frames": len(seq), "seconds": secs, "frames_per_s": len(seq) / max(secs, 1e-9),
+            "frames_per_s_median": 1 / max(float(np.median(times)), 1e-9), "startup_s": startup,
             "failures": [i for i, r in enumerate(results) if not r.success],
             "start": "groundtruth" if start_pose is p0 else "identity",
             "ate": _ate(seq, poses), "rpe": _rpe(seq, poses), "cache": None if dense else field.stats()}
