@@ -32,6 +32,23 @@ def _as_vec3(x: Any, name: str) -> tuple[float, float, float]:
     return float(a[0]), float(a[1]), float(a[2])
 
 
+def trilinear(corners: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation of gathered cell corners: ``corners`` (8 * N, C) or (8, N, C), corner-major
+    (corner ``(a, b, c)`` of the cell at index ``4a + 2b + c``, i.e. x-major), ``frac`` (N, 3) the points'
+    fractions in their cells (any strides) -> (N, C).
+
+    The fractions are expanded to the C channels first (a copy of 3 N C floats) so that every lerp runs over
+    two contiguous slabs of N * C values: measured 1.1x faster than broadcasting them as (N, 1) and 1.4x
+    faster than expanding them by a gather, for 4 channels on a 2-core CPU."""
+    n = frac.shape[0]
+    ch = corners.shape[-1]
+    c = corners.reshape(2, 2, 2, n * ch)
+    w = frac.t()[:, :, None].expand(3, n, ch).reshape(3, n * ch) if ch > 1 else frac.t()
+    c = torch.lerp(c[0], c[1], w[0])  # (2, 2, N * C)
+    c = torch.lerp(c[0], c[1], w[1])  # (2, N * C)
+    return torch.lerp(c[0], c[1], w[2]).reshape(n, ch)
+
+
 class DenseField:
     """A dense TSDF volume as a :class:`~sdfcodec.tracking.FieldSampler` (trilinear interpolation,
     central-difference gradient).
@@ -113,7 +130,6 @@ class DenseField:
         off = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], device=dev)
         self._corner_offsets = (off * torch.tensor(self._strides, device=dev)).sum(1).to(self._index_dtype)  # (8,)
         self._has_nan = not bool(torch.isfinite(vol).all())  # NaN/inf voxels: unknown
-        self._repeat_cache: dict[tuple[int, int], torch.Tensor] = {}
         if precompute_gradient:
             table = torch.zeros((X, Y, Z, 4), dtype=torch.float32, device=vol.device)
             table[..., 0] = vol
@@ -171,31 +187,15 @@ class DenseField:
         """Trilinear interpolation of ``table`` rows (X*Y*Z, C) over the cells at ``base`` (N,) with fractions
         ``frac`` (N, 3) -> (N, C).
 
-        The corners are gathered corner-major, (8, N, C), so that each lerp runs over long contiguous runs
-        with the fractions expanded to (N * C,); on the CPU the gather is numpy's ``take`` (about 4x faster
-        than ``index_select`` for rows this short; zero-copy either way)."""
-        n, ch = len(base), table.shape[1]
+        One gather per point: its 8 corners' rows (value and gradient together), gathered corner-major as
+        (8, N, C); on the CPU the gather is numpy's ``take`` (about 4x faster than ``index_select`` for rows
+        this short; zero-copy either way)."""
         idx = (self._corner_offsets[:, None] + base[None, :]).reshape(-1)  # x-major, then y, then z
         if table.device.type == "cpu":
             c = torch.from_numpy(np.take(table.numpy(), idx.numpy(), axis=0))
         else:
             c = table.index_select(0, idx)
-        c = c.reshape(2, 2, 2, n * ch)
-        if ch == 1:
-            w = frac.t()
-        else:  # each fraction repeated C times; a gather is the fastest way to expand on the CPU
-            w = frac.t().index_select(1, self._repeat_index(n, ch))
-        c = torch.lerp(c[0], c[1], w[0])  # (2, 2, N * C)
-        c = torch.lerp(c[0], c[1], w[1])  # (2, N * C)
-        return torch.lerp(c[0], c[1], w[2]).reshape(n, ch)
-
-    def _repeat_index(self, n: int, ch: int) -> torch.Tensor:
-        key = (n, ch)
-        if key not in self._repeat_cache:
-            if len(self._repeat_cache) > 8:
-                self._repeat_cache.clear()
-            self._repeat_cache[key] = torch.arange(n * ch, device=self._device) // ch
-        return self._repeat_cache[key]
+        return trilinear(c, frac)
 
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Distances ``(N,)`` metres and validity ``(N,)`` at world points ``(N, 3)`` metres (see

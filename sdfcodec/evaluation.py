@@ -23,6 +23,7 @@ averaged over blocks. ATE in metres, without alignment (the tracker starts in th
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,9 +164,10 @@ def _progress(enabled: Any):
                     transient=True)
 
 
-def _track(field, seq, start_pose: np.ndarray, *, config=None, progress: bool = False, label: str = "tracking"
-           ) -> tuple[np.ndarray, list, float]:
-    """Track the frames of ``seq`` in ``field`` from ``start_pose``; ``(poses (N,4,4), results, seconds)``."""
+def _track(field, seq, start_pose: np.ndarray, *, config=None, progress: bool = False, label: str = "tracking",
+           times: list | None = None) -> tuple[np.ndarray, list, float]:
+    """Track the frames of ``seq`` in ``field`` from ``start_pose``; ``(poses (N,4,4), results, seconds)``;
+    each frame's ``track`` seconds are appended to ``times`` when given."""
     from .tracking import SDFTracker, TrackerConfig
 
     k = seq.intrinsics
@@ -185,7 +187,10 @@ def _track(field, seq, start_pose: np.ndarray, *, config=None, progress: bool = 
                 guess = poses[-1]
             t0 = time.perf_counter()
             res = tracker.track(depth, guess)
-            t_track += time.perf_counter() - t0
+            dt = time.perf_counter() - t0
+            t_track += dt
+            if times is not None:
+                times.append(dt)
             poses.append(np.asarray(res.pose, dtype=np.float64))
             results.append(res)
             bar.update(task, advance=1, fps=(i + 1) / max(t_track, 1e-9))
@@ -251,9 +256,11 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     Returns
     -------
     dict
-        ``output, frames, seconds, frames_per_s, failures, ate`` and ``rpe`` (frame-to-frame translation; both
-        metres, when the sequence has ground truth; ``None`` otherwise), ``cache`` (MapField statistics;
-        ``None`` when dense).
+        ``output, frames, seconds`` (tracking only), ``frames_per_s`` (frames over seconds),
+        ``frames_per_s_median`` (one over the median frame time), ``startup_s`` (opening the map and, with
+        ``dense``, decoding it: apart from the frames), ``failures, ate`` and ``rpe`` (frame-to-frame
+        translation; both metres, when the sequence has ground truth; ``None`` otherwise), ``cache``
+        (MapField statistics; ``None`` when dense).
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
@@ -269,18 +276,23 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
     seq = open_sequence(path, missing_pose="keep")[::stride]
     if frames is not None:
         seq = seq[:frames]
+    t0 = time.perf_counter()
     m = open_map(map_path)
     if dense:
         field = DenseField(m.decode_region(level=level, device=device), m.voxel_size, m.origin, m.truncation,
                            device=device)
     else:
         field = MapField(m, level=level, device=device, cache_bytes=int(cache_mb * 2**20))
+    startup = time.perf_counter() - t0
     p0 = seq.entries[0].pose
     start_pose = p0 if (start == "groundtruth" and p0 is not None) else np.eye(4)
-    poses, results, secs = _track(field, seq, start_pose, progress=progress, label=f"tracking {Path(path).name}")
+    times: list[float] = []
+    poses, results, secs = _track(field, seq, start_pose, progress=progress, label=f"tracking {Path(path).name}",
+                                  times=times)
     write_tum(output, Trajectory.from_poses(poses, seq.timestamps),
               header=f"sdfcodec track {map_path} {sequence}")
     return {"output": str(output), "frames": len(seq), "seconds": secs, "frames_per_s": len(seq) / max(secs, 1e-9),
+            "frames_per_s_median": 1 / max(float(np.median(times)), 1e-9), "startup_s": startup,
             "failures": [i for i, r in enumerate(results) if not r.success],
             "start": "groundtruth" if start_pose is p0 else "identity",
             "ate": _ate(seq, poses), "rpe": _rpe(seq, poses), "cache": None if dense else field.stats()}
@@ -290,53 +302,59 @@ def benchmark_tracking(map_path: str | Path, sequence: str | Path, *, frames: in
                        cache_mb: float = 256.0, threads: int | None = None) -> dict[str, Any]:
     """Tracker frames/s against one map, dense and lazily decoded (the issue's speed benchmark).
 
-    Tracks the first ``frames`` frames of ``sequence`` from ground truth three times: against
-    :class:`~sdfcodec.densefield.DenseField` on the map's dense decode, against a fresh
-    :class:`~sdfcodec.mapfield.MapField` (cold: every block decoded on first touch) and against the same
-    MapField again (warm cache). Frames are read before timing; only ``SDFTracker.track`` is timed.
+    Tracks the first ``frames`` frames of ``sequence`` from ground truth (each frame predicted by constant
+    velocity, as ``sdfcodec track``) three times: against :class:`~sdfcodec.densefield.DenseField` on the
+    map's dense decode, against a fresh :class:`~sdfcodec.mapfield.MapField` (cold: every block decoded on
+    first touch) and against the same MapField again (warm cache). Only ``SDFTracker.track`` is timed, frame
+    by frame; start-up (opening the map and decoding it whole) is reported apart.
 
     Returns
     -------
     dict
-        ``{"image": [W, H], "frames", "dense_fps", "lazy_cold_fps", "lazy_warm_fps", "warm_over_dense"
-        (time ratio, lower is better), "cache_cold", "cache_warm" (MapField.stats()), "dense_decode_s",
-        "threads"}``.
+        ``{"image": [W, H], "frames", "dense_fps", "lazy_cold_fps", "lazy_warm_fps"`` (frames over the summed
+        per-frame times), ``"dense_fps_median", "lazy_cold_fps_median", "lazy_warm_fps_median"`` (one over the
+        median per-frame time), ``"warm_over_dense"`` (time ratio, lower is better), ``"ate_m"`` (dense,
+        warm: ATE RMSE against the ground truth), ``"cache_cold", "cache_warm"`` (MapField.stats()),
+        ``"startup_s"`` (open + dense decode), ``"dense_decode_s"`` (the decode alone), ``"threads"``,
+        ``"load"`` (1-minute load average before and after)}``.
     """
     from .data.sequences import open_sequence
     from .mapfield import MapField
     from .map import open_map
     from .densefield import DenseField
-    from .tracking import SDFTracker, TrackerConfig
+    from .tracking import TrackerConfig
 
     seq = open_sequence(resolve_sequence(str(sequence), Path(".sdfcodec-sequences")))[:frames]
-    depths = [seq[i].depth for i in range(len(seq))]
     gt = seq.poses
     k = seq.intrinsics
     cfg = TrackerConfig(**EVAL_TRACKER_CONFIG, threads=threads)
-    m = open_map(map_path)
+    load0 = os.getloadavg()[0]
 
-    def run(field) -> float:
-        tracker = SDFTracker(field, (k.fx, k.fy, k.cx, k.cy), cfg)
-        with tracker:
-            tracker.track(depths[0], gt[0])  # warm-up (thread pool, allocator); not counted
-            t0 = time.perf_counter()
-            tracker.track_sequence(depths, gt[0])
-            return time.perf_counter() - t0
+    def run(field) -> tuple[float, float, float]:
+        """(summed seconds, median seconds per frame, ATE RMSE metres)."""
+        times: list[float] = []
+        poses, _, secs = _track(field, seq, gt[0], config=cfg, times=times)
+        return secs, float(np.median(times)), float(_ate(seq, poses)["rmse"])
 
     t0 = time.perf_counter()
+    m = open_map(map_path)
+    t1 = time.perf_counter()
     dense = DenseField(m.decode_region(level=level), m.voxel_size, m.origin, m.truncation)
-    decode_s = time.perf_counter() - t0
-    t_dense = run(dense)
+    t2 = time.perf_counter()
+    t_dense, med_dense, ate_dense = run(dense)
     del dense
     lazy = MapField(m, level=level, cache_bytes=int(cache_mb * 2**20))
-    t_cold = run(lazy)
+    t_cold, med_cold, _ = run(lazy)
     cold = lazy.stats()
     lazy.reset_stats()
-    t_warm = run(lazy)
-    n = len(depths)
+    t_warm, med_warm, ate_warm = run(lazy)
+    n = len(seq)
     return {"image": [k.width, k.height], "frames": n, "dense_fps": n / t_dense, "lazy_cold_fps": n / t_cold,
-            "lazy_warm_fps": n / t_warm, "warm_over_dense": t_warm / t_dense, "cache_cold": cold,
-            "cache_warm": lazy.stats(), "dense_decode_s": decode_s, "threads": cfg.threads or torch.get_num_threads()}
+            "lazy_warm_fps": n / t_warm, "dense_fps_median": 1 / med_dense, "lazy_cold_fps_median": 1 / med_cold,
+            "lazy_warm_fps_median": 1 / med_warm, "warm_over_dense": t_warm / t_dense,
+            "ate_m": {"dense": ate_dense, "warm": ate_warm}, "cache_cold": cold, "cache_warm": lazy.stats(),
+            "startup_s": t2 - t0, "dense_decode_s": t2 - t1, "threads": cfg.threads or torch.get_num_threads(),
+            "load": [load0, os.getloadavg()[0]]}
 
 
 # --------------------------------------------------------------------------------------------------- eval

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ._validate import BLOCK
+from .densefield import trilinear
 from .errors import InvalidValueError, ShapeError
 from .header import BlockState
 
@@ -168,7 +169,6 @@ class MapField:
         if points.ndim != 2 or points.shape[1] != 3:
             raise ShapeError(f"points must have shape (N, 3) (world x, y, z in metres), got {tuple(points.shape)}")
         p = points.to(device=self._device, dtype=torch.float32)
-        n = p.shape[0]
         u = (p - self._origin_t) * (1.0 / self.voxel_size)
         i0f = torch.floor(u)
         c = torch.clamp(i0f, self._lo, self._hi).nan_to_num_(nan=1.0)
@@ -206,11 +206,7 @@ class MapField:
             else:
                 corners = self._pool.index_select(0, idx)
         valid = torch.from_numpy(active).to(self._device)
-        cr = corners.reshape(2, 2, 2, n, 4)
-        f = frac.t()[:, :, None]  # (3, N, 1)
-        cr = torch.lerp(cr[0], cr[1], f[0])
-        cr = torch.lerp(cr[0], cr[1], f[1])
-        vals = torch.lerp(cr[0], cr[1], f[2])  # (N, 4)
+        vals = trilinear(corners, frac)  # (N, 4)
         d_max = self._truncation[1]
         d = torch.where(valid, vals[:, 0], d_max)
         g = torch.where(valid[:, None], vals[:, 1:], 0.0)

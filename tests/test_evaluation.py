@@ -118,6 +118,7 @@ def test_track_command_lazy_and_dense(tiny_eval, tmp_path):
     lazy = track_command(raw, seq_path, tmp_path / "lazy.txt", progress=False)
     dense = track_command(raw, seq_path, tmp_path / "dense.txt", dense=True, progress=False)
     assert lazy["frames"] == 10 and lazy["start"] == "groundtruth" and lazy["frames_per_s"] > 0
+    assert dense["startup_s"] > 0 and dense["frames_per_s_median"] > 0 and dense["seconds"] > 0
     a, b = read_tum(tmp_path / "lazy.txt"), read_tum(tmp_path / "dense.txt")
     assert len(a) == 10 and np.array_equal(a.timestamps, b.timestamps)
     np.testing.assert_allclose(a.positions, b.positions, atol=1e-4)  # same field, same poses

@@ -154,6 +154,50 @@ def test_gradient_variants_agree_and_bounds(volume):
     assert torch.equal(d2, ref_d) and torch.equal(g2, ref_g) and torch.equal(v2, ref_v)
 
 
+def test_sampler_matches_an_independent_trilinear_reference(volume):
+    """Value and gradient at scattered points against a float64 reference written from the definition: the
+    trilinear interpolation of the voxels and of their central differences (d[i+1] - d[i-1]) / 2h, taken
+    straight from the volume (not from the field's precomputed 4-channel table)."""
+    rng = np.random.default_rng(11)
+    u = rng.uniform(1.0, np.array(SHAPE) - 2.0 - 1e-3, size=(3000, 3))  # continuous voxel coordinates, valid
+    pts = np.array(ORIGIN) + u * VOXEL
+    v = volume.astype(np.float64)
+    i0 = np.floor(u).astype(int)
+    f = u - i0
+    ref = np.zeros((len(u), 4))
+    for corner in np.ndindex(2, 2, 2):
+        c = i0 + corner
+        w = np.prod(np.where(corner, f, 1 - f), axis=1)
+        at = lambda dx, dy, dz: v[c[:, 0] + dx, c[:, 1] + dy, c[:, 2] + dz]  # noqa: E731
+        grad = [(at(1, 0, 0) - at(-1, 0, 0)), (at(0, 1, 0) - at(0, -1, 0)), (at(0, 0, 1) - at(0, 0, -1))]
+        ref += w[:, None] * np.stack([at(0, 0, 0)] + [g / (2 * VOXEL) for g in grad], 1)
+    d, g, valid = DenseField(volume, VOXEL, ORIGIN).sample_with_gradient(torch.as_tensor(pts, dtype=torch.float32))
+    assert valid.all()
+    np.testing.assert_allclose(d.numpy(), ref[:, 0], atol=2e-6)
+    np.testing.assert_allclose(g.numpy(), ref[:, 1:], atol=2e-4)
+
+
+def test_sphere_value_and_gradient_against_the_analytic_sdf():
+    """On a sphere (curved: trilinear interpolation is not exact) the value is within the interpolation error
+    of the true distance and the gradient within a degree of the true normal."""
+    centre, radius = np.array([0.36, 0.35, 0.37]), 0.2
+    sphere = Sphere(tuple(centre), radius)
+    shape = (36, 35, 37)
+    vol = sample_volume(sphere, shape, VOXEL, (0.0, 0.0, 0.0), truncation=None)
+    rng = np.random.default_rng(12)
+    dirs = rng.normal(size=(2000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = centre + dirs * rng.uniform(radius - 0.05, radius + 0.08, size=(2000, 1))  # the truncation band
+    d, g, valid = DenseField(vol, VOXEL, truncation=(-1.0, 1.0)).sample_with_gradient(
+        torch.as_tensor(pts, dtype=torch.float32))
+    assert valid.all()
+    # trilinear error <= h^2 / 8 * sum |second derivatives|, with |d2/dx2 (|x| - r)| <= 1 / |x| <= 1 / 0.15
+    assert np.abs(d.numpy() - sphere(pts)).max() < VOXEL ** 2 / 8 * 3 / 0.15
+    cosine = np.sum(g.numpy() * dirs, axis=1) / np.linalg.norm(g.numpy(), axis=1)
+    assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 1.0
+    assert np.abs(np.linalg.norm(g.numpy(), axis=1) - 1).max() < 0.02
+
+
 def test_dense_field_nan_voxels_are_unknown(volume):
     vol = volume.copy()
     vol[50:60, 50:60, 10:20] = np.nan
@@ -372,9 +416,26 @@ def test_input_errors(field, depth):
         CameraIntrinsics(-1.0, 1.0, 0.0, 0.0)
 
 
+def test_pyramid_scales_to_the_image_size():
+    """max_pixels: the finest level of a 640x480 frame is strided by 2 (76,800 points), a 160x120 frame keeps
+    stride 1, and max_pixels=None runs the strides as given."""
+    plane = Plane((0.0, 0.0, -1.0), offset=-1.0)  # the wall z = 1 m, free space towards the camera at the origin
+    origin = (-0.8, -0.7, 0.8)
+    field = DenseField(sample_volume(plane, (82, 72, 22), VOXEL, origin), VOXEL, origin)
+    cfg = {"max_final_update": None}
+    for (w, h), max_pixels, finest in (((640, 480), 76800, 2), ((640, 480), None, 1), ((160, 120), 76800, 1),
+                                       ((640, 480), 20000, 4)):
+        k = (525.0 * w / 640, 525.0 * w / 640, (w - 1) / 2, (h - 1) / 2)
+        res = SDFTracker(field, k, {**cfg, "max_pixels": max_pixels}).track(np.ones((h, w), np.float32), np.eye(4))
+        assert res.success, res.message
+        assert res.points == -(-w // finest) * -(-h // finest), (w, max_pixels, res.points)
+        assert res.residual < 1e-4 and len(res.iterations_per_level) == 3
+
+
 def test_config_defaults_are_the_original_trackers():
     cfg = TrackerConfig()
     assert cfg.strides == (4, 2, 1) and cfg.iterations == (12, 8, 2) and cfg.min_update == 1e-4
+    assert cfg.max_pixels == 320 * 240  # 640x480 images run 8/4/2 (test_pyramid_scales_to_the_image_size)
     assert TrackerConfig(**cfg.model_dump()) == cfg
     assert "huber_delta" in TrackerConfig.model_json_schema()["properties"]
 
@@ -388,6 +449,21 @@ def test_tracks_on_gpu(volume, depth):
     assert res.success and res.pose.device.type == "cuda"
     trans, rot = pose_error(res.pose.cpu().numpy(), TRUE_POSE)
     assert trans < 0.005 and rot < 0.5
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_gpu_sampler_and_tracker_match_the_cpu(volume, depth):
+    """The same code on the device: the sampler agrees with the CPU's to float rounding, the pose to 0.1 mm."""
+    cpu, gpu = DenseField(volume, VOXEL, ORIGIN), DenseField(torch.from_numpy(volume).cuda(), VOXEL, ORIGIN)
+    pts = torch.as_tensor(np.random.default_rng(13).uniform(0.0, 1.5, size=(20000, 3)), dtype=torch.float32)
+    for a, b in zip(cpu.sample_with_gradient(pts), gpu.sample_with_gradient(pts.cuda())):
+        np.testing.assert_allclose(b.cpu().numpy(), a.numpy(), atol=1e-5)
+    start = perturb(TRUE_POSE, np.random.default_rng(14), 0.02, 2.0)
+    one = SDFTracker(cpu, K).track(depth, start)
+    two = SDFTracker(gpu, K).track(torch.from_numpy(depth).cuda(), start)
+    assert one.success and two.success and isinstance(two.pose, np.ndarray)
+    np.testing.assert_allclose(two.pose, one.pose, atol=1e-4)
 
 
 @pytest.mark.bench
