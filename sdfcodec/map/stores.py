@@ -28,6 +28,7 @@ from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
 from .remote import remote_store, set_default_limits
+from .shards import range_problem, read_cap, shard_problem
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
 __all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
@@ -79,7 +80,9 @@ def is_url(s: str) -> bool:
 class GuardStore(zarr.storage.WrapperStore):
     """Read-side wrapper around any store: refuses oversize metadata documents, and chunks whose Blosc header
     claims more bytes than the chunk's shape holds (a decompression bomb), before anything that large is
-    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first).
+    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first, chunks
+    per stored object: more than 1 for shards, whose ranges and indexes are checked by
+    :mod:`sdfcodec.map.shards`).
     Over a :class:`SafeLocalStore` the size bounds hold while reading (a file growing meanwhile, or anything
     that is not a regular file, is refused), not only from ``stat``."""
 
@@ -114,22 +117,41 @@ class GuardStore(zarr.storage.WrapperStore):
         def chunk_error(size: int) -> Exception:
             return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
 
+        if limit and byte_range is not None:  # only shards are read in ranges (spec section 4d)
+            problem = range_problem(limit, byte_range, chunk_read_limit(limit[0]))
+            if problem:
+                raise ChecksumError(f"{key}: {problem}; refused unread")
         cap, too_big = ((MAX_METADATA_BYTES, meta_error) if meta else
-                        (chunk_read_limit(limit[0]), chunk_error) if limit else (None, None))
+                        (read_cap(limit, byte_range, chunk_read_limit(limit[0])), chunk_error) if limit else
+                        (None, None))
         if isinstance(self._store, (SafeLocalStore, SafeZipStore)):
             buf = await self._store.get_bounded(key, prototype, byte_range, cap, too_big)
         else:
-            size = self._local_size(key) if cap is not None else None
+            size = self._local_size(key) if cap is not None and byte_range is None else None
             if cap is not None and size is not None and size > cap:
                 raise too_big(size)
             buf = await self._store.get(key, prototype, byte_range)
-        if buf is None or byte_range is not None:
+            if buf is not None and cap is not None and len(buf) > cap:
+                raise too_big(len(buf))
+        if buf is None:
+            return buf
+        if byte_range is not None:
+            if limit and limit[1] and isinstance(byte_range, RangeByteRequest):  # one chunk of a shard
+                problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
+                if problem:
+                    raise ChecksumError(f"chunk {key} [{byte_range.start}, {byte_range.end}) is not a sound Blosc "
+                                        f"frame: {problem}; refused without decompressing")
             return buf
         if meta and len(buf) > MAX_METADATA_BYTES:
             raise meta_error(len(buf))
         if meta:
             check_metadata_document(key, buf.to_bytes())
-        if limit and limit[1]:
+        if limit and len(limit) > 2 and limit[2] > 1:  # a whole shard: its index, and every chunk's frame
+            frames = (lambda f: blosc_frame_problem(f, limit[0])) if limit[1] else None
+            problem = shard_problem(memoryview(buf.as_numpy_array()), limit[2], chunk_read_limit(limit[0]), frames)
+            if problem:
+                raise ChecksumError(f"shard {key} is not sound: {problem}; refused without decompressing")
+        elif limit and limit[1]:
             # a view, not a copy: only the header, the offset table and a few stream lengths are read
             problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
             if problem:
