@@ -26,10 +26,12 @@ __all__ = ["build", "region_read", "main"]
 VOXEL_SIZE, TRUNCATION = 0.02, (-0.04, 0.1)
 
 
-def build(out: str | os.PathLike, rooms: Sequence[int], *, workers: int = 2, chunk_blocks: int | None = None,
-          shard_blocks: int | None = None, seed: int = 0, overwrite: bool = False) -> dict[str, Any]:
+def build(out: str | os.PathLike, rooms: Sequence[int], *, workers: int = 2, processes: bool = True,
+          chunk_blocks: int | None = None, shard_blocks: int | None = None, seed: int = 0,
+          overwrite: bool = False) -> dict[str, Any]:
     """Encode the office volume of ``rooms`` into the map ``out`` on a ``LocalCluster`` of ``workers`` processes
-    (one thread each); returns the figures (seconds, blocks, bytes and objects on disk)."""
+    (threads with ``processes=False``; one thread each); returns the figures (seconds, blocks, bytes and
+    objects on disk)."""
     import dask.distributed
 
     from ..data.offices import OfficeVolume
@@ -42,12 +44,11 @@ def build(out: str | os.PathLike, rooms: Sequence[int], *, workers: int = 2, chu
     codec = pretrained_codec("pca", 64)
     doc: dict[str, Any] = {"rooms": list(vol.rooms), "shape_voxels": list(vol.shape), "workers": workers,
                            "load_start": load()}
-    with dask.distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+    with dask.distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
                                        dashboard_address=None) as cluster, dask.distributed.Client(cluster):
         t0 = time.perf_counter()
         encode_volume_dask(vol, out, codec, voxel_size=VOXEL_SIZE, truncation=TRUNCATION, overwrite=overwrite,
-                           **({"shard_blocks": shard_blocks} if shard_blocks else {}),
-                           chunk_blocks=chunk_blocks, tool="sdfcodec.bench.bigmap")
+                           chunk_blocks=chunk_blocks, shard_blocks=shard_blocks, tool="sdfcodec.bench.bigmap")
         doc["build_s"] = time.perf_counter() - t0
     doc["load_end"] = load()
     with open_map(out) as m:

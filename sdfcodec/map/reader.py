@@ -268,7 +268,7 @@ class MapReader:
         async def probe():
             return await asyncio.gather(*(aarr.getitem(s) for s in sels), return_exceptions=True)
 
-        bad = ["chunk c/" + "/".join(map(str, idx)) for idx, res in zip(idxs, zarr_sync(probe()))
+        bad = ["chunk " + chunk_name(arr, idx).split("/", 1)[1] for idx, res in zip(idxs, zarr_sync(probe()))
                if isinstance(res, Exception)]
         if not bad:
             return "a chunk"

@@ -42,7 +42,7 @@ from .. import _atomic
 from ..errors import FormatError, InvalidValueError
 from ..header import SHARD_EXTENSION
 
-__all__ = ["index_size", "check_sharding", "read_cap", "range_problem", "shard_problem",
+__all__ = ["shard_contents", "index_size", "check_sharding", "read_cap", "range_problem", "shard_problem",
            "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
@@ -188,6 +188,35 @@ async def _stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) ->
         i = int(np.ravel_multi_index(tuple(int(c) % r for c, r in zip(ch, ratio)), ratio))
         out.append(index is not None and not (index[i, 0] == _EMPTY and index[i, 1] == _EMPTY))
     return out
+
+
+def shard_contents(store: Any, arr: zarr.Array, shards: dict[tuple[int, ...], str]
+                   ) -> tuple[dict[tuple[int, ...], str], dict[str, str]]:
+    """The chunks stored in the given shards of ``arr`` (shard coordinates -> key), from their indexes (read
+    concurrently, each checked): ``({chunk coordinates: name}, {shard key: problem})``."""
+    ratio = [s // c for s, c in zip(arr.shards, arr.chunks)]
+    per = math.prod(ratio)
+    proto = default_buffer_prototype()
+
+    async def read_all():
+        async def one(key):
+            try:
+                buf = await store.get(key, proto, SuffixByteRequest(index_size(per)))
+            except Exception as e:  # noqa: BLE001 - reported by the caller, naming the shard
+                return None, f"its index cannot be read ({e})"
+            return (None, "is missing") if buf is None else _parse_index(buf.to_bytes(), per)
+        return await asyncio.gather(*(one(k) for k in shards.values()))
+
+    found, broken = {}, {}
+    for (shard, key), (index, problem) in zip(shards.items(), zarr_sync(read_all())):
+        if problem:
+            broken[key] = problem
+            continue
+        for i in np.flatnonzero(~((index[:, 0] == _EMPTY) & (index[:, 1] == _EMPTY))):
+            ch = tuple(int(s * r + c) for s, r, c in zip(shard, ratio, np.unravel_index(int(i), ratio)))
+            if all(c < n for c, n in zip(ch, arr.cdata_shape)):
+                found[ch] = f"{key} (chunk {ch} in it)"
+    return found, broken
 
 
 def chunk_stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
