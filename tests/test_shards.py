@@ -278,8 +278,8 @@ def test_bigmap_build_small(tmp_path):
 
     doc = build(tmp_path / "b.sdfz", (2, 2, 1), workers=2, processes=False, chunk_blocks=8, shard_blocks=32)
     assert doc["states"]["coded"] > 2000 and doc["code_objects"] == 1
-    r = region_read(str(tmp_path / "b.sdfz"), (2.0, 2.0, 1.0))
-    assert r["voxels"] == [50, 50, 50] and r["open_s"] < 5 and r["region_s"] < 5
+    r = region_read(str(tmp_path / "b.sdfz"), [(2.0, 2.0, 1.0), (5.0, 3.0, 1.5)])
+    assert r["voxels"] == [50, 50, 50] and r["open_s"] < 5 and max(r["region_s"]) < 5 and r["peak_rss_mb"] > 50
 
 
 def _golden_map(path: Path) -> None:

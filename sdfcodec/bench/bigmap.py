@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-__all__ = ["build", "region_read", "main"]
+__all__ = ["build", "region_read", "decode_rate", "measure", "main"]
 
 VOXEL_SIZE, TRUNCATION = 0.02, (-0.04, 0.1)
 
@@ -61,29 +61,128 @@ def build(out: str | os.PathLike, rooms: Sequence[int], *, workers: int = 2, pro
     return doc
 
 
-def region_read(location: str, centre_m: Sequence[float], edge_m: float = 1.0,
-                storage_options: dict | None = None) -> dict[str, Any]:
-    """Open the map at ``location`` and decode the ``edge_m`` cube around ``centre_m`` (metres, map frame): the
-    seconds of each step and this process's peak RSS (the caller runs it in a fresh process)."""
+#: The region reads of :func:`region_read`, in a fresh process that imports what a user's program does (torch,
+#: sdfcodec; not this benchmark package, whose imports take 200 MB more): argv[1] is
+#: ``[location, centres, storage_options]``; prints the figures as JSON.
+_REGION_SCRIPT = """
+import json, resource, sys, time
+import torch, sdfcodec
+location, centres, options = json.loads(sys.argv[1])
+t0 = time.perf_counter()
+import zarr, sdfcodec.map.facade  # what the first open_map of a process imports (zarr, pydantic, numcodecs...)
+t1 = time.perf_counter()
+m = sdfcodec.open_map(location, storage_options=options)
+out = {"imports_s": t1 - t0, "open_s": time.perf_counter() - t1, "region_s": []}
+for c in centres:
+    t0 = time.perf_counter()
+    v = m.decode_region([(x - 0.5, x + 0.5) for x in c], units="m")
+    out["region_s"].append(time.perf_counter() - t0)
+out["voxels"] = list(v.shape)
+out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps(out))
+"""
+
+
+def region_read(location: str, centres: Sequence[Sequence[float]], storage_options: dict | None = None
+                ) -> dict[str, Any]:
+    """In a fresh process: open the map at ``location`` and decode the 1 m cube around each of ``centres``
+    (metres, map frame) in turn. Returns the seconds of the imports a first open of a process makes (Zarr,
+    pydantic, numcodecs, fsspec: per process, not per map), of the open and of each read (the first one loads
+    the codec state), the voxels of the last, and the process's peak RSS in MiB (``ru_maxrss``)."""
+    arg = json.dumps([str(location), [list(map(float, c)) for c in centres], storage_options])
+    out = subprocess.run([sys.executable, "-c", _REGION_SCRIPT, arg], check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _baseline_rss() -> float:
+    """Peak RSS (MiB) of a fresh process that imports sdfcodec and torch and does nothing else."""
+    code = ("import resource, torch, sdfcodec; "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)")
+    return float(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                                text=True).stdout.split()[-1])
+
+
+def decode_rate(location: str, storage_options: dict | None = None) -> dict[str, Any]:
+    """Whole-map decode on read (``iter_decoded()``, defaults): blocks, seconds, blocks per second."""
     from ..map import open_map
 
-    t0 = time.perf_counter()
     m = open_map(location, storage_options=storage_options)
-    t1 = time.perf_counter()
-    h = edge_m / 2
-    region = [(c - h, c + h) for c in centre_m]
-    v = m.decode_region(region, units="m")
-    t2 = time.perf_counter()
-    return {"open_s": t1 - t0, "region_s": t2 - t1, "voxels": list(v.shape),
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    t0, n = time.perf_counter(), 0
+    for coords, _ in m.iter_decoded():
+        n += len(coords)
+    dt = time.perf_counter() - t0
+    return {"blocks": n, "seconds": dt, "blocks_per_s": n / dt}
 
 
-def _region_in_process(location: str, centre: Sequence[float], storage_options: dict | None) -> dict[str, Any]:
-    code = ("import json,sys; from sdfcodec.bench.bigmap import region_read; "
-            "a=json.loads(sys.argv[1]); print(json.dumps(region_read(*a)))")
-    arg = json.dumps([location, list(centre), 1.0, storage_options])
-    out = subprocess.run([sys.executable, "-c", code, arg], check=True, capture_output=True, text=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+class _MotoServer:
+    """moto's S3 server on loopback in its own process (so that serving does not share the reader's GIL)."""
+
+    def __enter__(self):
+        import socket as _socket
+
+        with _socket.socket() as sk:
+            sk.bind(("127.0.0.1", 0))
+            self.port = sk.getsockname()[1]
+        code = ("import sys, time; from moto.server import ThreadedMotoServer; "
+                "s = ThreadedMotoServer(ip_address='127.0.0.1', port=int(sys.argv[1]), verbose=False); s.start(); "
+                "time.sleep(1e9)")
+        self.proc = subprocess.Popen([sys.executable, "-c", code, str(self.port)])
+        self.options = {"key": "testing", "secret": "testing", "endpoint_url": f"http://127.0.0.1:{self.port}",
+                        "client_kwargs": {"region_name": "eu-west-1"}, "skip_instance_cache": True}
+        import s3fs
+
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                self.fs = s3fs.S3FileSystem(**self.options)
+                self.fs.mkdir("maps")
+                return self
+            except Exception:  # noqa: BLE001 - not listening yet
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
+
+    def __exit__(self, *exc):
+        self.proc.terminate()
+        self.proc.wait(10)
+
+
+def measure(maps: Sequence[str], *, centres: Sequence[Sequence[float]] = ((10.0, 10.0, 1.5), (50.3, 40.1, 4.4)),
+            remote: bool = True, decode: bool = True, verify: bool = True) -> dict[str, Any]:
+    """The figures of docs/scale.md for each local map in ``maps``: objects and bytes; open and 1 m^3 region read
+    (seconds, peak RSS of a fresh process per read) locally, over HTTP (byte ranges, loopback) and from S3 (moto
+    on loopback); whole-map decode on read; ``verify_map``. Loads are recorded before each step."""
+    from ..verify import verify_map
+    from .harness import load
+    from .serve import FileServer
+
+    doc: dict[str, Any] = {"baseline_rss_mb": _baseline_rss(), "maps": {}}
+    moto = _MotoServer().__enter__() if remote else None
+    try:
+        for path in maps:
+            p = Path(path)
+            files = [f for f in p.rglob("*") if f.is_file()]
+            r: dict[str, Any] = {"objects": len(files), "bytes": sum(f.stat().st_size for f in files)}
+            r["local"] = dict(region_read(str(p), centres), load=load())
+            if remote:
+                with FileServer(p.parent) as srv:
+                    r["http"] = dict(region_read(srv.url(p.name), centres), load=load())
+                t0 = time.perf_counter()
+                moto.fs.put(str(p), f"maps/{p.name}", recursive=True)
+                r["s3_upload_s"] = time.perf_counter() - t0
+                r["s3"] = dict(region_read(f"s3://maps/{p.name}", centres, moto.options), load=load())
+            if decode:
+                r["decode"] = dict(decode_rate(str(p)), load=load())
+            if verify:
+                t0 = time.perf_counter()
+                rep = verify_map(p)
+                r["verify"] = {"ok": rep.ok, "seconds": time.perf_counter() - t0,
+                               "chunks": rep.chunks_checked.get("codes"), "decoded_blocks": rep.decoded_blocks, "load": load()}
+            doc["maps"][str(p)] = r
+    finally:
+        if moto is not None:
+            moto.__exit__(None, None, None)
+    return doc
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -96,15 +195,17 @@ def main(argv: Sequence[str] | None = None) -> None:
     b.add_argument("--chunk-blocks", type=int, default=None)
     b.add_argument("--shard-blocks", type=int, default=None)
     b.add_argument("--overwrite", action="store_true")
-    r = sub.add_parser("region", help="open a map and read a 1 m cube in a fresh process (time, peak RSS)")
-    r.add_argument("location")
-    r.add_argument("--centre", type=float, nargs=3, default=(10.0, 10.0, 1.5))
+    ms = sub.add_parser("measure", help="open, region reads (local, HTTP, S3), decode and verify of maps")
+    ms.add_argument("maps", nargs="+")
+    ms.add_argument("--no-remote", action="store_true")
+    ms.add_argument("--no-decode", action="store_true")
+    ms.add_argument("--no-verify", action="store_true")
     a = p.parse_args(argv)
     if a.cmd == "build":
         doc = build(a.out, a.rooms, workers=a.workers, chunk_blocks=a.chunk_blocks, shard_blocks=a.shard_blocks,
                     overwrite=a.overwrite)
     else:
-        doc = _region_in_process(a.location, a.centre, None)
+        doc = measure(a.maps, remote=not a.no_remote, decode=not a.no_decode, verify=not a.no_verify)
     print(json.dumps(doc, indent=1))
 
 

@@ -79,8 +79,8 @@ def check_sharding(codec: ShardingCodec, arr: zarr.Array, where: str, shards: tu
     endian = getattr(getattr(idx[0], "endian", None), "value", None) if idx else None
     if (len(idx) != 2 or not isinstance(idx[0], BytesCodec) or endian != "little"
             or not isinstance(idx[1], Crc32cCodec)):
-        raise FormatError(f"{where} has shard index codecs {[getattr(c, 'codec_name', type(c).__name__) for c in idx]}; "
-                          "the spec requires little-endian bytes then crc32c (section 4d)")
+        names = [getattr(c, "codec_name", type(c).__name__) for c in idx]
+        raise FormatError(f"{where} has shard index codecs {names}; the spec requires little-endian bytes then crc32c (section 4d)")
     if getattr(codec.index_location, "value", codec.index_location) != "end":
         raise FormatError(f"{where} keeps its shard index at the {codec.index_location}; the spec requires the end")
     return tuple(codec.codecs), math.prod(s // c for c, s in zip(inner, outer))
