@@ -307,3 +307,22 @@ def test_golden_sharded_map_decodes_forever(regen_golden):
     assert zarr.open_group(str(GOLDEN / "map.zarr"), mode="r")["codes"].shards == (2, 2, 2, 4)
     assert verify_map(GOLDEN / "map.zarr").ok
     np.testing.assert_allclose(m.decode_region(), np.clip(np.load(GOLDEN / "decoded.npy"), *m.truncation), atol=1e-6)
+
+
+def test_cli_encode_shard_blocks(tmp_path, office, pair):
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    np.save(tmp_path / "v.npy", office)
+    out = tmp_path / "c.sdfz"
+    r = CliRunner().invoke(app, ["encode", str(tmp_path / "v.npy"), str(out), "--voxel-size", str(VS),
+                                 "--chunk-blocks", "4", "--shard-blocks", "16"])
+    assert r.exit_code == 0, r.output
+    m = sdfcodec.open_map(out)
+    assert m.header.codes.shard_blocks == 16 and len(_code_files(out)) == 4
+    np.testing.assert_array_equal(m.decode_region(), sdfcodec.open_map(pair[1]).decode_region())
+    r = CliRunner().invoke(app, ["encode", str(tmp_path / "v.npy"), str(tmp_path / "d.sdfz"), "--voxel-size",
+                                 str(VS), "--chunk-blocks", "4", "--shard-blocks", "12"])
+    assert r.exit_code == 1 and "shard_blocks must be a multiple" in r.output
+    assert not (tmp_path / "d.sdfz").exists()
