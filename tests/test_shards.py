@@ -167,6 +167,16 @@ def test_corrupted_shards_are_refused_naming_them(pair, tmp_path):
         sdfcodec.open_map(cases["missing entry"]).decode_region()
 
 
+def test_a_lost_state_chunk_over_stored_shards_is_an_error(pair, tmp_path):
+    m = tmp_path / "s.sdfz"
+    shutil.copytree(pair[1], m)
+    (m / "state" / "c" / "0" / "0" / "0").unlink()
+    with pytest.raises(errors.FormatError, match="state.*missing.*codes/c/0/0/0/0 of its blocks"):
+        sdfcodec.open_map(m).decode_region()
+    rep = verify_map(m)
+    assert not rep.ok and any(p.where.startswith("state/c/0/0/0") for p in rep.problems), rep.problems
+
+
 def test_update_of_a_sharded_map_keeps_readers_of_the_old_version(pair, tmp_path, office, pca64):
     m = tmp_path / "u.sdfz"
     shutil.copytree(pair[1], m)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -61,11 +60,16 @@ def build(out: str | os.PathLike, rooms: Sequence[int], *, workers: int = 2, pro
     return doc
 
 
+#: A child's peak resident memory in MiB, printed last: ``VmHWM`` of ``/proc/self/status``, not ``ru_maxrss``,
+#: which in a child started by fork and exec on Linux reports the parent's peak at the fork.
+_PEAK = ("with open('/proc/self/status') as f:\n"
+         "    peak = next(int(x.split()[1]) for x in f if x.startswith('VmHWM:')) / 1024\n")
+
 #: The region reads of :func:`region_read`, in a fresh process that imports what a user's program does (torch,
-#: sdfcodec; not this benchmark package, whose imports take 200 MB more): argv[1] is
+#: sdfcodec; of this benchmark package only this module, not the package's heavy imports): argv[1] is
 #: ``[location, centres, storage_options]``; prints the figures as JSON.
 _REGION_SCRIPT = """
-import json, resource, sys, time
+import json, sys, time
 import torch, sdfcodec
 location, centres, options = json.loads(sys.argv[1])
 t0 = time.perf_counter()
@@ -78,7 +82,7 @@ for c in centres:
     v = m.decode_region([(x - 0.5, x + 0.5) for x in c], units="m")
     out["region_s"].append(time.perf_counter() - t0)
 out["voxels"] = list(v.shape)
-out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+""" + _PEAK + """out["peak_rss_mb"] = peak
 print(json.dumps(out))
 """
 
@@ -88,7 +92,7 @@ def region_read(location: str, centres: Sequence[Sequence[float]], storage_optio
     """In a fresh process: open the map at ``location`` and decode the 1 m cube around each of ``centres``
     (metres, map frame) in turn. Returns the seconds of the imports a first open of a process makes (Zarr,
     pydantic, numcodecs, fsspec: per process, not per map), of the open and of each read (the first one loads
-    the codec state), the voxels of the last, and the process's peak RSS in MiB (``ru_maxrss``)."""
+    the codec state), the voxels of the last, and the process's peak RSS in MiB (``VmHWM``, Linux)."""
     arg = json.dumps([str(location), [list(map(float, c)) for c in centres], storage_options])
     out = subprocess.run([sys.executable, "-c", _REGION_SCRIPT, arg], check=True, capture_output=True, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -96,8 +100,7 @@ def region_read(location: str, centres: Sequence[Sequence[float]], storage_optio
 
 def _baseline_rss() -> float:
     """Peak RSS (MiB) of a fresh process that imports sdfcodec and torch and does nothing else."""
-    code = ("import resource, torch, sdfcodec; "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)")
+    code = "import torch, sdfcodec\n" + _PEAK + "print(peak)"
     return float(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                                 text=True).stdout.split()[-1])
 
