@@ -11,10 +11,12 @@ format itself live in :mod:`sdfcodec.map.format`.
 from __future__ import annotations
 
 import asyncio
+import collections
 import errno
 import json
 import os
 import stat
+import threading
 import weakref
 import zipfile
 import zlib
@@ -86,12 +88,14 @@ class GuardStore(zarr.storage.WrapperStore):
     Over a :class:`SafeLocalStore` the size bounds hold while reading (a file growing meanwhile, or anything
     that is not a regular file, is refused), not only from ``stat``."""
 
-    def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None):
+    def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None,
+                 indexes: ShardIndexCache | None = None):
         super().__init__(store)
         self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
+        self.indexes = ShardIndexCache() if indexes is None else indexes
 
     def _with_store(self, store):
-        return type(self)(store, self.limits)
+        return type(self)(store, self.limits, self.indexes)
 
     def _local_size(self, key: str) -> int | None:
         inner = self._store
@@ -124,6 +128,9 @@ class GuardStore(zarr.storage.WrapperStore):
         cap, too_big = ((MAX_METADATA_BYTES, meta_error) if meta else
                         (read_cap(limit, byte_range, chunk_read_limit(limit[0])), chunk_error) if limit else
                         (None, None))
+        index = limit is not None and isinstance(byte_range, SuffixByteRequest)  # a shard's index (checked above)
+        if index and (hit := self.indexes.get(key)) is not None:
+            return (prototype or default_buffer_prototype()).buffer.from_bytes(hit)
         if isinstance(self._store, (SafeLocalStore, SafeZipStore)):
             buf = await self._store.get_bounded(key, prototype, byte_range, cap, too_big)
         else:
@@ -135,6 +142,8 @@ class GuardStore(zarr.storage.WrapperStore):
                 raise too_big(len(buf))
         if buf is None:
             return buf
+        if index:
+            self.indexes.put(key, buf.to_bytes())
         if byte_range is not None:
             if limit and limit[1] and isinstance(byte_range, RangeByteRequest):  # one chunk of a shard
                 problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
@@ -158,6 +167,32 @@ class GuardStore(zarr.storage.WrapperStore):
                 raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without "
                                     "decompressing")
         return buf
+
+
+class ShardIndexCache:
+    """The indexes of shards a reader has fetched (spec section 4d), by key: Zarr fetches a shard's index again
+    for every chunk it reads from the shard, which would double the requests of a region read. At most
+    ``max_bytes`` of indexes are kept (the oldest dropped first). A local map is read pinned to one version, so
+    an index never goes stale; a remote map replaced while read could pair an old index with new chunk bytes,
+    which then fail their own CRC32C (a read error, never wrong values)."""
+
+    def __init__(self, max_bytes: int = 16 << 20):
+        self.max_bytes, self.size = max_bytes, 0
+        self.items: collections.OrderedDict[str, bytes] = collections.OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: str) -> bytes | None:
+        with self.lock:
+            return self.items.get(key)
+
+    def put(self, key: str, data: bytes) -> None:
+        with self.lock:
+            if key in self.items or len(data) > self.max_bytes:
+                return
+            self.items[key] = data
+            self.size += len(data)
+            while self.size > self.max_bytes:
+                self.size -= len(self.items.popitem(last=False)[1])
 
 
 def blosc_frame_problem(frame: bytes | memoryview, max_nbytes: int) -> str | None:
