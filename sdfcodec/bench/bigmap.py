@@ -173,6 +173,9 @@ def measure(maps: Sequence[str], *, centres: Sequence[Sequence[float]] = ((10.0,
             if remote:
                 with FileServer(p.parent) as srv:
                     r["http"] = dict(region_read(srv.url(p.name), centres), load=load())
+                    sent = srv.take()  # everything the open and the reads fetched, codec state included
+                    r["http"].update(requests=len(sent), bytes=sum(n for _, _, n in sent),
+                                     code_bytes=sum(n for q, _, n in sent if "/codes/c/" in q))
                 t0 = time.perf_counter()
                 moto.fs.put(str(p), f"maps/{p.name}", recursive=True)
                 r["s3_upload_s"] = time.perf_counter() - t0

@@ -1,13 +1,16 @@
 """Remote reads that trust nothing: the store a map at an ``http(s)://`` or ``s3://`` URL is read through.
 
-:class:`RemoteStore` wraps Zarr's fsspec store and replaces its reads of whole objects (every read a map
-makes: metadata documents and chunks) with its own, which
+:class:`RemoteStore` wraps Zarr's fsspec store and replaces its reads (every read a map makes: metadata
+documents and chunks whole, the indexes and chunks of shards as byte ranges, spec section 4d) with its own,
+which
 
 - time out: connect, silence between bytes (read) and a total per try (:class:`RemoteLimits`);
 - bound the body while it streams, before anything is buffered whole: a Content-Length above the object's
   limit is refused unread, the bytes actually received are counted, and a ``Content-Encoding`` of gzip or
   deflate is decoded here, incrementally, never past the limit (a decompression bomb stops at limit + 1
-  bytes). An object's limit is what the reader allows it to be: a metadata document at most
+  bytes). A byte range is bounded by its own length (sent as an HTTP ``Range`` or the ``Range`` of an S3
+  GET; a server that ignores it and sends the whole object is bounded by the object's limit and cut here).
+  An object's limit is what the reader allows it to be: a metadata document at most
   ``max_metadata_bytes`` (the guard's ``MAX_METADATA_BYTES``), a chunk at most the largest encoding of its
   decoded size (:func:`encoded_bound` of the size its array's checked metadata gives), anything else
   ``RemoteLimits.max_object_bytes``;
