@@ -293,6 +293,18 @@ def test_bigmap_build_small(tmp_path):
     assert r["voxels"] == [50, 50, 50] and r["open_s"] < 5 and max(r["region_s"]) < 5 and r["peak_rss_mb"] > 50
 
 
+@pytest.mark.slow
+def test_bigmap_build_on_worker_processes(tmp_path):
+    """The same on a LocalCluster of two worker processes, as the full size runs (docs/scale.md)."""
+    from sdfcodec.bench.bigmap import build
+
+    doc = build(tmp_path / "p.sdfz", (2, 2, 1), workers=2, processes=True, chunk_blocks=8, shard_blocks=32)
+    ref = build(tmp_path / "t.sdfz", (2, 2, 1), workers=1, processes=False, chunk_blocks=8, shard_blocks=32)
+    assert doc["states"] == ref["states"] and doc["code_objects"] == ref["code_objects"] == 1
+    a, b = (zarr.open_group(str(tmp_path / n), mode="r")["codes"][...] for n in ("p.sdfz", "t.sdfz"))
+    np.testing.assert_allclose(a, b, atol=1e-5 * np.abs(b).max())
+
+
 def _golden_map(path: Path) -> None:
     from sdfcodec.testing import analytic_blocks, analytic_scene
     from sdfcodec.sdf import sample_volume
