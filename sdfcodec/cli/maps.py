@@ -59,6 +59,8 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
         ("format version", str(info["format_version"])),
         ("codec", json.dumps(info["codec"])),
         ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"),
+        ("layout", f"{info['chunk_blocks']}^3-block chunks of codes" + (
+            f" in {info['shard_blocks']}^3-block shards (sharded-codes)" if info["shard_blocks"] else "")),
         ("voxel size", f"{info['voxel_size']} m"),
         ("truncation", f"[{info['truncation'][0]}, {info['truncation'][1]}] m"),
         ("origin", f"{info['origin']} m"),

@@ -233,6 +233,8 @@ class Map:
             "code_size": h.codes.size,
             "code_dtype": h.codes.dtype,
             "levels": h.codes.levels,
+            "chunk_blocks": h.codes.chunk_blocks,
+            "shard_blocks": h.codes.shard_blocks,
             "voxel_size": h.voxel_size,
             "truncation": [h.truncation.d_min, h.truncation.d_max],
             "origin": list(h.origin),
