@@ -120,6 +120,21 @@ def test_header_and_array_layout_must_agree(pair, tmp_path):
         sdfcodec.open_map(n)
 
 
+def test_a_shard_index_too_large_is_refused_before_reading(pair, tmp_path):
+    m = tmp_path / "i.sdfz"
+    shutil.copytree(pair[1], m)
+    meta = json.loads((m / "zarr.json").read_text())
+    codes = meta["attributes"]["sdfcodec"]["codes"]
+    codes.update(chunk_blocks=1, chunk_code=1, shard_blocks=64)
+    (m / "zarr.json").write_text(json.dumps(meta))
+    am = json.loads((m / "codes" / "zarr.json").read_text())
+    am["chunk_grid"]["configuration"]["chunk_shape"] = [64, 64, 64, 64]
+    am["codecs"][0]["configuration"]["chunk_shape"] = [1, 1, 1, 1]
+    (m / "codes" / "zarr.json").write_text(json.dumps(am))
+    with pytest.raises(errors.FormatError, match="16777216 chunks per shard"):
+        sdfcodec.open_map(m)
+
+
 def test_reader_without_the_extension_refuses_sharded_maps(pair, monkeypatch):
     import sdfcodec.header as header
 

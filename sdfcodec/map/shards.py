@@ -46,6 +46,8 @@ __all__ = ["shard_contents", "index_size", "check_sharding", "read_cap", "range_
            "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
+#: The largest shard index a reader fetches (1,048,575 chunks per shard; writers' shards hold at most 4^3 x 2)
+MAX_INDEX_BYTES = 16 << 20
 _INDEX_META = [{"name": "bytes", "configuration": {"endian": "little"}}, {"name": "crc32c"}]
 
 
@@ -83,7 +85,11 @@ def check_sharding(codec: ShardingCodec, arr: zarr.Array, where: str, shards: tu
         raise FormatError(f"{where} has shard index codecs {names}; the spec requires little-endian bytes then crc32c (section 4d)")
     if getattr(codec.index_location, "value", codec.index_location) != "end":
         raise FormatError(f"{where} keeps its shard index at the {codec.index_location}; the spec requires the end")
-    return tuple(codec.codecs), math.prod(s // c for c, s in zip(inner, outer))
+    per = math.prod(s // c for c, s in zip(inner, outer))
+    if index_size(per) > MAX_INDEX_BYTES:  # every read of a shard starts by fetching its index whole
+        raise FormatError(f"{where} has {per} chunks per shard: an index of {index_size(per)} bytes, more than the "
+                          f"{MAX_INDEX_BYTES} a reader fetches (section 4d)")
+    return tuple(codec.codecs), per
 
 
 def read_cap(limit: tuple, byte_range: Any, chunk_cap: int) -> int:
