@@ -18,7 +18,7 @@ from .errors import FormatError, VersionError
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
-           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec"]
+           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -48,6 +48,10 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {FIELD_EXTENSION}
 #: the array ``residual`` described by the header field ``residual`` (spec section 6d)
 RESIDUAL_EXTENSION = "residual-bound"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {RESIDUAL_EXTENSION}
+#: "sharded-codes": the chunks of ``codes`` stored in Zarr v3 shards of ``codes.shard_blocks`` blocks per axis
+#: (spec section 4d); required, since a reader that refuses sharding (section 9a) could not read the codes
+SHARD_EXTENSION = "sharded-codes"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {SHARD_EXTENSION}
 
 
 class BlockState:
@@ -171,12 +175,15 @@ class CodesSpec(_Model):
     field_compression: FieldCompression | None = Field(
         None, description="float32 voxel codes (size 4096) only, with the required extension 'field-compression': "
                           "the error-bounded compressor of the codes array (spec section 4c); omitted otherwise")
+    shard_blocks: int | None = Field(
+        None, ge=2, le=256, description="with the required extension 'sharded-codes': blocks per axis of one shard "
+                                        "of codes, a multiple of chunk_blocks (spec section 4d); omitted otherwise")
 
     @model_serializer(mode="wrap")
     def _omit_no_quantisation(self, handler):
-        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b/4c
+        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b-4d
         out = handler(self)
-        for key in ("quantisation", "field_compression"):
+        for key in ("quantisation", "field_compression", "shard_blocks"):
             if isinstance(out, dict) and out.get(key, 0) is None:
                 out.pop(key)
         return out
@@ -204,6 +211,12 @@ class CodesSpec(_Model):
                                                    or self.chunk_code != 4096):
             raise ValueError("codes.field_compression needs float32 voxel codes: size 4096 in one chunk along the "
                              f"code axis (got dtype {self.dtype!r}, size {self.size}, chunk_code {self.chunk_code})")
+        if self.shard_blocks is not None and (self.shard_blocks % self.chunk_blocks
+                                              or self.shard_blocks == self.chunk_blocks):
+            raise ValueError(f"codes.shard_blocks ({self.shard_blocks}) must be a multiple of chunk_blocks "
+                             f"({self.chunk_blocks}) and larger")
+        if self.shard_blocks is not None and self.field_compression is not None:
+            raise ValueError("codes.shard_blocks and codes.field_compression do not go together (spec section 4d)")
         return self
 
 
@@ -282,6 +295,10 @@ class MapHeader(_Model):
         if (self.residual is not None) != bool(res) or any(not e.required for e in res):
             raise ValueError(f"residual and the required extension {RESIDUAL_EXTENSION!r} go together "
                              f"(extensions {[e.name for e in self.extensions]})")
+        shard = [e for e in self.extensions if e.name == SHARD_EXTENSION]
+        if (self.codes.shard_blocks is not None) != bool(shard) or any(not e.required for e in shard):
+            raise ValueError(f"codes.shard_blocks and the required extension {SHARD_EXTENSION!r} go together "
+                             f"(extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self
@@ -295,6 +312,7 @@ def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
     """(dotted location, value) of the header's numeric fields that are present, list items included."""
     for path in ("voxel_size", "truncation.d_min", "truncation.d_max", "origin", "block_size", "shape_voxels",
                  "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels",
+                 "codes.shard_blocks",
                  "codes.quantisation.step", "codes.quantisation.offset", "codes.field_compression.max_error",
                  "residual.step", "residual.max_error"):
         value: Any = raw

@@ -19,6 +19,7 @@ the spec discourages without making the map invalid (stray files, codes stored f
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -30,6 +31,7 @@ import zarr
 from ._lazy import lazy_module
 from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from .header import BlockState, parse_header
+from .map.shards import chunk_name, shard_contents
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -38,6 +40,7 @@ __all__ = ["Problem", "VerifyReport", "verify_map", "verify_command"]
 #: How many coded blocks verify decodes by default (all of them would take as long as decoding the map).
 DEFAULT_DECODE_BLOCKS = 4096
 _SHOWN = 5  # blocks named per problem before "and N more"
+VERIFY_BATCH = 64  # chunks read concurrently (64 of pca-64's 512 KiB chunks: 32 MiB decoded at a time)
 
 
 @dataclass(frozen=True)
@@ -99,9 +102,10 @@ def _decode_key(enc: Any, rel: str) -> tuple[int, ...]:
         return ()
 
 
-def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str]] | None:
-    """Chunk coordinates -> store key of every chunk stored for ``arr``, and stray keys under it; None when
-    the store cannot list (every chunk position is then read)."""
+def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str], dict[str, str]] | None:
+    """Chunk coordinates -> store key of every chunk stored for ``arr`` (of a sharded array: from its shards'
+    indexes, the shard's key naming the chunk's place in it), stray keys under it, and shards whose index does
+    not read back (key -> why); None when the store cannot list (every chunk position is then read)."""
     from zarr.core.sync import sync
 
     store = arr.store
@@ -115,7 +119,8 @@ def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str]]
     except Exception:  # noqa: BLE001 - HTTP and other stores that cannot list
         return None
     enc = arr.metadata.chunk_key_encoding
-    grid = arr.cdata_shape
+    grid = (arr.cdata_shape if arr.shards is None else
+            tuple(-(-n // s) for n, s in zip(arr.shape, arr.shards)))
     found: dict[tuple[int, ...], str] = {}
     stray: list[str] = []
     for key in sorted(listed):
@@ -127,37 +132,90 @@ def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str]]
             found[coords] = key
         else:
             stray.append(key)
-    return found, stray
+    if arr.shards is None:
+        return found, stray, {}
+    found, broken = shard_contents(store, arr, found)
+    return found, stray, broken
+
+
+def _chunk_box(arr: zarr.Array, coords: tuple[int, ...]) -> tuple[slice, ...]:
+    return tuple(slice(c * n, min((c + 1) * n, s)) for c, n, s in zip(coords, arr.chunks, arr.shape))
 
 
 def _iter_chunks(rep: VerifyReport, arr: zarr.Array, listing: Any = False):
     """Yield ``(coords, key, data or None)`` for every stored chunk of ``arr``; a chunk that does not read back
-    is reported (data None). Counts the chunks in ``rep.chunks_checked``. ``listing``: from _chunk_keys."""
+    is reported (data None). Counts the chunks in ``rep.chunks_checked``. ``listing``: from _chunk_keys. The
+    chunks are read :data:`VERIFY_BATCH` at a time concurrently (Zarr's async I/O, decompression on its
+    threads), so a map of a million blocks verifies on every core."""
+    from zarr.core.sync import sync
+
     if listing is False:
         listing = _chunk_keys(arr)
     if listing is None:
         positions = {c: arr.metadata.encode_chunk_key(c) for c in np.ndindex(*arr.cdata_shape)}
         positions = {tuple(int(v) for v in c): f"{arr.path}/{k}" for c, k in positions.items()}
     else:
-        positions, stray = listing
+        positions, stray, broken = listing
         for key in stray:
             rep.note(key, "a file that is no chunk of this array (ignored by readers)")
+        for key, why in broken.items():
+            rep.problem(key, f"shard {why}: none of its chunks can be read")
     rep.chunks_checked.setdefault(arr.path, 0)
-    for coords, key in positions.items():
-        rep.chunks_checked[arr.path] += 1
+    items, batch = list(positions.items()), VERIFY_BATCH
+    if arr.shards is not None:  # shard by shard, a few at a time: each shard is then read once, whole
+        ratio = [s // c for s, c in zip(arr.shards, arr.chunks)]
+        items.sort(key=lambda kv: (tuple(c // r for c, r in zip(kv[0], ratio)), kv[0]))
+        batch = max(batch, 4 * int(np.prod(ratio)))
+    for start in range(0, len(items), batch):
+        part = items[start:start + batch]
+        for (coords, key), res in zip(part, sync(_read_chunks(arr, [c for c, _ in part]))):
+            rep.chunks_checked[arr.path] += 1
+            data = None
+            if isinstance(res, ChecksumError):
+                rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({res})")
+            elif isinstance(res, FormatError):  # the store refused the file itself (a link, a FIFO...)
+                rep.problem(key, f"is refused: {res}")
+            elif isinstance(res, BaseException):
+                if not isinstance(res, Exception):
+                    raise res
+                msg = str(res) or type(res).__name__
+                rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({msg})")
+            else:
+                data = np.asarray(res)
+            yield coords, key, data
+
+
+async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[Any]:
+    """The data of each chunk of ``arr`` (or the exception reading it raised), read concurrently. A sharded
+    array's chunks are read a whole shard at a time (one object read, every chunk's frame and checksum checked
+    by the store and Zarr); a shard that fails is read again chunk by chunk, to name the chunks that fail."""
+    aarr = arr.async_array
+
+    async def each(cs):
+        return await asyncio.gather(*(aarr.getitem(_chunk_box(arr, c)) for c in cs), return_exceptions=True)
+
+    if arr.shards is None:
+        return list(await each(chunks))
+    ratio = [s // c for s, c in zip(arr.shards, arr.chunks)]
+    by_shard: dict[tuple[int, ...], list[int]] = {}
+    for i, c in enumerate(chunks):
+        by_shard.setdefault(tuple(v // r for v, r in zip(c, ratio)), []).append(i)
+    out: list[Any] = [None] * len(chunks)
+
+    async def shard(sh, idxs):
+        box = tuple(slice(v * s, min((v + 1) * s, n)) for v, s, n in zip(sh, arr.shards, arr.shape))
         try:
-            data = np.asarray(arr.blocks[coords])
-        except FormatError as e:
-            if isinstance(e, ChecksumError):
-                rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({e})")
-            else:  # the store refused the file itself (a link, a FIFO, a directory...); the message says which
-                rep.problem(key, f"is refused: {e}")
-            data = None
-        except Exception as e:  # noqa: BLE001 - whatever the checksum or decompressor says
-            msg = str(e) or type(e).__name__
-            rep.problem(key, f"does not read back: checksum mismatch, truncated or not decompressible ({msg})")
-            data = None
-        yield coords, key, data
+            whole = await aarr.getitem(box)
+        except Exception:  # noqa: BLE001 - named chunk by chunk below
+            for i, res in zip(idxs, await each([chunks[i] for i in idxs])):
+                out[i] = res
+            return
+        for i in idxs:
+            out[i] = whole[tuple(slice(b.start - o.start, b.stop - o.start)
+                                 for b, o in zip(_chunk_box(arr, chunks[i]), box))]
+
+    await asyncio.gather(*(shard(sh, idxs) for sh, idxs in by_shard.items()))
+    return out
 
 
 def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
@@ -274,8 +332,9 @@ def _check_code_array(rep: VerifyReport, m, codes, states: np.ndarray | None) ->
             coords = (*map(int, chunk), k)
             if coords not in stored:
                 inside = coded[(coded // cb == chunk).all(axis=1)]
-                key = f"{codes.path}/{codes.metadata.encode_chunk_key(coords)}"
-                what, span = _absent(m, key), f"[{k * cc}, {min((k + 1) * cc, codes.shape[3])})"
+                key = chunk_name(codes, coords)
+                what = _absent(m, key) if codes.shards is None else "is missing"
+                span = f"[{k * cc}, {min((k + 1) * cc, codes.shape[3])})"
                 rep.problem(key, f"is missing, but block(s) {_blocks_text(inside)} are coded: their elements "
                                  f"{span} would read as zeros" if what == "is missing" else
                             f"{what}; block(s) {_blocks_text(inside)} are coded there (elements {span})")

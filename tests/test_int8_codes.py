@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import sdfcodec
+from _golden_maps import check_golden_map
 from sdfcodec import errors
 from sdfcodec.quantize import dequantize_codes, quantize_codes
 from sdfcodec.sdf import sample_volume
@@ -187,13 +188,5 @@ def _golden_map(path: Path) -> np.ndarray:
 def test_golden_int8_map_decodes_forever(regen_golden, tmp_path):
     """A small int8 map written once (regenerate only with --regen-golden, for a format change): today's reader
     must open it, verify it and decode it to the frozen values."""
-    if regen_golden:
-        shutil.rmtree(GOLDEN, ignore_errors=True)
-        GOLDEN.mkdir(parents=True)
-        _golden_map(GOLDEN / "map.zarr")
-        np.save(GOLDEN / "decoded.npy", sdfcodec.open_map(GOLDEN / "map.zarr").decode_region())
-    assert (GOLDEN / "map.zarr" / "zarr.json").is_file(), "golden map missing: run pytest --regen-golden once"
-    m = sdfcodec.open_map(GOLDEN / "map.zarr")
-    assert m.header.codes.dtype == "int8" and verify_map(GOLDEN / "map.zarr").ok
-    # the frozen values are the codec's; readers truncate decoded distances to the map's range
-    np.testing.assert_allclose(m.decode_region(), np.clip(np.load(GOLDEN / "decoded.npy"), *m.truncation), atol=1e-6)
+    m = check_golden_map(GOLDEN, _golden_map, regen_golden)
+    assert m.header.codes.dtype == "int8"

@@ -16,6 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 import sdfcodec
+from _golden_maps import check_golden_map
 from sdfcodec import errors
 from sdfcodec.cli import app
 from sdfcodec.quantize import (QMAX16, check_quantisable, check_step, dequantise_step, fit_rate_model,
@@ -280,15 +281,6 @@ def _golden_map(path: Path) -> None:
 def test_golden_int16_map_decodes_forever(regen_golden):
     """A small int16 map written once (regenerate only with --regen-golden, for a format change): today's
     reader must open it, verify it and decode it to the frozen values."""
-    if regen_golden:
-        shutil.rmtree(GOLDEN, ignore_errors=True)
-        GOLDEN.mkdir(parents=True)
-        _golden_map(GOLDEN / "map.zarr")
-        np.save(GOLDEN / "decoded.npy", sdfcodec.open_map(GOLDEN / "map.zarr").decode_region())
-    assert (GOLDEN / "map.zarr" / "zarr.json").is_file(), "golden map missing: run pytest --regen-golden once"
-    m = sdfcodec.open_map(GOLDEN / "map.zarr")
+    m = check_golden_map(GOLDEN, _golden_map, regen_golden)
     q = m.header.codes.quantisation
     assert m.header.codes.dtype == "int16" and q.step == [0.02, 0.05, 0.1, 0.2] and q.offset == [0.5, 0, 0, -0.25]
-    assert verify_map(GOLDEN / "map.zarr").ok
-    # the frozen values are the codec's; readers truncate decoded distances to the map's range
-    np.testing.assert_allclose(m.decode_region(), np.clip(np.load(GOLDEN / "decoded.npy"), *m.truncation), atol=1e-6)

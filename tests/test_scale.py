@@ -322,8 +322,8 @@ def s3(monkeypatch):
 
     real = RemoteStore.fetch
 
-    async def counting(self, key):
-        data = await real(self, key)
+    async def counting(self, key, byte_range=None):
+        data = await real(self, key, byte_range)
         if data is not None:
             fetched.append((f"{self.inner.path.rstrip('/')}/{key}", len(data)))
         return data

@@ -59,6 +59,8 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
         ("format version", str(info["format_version"])),
         ("codec", json.dumps(info["codec"])),
         ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"),
+        ("layout", f"{info['chunk_blocks']}^3-block chunks of codes" + (
+            f" in {info['shard_blocks']}^3-block shards (sharded-codes)" if info["shard_blocks"] else "")),
         ("voxel size", f"{info['voxel_size']} m"),
         ("truncation", f"[{info['truncation'][0]}, {info['truncation'][1]}] m"),
         ("origin", f"{info['origin']} m"),
@@ -104,6 +106,8 @@ def encode_cmd(
     target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Choose the step so the map takes about B stored bytes per coded block (everything but the codec state)."),
     max_error: Optional[float] = typer.Option(None, "--max-error", help="Absolute error bound in metres on observed voxels: with --codec sz3 SZ3's own bound (field compression), with block codecs (pca, ae...) a residual stage on top of the codes (full level only)."),
     sign_exact: bool = typer.Option(False, "--sign-exact", help="Every voxel touching a surface crossing of the input decodes with its sign (a residual stage on top of the codes; block codecs)."),
+    chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (default: 16 for pca-64; smaller chunks transfer less per small remote region)."),
+    shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Store the chunks of codes in Zarr shards of N blocks per axis (a multiple of --chunk-blocks dividing 64, e.g. 32): objects of megabytes for maps of millions of blocks on object storage (readers before the extension sharded-codes refuse the map)."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
@@ -184,7 +188,8 @@ def encode_cmd(
                                              shape_voxels=shape, overwrite=overwrite or again, device=device,
                                              code_dtype="int16" if code_step is not None else code_dtype,
                                              code_step=code_step, tool="sdfcodec encode", source=str(input),
-                                             codec_state=codec_state, **residual_kw) as m:
+                                             codec_state=codec_state, chunk_blocks=chunk_blocks,
+                                             shard_blocks=shard_blocks, **residual_kw) as m:
             if src_map is not None:
                 total = src_map.count_states()["coded"]
                 task = prog.add_task("transcoding", total=total, rate="")

@@ -233,6 +233,8 @@ class Map:
             "code_size": h.codes.size,
             "code_dtype": h.codes.dtype,
             "levels": h.codes.levels,
+            "chunk_blocks": h.codes.chunk_blocks,
+            "shard_blocks": h.codes.shard_blocks,
             "voxel_size": h.voxel_size,
             "truncation": [h.truncation.d_min, h.truncation.d_max],
             "origin": list(h.origin),
@@ -407,7 +409,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
                codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
-               max_error: float | None = None, sign_exact: bool = False) -> Map:
+               max_error: float | None = None, sign_exact: bool = False, shard_blocks: int | None = None) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -428,6 +430,10 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             default 0) and entropy-coded, ``|error| <= step / 2`` per element (spec section 4b; codecs with
             orthonormal codes only, :data:`sdfcodec.quantize.UNIFORM_STEP_CODECS`).
         chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
+        shard_blocks: store the chunks of codes in Zarr shards of this many blocks per axis (a multiple of
+            ``chunk_blocks`` that divides 64, e.g. 32 or 64): objects of megabytes instead of one file per chunk,
+            for maps of millions of blocks on object storage (extension ``sharded-codes``, spec section 4d; readers
+            before it refuse such maps). Reads still fetch only the chunks they need (byte ranges).
         overwrite: replace an existing map at ``path`` (atomically, on commit).
         device: where encoding runs.
         surface_weight: extra error weight of voxels near the surface when encoding (the codec fits
@@ -458,7 +464,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source, codec_state=codec_state, code_step=code_step,
-                                  code_offset=code_offset, max_error=max_error, sign_exact=sign_exact)
+                                  code_offset=code_offset, max_error=max_error, sign_exact=sign_exact,
+                                  shard_blocks=shard_blocks)
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit

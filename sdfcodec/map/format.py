@@ -15,7 +15,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ZstdCodec
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, ZstdCodec
 
 from .._lazy import lazy_module
 from ..codec import Codec
@@ -23,6 +23,7 @@ from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning
 from ..header import CodeQuantisation, CodesSpec, FieldCompression
 from ..quantize import dequantise_step, dequantize_codes
 from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
+from .shards import check_sharding
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -36,8 +37,9 @@ __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_
 #: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
 #: or mistaken header cannot make a reader allocate without bound.
 DEFAULT_MAX_DECODE_BYTES = 8 << 30
-#: The Zarr codecs a map's arrays may use (spec section 4): anything else (sharding, numcodecs.* such as
-#: pickle, variable-length types) is refused before a chunk is read.
+#: The Zarr codecs a map's arrays may use (spec section 4): anything else (numcodecs.* such as pickle,
+#: variable-length types; sharding except around these in the ``codes`` of a map that says so, section 4d) is
+#: refused before a chunk is read.
 ALLOWED_ZARR_CODECS = (BytesCodec, BloscCodec, ZstdCodec, GzipCodec, Crc32cCodec)
 #: A read may touch at most max(MIN_CHUNKS_PER_READ, max_decode_bytes // BYTES_PER_CHUNK) chunks.
 MIN_CHUNKS_PER_READ, BYTES_PER_CHUNK = 64, 4096
@@ -139,14 +141,15 @@ def field_compression_of(codec: Codec, dtype: str = "float32") -> FieldCompressi
 
 
 def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shape: tuple | None = None,
-                         chunks: tuple | None = None, zero_fill: bool = False,
-                         field: FieldCompression | None = None) -> tuple[int, bool]:
+                         chunks: tuple | None = None, zero_fill: bool = False, field: FieldCompression | None = None,
+                         shards: tuple | None = None) -> tuple[int, bool, int]:
     """Validate an array's metadata against the spec *before* reading from it (``where`` names it in errors).
 
     Returns:
-        ``(chunk_bytes, blosc_frame)``: the decoded size of one chunk, and whether a stored chunk is one Blosc
-        frame followed by its CRC32C (the writers' chain; then the frame can be checked unread); formerly: whether Blosc decodes its bytes
-        first (then a chunk's Blosc header can be checked against that size unread, :class:`GuardStore`).
+        ``(chunk_bytes, blosc_frame, per_object)``: the decoded size of one chunk, whether a stored chunk is one
+        Blosc frame followed by its CRC32C (the writers' chain; then the frame can be checked unread,
+        :class:`~sdfcodec.map.stores.GuardStore`), and the chunks one stored object holds (1; a shard's
+        chunks when the array is sharded).
 
     ``field``: the header's ``codes.field_compression`` when ``arr`` is a field-compressed ``codes`` array (spec
     section 4c): its chain must then be exactly SZ3 and CRC32C; anywhere else the SZ3 codec is refused.
@@ -158,6 +161,14 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
         fill = arr.metadata.fill_value
     except Exception as e:  # noqa: BLE001 - irregular chunk grids, data types numpy lacks...
         raise FormatError(f"{where} has metadata this reader cannot use ({type(e).__name__}: {e})") from e
+    per_object = 1
+    if any(isinstance(c, ShardingCodec) for c in codecs):
+        if len(codecs) != 1 or not isinstance(codecs[0], ShardingCodec):
+            raise FormatError(f"{where} mixes sharding with other codecs; a sharded map array has the sharding "
+                              "codec alone (spec section 4d)")
+        codecs, per_object = check_sharding(codecs[0], arr, where, shards)
+    elif shards is not None:
+        raise FormatError(f"{where} is not sharded, but the header says its shards are {tuple(shards)} (section 4d)")
     if dt.kind not in "biuf" or dt.itemsize > 8:
         raise FormatError(f"{where} has data type {dt}; map arrays hold plain numbers only")
     if dtype is not None and dt != np.dtype(dtype):
@@ -174,7 +185,7 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
            if not isinstance(c, ALLOWED_ZARR_CODECS)]
     if bad:
         raise FormatError(f"{where} uses Zarr codec(s) {bad}, which a map may not use (allowed: bytes, blosc, "
-                          "zstd, gzip, crc32c)")
+                          "zstd, gzip, crc32c; sharding around them only in sharded codes, section 4d)")
     if not codecs or not isinstance(codecs[-1], Crc32cCodec):
         raise FormatError(f"{where} has no crc32c checksum codec (spec section 4): it cannot be verified")
     for c in codecs:
@@ -203,7 +214,7 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     # the guard can check the frame's structure before the C decompressor trusts it
     blosc_frame = (len(codecs) == 3 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
                    and isinstance(codecs[2], Crc32cCodec))
-    return chunk_bytes, blosc_frame
+    return chunk_bytes, blosc_frame, per_object
 
 
 def chunk_ranges(arr: zarr.Array, sel: tuple) -> list[range]:

@@ -19,6 +19,7 @@ import numpy as np
 from zarr.core.sync import sync as zarr_sync
 
 from ..errors import FormatError
+from .shards import storage_shape
 
 __all__ = ["state_chunk_regions", "check_state_chunks", "MAX_PROBES"]
 
@@ -72,7 +73,7 @@ def check_state_chunks(reader: Any, box: tuple[slice, ...], state: np.ndarray) -
         for codes in (reader.codes_array, reader.code_scale_array):
             if codes is None:
                 continue
-            cb = codes.chunks[:3]
+            cb = storage_shape(codes)[:3]  # its stored objects: chunk files, or shards (spec section 4d)
             chunks = list(itertools.islice(itertools.product(*(range(r.start // c, -(-r.stop // c))
                                                                for r, c in zip(region, cb))), MAX_PROBES))
             code_keys = [f"{codes.path}/{codes.metadata.encode_chunk_key((*c, 0))}" for c in chunks]

@@ -38,6 +38,8 @@ from .placement import BlockPlacer, BufferRing
 from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
 from .residual import apply_residual, check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
+from .device_feed import DeviceFeed
+from .shards import chunk_name, chunk_stored, shard_layout
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -55,45 +57,6 @@ class CodecCache:
 
     def __init__(self, codec: Codec | None = None):
         self.codec = codec
-
-
-class DeviceFeed:
-    """Brings a group's host codes to the decode device (the staging step of the read pipeline).
-
-    ``stage`` runs in the worker thread that fetched the group; ``ready`` in the thread that decodes it. On CUDA,
-    ``stage`` copies the codes into pinned (page-locked) host memory and starts a non-blocking host-to-device
-    copy on a side stream, recording an event; ``ready`` makes the decoding stream wait for that event (on the
-    GPU, not the host) and tells the caching allocator that the decoding stream uses the tensor. The copy of
-    the next group thus overlaps the decode of the current one. On the CPU the codes are used as they are.
-    """
-
-    def __init__(self, dev: torch.device):
-        self.cuda = dev.type == "cuda"
-        if self.cuda and dev.index is None:
-            dev = torch.device("cuda", torch.cuda.current_device())
-        self.dev = dev
-        self.stream = torch.cuda.Stream(device=dev) if self.cuda else None
-
-    def stage(self, codes: np.ndarray) -> tuple[torch.Tensor, Any, Any]:
-        t = torch.from_numpy(codes)
-        if not self.cuda:
-            return (t if self.dev.type == "cpu" else t.to(self.dev)), None, None
-        host = t.pin_memory()
-        with torch.cuda.device(self.dev), torch.cuda.stream(self.stream):
-            on_dev = host.to(self.dev, non_blocking=True)
-            done = torch.cuda.Event()
-            done.record(self.stream)
-        # ``host`` travels with the group until ``ready``: the pinned buffer outlives its copy (the caching host
-        # allocator would also hold it until the copy's event, but nothing depends on that)
-        return on_dev, done, host
-
-    def ready(self, staged: tuple[torch.Tensor, Any, Any]) -> torch.Tensor:
-        on_dev, done, _host = staged
-        if done is not None:
-            current = torch.cuda.current_stream(self.dev)
-            current.wait_event(done)
-            on_dev.record_stream(current)
-        return on_dev
 
 
 class MapReader:
@@ -183,18 +146,19 @@ class MapReader:
         return node
 
     def check_array(self, arr: zarr.Array, *, dtype: Any = None, shape: tuple | None = None,
-                    chunks: tuple | None = None, zero_fill: bool = False, field: Any = None) -> None:
+                    chunks: tuple | None = None, zero_fill: bool = False, field: Any = None,
+                    shards: tuple | None = None) -> None:
         """Validate an array's metadata against the spec and the reader's limits *before* reading from it, and
         register its chunk size with the guard store (a chunk claiming more is refused unread)."""
-        chunk_bytes, blosc_first = check_array_metadata(arr, f"{self.location}: array '{arr.path}'", dtype=dtype,
-                                                        shape=shape, chunks=chunks, zero_fill=zero_fill,
-                                                        field=field)
+        chunk_bytes, blosc_first, per_object = check_array_metadata(
+            arr, f"{self.location}: array '{arr.path}'", dtype=dtype, shape=shape, chunks=chunks,
+            zero_fill=zero_fill, field=field, shards=shards)
         # the chunk size is checked when reading (read), so that a small limit still lets a map open and say
         # what is too big
         self._chunk_bytes[arr.path] = chunk_bytes
         store = self.group.store
         if isinstance(store, GuardStore):
-            store.limits[arr.path] = (chunk_bytes, blosc_first)
+            store.limits[arr.path] = (chunk_bytes, blosc_first, per_object)
 
     def _check_arrays(self) -> None:
         h = self.header
@@ -207,9 +171,11 @@ class MapReader:
         if codes is None or state is None:
             missing = "codes" if codes is None else "state"
             raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec map")
-        cb = h.codes.chunk_blocks
-        self.check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size),
-                         chunks=(cb, cb, cb, h.codes.chunk_code), zero_fill=True, field=h.codes.field_compression)
+        cb, sb = h.codes.chunk_blocks, h.codes.shard_blocks
+        chunks = (cb, cb, cb, h.codes.chunk_code)
+        self.check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size), chunks=chunks,
+                         zero_fill=True, field=h.codes.field_compression,
+                         shards=None if sb is None else shard_layout(chunks, h.codes.size, sb))
         self.check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
         self.code_scale_array = None
         if h.codes.dtype == "int8":
@@ -302,7 +268,7 @@ class MapReader:
         async def probe():
             return await asyncio.gather(*(aarr.getitem(s) for s in sels), return_exceptions=True)
 
-        bad = ["chunk c/" + "/".join(map(str, idx)) for idx, res in zip(idxs, zarr_sync(probe()))
+        bad = ["chunk " + chunk_name(arr, idx).split("/", 1)[1] for idx, res in zip(idxs, zarr_sync(probe()))
                if isinstance(res, Exception)]
         if not bad:
             return "a chunk"
@@ -397,11 +363,11 @@ class MapReader:
         seen: set[str] = set()
         for name, chunk, row in unstored_suspects(coords, codes, params, self.header.codes):
             arr = self.codes_array if name == "codes" else self.code_scale_array
-            key = f"{arr.path}/{arr.metadata.encode_chunk_key(chunk)}"
+            key = chunk_name(arr, chunk)  # its file, or its place in its shard (spec section 4d)
             if key in seen:
                 continue
             seen.add(key)
-            if not zarr_sync(self.group.store.exists(key)):
+            if not chunk_stored(self.group.store, arr, [chunk])[0]:
                 raise FormatError(f"{self.location}: chunk {key} of array '{arr.path}' is missing, but block "
                                   f"{tuple(int(v) for v in coords[row])} in it is coded (the state array says "
                                   "so); the map is incomplete there: restore it from a copy or re-encode")

@@ -1,13 +1,16 @@
 """Remote reads that trust nothing: the store a map at an ``http(s)://`` or ``s3://`` URL is read through.
 
-:class:`RemoteStore` wraps Zarr's fsspec store and replaces its reads of whole objects (every read a map
-makes: metadata documents and chunks) with its own, which
+:class:`RemoteStore` wraps Zarr's fsspec store and replaces its reads (every read a map makes: metadata
+documents and chunks whole, the indexes and chunks of shards as byte ranges, spec section 4d) with its own,
+which
 
 - time out: connect, silence between bytes (read) and a total per try (:class:`RemoteLimits`);
 - bound the body while it streams, before anything is buffered whole: a Content-Length above the object's
   limit is refused unread, the bytes actually received are counted, and a ``Content-Encoding`` of gzip or
   deflate is decoded here, incrementally, never past the limit (a decompression bomb stops at limit + 1
-  bytes). An object's limit is what the reader allows it to be: a metadata document at most
+  bytes). A byte range is bounded by its own length (sent as an HTTP ``Range`` or the ``Range`` of an S3
+  GET; a server that ignores it and sends the whole object is bounded by the object's limit and cut here).
+  An object's limit is what the reader allows it to be: a metadata document at most
   ``max_metadata_bytes`` (the guard's ``MAX_METADATA_BYTES``), a chunk at most the largest encoding of its
   decoded size (:func:`encoded_bound` of the size its array's checked metadata gives), anything else
   ``RemoteLimits.max_object_bytes``;
@@ -32,6 +35,7 @@ from typing import Any
 
 import zarr
 import zarr.abc.store
+from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
 from zarr.core.buffer import default_buffer_prototype
 
 from ..errors import InvalidValueError, RemoteReadError
@@ -169,11 +173,15 @@ class RemoteStore(zarr.storage.WrapperStore):
         return self._store
 
     def limit_of(self, key: str) -> int:
-        """The most bytes object ``key`` may have (module docstring)."""
+        """The most bytes object ``key`` may have (module docstring): a shard (spec section 4d) its chunks'
+        bounds and its index."""
         if key == "zarr.json" or key.endswith("/zarr.json"):
             return self.max_metadata_bytes
         hit = next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
-        return encoded_bound(hit[0]) if hit is not None else int(self.remote.max_object_bytes)
+        if hit is None:
+            return int(self.remote.max_object_bytes)
+        per = hit[2] if len(hit) > 2 else 1
+        return per * encoded_bound(hit[0]) + (16 * per + 4 if per > 1 else 0)
 
     def object_url(self, key: str) -> str:
         """The URL of object ``key``, as error messages name it."""
@@ -183,9 +191,8 @@ class RemoteStore(zarr.storage.WrapperStore):
         return f"{base}/{key}" if key else base
 
     async def get(self, key, prototype=None, byte_range=None):
-        if byte_range is not None:  # only sharding reads ranges, and maps refuse sharding (spec section 9a)
-            return await self._retried(key, lambda: self._store.get(key, prototype, byte_range))
-        data = await self._retried(key, lambda: self.fetch(key))
+        # ranges: the index and the chunks of a shard (spec section 4d), bounded by the range asked for
+        data = await self._retried(key, lambda: self.fetch(key, byte_range))
         if data is None:
             return None
         return (prototype or default_buffer_prototype()).buffer.from_bytes(data)
@@ -219,22 +226,28 @@ class RemoteStore(zarr.storage.WrapperStore):
                               "necessarily the map: try again later (storage_options['remote_limits'] sets "
                               "tries and timeouts)") from None
 
-    async def fetch(self, key: str) -> bytes | None:
-        """One try at object ``key``, bounded but not retried nor timed in total: its bytes, None when missing."""
-        limit = self.limit_of(key)
+    async def fetch(self, key: str, byte_range: Any = None) -> bytes | None:
+        """One try at object ``key`` (``byte_range``: a Zarr byte request, sent as an HTTP ``Range``), bounded but
+        not retried nor timed in total: its bytes, None when missing. A range is bounded by its own length (a
+        server that ignores it and sends the whole object is bounded by the object's limit, and cut here)."""
+        limit, rng = self.limit_of(key), _range_header(byte_range)
+        if isinstance(byte_range, RangeByteRequest):
+            limit = min(limit, max(0, byte_range.end - byte_range.start))
+        elif isinstance(byte_range, SuffixByteRequest):
+            limit = min(limit, byte_range.suffix)
         if self.protocol == "s3":
-            return await self._fetch_s3(key, limit)
-        return await self._fetch_http(key, limit)
+            return await self._fetch_s3(key, limit, rng)
+        return await self._fetch_http(key, limit, rng, byte_range)
 
-    async def _fetch_http(self, key: str, limit: int) -> bytes | None:
+    async def _fetch_http(self, key: str, limit: int, rng: str | None = None, byte_range: Any = None) -> bytes | None:
         import aiohttp
 
         try:
-            return await self._get_http(key, limit)
+            return await self._get_http(key, limit, rng, byte_range)
         except aiohttp.TooManyRedirects:
             raise _Refused(f"more than {int(self.remote.max_redirects)} redirects (a redirect loop?)") from None
 
-    async def _get_http(self, key: str, limit: int) -> bytes | None:
+    async def _get_http(self, key: str, limit: int, rng: str | None = None, byte_range: Any = None) -> bytes | None:
         import aiohttp
 
         fs, r = self._store.fs, self.remote
@@ -243,7 +256,10 @@ class RemoteStore(zarr.storage.WrapperStore):
         kw = dict(fs.kwargs)  # request options from storage_options (headers, auth, ...)
         kw.pop("timeout", None)
         headers = dict(kw.pop("headers", None) or {})
-        if not any(k.lower() == "accept-encoding" for k in headers):
+        if rng is not None:
+            headers["Range"] = rng
+            headers["Accept-Encoding"] = "identity"  # a range is of the object's own bytes
+        elif not any(k.lower() == "accept-encoding" for k in headers):
             headers["Accept-Encoding"] = "gzip, deflate"  # the encodings decoded here (aiohttp may offer more)
         timeout = aiohttp.ClientTimeout(total=None, connect=r.connect_timeout, sock_read=r.read_timeout)
         async with session.get(fs.encode_url(url), timeout=timeout, max_redirects=int(r.max_redirects),
@@ -256,20 +272,23 @@ class RemoteStore(zarr.storage.WrapperStore):
                 raise _Refused(f"HTTP {resp.status} {resp.reason or ''}".rstrip())
             length = resp.content_length
             enc = resp.headers.get("Content-Encoding", "identity").strip().lower()
+            whole = rng is not None and resp.status != 206  # the server ignored the range: cut it here
             try:
-                return await _bounded(resp.content.read, length, enc, limit)
+                data = await _bounded(resp.content.read, length, enc, self.limit_of(key) if whole else limit)
+                return _cut(data, byte_range) if whole else data
             except aiohttp.ClientPayloadError as e:  # aiohttp's word for a body cut short
                 declared = f"the {length} bytes declared" if length is not None else "the end of the body"
                 raise _Transient(f"truncated body (the connection closed before {declared})") from e
 
-    async def _fetch_s3(self, key: str, limit: int) -> bytes | None:
+    async def _fetch_s3(self, key: str, limit: int, rng: str | None = None) -> bytes | None:
         from botocore.exceptions import ClientError
 
         fs = self._store.fs
         await fs.set_session()
         bucket, obj, version = fs.split_path(f"{self._store.path.rstrip('/')}/{key}")
+        extra = {**({"VersionId": version} if version else {}), **({"Range": rng} if rng else {})}
         try:
-            resp = await fs.s3.get_object(Bucket=bucket, Key=obj, **({"VersionId": version} if version else {}))
+            resp = await fs.s3.get_object(Bucket=bucket, Key=obj, **extra)
         except ClientError as e:
             err, meta = e.response.get("Error", {}), e.response.get("ResponseMetadata", {})
             code, status = str(err.get("Code", "")), int(meta.get("HTTPStatusCode") or 0)
@@ -284,6 +303,31 @@ class RemoteStore(zarr.storage.WrapperStore):
             return await _bounded(body.read, resp.get("ContentLength"), enc, limit)
         finally:
             body.close()
+
+
+def _range_header(byte_range: Any) -> str | None:
+    """The HTTP ``Range`` value of a Zarr byte request (None: the whole object)."""
+    if byte_range is None:
+        return None
+    if isinstance(byte_range, RangeByteRequest):
+        if byte_range.end <= byte_range.start:
+            raise _Refused(f"an empty byte range [{byte_range.start}, {byte_range.end})")
+        return f"bytes={byte_range.start}-{byte_range.end - 1}"
+    if isinstance(byte_range, SuffixByteRequest):
+        return f"bytes=-{byte_range.suffix}"
+    if isinstance(byte_range, OffsetByteRequest):
+        return f"bytes={byte_range.offset}-"
+    raise _Refused(f"an unknown byte request {byte_range!r}")
+
+
+def _cut(data: bytes, byte_range: Any) -> bytes:
+    """The bytes of ``byte_range`` out of a whole object ``data``."""
+    n = len(data)
+    if isinstance(byte_range, RangeByteRequest):
+        return data[min(byte_range.start, n):min(byte_range.end, n)]
+    if isinstance(byte_range, SuffixByteRequest):
+        return data[max(0, n - byte_range.suffix):]
+    return data[min(byte_range.offset, n):]
 
 
 async def _bounded(read, length: int | None, encoding: str, limit: int) -> bytes:

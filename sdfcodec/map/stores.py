@@ -11,10 +11,12 @@ format itself live in :mod:`sdfcodec.map.format`.
 from __future__ import annotations
 
 import asyncio
+import collections
 import errno
 import json
 import os
 import stat
+import threading
 import weakref
 import zipfile
 import zlib
@@ -28,6 +30,7 @@ from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
 from .remote import remote_store, set_default_limits
+from .shards import range_problem, read_cap, shard_problem
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
 __all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
@@ -79,16 +82,20 @@ def is_url(s: str) -> bool:
 class GuardStore(zarr.storage.WrapperStore):
     """Read-side wrapper around any store: refuses oversize metadata documents, and chunks whose Blosc header
     claims more bytes than the chunk's shape holds (a decompression bomb), before anything that large is
-    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first).
+    allocated. ``limits`` maps an array's path to (decoded chunk bytes, whether Blosc decodes it first, chunks
+    per stored object: more than 1 for shards, whose ranges and indexes are checked by
+    :mod:`sdfcodec.map.shards`).
     Over a :class:`SafeLocalStore` the size bounds hold while reading (a file growing meanwhile, or anything
     that is not a regular file, is refused), not only from ``stat``."""
 
-    def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None):
+    def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None,
+                 indexes: ShardIndexCache | None = None):
         super().__init__(store)
         self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
+        self.indexes = ShardIndexCache() if indexes is None else indexes
 
     def _with_store(self, store):
-        return type(self)(store, self.limits)
+        return type(self)(store, self.limits, self.indexes)
 
     def _local_size(self, key: str) -> int | None:
         inner = self._store
@@ -114,28 +121,78 @@ class GuardStore(zarr.storage.WrapperStore):
         def chunk_error(size: int) -> Exception:
             return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
 
+        if limit and byte_range is not None:  # only shards are read in ranges (spec section 4d)
+            problem = range_problem(limit, byte_range, chunk_read_limit(limit[0]))
+            if problem:
+                raise ChecksumError(f"{key}: {problem}; refused unread")
         cap, too_big = ((MAX_METADATA_BYTES, meta_error) if meta else
-                        (chunk_read_limit(limit[0]), chunk_error) if limit else (None, None))
+                        (read_cap(limit, byte_range, chunk_read_limit(limit[0])), chunk_error) if limit else
+                        (None, None))
+        index = limit is not None and isinstance(byte_range, SuffixByteRequest)  # a shard's index (checked above)
+        if index and (hit := self.indexes.get(key)) is not None:
+            return (prototype or default_buffer_prototype()).buffer.from_bytes(hit)
         if isinstance(self._store, (SafeLocalStore, SafeZipStore)):
             buf = await self._store.get_bounded(key, prototype, byte_range, cap, too_big)
         else:
-            size = self._local_size(key) if cap is not None else None
+            size = self._local_size(key) if cap is not None and byte_range is None else None
             if cap is not None and size is not None and size > cap:
                 raise too_big(size)
             buf = await self._store.get(key, prototype, byte_range)
-        if buf is None or byte_range is not None:
+            if buf is not None and cap is not None and len(buf) > cap:
+                raise too_big(len(buf))
+        if buf is None:
+            return buf
+        if index:
+            self.indexes.put(key, buf.to_bytes())
+        if byte_range is not None:
+            if limit and limit[1] and isinstance(byte_range, RangeByteRequest):  # one chunk of a shard
+                problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
+                if problem:
+                    raise ChecksumError(f"chunk {key} [{byte_range.start}, {byte_range.end}) is not a sound Blosc "
+                                        f"frame: {problem}; refused without decompressing")
             return buf
         if meta and len(buf) > MAX_METADATA_BYTES:
             raise meta_error(len(buf))
         if meta:
             check_metadata_document(key, buf.to_bytes())
-        if limit and limit[1]:
+        if limit and len(limit) > 2 and limit[2] > 1:  # a whole shard: its index, and every chunk's frame
+            frames = (lambda f: blosc_frame_problem(f, limit[0])) if limit[1] else None
+            problem = shard_problem(memoryview(buf.as_numpy_array()), limit[2], chunk_read_limit(limit[0]), frames)
+            if problem:
+                raise ChecksumError(f"shard {key} is not sound: {problem}; refused without decompressing")
+        elif limit and limit[1]:
             # a view, not a copy: only the header, the offset table and a few stream lengths are read
             problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
             if problem:
                 raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without "
                                     "decompressing")
         return buf
+
+
+class ShardIndexCache:
+    """The indexes of shards a reader has fetched (spec section 4d), by key: Zarr fetches a shard's index again
+    for every chunk it reads from the shard, which would double the requests of a region read. At most
+    ``max_bytes`` of indexes are kept (the oldest dropped first). A local map is read pinned to one version, so
+    an index never goes stale; a remote map replaced while read could pair an old index with new chunk bytes,
+    which then fail their own CRC32C (a read error, never wrong values)."""
+
+    def __init__(self, max_bytes: int = 16 << 20):
+        self.max_bytes, self.size = max_bytes, 0
+        self.items: collections.OrderedDict[str, bytes] = collections.OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: str) -> bytes | None:
+        with self.lock:
+            return self.items.get(key)
+
+    def put(self, key: str, data: bytes) -> None:
+        with self.lock:
+            if key in self.items or len(data) > self.max_bytes:
+                return
+            self.items[key] = data
+            self.size += len(data)
+            while self.size > self.max_bytes:
+                self.size -= len(self.items.popitem(last=False)[1])
 
 
 def blosc_frame_problem(frame: bytes | memoryview, max_nbytes: int) -> str | None:

@@ -27,7 +27,7 @@ from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
 from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, RESIDUAL_EXTENSION,
-                      STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+                      SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                       BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                       now_iso)
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
@@ -41,6 +41,7 @@ from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, e
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
+from .shards import pack_shards, unpack_shards
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
@@ -421,6 +422,11 @@ class MapWriter:
             # the exact voxels written so far become the field-compressed codes: every chunk compressed once
             compress_codes(self.group, Path(self.tmp), self.state, self.codes_spec.field_compression)
             extensions.append(Extension(name=FIELD_EXTENSION, required=True))
+        if self.codes_spec.shard_blocks is not None:
+            # every writer wrote plain chunk files; packed byte for byte into whole shards of the new version
+            # (spec section 4d), which nobody reads before the swap
+            pack_shards(self.tmp, "codes", self.codes_spec.shard_blocks)
+            extensions.append(Extension(name=SHARD_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
@@ -504,7 +510,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   chunk_blocks: int | None = None, chunk_code: int | None = None, overwrite: bool = False,
                   device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                   codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
-                  max_error: float | None = None, sign_exact: bool = False) -> MapWriter:
+                  max_error: float | None = None, sign_exact: bool = False,
+                  shard_blocks: int | None = None) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -529,6 +536,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         raise InvalidValueError(f"codec_state must be 'embedded' or 'reference', got {codec_state!r}")
     spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code, _quantisation(codec, code_dtype, code_step,
                                                                                   code_offset))
+    if shard_blocks is not None:
+        spec = _sharded(spec, shard_blocks)
     residual = residual_spec(codec, code_dtype, voxel_size, truncation, max_error, sign_exact)
     state = codec.state_dict()
     # by reference: the header names the shipped model and its digest, and no state array is written; a codec
@@ -566,6 +575,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         extensions += [Extension(name=STATE_REFERENCE_EXTENSION)] if ref else []
         extensions += [Extension(name=FIELD_EXTENSION)] if spec.field_compression is not None else []
         extensions += [Extension(name=RESIDUAL_EXTENSION)] if residual is not None else []
+        extensions += [Extension(name=SHARD_EXTENSION)] if spec.shard_blocks is not None else []
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
                            codes=spec, extensions=extensions, **header_kw)
     except WriteFailedError:
@@ -593,6 +603,21 @@ def _quantisation(codec: Codec, code_dtype: str, step: Any, offset: Any) -> Code
     if off.shape != (codec.code_size,) or not np.isfinite(off).all():
         raise InvalidValueError(f"code_offset must be {codec.code_size} finite numbers, got shape {off.shape}")
     return CodeQuantisation(step=[float(v) for v in st], offset=[float(v) for v in off])
+
+
+def _sharded(spec: CodesSpec, shard_blocks: Any) -> CodesSpec:
+    """``spec`` with its chunks of codes stored in shards of ``shard_blocks`` blocks per axis (spec section 4d),
+    checked: a whole number of chunks per axis (at least two) that divides the 64-block chunks of ``state``, so
+    a shard never straddles two state chunks (the state-chunk presence check looks at a state chunk's shards)."""
+    cb = spec.chunk_blocks
+    if (isinstance(shard_blocks, bool) or not isinstance(shard_blocks, (int, np.integer)) or shard_blocks <= cb
+            or shard_blocks % cb or 64 % shard_blocks):
+        raise InvalidValueError(f"shard_blocks must be a multiple of chunk_blocks ({cb}) above it that divides 64 "
+                                f"(e.g. {min(64, 4 * cb)}), got {shard_blocks!r}")
+    if spec.field_compression is not None:
+        raise InvalidValueError("field-compressed codes (sz3) are not sharded: their chunks are already 8 MiB "
+                                "fields; leave shard_blocks unset")
+    return spec.model_copy(update={"shard_blocks": int(shard_blocks)})
 
 
 def _grid_of(shape_voxels: Sequence[int]) -> tuple[int, int, int]:
@@ -670,6 +695,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
             tmp, tmp_fd = _atomic.make_temp_dir(final)
             _atomic.link_tree(root, tmp)
             src.close()
+            unpack_shards(tmp, "codes")  # written chunk by chunk, packed again at commit (spec section 4d)
             group = zarr.open_group(CowLocalStore(str(tmp)), mode="r+", zarr_format=3)
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
