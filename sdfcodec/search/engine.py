@@ -549,6 +549,12 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         kept, scene_info = scene_select(model.spec["shape"], model, sel_c, sel_s, sel_i, stage_t, coded,
                                         np.asarray(m.origin, np.float64), m.voxel_size, has_surface)
         sel_c, sel_s, sel_i = sel_c[kept], sel_s[kept], sel_i[kept]
+        if scene_info.get("planes"):  # the chosen planes checked block by block (sdfcodec.search.verify)
+            from .verify import check_planes
+
+            sel_c = check_planes(view, model, scene_info, sel_c, sel_s <= stage_t, coded)
+            sel_s, sel_i = score_codes(scorer, obs_scorer, codes_at(view, sel_c, lv),
+                                       view.read_observed(sel_c) if masked else None)
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
     if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here
