@@ -5,10 +5,11 @@ The map-level stage (:mod:`sdfcodec.search.scene`) finds *which* plane the query
 walls) from blocks scored against a model that samples planes on a lattice of offsets and directions. Once the
 plane is known, a block of it no longer needs to be near a lattice plane: it must look like *this* plane. For
 every coded block the plane crosses (by more than a corner sliver), :func:`plane_residuals` compares the
-block's decoded field, over the voxels the map observed, with the field of the plane stored the map's way
-(``behind``), letting the plane move by up to :data:`~sdfcodec.search.scene.PLANE_TOL_VOXELS` along its normal
-(the level's fit at that block) and, for fused maps, stretch as fusion stretches it. The residual is on the
-scale of the code scores: squared normalised differences scaled to a whole block.
+block's decoded field with the field of the plane stored the map's way (``behind``), over the observed voxels
+near the plane (:data:`BAND_VOXELS`), letting the plane move by up to
+:data:`~sdfcodec.search.scene.PLANE_TOL_VOXELS` along its normal (the level's fit at that block) and, for fused
+maps, stretch as fusion stretches it; and it measures how much of the block's decoded surface lies on the plane
+(:data:`PURITY`).
 
 A block is kept when its residual is under a threshold calibrated the way the search's threshold is
 (:func:`verify_threshold`): clean instances of the plane crossing a block anywhere (the level's own normal,
@@ -18,10 +19,11 @@ of them. A real map is noisier than those instances (a sensor's noise, a floor t
 the code-space stage already put on the plane measure by how much, and the median excess of their residuals
 over the simulated ones is added (:func:`verify_planes` reports both).
 
-What this removes: blocks holding the plane *and* something else (the foot of a table on the floor, a wall's
+Maps that record their observation are only pruned by the check (:func:`check_planes`). What this removes:
+blocks holding the plane *and* something else (the foot of a table on the floor, a wall's
 edge), which lie close enough to some lattice plane to pass the code-space score but not to the plane the
-map holds. What it adds: blocks of the plane that fusion observed too thinly to score well against the
-lattice, whose observed voxels agree with the plane.
+map holds. What it adds (maps without an observation record): blocks of the plane that scored poorly against
+the lattice (a tilted plane between its directions, a plane near a block's face) but agree with the plane.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ from .._validate import BLOCK
 from ..blocks import normalise
 from .shapes import MIN_SHAPE_SURFACE, truncate
 
-__all__ = ["VERIFY_STEP", "BAND_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals", "verify_threshold", "verify_planes"]
+__all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
+           "verify_threshold", "verify_planes", "check_planes"]
 
 #: Offsets (voxels) along the plane's normal tried at each block, within the plane tolerance.
 VERIFY_STEP = 0.5
@@ -60,20 +63,23 @@ _GRID = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3
 
 
 def _decode(codec: Any, codes: np.ndarray) -> np.ndarray:
-    """Normalised blocks ``(n, 4096)`` float32 decoded from full codes."""
+    """Normalised blocks ``(n, 4096)`` float32 decoded from codes (a prefix of a prefix-ordered codec's codes is
+    decoded with the rest zero: the search's level)."""
+    if codes.shape[1] < codec.code_size:
+        codes = np.pad(codes, ((0, 0), (0, codec.code_size - codes.shape[1])))
     with torch.no_grad():
         out = codec.decode(torch.from_numpy(np.ascontiguousarray(codes, dtype=np.float32)))
     return np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
 
 
 def _ideal(dist: np.ndarray, deltas: np.ndarray, stretches: np.ndarray, voxel_size: float,
-           truncation: tuple[float, float], behind: str) -> tuple[np.ndarray, np.ndarray]:
+           truncation: tuple[float, float], behind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised plane fields ``(n, len(deltas) * len(stretches), 4096)`` of blocks whose voxels lie ``dist``
     ``(n, 4096)`` voxels from the plane (positive on its free side), the plane moved by each delta and the field
-    stretched by each factor; and which voxels to compare (same shape, bool): those within
-    :data:`BAND_VOXELS` of the plane but, for an unobserved-behind field, not within :data:`JUMP_VOXELS` of where it jumps
-    from ``d_min`` to ``d_max`` (a sub-voxel move of the plane flips them, so they say nothing about whether the
-    block holds it)."""
+    stretched by each factor; which voxels to compare (same shape, bool): those within :data:`BAND_VOXELS` of
+    the plane but, for an unobserved-behind field, not within :data:`JUMP_VOXELS` of where it jumps from
+    ``d_min`` to ``d_max`` (a sub-voxel move of the plane flips them, so they say nothing about whether the
+    block holds it); and which moves keep the plane in the block (``(n, moves x stretches)`` bool)."""
     moved = dist[:, None, None, :] - deltas[None, :, None, None]
     d = (moved * stretches[None, None, :, None]).astype(np.float32)
     d *= np.float32(voxel_size)
@@ -107,7 +113,10 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     Returns
     -------
     residual : np.ndarray
-        ``(n,)`` float32: ``min 4096 / n_obs * sum_observed (x - plane)^2`` over the moves and stretches.
+        ``(n,)`` float32: ``min sum (x - plane)^2`` over the moves and stretches (a move that leaves the plane
+        only a corner sliver of the block is no candidate), the sum over the compared voxels (:func:`_ideal`:
+        within :data:`BAND_VOXELS` of the plane, observed, away from an unobserved-behind field's jump). A sum,
+        not a mean: a plane crossing few of a block's voxels is little evidence either way.
     seen : np.ndarray
         ``(n,)`` int64 observed voxels within one voxel of the plane.
     moved : np.ndarray
@@ -185,8 +194,9 @@ def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, trunc
                            stretches=np.asarray(stretches, np.float64), tol=tol)[:2]
 
 
-def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray, *,
-                  behind: str, weighted: bool, stretches: Any, quantile: float, samples: int, tol: float
+def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
+                  codes_of: Any, *, behind: str, weighted: bool, stretches: Any, quantile: float, samples: int,
+                  tol: float
                   ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Check every coded block each plane crosses against it (module docstring).
 
@@ -201,6 +211,8 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     strong : np.ndarray
         ``(S, 3)`` int64 blocks the map-level stage kept with a score under the threshold: the blocks that
         measure how much noisier the map is than the simulated instances.
+    codes_of : callable
+        ``coords (N, 3) -> codes (N, L)``: the blocks' codes at the search's level (held from its stream).
     behind, weighted, stretches :
         How the map stores and encodes its fields (the query model's ``spec``).
     quantile, samples, tol :
@@ -218,8 +230,6 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         JSON-able: per plane, the calibrated threshold, the noise added, the blocks checked, accepted,
         rejected and undecided.
     """
-    from .engine import codes_at
-
     codec = view.codec
     vs, trunc = view.voxel_size, view.truncation
     origin = np.asarray(view.origin, np.float64)
@@ -238,7 +248,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
             report.append({"normal": [round(float(v), 4) for v in n], "checked": 0})
             continue
         c = coded[near]
-        x = _decode(codec, codes_at(view, c, view.code_size))
+        x = _decode(codec, codes_of(c))
         obs = view.read_observed(c).reshape(len(c), -1) if weighted else np.ones(x.shape, bool)
         on = np.array([tuple(b) in strong_set for b in c.tolist()], bool)
         t_used = tol
@@ -271,7 +281,8 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         undecided.append(c[~decided])
         impure.append(c[decided & (share < PURITY)])
         report.append({"normal": [round(float(v), 4) for v in n], "d": round(float(d), 4), "checked": int(len(c)),
-                       "move_voxels": round(t_used, 3), "threshold": round(t, 4), "simulated_threshold": round(t_clean, 4),
+                       "move_voxels": round(t_used, 3), "threshold": round(t, 4),
+                       "simulated_threshold": round(t_clean, 4),
                        "noise_excess": round(excess, 4), "measured_on": int(on.sum()), "accepted": int(ok.sum()),
                        "rejected": int((decided & ~ok).sum()), "undecided": int((~decided).sum())})
     cat = (lambda parts: np.unique(np.concatenate(parts), axis=0) if parts else np.zeros((0, 3), np.int64))
@@ -284,11 +295,12 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
 
 
 def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept_strong: np.ndarray,
-                 coded: np.ndarray) -> np.ndarray:
+                 coded: np.ndarray, codes_of: Any) -> np.ndarray:
     """The final selection of a staged floor, ceiling or wall search: the blocks the planes the map-level stage
     chose (``scene_info["planes"]``, moved to ``scene_info["plane_check"]`` with the check's report) accept,
     plus the blocks it kept that were observed too little to check. ``kept`` ``(K, 3)``: the map-level stage's
-    blocks, ``kept_strong`` ``(K,)`` bool: those scoring under the threshold; ``coded``: every coded block."""
+    blocks, ``kept_strong`` ``(K,)`` bool: those scoring under the threshold; ``coded``: every coded block;
+    ``codes_of``: see :func:`verify_planes`."""
     from .engine import CALIBRATION_QUANTILE, CALIBRATION_SAMPLES
     from .scene import PLANE_TOL_VOXELS
 
@@ -296,10 +308,10 @@ def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept
     planes = [(np.asarray(p["normal"], np.float64), float(p["d"])) for p in scene_info.pop("planes", [])]
     if not planes:
         return kept
-    acc, undecided, impure, info = verify_planes(view, planes, coded, kept[kept_strong], behind=spec.get("behind", "solid"),
-                                         weighted=bool(spec.get("weighted")), stretches=spec.get("stretch"),
-                                         quantile=CALIBRATION_QUANTILE, samples=CALIBRATION_SAMPLES,
-                                         tol=PLANE_TOL_VOXELS)
+    acc, undecided, impure, info = verify_planes(
+        view, planes, coded, kept[kept_strong], codes_of, behind=spec.get("behind", "solid"),
+        weighted=bool(spec.get("weighted")), stretches=spec.get("stretch"), quantile=CALIBRATION_QUANTILE,
+        samples=CALIBRATION_SAMPLES, tol=PLANE_TOL_VOXELS)
     if spec.get("weighted"):
         # a map that records its observation was fused from views: its blocks of a plane are seen in parts and
         # stretched, which the residual of a thinly observed block does not tell from another shape (measured:
