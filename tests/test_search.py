@@ -347,8 +347,8 @@ def test_search_command(tmp_path, maps):
     assert summary["selected"] == len(summary["blocks"]) > 0
     for b in summary["blocks"]:
         assert isinstance(b["coords"], list) and len(b["coords"]) == 3 and all(type(v) is int for v in b["coords"])
-    # the floor's plane check (sdfcodec.search.verify) made the selection: the blocks its plane accepted, and those
-    # observed too little to check that the map-level stage kept
+    # the floor's plane check (sdfcodec.search.plane_check) made the selection: the blocks its plane accepted, and
+    # those observed too little to check that the map-level stage kept
     pc = summary["scene"]["plane_check"]
     assert len(pc["planes"]) == 1 and pc["planes"][0]["checked"] >= summary["selected"]
     assert pc["planes"][0]["accepted"] + pc["kept_unchecked"] == pc["selected"] == summary["selected"]

@@ -554,8 +554,8 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         kept, scene_info = scene_select(model.spec["shape"], model, sel_c, sel_s, sel_i, stage_t, coded,
                                         np.asarray(m.origin, np.float64), m.voxel_size, has_surface)
         sel_c, sel_s, sel_i = sel_c[kept], sel_s[kept], sel_i[kept]
-        if scene_info.get("planes"):  # the chosen planes checked block by block (sdfcodec.search.verify)
-            from .verify import check_planes
+        if scene_info.get("planes"):  # the chosen planes checked block by block (sdfcodec.search.plane_check)
+            from .plane_check import check_planes
 
             codes_of = _held_codes(view, lv, held)
             sel_c = check_planes(view, model, scene_info, sel_c, sel_s <= stage_t, coded, codes_of)

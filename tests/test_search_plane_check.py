@@ -1,4 +1,4 @@
-"""The plane check that ends a floor, ceiling or wall search (sdfcodec.search.verify), against analytic planes:
+"""The plane check that ends a floor, ceiling or wall search (sdfcodec.search.plane_check), against analytic planes:
 the residual of a block that is the plane is the codec's error alone, a second surface in a block is seen, and
 a search of a tilted exact floor keeps its clean blocks and drops those holding a box's foot."""
 
@@ -14,7 +14,7 @@ from sdfcodec import pretrained_codec
 from sdfcodec import search as S
 from sdfcodec.blocks import normalise
 from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
-from sdfcodec.search.verify import PURITY, plane_residuals
+from sdfcodec.search.plane_check import PURITY, plane_residuals
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 _G = np.stack(np.meshgrid(*[np.arange(16, dtype=np.float64) - 7.5] * 3, indexing="ij"), -1).reshape(-1, 3)
