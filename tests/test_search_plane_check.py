@@ -5,6 +5,8 @@ a search of a tilted exact floor keeps its clean blocks and drops those holding 
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +19,9 @@ from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
 from sdfcodec.search.plane_check import PURITY, plane_residuals
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _fused_maps import fused_like, write_volume_map  # noqa: E402
+
 _G = np.stack(np.meshgrid(*[np.arange(16, dtype=np.float64) - 7.5] * 3, indexing="ij"), -1).reshape(-1, 3)
 
 
@@ -31,28 +36,32 @@ def test_residual_of_the_plane_itself_is_zero_and_a_second_surface_is_seen():
     dist = (_G @ n - 1.3)[None]  # a plane 1.3 voxels above the centre
     x = _field(dist)
     kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", stretches=np.array([1.0]), tol=1.0)
-    r, seen, moved, const, share = plane_residuals(x, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
-    assert r[0] < 1e-6 and moved[0] == 0.0 and share[0] == 1.0 and const[0] > 100 * max(r[0], 1e-3)
+    r, seen, moved, const, share, on = plane_residuals(x, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    assert r[0] < 1e-6 and moved[0] == 0.0 and share[0] == 1.0 and on[0] >= 256 and const[0] > 100 * max(r[0], 1e-3)
     assert seen[0] >= 256  # a plane across the block: two voxel layers within a voxel of it
     # the plane moved by 0.7 voxel: found within the tolerance, residual small, not zero (the moves are 0.5 apart)
-    r2, _, moved2, _, _ = plane_residuals(_field(dist - 0.7), np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    r2, _, moved2, *_ = plane_residuals(_field(dist - 0.7), np.ones(x.shape, bool), dist.astype(np.float32), **kw)
     assert moved2[0] == 0.5 and 0 < r2[0] < 2.0
     # a slab's underside 6 voxels above the plane (solid above it): a second surface on the free side
     other = 7.3 - _G @ n
     both = _field(np.minimum(dist, other[None]))
-    *_, share3 = plane_residuals(both, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    *_, share3, _ = plane_residuals(both, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
     assert share3[0] < PURITY
 
 
-@pytest.fixture(scope="module")
-def tilted_floor(tmp_path_factory):
-    """An exact, 6 degree tilted floor over solid ground, with a box standing on it."""
+def _tilted_scene():
     a = math.radians(6.0)
     n = np.array([math.sin(a), 0.0, math.cos(a)])
     shape = (96, 96, 64)
     floor = Plane(tuple(n), 0.3)
     box = Box((1.0, 1.0, 0.3 / math.cos(a) + 0.15), (0.2, 0.2, 0.2))
-    vol = sample_volume(Scene([floor, box]), shape, VS, truncation=TRUNC)
+    return n, shape, floor, box, sample_volume(Scene([floor, box]), shape, VS, truncation=TRUNC)
+
+
+@pytest.fixture(scope="module")
+def tilted_floor(tmp_path_factory):
+    """An exact, 6 degree tilted floor over solid ground, with a box standing on it."""
+    n, shape, floor, box, vol = _tilted_scene()
     path = tmp_path_factory.mktemp("tilted") / "floor.sdfz"
     with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
         w.write_volume(vol)
@@ -83,3 +92,17 @@ def test_tilted_floor_keeps_clean_blocks_and_drops_the_box_foot(tilted_floor):
     plane = check["planes"][0]
     assert math.degrees(math.acos(min(1.0, abs(float(np.dot(plane["normal"], n)))))) < 1.0
     assert plane["accepted"] == len(got) - check.get("kept_unchecked", 0)
+
+
+def test_a_map_with_its_observation_is_only_pruned(tmp_path, tilted_floor):
+    """The same scene as fusion leaves it (unobserved deeper than |d_min| behind surfaces), written with its
+    observation: the check adds no block to the map-level stage's, and drops those holding the box's foot."""
+    _, n, clean, mixed = tilted_floor
+    vol, observed = fused_like(_tilted_scene()[4])
+    write_volume_map(tmp_path / "f.sdfz", vol, observed, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "f.sdfz")
+    res = S.search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    got = {tuple(int(v) for v in c) for c in res.coords}
+    check = res.stats["scene"]["plane_check"]
+    assert "not added" in check["rule"] and check["selected"] == len(got) <= res.stats["scene"]["kept"]
+    assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)

@@ -127,6 +127,8 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     share : np.ndarray
         ``(n,)`` float64 of the block's surface voxels (decoded within a voxel of zero) on the plane or on its
         free side beyond the compared band, the share on the plane.
+    on : np.ndarray
+        ``(n,)`` int64 the block's surface voxels on the plane (within a voxel of it, moved).
     """
     deltas = np.arange(-tol, tol + 1e-9, VERIFY_STEP)
     out = np.empty(len(x), np.float32)
@@ -153,7 +155,7 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     on = (surf & (np.abs(rel) <= 1.0)).sum(axis=1)
     off = (surf & (rel > BAND_VOXELS)).sum(axis=1)
     share = np.where(on + off > 0, on / np.maximum(on + off, 1), 1.0)  # no surface seen: no other surface either
-    return out, seen, moved, constant.astype(np.float32), share
+    return out, seen, moved, constant.astype(np.float32), share, on
 
 
 def _crossing(normal: np.ndarray) -> float:
@@ -236,7 +238,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     st = np.asarray(stretches if stretches is not None else [1.0], np.float64)
     centres = origin + vs * (BLOCK * coded.astype(np.float64) + _CENTRE)
     strong_set = {tuple(c) for c in np.asarray(strong).tolist()}
-    accepted, undecided, impure, report = [], [], [], []
+    accepted, undecided, impure, crossed, report = [], [], [], [], []
     for k, (normal, d) in enumerate(planes):
         n = np.asarray(normal, np.float64)
         off = (centres @ n - d) / vs  # voxels from each block's centre to the plane
@@ -253,8 +255,8 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         on = np.array([tuple(b) in strong_set for b in c.tolist()], bool)
         t_used = tol
         for rnd in range(2):
-            r, seen, moved, const, share = plane_residuals(x, obs, dist, voxel_size=vs, truncation=trunc, behind=behind,
-                                                    stretches=st, tol=t_used)
+            r, seen, moved, const, share, on_plane = plane_residuals(
+                x, obs, dist, voxel_size=vs, truncation=trunc, behind=behind, stretches=st, tol=t_used)
             sim, _ = verify_threshold(n, codec, voxel_size=vs, truncation=trunc, behind=behind, weighted=weighted,
                                       stretches=st, tol=t_used, samples=samples, quantile=quantile, seed=k)
             t_clean = float(np.quantile(sim, quantile))
@@ -262,7 +264,8 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
             excess = max(0.0, float(np.median(r[meas]) - np.median(sim))) if meas.any() else 0.0
             t = t_clean + excess
             decided = seen >= MIN_VERDICT_SURFACE
-            ok = decided & (r <= t) & (r < const) & (share >= PURITY)
+            # and the block shows the plane: as many decoded surface voxels on it as a check needs observed
+            ok = decided & (r <= t) & (r < const) & (share >= PURITY) & (on_plane >= MIN_VERDICT_SURFACE)
             fit = ok & on
             if rnd or fit.sum() < 3:
                 break
@@ -280,6 +283,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         accepted.append(c[ok])
         undecided.append(c[~decided])
         impure.append(c[decided & (share < PURITY)])
+        crossed.append(c.tolist())
         report.append({"normal": [round(float(v), 4) for v in n], "d": round(float(d), 4), "checked": int(len(c)),
                        "move_voxels": round(t_used, 3), "threshold": round(t, 4),
                        "simulated_threshold": round(t_clean, 4),
@@ -289,7 +293,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     info = {"rule": (f"every coded block a chosen plane crosses, checked against that plane (moved up to {tol:g} "
                      f"voxels, {'stretched, ' if len(st) > 1 else ''}over its observed voxels) with a threshold "
                      f"keeping {quantile:.0%} of simulated clean blocks of it, plus the map's measured excess noise"),
-            "planes": report}
+            "planes": report, "crossed": crossed}
     return cat(accepted).astype(np.int64), cat(undecided).astype(np.int64), cat(impure).astype(np.int64), info
 
 
@@ -316,18 +320,24 @@ def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept
         # a map that records its observation was fused from views: its blocks of a plane are seen in parts and
         # stretched, which the residual of a thinly observed block does not tell from another shape (measured:
         # the rendered rooms' floor blocks seen through one voxel layer score like furniture). Here the check only
-        # drops the map-level stage's blocks that hold another surface besides the plane.
+        # drops the map-level stage's blocks that hold another surface besides the plane, or that the plane does not
+        # cross (the stage joins blocks to a level within its 4-voxel tolerance).
         bad = {tuple(c) for c in impure.tolist()}
-        stay = np.array([tuple(c) not in bad for c in kept.tolist()], bool) if len(kept) else np.zeros(0, bool)
-        info["rule"] = (f"the map-level stage's blocks, less those whose decoded surface lies under {PURITY:.0%} on a "
-                        "chosen plane (a map that records its observation: blocks are not added)")
-        info["dropped_impure"] = int((~stay).sum())
+        crossed = {tuple(c) for p in info["crossed"] for c in p}
+        # kept: crossed by a chosen plane (more than a corner sliver of it) and not holding another surface
+        stay = (np.array([tuple(c) not in bad and tuple(c) in crossed for c in kept.tolist()], bool) if len(kept)
+                else np.zeros(0, bool))
+        info["rule"] = (f"the map-level stage's blocks that a chosen plane crosses and whose decoded surface lies at "
+                        f"least {PURITY:.0%} on it (a map that records its observation: blocks are not added)")
+        info.pop("crossed")
+        info["dropped"] = int((~stay).sum())
         info["selected"] = int(stay.sum())
         scene_info["plane_check"] = info
         return kept[stay]
     und = {tuple(c) for c in undecided.tolist()}
     stay = np.array([tuple(c) in und for c in kept.tolist()], bool) if len(kept) else np.zeros(0, bool)
     out = np.unique(np.concatenate([acc, kept[stay]]), axis=0) if len(acc) or stay.any() else acc
+    info.pop("crossed")
     info["kept_unchecked"] = int(stay.sum())
     info["selected"] = int(len(out))
     scene_info["plane_check"] = info
