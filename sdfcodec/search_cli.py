@@ -342,6 +342,11 @@ def format_summary(s: dict) -> str:
         lines.append(f"map-level stage: {sc['rule']}; {sc.get('candidates', 0)} candidates, {kept}"
                      + (f" ({sc['kept_over_threshold']} partly observed blocks over the threshold joined their plane)"
                         if sc.get("kept_over_threshold") else ""))
+        pc = sc.get("plane_check")
+        if pc:
+            planes = pc.get("planes", [])
+            lines.append(f"plane check: {pc['rule']}; {sum(p.get('checked', 0) for p in planes)} blocks on "
+                         f"{len(planes)} plane(s) checked, {pc.get('selected', 0)} selected")
     if s.get("hint"):
         lines.append(f"nothing selected: {s['hint']}")
     headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}' in "

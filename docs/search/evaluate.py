@@ -45,8 +45,12 @@ from sdfcodec import search as S
 from sdfcodec.search.metrics import TRUTH
 
 HERE = Path(__file__).resolve().parent
-# a 7-Scenes redkitchen sequence folder (frames, poses, gravity): $SDFCODEC_KITCHEN, else ./7scenes-redkitchen
-KITCHEN = Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"))
+
+
+def _kitchen_dir() -> Path | None:
+    """A 7-Scenes redkitchen sequence folder (frames, poses, gravity): --kitchen DIR or $SDFCODEC_KITCHEN."""
+    d = os.environ.get("SDFCODEC_KITCHEN")
+    return Path(d) if d else None
 QUERIES = ("floor", "wall", "ceiling")
 PARTS = ("edge", "corner", "pole")
 
@@ -237,11 +241,12 @@ def _tally(kinds: list, seeds: list) -> dict:
         for kind in kinds:
             items = []
             if kind == "kitchen":
-                if not KITCHEN.is_dir():
-                    print("no kitchen data; skipped", file=sys.stderr)
+                kdir = _kitchen_dir()
+                if kdir is None or not kdir.is_dir():
+                    print("no kitchen data (--kitchen DIR or $SDFCODEC_KITCHEN); skipped", file=sys.stderr)
                     continue
                 from sdfcodec.fusion import fuse
-                fused = fuse(KITCHEN, voxel_size=0.02, truncation=(-0.04, 0.1), quiet=True)
+                fused = fuse(kdir, voxel_size=0.02, truncation=(-0.04, 0.1), quiet=True)
                 rawp = tmp / "kitchen-raw.sdfz"
                 with sdfcodec.create_map(rawp, codec=sdfcodec.get_codec("raw"), voxel_size=0.02,
                                          origin=tuple(fused.origin), up=fused.up, tool="sdfcodec fuse") as w:
@@ -264,11 +269,18 @@ def _tally(kinds: list, seeds: list) -> dict:
                 elif kind == "exact-tilted":
                     room = S.synthetic_room(seed, geometry=("normal", "rich")[seed % 2], behind="solid", tilt_deg=10)
                     items.append((_write(path, room, codec), room, None))
+                elif kind in ("fused-style", "fused-style-tilted"):
+                    # exact distances in a band, unobserved (d_max) beyond it, written as a plain volume: the map
+                    # records neither weights nor up, so what is behind surfaces and up are found from its blocks
+                    tilt = 10.0 if kind.endswith("tilted") else 0.0
+                    for g in (("poor", "normal", "rich") if not tilt else (("normal", "rich")[seed % 2],)):
+                        room = S.synthetic_room(seed, geometry=g, behind="unobserved", tilt_deg=tilt)
+                        items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec), room, None))
                 elif kind in ("fused", "fused-tilted"):
                     m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec)
                     items.append((m, room, None))
             runs = [(it, q, sc) for it in items for q in QUERIES for sc in (True, False)]
-            if kind in ("exact", "exact-tilted"):  # truths from the primitives' structure (no scene stage)
+            if kind in ("exact", "exact-tilted", "fused-style"):  # truths from the primitives' structure (no scene stage)
                 runs += [(it, q, True) for it in items for q in PARTS]
             for (m, room, raw), q, scene in runs:
                     if kind == "exact-open" and q != "floor":
@@ -343,11 +355,16 @@ def _tally(kinds: list, seeds: list) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[7501, 7502, 7503])
-    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused", "fused-tilted",
-                                                     "kitchen"])
+    ap.add_argument("--kinds", nargs="+", default=["exact", "exact-open", "exact-tilted", "fused-style",
+                                                     "fused-style-tilted", "fused", "fused-tilted", "kitchen"])
+    ap.add_argument("--kitchen", type=Path, default=None,
+                    help="a 7-Scenes redkitchen sequence folder (default: $SDFCODEC_KITCHEN); without one the kitchen "
+                         "rows are skipped")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--jobs", type=int, default=1, help="processes (one task per kind and seed)")
     args = ap.parse_args(argv)
+    if args.kitchen is not None:  # the worker processes read it from the environment
+        os.environ["SDFCODEC_KITCHEN"] = str(args.kitchen)
     t0 = time.perf_counter()
     # one task per kind and seed (the kitchen once), run in --jobs processes; counts are pooled afterwards
     tasks = [([k], [sd]) for k in args.kinds if k != "kitchen" for sd in args.seeds]
@@ -382,7 +399,6 @@ def main(argv=None) -> int:
         print(f"| {kind} | {q} | {t['maps']} | {t['blocks']} | {t['positives']} | {t['selected']} | {p:.3f} | {r:.3f} | "
               f"{', '.join(sorted(t['behind']))} | {min(t['thresholds']):.1f}-{max(t['thresholds']):.1f} |")
     if args.out:
-        import os
         args.out.write_text(json.dumps({"seeds": args.seeds, "kinds": args.kinds, "load": os.getloadavg(), "rows": rows,
                                         "seconds": time.perf_counter() - t0}, indent=1))
     return 0

@@ -29,8 +29,8 @@ from sdfcodec.search_cli import format_summary, search_command
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-# a 7-Scenes redkitchen sequence folder (frames, poses, gravity): $SDFCODEC_KITCHEN, else ./7scenes-redkitchen
-KITCHEN = Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"))
+# a 7-Scenes redkitchen sequence folder (frames, poses, gravity): --kitchen DIR, else $SDFCODEC_KITCHEN
+KITCHEN = Path(os.environ["SDFCODEC_KITCHEN"]) if os.environ.get("SDFCODEC_KITCHEN") else None
 
 
 def _machine() -> dict:
@@ -220,8 +220,9 @@ def kitchen() -> None:
     direction (minus gravity), and draw Fig. 7. Also searches the lossless raw map for comparison."""
     from sdfcodec.fusion import fuse
 
-    if not KITCHEN.is_dir():
-        raise SystemExit(f"no kitchen data at {KITCHEN}")
+    if KITCHEN is None or not KITCHEN.is_dir():
+        raise SystemExit(f"no kitchen data at {KITCHEN or '(none given)'}: pass --kitchen DIR (a 7-Scenes "
+                         "redkitchen sequence folder) or set $SDFCODEC_KITCHEN")
     g_cam = np.loadtxt(KITCHEN / "gravity-direction.txt")
     pose0 = np.loadtxt(KITCHEN / "frame-000000.pose.txt")
     up = -(pose0[:3, :3] @ g_cam)
@@ -277,6 +278,10 @@ def kitchen() -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["pr", "bench", "room", "kitchen", "all"])
+    ap.add_argument("--kitchen", type=Path, default=None, help="a 7-Scenes redkitchen sequence folder "
+                                                                "(default: $SDFCODEC_KITCHEN)")
     args = ap.parse_args()
+    if args.kitchen is not None:
+        KITCHEN = args.kitchen
     for name in (["pr", "bench", "room", "kitchen"] if args.what == "all" else [args.what]):
         globals()[name]()

@@ -66,6 +66,8 @@ works as before):
   :func:`search` and :func:`expand`;
 * :mod:`sdfcodec.search.scene`: the map-level stage of floor, ceiling and wall searches (the lowest large
   up-facing level, a ceiling that closes the map, large vertical planes);
+* :mod:`sdfcodec.search.plane_check`: the plane check that ends those searches (every block a chosen plane
+  crosses, checked against that plane with a calibrated threshold; its functions are not re-exported here);
 * :mod:`sdfcodec.search.metrics`: precision/recall of retrieval on labelled rooms;
 * the labelled rooms themselves are :mod:`sdfcodec.data.rooms`, the rotations :mod:`sdfcodec.geometry`, and
   the search benchmark ``sdfcodec.bench.bench_search`` (``sdfcodec.search.bench_search`` still works, with a

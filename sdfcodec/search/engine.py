@@ -518,10 +518,15 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     sel_c, sel_s, sel_i = np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
     sel_q = np.zeros((0, lv), np.float32)
     all_c, all_s = [], []
+    held: list | None = [] if staged else None  # the streamed codes, for the plane check (read once)
     n_scored = 0
     for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
         s, idx = score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
         n_scored += len(s)
+        if held is not None:
+            held.append((np.array(coords, np.int64), np.array(codes, np.float32)))  # copies: batches may be reused
+            if sum(c.nbytes for _, c in held) > HOLD_CODES_BYTES:
+                held = None  # a map too large to hold: the plane check reads its planes' chunks again
         if keep_scores:
             all_c.append(coords)
             all_s.append(s)
@@ -549,6 +554,13 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         kept, scene_info = scene_select(model.spec["shape"], model, sel_c, sel_s, sel_i, stage_t, coded,
                                         np.asarray(m.origin, np.float64), m.voxel_size, has_surface)
         sel_c, sel_s, sel_i = sel_c[kept], sel_s[kept], sel_i[kept]
+        if scene_info.get("planes"):  # the chosen planes checked block by block (sdfcodec.search.plane_check)
+            from .plane_check import check_planes
+
+            codes_of = _held_codes(view, lv, held)
+            sel_c = check_planes(view, model, scene_info, sel_c, sel_s <= stage_t, coded, codes_of)
+            sel_s, sel_i = score_codes(scorer, obs_scorer, codes_of(sel_c),
+                                       view.read_observed(sel_c) if masked else None)
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
     if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here
@@ -590,6 +602,30 @@ def codes_at(m: Map, coords: np.ndarray, level: int) -> np.ndarray:
         chunk = m.reader.read(arr, (*box, slice(0, level)))
         codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
     return codes
+
+
+#: :func:`search` holds the codes it streams, up to this many bytes, so the plane check of a floor, ceiling or wall
+#: search reads no chunk twice; beyond it, the check reads the chunks of its planes' blocks again.
+HOLD_CODES_BYTES = 256 << 20
+
+
+def _held_codes(view: Map, level: int, held: list | None):
+    """``coords (N, 3) -> codes (N, level)``: from the codes a search held (``[(coords, codes), ...]``), else
+    read (:func:`codes_at`)."""
+    if held is None:
+        return lambda c: codes_at(view, c, level)
+    grid = tuple(int(g) for g in view.grid_blocks)
+    all_c = np.concatenate([c for c, _ in held]) if held else np.zeros((0, 3), np.int64)
+    all_q = np.concatenate([q for _, q in held]) if held else np.zeros((0, level), np.float32)
+    keys = np.ravel_multi_index(all_c.T, grid)
+    order = np.argsort(keys)
+    skeys = keys[order]
+
+    def codes_of(c: np.ndarray) -> np.ndarray:
+        c = np.asarray(c, np.int64).reshape(-1, 3)
+        return all_q[order[np.searchsorted(skeys, np.ravel_multi_index(c.T, grid))]]
+
+    return codes_of
 
 
 #: :func:`_surface_test`: a block within this share of the query's threshold of a block of solid or free space

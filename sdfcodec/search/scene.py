@@ -196,6 +196,11 @@ def plane_levels(comp: np.ndarray, normals: np.ndarray, points: np.ndarray, live
     return level, levels
 
 
+def _plane_json(level: dict) -> dict:
+    """A level's plane ``n . p = d`` (metres, ``n`` into free space) as JSON, for the plane check that follows."""
+    return {"normal": [float(v) for v in level["normal"]], "d": float(level["d"])}
+
+
 def _footprint(coded: np.ndarray, up: np.ndarray) -> int:
     """How many block-sized cells across ``up`` hold coded blocks (the map seen from above)."""
     if not len(coded):
@@ -289,6 +294,7 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
                 chosen = None
         if chosen is not None:
             keep = lv_of == chosen
+            info["planes"] = [_plane_json(levels[chosen])]
             info["height"] = report[chosen]["height"]
             info["chosen_level"] = int(chosen)
         info["rule"] = (f"{query}: the {end} level of {'up' if query == 'floor' else 'down'}-facing planar patches "
@@ -296,6 +302,7 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
                         f"{MAP_SHARE:.0%} of the map's footprint ({least:.0f} blocks), with at most {BEYOND_SHARE:.0%} of the map's coded blocks {word} it")
     elif query == "wall":
         keep = (lv_of >= 0) & large[np.maximum(lv_of, 0)]
+        info["planes"] = [_plane_json(lv) for lv, big in zip(levels, large) if big]
         info["rule"] = (f"wall: vertical planes (patches grouped by plane) holding at least {WALL_SHARE:.0%} of the "
                         f"largest one's blocks (and {MIN_PATCH_BLOCKS})")
     else:

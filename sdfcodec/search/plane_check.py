@@ -1,0 +1,344 @@
+"""The last stage of a floor, ceiling or wall search: every block the chosen plane crosses, checked against that
+plane itself.
+
+The map-level stage (:mod:`sdfcodec.search.scene`) finds *which* plane the query means (the floor's level, the
+walls) from blocks scored against a model that samples planes on a lattice of offsets and directions. Once the
+plane is known, a block of it no longer needs to be near a lattice plane: it must look like *this* plane. For
+every coded block the plane crosses (by more than a corner sliver), :func:`plane_residuals` compares the
+block's decoded field with the field of the plane stored the map's way (``behind``), over the observed voxels
+near the plane (:data:`BAND_VOXELS`), letting the plane move by up to
+:data:`~sdfcodec.search.scene.PLANE_TOL_VOXELS` along its normal (the level's fit at that block) and, for fused
+maps, stretch as fusion stretches it; and it measures how much of the block's decoded surface lies on the plane
+(:data:`PURITY`).
+
+A block is kept when its residual is under a threshold calibrated the way the search's threshold is
+(:func:`verify_threshold`): clean instances of the plane crossing a block anywhere (the level's own normal,
+fitted off by up to the plane tolerance), stored, encoded and decoded with the map's codec the map's way, and
+checked exactly as the map's blocks are; the threshold keeps :data:`~sdfcodec.search.engine.CALIBRATION_QUANTILE`
+of them. A real map is noisier than those instances (a sensor's noise, a floor that is not flat): the blocks
+the code-space stage already put on the plane measure by how much, and the median excess of their residuals
+over the simulated ones is added (:func:`verify_planes` reports both).
+
+Maps that record their observation are only pruned by the check (:func:`check_planes`). What this removes:
+blocks holding the plane *and* something else (the foot of a table on the floor, a wall's
+edge), which lie close enough to some lattice plane to pass the code-space score but not to the plane the
+map holds. What it adds (maps without an observation record): blocks of the plane that scored poorly against
+the lattice (a tilted plane between its directions, a plane near a block's face) but agree with the plane.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._validate import BLOCK
+from ..blocks import normalise
+from .shapes import MIN_SHAPE_SURFACE, truncate
+
+__all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
+           "verify_threshold", "verify_planes", "check_planes"]
+
+#: Offsets (voxels) along the plane's normal tried at each block, within the plane tolerance.
+VERIFY_STEP = 0.5
+#: Blocks with fewer observed voxels within a voxel of the plane than this get no verdict (the map-level stage's
+#: decision stands): too little of the plane was seen to compare. The models' own corner-sliver rule
+#: (:data:`~sdfcodec.search.shapes.MIN_SHAPE_SURFACE`) divided by four: a quarter of a sliver.
+MIN_VERDICT_SURFACE = MIN_SHAPE_SURFACE // 4
+#: Voxels compared: those within this distance of the plane (voxels). There the field is the plane's unless another
+#: surface is about as near, i.e. the block's surface there is not the plane's (what the truth of a clean block
+#: counts); farther out, furniture or a wall a few voxels beyond the block bends a clean block's field too.
+BAND_VOXELS = 1.5
+#: Voxels this close (voxels) to where an unobserved-behind field jumps from ``d_min`` to ``d_max`` are not
+#: compared: a sub-voxel move of the plane flips them, and a codec smears the jump over about as many voxels.
+JUMP_VOXELS = 1.0
+#: A block is of the plane when at least this share of its surface voxels lie on it (the share a clean block of
+#: the evaluation's truth holds; a floor block with a table leg or a wall's foot in it is a block of both).
+PURITY = 0.9
+#: A refitted plane whose normal turns more than this (degrees) from the chosen one keeps the chosen normal.
+PLANE_REFIT_DEG = 5.0
+_CENTRE = (BLOCK - 1) / 2.0
+_GRID = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
+
+
+def _decode(codec: Any, codes: np.ndarray) -> np.ndarray:
+    """Normalised blocks ``(n, 4096)`` float32 decoded from codes (a prefix of a prefix-ordered codec's codes is
+    decoded with the rest zero: the search's level)."""
+    if codes.shape[1] < codec.code_size:
+        codes = np.pad(codes, ((0, 0), (0, codec.code_size - codes.shape[1])))
+    with torch.no_grad():
+        out = codec.decode(torch.from_numpy(np.ascontiguousarray(codes, dtype=np.float32)))
+    return np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
+
+
+def _ideal(dist: np.ndarray, deltas: np.ndarray, stretches: np.ndarray, voxel_size: float,
+           truncation: tuple[float, float], behind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised plane fields ``(n, len(deltas) * len(stretches), 4096)`` of blocks whose voxels lie ``dist``
+    ``(n, 4096)`` voxels from the plane (positive on its free side), the plane moved by each delta and the field
+    stretched by each factor; which voxels to compare (same shape, bool): those within :data:`BAND_VOXELS` of
+    the plane but, for an unobserved-behind field, not within :data:`JUMP_VOXELS` of where it jumps from
+    ``d_min`` to ``d_max`` (a sub-voxel move of the plane flips them, so they say nothing about whether the
+    block holds it); and which moves keep the plane in the block (``(n, moves x stretches)`` bool)."""
+    moved = dist[:, None, None, :] - deltas[None, :, None, None]
+    d = (moved * stretches[None, None, :, None]).astype(np.float32)
+    d *= np.float32(voxel_size)
+    v = normalise(truncate(d, truncation, behind), *truncation).reshape(len(dist), -1, dist.shape[1])
+    use = np.broadcast_to(np.abs(moved) <= BAND_VOXELS, d.shape).copy()
+    if behind == "unobserved":
+        use = use & (np.abs(d - np.float32(truncation[0])) > JUMP_VOXELS * voxel_size)
+    # a move taking the plane out of the block (a corner sliver left) is no candidate
+    inside = np.broadcast_to((np.abs(moved) <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE, d.shape[:-1])
+    return v, use.reshape(v.shape), inside.reshape(v.shape[:2])
+
+
+def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, voxel_size: float,
+                    truncation: tuple[float, float], behind: str, stretches: np.ndarray,
+                    tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Residual of blocks against a plane.
+
+    Parameters
+    ----------
+    x : np.ndarray
+        ``(n, 4096)`` float32 normalised decoded blocks.
+    observed : np.ndarray
+        ``(n, 4096)`` bool voxels the map observed.
+    dist : np.ndarray
+        ``(n, 4096)`` voxels from each voxel to the plane (positive on its free side).
+    stretches : np.ndarray
+        Field stretches tried (1 for an exact field).
+    tol : float
+        The plane may move up to this many voxels along its normal at each block.
+
+    Returns
+    -------
+    residual : np.ndarray
+        ``(n,)`` float32: ``min sum (x - plane)^2`` over the moves and stretches (a move that leaves the plane
+        only a corner sliver of the block is no candidate), the sum over the compared voxels (:func:`_ideal`:
+        within :data:`BAND_VOXELS` of the plane, observed, away from an unobserved-behind field's jump). A sum,
+        not a mean: a plane crossing few of a block's voxels is little evidence either way.
+    seen : np.ndarray
+        ``(n,)`` int64 observed voxels within one voxel of the plane.
+    moved : np.ndarray
+        ``(n,)`` float64 the best move (voxels along the normal).
+    constant : np.ndarray
+        ``(n,)`` float32 the same residual against a block of solid or of free space (the nearer): a block
+        no closer to the plane than to those holds no plane (a plane moved to a block's corner is nearly one).
+    share : np.ndarray
+        ``(n,)`` float64 of the block's surface voxels (decoded within a voxel of zero) on the plane or on its
+        free side beyond the compared band, the share on the plane.
+    on : np.ndarray
+        ``(n,)`` int64 the block's surface voxels on the plane (within a voxel of it, moved).
+    """
+    deltas = np.arange(-tol, tol + 1e-9, VERIFY_STEP)
+    out = np.empty(len(x), np.float32)
+    moved = np.empty(len(x), np.float64)
+    for i in range(0, len(x), 64):  # (64, moves x stretches, 4096) float32 at a time
+        sl = slice(i, i + 64)
+        ideal, use, inside = _ideal(dist[sl], deltas, stretches, voxel_size, truncation, behind)
+        use &= observed[sl, None, :]
+        n_use = use.sum(axis=2)
+        err = ((ideal - x[sl, None, :]) ** 2 * use).sum(axis=2)
+        err[~inside | (n_use == 0)] = np.inf
+        best = err.argmin(axis=1)
+        out[sl] = err[np.arange(len(best)), best]
+        moved[sl] = deltas[best // len(stretches)]
+    o = observed.astype(np.float32)
+    scale = x.shape[1] / np.maximum(o.sum(axis=1), 1.0)
+    constant = np.minimum((x * x * o).sum(axis=1), ((1.0 - x) ** 2 * o).sum(axis=1)) * scale
+    seen = ((np.abs(dist) <= 1.0) & observed).sum(axis=1)
+    # the block's own surface voxels (decoded within a voxel of zero): on the plane, or on its free side beyond
+    # the compared band (another surface in the block: furniture, a wall)
+    d_min, d_max = truncation
+    surf = (np.abs(x * (d_max - d_min) + d_min) <= voxel_size) & observed
+    rel = dist - moved[:, None]
+    on = (surf & (np.abs(rel) <= 1.0)).sum(axis=1)
+    off = (surf & (rel > BAND_VOXELS)).sum(axis=1)
+    share = np.where(on + off > 0, on / np.maximum(on + off, 1), 1.0)  # no surface seen: no other surface either
+    return out, seen, moved, constant.astype(np.float32), share, on
+
+
+def _crossing(normal: np.ndarray) -> float:
+    """Voxels from a block's centre within which a plane of this normal still holds surface voxels of the block
+    (as the models' planes: :func:`sdfcodec.search.shapes._extent`)."""
+    return float(_CENTRE * np.abs(normal).sum() + 1.0)
+
+
+def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, truncation: tuple[float, float],
+                     behind: str, weighted: bool, stretches: np.ndarray, tol: float, samples: int,
+                     quantile: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of simulated clean blocks of the plane with ``normal`` (grid axes): ``samples`` instances at
+    offsets uniform across the block (corner slivers redrawn), the checked plane off the true one by up to
+    ``tol`` voxels, the field stretched within ``stretches``' range, stored per ``behind``, encoded the map's way
+    (``weighted``: surface-true with the observation mask, as the map's writer does) and decoded with
+    ``codec``. Returns the residuals ``(samples,)`` and how many observed surface voxels each had."""
+    from .query import encode_query_blocks
+
+    rng = np.random.default_rng([int(seed), 29])
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    along = _GRID @ n  # voxels along the normal from the block centre
+    ext = _crossing(n)
+    true_d, shown_d = [], []
+    while len(true_d) < samples:
+        c = rng.uniform(-ext, ext)
+        if (np.abs(along - c) <= 1.0).sum() < MIN_SHAPE_SURFACE:
+            continue
+        true_d.append(along.ravel() - c)
+        shown_d.append(along.ravel() - (c + rng.uniform(-tol, tol)))
+    true_d, shown_d = np.asarray(true_d), np.asarray(shown_d)
+    st = rng.uniform(float(np.min(stretches)), float(np.max(stretches)), (samples, 1))
+    d = true_d * st * voxel_size
+    v = normalise(truncate(d, truncation, behind), *truncation).reshape(samples, BLOCK, BLOCK, BLOCK)
+    seen = (d >= truncation[0]) if behind == "unobserved" and weighted else np.ones(d.shape, bool)
+    codes = encode_query_blocks(codec, v, seen.reshape(v.shape), truncation, voxel_size, weighted)
+    x = _decode(codec, codes)
+    return plane_residuals(x, seen, shown_d, voxel_size=voxel_size, truncation=truncation, behind=behind,
+                           stretches=np.asarray(stretches, np.float64), tol=tol)[:2]
+
+
+def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
+                  codes_of: Any, *, behind: str, weighted: bool, stretches: Any, quantile: float, samples: int,
+                  tol: float
+                  ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Check every coded block each plane crosses against it (module docstring).
+
+    Parameters
+    ----------
+    view : Map
+        The map searched.
+    planes : list of (normal (3,), d)
+        The chosen planes ``n . p = d`` (metres, world frame; ``n`` unit, pointing into free space).
+    coded : np.ndarray
+        ``(B, 3)`` int64 every coded block.
+    strong : np.ndarray
+        ``(S, 3)`` int64 blocks the map-level stage kept with a score under the threshold: the blocks that
+        measure how much noisier the map is than the simulated instances.
+    codes_of : callable
+        ``coords (N, 3) -> codes (N, L)``: the blocks' codes at the search's level (held from its stream).
+    behind, weighted, stretches :
+        How the map stores and encodes its fields (the query model's ``spec``).
+    quantile, samples, tol :
+        The calibration's quantile and instance count; the plane tolerance (voxels).
+
+    Returns
+    -------
+    accepted : np.ndarray
+        ``(A, 3)`` int64 blocks whose residual is under the threshold of the plane they were checked against.
+    undecided : np.ndarray
+        ``(U, 3)`` int64 blocks crossed by a plane but observed too little to check.
+    impure : np.ndarray
+        ``(I, 3)`` int64 checked blocks holding another surface besides the plane (under :data:`PURITY`).
+    info : dict
+        JSON-able: per plane, the calibrated threshold, the noise added, the blocks checked, accepted,
+        rejected and undecided.
+    """
+    codec = view.codec
+    vs, trunc = view.voxel_size, view.truncation
+    origin = np.asarray(view.origin, np.float64)
+    st = np.asarray(stretches if stretches is not None else [1.0], np.float64)
+    centres = origin + vs * (BLOCK * coded.astype(np.float64) + _CENTRE)
+    strong_set = {tuple(c) for c in np.asarray(strong).tolist()}
+    accepted, undecided, impure, crossed, report = [], [], [], [], []
+    for k, (normal, d) in enumerate(planes):
+        n = np.asarray(normal, np.float64)
+        off = (centres @ n - d) / vs  # voxels from each block's centre to the plane
+        near = np.flatnonzero(np.abs(off) <= _crossing(n))
+        dist = (off[near, None] + (_GRID.reshape(-1, 3) @ n)[None, :]).astype(np.float32)  # voxels, + free side
+        holds = (np.abs(dist) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE  # more than a corner sliver
+        near, dist = near[holds], dist[holds]
+        if not len(near):
+            report.append({"normal": [round(float(v), 4) for v in n], "checked": 0})
+            continue
+        c = coded[near]
+        x = _decode(codec, codes_of(c))
+        obs = view.read_observed(c).reshape(len(c), -1) if weighted else np.ones(x.shape, bool)
+        on = np.array([tuple(b) in strong_set for b in c.tolist()], bool)
+        t_used = tol
+        for rnd in range(2):
+            r, seen, moved, const, share, on_plane = plane_residuals(
+                x, obs, dist, voxel_size=vs, truncation=trunc, behind=behind, stretches=st, tol=t_used)
+            sim, _ = verify_threshold(n, codec, voxel_size=vs, truncation=trunc, behind=behind, weighted=weighted,
+                                      stretches=st, tol=t_used, samples=samples, quantile=quantile, seed=k)
+            t_clean = float(np.quantile(sim, quantile))
+            meas = on & (seen >= MIN_VERDICT_SURFACE)
+            excess = max(0.0, float(np.median(r[meas]) - np.median(sim))) if meas.any() else 0.0
+            t = t_clean + excess
+            decided = seen >= MIN_VERDICT_SURFACE
+            # and the block shows the plane: as many decoded surface voxels on it as a check needs observed
+            ok = decided & (r <= t) & (r < const) & (share >= PURITY) & (on_plane >= MIN_VERDICT_SURFACE)
+            fit = ok & on
+            if rnd or fit.sum() < 3:
+                break
+            # the plane refitted through where its accepted blocks put it (each block's best move), then checked
+            # again with the moves those blocks needed (their 95th percentile, at least one step)
+            q = centres[near] - ((off[near] - moved)[:, None] * vs) * n[None, :]
+            mu = q[fit].mean(axis=0)
+            n2 = np.linalg.svd(q[fit] - mu, full_matrices=False)[2][2]
+            n2 = n2 if n2 @ n >= 0 else -n2
+            if np.degrees(np.arccos(min(1.0, float(n2 @ n)))) > PLANE_REFIT_DEG:
+                n2 = n  # too few blocks, or all in a line: keep the normal, refit the offset
+            n, d = n2, float(n2 @ mu)
+            dist = (((centres[near] @ n - d) / vs)[:, None] + (_GRID.reshape(-1, 3) @ n)[None, :]).astype(np.float32)
+            t_used = float(min(tol, VERIFY_STEP + np.quantile(np.abs((q[fit] - mu) @ n) / vs, 0.95)))
+        accepted.append(c[ok])
+        undecided.append(c[~decided])
+        impure.append(c[decided & (share < PURITY)])
+        crossed.append(c.tolist())
+        report.append({"normal": [round(float(v), 4) for v in n], "d": round(float(d), 4), "checked": int(len(c)),
+                       "move_voxels": round(t_used, 3), "threshold": round(t, 4),
+                       "simulated_threshold": round(t_clean, 4),
+                       "noise_excess": round(excess, 4), "measured_on": int(on.sum()), "accepted": int(ok.sum()),
+                       "rejected": int((decided & ~ok).sum()), "undecided": int((~decided).sum())})
+    cat = (lambda parts: np.unique(np.concatenate(parts), axis=0) if parts else np.zeros((0, 3), np.int64))
+    info = {"rule": (f"every coded block a chosen plane crosses, checked against that plane (moved up to {tol:g} "
+                     f"voxels, {'stretched, ' if len(st) > 1 else ''}over its observed voxels) with a threshold "
+                     f"keeping {quantile:.0%} of simulated clean blocks of it, plus the map's measured excess noise"),
+            "planes": report, "crossed": crossed}
+    return cat(accepted).astype(np.int64), cat(undecided).astype(np.int64), cat(impure).astype(np.int64), info
+
+
+
+def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept_strong: np.ndarray,
+                 coded: np.ndarray, codes_of: Any) -> np.ndarray:
+    """The final selection of a staged floor, ceiling or wall search: the blocks the planes the map-level stage
+    chose (``scene_info["planes"]``, moved to ``scene_info["plane_check"]`` with the check's report) accept,
+    plus the blocks it kept that were observed too little to check. ``kept`` ``(K, 3)``: the map-level stage's
+    blocks, ``kept_strong`` ``(K,)`` bool: those scoring under the threshold; ``coded``: every coded block;
+    ``codes_of``: see :func:`verify_planes`."""
+    from .engine import CALIBRATION_QUANTILE, CALIBRATION_SAMPLES
+    from .scene import PLANE_TOL_VOXELS
+
+    spec = model.spec or {}
+    planes = [(np.asarray(p["normal"], np.float64), float(p["d"])) for p in scene_info.pop("planes", [])]
+    if not planes:
+        return kept
+    acc, undecided, impure, info = verify_planes(
+        view, planes, coded, kept[kept_strong], codes_of, behind=spec.get("behind", "solid"),
+        weighted=bool(spec.get("weighted")), stretches=spec.get("stretch"), quantile=CALIBRATION_QUANTILE,
+        samples=CALIBRATION_SAMPLES, tol=PLANE_TOL_VOXELS)
+    if spec.get("weighted"):
+        # a map that records its observation was fused from views: its blocks of a plane are seen in parts and
+        # stretched, which the residual of a thinly observed block does not tell from another shape (measured:
+        # the rendered rooms' floor blocks seen through one voxel layer score like furniture). Here the check only
+        # drops the map-level stage's blocks that hold another surface besides the plane, or that the plane does not
+        # cross (the stage joins blocks to a level within its 4-voxel tolerance).
+        bad = {tuple(c) for c in impure.tolist()}
+        crossed = {tuple(c) for p in info["crossed"] for c in p}
+        # kept: crossed by a chosen plane (more than a corner sliver of it) and not holding another surface
+        stay = (np.array([tuple(c) not in bad and tuple(c) in crossed for c in kept.tolist()], bool) if len(kept)
+                else np.zeros(0, bool))
+        info["rule"] = (f"the map-level stage's blocks that a chosen plane crosses and whose decoded surface lies at "
+                        f"least {PURITY:.0%} on it (a map that records its observation: blocks are not added)")
+        info.pop("crossed")
+        info["dropped"] = int((~stay).sum())
+        info["selected"] = int(stay.sum())
+        scene_info["plane_check"] = info
+        return kept[stay]
+    und = {tuple(c) for c in undecided.tolist()}
+    stay = np.array([tuple(c) in und for c in kept.tolist()], bool) if len(kept) else np.zeros(0, bool)
+    out = np.unique(np.concatenate([acc, kept[stay]]), axis=0) if len(acc) or stay.any() else acc
+    info.pop("crossed")
+    info["kept_unchecked"] = int(stay.sum())
+    info["selected"] = int(len(out))
+    scene_info["plane_check"] = info
+    return out.astype(np.int64).reshape(-1, 3)

@@ -1,0 +1,108 @@
+"""The plane check that ends a floor, ceiling or wall search (sdfcodec.search.plane_check), against analytic planes:
+the residual of a block that is the plane is the codec's error alone, a second surface in a block is seen, and
+a search of a tilted exact floor keeps its clean blocks and drops those holding a box's foot."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sdfcodec
+from sdfcodec import pretrained_codec
+from sdfcodec import search as S
+from sdfcodec.blocks import normalise
+from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
+from sdfcodec.search.plane_check import PURITY, plane_residuals
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _fused_maps import fused_like, write_volume_map  # noqa: E402
+
+_G = np.stack(np.meshgrid(*[np.arange(16, dtype=np.float64) - 7.5] * 3, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _field(d_vox: np.ndarray) -> np.ndarray:
+    """Normalised exact (solid-behind) field of signed distances in voxels."""
+    return normalise(np.clip(d_vox * VS, *TRUNC), *TRUNC).astype(np.float32)
+
+
+def test_residual_of_the_plane_itself_is_zero_and_a_second_surface_is_seen():
+    n = np.array([0.1, -0.05, 1.0])
+    n /= np.linalg.norm(n)
+    dist = (_G @ n - 1.3)[None]  # a plane 1.3 voxels above the centre
+    x = _field(dist)
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", stretches=np.array([1.0]), tol=1.0)
+    r, seen, moved, const, share, on = plane_residuals(x, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    assert r[0] < 1e-6 and moved[0] == 0.0 and share[0] == 1.0 and on[0] >= 256 and const[0] > 100 * max(r[0], 1e-3)
+    assert seen[0] >= 256  # a plane across the block: two voxel layers within a voxel of it
+    # the plane moved by 0.7 voxel: found within the tolerance, residual small, not zero (the moves are 0.5 apart)
+    r2, _, moved2, *_ = plane_residuals(_field(dist - 0.7), np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    assert moved2[0] == 0.5 and 0 < r2[0] < 2.0
+    # a slab's underside 6 voxels above the plane (solid above it): a second surface on the free side
+    other = 7.3 - _G @ n
+    both = _field(np.minimum(dist, other[None]))
+    *_, share3, _ = plane_residuals(both, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    assert share3[0] < PURITY
+
+
+def _tilted_scene():
+    a = math.radians(6.0)
+    n = np.array([math.sin(a), 0.0, math.cos(a)])
+    shape = (96, 96, 64)
+    floor = Plane(tuple(n), 0.3)
+    box = Box((1.0, 1.0, 0.3 / math.cos(a) + 0.15), (0.2, 0.2, 0.2))
+    return n, shape, floor, box, sample_volume(Scene([floor, box]), shape, VS, truncation=TRUNC)
+
+
+@pytest.fixture(scope="module")
+def tilted_floor(tmp_path_factory):
+    """An exact, 6 degree tilted floor over solid ground, with a box standing on it."""
+    n, shape, floor, box, vol = _tilted_scene()
+    path = tmp_path_factory.mktemp("tilted") / "floor.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    # blocks by what their surface voxels (within a voxel of a surface) lie on
+    p = grid_points(shape, VS)
+    d_floor, d_box = np.abs(floor(p)), np.abs(box(p))
+    near = np.minimum(d_floor, d_box) <= VS
+    blk = np.argwhere(np.ones(shape, bool)) // 16
+    flat = near.reshape(-1)
+    on_floor = (d_floor <= d_box).reshape(-1) & flat
+    keys = blk[flat]
+    idx, inv = np.unique(keys, axis=0, return_inverse=True)
+    tot = np.bincount(inv.ravel())
+    fl = np.bincount(inv.ravel(), weights=on_floor[flat])
+    clean = {tuple(c) for c, t, f in zip(idx.tolist(), tot, fl) if t >= 256 and f / t >= 0.97}
+    mixed = {tuple(c) for c, t, f in zip(idx.tolist(), tot, fl) if t >= 64 and 0.05 <= f / t <= 0.85}
+    return sdfcodec.open_map(path), n, clean, mixed
+
+
+def test_tilted_floor_keeps_clean_blocks_and_drops_the_box_foot(tilted_floor):
+    m, n, clean, mixed = tilted_floor
+    res = S.search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    got = {tuple(int(v) for v in c) for c in res.coords}
+    assert mixed, "the box stands on the floor: some blocks hold both"
+    assert len(got & clean) >= 0.9 * len(clean)
+    assert not (got & mixed)
+    check = res.stats["scene"]["plane_check"]
+    plane = check["planes"][0]
+    assert math.degrees(math.acos(min(1.0, abs(float(np.dot(plane["normal"], n)))))) < 1.0
+    assert plane["accepted"] == len(got) - check.get("kept_unchecked", 0)
+
+
+def test_a_map_with_its_observation_is_only_pruned(tmp_path, tilted_floor):
+    """The same scene as fusion leaves it (unobserved deeper than |d_min| behind surfaces), written with its
+    observation: the check adds no block to the map-level stage's, and drops those holding the box's foot."""
+    _, n, clean, mixed = tilted_floor
+    vol, observed = fused_like(_tilted_scene()[4])
+    write_volume_map(tmp_path / "f.sdfz", vol, observed, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "f.sdfz")
+    res = S.search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    got = {tuple(int(v) for v in c) for c in res.coords}
+    check = res.stats["scene"]["plane_check"]
+    assert "not added" in check["rule"] and check["selected"] == len(got) <= res.stats["scene"]["kept"]
+    assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
