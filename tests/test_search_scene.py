@@ -165,3 +165,15 @@ def test_saved_model_of_another_basis_is_one_line_naming_both_digests(tmp_path, 
     assert model.codec_state_sha256[:16] in line and furnished.m.header.codec.state_sha256[:16] in line
     with pytest.raises(InvalidValueError, match="different codec or basis"):
         S.search(furnished.m, S.load_query(tmp_path / "other.npz"))
+
+
+def test_weak_candidates_only_select_nothing_and_say_why(furnished):
+    """A threshold under every block's score but within WEAK_FACTOR of the best: there are candidates, none under
+    the threshold itself, so no level can be anchored; the search selects nothing and says so (it used to raise
+    a numpy error on the empty list of levels)."""
+    from sdfcodec.search.scene import WEAK_FACTOR
+
+    best = float(np.min(S.search(furnished.m, "floor", threshold="auto", scene=False, keep_scores=True).scores))
+    res = S.search(furnished.m, "floor", threshold=best / (0.5 + WEAK_FACTOR / 2) if best > 0 else 0.0)
+    assert len(res.coords) == 0
+    assert res.stats["scene"]["rule"] == "no level holds a block under the threshold"

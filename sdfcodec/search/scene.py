@@ -260,6 +260,9 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
     live = np.bincount(comp, weights=strong, minlength=n_comp) > 0
     level, levels = plane_levels(comp, normals, points, live, voxel_size)
     lv_of = level[comp]  # each candidate's level (-1: its patch holds no block under the threshold)
+    if not levels:  # candidates under the weak threshold only, none under the threshold itself: nothing to anchor
+        info.update(kept=0, levels=[], rule="no level holds a block under the threshold")
+        return keep, info
     sizes = np.array([lv["blocks"] for lv in levels])
     least = max(MIN_PATCH_BLOCKS, (LEVEL_SHARE if query != "wall" else WALL_SHARE) * sizes.max())
     if query != "wall":
