@@ -233,7 +233,9 @@ class ObservedScorer:
             codes = np.pad(codes, ((0, 0), (0, k - codes.shape[1])))
         with torch.no_grad():
             out = self.codec.decode(torch.from_numpy(np.ascontiguousarray(codes)))
-        return np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
+        # what a reader sees: truncated to [d_min, d_max] (normalised [0, 1]); a masked map's writer fits its codes
+        # to that (docs/surface.md), leaving arbitrary values past the bounds where truncation makes them exact
+        return np.clip(np.asarray(out, dtype=np.float32).reshape(len(codes), -1), 0.0, 1.0)
 
     def __call__(self, codes: np.ndarray, observed: np.ndarray, fallback: np.ndarray, fallback_idx: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
