@@ -210,7 +210,8 @@ class ObservedScorer:
     A masked map encodes a block by weighted least squares with weight 0 on its unobserved voxels, so what its
     code decodes to there is an extrapolation, and two codes of the same observed surface can be far apart.
     For such blocks the score is ``min_m 4096 / n_obs * sum_j o_j (x_j - q_mj)^2``: the squared distance
-    between the block's reconstruction ``x`` and each descriptor's reconstruction ``q_m`` over the block's
+    between the block's reconstruction ``x`` and each descriptor's reconstruction ``q_m`` (both truncated to the
+    normalised ``[0, 1]``, as a reader truncates) over the block's
     ``n_obs`` observed voxels ``o``, scaled to a whole block (so it is on the scale of code scores: for a fully
     observed block of an orthonormal codec such as pca it equals the code score). Two matrix products per batch
     after decoding the partial blocks. Blocks with fewer than :data:`MIN_OBSERVED_SURFACE` observed voxels near
