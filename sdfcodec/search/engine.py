@@ -522,13 +522,15 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     sel_q = np.zeros((0, lv), np.float32)
     all_c, all_s = [], []
     held: list | None = [] if staged else None  # the streamed codes, for the plane check (read once)
+    held_bytes = 0
     n_scored = 0
     for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
         s, idx = score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
         n_scored += len(s)
         if held is not None:
             held.append((np.array(coords, np.int64), np.array(codes, np.float32)))  # copies: batches may be reused
-            if sum(c.nbytes for _, c in held) > HOLD_CODES_BYTES:
+            held_bytes += held[-1][1].nbytes
+            if held_bytes > HOLD_CODES_BYTES:
                 held = None  # a map too large to hold: the plane check reads its planes' chunks again
         if keep_scores:
             all_c.append(coords)
