@@ -36,6 +36,7 @@ Benchmarks
 from __future__ import annotations
 
 import abc
+import importlib
 import warnings
 from importlib import resources
 from pathlib import Path
@@ -45,8 +46,6 @@ from ._lazy import is_tensor, lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
 from .bench import bench_codec_instance, bench_instance, register_bench, roofline_shapes
 from .codec import Codec, DecodesInto, decodes_into
-from .dataset import Dataset, open_dataset
-from .map.field import sz3_compress, sz3_decompress
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
@@ -58,6 +57,19 @@ __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "De
            "Codec", "TrainableCodec", "Dataset", "open_dataset",
            "register_bench", "bench_instance", "bench_codec_instance", "roofline_shapes", "sz3_compress",
            "sz3_decompress", "lazy_module", "is_tensor"]
+
+# Names that import Zarr, loaded on first use (PEP 562): a plugin module imports this one, and `sdfcodec info`
+# (which loads a plugin to name a map's shipped model) must stay light
+_LAZY = {"Dataset": ".dataset", "open_dataset": ".dataset", "sz3_compress": ".map.field",
+         "sz3_decompress": ".map.field"}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'sdfcodec.plugin' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name], "sdfcodec"), name)
+    globals()[name] = value
+    return value
 
 _SHIPPED: dict[tuple[str, str], Codec] = {}
 

@@ -36,7 +36,8 @@ from .blocks import normalise, split_blocks
 from .codec import Codec
 from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
 from .header import BlockState
-from .map.format import check_codes, free_space, state_digest
+from .map.codec_state import state_digest
+from .map.format import check_codes, free_space
 from .map.observed import encode_blocks
 from .map.reader import MapReader, open_reader
 from .map.stores import CowLocalStore

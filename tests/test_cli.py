@@ -134,6 +134,11 @@ def test_bench_json_records():
     r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--repeats", "2", "--json")
     assert r.exit_code == 0, r.output
     recs = json.loads(r.stdout)
+    (start,) = [x for x in recs if x["operation"] == "info-startup"]  # `sdfcodec info` in fresh processes
+    assert start["seconds_best"] > start["baseline_seconds_best"] > 0  # a command costs more than no command
+    assert start["meets_target"] == (start["seconds_median"] <= start["target_seconds"] == 0.5)
+    assert len(start["seconds_rounds"]) == 2
+    recs = [x for x in recs if x is not start]
     assert {(x["operation"], x["batch"]) for x in recs} == {
         ("encode", 1), ("decode", 1), ("encode", 64), ("decode", 64), ("decode-on-read", 300),
         ("decode-on-read-http", 300), ("search", 8192), ("encode-weighted", 1), ("encode-weighted", 64),

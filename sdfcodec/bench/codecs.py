@@ -55,7 +55,7 @@ torch = lazy_module("torch")  # imported on first use: sdfcodec.plugin imports t
 
 __all__ = ["bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
            "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK",
-           "roofline_fn", "memcpy_fn", "timed_record", "bench_decode_in_place"]
+           "roofline_fn", "memcpy_fn", "timed_record", "bench_decode_in_place", "write_bench_map"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
@@ -326,7 +326,7 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     timed: dict[str, dict[str, Timing]] = {}
     loads: dict[str, tuple[list[float], list[float]]] = {}
     try:
-        _write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
+        write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
         with open_map(tmp / "bench.sdfz") as m:
             _, codes = m.read_codes()
         z = torch.from_numpy(codes).to(device)
@@ -384,7 +384,7 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     return records
 
 
-def _write_bench_map(codec: Codec, n_blocks: int, path: Any, truncation: tuple[float, float]) -> None:
+def write_bench_map(codec: Codec, n_blocks: int, path: Any, truncation: tuple[float, float]) -> None:
     """A map of ``n_blocks`` coded blocks filling a cube of blocks in grid order (float32 codes, default chunking):
     the real codes of 512 analytic blocks, tiled (reading them is what is timed, not encoding)."""
     from ..map import create_map
@@ -425,7 +425,7 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
     sync = torch.cuda.synchronize if dev is not None and dev.type == "cuda" else (lambda: None)
     tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-bench-"))
     try:
-        _write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
+        write_bench_map(codec, n_blocks, tmp / "bench.sdfz", (d_min, d_max))
         m = open_map(tmp / "bench.sdfz")
         _, codes = m.read_codes()
         z = torch.from_numpy(codes).to(device)

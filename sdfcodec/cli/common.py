@@ -391,9 +391,11 @@ def _root(version: bool = typer.Option(False, "--version", is_eager=True, callba
     # --version is eager: handled while the options are parsed, before click asks for a command
     # the read options are a process default, not arguments: every command (and the library functions that open
     # maps for it: verify, search, compare, track, eval, the tracker's map field) reads through sdfcodec.map.stores
+    limits = {k: v for k, v in (("total_timeout", remote_timeout), ("tries", remote_tries)) if v is not None}
+    if not follow_symlinks and not limits and "sdfcodec.map.stores" not in sys.modules:
+        return  # the built-in defaults, untouched in this process: a light command need not import Zarr for them
     from ..map.stores import set_read_defaults
 
-    limits = {k: v for k, v in (("total_timeout", remote_timeout), ("tries", remote_tries)) if v is not None}
     try:
         set_read_defaults(follow_symlinks=follow_symlinks, remote_limits=limits)
     except SDFCodecError as e:

@@ -48,9 +48,13 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
 def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
              as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
     """Show a map's header, blocks by state, bytes on disk and ratio to a dense float32 volume."""
-    from ..map import open_map
+    from ..map.summary import local_info
 
-    info = open_map(map_path).info()
+    info = local_info(map_path)  # a local map directory without importing Zarr (0.2-0.4 s of this command)
+    if info is None:  # anything else, or anything that light reader is not sure of: the ordinary reader
+        from ..map import open_map
+
+        info = open_map(map_path).info()
     if as_json:
         print_json(info)
         return

@@ -339,7 +339,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
     doc = run_document("quick" if quick else "codec", device)
     t0 = time.perf_counter()
     with progress_bar("steps") as prog:
-        task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search), rate="")
+        task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search) + (n_read > 0), rate="")
         step = lambda s: prog.update(task, advance=1, description=s)  # noqa: E731
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
                               read_blocks=n_read, http=http, repeats=repeats)
@@ -349,6 +349,11 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
             found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step, repeats=repeats)
             records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
+        if n_read > 0:  # with the map benchmarks: a light command's start-up (issue 19, item 4)
+            from ..bench.startup import bench_info_startup
+
+            step("sdfcodec info start-up")
+            records += bench_info_startup(repeats=repeats)
     doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1), records=records)
     if out is not None:
         _write_run(out, doc)
@@ -368,6 +373,10 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
         title = f"{codec_id} throughput on {device} (baseline: numpy matmuls of the codec's layer shapes, same run)"
     else:
         lines, title = {}, f"{codec_id} throughput on {device} (baseline: numpy matmul of the same shape, same run)"
+    starts = [f"sdfcodec info MAP in a fresh process: {r['seconds_median']:.2f} s median, {r['seconds_best']:.2f} s best "
+              f"(the interpreter alone {r['baseline_seconds_median']:.2f} s; target {r['target_seconds']} s)"
+              for r in records if r["operation"] == "info-startup"]
+    records = [r for r in records if "blocks_per_s" in r]
     reads = [f"{r['operation']} code {r['code_size']}: memory-copy roofline {r['memcpy_blocks_per_s']:,.0f} "
              f"blocks/s (ratio {r['ratio_to_memcpy']:.2f}), in-memory decode {r['in_memory_decode_blocks_per_s']:,.0f} "
              f"blocks/s (ratio {r['ratio_to_in_memory_decode']:.2f})" for r in records if "memcpy_blocks_per_s" in r]
@@ -376,7 +385,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
              f"{PAPER_US_PER_BLOCK[0] / r['us_per_block']:,.0f}x") for r in records]
     loads = f"load average {doc['load_before'][:1]} before, {doc['load_after'][:1]} after; {repeats} rounds, medians"
     print_table(("code", "op", "batch", "blocks/s", "baseline blocks/s", "ratio", "us/block", "vs paper"), rows,
-                title=title, caption="\n".join([*lines.values(), *reads, loads]), justify="right",
+                title=title, caption="\n".join([*lines.values(), *reads, *starts, loads]), justify="right",
                 min_width=120)  # ~120 columns on a terminal; on a pipe tab-separated, never cut
 
 

@@ -23,10 +23,28 @@ One job per module: :mod:`~sdfcodec.map.stores` (the stores a map is read throug
 create, update, commit) and :mod:`~sdfcodec.map.facade` (:class:`Map` and the functions below).
 """
 
-from .facade import Map, create_map, open_map, update_map
-from .format import CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, state_digest
-from .reader import MapReader
-from .writer import MapWriter
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __all__ = ["Map", "open_map", "create_map", "update_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES",
            "MapReader", "MapWriter"]
+
+# Where each public name lives. They load on first use (PEP 562): `import sdfcodec.map.summary` (what `sdfcodec
+# info` reads a local map with) must not import Zarr, a third of that command's time budget.
+_LAZY = {"Map": ".facade", "open_map": ".facade", "create_map": ".facade", "update_map": ".facade",
+         "state_digest": ".codec_state", "DEFAULT_MAX_DECODE_BYTES": ".format", "CODE_DTYPES": ".format",
+         "MapReader": ".reader", "MapWriter": ".writer"}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'sdfcodec.map' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+    globals()[name] = value  # once loaded, a plain module attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import os
-from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
@@ -21,10 +20,10 @@ from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
 from ..header import MapHeader
-from .codec_state import shipped_model_of
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
+from .summary import summarize
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
@@ -217,44 +216,7 @@ class Map:
 
     def info(self) -> dict[str, Any]:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""
-        h = self.header
-        dense = int(np.prod(h.shape_voxels)) * 4
-        root = self.reader.local_root()
-        on_disk = _dir_bytes(root) if root is not None else None
-        state_bytes = _dir_bytes(str(Path(root) / "codec")) if on_disk is not None else None
-        code_bytes = (sum(_dir_bytes(str(Path(root) / a)) or 0 for a in ("codes", "code_scale"))
-                      if on_disk is not None else None)
-        ref = h.codec.state_reference
-        counts = self.count_states()
-        return {
-            "location": self.location,
-            "format_version": h.format_version,
-            "codec": h.codec.config,
-            "code_size": h.codes.size,
-            "code_dtype": h.codes.dtype,
-            "levels": h.codes.levels,
-            "chunk_blocks": h.codes.chunk_blocks,
-            "shard_blocks": h.codes.shard_blocks,
-            "voxel_size": h.voxel_size,
-            "truncation": [h.truncation.d_min, h.truncation.d_max],
-            "origin": list(h.origin),
-            "shape_voxels": list(h.shape_voxels),
-            "grid_blocks": list(h.grid_blocks),
-            "blocks": counts,
-            "code_bytes_raw": counts["coded"] * h.codes.stored_bytes(),
-            "bytes_on_disk": on_disk,
-            "dense_float32_bytes": dense,
-            "codec_state_bytes": state_bytes,
-            "ratio_dense_to_disk": (dense / on_disk) if on_disk else None,
-            # the codec state (e.g. a PCA basis) is a fixed cost shared by a whole map: this ratio leaves it out
-            "ratio_dense_to_codes": (dense / (on_disk - (state_bytes or 0))) if on_disk else None,
-            "provenance": h.provenance.model_dump(),
-            "code_bytes_on_disk": code_bytes,
-            "codec_state": ({"stored": "reference", "model": ref.model, "sha256": ref.sha256} if ref is not None
-                            else {"stored": "embedded", "sha256": h.codec.state_sha256}),
-            "state_warning": _state_warning(state_bytes, code_bytes, h) if ref is None else None,
-            "residual": _residual_info(h, root, counts["coded"]),
-        }
+        return summarize(self.header, self.location, self.reader.local_root(), self.count_states())
 
     @property
     def has_weights(self) -> bool:
@@ -515,40 +477,3 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
     """
     return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes,
                                follow_symlinks=follow_symlinks))
-
-
-def _state_warning(state_bytes: int | None, code_bytes: int | None, h: MapHeader) -> str | None:
-    """One line when the stored codec state outweighs the stored codes (None otherwise, or unknown: remote maps),
-    with what to do: store it by reference when it is a shipped model's state, else use a shipped model."""
-    if state_bytes is None or code_bytes is None or state_bytes <= code_bytes:
-        return None
-    mib = 1 << 20
-    model = shipped_model_of(h.codec.id, h.codes.size, h.codec.state_sha256)
-    todo = (f"it is the shipped model {model}'s: for maps that share it, store it by reference (sdfcodec encode "
-            "--codec-state reference; create_map(codec_state='reference')), readers then need that model in the "
-            "installed plugin" if model is not None else
-            "it is no shipped model's (fitted or trained): encode with a shipped model (no --fit or --model) and "
-            "store that by reference (--codec-state reference), or accept the cost for a one-off map")
-    return (f"the stored codec state ({state_bytes / mib:.2f} MiB) outweighs the codes ({code_bytes / mib:.2f} MiB) "
-            f"by {(state_bytes - code_bytes) / mib:.2f} MiB; {todo}")
-
-
-def _residual_info(h: MapHeader, root: str | None, coded: int) -> dict[str, Any] | None:
-    """``info()["residual"]``: the residual stage's bound, step and bytes (None for a map without one)."""
-    r = h.residual
-    if r is None:
-        return None
-    nbytes = _dir_bytes(str(Path(root) / "residual")) if root is not None else None
-    return {"extension": "residual-bound", "max_error": r.max_error, "sign_exact": r.sign_exact, "step": r.step,
-            "dtype": r.dtype, "bytes_on_disk": nbytes,
-            "bytes_per_coded_block": None if nbytes is None else nbytes / max(coded, 1),
-            "holds_at": f"full level ({h.codes.size}) only: a prefix level decodes without the residual"}
-
-
-def _dir_bytes(path: str) -> int | None:
-    p = Path(path)
-    if p.is_file():
-        return p.stat().st_size
-    if not p.is_dir():
-        return None
-    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())

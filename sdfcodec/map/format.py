@@ -7,8 +7,6 @@ Pure functions of their arguments: nothing here opens or reads a store.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import warnings
 from typing import Any, Sequence
@@ -28,7 +26,7 @@ from .shards import check_sharding
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
-           "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors", "state_digest",
+           "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors",
            "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
            "QUANT_CLEVEL", "mask_compressors", "field_compression_of"]
@@ -82,18 +80,6 @@ def mask_compressors() -> list:
     shuffle, synthetic fused rooms' in 15-36 B against 18-40 B (docs/rate-distortion.md, "Quantised codes");
     readers decode any allowed Blosc settings, so old readers read it."""
     return [BloscCodec(cname="zstd", clevel=5, shuffle="noshuffle"), Crc32cCodec()]
-
-
-def state_digest(state: dict[str, np.ndarray]) -> str:
-    """SHA-256 of a codec state: for each array by sorted name, ``name NUL dtype NUL shape-json NUL`` then
-    its little-endian C-order bytes (spec/map-format.md, "Codec state")."""
-    h = hashlib.sha256()
-    for name in sorted(state):
-        a = np.ascontiguousarray(state[name])
-        a = a.astype(a.dtype.newbyteorder("<"), copy=False)
-        h.update(f"{name}\0{a.dtype.str}\0{json.dumps(list(a.shape))}\0".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
 
 
 def code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: int | None,

@@ -32,10 +32,10 @@ from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_E
                       now_iso)
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
-from .codec_state import shipped_reference
+from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
-                     code_layout, compressors, free_space, mask_compressors, state_digest)
+                     code_layout, compressors, free_space, mask_compressors)
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
                        store_mask_chunk, write_block_rows)
 from .reader import CodecCache, MapReader, open_reader
