@@ -237,10 +237,7 @@ def test_http_region_reads_byte_ranges_of_shards(pair, ranges):
     local = sdfcodec.open_map(sharded)
     region = ((40, 60), (70, 90), (0, 16))  # blocks x 2-3, y 4-5, z 0: chunk (0, 1, 0) of 4^3 blocks
     with FileServer(sharded.parent, ranges=ranges) as srv:
-        # a short read timeout: against this loopback server one request of a whole-map read now and then
-        # gets no answer until the timeout (30 s by default) and succeeds on its retry (not yet diagnosed;
-        # plain maps too); the retry path is what the test then exercises, in seconds instead of a minute
-        m = sdfcodec.open_map(srv.url("sharded.sdfz"), storage_options={"remote_limits": {"read_timeout": 2.0}})
+        m = sdfcodec.open_map(srv.url("sharded.sdfz"))
         srv.take()
         np.testing.assert_array_equal(m.decode_region(region), local.decode_region(region))
         got = [(p, r, n) for p, r, n in srv.take() if "/codes/c/" in p]
@@ -252,7 +249,7 @@ def test_http_region_reads_byte_ranges_of_shards(pair, ranges):
         else:  # a server that ignores ranges sends whole shards, each cut here, within the shard's bound
             assert all(n == shard.stat().st_size for _, _, n in got)
         np.testing.assert_array_equal(m.decode_region(), local.decode_region())
-        assert verify_map(srv.url("sharded.sdfz"), storage_options={"remote_limits": {"read_timeout": 2.0}}).ok
+        assert verify_map(srv.url("sharded.sdfz")).ok
 
 
 def test_s3_region_reads_byte_ranges_of_shards(pair, s3):  # noqa: F811

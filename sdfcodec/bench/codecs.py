@@ -38,6 +38,7 @@ fresh output per call would be slower than the hardware allows, flattering the c
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import warnings
 from dataclasses import dataclass
@@ -50,6 +51,7 @@ from ..codec import Codec, uses_weights
 from ..errors import CodecTypeError, InvalidValueError, RegistrationError
 from ..registry import get_codec, get_codec_class
 from .harness import Timing, interleave, load, ratio, time_call
+from .serve import FileServer
 
 torch = lazy_module("torch")  # imported on first use: sdfcodec.plugin imports this module for register_bench
 
@@ -337,10 +339,9 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
                      "memcpy": memcpy_fn(), "in-memory": lambda: (codec.decode(z), sync()),
                      "transfer": lambda: (z.copy_(host, non_blocking=True), sync())}
         sources = {"decode-on-read": str(tmp / "bench.sdfz")}
-        server = _serve(tmp) if http else None
-        if server is not None:
-            sources["decode-on-read-http"] = f"http://127.0.0.1:{server.server_address[1]}/bench.sdfz"
-        try:
+        with contextlib.ExitStack() as stack:
+            if http:
+                sources["decode-on-read-http"] = stack.enter_context(FileServer(tmp)).url("bench.sdfz")
             for op, where in sources.items():
                 m = open_map(where)
 
@@ -354,10 +355,6 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
                 timed[op] = interleave({"candidate": read, **baselines}, repeats=repeats, min_time=min_time)
                 loads[op] = (load0, load())
                 m.close()
-        finally:
-            if server is not None:
-                server.shutdown()
-                server.server_close()
         code_bytes = sum(f.stat().st_size for f in (tmp / "bench.sdfz" / "codes").rglob("*") if f.is_file())
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -457,23 +454,3 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
                          map_blocks=n_blocks, torch_threads=torch.get_num_threads(), load_before=load0,
                          load_after=load1)
             for op, t in timed.items()]
-
-
-def _serve(root: Any):
-    """A static HTTP server for the files under ``root`` on a free loopback port, serving from a thread."""
-    import http.server
-    import threading
-    from functools import partial
-
-    class Quiet(http.server.SimpleHTTPRequestHandler):
-        # as production servers do: without it, headers and body leave in separate segments and the client's
-        # delayed ACK stalls every response by ~40 ms (Nagle), which would time the TCP stack, not the reader
-        disable_nagle_algorithm = True
-        protocol_version = "HTTP/1.1"  # keep-alive: one connection per client thread, as with a real server
-
-        def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the stdlib's signature
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), partial(Quiet, directory=str(root)))
-    threading.Thread(target=server.serve_forever, daemon=True, name="sdfcodec-bench-http").start()
-    return server
