@@ -28,6 +28,25 @@ def test_interleave_alternates_equal_rounds():
         interleave({"a": lambda: None}, repeats=0)
 
 
+def test_short_calls_are_timed_on_one_thread():
+    """Calls of microseconds are timed on one thread (a parked thread at a barrier costs a time slice on a loaded
+    machine); calls longer than ONE_THREAD_BELOW_S keep the configured threads, and the setting is restored."""
+    import time
+
+    from sdfcodec.bench.harness import ONE_THREAD_BELOW_S, limit_threads
+
+    with limit_threads(2):
+        seen = []
+        tm = interleave({"a": lambda: seen.append(torch.get_num_threads()), "b": lambda: None}, repeats=2,
+                        min_time=0.0)
+        assert seen[-2:] == [1, 1] and tm["a"].threads == tm["b"].threads == 1
+        assert torch.get_num_threads() == 2
+        seen.clear()
+        tm = interleave({"a": lambda: (seen.append(torch.get_num_threads()), time.sleep(ONE_THREAD_BELOW_S)),
+                         "b": lambda: None}, repeats=2, min_time=0.0)
+        assert set(seen) == {2} and tm["a"].threads is None
+
+
 def _run(ratios, extra=None):
     recs = [{"codec": "pca", "code_size": 64, "operation": op, "batch": 64, "device": "cpu", "ratio_to_baseline": r,
              "blocks_per_s": 1e4} for op, r in ratios.items()]

@@ -202,12 +202,14 @@ def timed_record(t: Timing, base: Timing, blocks: int, **fields: Any) -> dict[st
     """The timing fields of a record for ``blocks`` blocks per call: ``blocks_per_s`` and
     ``baseline_blocks_per_s`` (medians), ``ratio_to_baseline`` (ratio of medians), their bests and
     ``ratio_of_bests``, ``ratio_paired`` and ``ratio_cpu`` (:func:`~sdfcodec.bench.harness.ratio`),
-    ``us_per_block`` (median) with the paper comparison, and ``repeats``."""
+    ``us_per_block`` (median) with the paper comparison, ``repeats``, and ``timed_threads: 1`` where the calls
+    were short enough to be timed on one thread (:func:`~sdfcodec.bench.harness.interleave`)."""
     us = 1e6 * t.median / blocks
     return {**fields, "blocks_per_s": blocks / t.median, "baseline_blocks_per_s": blocks / base.median,
             "ratio_to_baseline": base.median / t.median, "us_per_block": us, **vs_paper(us),
             "blocks_per_s_best": blocks / t.best, "baseline_blocks_per_s_best": blocks / base.best,
-            **{k: v for k, v in ratio(t, base).items() if k != "ratio_of_medians"}, "repeats": len(t.rounds)}
+            **{k: v for k, v in ratio(t, base).items() if k != "ratio_of_medians"}, "repeats": len(t.rounds),
+            **({"timed_threads": 1} if t.threads == 1 else {})}
 
 
 def fused_style_weights(v: np.ndarray, voxel_size: float = 0.02) -> np.ndarray:

@@ -35,6 +35,7 @@ class Timing:
     rounds: tuple[float, ...]
     calls: int
     cpu_rounds: tuple[float, ...] = ()
+    threads: int | None = None  # 1: timed on one thread (short calls, see interleave); None: as configured
 
     @property
     def best(self) -> float:
@@ -52,24 +53,39 @@ class Timing:
                 "calls_per_round": self.calls}
 
 
-def _calibrate(fn: Callable[[], object], min_time: float) -> int:
-    """Calls per round so that a round of ``fn`` lasts about ``min_time`` (``fn`` warmed up first)."""
-    fn()  # warm-up: allocations, page faults, kernel selection, caches
+#: Calls shorter than this (seconds; the longest of a figure's callables, at calibration) are timed on one thread
+#: by :func:`interleave`: a multi-threaded call waits at its barrier for a thread the scheduler has parked,
+#: which on a loaded machine costs a time slice (milliseconds) against a call of microseconds. Two `bench
+#: --quick` runs at load 6-7 disagreed 100-500-fold on batch 1 and 64 ratios timed on two threads.
+ONE_THREAD_BELOW_S = 2e-3
+
+
+def _one_call(fn: Callable[[], object]) -> float:
+    """Seconds of one call of ``fn`` after a warm-up call (allocations, page faults, kernel selection)."""
+    fn()
     t0 = time.perf_counter()
     fn()
-    one = max(time.perf_counter() - t0, 1e-7)
-    return max(1, round(min_time / one))
+    return max(time.perf_counter() - t0, 1e-7)
 
 
 def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min_time: float = 0.2
                ) -> dict[str, Timing]:
     """Time every callable of ``fns`` (name -> callable; by convention the candidate first, then its baselines)
     in ``repeats`` interleaved rounds of equal length; see the module docstring. Returns name -> :class:`Timing`.
-    A callable that runs asynchronously (CUDA) must synchronise before it returns."""
+    When every callable's call is shorter than :data:`ONE_THREAD_BELOW_S`, all of them are timed on one thread
+    (torch and numpy's BLAS; ``Timing.threads`` says so). A callable that runs asynchronously (CUDA) must
+    synchronise before it returns."""
     if repeats < 1:
         raise InvalidValueError(f"repeats must be >= 1, got {repeats}")
     names = list(fns)
-    calls = {n: _calibrate(fns[n], min_time) for n in names}
+    one = {n: _one_call(fns[n]) for n in names}
+    threads = 1 if max(one.values()) < ONE_THREAD_BELOW_S else None
+    with limit_threads(threads):  # calibrated on the configured threads: a one-thread round may run longer
+        return _rounds(fns, names, {n: max(1, round(min_time / t)) for n, t in one.items()}, repeats, threads)
+
+
+def _rounds(fns: Mapping[str, Callable[[], object]], names: list[str], calls: dict[str, int], repeats: int,
+            threads: int | None) -> dict[str, Timing]:
     rounds: dict[str, list[float]] = {n: [] for n in names}
     cpu: dict[str, list[float]] = {n: [] for n in names}
     for r in range(repeats):
@@ -80,7 +96,7 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
                 fn()
             rounds[n].append((time.perf_counter() - t0) / k)
             cpu[n].append((time.process_time() - c0) / k)
-    return {n: Timing(tuple(rounds[n]), calls[n], tuple(cpu[n])) for n in names}
+    return {n: Timing(tuple(rounds[n]), calls[n], tuple(cpu[n]), threads) for n in names}
 
 
 def ratio(candidate: Timing, baseline: Timing) -> dict[str, float]:
