@@ -111,15 +111,34 @@ class GuardStore(zarr.storage.WrapperStore):
         """The store this one guards."""
         return self._store
 
+    def limit_of(self, key: str) -> tuple | None:
+        """The limits of the checked array ``key`` is a stored object of (see ``limits``), or None."""
+        if key == "zarr.json" or key.endswith("/zarr.json"):
+            return None
+        return next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
+
+    def read_chunk_file(self, key: str) -> bytes | None:
+        """The stored bytes of chunk ``key`` of a checked, unsharded array whose chunks are Blosc frames, over a
+        local directory store, read on the calling thread (no event loop; :mod:`sdfcodec.map.fastfetch`) with
+        the checks :meth:`get` makes: bounded while read, the frame's structure checked before anything
+        decompresses it. None: the chunk is not stored."""
+        limit = self.limit_of(key)
+        if (not isinstance(self._store, SafeLocalStore) or limit is None or not limit[1]
+                or (len(limit) > 2 and limit[2] != 1)):
+            raise InvalidValueError(f"{key}: only a Blosc-framed chunk file of a local map is read this way")
+        data = self._store.read_file(key, None, chunk_read_limit(limit[0]), _chunk_too_big(key, limit))
+        if data is not None:
+            _check_frame(key, memoryview(data), limit)
+        return data
+
     async def get(self, key, prototype=None, byte_range=None):
         meta = key == "zarr.json" or key.endswith("/zarr.json")
-        limit = None if meta else next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
+        limit = self.limit_of(key)
 
         def meta_error(size: int) -> Exception:
             return FormatError(f"{key} is {size} bytes, more than any map metadata ({MAX_METADATA_BYTES}); refused")
 
-        def chunk_error(size: int) -> Exception:
-            return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
+        chunk_error = _chunk_too_big(key, limit)
 
         if limit and byte_range is not None:  # only shards are read in ranges (spec section 4d)
             problem = range_problem(limit, byte_range, chunk_read_limit(limit[0]))
@@ -161,12 +180,22 @@ class GuardStore(zarr.storage.WrapperStore):
             if problem:
                 raise ChecksumError(f"shard {key} is not sound: {problem}; refused without decompressing")
         elif limit and limit[1]:
-            # a view, not a copy: only the header, the offset table and a few stream lengths are read
-            problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
-            if problem:
-                raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without "
-                                    "decompressing")
+            _check_frame(key, memoryview(buf.as_numpy_array()), limit)
         return buf
+
+
+def _chunk_too_big(key: str, limit: tuple | None):
+    def chunk_error(size: int) -> Exception:
+        return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
+    return chunk_error
+
+
+def _check_frame(key: str, data: memoryview, limit: tuple) -> None:
+    """Refuse a stored chunk (a Blosc frame and its CRC32C) whose frame is unsound, before it is decompressed."""
+    # a view, not a copy: only the header, the offset table and a few stream lengths are read
+    problem = blosc_frame_problem(data[:-4], limit[0])
+    if problem:
+        raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without decompressing")
 
 
 class ShardIndexCache:

@@ -6,11 +6,13 @@ the selected blocks). See :mod:`sdfcodec.search` for the conventions and units.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import stat
+import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -54,13 +56,23 @@ class CountingStore(zarr.storage.WrapperStore):
         super().__init__(store)
         self.bytes: dict[str, int] = {}
         self.keys: list[str] = []
+        self._lock = threading.Lock()  # local chunks are read by several threads at once
+
+    @property
+    def inner(self) -> zarr.abc.store.Store:
+        """The store counted (with :meth:`observe`, local chunk reads bypassing Zarr count too)."""
+        return self._store
+
+    def observe(self, key: str, nbytes: int) -> None:
+        """Count ``nbytes`` read at ``key`` outside the store interface (:mod:`sdfcodec.map.fastfetch`)."""
+        kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
+        with self._lock:
+            self.bytes[kind] = self.bytes.get(kind, 0) + nbytes
+            self.keys.append(key)
 
     def _count(self, key: str, buf) -> None:
-        if buf is None:
-            return
-        kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
-        self.bytes[kind] = self.bytes.get(kind, 0) + len(buf)
-        self.keys.append(key)
+        if buf is not None:
+            self.observe(key, len(buf))
 
     async def get(self, key, prototype, byte_range=None):
         buf = await self._store.get(key, prototype, byte_range)
@@ -92,15 +104,17 @@ def _counting_view(m: Map) -> tuple[Map, CountingStore]:
 def _code_chunk_bytes(m: Map, level: int | None = None) -> int | None:
     """Bytes on disk of the map's code chunks holding elements ``[0, level)`` (all when None); local
     directory maps only (None otherwise)."""
-    root = Path(m.location) / "codes" / "c"
-    if "://" in m.location or not root.is_dir():
+    root = os.path.join(m.location, "codes", "c")
+    if "://" in m.location or not os.path.isdir(root):
         return None
-    cc = m.header.codes.chunk_code
-    last = -(-(level or m.code_size) // cc)
+    last = -(-(level or m.code_size) // m.header.codes.chunk_code)
     total = 0
-    for f in root.rglob("*"):
-        if f.is_file() and f.name.isdigit() and int(f.name) < last:
-            total += f.stat().st_size
+    for folder, _, files in os.walk(root):  # os.walk: pathlib's rglob took ~3 ms per call on 55 chunk files
+        for name in files:
+            if name.isdigit() and int(name) < last:
+                with contextlib.suppress(OSError):
+                    st = os.lstat(os.path.join(folder, name))
+                    total += st.st_size if stat.S_ISREG(st.st_mode) else 0
     return total
 
 
@@ -177,6 +191,12 @@ class Scorer:
         self.device = device
         self.qq = np.einsum("ij,ij->i", q, q)
         self.qt = np.ascontiguousarray(-2.0 * q.T)  # (L, M): the -2 folded into the product
+        # codes per product on the CPU: OpenBLAS runs a product of 2^18 multiply-adds or more on every core, and a
+        # skinny one (a few descriptors) then waits on threads busy elsewhere (the reader's decoders, other
+        # processes): 4-8 ms for 16,384 codes against 15 descriptors on a loaded 2-core machine, 0.4 ms in
+        # 256-code products (one core each, cache-sized). Large models keep one product, on every core.
+        tile = ((1 << 18) - 1) // max(1, q.shape[0] * q.shape[1])
+        self.rows = tile if tile >= 128 else 1 << 62
         if device.type != "cpu":
             self.tqt = torch.from_numpy(self.qt).to(device)
             self.tqq = torch.from_numpy(self.qq).to(device)
@@ -185,11 +205,13 @@ class Scorer:
         """``(n, L)`` float32 codes -> scores ``(n,)`` float32 and nearest index ``(n,)`` int64 (numpy)."""
         if self.device.type == "cpu":
             c = np.asarray(codes, dtype=np.float32)
-            g = c @ self.qt
-            g += self.qq
-            idx = g.argmin(axis=1)
-            s = np.take_along_axis(g, idx[:, None], axis=1)[:, 0]
-            s += np.einsum("ij,ij->i", c, c)
+            s, idx = np.empty(len(c), np.float32), np.empty(len(c), np.int64)
+            for a in range(0, len(c), self.rows):
+                t = c[a:a + self.rows]
+                g = t @ self.qt
+                g += self.qq
+                i = idx[a:a + len(t)] = g.argmin(axis=1)
+                s[a:a + len(t)] = np.take_along_axis(g, i[:, None], axis=1)[:, 0] + np.einsum("ij,ij->i", t, t)
             np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
             return s, idx
         c = (codes if isinstance(codes, torch.Tensor) else torch.from_numpy(np.asarray(codes))).to(self.device)
@@ -524,8 +546,13 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     held: list | None = [] if staged else None  # the streamed codes, for the plane check (read once)
     held_bytes = 0
     n_scored = 0
-    for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
-        s, idx = score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
+    def scored(coords: np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # in the reader's fetching threads, so that scoring a batch overlaps reading the next ones
+        return codes, *score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
+
+    whole = tuple(slice(0, n) for n in view.reader.grid())
+    for coords, (codes, s, idx) in view.reader.fetch_stream(whole, lv, stage=scored, batch_blocks=None,
+                                                            chunks_per_group=chunks_per_batch):
         n_scored += len(s)
         if held is not None:
             held.append((np.array(coords, np.int64), np.array(codes, np.float32)))  # copies: batches may be reused
@@ -642,13 +669,15 @@ def _surface_test(view: Map, codec: Codec, level: int, t: float):
     """``coords (N, 3) -> (N,) bool``: whether each coded block holds a surface, i.e. its code is farther than
     :data:`SURFACE_SHARE` of ``t`` (the query's threshold) from the codes of a block of solid and a block of free
     space. An exact SDF codes the solid around a room too; those blocks are no surface above or below anything."""
-    const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
-    ref = Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu"))
+    ref: list[Scorer] = []  # made on first use: encoding costs a search that selects nothing ~20 ms
 
     def has_surface(coords: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
         if not len(coords):
             return np.zeros(0, bool)
-        return ref(codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
+        if not ref:
+            const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
+            ref.append(Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu")))
+        return ref[0](codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
 
     return has_surface
 
