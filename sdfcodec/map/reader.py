@@ -394,8 +394,8 @@ class MapReader:
     # -- the decode-on-read pipeline ------------------------------------------------------------------
     # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
     # to_dask, the tracker's map field): the chunks of the code array that hold coded blocks of a block box are
-    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently, through
-    # Zarr's async I/O, which also decompresses them off the calling thread) and stages their codes for the
+    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently: a local
+    # map's by sdfcodec.map.fastfetch's decoding threads, others through Zarr's async I/O) and stages codes for the
     # device (pinned host memory + an asynchronous copy on CUDA) while the calling thread decodes the current
     # group in one batched call.
 

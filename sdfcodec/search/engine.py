@@ -1,36 +1,30 @@
-"""Searching and expanding a map: the store wrapper that counts the bytes a search reads
-(:class:`CountingStore`), the scoring kernel (:class:`Scorer`), :func:`search` (score every coded block against
+"""Searching and expanding a map: the scoring kernel (:class:`Scorer`), :func:`search` (score every coded block against
 a query model, select by threshold and/or top-k, with :func:`auto_threshold`) and :func:`expand` (decode only
 the selected blocks). See :mod:`sdfcodec.search` for the conventions and units.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import stat
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
-import zarr
-import zarr.abc.store
 
 from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
 from ..map import Map, open_map, state_digest
+from .counting import CountingStore, code_chunk_bytes, counting_view
 from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
     "AUTO_FRACTION",
     "SURFACE_SHARE",
-    "CountingStore",
     "Scorer",
     "ObservedScorer",
     "MIN_OBSERVED_SURFACE",
@@ -45,77 +39,6 @@ __all__ = [
     "search",
     "expand",
 ]
-
-
-# ----------------------------------------------------------------------------------------- store counting
-class CountingStore(zarr.storage.WrapperStore):
-    """A read-through Zarr store wrapper that counts the bytes it returns, per top-level array name
-    (``codes``, ``state``, ``codec``, ``weights``) and ``meta`` for ``zarr.json`` metadata documents."""
-
-    def __init__(self, store: zarr.abc.store.Store):
-        super().__init__(store)
-        self.bytes: dict[str, int] = {}
-        self.keys: list[str] = []
-        self._lock = threading.Lock()  # local chunks are read by several threads at once
-
-    @property
-    def inner(self) -> zarr.abc.store.Store:
-        """The store counted (with :meth:`observe`, local chunk reads bypassing Zarr count too)."""
-        return self._store
-
-    def observe(self, key: str, nbytes: int) -> None:
-        """Count ``nbytes`` read at ``key`` outside the store interface (:mod:`sdfcodec.map.fastfetch`)."""
-        kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
-        with self._lock:
-            self.bytes[kind] = self.bytes.get(kind, 0) + nbytes
-            self.keys.append(key)
-
-    def _count(self, key: str, buf) -> None:
-        if buf is not None:
-            self.observe(key, len(buf))
-
-    async def get(self, key, prototype, byte_range=None):
-        buf = await self._store.get(key, prototype, byte_range)
-        self._count(key, buf)
-        return buf
-
-    async def get_partial_values(self, prototype, key_ranges):
-        out = await self._store.get_partial_values(prototype, key_ranges)
-        for (key, _), buf in zip(key_ranges, out):
-            self._count(key, buf)
-        return out
-
-
-def _counting_view(m: Map) -> tuple[Map, CountingStore]:
-    """The same map read through a :class:`CountingStore` (shares the header and any loaded codec)."""
-    if m.writable:
-        raise InvalidValueError(f"{m.location} is still being written; leave the create_map block (commit) and "
-                                "search the map with sdfcodec.open_map")
-    made: list[CountingStore] = []
-
-    def wrap(store):
-        made.append(CountingStore(store))
-        return made[0]
-
-    view = m.with_store(wrap)  # shares the header and the codec cache: a codec loaded by either serves both
-    return view, made[0]
-
-
-def _code_chunk_bytes(m: Map, level: int | None = None) -> int | None:
-    """Bytes on disk of the map's code chunks holding elements ``[0, level)`` (all when None); local
-    directory maps only (None otherwise)."""
-    root = os.path.join(m.location, "codes", "c")
-    if "://" in m.location or not os.path.isdir(root):
-        return None
-    last = -(-(level or m.code_size) // m.header.codes.chunk_code)
-    total = 0
-    for folder, _, files in os.walk(root):  # os.walk: pathlib's rglob took ~3 ms per call on 55 chunk files
-        for name in files:
-            if name.isdigit() and int(name) < last:
-                with contextlib.suppress(OSError):
-                    st = os.lstat(os.path.join(folder, name))
-                    total += st.st_size if stat.S_ISREG(st.st_mode) else 0
-    return total
 
 
 # ---------------------------------------------------------------------------------------------- searching
@@ -518,7 +441,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         raise InvalidValueError(f"threshold must be a finite squared distance >= 0 or 'auto', got {threshold!r}")
     if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
         raise InvalidValueError(f"top must be a positive int, got {top!r}")
-    view, store = _counting_view(m)
+    view, store = counting_view(m)
     codec = view.codec  # loads (and counts) the codec state unless the map already holds it
     model = resolve_query(query, m, codec, behind=behind, up=up, tilt=tilt)
     lv = _search_level(m, model, level)
@@ -602,7 +525,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "map": m.location, "codec": m.header.codec.id, "code_size": m.code_size, "level": lv,
         "descriptors": len(model), "blocks_scored": n_scored, "selected": int(len(sel_c)),
         "bytes_read": dict(store.bytes), "code_bytes_read": int(store.bytes.get("codes", 0)),
-        "code_bytes_level": _code_chunk_bytes(m, lv), "code_bytes_full": _code_chunk_bytes(m),
+        "code_bytes_level": code_chunk_bytes(m, lv), "code_bytes_full": code_chunk_bytes(m),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
         "observed_scoring": masked, "scene": scene_info,
@@ -754,7 +677,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
     if coords.ndim != 2 or coords.shape[1] != 3 or coords.dtype.kind not in "iu":
         raise ShapeError(f"selected block coords must be an integer (N, 3) array, got {coords.shape} {coords.dtype}")
     coords = coords.astype(np.int64)
-    view, store = _counting_view(m)
+    view, store = counting_view(m)
     lv = view.reader.level(level)
     dev = _default_device(device)
     states = view.block_states()
@@ -801,6 +724,6 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
         out.mesh = mesh_from_blocks(coords, blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
     out.stats = {"blocks_decoded": int(len(coords)), "coded_blocks": int((states == BlockState.CODED).sum()),
                  "level": lv, "code_bytes_read": int(store.bytes.get("codes", 0)),
-                 "code_bytes_full": _code_chunk_bytes(m), "bytes_read": dict(store.bytes),
+                 "code_bytes_full": code_chunk_bytes(m), "bytes_read": dict(store.bytes),
                  "seconds": time.perf_counter() - t0}
     return out
