@@ -1,6 +1,6 @@
 """Local chunk reads without Zarr's event loop (sdfcodec.map.fastfetch): what they read equals plain Zarr's
 reading of the same arrays, their checks refuse what Zarr refuses (a chunk failing its CRC32C, a frame that
-decompresses to too few bytes), and maps they do not serve (zip, sharded) keep Zarr's path."""
+decompresses to too few bytes), sharded maps read the same, and maps they do not serve (zip) keep Zarr's path."""
 
 from __future__ import annotations
 
@@ -121,12 +121,18 @@ def test_a_frame_of_too_few_bytes_is_refused_even_with_a_valid_checksum(tmp_path
         list(m.iter_codes())
 
 
-def test_a_sharded_map_keeps_zarrs_path_and_reads_the_same(tmp_path, codec):
+def test_a_sharded_map_reads_what_plain_zarr_reads(tmp_path, codec):
     plain, sharded = tmp_path / "p.sdfz", tmp_path / "s.sdfz"
     _write(plain, codec, seed=3)
     _write(sharded, codec, seed=3, shard_blocks=16)
     a, b = sdfcodec.open_map(plain), sdfcodec.open_map(sharded)
-    assert local_chunks(b.reader.group.store, b.reader.codes_array) is None
+    assert local_chunks(b.reader.group.store, b.reader.codes_array) is not None  # chunks as ranges of shards
+    fast = local_chunks(b.reader.group.store, b.reader.codes_array)
+    sel = (slice(3, 20), slice(0, 18), slice(5, 11), slice(10, 50))  # across chunks and shards
+    np.testing.assert_array_equal(fast.read_many([sel])[0], zarr.open_group(str(sharded), mode="r")["codes"][sel])
+    want_c, want = _zarr_codes(sharded)
+    cb, kb = b.read_codes()
+    assert np.array_equal(cb, want_c) and np.array_equal(kb, want)
     ca, ka = a.read_codes()
     cb, kb = b.read_codes()
     assert np.array_equal(ca, cb) and np.array_equal(ka, kb)

@@ -12,9 +12,10 @@ output array.
 Nothing is skipped: the file is read through the map's guard (:meth:`GuardStore.read_chunk_file`: links,
 FIFOs and files growing while read refused, the size bounded, the Blosc frame's structure checked before the
 decompressor trusts it), every chunk's CRC32C is verified, and the frame must decompress to exactly the
-chunk's size. Only the chain sdfcodec's writers use is read this way (bytes, Blosc, CRC32C; unsharded; a
-little-endian host); any other store or chain (HTTP, S3, zip, sharded, zstd or gzip, field compression)
-goes through Zarr as before. A failure raises a :class:`~sdfcodec.errors.ChecksumError` naming the chunk's key;
+chunk's size. Only the chain sdfcodec's writers use is read this way (bytes, Blosc, CRC32C, in chunk files or in shards, whose
+index is fetched through the guard, CRC32C-checked and kept, and each chunk read as its byte range; a
+little-endian host); any other store or chain (HTTP, S3, zip, zstd or gzip, field compression) goes through
+Zarr as before. A failure raises a :class:`~sdfcodec.errors.ChecksumError` naming the chunk's key;
 the reader turns it into its usual message.
 
 A store wrapper that only watches what is read (search's byte counter) joins in by giving ``inner`` (the
@@ -35,9 +36,11 @@ import google_crc32c
 import numcodecs.blosc
 import numpy as np
 import zarr
+from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 
 from ..errors import ChecksumError
 from .format import chunk_ranges
+from .shards import index_entry, index_size
 from .stores import GuardStore, SafeLocalStore
 
 __all__ = ["LocalChunks", "local_chunks"]
@@ -76,20 +79,41 @@ class LocalChunks:
         self.chunk_shape = tuple(int(c) for c in arr.chunks)
         self.chunk_bytes = int(np.prod(self.chunk_shape)) * self.dtype.itemsize
         self.fill = arr.metadata.fill_value
+        # a sharded array (spec 4d): chunks per shard along each axis; a chunk is a byte range of its shard
+        self.ratio = None if arr.shards is None else tuple(int(s) // c for s, c in zip(arr.shards, self.chunk_shape))
+        self.per = 1 if self.ratio is None else int(np.prod(self.ratio))
 
     def key(self, idx: tuple[int, ...]) -> str:
         return f"{self.arr.path}/{self.arr.metadata.encode_chunk_key(tuple(int(i) for i in idx))}"
 
+    def _read(self, key: str, byte_range: Any = None) -> bytes | None:
+        data = self.guard.read_chunk_file(key, byte_range)
+        if data is not None:
+            for observe in self.observers:
+                observe(key, len(data))
+        return data
+
+    def _stored(self, idx: tuple[int, ...]) -> tuple[str, bytes | None]:
+        """``(name, stored bytes or None)`` of chunk ``idx``: its file, or its range of its shard (found in the
+        shard's index, which is checked and kept by the guard)."""
+        if self.ratio is None:
+            key = self.key(idx)
+            return key, self._read(key)
+        key = self.key(tuple(i // r for i, r in zip(idx, self.ratio)))
+        index = self._read(key, SuffixByteRequest(index_size(self.per)))
+        where = int(np.ravel_multi_index(tuple(i % r for i, r in zip(idx, self.ratio)), self.ratio))
+        entry = None if index is None else index_entry(index, self.per, where)
+        if entry is None:
+            return key, None
+        return f"{key} [{entry[0]}, {entry[0] + entry[1]})", self._read(key, RangeByteRequest(*(entry[0], sum(entry))))
+
     def decode_into(self, idx: tuple[int, ...], out: np.ndarray, sub: tuple[slice, ...]) -> bool:
         """Write the part ``sub`` of chunk ``idx`` (decoded, checked) into ``out`` (the fill value when the chunk
         is not stored: then False)."""
-        key = self.key(idx)
-        data = self.guard.read_chunk_file(key)
+        key, data = self._stored(idx)
         if data is None:  # never written: the fill value, as Zarr reads it
             out[...] = self.fill
             return False
-        for observe in self.observers:
-            observe(key, len(data))
         raw = np.frombuffer(data, np.uint8)
         if len(raw) < 20 or google_crc32c.value(raw[:-4]) != int.from_bytes(data[-4:], "little"):
             raise ChecksumError(f"chunk {key} fails its CRC32C checksum")
@@ -187,7 +211,6 @@ def local_chunks(store: zarr.abc.store.Store, arr: zarr.Array) -> LocalChunks | 
         observers.append(observe)
         store = inner
     limit = store.limit_of(f"{arr.path}/c")
-    if (sys.byteorder != "little" or not isinstance(store.inner, SafeLocalStore) or limit is None or not limit[1]
-            or (len(limit) > 2 and limit[2] != 1)):
+    if sys.byteorder != "little" or not isinstance(store.inner, SafeLocalStore) or limit is None or not limit[1]:
         return None
     return LocalChunks(store, arr, observers)
