@@ -12,15 +12,15 @@ output array.
 Nothing is skipped: the file is read through the map's guard (:meth:`GuardStore.read_chunk_file`: links,
 FIFOs and files growing while read refused, the size bounded, the Blosc frame's structure checked before the
 decompressor trusts it), every chunk's CRC32C is verified, and the frame must decompress to exactly the
-chunk's size. Only the chain sdfcodec's writers use is read this way (bytes, Blosc, CRC32C, in chunk files or in shards, whose
-index is fetched through the guard, CRC32C-checked and kept, and each chunk read as its byte range; a
-little-endian host); any other store or chain (HTTP, S3, zip, zstd or gzip, field compression) goes through
-Zarr as before. A failure raises a :class:`~sdfcodec.errors.ChecksumError` naming the chunk's key;
-the reader turns it into its usual message.
+chunk's size. Only the chain sdfcodec's writers use is read this way (bytes, Blosc, CRC32C), in chunk files or
+in shards (the shard's index fetched through the guard, CRC32C-checked and kept, each chunk read as its byte
+range), on a little-endian host; any other store or chain (HTTP, S3, zip, zstd or gzip, field compression)
+goes through Zarr as before. A failure raises a :class:`~sdfcodec.errors.ChecksumError` naming the chunk's
+key; the reader then reads it again through Zarr, whose error names it as it always did.
 
 A store wrapper that only watches what is read (search's byte counter) joins in by giving ``inner`` (the
-store it wraps) and ``observe(key, nbytes)``, called for every stored chunk read here (from several threads); any other wrapper keeps
-the Zarr path.
+store it wraps) and ``observe(key, nbytes)``, called for every stored object read here (from several
+threads); any other wrapper keeps the Zarr path.
 """
 
 from __future__ import annotations

@@ -128,13 +128,13 @@ class Scorer:
         """``(n, L)`` float32 codes -> scores ``(n,)`` float32 and nearest index ``(n,)`` int64 (numpy)."""
         if self.device.type == "cpu":
             c = np.asarray(codes, dtype=np.float32)
-            s, idx = np.empty(len(c), np.float32), np.empty(len(c), np.int64)
+            g = np.empty((len(c), self.qt.shape[1]), np.float32)
             for a in range(0, len(c), self.rows):
-                t = c[a:a + self.rows]
-                g = t @ self.qt
-                g += self.qq
-                i = idx[a:a + len(t)] = g.argmin(axis=1)
-                s[a:a + len(t)] = np.take_along_axis(g, i[:, None], axis=1)[:, 0] + np.einsum("ij,ij->i", t, t)
+                np.matmul(c[a:a + self.rows], self.qt, out=g[a:a + self.rows])
+            g += self.qq
+            idx = g.argmin(axis=1)
+            s = g[np.arange(len(c)), idx]  # not g.min(axis=1): numpy's min along 15 columns is 3x slower
+            s += np.einsum("ij,ij->i", c, c)
             np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
             return s, idx
         c = (codes if isinstance(codes, torch.Tensor) else torch.from_numpy(np.asarray(codes))).to(self.device)
@@ -525,7 +525,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "map": m.location, "codec": m.header.codec.id, "code_size": m.code_size, "level": lv,
         "descriptors": len(model), "blocks_scored": n_scored, "selected": int(len(sel_c)),
         "bytes_read": dict(store.bytes), "code_bytes_read": int(store.bytes.get("codes", 0)),
-        "code_bytes_level": code_chunk_bytes(m, lv), "code_bytes_full": code_chunk_bytes(m),
+        **dict(zip(("code_bytes_level", "code_bytes_full"), code_chunk_bytes(m, lv, None))),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
         "observed_scoring": masked, "scene": scene_info,
@@ -724,6 +724,6 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
         out.mesh = mesh_from_blocks(coords, blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
     out.stats = {"blocks_decoded": int(len(coords)), "coded_blocks": int((states == BlockState.CODED).sum()),
                  "level": lv, "code_bytes_read": int(store.bytes.get("codes", 0)),
-                 "code_bytes_full": code_chunk_bytes(m), "bytes_read": dict(store.bytes),
+                 "code_bytes_full": code_chunk_bytes(m, None)[0], "bytes_read": dict(store.bytes),
                  "seconds": time.perf_counter() - t0}
     return out
