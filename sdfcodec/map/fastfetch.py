@@ -170,6 +170,7 @@ class LocalChunks:
             return
         nlead = len(self.chunk_shape) - len(sub)
         rows = chunk.reshape(-1, *self.chunk_shape[nlead:])
+        # every block of the chunk wanted: ``flat`` is then 0, 1, ... (np.argwhere's C order), so no gather
         out[dst] = rows[flat][(slice(None), *sub)] if len(flat) < len(rows) else rows[(slice(None), *sub)]
 
     def _run(self, fn: Callable, jobs: list) -> None:
