@@ -181,6 +181,21 @@ def test_scores_equal_brute_force_numpy(maps):
     assert len(both) == 5 and _key(both.coords) <= _key(sel.coords)
 
 
+@pytest.mark.parametrize("n_desc", [15, 300])
+def test_scorer_in_tiles_equals_brute_force(n_desc):
+    """The CPU scorer's products of a few hundred codes (few descriptors) and its one product (many) give the
+    float64 brute-force minimum distances and a nearest descriptor."""
+    rng = np.random.default_rng(n_desc)
+    q = rng.standard_normal((n_desc, 64)).astype(np.float32)
+    codes = rng.standard_normal((1500, 64)).astype(np.float32)
+    scorer = engine.Scorer(q, torch.device("cpu"))
+    assert (scorer.rows < len(codes)) == (n_desc == 15)  # several products only where one would be threaded
+    s, idx = scorer(codes)
+    d = ((codes[:, None, :].astype(np.float64) - q[None]) ** 2).sum(-1)
+    np.testing.assert_allclose(s, d.min(1), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(d[np.arange(len(codes)), idx], d.min(1), rtol=1e-4, atol=1e-3)
+
+
 def test_prefix_matching_across_code_sizes(maps, pca128):
     r128 = S.search(sdfcodec.open_map(maps[128]), "floor", level=32, keep_scores=True)
     r64 = S.search(sdfcodec.open_map(maps[64]), "floor", level=32, keep_scores=True)

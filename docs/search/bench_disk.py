@@ -6,8 +6,9 @@ A pca-64 map of ``--blocks`` coded blocks (random codes with the shipped eigensh
 ``sdfcodec.bench.bench_search`` writes) in a temporary directory; the candidate is a whole search of it for a
 floor model at a fixed threshold, the code-space score alone (``scene=False``: the streaming fetch-and-score
 loop that issue 17's throughput target is about); the baseline reads the same codes
-(``Map.iter_codes(level=64)``) and does nothing with them. Prints JSON with blocks/s, the harness's ratios and
-the load before and after.
+(``Map.iter_codes(level=64)``) and does nothing with them. Both read the local map's chunks without Zarr's
+event loop (``sdfcodec.map.fastfetch``); the search scores each batch in the reader's fetching threads. Prints
+JSON with blocks/s, the harness's ratios, CPU milliseconds per call and the load before and after.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import tempfile
 from pathlib import Path
 
@@ -58,7 +60,12 @@ def main(argv=None) -> int:
         t = interleave({"search": scored, "read": read}, repeats=args.repeats, min_time=0.5)
         out = {"blocks": n, "search_blocks_per_s": n / t["search"].median, "read_blocks_per_s": n / t["read"].median,
                "search_best_blocks_per_s": n / t["search"].best, "read_best_blocks_per_s": n / t["read"].best,
-               **ratio(t["search"], t["read"]), "load_before": l0, "load_after": load()}
+               **ratio(t["search"], t["read"]),
+               # CPU seconds of this process per call (all threads): under load the wall clock follows the share
+               # of the cores the process gets, the CPU time what the work costs
+               "search_cpu_ms": 1e3 * statistics.median(t["search"].cpu_rounds),
+               "read_cpu_ms": 1e3 * statistics.median(t["read"].cpu_rounds),
+               "load_before": l0, "load_after": load()}
     print(json.dumps(out, indent=1))
     return 0
 

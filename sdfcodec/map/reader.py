@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import itertools
 import math
 import os
@@ -39,6 +40,7 @@ from .observed import checked_mask_array, read_block_rows, restore_unobserved, r
 from .residual import apply_residual, check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 from .device_feed import DeviceFeed
+from .fastfetch import local_chunks
 from .shards import chunk_name, chunk_stored, shard_layout
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
@@ -208,11 +210,17 @@ class MapReader:
 
     def read_many(self, arr: zarr.Array, sels: Sequence[tuple]) -> list[np.ndarray]:
         """Read ``arr[sel]`` for every selection concurrently (one batch of Zarr's async I/O: the chunks are
-        fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`."""
-        if len(sels) == 1:
-            return [self.read(arr, sels[0])]
+        fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`. A local
+        map's chunks are read without Zarr (:mod:`~sdfcodec.map.fastfetch`); one failing there is read again
+        through Zarr, whose error names it as :meth:`read` does."""
         for sel in sels:
             self._check_read(arr, sel)
+        fast = local_chunks(self.group.store, arr)
+        with contextlib.suppress(SDFCodecError, OSError, RuntimeError, ValueError):
+            if fast is not None:
+                return fast.read_many(sels)
+        if len(sels) == 1:
+            return [self.read(arr, sels[0])]
         aarr = arr.async_array
 
         async def gather():
@@ -226,6 +234,17 @@ class MapReader:
                 raise self._chunk_error(arr, sel, res) from res
             out.append(np.asarray(res))
         return out
+
+    def gather(self, arr: zarr.Array, sels: Sequence[tuple], locs: Sequence[np.ndarray]) -> np.ndarray:
+        """The rows ``arr[sel][tuple(loc.T)]`` of every selection, stacked: a local map's chunks decoded straight
+        into the output (:meth:`LocalChunks.gather`), else :meth:`read_many`."""
+        for sel in sels:
+            self._check_read(arr, sel)
+        fast = local_chunks(self.group.store, arr)
+        with contextlib.suppress(SDFCodecError, OSError, RuntimeError, ValueError):
+            if fast is not None:
+                return fast.gather(sels, locs)
+        return np.concatenate([a[tuple(loc.T)] for a, loc in zip(self.read_many(arr, sels), locs)])
 
     def _chunk_error(self, arr: zarr.Array, sel: tuple, exc: Exception) -> Exception:
         if isinstance(exc, FormatError) and not isinstance(exc, ChecksumError):
@@ -375,8 +394,8 @@ class MapReader:
     # -- the decode-on-read pipeline ------------------------------------------------------------------
     # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
     # to_dask, the tracker's map field): the chunks of the code array that hold coded blocks of a block box are
-    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently, through
-    # Zarr's async I/O, which also decompresses them off the calling thread) and stages their codes for the
+    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently: a local
+    # map's by sdfcodec.map.fastfetch's decoding threads, others through Zarr's async I/O) and stages codes for the
     # device (pinned host memory + an asynchronous copy on CUDA) while the calling thread decodes the current
     # group in one batched call.
 
@@ -449,13 +468,11 @@ class MapReader:
             sels.append((*(slice(int(a), int(b)) for a, b in zip(lo, hi)), slice(0, level)))
             locs.append(np.argwhere(sub == BlockState.CODED))
             los.append(lo)
-        arrays = self.read_many(self.codes_array, sels)
-        codes = np.concatenate([a[tuple(loc.T)] for a, loc in zip(arrays, locs)])
+        codes = self.gather(self.codes_array, sels, locs)
         coords = np.concatenate([loc + lo for loc, lo in zip(locs, los)]).astype(np.int64, copy=False)
         params = None
         if self.code_scale_array is not None:
-            scales = self.read_many(self.code_scale_array, [(*sel[:3], slice(0, 2)) for sel in sels])
-            params = np.concatenate([a[tuple(loc.T)] for a, loc in zip(scales, locs)])
+            params = self.gather(self.code_scale_array, [(*sel[:3], slice(0, 2)) for sel in sels], locs)
         return coords, self._code_values(coords, codes, params)
 
     def fetch_stream(self, box: Box, level: int, *, states: np.ndarray | None = None,

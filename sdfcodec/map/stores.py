@@ -21,6 +21,7 @@ import weakref
 import zipfile
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zarr
@@ -111,15 +112,45 @@ class GuardStore(zarr.storage.WrapperStore):
         """The store this one guards."""
         return self._store
 
+    def limit_of(self, key: str) -> tuple | None:
+        """The limits of the checked array ``key`` is a stored object of (see ``limits``), or None."""
+        if key == "zarr.json" or key.endswith("/zarr.json"):
+            return None
+        return next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
+
+    def read_chunk_file(self, key: str, byte_range: Any = None) -> bytes | None:
+        """The stored bytes of chunk ``key`` of a checked array whose chunks are Blosc frames, over a local
+        directory store, read on the calling thread (no event loop; :mod:`sdfcodec.map.fastfetch`) with the
+        checks :meth:`get` makes: bounded while read, the frame's structure checked before anything decompresses
+        it. In a shard: its index (``byte_range`` a suffix request, kept in ``indexes``) or one chunk (a range
+        request). None: nothing is stored there."""
+        limit = self.limit_of(key)
+        sharded = limit is not None and len(limit) > 2 and limit[2] > 1
+        if (not isinstance(self._store, SafeLocalStore) or limit is None or not limit[1]
+                or sharded != (byte_range is not None)):
+            raise InvalidValueError(f"{key}: only a Blosc-framed chunk of a local map is read this way")
+        problem = range_problem(limit, byte_range, chunk_read_limit(limit[0])) if sharded else None
+        if problem:
+            raise ChecksumError(f"{key}: {problem}; refused unread")
+        index = isinstance(byte_range, SuffixByteRequest)
+        if index and (hit := self.indexes.get(key)) is not None:
+            return hit
+        data = self._store.read_file(key, byte_range, read_cap(limit, byte_range, chunk_read_limit(limit[0])),
+                                     _chunk_too_big(key, limit))
+        if data is not None and index:
+            self.indexes.put(key, data)
+        elif data is not None:
+            _check_frame(_range_name(key, byte_range), memoryview(data), limit)
+        return data
+
     async def get(self, key, prototype=None, byte_range=None):
         meta = key == "zarr.json" or key.endswith("/zarr.json")
-        limit = None if meta else next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
+        limit = self.limit_of(key)
 
         def meta_error(size: int) -> Exception:
             return FormatError(f"{key} is {size} bytes, more than any map metadata ({MAX_METADATA_BYTES}); refused")
 
-        def chunk_error(size: int) -> Exception:
-            return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
+        chunk_error = _chunk_too_big(key, limit)
 
         if limit and byte_range is not None:  # only shards are read in ranges (spec section 4d)
             problem = range_problem(limit, byte_range, chunk_read_limit(limit[0]))
@@ -146,10 +177,7 @@ class GuardStore(zarr.storage.WrapperStore):
             self.indexes.put(key, buf.to_bytes())
         if byte_range is not None:
             if limit and limit[1] and isinstance(byte_range, RangeByteRequest):  # one chunk of a shard
-                problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
-                if problem:
-                    raise ChecksumError(f"chunk {key} [{byte_range.start}, {byte_range.end}) is not a sound Blosc "
-                                        f"frame: {problem}; refused without decompressing")
+                _check_frame(_range_name(key, byte_range), memoryview(buf.as_numpy_array()), limit)
             return buf
         if meta and len(buf) > MAX_METADATA_BYTES:
             raise meta_error(len(buf))
@@ -161,12 +189,26 @@ class GuardStore(zarr.storage.WrapperStore):
             if problem:
                 raise ChecksumError(f"shard {key} is not sound: {problem}; refused without decompressing")
         elif limit and limit[1]:
-            # a view, not a copy: only the header, the offset table and a few stream lengths are read
-            problem = blosc_frame_problem(memoryview(buf.as_numpy_array())[:-4], limit[0])
-            if problem:
-                raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without "
-                                    "decompressing")
+            _check_frame(key, memoryview(buf.as_numpy_array()), limit)
         return buf
+
+
+def _chunk_too_big(key: str, limit: tuple | None):
+    def chunk_error(size: int) -> Exception:
+        return ChecksumError(f"chunk {key} is {size} bytes on disk, far more than its {limit[0]} bytes of data")
+    return chunk_error
+
+
+def _range_name(key: str, byte_range: Any) -> str:
+    return f"{key} [{byte_range.start}, {byte_range.end})" if isinstance(byte_range, RangeByteRequest) else key
+
+
+def _check_frame(key: str, data: memoryview, limit: tuple) -> None:
+    """Refuse a stored chunk (a Blosc frame and its CRC32C) whose frame is unsound, before it is decompressed."""
+    # a view, not a copy: only the header, the offset table and a few stream lengths are read
+    problem = blosc_frame_problem(data[:-4], limit[0])
+    if problem:
+        raise ChecksumError(f"chunk {key} is not a sound Blosc frame: {problem}; refused without decompressing")
 
 
 class ShardIndexCache:

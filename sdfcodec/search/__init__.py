@@ -47,7 +47,8 @@ bases share their leading components (pca-32/64/128 prefixes of one basis) give 
 scores. Codecs whose codes are not prefix-ordered (``raw``, ``ae``) are searched at their full size only.
 
 Bytes read are counted by wrapping the map's Zarr store (:class:`CountingStore`): what the search actually
-fetched, per array (``codes``, ``state``, ``codec``, metadata), for any store (local, zip, HTTP...).
+fetched, per array (``codes``, ``state``, ``codec``, metadata), for any store (local, zip, HTTP...); a local
+map's chunks, read without Zarr (:mod:`sdfcodec.map.fastfetch`), are counted as they are read.
 
 Query models are saved as ``.npz`` files of plain arrays (:func:`save_query`, :func:`load_query`, never
 pickles): the descriptors, optionally the normalised shape blocks (so the model can be re-encoded for any
@@ -62,8 +63,9 @@ works as before):
 * :mod:`sdfcodec.search.shapes`: the built-in query shapes and rotation sets;
 * :mod:`sdfcodec.search.query`: query models, their ``.npz`` files, resolving a query for a map;
 * :mod:`sdfcodec.search.context`: what a query must know about the map (behind, up, surface-true encoding);
-* :mod:`sdfcodec.search.engine`: the counting store, the scoring kernels, the calibrated threshold,
-  :func:`search` and :func:`expand`;
+* :mod:`sdfcodec.search.counting`: the counting store (what a search read) and the code bytes on disk;
+* :mod:`sdfcodec.search.engine`: the scoring kernels, the calibrated threshold, :func:`search` (scoring in
+  the reader's fetching threads, overlapped with the reads) and :func:`expand`;
 * :mod:`sdfcodec.search.scene`: the map-level stage of floor, ceiling and wall searches (the lowest large
   up-facing level, a ceiling that closes the map, large vertical planes);
 * :mod:`sdfcodec.search.plane_check`: the plane check that ends those searches (every block a chosen plane
@@ -82,7 +84,8 @@ from typing import Any
 from ..data.rooms import LabelledRoom, synthetic_room
 from ..geometry import axis_rotations, rotation_to
 from .context import MapContext, estimate_up, map_context
-from .engine import CountingStore, Expansion, SearchResult, auto_threshold, calibrate_threshold, expand, search
+from .counting import CountingStore
+from .engine import Expansion, SearchResult, auto_threshold, calibrate_threshold, expand, search
 from .metrics import TRUTH, evaluate_retrieval, operating_points, pr_curve
 from .query import QueryModel, build_query, load_query, save_query
 from .shapes import BEHIND, QUERY_NAMES, ConeRotations, cone_rotations, plane_offsets, query_blocks

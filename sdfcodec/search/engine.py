@@ -1,5 +1,4 @@
-"""Searching and expanding a map: the store wrapper that counts the bytes a search reads
-(:class:`CountingStore`), the scoring kernel (:class:`Scorer`), :func:`search` (score every coded block against
+"""Searching and expanding a map: the scoring kernel (:class:`Scorer`), :func:`search` (score every coded block against
 a query model, select by threshold and/or top-k, with :func:`auto_threshold`) and :func:`expand` (decode only
 the selected blocks). See :mod:`sdfcodec.search` for the conventions and units.
 """
@@ -10,25 +9,22 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import zarr
-import zarr.abc.store
 
 from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
 from ..map import Map, open_map, state_digest
+from .counting import CountingStore, code_chunk_bytes, counting_view
 from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
     "AUTO_FRACTION",
     "SURFACE_SHARE",
-    "CountingStore",
     "Scorer",
     "ObservedScorer",
     "MIN_OBSERVED_SURFACE",
@@ -43,65 +39,6 @@ __all__ = [
     "search",
     "expand",
 ]
-
-
-# ----------------------------------------------------------------------------------------- store counting
-class CountingStore(zarr.storage.WrapperStore):
-    """A read-through Zarr store wrapper that counts the bytes it returns, per top-level array name
-    (``codes``, ``state``, ``codec``, ``weights``) and ``meta`` for ``zarr.json`` metadata documents."""
-
-    def __init__(self, store: zarr.abc.store.Store):
-        super().__init__(store)
-        self.bytes: dict[str, int] = {}
-        self.keys: list[str] = []
-
-    def _count(self, key: str, buf) -> None:
-        if buf is None:
-            return
-        kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
-        self.bytes[kind] = self.bytes.get(kind, 0) + len(buf)
-        self.keys.append(key)
-
-    async def get(self, key, prototype, byte_range=None):
-        buf = await self._store.get(key, prototype, byte_range)
-        self._count(key, buf)
-        return buf
-
-    async def get_partial_values(self, prototype, key_ranges):
-        out = await self._store.get_partial_values(prototype, key_ranges)
-        for (key, _), buf in zip(key_ranges, out):
-            self._count(key, buf)
-        return out
-
-
-def _counting_view(m: Map) -> tuple[Map, CountingStore]:
-    """The same map read through a :class:`CountingStore` (shares the header and any loaded codec)."""
-    if m.writable:
-        raise InvalidValueError(f"{m.location} is still being written; leave the create_map block (commit) and "
-                                "search the map with sdfcodec.open_map")
-    made: list[CountingStore] = []
-
-    def wrap(store):
-        made.append(CountingStore(store))
-        return made[0]
-
-    view = m.with_store(wrap)  # shares the header and the codec cache: a codec loaded by either serves both
-    return view, made[0]
-
-
-def _code_chunk_bytes(m: Map, level: int | None = None) -> int | None:
-    """Bytes on disk of the map's code chunks holding elements ``[0, level)`` (all when None); local
-    directory maps only (None otherwise)."""
-    root = Path(m.location) / "codes" / "c"
-    if "://" in m.location or not root.is_dir():
-        return None
-    cc = m.header.codes.chunk_code
-    last = -(-(level or m.code_size) // cc)
-    total = 0
-    for f in root.rglob("*"):
-        if f.is_file() and f.name.isdigit() and int(f.name) < last:
-            total += f.stat().st_size
-    return total
 
 
 # ---------------------------------------------------------------------------------------------- searching
@@ -177,6 +114,12 @@ class Scorer:
         self.device = device
         self.qq = np.einsum("ij,ij->i", q, q)
         self.qt = np.ascontiguousarray(-2.0 * q.T)  # (L, M): the -2 folded into the product
+        # codes per product on the CPU: OpenBLAS runs a product of 2^18 multiply-adds or more on every core, and a
+        # skinny one (a few descriptors) then waits on threads busy elsewhere (the reader's decoders, other
+        # processes): 4-8 ms for 16,384 codes against 15 descriptors on a loaded 2-core machine, 0.4 ms in
+        # 256-code products (one core each, cache-sized). Large models keep one product, on every core.
+        tile = ((1 << 18) - 1) // max(1, q.shape[0] * q.shape[1])
+        self.rows = tile if tile >= 128 else 1 << 62
         if device.type != "cpu":
             self.tqt = torch.from_numpy(self.qt).to(device)
             self.tqq = torch.from_numpy(self.qq).to(device)
@@ -185,10 +128,12 @@ class Scorer:
         """``(n, L)`` float32 codes -> scores ``(n,)`` float32 and nearest index ``(n,)`` int64 (numpy)."""
         if self.device.type == "cpu":
             c = np.asarray(codes, dtype=np.float32)
-            g = c @ self.qt
+            g = np.empty((len(c), self.qt.shape[1]), np.float32)
+            for a in range(0, len(c), self.rows):
+                np.matmul(c[a:a + self.rows], self.qt, out=g[a:a + self.rows])
             g += self.qq
             idx = g.argmin(axis=1)
-            s = np.take_along_axis(g, idx[:, None], axis=1)[:, 0]
+            s = g[np.arange(len(c)), idx]  # not g.min(axis=1): numpy's min along 15 columns is 3x slower
             s += np.einsum("ij,ij->i", c, c)
             np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
             return s, idx
@@ -496,7 +441,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         raise InvalidValueError(f"threshold must be a finite squared distance >= 0 or 'auto', got {threshold!r}")
     if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
         raise InvalidValueError(f"top must be a positive int, got {top!r}")
-    view, store = _counting_view(m)
+    view, store = counting_view(m)
     codec = view.codec  # loads (and counts) the codec state unless the map already holds it
     model = resolve_query(query, m, codec, behind=behind, up=up, tilt=tilt)
     lv = _search_level(m, model, level)
@@ -524,8 +469,13 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     held: list | None = [] if staged else None  # the streamed codes, for the plane check (read once)
     held_bytes = 0
     n_scored = 0
-    for coords, codes in view.iter_codes(level=lv, chunks_per_batch=chunks_per_batch):
-        s, idx = score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
+    def scored(coords: np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # in the reader's fetching threads, so that scoring a batch overlaps reading the next ones
+        return codes, *score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None)
+
+    whole = tuple(slice(0, n) for n in view.reader.grid())
+    for coords, (codes, s, idx) in view.reader.fetch_stream(whole, lv, stage=scored, batch_blocks=None,
+                                                            chunks_per_group=chunks_per_batch):
         n_scored += len(s)
         if held is not None:
             held.append((np.array(coords, np.int64), np.array(codes, np.float32)))  # copies: batches may be reused
@@ -575,7 +525,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "map": m.location, "codec": m.header.codec.id, "code_size": m.code_size, "level": lv,
         "descriptors": len(model), "blocks_scored": n_scored, "selected": int(len(sel_c)),
         "bytes_read": dict(store.bytes), "code_bytes_read": int(store.bytes.get("codes", 0)),
-        "code_bytes_level": _code_chunk_bytes(m, lv), "code_bytes_full": _code_chunk_bytes(m),
+        **dict(zip(("code_bytes_level", "code_bytes_full"), code_chunk_bytes(m, lv, None))),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
         "observed_scoring": masked, "scene": scene_info,
@@ -642,13 +592,15 @@ def _surface_test(view: Map, codec: Codec, level: int, t: float):
     """``coords (N, 3) -> (N,) bool``: whether each coded block holds a surface, i.e. its code is farther than
     :data:`SURFACE_SHARE` of ``t`` (the query's threshold) from the codes of a block of solid and a block of free
     space. An exact SDF codes the solid around a room too; those blocks are no surface above or below anything."""
-    const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
-    ref = Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu"))
+    ref: list[Scorer] = []  # made on first use: encoding costs a search that selects nothing ~20 ms
 
     def has_surface(coords: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
         if not len(coords):
             return np.zeros(0, bool)
-        return ref(codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
+        if not ref:
+            const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
+            ref.append(Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu")))
+        return ref[0](codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
 
     return has_surface
 
@@ -725,7 +677,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
     if coords.ndim != 2 or coords.shape[1] != 3 or coords.dtype.kind not in "iu":
         raise ShapeError(f"selected block coords must be an integer (N, 3) array, got {coords.shape} {coords.dtype}")
     coords = coords.astype(np.int64)
-    view, store = _counting_view(m)
+    view, store = counting_view(m)
     lv = view.reader.level(level)
     dev = _default_device(device)
     states = view.block_states()
@@ -772,6 +724,6 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
         out.mesh = mesh_from_blocks(coords, blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
     out.stats = {"blocks_decoded": int(len(coords)), "coded_blocks": int((states == BlockState.CODED).sum()),
                  "level": lv, "code_bytes_read": int(store.bytes.get("codes", 0)),
-                 "code_bytes_full": _code_chunk_bytes(m), "bytes_read": dict(store.bytes),
+                 "code_bytes_full": code_chunk_bytes(m, None)[0], "bytes_read": dict(store.bytes),
                  "seconds": time.perf_counter() - t0}
     return out
