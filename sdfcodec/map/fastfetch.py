@@ -32,13 +32,13 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Sequence
 
-import google_crc32c
 import numcodecs.blosc
 import numpy as np
 import zarr
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 
 from ..errors import ChecksumError
+from .crc import crc32c_matches
 from .format import chunk_ranges
 from .shards import index_entry, index_size
 from .stores import GuardStore, SafeLocalStore
@@ -115,7 +115,7 @@ class LocalChunks:
             out[...] = self.fill
             return False
         raw = np.frombuffer(data, np.uint8)
-        if len(raw) < 20 or google_crc32c.value(raw[:-4]) != int.from_bytes(data[-4:], "little"):
+        if len(raw) < 20 or not crc32c_matches(raw):
             raise ChecksumError(f"chunk {key} fails its CRC32C checksum")
         if int.from_bytes(data[4:8], "little") != self.chunk_bytes:  # fewer bytes would leave the buffer unset
             raise ChecksumError(f"chunk {key} holds {int.from_bytes(data[4:8], 'little')} bytes, its shape "

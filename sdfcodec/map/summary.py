@@ -239,9 +239,7 @@ def _decoders(codecs: Any) -> list | None:
 
 
 def _check_crc32c(data: bytes) -> bytes | None:
-    """``data`` without its trailing little-endian CRC32C (Zarr's ``crc32c`` codec), None when it does not match."""
-    import google_crc32c  # what Zarr's crc32c codec computes with
+    """``data`` without its trailing CRC32C (Zarr's ``crc32c`` codec), None when it does not match."""
+    from .crc import crc32c_matches
 
-    if len(data) < 4 or google_crc32c.value(data[:-4]) != int.from_bytes(data[-4:], "little"):
-        return None
-    return data[:-4]
+    return data[:-4] if crc32c_matches(data) else None
