@@ -474,48 +474,53 @@ class SDFTracker:
         return pose.copy()
 
     # -- one evaluation of the normal equations
-    def _chunk_terms(self, chunks: list[torch.Tensor], r5: torch.Tensor, t: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sums over the points of ``chunks`` (each (3, n) camera frame), in the *world* frame: with the rows
-        ``a = [(R p) x grad D (3), D, grad D (3)]``, ``sum w a a^T`` (7, 7), and ``[inliers, sum of D^2 over
-        inliers]`` (2,). ``r5`` is R's rows 0, 1, 2, 0, 1 (so ``r5 @ p`` holds the shifted rows the cross
-        product needs). :meth:`_normal_equations` turns the world-frame rows into the camera frame's Jacobian
-        afterwards (``J = [R^T g, p x R^T g] = diag(R^T, R^T) [g, R p x g]``), on the 7x7 sums instead of
-        on every point."""
+    def _chunk_terms(self, chunks: list[torch.Tensor], r5: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Sums over the points of ``chunks`` (each (3, n) camera frame) as one (9, 8) matrix
+        ``[w J; m D; m] @ [1, J]^T`` with the world-frame rows ``J = [(R p) x grad D (3), D, grad D (3)]``,
+        Huber weights ``w`` and the inlier mask ``m``: ``[:7, 1:]`` is ``sum w J J^T``, ``[7, 4]`` the sum of
+        ``D^2`` over the inliers and ``[8, 0]`` their number. One product gives all three (fewer ops a chunk:
+        the coarse levels' few thousand points are dominated by the per-op cost). ``r5`` is R's rows
+        0, 1, 2, 0, 1 (so ``r5 @ p`` holds the shifted rows the cross product needs).
+        :meth:`_normal_equations` turns the world-frame rows into the camera frame's Jacobian afterwards
+        (``[R^T g, p x R^T g] = diag(R^T, R^T) [g, R p x g]``), on the sums instead of on every point."""
         cfg = self.config
         dev = r5.device
         d_min, d_max = self.field.truncation
         lo, hi = d_min + cfg.plateau_margin, d_max - cfg.plateau_margin
-        acc = torch.zeros(7, 7, dtype=torch.float32, device=dev)
-        stats = torch.zeros(2, dtype=torch.float32, device=dev)
         g2 = cfg.min_gradient_norm ** 2
         r = r5[:3]
+        acc = None
         for p in chunks:  # p: (3, n) camera-frame points, each row contiguous
             n = p.shape[1]
             q = torch.addmm(t, r, p)  # (3, n) world points; q.t() is the (N, 3) the protocol asks for
             d, g, valid = self.field.sample_with_gradient(q.t())
-            # every op below runs on whole contiguous rows (DenseField hands g out as a view of (3, n) rows);
-            # rows 7, 8 repeat g_x, g_y so that the cross product is two ops on shifted 3-row windows
-            a = torch.empty((9, n), dtype=torch.float32, device=dev)
-            a[3].copy_(d)
-            a[4:7].copy_(g.t())
-            a[7:9].copy_(a[4:6])
+            # every op below runs on whole contiguous rows (DenseField hands g out as a view of (3, n) rows).
+            # a: [1, (R p) x g (3), D, g (3), g_x, g_y]; the repeated g_x, g_y make the cross product two ops
+            # on shifted 3-row windows
+            a = torch.empty((10, n), dtype=torch.float32, device=dev)
+            a[0].fill_(1.0)
+            a[4].copy_(d)
+            a[5:8].copy_(g.t())
+            a[8:10].copy_(a[5:7])
             rp = torch.mm(r5, p)  # R p, rows x, y, z, x, y: the lever arm in the world frame
-            torch.mul(rp[1:4], a[6:9], out=a[0:3]).addcmul_(rp[2:5], a[5:8], value=-1.0)  # (R p) x g
-            gsq = torch.mul(a[4], a[4]).addcmul_(a[5], a[5]).addcmul_(a[6], a[6])  # |g|^2
+            torch.mul(rp[1:4], a[7:10], out=a[1:4]).addcmul_(rp[2:5], a[6:9], value=-1.0)  # (R p) x g
+            gsq = torch.mul(a[5], a[5]).addcmul_(a[6], a[6]).addcmul_(a[7], a[7])  # |g|^2
             mask = (d < hi) & (d > lo)
             mask &= valid
             mask &= gsq >= g2
             ad = d.abs()
             if cfg.max_distance is not None:
                 mask &= ad <= cfg.max_distance
+            left = torch.empty((9, n), dtype=torch.float32, device=dev)
+            m = left[8]
+            m.copy_(mask)
+            torch.mul(m, d, out=left[7])
             # Huber weight: 1 up to delta, delta / |D| beyond; 0 for unusable points
-            w = torch.where(mask, cfg.huber_delta / ad.clamp_min_(cfg.huber_delta), 0.0)
-            j = a[0:7]
-            acc.addmm_(j * w, j.t())
-            m = mask.to(torch.float32)
-            stats += torch.stack([m.sum(), torch.dot(m, d * d)])
-        return acc, stats
+            w = torch.div(m, ad.clamp_min_(cfg.huber_delta)).mul_(cfg.huber_delta)
+            torch.mul(a[1:8], w, out=left[:7])
+            part = torch.mm(left, a[:8].t())
+            acc = part if acc is None else acc.add_(part)
+        return acc
 
     def _normal_equations(self, chunks: list[torch.Tensor], pose: np.ndarray, workers: int
                           ) -> tuple[np.ndarray, np.ndarray, int, float]:
@@ -528,17 +533,16 @@ class SDFTracker:
             pool = self._get_pool(workers)
             parts = [chunks[i::workers] for i in range(workers)]
             futures = [pool.submit(self._chunk_terms, part, r5, t) for part in parts[1:] if part]
-            acc, stats = self._chunk_terms(parts[0], r5, t)  # this thread takes a share too
+            acc = self._chunk_terms(parts[0], r5, t)  # this thread takes a share too
             for fut in futures:
-                a2, s2 = fut.result()
-                acc, stats = acc + a2, stats + s2
+                acc = acc + fut.result()
         else:
-            acc, stats = self._chunk_terms(chunks, r5, t)
-        packed = torch.cat([acc.reshape(-1), stats]).to(torch.float64).cpu().numpy()
-        full = packed[:49].reshape(7, 7)  # rows/columns: (R p) x g_world (3), D, g_world (3)
+            acc = self._chunk_terms(chunks, r5, t)
+        sums = acc.to(torch.float64).cpu().numpy()
+        full = sums[:7, 1:]  # rows/columns: (R p) x g_world (3), D, g_world (3)
         rot = np.zeros((6, 7))  # the camera frame's J = [R^T g, R^T ((R p) x g)] from the world-frame rows
         rot[0:3, 4:7] = rot[3:6, 0:3] = pose[:3, :3].T
-        return rot @ full @ rot.T, rot @ full[:, 3], int(round(packed[49])), float(packed[50])
+        return rot @ full @ rot.T, rot @ full[:, 3], int(round(sums[8, 0])), float(sums[7, 4])
 
     def _get_pool(self, workers: int) -> ThreadPoolExecutor:
         if self._pool is None or self._pool_size != workers - 1:
