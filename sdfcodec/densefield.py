@@ -13,6 +13,7 @@ lazily into a bounded cache), which follows the same conventions.
 from __future__ import annotations
 
 import math
+import mmap
 from typing import Any, Literal, Sequence
 
 import numpy as np
@@ -56,6 +57,25 @@ def trilinear(corners: torch.Tensor, frac: torch.Tensor, channel_major: bool = F
     out = torch.empty((ch, n), dtype=c.dtype, device=c.device)
     cm = c.reshape(2, n, ch).transpose(1, 2)  # (2, C, N) views
     return torch.lerp(cm[0], cm[1], w[2].reshape(n, ch).t(), out=out)
+
+
+def _zeros_on_huge_pages(shape: tuple[int, ...]) -> torch.Tensor:
+    """A zeroed CPU float32 tensor in anonymous memory advised for transparent huge pages (Linux), else
+    ``torch.zeros``. The tracker's gather reads 8 scattered rows a point from the value-and-gradient table;
+    with 4 KiB pages nearly every row is a TLB miss (the x neighbours are a whole y-z slab apart): on 2 MiB
+    pages numpy's ``take`` of a 640x480 frame's points measured 1.2-1.6x faster (7-Scenes redkitchen)."""
+    nbytes = math.prod(shape) * 4
+    huge = 2 << 20
+    if not hasattr(mmap, "MADV_HUGEPAGE") or nbytes < huge:
+        return torch.zeros(shape, dtype=torch.float32)
+    try:
+        mem = mmap.mmap(-1, nbytes + huge, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+        mem.madvise(mmap.MADV_HUGEPAGE)
+    except (OSError, ValueError):
+        return torch.zeros(shape, dtype=torch.float32)
+    buf = np.frombuffer(mem, dtype=np.uint8)  # anonymous memory is zero; it lives as long as the tensor does
+    start = -buf.ctypes.data % huge  # the table starts on a huge-page boundary
+    return torch.from_numpy(buf[start:start + nbytes].view(np.float32).reshape(shape))
 
 
 class DenseField:
@@ -146,7 +166,8 @@ class DenseField:
         self._corner_offsets = (off * torch.tensor(self._strides, device=dev)).sum(1).to(self._index_dtype)  # (8,)
         self._has_nan = not bool(torch.isfinite(vol).all())  # NaN/inf voxels: unknown
         if precompute_gradient:
-            table = torch.zeros((X, Y, Z, 4), dtype=torch.float32, device=vol.device)
+            table = (_zeros_on_huge_pages((X, Y, Z, 4)) if vol.device.type == "cpu"
+                     else torch.zeros((X, Y, Z, 4), dtype=torch.float32, device=vol.device))
             table[..., 0] = vol
             inv2h = 1.0 / (2.0 * self.voxel_size)
             table[1:-1, :, :, 1] = (vol[2:] - vol[:-2]) * inv2h
