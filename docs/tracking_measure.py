@@ -8,7 +8,9 @@ frame of each sequence from the first ground-truth pose with ``sdfcodec track``'
 Every ``tracker.track`` call is timed on its own: the record holds the median and quartiles of the per-frame
 times (over all frames and over the first 200), the start-up (map open + dense decode, or the cold pass of
 the lazy map) apart, the ATE RMSE against the ground truth, the load before and after and the torch threads.
-Only public API is used, so the same script measures an older checkout (``PYTHONPATH=OLD``) for comparison.
+Only public API is used. ``--tracker OLD`` (OLD: the ``sdfcodec`` package folder of another checkout) runs the
+same measurement with that checkout's tracker and dense field (the lazily decoded map stays this one's): the
+"before" of an ATE comparison.
 
 With ``--bench FILE.json`` it writes docs/results/tracking-bench.json instead: ``benchmark_tracking`` of the
 kitchen's lossless and pca-64 maps (dense, cold and warm MapField; per-frame medians, start-up apart).
@@ -150,7 +152,13 @@ def main() -> None:
     ap.add_argument("--ab", type=Path, help="the sdfcodec package folder of an older checkout to compare with")
     ap.add_argument("--bench", type=Path, help="write benchmark_tracking of the kitchen maps here instead")
     ap.add_argument("--lazy-frames", type=int, default=200, help="frames of the warm MapField runs")
+    ap.add_argument("--tracker", type=Path, help="the sdfcodec package folder of a checkout whose tracker and "
+                    "dense field to measure instead of this one's (sequence mode)")
     a = ap.parse_args()
+    if a.tracker:
+        global SDFTracker, TrackerConfig, DenseField
+        ot, od = load_old(a.tracker)
+        SDFTracker, TrackerConfig, DenseField = ot.SDFTracker, ot.TrackerConfig, od.DenseField
     if a.threads:
         torch.set_num_threads(a.threads)
     a.work.mkdir(parents=True, exist_ok=True)
@@ -198,7 +206,8 @@ def main() -> None:
                 sub, few = seq[:a.lazy_frames], depths[:a.lazy_frames]
                 track_all(lazy, sub, few, TrackerConfig(**EVAL_TRACKER_CONFIG))
                 records.append(record(name, map_name, "mapfield-warm", sub, few, lazy, time.perf_counter() - t0))
-    doc = {"command": f"docs/tracking_measure.py --kitchen KITCHEN --work WORK --only {a.only}",
+    doc = {"command": f"docs/tracking_measure.py --kitchen KITCHEN --work WORK --only {a.only}"
+                      + (" --tracker OLD" if a.tracker else ""),
            "label": a.label, "cpus": os.cpu_count(), "records": records}
     if a.out:
         a.out.write_text(json.dumps(doc, indent=1))

@@ -206,7 +206,7 @@ class MapField:
             else:
                 corners = self._pool.index_select(0, idx)
         valid = torch.from_numpy(active).to(self._device)
-        vals = trilinear(corners, frac)  # (N, 4)
+        vals = trilinear(corners, frac, in_place=True)  # (N, 4); corners is a scratch gather
         d_max = self._truncation[1]
         d = torch.where(valid, vals[:, 0], d_max)
         g = torch.where(valid[:, None], vals[:, 1:], 0.0)

@@ -37,9 +37,12 @@ busy 2-core VM: median 2.5 s against 56 ms per 640x480 frame for the chunk threa
 ``take`` on the CPU (zero-copy views of the torch tensors), several times faster than ``index_select``.
 On CUDA the whole image is one chunk and everything stays on the device except the 7x7 normal equations.
 Each point costs one gather (its cell's 8 corners of the field's value-and-gradient table) and a fixed
-number of whole-chunk tensor ops for the residual, the Jacobian rows and the ``(7, n) x (n, 7)`` product of
-the normal equations; there is no per-point Python. Chunks are split evenly over the threads, so a coarse
-level smaller than one chunk still uses every core. Where the time went at 640x480 (7-Scenes redkitchen,
+number of whole-chunk tensor ops on contiguous ``(k, n)`` rows; there is no per-point Python. The Jacobian
+rows are formed in the world frame (``[grad D, (R p) x grad D]``, the cross product as two ops on shifted
+row windows) and the ``(7, n) x (n, 7)`` product is rotated into the camera frame once per iteration, on the
+7x7 sums, instead of rotating every point's gradient. Chunks are split evenly over the threads once each
+thread gets at least 16,384 points (smaller levels stay on one thread: their ops are too short to be worth
+handing the GIL back and forth). Where the time went at 640x480 (7-Scenes redkitchen,
 before ``max_pixels``): the stride-1 level was two thirds of the point evaluations for under 0.3% of the ATE.
 
     field = DenseField(tsdf, voxel_size=0.02, origin=(0, 0, 0))
@@ -349,13 +352,20 @@ def _backproject(depth: torch.Tensor, k: CameraIntrinsics, stride: int, min_dept
 
 
 # --------------------------------------------------------------------------------------------------- tracker
+#: a level is shared among the threads only when each gets at least this many points: below it the ~50 torch
+#: calls a chunk are short and the threads spend their time handing the GIL to each other (2 threads on
+#: 100 kitchen frames: 37.5 ms of CPU a frame with this bound against 43.8 ms with 1,024; one thread: 34.4)
+_MIN_POINTS_PER_THREAD = 16384
+
+
 def _split(pts: torch.Tensor, chunk: int, workers: int) -> list[torch.Tensor]:
     """``pts`` (3, N) as column slices (rows stay contiguous) of at most ``chunk`` points, their number a
     multiple of ``workers`` and their sizes equal to within one, so that every worker gets the same share
-    (a coarse level smaller than one chunk still runs on every core)."""
+    (a level smaller than one chunk still runs on every core) once each worker gets at least
+    ``_MIN_POINTS_PER_THREAD`` points; smaller levels stay in as few chunks as ``chunk`` allows."""
     npts = pts.shape[1]
     n = max(1, -(-npts // chunk))
-    n = -(-n // workers) * workers if npts >= 1024 * workers else n  # tiny levels: threading costs more
+    n = -(-n // workers) * workers if npts >= _MIN_POINTS_PER_THREAD * workers else n
     size = -(-npts // n) if npts else 1
     return [pts[:, i:i + size] for i in range(0, max(npts, 1), size)]
 
@@ -464,59 +474,75 @@ class SDFTracker:
         return pose.copy()
 
     # -- one evaluation of the normal equations
-    def _chunk_terms(self, chunks: list[torch.Tensor], r: torch.Tensor, t: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sums over the points of ``chunks`` (each (3, n) camera frame): ``[[sum w J^T J, sum w J^T D],
-        [., sum w D^2]]`` (7, 7) and ``[inliers, sum of D^2 over inliers]`` (2,)."""
+    def _chunk_terms(self, chunks: list[torch.Tensor], r5: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Sums over the points of ``chunks`` (each (3, n) camera frame) as one (9, 8) matrix
+        ``[w J; m D; m] @ [1, J]^T`` with the world-frame rows ``J = [(R p) x grad D (3), D, grad D (3)]``,
+        Huber weights ``w`` and the inlier mask ``m``: ``[:7, 1:]`` is ``sum w J J^T``, ``[7, 4]`` the sum of
+        ``D^2`` over the inliers and ``[8, 0]`` their number. One product gives all three (fewer ops a chunk:
+        the coarse levels' few thousand points are dominated by the per-op cost). ``r5`` is R's rows
+        0, 1, 2, 0, 1 (so ``r5 @ p`` holds the shifted rows the cross product needs).
+        :meth:`_normal_equations` turns the world-frame rows into the camera frame's Jacobian afterwards
+        (``[R^T g, p x R^T g] = diag(R^T, R^T) [g, R p x g]``), on the sums instead of on every point."""
         cfg = self.config
-        dev = r.device
-        rt = r.t()
+        dev = r5.device
         d_min, d_max = self.field.truncation
         lo, hi = d_min + cfg.plateau_margin, d_max - cfg.plateau_margin
         g2 = cfg.min_gradient_norm ** 2
-        acc = torch.zeros(7, 7, dtype=torch.float32, device=dev)
-        stats = torch.zeros(2, dtype=torch.float32, device=dev)
+        r = r5[:3]
+        acc = None
         for p in chunks:  # p: (3, n) camera-frame points, each row contiguous
             n = p.shape[1]
             q = torch.addmm(t, r, p)  # (3, n) world points; q.t() is the (N, 3) the protocol asks for
             d, g, valid = self.field.sample_with_gradient(q.t())
-            a = torch.empty((7, n), dtype=torch.float32, device=dev)  # rows: J (6), D
-            gc = a[0:3]
-            torch.mm(rt, g.t(), out=gc)  # R^T grad D: the gradient in the camera frame
-            torch.sub(p[1] * gc[2], p[2] * gc[1], out=a[3])  # p x gc
-            torch.sub(p[2] * gc[0], p[0] * gc[2], out=a[4])
-            torch.sub(p[0] * gc[1], p[1] * gc[0], out=a[5])
-            a[6].copy_(d)
-            mask = valid & (d < hi) & (d > lo) & ((gc * gc).sum(0) >= g2)
+            # every op below runs on whole contiguous rows (DenseField hands g out as a view of (3, n) rows).
+            # a: [1, (R p) x g (3), D, g (3), g_x, g_y]; the repeated g_x, g_y make the cross product two ops
+            # on shifted 3-row windows
+            a = torch.empty((10, n), dtype=torch.float32, device=dev)
+            a[0].fill_(1.0)
+            a[4].copy_(d)
+            a[5:8].copy_(g.t())
+            a[8:10].copy_(a[5:7])
+            rp = torch.mm(r5, p)  # R p, rows x, y, z, x, y: the lever arm in the world frame
+            torch.mul(rp[1:4], a[7:10], out=a[1:4]).addcmul_(rp[2:5], a[6:9], value=-1.0)  # (R p) x g
+            gsq = torch.mul(a[5], a[5]).addcmul_(a[6], a[6]).addcmul_(a[7], a[7])  # |g|^2
+            mask = (d < hi) & (d > lo)
+            mask &= valid
+            mask &= gsq >= g2
             ad = d.abs()
             if cfg.max_distance is not None:
                 mask &= ad <= cfg.max_distance
+            left = torch.empty((9, n), dtype=torch.float32, device=dev)
+            m = left[8]
+            m.copy_(mask)
+            torch.mul(m, d, out=left[7])
             # Huber weight: 1 up to delta, delta / |D| beyond; 0 for unusable points
-            w = torch.where(mask, cfg.huber_delta / ad.clamp_min(cfg.huber_delta), 0.0)
-            acc += torch.mm(a * w, a.t())
-            m = mask.to(torch.float32)
-            stats += torch.stack([m.sum(), torch.dot(m, d * d)])
-        return acc, stats
+            w = torch.div(m, ad.clamp_min_(cfg.huber_delta)).mul_(cfg.huber_delta)
+            torch.mul(a[1:8], w, out=left[:7])
+            part = torch.mm(left, a[:8].t())
+            acc = part if acc is None else acc.add_(part)
+        return acc
 
     def _normal_equations(self, chunks: list[torch.Tensor], pose: np.ndarray, workers: int
                           ) -> tuple[np.ndarray, np.ndarray, int, float]:
-        """``(H (6, 6), b (6,), inliers, sum of D^2 over inliers)`` at ``pose``, summed over all chunks."""
+        """``(H (6, 6), b (6,), inliers, sum of D^2 over inliers)`` at ``pose``, summed over all chunks, with
+        ``J = [g, p x g]`` in the camera frame (``g = R^T grad D``)."""
         dev = chunks[0].device
-        r = torch.as_tensor(pose[:3, :3], dtype=torch.float32, device=dev)
+        r5 = torch.as_tensor(pose[[0, 1, 2, 0, 1], :3], dtype=torch.float32, device=dev)
         t = torch.as_tensor(pose[:3, 3], dtype=torch.float32, device=dev).reshape(3, 1)
         if workers > 1 and len(chunks) > 1:
             pool = self._get_pool(workers)
             parts = [chunks[i::workers] for i in range(workers)]
-            futures = [pool.submit(self._chunk_terms, part, r, t) for part in parts[1:] if part]
-            acc, stats = self._chunk_terms(parts[0], r, t)  # this thread takes a share too
+            futures = [pool.submit(self._chunk_terms, part, r5, t) for part in parts[1:] if part]
+            acc = self._chunk_terms(parts[0], r5, t)  # this thread takes a share too
             for fut in futures:
-                a2, s2 = fut.result()
-                acc, stats = acc + a2, stats + s2
+                acc = acc + fut.result()
         else:
-            acc, stats = self._chunk_terms(chunks, r, t)
-        packed = torch.cat([acc.reshape(-1), stats]).to(torch.float64).cpu().numpy()
-        full = packed[:49].reshape(7, 7)
-        return full[:6, :6], full[:6, 6], int(round(packed[49])), float(packed[50])
+            acc = self._chunk_terms(chunks, r5, t)
+        sums = acc.to(torch.float64).cpu().numpy()
+        full = sums[:7, 1:]  # rows/columns: (R p) x g_world (3), D, g_world (3)
+        rot = np.zeros((6, 7))  # the camera frame's J = [R^T g, R^T ((R p) x g)] from the world-frame rows
+        rot[0:3, 4:7] = rot[3:6, 0:3] = pose[:3, :3].T
+        return rot @ full @ rot.T, rot @ full[:, 3], int(round(sums[8, 0])), float(sums[7, 4])
 
     def _get_pool(self, workers: int) -> ThreadPoolExecutor:
         if self._pool is None or self._pool_size != workers - 1:

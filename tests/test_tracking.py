@@ -297,6 +297,43 @@ def test_pose_type_follows_input_and_threads_agree(field, depth):
     np.testing.assert_allclose(two.pose.numpy(), one.pose, atol=1e-4)
 
 
+def _reference_step(field, depth, pose, cfg):
+    """One Gauss-Newton step as the module docstring writes it, in float64 numpy with every point's Jacobian
+    formed in the camera frame (``g = R^T grad D``, ``J = [g, p x g]``): (pose, inliers, residual)."""
+    pts = backproject(torch.from_numpy(depth), K, 1, cfg.min_depth, cfg.max_depth).numpy().astype(np.float64)
+    r, t = pose[:3, :3], pose[:3, 3]
+    d, g, valid = (x.numpy().astype(np.float64) if x.dtype != torch.bool else x.numpy()
+                   for x in field.sample_with_gradient(torch.from_numpy(pts @ r.T + t).float()))
+    gc = g @ r  # row i: R^T g_i
+    jac = np.hstack([gc, np.cross(pts, gc)])
+    d_min, d_max = field.truncation
+    mask = (valid & (d > d_min + cfg.plateau_margin) & (d < d_max - cfg.plateau_margin)
+            & ((gc * gc).sum(1) >= cfg.min_gradient_norm ** 2))
+    w = np.where(mask, cfg.huber_delta / np.maximum(np.abs(d), cfg.huber_delta), 0.0)
+    n = int(mask.sum())
+    h = (jac * w[:, None]).T @ jac / n
+    b = (jac * w[:, None]).T @ d / n
+    xi = -np.linalg.solve(h + cfg.damping * np.eye(6), b)
+    return pose @ se3_exp(xi), n, math.sqrt(float((d[mask] ** 2).sum()) / n)
+
+
+@pytest.mark.parametrize("threads, chunk", [(1, None), (2, 4096)])
+def test_one_step_matches_a_float64_camera_frame_reference(field, depth, threads, chunk):
+    """The tracker forms its Jacobian rows in the world frame and rotates the 7x7 sums (float32, chunked, on
+    threads); one step must equal the textbook float64 step with per-point camera-frame Jacobians."""
+    cfg = TrackerConfig(strides=(1,), iterations=(1,), max_pixels=None, min_update=0.0, max_final_update=None,
+                        threads=threads, chunk_size=chunk)
+    start = perturb(TRUE_POSE, np.random.default_rng(11), 0.02, 2.0)
+    res = SDFTracker(field, K, cfg).track(depth, start)
+    pose, inliers, residual = _reference_step(field, depth, start, cfg)
+    assert res.success and res.iterations == 1, res.message
+    moved = np.abs(pose - start).max()
+    assert moved > 1e-3  # a real step, not a fixed point
+    np.testing.assert_allclose(res.pose, pose, atol=2e-4 * moved)
+    assert abs(res.inliers - inliers) <= 2 and res.inliers > 0.5 * res.points
+    assert res.residual == pytest.approx(residual, rel=1e-3)
+
+
 def test_custom_field_sampler(scene, depth):
     """Any object with device, truncation and the two sample methods plugs in: here the exact analytic SDF."""
 
