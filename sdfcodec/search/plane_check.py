@@ -343,8 +343,9 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
                 n2 = n  # too few blocks, or all in a line: keep the normal, refit the offset
             n, d = n2, float(n2 @ mu)
             t_used = float(min(tol, VERIFY_STEP + np.quantile(np.abs((q[fit] - mu) @ n) / vs, 0.95)))
-            d = _surface_offset(x[fit], obs[fit], dist[fit] - moved[fit, None], centres[near[fit]], n, d,
-                                voxel_size=vs, truncation=trunc)
+            if len(st) == 1:  # a stretched (fused) field's decoded distances are not Euclidean: no sub-voxel fit
+                d = _surface_offset(x[fit], obs[fit], dist[fit] - moved[fit, None], centres[near[fit]], n, d,
+                                    voxel_size=vs, truncation=trunc)
             near, dist, off = crossing(n, d, t_used)
         accepted.append(c[ok])
         undecided.append(c[~decided])
