@@ -350,7 +350,8 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         accepted.append(c[ok])
         undecided.append(c[~decided])
         impure.append(c[(decided & (share < PURITY)) | hidden])
-        crossed.append(c.tolist())
+        # crossed, for pruning: by the final plane itself, not moved (the moves widen what is checked, not kept)
+        crossed.append(c[(np.abs(dist) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE].tolist())
         report.append({"normal": [round(float(v), 4) for v in n], "d": round(float(d), 4), "checked": int(len(c)),
                        "move_voxels": round(t_used, 3), "threshold": round(t, 4),
                        "simulated_threshold": round(t_clean, 4),
