@@ -107,3 +107,51 @@ def test_a_map_with_its_observation_keeps_clean_blocks_and_drops_mixed(tmp_path,
     check = res.stats["scene"]["plane_check"]
     assert check["selected"] == len(got) == res.stats["scene"]["kept"] - check["dropped"] + check["added"]
     assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
+
+
+def test_hidden_share_counts_the_unobserved_free_side_beyond_the_band():
+    from sdfcodec.search.plane_check import HIDDEN_FROM_VOXELS, hidden_share
+
+    dist = (_G[:, 2] + 0.3)[None]  # a level plane 0.3 voxel below the centre, free side up
+    free = dist[0] > HIDDEN_FROM_VOXELS
+    obs = np.ones((2, 4096), bool)
+    obs[1] = ~(free & (_G[:, 0] < 0))  # half the free side (x < 0) never observed
+    h = hidden_share(obs, np.repeat(dist, 2, axis=0), np.zeros(2))
+    assert h[0] == 0.0 and abs(h[1] - 0.5) < 1e-9
+    # a plane at the block's top face leaves no free side in it: nothing to judge
+    top = (_G[:, 2] - 8.5)[None]
+    assert hidden_share(np.zeros((1, 4096), bool), top, np.zeros(1))[0] == 0.0
+
+
+def test_surface_offset_places_a_plane_to_a_tenth_of_a_voxel():
+    from sdfcodec.search.plane_check import _surface_offset
+
+    n = np.array([0.0, 0.0, 1.0])
+    centres = np.array([[0.5, 0.5, 0.3]])  # metres
+    true_d = 0.3 + 0.37 * VS  # the plane 0.37 voxel above the block's centre
+    dist = ((centres @ n - true_d) / VS + _G @ n)[None].astype(np.float32)  # voxels, + free side
+    x = _field(dist)
+    guess = true_d + 0.4 * VS  # a fit off by 0.4 voxel (the moves are half a voxel apart)
+    d = _surface_offset(x, np.ones(x.shape, bool), dist + np.float32(0.4), centres, n, guess, voxel_size=VS,
+                        truncation=TRUNC)
+    assert abs(d - true_d) < 0.1 * VS
+
+
+@pytest.mark.parametrize("behind", ["solid", "unobserved"])
+def test_a_floor_at_a_block_face_keeps_the_blocks_on_both_sides(tmp_path, behind):
+    """A level floor through the voxel centres of a block's bottom layer (z = 16 voxels): the block below holds
+    it a voxel from its top layer, which pca-64 decodes 1.2 voxels from zero. Both blocks are the floor's (their
+    voxels within a voxel of it); before, the check dropped every block below (recall 0.44 on a room like this)."""
+    from sdfcodec.search.shapes import truncate
+
+    shape = (64, 64, 48)
+    floor = Plane((0.0, 0.0, 1.0), 16 * VS)
+    d = Scene([floor])(grid_points(shape, VS)).reshape(shape)
+    vol = truncate(d, TRUNC, behind).astype(np.float32)
+    path = tmp_path / "f.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    res = S.search(sdfcodec.open_map(path), "floor", threshold="auto")
+    got = {tuple(int(v) for v in c) for c in res.coords}
+    want = {(i, j, k) for i in range(4) for j in range(4) for k in (0, 1)}
+    assert got == want, (sorted(want - got), sorted(got - want))
