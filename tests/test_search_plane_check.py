@@ -109,20 +109,6 @@ def test_a_map_with_its_observation_keeps_clean_blocks_and_drops_mixed(tmp_path,
     assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
 
 
-def test_hidden_share_counts_the_unobserved_free_side_beyond_the_band():
-    from sdfcodec.search.plane_check import HIDDEN_FROM_VOXELS, hidden_share
-
-    dist = (_G[:, 2] + 0.3)[None]  # a level plane 0.3 voxel below the centre, free side up
-    free = dist[0] > HIDDEN_FROM_VOXELS
-    obs = np.ones((2, 4096), bool)
-    obs[1] = ~(free & (_G[:, 0] < 0))  # half the free side (x < 0) never observed
-    h = hidden_share(obs, np.repeat(dist, 2, axis=0), np.zeros(2))
-    assert h[0] == 0.0 and abs(h[1] - 0.5) < 1e-9
-    # a plane at the block's top face leaves no free side in it: nothing to judge
-    top = (_G[:, 2] - 8.5)[None]
-    assert hidden_share(np.zeros((1, 4096), bool), top, np.zeros(1))[0] == 0.0
-
-
 def test_surface_offset_places_a_plane_to_a_tenth_of_a_voxel():
     from sdfcodec.search.plane_check import _surface_offset
 

@@ -59,15 +59,6 @@ PURITY = 0.9
 #: Decoded voxels within this distance of zero (voxels), and nearer zero than the plane by as much, are another
 #: surface's (:func:`plane_residuals`' ``share``): a codec smears a surface just past the block's face to here.
 SECOND_SURFACE_VOXELS = 1.5
-#: :func:`hidden_share`: the free side counted starts this far (voxels) from the plane (past the compared band and
-#: the voxel a codec smears the plane over).
-HIDDEN_FROM_VOXELS = 2.5
-#: A block of a map that records its observation whose free side (:func:`hidden_share`) is at least this share
-#: unobserved is not a block of the plane alone. On the development rooms (seeds 801-802, rendered and fused) the
-#: clean floor blocks had at most 0.71 hidden, the selected blocks holding furniture the camera looked past 0.82 to 1.
-#: Floors and ceilings only (``verify_planes(hidden_rule=)``): clean wall blocks of the same rooms, seen at a slant
-#: along the wall, were often hidden this much (fused wall recall 0.891 -> 0.858 on seed 801 with the rule).
-HIDDEN_SHARE = 0.75
 #: A refitted plane whose normal turns more than this (degrees) from the chosen one keeps the chosen normal.
 PLANE_REFIT_DEG = 5.0
 _CENTRE = (BLOCK - 1) / 2.0
@@ -175,17 +166,6 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     return out, seen, moved, constant.astype(np.float32), share, on
 
 
-def hidden_share(observed: np.ndarray, dist: np.ndarray, moved: np.ndarray) -> np.ndarray:
-    """``(n,)`` of the voxels ``(n, 4096)`` on a plane's free side more than :data:`HIDDEN_FROM_VOXELS` from it
-    (moved by ``moved``), the share a map never observed (0 where fewer than
-    :data:`~sdfcodec.search.shapes.MIN_SHAPE_SURFACE` lie there). A camera that saw the plane looked through the
-    space in front of it; in a block where that space is mostly unobserved the plane was seen past something
-    standing on it (a table's foot, a cabinet, a wall's foot), which the map does not show."""
-    free = (dist - moved[:, None]) > HIDDEN_FROM_VOXELS
-    n_free = free.sum(axis=1)
-    return np.where(n_free >= MIN_SHAPE_SURFACE, (free & ~observed).sum(axis=1) / np.maximum(n_free, 1), 0.0)
-
-
 def _surface_offset(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, centres: np.ndarray, normal: np.ndarray,
                     d: float, *, voxel_size: float, truncation: tuple[float, float]) -> float:
     """The offset ``d`` of a plane with ``normal`` through the decoded surface of blocks of it: the median of
@@ -202,6 +182,21 @@ def _surface_offset(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, centre
     b, v = np.nonzero(use)
     pts = centres[b] + voxel_size * _GRID.reshape(-1, 3)[v] - dec[b, v][:, None] * normal[None, :]
     return float(np.median(pts @ normal))
+
+
+def _plane_cover(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, *, voxel_size: float,
+                 truncation: tuple[float, float], within: float, behind: str) -> np.ndarray:
+    """``(n,)`` of the observed voxels within a voxel of a plane (``rel``: voxels from it), the share that decode
+    within ``within`` voxels of zero, or, in an unobserved-behind field, behind the plane and negative (there
+    nothing but a surface in front makes a voxel negative; the band's jump to d_max smears it far from zero): the
+    plane is in the block across its section, not ending inside it."""
+    d_min, d_max = truncation
+    near = observed & (np.abs(rel) <= 1.0)
+    dec = (x * (d_max - d_min) + d_min) / voxel_size
+    shown = np.abs(dec) <= within
+    if behind == "unobserved":
+        shown |= (rel < 0) & (dec < 0)
+    return (shown & near).sum(axis=1) / np.maximum(near.sum(axis=1), 1)
 
 
 def _crossing(normal: np.ndarray) -> float:
@@ -244,7 +239,7 @@ def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, trunc
 
 def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
                   codes_of: Any, *, behind: str, weighted: bool, stretches: Any, quantile: float, samples: int,
-                  tol: float, hidden_rule: bool = True
+                  tol: float
                   ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Check every coded block each plane crosses against it (module docstring).
 
@@ -265,8 +260,6 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         How the map stores and encodes its fields (the query model's ``spec``).
     quantile, samples, tol :
         The calibration's quantile and instance count; the plane tolerance (voxels).
-    hidden_rule : bool
-        Refuse blocks whose free side is mostly unobserved (:data:`HIDDEN_SHARE`; floors and ceilings).
 
     Returns
     -------
@@ -322,16 +315,21 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
             excess = max(0.0, float(np.median(r[meas]) - np.median(sim))) if meas.any() else 0.0
             t = t_clean + excess
             decided = seen >= MIN_VERDICT_SURFACE
-            hidden = (hidden_share(obs, dist, moved) >= HIDDEN_SHARE) & hidden_rule
             # the block shows the plane: as many decoded surface voxels on it as a check needs observed, or a whole
-            # shape's worth of observed voxels within a voxel of the fitted plane itself (not moved). A codec smears a
+            # shape's worth of observed voxels within a voxel of the fitted plane itself (not moved), at least
+            # PURITY of them decoding near zero (_plane_cover: a floor ending inside the block does not). A codec
+            # smears a
             # surface at a block face: the block on the far side of a plane passing through the voxel centres of its
             # neighbour holds the plane a voxel from its last layer, which pca-64 decodes 1.2 voxels from zero
             # (measured: a level exact floor at a block face lost the 100 blocks below it, recall 0.44), and an
             # unobserved-behind field's 2-voxel band before the jump to d_max, stretched by fusion, decodes farther
             # still. A block of solid or free space the plane only reaches by a move fails here and on r < const.
-            shows = (on_plane >= MIN_VERDICT_SURFACE) | (seen >= MIN_SHAPE_SURFACE)
-            ok = decided & (r <= t) & (r < const) & (share >= PURITY) & shows & ~hidden
+            shows = (on_plane >= MIN_VERDICT_SURFACE) | ((seen >= MIN_SHAPE_SURFACE) & (
+                _plane_cover(x, obs, dist - moved[:, None], voxel_size=vs, truncation=trunc,
+                             within=SECOND_SURFACE_VOXELS * float(st.max()), behind=behind) >= PURITY))
+            # crossed by the plane itself, not only moved into the block
+            held = (np.abs(dist) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE
+            ok = decided & (r <= t) & (r < const) & (share >= PURITY) & shows & held
             fit = ok & on
             if rnd or fit.sum() < 3:
                 break
@@ -353,11 +351,13 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
                                     voxel_size=vs, truncation=trunc)
             near, dist, off = crossing(n, d, t_used)
         accepted.append(c[ok])
-        undecided.append(c[~decided])
-        impure.append(c[(decided & (share < PURITY)) | hidden])
+        # undecided: crossed by the plane itself (not moved) but observed too little; a block only a move reaches is
+        # no block of the plane
+        undecided.append(c[~decided & held])
+        impure.append(c[decided & (share < PURITY)])
         # crossed, for pruning: by the stage's plane or the refitted one, not moved (the moves widen what is
         # checked, not what is kept; a refit through a wall seen in pieces can miss blocks the stage's plane crossed)
-        crossed.append(first.tolist() + c[(np.abs(dist) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE].tolist())
+        crossed.append(first.tolist() + c[held].tolist())
         report.append({"normal": [round(float(v), 4) for v in n], "d": round(float(d), 4), "checked": int(len(c)),
                        "move_voxels": round(t_used, 3), "threshold": round(t, 4),
                        "simulated_threshold": round(t_clean, 4),
@@ -390,28 +390,27 @@ def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept
     acc, undecided, impure, info = verify_planes(
         view, planes, coded, kept[kept_strong], codes_of, behind=spec.get("behind", "solid"),
         weighted=bool(spec.get("weighted")), stretches=spec.get("stretch"), quantile=CALIBRATION_QUANTILE,
-        samples=CALIBRATION_SAMPLES, tol=PLANE_TOL_VOXELS, hidden_rule=spec.get("shape") != "wall")
+        samples=CALIBRATION_SAMPLES, tol=PLANE_TOL_VOXELS)
     if spec.get("weighted"):
         # a map that records its observation was fused from views: its blocks of a plane are seen in parts and
         # stretched, and the residual alone, over a block seen through one voxel layer, does not tell the plane from
         # another shape (measured: the rendered rooms' floor blocks seen that way score like furniture). Here the
-        # stage's blocks are kept unless they hold another surface besides the plane, were seen past something
-        # standing on it (hidden_share), or the plane does not cross them (the stage joins blocks to a level within
-        # its 4-voxel tolerance); blocks are added only when the check accepts them with all its rules.
+        # stage's blocks are kept unless they hold another surface besides the plane or the plane does not cross them
+        # (the stage joins blocks to a level within its 4-voxel tolerance); blocks are added only when the check
+        # accepts them with all its rules.
         bad = {tuple(c) for c in impure.tolist()}
         crossed = {tuple(c) for p in info["crossed"] for c in p}
         # kept: crossed by a chosen plane (more than a corner sliver of it) and not holding another surface
         stay = (np.array([tuple(c) not in bad and tuple(c) in crossed for c in kept.tolist()], bool) if len(kept)
                 else np.zeros(0, bool))
         info["rule"] = (f"the map-level stage's blocks that a chosen plane crosses, whose decoded surface lies at "
-                        f"least {PURITY:.0%} on it and whose free side is under {HIDDEN_SHARE:.0%} unobserved, plus "
+                        f"least {PURITY:.0%} on it, plus "
                         "for floors and ceilings the blocks the plane crosses that the check accepts (a map that "
                         "records its observation)")
         info.pop("crossed")
         info["dropped"] = int((~stay).sum())
-        # plus, for floors and ceilings, the crossed blocks the check accepts (residual, purity, free side observed,
-        # the plane shown): blocks of the plane the lattice model scored poorly, e.g. a floor at a block face seen
-        # through one voxel layer
+        # plus, for floors and ceilings, the crossed blocks the check accepts (residual, purity, the plane shown):
+        # blocks of the plane the lattice model scored poorly, e.g. a floor at a block face seen through one layer
         have = {tuple(c) for c in kept[stay].tolist()}
         add = np.array([tuple(c) not in have for c in acc.tolist()], bool) if len(acc) else np.zeros(0, bool)
         # not for walls: on the kitchen the blocks a wall's check accepted were mostly cabinet fronts and appliance
