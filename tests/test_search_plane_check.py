@@ -94,9 +94,10 @@ def test_tilted_floor_keeps_clean_blocks_and_drops_the_box_foot(tilted_floor):
     assert plane["accepted"] == len(got) - check.get("kept_unchecked", 0)
 
 
-def test_a_map_with_its_observation_is_only_pruned(tmp_path, tilted_floor):
+def test_a_map_with_its_observation_keeps_clean_blocks_and_drops_mixed(tmp_path, tilted_floor):
     """The same scene as fusion leaves it (unobserved deeper than |d_min| behind surfaces), written with its
-    observation: the check adds no block to the map-level stage's, and drops those holding the box's foot."""
+    observation: the check drops the map-level stage's blocks holding the box's foot, adds only blocks it
+    accepts, and the selection holds most clean floor blocks and no mixed one."""
     _, n, clean, mixed = tilted_floor
     vol, observed = fused_like(_tilted_scene()[4])
     write_volume_map(tmp_path / "f.sdfz", vol, observed, pretrained_codec("pca", 64))
@@ -104,5 +105,39 @@ def test_a_map_with_its_observation_is_only_pruned(tmp_path, tilted_floor):
     res = S.search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
     got = {tuple(int(v) for v in c) for c in res.coords}
     check = res.stats["scene"]["plane_check"]
-    assert "not added" in check["rule"] and check["selected"] == len(got) <= res.stats["scene"]["kept"]
+    assert check["selected"] == len(got) == res.stats["scene"]["kept"] - check["dropped"] + check["added"]
     assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
+
+
+def test_surface_offset_places_a_plane_to_a_tenth_of_a_voxel():
+    from sdfcodec.search.plane_check import _surface_offset
+
+    n = np.array([0.0, 0.0, 1.0])
+    centres = np.array([[0.5, 0.5, 0.3]])  # metres
+    true_d = 0.3 + 0.37 * VS  # the plane 0.37 voxel above the block's centre
+    dist = ((centres @ n - true_d) / VS + _G @ n)[None].astype(np.float32)  # voxels, + free side
+    x = _field(dist)
+    guess = true_d + 0.4 * VS  # a fit off by 0.4 voxel (the moves are half a voxel apart)
+    d = _surface_offset(x, np.ones(x.shape, bool), dist + np.float32(0.4), centres, n, guess, voxel_size=VS,
+                        truncation=TRUNC)
+    assert abs(d - true_d) < 0.1 * VS
+
+
+@pytest.mark.parametrize("behind", ["solid", "unobserved"])
+def test_a_floor_at_a_block_face_keeps_the_blocks_on_both_sides(tmp_path, behind):
+    """A level floor through the voxel centres of a block's bottom layer (z = 16 voxels): the block below holds
+    it a voxel from its top layer, which pca-64 decodes 1.2 voxels from zero. Both blocks are the floor's (their
+    voxels within a voxel of it); before, the check dropped every block below (recall 0.44 on a room like this)."""
+    from sdfcodec.search.shapes import truncate
+
+    shape = (64, 64, 48)
+    floor = Plane((0.0, 0.0, 1.0), 16 * VS)
+    d = Scene([floor])(grid_points(shape, VS)).reshape(shape)
+    vol = truncate(d, TRUNC, behind).astype(np.float32)
+    path = tmp_path / "f.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    res = S.search(sdfcodec.open_map(path), "floor", threshold="auto")
+    got = {tuple(int(v) for v in c) for c in res.coords}
+    want = {(i, j, k) for i in range(4) for j in range(4) for k in (0, 1)}
+    assert got == want, (sorted(want - got), sorted(got - want))

@@ -130,6 +130,12 @@ def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120)
     return m, lab
 
 
+#: Kitchen walls (``kitchen_labels``): a vertical planar block is a wall of the room when at most this share of the
+#: map's observed zero crossings lie more than BOUND_BEHIND metres behind its plane.
+BOUND_SHARE = 0.02
+BOUND_BEHIND = 0.1
+
+
 def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray) -> dict:
     """Labels of the kitchen's blocks from plane fits on the lossless map.
 
@@ -142,8 +148,12 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     gravity, so a height band along gravity would cut it into strips). *Floor*: those blocks. *Up-facing*:
     planar blocks facing within 10 degrees of the floor's normal (floor, table and counter tops). *Vertical*:
     blocks whose crossings lie >= 90 % within 2 voxels of their own plane, whose normal is within 10 degrees of
-    perpendicular to it (walls, cabinet fronts, appliance sides). *Floor* (strict): >= 64 crossings, >= 90 % of
-    them within 2 voxels of the floor plane. Blocks with fewer than 64 observed crossings (a surface passing
+    perpendicular to it (walls, cabinet fronts, appliance sides). *Wall*: a vertical block that bounds the room,
+    with at most ``BOUND_SHARE`` of the map's crossings more than ``BOUND_BEHIND`` behind its plane; vertical
+    blocks that do not (cabinet fronts, appliance sides: the counter, the floor or the wall above them lie
+    behind) are left out of the wall truth, neither positive nor negative (the ``vertical`` truth, every vertical
+    block, is reported beside it). *Floor* (strict): >= 64 crossings, >= 90 % of them within 2 voxels of the
+    floor plane. Blocks with fewer than 64 observed crossings (a surface passing
     near a face, or seen in part) cannot be labelled and are left out of every truth. *Ceiling*: none is in
     view."""
     vs = raw.voxel_size
@@ -196,9 +206,18 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     floor = enough & (on_floor >= 0.9)
     vertical = (on_own >= 0.9) & (np.abs(normal @ fn) <= math.sin(math.radians(10)))
     upward = planar & (normal @ fn >= cos10)
+    # a wall of the room bounds it: at most BOUND_SHARE of the map's observed crossings lie more than BOUND_BEHIND
+    # behind its block's plane (a cabinet front or an appliance side has the counter, the wall above it or the
+    # floor behind it)
+    every = np.concatenate([p for p in pts_of if len(p)])
+    every = every[:: max(1, len(every) // 200000)]
+    behind = np.array([np.mean((every - m) @ n < -BOUND_BEHIND) if v else 1.0
+                       for n, m, v in zip(normal, centroid, vertical & enough)])
+    bounding = vertical & enough & (behind <= BOUND_SHARE)
     # blocks with fewer crossings than a plane fit needs are left out of every truth: a surface near a face, or
     # seen in part (fused maps observe a thin band), cannot be labelled from the lossless map
-    return {"floor": floor, "floor_sliver": ~enough, "wall": vertical & enough, "wall_sliver": ~enough,
+    return {"floor": floor, "floor_sliver": ~enough, "wall": bounding, "wall_sliver": ~enough | (vertical & ~bounding),
+            "vertical": vertical & enough, "vertical_sliver": ~enough,
             "ceiling": np.zeros(len(coords), bool), "ceiling_sliver": ~enough,
             "upward": upward, "floor_normal": fn,
             "floor_tilt_deg": float(np.degrees(np.arccos(min(1.0, fn @ gravity_up))))}
@@ -334,6 +353,17 @@ def _tally(kinds: list, seeds: list) -> dict:
                                 "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
                                 "behind": set()})
                             for k, v in (("tp", tp), ("selected", ns), ("positives", npos), ("blocks", len(sel)),
+                                         ("maps", 1)):
+                                t[k] += v
+                            t["thresholds"].append(round(float(res.threshold), 2))
+                            t["behind"].add(res.stats["context"]["behind"])
+                        if qn == "wall":  # also: the previous truth, every vertical planar block (cabinet fronts too)
+                            vc = ~lab["vertical_sliver"]
+                            tp, ns, npos = _pr(sel[vc], lab["vertical"][vc])
+                            t = tally.setdefault(("kitchen (vertical planes)", q), {
+                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
+                                "behind": set()})
+                            for k, v in (("tp", tp), ("selected", ns), ("positives", npos), ("blocks", int(vc.sum())),
                                          ("maps", 1)):
                                 t[k] += v
                             t["thresholds"].append(round(float(res.threshold), 2))

@@ -56,6 +56,9 @@ JUMP_VOXELS = 1.0
 #: A block is of the plane when at least this share of its surface voxels lie on it (the share a clean block of
 #: the evaluation's truth holds; a floor block with a table leg or a wall's foot in it is a block of both).
 PURITY = 0.9
+#: Decoded voxels within this distance of zero (voxels), and nearer zero than the plane by as much, are another
+#: surface's (:func:`plane_residuals`' ``share``): a codec smears a surface just past the block's face to here.
+SECOND_SURFACE_VOXELS = 1.5
 #: A refitted plane whose normal turns more than this (degrees) from the chosen one keeps the chosen normal.
 PLANE_REFIT_DEG = 5.0
 _CENTRE = (BLOCK - 1) / 2.0
@@ -150,12 +153,50 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     # the block's own surface voxels (decoded within a voxel of zero): on the plane, or on its free side beyond
     # the compared band (another surface in the block: furniture, a wall)
     d_min, d_max = truncation
-    surf = (np.abs(x * (d_max - d_min) + d_min) <= voxel_size) & observed
+    dec = (x * (d_max - d_min) + d_min) / voxel_size  # decoded distance, voxels
+    surf = (np.abs(dec) <= 1.0) & observed
     rel = dist - moved[:, None]
     on = (surf & (np.abs(rel) <= 1.0)).sum(axis=1)
-    off = (surf & (rel > BAND_VOXELS)).sum(axis=1)
+    # another surface: decoded within a voxel of zero beyond the band, or, where the codec smeared it (a wall a
+    # voxel past the block's face decodes to 1-1.5 voxels), within SECOND_SURFACE_VOXELS and nearer zero than the
+    # plane by SECOND_SURFACE_VOXELS (the plane's own field only grows away from it, stretched or not)
+    near2 = (np.abs(dec) <= SECOND_SURFACE_VOXELS) & (rel - dec >= SECOND_SURFACE_VOXELS) & observed
+    off = ((surf | near2) & (rel > BAND_VOXELS)).sum(axis=1)
     share = np.where(on + off > 0, on / np.maximum(on + off, 1), 1.0)  # no surface seen: no other surface either
     return out, seen, moved, constant.astype(np.float32), share, on
+
+
+def _surface_offset(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, centres: np.ndarray, normal: np.ndarray,
+                    d: float, *, voxel_size: float, truncation: tuple[float, float]) -> float:
+    """The offset ``d`` of a plane with ``normal`` through the decoded surface of blocks of it: the median of
+    ``normal . p`` over the points ``p`` where their observed voxels within :data:`BAND_VOXELS` of the plane
+    (``rel``, voxels) that decode within half a voxel of zero put the surface (the voxel moved along the normal
+    by its decoded distance). Sub-voxel: the block moves the check tries are half a voxel apart, and whether a
+    plane a voxel from a block's last layer crosses it is decided within a tenth of a voxel. Returns ``d`` when
+    fewer than :data:`MIN_VERDICT_SURFACE` such voxels exist."""
+    d_min, d_max = truncation
+    dec = x * (d_max - d_min) + d_min  # metres, positive on the free side
+    use = observed & (np.abs(dec) <= 0.5 * voxel_size) & (np.abs(rel) <= BAND_VOXELS)
+    if use.sum() < MIN_VERDICT_SURFACE:
+        return d
+    b, v = np.nonzero(use)
+    pts = centres[b] + voxel_size * _GRID.reshape(-1, 3)[v] - dec[b, v][:, None] * normal[None, :]
+    return float(np.median(pts @ normal))
+
+
+def _plane_cover(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, *, voxel_size: float,
+                 truncation: tuple[float, float], within: float, behind: str) -> np.ndarray:
+    """``(n,)`` of the observed voxels within a voxel of a plane (``rel``: voxels from it), the share that decode
+    within ``within`` voxels of zero, or, in an unobserved-behind field, behind the plane and negative (there
+    nothing but a surface in front makes a voxel negative; the band's jump to d_max smears it far from zero): the
+    plane is in the block across its section, not ending inside it."""
+    d_min, d_max = truncation
+    near = observed & (np.abs(rel) <= 1.0)
+    dec = (x * (d_max - d_min) + d_min) / voxel_size
+    shown = np.abs(dec) <= within
+    if behind == "unobserved":
+        shown |= (rel < 0) & (dec < 0)
+    return (shown & near).sum(axis=1) / np.maximum(near.sum(axis=1), 1)
 
 
 def _crossing(normal: np.ndarray) -> float:
@@ -239,22 +280,32 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     centres = origin + vs * (BLOCK * coded.astype(np.float64) + _CENTRE)
     strong_set = {tuple(c) for c in np.asarray(strong).tolist()}
     accepted, undecided, impure, crossed, report = [], [], [], [], []
+    def crossing(n: np.ndarray, d: float, move: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The coded blocks the plane, moved up to ``move`` voxels along its normal (as the check moves it),
+        crosses by more than a corner sliver: indices into ``coded``, the voxels' distances to the unmoved plane
+        ``(K, 4096)`` (voxels, + free side) and each block's centre offset (voxels). The move matters for a plane
+        at a block face: a refit a third of a voxel off would otherwise drop every block on one side of it."""
+        off = (centres @ n - d) / vs  # voxels from each block's centre to the plane
+        near = np.flatnonzero(np.abs(off) <= _crossing(n) + move)
+        dist = (off[near, None] + (_GRID.reshape(-1, 3) @ n)[None, :]).astype(np.float32)
+        holds = np.zeros(len(near), bool)
+        for m in np.arange(-move, move + 1e-9, VERIFY_STEP):
+            holds |= (np.abs(dist - np.float32(m)) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE
+        return near[holds], dist[holds], off[near[holds]]
+
     for k, (normal, d) in enumerate(planes):
         n = np.asarray(normal, np.float64)
-        off = (centres @ n - d) / vs  # voxels from each block's centre to the plane
-        near = np.flatnonzero(np.abs(off) <= _crossing(n))
-        dist = (off[near, None] + (_GRID.reshape(-1, 3) @ n)[None, :]).astype(np.float32)  # voxels, + free side
-        holds = (np.abs(dist) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE  # more than a corner sliver
-        near, dist = near[holds], dist[holds]
+        near, dist, off = crossing(n, d, 0.0)
+        first = coded[near]  # crossed by the plane the map-level stage chose
         if not len(near):
             report.append({"normal": [round(float(v), 4) for v in n], "checked": 0})
             continue
-        c = coded[near]
-        x = _decode(codec, codes_of(c))
-        obs = view.read_observed(c).reshape(len(c), -1) if weighted else np.ones(x.shape, bool)
-        on = np.array([tuple(b) in strong_set for b in c.tolist()], bool)
         t_used = tol
         for rnd in range(2):
+            c = coded[near]
+            x = _decode(codec, codes_of(c))
+            obs = view.read_observed(c).reshape(len(c), -1) if weighted else np.ones(x.shape, bool)
+            on = np.array([tuple(b) in strong_set for b in c.tolist()], bool)
             r, seen, moved, const, share, on_plane = plane_residuals(
                 x, obs, dist, voxel_size=vs, truncation=trunc, behind=behind, stretches=st, tol=t_used)
             sim, _ = verify_threshold(n, codec, voxel_size=vs, truncation=trunc, behind=behind, weighted=weighted,
@@ -264,26 +315,49 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
             excess = max(0.0, float(np.median(r[meas]) - np.median(sim))) if meas.any() else 0.0
             t = t_clean + excess
             decided = seen >= MIN_VERDICT_SURFACE
-            # and the block shows the plane: as many decoded surface voxels on it as a check needs observed
-            ok = decided & (r <= t) & (r < const) & (share >= PURITY) & (on_plane >= MIN_VERDICT_SURFACE)
+            # the block shows the plane: as many decoded surface voxels on it as a check needs observed, or a whole
+            # shape's worth of observed voxels within a voxel of the fitted plane itself (not moved), at least
+            # PURITY of them decoding near zero (_plane_cover: a floor ending inside the block does not). A codec
+            # smears a
+            # surface at a block face: the block on the far side of a plane passing through the voxel centres of its
+            # neighbour holds the plane a voxel from its last layer, which pca-64 decodes 1.2 voxels from zero
+            # (measured: a level exact floor at a block face lost the 100 blocks below it, recall 0.44), and an
+            # unobserved-behind field's 2-voxel band before the jump to d_max, stretched by fusion, decodes farther
+            # still. A block of solid or free space the plane only reaches by a move fails here and on r < const.
+            shows = (on_plane >= MIN_VERDICT_SURFACE) | ((seen >= MIN_SHAPE_SURFACE) & (
+                _plane_cover(x, obs, dist - moved[:, None], voxel_size=vs, truncation=trunc,
+                             within=SECOND_SURFACE_VOXELS * float(st.max()), behind=behind) >= PURITY))
+            # crossed by the plane itself, not only moved into the block
+            held = (np.abs(dist) <= 1.0).sum(axis=1) >= MIN_SHAPE_SURFACE
+            ok = decided & (r <= t) & (r < const) & (share >= PURITY) & shows & held
             fit = ok & on
             if rnd or fit.sum() < 3:
                 break
-            # the plane refitted through where its accepted blocks put it (each block's best move), then checked
-            # again with the moves those blocks needed (their 95th percentile, at least one step)
-            q = centres[near] - ((off[near] - moved)[:, None] * vs) * n[None, :]
+            # the plane refitted through where its accepted blocks put it (each block's best move; its offset through
+            # their decoded surface, _surface_offset), then checked
+            # again, on the blocks the refitted plane crosses (a plane first fitted a few degrees off leaves the far
+            # blocks of a tilted floor out), with the moves those blocks needed (their 95th percentile, at least
+            # one step)
+            q = centres[near] - ((off - moved)[:, None] * vs) * n[None, :]
             mu = q[fit].mean(axis=0)
             n2 = np.linalg.svd(q[fit] - mu, full_matrices=False)[2][2]
             n2 = n2 if n2 @ n >= 0 else -n2
             if np.degrees(np.arccos(min(1.0, float(n2 @ n)))) > PLANE_REFIT_DEG:
                 n2 = n  # too few blocks, or all in a line: keep the normal, refit the offset
             n, d = n2, float(n2 @ mu)
-            dist = (((centres[near] @ n - d) / vs)[:, None] + (_GRID.reshape(-1, 3) @ n)[None, :]).astype(np.float32)
             t_used = float(min(tol, VERIFY_STEP + np.quantile(np.abs((q[fit] - mu) @ n) / vs, 0.95)))
+            if len(st) == 1:  # a stretched (fused) field's decoded distances are not Euclidean: no sub-voxel fit
+                d = _surface_offset(x[fit], obs[fit], dist[fit] - moved[fit, None], centres[near[fit]], n, d,
+                                    voxel_size=vs, truncation=trunc)
+            near, dist, off = crossing(n, d, t_used)
         accepted.append(c[ok])
-        undecided.append(c[~decided])
+        # undecided: crossed by the plane itself (not moved) but observed too little; a block only a move reaches is
+        # no block of the plane
+        undecided.append(c[~decided & held])
         impure.append(c[decided & (share < PURITY)])
-        crossed.append(c.tolist())
+        # crossed, for pruning: by the stage's plane or the refitted one, not moved (the moves widen what is
+        # checked, not what is kept; a refit through a wall seen in pieces can miss blocks the stage's plane crossed)
+        crossed.append(first.tolist() + c[held].tolist())
         report.append({"normal": [round(float(v), 4) for v in n], "d": round(float(d), 4), "checked": int(len(c)),
                        "move_voxels": round(t_used, 3), "threshold": round(t, 4),
                        "simulated_threshold": round(t_clean, 4),
@@ -302,7 +376,8 @@ def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept
                  coded: np.ndarray, codes_of: Any) -> np.ndarray:
     """The final selection of a staged floor, ceiling or wall search: the blocks the planes the map-level stage
     chose (``scene_info["planes"]``, moved to ``scene_info["plane_check"]`` with the check's report) accept,
-    plus the blocks it kept that were observed too little to check. ``kept`` ``(K, 3)``: the map-level stage's
+    plus the blocks it kept that were observed too little to check (maps that record their observation: see the
+    comment in the body). ``kept`` ``(K, 3)``: the map-level stage's
     blocks, ``kept_strong`` ``(K,)`` bool: those scoring under the threshold; ``coded``: every coded block;
     ``codes_of``: see :func:`verify_planes`."""
     from .engine import CALIBRATION_QUANTILE, CALIBRATION_SAMPLES
@@ -318,22 +393,34 @@ def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept
         samples=CALIBRATION_SAMPLES, tol=PLANE_TOL_VOXELS)
     if spec.get("weighted"):
         # a map that records its observation was fused from views: its blocks of a plane are seen in parts and
-        # stretched, which the residual of a thinly observed block does not tell from another shape (measured:
-        # the rendered rooms' floor blocks seen through one voxel layer score like furniture). Here the check only
-        # drops the map-level stage's blocks that hold another surface besides the plane, or that the plane does not
-        # cross (the stage joins blocks to a level within its 4-voxel tolerance).
+        # stretched, and the residual alone, over a block seen through one voxel layer, does not tell the plane from
+        # another shape (measured: the rendered rooms' floor blocks seen that way score like furniture). Here the
+        # stage's blocks are kept unless they hold another surface besides the plane or the plane does not cross them
+        # (the stage joins blocks to a level within its 4-voxel tolerance); blocks are added only when the check
+        # accepts them with all its rules.
         bad = {tuple(c) for c in impure.tolist()}
         crossed = {tuple(c) for p in info["crossed"] for c in p}
         # kept: crossed by a chosen plane (more than a corner sliver of it) and not holding another surface
         stay = (np.array([tuple(c) not in bad and tuple(c) in crossed for c in kept.tolist()], bool) if len(kept)
                 else np.zeros(0, bool))
-        info["rule"] = (f"the map-level stage's blocks that a chosen plane crosses and whose decoded surface lies at "
-                        f"least {PURITY:.0%} on it (a map that records its observation: blocks are not added)")
+        info["rule"] = (f"the map-level stage's blocks that a chosen plane crosses, whose decoded surface lies at "
+                        f"least {PURITY:.0%} on it, plus "
+                        "for floors and ceilings the blocks the plane crosses that the check accepts (a map that "
+                        "records its observation)")
         info.pop("crossed")
         info["dropped"] = int((~stay).sum())
-        info["selected"] = int(stay.sum())
+        # plus, for floors and ceilings, the crossed blocks the check accepts (residual, purity, the plane shown):
+        # blocks of the plane the lattice model scored poorly, e.g. a floor at a block face seen through one layer
+        have = {tuple(c) for c in kept[stay].tolist()}
+        add = np.array([tuple(c) not in have for c in acc.tolist()], bool) if len(acc) else np.zeros(0, bool)
+        # not for walls: on the kitchen the blocks a wall's check accepted were mostly cabinet fronts and appliance
+        # sides coplanar with a wall plane (20 added, precision 0.89 -> 0.47 against its bounding-wall labels)
+        add &= spec.get("shape") != "wall"
+        out = np.concatenate([kept[stay], acc[add]]) if add.any() else kept[stay]
+        info["added"] = int(add.sum())
+        info["selected"] = int(len(out))
         scene_info["plane_check"] = info
-        return kept[stay]
+        return out.astype(np.int64).reshape(-1, 3)
     und = {tuple(c) for c in undecided.tolist()}
     stay = np.array([tuple(c) in und for c in kept.tolist()], bool) if len(kept) else np.zeros(0, bool)
     out = np.unique(np.concatenate([acc, kept[stay]]), axis=0) if len(acc) or stay.any() else acc
