@@ -71,6 +71,10 @@ def __getattr__(name: str) -> Any:
     globals()[name] = value
     return value
 
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 _SHIPPED: dict[tuple[str, str], Codec] = {}
 
 

@@ -29,7 +29,7 @@ import zarr
 
 import sdfcodec
 from sdfcodec.errors import SDFCodecError
-from sdfcodec.map.format import state_digest
+from sdfcodec.map import state_digest
 
 TIMEOUT = 30.0
 VS, TRUNC = 0.02, (-0.04, 0.1)
