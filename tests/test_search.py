@@ -480,3 +480,21 @@ def test_floor_precision_recall_target():
     rec = S.evaluate_retrieval(rooms, {"pca-64": pretrained_codec("pca", 64)}, truths=("floor-vs-none",),
                                keep_curves=False)[0]
     assert rec["precision_at_recall"] >= 0.9, rec
+
+
+def test_repeated_searches_reuse_the_counting_view_and_count_alone(maps):
+    """A second search of an open map reads through the view the first opened (no array metadata again) and
+    reports its own bytes only; a view held by an unfinished search is not shared."""
+    from sdfcodec.search.counting import counting_view, release_view
+
+    m = sdfcodec.open_map(maps[64])
+    first = S.search(m, "floor", threshold=1.0, scene=False).stats
+    second = S.search(m, "floor", threshold=1.0, scene=False).stats
+    assert first["code_bytes_read"] == second["code_bytes_read"] == first["code_bytes_full"] > 0
+    assert "meta" in first["bytes_read"] and "meta" not in second["bytes_read"]
+    assert second["code_bytes_level"] == first["code_bytes_level"]
+    view, store = counting_view(m)  # held, as by a search in another thread
+    other_view, other_store = counting_view(m)
+    assert other_store is not store and other_view is not view
+    release_view(store)
+    assert counting_view(m)[1] is store and store.bytes == {}

@@ -19,7 +19,7 @@ from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
 from ..map import Map, open_map, state_digest
-from .counting import CountingStore, code_chunk_bytes, counting_view
+from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
 from .query import QueryModel, build_query, resolve_query
 
 __all__ = [
@@ -530,6 +530,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
         "observed_scoring": masked, "scene": scene_info,
     }
+    release_view(store)
     return SearchResult(
         coords=sel_c, scores=sel_s.astype(np.float32), nearest=sel_i, level=lv, query=model, threshold=threshold,
         top=top, stats=stats,
@@ -726,4 +727,5 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
                  "level": lv, "code_bytes_read": int(store.bytes.get("codes", 0)),
                  "code_bytes_full": code_chunk_bytes(m, None)[0], "bytes_read": dict(store.bytes),
                  "seconds": time.perf_counter() - t0}
+    release_view(store)
     return out
