@@ -9,12 +9,11 @@
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
 
 __version__ = "0.1.0"
 
 from . import errors
+from ._lazy import lazy_exports
 
 __all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "pretrained_codec", "open_map", "create_map",
            "update_map", "load_model", "save_model", "errors", "__version__"]
@@ -25,14 +24,4 @@ _LAZY = {"Codec": ".codec", "Map": ".map", "create_map": ".map", "open_map": ".m
          "load_model": ".model", "save_model": ".model", "get_codec": ".registry", "list_codecs": ".registry",
          "pretrained_codec": ".registry", "register_codec": ".registry"}
 
-
-def __getattr__(name: str) -> Any:
-    if name not in _LAZY:
-        raise AttributeError(f"module 'sdfcodec' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
-    globals()[name] = value  # once loaded, a plain module attribute (no further __getattr__ calls)
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

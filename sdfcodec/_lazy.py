@@ -17,7 +17,7 @@ import sys
 import types
 from typing import Any
 
-__all__ = ["lazy_module", "is_tensor", "LazyModule"]
+__all__ = ["lazy_module", "is_tensor", "LazyModule", "lazy_exports"]
 
 
 class LazyModule(types.ModuleType):
@@ -56,3 +56,22 @@ def is_tensor(x: Any) -> bool:
     """True when ``x`` is a ``torch.Tensor``; never imports torch (no tensor exists before torch is imported)."""
     torch = sys.modules.get("torch")
     return torch is not None and isinstance(x, torch.Tensor)
+
+
+def lazy_exports(module: str, where: dict[str, str], package: str | None = None) -> tuple[Any, Any]:
+    """PEP 562 ``(__getattr__, __dir__)`` for the module ``module`` (its ``__name__``, while it runs): each name
+    of ``where`` (name -> module path, relative to ``package``, default ``module``) is imported on first access
+    and kept as a plain attribute from then on; ``dir()`` lists the module's ``__all__`` too."""
+    namespace = sys.modules[module].__dict__
+
+    def __getattr__(name: str) -> Any:
+        if name not in where:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(where[name], package or module), name)
+        namespace[name] = value  # once loaded, no further __getattr__ calls
+        return value
+
+    def __dir__() -> list[str]:
+        return sorted(set(namespace) | set(namespace.get("__all__", ())))
+
+    return __getattr__, __dir__

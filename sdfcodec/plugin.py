@@ -36,13 +36,12 @@ Benchmarks
 from __future__ import annotations
 
 import abc
-import importlib
 import warnings
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ._lazy import is_tensor, lazy_module
+from ._lazy import is_tensor, lazy_exports, lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
 from .bench import bench_codec_instance, bench_instance, register_bench, roofline_shapes
 from .codec import Codec, DecodesInto, decodes_into
@@ -64,16 +63,7 @@ _LAZY = {"Dataset": ".dataset", "open_dataset": ".dataset", "sz3_compress": ".ma
          "sz3_decompress": ".map.field"}
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _LAZY:
-        raise AttributeError(f"module 'sdfcodec.plugin' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name], "sdfcodec"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, "sdfcodec")
 
 _SHIPPED: dict[tuple[str, str], Codec] = {}
 

@@ -25,8 +25,7 @@ create, update, commit) and :mod:`~sdfcodec.map.facade` (:class:`Map` and the fu
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from .._lazy import lazy_exports
 
 __all__ = ["Map", "open_map", "create_map", "update_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES",
            "MapReader", "MapWriter"]
@@ -37,14 +36,4 @@ _LAZY = {"Map": ".facade", "open_map": ".facade", "create_map": ".facade", "upda
          "state_digest": ".codec_state", "DEFAULT_MAX_DECODE_BYTES": ".format", "CODE_DTYPES": ".format",
          "MapReader": ".reader", "MapWriter": ".writer"}
 
-
-def __getattr__(name: str) -> Any:
-    if name not in _LAZY:
-        raise AttributeError(f"module 'sdfcodec.map' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
-    globals()[name] = value  # once loaded, a plain module attribute
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
