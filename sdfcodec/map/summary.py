@@ -142,7 +142,8 @@ def local_info(path: str | os.PathLike) -> dict[str, Any] | None:
         counts = np.bincount(states.ravel(), minlength=3)
         if len(counts) > 3:
             return None  # a state no version defines: the ordinary reader names it
-        return summarize(header, str(path), f"/proc/self/fd/{fd}", {name: int(counts[v]) for v, name in BlockState.NAMES.items()})
+        by_state = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
+        return summarize(header, str(path), f"/proc/self/fd/{fd}", by_state)
     finally:
         release_pin(fd, p, os.getpid())
 
@@ -218,7 +219,8 @@ def _read_states(root: int, grid: tuple[int, ...]) -> np.ndarray | None:
 def _decoders(codecs: Any) -> list | None:
     """The decode steps (last codec first) of a ``bytes`` + Blosc/Zstd + optional ``crc32c`` pipeline, each
     ``bytes -> bytes | None`` (None: a checksum that does not match); None for any other pipeline."""
-    if not isinstance(codecs, list) or not codecs or not isinstance(codecs[0], dict) or codecs[0].get("name") != "bytes":
+    if (not isinstance(codecs, list) or not codecs or not isinstance(codecs[0], dict)
+            or codecs[0].get("name") != "bytes"):
         return None
     steps = []
     for c in reversed(codecs[1:]):
