@@ -239,6 +239,21 @@ def _pr(selected: np.ndarray, pos: np.ndarray) -> tuple[int, int, int]:
     return int((selected & pos).sum()), int(selected.sum()), int(pos.sum())
 
 
+def _new_row() -> dict:
+    return {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [], "behind": set()}
+
+
+def _count(tally: dict, key: tuple, res, selected: np.ndarray, pos: np.ndarray) -> None:
+    """Add one map's precision/recall counts (its blocks ``selected`` against the truth ``pos``, both over the
+    blocks counted) and the search's threshold and context to the row ``key`` of ``tally``."""
+    tp, ns, npos = _pr(selected, pos)
+    t = tally.setdefault(key, _new_row())
+    for k, v in (("tp", tp), ("selected", ns), ("positives", npos), ("blocks", len(pos)), ("maps", 1)):
+        t[k] += v
+    t["thresholds"].append(round(float(res.threshold), 2))
+    t["behind"].add(res.stats["context"]["behind"])
+
+
 def _search(m: sdfcodec.Map, q: str, scene: bool = True):
     # the CLI's defaults (scene=False: --shape-only, the code-space score alone)
     res = S.search(m, q, threshold="auto", keep_scores=True, device="cpu", scene=scene)
@@ -317,30 +332,14 @@ def _tally(kinds: list, seeds: list) -> dict:
                         if f"{qn}-pure" in TRUTH:
                             p_pos, p_neg = TRUTH[f"{qn}-pure"](lab)
                             keep = p_pos | p_neg
-                            tp2, ns2, np2 = _pr(sel[keep], p_pos[keep])
-                            t = tally.setdefault((kind, f"{q} (pure)"), {"tp": 0, "selected": 0, "positives": 0,
-                                                                         "blocks": 0, "maps": 0, "thresholds": [],
-                                                                         "behind": set()})
-                            for k, v in (("tp", tp2), ("selected", ns2), ("positives", np2), ("blocks", int(keep.sum())),
-                                         ("maps", 1)):
-                                t[k] += v
-                            t["thresholds"].append(round(float(res.threshold), 2))
-                            t["behind"].add(res.stats["context"]["behind"])
+                            _count(tally, (kind, f"{q} (pure)"), res, sel[keep], p_pos[keep])
                         if kind.startswith("fused"):
                             # fused maps: clean blocks of which fusion observed too little surface to judge
                             # (fewer than 64 observed surface voxels, e.g. the block under a floor that passes
                             # at its top face) are left out
                             seen = _observed_surface(m, room, res.all_coords) >= 64
                             keep = (seen | ~pos) & counted
-                            tp3, ns3, np3 = _pr(sel[keep], pos[keep])
-                            t = tally.setdefault((kind, f"{q} (observed)"), {
-                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
-                                "behind": set()})
-                            for k, v in (("tp", tp3), ("selected", ns3), ("positives", np3),
-                                         ("blocks", int(keep.sum())), ("maps", 1)):
-                                t[k] += v
-                            t["thresholds"].append(round(float(res.threshold), 2))
-                            t["behind"].add(res.stats["context"]["behind"])
+                            _count(tally, (kind, f"{q} (observed)"), res, sel[keep], pos[keep])
                     else:
                         if id(raw) not in labels_of:
                             labels_of[id(raw)] = kitchen_labels(raw, res.all_coords, np.asarray(m.header.up))
@@ -348,36 +347,11 @@ def _tally(kinds: list, seeds: list) -> dict:
                         pos = lab[qn]
                         counted = ~lab.get(f"{qn}_sliver", np.zeros(len(pos), bool))
                         if qn == "floor":  # also: every up-facing plane (floor and furniture tops alike)
-                            tp, ns, npos = _pr(sel, lab["upward"])
-                            t = tally.setdefault(("kitchen (floor + tops)", q), {
-                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
-                                "behind": set()})
-                            for k, v in (("tp", tp), ("selected", ns), ("positives", npos), ("blocks", len(sel)),
-                                         ("maps", 1)):
-                                t[k] += v
-                            t["thresholds"].append(round(float(res.threshold), 2))
-                            t["behind"].add(res.stats["context"]["behind"])
+                            _count(tally, ("kitchen (floor + tops)", q), res, sel, lab["upward"])
                         if qn == "wall":  # also: the previous truth, every vertical planar block (cabinet fronts too)
                             vc = ~lab["vertical_sliver"]
-                            tp, ns, npos = _pr(sel[vc], lab["vertical"][vc])
-                            t = tally.setdefault(("kitchen (vertical planes)", q), {
-                                "tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0, "thresholds": [],
-                                "behind": set()})
-                            for k, v in (("tp", tp), ("selected", ns), ("positives", npos), ("blocks", int(vc.sum())),
-                                         ("maps", 1)):
-                                t[k] += v
-                            t["thresholds"].append(round(float(res.threshold), 2))
-                            t["behind"].add(res.stats["context"]["behind"])
-                    tp, ns, npos = _pr(sel[counted], pos[counted])
-                    t = tally.setdefault((kind, q), {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0,
-                                                     "thresholds": [], "behind": set()})
-                    t["tp"] += tp
-                    t["selected"] += ns
-                    t["positives"] += npos
-                    t["blocks"] += int(counted.sum())
-                    t["maps"] += 1
-                    t["thresholds"].append(round(float(res.threshold), 2))
-                    t["behind"].add(res.stats["context"]["behind"])
+                            _count(tally, ("kitchen (vertical planes)", q), res, sel[vc], lab["vertical"][vc])
+                    _count(tally, (kind, q), res, sel[counted], pos[counted])
             print(f"{kind} {seeds} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     return tally
 
@@ -412,8 +386,7 @@ def main(argv=None) -> int:
             for (k, q), t in part.items():
                 if k.split(" (")[0] != kind:
                     continue
-                acc = tally.setdefault((k, q), {"tp": 0, "selected": 0, "positives": 0, "blocks": 0, "maps": 0,
-                                                "thresholds": [], "behind": set()})
+                acc = tally.setdefault((k, q), _new_row())
                 for f in ("tp", "selected", "positives", "blocks", "maps"):
                     acc[f] += t[f]
                 acc["thresholds"] += t["thresholds"]
