@@ -84,6 +84,22 @@ def test_a_damaged_state_chunk_goes_to_the_ordinary_reader(long_map, tmp_path):
     assert r.exit_code != 0 and len(r.output.strip().splitlines()) == 1, r.output
 
 
+def test_a_tampered_blosc_header_with_a_valid_checksum_is_never_decoded(long_map, tmp_path):
+    """A frame whose header claims 1 GiB (a decompression bomb) under a recomputed, matching CRC32C: the light
+    reader checks the frame's structure as the guarded store does, before Blosc sees it, and leaves the map to the
+    ordinary reader, which refuses it."""
+    import google_crc32c
+
+    m = _copy(long_map, tmp_path / "bomb.sdfz")
+    chunk = m / "state" / "c" / "0" / "0" / "0"
+    frame = bytearray(chunk.read_bytes()[:-4])
+    frame[4:8] = (1 << 30).to_bytes(4, "little")  # the uncompressed size the header claims
+    chunk.write_bytes(bytes(frame) + google_crc32c.value(bytes(frame)).to_bytes(4, "little"))
+    assert local_info(m) is None
+    with pytest.raises(SDFCodecError):
+        sdfcodec.open_map(m).info()
+
+
 def test_a_missing_state_chunk_goes_to_the_ordinary_reader(long_map, tmp_path):
     m = _copy(long_map, tmp_path / "missing.sdfz")
     (m / "state" / "c" / "1" / "0" / "0").unlink()

@@ -38,7 +38,7 @@ import zarr
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 
 from ..errors import ChecksumError
-from .crc import crc32c_matches
+from .frames import crc32c_matches
 from .format import chunk_ranges
 from .shards import index_entry, index_size
 from .stores import GuardStore, SafeLocalStore

@@ -6,8 +6,9 @@ here, as much as the rest of the command. All ``info`` needs is the group's ``za
 block states, one small uint8 array. :func:`local_info` reads those two from the pinned version of a plain local
 map directory, with the same header parser and the same CRC32C check Zarr applies; anything it does not know for
 certain (a zip, a URL, a symbolic link anywhere on its way (it opens every path component without
-following one), a codec pipeline other than ``bytes`` + Blosc/Zstd + ``crc32c``, a checksum
-that does not match, an array whose shape disagrees with the header) makes it return None, and the caller reads
+following one), a codec pipeline other than the ``bytes`` + Blosc + ``crc32c`` that sdfcodec writes, a checksum
+that does not match or a Blosc frame whose structure does not hold (the guarded store's own checks,
+:mod:`~sdfcodec.map.frames`), an array whose shape disagrees with the header) makes it return None, and the caller reads
 the map the ordinary way, which gives the canonical answer or error. It never writes and never runs code from
 the map; a header with an unknown required extension is refused by :func:`~sdfcodec.header.parse_header` as on
 the ordinary path.
@@ -26,6 +27,7 @@ import numpy as np
 from .._atomic import pin_dir, release_pin
 from .._validate import BLOCK
 from ..header import BlockState, MapHeader, parse_header
+from .frames import blosc_frame_problem, crc32c_matches
 
 __all__ = ["summarize", "local_info", "dir_bytes"]
 
@@ -196,52 +198,25 @@ def _read_states(root: int, grid: tuple[int, ...]) -> np.ndarray | None:
             or not all(isinstance(c, int) and c > 0 for c in chunk) or int(np.prod(chunk)) > _MAX_STATE_CHUNK
             or ke.get("name") != "default" or (ke.get("configuration") or {}).get("separator", "/") != "/"):
         return None
-    steps = _decoders(meta.get("codecs"))
-    if steps is None:
+    codecs = meta.get("codecs")
+    if not isinstance(codecs, list) or [c.get("name") if isinstance(c, dict) else None for c in codecs] != [
+            "bytes", "blosc", "crc32c"]:  # what sdfcodec writes; anything else: the ordinary reader
         return None
+    from numcodecs import blosc
+
+    nbytes = int(np.prod(chunk))
     out = np.empty(grid, dtype=np.uint8)
     for idx in np.ndindex(*(-(-g // c) for g, c in zip(grid, chunk))):
         data = _read(root, ["state", "c", *map(str, idx)], _MAX_STATE_CHUNK + 1024)
         if not data:  # a chunk not stored is all unobserved only if no codes lie under it: the reader checks that
             return None
-        for step in steps:
-            data = step(data)
-            if data is None:
-                return None
-        if len(data) != int(np.prod(chunk)):
+        # the checks the guarded store applies before Blosc sees a frame (its C decoder trusts the header)
+        if not crc32c_matches(data) or blosc_frame_problem(data[:-4], nbytes) is not None:
+            return None
+        data = blosc.decompress(data[:-4])
+        if len(data) != nbytes:
             return None
         lo = [i * c for i, c in zip(idx, chunk)]
         sl = tuple(slice(a, min(a + c, g)) for a, c, g in zip(lo, chunk, grid))
         out[sl] = np.frombuffer(data, np.uint8).reshape(chunk)[tuple(slice(0, s.stop - s.start) for s in sl)]
     return out
-
-
-def _decoders(codecs: Any) -> list | None:
-    """The decode steps (last codec first) of a ``bytes`` + Blosc/Zstd + optional ``crc32c`` pipeline, each
-    ``bytes -> bytes | None`` (None: a checksum that does not match); None for any other pipeline."""
-    if (not isinstance(codecs, list) or not codecs or not isinstance(codecs[0], dict)
-            or codecs[0].get("name") != "bytes"):
-        return None
-    steps = []
-    for c in reversed(codecs[1:]):
-        name = c.get("name") if isinstance(c, dict) else None
-        if name == "crc32c" and not steps:
-            steps.append(_check_crc32c)
-        elif name == "blosc":
-            from numcodecs import blosc
-
-            steps.append(blosc.decompress)
-        elif name == "zstd":
-            from numcodecs import zstd
-
-            steps.append(zstd.decompress)
-        else:
-            return None
-    return steps
-
-
-def _check_crc32c(data: bytes) -> bytes | None:
-    """``data`` without its trailing CRC32C (Zarr's ``crc32c`` codec), None when it does not match."""
-    from .crc import crc32c_matches
-
-    return data[:-4] if crc32c_matches(data) else None
