@@ -123,8 +123,10 @@ def local_info(path: str | os.PathLike) -> dict[str, Any] | None:
     Raises:
         FormatError, VersionError: the header is not one this version reads (as :func:`sdfcodec.open_map`).
     """
+    if not isinstance(path, (str, os.PathLike)) or "://" in str(path):
+        return None
     p = Path(path)
-    if not isinstance(path, (str, os.PathLike)) or "://" in str(path) or p.is_symlink() or not p.is_dir():
+    if p.is_symlink() or not p.is_dir():
         return None
     try:
         fd = pin_dir(p, timeout=0.0)  # a map being replaced right now: the ordinary reader waits for it
