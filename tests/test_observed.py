@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 from typer.testing import CliRunner
 
 import sdfcodec
@@ -347,3 +348,26 @@ def test_a_damaged_mask_chunk_is_found_by_verify_and_refused_by_reads(tmp_path):
     assert not rep.ok and any("observed" in f"{p.where} {p.message}" for p in rep.problems), rep.problems
     with pytest.raises(ChecksumError, match="observed"):
         sdfcodec.open_map(tmp_path / "m.sdfz").decode_region()
+
+
+def test_fill_equals_layer_by_layer_growth_by_scipy(rng):
+    # an independent fill: scipy's correlation with the face-neighbour cross gives each layer's sums, in float64
+    cross = ndimage.generate_binary_structure(3, 1).astype(np.float64)
+    cross[1, 1, 1] = 0
+    v = rng.random((70, 16, 16, 16)).astype(np.float32)  # more blocks than one group of the fill
+    obs = rng.random(v.shape) < rng.uniform(0.001, 0.6, (70, 1, 1, 1))
+    obs[5] = False
+    obs[6] = True
+    want = v.astype(np.float64)
+    for b in range(len(v)):
+        if not obs[b].any():
+            continue
+        val, known = np.where(obs[b], want[b], 0.0), obs[b].astype(np.float64)
+        while not known.all():
+            total = ndimage.correlate(val, cross, mode="constant")
+            count = ndimage.correlate(known, cross, mode="constant")
+            new = (count > 0) & (known == 0)
+            val[new] = total[new] / count[new]
+            known[new] = 1
+        want[b] = val
+    np.testing.assert_allclose(fill_unobserved(v, obs), want, rtol=1e-5, atol=1e-6)
