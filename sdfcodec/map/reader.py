@@ -30,14 +30,14 @@ from .._validate import BLOCK, empty
 from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
 from ..header import BlockState, MapHeader, parse_header
-from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, region_voxels,
-                     unstored_suspects)
+from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
+                     check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
+from .groupdecode import Place, decode_group
 from .codec_state import load_codec
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing
-from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
-from .residual import apply_residual, check_residual_stored, checked_residual_array
+from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
+from .residual import check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 from .device_feed import DeviceFeed
 from .fastfetch import local_chunks
@@ -521,13 +521,13 @@ class MapReader:
             pool.shutdown(wait=finished, cancel_futures=True)
 
     def decode_stream(self, box: Box, level: int, dev: torch.device, *, metres: bool,
-                      out_for: Callable[[int], torch.Tensor] | None = None,
-                      **kw) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+                      out_for: Callable[[int], torch.Tensor] | None = None, place: Place | None = None,
+                      **kw) -> Iterator[tuple[np.ndarray, torch.Tensor | None]]:
         """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`), written into
         ``out_for(n)`` (a contiguous ``(n, 16, 16, 16)`` float32 buffer on ``dev``, e.g. from a
-        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array (one product per group:
-        cache-sized tiles measured about half as fast on two cores)."""
+        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array; ``place``: see
+        :meth:`decode_codes` (the decodes yielded are None then)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
 
@@ -540,7 +540,7 @@ class MapReader:
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
-                                            residual_rows=resid, out=out)
+                                            residual_rows=resid, out=out, place=place)
 
     def residual_rows_array(self, level: int) -> Any:
         """The ``residual`` array when a decode at ``level`` applies it (a map with a residual stage, read at full
@@ -559,7 +559,8 @@ class MapReader:
 
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                      mask_rows: np.ndarray | None = None, residual: bool = True,
-                     residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None) -> torch.Tensor:
+                     residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
+                     place: Place | None = None) -> torch.Tensor | None:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
@@ -569,35 +570,11 @@ class MapReader:
         when it gives one within the limit (no pass over the output), else checked on the output. Full-length
         codes of a map with a residual stage get it added last (spec 6d; ``residual_rows`` (n, 4096), read unless
         given; ``residual=False``: the plain decode, what the writer measures the residual against). ``out``: a
-        contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None."""
-        codec = self.codec
-        d_min, d_max = self.truncation
-        scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
-        v = codec.decode_core(codes, scale=scale, offset=offset, out=out)
-        bound = codec.decode_bound(codes)
-        if bound is None or not math.isfinite(bound) or bound > DECODE_LIMIT:
-            v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
-                              codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
-        if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
-            if v.device.type == "cpu":  # numpy's: torch's threaded clamp after a numpy product waits for BLAS threads
-                a = v.numpy()
-                np.clip(a, d_min, d_max, out=a)
-            else:
-                v = v.clamp_(d_min, d_max)
-        mask = self.observation_arrays()[1]
-        res = self.residual_rows_array(codes.shape[1]) if residual else None
-        if (mask is not None or res is not None) and coords is None:
-            raise InvalidValueError(f"{self.location} has an observation mask or a residual: decode_codes needs the "
-                                    "blocks' coords")
-        if mask is not None:
-            rows = read_block_rows(self, mask, coords) if mask_rows is None else mask_rows
-            # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
-            v = restore_unobserved(v, rows, d_max if metres else 1.0)
-        if res is not None:
-            step = self.header.residual.step / (1.0 if metres else d_max - d_min)
-            rows = self.read_residual(coords) if residual_rows is None else residual_rows
-            v = apply_residual(v, rows, step, *((d_min, d_max) if metres else (0.0, 1.0)))
-        return v
+        contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None. ``place``:
+        called as ``place(coords[a:b], blocks[a:b])`` for row ranges covering the group, maybe from several
+        threads (sdfcodec.map.groupdecode); ``out`` is scratch then, and None is returned."""
+        return decode_group(self, codes, metres=metres, coords=coords, mask_rows=mask_rows, residual=residual,
+                            residual_rows=residual_rows, out=out, place=place)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -666,8 +643,9 @@ class MapReader:
                     batch_blocks: int = 8192) -> torch.Tensor:
         """Core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the grid, in metres
         or normalised: free space (``d_max`` or 1.0) wherever no coded block is. Blocks are decoded a group at a
-        time into one reused buffer and copied from there straight into the volume (:class:`BlockPlacer`): the
-        memory is the volume plus one group's decodes; blocks not coded are filled, the rest written once."""
+        time and copied straight into the volume (:class:`BlockPlacer`), from cache tile by tile or from one
+        reused buffer: the memory is the volume plus one group's decodes; blocks not coded are filled, the rest
+        written once."""
         free = self.truncation[1] if metres else 1.0
         grid_hi = np.asarray(self.grid_blocks) * BLOCK
         clo, chi = np.maximum(lo, 0), np.minimum(hi, grid_hi)
@@ -681,10 +659,11 @@ class MapReader:
         states = self.states_in(box)
         placer = BlockPlacer(out, lo, clo, chi)
         placer.fill(np.argwhere(states != BlockState.CODED) + b0, free)
-        scratch = BufferRing(1, dev)  # decoded, placed, then overwritten by the next group
-        for coords, core in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
-                                               batch_blocks=batch_blocks):
-            placer.place(coords, core)
+        scratch = BufferRing(1, dev)  # a group decoded whole (not in tiles) is decoded here, placed, overwritten
+        # placed by the decode itself: tile by tile while in cache (codec.decode_tiles), else once per group
+        for _ in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
+                                    place=placer.place, batch_blocks=batch_blocks):
+            pass
         return out
 
     def decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *,
