@@ -131,3 +131,16 @@ def test_iter_decoded_ring_from_tiles_equals_an_independent_decode(sphere_map, m
                 np.testing.assert_allclose(blocks, want, rtol=0, atol=2e-6)
                 n += len(coords)
         assert n == 2 * m.count_states()["coded"] and n > 150
+
+
+def test_the_ring_is_kept_for_the_next_iteration_and_not_shared_by_two_at_once(sphere_map):
+    path, _ = sphere_map
+    with sdfcodec.open_map(path) as m:
+        first = [b for _, b in m.iter_decoded(batch_blocks=40, copy=False)]
+        again = m.iter_decoded(batch_blocks=40, copy=False)
+        _, b0 = next(again)
+        assert np.shares_memory(b0, first[0])  # the same buffers, already in memory
+        other = [b for _, b in m.iter_decoded(batch_blocks=40, copy=False)]  # while `again` holds the ring
+        assert not any(np.shares_memory(b, o) for b in (b0, *first) for o in other)
+        np.testing.assert_array_equal(b0, other[0])  # and both decoded the same first group
+        again.close()

@@ -35,7 +35,7 @@ from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_R
 from .groupdecode import Place, decode_group
 from .codec_state import load_codec
 from .presence import check_state_chunks
-from .placement import BlockPlacer, BufferRing
+from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
 from .residual import check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
@@ -83,6 +83,7 @@ class MapReader:
         self.codes_array = self.state_array = self.code_scale_array = self.weights_array = self.mask_array = None
         self.residual_array = None
         self.residual_chunks_checked: set[str] = set()  # residual chunks found stored (under coded blocks)
+        self.rings = RingPool(RING)  # iter_decoded(copy=False)'s output buffers, kept between its iterations
         if live is None:
             self._check_arrays()
         else:  # a map being written: its arrays are the writer's, checked as they were made
@@ -589,7 +590,7 @@ class MapReader:
                      copy: bool = True) -> Iterator[tuple[np.ndarray, Any]]:
         """:meth:`sdfcodec.Map.iter_decoded`: ``(coords (n, 3) int64, blocks (n, 16, 16, 16)
         float32 metres)`` per group of chunks (numpy, or torch on ``device``); ``copy=False``: ``blocks`` are
-        views of a ring of :data:`RING` buffers, valid until the ring wraps."""
+        views of a ring of :data:`RING` buffers, valid until the ring wraps (kept for the next iteration)."""
         if not isinstance(copy, bool):
             raise InvalidValueError(f"copy must be True or False, got {copy!r}")
         lv = self.level(level)
@@ -601,9 +602,13 @@ class MapReader:
         """:meth:`_decoded_metres` on ``device``, as numpy when ``device`` is None (decoded on the CPU); fresh
         arrays, or (``copy=False``) views of a ring of :data:`RING` reused buffers."""
         dev = torch.device(device) if device is not None else torch.device("cpu")
-        out_for = None if copy else BufferRing(RING, dev).take
-        for coords, blocks in self._decoded_metres(box, level, dev, out_for=out_for, **kw):
-            yield coords, blocks if device is not None else blocks.numpy()
+        ring = None if copy else self.rings.borrow(dev)  # kept for the reader's next iteration (RingPool)
+        try:
+            for coords, blocks in self._decoded_metres(box, level, dev, out_for=ring and ring.take, **kw):
+                yield coords, blocks if device is not None else blocks.numpy()
+        finally:
+            if ring is not None:
+                self.rings.give_back(ring)
 
     def _decoded_metres(self, box: Box, level: int, dev: torch.device, *,
                         out_for: Callable[[int], torch.Tensor] | None = None, **kw
@@ -726,6 +731,7 @@ class MapReader:
     def close(self) -> None:
         """Further reads raise; a reader that owns a pinned local store lets go of the version it holds."""
         self._closed = True
+        self.rings.clear()
         inner = unguarded(self.group.store)
         if self._owns_store and isinstance(inner, PinnedStore):
             inner.close_pin()
