@@ -12,33 +12,34 @@ cache-sized tiles on every core, so memory sees one pass, the final write (docs/
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .._lazy import lazy_module
 from .._validate import BLOCK, empty
+from ..codec import decodes_runs
 from ..errors import InvalidValueError
+from ..tiling import TILE_ROWS, run_tiles
 from .format import DECODE_LIMIT, check_decoded
 from .observed import read_block_rows, restore_unobserved
+from .placement import RUN_BLOCKS, BlockPlacer
 from .residual import apply_residual
 
 if TYPE_CHECKING:
-    import torch
-
     from .reader import MapReader
 
-__all__ = ["decode_group"]
+torch = lazy_module("torch")  # imported on first use: reading a header never needs it
 
-Place = Callable[[np.ndarray, "torch.Tensor"], None]
+__all__ = ["decode_group"]
 
 
 def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                  mask_rows: np.ndarray | None = None, residual: bool = True,
                  residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
-                 place: Place | None = None) -> torch.Tensor | None:
-    """:meth:`MapReader.decode_codes` (see there). With ``place``, ``place(coords[a:b], blocks[a:b])`` is called
-    for row ranges covering the group once each (possibly from several threads at once, for disjoint ranges),
-    ``out`` is only scratch memory (the tiles may never be written there) and None is returned."""
+                 placer: BlockPlacer | None = None) -> torch.Tensor | None:
+    """:meth:`MapReader.decode_codes` (see there). With ``placer``, the decoded blocks go into its volume (from
+    several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned."""
     codec = reader.codec
     d_min, d_max = reader.truncation
     scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
@@ -47,15 +48,14 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
     if (mask is not None or res is not None) and coords is None:
         raise InvalidValueError(f"{reader.location} has an observation mask or a residual: decode_codes needs the "
                                 "blocks' coords")
-    if place is not None and coords is None:
+    if placer is not None and coords is None:
         raise InvalidValueError("decode_codes needs the blocks' coords to place them")
     bound = codec.decode_bound(codes)
     proven = bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT
     if metres and proven and mask is None and res is None and len(codes):
         # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles)
-        each = None if place is None else (lambda a, b, tile: place(coords[a:b], tile))
-        if place is not None:  # each tile placed from its core's cache: no output array at all
-            codec.decode_tiles(codes, scale, offset, (d_min, d_max), each, None)
+        if placer is not None:  # straight into the volume, or each tile placed from its core's cache
+            _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max))
             return None
         out = empty((len(codes), BLOCK, BLOCK, BLOCK), codes.device) if out is None else out
         codec.decode_tiles(codes, scale, offset, (d_min, d_max), None, out)
@@ -78,7 +78,27 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
         step = reader.header.residual.step / (1.0 if metres else d_max - d_min)
         rows = reader.read_residual(coords) if residual_rows is None else residual_rows
         v = apply_residual(v, rows, step, *((d_min, d_max) if metres else (0.0, 1.0)))
-    if place is not None:
-        place(coords, v)
+    if placer is not None:
+        placer.place(coords, v)
         return None
     return v
+
+
+def _decode_placed(codec, codes: torch.Tensor, coords: np.ndarray, placer: BlockPlacer, scale: float,
+                   offset: float, clip: tuple[float, float]) -> None:
+    """Decode, clip and place a group: runs of whole blocks side by side along z written straight into the
+    volume by the codec (``decode_run``, when it overrides it; CPU), tiles of the other blocks decoded in cache
+    and copied to their places (``decode_tiles``)."""
+    rest = np.arange(len(codes))
+    if codes.device.type == "cpu" and decodes_runs(codec):
+        starts, ends, rest = placer.whole_runs(coords)
+        s, e = starts.tolist(), ends.tolist()
+
+        def runs(a: int, b: int) -> None:
+            for i in range(a, b):
+                codec.decode_run(codes[s[i]:e[i]], placer.run_view(coords[s[i]], e[i] - s[i]), scale, offset, clip)
+
+        run_tiles(len(s), runs, rows=max(1, TILE_ROWS // RUN_BLOCKS))
+    if len(rest):
+        sub, at = (codes, coords) if len(rest) == len(codes) else (codes[torch.from_numpy(rest)], coords[rest])
+        codec.decode_tiles(sub, scale, offset, clip, lambda a, b, tile: placer.place(at[a:b], tile), None)

@@ -32,7 +32,7 @@ from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundE
 from ..header import BlockState, MapHeader, parse_header
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
                      check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
-from .groupdecode import Place, decode_group
+from .groupdecode import decode_group
 from .codec_state import load_codec
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
@@ -522,12 +522,12 @@ class MapReader:
             pool.shutdown(wait=finished, cancel_futures=True)
 
     def decode_stream(self, box: Box, level: int, dev: torch.device, *, metres: bool,
-                      out_for: Callable[[int], torch.Tensor] | None = None, place: Place | None = None,
+                      out_for: Callable[[int], torch.Tensor] | None = None, placer: BlockPlacer | None = None,
                       **kw) -> Iterator[tuple[np.ndarray, torch.Tensor | None]]:
         """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`), written into
         ``out_for(n)`` (a contiguous ``(n, 16, 16, 16)`` float32 buffer on ``dev``, e.g. from a
-        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array; ``place``: see
+        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array; ``placer``: see
         :meth:`decode_codes` (the decodes yielded are None then)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
@@ -541,7 +541,7 @@ class MapReader:
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
-                                            residual_rows=resid, out=out, place=place)
+                                            residual_rows=resid, out=out, placer=placer)
 
     def residual_rows_array(self, level: int) -> Any:
         """The ``residual`` array when a decode at ``level`` applies it (a map with a residual stage, read at full
@@ -561,7 +561,7 @@ class MapReader:
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                      mask_rows: np.ndarray | None = None, residual: bool = True,
                      residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
-                     place: Place | None = None) -> torch.Tensor | None:
+                     placer: BlockPlacer | None = None) -> torch.Tensor | None:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
@@ -571,11 +571,11 @@ class MapReader:
         when it gives one within the limit (no pass over the output), else checked on the output. Full-length
         codes of a map with a residual stage get it added last (spec 6d; ``residual_rows`` (n, 4096), read unless
         given; ``residual=False``: the plain decode, what the writer measures the residual against). ``out``: a
-        contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None. ``place``:
-        called as ``place(coords[a:b], blocks[a:b])`` for row ranges covering the group, maybe from several
-        threads (sdfcodec.map.groupdecode); ``out`` is scratch then, and None is returned."""
+        contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None. ``placer``:
+        a :class:`BlockPlacer` the blocks go into (straight, or tile by tile from cache: sdfcodec.map.groupdecode);
+        ``out`` is scratch then, and None is returned."""
         return decode_group(self, codes, metres=metres, coords=coords, mask_rows=mask_rows, residual=residual,
-                            residual_rows=residual_rows, out=out, place=place)
+                            residual_rows=residual_rows, out=out, placer=placer)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -667,7 +667,7 @@ class MapReader:
         scratch = BufferRing(1, dev)  # a group decoded whole (not in tiles) is decoded here, placed, overwritten
         # placed by the decode itself: tile by tile while in cache (codec.decode_tiles), else once per group
         for _ in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
-                                    place=placer.place, batch_blocks=batch_blocks):
+                                    placer=placer, batch_blocks=batch_blocks):
             pass
         return out
 
