@@ -3,10 +3,9 @@
 
 A decode into memory costs one pass over its output when each piece of work on a block (the product that makes
 it, the truncation to ``[d_min, d_max]``, the copy to its place in a volume) happens while the block is still in
-the core's cache. :func:`run_tiles` splits rows ``[0, n)`` into one contiguous share per core and walks each
-share in tiles of :data:`TILE_ROWS` rows; each core runs a one-threaded BLAS on its own tiles (OpenBLAS's
-threads are held at 1 for the call), so the product, the clip and the placing of a tile all see the same core's
-L2. The work function releases the GIL in its numpy calls (matmul, clip, copies), so Python threads give real
+the core's cache. :func:`run_tiles` cuts rows ``[0, n)`` into tiles of :data:`TILE_ROWS` rows that one thread
+per core takes in turn; each runs a one-threaded BLAS on its tile (OpenBLAS's threads are held at 1 for the
+call), so the product, the clip and the placing of a tile all see the same core's L2. The work function releases the GIL in its numpy calls (matmul, clip, copies), so Python threads give real
 parallelism. Measured on 2 cores (docs/results.md, issue 19): a 65,536-block pca-64 decode plus clip at
 0.8-1.2x the time of the bare product into a preallocated output, where the product with 2 BLAS threads
 followed by a separate clip pass reached 0.7-0.8x.
@@ -15,6 +14,7 @@ followed by a separate clip pass reached 0.7-0.8x.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -77,27 +77,38 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 def run_tiles(n: int, work: Callable[[int, int], None], *, rows: int | None = None) -> None:
     """Call ``work(a, b)`` for consecutive tiles ``[a, b)`` of at most ``rows`` rows (None: :data:`TILE_ROWS`,
-    read at each call) covering ``[0, n)`` once
-    each, on as many threads as numpy's BLAS had (one contiguous share of the rows per thread, the calling
-    thread taking the first), with BLAS held at one thread meanwhile. ``work`` must be safe to run on disjoint
-    tiles at once. The first exception of any thread is raised after all have stopped."""
+    read at each call) covering ``[0, n)`` once each, on as many threads as numpy's BLAS had (the calling thread
+    one of them; each takes the next tile when done with one), with BLAS held at one thread meanwhile. ``work``
+    must be safe to run on disjoint tiles at once. After an exception no tile is started; the first one is
+    raised once all threads have stopped."""
     if n <= 0:
         return
     rows = TILE_ROWS if rows is None else int(rows)
+    tiles = -(-n // rows)
     with _one_blas_thread() as threads:
-        workers = max(1, min(int(threads), -(-n // rows)))
-        edges = [n * i // workers for i in range(workers + 1)]
+        workers = max(1, min(int(threads), tiles))
+        # tiles are taken in turn from one counter (next() on it is atomic under the GIL), not cut into fixed
+        # shares: on a loaded machine a thread the scheduler holds back takes fewer, and no thread waits long
+        # for another at the end of the batch
+        turn = itertools.count()
+        stop: list[BaseException] = []
 
-        def share(i: int) -> None:
-            for a in range(edges[i], edges[i + 1], rows):
-                work(a, min(a + rows, edges[i + 1]))
+        def share() -> None:
+            for i in iter(turn.__next__, tiles):
+                if i >= tiles or stop:
+                    return
+                try:
+                    work(i * rows, min(i * rows + rows, n))
+                except BaseException as e:
+                    stop.append(e)
+                    raise
 
         if workers == 1:
-            share(0)
+            share()
             return
-        futures = [_pool(workers - 1).submit(share, i) for i in range(1, workers)]
+        futures = [_pool(workers - 1).submit(share) for _ in range(1, workers)]
         try:
-            share(0)
+            share()
         finally:
             errors = [f.exception() for f in futures]
         for e in errors:
