@@ -39,7 +39,9 @@ def _blas():
         from threadpoolctl import ThreadpoolController
 
         libs = ThreadpoolController().select(user_api="blas").lib_controllers
-        _state["ctl"] = libs[0] if libs else False
+        # numpy's own (scipy may bring another OpenBLAS; torch's BLAS is not numpy's matmul)
+        mine = [lib for lib in libs if "numpy" in lib.filepath]
+        _state["ctl"] = (mine or libs or [False])[0]
     return _state["ctl"] or None
 
 
