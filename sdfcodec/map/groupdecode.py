@@ -18,7 +18,7 @@ import numpy as np
 
 from .._lazy import lazy_module
 from .._validate import BLOCK, empty
-from ..codec import decodes_runs
+from ..codec import decodes_runs, decodes_tiles
 from ..errors import InvalidValueError
 from ..tiling import TILE_ROWS, run_tiles
 from .format import DECODE_LIMIT, check_decoded
@@ -55,7 +55,7 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
     if metres and proven and mask is None and res is None and len(codes):
         # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles)
         if placer is not None:  # straight into the volume, or each tile placed from its core's cache
-            _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max))
+            _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max), out)
             return None
         out = empty((len(codes), BLOCK, BLOCK, BLOCK), codes.device) if out is None else out
         codec.decode_tiles(codes, scale, offset, (d_min, d_max), None, out)
@@ -85,10 +85,11 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
 
 
 def _decode_placed(codec, codes: torch.Tensor, coords: np.ndarray, placer: BlockPlacer, scale: float,
-                   offset: float, clip: tuple[float, float]) -> None:
+                   offset: float, clip: tuple[float, float], scratch: torch.Tensor | None) -> None:
     """Decode, clip and place a group: runs of whole blocks side by side along z written straight into the
     volume by the codec (``decode_run``, when it overrides it; CPU), tiles of the other blocks decoded in cache
-    and copied to their places (``decode_tiles``)."""
+    and copied to their places (``decode_tiles``; a codec keeping the default decodes the group whole, into
+    ``scratch`` when given, the reader's reused buffer)."""
     rest = np.arange(len(codes))
     if codes.device.type == "cpu" and decodes_runs(codec):
         starts, ends, rest = placer.whole_runs(coords)
@@ -101,4 +102,5 @@ def _decode_placed(codec, codes: torch.Tensor, coords: np.ndarray, placer: Block
         run_tiles(len(s), runs, rows=max(1, TILE_ROWS // RUN_BLOCKS))
     if len(rest):
         sub, at = (codes, coords) if len(rest) == len(codes) else (codes[torch.from_numpy(rest)], coords[rest])
-        codec.decode_tiles(sub, scale, offset, clip, lambda a, b, tile: placer.place(at[a:b], tile), None)
+        buf = None if scratch is None or decodes_tiles(codec) else scratch[:len(sub)]
+        codec.decode_tiles(sub, scale, offset, clip, lambda a, b, tile: placer.place(at[a:b], tile), buf)
