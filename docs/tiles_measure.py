@@ -6,8 +6,8 @@
   two touched buffers, through PCA's ``decode_tiles`` or the base class's (one product with all BLAS threads,
   then one clip pass): the decode side alone;
 - ``ring-tiles`` / ``ring-plain``: ``Map.iter_decoded(copy=False)`` of the whole map with each;
-- ``region-runs`` / ``region-tiles`` / ``region-plain``: ``Map.decode_region()`` of the whole map with PCA's
-  ``decode_run`` + ``decode_tiles``, with ``decode_tiles`` only (tiles placed from cache), and with neither;
+- ``region-tiles`` / ``region-plain``: ``Map.decode_region()`` of the whole map with PCA's ``decode_tiles``
+  (tiles placed from cache) and with the default (each group decoded, clipped, then placed);
 - ``touch``: allocating and first touching a volume the size of the map's (what a fresh output costs alone).
 
 The map: 65,536 pca-64 blocks (float32 codes, 16^3-block chunks) written as ``sdfcodec bench`` writes its own.
@@ -36,7 +36,7 @@ if not path.exists():
     write_bench_map(codec, N, path, (-0.04, 0.1))
 m = sdfcodec.open_map(path)
 pca = type(m.codec)
-hooks = {name: pca.__dict__[name] for name in ("decode_tiles", "decode_run")}
+hooks = {name: pca.__dict__[name] for name in ("decode_tiles",)}
 
 
 def use(*names):
@@ -71,13 +71,12 @@ shape = tuple(int(n) * 16 for n in m.reader.grid_blocks)
 cases = {"roofline": roofline_fn(roofline_shapes(codec, "decode"), N),
          "decode-tiles": lambda: decode("decode_tiles"), "decode-plain": lambda: decode(),
          "ring-tiles": lambda: read("decode_tiles"), "ring-plain": lambda: read(),
-         "region-runs": lambda: region("decode_tiles", "decode_run"), "region-tiles": lambda: region("decode_tiles"),
-         "region-plain": lambda: region(),
+         "region-tiles": lambda: region("decode_tiles"), "region-plain": lambda: region(),
          "touch": lambda: np.empty(shape, np.float32).fill(0)}
 load0 = load()
 timed = interleave(cases, repeats=repeats, min_time=0.2)
 load1 = load()
-use("decode_tiles", "decode_run")
+use("decode_tiles")
 base = timed["roofline"]
 res = {"load_before": load0, "load_after": load1, "cpus": os.cpu_count(), "blocks": N, "volume_voxels": shape,
        "cases": {k: {"blocks_per_s": N / t.median, "blocks_per_s_best": N / t.best,

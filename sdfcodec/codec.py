@@ -34,7 +34,7 @@ from .errors import DTypeError, InvalidValueError, ModelNotFoundError, NotFitted
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "decodes_tiles", "decodes_runs", "uses_weights", "learns_weights"]
+__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "decodes_tiles", "uses_weights", "learns_weights"]
 
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
@@ -339,24 +339,6 @@ class Codec(abc.ABC):
         if each is not None:
             each(0, n, dst.view(n, BLOCK, BLOCK, BLOCK))
 
-    def decode_run(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float,
-                   clip: tuple[float, float]) -> None:
-        """Hook: decode checked float32 codes ``(r, k)`` of ``r >= 1`` blocks that lie side by side along z in a
-        volume, as :meth:`decode_tiles` does (scaled, clipped), straight into their place: ``out`` is the
-        ``(16, 16, 16 r)`` float32 view of the volume they fill (last axis contiguous, on the codes' device):
-        block ``b``'s voxel ``(x, y, z)`` goes to ``out[x, y, 16 b + z]``. Map readers call it from several threads
-        at once, on disjoint runs, for the whole blocks of ``decode_region`` (one pass over memory: the write).
-        The default decodes into a temporary, clips and copies; a codec whose decode is a row-wise product MAY
-        override it (PCA: one batched product per run writes the volume); :func:`decodes_runs` tells."""
-        r = len(codes)
-        tmp = _empty((r, BLOCK, BLOCK, BLOCK), codes.device)
-        self.decode_into(codes, tmp, scale, offset)
-        dst = out.view(BLOCK, BLOCK, r, BLOCK)
-        if dst.device.type == "cpu":  # numpy's: no torch thread pool on the caller's threads
-            np.clip(tmp.numpy().transpose(1, 2, 0, 3), clip[0], clip[1], out=dst.numpy())
-        else:
-            dst.copy_(tmp.permute(1, 2, 0, 3).clamp_(clip[0], clip[1]))
-
     def decode_bound(self, codes: torch.Tensor) -> float | None:
         """Hook: an upper bound on ``|_decode(codes)|`` over all outputs for checked float32 codes ``(N, k)``,
         or None (the default) when the codec cannot give one cheaply. Map readers check decoded blocks for
@@ -513,12 +495,6 @@ def decodes_tiles(codec: Codec | type[Codec]) -> bool:
     """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_tiles`, i.e. decodes, clips and
     hands out cache-sized tiles rather than decoding, clipping and handing out the whole batch."""
     return _overrides(codec, "decode_tiles")
-
-
-def decodes_runs(codec: Codec | type[Codec]) -> bool:
-    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_run`, i.e. writes a run of blocks
-    straight into a volume rather than decoding, clipping and copying them there."""
-    return _overrides(codec, "decode_run")
 
 
 def uses_weights(codec: Codec | type[Codec]) -> bool:

@@ -430,33 +430,6 @@ class PCACodec(Codec):
 
         run_tiles(n, work)
 
-    def decode_run(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float,
-                   clip: tuple[float, float]) -> None:
-        # on the CPU: for each voxel column (x, y) of the run, the (r, k + 1) x (k + 1, 16) product written where
-        # the run's z-rows lie in the volume (numpy's batched matmul, one BLAS call per column, measured 0.9x the
-        # plain product's rate), then clipped while in cache: no decoded copy is ever made
-        if codes.device.type != "cpu":
-            super().decode_run(codes, out, scale, offset, clip)
-            return
-        r, k = codes.shape
-        c1 = scratch("pca-codes", (r, k + 1))
-        c1[:, 0] = 1.0
-        c1[:, 1:] = codes.numpy()
-        dst = out.numpy().reshape(16, 16, r, 16)
-        np.matmul(c1, self._columns(scale, offset)[:, :, : k + 1], out=dst)
-        np.clip(dst, clip[0], clip[1], out=dst)
-
-    def _columns(self, scale: float, offset: float) -> np.ndarray:
-        """The CPU decode matrix ``[d; D]`` (scaled, :meth:`_decoder`) as ``(16, 16, rows, 16)``: per voxel column
-        ``(x, y)`` of a block, the ``(rows, 16)`` matrix making its 16 voxels along z."""
-        key = ("columns", scale, offset)
-        cols = self._device_cache.get(key)
-        if cols is None:
-            dec = self._decoder(torch.device("cpu"), scale, offset)[0]
-            cols = np.ascontiguousarray(dec.reshape(len(dec), 16, 16, 16).transpose(1, 2, 0, 3))
-            self._device_cache[key] = cols
-        return cols
-
     def decode_bound(self, codes: torch.Tensor) -> float:
         # max |code| * sum_i max_j |D_ij| + max |d|: one min/max pass over the codes, no temporaries
         if not len(codes):

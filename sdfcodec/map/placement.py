@@ -71,11 +71,6 @@ class RingPool:
             self.free.clear()
 
 
-#: The longest run of blocks :meth:`BlockPlacer.whole_runs` gives: 32 decoded blocks (512 KiB) stay in a core's
-#: cache between the product that writes them and the clip.
-RUN_BLOCKS = 32
-
-
 def _axis_segments(lo: int, hi: int, base: int) -> list[tuple[int, int, int, int, int]]:
     """The segments of the blocks touching voxels ``[lo, hi)`` along one axis: ``(b0, b1, s0, s1, d0)`` = blocks
     ``b0 <= b < b1`` copy their voxels ``[s0, s1)`` to ``d0 + (b - b0) * 16`` (relative to voxel ``base``); a
@@ -107,7 +102,6 @@ class BlockPlacer:
             raise InvalidValueError("BlockPlacer needs a contiguous volume (torch.empty(...))")
         self.vol = vol
         self.np_vol = vol.numpy() if vol.device.type == "cpu" else None
-        self.base, self.lo, self.hi = (np.asarray(v, dtype=np.int64) for v in (base, lo, hi))
         self.segments = [_axis_segments(int(a), int(b), int(o)) for a, b, o in zip(lo, hi, base)]
         # block index -> segment of each axis, through the segments' first blocks (searchsorted)
         self.starts = [np.array([s[0] for s in segs], dtype=np.int64) for segs in self.segments]
@@ -171,32 +165,6 @@ class BlockPlacer:
             else:
                 sel = idx if self.np_vol is not None else torch.from_numpy(idx).to(blocks.device)
                 self._assign(view, coords[idx] - np.asarray(b0), src_all[(sel, *inner)])
-
-    def whole_runs(self, coords: np.ndarray, longest: int = RUN_BLOCKS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Runs of rows of ``coords`` ``(n, 3)`` whose blocks lie whole inside ``[lo, hi)`` and side by side along
-        z (same x and y, z one more each row), at most ``longest`` rows each: ``(starts, ends, rest)``, the row
-        ranges ``[starts[i], ends[i])`` (a reader's groups come in chunk order: runs of up to a chunk's width)
-        and the indices of the other rows (blocks cut by the region's faces), for :meth:`place`."""
-        v0 = coords * BLOCK
-        whole = ((v0 >= self.lo) & (v0 + BLOCK <= self.hi)).all(axis=1)
-        step = np.ones(len(coords), bool)  # row i starts a new run unless it continues row i - 1's
-        step[1:] = ~(whole[1:] & whole[:-1] & (coords[1:, 2] == coords[:-1, 2] + 1)
-                     & (coords[1:, :2] == coords[:-1, :2]).all(axis=1))
-        starts = np.flatnonzero(step & whole)
-        ends = np.r_[np.flatnonzero(step)[1:], len(coords)]
-        ends = ends[np.searchsorted(np.flatnonzero(step), starts)]
-        if len(starts) and (ends - starts).max() > longest:  # long runs cut into pieces of `longest` rows
-            cuts = [np.arange(a, b, longest) for a, b in zip(starts.tolist(), ends.tolist())]
-            pieces = np.concatenate(cuts)
-            ends = np.minimum(pieces + longest, np.repeat(ends, [len(c) for c in cuts]))
-            starts = pieces
-        return starts, ends, np.flatnonzero(~whole)
-
-    def run_view(self, first: np.ndarray, r: int) -> torch.Tensor:
-        """The ``(16, 16, 16 r)`` view of ``vol`` that ``r`` whole blocks side by side along z fill, the first
-        at block ``first``."""
-        x, y, z = (int(c) for c in np.asarray(first) * BLOCK - self.base)
-        return self.vol[x:x + BLOCK, y:y + BLOCK, z:z + BLOCK * r]
 
     def fill(self, coords: np.ndarray, value: float) -> None:
         """Set the voxels of blocks ``coords`` ``(n, 3)`` (each touching ``[lo, hi)``) to ``value``."""
