@@ -5,10 +5,9 @@ A decode into memory costs one pass over its output when each piece of work on a
 it, the truncation to ``[d_min, d_max]``, the copy to its place in a volume) happens while the block is still in
 the core's cache. :func:`run_tiles` cuts rows ``[0, n)`` into tiles of :data:`TILE_ROWS` rows that one thread
 per core takes in turn; each runs a one-threaded BLAS on its tile (OpenBLAS's threads are held at 1 for the
-call), so the product, the clip and the placing of a tile all see the same core's L2. The work function releases the GIL in its numpy calls (matmul, clip, copies), so Python threads give real
-parallelism. Measured on 2 cores (docs/results.md, issue 19): a 65,536-block pca-64 decode plus clip at
-0.8-1.2x the time of the bare product into a preallocated output, where the product with 2 BLAS threads
-followed by a separate clip pass reached 0.7-0.8x.
+call), so the product, the clip and the placing of a tile all see the same core's L2. The work function releases
+the GIL in its numpy calls (matmul, clip, copies), so Python threads run in parallel. What it is worth on 2
+cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles".
 """
 
 from __future__ import annotations

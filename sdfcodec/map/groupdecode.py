@@ -52,8 +52,10 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
         raise InvalidValueError("decode_codes needs the blocks' coords to place them")
     bound = codec.decode_bound(codes)
     proven = bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT
-    if metres and proven and mask is None and res is None and len(codes):
-        # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles)
+    tiles = placer is not None or decodes_tiles(codec)
+    if metres and proven and mask is None and res is None and len(codes) and tiles:
+        # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles; a codec keeping
+        # the default, only to be placed: then it is the plain path below, in one call)
         if placer is not None:  # each tile placed from its core's cache
             _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max), out)
             return None
