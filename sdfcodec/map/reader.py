@@ -604,7 +604,8 @@ class MapReader:
         dev = torch.device(device) if device is not None else torch.device("cpu")
         ring = None if copy else self.rings.borrow(dev)  # kept for the reader's next iteration (RingPool)
         try:
-            for coords, blocks in self._decoded_metres(box, level, dev, out_for=ring and ring.take, **kw):
+            for coords, blocks in self._decoded_metres(box, level, dev, out_for=None if ring is None else ring.take,
+                                                        **kw):
                 yield coords, blocks if device is not None else blocks.numpy()
         finally:
             if ring is not None:
