@@ -29,11 +29,12 @@ import numpy as np
 
 from ._lazy import lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input
+from ._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
 from .errors import DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "uses_weights", "learns_weights"]
+__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "decodes_tiles", "uses_weights", "learns_weights"]
 
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
@@ -313,6 +314,31 @@ class Codec(abc.ABC):
         else:  # the plain decode, scaled into ``out`` in the one pass the default decode_affine would spend
             affine_into(self._decode(codes), out, scale, offset)
 
+    def decode_tiles(self, codes: torch.Tensor, scale: float, offset: float, clip: tuple[float, float],
+                     each: Callable[[int, int, torch.Tensor], None] | None = None, out: torch.Tensor | None = None
+                     ) -> None:
+        """Hook: decode checked float32 codes ``(N, k)``, ``N >= 1``, to ``scale * _decode(codes) + offset``
+        clipped to ``clip = (lo, hi)``, tile by tile: for consecutive row ranges ``[a, b)`` covering ``[0, N)``
+        once each, the tile's blocks ``(b - a, 16, 16, 16)`` (written into ``out[a:b]`` when ``out`` is given, a
+        buffer as for :meth:`decode_into`; else into scratch memory valid only during the call) are handed to
+        ``each(a, b, tile)`` when given, while they are still in cache. Tiles MAY be decoded on several threads
+        at once, in any order: ``each`` must be safe on disjoint tiles. Map readers call it for truncated decodes
+        (metres, the bound of :meth:`decode_bound` proving the output finite) so that the product, the clip and
+        the placing of a block into a volume cost one pass over memory. The default is one tile: :meth:`decode_into`
+        into ``out`` (or a fresh buffer), one clip pass, ``each(0, N, out)``. A codec whose decode is a row-wise
+        product MAY override it (PCA: cache-sized tiles on every core, :func:`sdfcodec.tiling.run_tiles`);
+        :func:`decodes_tiles` tells whether a codec does."""
+        n = len(codes)
+        dst = out if out is not None else _empty((n, BLOCK, BLOCK, BLOCK), codes.device)
+        self.decode_into(codes, dst, scale, offset)
+        if dst.device.type == "cpu":  # numpy's: torch's threaded clamp after a numpy product waits for BLAS threads
+            a = dst.numpy()
+            np.clip(a, clip[0], clip[1], out=a)
+        else:
+            dst.clamp_(clip[0], clip[1])
+        if each is not None:
+            each(0, n, dst.view(n, BLOCK, BLOCK, BLOCK))
+
     def decode_bound(self, codes: torch.Tensor) -> float | None:
         """Hook: an upper bound on ``|_decode(codes)|`` over all outputs for checked float32 codes ``(N, k)``,
         or None (the default) when the codec cannot give one cheaply. Map readers check decoded blocks for
@@ -463,6 +489,12 @@ def decodes_into(codec: Codec | type[Codec]) -> bool:
     """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_into`, i.e. decodes straight
     into a caller's buffer rather than decoding and copying."""
     return _overrides(codec, "decode_into")
+
+
+def decodes_tiles(codec: Codec | type[Codec]) -> bool:
+    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_tiles`, i.e. decodes, clips and
+    hands out cache-sized tiles rather than decoding, clipping and handing out the whole batch."""
+    return _overrides(codec, "decode_tiles")
 
 
 def uses_weights(codec: Codec | type[Codec]) -> bool:

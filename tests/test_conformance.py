@@ -203,7 +203,7 @@ def test_every_failure_is_reported_and_check_codec_lists_them():
     sdfcodec.register_codec(TwoBugs, replace=True)
     failed = {r.name for r in run_codec_checks(TwoBugs(), **OPTS).failures}
     assert {"inputs_untouched", "load_state_after_use"} <= failed
-    listing = r"(?s)2 of 14 conformance checks failed.*load_state_after_use.*inputs_untouched"
+    listing = r"(?s)2 of 15 conformance checks failed.*load_state_after_use.*inputs_untouched"
     with pytest.raises(AssertionError, match=listing):
         check_codec(TwoBugs(), **OPTS)
 

@@ -188,10 +188,10 @@ def test_decoded_values_are_checked_unless_the_codec_bound_proves_them_finite(tm
     coords = np.array([[0, 0, 0], [1, 0, 0]])
     codes = np.full((2, 8), 1e6, np.float32)
     checked = []
-    import sdfcodec.map.reader as reader_module
+    import sdfcodec.map.groupdecode as group_module  # the reader's decode of one group
 
-    real = reader_module.check_decoded
-    monkeypatch.setattr(reader_module, "check_decoded", lambda v, **kw: (checked.append(len(v)), real(v, **kw))[1])
+    real = group_module.check_decoded
+    monkeypatch.setattr(group_module, "check_decoded", lambda v, **kw: (checked.append(len(v)), real(v, **kw))[1])
     for name, codec in (("sane", pca), ("huge", huge)):
         with sdfcodec.create_map(tmp_path / f"{name}.sdfz", codec=codec, voxel_size=VS, truncation=TRUNC) as w:
             w.write_codes(coords, codes if name == "huge" else np.ones((2, 8), np.float32))

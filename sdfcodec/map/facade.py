@@ -167,8 +167,9 @@ class Map:
             copy: True (the default): every yielded ``blocks`` is a fresh array the caller owns. False: the
                 blocks are decoded into a ring of two reused buffers (no allocation, no page faults: the fast
                 path, see ``sdfcodec bench``'s ``decode-on-read-into``), so a yielded array is valid only until the
-                ring wraps: it is overwritten two iterations later, by the decode of the group after next. Copy what you keep, or use the
-                default. The default is the safe one because ``list(m.iter_decoded())``, ``zip(*...)`` and any
+                ring wraps: it is overwritten two iterations later, by the decode of the group after next. The
+                map keeps the ring for its next ``copy=False`` iteration (its buffers already in memory), which
+                overwrites the last blocks of the one before. Copy what you keep, or use the default. The default is the safe one because ``list(m.iter_decoded())``, ``zip(*...)`` and any
                 caller keeping batches would otherwise silently see later groups' values.
 
         Values are metres, exactly as :meth:`iter_blocks` and :meth:`decode_region` give them; codecs with a

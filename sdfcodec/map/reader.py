@@ -30,14 +30,14 @@ from .._validate import BLOCK, empty
 from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
 from ..header import BlockState, MapHeader, parse_header
-from .format import (BYTES_PER_CHUNK, DECODE_LIMIT, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region,
-                     check_array_metadata, check_coords, check_decoded, chunk_ranges, code_values, region_voxels,
-                     unstored_suspects)
+from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
+                     check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
+from .groupdecode import decode_group
 from .codec_state import load_codec
 from .presence import check_state_chunks
-from .placement import BlockPlacer, BufferRing
-from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
-from .residual import apply_residual, check_residual_stored, checked_residual_array
+from .placement import BlockPlacer, BufferRing, RingPool
+from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
+from .residual import check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
 from .device_feed import DeviceFeed
 from .fastfetch import local_chunks
@@ -83,6 +83,7 @@ class MapReader:
         self.codes_array = self.state_array = self.code_scale_array = self.weights_array = self.mask_array = None
         self.residual_array = None
         self.residual_chunks_checked: set[str] = set()  # residual chunks found stored (under coded blocks)
+        self.rings = RingPool(RING)  # iter_decoded(copy=False)'s output buffers, kept between its iterations
         if live is None:
             self._check_arrays()
         else:  # a map being written: its arrays are the writer's, checked as they were made
@@ -521,13 +522,13 @@ class MapReader:
             pool.shutdown(wait=finished, cancel_futures=True)
 
     def decode_stream(self, box: Box, level: int, dev: torch.device, *, metres: bool,
-                      out_for: Callable[[int], torch.Tensor] | None = None,
-                      **kw) -> Iterator[tuple[np.ndarray, torch.Tensor]]:
+                      out_for: Callable[[int], torch.Tensor] | None = None, placer: BlockPlacer | None = None,
+                      **kw) -> Iterator[tuple[np.ndarray, torch.Tensor | None]]:
         """The decode path: ``(coords (n, 3), core decodes (n, 16, 16, 16) on dev)`` per group of chunks, one
         batched decode per group (:meth:`decode_codes`; keywords: see :meth:`fetch_stream`), written into
         ``out_for(n)`` (a contiguous ``(n, 16, 16, 16)`` float32 buffer on ``dev``, e.g. from a
-        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array (one product per group:
-        cache-sized tiles measured about half as fast on two cores)."""
+        :class:`~sdfcodec.map.placement.BufferRing`) when given, else into a fresh array; ``placer``: see
+        :meth:`decode_codes` (the decodes yielded are None then)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
 
@@ -540,7 +541,7 @@ class MapReader:
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
-                                            residual_rows=resid, out=out)
+                                            residual_rows=resid, out=out, placer=placer)
 
     def residual_rows_array(self, level: int) -> Any:
         """The ``residual`` array when a decode at ``level`` applies it (a map with a residual stage, read at full
@@ -559,7 +560,8 @@ class MapReader:
 
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                      mask_rows: np.ndarray | None = None, residual: bool = True,
-                     residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None) -> torch.Tensor:
+                     residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
+                     placer: BlockPlacer | None = None) -> torch.Tensor | None:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
@@ -569,35 +571,11 @@ class MapReader:
         when it gives one within the limit (no pass over the output), else checked on the output. Full-length
         codes of a map with a residual stage get it added last (spec 6d; ``residual_rows`` (n, 4096), read unless
         given; ``residual=False``: the plain decode, what the writer measures the residual against). ``out``: a
-        contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None."""
-        codec = self.codec
-        d_min, d_max = self.truncation
-        scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
-        v = codec.decode_core(codes, scale=scale, offset=offset, out=out)
-        bound = codec.decode_bound(codes)
-        if bound is None or not math.isfinite(bound) or bound > DECODE_LIMIT:
-            v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=self.location,
-                              codec_id=self.header.codec.id, chunk_blocks=self.header.codes.chunk_blocks)
-        if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
-            if v.device.type == "cpu":  # numpy's: torch's threaded clamp after a numpy product waits for BLAS threads
-                a = v.numpy()
-                np.clip(a, d_min, d_max, out=a)
-            else:
-                v = v.clamp_(d_min, d_max)
-        mask = self.observation_arrays()[1]
-        res = self.residual_rows_array(codes.shape[1]) if residual else None
-        if (mask is not None or res is not None) and coords is None:
-            raise InvalidValueError(f"{self.location} has an observation mask or a residual: decode_codes needs the "
-                                    "blocks' coords")
-        if mask is not None:
-            rows = read_block_rows(self, mask, coords) if mask_rows is None else mask_rows
-            # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
-            v = restore_unobserved(v, rows, d_max if metres else 1.0)
-        if res is not None:
-            step = self.header.residual.step / (1.0 if metres else d_max - d_min)
-            rows = self.read_residual(coords) if residual_rows is None else residual_rows
-            v = apply_residual(v, rows, step, *((d_min, d_max) if metres else (0.0, 1.0)))
-        return v
+        contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None. ``placer``:
+        a :class:`BlockPlacer` the blocks go into (straight, or tile by tile from cache: sdfcodec.map.groupdecode);
+        ``out`` is scratch then, and None is returned."""
+        return decode_group(self, codes, metres=metres, coords=coords, mask_rows=mask_rows, residual=residual,
+                            residual_rows=residual_rows, out=out, placer=placer)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -612,7 +590,7 @@ class MapReader:
                      copy: bool = True) -> Iterator[tuple[np.ndarray, Any]]:
         """:meth:`sdfcodec.Map.iter_decoded`: ``(coords (n, 3) int64, blocks (n, 16, 16, 16)
         float32 metres)`` per group of chunks (numpy, or torch on ``device``); ``copy=False``: ``blocks`` are
-        views of a ring of :data:`RING` buffers, valid until the ring wraps."""
+        views of a ring of :data:`RING` buffers, valid until the ring wraps (kept for the next iteration)."""
         if not isinstance(copy, bool):
             raise InvalidValueError(f"copy must be True or False, got {copy!r}")
         lv = self.level(level)
@@ -624,9 +602,14 @@ class MapReader:
         """:meth:`_decoded_metres` on ``device``, as numpy when ``device`` is None (decoded on the CPU); fresh
         arrays, or (``copy=False``) views of a ring of :data:`RING` reused buffers."""
         dev = torch.device(device) if device is not None else torch.device("cpu")
-        out_for = None if copy else BufferRing(RING, dev).take
-        for coords, blocks in self._decoded_metres(box, level, dev, out_for=out_for, **kw):
-            yield coords, blocks if device is not None else blocks.numpy()
+        ring = None if copy else self.rings.borrow(dev)  # kept for the reader's next iteration (RingPool)
+        try:
+            for coords, blocks in self._decoded_metres(box, level, dev, out_for=None if ring is None else ring.take,
+                                                        **kw):
+                yield coords, blocks if device is not None else blocks.numpy()
+        finally:
+            if ring is not None:
+                self.rings.give_back(ring)
 
     def _decoded_metres(self, box: Box, level: int, dev: torch.device, *,
                         out_for: Callable[[int], torch.Tensor] | None = None, **kw
@@ -666,8 +649,9 @@ class MapReader:
                     batch_blocks: int = 8192) -> torch.Tensor:
         """Core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the grid, in metres
         or normalised: free space (``d_max`` or 1.0) wherever no coded block is. Blocks are decoded a group at a
-        time into one reused buffer and copied from there straight into the volume (:class:`BlockPlacer`): the
-        memory is the volume plus one group's decodes; blocks not coded are filled, the rest written once."""
+        time and copied straight into the volume (:class:`BlockPlacer`), from cache tile by tile or from one
+        reused buffer: the memory is the volume plus one group's decodes; blocks not coded are filled, the rest
+        written once."""
         free = self.truncation[1] if metres else 1.0
         grid_hi = np.asarray(self.grid_blocks) * BLOCK
         clo, chi = np.maximum(lo, 0), np.minimum(hi, grid_hi)
@@ -681,10 +665,11 @@ class MapReader:
         states = self.states_in(box)
         placer = BlockPlacer(out, lo, clo, chi)
         placer.fill(np.argwhere(states != BlockState.CODED) + b0, free)
-        scratch = BufferRing(1, dev)  # decoded, placed, then overwritten by the next group
-        for coords, core in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
-                                               batch_blocks=batch_blocks):
-            placer.place(coords, core)
+        scratch = BufferRing(1, dev)  # a group decoded whole (not in tiles) is decoded here, placed, overwritten
+        # placed by the decode itself: tile by tile while in cache (codec.decode_tiles), else once per group
+        for _ in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
+                                    placer=placer, batch_blocks=batch_blocks):
+            pass
         return out
 
     def decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *,
@@ -747,6 +732,7 @@ class MapReader:
     def close(self) -> None:
         """Further reads raise; a reader that owns a pinned local store lets go of the version it holds."""
         self._closed = True
+        self.rings.clear()
         inner = unguarded(self.group.store)
         if self._owns_store and isinstance(inner, PinnedStore):
             inner.close_pin()

@@ -285,6 +285,37 @@ def check_decode_out(case: Case) -> None:
                   "decode out=: a buffer overlapping the codes")
 
 
+def check_decode_tiles(case: Case) -> None:
+    """Decoding, clipping and handing out tiles (spec/codec-plugins.md 4, ``decode_tiles``; what map readers use
+    for a truncated decode): against ``decode_core(codes, scale, offset)`` clipped by numpy, into a NaN-filled
+    buffer and without one, the tiles handed to ``each`` cover the batch once each, hold the same values as the
+    buffer's rows, and the codes are left untouched. Clip bounds inside the decoded range make the clip count."""
+    codec, x, atol = case.codec, case.options.blocks, case.options.atol
+    codes = codec.encode(x)
+    n = len(codes)
+    ref = np.asarray(codec.decode_core(codes, scale=_SCALE, offset=_OFFSET), np.float32)
+    lo, hi = (float(v) for v in np.quantile(ref, [0.2, 0.8]))  # 40 % of the voxels clipped
+    want = np.clip(ref, lo, hi)
+    kept = codes.copy()
+    for given in (True, False):
+        out = torch.full((n, 16, 16, 16), float("nan")) if given else None
+        seen = np.zeros(n, np.int64)
+        tiles = np.full((n, 16, 16, 16), np.nan, np.float32)
+
+        def each(a: int, b: int, tile: torch.Tensor) -> None:
+            seen[a:b] += 1  # disjoint tiles: no two threads write the same rows
+            tiles[a:b] = tile.numpy()
+
+        codec.decode_tiles(torch.from_numpy(codes), _SCALE, _OFFSET, (lo, hi), each, out)
+        what = "into a buffer" if given else "without a buffer"
+        assert (seen == 1).all(), f"decode_tiles {what}: rows handed out {sorted(set(seen.tolist()))} times, not once"
+        assert_close(tiles, want, atol * _SCALE, f"decode_tiles {what}: tiles vs np.clip(decode_core(codes), lo, hi)")
+        if given:
+            assert_close(out.numpy(), want, atol * _SCALE, "decode_tiles: the buffer vs np.clip(decode_core(codes))")
+            assert_close(out.numpy(), tiles, 0.0, "decode_tiles: the tiles handed out vs the buffer's rows")
+    assert_close(codes, kept, 0.0, "decode_tiles: modified the codes")
+
+
 def _outputs(codec: Codec, x: np.ndarray, max_levels: int) -> dict[str, Any]:
     """Everything a codec computes from ``x``: codes, decoded blocks (numpy and CPU tensors), decodes at a few
     prefix levels, and ``decode_core`` in metres; used to compare two codecs that must be the same."""
@@ -464,6 +495,7 @@ CHECKS: tuple[tuple[str, Callable[[Case], Any]], ...] = (
     ("round_trip", check_round_trip),
     ("decode_on_read", check_decode_on_read),
     ("decode_out", check_decode_out),
+    ("decode_tiles", check_decode_tiles),
     ("batch_sizes", check_batch_sizes),
     ("devices", check_devices),
     ("meta_device", check_meta_device),

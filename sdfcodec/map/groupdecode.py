@@ -1,0 +1,97 @@
+"""The decode of one group of codes, what every map reader's pipeline runs per group (:meth:`MapReader.decode_codes`):
+the codec's core decode with the scaling to metres folded in, the corruption check, the truncation to
+``[d_min, d_max]``, an observation mask's free space, a residual stage, and (``placer``) the placing of the decoded
+blocks to their destination, e.g. a dense volume.
+
+The plain path is one pass per step over the group's 16 KiB per block. When nothing but the truncation follows
+the decode (no mask, no residual) and the codec's bound proves the output finite, the group goes through the
+codec's ``decode_tiles`` hook instead: a codec that overrides it (PCA) decodes, truncates and places
+cache-sized tiles on every core: the clip and the placing read the tile from cache, not memory (docs/results.md,
+issue 19).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .._lazy import lazy_module
+from .._validate import BLOCK, empty
+from ..codec import decodes_tiles
+from ..errors import InvalidValueError
+from .format import DECODE_LIMIT, check_decoded
+from .observed import read_block_rows, restore_unobserved
+from .placement import BlockPlacer
+from .residual import apply_residual
+
+if TYPE_CHECKING:
+    from .reader import MapReader
+
+torch = lazy_module("torch")  # imported on first use: reading a header never needs it
+
+__all__ = ["decode_group"]
+
+
+def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
+                 mask_rows: np.ndarray | None = None, residual: bool = True,
+                 residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
+                 placer: BlockPlacer | None = None) -> torch.Tensor | None:
+    """:meth:`MapReader.decode_codes` (see there). With ``placer``, the decoded blocks go into its volume (from
+    several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned."""
+    codec = reader.codec
+    d_min, d_max = reader.truncation
+    scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
+    mask = reader.observation_arrays()[1]
+    res = reader.residual_rows_array(codes.shape[1]) if residual else None
+    if (mask is not None or res is not None) and coords is None:
+        raise InvalidValueError(f"{reader.location} has an observation mask or a residual: decode_codes needs the "
+                                "blocks' coords")
+    if placer is not None and coords is None:
+        raise InvalidValueError("decode_codes needs the blocks' coords to place them")
+    bound = codec.decode_bound(codes)
+    proven = bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT
+    tiles = placer is not None or decodes_tiles(codec)
+    if metres and proven and mask is None and res is None and len(codes) and tiles:
+        # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles; a codec keeping
+        # the default, only to be placed: then it is the plain path below, in one call)
+        if placer is not None:  # each tile placed from its core's cache
+            _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max), out)
+            return None
+        out = empty((len(codes), BLOCK, BLOCK, BLOCK), codes.device) if out is None else out
+        codec.decode_tiles(codes, scale, offset, (d_min, d_max), None, out)
+        return out
+    v = codec.decode_core(codes, scale=scale, offset=offset, out=out)
+    if not proven:
+        v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=reader.location,
+                          codec_id=reader.header.codec.id, chunk_blocks=reader.header.codes.chunk_blocks)
+    if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
+        if v.device.type == "cpu":  # numpy's: torch's threaded clamp after a numpy product waits for BLAS threads
+            a = v.numpy()
+            np.clip(a, d_min, d_max, out=a)
+        else:
+            v = v.clamp_(d_min, d_max)
+    if mask is not None:
+        rows = read_block_rows(reader, mask, coords) if mask_rows is None else mask_rows
+        # unobserved voxels read d_max, whatever the codec made of them (spec section 6b)
+        v = restore_unobserved(v, rows, d_max if metres else 1.0)
+    if res is not None:
+        step = reader.header.residual.step / (1.0 if metres else d_max - d_min)
+        rows = reader.read_residual(coords) if residual_rows is None else residual_rows
+        v = apply_residual(v, rows, step, *((d_min, d_max) if metres else (0.0, 1.0)))
+    if placer is not None:
+        placer.place(coords, v)
+        return None
+    return v
+
+
+def _decode_placed(codec, codes: torch.Tensor, coords: np.ndarray, placer: BlockPlacer, scale: float,
+                   offset: float, clip: tuple[float, float], scratch: torch.Tensor | None) -> None:
+    """Decode, clip and place a group: tiles decoded in a core's cache and copied from there to their places
+    (``decode_tiles``; a codec keeping the default decodes the group whole, into ``scratch`` when given, the
+    reader's reused buffer). Measured: writing runs of whole blocks straight into the volume with one batched
+    product per run (a (r, 65) x (65, 16) product per voxel column) measured 0.4-0.8x as fast as this (medians,
+    interleaved, 2 loaded cores; docs/results.md, issue 19)."""
+    buf = None if scratch is None or decodes_tiles(codec) else scratch[:len(codes)]
+    codec.decode_tiles(codes, scale, offset, clip, lambda a, b, tile: placer.place(coords[a:b], tile), buf)

@@ -1,0 +1,128 @@
+"""Cache-sized tiles on the CPU's cores: the machinery behind the optional ``decode_tiles`` hook
+(spec/codec-plugins.md, section 4).
+
+A decode into memory costs one pass over its output when each piece of work on a block (the product that makes
+it, the truncation to ``[d_min, d_max]``, the copy to its place in a volume) happens while the block is still in
+the core's cache. :func:`run_tiles` cuts rows ``[0, n)`` into tiles of :data:`TILE_ROWS` rows that one thread
+per core takes in turn; each runs a one-threaded BLAS on its tile (OpenBLAS's threads are held at 1 for the
+call), so the product, the clip and the placing of a tile all see the same core's L2. The work function releases
+the GIL in its numpy calls (matmul, clip, copies), so Python threads run in parallel. What it is worth on 2
+cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterator
+
+import numpy as np
+
+__all__ = ["TILE_ROWS", "run_tiles", "scratch"]
+
+#: Rows per tile: 128 decoded 16^3 blocks are 2 MiB, within a core's L2 here (4 MiB; measured 64-512 rows
+#: within noise of each other, 16-32 slower: BLAS's per-call cost).
+TILE_ROWS = 128
+
+_lock = threading.Lock()
+_state: dict = {"pool": None, "workers": 0, "held": 0, "before": None, "ctl": None}
+_local = threading.local()
+
+
+def _blas():
+    """numpy's BLAS as a threadpoolctl controller (found once), or None when threadpoolctl finds none."""
+    if _state["ctl"] is None:
+        from threadpoolctl import ThreadpoolController
+
+        libs = ThreadpoolController().select(user_api="blas").lib_controllers
+        # numpy's own (scipy may bring another OpenBLAS; torch's BLAS is not numpy's matmul)
+        mine = [lib for lib in libs if "numpy" in lib.filepath]
+        _state["ctl"] = (mine or libs or [False])[0]
+    return _state["ctl"] or None
+
+
+@contextlib.contextmanager
+def _one_blas_thread() -> Iterator[int]:
+    """Hold numpy's BLAS at one thread (the tiles bring their own); yields the threads it had, the cores the
+    caller may use. Nested and concurrent holders share one limit; the last to leave restores it."""
+    blas = _blas()
+    with _lock:
+        if _state["held"] == 0:
+            _state["before"] = blas.num_threads if blas is not None else (os.cpu_count() or 1)
+            if blas is not None and _state["before"] != 1:
+                blas.set_num_threads(1)
+        _state["held"] += 1
+        threads = _state["before"]
+    try:
+        yield threads
+    finally:
+        with _lock:
+            _state["held"] -= 1
+            if _state["held"] == 0 and blas is not None and _state["before"] != 1:
+                blas.set_num_threads(_state["before"])
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """A persistent pool of ``workers`` threads (kept between calls: a decode runs it once per group)."""
+    with _lock:
+        if _state["workers"] < workers:
+            if _state["pool"] is not None:
+                _state["pool"].shutdown(wait=False)
+            _state["pool"] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="sdfcodec-tiles")
+            _state["workers"] = workers
+        return _state["pool"]
+
+
+def run_tiles(n: int, work: Callable[[int, int], None], *, rows: int | None = None) -> None:
+    """Call ``work(a, b)`` for consecutive tiles ``[a, b)`` of at most ``rows`` rows (None: :data:`TILE_ROWS`,
+    read at each call) covering ``[0, n)`` once each, on as many threads as numpy's BLAS had (the calling thread
+    one of them; each takes the next tile when done with one), with BLAS held at one thread meanwhile. ``work``
+    must be safe to run on disjoint tiles at once. After an exception no tile is started; the first one is
+    raised once all threads have stopped."""
+    if n <= 0:
+        return
+    rows = TILE_ROWS if rows is None else int(rows)
+    tiles = -(-n // rows)
+    with _one_blas_thread() as threads:
+        workers = max(1, min(int(threads), tiles))
+        # tiles are taken in turn from one counter (next() on it is atomic under the GIL), not cut into fixed
+        # shares: on a loaded machine a thread the scheduler holds back takes fewer, and no thread waits long
+        # for another at the end of the batch
+        turn = itertools.count()
+        stop: list[BaseException] = []
+
+        def share() -> None:
+            for i in iter(turn.__next__, tiles):
+                if i >= tiles or stop:
+                    return
+                try:
+                    work(i * rows, min(i * rows + rows, n))
+                except BaseException as e:
+                    stop.append(e)
+                    raise
+
+        if workers == 1:
+            share()
+            return
+        futures = [_pool(workers - 1).submit(share) for _ in range(1, workers)]
+        try:
+            share()
+        finally:
+            errors = [f.exception() for f in futures]
+        for e in errors:
+            if e is not None:
+                raise e
+
+
+def scratch(name: str, shape: tuple[int, ...], dtype=np.float32) -> np.ndarray:
+    """A buffer of ``shape`` private to the calling thread, kept between calls under ``name`` (a tile's
+    decodes stay in that core's cache from one tile to the next); its contents are undefined."""
+    bufs = _local.__dict__.setdefault("bufs", {})
+    buf = bufs.get(name)
+    size = int(np.prod(shape))
+    if buf is None or buf.size < size or buf.dtype != dtype:
+        buf = bufs[name] = np.empty(size, dtype=dtype)
+    return buf[:size].reshape(shape)
