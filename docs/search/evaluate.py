@@ -219,7 +219,7 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     return {"floor": floor, "floor_sliver": ~enough, "wall": bounding, "wall_sliver": ~enough | (vertical & ~bounding),
             "vertical": vertical & enough, "vertical_sliver": ~enough,
             "ceiling": np.zeros(len(coords), bool), "ceiling_sliver": ~enough,
-            "upward": upward, "floor_normal": fn,
+            "upward": upward, "floor_normal": fn, "floor_d": fd,
             "floor_tilt_deg": float(np.degrees(np.arccos(min(1.0, fn @ gravity_up))))}
 
 
