@@ -178,3 +178,33 @@ def test_a_surface_a_voxel_past_the_band_that_decodes_as_the_plane_is_the_planes
     x = _field(dist - 0.8)  # the surface 0.8 voxel above the checked plane
     *_, share, on, off = plane_residuals(x, np.ones(x.shape, bool), dist, **kw)
     assert off[0] == 0 and share[0] == 1.0
+
+
+def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_path):
+    """Wall A (x = 20.5 voxels) and a wall segment B (y = 36.5, only for x > 44): B's plane, extended, crosses the
+    blocks of A at y = 32-47, which hold A alone. Against B they hold a surface off its plane (impure); against A
+    they are pure and show it, so they are not impure (before, a block impure against any checked plane was
+    dropped: a kitchen wall block so)."""
+    from sdfcodec.search.engine import codes_at
+    from sdfcodec.search.plane_check import verify_planes
+
+    shape = (64, 64, 32)
+    wall_a = Plane((1.0, 0.0, 0.0), 20.5 * VS)
+    wall_b = Box((60 * VS, 18 * VS, 16 * VS), (16 * VS, 18.5 * VS, 40 * VS))
+    vol = sample_volume(Scene([wall_a, wall_b]), shape, VS, truncation=TRUNC)
+    path = tmp_path / "w.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    coded = np.argwhere(np.ones((4, 4, 2), bool))
+    planes = [(np.array([1.0, 0.0, 0.0]), 20.5 * VS), (np.array([0.0, 1.0, 0.0]), 36.5 * VS)]
+    strong = np.array([[1, 0, 0], [1, 1, 0], [3, 2, 0]])
+    _, _, impure, info = verify_planes(
+        m, planes, coded, strong, lambda c: codes_at(m, c, m.code_size), behind="solid", weighted=False,
+        stretches=None, quantile=0.99, samples=64, tol=1.0)
+    bad = {tuple(int(v) for v in c) for c in impure}
+    assert not ({(1, 2, 0), (1, 2, 1)} & bad), sorted(bad)
+    # against B's plane alone, they are impure
+    only_b = verify_planes(m, planes[1:], coded, strong, lambda c: codes_at(m, c, m.code_size), behind="solid",
+                           weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0)[2]
+    assert {(1, 2, 0), (1, 2, 1)} <= {tuple(int(v) for v in c) for c in only_b}

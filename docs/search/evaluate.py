@@ -203,7 +203,12 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     on_own = np.array([np.mean(np.abs((p - m) @ n) <= 2 * vs) if len(p) >= 3 else 0.0
                        for p, n, m in zip(pts_of, normal, centroid)])
     enough = npts >= 64
-    floor = enough & (on_floor >= 0.9)
+    # a fused real floor is not one exact plane (pose drift bends it by a voxel or two across the room): a block
+    # whose crossings lie on its own plane, parallel to the floor's (10 degrees) and within 2 voxels of it at its
+    # centroid, is floor too (before: only blocks within 2 voxels of the one fitted plane, which called a block
+    # lying 95 % on its own floor plane a voxel off that plane a negative)
+    floor_own = (on_own >= 0.9) & (normal @ fn >= cos10) & (np.abs(centroid @ fn - fd) <= 2 * vs)
+    floor = enough & ((on_floor >= 0.9) | floor_own)
     vertical = (on_own >= 0.9) & (np.abs(normal @ fn) <= math.sin(math.radians(10)))
     upward = planar & (normal @ fn >= cos10)
     # a wall of the room bounds it: at most BOUND_SHARE of the map's observed crossings lie more than BOUND_BEHIND

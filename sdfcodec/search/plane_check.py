@@ -35,6 +35,7 @@ import torch
 
 from .._validate import BLOCK
 from ..blocks import normalise
+from .scene import PLANE_TOL_VOXELS
 from .shapes import MIN_SHAPE_SURFACE, truncate
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
@@ -163,19 +164,24 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     d_min, d_max = truncation
     dec = (x * (d_max - d_min) + d_min) / voxel_size  # decoded distance, voxels
     surf = (np.abs(dec) <= 1.0) & observed
-    rel, turned = _local_plane(dist - moved[:, None], dec, surf)
-    on = (surf & (np.abs(rel) <= 1.0)).sum(axis=1)
-    # another surface: decoded within a voxel of zero beyond the band, or, where the codec smeared it (a wall a
-    # voxel past the block's face decodes to 1-1.5 voxels), within SECOND_SURFACE_VOXELS and nearer zero than the
-    # plane by SECOND_SURFACE_VOXELS (the plane's own field only grows away from it, stretched or not)
     near2 = (np.abs(dec) <= SECOND_SURFACE_VOXELS) & observed
-    # a voxel is another surface's only where the surface it places (``rel - dec`` voxels from the plane: moved
-    # back by its decoded distance) lies beyond SECOND_SURFACE_VOXELS; a voxel a voxel or two beyond the band that
-    # decodes as far from zero as it lies from the plane is the plane's own (a real floor or wall bends and
-    # roughens by a voxel or two within a block: counted as a second surface, the kitchen's walls lost 6 of 23
-    # blocks and its floor 1 of 28 to PURITY)
-    off = ((surf | near2) & (rel > BAND_VOXELS) & (rel - dec >= SECOND_SURFACE_VOXELS)).sum(axis=1)
-    share = np.where(on + off > 0, on / np.maximum(on + off, 1), 1.0)  # no surface seen: no other surface either
+    rel0 = dist - moved[:, None]
+    local, turned = _local_plane(rel0, dec, surf)
+    on, off, share = None, None, None
+    for rel in (rel0, local):  # against the checked plane (moved) and the block's own: the better
+        # another surface: decoded within a voxel of zero beyond the band, or, where the codec smeared it (a wall a
+        # voxel past the block's face decodes to 1-1.5 voxels), within SECOND_SURFACE_VOXELS; in both cases only
+        # where the surface the voxel places (``rel - dec`` voxels from the plane: moved back by its decoded
+        # distance) lies beyond SECOND_SURFACE_VOXELS (the plane's own field only grows away from it, stretched or
+        # not; a voxel just beyond the band that decodes as far from zero as it lies from the plane is the plane's:
+        # a real floor or wall roughens by a voxel within a block)
+        on_r = (surf & (np.abs(rel) <= 1.0)).sum(axis=1)
+        off_r = ((surf | near2) & (rel > BAND_VOXELS) & (rel - dec >= SECOND_SURFACE_VOXELS)).sum(axis=1)
+        share_r = np.where(on_r + off_r > 0, on_r / np.maximum(on_r + off_r, 1), 1.0)  # no surface: no other either
+        better = np.ones(len(x), bool) if share is None else share_r > share
+        on = on_r if on is None else np.where(better, on_r, on)
+        off = off_r if off is None else np.where(better, off_r, off)
+        share = share_r if share is None else np.where(better, share_r, share)
     share = np.where(turned, 0.0, share)  # a surface crossing the plane at an angle is not of it
     return out, seen, moved, constant.astype(np.float32), share, on, off
 
@@ -194,7 +200,8 @@ def _local_plane(rel: np.ndarray, dec: np.ndarray, surf: np.ndarray) -> tuple[np
     surface points (each voxel moved back along the normal by its decoded distance ``dec``) of its surface voxels
     ``surf`` within :data:`LOCAL_BAND_VOXELS` of the checked plane (``rel``: distances to it), where at least
     :data:`MIN_VERDICT_SURFACE` such points lie on a plane (rms under a voxel, spread over the block) whose
-    normal is within :data:`LOCAL_PLANE_DEG` of the checked plane's; else ``rel``. And ``(n,)`` bool: the block's
+    normal is within :data:`LOCAL_PLANE_DEG` of the checked plane's and which passes within
+    :data:`~sdfcodec.search.scene.PLANE_TOL_VOXELS` of it at its points' centre; else ``rel``. And ``(n,)`` bool: the block's
     own surface is a plane turned more than that from the checked one (it crosses the plane, it is not of it:
     a kitchen's sloped or slanted surfaces 14-35 degrees off a wall, near enough to its plane to pass). A real wall or floor is not one plane across a room (a fused map's pose drift, a floor
     that is not flat): measured on the kitchen, wall blocks whose own crossings lie 93-100 % within 2 voxels of
@@ -217,9 +224,10 @@ def _local_plane(rel: np.ndarray, dec: np.ndarray, surf: np.ndarray) -> tuple[np
         planar = (cnt >= MIN_VERDICT_SURFACE) & (val[:, 0] <= 1.0) & (val[:, 1] >= 4.0)
         local = np.where(planar[:, None], np.einsum("bvk,bk->bv", g[None, :, :] - mu[:, None, :], nl), rel)
     turned = np.einsum("bk,bk->b", nl, n) < np.cos(np.radians(LOCAL_PLANE_DEG))
-    # the block's own plane stands in for the checked one only where it passes within the compared band of it (at
-    # its points' centre): a surface a few voxels off the plane is another surface, not the plane bent
-    near = np.abs(rel.mean(axis=1) + np.einsum("bk,bk->b", mu, n)) <= BAND_VOXELS
+    # the block's own plane stands in for the checked one only where it passes within PLANE_TOL_VOXELS of it (at
+    # its points' centre; the map-level stage's tolerance for blocks of one plane): a surface farther off the
+    # plane is another surface, not the plane bent
+    near = np.abs(rel.mean(axis=1) + np.einsum("bk,bk->b", mu, n)) <= PLANE_TOL_VOXELS
     return np.where((planar & ~turned & near)[:, None], local, rel), planar & turned
 
 
