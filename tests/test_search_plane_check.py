@@ -169,17 +169,6 @@ def test_a_block_of_the_plane_bent_a_few_degrees_is_pure_and_a_crossing_surface_
     assert share3[0] < PURITY and off3[0] >= 256
 
 
-def test_a_surface_a_voxel_past_the_band_that_decodes_as_the_plane_is_the_planes():
-    """Surface voxels 1.5-2.5 voxels from the checked plane whose decoded distance puts the surface on the plane
-    (a plane 0.8 voxel off the checked one, and the move tolerance at 0) are the plane's, not a second surface."""
-    n = np.array([0.0, 0.0, 1.0])
-    kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", stretches=np.array([1.0]), tol=0.0)
-    dist = (_G @ n + 0.25)[None].astype(np.float32)
-    x = _field(dist - 0.8)  # the surface 0.8 voxel above the checked plane
-    *_, share, on, off = plane_residuals(x, np.ones(x.shape, bool), dist, **kw)
-    assert off[0] == 0 and share[0] == 1.0
-
-
 def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_path):
     """Wall A (x = 20.5 voxels) and a wall segment B (y = 36.5, only for x > 44): B's plane, extended, crosses the
     blocks of A at y = 32-47, which hold A alone. Against B they hold a surface off its plane (impure); against A
