@@ -154,9 +154,9 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     behind) are left out of the wall truth, neither positive nor negative (the ``vertical`` truth, every vertical
     block, is reported beside it). *Floor* (strict): >= 64 crossings, >= 90 % of them within 2 voxels of the
     floor plane, or of the block's own plane where that plane is within 10 degrees of the floor's and within 2
-    voxels of it at the crossings' centroid (a fused real floor bends by a voxel or two across the room). Blocks with fewer than 64 observed crossings (a surface passing
-    near a face, or seen in part) cannot be labelled and are left out of every truth. *Ceiling*: none is in
-    view."""
+    voxels of it at the crossings' centroid (a fused real floor bends by a voxel or two across the room). Blocks
+    with fewer than 64 observed crossings (a surface passing near a face, or seen in part) cannot be labelled and
+    are left out of every truth. *Ceiling*: none is in view."""
     vs = raw.voxel_size
     blocks = S.expand(raw, coords, device="cpu").blocks
     obs = raw.read_observed(coords)
