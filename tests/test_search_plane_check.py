@@ -36,7 +36,7 @@ def test_residual_of_the_plane_itself_is_zero_and_a_second_surface_is_seen():
     dist = (_G @ n - 1.3)[None]  # a plane 1.3 voxels above the centre
     x = _field(dist)
     kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", stretches=np.array([1.0]), tol=1.0)
-    r, seen, moved, const, share, on = plane_residuals(x, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    r, seen, moved, const, share, on, off = plane_residuals(x, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
     assert r[0] < 1e-6 and moved[0] == 0.0 and share[0] == 1.0 and on[0] >= 256 and const[0] > 100 * max(r[0], 1e-3)
     assert seen[0] >= 256  # a plane across the block: two voxel layers within a voxel of it
     # the plane moved by 0.7 voxel: found within the tolerance, residual small, not zero (the moves are 0.5 apart)
@@ -45,7 +45,7 @@ def test_residual_of_the_plane_itself_is_zero_and_a_second_surface_is_seen():
     # a slab's underside 6 voxels above the plane (solid above it): a second surface on the free side
     other = 7.3 - _G @ n
     both = _field(np.minimum(dist, other[None]))
-    *_, share3, _ = plane_residuals(both, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
+    *_, share3, _, _ = plane_residuals(both, np.ones(x.shape, bool), dist.astype(np.float32), **kw)
     assert share3[0] < PURITY
 
 
@@ -141,3 +141,59 @@ def test_a_floor_at_a_block_face_keeps_the_blocks_on_both_sides(tmp_path, behind
     got = {tuple(int(v) for v in c) for c in res.coords}
     want = {(i, j, k) for i in range(4) for j in range(4) for k in (0, 1)}
     assert got == want, (sorted(want - got), sorted(got - want))
+
+
+def _rot_y(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+
+
+def test_a_block_of_the_plane_bent_a_few_degrees_is_pure_and_a_crossing_surface_is_not():
+    """A real wall or floor is not one plane across a room: a block whose surface is the plane turned by 12
+    degrees (through its centre) lies on it (its own plane stands in for purity; before, its share was 0.73: the
+    surface voxels at its edges, beyond the band, counted as a second surface), while a surface crossing the plane at 35
+    degrees is not of it (share 0), nor one parallel to it 4 voxels off, on its free side."""
+    n = np.array([0.0, 0.0, 1.0])
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", stretches=np.array([1.0]), tol=1.0)
+    dist = (_G @ n)[None].astype(np.float32)  # the checked plane through the block's centre
+    ones = np.ones((1, 4096), bool)
+    bent = _field((_G @ (_rot_y(12.0) @ n))[None])
+    *_, share, on, off = plane_residuals(bent, ones, dist, **kw)
+    assert share[0] >= PURITY and off[0] == 0
+    crossing = _field((_G @ (_rot_y(35.0) @ n))[None])
+    *_, share2, _, _ = plane_residuals(crossing, ones, dist, **kw)
+    assert share2[0] == 0.0
+    # a plane 4 voxels above the checked one is another surface, not the plane bent (its own fit is not used)
+    above = _field((_G @ n - 4.0)[None])
+    *_, share3, on3, off3 = plane_residuals(above, ones, dist, **kw)
+    assert share3[0] < PURITY and off3[0] >= 256
+
+
+def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_path):
+    """Wall A (x = 20.5 voxels) and a wall segment B (y = 36.5, only for x > 44): B's plane, extended, crosses the
+    blocks of A at y = 32-47, which hold A alone. Against B they hold a surface off its plane (impure); against A
+    they are pure and show it, so they are not impure (before, a block impure against any checked plane was
+    dropped: a kitchen wall block so)."""
+    from sdfcodec.search.engine import codes_at
+    from sdfcodec.search.plane_check import verify_planes
+
+    shape = (64, 64, 32)
+    wall_a = Plane((1.0, 0.0, 0.0), 20.5 * VS)
+    wall_b = Box((60 * VS, 18 * VS, 16 * VS), (16 * VS, 18.5 * VS, 40 * VS))
+    vol = sample_volume(Scene([wall_a, wall_b]), shape, VS, truncation=TRUNC)
+    path = tmp_path / "w.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    coded = np.argwhere(np.ones((4, 4, 2), bool))
+    planes = [(np.array([1.0, 0.0, 0.0]), 20.5 * VS), (np.array([0.0, 1.0, 0.0]), 36.5 * VS)]
+    strong = np.array([[1, 0, 0], [1, 1, 0], [3, 2, 0]])
+    _, _, impure, info = verify_planes(
+        m, planes, coded, strong, lambda c: codes_at(m, c, m.code_size), behind="solid", weighted=False,
+        stretches=None, quantile=0.99, samples=64, tol=1.0)
+    bad = {tuple(int(v) for v in c) for c in impure}
+    assert not ({(1, 2, 0), (1, 2, 1)} & bad), sorted(bad)
+    # against B's plane alone, they are impure
+    only_b = verify_planes(m, planes[1:], coded, strong, lambda c: codes_at(m, c, m.code_size), behind="solid",
+                           weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0)[2]
+    assert {(1, 2, 0), (1, 2, 1)} <= {tuple(int(v) for v in c) for c in only_b}

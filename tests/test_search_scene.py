@@ -177,3 +177,30 @@ def test_weak_candidates_only_select_nothing_and_say_why(furnished):
     res = S.search(furnished.m, "floor", threshold=best / (0.5 + WEAK_FACTOR / 2) if best > 0 else 0.0)
     assert len(res.coords) == 0
     assert res.stats["scene"]["rule"] == "no level holds a block under the threshold"
+
+
+def test_levels_of_one_wall_seen_in_pieces_merge():
+    """A wall turned 10 degrees from the model's nearest yaw, seen as three patches along it: each block's plane
+    point lies on the wall but carries the model's normal, so the largest patch (a column of blocks, too narrow
+    for a fit) gives its level the model's normal, and the far patches miss it by 8-11 voxels. The levels merge
+    through the plane fitted to all three (before: three levels of 4, 3 and 3 blocks)."""
+    from sdfcodec.search.scene import plane_levels
+
+    true_n = np.array([math.cos(math.radians(10)), math.sin(math.radians(10)), 0.0])
+    along = np.array([-true_n[1], true_n[0], 0.0])
+    model_n = np.array([1.0, 0.0, 0.0])
+    pts, comp = [], []
+    for k, (start, count) in enumerate(((0.0, 4), (3.5, 3), (-3.5, 3))):  # blocks along the wall, then up it
+        for j in range(count):
+            pts.append(16 * VS * (start * along + np.array([0.0, 0.0, j])))
+            comp.append(k)
+    pts, comp = np.asarray(pts), np.asarray(comp)
+    normals = np.tile(model_n, (len(pts), 1))
+    level, levels = plane_levels(comp, normals, pts, np.ones(3, bool), VS)
+    assert len(levels) == 1 and levels[0]["blocks"] == 10 and (level == 0).all()
+    assert float(levels[0]["normal"] @ true_n) > math.cos(math.radians(2))
+    # a parallel plane 8 voxels behind it stays a level of its own
+    pts2 = np.concatenate([pts, pts[comp == 1] - 8 * VS * true_n])
+    comp2 = np.concatenate([comp, np.full(3, 3)])
+    level2, levels2 = plane_levels(comp2, np.tile(model_n, (len(pts2), 1)), pts2, np.ones(4, bool), VS)
+    assert len(levels2) == 2 and level2[3] != level2[0]

@@ -153,9 +153,10 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     blocks that do not (cabinet fronts, appliance sides: the counter, the floor or the wall above them lie
     behind) are left out of the wall truth, neither positive nor negative (the ``vertical`` truth, every vertical
     block, is reported beside it). *Floor* (strict): >= 64 crossings, >= 90 % of them within 2 voxels of the
-    floor plane. Blocks with fewer than 64 observed crossings (a surface passing
-    near a face, or seen in part) cannot be labelled and are left out of every truth. *Ceiling*: none is in
-    view."""
+    floor plane, or of the block's own plane where that plane is within 10 degrees of the floor's and within 2
+    voxels of it at the crossings' centroid (a fused real floor bends by a voxel or two across the room). Blocks
+    with fewer than 64 observed crossings (a surface passing near a face, or seen in part) cannot be labelled and
+    are left out of every truth. *Ceiling*: none is in view."""
     vs = raw.voxel_size
     blocks = S.expand(raw, coords, device="cpu").blocks
     obs = raw.read_observed(coords)
@@ -203,7 +204,12 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     on_own = np.array([np.mean(np.abs((p - m) @ n) <= 2 * vs) if len(p) >= 3 else 0.0
                        for p, n, m in zip(pts_of, normal, centroid)])
     enough = npts >= 64
-    floor = enough & (on_floor >= 0.9)
+    # a fused real floor is not one exact plane (pose drift bends it by a voxel or two across the room): a block
+    # whose crossings lie on its own plane, parallel to the floor's (10 degrees) and within 2 voxels of it at its
+    # centroid, is floor too (before: only blocks within 2 voxels of the one fitted plane, which called a block
+    # lying 95 % on its own floor plane a voxel off that plane a negative)
+    floor_own = (on_own >= 0.9) & (normal @ fn >= cos10) & (np.abs(centroid @ fn - fd) <= 2 * vs)
+    floor = enough & ((on_floor >= 0.9) | floor_own)
     vertical = (on_own >= 0.9) & (np.abs(normal @ fn) <= math.sin(math.radians(10)))
     upward = planar & (normal @ fn >= cos10)
     # a wall of the room bounds it: at most BOUND_SHARE of the map's observed crossings lie more than BOUND_BEHIND
@@ -219,7 +225,7 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     return {"floor": floor, "floor_sliver": ~enough, "wall": bounding, "wall_sliver": ~enough | (vertical & ~bounding),
             "vertical": vertical & enough, "vertical_sliver": ~enough,
             "ceiling": np.zeros(len(coords), bool), "ceiling_sliver": ~enough,
-            "upward": upward, "floor_normal": fn,
+            "upward": upward, "floor_normal": fn, "floor_d": fd,
             "floor_tilt_deg": float(np.degrees(np.arccos(min(1.0, fn @ gravity_up))))}
 
 
