@@ -52,6 +52,19 @@ def test_short_calls_are_timed_on_one_thread():
         assert tm["a"].threads == 1 and tm["a"].best < ONE_THREAD_BELOW_S
 
 
+def test_paired_ratio_follows_each_round():
+    """The paired ratio is the median of the per-round ratios: a round where load slowed both sides keeps its
+    ratio, and a burst that struck one side in one round moves it less than the ratio of medians moves."""
+    from sdfcodec.bench.harness import Timing, paired, ratio
+
+    cand = Timing((1.0, 2.0, 4.0, 1.0, 1.1), 1)  # rounds 2 and 3: the machine twice and four times as busy
+    base = Timing((2.0, 4.0, 8.0, 2.0, 2.2), 1)
+    assert paired(cand, base) == pytest.approx(2.0) and ratio(cand, base)["ratio_paired"] == pytest.approx(2.0)
+    stalled = Timing((2.0, 4.0, 8.0, 9.0, 2.2), 1)  # the baseline stalled in round 4 only
+    assert paired(cand, stalled) == pytest.approx(2.0)
+    assert ratio(cand, stalled)["ratio_of_medians"] == pytest.approx(4.0 / 1.1)
+
+
 def _run(ratios, extra=None):
     recs = [{"codec": "pca", "code_size": 64, "operation": op, "batch": 64, "device": "cpu", "ratio_to_baseline": r,
              "blocks_per_s": 1e4} for op, r in ratios.items()]
@@ -70,6 +83,9 @@ def test_compare_runs_reports_every_ratio(tmp_path):
     assert res["rows"][1]["disagreement"] == pytest.approx(1.0 / 0.95 - 1)
     assert res["unmatched"] == 1 and res["agree"] is True  # 0.15 is within 0.15
     assert compare_runs(a, b, tolerance=0.1)["agree"] is False
+    per = compare_runs(a, b, tolerance=0.1)["by_ratio"]["ratio_to_baseline"]  # 15 % and 5.3 %: one of two within 10 %
+    assert per["records"] == 2 and per["within"] == 1
+    assert per["median"] == pytest.approx(((0.92 / 0.8 - 1) + (1.0 / 0.95 - 1)) / 2)
     with pytest.raises(InputNotFoundError):
         compare_runs(tmp_path / "nowhere.json", b)
     (tmp_path / "bad.json").write_text('{"records": 3}')

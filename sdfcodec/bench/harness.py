@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 from ..errors import InvalidValueError
 
-__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine", "run_document", "limit_threads"]
+__all__ = ["Timing", "interleave", "ratio", "paired", "time_call", "load", "machine", "run_document", "limit_threads"]
 
 
 @dataclass(frozen=True)
@@ -53,15 +53,18 @@ class Timing:
                 "calls_per_round": self.calls}
 
 
-#: Calls shorter than this (seconds; the longest of a figure's callables, at calibration) are timed on one thread
-#: by :func:`interleave`: a multi-threaded call waits at its barrier for a thread the scheduler has parked,
-#: which on a loaded machine costs a time slice (milliseconds) against a call of microseconds. Two `bench
-#: --quick` runs at load 6-7 disagreed 100-500-fold on batch 1 and 64 ratios timed on two threads.
-ONE_THREAD_BELOW_S = 2e-3
-#: Calls up to this long on the configured threads are timed once more on one thread before that choice: the
-#: stall the rule avoids also strikes the calibration (pca-64 encode of one block took 21-36 ms a call on two
-#: threads at load 7 for a whole run, against 0.1 ms on one)
-_RECHECK_BELOW_S = 0.1
+#: Figures whose calls all take less than this on one thread (seconds, at calibration) are timed on one thread
+#: by :func:`interleave`: a multi-threaded call waits at its barriers for a thread the scheduler has parked, which
+#: on a loaded machine costs a time slice (milliseconds) per barrier, so its time follows the load, not the code.
+#: Two `bench --quick` runs at load 6-7 disagreed 100-500-fold on batch 1 and 64 ratios timed on two threads; with
+#: a 2 ms bound, calls of 2-150 ms (weighted encodes of 1 and 64 blocks, whose baselines read a 4096 x 2080 Gram
+#: table) still stalled in one run and not the other: 15 against 1,097 blocks/s, median and best of one figure.
+ONE_THREAD_BELOW_S = 0.1
+#: Calls up to this long on the configured threads are timed once more on one thread before that choice (the
+#: stall the rule avoids also strikes the calibration: pca-64 encode of one block took 21-36 ms a call on two
+#: threads at load 7 for a whole run, against 0.1 ms on one); longer work keeps the configured threads without
+#: paying for a one-thread calibration.
+_RECHECK_BELOW_S = 1.0
 
 
 def _one_call(fn: Callable[[], object]) -> float:
@@ -76,14 +79,14 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
                ) -> dict[str, Timing]:
     """Time every callable of ``fns`` (name -> callable; by convention the candidate first, then its baselines)
     in ``repeats`` interleaved rounds of equal length; see the module docstring. Returns name -> :class:`Timing`.
-    When every callable's call is shorter than :data:`ONE_THREAD_BELOW_S`, all of them are timed on one thread
-    (torch and numpy's BLAS; ``Timing.threads`` says so). A callable that runs asynchronously (CUDA) must
-    synchronise before it returns."""
+    When every callable's call takes less than :data:`ONE_THREAD_BELOW_S` on one thread, all of them are timed
+    on one thread (torch and numpy's BLAS; ``Timing.threads`` says so). A callable that runs asynchronously
+    (CUDA) must synchronise before it returns."""
     if repeats < 1:
         raise InvalidValueError(f"repeats must be >= 1, got {repeats}")
     names = list(fns)
     one = {n: _one_call(fns[n]) for n in names}
-    if ONE_THREAD_BELOW_S <= max(one.values()) < _RECHECK_BELOW_S:  # short work a barrier stall made long?
+    if ONE_THREAD_BELOW_S <= max(one.values()) < _RECHECK_BELOW_S:  # short on one thread, or a barrier stall?
         with limit_threads(1):
             one1 = {n: _one_call(fns[n]) for n in names}
         one = one1 if max(one1.values()) < ONE_THREAD_BELOW_S else one
@@ -116,12 +119,20 @@ def ratio(candidate: Timing, baseline: Timing) -> dict[str, float]:
     got: on a loaded machine the steadiest, but it counts every thread's time, so it measures cost, not
     latency)."""
     out = {"ratio_of_medians": baseline.median / candidate.median, "ratio_of_bests": baseline.best / candidate.best,
-           "ratio_paired": statistics.median(b / c for b, c in zip(baseline.rounds, candidate.rounds))}
+           "ratio_paired": paired(candidate, baseline)}
     if candidate.cpu_rounds and baseline.cpu_rounds:
         c, b = statistics.median(candidate.cpu_rounds), statistics.median(baseline.cpu_rounds)
         if c > 0 and b > 0:
             out["ratio_cpu"] = b / c
     return out
+
+
+def paired(candidate: Timing, baseline: Timing) -> float:
+    """Baseline seconds over candidate seconds within each round, the median over rounds (> 1: the candidate is
+    faster): the two ran back to back in a round, so a burst of load that slows one round of both leaves its
+    ratio, where a ratio of medians can pair a quiet round of one with a loaded round of the other. Both must
+    come from the same :func:`interleave` call."""
+    return statistics.median(b / c for b, c in zip(baseline.rounds, candidate.rounds))
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:

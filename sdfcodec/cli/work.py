@@ -434,7 +434,8 @@ def _bench_compare(paths: tuple[Path, Path], tolerance: float, as_json: bool) ->
         return
     rows = [(" ".join(f"{v}" for v in r["record"].values()), r["ratio"], f"{r['a']:.3f}", f"{r['b']:.3f}",
              f"{100 * r['disagreement']:.1f} %") for r in res["rows"]]
-    kinds = "; ".join(f"{k} worst {100 * v['worst']:.1f} % over {v['records']}" for k, v in res["by_ratio"].items())
+    kinds = "; ".join(f"{k} {v['within']} / {v['records']} within, median {100 * v['median']:.1f} %, worst "
+                      f"{100 * v['worst']:.1f} %" for k, v in res["by_ratio"].items())
     print_table(("record", "ratio", "A", "B", "disagreement"), rows, title=f"{paths[0]} against {paths[1]}",
                 caption=(f"worst {100 * (res['worst'] or 0):.1f} %; within {100 * tolerance:.0f} %: "
                          f"{'yes' if res['agree'] else 'no'}; {res['unmatched']} record(s) in one run only\n{kinds}"))
