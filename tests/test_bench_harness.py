@@ -19,13 +19,28 @@ def test_interleave_alternates_equal_rounds():
     calls = []
     tm = interleave({"cand": lambda: calls.append("c"), "base": lambda: calls.append("b")}, repeats=4,
                     min_time=0.0)
-    assert calls[:4] == ["c", "c", "b", "b"]  # calibration: warm-up and one timed call of each, in order
-    rounds = calls[4:]
+    # calibration: warm-up and one timed call of each, in order, on the configured threads and (short calls) again
+    # on one thread, whose timing sets the calls per round
+    assert calls[:8] == ["c", "c", "b", "b"] * 2
+    rounds = calls[8:]
     assert rounds == ["c", "b", "b", "c", "c", "b", "b", "c"]  # one call per round (min_time 0), order flipped
     assert len(tm["cand"].rounds) == len(tm["base"].rounds) == 4 and tm["cand"].calls == tm["base"].calls == 1
     assert tm["cand"].best <= tm["cand"].median
     with pytest.raises(ValueError):
         interleave({"a": lambda: None}, repeats=0)
+
+
+def test_rounds_take_turns_in_slices():
+    """Within a round, the callables take turns in slices of their calls (a burst of load falls on both sides),
+    each callable keeping its calibrated number of calls per round; the next round starts with the other."""
+    from sdfcodec.bench.harness import SLICES, _rounds
+
+    calls = []
+    tm = _rounds({"c": lambda: calls.append("c"), "b": lambda: calls.append("b")}, ["c", "b"],
+                 {"c": 2 * SLICES, "b": SLICES}, repeats=2, threads=None)
+    first, second = calls[:3 * SLICES], calls[3 * SLICES:]
+    assert first == ["c", "c", "b"] * SLICES and second == ["b", "c", "c"] * SLICES
+    assert tm["c"].calls == 2 * SLICES and len(tm["c"].rounds) == len(tm["b"].rounds) == 2
 
 
 def test_short_calls_are_timed_on_one_thread():

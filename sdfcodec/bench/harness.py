@@ -3,8 +3,9 @@
 A figure is a candidate callable and one or more baseline callables (the roofline: a preallocated matrix
 product, a memory copy...). :func:`interleave` times them in rounds: each round runs every callable for the
 same fixed number of calls (calibrated once, before the first round, so that a call group lasts about
-``min_time``), alternating the order from round to round (candidate first, then baselines first), so that a
-burst of load from another process falls on both sides of the ratio. It returns per-round seconds per call;
+``min_time``), alternating the order from round to round (candidate first, then baselines first) and, within a
+round, taking turns in up to :data:`SLICES` slices of calls, so that a burst of load from another process falls
+on both sides of the ratio. It returns per-round seconds per call;
 :class:`Timing` gives best and median, and :func:`ratio` the ratio of medians (what records call
 ``ratio_to_baseline``) and of bests.
 
@@ -14,6 +15,7 @@ The machine (:func:`machine`) and its load (``os.getloadavg()``, :func:`load`) a
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import platform
 import statistics
@@ -67,9 +69,20 @@ ONE_THREAD_BELOW_S = 0.1
 _RECHECK_BELOW_S = 1.0
 
 
+#: A warm-up call longer than this (seconds) is the calibration itself: first-call costs (allocations, page
+#: faults, kernel selection) are small beside it, and a second call would add seconds per figure (a masked encode
+#: of 4096 pca-128 blocks takes 16 s a call at load 5).
+_WARM_ENOUGH_S = 1.0
+
+
 def _one_call(fn: Callable[[], object]) -> float:
-    """Seconds of one call of ``fn`` after a warm-up call (allocations, page faults, kernel selection)."""
+    """Seconds of one call of ``fn`` after a warm-up call (allocations, page faults, kernel selection), or of the
+    warm-up call when it took longer than :data:`_WARM_ENOUGH_S`."""
+    t0 = time.perf_counter()
     fn()
+    warm = time.perf_counter() - t0
+    if warm > _WARM_ENOUGH_S:
+        return warm
     t0 = time.perf_counter()
     fn()
     return max(time.perf_counter() - t0, 1e-7)
@@ -86,27 +99,58 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
         raise InvalidValueError(f"repeats must be >= 1, got {repeats}")
     names = list(fns)
     one = {n: _one_call(fns[n]) for n in names}
-    if ONE_THREAD_BELOW_S <= max(one.values()) < _RECHECK_BELOW_S:  # short on one thread, or a barrier stall?
+    threads = None
+    if max(one.values()) < _RECHECK_BELOW_S:  # short on one thread? (a barrier stall may have made it look long)
         with limit_threads(1):
             one1 = {n: _one_call(fns[n]) for n in names}
-        one = one1 if max(one1.values()) < ONE_THREAD_BELOW_S else one
-    threads = 1 if max(one.values()) < ONE_THREAD_BELOW_S else None
-    with limit_threads(threads):  # calibrated on the configured threads: a one-thread round may run longer
+        if max(one1.values()) < ONE_THREAD_BELOW_S:  # the calls per round from the one-thread calibration
+            one, threads = one1, 1
+    with limit_threads(threads), _no_gc():  # calibrated on the configured threads: a one-thread round may run longer
         return _rounds(fns, names, {n: max(1, round(min_time / t)) for n, t in one.items()}, repeats, threads)
+
+
+@contextlib.contextmanager
+def _no_gc() -> Iterator[None]:
+    """The rounds without Python's cyclic garbage collector (as :mod:`timeit` times): a collection pass costs
+    in proportion to every object the whole process holds, not to the call that triggered it, and lands on
+    whichever side allocates Python objects (a codec's call, not numpy's product)."""
+    was = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+#: A round is cut into up to this many slices, each running every callable's share of its calls in turn, so that
+#: a burst of load (another process taking the core for a few time slices) falls on the candidate and its
+#: baselines alike rather than on whichever ran a 50 ms block of calls at that moment; a slice still runs each
+#: callable several calls in a row (warm caches), and calls longer than a slice are not cut.
+SLICES = 8
 
 
 def _rounds(fns: Mapping[str, Callable[[], object]], names: list[str], calls: dict[str, int], repeats: int,
             threads: int | None) -> dict[str, Timing]:
     rounds: dict[str, list[float]] = {n: [] for n in names}
     cpu: dict[str, list[float]] = {n: [] for n in names}
+    slices = max(1, min(SLICES, *calls.values()))
     for r in range(repeats):
-        for n in (names if r % 2 == 0 else names[::-1]):  # alternate the order: drifting load hits both sides
-            fn, k = fns[n], calls[n]
-            c0, t0 = time.process_time(), time.perf_counter()
-            for _ in range(k):
-                fn()
-            rounds[n].append((time.perf_counter() - t0) / k)
-            cpu[n].append((time.process_time() - c0) / k)
+        order = names if r % 2 == 0 else names[::-1]  # alternate the order: drifting load hits both sides
+        wall = dict.fromkeys(names, 0.0)
+        spent = dict.fromkeys(names, 0.0)
+        for s in range(slices):
+            for n in order:
+                fn, k = fns[n], calls[n] * (s + 1) // slices - calls[n] * s // slices
+                c0, t0 = time.process_time(), time.perf_counter()
+                for _ in range(k):
+                    fn()
+                wall[n] += time.perf_counter() - t0
+                spent[n] += time.process_time() - c0
+        for n in names:
+            rounds[n].append(wall[n] / calls[n])
+            cpu[n].append(spent[n] / calls[n])
     return {n: Timing(tuple(rounds[n]), calls[n], tuple(cpu[n]), threads) for n in names}
 
 
