@@ -266,7 +266,7 @@ def bench_cmd(
     sizes: str = typer.Option("32,64,128", "--sizes", help="Code sizes."),
     batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4)."),
     device: str = typer.Option("cpu", "--device", help="Torch device."),
-    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (4.8-5 min on the 2-core CI machine at load 3.4-4.7, 9.7 min at load 6-7.6)."),
+    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (4.8-5 min on the 2-core CI machine at load 3.4-4.7, 6.3-7.5 min at load 4.2-7.9)."),
     read: Optional[int] = typer.Option(None, "--read", help="Blocks in the map timed for decode-on-read "
                                        "(default 65536, --quick 8192; 0: skip)."),
     http: bool = typer.Option(True, "--http/--no-http", help="Also time decode-on-read over HTTP (loopback)."),
