@@ -19,13 +19,28 @@ def test_interleave_alternates_equal_rounds():
     calls = []
     tm = interleave({"cand": lambda: calls.append("c"), "base": lambda: calls.append("b")}, repeats=4,
                     min_time=0.0)
-    assert calls[:4] == ["c", "c", "b", "b"]  # calibration: warm-up and one timed call of each, in order
-    rounds = calls[4:]
+    # calibration: warm-up and one timed call of each, in order, on the configured threads and (short calls) again
+    # on one thread, whose timing sets the calls per round
+    assert calls[:8] == ["c", "c", "b", "b"] * 2
+    rounds = calls[8:]
     assert rounds == ["c", "b", "b", "c", "c", "b", "b", "c"]  # one call per round (min_time 0), order flipped
     assert len(tm["cand"].rounds) == len(tm["base"].rounds) == 4 and tm["cand"].calls == tm["base"].calls == 1
     assert tm["cand"].best <= tm["cand"].median
     with pytest.raises(ValueError):
         interleave({"a": lambda: None}, repeats=0)
+
+
+def test_rounds_take_turns_in_slices():
+    """Within a round, the callables take turns in slices of their calls (a burst of load falls on both sides),
+    each callable keeping its calibrated number of calls per round; the next round starts with the other."""
+    from sdfcodec.bench.harness import SLICES, _rounds
+
+    calls = []
+    tm = _rounds({"c": lambda: calls.append("c"), "b": lambda: calls.append("b")}, ["c", "b"],
+                 {"c": 2 * SLICES, "b": SLICES}, repeats=2, threads=None)
+    first, second = calls[:3 * SLICES], calls[3 * SLICES:]
+    assert first == ["c", "c", "b"] * SLICES and second == ["b", "c", "c"] * SLICES
+    assert tm["c"].calls == 2 * SLICES and len(tm["c"].rounds) == len(tm["b"].rounds) == 2
 
 
 def test_short_calls_are_timed_on_one_thread():
@@ -52,6 +67,19 @@ def test_short_calls_are_timed_on_one_thread():
         assert tm["a"].threads == 1 and tm["a"].best < ONE_THREAD_BELOW_S
 
 
+def test_paired_ratio_follows_each_round():
+    """The paired ratio is the median of the per-round ratios: a round where load slowed both sides keeps its
+    ratio, and a burst that struck one side in one round moves it less than the ratio of medians moves."""
+    from sdfcodec.bench.harness import Timing, paired, ratio
+
+    cand = Timing((1.0, 2.0, 4.0, 1.0, 1.1), 1)  # rounds 2 and 3: the machine twice and four times as busy
+    base = Timing((2.0, 4.0, 8.0, 2.0, 2.2), 1)
+    assert paired(cand, base) == pytest.approx(2.0) and ratio(cand, base)["ratio_paired"] == pytest.approx(2.0)
+    stalled = Timing((2.0, 4.0, 8.0, 9.0, 2.2), 1)  # the baseline stalled in round 4 only
+    assert paired(cand, stalled) == pytest.approx(2.0)
+    assert ratio(cand, stalled)["ratio_of_medians"] == pytest.approx(4.0 / 1.1)
+
+
 def _run(ratios, extra=None):
     recs = [{"codec": "pca", "code_size": 64, "operation": op, "batch": 64, "device": "cpu", "ratio_to_baseline": r,
              "blocks_per_s": 1e4} for op, r in ratios.items()]
@@ -70,6 +98,9 @@ def test_compare_runs_reports_every_ratio(tmp_path):
     assert res["rows"][1]["disagreement"] == pytest.approx(1.0 / 0.95 - 1)
     assert res["unmatched"] == 1 and res["agree"] is True  # 0.15 is within 0.15
     assert compare_runs(a, b, tolerance=0.1)["agree"] is False
+    per = compare_runs(a, b, tolerance=0.1)["by_ratio"]["ratio_to_baseline"]  # 15 % and 5.3 %: one of two within 10 %
+    assert per["records"] == 2 and per["within"] == 1
+    assert per["median"] == pytest.approx(((0.92 / 0.8 - 1) + (1.0 / 0.95 - 1)) / 2)
     with pytest.raises(InputNotFoundError):
         compare_runs(tmp_path / "nowhere.json", b)
     (tmp_path / "bad.json").write_text('{"records": 3}')

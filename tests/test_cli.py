@@ -150,8 +150,9 @@ def test_bench_json_records():
         assert x["ratio_of_bests"] == pytest.approx(x["blocks_per_s_best"] / x["baseline_blocks_per_s_best"])
         assert x["blocks_per_s_best"] >= x["blocks_per_s"] > 0 and x["repeats"] == 2 and x["map_blocks"] == 300
     for x in (x for x in recs if x["operation"] in ("encode-weighted", "encode-masked")):  # beside the plain encode
-        plain = next(y for y in recs if y["operation"] == "encode" and y["batch"] == x["batch"])
-        assert x["ratio_to_encode"] == pytest.approx(x["us_per_block"] ** -1 / plain["us_per_block"] ** -1, rel=1e-9)
+        # timed again in the same rounds (encode_blocks_per_s), the ratio paired round by round: a weighted fit of
+        # 32 numbers (Gram matrices of 528 columns) costs more than the plain projection
+        assert x["encode_blocks_per_s"] > 0 and 0 < x["ratio_to_encode"] < 1
         assert x["roofline_shapes"] == [[4096, 32], [4096, 32 * 33 // 2], [4096, 32]]
     assert all(x["blocks_per_s"] > 0 and x["baseline_blocks_per_s"] > 0 for x in recs)
     for x in recs:  # the paper's 405-645 us per block against ours
@@ -159,7 +160,7 @@ def test_bench_json_records():
     for op in ("decode-on-read", "decode-on-read-http"):  # the memory-copy roofline: 16 KiB per decoded block
         x = next(x for x in recs if x["operation"] == op)
         assert x["memcpy_blocks_per_s"] == pytest.approx(x["memcpy_bytes_per_s"] / 16384)
-        assert x["ratio_to_memcpy"] == pytest.approx(x["blocks_per_s"] / x["memcpy_blocks_per_s"])
+        assert x["ratio_to_memcpy"] > 0  # paired round by round with the copy (sdfcodec.bench.harness.paired)
     assert run("bench", "--quick", "--sizes", "32", "--batches", "1", "--read", "0", "--no-search",
                "--json").exit_code == 0
     read = next(x for x in recs if x["operation"] == "decode-on-read")
@@ -167,8 +168,7 @@ def test_bench_json_records():
     # Blosc-compressible, so bounded below loosely) and at most their raw size plus chunk overhead
     assert 300 * 32 * 4 / 20 < read["code_bytes_on_disk"] < 300 * 32 * 4 * 2 + 4096
     assert read["in_memory_decode_blocks_per_s"] > 0
-    assert read["ratio_to_in_memory_decode"] == pytest.approx(
-        read["blocks_per_s"] / read["in_memory_decode_blocks_per_s"], rel=1e-9)
+    assert read["ratio_to_in_memory_decode"] > 0
     assert run("bench", "--quick", "--read", "-1").exit_code != 0
 
 

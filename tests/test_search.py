@@ -184,7 +184,8 @@ def test_scores_equal_brute_force_numpy(maps):
 @pytest.mark.parametrize("n_desc", [15, 300])
 def test_scorer_in_tiles_equals_brute_force(n_desc):
     """The CPU scorer's products of a few hundred codes (few descriptors) and its one product (many) give the
-    float64 brute-force minimum distances and a nearest descriptor."""
+    float64 brute-force minimum distances and a nearest descriptor, with and without a bound on the scores whose
+    nearest descriptor is wanted."""
     rng = np.random.default_rng(n_desc)
     q = rng.standard_normal((n_desc, 64)).astype(np.float32)
     codes = rng.standard_normal((1500, 64)).astype(np.float32)
@@ -194,6 +195,13 @@ def test_scorer_in_tiles_equals_brute_force(n_desc):
     d = ((codes[:, None, :].astype(np.float64) - q[None]) ** 2).sum(-1)
     np.testing.assert_allclose(s, d.min(1), rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(d[np.arange(len(codes)), idx], d.min(1), rtol=1e-4, atol=1e-3)
+    # bounded (a search's call): the same scores bit for bit, the nearest descriptor of every code under the bound
+    t = float(np.median(s))
+    sb, ib = scorer(codes, t)
+    np.testing.assert_array_equal(sb, s)
+    near = s <= t
+    assert 0 < near.sum() < len(s) and np.all(ib[~near] == -1)
+    np.testing.assert_array_equal(ib[near], idx[near])
 
 
 def test_prefix_matching_across_code_sizes(maps, pca128):
@@ -284,9 +292,9 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     sizes = []
     real = engine.Scorer.__call__
 
-    def spy(self, codes):
+    def spy(self, codes, bound=None):
         sizes.append(len(codes))
-        return real(self, codes)
+        return real(self, codes, bound)
 
     monkeypatch.setattr(engine.Scorer, "__call__", spy)
     small = tmp_path / "small-chunks.sdfz"  # the room spans one default (16^3-block) chunk: use 4^3 ones

@@ -17,12 +17,14 @@ of others keep the original keys (see :func:`bench_codec`). Every record carries
 
 Codecs with a weighted encode (:meth:`~sdfcodec.Codec.encode_weighted`, the one map writers use for fused maps)
 also get ``"encode-weighted"`` records: the same blocks with the error weights a fused map gives them
-(:func:`fused_style_weights`), with ``ratio_to_encode`` (plain encode time over weighted encode time, the plain
-one timed just before in the same run). Its roofline is what an exact weighted least-squares fit of a linear
-code of size ``k`` cannot avoid: the plain projection, the Gram matrices ``(B, 4096) @ (4096, k (k + 1) / 2)``
-and the weighted right-hand sides ``(B, 4096) @ (4096, k)``. ``"encode-masked"`` records time what a map writer
-runs on those blocks (:func:`sdfcodec.map.observed.encode_truncated`: the weighted fit, refitted for the
-reader's truncation), against the same roofline of one fit and with ``ratio_to_encode`` too.
+(:func:`fused_style_weights`), with ``ratio_to_encode`` (plain encode time over weighted encode time: the plain
+encode is timed again in the same interleaved rounds and the ratio paired round by round,
+:func:`~sdfcodec.bench.harness.paired`; ``encode_blocks_per_s`` is its median there). Its roofline is what an
+exact weighted least-squares fit of a linear code of size ``k`` cannot avoid: the plain projection, the Gram
+matrices ``(B, 4096) @ (4096, k (k + 1) / 2)`` and the weighted right-hand sides ``(B, 4096) @ (4096, k)``.
+``"encode-masked"`` records time what a map writer runs on those blocks
+(:func:`sdfcodec.map.observed.encode_truncated`: the weighted fit, refitted for the reader's truncation), against
+the same roofline of one fit and with ``ratio_to_encode`` too.
 
 Decode on read (:func:`bench_decode_on_read`) has a second roofline, memory-copy bandwidth: ``np.copyto``
 between two 64 MiB buffers, timed in the same run, expressed as the blocks/s at which the decoded float32
@@ -50,7 +52,7 @@ from .._lazy import lazy_module
 from ..codec import Codec, uses_weights
 from ..errors import CodecTypeError, InvalidValueError, RegistrationError
 from ..registry import get_codec, get_codec_class
-from .harness import Timing, interleave, load, ratio, time_call
+from .harness import Timing, interleave, load, paired, ratio, time_call
 from .serve import FileServer
 
 torch = lazy_module("torch")  # imported on first use: sdfcodec.plugin imports this module for register_bench
@@ -249,21 +251,24 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
             ops.append(("encode-weighted", lambda: (codec.encode(x, weights=w), sync())))
             # what a map writer runs on a fused block: the weighted fit refitted for the reader's truncation
             ops.append(("encode-masked", lambda: (encode_truncated(codec, x, w), sync())))
-        plain_t = None
+        plain = ops[0][1]
         for op, fn in ops:
             if progress:
                 progress(f"{name}-{codec.code_size} {op} batch {b}")
             shapes = roofline_shapes(codec, op)
             load0 = load()
-            tm = interleave({"candidate": fn, "baseline": roofline_fn(shapes, b)}, repeats=repeats, min_time=min_time)
-            t = tm["candidate"].median
-            plain_t = t if op == "encode" else plain_t
+            # a weighted encode is timed beside the plain one in the same rounds: its ratio_to_encode pairs them
+            # round by round (the plain encode's own figure, minutes earlier, ran under another load)
+            also = {"encode": plain} if op in ("encode-weighted", "encode-masked") else {}
+            tm = interleave({"candidate": fn, "baseline": roofline_fn(shapes, b), **also}, repeats=repeats,
+                            min_time=min_time)
             rec = timed_record(tm["candidate"], tm["baseline"], b, codec=name, code_size=codec.code_size,
                                operation=op, batch=b, device=str(dev),
                                baseline="numpy matmul of the layer shapes" if extra else "numpy matmul")
             rec.update(load_before=load0, load_after=load())
             if op in ("encode-weighted", "encode-masked"):
-                rec.update(ratio_to_encode=plain_t / t, roofline_shapes=[list(s) for s in shapes],
+                rec.update(ratio_to_encode=paired(tm["candidate"], tm["encode"]),
+                           encode_blocks_per_s=b / tm["encode"].median, roofline_shapes=[list(s) for s in shapes],
                            baseline="numpy matmuls of an exact weighted least-squares fit")
             if extra:
                 rec.update(roofline_shapes=[list(s) for s in shapes], weights=weights,
@@ -363,16 +368,17 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
     copy_bytes = max(1, (64 << 20) // 4) * 4  # what memcpy_fn() copies per call
     records = []
     for op, tm in timed.items():
-        t = tm["candidate"].median
         copy_bps = copy_bytes / tm["memcpy"].median
         rec = timed_record(tm["candidate"], tm["roofline"], n_blocks, codec=name or codec.codec_id,
                            code_size=codec.code_size, operation=op, batch=n_blocks, device=str(device),
                            baseline="numpy matmul of the layer shapes")
         rec.update({
             "memcpy_bytes_per_s": copy_bps, "memcpy_blocks_per_s": copy_bps / _BLOCK_BYTES,
-            "ratio_to_memcpy": (n_blocks / t) / (copy_bps / _BLOCK_BYTES),
+            # paired round by round, as ratio_paired (sdfcodec.bench.harness.paired): the copy moves copy_bytes a
+            # call, the read decodes n_blocks blocks of _BLOCK_BYTES
+            "ratio_to_memcpy": paired(tm["candidate"], tm["memcpy"]) * n_blocks * _BLOCK_BYTES / copy_bytes,
             "in_memory_decode_blocks_per_s": n_blocks / tm["in-memory"].median,
-            "ratio_to_in_memory_decode": tm["in-memory"].median / t,
+            "ratio_to_in_memory_decode": paired(tm["candidate"], tm["in-memory"]),
             "code_transfer_blocks_per_s": n_blocks / tm["transfer"].median,
             "code_bytes_on_disk": code_bytes, "prefetch": prefetch, "torch_threads": torch.get_num_threads(),
             "load_before": loads[op][0], "load_after": loads[op][1],

@@ -9,6 +9,7 @@ device, dtype, level...). For each ratio field (``ratio_*``) present in both, th
 from __future__ import annotations
 
 import json
+import statistics
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -54,8 +55,8 @@ def compare_runs(a: Iterable[dict[str, Any]] | str | Path, b: Iterable[dict[str,
         ``{"rows": [...], "worst": ..., "tolerance": ..., "agree": bool, "unmatched": n}``: one row per
         (record, ratio field) present in both runs, ``{"record": identity, "ratio": field, "a": .., "b": ..,
         "disagreement": max/min - 1}``, sorted worst first; ``agree`` is True when every row is within
-        ``tolerance``; ``by_ratio`` gives each ratio field's worst disagreement, whether it is within
-        ``tolerance`` and over how many records; ``unmatched`` counts records of either run missing from the
+        ``tolerance``; ``by_ratio`` gives each ratio field's worst and median disagreement, whether the worst
+        is within ``tolerance``, over how many records and how many of them are within it; ``unmatched`` counts records of either run missing from the
         other.
     """
     ra = load_run(a) if isinstance(a, (str, Path)) else list(a)
@@ -72,11 +73,12 @@ def compare_runs(a: Iterable[dict[str, Any]] | str | Path, b: Iterable[dict[str,
                          "disagreement": max(va, vb) / min(va, vb) - 1})
     rows.sort(key=lambda r: -r["disagreement"])
     worst = rows[0]["disagreement"] if rows else None
-    by_ratio: dict[str, float] = {}
-    for r in rows:  # worst first: the first row of each field is its worst
-        by_ratio.setdefault(r["ratio"], r["disagreement"])
+    by_ratio: dict[str, list[float]] = {}
+    for r in rows:  # worst first
+        by_ratio.setdefault(r["ratio"], []).append(r["disagreement"])
     return {"rows": rows, "worst": worst, "tolerance": tolerance,
             "agree": bool(rows) and worst is not None and worst <= tolerance,
-            "by_ratio": {k: {"worst": v, "agree": v <= tolerance, "records": sum(r["ratio"] == k for r in rows)}
+            "by_ratio": {k: {"worst": v[0], "agree": v[0] <= tolerance, "records": len(v),
+                             "within": sum(d <= tolerance for d in v), "median": statistics.median(v)}
                          for k, v in sorted(by_ratio.items())},
             "unmatched": len(ia.keys() ^ ib.keys())}

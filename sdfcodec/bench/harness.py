@@ -3,8 +3,9 @@
 A figure is a candidate callable and one or more baseline callables (the roofline: a preallocated matrix
 product, a memory copy...). :func:`interleave` times them in rounds: each round runs every callable for the
 same fixed number of calls (calibrated once, before the first round, so that a call group lasts about
-``min_time``), alternating the order from round to round (candidate first, then baselines first), so that a
-burst of load from another process falls on both sides of the ratio. It returns per-round seconds per call;
+``min_time``), alternating the order from round to round (candidate first, then baselines first) and, within a
+round, taking turns in up to :data:`SLICES` slices of calls, so that a burst of load from another process falls
+on both sides of the ratio. It returns per-round seconds per call;
 :class:`Timing` gives best and median, and :func:`ratio` the ratio of medians (what records call
 ``ratio_to_baseline``) and of bests.
 
@@ -14,6 +15,7 @@ The machine (:func:`machine`) and its load (``os.getloadavg()``, :func:`load`) a
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import platform
 import statistics
@@ -24,7 +26,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 from ..errors import InvalidValueError
 
-__all__ = ["Timing", "interleave", "ratio", "time_call", "load", "machine", "run_document", "limit_threads"]
+__all__ = ["Timing", "interleave", "ratio", "paired", "time_call", "load", "machine", "run_document", "limit_threads"]
 
 
 @dataclass(frozen=True)
@@ -53,20 +55,34 @@ class Timing:
                 "calls_per_round": self.calls}
 
 
-#: Calls shorter than this (seconds; the longest of a figure's callables, at calibration) are timed on one thread
-#: by :func:`interleave`: a multi-threaded call waits at its barrier for a thread the scheduler has parked,
-#: which on a loaded machine costs a time slice (milliseconds) against a call of microseconds. Two `bench
-#: --quick` runs at load 6-7 disagreed 100-500-fold on batch 1 and 64 ratios timed on two threads.
-ONE_THREAD_BELOW_S = 2e-3
-#: Calls up to this long on the configured threads are timed once more on one thread before that choice: the
-#: stall the rule avoids also strikes the calibration (pca-64 encode of one block took 21-36 ms a call on two
-#: threads at load 7 for a whole run, against 0.1 ms on one)
-_RECHECK_BELOW_S = 0.1
+#: Figures whose calls all take less than this on one thread (seconds, at calibration) are timed on one thread
+#: by :func:`interleave`: a multi-threaded call waits at its barriers for a thread the scheduler has parked, which
+#: on a loaded machine costs a time slice (milliseconds) per barrier, so its time follows the load, not the code.
+#: Two `bench --quick` runs at load 6-7 disagreed 100-500-fold on batch 1 and 64 ratios timed on two threads; with
+#: a 2 ms bound, calls of 2-150 ms (weighted encodes of 1 and 64 blocks, whose baselines read a 4096 x 2080 Gram
+#: table) still stalled in one run and not the other: 15 against 1,097 blocks/s, median and best of one figure.
+ONE_THREAD_BELOW_S = 0.1
+#: Calls up to this long on the configured threads are timed once more on one thread before that choice (the
+#: stall the rule avoids also strikes the calibration: pca-64 encode of one block took 21-36 ms a call on two
+#: threads at load 7 for a whole run, against 0.1 ms on one); longer work keeps the configured threads without
+#: paying for a one-thread calibration.
+_RECHECK_BELOW_S = 1.0
+
+
+#: A warm-up call longer than this (seconds) is the calibration itself: first-call costs (allocations, page
+#: faults, kernel selection) are small beside it, and a second call would add seconds per figure (a masked encode
+#: of 4096 pca-128 blocks takes 16 s a call at load 5).
+_WARM_ENOUGH_S = 1.0
 
 
 def _one_call(fn: Callable[[], object]) -> float:
-    """Seconds of one call of ``fn`` after a warm-up call (allocations, page faults, kernel selection)."""
+    """Seconds of one call of ``fn`` after a warm-up call (allocations, page faults, kernel selection), or of the
+    warm-up call when it took longer than :data:`_WARM_ENOUGH_S`."""
+    t0 = time.perf_counter()
     fn()
+    warm = time.perf_counter() - t0
+    if warm > _WARM_ENOUGH_S:
+        return warm
     t0 = time.perf_counter()
     fn()
     return max(time.perf_counter() - t0, 1e-7)
@@ -76,34 +92,65 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
                ) -> dict[str, Timing]:
     """Time every callable of ``fns`` (name -> callable; by convention the candidate first, then its baselines)
     in ``repeats`` interleaved rounds of equal length; see the module docstring. Returns name -> :class:`Timing`.
-    When every callable's call is shorter than :data:`ONE_THREAD_BELOW_S`, all of them are timed on one thread
-    (torch and numpy's BLAS; ``Timing.threads`` says so). A callable that runs asynchronously (CUDA) must
-    synchronise before it returns."""
+    When every callable's call takes less than :data:`ONE_THREAD_BELOW_S` on one thread, all of them are timed
+    on one thread (torch and numpy's BLAS; ``Timing.threads`` says so). A callable that runs asynchronously
+    (CUDA) must synchronise before it returns."""
     if repeats < 1:
         raise InvalidValueError(f"repeats must be >= 1, got {repeats}")
     names = list(fns)
     one = {n: _one_call(fns[n]) for n in names}
-    if ONE_THREAD_BELOW_S <= max(one.values()) < _RECHECK_BELOW_S:  # short work a barrier stall made long?
+    threads = None
+    if max(one.values()) < _RECHECK_BELOW_S:  # short on one thread? (a barrier stall may have made it look long)
         with limit_threads(1):
             one1 = {n: _one_call(fns[n]) for n in names}
-        one = one1 if max(one1.values()) < ONE_THREAD_BELOW_S else one
-    threads = 1 if max(one.values()) < ONE_THREAD_BELOW_S else None
-    with limit_threads(threads):  # calibrated on the configured threads: a one-thread round may run longer
+        if max(one1.values()) < ONE_THREAD_BELOW_S:  # the calls per round from the one-thread calibration
+            one, threads = one1, 1
+    with limit_threads(threads), _no_gc():  # calibrated on the configured threads: a one-thread round may run longer
         return _rounds(fns, names, {n: max(1, round(min_time / t)) for n, t in one.items()}, repeats, threads)
+
+
+@contextlib.contextmanager
+def _no_gc() -> Iterator[None]:
+    """The rounds without Python's cyclic garbage collector (as :mod:`timeit` times): a collection pass costs
+    in proportion to every object the whole process holds, not to the call that triggered it, and lands on
+    whichever side allocates Python objects (a codec's call, not numpy's product)."""
+    was = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+#: A round is cut into up to this many slices, each running every callable's share of its calls in turn, so that
+#: a burst of load (another process taking the core for a few time slices) falls on the candidate and its
+#: baselines alike rather than on whichever ran a 50 ms block of calls at that moment; a slice still runs each
+#: callable several calls in a row (warm caches), and calls longer than a slice are not cut.
+SLICES = 8
 
 
 def _rounds(fns: Mapping[str, Callable[[], object]], names: list[str], calls: dict[str, int], repeats: int,
             threads: int | None) -> dict[str, Timing]:
     rounds: dict[str, list[float]] = {n: [] for n in names}
     cpu: dict[str, list[float]] = {n: [] for n in names}
+    slices = max(1, min(SLICES, *calls.values()))
     for r in range(repeats):
-        for n in (names if r % 2 == 0 else names[::-1]):  # alternate the order: drifting load hits both sides
-            fn, k = fns[n], calls[n]
-            c0, t0 = time.process_time(), time.perf_counter()
-            for _ in range(k):
-                fn()
-            rounds[n].append((time.perf_counter() - t0) / k)
-            cpu[n].append((time.process_time() - c0) / k)
+        order = names if r % 2 == 0 else names[::-1]  # alternate the order: drifting load hits both sides
+        wall = dict.fromkeys(names, 0.0)
+        spent = dict.fromkeys(names, 0.0)
+        for s in range(slices):
+            for n in order:
+                fn, k = fns[n], calls[n] * (s + 1) // slices - calls[n] * s // slices
+                c0, t0 = time.process_time(), time.perf_counter()
+                for _ in range(k):
+                    fn()
+                wall[n] += time.perf_counter() - t0
+                spent[n] += time.process_time() - c0
+        for n in names:
+            rounds[n].append(wall[n] / calls[n])
+            cpu[n].append(spent[n] / calls[n])
     return {n: Timing(tuple(rounds[n]), calls[n], tuple(cpu[n]), threads) for n in names}
 
 
@@ -116,12 +163,20 @@ def ratio(candidate: Timing, baseline: Timing) -> dict[str, float]:
     got: on a loaded machine the steadiest, but it counts every thread's time, so it measures cost, not
     latency)."""
     out = {"ratio_of_medians": baseline.median / candidate.median, "ratio_of_bests": baseline.best / candidate.best,
-           "ratio_paired": statistics.median(b / c for b, c in zip(baseline.rounds, candidate.rounds))}
+           "ratio_paired": paired(candidate, baseline)}
     if candidate.cpu_rounds and baseline.cpu_rounds:
         c, b = statistics.median(candidate.cpu_rounds), statistics.median(baseline.cpu_rounds)
         if c > 0 and b > 0:
             out["ratio_cpu"] = b / c
     return out
+
+
+def paired(candidate: Timing, baseline: Timing) -> float:
+    """Baseline seconds over candidate seconds within each round, the median over rounds (> 1: the candidate is
+    faster): the two ran back to back in a round, so a burst of load that slows one round of both leaves its
+    ratio, where a ratio of medians can pair a quiet round of one with a loaded round of the other. Both must
+    come from the same :func:`interleave` call."""
+    return statistics.median(b / c for b, c in zip(baseline.rounds, candidate.rounds))
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 3) -> float:

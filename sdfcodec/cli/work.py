@@ -266,7 +266,7 @@ def bench_cmd(
     sizes: str = typer.Option("32,64,128", "--sizes", help="Code sizes."),
     batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4)."),
     device: str = typer.Option("cpu", "--device", help="Torch device."),
-    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (4.8-5 min on the 2-core CI machine at load 3.4-4.7, 9.7 min at load 6-7.6)."),
+    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (4.8-5 min on the 2-core CI machine at load 3.4-4.7, 6.3-7.5 min at load 4.2-7.9)."),
     read: Optional[int] = typer.Option(None, "--read", help="Blocks in the map timed for decode-on-read "
                                        "(default 65536, --quick 8192; 0: skip)."),
     http: bool = typer.Option(True, "--http/--no-http", help="Also time decode-on-read over HTTP (loopback)."),
@@ -434,7 +434,8 @@ def _bench_compare(paths: tuple[Path, Path], tolerance: float, as_json: bool) ->
         return
     rows = [(" ".join(f"{v}" for v in r["record"].values()), r["ratio"], f"{r['a']:.3f}", f"{r['b']:.3f}",
              f"{100 * r['disagreement']:.1f} %") for r in res["rows"]]
-    kinds = "; ".join(f"{k} worst {100 * v['worst']:.1f} % over {v['records']}" for k, v in res["by_ratio"].items())
+    kinds = "; ".join(f"{k} {v['within']} / {v['records']} within, median {100 * v['median']:.1f} %, worst "
+                      f"{100 * v['worst']:.1f} %" for k, v in res["by_ratio"].items())
     print_table(("record", "ratio", "A", "B", "disagreement"), rows, title=f"{paths[0]} against {paths[1]}",
                 caption=(f"worst {100 * (res['worst'] or 0):.1f} %; within {100 * tolerance:.0f} %: "
                          f"{'yes' if res['agree'] else 'no'}; {res['unmatched']} record(s) in one run only\n{kinds}"))
