@@ -99,6 +99,30 @@ def empty(shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
     return torch.empty(shape, dtype=torch.float32, device=device)
 
 
+def output_buffer(out: Any, shapes: tuple[tuple[int, ...], ...], *, numpy: bool, device: torch.device,
+                  what: str) -> torch.Tensor:
+    """A caller's float32 output buffer ``out``, checked, as a tensor sharing its memory: a writeable C-contiguous
+    numpy array (``numpy``) or a contiguous tensor on ``device``, of one of ``shapes``; ``what`` names the shape
+    wanted in the error (e.g. "(4, 16, 16, 16) for 4 codes")."""
+    if numpy != isinstance(out, np.ndarray) or not (numpy or isinstance(out, torch.Tensor)):
+        want = "a numpy array (the codes are numpy)" if numpy else f"a torch tensor on {device}"
+        raise DTypeError(f"out must be {want}, got {type(out).__name__}")
+    if out.dtype not in (np.float32, torch.float32):
+        raise DTypeError(f"out must be float32, got {out.dtype}: decoded blocks are float32")
+    if tuple(out.shape) not in shapes:
+        raise ShapeError(f"out must have shape {what}, got {tuple(out.shape)}")
+    if numpy:
+        if not out.flags.c_contiguous or not out.flags.writeable:
+            raise InvalidValueError("out must be a writeable, C-contiguous numpy array (np.empty(...)), got "
+                                    + ("a read-only array" if not out.flags.writeable else "a strided view"))
+        return torch.from_numpy(out)
+    if out.device != device:
+        raise InvalidValueError(f"out must be on the device {device}, got {out.device}")
+    if not out.is_contiguous():
+        raise InvalidValueError("out must be a contiguous tensor (torch.empty(...)), got a strided view")
+    return out.detach()
+
+
 def affine_into(values: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
     """Write ``scale * values + offset`` into ``out`` in one pass (a copy when ``scale == 1, offset == 0``);
     ``values`` has ``out``'s number of elements (it is viewed as ``out``'s shape) and its device, and does not

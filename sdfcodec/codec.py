@@ -28,7 +28,7 @@ from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Protoco
 import numpy as np
 
 from ._lazy import lazy_module
-from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input
+from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input, output_buffer
 from ._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
 from .errors import DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
 
@@ -232,26 +232,8 @@ class Codec(abc.ABC):
         """The caller's output buffer ``out`` for checked ``codes`` ``(N, k)``, checked (see :meth:`decode`), as a
         float32 tensor ``(N, 16, 16, 16)`` sharing its memory."""
         n = len(codes)
-        if was_numpy != isinstance(out, np.ndarray) or not (was_numpy or isinstance(out, torch.Tensor)):
-            want = "a numpy array (the codes are numpy)" if was_numpy else f"a torch tensor on {codes.device}"
-            raise DTypeError(f"out must be {want}, got {type(out).__name__}")
-        dtype = out.dtype
-        if dtype not in (np.float32, torch.float32):
-            raise DTypeError(f"out must be float32, got {dtype}: decoded blocks are float32")
-        if tuple(out.shape) not in ((n, BLOCK, BLOCK, BLOCK), (n, BLOCK ** 3)):
-            raise ShapeError(f"out must have shape ({n}, 16, 16, 16) or ({n}, 4096) for {n} codes, "
-                             f"got {tuple(out.shape)}")
-        if was_numpy:
-            if not out.flags.c_contiguous or not out.flags.writeable:
-                raise InvalidValueError("out must be a writeable, C-contiguous numpy array (np.empty(...)), got "
-                                        + ("a read-only array" if not out.flags.writeable else "a strided view"))
-            dst = torch.from_numpy(out)
-        else:
-            if out.device != codes.device:
-                raise InvalidValueError(f"out must be on the codes' device {codes.device}, got {out.device}")
-            if not out.is_contiguous():
-                raise InvalidValueError("out must be a contiguous tensor (torch.empty(...)), got a strided view")
-            dst = out.detach()
+        dst = output_buffer(out, ((n, BLOCK, BLOCK, BLOCK), (n, BLOCK ** 3)), numpy=was_numpy, device=codes.device,
+                            what=f"({n}, 16, 16, 16) or ({n}, 4096) for {n} codes")
         lo, hi = dst.data_ptr(), dst.data_ptr() + 4 * dst.numel()
         clo, chi = codes.data_ptr(), codes.data_ptr() + codes.element_size() * codes.numel()
         if dst.numel() and codes.numel() and dst.device.type != "meta" and lo < chi and clo < hi:

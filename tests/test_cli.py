@@ -142,9 +142,10 @@ def test_bench_json_records():
     assert {(x["operation"], x["batch"]) for x in recs} == {
         ("encode", 1), ("decode", 1), ("encode", 64), ("decode", 64), ("decode-on-read", 300),
         ("decode-on-read-http", 300), ("search", 8192), ("encode-weighted", 1), ("encode-weighted", 64),
-        ("encode-masked", 1), ("encode-masked", 64), ("decode-on-read-into", 300), ("decode-on-read-fresh", 300), ("decode-region", 300), ("decode-into", 300)}
+        ("encode-masked", 1), ("encode-masked", 64), ("decode-on-read-into", 300), ("decode-on-read-fresh", 300), ("decode-region", 300),
+        ("decode-region-into", 300), ("decode-into", 300)}
     into = [x for x in recs if x["operation"] in ("decode-on-read-into", "decode-on-read-fresh", "decode-region",
-                                                  "decode-into")]
+                                                  "decode-region-into", "decode-into")]
     for x in into:  # decoding into place: interleaved with the preallocated product, best and median rounds
         assert x["ratio_to_baseline"] == pytest.approx(x["blocks_per_s"] / x["baseline_blocks_per_s"])
         assert x["ratio_of_bests"] == pytest.approx(x["blocks_per_s_best"] / x["baseline_blocks_per_s_best"])

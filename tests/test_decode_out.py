@@ -162,6 +162,49 @@ def test_decode_region_places_blocks_as_by_hand(small_map, lo, hi):
         assert counts["coded"] > 250 and counts["empty"] > 30 and counts["unobserved"] > 30
 
 
+@pytest.mark.parametrize("lo, hi", [((0, 0, 0), (160, 128, 96)), ((5, 17, 30), (150, 100, 91))])
+def test_decode_region_into_a_reused_volume_writes_every_voxel(small_map, lo, hi):
+    region = tuple(zip(lo, hi))
+    with sdfcodec.open_map(small_map) as m:
+        buf = np.full(tuple(h - l for l, h in zip(lo, hi)), np.nan, np.float32)  # stale contents: NaN
+        for _ in range(2):  # the second call overwrites the first's result
+            got = m.decode_region(region, batch_blocks=100, out=buf)
+            assert got is buf and not np.isnan(buf).any()
+            np.testing.assert_allclose(buf, _by_hand(m, lo, hi), rtol=0, atol=1e-6)
+            buf[::7] = -5.0
+
+
+def test_decode_region_into_of_a_halo_codec_equals_its_fresh_decode(tmp_path):
+    rng = np.random.default_rng(5)
+    vol = _field((64, 48, 32), rng)
+    path = tmp_path / "blur.sdfz"
+    codec = sdfcodec.get_codec("gaussian-blur")
+    blocks = vol.reshape(4, 16, 3, 16, 2, 16).transpose(0, 2, 4, 1, 3, 5)
+    coords = np.argwhere(np.ones((4, 3, 2), bool))
+    with sdfcodec.create_map(path, codec=codec, voxel_size=0.02, truncation=TRUNC, chunk_blocks=2) as m:
+        m.write_blocks(coords, blocks[tuple(coords.T)])
+    region = ((3, 60), (10, 48), (0, 31))
+    with sdfcodec.open_map(path) as m:
+        assert m.codec.halo > 0
+        buf = np.full((57, 38, 31), np.nan, np.float32)
+        assert m.decode_region(region, out=buf) is buf
+        np.testing.assert_array_equal(buf, m.decode_region(region))
+
+
+@pytest.mark.parametrize("bad, exc, words", [
+    (np.empty((16, 16, 17), np.float32), errors.ShapeError, r"\(16, 16, 16\)"),
+    (np.empty((16, 16, 16), np.float64), errors.DTypeError, "float32"),
+    (torch.empty((16, 16, 16)), errors.DTypeError, "numpy array"),
+    (np.empty((16, 16, 32), np.float32)[:, :, ::2], errors.InvalidValueError, "C-contiguous"),
+])
+def test_decode_region_refuses_a_bad_out(small_map, bad, exc, words):
+    with sdfcodec.open_map(small_map) as m:
+        with pytest.raises(exc, match=words):
+            m.decode_region(((0, 16), (0, 16), (0, 16)), out=bad)
+        with pytest.raises(errors.DTypeError, match="torch tensor"):
+            m.decode_region(((0, 16), (0, 16), (0, 16)), device="cpu", out=np.empty((16, 16, 16), np.float32))
+
+
 def test_iter_decoded_ring_matches_fresh_decodes_and_wraps(small_map):
     with sdfcodec.open_map(small_map) as m:
         fresh = list(m.iter_decoded(batch_blocks=64))

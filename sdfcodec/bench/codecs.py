@@ -412,7 +412,9 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
     - ``"decode-on-read-into"``: :meth:`sdfcodec.Map.iter_decoded` ``(copy=False)`` of a whole map of
       ``n_blocks`` coded blocks (read, decompressed, decoded to metres into a ring of reused buffers), and
       ``"decode-on-read-fresh"`` the same with the default ``copy=True`` (a fresh array per group);
-    - ``"decode-region"``: :meth:`sdfcodec.Map.decode_region` of the whole map (blocks placed into one volume);
+    - ``"decode-region"``: :meth:`sdfcodec.Map.decode_region` of the whole map (blocks placed into one fresh
+      volume), and ``"decode-region-into"`` the same into one reused volume (``out=``: no page faults timed, as
+      in the roofline);
     - ``"decode-into"``: the same codes in memory, ``codec.decode_core(codes, scale, offset, out=buf)`` in
       batches of ``batch`` into one reused buffer.
 
@@ -435,6 +437,7 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
         _, codes = m.read_codes()
         z = torch.from_numpy(codes).to(device)
         buf = torch.empty((min(batch, n_blocks), _N), device=device)
+        vol = m.decode_region(device=dev)  # touched once: the reused volume
         def read(copy: bool) -> None:
             for _ in m.iter_decoded(device=dev, copy=copy):
                 pass
@@ -447,7 +450,8 @@ def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", r
             sync()
 
         cases = {"decode-on-read-into": lambda: read(False), "decode-on-read-fresh": lambda: read(True),
-                 "decode-region": lambda: (m.decode_region(device=dev), sync()), "decode-into": in_memory,
+                 "decode-region": lambda: (m.decode_region(device=dev), sync()),
+                 "decode-region-into": lambda: (m.decode_region(device=dev, out=vol), sync()), "decode-into": in_memory,
                  "roofline": roofline_fn(roofline_shapes(codec, "decode"), n_blocks)}
         load0 = load()
         timed = interleave(cases, repeats=repeats, min_time=min_time)

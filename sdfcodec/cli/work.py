@@ -298,8 +298,9 @@ def bench_cmd(
     machine (as blocks/s of 16 KiB) and the codec's decode of the same codes in memory (JSON:
     memcpy_blocks_per_s, in_memory_decode_blocks_per_s). Decoding into place is timed beside the decode product
     into a preallocated output, in the same --repeats rounds: decode-on-read-into
-    (iter_decoded(copy=False)), decode-on-read-fresh (the default copy=True), decode-region (the whole map) and
-    decode-into (decode_core(..., out=) in batches of 4096). For pca, the search kernel (15 floor descriptors)
+    (iter_decoded(copy=False)), decode-on-read-fresh (the default copy=True), decode-region (the whole map into
+    a fresh volume), decode-region-into (into one reused volume, out=) and decode-into (decode_core(..., out=)
+    in batches of 4096). For pca, the search kernel (15 floor descriptors)
     is timed beside a numpy product of its shape. Tracking is benchmarked by `sdfcodec eval` instead (it needs
     a sequence and a map of it). Every record has speedup_vs_paper (405 and 645 us/block over ours).
 

@@ -196,7 +196,7 @@ class Map:
         return map_to_dask(self, level=level)
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                      device: str | torch.device | None = None, batch_blocks: int = 8192) -> Any:
+                      device: str | torch.device | None = None, batch_blocks: int = 8192, out: Any = None) -> Any:
         """Decode a region to a dense TSDF in metres.
 
         Args:
@@ -205,16 +205,22 @@ class Map:
             level: decode only the first ``level`` code elements (prefix-ordered codecs only).
             device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
             batch_blocks: about how many blocks one decode call gets (the size of the reused decode buffer).
+            out: a volume to decode into, e.g. the previous call's, reused: a writeable C-contiguous float32 numpy
+                array (``device=None``) or a contiguous float32 tensor on ``device``, of exactly the region's
+                shape. Every voxel is written. A fresh volume costs its page faults on first touch: reuse one
+                for repeated decodes of a region (docs/results.md, issue 19).
 
         Returns:
-            ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres; voxels of no coded block hold ``d_max``. Codecs with
-            a decode halo (e.g. ``gaussian-blur``) see their neighbour blocks, so there are no seams.
+            ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres (``out`` itself when given); voxels of no coded block
+            hold ``d_max``. Codecs with a decode halo (e.g. ``gaussian-blur``) see their neighbour blocks, so
+            there are no seams.
 
         Blocks are decoded a group of chunks at a time into one reused buffer and copied from there straight
         into the returned volume (vectorised, no per-block copies): peak memory is the output plus one group's
         decodes (``16 KiB x batch_blocks``), not a second volume.
         """
-        return self.reader.decode_region(region, units=units, level=level, device=device, batch_blocks=batch_blocks)
+        return self.reader.decode_region(region, units=units, level=level, device=device, batch_blocks=batch_blocks,
+                                         out=out)
 
     def info(self) -> dict[str, Any]:
         """Summary: header, blocks by state, bytes on disk (local maps), ratio to dense float32."""

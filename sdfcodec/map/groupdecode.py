@@ -93,5 +93,15 @@ def _decode_placed(codec, codes: torch.Tensor, coords: np.ndarray, placer: Block
     reader's reused buffer). Measured: writing runs of whole blocks straight into the volume with one batched
     product per run (a (r, 65) x (65, 16) product per voxel column) measured 0.4-0.8x as fast as this (medians,
     interleaved, 2 loaded cores; docs/results.md, issue 19)."""
+    # rows in the volume's C order: a group of whole chunk columns then holds each row of blocks along z in
+    # one piece, copied as runs of contiguous voxels as long as the region's z extent (chunk order gave runs of
+    # one chunk's 16 blocks: the copy ran 1.4x slower, docs/results.md, issue 19)
+    order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
+    if np.any(order[1:] < order[:-1]):
+        coords, codes = coords[order], codes[torch.from_numpy(order).to(codes.device)]
     buf = None if scratch is None or decodes_tiles(codec) else scratch[:len(codes)]
-    codec.decode_tiles(codes, scale, offset, clip, lambda a, b, tile: placer.place(coords[a:b], tile), buf)
+    if codes.device.type == "cpu":  # the runs worked out once for the group, each tile copying its share
+        plan = placer.plan(coords)
+        codec.decode_tiles(codes, scale, offset, clip, plan.place, buf)
+    else:
+        codec.decode_tiles(codes, scale, offset, clip, lambda a, b, tile: placer.place(coords[a:b], tile), buf)

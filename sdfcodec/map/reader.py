@@ -26,7 +26,7 @@ import zarr.abc.store
 from zarr.core.sync import sync as zarr_sync
 
 from .._lazy import lazy_module
-from .._validate import BLOCK, empty
+from .._validate import BLOCK, empty, output_buffer
 from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
 from ..header import BlockState, MapHeader, parse_header
@@ -418,11 +418,14 @@ class MapReader:
         return state
 
     def _chunk_groups(self, box: Box, states: np.ndarray, level: int, *,
-                      batch_blocks: int | None = None, chunks_per_group: int | None = None) -> list[np.ndarray]:
+                      batch_blocks: int | None = None, chunks_per_group: int | None = None,
+                      columns: bool = False) -> list[np.ndarray]:
         """Chunk indices ``(G, 3)`` (of the block axes of ``codes``) holding coded blocks inside ``box``, in grid
         order, grouped: ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold
-        that many coded blocks. A group never holds more than ``max_decode_bytes`` of codes and decoded blocks.
-        A sparse map (or a hostile, huge and empty grid) costs what it stores, not its extent."""
+        that many coded blocks; ``columns``: a group then also runs to the end of its column of chunks along z
+        (what a dense volume is filled best by: whole rows of blocks). A group never holds more than
+        ``max_decode_bytes`` of codes and decoded blocks. A sparse map (or a hostile, huge and empty grid) costs
+        what it stores, not its extent."""
         spec = self.header.codes
         cb = spec.chunk_blocks
         b0 = np.array([s.start for s in box], dtype=np.int64)
@@ -447,10 +450,12 @@ class MapReader:
             cap, target = min(cap, chunks_per_group), None
         else:
             target = batch_blocks
+        # where a column of chunks along z ends: a group of `columns` closes only there (or at the cap)
+        ends = np.r_[np.any(idx[1:, :2] != idx[:-1, :2], axis=1), True] if columns else np.ones(len(idx), bool)
         groups, start, acc = [], 0, 0
-        for i, c in enumerate(per_block.tolist()):
+        for i, (c, end) in enumerate(zip(per_block.tolist(), ends.tolist())):
             acc += c
-            if (target is not None and acc >= target) or i + 1 - start >= cap:
+            if (target is not None and acc >= target and end) or i + 1 - start >= cap:
                 groups.append(idx[start:i + 1])
                 start, acc = i + 1, 0
         if start < len(idx):
@@ -478,7 +483,8 @@ class MapReader:
 
     def fetch_stream(self, box: Box, level: int, *, states: np.ndarray | None = None,
                       stage: Callable[[np.ndarray, np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
-                      chunks_per_group: int | None = None, prefetch: int = 2) -> Iterator[tuple[np.ndarray, Any]]:
+                      chunks_per_group: int | None = None, prefetch: int = 2, columns: bool = False
+                      ) -> Iterator[tuple[np.ndarray, Any]]:
         """Yield ``(coords, codes)`` per group of chunks (see :meth:`_chunk_groups`), ``codes`` replaced by
         ``stage(coords, codes)`` in the fetching thread when given. Up to ``prefetch`` further groups are fetched (and staged) by a
         thread pool while the caller works on the one yielded; with one group, everything runs inline."""
@@ -489,7 +495,8 @@ class MapReader:
                 raise InvalidValueError(f"{name} must be an int >= 1, got {v!r}")
         if states is None:
             states = self.states_in(box)
-        groups = self._chunk_groups(box, states, level, batch_blocks=batch_blocks, chunks_per_group=chunks_per_group)
+        groups = self._chunk_groups(box, states, level, batch_blocks=batch_blocks, chunks_per_group=chunks_per_group,
+                                    columns=columns)
         b0 = np.array([s.start for s in box], dtype=np.int64)
         b1 = b0 + np.array(states.shape, dtype=np.int64)
 
@@ -646,16 +653,16 @@ class MapReader:
         return v.mul_(d_max - d_min).add_(d_min).clamp_(d_min, d_max)  # truncated, as decode_codes' metres
 
     def _dense_core(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *, metres: bool,
-                    batch_blocks: int = 8192) -> torch.Tensor:
+                    batch_blocks: int = 8192, out: torch.Tensor | None = None) -> torch.Tensor:
         """Core decodes (no halo processing) of voxels ``[lo, hi)``, which may reach outside the grid, in metres
         or normalised: free space (``d_max`` or 1.0) wherever no coded block is. Blocks are decoded a group at a
         time and copied straight into the volume (:class:`BlockPlacer`), from cache tile by tile or from one
         reused buffer: the memory is the volume plus one group's decodes; blocks not coded are filled, the rest
-        written once."""
+        written once. ``out``: the volume to fill (contiguous, ``hi - lo``), else a fresh one."""
         free = self.truncation[1] if metres else 1.0
         grid_hi = np.asarray(self.grid_blocks) * BLOCK
         clo, chi = np.maximum(lo, 0), np.minimum(hi, grid_hi)
-        out = empty(tuple(int(n) for n in hi - lo), dev)
+        out = empty(tuple(int(n) for n in hi - lo), dev) if out is None else out
         if np.any(chi <= clo):
             return out.fill_(free)
         if np.any(clo != lo) or np.any(chi != hi):
@@ -668,25 +675,27 @@ class MapReader:
         scratch = BufferRing(1, dev)  # a group decoded whole (not in tiles) is decoded here, placed, overwritten
         # placed by the decode itself: tile by tile while in cache (codec.decode_tiles), else once per group
         for _ in self.decode_stream(box, level, dev, metres=metres, states=states, out_for=scratch.take,
-                                    placer=placer, batch_blocks=batch_blocks):
+                                    placer=placer, batch_blocks=batch_blocks, columns=True):
             pass
         return out
 
     def decode_voxels(self, lo: np.ndarray, hi: np.ndarray, level: int, dev: torch.device, *,
-                      batch_blocks: int = 8192) -> torch.Tensor:
+                      batch_blocks: int = 8192, out: torch.Tensor | None = None) -> torch.Tensor:
         """Final decoded metres of voxels ``[lo, hi)`` inside the grid, neighbour context included; blocks are
-        decoded about ``batch_blocks`` at a time."""
+        decoded about ``batch_blocks`` at a time, into ``out`` (contiguous, ``hi - lo``) when given."""
         h = self.codec.halo
         if not h:  # metres straight out of the decode
-            return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True, batch_blocks=batch_blocks)
+            return self._dense_core(np.asarray(lo), np.asarray(hi), level, dev, metres=True, batch_blocks=batch_blocks,
+                                    out=out)
         core = self._dense_core(np.asarray(lo) - h, np.asarray(hi) + h, level, dev, metres=False,
                                 batch_blocks=batch_blocks)
-        out = self._to_metres(self.codec.decode_context(core[None])[0])
-        return restore_unobserved_voxels(self, out, lo, hi, self.truncation[1])  # the context spread into them
+        vol = self._to_metres(self.codec.decode_context(core[None])[0])
+        vol = restore_unobserved_voxels(self, vol, lo, hi, self.truncation[1])  # the context spread into them
+        return vol if out is None else out.copy_(vol)
 
     def decode_region(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
-                      device: str | torch.device | None = None, batch_blocks: int = 8192) -> Any:
-        """:meth:`sdfcodec.Map.decode_region`: ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres."""
+                      device: str | torch.device | None = None, batch_blocks: int = 8192, out: Any = None) -> Any:
+        """:meth:`sdfcodec.Map.decode_region`: ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres (in ``out``)."""
         lv = self.level(level)
         vox = self.block_box(region, units)
         box = self.block_range(vox)
@@ -697,8 +706,13 @@ class MapReader:
                                     "raise max_decode_bytes in open_map()")
         dev = torch.device(device) if device is not None else torch.device("cpu")
         lo, hi = np.array([v[0] for v in vox]), np.array([v[1] for v in vox])
-        out = self.decode_voxels(lo, hi, lv, dev, batch_blocks=batch_blocks)  # contiguous, exactly the region: returned as it is
-        return out.contiguous() if device is not None else np.ascontiguousarray(out.numpy())
+        if out is not None:  # the caller's volume, reused: no allocation, no first-touch page faults
+            shape = tuple(int(n) for n in hi - lo)
+            dst = output_buffer(out, (shape,), numpy=device is None, device=dev, what=f"{shape} (the region's voxels)")
+            self.decode_voxels(lo, hi, lv, dev, batch_blocks=batch_blocks, out=dst)
+            return out
+        vol = self.decode_voxels(lo, hi, lv, dev, batch_blocks=batch_blocks)  # contiguous, exactly the region: returned as it is
+        return vol.contiguous() if device is not None else np.ascontiguousarray(vol.numpy())
 
     def local_root(self) -> str | None:
         """The directory (or zip) this map reads from: the pinned version for maps opened by path."""
