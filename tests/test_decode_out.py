@@ -205,6 +205,23 @@ def test_decode_region_refuses_a_bad_out(small_map, bad, exc, words):
             m.decode_region(((0, 16), (0, 16), (0, 16)), device="cpu", out=np.empty((16, 16, 16), np.float32))
 
 
+def test_region_groups_are_whole_columns_of_chunks(small_map):
+    """decode_region's groups (columns=True) close only where a column of chunks along z ends, however small
+    the batch, and cover every chunk holding coded blocks once, in grid order; plain groups close at the batch."""
+    with sdfcodec.open_map(small_map) as m:
+        r = m.reader
+        box = tuple(slice(0, n) for n in r.grid())
+        states = r.states_in(box)
+        plain = r._chunk_groups(box, states, 16, batch_blocks=1)
+        cols = r._chunk_groups(box, states, 16, batch_blocks=1, columns=True)
+        assert all(len(g) == 1 for g in plain)  # one chunk holds more than a batch of 1 block
+        assert np.array_equal(np.concatenate(cols), np.concatenate(plain))
+        for g in cols:
+            assert len({tuple(c[:2]) for c in g}) == 1  # one column each ...
+        # ... and the whole of it (the small map's chunk grid is 3 x 2 x 2: two chunks a column)
+        assert len(cols) == 6 and all(len(g) == 2 for g in cols)
+
+
 def test_iter_decoded_ring_matches_fresh_decodes_and_wraps(small_map):
     with sdfcodec.open_map(small_map) as m:
         fresh = list(m.iter_decoded(batch_blocks=64))
