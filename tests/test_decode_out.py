@@ -4,6 +4,7 @@ volume, checked against decodes placed by hand, with its peak memory bounded by 
 
 from __future__ import annotations
 
+import collections
 import tracemalloc
 
 import numpy as np
@@ -206,20 +207,27 @@ def test_decode_region_refuses_a_bad_out(small_map, bad, exc, words):
 
 
 def test_region_groups_are_whole_columns_of_chunks(small_map):
-    """decode_region's groups (columns=True) close only where a column of chunks along z ends, however small
-    the batch, and cover every chunk holding coded blocks once, in grid order; plain groups close at the batch."""
+    """decode_region's groups (columns=True) close where a column of chunks along z ends, unless they reach twice
+    the batch first, and cover every chunk holding coded blocks once, in grid order."""
     with sdfcodec.open_map(small_map) as m:
         r = m.reader
         box = tuple(slice(0, n) for n in r.grid())
         states = r.states_in(box)
-        plain = r._chunk_groups(box, states, 16, batch_blocks=1)
-        cols = r._chunk_groups(box, states, 16, batch_blocks=1, columns=True)
-        assert all(len(g) == 1 for g in plain)  # one chunk holds more than a batch of 1 block
-        assert np.array_equal(np.concatenate(cols), np.concatenate(plain))
-        for g in cols:
-            assert len({tuple(c[:2]) for c in g}) == 1  # one column each ...
-        # ... and the whole of it (the small map's chunk grid is 3 x 2 x 2: two chunks a column)
-        assert len(cols) == 6 and all(len(g) == 2 for g in cols)
+        chunks = np.concatenate(r._chunk_groups(box, states, 16, batch_blocks=1))  # one chunk a group
+        coded = np.argwhere(states == 2)  # BlockState.CODED
+        per_column = collections.Counter(tuple(c) for c in coded[:, :2] // 4)
+        assert len(per_column) == 6 and len(chunks) == 12  # the small map: 3 x 2 x 2 chunks, all holding blocks
+        for batch in (max(per_column.values()), min(per_column.values()), 40):
+            groups = r._chunk_groups(box, states, 16, batch_blocks=batch, columns=True)
+            assert np.array_equal(np.concatenate(groups), chunks)
+            for g in groups:
+                held = sum(per_column[tuple(c[:2])] for c in {tuple(c[:2]) for c in g})
+                cols = {tuple(c[:2]) for c in g}
+                whole = all((chunks[:, :2] == c).all(axis=1).sum() == (g[:, :2] == c).all(axis=1).sum() for c in cols)
+                # whole columns, or a column cut because the group reached twice the batch
+                assert whole or held >= 2 * batch, (batch, g.tolist())
+        # a batch of one block: every chunk holds more than two, so each is a group of its own
+        assert all(len(g) == 1 for g in r._chunk_groups(box, states, 16, batch_blocks=1, columns=True))
 
 
 def test_iter_decoded_ring_matches_fresh_decodes_and_wraps(small_map):

@@ -423,7 +423,8 @@ class MapReader:
         """Chunk indices ``(G, 3)`` (of the block axes of ``codes``) holding coded blocks inside ``box``, in grid
         order, grouped: ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold
         that many coded blocks; ``columns``: a group then also runs to the end of its column of chunks along z
-        (what a dense volume is filled best by: whole rows of blocks). A group never holds more than
+        (what a dense volume is filled best by: whole rows of blocks) unless it reaches twice that many
+        first. A group never holds more than
         ``max_decode_bytes`` of codes and decoded blocks. A sparse map (or a hostile, huge and empty grid) costs
         what it stores, not its extent."""
         spec = self.header.codes
@@ -450,12 +451,13 @@ class MapReader:
             cap, target = min(cap, chunks_per_group), None
         else:
             target = batch_blocks
-        # where a column of chunks along z ends: a group of `columns` closes only there (or at the cap)
+        # where a column of chunks along z ends: a group of `columns` closes only there, or mid-column at twice
+        # the batch (a tall map's column: the memory stays O(batch)), or at the cap
         ends = np.r_[np.any(idx[1:, :2] != idx[:-1, :2], axis=1), True] if columns else np.ones(len(idx), bool)
         groups, start, acc = [], 0, 0
         for i, (c, end) in enumerate(zip(per_block.tolist(), ends.tolist())):
             acc += c
-            if (target is not None and acc >= target and end) or i + 1 - start >= cap:
+            if (target is not None and acc >= target and (end or acc >= 2 * target)) or i + 1 - start >= cap:
                 groups.append(idx[start:i + 1])
                 start, acc = i + 1, 0
         if start < len(idx):
