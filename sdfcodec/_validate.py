@@ -116,7 +116,8 @@ def output_buffer(out: Any, shapes: tuple[tuple[int, ...], ...], *, numpy: bool,
             raise InvalidValueError("out must be a writeable, C-contiguous numpy array (np.empty(...)), got "
                                     + ("a read-only array" if not out.flags.writeable else "a strided view"))
         return torch.from_numpy(out)
-    if out.device != device:
+    if out.device.type != device.type or (device.index is not None and out.device.index != device.index):
+        # "cuda" names whichever CUDA device is current: a tensor on cuda:0 is on it
         raise InvalidValueError(f"out must be on the device {device}, got {out.device}")
     if not out.is_contiguous():
         raise InvalidValueError("out must be a contiguous tensor (torch.empty(...)), got a strided view")

@@ -206,6 +206,15 @@ def test_decode_region_refuses_a_bad_out(small_map, bad, exc, words):
             m.decode_region(((0, 16), (0, 16), (0, 16)), device="cpu", out=np.empty((16, 16, 16), np.float32))
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_decode_region_into_a_cuda_volume_equals_the_cpu_decode(small_map):
+    region = ((5, 150), (17, 100), (30, 91))
+    with sdfcodec.open_map(small_map) as m:
+        buf = torch.full((145, 83, 61), float("nan"), device="cuda")
+        assert m.decode_region(region, device="cuda", out=buf) is buf  # "cuda" takes a tensor on cuda:0
+        np.testing.assert_allclose(buf.cpu().numpy(), m.decode_region(region), rtol=0, atol=1e-5)
+
+
 def test_region_groups_are_whole_columns_of_chunks(small_map):
     """decode_region's groups (columns=True) close where a column of chunks along z ends, unless they reach twice
     the batch first, and cover every chunk holding coded blocks once, in grid order."""
