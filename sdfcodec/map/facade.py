@@ -169,8 +169,10 @@ class Map:
                 path, see ``sdfcodec bench``'s ``decode-on-read-into``), so a yielded array is valid only until the
                 ring wraps: it is overwritten two iterations later, by the decode of the group after next. The
                 map keeps the ring for its next ``copy=False`` iteration (its buffers already in memory), which
-                overwrites the last blocks of the one before. Copy what you keep, or use the default. The default is the safe one because ``list(m.iter_decoded())``, ``zip(*...)`` and any
-                caller keeping batches would otherwise silently see later groups' values.
+                overwrites the last blocks of the one before; it holds ``2 x 16 KiB x batch_blocks`` (256 MiB at
+                the default) until the map is closed. Copy what you keep, or use the default. The default is the
+                safe one because ``list(m.iter_decoded())``, ``zip(*...)`` and any caller keeping batches would
+                otherwise silently see later groups' values.
 
         Values are metres, exactly as :meth:`iter_blocks` and :meth:`decode_region` give them; codecs with a
         decode halo see their neighbours (decoded chunk by chunk, each with its neighbourhood).
