@@ -217,9 +217,10 @@ class Map:
             hold ``d_max``. Codecs with a decode halo (e.g. ``gaussian-blur``) see their neighbour blocks, so
             there are no seams.
 
-        Blocks are decoded a group of chunks at a time into one reused buffer and copied from there straight
-        into the returned volume (vectorised, no per-block copies): peak memory is the output plus one group's
-        decodes (``16 KiB x batch_blocks``), not a second volume.
+        Blocks are decoded a group of chunk columns at a time, in cache-sized tiles where the codec offers them
+        (else into one reused buffer), and copied from there straight into the volume, one copy per run of
+        blocks along z (no per-block Python): peak memory is the output plus one group's decodes (at most
+        ``2 x 16 KiB x batch_blocks``), not a second volume.
         """
         return self.reader.decode_region(region, units=units, level=level, device=device, batch_blocks=batch_blocks,
                                          out=out)

@@ -181,7 +181,6 @@ class Placement:
     threads at once for disjoint rows."""
 
     def __init__(self, placer: BlockPlacer, coords: np.ndarray):
-        self.placer = placer
         ids = [np.searchsorted(st, coords[:, a], side="right") - 1 for a, st in enumerate(placer.starts)]
         dims = [len(s) for s in placer.segments]
         cls = (ids[0] * dims[1] + ids[1]) * dims[2] + ids[2]

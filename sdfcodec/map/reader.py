@@ -423,10 +423,9 @@ class MapReader:
         """Chunk indices ``(G, 3)`` (of the block axes of ``codes``) holding coded blocks inside ``box``, in grid
         order, grouped: ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold
         that many coded blocks; ``columns``: a group then also runs to the end of its column of chunks along z
-        (what a dense volume is filled best by: whole rows of blocks) unless it reaches twice that many
-        first. A group never holds more than
-        ``max_decode_bytes`` of codes and decoded blocks. A sparse map (or a hostile, huge and empty grid) costs
-        what it stores, not its extent."""
+        (what a dense volume is filled best by: whole rows of blocks) unless it reaches twice that many first.
+        A group never holds more than ``max_decode_bytes`` of codes and decoded blocks. A sparse map (or a
+        hostile, huge and empty grid) costs what it stores, not its extent."""
         spec = self.header.codes
         cb = spec.chunk_blocks
         b0 = np.array([s.start for s in box], dtype=np.int64)
