@@ -197,3 +197,38 @@ def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_pa
     only_b = verify_planes(m, planes[1:], coded, strong, lambda c: codes_at(m, c, m.code_size), behind="solid",
                            weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0)[2]
     assert {(1, 2, 0), (1, 2, 1)} <= {tuple(int(v) for v in c) for c in only_b}
+
+
+def test_a_block_is_rescued_only_by_a_plane_it_fits(tmp_path):
+    """Wall A (x = 20.5 voxels) with a slab's face 4.5 voxels in front of it (x = 25-30, y >= 30): the blocks at
+    x = 16-31, y = 32-47 hold A and the slab, impure against A. Plane B (y = 45.5, normal +y) clips those blocks
+    a voxel and a half from their far face: against B their surface lies on B's band or behind it (share 1, the
+    surfaces A and the slab's faces crossing B's band show on it), but their field is not B's (A and the slab are
+    perpendicular to B), so their residual against B is far over its threshold. Being pure against B must not
+    rescue them from A's verdict (before, it did: a kitchen block was kept as wall through a plane it met with 32
+    surface voxels, at a residual of 84 against that plane's threshold of 11)."""
+    from sdfcodec.search.engine import codes_at
+    from sdfcodec.search.plane_check import verify_planes
+
+    shape = (64, 64, 32)
+    wall_a = Plane((1.0, 0.0, 0.0), 20.5 * VS)
+    slab = Box((27.5 * VS, 50 * VS, 16 * VS), (2.5 * VS, 20 * VS, 40 * VS))
+    vol = sample_volume(Scene([wall_a, slab]), shape, VS, truncation=TRUNC)
+    path = tmp_path / "w.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    coded = np.argwhere(np.ones((4, 4, 2), bool))
+    a = (np.array([1.0, 0.0, 0.0]), 20.5 * VS)
+    b = (np.array([0.0, 1.0, 0.0]), 45.5 * VS)
+    strong = np.array([[1, 0, 0], [1, 0, 1], [1, 1, 0]])  # blocks of A alone
+    kw = dict(behind="solid", weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0)
+
+    def impure(planes):
+        got = verify_planes(m, planes, coded, strong, lambda c: codes_at(m, c, m.code_size), **kw)[2]
+        return {tuple(int(v) for v in c) for c in got}
+
+    mixed = {(1, 2, 0), (1, 2, 1)}
+    assert mixed <= impure([a])  # A and the slab's face: another surface beyond A's band
+    assert not (mixed & impure([b]))  # against B alone nothing lies off B on its free side
+    assert mixed <= impure([a, b]), "pure against B but not fitting it: no rescue"
