@@ -197,3 +197,90 @@ def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_pa
     only_b = verify_planes(m, planes[1:], coded, strong, lambda c: codes_at(m, c, m.code_size), behind="solid",
                            weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0)[2]
     assert {(1, 2, 0), (1, 2, 1)} <= {tuple(int(v) for v in c) for c in only_b}
+
+
+def test_a_block_is_rescued_only_by_a_plane_it_fits(tmp_path):
+    """Wall A (x = 20.5 voxels) with a slab's face 4.5 voxels in front of it (x = 25-30, y >= 30): the blocks at
+    x = 16-31, y = 32-47 hold A and the slab, impure against A. Plane B (y = 45.5, normal +y) clips those blocks
+    a voxel and a half from their far face: against B their surface lies on B's band or behind it (share 1, the
+    surfaces A and the slab's faces crossing B's band show on it), but their field is not B's (A and the slab are
+    perpendicular to B), so their residual against B is far over its threshold. Being pure against B must not
+    rescue them from A's verdict (before, it did: a kitchen block was kept as wall through a plane it met with 32
+    surface voxels, at a residual of 84 against that plane's threshold of 11)."""
+    from sdfcodec.search.engine import codes_at
+    from sdfcodec.search.plane_check import verify_planes
+
+    shape = (64, 64, 32)
+    wall_a = Plane((1.0, 0.0, 0.0), 20.5 * VS)
+    slab = Box((27.5 * VS, 50 * VS, 16 * VS), (2.5 * VS, 20 * VS, 40 * VS))
+    vol = sample_volume(Scene([wall_a, slab]), shape, VS, truncation=TRUNC)
+    path = tmp_path / "w.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    coded = np.argwhere(np.ones((4, 4, 2), bool))
+    a = (np.array([1.0, 0.0, 0.0]), 20.5 * VS)
+    b = (np.array([0.0, 1.0, 0.0]), 45.5 * VS)
+    strong = np.array([[1, 0, 0], [1, 0, 1], [1, 1, 0]])  # blocks of A alone
+    kw = dict(behind="solid", weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0)
+
+    def impure(planes):
+        got = verify_planes(m, planes, coded, strong, lambda c: codes_at(m, c, m.code_size), **kw)[2]
+        return {tuple(int(v) for v in c) for c in got}
+
+    mixed = {(1, 2, 0), (1, 2, 1)}
+    assert mixed <= impure([a])  # A and the slab's face: another surface beyond A's band
+    assert not (mixed & impure([b]))  # against B alone nothing lies off B on its free side
+    assert mixed <= impure([a, b]), "pure against B but not fitting it: no rescue"
+
+
+def _impure(m, planes, coded, strong, **kw):
+    from sdfcodec.search.engine import codes_at
+    from sdfcodec.search.plane_check import verify_planes
+
+    kw = dict(dict(behind="solid", weighted=False, stretches=None, quantile=0.99, samples=64, tol=1.0), **kw)
+    got = verify_planes(m, planes, coded, strong, lambda c: codes_at(m, c, m.code_size), **kw)
+    return {tuple(int(v) for v in c) for c in got[2]}, got[3]
+
+
+def test_absent_a_block_observed_on_the_plane_where_nothing_is_there_holds_another_surface(tmp_path):
+    """The ABSENT rule: a wall at x = 16.5 voxels and a plane checked 5 voxels in front of it (x = 21.5, normal +x).
+    The blocks at x = 16-31 are observed all across the checked plane but decode free space there (the wall is on
+    the plane's solid side, so no surface voxel lies off it on its free side and their share is 1); what they show is
+    that the plane is not there: impure. The blocks of a wall checked against its own plane are not."""
+    shape = (64, 32, 32)
+    vol = sample_volume(Scene([Plane((1.0, 0.0, 0.0), 16.5 * VS)]), shape, VS, truncation=TRUNC)
+    path = tmp_path / "a.sdfz"
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    m = sdfcodec.open_map(path)
+    coded = np.argwhere(np.ones((4, 2, 2), bool))
+    wall = {(1, j, k) for j in range(2) for k in range(2)}
+    bad, info = _impure(m, [(np.array([1.0, 0.0, 0.0]), 21.5 * VS)], coded, np.array([[1, 0, 0]]))
+    assert wall <= bad, sorted(bad)
+    assert info["planes"][0]["checked"] >= len(wall)
+    bad_own, _ = _impure(m, [(np.array([1.0, 0.0, 0.0]), 16.5 * VS)], coded, np.array([[1, 0, 0]]))
+    assert not (wall & bad_own), sorted(bad_own)
+
+
+def test_elsewhere_an_undecided_block_whose_surface_lies_off_the_plane_holds_another_surface(tmp_path):
+    """The ELSEWHERE rule, on a map that records its observation (fusion leaves space deeper than |d_min| behind a
+    surface unobserved): a floor at z = 20.5 voxels and a plane checked 4 voxels under it (z = 16.5, normal +z). In
+    the blocks at z = 16-31 the checked plane lies in unobserved space (too little observed on it to check:
+    undecided), and their observed surface lies on its free side, 4 voxels off: they hold another surface, not
+    the plane. Checked against the floor's own plane, the same blocks are not impure."""
+    from sdfcodec.search.shapes import truncate
+
+    shape = (32, 32, 48)
+    d = Scene([Plane((0.0, 0.0, 1.0), 20.5 * VS)])(grid_points(shape, VS)).reshape(shape)
+    vol, observed = fused_like(truncate(d, TRUNC, "solid").astype(np.float32))
+    write_volume_map(tmp_path / "e.sdfz", vol, observed, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "e.sdfz")
+    coded = np.argwhere(np.ones((2, 2, 3), bool))
+    floor = {(i, j, 1) for i in range(2) for j in range(2)}
+    kw = dict(behind="unobserved", weighted=True)
+    bad, info = _impure(m, [(np.array([0.0, 0.0, 1.0]), 16.5 * VS)], coded, np.array([[0, 0, 1]]), **kw)
+    assert info["planes"][0]["undecided"] >= len(floor), info["planes"][0]
+    assert floor <= bad, sorted(bad)
+    bad_own, _ = _impure(m, [(np.array([0.0, 0.0, 1.0]), 20.5 * VS)], coded, np.array([[0, 0, 1]]), **kw)
+    assert not (floor & bad_own), sorted(bad_own)
