@@ -299,30 +299,40 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
     normals, points = block_planes(model, coords, nearest, origin, voxel_size)
     comp = plane_components(coords, normals, points, voxel_size)
     n_comp = int(comp.max()) + 1
-    live = np.bincount(comp, weights=strong, minlength=n_comp) > 0
-    level, levels = plane_levels(comp, normals, points, live, voxel_size)
-    lv_of = level[comp]  # each candidate's level (-1: its patch holds no block under the threshold)
-    if not levels:  # candidates under the weak threshold only, none under the threshold itself: nothing to anchor
-        info.update(kept=0, levels=[], rule="no level holds a block under the threshold")
-        return keep, info
-    sizes = np.array([lv["blocks"] for lv in levels])
-    least = max(MIN_PATCH_BLOCKS, (LEVEL_SHARE if query != "wall" else WALL_SHARE) * sizes.max())
-    if query != "wall":
-        least = max(least, MAP_SHARE * _footprint(coded, up))
-    large = sizes >= least
     centres = np.asarray(origin) + voxel_size * (BLOCK * np.asarray(coded, np.float64) + (BLOCK - 1) / 2)
-    report = []
-    for j, lv in enumerate(levels):
-        on = lv_of == j
-        report.append({"height": round(float(np.median(points[on] @ up)), 4),
-                       "normal": [round(float(x), 4) for x in lv["normal"]], "blocks": int(lv["blocks"]),
-                       "large": bool(large[j])})
-    if query in ("floor", "ceiling"):
+    # levels anchored by a block under the threshold; a floor or ceiling found no other way is then looked for
+    # among the weak candidates too. The threshold keeps 99 % of clean planes at offsets drawn across a block,
+    # but a level floor has one offset for all its blocks: at the offset the model's lattice fits worst (a floor
+    # exactly on a layer of voxel centres) every block of it scores just over the threshold, and the whole floor
+    # was lost (fused-style rooms of seed 8201: 0 of 312 floor blocks). A weak level must pass the same rules
+    # (its size, its share of the map's footprint, nothing beyond it), and each block the plane check.
+    anchors = ("strong", "weak") if query in ("floor", "ceiling") else ("strong",)
+    for anchor in anchors:
+        live = (np.bincount(comp, weights=strong, minlength=n_comp) > 0 if anchor == "strong"
+                else np.ones(n_comp, bool))
+        level, levels = plane_levels(comp, normals, points, live, voxel_size)
+        lv_of = level[comp]  # each candidate's level (-1: its patch holds no block under the threshold)
+        if not levels:
+            continue
+        sizes = np.array([lv["blocks"] for lv in levels])
+        least = max(MIN_PATCH_BLOCKS, (LEVEL_SHARE if query != "wall" else WALL_SHARE) * sizes.max())
+        if query != "wall":
+            least = max(least, MAP_SHARE * _footprint(coded, up))
+        large = sizes >= least
+        report = []
+        for j, lv in enumerate(levels):
+            on = lv_of == j
+            report.append({"height": round(float(np.median(points[on] @ up)), 4),
+                           "normal": [round(float(x), 4) for x in lv["normal"]], "blocks": int(lv["blocks"]),
+                           "large": bool(large[j])})
+        if query not in ("floor", "ceiling"):
+            break
         sign = 1.0 if query == "floor" else -1.0  # the floor is the lowest level, the ceiling the highest
         word, end = ("below", "lowest") if query == "floor" else ("above", "highest")
         margin = (BLOCK + PLANE_TOL_VOXELS) * voxel_size
         order = sorted(range(len(levels)), key=lambda j: sign * report[j]["height"])
         chosen = next((j for j in order if large[j]), None)
+        info.pop("rejected", None)
         if chosen is None:
             info["rejected"] = f"no level of {query}-shaped blocks holds {least:.0f} blocks: no {query} in view"
         if chosen is not None:
@@ -337,6 +347,14 @@ def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray,
                 info["rejected"] = (f"the {end} large level ({report[chosen]['height']:.3f} m along up) has "
                                     f"{beyond:.0%} of the map's coded blocks {word} it: no {query} in view")
                 chosen = None
+        if chosen is not None:
+            break
+    if not levels:  # no level at all (for a floor or ceiling: not even of weak candidates)
+        info.update(kept=0, levels=[], rule="no level holds a block under the threshold")
+        return keep, info
+    info["anchored_by"] = ("blocks under the threshold" if anchor == "strong" else
+                           "candidates under the weak threshold (no level of blocks under the threshold qualified)")
+    if query in ("floor", "ceiling"):
         if chosen is not None:
             keep = lv_of == chosen
             info["planes"] = [_plane_json(levels[chosen])]
