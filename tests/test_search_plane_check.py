@@ -177,14 +177,9 @@ def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_pa
     from sdfcodec.search.engine import codes_at
     from sdfcodec.search.plane_check import verify_planes
 
-    shape = (64, 64, 32)
     wall_a = Plane((1.0, 0.0, 0.0), 20.5 * VS)
     wall_b = Box((60 * VS, 18 * VS, 16 * VS), (16 * VS, 18.5 * VS, 40 * VS))
-    vol = sample_volume(Scene([wall_a, wall_b]), shape, VS, truncation=TRUNC)
-    path = tmp_path / "w.sdfz"
-    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
-        w.write_volume(vol)
-    m = sdfcodec.open_map(path)
+    m = _exact_map(tmp_path / "w.sdfz", [wall_a, wall_b])
     coded = np.argwhere(np.ones((4, 4, 2), bool))
     planes = [(np.array([1.0, 0.0, 0.0]), 20.5 * VS), (np.array([0.0, 1.0, 0.0]), 36.5 * VS)]
     strong = np.array([[1, 0, 0], [1, 1, 0], [3, 2, 0]])
@@ -199,6 +194,14 @@ def test_a_block_of_one_wall_crossed_by_another_walls_plane_is_not_impure(tmp_pa
     assert {(1, 2, 0), (1, 2, 1)} <= {tuple(int(v) for v in c) for c in only_b}
 
 
+def _exact_map(path, primitives, shape=(64, 64, 32)):
+    """An exact (solid behind) pca-64 map of the union of ``primitives`` over ``shape`` voxels."""
+    vol = sample_volume(Scene(primitives), shape, VS, truncation=TRUNC)
+    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
+        w.write_volume(vol)
+    return sdfcodec.open_map(path)
+
+
 def test_a_block_is_rescued_only_by_a_plane_it_fits(tmp_path):
     """Wall A (x = 20.5 voxels) with a slab's face 4.5 voxels in front of it (x = 25-30, y >= 30): the blocks at
     x = 16-31, y = 32-47 hold A and the slab, impure against A. Plane B (y = 45.5, normal +y) clips those blocks
@@ -210,14 +213,9 @@ def test_a_block_is_rescued_only_by_a_plane_it_fits(tmp_path):
     from sdfcodec.search.engine import codes_at
     from sdfcodec.search.plane_check import verify_planes
 
-    shape = (64, 64, 32)
     wall_a = Plane((1.0, 0.0, 0.0), 20.5 * VS)
     slab = Box((27.5 * VS, 50 * VS, 16 * VS), (2.5 * VS, 20 * VS, 40 * VS))
-    vol = sample_volume(Scene([wall_a, slab]), shape, VS, truncation=TRUNC)
-    path = tmp_path / "w.sdfz"
-    with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
-        w.write_volume(vol)
-    m = sdfcodec.open_map(path)
+    m = _exact_map(tmp_path / "w.sdfz", [wall_a, slab])
     coded = np.argwhere(np.ones((4, 4, 2), bool))
     a = (np.array([1.0, 0.0, 0.0]), 20.5 * VS)
     b = (np.array([0.0, 1.0, 0.0]), 45.5 * VS)
