@@ -282,3 +282,28 @@ def test_elsewhere_an_undecided_block_whose_surface_lies_off_the_plane_holds_ano
     assert floor <= bad, sorted(bad)
     bad_own, _ = _impure(m, [(np.array([0.0, 0.0, 1.0]), 20.5 * VS)], coded, np.array([[0, 0, 1]]), **kw)
     assert not (floor & bad_own), sorted(bad_own)
+
+
+@pytest.mark.parametrize("k", [11.5, 11.9])
+def test_a_fused_style_floor_smeared_just_past_the_band_is_kept(tmp_path, k):
+    """A fused-style room (nothing observed more than |d_min| behind a surface) with its floor 4.5 voxels under a
+    block's top face (k = 11.5): pca-64 decodes the voxel 1.55 voxels above the floor as 0.79, a "surface voxel"
+    just past the compared band that placed the floor's blocks under PURITY (share 0.81): the whole floor was
+    rejected. The voxel's own surface lies 0.76 voxel from the plane: the plane smeared, not another surface.
+    k = 11.9 passed before and must still. The truth: blocks holding 128 voxels within 0.6 voxel of the floor,
+    away from the wall (docs/search/phase_sweep.py makes the same room at every offset)."""
+    shape, h = (96, 96, 96), (16 + k) * VS
+    scene = Scene([Box((1.0, 1.0, h - 1.0), (3.0, 3.0, 1.0)), Box((1.28, 0.96, 0.95), (0.48, 0.64, 0.1)),
+                   Box((0.45 - 1.0, 1.0, 1.0), (1.0, 3.0, 2.0))])
+    vol = sample_volume(scene, shape, VS, truncation=TRUNC)
+    vol = np.where(vol <= TRUNC[0] + 1e-6, TRUNC[1], vol).astype(np.float32)
+    with sdfcodec.create_map(tmp_path / "r.sdfz", codec=pretrained_codec("pca", 64), voxel_size=VS,
+                             truncation=TRUNC) as w:
+        w.write_volume(vol)
+    with sdfcodec.open_map(tmp_path / "r.sdfz") as m:
+        res = S.search(m, "floor", threshold="auto")
+    got = {tuple(int(v) for v in c) for c in res.coords}
+    d = np.abs(Plane((0, 0, 1), h)(grid_points(shape, VS)))
+    idx, cnt = np.unique(np.argwhere(d <= 0.6 * VS) // 16, axis=0, return_counts=True)
+    clean = {tuple(int(v) for v in r) for r, c in zip(idx, cnt) if c >= 128 and r[0] >= 2}
+    assert len(clean) == 24 and clean <= got and len(got) <= len(clean) + 2, (len(clean), len(got & clean), len(got))

@@ -176,7 +176,12 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
         # that a real surface's roughness is not a second surface; it let wall feet through on fused-style rooms
         # (development seed 801, rich: floor precision 0.982 -> 0.889)
         on_r = (surf & (np.abs(rel) <= 1.0)).sum(axis=1)
-        off_r = ((surf | (near2 & (rel - dec >= SECOND_SURFACE_VOXELS))) & (rel > BAND_VOXELS)).sum(axis=1)
+        # a voxel just past the band (within half a voxel of it) whose decoded distance puts its surface within a
+        # voxel of the plane is the plane smeared by the codec, not another surface (a fused-style floor 4.5 voxels
+        # under a block's top face: pca-64 decodes the voxel 1.55 voxels above it as 0.79, and every block of the
+        # floor failed PURITY); farther out the rule stands (a wall's foot holds surface voxels at every height)
+        smeared = (rel <= BAND_VOXELS + 0.5) & (rel - dec <= 1.0)
+        off_r = ((surf | (near2 & (rel - dec >= SECOND_SURFACE_VOXELS))) & (rel > BAND_VOXELS) & ~smeared).sum(axis=1)
         share_r = np.where(on_r + off_r > 0, on_r / np.maximum(on_r + off_r, 1), 1.0)  # no surface: no other either
         better = np.ones(len(x), bool) if share is None else share_r > share
         on = on_r if on is None else np.where(better, on_r, on)
