@@ -14,6 +14,7 @@ import torch
 import sdfcodec
 from sdfcodec import errors
 from sdfcodec.codec import decodes_into
+from sdfcodec.map.grouping import chunk_groups
 from sdfcodec.testing import analytic_blocks
 
 TRUNC = (-0.04, 0.1)
@@ -222,12 +223,15 @@ def test_region_groups_are_whole_columns_of_chunks(small_map):
         r = m.reader
         box = tuple(slice(0, n) for n in r.grid())
         states = r.states_in(box)
-        chunks = np.concatenate(r._chunk_groups(box, states, 16, batch_blocks=1))  # one chunk a group
+        def groups_of(**kw):
+            return chunk_groups(r.header.codes, box, states, 16, max_decode_bytes=r.max_decode_bytes, **kw)
+
+        chunks = np.concatenate(groups_of(batch_blocks=1))  # one chunk a group
         coded = np.argwhere(states == 2)  # BlockState.CODED
         per_column = collections.Counter(tuple(c) for c in coded[:, :2] // 4)
         assert len(per_column) == 6 and len(chunks) == 12  # the small map: 3 x 2 x 2 chunks, all holding blocks
         for batch in (max(per_column.values()), min(per_column.values()), 40):
-            groups = r._chunk_groups(box, states, 16, batch_blocks=batch, columns=True)
+            groups = groups_of(batch_blocks=batch, columns=True)
             assert np.array_equal(np.concatenate(groups), chunks)
             for g in groups:
                 held = sum(per_column[tuple(c[:2])] for c in {tuple(c[:2]) for c in g})
@@ -236,7 +240,7 @@ def test_region_groups_are_whole_columns_of_chunks(small_map):
                 # whole columns, or a column cut because the group reached twice the batch
                 assert whole or held >= 2 * batch, (batch, g.tolist())
         # a batch of one block: every chunk holds more than two, so each is a group of its own
-        assert all(len(g) == 1 for g in r._chunk_groups(box, states, 16, batch_blocks=1, columns=True))
+        assert all(len(g) == 1 for g in groups_of(batch_blocks=1, columns=True))
 
 
 def test_iter_decoded_ring_matches_fresh_decodes_and_wraps(small_map):

@@ -12,12 +12,10 @@ beyond :data:`~sdfcodec.map.format.DECODE_LIMIT` or non-finite are refused namin
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import itertools
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
@@ -33,6 +31,7 @@ from ..header import BlockState, MapHeader, parse_header
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
                      check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
 from .groupdecode import decode_group
+from .grouping import Box, chunk_groups, prefetched
 from .codec_state import load_codec
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
@@ -47,7 +46,6 @@ torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a
 
 __all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
 
-Box = tuple[slice, slice, slice]  # a block box: half-open block index ranges per axis
 #: Output buffers ``iter_decoded(copy=False)`` cycles through: a yielded batch stays valid while the next one is
 #: decoded and used (a consumer may look one batch back), and is overwritten by the one after.
 RING = 2
@@ -417,51 +415,10 @@ class MapReader:
         check_state_chunks(self, box, state)  # a lost state chunk must not read as unobserved (spec 9a)
         return state
 
-    def _chunk_groups(self, box: Box, states: np.ndarray, level: int, *,
-                      batch_blocks: int | None = None, chunks_per_group: int | None = None,
-                      columns: bool = False) -> list[np.ndarray]:
-        """Chunk indices ``(G, 3)`` (of the block axes of ``codes``) holding coded blocks inside ``box``, in grid
-        order, grouped: ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold
-        that many coded blocks; ``columns``: a group then also runs to the end of its column of chunks along z
-        (what a dense volume is filled best by: whole rows of blocks) unless it reaches twice that many first.
-        A group never holds more than ``max_decode_bytes`` of codes and decoded blocks. A sparse map (or a
-        hostile, huge and empty grid) costs what it stores, not its extent."""
-        spec = self.header.codes
-        cb = spec.chunk_blocks
-        b0 = np.array([s.start for s in box], dtype=np.int64)
-        n = np.array(states.shape, dtype=np.int64)
-        if not n.all():
-            return []
-        lead = b0 % cb
-        # coded blocks per chunk, summed axis by axis between chunk boundaries: time and memory follow the block
-        # states, never the chunks' volume (a hostile 256^3-block chunk over a thin box costs nothing extra)
-        counts = states == BlockState.CODED
-        for ax in range(3):
-            starts = np.r_[0, np.arange(cb - lead[ax] if lead[ax] else cb, n[ax], cb)]
-            counts = np.add.reduceat(counts, starts, axis=ax, dtype=np.int32)
-        idx = np.argwhere(counts)
-        if not len(idx):
-            return []
-        per_block = counts[tuple(idx.T)]
-        idx += b0 // cb
-        read = -(-level // spec.chunk_code) * spec.chunk_code * np.dtype(spec.dtype).itemsize
-        cap = max(1, self.max_decode_bytes // (cb ** 3 * (read + 4 * BLOCK ** 3)))
-        if chunks_per_group is not None:
-            cap, target = min(cap, chunks_per_group), None
-        else:
-            target = batch_blocks
-        # where a column of chunks along z ends: a group of `columns` closes only there, or mid-column at twice
-        # the batch (a tall map's column: the memory stays O(batch)), or at the cap
-        ends = np.r_[np.any(idx[1:, :2] != idx[:-1, :2], axis=1), True] if columns else np.ones(len(idx), bool)
-        groups, start, acc = [], 0, 0
-        for i, (c, end) in enumerate(zip(per_block.tolist(), ends.tolist())):
-            acc += c
-            if (target is not None and acc >= target and (end or acc >= 2 * target)) or i + 1 - start >= cap:
-                groups.append(idx[start:i + 1])
-                start, acc = i + 1, 0
-        if start < len(idx):
-            groups.append(idx[start:])
-        return groups
+    def _chunk_groups(self, box: Box, states: np.ndarray, level: int, **kw) -> list[np.ndarray]:
+        """:func:`~sdfcodec.map.grouping.chunk_groups` of this map's codes (keywords: ``batch_blocks``,
+        ``chunks_per_group``, ``columns``), capped by ``max_decode_bytes``."""
+        return chunk_groups(self.header.codes, box, states, level, max_decode_bytes=self.max_decode_bytes, **kw)
 
     def _fetch_group(self, chunks: np.ndarray, b0: np.ndarray, b1: np.ndarray, states: np.ndarray, level: int
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -486,11 +443,9 @@ class MapReader:
                       stage: Callable[[np.ndarray, np.ndarray], Any] | None = None, batch_blocks: int | None = 8192,
                       chunks_per_group: int | None = None, prefetch: int = 2, columns: bool = False
                       ) -> Iterator[tuple[np.ndarray, Any]]:
-        """Yield ``(coords, codes)`` per group of chunks (see :meth:`_chunk_groups`), ``codes`` replaced by
-        ``stage(coords, codes)`` in the fetching thread when given. Up to ``prefetch`` further groups are fetched (and staged) by a
-        thread pool while the caller works on the one yielded; with one group, everything runs inline."""
-        if isinstance(prefetch, bool) or not isinstance(prefetch, (int, np.integer)) or prefetch < 0:
-            raise InvalidValueError(f"prefetch must be an int >= 0 (groups read ahead), got {prefetch!r}")
+        """Yield ``(coords, codes)`` per group of chunks (:func:`~sdfcodec.map.grouping.chunk_groups`), ``codes``
+        replaced by ``stage(coords, codes)`` in the fetching thread when given; up to ``prefetch`` further groups
+        are fetched (and staged) ahead (:func:`~sdfcodec.map.grouping.prefetched`)."""
         for name, v in (("batch_blocks", batch_blocks), ("chunks_per_batch", chunks_per_group)):
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
                 raise InvalidValueError(f"{name} must be an int >= 1, got {v!r}")
@@ -505,29 +460,7 @@ class MapReader:
             coords, codes = self._fetch_group(chunks, b0, b1, states, level)
             return coords, (stage(coords, codes) if stage is not None else codes)
 
-        if len(groups) <= 1 or prefetch == 0:
-            for g in groups:
-                yield job(g)
-            return
-        pool = ThreadPoolExecutor(max_workers=int(prefetch), thread_name_prefix="sdfcodec-read")
-        pending: collections.deque = collections.deque()
-        todo = iter(groups)
-        finished = False
-        try:
-            for g in itertools.islice(todo, int(prefetch)):
-                pending.append(pool.submit(job, g))
-            while pending:
-                result = pending.popleft().result()
-                nxt = next(todo, None)
-                if nxt is not None:
-                    pending.append(pool.submit(job, nxt))
-                yield result
-            finished = True
-        finally:
-            # abandoned early (an error, a consumer that stopped): do not wait for reads nobody will use
-            for f in pending:
-                f.cancel()
-            pool.shutdown(wait=finished, cancel_futures=True)
+        yield from prefetched(job, groups, prefetch)
 
     def decode_stream(self, box: Box, level: int, dev: torch.device, *, metres: bool,
                       out_for: Callable[[int], torch.Tensor] | None = None, placer: BlockPlacer | None = None,

@@ -1,0 +1,102 @@
+"""How the reader walks a map: which code chunks it reads together (:func:`chunk_groups`) and how groups are
+fetched ahead of the caller (:func:`prefetched`).
+
+A group is the unit of one batched fetch and one batched decode. Grouping follows the block states only, never
+the chunks' volume, so a sparse map (or a hostile, huge and empty grid) costs what it stores; a group never
+holds more than the reader's ``max_decode_bytes`` of codes and decoded blocks.
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Iterable, Iterator
+
+import numpy as np
+
+from .._validate import BLOCK
+from ..errors import InvalidValueError
+from ..header import BlockState, CodesSpec
+
+__all__ = ["Box", "chunk_groups", "prefetched"]
+
+Box = tuple[slice, slice, slice]  # a block box: half-open block index ranges per axis
+
+
+def chunk_groups(spec: CodesSpec, box: Box, states: np.ndarray, level: int, *, max_decode_bytes: int,
+                 batch_blocks: int | None = None, chunks_per_group: int | None = None,
+                 columns: bool = False) -> list[np.ndarray]:
+    """Chunk indices ``(G, 3)`` (of the block axes of the ``codes`` array laid out by ``spec``) holding coded
+    blocks inside ``box`` (``states``: the block states of that box), in grid order, grouped:
+    ``chunks_per_group`` chunks, or (``batch_blocks``) consecutive chunks until they hold that many coded
+    blocks; ``columns``: a group then also runs to the end of its column of chunks along z (what a dense volume
+    is filled best by: whole rows of blocks) unless it reaches twice that many first. A group never holds more
+    than ``max_decode_bytes`` of codes (the first ``level`` elements' chunks) and decoded blocks."""
+    cb = spec.chunk_blocks
+    b0 = np.array([s.start for s in box], dtype=np.int64)
+    n = np.array(states.shape, dtype=np.int64)
+    if not n.all():
+        return []
+    lead = b0 % cb
+    # coded blocks per chunk, summed axis by axis between chunk boundaries: time and memory follow the block
+    # states, never the chunks' volume (a hostile 256^3-block chunk over a thin box costs nothing extra)
+    counts = states == BlockState.CODED
+    for ax in range(3):
+        starts = np.r_[0, np.arange(cb - lead[ax] if lead[ax] else cb, n[ax], cb)]
+        counts = np.add.reduceat(counts, starts, axis=ax, dtype=np.int32)
+    idx = np.argwhere(counts)
+    if not len(idx):
+        return []
+    per_block = counts[tuple(idx.T)]
+    idx += b0 // cb
+    read = -(-level // spec.chunk_code) * spec.chunk_code * np.dtype(spec.dtype).itemsize
+    cap = max(1, max_decode_bytes // (cb ** 3 * (read + 4 * BLOCK ** 3)))
+    if chunks_per_group is not None:
+        cap, target = min(cap, chunks_per_group), None
+    else:
+        target = batch_blocks
+    # where a column of chunks along z ends: a group of `columns` closes only there, or mid-column at twice the
+    # batch (a tall map's column: the memory stays O(batch)), or at the cap
+    ends = np.r_[np.any(idx[1:, :2] != idx[:-1, :2], axis=1), True] if columns else np.ones(len(idx), bool)
+    groups, start, acc = [], 0, 0
+    for i, (c, end) in enumerate(zip(per_block.tolist(), ends.tolist())):
+        acc += c
+        if (target is not None and acc >= target and (end or acc >= 2 * target)) or i + 1 - start >= cap:
+            groups.append(idx[start:i + 1])
+            start, acc = i + 1, 0
+    if start < len(idx):
+        groups.append(idx[start:])
+    return groups
+
+
+def prefetched(job: Callable[[Any], Any], groups: Iterable[Any], prefetch: int) -> Iterator[Any]:
+    """``job(g)`` for every group, in order, with up to ``prefetch`` further groups run ahead by a thread pool
+    while the caller works on the result yielded; with one group or ``prefetch == 0``, everything runs inline.
+    A consumer that stops early (or an error) cancels what was not started and does not wait for it."""
+    if isinstance(prefetch, bool) or not isinstance(prefetch, (int, np.integer)) or prefetch < 0:
+        raise InvalidValueError(f"prefetch must be an int >= 0 (groups read ahead), got {prefetch!r}")
+    groups = list(groups)
+    if len(groups) <= 1 or prefetch == 0:
+        for g in groups:
+            yield job(g)
+        return
+    pool = ThreadPoolExecutor(max_workers=int(prefetch), thread_name_prefix="sdfcodec-read")
+    pending: collections.deque = collections.deque()
+    todo = iter(groups)
+    finished = False
+    try:
+        for g in itertools.islice(todo, int(prefetch)):
+            pending.append(pool.submit(job, g))
+        while pending:
+            result = pending.popleft().result()
+            nxt = next(todo, None)
+            if nxt is not None:
+                pending.append(pool.submit(job, nxt))
+            yield result
+        finished = True
+    finally:
+        # abandoned early (an error, a consumer that stopped): do not wait for reads nobody will use
+        for f in pending:
+            f.cancel()
+        pool.shutdown(wait=finished, cancel_futures=True)
