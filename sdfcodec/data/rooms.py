@@ -113,7 +113,7 @@ class LabelledRoom:
         assert LABELS[LABELS_FURNITURE] == "furniture"
         h = 0.25 * vs
         reach = band + 2 * h  # surface points and their gradient stencils are this close to their surface
-        _, nearest = _union_at(self.scene.primitives, pts, reach)
+        dist, nearest = _union_at(self.scene.primitives, pts, reach)
         is_floor = prim_label[nearest] == LABELS.index("floor")
         grad = np.zeros_like(pts)
         for ax in range(3):  # the exact SDF's gradient, central differences a quarter voxel apart
@@ -140,7 +140,7 @@ class LabelledRoom:
         side = np.abs(grad @ self.up) <= 0.5 * np.maximum(np.linalg.norm(grad, axis=1), 1e-12)
         out["pole"] = (np.bincount(which, weights=poles[nearest] & side, minlength=n) / denom).astype(np.float32)
         for name in ("floor", "wall", "ceiling"):
-            out.update(_section_cover(which, local, nearest, grad, prim_label[nearest] == LABELS.index(name),
+            out.update(_section_cover(which, local, dist / vs, nearest, grad, prim_label[nearest] == LABELS.index(name),
                                       n_surf, name))
         for name in ("wall", "ceiling"):
             # cover across the grid axis nearest the block's mean normal of that surface (walls face any way)
@@ -195,13 +195,15 @@ def _is_pole(prim, up: np.ndarray, voxel_size: float) -> bool:
 _CELL = 2.0
 
 
-def _section_cover(which: np.ndarray, local: np.ndarray, nearest: np.ndarray, grad: np.ndarray,
+def _section_cover(which: np.ndarray, local: np.ndarray, dist: np.ndarray, nearest: np.ndarray, grad: np.ndarray,
                    is_label: np.ndarray, n_surf: np.ndarray, name: str) -> dict:
     """Per block, how a labelled surface spans it, measured in the surface's own plane (whatever its angle to
     the grid): ``{name}_main``, the share of the block's surface voxels on the label's single largest primitive
     there; ``{name}_section``, the area (voxels squared) of that primitive's plane inside the block's voxels' cells
-    (``[-0.5, 15.5]`` per axis: a surface passing between two blocks' voxel layers has none); ``{name}_section_cover``, the share of that section the
-    primitive's surface voxels cover (cells of ``_CELL`` voxels). A wall crossing a block obliquely covers its
+    (``[-0.5, 15.5]`` per axis: a surface passing between two blocks' voxel layers has none), the plane through
+    the surface points of its surface voxels (``local`` moved along the gradient ``grad`` by the distance ``dist``,
+    voxels); ``{name}_section_cover``, the share of that section the primitive's surface voxels cover (cells of
+    ``_CELL`` voxels). A wall crossing a block obliquely covers its
     whole section; a wall ending inside the block (a door, a corner with another surface) does not."""
     n = len(n_surf)
     main = np.zeros(n, np.float32)
@@ -225,8 +227,13 @@ def _section_cover(which: np.ndarray, local: np.ndarray, nearest: np.ndarray, gr
         starts = np.r_[0, np.flatnonzero(np.diff(which[on])) + 1, len(on)]
         for lo, hi in zip(starts[:-1], starts[1:]):
             b = which[on[lo]]
-            pts = local[on[lo:hi]].astype(np.float64)
             gg = grad[on[lo:hi]]
+            # the surface points: each surface voxel moved onto the surface along its gradient by its distance. The
+            # plane measured passes through them, not through the voxel centres (measured: a tilted floor in a
+            # block's top layers, its voxel centres a voxel below it on average, put the plane a voxel low; its
+            # cells at the block's face then held no surface voxel, and the strip covered 0.8 of its "section")
+            unit = gg / np.maximum(np.linalg.norm(gg, axis=1), 1e-12)[:, None]
+            pts = local[on[lo:hi]].astype(np.float64) - dist[on[lo:hi], None] * unit
             # one face of the primitive: a slab thinner than a block shows both faces in it (their gradients
             # cancel); the face holding more of the block's voxels is the one measured
             side = gg @ gg[np.argmax(np.abs(gg).max(axis=1))] >= 0
