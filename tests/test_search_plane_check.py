@@ -49,6 +49,30 @@ def test_residual_of_the_plane_itself_is_zero_and_a_second_surface_is_seen():
     assert share3[0] < PURITY
 
 
+def test_fused_maps_count_another_surface_only_where_the_field_crosses_zero():
+    """With ``crossings`` (maps that record their observation), voxels near zero off the plane that never cross it
+    (what fusion leaves where a surface was seen twice a voxel or two apart) are not another surface; a real
+    second surface, where the field crosses zero, still is. Without it (exact or band-limited fields, where such
+    voxels are a crease between two solids) both count."""
+    n = np.array([0.05, 0.0, 1.0])
+    n /= np.linalg.norm(n)
+    dist = (_G @ n - 1.3)[None]
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", stretches=np.array([1.0]), tol=1.0)
+    ones = np.ones((1, 4096), bool)
+    # the plane, and a layer 3-4.5 voxels above it where the field sags to 0.6 voxel without crossing zero
+    sag = np.where((dist >= 3.0) & (dist <= 4.5), 0.6, dist)
+    x = _field(sag)
+    *_, share_plain, _, off_plain = plane_residuals(x, ones, dist.astype(np.float32), **kw)
+    *_, share_x, _, off_x = plane_residuals(x, ones, dist.astype(np.float32), crossings=True, **kw)
+    assert share_plain[0] < PURITY and off_plain[0] >= 256
+    assert share_x[0] == 1.0 and off_x[0] == 0
+    # a slab's underside 6 voxels above the plane: the field crosses zero there, another surface either way
+    both = _field(np.minimum(dist, (7.3 - _G @ n)[None]))
+    for crossings in (False, True):
+        *_, share, _, off = plane_residuals(both, ones, dist.astype(np.float32), crossings=crossings, **kw)
+        assert share[0] < PURITY and off[0] >= 128
+
+
 def _tilted_scene():
     a = math.radians(6.0)
     n = np.array([math.sin(a), 0.0, math.cos(a)])
