@@ -68,7 +68,7 @@ def _interrupt_after() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, old)
     if got:
-        raise KeyboardInterrupt
+        old(signal.SIGINT, None)  # Python's default handler: raises KeyboardInterrupt, as the SIGINT would have
 
 
 def lazy_module(name: str) -> Any:
