@@ -319,8 +319,7 @@ def test_a_fused_style_floor_smeared_just_past_the_band_is_kept(tmp_path, k):
     shape, h = (96, 96, 96), (16 + k) * VS
     scene = Scene([Box((1.0, 1.0, h - 1.0), (3.0, 3.0, 1.0)), Box((1.28, 0.96, 0.95), (0.48, 0.64, 0.1)),
                    Box((0.45 - 1.0, 1.0, 1.0), (1.0, 3.0, 2.0))])
-    vol = sample_volume(scene, shape, VS, truncation=TRUNC)
-    vol = np.where(vol <= TRUNC[0] + 1e-6, TRUNC[1], vol).astype(np.float32)
+    vol, _ = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
     with sdfcodec.create_map(tmp_path / "r.sdfz", codec=pretrained_codec("pca", 64), voxel_size=VS,
                              truncation=TRUNC) as w:
         w.write_volume(vol)
