@@ -249,7 +249,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
     clipped = int(((v < d_min) | (v > d_max)).sum())
     if clipped:
         v = np.clip(v, d_min, d_max)
-    blocks = split_blocks(v, fill=d_max)
+    blocks = split_blocks(v)
     gb = blocks.shape[:3]
     norm = normalise(blocks.reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
     empty = free_space(norm)
@@ -367,7 +367,7 @@ def fit_volume_stream(codec: Codec, volume: Any, truncation: tuple[float, float]
             if not np.isfinite(v).all():
                 raise InvalidValueError("volume holds NaN/Inf values; replace unobserved voxels with d_max")
             v = np.clip(v, d_min, d_max)
-            b = normalise(split_blocks(v, fill=d_max).reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
+            b = normalise(split_blocks(v).reshape(-1, BLOCK, BLOCK, BLOCK), d_min, d_max)
             if not include_empty:
                 b = b[~free_space(b)]
             if len(b):

@@ -38,12 +38,16 @@ def map_path(tmp_path_factory, volume, pca64) -> Path:
     return path
 
 
+def padded(volume: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """The grid of whole blocks a writer encodes: the volume's last layers repeated (spec section 4)."""
+    return np.pad(volume.astype(dtype), [(0, -(-n // 16) * 16 - n) for n in volume.shape], mode="edge")
+
+
 def projected(volume: np.ndarray, codec, level: int | None = None) -> np.ndarray:
     """Reference decode of the padded grid: float64 projection of every non-empty block onto the basis."""
     w, mu = codec.components_.astype(np.float64), codec.mean_.astype(np.float64)
     k = level or w.shape[0]
-    pad = np.full([-(-n // 16) * 16 for n in volume.shape], D_MAX)
-    pad[tuple(slice(0, n) for n in volume.shape)] = volume
+    pad = padded(volume)
     out = np.full_like(pad, D_MAX)
     for idx in np.ndindex(*(n // 16 for n in pad.shape)):
         sl = tuple(slice(i * 16, i * 16 + 16) for i in idx)
@@ -56,8 +60,7 @@ def projected(volume: np.ndarray, codec, level: int | None = None) -> np.ndarray
 
 
 def coded_blocks(volume: np.ndarray) -> set[tuple[int, int, int]]:
-    pad = np.full([-(-n // 16) * 16 for n in volume.shape], D_MAX)
-    pad[tuple(slice(0, n) for n in volume.shape)] = volume
+    pad = padded(volume)
     return {idx for idx in np.ndindex(*(n // 16 for n in pad.shape))
             if not np.all(pad[tuple(slice(i * 16, i * 16 + 16) for i in idx)] >= D_MAX - 1e-6 * (D_MAX - D_MIN))}
 
@@ -126,8 +129,7 @@ def test_pipeline_honours_halo(tmp_path):
 
     k = np.exp(-0.5 * (np.arange(-4, 5) / (4 / 3)) ** 2)
     k /= k.sum()
-    ref = np.full((48, 48, 32), D_MAX)
-    ref[:40, :40, :30] = vol
+    ref = padded(vol)
     for ax in range(3):
         ref = correlate1d(ref, k, axis=ax, mode="constant", cval=D_MAX)
     n = 0
@@ -462,8 +464,7 @@ def test_write_volume_accepts_a_dask_array(tmp_path, volume, pca64, map_path):
 
 
 def _nonempty_blocks(volume: np.ndarray) -> np.ndarray:
-    pad = np.full([-(-n // 16) * 16 for n in volume.shape], D_MAX, np.float32)
-    pad[tuple(slice(0, n) for n in volume.shape)] = volume
+    pad = padded(volume, np.float32)
     g = [n // 16 for n in pad.shape]
     blocks = pad.reshape(g[0], 16, g[1], 16, g[2], 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
     norm = (blocks - D_MIN) / (D_MAX - D_MIN)

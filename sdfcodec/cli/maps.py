@@ -177,7 +177,7 @@ def encode_cmd(
         from ..map.observed import fit_codec
         sample, observed = np.zeros((0, 16, 16, 16), np.float32), None
         if src_map is None:
-            sample = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
+            sample = split_blocks(vol).reshape(-1, 16, 16, 16)
         elif pairs := list(src_map.iter_blocks()):
             sample, coords = np.concatenate([b for _, b in pairs]), np.concatenate([c for c, _ in pairs])
             observed = src_map.read_observed(coords) if src_map.records_observation else None
@@ -257,7 +257,7 @@ def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float],
 
     obs = None
     if src_map is None:
-        v = normalise(split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16), *trunc)
+        v = normalise(split_blocks(vol).reshape(-1, 16, 16, 16), *trunc)
         v = v[~free_space(v)]
         n_coded = len(v)
         v = v[np.unique(np.linspace(0, len(v) - 1, min(len(v), SAMPLE_BLOCKS)).astype(int))] if len(v) else v

@@ -390,10 +390,6 @@ def synthetic_room(seed: int = 0, *, geometry: str = "normal", size: Sequence[fl
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     origin = lo - rng.uniform(0, BLOCK * voxel_size, 3)  # the floor at a random height within its block
     shape = tuple(int(n) for n in np.ceil((hi - origin) / voxel_size) + 1)
-    if behind == "solid":
-        # whole blocks: a map pads a volume's last blocks with free space (d_max), which against the solid
-        # around a solid room would be a surface that is not in the scene (a false wall or ceiling)
-        shape = tuple(-(-n // BLOCK) * BLOCK for n in shape)
     lab = LabelledRoom(volume=np.empty(shape, np.float32), origin=origin, voxel_size=float(voxel_size),
                        truncation=tuple(truncation), scene=posed, rotation=rot, size=size, up=rot[:, 2].copy(),
                        behind=behind)

@@ -215,7 +215,8 @@ class MapWriter:
     def write_volume(self, vol: np.ndarray, *, offset: Sequence[int] = (0, 0, 0), batch_size: int = 16384,
                      progress: Callable[[int], None] | None = None) -> None:
         """Encode a checked dense volume ``(X, Y, Z)`` float32 metres placed at voxel ``offset`` (multiples of
-        16): the grid grows to hold it, the far faces padded with free space."""
+        16): the grid grows to hold it, the far faces of its last blocks padded by repeating its last voxel
+        layer (:func:`~sdfcodec.blocks.split_blocks`: no surface where the volume ends)."""
         with self._writing():
             self._write_volume(vol, offset, batch_size, progress)
 
@@ -224,7 +225,7 @@ class MapWriter:
         if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
             raise ShapeError(f"offset must be three non-negative multiples of {BLOCK} voxels, got {tuple(offset)}")
         self._grow_voxels(tuple(int(o + n) for o, n in zip(off, vol.shape)))
-        blocks = split_blocks(vol, fill=self.truncation[1])
+        blocks = split_blocks(vol)
         gb = blocks.shape[:3]
         flat = blocks.reshape(-1, BLOCK, BLOCK, BLOCK)
         coords = np.stack(np.meshgrid(*[np.arange(n) for n in gb], indexing="ij"), -1).reshape(-1, 3) + off // BLOCK
