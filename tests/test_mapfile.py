@@ -99,6 +99,14 @@ def test_region_in_voxels_and_metres(map_path):
         m.decode_region(((1.2, 1.5), (-2.0, -1.9), (0.9, 0.9)), units="m")
     with pytest.raises(errors.InvalidValueError, match="outside the map on axis x"):
         m.decode_region(((0, 91), (0, 1), (0, 1)))
+    # numpy's slices, an open end being the map's edge
+    assert np.allclose(m.decode_region(np.s_[10:40, 3:70, 20:21]), part, rtol=0, atol=1e-6)
+    assert np.allclose(m.decode_region(np.s_[:, 60:, 20:21]), full[:, 60:, 20:21], rtol=0, atol=1e-6)
+    assert np.allclose(m.decode_region(np.s_[1.2:1.5, :-1.9, 0.9:0.92], units="m"), metres, rtol=0, atol=1e-6)
+    for bad, what in [(np.s_[0:10:2, :, :], "take no step"), (np.s_[0:10, :], "must be"), ("xyz", "must be"),
+                      (((0, 1), (0, 1), (0, "2")), "finite numbers"), (((0, 1), (0, 1), (0, 1, 2)), "must be")]:
+        with pytest.raises(errors.ShapeError, match=what):
+            m.decode_region(bad)
 
 
 def test_read_codes_and_states(map_path, volume, pca64):

@@ -203,7 +203,8 @@ class Map:
 
         Args:
             region: ``((x0, x1), (y0, y1), (z0, z1))`` half-open, in voxels (default: the whole map) or, with
-                ``units="m"``, half-open bounds in metres (the voxels whose centres lie in [lo, hi)).
+                ``units="m"``, half-open bounds in metres (the voxels whose centres lie in [lo, hi)); or step-1
+                slices, ``np.s_[x0:x1, y0:y1, z0:z1]``, an open end being the map's edge.
             level: decode only the first ``level`` code elements (prefix-ordered codecs only).
             device: where to decode. ``None``: on the CPU, returning numpy. Otherwise a torch tensor on it.
             batch_blocks: about how many blocks one decode call gets (the size of the reused decode buffer).

@@ -335,6 +335,34 @@ def check_decoded(v: torch.Tensor, *, scale: float, offset: float, coords: np.nd
                       "learned state are corrupted: restore the map from a copy or re-encode it")
 
 
+def _bound_pairs(region: Any) -> list[tuple[Any, Any]]:
+    """Three ``(lo, hi)`` pairs or step-1 slices (``np.s_[0:64, :, 8:40]``; an open end is the map's edge) ->
+    ``(lo or None, hi or None)`` per axis, numbers checked; anything else is a ShapeError naming the form."""
+    form = "((x0, x1), (y0, y1), (z0, z1)) or np.s_[x0:x1, y0:y1, z0:z1]"
+    try:
+        axes = list(region)
+    except TypeError:
+        axes = []
+    pairs = []
+    for r in axes:
+        if isinstance(r, slice):
+            if r.step not in (None, 1):
+                raise ShapeError(f"region slices take no step, got {r!r}: a region is {form}")
+            pairs.append((r.start, r.stop))
+        elif isinstance(r, (str, bytes)) or not hasattr(r, "__len__") or len(r) != 2:
+            break
+        else:
+            pairs.append((r[0], r[1]))
+    if len(axes) != 3 or len(pairs) != 3:
+        raise ShapeError(f"region must be {form}, got {region!r}")
+    for lo, hi in pairs:
+        for v in (lo, hi):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating))
+                                  or not np.isfinite(v)):
+                raise ShapeError(f"region bounds must be finite numbers, got {v!r} in {region!r}")
+    return pairs
+
+
 def region_voxels(region: Region | None, units: str, shape: Sequence[int], origin: Sequence[float],
                   voxel_size: float) -> tuple[tuple[int, int], ...]:
     """Region (``units`` ``"voxels"`` or ``"m"``; None: the whole extent ``shape``) -> validated half-open voxel
@@ -345,16 +373,16 @@ def region_voxels(region: Region | None, units: str, shape: Sequence[int], origi
     """
     if region is None:
         return tuple((0, int(n)) for n in shape)
-    if len(region) != 3 or any(len(r) != 2 for r in region):
-        raise ShapeError(f"region must be ((x0, x1), (y0, y1), (z0, z1)), got {region!r}")
+    pairs = _bound_pairs(region)
     if units in ("m", "metres", "meters"):
         vs = voxel_size
         # half-open like voxel ranges: the voxels whose centre lies in [lo, hi), so that -1:1 at 2 cm is 100
         # voxels and adjacent ranges share none; 1e-9 guards against rounding at exact voxel positions
-        vox = tuple((int(np.ceil((lo - oo) / vs - 1e-9)), int(np.ceil((hi - oo) / vs - 1e-9)))
-                    for (lo, hi), oo in zip(region, origin))
+        vox = tuple((0 if lo is None else int(np.ceil((lo - oo) / vs - 1e-9)),
+                     int(n) if hi is None else int(np.ceil((hi - oo) / vs - 1e-9)))
+                    for (lo, hi), oo, n in zip(pairs, origin, shape))
     elif units in ("voxels", "vox"):
-        vox = tuple((int(lo), int(hi)) for lo, hi in region)
+        vox = tuple((0 if lo is None else int(lo), int(n) if hi is None else int(hi)) for (lo, hi), n in zip(pairs, shape))
     else:
         raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
     for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):
