@@ -29,7 +29,8 @@ import numpy as np
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-__all__ = ["surface_points", "crossing_edges", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_command",
+__all__ = ["surface_points", "crossing_edges", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_volume_map",
+           "compare_command",
            "metrics_table", "metrics_rows", "metrics_title", "metrics_sentence", "JUMP", "SLAB"]
 
 JUMP = 0.1  #: metres; neighbours that differ by this much or more are no surface (d_min -> unobserved d_max)
@@ -301,16 +302,52 @@ def compare_maps(original_map: Any, decoded_map: Any, *, level: int | None = Non
 
 
 # -------------------------------------------------------------------------------------- `sdfcodec compare`
-def compare_command(original: str, decoded: str, *, level: int | None = None, quiet: bool = False
-                    ) -> dict[str, Any]:
+def compare_volume_map(volume: Any, decoded_map: Any, *, level: int | None = None,
+                       meta: dict[str, Any] | None = None) -> SurfaceMetrics:
+    """Surface metrics of ``decoded_map`` against the dense volume it was encoded from: :func:`compare_volumes`
+    on the map's lattice (its voxel size and origin), the volume truncated to the map's truncation as the
+    writer truncated it.
+
+    Args:
+        volume: ``(X, Y, Z)`` float metres, the map's extent (``shape_voxels``).
+        decoded_map: a :class:`sdfcodec.Map`. level: decode it at this prefix level.
+        meta: what the volume's file records (``voxel_size``, ``origin``; e.g. an .npz's arrays): each must
+            agree with the map's.
+
+    Raises:
+        ShapeError: the volume is not the map's extent. InvalidValueError: a recorded voxel size or origin
+            differs from the map's. As :func:`compare_volumes` for the volume's values.
+    """
+    vs, origin = float(decoded_map.voxel_size), tuple(float(o) for o in decoded_map.origin)
+    vol = _check_volume(volume, "original")
+    if vol.shape != tuple(decoded_map.shape_voxels):
+        raise ShapeError(f"the original volume is {vol.shape} voxels, the map {tuple(decoded_map.shape_voxels)}; "
+                         "compare a map with the volume it was encoded from")
+    meta = meta or {}
+    if "voxel_size" in meta and not math.isclose(float(np.asarray(meta["voxel_size"])), vs, rel_tol=1e-6):
+        raise InvalidValueError(f"voxel sizes differ: the original records {meta['voxel_size']} m, the map {vs} m")
+    if "origin" in meta and not np.allclose(np.asarray(meta["origin"], float), origin, rtol=0, atol=1e-6 * vs):
+        raise InvalidValueError(f"origins differ: the original records {meta['origin']} m, the map {origin} m")
+    d_min, d_max = decoded_map.truncation
+    return compare_volumes(np.clip(vol, d_min, d_max), decoded_map.decode_region(level=level), vs, origin=origin)
+
+
+def compare_command(original: str, decoded: str, *, level: int | None = None, quiet: bool = False,
+                    volume: tuple[Any, dict[str, Any]] | None = None) -> dict[str, Any]:
     """The work of ``sdfcodec compare ORIGINAL DECODED``: open both maps, compare them (a progress bar on
     stderr unless ``quiet``) and return the JSON summary: the metrics of :meth:`SurfaceMetrics.to_dict`
-    (metres) plus ``original``, ``decoded``, ``level``, ``voxel_size``."""
+    (metres) plus ``original``, ``decoded``, ``level``, ``voxel_size``. ``volume``: ``(array, meta)`` when
+    ORIGINAL is a dense volume file (loaded by the caller), compared by :func:`compare_volume_map`."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from .map import open_map
 
+    if volume is not None:
+        with open_map(decoded) as b:
+            metrics = compare_volume_map(volume[0], b, level=level, meta=volume[1])
+            return {"original": str(original), "decoded": str(decoded), "level": level or b.code_size,
+                    "voxel_size": b.voxel_size, **metrics.to_dict()}
     a = open_map(original)
     try:
         b = open_map(decoded)

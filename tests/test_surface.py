@@ -274,6 +274,32 @@ def test_cli_compare_prints_the_table_and_json(border_maps):
     assert f"{1000 * expected['chamfer_l1']:.3f}" in r.stdout
 
 
+def test_cli_compare_against_the_volume_the_map_was_encoded_from(border_maps, tmp_path):
+    """An .npy/.npz ORIGINAL is the volume on DECODED's grid, truncated as the writer truncated it (the volume
+    here holds distances beyond the truncation)."""
+    a, b, origin = border_maps
+    raw = sample_volume(Scene([Box((130.4 * VS, 0.0, 16 * VS), (3 * VS, 5 * VS, 20 * VS)),
+                               Sphere((128 * VS, 16 * VS, 16 * VS), 9 * VS)]), (150, 32, 32), VS)  # untruncated
+    assert np.array_equal(np.clip(raw, *TRUNC), _border_scene())
+    # not compare_maps(a, b): the lossless map's float32 round trip moves voxels of this scene that lie exactly
+    # a jump (0.1 m) apart across it, and 88 of 2094 surface points with them
+    expected = compare_volumes(_border_scene(), b.decode_region(), VS, origin=origin).to_dict()
+    np.save(tmp_path / "v.npy", raw)
+    np.savez(tmp_path / "v.npz", tsdf=raw, voxel_size=VS, origin=np.array(origin))
+    for path in ("v.npy", "v.npz"):
+        r = CliRunner().invoke(app, ["compare", str(tmp_path / path), b.location, "--json"])
+        assert r.exit_code == 0, r.output
+        summary = json.loads(r.stdout)
+        assert {k: summary[k] for k in expected} == pytest.approx(expected, rel=1e-9)
+    np.savez(tmp_path / "o.npz", tsdf=raw, voxel_size=VS, origin=np.zeros(3))
+    for args, what in [(["o.npz"], "origins differ"), (["v.npy", "--key", "tsdf"], "--key names an array")]:
+        r = CliRunner().invoke(app, ["compare", str(tmp_path / args[0]), b.location, *args[1:]])
+        assert r.exit_code == 1 and what in r.stderr and "Traceback" not in r.output
+    np.save(tmp_path / "short.npy", raw[:100])
+    r = CliRunner().invoke(app, ["compare", str(tmp_path / "short.npy"), b.location])
+    assert r.exit_code == 1 and "(100, 32, 32) voxels, the map (150, 32, 32)" in r.stderr
+
+
 def test_cli_compare_errors_are_one_line(border_maps, tmp_path):
     a, _, _ = border_maps
     other = _write(tmp_path / "small.sdfz", _plane_z(0.1, (16, 16, 16)))

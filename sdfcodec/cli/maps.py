@@ -473,14 +473,22 @@ def verify_cmd(
 
 @app.command("compare")
 @cli
-def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="The original (lossless) map."),
+def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="The original: a lossless map, or the .npy/.npz volume DECODED was encoded from."),
                 decoded: str = typer.Argument(..., metavar="DECODED", help="The map to judge, on the same grid."),
                 level: Optional[int] = typer.Option(None, "--level", help="Decode DECODED at this prefix level."),
+                key: Optional[str] = typer.Option(None, "--key", help="Array name inside an .npz ORIGINAL."),
                 as_json: bool = typer.Option(False, "--json", help="Machine-readable output (metres).")) -> None:
-    """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md)."""
+    """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md).
+
+    A volume ORIGINAL lies on DECODED's grid (its voxel size and origin) and is truncated as the map was."""
     from ..surface import compare_command, metrics_rows, metrics_sentence, metrics_title
 
-    summary = compare_command(original, decoded, level=level, quiet=as_json)
+    volume = None
+    if key is not None and Path(original).suffix != ".npz":
+        fail(f"--key names an array of an .npz ORIGINAL; {original} is not one")
+    if Path(original).suffix in (".npy", ".npz") and Path(original).is_file():
+        volume = load_volume(Path(original), key)
+    summary = compare_command(original, decoded, level=level, quiet=as_json, volume=volume)
     if as_json:
         print_json(summary)
         return
