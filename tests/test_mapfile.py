@@ -279,7 +279,7 @@ def test_values_outside_truncation_are_clipped_with_a_warning(tmp_path, volume, 
     raw = sdfcodec.get_codec("raw")
     wild = volume.copy()
     wild[0, 0, 0], wild[1, 1, 1] = 5.0, -3.0
-    with pytest.warns(errors.SDFCodecWarning, match="2 value.* outside the truncation"):
+    with pytest.warns(errors.SDFCodecWarning, match=r"2 value.* outside the truncation.*spans \[-3, 5\] m.*--truncation -3,5"):
         with sdfcodec.create_map(tmp_path / "w.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
             m.write_volume(wild)
     dec = sdfcodec.open_map(tmp_path / "w.sdfz").decode_region()

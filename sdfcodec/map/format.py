@@ -309,8 +309,11 @@ def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | No
                                 f"voxels with d_max (e.g. np.nan_to_num(v, nan={truncation[1]}))")
     outside = int(((v < d_min) | (v > d_max)).sum())
     if outside:
-        warnings.warn(f"{outside} value(s) of {name} lie outside the truncation [{d_min}, {d_max}] m and were "
-                      "clipped to it", SDFCodecWarning, stacklevel=stacklevel)
+        lo, hi = float(v.min()), float(v.max())
+        warnings.warn(f"{outside} value(s) of {name} ({outside / v.size:.1%}) lie outside the truncation "
+                      f"[{d_min}, {d_max}] m and were clipped to it; the {name} spans [{lo:.4g}, {hi:.4g}] m: if "
+                      f"that is its truncation, give it (--truncation {lo:.4g},{hi:.4g}; truncation= in Python)",
+                      SDFCodecWarning, stacklevel=stacklevel)
         v = np.clip(v, d_min, d_max)
     return v.astype(np.float32, copy=False)
 
