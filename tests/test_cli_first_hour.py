@@ -59,6 +59,10 @@ def test_help_and_version_are_quick_and_never_import_torch():
     assert not {m for m in modules if m.split(".")[0] in ("torch", "open3d", "zarr")}, sorted(modules)[:20]
     r = sdfcodec_cli("--help", python_flags=("-X", "importtime"))
     assert r.returncode == 0 and "encode" in r.stdout and "--version" in r.stdout
+    # `python -m sdfcodec` is the command too (an environment whose scripts are not on PATH)
+    r = subprocess.run([sys.executable, "-m", "sdfcodec", "--version"], capture_output=True, text=True, timeout=120,
+                       env=_env())
+    assert r.returncode == 0 and r.stdout == f"sdfcodec {sdfcodec.__version__}\n", (r.stdout, r.stderr[-500:])
     assert not any(re.search(r"\|\s*(torch|open3d)$", line) for line in r.stderr.splitlines())
 
 
