@@ -308,6 +308,32 @@ def test_elsewhere_an_undecided_block_whose_surface_lies_off_the_plane_holds_ano
     assert not (floor & bad_own), sorted(bad_own)
 
 
+@pytest.mark.parametrize("face", [31.5, 31.8])
+def test_the_band_behind_a_wall_above_a_floor_under_it_holds_no_floor(tmp_path, face, monkeypatch):
+    """RISE: a floor (solid below z = 14.5 voxels) continuing under a thick wall (solid beyond y = ``face``), boxes
+    as a room built of solids has them, stored as fusion leaves them (unobserved deeper than |d_min| behind a
+    surface). The blocks at y = 32-47, just behind the wall's face, hold only the wall's back band, observed above
+    the floor's level: voxels near zero that the floor's plane, moved a voxel, fits. They passed for floor
+    (measured: 12-15 blocks along each wall of the rooms of docs/search/independent.py); their field rises along
+    the wall's normal, not the floor's: impure. The floor's own blocks in front of the wall are not."""
+    from sdfcodec.search import plane_check
+
+    shape = (32, 64, 32)
+    scene = Scene([Box((0.32, 0.64, 14.5 * VS - 0.5), (1.0, 1.0, 0.5)), Box((0.32, face * VS + 0.5, 0.32), (1.0, 0.5, 1.0))])
+    vol, observed = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
+    write_volume_map(tmp_path / "w.sdfz", vol, observed, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "w.sdfz")
+    coded = np.argwhere(np.ones((2, 4, 2), bool))
+    behind_wall, floor = {(i, 2, 0) for i in range(2)}, {(i, 0, 0) for i in range(2)}
+    kw = dict(behind="unobserved", weighted=True, tol=2.0)
+    plane = [(np.array([0.0, 0.0, 1.0]), 14.5 * VS)]
+    bad, _ = _impure(m, plane, coded, np.array([[0, 0, 0], [1, 0, 0]]), **kw)
+    assert behind_wall <= bad and not (floor & bad), sorted(bad)
+    monkeypatch.setattr(plane_check, "RISE_SHARE", -np.inf)  # without the rule they pass
+    bad_without, _ = _impure(m, plane, coded, np.array([[0, 0, 0], [1, 0, 0]]), **kw)
+    assert not (behind_wall & bad_without), sorted(bad_without)
+
+
 @pytest.mark.parametrize("k", [11.5, 11.9])
 def test_a_fused_style_floor_smeared_just_past_the_band_is_kept(tmp_path, k):
     """A fused-style room (nothing observed more than |d_min| behind a surface) with its floor 4.5 voxels under a
