@@ -29,8 +29,8 @@ import numpy as np
 
 from .errors import DTypeError, InvalidValueError, ShapeError
 
-__all__ = ["surface_points", "crossing_edges", "SurfaceMetrics", "compare_volumes", "compare_maps", "compare_volume_map",
-           "compare_command",
+__all__ = ["surface_points", "crossing_edges", "SurfaceMetrics", "compare_volumes", "compare_maps",
+           "compare_volume_map", "compare_command",
            "metrics_table", "metrics_rows", "metrics_title", "metrics_sentence", "JUMP", "SLAB"]
 
 JUMP = 0.1  #: metres; neighbours that differ by this much or more are no surface (d_min -> unobserved d_max)

@@ -385,7 +385,8 @@ def region_voxels(region: Region | None, units: str, shape: Sequence[int], origi
                      int(n) if hi is None else int(np.ceil((hi - oo) / vs - 1e-9)))
                     for (lo, hi), oo, n in zip(pairs, origin, shape))
     elif units in ("voxels", "vox"):
-        vox = tuple((0 if lo is None else int(lo), int(n) if hi is None else int(hi)) for (lo, hi), n in zip(pairs, shape))
+        vox = tuple((0 if lo is None else int(lo), int(n) if hi is None else int(hi))
+                    for (lo, hi), n in zip(pairs, shape))
     else:
         raise InvalidValueError(f"units must be 'voxels' or 'm', got {units!r}")
     for axis, ((lo, hi), n) in enumerate(zip(vox, shape)):

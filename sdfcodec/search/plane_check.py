@@ -66,10 +66,10 @@ SECOND_SURFACE_VOXELS = 1.5
 ABSENT_COVER = 0.5
 #: A field that holds a plane rises along its normal: a block of a map that records its observation whose decoded
 #: field, between observed neighbours near the plane, rises by under this share of what the plane's own field
-#: rises (the median over the pairs, :func:`_rise`) does not hold it. Measured: the 2-voxel band behind a wall's face, observed above a floor that
-#: continues under the wall, passed for floor (its voxels lie near zero and the floor plane, moved a voxel, fits
-#: them), 12-15 blocks along each wall of rooms of docs/search/independent.py; its field rises along the wall's
-#: normal, not the floor's.
+#: rises (the median over the pairs, :func:`_rise`) does not hold it. Measured: the 2-voxel band behind a wall's
+#: face, observed above a floor that continues under the wall, passed for floor (its voxels lie near zero and the
+#: floor plane, moved a voxel, fits them), 12-15 blocks along each wall of rooms of docs/search/independent.py;
+#: its field rises along the wall's normal, not the floor's.
 RISE_SHARE = 0.5
 #: A refitted plane whose normal turns more than this (degrees) from the chosen one keeps the chosen normal.
 PLANE_REFIT_DEG = 5.0
@@ -306,8 +306,9 @@ def _rise(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, normal: np.ndarr
     """``(n,)`` how much each block's decoded field rises along the plane's normal near it, as a share of what the
     plane's own field rises: the median, over pairs of observed voxels one step apart along the grid axis nearest
     the normal, both within a voxel beyond :data:`BAND_VOXELS` of the plane (``rel``: voxels from it; a plane
-    in a block's last layer leaves a pair only so) and neither decoded at a truncation bound, of the decoded difference (voxels), divided by that axis' component of the normal (an exact
-    plane's field: 1; a stretched one, more). NaN where under :data:`MIN_VERDICT_SURFACE` pairs: no verdict."""
+    in a block's last layer leaves a pair only so) and neither decoded at a truncation bound, of the decoded
+    difference (voxels), divided by that axis' component of the normal (an exact plane's field: 1; a stretched
+    one, more). NaN where under :data:`MIN_VERDICT_SURFACE` pairs: no verdict."""
     d_min, d_max = (t / voxel_size for t in truncation)
     a = int(np.argmax(np.abs(normal)))
     dec = (x * (d_max - d_min) + d_min).reshape(-1, BLOCK, BLOCK, BLOCK)
