@@ -77,10 +77,9 @@ def truth(d: np.ndarray, labels: np.ndarray, voxel: float, kind: str) -> tuple[n
     """``(positive, negative)`` per block of the grid (module docstring)."""
     dist, which = d.min(-1), d.argmin(-1)
     surf, near = np.abs(dist) < 0.87 * voxel, np.abs(dist) < 1.5 * voxel
-    pad = [(0, -n % 16) for n in dist.shape]
-    blocks = [split_blocks(np.pad(a, pad)).reshape(*[(n + p) // 16 for n, (_, p) in zip(dist.shape, pad)], -1)
-              for a in (surf, which, near)]
-    sb, wb, nb = blocks
+    # padding beyond the room's extent holds no surface (zeros: False, and a label nothing counts)
+    sb, wb, nb = (split_blocks(a, 0) for a in (surf, which, near))
+    sb, wb, nb = (b.reshape(*b.shape[:3], -1) for b in (sb, wb, nb))
     pos, neg = np.zeros(sb.shape[:3], bool), np.zeros(sb.shape[:3], bool)
     for idx in np.ndindex(*sb.shape[:3]):
         s = sb[idx]

@@ -263,7 +263,8 @@ class Map:
         """Encode a dense TSDF ``(X, Y, Z)`` in metres, placed at voxel ``offset`` (multiples of 16).
 
         The map's extent grows to hold it (``shape_voxels`` records the true extent; its last blocks are padded
-        by repeating the volume's last voxel layer, so no surface appears where it ends). Values outside the truncation are clipped with a warning; NaN/Inf are refused.
+        by repeating the volume's last voxel layer, so no surface appears where it ends). Values outside the
+        truncation are clipped with a warning; NaN/Inf are refused.
 
         A dask array (e.g. ``dask.array.from_zarr`` of a volume larger than memory) is encoded chunk by chunk by
         dask's scheduler, or a ``dask.distributed`` cluster if a client is active, each task writing its chunks

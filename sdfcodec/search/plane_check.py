@@ -225,15 +225,19 @@ def _beside_crossing(dec: np.ndarray, observed: np.ndarray) -> np.ndarray:
     o = observed.reshape(v.shape)
     pos = v >= 0
     out = np.zeros(v.shape, bool)
-    for ax in (1, 2, 3):
-        lo = [slice(None)] * 4
-        hi = [slice(None)] * 4
-        lo[ax], hi[ax] = slice(0, BLOCK - 1), slice(1, BLOCK)
-        lo, hi = tuple(lo), tuple(hi)
+    for axis in range(3):
+        lo, hi = _neighbours(axis)
         flip = (pos[lo] != pos[hi]) & o[lo] & o[hi]
         out[lo] |= flip
         out[hi] |= flip
     return out.reshape(len(dec), -1)
+
+
+def _neighbours(axis: int) -> tuple[tuple[slice, ...], tuple[slice, ...]]:
+    """Indices of ``(n, 16, 16, 16)`` blocks: every voxel with a neighbour one step along grid ``axis`` (0-2), and
+    that neighbour (the pairs of face neighbours along the axis)."""
+    keep = (slice(None),) * (1 + axis)
+    return keep + (slice(0, BLOCK - 1),), keep + (slice(1, BLOCK),)
 
 
 #: A block's own plane (:func:`_local_plane`) replaces the checked plane for :data:`PURITY` when its normal is
@@ -314,8 +318,7 @@ def _rise(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, normal: np.ndarr
     dec = (x * (d_max - d_min) + d_min).reshape(-1, BLOCK, BLOCK, BLOCK)
     ok = (observed.reshape(dec.shape) & (np.abs(rel).reshape(dec.shape) <= BAND_VOXELS + 1.0)
           & (dec > d_min + 0.25) & (dec < d_max - 0.25))
-    lo = (slice(None),) * (1 + a) + (slice(0, BLOCK - 1),)
-    hi = (slice(None),) * (1 + a) + (slice(1, BLOCK),)
+    lo, hi = _neighbours(a)
     step = (dec[hi] - dec[lo]) * np.sign(normal[a])
     both = ok[hi] & ok[lo]
     out = np.full(len(dec), np.nan)
