@@ -1,5 +1,5 @@
 """Measurements for docs/results.md, "Decoding in cache-sized tiles" (run: .venv/bin/python docs/tiles_measure.py
-[WORKDIR] [REPEATS]): what each part of the tiled decode is worth, every case interleaved with the roofline (numpy's
+[WORKDIR] [REPEATS] [ROWS,...]): what each part of the tiled decode is worth, every case interleaved with the roofline (numpy's
 (65536, 65) x (65, 4096) product into a preallocated output) in the same rounds (sdfcodec.bench.harness):
 
 - ``decode-tiles`` / ``decode-plain``: 8 groups of 8,192 codes in memory decoded to clipped metres into a ring of
@@ -8,7 +8,9 @@
 - ``ring-tiles`` / ``ring-plain``: ``Map.iter_decoded(copy=False)`` of the whole map with each;
 - ``region-tiles`` / ``region-plain``: ``Map.decode_region()`` of the whole map with PCA's ``decode_tiles``
   (tiles placed from cache) and with the default (each group decoded, clipped, then placed);
-- ``touch``: allocating and first touching a volume the size of the map's (what a fresh output costs alone).
+- ``touch``: allocating and first touching a volume the size of the map's (what a fresh output costs alone);
+- with a third argument, tile rows such as ``128,256,512``, instead of the above: ``ring-R`` and ``region-into-R`` for each (``TILE_ROWS``
+  set to R; ``decode_region(out=)`` into one reused, touched volume, as ``sdfcodec bench``'s ``decode-region-into``).
 
 The map: 65,536 pca-64 blocks (float32 codes, 16^3-block chunks) written as ``sdfcodec bench`` writes its own.
 Prints JSON: blocks/s (median, best) and ratios to the roofline, with the load before and after."""
@@ -22,12 +24,14 @@ import numpy as np
 import torch
 
 import sdfcodec
+import sdfcodec.tiling
 from sdfcodec.bench.codecs import roofline_fn, roofline_shapes, write_bench_map
 from sdfcodec.bench.harness import interleave, load
 from sdfcodec.codec import Codec
 
 work = Path(sys.argv[1] if len(sys.argv) > 1 else tempfile.mkdtemp(prefix="tiles-measure-"))
 repeats = int(sys.argv[2]) if len(sys.argv) > 2 else 5
+rows_swept = [int(r) for r in sys.argv[3].split(",")] if len(sys.argv) > 3 else []
 work.mkdir(parents=True, exist_ok=True)
 N = 65536
 path = work / "tiles.sdfz"
@@ -73,6 +77,24 @@ cases = {"roofline": roofline_fn(roofline_shapes(codec, "decode"), N),
          "ring-tiles": lambda: read("decode_tiles"), "ring-plain": lambda: read(),
          "region-tiles": lambda: region("decode_tiles"), "region-plain": lambda: region(),
          "touch": lambda: np.empty(shape, np.float32).fill(0)}
+if rows_swept:
+    volume = np.ones(shape, np.float32)
+
+    def rows_case(rows, run):
+        def case():
+            use("decode_tiles")
+            sdfcodec.tiling.TILE_ROWS = rows
+            try:
+                run()
+            finally:
+                sdfcodec.tiling.TILE_ROWS = default_rows
+        return case
+
+    default_rows = sdfcodec.tiling.TILE_ROWS
+    cases = {"roofline": cases["roofline"]}  # the sweep alone: fresh volumes' page faults disturb every round
+    for r in rows_swept:
+        cases[f"ring-{r}"] = rows_case(r, read)
+        cases[f"region-into-{r}"] = rows_case(r, lambda: m.decode_region(out=volume))
 load0 = load()
 timed = interleave(cases, repeats=repeats, min_time=0.2)
 load1 = load()

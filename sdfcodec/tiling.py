@@ -23,10 +23,15 @@ import numpy as np
 
 __all__ = ["TILE_ROWS", "run_tiles", "scratch"]
 
-#: Rows per tile: 128 decoded 16^3 blocks are 2 MiB, one core's L2 here (2 MiB per core). Idle, 2 threads,
-#: 65,536 pca-64 blocks decoded and clipped: 64-256 rows within 3 % of each other, 32 rows 12 % and 16 rows 30 %
-#: slower (BLAS packs its operand once per call); decode_region's copies favour longer tiles (fewer runs cut).
-TILE_ROWS = 128
+#: Rows per tile: 512 decoded 16^3 blocks are 8 MiB, twice this machine's L2 (2 MiB per core) and a sliver of its
+#: L3 (480 MiB shared). What sets it is not L2 but the BLAS call: each one packs the (k + 1, 4096) decoder again,
+#: so short tiles pay that per few rows. Interleaved with the roofline, 65,536 pca-64 blocks, load 1.5, ratio of
+#: medians for 256 / 512 / 1024 rows: iter_decoded(copy=False) 0.65 / 0.74 / 0.72, decode_region into a reused
+#: volume 0.54 / 0.57 / 0.58 (128 rows: 0.66 and 0.49; docs/results.md, "Decoding in cache-sized tiles").
+TILE_ROWS = 512
+#: The fewest rows a tile is cut to so that a short batch reaches every core (below it the calls cost more than
+#: the threads win: 16-row tiles decoded 30 % slower than 128-row ones).
+_MIN_ROWS = 64
 
 _lock = threading.Lock()
 _state: dict = {"pool": None, "workers": 0, "held": 0, "before": None, "ctl": None}
@@ -85,9 +90,11 @@ def run_tiles(n: int, work: Callable[[int, int], None], *, rows: int | None = No
     raised once all threads have stopped."""
     if n <= 0:
         return
-    rows = TILE_ROWS if rows is None else int(rows)
-    tiles = -(-n // rows)
     with _one_blas_thread() as threads:
+        rows = TILE_ROWS if rows is None else int(rows)
+        # a short batch is still shared by every core: tiles of at least _MIN_ROWS rows, as many as the threads
+        rows = max(1, min(rows, max(_MIN_ROWS, -(-n // int(threads)))))
+        tiles = -(-n // rows)
         workers = max(1, min(int(threads), tiles))
         # tiles are taken in turn from one counter (next() on it is atomic under the GIL), not cut into fixed
         # shares: on a loaded machine a thread the scheduler holds back takes fewer, and no thread waits long

@@ -407,8 +407,10 @@ class PCACodec(Codec):
                      each: Callable[[int, int, torch.Tensor], None] | None = None, out: torch.Tensor | None = None
                      ) -> None:
         # on the CPU: cache-sized tiles on every core, each a one-threaded product (bias row folded in, as in
-        # decode_into), clipped and handed to `each` while in that core's L2. One product with all BLAS threads
-        # and a clip pass after it read the 16 KiB per block back from memory (measured: docs/results.md)
+        # decode_into) into the thread's own scratch tile, clipped from there into `out` (the clip's write is the
+        # only write to memory; the product's stays in that core's cache) and handed to `each`. One product with
+        # all BLAS threads and a clip pass after it read the 16 KiB per block back from memory, and a product
+        # straight into `out` wrote it there twice (measured: docs/results.md)
         if codes.device.type != "cpu":
             super().decode_tiles(codes, scale, offset, clip, each, out)
             return
@@ -422,9 +424,10 @@ class PCACodec(Codec):
             c1 = scratch("pca-codes", (b - a, k + 1))
             c1[:, 0] = 1.0
             c1[:, 1:] = src[a:b]
-            tile = dst[a:b] if dst is not None else scratch("pca-tile", (b - a, _N))
-            np.matmul(c1, dec, out=tile)
-            np.clip(tile, lo, hi, out=tile)
+            made = scratch("pca-tile", (b - a, _N))
+            np.matmul(c1, dec, out=made)
+            tile = dst[a:b] if dst is not None else made
+            np.clip(made, lo, hi, out=tile)
             if each is not None:
                 each(a, b, torch.from_numpy(tile).view(b - a, 16, 16, 16))
 
