@@ -45,6 +45,21 @@ def test_run_tiles_covers_every_row_once_across_threads():
     assert _blas_threads() == before
 
 
+def test_a_batch_shorter_than_two_tiles_still_reaches_every_core(monkeypatch):
+    monkeypatch.setattr(tiling, "TILE_ROWS", 512)
+    for n, want in ((300, [150, 150]), (100, [64, 36]), (40, [40])):  # one tile per core, none under 64 rows
+        sizes, names = [], set()
+        with ThreadpoolController().limit(limits=2, user_api="blas"):
+
+            def work(a, b):
+                sizes.append(b - a)
+                names.add(threading.current_thread().name)
+                time.sleep(0.01)  # the GIL let go: the second thread takes the second tile
+
+            tiling.run_tiles(n, work)
+        assert sorted(sizes, reverse=True) == want and len(names) == len(want)
+
+
 def test_run_tiles_raises_a_workers_error_after_all_stopped():
     done = []
 
