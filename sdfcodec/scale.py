@@ -23,7 +23,6 @@ import mmap
 import os
 import threading
 import uuid
-import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -34,10 +33,10 @@ import zarr
 from ._validate import BLOCK
 from .blocks import normalise, split_blocks
 from .codec import Codec
-from .errors import DTypeError, InvalidValueError, SDFCodecWarning, ShapeError
+from .errors import DTypeError, InvalidValueError, ShapeError
 from .header import BlockState
 from .map.codec_state import state_digest
-from .map.format import check_codes, free_space
+from .map.format import check_codes, free_space, warn_clipped
 from .map.observed import encode_blocks
 from .map.reader import MapReader, open_reader
 from .map.stores import CowLocalStore
@@ -235,7 +234,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
                   surface_weight: float, quant: Any = None) -> tuple[tuple, np.ndarray, int]:
     """One dask task: encode the blocks of one volume chunk (all inside one chunk of the code array, whose
     block box is ``cbox``) and write that chunk of codes into the map's temporary directory ``tmp``.
-    Returns ``(b0, block states of the chunk's blocks, number of values clipped)``."""
+    Returns ``(b0, block states of the chunk's blocks, number of values clipped, (min, max) of the chunk)``."""
     d_min, d_max = truncation
     v = np.asarray(block)
     if v.dtype.kind != "f":
@@ -247,6 +246,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
                                 f"{tuple(int(b) * BLOCK for b in b0)}; replace unobserved voxels with d_max "
                                 f"(e.g. np.nan_to_num(v, nan={d_max}))")
     clipped = int(((v < d_min) | (v > d_max)).sum())
+    span = (float(v.min()), float(v.max())) if v.size else (d_min, d_max)
     if clipped:
         v = np.clip(v, d_min, d_max)
     blocks = split_blocks(v)
@@ -263,7 +263,7 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
         box = tuple(slice(int(a), int(b)) for a, b in cbox)
         local = np.argwhere(states == BlockState.CODED) + np.asarray(b0) - np.array([a for a, _ in cbox])
         store_code_chunk(arr, scale_arr, box, local, codes, had, quant)
-    return b0, states, clipped
+    return b0, states, clipped, span
 
 
 def _encode_chunk_or_error(*args: Any) -> tuple:
@@ -317,14 +317,12 @@ def write_volume_dask(m: Any, volume: Any, *, offset: Sequence[int] = (0, 0, 0),
     failed = next((r[0] for r in results if len(r) == 1), None)
     if failed is not None:
         raise failed
-    clipped = 0
-    for b0, states, n in results:
+    clipped, lo, hi = 0, np.inf, -np.inf
+    for b0, states, n, (c_lo, c_hi) in results:
         w.state[tuple(slice(a, a + s) for a, s in zip(b0, states.shape))] = states
-        clipped += n
-    if clipped:
-        d_min, d_max = truncation
-        warnings.warn(f"{clipped} value(s) of volume lie outside the truncation [{d_min}, {d_max}] m and were "
-                      "clipped to it", SDFCodecWarning, stacklevel=3)
+        clipped, lo, hi = clipped + n, min(lo, c_lo), max(hi, c_hi)
+    if clipped:  # one warning for the whole volume, as a plain write gives (check_volume)
+        warn_clipped(clipped, int(np.prod(vol.shape)), (lo, hi), truncation, stacklevel=3)
 
 
 def encode_volume_dask(volume: Any, path: str | os.PathLike, codec: Codec, *, voxel_size: float,

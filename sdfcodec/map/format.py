@@ -27,7 +27,8 @@ torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a
 
 __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors",
-           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume", "check_codes",
+           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume",
+           "warn_clipped", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
            "QUANT_CLEVEL", "mask_compressors", "field_compression_of"]
 
@@ -309,13 +310,21 @@ def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | No
                                 f"voxels with d_max (e.g. np.nan_to_num(v, nan={truncation[1]}))")
     outside = int(((v < d_min) | (v > d_max)).sum())
     if outside:
-        lo, hi = float(v.min()), float(v.max())
-        warnings.warn(f"{outside} value(s) of {name} ({outside / v.size:.1%}) lie outside the truncation "
-                      f"[{d_min}, {d_max}] m and were clipped to it; the {name} spans [{lo:.4g}, {hi:.4g}] m: if "
-                      f"that is its truncation, give it (--truncation {lo:.4g},{hi:.4g}; truncation= in Python)",
-                      SDFCodecWarning, stacklevel=stacklevel)
+        warn_clipped(outside, v.size, (float(v.min()), float(v.max())), truncation, name, stacklevel=stacklevel)
         v = np.clip(v, d_min, d_max)
     return v.astype(np.float32, copy=False)
+
+
+def warn_clipped(outside: int, size: int, span: tuple[float, float], truncation: tuple[float, float],
+                 name: str = "volume", *, stacklevel: int = 3) -> None:
+    """The warning of a write that clipped ``outside`` of ``size`` values of ``name`` to ``truncation``: how many,
+    their share, the span the values had and the flag that keeps them (``stacklevel`` counted from the caller,
+    as for :func:`warnings.warn`)."""
+    (d_min, d_max), (lo, hi) = truncation, span
+    warnings.warn(f"{outside} value(s) of {name} ({outside / max(size, 1):.1%}) lie outside the truncation "
+                  f"[{d_min}, {d_max}] m and were clipped to it; the {name} spans [{lo:.4g}, {hi:.4g}] m: if "
+                  f"that is its truncation, give it (--truncation {lo:.4g},{hi:.4g}; truncation= in Python)",
+                  SDFCodecWarning, stacklevel=stacklevel + 1)
 
 
 def check_decoded(v: torch.Tensor, *, scale: float, offset: float, coords: np.ndarray | None, location: str,
