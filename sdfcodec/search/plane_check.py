@@ -87,6 +87,12 @@ def _decode(codec: Any, codes: np.ndarray) -> np.ndarray:
     return np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
 
 
+def _voxels(x: np.ndarray, *, voxel_size: float, truncation: tuple[float, float]) -> np.ndarray:
+    """Normalised decodes ``x`` -> decoded distances in voxels, positive on the free side (same shape)."""
+    d_min, d_max = truncation
+    return (x * (d_max - d_min) + d_min) / voxel_size
+
+
 def _ideal(dist: np.ndarray, deltas: np.ndarray, stretches: np.ndarray, voxel_size: float,
            truncation: tuple[float, float], behind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised plane fields ``(n, len(deltas) * len(stretches), 4096)`` of blocks whose voxels lie ``dist``
@@ -171,8 +177,7 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     seen = ((np.abs(dist) <= 1.0) & observed).sum(axis=1)
     # the block's own surface voxels (decoded within a voxel of zero): on the plane, or on its free side beyond
     # the compared band (another surface in the block: furniture, a wall)
-    d_min, d_max = truncation
-    dec = (x * (d_max - d_min) + d_min) / voxel_size  # decoded distance, voxels
+    dec = _voxels(x, voxel_size=voxel_size, truncation=truncation)
     surf = (np.abs(dec) <= 1.0) & observed
     near2 = (np.abs(dec) <= SECOND_SURFACE_VOXELS) & observed
     if crossings:  # another surface is where the field crosses zero, not where it lies near zero...
@@ -315,7 +320,7 @@ def _rise(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, normal: np.ndarr
     one, more). NaN where under :data:`MIN_VERDICT_SURFACE` pairs: no verdict."""
     d_min, d_max = (t / voxel_size for t in truncation)
     a = int(np.argmax(np.abs(normal)))
-    dec = (x * (d_max - d_min) + d_min).reshape(-1, BLOCK, BLOCK, BLOCK)
+    dec = _voxels(x, voxel_size=voxel_size, truncation=truncation).reshape(-1, BLOCK, BLOCK, BLOCK)
     ok = (observed.reshape(dec.shape) & (np.abs(rel).reshape(dec.shape) <= BAND_VOXELS + 1.0)
           & (dec > d_min + 0.25) & (dec < d_max - 0.25))
     lo, hi = _neighbours(a)
@@ -333,9 +338,8 @@ def _plane_cover(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, *, voxel_
     within ``within`` voxels of zero, or, in an unobserved-behind field, behind the plane and negative (there
     nothing but a surface in front makes a voxel negative; the band's jump to d_max smears it far from zero): the
     plane is in the block across its section, not ending inside it."""
-    d_min, d_max = truncation
     near = observed & (np.abs(rel) <= 1.0)
-    dec = (x * (d_max - d_min) + d_min) / voxel_size
+    dec = _voxels(x, voxel_size=voxel_size, truncation=truncation)
     shown = np.abs(dec) <= within
     if behind == "unobserved":
         shown |= (rel < 0) & (dec < 0)
