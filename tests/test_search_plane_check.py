@@ -356,3 +356,30 @@ def test_a_fused_style_floor_smeared_just_past_the_band_is_kept(tmp_path, k):
     idx, cnt = np.unique(np.argwhere(d <= 0.6 * VS) // 16, axis=0, return_counts=True)
     clean = {tuple(int(v) for v in r) for r, c in zip(idx, cnt) if c >= 128 and r[0] >= 2}
     assert len(clean) == 24 and clean <= got and len(got) <= len(clean) + 2, (len(clean), len(got & clean), len(got))
+
+
+@pytest.mark.parametrize("h", [12.5, 14.5])
+def test_the_foot_of_a_box_on_a_floor_just_under_a_block_face_is_another_surface(tmp_path, h, monkeypatch):
+    """FEET: a fused-style floor (nothing observed deeper than |d_min| behind a surface, no observation recorded)
+    ``16 - h`` voxels under the top face of its blocks, a box standing on it whose side crosses the blocks of
+    x = 32-47 at x = 40.5 voxels. Those blocks hold the floor and the side's foot, 1.5-3.5 voxels tall: another
+    surface (10-33 % of the surface voxels of such blocks of fused-style tilted rooms, seeds 8201-8203, which
+    passed for floor). pca-64 smears the foot into the floor's field, so the block's own decode shows none of it;
+    the block above shows the side crossing their shared face. Without the rule the foot passes."""
+    from sdfcodec.search import plane_check
+
+    shape = (64, 64, 48)
+    scene = Scene([Box((0.64, 0.64, h * VS - 0.5), (1.0, 1.0, 0.5)),
+                   Box((40.5 * VS + 0.5, 0.64, 0.4), (0.5, 1.0, 0.4))])
+    vol, _ = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
+    write_volume_map(tmp_path / "f.sdfz", vol, None, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "f.sdfz")
+    coded = np.argwhere(np.ones((4, 4, 3), bool))
+    plane = [(np.array([0.0, 0.0, 1.0]), h * VS)]
+    clean, foot = {(i, j, 0) for i in range(2) for j in range(4)}, {(2, j, 0) for j in range(4)}
+    kw = dict(behind="unobserved", weighted=False, tol=2.0)
+    bad, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
+    assert foot <= bad and not (clean & bad), sorted(bad)
+    monkeypatch.setattr(plane_check, "_feet", lambda x_next, *a, **k: np.zeros(len(x_next), np.int64))
+    bad_without, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
+    assert not (foot & bad_without), sorted(bad_without)
