@@ -5,9 +5,11 @@ A decode into memory costs one pass over its output when each piece of work on a
 it, the truncation to ``[d_min, d_max]``, the copy to its place in a volume) happens while the block is still in
 the core's cache. :func:`run_tiles` cuts rows ``[0, n)`` into tiles of :data:`TILE_ROWS` rows that one thread
 per core takes in turn; each runs a one-threaded BLAS on its tile (OpenBLAS's threads are held at 1 for the
-call), so the product, the clip and the placing of a tile all see the same core's L2. The work function releases
-the GIL in its numpy calls (matmul, clip, copies), so Python threads run in parallel. What it is worth on 2
-cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles".
+call), so the product, the clip and the placing of a tile all see the same core's cache (a tile of
+:data:`TILE_ROWS` is larger than this machine's L2 and a sliver of its L3: the BLAS call's own cost sets the size).
+The work function releases the GIL in its numpy calls (matmul, clip, copies), so Python threads run in parallel.
+What it is worth on 2 cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles"
+and "Tiles of 512 rows".
 """
 
 from __future__ import annotations
