@@ -383,3 +383,28 @@ def test_the_foot_of_a_box_on_a_floor_just_under_a_block_face_is_another_surface
     monkeypatch.setattr(plane_check, "_feet", lambda x_next, *a, **k: np.zeros(len(x_next), np.int64))
     bad_without, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
     assert not (foot & bad_without), sorted(bad_without)
+
+
+@pytest.mark.parametrize("h", [33.5, 34.5])
+def test_the_foot_rule_holds_upside_down_for_a_ceiling(tmp_path, monkeypatch, h):
+    """FEET, mirrored: a fused-style ceiling (solid above z = ``h`` voxels, 1.5-2.5 voxels over the bottom face of
+    its blocks at z = 32) with a box hanging from it whose side crosses the blocks of x = 32-47: those blocks hold
+    the ceiling and the side's top, which the neighbour below shows crossing their shared face (the neighbour's
+    distances to the plane grow towards the free side whichever way the normal points along the axis)."""
+    from sdfcodec.search import plane_check
+
+    shape = (64, 64, 48)
+    scene = Scene([Box((0.64, 0.64, h * VS + 0.5), (1.0, 1.0, 0.5)),
+                   Box((40.5 * VS + 0.5, 0.64, h * VS - 0.3), (0.5, 1.0, 0.4))])
+    vol, _ = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
+    write_volume_map(tmp_path / "c.sdfz", vol, None, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "c.sdfz")
+    coded = np.argwhere(np.ones((4, 4, 3), bool))
+    plane = [(np.array([0.0, 0.0, -1.0]), -h * VS)]
+    clean, foot = {(i, j, 2) for i in range(2) for j in range(4)}, {(2, j, 2) for j in range(4)}
+    kw = dict(behind="unobserved", weighted=False, tol=2.0)
+    bad, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
+    assert foot <= bad and not (clean & bad), sorted(bad)
+    monkeypatch.setattr(plane_check, "_feet", lambda x_next, *a, **k: np.zeros(len(x_next), np.int64))
+    bad_without, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
+    assert not (foot & bad_without), sorted(bad_without)

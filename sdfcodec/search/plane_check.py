@@ -258,8 +258,9 @@ def _feet(x_next: np.ndarray, rel: np.ndarray, normal: np.ndarray, *, voxel_size
     r = rel.reshape(-1, BLOCK, BLOCK, BLOCK)
     face = [slice(None)] * 4
     face[1 + a] = 0 if up else BLOCK - 1  # the neighbour's layer against the block
-    # the neighbour's voxels lie a block further along the axis: their distances to the plane, one block on
-    r_next = r[tuple(face[:1 + a] + [BLOCK - 1 if up else 0] + face[2 + a:])] + abs(normal[a]) * (1 if up else -1)
+    # the neighbour's face layer lies one voxel beyond the block's own last layer on the free side: its distances
+    # to the plane are those of that layer plus one step towards the free side, |n_a| (either way along the axis)
+    r_next = r[tuple(face[:1 + a] + [BLOCK - 1 if up else 0] + face[2 + a:])] + abs(normal[a])
     d_face = dec[tuple(face)]
     other = ((np.abs(d_face) <= 1.0) & (r_next > BAND_VOXELS)
              & ~((r_next <= BAND_VOXELS + 0.5) & (r_next - d_face <= 1.0)))
