@@ -358,6 +358,25 @@ def test_a_fused_style_floor_smeared_just_past_the_band_is_kept(tmp_path, k):
     assert len(clean) == 24 and clean <= got and len(got) <= len(clean) + 2, (len(clean), len(got & clean), len(got))
 
 
+def _check_feet(path, scene, plane, layer, monkeypatch):
+    """The feet rule on a fused-style scene of 4 x 4 x 3 blocks with no observation recorded, checked against
+    ``plane``: the blocks of x = 32-47 in block ``layer`` (the side's foot) are impure, those of x = 0-31 (clean)
+    are not; without the rule the foot passes."""
+    from sdfcodec.search import plane_check
+
+    vol, _ = fused_like(sample_volume(scene, (64, 64, 48), VS, truncation=TRUNC))
+    write_volume_map(path, vol, None, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(path)
+    coded = np.argwhere(np.ones((4, 4, 3), bool))
+    clean, foot = {(i, j, layer) for i in range(2) for j in range(4)}, {(2, j, layer) for j in range(4)}
+    kw = dict(behind="unobserved", weighted=False, tol=2.0)
+    bad, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
+    assert foot <= bad and not (clean & bad), sorted(bad)
+    monkeypatch.setattr(plane_check, "_feet", lambda x_next, *a, **k: np.zeros(len(x_next), np.int64))
+    bad_without, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
+    assert not (foot & bad_without), sorted(bad_without)
+
+
 @pytest.mark.parametrize("h", [12.5, 14.5])
 def test_the_foot_of_a_box_on_a_floor_just_under_a_block_face_is_another_surface(tmp_path, h, monkeypatch):
     """FEET: a fused-style floor (nothing observed deeper than |d_min| behind a surface, no observation recorded)
@@ -366,23 +385,9 @@ def test_the_foot_of_a_box_on_a_floor_just_under_a_block_face_is_another_surface
     surface (10-33 % of the surface voxels of such blocks of fused-style tilted rooms, seeds 8201-8203, which
     passed for floor). pca-64 smears the foot into the floor's field, so the block's own decode shows none of it;
     the block above shows the side crossing their shared face. Without the rule the foot passes."""
-    from sdfcodec.search import plane_check
-
-    shape = (64, 64, 48)
     scene = Scene([Box((0.64, 0.64, h * VS - 0.5), (1.0, 1.0, 0.5)),
                    Box((40.5 * VS + 0.5, 0.64, 0.4), (0.5, 1.0, 0.4))])
-    vol, _ = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
-    write_volume_map(tmp_path / "f.sdfz", vol, None, pretrained_codec("pca", 64))
-    m = sdfcodec.open_map(tmp_path / "f.sdfz")
-    coded = np.argwhere(np.ones((4, 4, 3), bool))
-    plane = [(np.array([0.0, 0.0, 1.0]), h * VS)]
-    clean, foot = {(i, j, 0) for i in range(2) for j in range(4)}, {(2, j, 0) for j in range(4)}
-    kw = dict(behind="unobserved", weighted=False, tol=2.0)
-    bad, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
-    assert foot <= bad and not (clean & bad), sorted(bad)
-    monkeypatch.setattr(plane_check, "_feet", lambda x_next, *a, **k: np.zeros(len(x_next), np.int64))
-    bad_without, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
-    assert not (foot & bad_without), sorted(bad_without)
+    _check_feet(tmp_path / "f.sdfz", scene, [(np.array([0.0, 0.0, 1.0]), h * VS)], 0, monkeypatch)
 
 
 @pytest.mark.parametrize("h", [33.5, 34.5])
@@ -391,20 +396,6 @@ def test_the_foot_rule_holds_upside_down_for_a_ceiling(tmp_path, monkeypatch, h)
     its blocks at z = 32) with a box hanging from it whose side crosses the blocks of x = 32-47: those blocks hold
     the ceiling and the side's top, which the neighbour below shows crossing their shared face (the neighbour's
     distances to the plane grow towards the free side whichever way the normal points along the axis)."""
-    from sdfcodec.search import plane_check
-
-    shape = (64, 64, 48)
     scene = Scene([Box((0.64, 0.64, h * VS + 0.5), (1.0, 1.0, 0.5)),
                    Box((40.5 * VS + 0.5, 0.64, h * VS - 0.3), (0.5, 1.0, 0.4))])
-    vol, _ = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
-    write_volume_map(tmp_path / "c.sdfz", vol, None, pretrained_codec("pca", 64))
-    m = sdfcodec.open_map(tmp_path / "c.sdfz")
-    coded = np.argwhere(np.ones((4, 4, 3), bool))
-    plane = [(np.array([0.0, 0.0, -1.0]), -h * VS)]
-    clean, foot = {(i, j, 2) for i in range(2) for j in range(4)}, {(2, j, 2) for j in range(4)}
-    kw = dict(behind="unobserved", weighted=False, tol=2.0)
-    bad, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
-    assert foot <= bad and not (clean & bad), sorted(bad)
-    monkeypatch.setattr(plane_check, "_feet", lambda x_next, *a, **k: np.zeros(len(x_next), np.int64))
-    bad_without, _ = _impure(m, plane, coded, np.array(sorted(clean)), **kw)
-    assert not (foot & bad_without), sorted(bad_without)
+    _check_feet(tmp_path / "c.sdfz", scene, [(np.array([0.0, 0.0, -1.0]), -h * VS)], 2, monkeypatch)
