@@ -1,6 +1,7 @@
 """Measurements for docs/results.md, "Decoding in cache-sized tiles" (run: .venv/bin/python docs/tiles_measure.py
-[WORKDIR] [REPEATS] [ROWS,...]): what each part of the tiled decode is worth, every case interleaved with the roofline (numpy's
-(65536, 65) x (65, 4096) product into a preallocated output) in the same rounds (sdfcodec.bench.harness):
+[WORKDIR] [REPEATS] [ROWS,...]): what each part of the tiled decode is worth, every case interleaved with the
+roofline (numpy's (65536, 65) x (65, 4096) product into a preallocated output) in the same rounds
+(sdfcodec.bench.harness):
 
 - ``decode-tiles`` / ``decode-plain``: 8 groups of 8,192 codes in memory decoded to clipped metres into a ring of
   two touched buffers, through PCA's ``decode_tiles`` or the base class's (one product with all BLAS threads,
@@ -9,8 +10,9 @@
 - ``region-tiles`` / ``region-plain``: ``Map.decode_region()`` of the whole map with PCA's ``decode_tiles``
   (tiles placed from cache) and with the default (each group decoded, clipped, then placed);
 - ``touch``: allocating and first touching a volume the size of the map's (what a fresh output costs alone);
-- with a third argument, tile rows such as ``128,256,512``, instead of the above: ``ring-R`` and ``region-into-R`` for each (``TILE_ROWS``
-  set to R; ``decode_region(out=)`` into one reused, touched volume, as ``sdfcodec bench``'s ``decode-region-into``).
+- with a third argument, tile rows such as ``128,256,512``, instead of the above: ``ring-R`` and
+  ``region-into-R`` for each (``TILE_ROWS`` set to R; ``decode_region(out=)`` into one reused, touched volume,
+  as ``sdfcodec bench``'s ``decode-region-into``).
 
 The map: 65,536 pca-64 blocks (float32 codes, 16^3-block chunks) written as ``sdfcodec bench`` writes its own.
 Prints JSON: blocks/s (median, best) and ratios to the roofline, with the load before and after."""

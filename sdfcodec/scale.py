@@ -231,10 +231,11 @@ _WORKER_CODECS: dict[str, Codec] = {}
 
 def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple, had: bool,
                   truncation: tuple[float, float], code_dtype: str, device: str, voxel_size: float,
-                  surface_weight: float, quant: Any = None) -> tuple[tuple, np.ndarray, int]:
+                  surface_weight: float, quant: Any = None) -> tuple[tuple, np.ndarray, int, tuple | None]:
     """One dask task: encode the blocks of one volume chunk (all inside one chunk of the code array, whose
     block box is ``cbox``) and write that chunk of codes into the map's temporary directory ``tmp``.
-    Returns ``(b0, block states of the chunk's blocks, number of values clipped, (min, max) of the chunk)``."""
+    Returns ``(b0, block states of the chunk's blocks, number of values clipped, (min, max) of the chunk or None
+    when nothing was clipped)``."""
     d_min, d_max = truncation
     v = np.asarray(block)
     if v.dtype.kind != "f":
@@ -246,8 +247,9 @@ def _encode_chunk(block: Any, spec: _CodecSpec, tmp: str, b0: tuple, cbox: tuple
                                 f"{tuple(int(b) * BLOCK for b in b0)}; replace unobserved voxels with d_max "
                                 f"(e.g. np.nan_to_num(v, nan={d_max}))")
     clipped = int(((v < d_min) | (v > d_max)).sum())
-    span = (float(v.min()), float(v.max())) if v.size else (d_min, d_max)
-    if clipped:
+    span = None
+    if clipped:  # the span only for the warning: no extra passes over a chunk that was in range
+        span = (float(v.min()), float(v.max()))
         v = np.clip(v, d_min, d_max)
     blocks = split_blocks(v)
     gb = blocks.shape[:3]
@@ -317,11 +319,12 @@ def write_volume_dask(m: Any, volume: Any, *, offset: Sequence[int] = (0, 0, 0),
     failed = next((r[0] for r in results if len(r) == 1), None)
     if failed is not None:
         raise failed
-    clipped, lo, hi = 0, np.inf, -np.inf
-    for b0, states, n, (c_lo, c_hi) in results:
+    for b0, states, _, _ in results:
         w.state[tuple(slice(a, a + s) for a, s in zip(b0, states.shape))] = states
-        clipped, lo, hi = clipped + n, min(lo, c_lo), max(hi, c_hi)
-    if clipped:  # one warning for the whole volume, as a plain write gives (check_volume)
+    spans = [span for *_, span in results if span is not None]
+    if spans:  # one warning for the whole volume, as a plain write gives (check_volume)
+        clipped = sum(n for _, _, n, _ in results)
+        lo, hi = min(s[0] for s in spans), max(s[1] for s in spans)
         warn_clipped(clipped, int(np.prod(vol.shape)), (lo, hi), truncation, stacklevel=3)
 
 

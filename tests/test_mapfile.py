@@ -284,11 +284,12 @@ def test_values_outside_truncation_are_clipped_with_a_warning(tmp_path, volume, 
         import dask.array as da
 
         wild = da.from_array(wild, chunks=32)
-    with pytest.warns(errors.SDFCodecWarning,
-                      match=r"^2 value.* \(0\.0%\) lie outside the truncation.*spans \[-3, 5\] m.*--truncation -3,5") as got:
+    want = r"^2 value.* \(0\.0%\) lie outside the truncation.*spans \[-3, 5\] m.*--truncation -3,5"
+    with pytest.warns(errors.SDFCodecWarning, match=want) as got:
         with sdfcodec.create_map(tmp_path / "w.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
             m.write_volume(wild)
-    assert [w.filename for w in got if issubclass(w.category, errors.SDFCodecWarning)] == [__file__]  # the caller's line
+    # attributed to the caller's line
+    assert [w.filename for w in got if issubclass(w.category, errors.SDFCodecWarning)] == [__file__]
     dec = sdfcodec.open_map(tmp_path / "w.sdfz").decode_region()
     assert dec[0, 0, 0] == pytest.approx(TRUNC[1]) and dec[1, 1, 1] == pytest.approx(TRUNC[0])
 

@@ -319,7 +319,8 @@ def test_the_band_behind_a_wall_above_a_floor_under_it_holds_no_floor(tmp_path, 
     from sdfcodec.search import plane_check
 
     shape = (32, 64, 32)
-    scene = Scene([Box((0.32, 0.64, 14.5 * VS - 0.5), (1.0, 1.0, 0.5)), Box((0.32, face * VS + 0.5, 0.32), (1.0, 0.5, 1.0))])
+    scene = Scene([Box((0.32, 0.64, 14.5 * VS - 0.5), (1.0, 1.0, 0.5)),
+                   Box((0.32, face * VS + 0.5, 0.32), (1.0, 0.5, 1.0))])
     vol, observed = fused_like(sample_volume(scene, shape, VS, truncation=TRUNC))
     write_volume_map(tmp_path / "w.sdfz", vol, observed, pretrained_codec("pca", 64))
     m = sdfcodec.open_map(tmp_path / "w.sdfz")

@@ -23,8 +23,9 @@ Maps that record their observation are only pruned by the check (:func:`check_pl
 blocks holding the plane *and* something else (the foot of a table on the floor, a wall's
 edge), which lie close enough to some lattice plane to pass the code-space score but not to the plane the
 map holds; where the other surface is a sliver a codec smeared into the plane's field (a cabinet's side a voxel
-or two tall between a floor and the block's top face), the neighbour beyond that face shows it (:func:`_feet`). What it adds (maps without an observation record): blocks of the plane that scored poorly against
-the lattice (a tilted plane between its directions, a plane near a block's face) but agree with the plane.
+or two tall between a floor and the block's top face), the neighbour beyond that face shows it (:func:`_feet`).
+What it adds (maps without an observation record): blocks of the plane that scored poorly against the lattice
+(a tilted plane between its directions, a plane near a block's face) but agree with the plane.
 """
 
 from __future__ import annotations
@@ -268,24 +269,18 @@ def _feet(x_next: np.ndarray, rel: np.ndarray, normal: np.ndarray, *, voxel_size
     return (other * column).sum(axis=(1, 2))
 
 
-def _next_blocks(view: Any, c: np.ndarray, normal: np.ndarray, coded_keys: np.ndarray, codes_of: Any
-                 ) -> np.ndarray:
+def _next_blocks(codec: Any, c: np.ndarray, normal: np.ndarray, is_coded: np.ndarray, codes_of: Any) -> np.ndarray:
     """For blocks ``c`` ``(n, 3)``: the normalised decodes ``(n, 4096)`` of their neighbours one block along the
     grid axis nearest ``normal``, towards its free side; free space (1.0) where that neighbour is not coded
-    (``coded_keys``: the sorted flat indices of the coded blocks) or outside the grid."""
+    (``is_coded``: the grid's blocks, bool) or outside the grid."""
     x = np.ones((len(c), BLOCK ** 3), np.float32)
-    if not len(coded_keys):
-        return x
     a = int(np.argmax(np.abs(normal)))
     nb = c.copy()
     nb[:, a] += 1 if normal[a] > 0 else -1
-    grid = np.asarray(view.grid_blocks)
-    inside = np.all((nb >= 0) & (nb < grid), axis=1)
-    keys = np.ravel_multi_index(np.where(inside[:, None], nb, 0).T, tuple(grid))
-    at = np.minimum(np.searchsorted(coded_keys, keys), len(coded_keys) - 1)
-    has = inside & (coded_keys[at] == keys)
+    inside = np.all((nb >= 0) & (nb < is_coded.shape), axis=1)
+    has = inside & is_coded[tuple(np.where(inside[:, None], nb, 0).T)]
     if has.any():
-        x[has] = _decode(view.codec, codes_of(nb[has]))
+        x[has] = _decode(codec, codes_of(nb[has]))
     return x
 
 
@@ -479,7 +474,10 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     st = np.asarray(stretches if stretches is not None else [1.0], np.float64)
     centres = origin + vs * (BLOCK * coded.astype(np.float64) + _CENTRE)
     strong_set = {tuple(c) for c in np.asarray(strong).tolist()}
-    coded_keys = np.sort(np.ravel_multi_index(coded.T, view.grid_blocks)) if len(coded) else np.zeros(0, np.int64)
+    is_coded = None  # the grid's coded blocks, for the feet rule (maps without an observation record)
+    if not weighted:
+        is_coded = np.zeros(tuple(int(g) for g in view.grid_blocks), bool)
+        is_coded[tuple(coded.T)] = True
     accepted, undecided, impure, pure, crossed, report = [], [], [], [], [], []
     def crossing(n: np.ndarray, d: float, move: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The coded blocks the plane, moved up to ``move`` voxels along its normal (as the check moves it),
@@ -516,7 +514,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
                 # observation: there it cost the rendered fused rooms more than it gained (tilted floors, seeds
                 # 9301-9303: 0.870 / 0.836 -> 0.906 / 0.786; counting only the neighbour's voxels beside a zero
                 # crossing, 0.887 / 0.808), and their surface-true codes keep more of a foot in the block itself
-                x_next = _next_blocks(view, c, n, coded_keys, codes_of)
+                x_next = _next_blocks(codec, c, n, is_coded, codes_of)
                 feet = _feet(x_next, dist - moved[:, None], n, voxel_size=vs, truncation=trunc)
                 share = np.where(feet > off_plane, np.minimum(share, on_plane / np.maximum(on_plane + feet, 1)),
                                  share)
