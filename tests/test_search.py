@@ -184,24 +184,34 @@ def test_scores_equal_brute_force_numpy(maps):
 @pytest.mark.parametrize("n_desc", [15, 300])
 def test_scorer_in_tiles_equals_brute_force(n_desc):
     """The CPU scorer's products of a few hundred codes (few descriptors) and its one product (many) give the
-    float64 brute-force minimum distances and a nearest descriptor, with and without a bound on the scores whose
-    nearest descriptor is wanted."""
+    float64 brute-force minimum distances and a nearest descriptor. Bounded (a search's call): every code within
+    the bound gets its score and nearest descriptor; the others a lower bound over the bound, from the first
+    PRUNE_PREFIX elements where most codes are far, the full score where most are near (the probe)."""
     rng = np.random.default_rng(n_desc)
-    q = rng.standard_normal((n_desc, 64)).astype(np.float32)
-    codes = rng.standard_normal((1500, 64)).astype(np.float32)
+    spread = np.linspace(3.0, 0.2, 64).astype(np.float32)  # decreasing, as the components of a pca code
+    q = rng.standard_normal((n_desc, 64)).astype(np.float32) * spread
+    near_codes = q[rng.integers(0, n_desc, 600)] + 0.1 * rng.standard_normal((600, 64)).astype(np.float32)
+    far_codes = rng.standard_normal((1900, 64)).astype(np.float32) * spread * 3 + 8.0 * spread
+    codes = np.concatenate([near_codes, far_codes])[rng.permutation(2500)]
     scorer = engine.Scorer(q, torch.device("cpu"))
     assert (scorer.rows < len(codes)) == (n_desc == 15)  # several products only where one would be threaded
     s, idx = scorer(codes)
     d = ((codes[:, None, :].astype(np.float64) - q[None]) ** 2).sum(-1)
     np.testing.assert_allclose(s, d.min(1), rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(d[np.arange(len(codes)), idx], d.min(1), rtol=1e-4, atol=1e-3)
-    # bounded (a search's call): the same scores bit for bit, the nearest descriptor of every code under the bound
-    t = float(np.median(s))
-    sb, ib = scorer(codes, t)
-    np.testing.assert_array_equal(sb, s)
-    near = s <= t
-    assert 0 < near.sum() < len(s) and np.all(ib[~near] == -1)
-    np.testing.assert_array_equal(ib[near], idx[near])
+    for t, pruned in ((float(np.quantile(s, 0.2)), True), (float(np.quantile(s, 0.7)), False)):
+        sb, ib = scorer(codes, t)
+        near = s <= t
+        assert 0 < near.sum() < len(s)
+        np.testing.assert_array_equal(sb <= t, near)
+        np.testing.assert_allclose(sb[near], s[near], rtol=1e-4, atol=1e-3)  # float32 rounding of |c|^2 - 2c.q + |q|^2
+        np.testing.assert_array_equal(ib[near], idx[near])
+        assert np.all(ib[~near] == -1)
+        rounding = 1e-5 * ((codes[~near] ** 2).sum(1) + (q ** 2).sum(1).max())  # of |c|^2 - 2c.q + |q|^2
+        assert np.all(sb[~near] <= s[~near] + rounding)  # a lower bound of the score
+        # pruned: the far codes' bounds are their first components' distance, well under their scores; else the
+        # probe saw most codes near the shape and every score is whole
+        assert (np.mean(sb[~near] < 0.99 * s[~near]) > 0.5) == pruned
 
 
 def test_prefix_matching_across_code_sizes(maps, pca128):
