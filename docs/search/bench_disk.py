@@ -9,6 +9,8 @@ loop that issue 17's throughput target is about); the baseline reads the same co
 (``Map.iter_codes(level=64)``) and does nothing with them. Both read the local map's chunks without Zarr's
 event loop (``sdfcodec.map.fastfetch``); the search scores each batch in the reader's fetching threads. Prints
 JSON with blocks/s, the harness's ratios, CPU milliseconds per call and the load before and after.
+``--unpruned`` adds a third candidate, interleaved with the two: the same search with the scorer's prefix pruning
+off (``sdfcodec.search.engine.PRUNE_PREFIX`` out of reach for the call), every code scored in full.
 """
 
 from __future__ import annotations
@@ -25,13 +27,14 @@ import numpy as np
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec.bench.harness import interleave, load, ratio
-from sdfcodec.search import build_query, search
+from sdfcodec.search import build_query, engine, search
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--blocks", type=int, default=65536)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--unpruned", action="store_true", help="also time the search with no prefix pruning")
     args = ap.parse_args(argv)
     codec = pretrained_codec("pca", 64)
     n = args.blocks
@@ -56,8 +59,16 @@ def main(argv=None) -> int:
             for _ in m.iter_codes(level=64):
                 pass
 
+        def unpruned():
+            kept, engine.PRUNE_PREFIX = engine.PRUNE_PREFIX, 1 << 30
+            try:
+                scored()
+            finally:
+                engine.PRUNE_PREFIX = kept
+
         l0 = load()
-        t = interleave({"search": scored, "read": read}, repeats=args.repeats, min_time=0.5)
+        fns = {"search": scored, "read": read, **({"unpruned": unpruned} if args.unpruned else {})}
+        t = interleave(fns, repeats=args.repeats, min_time=0.5)
         out = {"blocks": n, "search_blocks_per_s": n / t["search"].median, "read_blocks_per_s": n / t["read"].median,
                "search_best_blocks_per_s": n / t["search"].best, "read_best_blocks_per_s": n / t["read"].best,
                **ratio(t["search"], t["read"]),
@@ -66,6 +77,10 @@ def main(argv=None) -> int:
                "search_cpu_ms": 1e3 * statistics.median(t["search"].cpu_rounds),
                "read_cpu_ms": 1e3 * statistics.median(t["read"].cpu_rounds),
                "load_before": l0, "load_after": load()}
+        if args.unpruned:
+            out.update({"unpruned_blocks_per_s": n / t["unpruned"].median,
+                        "unpruned_ratio_of_medians": t["read"].median / t["unpruned"].median,
+                        "unpruned_cpu_ms": 1e3 * statistics.median(t["unpruned"].cpu_rounds)})
     print(json.dumps(out, indent=1))
     return 0
 
