@@ -14,7 +14,7 @@ import zarr
 
 import sdfcodec
 from sdfcodec import search as S
-from sdfcodec.search import engine
+from sdfcodec.search import engine, scoring
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning
 from sdfcodec import pretrained_codec
 from sdfcodec.search_cli import format_summary, search_command
@@ -193,7 +193,7 @@ def test_scorer_in_tiles_equals_brute_force(n_desc):
     near_codes = q[rng.integers(0, n_desc, 600)] + 0.1 * rng.standard_normal((600, 64)).astype(np.float32)
     far_codes = rng.standard_normal((1900, 64)).astype(np.float32) * spread * 3 + 8.0 * spread
     codes = np.concatenate([near_codes, far_codes])[rng.permutation(2500)]
-    scorer = engine.Scorer(q, torch.device("cpu"))
+    scorer = scoring.Scorer(q, torch.device("cpu"))
     assert (scorer.rows < len(codes)) == (n_desc == 15)  # several products only where one would be threaded
     s, idx = scorer(codes)
     d = ((codes[:, None, :].astype(np.float64) - q[None]) ** 2).sum(-1)
@@ -300,13 +300,13 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     assert keys and all(k.endswith("/0") for k in keys)
     # bounded memory: codes are scored a batch of chunks at a time, never the whole map at once
     sizes = []
-    real = engine.Scorer.__call__
+    real = scoring.Scorer.__call__
 
     def spy(self, codes, bound=None):
         sizes.append(len(codes))
         return real(self, codes, bound)
 
-    monkeypatch.setattr(engine.Scorer, "__call__", spy)
+    monkeypatch.setattr(scoring.Scorer, "__call__", spy)
     small = tmp_path / "small-chunks.sdfz"  # the room spans one default (16^3-block) chunk: use 4^3 ones
     with sdfcodec.create_map(small, codec=m.codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=4) as w:
         w.write_codes(*m.read_codes())
@@ -476,7 +476,7 @@ def test_split_modules_keep_the_old_names():
         assert S.bench_search is bench.bench_search
     with pytest.raises(AttributeError):
         S.no_such_name
-    for mod in ("shapes", "query", "engine", "metrics"):
+    for mod in ("shapes", "query", "engine", "scoring", "metrics"):
         assert importlib.import_module(f"sdfcodec.search.{mod}").__all__
     # the labelled rooms import on their own (no import cycle with sdfcodec.search)
     subprocess.run([sys.executable, "-c", "import sdfcodec.data.rooms as r; r.synthetic_room"], check=True)

@@ -12,7 +12,7 @@ import pytest
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec.search import cache
-from sdfcodec.search import engine, query
+from sdfcodec.search import engine, query, scoring
 from sdfcodec.search.query import build_query
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -138,13 +138,13 @@ def test_calibrated_threshold_is_cached_and_equal(fresh_cache, tmp_path, monkeyp
     real = shapes.sample_shapes
     monkeypatch.setattr(shapes, "sample_shapes", lambda *a, **k: calls.append(1) or real(*a, **k))
     cpu = torch.device("cpu")
-    t1, info1 = engine.calibrate_threshold(model, codec, 64, engine.Scorer(model.descriptors, cpu))
+    t1, info1 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
     cache.clear_memory_cache()
-    t2, info2 = engine.calibrate_threshold(model, codec, 64, engine.Scorer(model.descriptors, cpu))  # the disk
-    t3, _ = engine.calibrate_threshold(model, codec, 32, engine.Scorer(model.descriptors[:, :32], cpu))
+    t2, info2 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))  # the disk
+    t3, _ = engine.calibrate_threshold(model, codec, 32, scoring.Scorer(model.descriptors[:, :32], cpu))
     assert calls == [1, 1]  # level 64 once, level 32 once
     assert t1 == t2 and info1 == info2 and info1["method"] == "calibrated" and t3 != t1
     cache.clear_memory_cache()
     monkeypatch.setenv(cache.CACHE_ENV, "off")
-    t4, info4 = engine.calibrate_threshold(model, codec, 64, engine.Scorer(model.descriptors, cpu))
+    t4, info4 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
     assert (t4, info4) == (t1, info1) and calls == [1, 1, 1]  # what the cache held is what calibrating gives

@@ -203,7 +203,9 @@ def test_update_of_a_sharded_map_keeps_readers_of_the_old_version(pair, tmp_path
     assert new.header.codes.shard_blocks == 16 and len(_code_files(m)) == 4
     after = new.decode_region()
     assert np.abs(after[16:32, 16:32, 16:32] + 0.04).max() < 0.01
-    assert np.array_equal(np.delete(after, np.s_[16:32], 0), np.delete(before, np.s_[16:32], 0))
+    # the other blocks as they were, to float32 rounding: they are decoded in other batches now, and a BLAS product
+    # rounds a row by its place in the batch (OpenBLAS on AMD EPYC: 1 ulp in 0.3 % of the voxels)
+    np.testing.assert_allclose(np.delete(after, np.s_[16:32], 0), np.delete(before, np.s_[16:32], 0), rtol=0, atol=1e-6)
     np.testing.assert_array_equal(old.decode_region(), before)  # the old version, read through its own pin
     assert verify_map(m).ok
 

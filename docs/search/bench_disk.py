@@ -10,7 +10,7 @@ loop that issue 17's throughput target is about); the baseline reads the same co
 event loop (``sdfcodec.map.fastfetch``); the search scores each batch in the reader's fetching threads. Prints
 JSON with blocks/s, the harness's ratios, CPU milliseconds per call and the load before and after.
 ``--unpruned`` adds a third candidate, interleaved with the two: the same search with the scorer's prefix pruning
-off (``sdfcodec.search.engine.PRUNE_PREFIX`` out of reach for the call), every code scored in full.
+off (``sdfcodec.search.scoring.PRUNE_PREFIX`` out of reach for the call), every code scored in full.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec.bench.harness import interleave, load, ratio
-from sdfcodec.search import build_query, engine, search
+from sdfcodec.search import build_query, scoring, search
 
 
 def main(argv=None) -> int:
@@ -60,11 +60,11 @@ def main(argv=None) -> int:
                 pass
 
         def unpruned():
-            kept, engine.PRUNE_PREFIX = engine.PRUNE_PREFIX, 1 << 30
+            kept, scoring.PRUNE_PREFIX = scoring.PRUNE_PREFIX, 1 << 30
             try:
                 scored()
             finally:
-                engine.PRUNE_PREFIX = kept
+                scoring.PRUNE_PREFIX = kept
 
         l0 = load()
         fns = {"search": scored, "read": read, **({"unpruned": unpruned} if args.unpruned else {})}

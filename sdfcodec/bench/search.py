@@ -65,7 +65,7 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
     from ..map import create_map, open_map
     from ..registry import pretrained_codec
     from ..search import build_query, search
-    from ..search.engine import Scorer
+    from ..search.scoring import Scorer
 
     records = []
     dev = torch.device(device)

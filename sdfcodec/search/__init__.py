@@ -27,7 +27,7 @@ Conventions
   :func:`sdfcodec.map.observed.error_weights`). Their queries are encoded the same way, with the mask of what
   a camera would observe of each shape, and sampled at fusion's projective stretches
   (:data:`~sdfcodec.search.shapes.FUSED_STRETCH`); partly observed blocks are scored on their observed voxels
-  only (:class:`~sdfcodec.search.engine.ObservedScorer`).
+  only (:class:`~sdfcodec.search.scoring.ObservedScorer`).
 * ``threshold="auto"`` (the CLI's default) is calibrated on the map searched
   (:func:`~sdfcodec.search.engine.calibrate_threshold`): clean instances of the query's shape with continuous
   parameters, stored, encoded and scored the map's way; the threshold keeps 99 % of them (and, for edges,

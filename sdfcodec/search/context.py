@@ -87,7 +87,7 @@ def _behind_vote(m: Map, sample: int = VOTE_SAMPLE) -> tuple[float, int]:
     least twice as close as the other), the more plane-like half of them, vote: the share closer to planes
     stored fused-style (unobserved behind) than to planes of an exact SDF (solid behind), both in the 6 axis
     orientations; and how many blocks voted (0.5 and 0 when no block tells them apart)."""
-    from .engine import Scorer
+    from .scoring import Scorer
     from .query import build_query
 
     codec = m.codec
@@ -124,7 +124,8 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     blocks under its calibrated threshold each vote for their nearest descriptor's normal, and the mean of the
     votes is refined twice, with cones of 4 and 2 degrees about it. An estimate within :data:`LEVEL_DEG` of ``+z``, or
     fewer than :data:`MIN_UP_VOTES` votes, keeps ``+z``. Returns ``(up, where it came from)``."""
-    from .engine import SURFACE_SHARE, ObservedScorer, Scorer, calibrate_threshold, score_codes
+    from .engine import SURFACE_SHARE, calibrate_threshold
+    from .scoring import ObservedScorer, Scorer, score_codes
     from .query import build_query
 
     codec = m.codec

@@ -1,4 +1,4 @@
-"""Searching and expanding a map: the scoring kernel (:class:`Scorer`), :func:`search` (score every coded block against
+"""Searching and expanding a map: :func:`search` (score every coded block against
 a query model, select by threshold and/or top-k, with :func:`auto_threshold`) and :func:`expand` (decode only
 the selected blocks). See :mod:`sdfcodec.search` for the conventions and units.
 """
@@ -21,17 +21,14 @@ from ..header import BlockState
 from ..map import Map, open_map, state_digest
 from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
 from .query import QueryModel, build_query, resolve_query
+from .scoring import ObservedScorer, Scorer, score_codes
 
 __all__ = [
     "AUTO_FRACTION",
     "SURFACE_SHARE",
-    "Scorer",
-    "ObservedScorer",
-    "MIN_OBSERVED_SURFACE",
     "CALIBRATION_QUANTILE",
     "CALIBRATION_SAMPLES",
     "calibrate_threshold",
-    "score_codes",
     "codes_at",
     "SearchResult",
     "Expansion",
@@ -102,180 +99,6 @@ def _default_device(device: str | torch.device | None) -> torch.device:
     return torch.device(device)
 
 
-#: :class:`Scorer`'s bounded call (a search's) compares the first this many code elements first: the distance over
-#: a prefix is a lower bound of the whole distance, so a code whose prefix is already farther than the bound is not
-#: scored in full. Descriptors of ``2 * PRUNE_PREFIX`` elements or more only. 8, not 16: in the streaming search
-#: the products' cost follows their depth (pca-64, 65,536 codes against 15 floor descriptors on 2 cores: the search
-#: ran at 0.93-0.94 of reading the codes with 8, 0.89 with 16, 0.82 with no pruning), and a code far from a shape
-#: is far in its first components already.
-PRUNE_PREFIX = 8
-#: The rounding margin of that lower bound, relative to ``bound + max |q|^2``: float32 sums of 8-64 products err by
-#: a few 1e-6 of ``|c|^2 + |q|^2``, and a code within the bound has ``|c|^2 <= 2 |q|^2 + 2 bound``; so no code
-#: whose full score is within the bound is ever dropped.
-PRUNE_MARGIN = 1e-4
-#: Pruning costs a pass more where most codes are near the shape (a floor search's loose first stage over a
-#: room's surface blocks kept 4-86 % of them in synthetic rooms): the first ``PRUNE_PROBE`` codes of a batch are tried first, and
-#: when more than ``PRUNE_MAX_SHARE`` of them survive the prefix, the batch is scored in full at once.
-PRUNE_PROBE = 1024
-PRUNE_MAX_SHARE = 0.5
-
-
-def _min_products(c: np.ndarray, qt: np.ndarray, qq: np.ndarray, rows: int) -> np.ndarray:
-    """``min_m (qq_m + c . qt[:, m])`` ``(n,)`` and the products ``(M, n)``, in products of ``rows`` codes."""
-    gt = np.empty((qt.shape[1], len(c)), np.float32)
-    # written transposed, (M, n): the minimum over the descriptors is then M - 1 elementwise minima along
-    # contiguous rows, where numpy's argmin along 15 columns and the gather of its values cost half as much as
-    # the products themselves
-    for a in range(0, len(c), rows):
-        np.matmul(c[a:a + rows], qt, out=gt[:, a:a + rows].T)
-    gt += qq[:, None]
-    return np.minimum.reduce(gt, axis=0), gt
-
-
-def _single_thread_rows(m: int, l: int) -> int:
-    # codes per product on the CPU: OpenBLAS runs a product of 2^18 multiply-adds or more on every core, and a
-    # skinny one (a few descriptors) then waits on threads busy elsewhere (the reader's decoders, other
-    # processes): 4-8 ms for 16,384 codes against 15 descriptors on a loaded 2-core machine, 0.4 ms in
-    # 256-code products (one core each, cache-sized). Large models keep one product, on every core.
-    tile = ((1 << 18) - 1) // max(1, m * l)
-    return tile if tile >= 128 else 1 << 62
-
-
-class Scorer:
-    """Minimum squared distance of codes to descriptors: ``min_m |c|^2 - 2 c.q_m + |q_m|^2``, one matrix
-    product per batch. numpy's BLAS on the CPU, torch on other devices.
-
-    ``descriptors``: ``(M, L)`` float32 (cast), the query's first ``L`` elements; ``device``: where to score.
-    The kernel of :func:`search`, and what ``sdfcodec.bench.bench_search`` times."""
-
-    def __init__(self, descriptors: np.ndarray, device: torch.device):
-        q = np.ascontiguousarray(descriptors, dtype=np.float32)
-        self.device = device
-        self.qq = np.einsum("ij,ij->i", q, q)
-        self.qt = np.ascontiguousarray(-2.0 * q.T)  # (L, M): the -2 folded into the product
-        self.rows = _single_thread_rows(*q.shape)
-        self.prefix = PRUNE_PREFIX if q.shape[1] >= 2 * PRUNE_PREFIX else None
-        if self.prefix is not None:
-            self.qq_prefix = np.einsum("ij,ij->i", q[:, :self.prefix], q[:, :self.prefix])
-            self.qt_prefix = np.ascontiguousarray(self.qt[:self.prefix])
-            self.rows_prefix = _single_thread_rows(q.shape[0], self.prefix)
-            self.margin = PRUNE_MARGIN * float(self.qq.max(initial=0.0))
-        if device.type != "cpu":
-            self.tqt = torch.from_numpy(self.qt).to(device)
-            self.tqq = torch.from_numpy(self.qq).to(device)
-
-    def __call__(self, codes: np.ndarray | torch.Tensor, bound: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(n, L)`` float32 codes -> scores ``(n,)`` float32 and nearest index ``(n,)`` int64 (numpy).
-
-        With ``bound`` (a search's call, on the CPU), only the codes scoring ``<= bound`` are scored in full:
-        their scores are those of the unbounded call (to float32 rounding) and their nearest index is given; the
-        others get a lower bound of their score (to float32 rounding) that is ``> bound``: the distance over the
-        first :data:`PRUNE_PREFIX` elements, for descriptors of twice as many elements or more; and index -1."""
-        if self.device.type == "cpu":
-            c = np.asarray(codes, dtype=np.float32)
-            if bound is not None:
-                return self._bounded(c, bound)
-            s, gt = _min_products(c, self.qt, self.qq, self.rows)
-            idx = gt.argmin(axis=0)
-            s += np.einsum("ij,ij->i", c, c)
-            np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
-            return s, idx
-        c = (codes if isinstance(codes, torch.Tensor) else torch.from_numpy(np.asarray(codes))).to(self.device)
-        g = torch.addmm(self.tqq, c, self.tqt)
-        s, idx = g.min(dim=1)
-        s = (s + (c * c).sum(dim=1)).clamp_(min=0.0)
-        return s.cpu().numpy(), idx.cpu().numpy()
-
-    def _bounded_full(self, c: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
-        s, gt = _min_products(c, self.qt, self.qq, self.rows)
-        s += np.einsum("ij,ij->i", c, c)
-        np.maximum(s, 0.0, out=s)
-        idx = np.full(len(c), -1, np.int64)
-        near = np.flatnonzero(s <= bound)
-        if len(near):  # a search needs the nearest index only of the few codes it selects
-            idx[near] = gt[:, near].argmin(axis=0)
-        return s, idx
-
-    def _prefix_bound(self, c: np.ndarray) -> np.ndarray:
-        """The squared distance over the first :data:`PRUNE_PREFIX` elements ``(n,)``: a lower bound of the score."""
-        head = c[:, :self.prefix]
-        s, _ = _min_products(head, self.qt_prefix, self.qq_prefix, self.rows_prefix)
-        s += np.einsum("ij,ij->i", head, head)
-        return s
-
-    def _bounded(self, c: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
-        if self.prefix is None:
-            return self._bounded_full(c, bound)
-        idx = np.full(len(c), -1, np.int64)
-        cut = bound + PRUNE_MARGIN * bound + self.margin  # the codes whose prefix is farther: score > bound
-        probe = self._prefix_bound(c[:PRUNE_PROBE])
-        if np.count_nonzero(probe <= cut) > PRUNE_MAX_SHARE * len(probe):
-            return self._bounded_full(c, bound)
-        s = np.concatenate([probe, self._prefix_bound(c[PRUNE_PROBE:])]) if len(c) > PRUNE_PROBE else probe
-        cand = np.flatnonzero(s <= cut)
-        if len(cand):
-            full, near_idx = self(c[cand])
-            s[cand] = full
-            inside = full <= bound
-            idx[cand[inside]] = near_idx[inside]
-        return s, idx
-
-
-#: Partly observed blocks with fewer observed voxels near a surface than this (a 4 x 4 patch) keep their code
-#: score: no surface of theirs was seen to compare with a shape.
-MIN_OBSERVED_SURFACE = 16
-
-
-class ObservedScorer:
-    """Scores of partly observed blocks (maps with an observation mask), compared where they were observed.
-
-    A masked map encodes a block by weighted least squares with weight 0 on its unobserved voxels, so what its
-    code decodes to there is an extrapolation, and two codes of the same observed surface can be far apart.
-    For such blocks the score is ``min_m 4096 / n_obs * sum_j o_j (x_j - q_mj)^2``: the squared distance
-    between the block's reconstruction ``x`` and each descriptor's reconstruction ``q_m`` (both truncated to the
-    normalised ``[0, 1]``, as a reader truncates) over the block's
-    ``n_obs`` observed voxels ``o``, scaled to a whole block (so it is on the scale of code scores: for a fully
-    observed block of an orthonormal codec such as pca it equals the code score). Two matrix products per batch
-    after decoding the partial blocks. Blocks with fewer than :data:`MIN_OBSERVED_SURFACE` observed voxels near
-    a surface keep their code score."""
-
-    def __init__(self, descriptors: np.ndarray, codec: Codec, truncation: tuple[float, float], voxel_size: float):
-        from ..map.observed import SURFACE_BAND_VOXELS
-
-        self.codec = codec
-        q = self._decode(np.asarray(descriptors, np.float32))
-        self.qt = np.ascontiguousarray(q.T)
-        self.qq = np.ascontiguousarray((q * q).T)
-        d_min, d_max = truncation
-        self.v0 = -d_min / (d_max - d_min)
-        self.half = SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
-
-    def _decode(self, codes: np.ndarray) -> np.ndarray:
-        k = self.codec.code_size
-        if codes.shape[1] < k and not self.codec.prefix_ordered:
-            codes = np.pad(codes, ((0, 0), (0, k - codes.shape[1])))
-        with torch.no_grad():
-            out = self.codec.decode(torch.from_numpy(np.ascontiguousarray(codes)))
-        # what a reader sees: truncated to [d_min, d_max] (normalised [0, 1]); a masked map's writer fits its codes
-        # to that (docs/surface.md), leaving arbitrary values past the bounds where truncation makes them exact
-        return np.clip(np.asarray(out, dtype=np.float32).reshape(len(codes), -1), 0.0, 1.0)
-
-    def __call__(self, codes: np.ndarray, observed: np.ndarray, fallback: np.ndarray, fallback_idx: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """``(n, L)`` codes, ``(n, 16, 16, 16)`` bool observed voxels, and their code scores and nearest
-        indices -> masked scores ``(n,)`` float32 and nearest indices ``(n,)`` int64."""
-        x = self._decode(codes)
-        o = observed.reshape(len(codes), -1).astype(np.float32)
-        ox = o * x
-        d = (ox * x).sum(axis=1)[:, None] - 2.0 * (ox @ self.qt) + o @ self.qq
-        idx = d.argmin(axis=1)
-        n_obs = np.maximum(o.sum(axis=1), 1.0)
-        s = np.maximum(np.take_along_axis(d, idx[:, None], axis=1)[:, 0], 0.0) * (x.shape[1] / n_obs)
-        seen_surface = ((np.abs(x - self.v0) < self.half) & (o > 0)).sum(axis=1)
-        ok = seen_surface >= MIN_OBSERVED_SURFACE
-        return (np.where(ok, s, fallback).astype(np.float32), np.where(ok, idx, fallback_idx).astype(np.int64))
-
-
 def _search_level(m: Map, query: QueryModel, level: int | None) -> int:
     size, prefix = m.code_size, m.header.codes.prefix_ordered
     if level is None:
@@ -340,22 +163,6 @@ def _cone_angle(rotations: Any) -> float:
         parts = rotations.split(":")
         return float(parts[1]) if len(parts) > 1 else 10.0
     return 0.0
-
-
-def score_codes(scorer: "Scorer", observed_scorer: ObservedScorer | None, codes: np.ndarray,
-                observed: np.ndarray | None, bound: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Scores and nearest descriptors of codes ``(n, L)``: the code scores of ``scorer``, replaced for partly
-    observed blocks (``observed`` ``(n, 16, 16, 16)`` bool, None: all observed) by ``observed_scorer``'s.
-    ``bound``: only the scores ``<= bound`` and their nearest descriptors are needed, the others may be lower
-    bounds over it (:meth:`Scorer.__call__`; a partly observed block keeps its code score and index only where
-    that score is its score)."""
-    s, idx = scorer(codes, bound)
-    if observed_scorer is not None and observed is not None:
-        partial = ~observed.reshape(len(observed), -1).all(axis=1)
-        if partial.any():
-            s[partial], idx[partial] = observed_scorer(np.asarray(codes)[partial], observed[partial], s[partial],
-                                                       idx[partial])
-    return s, idx
 
 
 def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Scorer",
