@@ -6,10 +6,10 @@ it, the truncation to ``[d_min, d_max]``, the copy to its place in a volume) hap
 the core's cache. :func:`run_tiles` cuts rows ``[0, n)`` into tiles of :data:`TILE_ROWS` rows that one thread
 per core takes in turn; each runs a one-threaded BLAS on its tile (OpenBLAS's threads are held at 1 for the
 call), so the product, the clip and the placing of a tile all see the same core's cache (a tile of
-:data:`TILE_ROWS` is larger than this machine's L2 and a sliver of its L3: the BLAS call's own cost sets the size).
+:data:`TILE_ROWS`, four times the core's L2, comes back from L3 at worst: :func:`tile_rows_for`).
 The work function releases the GIL in its numpy calls (matmul, clip, copies), so Python threads run in parallel.
-What it is worth on 2 cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles"
-and "Tiles of 512 rows".
+What it is worth on 2 cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles",
+"Tiles of 512 rows" and "Tiles sized by the L2".
 """
 
 from __future__ import annotations
@@ -23,14 +23,44 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-__all__ = ["TILE_ROWS", "run_tiles", "scratch"]
+__all__ = ["TILE_ROWS", "l2_bytes", "run_tiles", "scratch", "tile_rows_for"]
 
-#: Rows per tile: 512 decoded 16^3 blocks are 8 MiB, twice this machine's L2 (2 MiB per core) and a sliver of its
-#: L3 (480 MiB shared). What sets it is not L2 but the BLAS call: each one packs the (k + 1, 4096) decoder again,
-#: so short tiles pay that per few rows. Interleaved with the roofline, 65,536 pca-64 blocks, load 1.5, ratio of
-#: medians for 256 / 512 / 1024 rows: iter_decoded(copy=False) 0.65 / 0.74 / 0.72, decode_region into a reused
-#: volume 0.54 / 0.57 / 0.58 (128 rows: 0.66 and 0.49; docs/results.md, "Decoding in cache-sized tiles").
-TILE_ROWS = 512
+def l2_bytes(sysfs: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
+    """The first core's level-2 (data or unified) cache in bytes, as Linux describes it; None where it does not."""
+    with contextlib.suppress(OSError, ValueError):
+        for entry in sorted(os.listdir(sysfs)):
+            d = os.path.join(sysfs, entry)
+            if not entry.startswith("index"):
+                continue
+            with open(os.path.join(d, "level")) as f:
+                level = int(f.read())
+            with open(os.path.join(d, "type")) as f:
+                kind = f.read().strip()
+            if level == 2 and kind in ("Unified", "Data"):
+                with open(os.path.join(d, "size")) as f:
+                    size = f.read().strip().upper()
+                scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(size[-1:], 1)
+                return int(size.rstrip("KMG")) * scale
+    return None
+
+
+def tile_rows_for(l2: int | None) -> int:
+    """Rows per tile for a core with ``l2`` bytes of level-2 cache: decoded blocks (16 KiB each) filling four
+    times the L2, a power of two in [64, 1024]; 512 when the cache is not known. What sets the size is the
+    BLAS call (each one packs the (k + 1, 4096) decoder again, so short tiles pay that per few rows) against the
+    placement's reads of the tile (a tile much larger than the L2 comes back from L3). Measured, interleaved with
+    the roofline, 65,536 pca-64 blocks, decode_region into a reused volume: Intel Xeon, L2 2 MiB a core, 0.45 /
+    0.47 / 0.50 / 0.51 of the roofline at 128 / 256 / 512 / 1024 rows (decode on read 0.65 / 0.74 / 0.72 at 256 /
+    512 / 1024); AMD EPYC, L2 512 KiB a core, 0.52 / 0.46-0.47 / 0.38-0.40 at 128 / 256 / 512 (64 rows: 0.48;
+    decode on read 0.55-0.62 at every size). docs/results.md, "Tiles sized by the L2"."""
+    if not l2:
+        return 512
+    rows = max(64, min(1024, 4 * l2 // (16 << 10)))
+    return 1 << (rows.bit_length() - 1)
+
+
+#: Rows per tile on this machine (:func:`tile_rows_for` its L2), read at each :func:`run_tiles` call.
+TILE_ROWS = tile_rows_for(l2_bytes())
 #: The fewest rows a tile is cut to so that a short batch reaches every core (below it the calls cost more than
 #: the threads win: 16-row tiles decoded 30 % slower than 128-row ones).
 _MIN_ROWS = 64

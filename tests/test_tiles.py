@@ -164,3 +164,27 @@ def test_the_ring_is_kept_for_the_next_iteration_and_not_shared_by_two_at_once(s
         assert not any(np.shares_memory(b, o) for b in (b0, *first) for o in other)
         np.testing.assert_array_equal(b0, other[0])  # and both decoded the same first group
         again.close()
+
+
+def _fake_cache(root, entries) -> str:
+    """A sysfs cache folder (``/sys/devices/system/cpu/cpu0/cache``) holding ``(level, type, size)`` entries."""
+    for i, (level, kind, size) in enumerate(entries):
+        d = root / f"index{i}"
+        d.mkdir(parents=True)
+        (d / "level").write_text(f"{level}\n")
+        (d / "type").write_text(f"{kind}\n")
+        (d / "size").write_text(f"{size}\n")
+    return str(root)
+
+
+@pytest.mark.parametrize("l2, size, rows", [("512K", 512 << 10, 128), ("2048K", 2 << 20, 512), ("1M", 1 << 20, 256),
+                                            ("32K", 32 << 10, 64), ("64M", 64 << 20, 1024)])
+def test_tile_rows_follow_the_l2_read_from_sysfs(tmp_path, l2, size, rows):
+    # the L1 data and instruction caches and the L3 listed around it, as Linux lists them
+    sysfs = _fake_cache(tmp_path / "cache", [(1, "Data", "32K"), (1, "Instruction", "32K"), (2, "Unified", l2),
+                                             (3, "Unified", "32768K")])
+    assert tiling.l2_bytes(sysfs) == size
+    # four L2s of 16 KiB blocks, a power of two within [64, 1024]
+    assert tiling.tile_rows_for(size) == rows
+    assert tiling.l2_bytes(str(tmp_path / "none")) is None and tiling.tile_rows_for(None) == 512
+    assert tiling.l2_bytes(_fake_cache(tmp_path / "l1only", [(1, "Data", "48K")])) is None
