@@ -408,9 +408,9 @@ class PCACodec(Codec):
                      ) -> None:
         # on the CPU: cache-sized tiles on every core, each a one-threaded product (bias row folded in, as in
         # decode_into) into the thread's own scratch tile, clipped from there into `out` (the clip's write is the
-        # only write to memory; the product's stays in cache, L3 at 512 rows) and handed to `each`. One product with
-        # all BLAS threads and a clip pass after it read the 16 KiB per block back from memory, and a product
-        # straight into `out` wrote it there twice (measured: docs/results.md)
+        # only write to memory; the product's stays in cache, a tile being four L2s: tiling.TILE_ROWS) and handed
+        # to `each`. One product with all BLAS threads and a clip pass after it read the 16 KiB per block back from
+        # memory, and a product straight into `out` wrote it there twice (measured: docs/results.md)
         if codes.device.type != "cpu":
             super().decode_tiles(codes, scale, offset, clip, each, out)
             return
