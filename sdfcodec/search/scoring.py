@@ -26,8 +26,8 @@ PRUNE_PREFIX = 8
 #: whose full score is within the bound is ever dropped.
 PRUNE_MARGIN = 1e-4
 #: Pruning costs a pass more where most codes are near the shape (a floor search's loose first stage over a
-#: room's surface blocks kept 4-86 % of them in synthetic rooms): the first ``PRUNE_PROBE`` codes of a batch are tried first, and
-#: when more than ``PRUNE_MAX_SHARE`` of them survive the prefix, the batch is scored in full at once.
+#: room's surface blocks kept 4-86 % of them in synthetic rooms): the first ``PRUNE_PROBE`` codes of a batch are
+#: tried first, and when more than ``PRUNE_MAX_SHARE`` of them survive the prefix, the batch is scored in full.
 PRUNE_PROBE = 1024
 PRUNE_MAX_SHARE = 0.5
 
@@ -87,21 +87,23 @@ class Scorer:
             c = np.asarray(codes, dtype=np.float32)
             if bound is not None:
                 return self._bounded(c, bound)
-            s, gt = _min_products(c, self.qt, self.qq, self.rows)
-            idx = gt.argmin(axis=0)
-            s += np.einsum("ij,ij->i", c, c)
-            np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
-            return s, idx
+            s, gt = self._whole(c)
+            return s, gt.argmin(axis=0)
         c = (codes if isinstance(codes, torch.Tensor) else torch.from_numpy(np.asarray(codes))).to(self.device)
         g = torch.addmm(self.tqq, c, self.tqt)
         s, idx = g.min(dim=1)
         s = (s + (c * c).sum(dim=1)).clamp_(min=0.0)
         return s.cpu().numpy(), idx.cpu().numpy()
 
-    def _bounded_full(self, c: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    def _whole(self, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whole scores ``(n,)`` of codes ``c`` on the CPU and the products plus ``|q|^2``, ``(M, n)``."""
         s, gt = _min_products(c, self.qt, self.qq, self.rows)
         s += np.einsum("ij,ij->i", c, c)
-        np.maximum(s, 0.0, out=s)
+        np.maximum(s, 0.0, out=s)  # rounding can take an exact match a hair below zero
+        return s, gt
+
+    def _bounded_full(self, c: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        s, gt = self._whole(c)
         idx = np.full(len(c), -1, np.int64)
         near = np.flatnonzero(s <= bound)
         if len(near):  # a search needs the nearest index only of the few codes it selects
