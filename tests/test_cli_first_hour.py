@@ -148,6 +148,28 @@ def test_progress_lines_without_a_terminal(monkeypatch, capsys):
                                                      r"about \d+ s left", ln) for ln in lines), lines
 
 
+def test_live_bars_on_a_terminal_show_the_rate(monkeypatch):
+    """On a terminal progress_bar is rich's live bar (imported on first use); its last column shows the caller's
+    ``rate`` field when set, else the measured speed in the unit."""
+    import io
+
+    from rich.console import Console
+
+    from sdfcodec.cli import common
+
+    term = Console(file=io.StringIO(), force_terminal=True, width=120)
+    monkeypatch.setattr(common, "err", term)
+    with common.progress_bar("frames") as prog:
+        done = prog.add_task("tracking", total=10)
+        given = prog.add_task("fusing", total=10, rate="3 frames/s")
+        prog.advance(done, 4)
+        time.sleep(0.05)
+        prog.advance(done, 4)
+        column = prog.columns[-1]
+        assert str(column.render(prog.tasks[given])) == "3 frames/s"
+        assert re.fullmatch(r"[\d,]+\.\d frames/s", str(column.render(prog.tasks[done]))), column.render(prog.tasks[done])
+
+
 def test_metre_regions_are_half_open_and_decodes_truncated(scene, tmp_path):
     """Item 5: `--region 0:1,0:1,0:0.5 --units m` at 2 cm is 50 x 50 x 25 voxels (was 51 x 51 x 26: the upper
     ends were included), the same voxels as the voxel range 0:50,0:50,0:25; decoded values lie in the truncation

@@ -22,17 +22,19 @@ import threading
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
 
 from .. import __version__
 from ..errors import MapExistsError, SDFCodecError, WriteFailedError
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 __all__ = ["app", "out", "err", "fail", "cli", "write_output", "PlainWriter", "progress_bar", "parse_triple",
            "parse_pair", "parse_region", "print_json", "report", "refuse_existing", "human_bytes", "load_volume"]
@@ -108,19 +110,26 @@ class PlainWriter:
         self.write = f.write
 
 
-class _RateColumn(ProgressColumn):
-    """The task's ``rate`` field when a caller sets one, else its measured speed in ``unit``/s."""
+@functools.cache
+def _rate_column() -> type:
+    """rich's progress column of the task's ``rate`` field when a caller sets one, else its measured speed in
+    ``unit``/s; made on first use: importing ``rich.progress`` took 20-25 ms of the half second ``sdfcodec info``
+    takes on a 2-core machine."""
+    from rich.progress import ProgressColumn
 
-    def __init__(self, unit: str):
-        super().__init__()
-        self.unit = unit
+    class RateColumn(ProgressColumn):
+        def __init__(self, unit: str):
+            super().__init__()
+            self.unit = unit
 
-    def render(self, task: Any) -> Text:
-        rate = task.fields.get("rate")
-        if isinstance(rate, str) and rate:
-            return Text(rate)
-        speed = task.finished_speed or task.speed
-        return Text(f"{speed:,.1f} {self.unit}/s" if speed else "")
+        def render(self, task: Any) -> Text:
+            rate = task.fields.get("rate")
+            if isinstance(rate, str) and rate:
+                return Text(rate)
+            speed = task.finished_speed or task.speed
+            return Text(f"{speed:,.1f} {self.unit}/s" if speed else "")
+
+    return RateColumn
 
 
 def progress_seconds() -> float:
@@ -212,8 +221,10 @@ def progress_bar(unit: str = "blocks") -> Progress | LineProgress:
     """A live bar on a terminal (stderr); :class:`LineProgress` (a line every ~10 s) when stderr is not one."""
     if not live_progress():
         return LineProgress(unit)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    _RateColumn(unit), console=err, transient=True)
+                    _rate_column()(unit), console=err, transient=True)
 
 
 @contextlib.contextmanager
