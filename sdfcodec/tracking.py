@@ -33,9 +33,12 @@ runs over contiguous memory and the temporaries stay below glibc's mmap threshol
 buffers would be page-faulted on every op); the chunks of one iteration are shared among ``threads`` Python
 threads (torch releases the GIL inside its kernels) with torch's own intra-op threads set to 1 meanwhile.
 torch's OpenMP threading of the same small ops degrades badly as soon as anything else wants a core (on a
-busy 2-core VM: median 2.5 s against 56 ms per 640x480 frame for the chunk threads). The trilinear gather uses numpy's
-``take`` on the CPU (zero-copy views of the torch tensors), several times faster than ``index_select``.
-On CUDA the whole image is one chunk and everything stays on the device except the 7x7 normal equations.
+busy 2-core VM: median 2.5 s against 56 ms per 640x480 frame for the chunk threads). On the CPU each chunk is
+worked through in numpy, 4,096 points at a time (``_chunk_terms_cpu``, with DenseField's numpy lookup): a piece's
+points, gathered corners and terms stay in the core's cache, and numpy's calls cost about a microsecond against
+torch's 5-10 (zero-copy views of the torch tensors either way); the trilinear gather is numpy's ``take``, several
+times faster than ``index_select``. On CUDA the whole image is one chunk of torch ops and everything stays on
+the device except the 7x7 normal equations.
 Each point costs one gather (its cell's 8 corners of the field's value-and-gradient table) and a fixed
 number of whole-chunk tensor ops on contiguous ``(k, n)`` rows; there is no per-point Python. The Jacobian
 rows are formed in the world frame (``[grad D, (R p) x grad D]``, the cross product as two ops on shifted
@@ -356,6 +359,9 @@ def _backproject(depth: torch.Tensor, k: CameraIntrinsics, stride: int, min_dept
 #: calls a chunk are short and the threads spend their time handing the GIL to each other (2 threads on
 #: 100 kitchen frames: 37.5 ms of CPU a frame with this bound against 43.8 ms with 1,024; one thread: 34.4)
 _MIN_POINTS_PER_THREAD = 16384
+#: points the CPU path takes at a time (:meth:`SDFTracker._chunk_terms_cpu`): a piece's world points, samples and
+#: terms (about 200 bytes a point) stay in the core's cache
+_CPU_PIECE = 4096
 
 
 def _split(pts: torch.Tensor, chunk: int, workers: int) -> list[torch.Tensor]:
@@ -522,6 +528,54 @@ class SDFTracker:
             acc = part if acc is None else acc.add_(part)
         return acc
 
+    def _chunk_terms_cpu(self, chunks: list[torch.Tensor], r5: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """:meth:`_chunk_terms` on the CPU, in numpy, :data:`_CPU_PIECE` points at a time: each piece's
+        world points, samples and terms stay in the core's cache from the field's lookup to the product that
+        sums them, and numpy's calls cost a microsecond against torch's 5-10 (the coarse levels' few thousand
+        points are dominated by the per-call cost). The same sums as :meth:`_chunk_terms`, added up in float64
+        over the pieces."""
+        cfg = self.config
+        d_min, d_max = self.field.truncation
+        lo, hi = d_min + cfg.plateau_margin, d_max - cfg.plateau_margin
+        g2 = cfg.min_gradient_norm ** 2
+        r5n, tn = r5.numpy(), t.numpy()
+        acc = np.zeros((9, 8))
+        for chunk in chunks:
+            pc = chunk.numpy()
+            for i in range(0, pc.shape[1], _CPU_PIECE):
+                p = pc[:, i:i + _CPU_PIECE]
+                n = p.shape[1]
+                rp = r5n @ p  # R p, rows x, y, z, x, y: the lever arm in the world frame
+                q = rp[:3] + tn  # (3, n) world points
+                d, g, valid = self.field.sample_with_gradient(torch.from_numpy(q).t())
+                d, valid = d.numpy(), valid.numpy()
+                a = np.empty((10, n), dtype=np.float32)  # as in _chunk_terms: [1, (R p) x g, D, g, g_x, g_y]
+                a[0] = 1.0
+                a[4] = d
+                a[5:8] = g.numpy().T
+                a[8:10] = a[5:7]
+                np.multiply(rp[1:4], a[7:10], out=a[1:4])
+                a[1:4] -= rp[2:5] * a[6:9]
+                gsq = a[5] * a[5]
+                gsq += a[6] * a[6]
+                gsq += a[7] * a[7]
+                mask = d < hi
+                mask &= d > lo
+                mask &= valid
+                mask &= gsq >= g2
+                ad = np.abs(d)
+                if cfg.max_distance is not None:
+                    mask &= ad <= cfg.max_distance
+                left = np.empty((9, n), dtype=np.float32)
+                left[8] = mask
+                np.multiply(left[8], d, out=left[7])
+                w = np.maximum(ad, cfg.huber_delta, out=ad)
+                np.divide(left[8], w, out=w)
+                w *= cfg.huber_delta
+                np.multiply(a[1:8], w, out=left[:7])
+                acc += left @ a[:8].T
+        return torch.from_numpy(acc)
+
     def _normal_equations(self, chunks: list[torch.Tensor], pose: np.ndarray, workers: int
                           ) -> tuple[np.ndarray, np.ndarray, int, float]:
         """``(H (6, 6), b (6,), inliers, sum of D^2 over inliers)`` at ``pose``, summed over all chunks, with
@@ -529,15 +583,16 @@ class SDFTracker:
         dev = chunks[0].device
         r5 = torch.as_tensor(pose[[0, 1, 2, 0, 1], :3], dtype=torch.float32, device=dev)
         t = torch.as_tensor(pose[:3, 3], dtype=torch.float32, device=dev).reshape(3, 1)
+        terms = self._chunk_terms_cpu if dev.type == "cpu" else self._chunk_terms
         if workers > 1 and len(chunks) > 1:
             pool = self._get_pool(workers)
             parts = [chunks[i::workers] for i in range(workers)]
-            futures = [pool.submit(self._chunk_terms, part, r5, t) for part in parts[1:] if part]
-            acc = self._chunk_terms(parts[0], r5, t)  # this thread takes a share too
+            futures = [pool.submit(terms, part, r5, t) for part in parts[1:] if part]
+            acc = terms(parts[0], r5, t)  # this thread takes a share too
             for fut in futures:
                 acc = acc + fut.result()
         else:
-            acc = self._chunk_terms(chunks, r5, t)
+            acc = terms(chunks, r5, t)
         sums = acc.to(torch.float64).cpu().numpy()
         full = sums[:7, 1:]  # rows/columns: (R p) x g_world (3), D, g_world (3)
         rot = np.zeros((6, 7))  # the camera frame's J = [R^T g, R^T ((R p) x g)] from the world-frame rows

@@ -177,6 +177,37 @@ def test_sampler_matches_an_independent_trilinear_reference(volume):
     np.testing.assert_allclose(g.numpy(), ref[:, 1:], atol=2e-4)
 
 
+def test_cpu_paths_match_the_torch_ops_a_device_runs(volume, depth):
+    """On the CPU the field's lookup and the tracker's sums run in numpy, in cache-sized pieces
+    (``DenseField._lookup_rows``, ``SDFTracker._chunk_terms_cpu``); on a device, torch's ops do the same work.
+    Both are run here on the CPU, on more points than one piece, and must agree."""
+    cpu = DenseField(volume, VOXEL, ORIGIN)
+    ops = DenseField(volume, VOXEL, ORIGIN)
+    ops._rows = False  # the torch ops a CUDA device runs
+    rng = np.random.default_rng(5)
+    lo = np.array(ORIGIN) - 0.1
+    hi = np.array(ORIGIN) + np.array(SHAPE) * VOXEL + 0.1
+    pts = torch.as_tensor(rng.uniform(lo, hi, size=(9000, 3)), dtype=torch.float32)
+    pts[::97] = float("nan")
+    (d1, g1, v1), (d2, g2, v2) = cpu.sample_with_gradient(pts), ops.sample_with_gradient(pts)
+    np.testing.assert_array_equal(v1.numpy(), v2.numpy())
+    assert 0 < int(v1.sum()) < len(pts) and bool(torch.isfinite(d1).all() and torch.isfinite(g1).all())
+    np.testing.assert_allclose(d1[v1].numpy(), d2[v2].numpy(), atol=1e-6)
+    np.testing.assert_allclose(g1[v1].numpy(), g2[v2].numpy(), atol=1e-5)
+    np.testing.assert_array_equal(cpu.sample(pts)[0].numpy(), d1.numpy())
+
+    tracker = SDFTracker(cpu, K)
+    pose = perturb(TRUE_POSE, np.random.default_rng(8), 0.01, 1.0)
+    p = backproject(torch.from_numpy(depth), K).t().contiguous()
+    chunks = [p[:, :7000], p[:, 7000:]]
+    r5 = torch.as_tensor(pose[[0, 1, 2, 0, 1], :3], dtype=torch.float32)
+    t = torch.as_tensor(pose[:3, 3], dtype=torch.float32).reshape(3, 1)
+    numpy_sums = tracker._chunk_terms_cpu(chunks, r5, t).numpy()
+    torch_sums = tracker._chunk_terms(chunks, r5, t).double().numpy()
+    assert numpy_sums[8, 0] > 0.5 * p.shape[1]  # most points are inliers: the sums are not trivially equal
+    np.testing.assert_allclose(numpy_sums, torch_sums, rtol=1e-4, atol=1e-6 * np.abs(torch_sums).max())
+
+
 def test_sphere_value_and_gradient_against_the_analytic_sdf():
     """On a sphere (curved: trilinear interpolation is not exact) the value is within the interpolation error
     of the true distance and the gradient within a degree of the true normal."""
