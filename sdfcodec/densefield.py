@@ -24,10 +24,10 @@ from .errors import DTypeError, InvalidValueError, ShapeError
 __all__ = ["DenseField"]
 
 
-#: Points a CPU lookup takes at a time: their gathered corners (16 bytes x 8 a point, 512 KiB) stay in the
-#: core's cache through the three lerps that read them back (measured on a 2-core AMD EPYC, L2 512 KiB: see
+#: The most points a CPU lookup takes at a time: it bounds the temporaries (about 200 bytes a point) of a large
+#: call; the tracker's chunks (32,768 points) go whole, which measured faster than cache-sized pieces (see
 #: :meth:`DenseField._lookup_rows`).
-_CPU_POINTS = 4096
+_CPU_POINTS = 32768
 
 
 def _as_vec3(x: Any, name: str) -> tuple[float, float, float]:
@@ -288,11 +288,12 @@ class DenseField:
         """The CPU lookup: value and gradient rows ``(4, N)`` and validity ``(N,)`` at ``points`` ``(N, 3)``
         (a ``(3, N).t()`` view is read without a copy), in numpy, :data:`_CPU_POINTS` points at a time.
 
-        Why numpy and pieces: the work per point is a gather of 8 scattered table rows and ~20 passes of
-        arithmetic over its values; torch's CPU ops cost 5-10 microseconds a call (a coarse pyramid level has
-        4,000 points) and a whole 70,000-point level's gathered corners (9 MB) went to memory and back for each
-        lerp. Measured on 7-Scenes kitchen frames, one thread: 1.3-1.5x faster than the torch ops (docs/results.md).
-        NaN or infinite points are not valid and get a finite cell (``fmin``/``fmax`` drop NaN)."""
+        Why numpy: the work per point is a gather of 8 scattered table rows and ~20 passes of arithmetic over its
+        values, and torch's CPU ops cost 5-10 microseconds a call (a coarse pyramid level has 4,000 points),
+        numpy's about one. Pieces of 4,096 points (to keep the gathered corners in a 512 KiB L2) measured slower
+        in the tracker than 32,768: more calls, and two tracker threads wait for each other's GIL between them
+        (docs/results.md). NaN or infinite points are not valid and get a finite cell (``fmin``/``fmax``
+        drop NaN)."""
         table, offsets, origin, strides = self._np
         q = points.detach().numpy().T  # (3, N)
         n = q.shape[1]

@@ -34,10 +34,9 @@ buffers would be page-faulted on every op); the chunks of one iteration are shar
 threads (torch releases the GIL inside its kernels) with torch's own intra-op threads set to 1 meanwhile.
 torch's OpenMP threading of the same small ops degrades badly as soon as anything else wants a core (on a
 busy 2-core VM: median 2.5 s against 56 ms per 640x480 frame for the chunk threads). On the CPU each chunk is
-worked through in numpy, 4,096 points at a time (``_chunk_terms_cpu``, with DenseField's numpy lookup): a piece's
-points, gathered corners and terms stay in the core's cache, and numpy's calls cost about a microsecond against
-torch's 5-10 (zero-copy views of the torch tensors either way); the trilinear gather is numpy's ``take``, several
-times faster than ``index_select``. On CUDA the whole image is one chunk of torch ops and everything stays on
+worked through in numpy (``_chunk_terms_cpu``, with DenseField's numpy lookup): numpy's calls cost about a
+microsecond against torch's 5-10 (zero-copy views of the torch tensors either way); the trilinear gather is
+numpy's ``take``, several times faster than ``index_select``. On CUDA the whole image is one chunk of torch ops and everything stays on
 the device except the 7x7 normal equations.
 Each point costs one gather (its cell's 8 corners of the field's value-and-gradient table) and a fixed
 number of whole-chunk tensor ops on contiguous ``(k, n)`` rows; there is no per-point Python. The Jacobian
@@ -359,9 +358,6 @@ def _backproject(depth: torch.Tensor, k: CameraIntrinsics, stride: int, min_dept
 #: calls a chunk are short and the threads spend their time handing the GIL to each other (2 threads on
 #: 100 kitchen frames: 37.5 ms of CPU a frame with this bound against 43.8 ms with 1,024; one thread: 34.4)
 _MIN_POINTS_PER_THREAD = 16384
-#: points the CPU path takes at a time (:meth:`SDFTracker._chunk_terms_cpu`): a piece's world points, samples and
-#: terms (about 200 bytes a point) stay in the core's cache
-_CPU_PIECE = 4096
 
 
 def _split(pts: torch.Tensor, chunk: int, workers: int) -> list[torch.Tensor]:
@@ -529,11 +525,11 @@ class SDFTracker:
         return acc
 
     def _chunk_terms_cpu(self, chunks: list[torch.Tensor], r5: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """:meth:`_chunk_terms` on the CPU, in numpy, :data:`_CPU_PIECE` points at a time: each piece's
-        world points, samples and terms stay in the core's cache from the field's lookup to the product that
-        sums them, and numpy's calls cost a microsecond against torch's 5-10 (the coarse levels' few thousand
-        points are dominated by the per-call cost). The same sums as :meth:`_chunk_terms`, added up in float64
-        over the pieces."""
+        """:meth:`_chunk_terms` on the CPU, in numpy: the same sums, added up in float64 over the chunks.
+        numpy's calls cost about a microsecond against torch's 5-10, and the coarse levels' few thousand points
+        a chunk are dominated by the per-call cost. Whole chunks, not cache-sized pieces of them: pieces of
+        4,096 points measured 0.86x of the torch ops on kitchen frames (more short calls, whose Python part
+        holds the GIL the other thread waits for), whole chunks 1.2-1.3x (docs/results.md)."""
         cfg = self.config
         d_min, d_max = self.field.truncation
         lo, hi = d_min + cfg.plateau_margin, d_max - cfg.plateau_margin
@@ -541,39 +537,37 @@ class SDFTracker:
         r5n, tn = r5.numpy(), t.numpy()
         acc = np.zeros((9, 8))
         for chunk in chunks:
-            pc = chunk.numpy()
-            for i in range(0, pc.shape[1], _CPU_PIECE):
-                p = pc[:, i:i + _CPU_PIECE]
-                n = p.shape[1]
-                rp = r5n @ p  # R p, rows x, y, z, x, y: the lever arm in the world frame
-                q = rp[:3] + tn  # (3, n) world points
-                d, g, valid = self.field.sample_with_gradient(torch.from_numpy(q).t())
-                d, valid = d.numpy(), valid.numpy()
-                a = np.empty((10, n), dtype=np.float32)  # as in _chunk_terms: [1, (R p) x g, D, g, g_x, g_y]
-                a[0] = 1.0
-                a[4] = d
-                a[5:8] = g.numpy().T
-                a[8:10] = a[5:7]
-                np.multiply(rp[1:4], a[7:10], out=a[1:4])
-                a[1:4] -= rp[2:5] * a[6:9]
-                gsq = a[5] * a[5]
-                gsq += a[6] * a[6]
-                gsq += a[7] * a[7]
-                mask = d < hi
-                mask &= d > lo
-                mask &= valid
-                mask &= gsq >= g2
-                ad = np.abs(d)
-                if cfg.max_distance is not None:
-                    mask &= ad <= cfg.max_distance
-                left = np.empty((9, n), dtype=np.float32)
-                left[8] = mask
-                np.multiply(left[8], d, out=left[7])
-                w = np.maximum(ad, cfg.huber_delta, out=ad)
-                np.divide(left[8], w, out=w)
-                w *= cfg.huber_delta
-                np.multiply(a[1:8], w, out=left[:7])
-                acc += left @ a[:8].T
+            p = chunk.numpy()
+            n = p.shape[1]
+            rp = r5n @ p  # R p, rows x, y, z, x, y: the lever arm in the world frame
+            q = rp[:3] + tn  # (3, n) world points
+            d, g, valid = self.field.sample_with_gradient(torch.from_numpy(q).t())
+            d, valid = d.numpy(), valid.numpy()
+            a = np.empty((10, n), dtype=np.float32)  # as in _chunk_terms: [1, (R p) x g, D, g, g_x, g_y]
+            a[0] = 1.0
+            a[4] = d
+            a[5:8] = g.numpy().T
+            a[8:10] = a[5:7]
+            np.multiply(rp[1:4], a[7:10], out=a[1:4])
+            a[1:4] -= rp[2:5] * a[6:9]
+            gsq = a[5] * a[5]
+            gsq += a[6] * a[6]
+            gsq += a[7] * a[7]
+            mask = d < hi
+            mask &= d > lo
+            mask &= valid
+            mask &= gsq >= g2
+            ad = np.abs(d)
+            if cfg.max_distance is not None:
+                mask &= ad <= cfg.max_distance
+            left = np.empty((9, n), dtype=np.float32)
+            left[8] = mask
+            np.multiply(left[8], d, out=left[7])
+            w = np.maximum(ad, cfg.huber_delta, out=ad)  # Huber weight: delta / max(|D|, delta), 0 where unusable
+            np.divide(left[8], w, out=w)
+            w *= cfg.huber_delta
+            np.multiply(a[1:8], w, out=left[:7])
+            acc += left @ a[:8].T
         return torch.from_numpy(acc)
 
     def _normal_equations(self, chunks: list[torch.Tensor], pose: np.ndarray, workers: int
