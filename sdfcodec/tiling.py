@@ -23,7 +23,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-__all__ = ["TILE_ROWS", "l2_bytes", "run_tiles", "scratch", "tile_rows_for"]
+__all__ = ["TILE_ROWS", "l2_bytes", "one_blas_thread", "run_tiles", "scratch", "tile_rows_for"]
 
 def l2_bytes(sysfs: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
     """The first core's level-2 (data or unified) cache in bytes, as Linux describes it; None where it does not."""
@@ -83,9 +83,10 @@ def _blas():
 
 
 @contextlib.contextmanager
-def _one_blas_thread() -> Iterator[int]:
-    """Hold numpy's BLAS at one thread (the tiles bring their own); yields the threads it had, the cores the
-    caller may use. Nested and concurrent holders share one limit; the last to leave restores it."""
+def one_blas_thread() -> Iterator[int]:
+    """Hold numpy's BLAS at one thread (the caller brings its own threads: the tiles, the tracker's chunk
+    threads); yields the threads it had, the cores the caller may use. Nested and concurrent holders share one
+    limit; the last to leave restores it."""
     blas = _blas()
     with _lock:
         if _state["held"] == 0:
@@ -122,7 +123,7 @@ def run_tiles(n: int, work: Callable[[int, int], None], *, rows: int | None = No
     raised once all threads have stopped."""
     if n <= 0:
         return
-    with _one_blas_thread() as threads:
+    with one_blas_thread() as threads:
         rows = TILE_ROWS if rows is None else int(rows)
         # a short batch is still shared by every core: tiles of at least _MIN_ROWS rows, as many as the threads
         rows = max(1, min(rows, max(_MIN_ROWS, -(-n // int(threads)))))

@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field as dc_field
 from typing import Any, Iterable, Protocol, runtime_checkable
 
@@ -68,6 +68,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from .densefield import DenseField
 from .errors import DTypeError, InvalidValueError, ShapeError
 from .geometry import orthonormality_error, se3_exp
+from .tiling import one_blas_thread
 
 __all__ = [
     "FieldSampler",
@@ -633,7 +634,10 @@ class SDFTracker:
         d = self._depth(depth)
         pose0 = self._pose(initial_pose)
         workers = self._workers(d.device)
-        with _intra_op_threads(1 if workers > 1 else None):
+        # on the CPU numpy's BLAS (the chunks' small products) stays on one thread too: OpenBLAS's own threads
+        # spin after each call, on the core the other chunk thread (or the next op) needs
+        blas = one_blas_thread() if d.device.type == "cpu" else nullcontext()
+        with _intra_op_threads(1 if workers > 1 else None), blas:
             return self._track(d, pose0, initial_pose, workers)
 
     def _workers(self, device: torch.device) -> int:

@@ -328,6 +328,35 @@ def test_pose_type_follows_input_and_threads_agree(field, depth):
     np.testing.assert_allclose(two.pose.numpy(), one.pose, atol=1e-4)
 
 
+def test_numpy_blas_is_held_at_one_thread_while_tracking_and_restored(field, depth):
+    """The chunks' small numpy products run on one BLAS thread during ``track`` (OpenBLAS's own threads spin
+    after each call, on the core the tracker's other thread needs) and numpy gets its threads back after."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"
+                and "numpy" in lib["filepath"]]
+
+    before = blas_threads()
+    if not before:
+        pytest.skip("threadpoolctl finds no BLAS library of numpy's here")
+    seen: list[list[int]] = []
+
+    class Watching:  # a FieldSampler that notes numpy's BLAS threads while the tracker calls it
+        device, truncation = field.device, field.truncation
+
+        def sample(self, points):
+            return field.sample(points)
+
+        def sample_with_gradient(self, points):
+            seen.append(blas_threads())
+            return field.sample_with_gradient(points)
+
+    res = SDFTracker(Watching(), K).track(depth, TRUE_POSE)
+    assert res.success and seen and all(t == [1] * len(before) for t in seen), seen
+    assert blas_threads() == before
+
+
 def _reference_step(field, depth, pose, cfg):
     """One Gauss-Newton step as the module docstring writes it, in float64 numpy with every point's Jacobian
     formed in the camera frame (``g = R^T grad D``, ``J = [g, p x g]``): (pose, inliers, residual)."""
