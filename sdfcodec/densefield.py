@@ -72,8 +72,8 @@ def trilinear_rows(corners: np.ndarray, frac: np.ndarray, out: np.ndarray) -> np
 
     Each lerp is ``a += w (b - a)`` in place over two contiguous slabs of n * C values, the fractions repeated to
     the C channels by ``np.repeat``: numpy's calls cost about a microsecond against torch's 5-10 and its expanded
-    copy of the fractions (a stride-0 inner dimension) ran at 0.7 GB/s on a 2-core AMD EPYC; measured 1.3-1.5x
-    faster than :func:`trilinear` for 4,000-20,000 points of 4 channels, one thread (docs/results.md)."""
+    copy of the fractions (a stride-0 inner dimension) ran at 0.7 GB/s on a 2-core AMD EPYC; measured 1.3-1.6x
+    faster than :func:`trilinear` for 4,800-19,200 points of 4 channels, one thread (docs/results.md)."""
     n = frac.shape[1]
     ch = corners.shape[-1]
     c = corners.reshape(2, 2, 2, n * ch)
@@ -212,7 +212,7 @@ class DenseField:
         else:
             self._table = vol.reshape(-1, 1)
         self._volume = vol
-        # the CPU lookup (numpy, in cache-sized pieces) of the value-and-gradient table; elsewhere torch's ops
+        # the CPU lookup of the value-and-gradient table runs in numpy (_lookup_rows); elsewhere torch's ops
         self._rows = dev.type == "cpu" and precompute_gradient and backend == "gather"
         if self._rows:
             self._np = (self._table.numpy(), self._corner_offsets.numpy(),

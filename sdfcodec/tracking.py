@@ -36,8 +36,8 @@ torch's OpenMP threading of the same small ops degrades badly as soon as anythin
 busy 2-core VM: median 2.5 s against 56 ms per 640x480 frame for the chunk threads). On the CPU each chunk is
 worked through in numpy (``_chunk_terms_cpu``, with DenseField's numpy lookup): numpy's calls cost about a
 microsecond against torch's 5-10 (zero-copy views of the torch tensors either way); the trilinear gather is
-numpy's ``take``, several times faster than ``index_select``. On CUDA the whole image is one chunk of torch ops and everything stays on
-the device except the 7x7 normal equations.
+numpy's ``take``, several times faster than ``index_select``. On CUDA the whole image is one chunk of torch ops
+and everything stays on the device except the 7x7 normal equations.
 Each point costs one gather (its cell's 8 corners of the field's value-and-gradient table) and a fixed
 number of whole-chunk tensor ops on contiguous ``(k, n)`` rows; there is no per-point Python. The Jacobian
 rows are formed in the world frame (``[grad D, (R p) x grad D]``, the cross product as two ops on shifted
@@ -542,12 +542,12 @@ class SDFTracker:
             n = p.shape[1]
             rp = r5n @ p  # R p, rows x, y, z, x, y: the lever arm in the world frame
             q = rp[:3] + tn  # (3, n) world points
-            d, g, valid = self.field.sample_with_gradient(torch.from_numpy(q).t())
-            d, valid = d.numpy(), valid.numpy()
+            # any FieldSampler's tensors (CPU, any float dtype) as numpy arrays; DenseField's are views already
+            d, g, valid = (x.detach().numpy() for x in self.field.sample_with_gradient(torch.from_numpy(q).t()))
             a = np.empty((10, n), dtype=np.float32)  # as in _chunk_terms: [1, (R p) x g, D, g, g_x, g_y]
             a[0] = 1.0
             a[4] = d
-            a[5:8] = g.numpy().T
+            a[5:8] = g.T
             a[8:10] = a[5:7]
             np.multiply(rp[1:4], a[7:10], out=a[1:4])
             a[1:4] -= rp[2:5] * a[6:9]

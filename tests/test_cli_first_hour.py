@@ -167,7 +167,8 @@ def test_live_bars_on_a_terminal_show_the_rate(monkeypatch):
         prog.advance(done, 4)
         column = prog.columns[-1]
         assert str(column.render(prog.tasks[given])) == "3 frames/s"
-        assert re.fullmatch(r"[\d,]+\.\d frames/s", str(column.render(prog.tasks[done]))), column.render(prog.tasks[done])
+        speed = str(column.render(prog.tasks[done]))
+        assert re.fullmatch(r"[\d,]+\.\d frames/s", speed), speed
 
 
 def test_metre_regions_are_half_open_and_decodes_truncated(scene, tmp_path):
