@@ -25,6 +25,7 @@ import numpy as np
 
 __all__ = ["TILE_ROWS", "l2_bytes", "one_blas_thread", "run_tiles", "scratch", "tile_rows_for"]
 
+
 def l2_bytes(sysfs: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
     """The first core's level-2 (data or unified) cache in bytes, as Linux describes it; None where it does not."""
     with contextlib.suppress(OSError, ValueError):

@@ -143,8 +143,9 @@ def test_online_map_equals_fuse_then_encode(online, reference, tmp_path):
     enc, on = open_map(enc_path), open_map(out)
     assert on.shape_voxels == enc.shape_voxels
     # the weights survive paging (float16 counts are exact): they are what the unbounded grid holds, but for a
-    # few voxels on the edge of the band (measured with 100 frames: 77 of 9.4 million), where the two runs' extrinsics differ in
-    # the last bits (the reference fuses at the world lattice, the online run relative to its origin)
+    # few voxels on the edge of the band (measured with 100 frames: 77 of 9.4 million), where the two runs'
+    # extrinsics differ in the last bits (the reference fuses at the world lattice, the online run relative to its
+    # origin)
     diff = np.abs(on.read_weights(fused.coords) - fused.weights)
     assert diff.max() <= 1 and np.count_nonzero(diff) <= 1e-4 * diff.size
     between = compare_maps(enc, on)
