@@ -77,7 +77,7 @@ def trilinear_rows(corners: np.ndarray, frac: np.ndarray, out: np.ndarray) -> np
     n = frac.shape[1]
     ch = corners.shape[-1]
     c = corners.reshape(2, 2, 2, n * ch)
-    w = np.repeat(frac, ch, axis=1) if ch > 1 else frac
+    w = _repeat4(frac) if ch == 4 else np.repeat(frac, ch, axis=1) if ch > 1 else frac
     for k in range(2):
         a, b = c[0], c[1]
         b -= a
@@ -88,6 +88,18 @@ def trilinear_rows(corners: np.ndarray, frac: np.ndarray, out: np.ndarray) -> np
     b -= a
     b *= w[2].reshape(n, ch)
     return np.add(a.T, b.T, out=out)
+
+
+def _repeat4(frac: np.ndarray) -> np.ndarray:
+    """``np.repeat(frac, 4, axis=1)`` for a (3, n) float32 ``frac``, by integer moves: each value's 4 bytes
+    doubled into an 8-byte word (``x | x << 32``), written twice. ``np.repeat`` copies 4-byte elements one at a
+    time: 0.12 ms for 17,000 points here against 0.06 ms this way (2-core AMD EPYC)."""
+    x = np.ascontiguousarray(frac, dtype=np.float32).view(np.uint32).astype(np.uint64)
+    x |= x << np.uint64(32)
+    w = np.empty((*x.shape, 2), dtype=np.uint64)
+    w[..., 0] = x
+    w[..., 1] = x
+    return w.reshape(x.shape[0], -1).view(np.float32)
 
 
 def _zeros_on_huge_pages(shape: tuple[int, ...]) -> torch.Tensor:
@@ -217,7 +229,9 @@ class DenseField:
         if self._rows:
             self._np = (self._table.numpy(), self._corner_offsets.numpy(),
                         np.asarray(self.origin, dtype=np.float32).reshape(3, 1),
-                        np.asarray(self._strides, dtype=np.float64))
+                        np.asarray(self._strides, dtype=np.float32 if self._float_index else np.float64),
+                        np.asarray(self._lo, dtype=np.float32).reshape(3, 1),
+                        np.asarray(self._hi, dtype=np.float32).reshape(3, 1))
 
     # -- FieldSampler
     @property
@@ -292,25 +306,32 @@ class DenseField:
         values, and torch's CPU ops cost 5-10 microseconds a call (a coarse pyramid level has 4,000 points),
         numpy's about one. Pieces of 4,096 points (to keep the gathered corners in a 512 KiB L2) measured slower
         in the tracker than 32,768: more calls, and two tracker threads wait for each other's GIL between them
-        (docs/results.md). NaN or infinite points are not valid and get a finite cell (``fmin``/``fmax``
-        drop NaN)."""
-        table, offsets, origin, strides = self._np
+        (docs/results.md). NaN or infinite points are not valid and get a finite in-range cell.
+
+        The clamp is one ``clip`` of the (3, N) block, and the fractions need no clamp: they are ``u - floor(u)``
+        wherever the point is valid, and zeroed elsewhere only when some point is not (fmin/fmax row by row and a
+        clamp of the fractions took 0.11 ms of a 17,000-point lookup here)."""
+        table, offsets, origin, strides, lo, hi = self._np
         q = points.detach().numpy().T  # (3, N)
         n = q.shape[1]
         vals = np.empty((4, n), dtype=np.float32)
         valid = np.empty(n, dtype=bool)
-        lo, hi, inv = self._lo, self._hi, 1.0 / self.voxel_size
+        inv = np.float32(1.0 / self.voxel_size)
         for a in range(0, n, _CPU_POINTS):
             b = min(n, a + _CPU_POINTS)
             u = np.subtract(q[:, a:b], origin)
             u *= inv
             cell = np.floor(u)
-            c = np.empty_like(cell)
-            for k in range(3):  # clamped lower corner; fmin maps NaN to the bound, so every index is in the table
-                np.fmax(np.fmin(cell[k], hi[k], out=c[k]), lo[k], out=c[k])
-            np.all(cell == c, axis=0, out=valid[a:b])  # in range where the clamp moved nothing
-            u -= c
-            np.fmin(np.fmax(u, 0.0, out=u), 1.0, out=u)  # in [0, 1) where valid; finite everywhere (NaN -> 0)
+            c = np.clip(cell, lo, hi)  # the clamped lower corner (NaN stays NaN: fixed below with the invalid)
+            ok = cell == c  # in range where the clamp moved nothing (never for NaN)
+            v = np.logical_and(ok[0], ok[1], out=valid[a:b])
+            v &= ok[2]
+            u -= c  # the fractions: in [0, 1) where valid (u - floor(u) is exact)
+            if not v.all():  # any finite in-range cell and fractions for the rest: every index in the table
+                bad = ~v
+                np.copyto(c, lo, where=bad)
+                np.copyto(u, 0.0, where=bad)
+            # exact in float32 while every index is below 2^24 (a 256^3 volume), float64 beyond
             base = (strides @ c).astype(np.intp)
             corners = np.take(table, np.add.outer(offsets, base).reshape(-1), axis=0)
             trilinear_rows(corners, u, vals[:, a:b])
