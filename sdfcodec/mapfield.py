@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from ._validate import BLOCK
-from .densefield import trilinear
+from .densefield import cell_rows, trilinear, trilinear_rows
 from .errors import InvalidValueError, ShapeError
 from .header import BlockState
 
@@ -128,6 +128,11 @@ class MapField:
         self._lo = torch.ones(3, device=dev)
         self._hi = torch.tensor(nvox - 3.0, device=dev)
         self._origin_t = torch.tensor(self.origin, dtype=torch.float32, device=dev)
+        # the CPU lookup's (3, 1) columns (numpy)
+        self._origin_np = np.asarray(self.origin, dtype=np.float32).reshape(3, 1)
+        self._lo_np = np.ones((3, 1), dtype=np.float32)
+        self._hi_np = (nvox - 3.0).reshape(3, 1)
+        self._inv = np.float32(1.0 / self.voxel_size)
         off = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
         self._corner_np = (off @ np.array([_E * _E, _E, 1])).astype(np.int64)
         self._corner = torch.from_numpy(self._corner_np).to(dev)
@@ -169,6 +174,8 @@ class MapField:
         if points.ndim != 2 or points.shape[1] != 3:
             raise ShapeError(f"points must have shape (N, 3) (world x, y, z in metres), got {tuple(points.shape)}")
         p = points.to(device=self._device, dtype=torch.float32)
+        if self._pool_np is not None:
+            return self._lookup_cpu(p)
         u = (p - self._origin_t) * (1.0 / self.voxel_size)
         i0f = torch.floor(u)
         c = torch.clamp(i0f, self._lo, self._hi).nan_to_num_(nan=1.0)
@@ -181,36 +188,64 @@ class MapField:
         bflat = b[:, 0] * self._bstrides[0] + b[:, 1] * self._bstrides[1] + b[:, 2]
         local = loc[:, 0] * (_E * _E) + loc[:, 1] * _E + loc[:, 2]
         with self._lock:
-            bf = bflat.cpu().numpy()
-            inr = in_range.cpu().numpy()
-            slots = self._slot_of[bf]
-            self._tick += 1
-            resident = inr & (slots >= 0)
-            # distinct cached slots this call touches (a mark array: O(N + capacity), cheaper than a sort)
-            mark = np.zeros(self.capacity, dtype=bool)
-            mark[slots[resident]] = True
-            touched = np.flatnonzero(mark)
-            self._last_used[touched] = self._tick  # protects them from eviction by this call's loads
-            missing = inr & (slots == -1)
-            if missing.any():
-                need = np.unique(bf[missing])
-                self._load(need)
-                slots = self._slot_of[bf]
-            self.hits += len(touched)
-            active = inr & (slots >= 0)
-            s = np.where(active, slots, 0)
+            active, s = self._slots(bflat.cpu().numpy(), in_range.cpu().numpy())
             idx = torch.from_numpy(s).to(self._device) * _E3 + local
             idx = (self._corner[:, None] + idx[None, :]).reshape(-1)
-            if self._pool_np is not None:
-                corners = torch.from_numpy(np.take(self._pool_np, idx.numpy(), axis=0))
-            else:
-                corners = self._pool.index_select(0, idx)
+            corners = self._pool.index_select(0, idx)
         valid = torch.from_numpy(active).to(self._device)
         vals = trilinear(corners, frac, in_place=True)  # (N, 4); corners is a scratch gather
         d_max = self._truncation[1]
         d = torch.where(valid, vals[:, 0], d_max)
         g = torch.where(valid[:, None], vals[:, 1:], 0.0)
         return d, g, valid
+
+    def _lookup_cpu(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`sample_with_gradient` on the CPU, in numpy (as :meth:`DenseField._lookup_rows
+        <sdfcodec.densefield.DenseField>`: numpy's calls cost about a microsecond, torch's 5-10, and the
+        arithmetic runs on contiguous (3, N) rows). Only the slot lookup and the gather hold the lock, so that the
+        tracker's two threads interpolate at the same time."""
+        q = p.detach().numpy().T  # (3, N); a (3, N).t() view is read without a copy
+        n = q.shape[1]
+        in_range = np.empty(n, dtype=bool)
+        c, frac = cell_rows(q, self._origin_np, self._inv, self._lo_np, self._hi_np, in_range)
+        blk, loc = np.divmod(c.astype(np.intp), BLOCK)
+        bflat = blk[0] * self._bstrides[0]
+        bflat += blk[1] * self._bstrides[1]
+        bflat += blk[2]
+        local = loc[0] * (_E * _E)
+        local += loc[1] * _E
+        local += loc[2]
+        with self._lock:
+            active, s = self._slots(bflat, in_range)
+            local += s * _E3
+            corners = np.take(self._pool_np, np.add.outer(self._corner_np, local).reshape(-1), axis=0)
+        vals = trilinear_rows(corners, frac, np.empty((4, n), dtype=np.float32))
+        if not active.all():  # not valid: d_max and a zero gradient
+            off = ~active
+            vals[0, off] = self._truncation[1]
+            vals[1:, off] = 0.0
+        return torch.from_numpy(vals[0]), torch.from_numpy(vals[1:]).t(), torch.from_numpy(active)
+
+    def _slots(self, bf: np.ndarray, inr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(Under the lock.) The cache slots of the blocks ``bf`` (N,) flat indices of the points in range ``inr``
+        (N,): ``(active, slot)``, the points that read a decoded block and their slots (0 for the rest), loading
+        the blocks not cached yet."""
+        slots = self._slot_of[bf]
+        self._tick += 1
+        resident = inr & (slots >= 0)
+        # distinct cached slots this call touches (a mark array: O(N + capacity), cheaper than a sort)
+        mark = np.zeros(self.capacity, dtype=bool)
+        mark[slots[resident]] = True
+        touched = np.flatnonzero(mark)
+        self._last_used[touched] = self._tick  # protects them from eviction by this call's loads
+        missing = inr & (slots == -1)
+        if missing.any():
+            need = np.unique(bf[missing])
+            self._load(need)
+            slots = self._slot_of[bf]
+        self.hits += len(touched)
+        active = inr & (slots >= 0)
+        return active, np.where(active, slots, 0)
 
     # -- cache management (called under the lock)
     def _alloc(self) -> int:

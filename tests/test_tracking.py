@@ -624,6 +624,25 @@ def test_map_field_matches_dense_decode(raw_map, depth):
     assert a.iterations == b.iterations
 
 
+def test_map_field_cpu_path_matches_the_torch_ops_a_device_runs(raw_map):
+    """On the CPU MapField's lookup runs in numpy (``MapField._lookup_cpu``); on a device, torch's ops do the same
+    work. Both are run here on the CPU and must agree, on points in and out of the map, NaN and infinite ones
+    included, and load and hit the same blocks."""
+    from sdfcodec.mapfield import MapField
+
+    cpu, ops = MapField(raw_map), MapField(raw_map)
+    ops._pool_np = None  # the torch ops a CUDA device runs
+    rng = np.random.default_rng(21)
+    pts = torch.from_numpy(rng.uniform(-0.4, 2.2, size=(20000, 3)).astype(np.float32))
+    pts[::97] = float("nan")
+    pts[5::101, 1] = float("inf")
+    (d1, g1, v1), (d2, g2, v2) = cpu.sample_with_gradient(pts), ops.sample_with_gradient(pts)
+    assert torch.equal(v1, v2) and 0 < int(v1.sum()) < len(pts)
+    assert torch.allclose(d1, d2, atol=1e-6) and torch.allclose(g1, g2, atol=1e-5)
+    assert torch.all(d1[~v1] == raw_map.truncation[1]) and torch.all(g1[~v1] == 0)
+    assert cpu.stats() == ops.stats()
+
+
 def test_map_field_partial_view_and_cache_bound(raw_map, depth):
     from sdfcodec.mapfield import MapField, _SLOT_BYTES
 
