@@ -18,6 +18,10 @@ kitchen's lossless and pca-64 maps (dense, cold and warm MapField; per-frame med
 With ``--ab OLD`` (OLD: the ``sdfcodec`` package folder of another checkout) it tracks the first
 ``--lazy-frames`` kitchen frames against the lossless map's dense field with both trackers in one process,
 alternating which goes first frame by frame, so both see the same load: wall and CPU time per frame, ATE.
+``--ab-field warm`` compares the trackers on warm ``MapField``s instead, after one untimed warming pass over the
+same frames: OLD's ``MapField.sample_with_gradient`` grafted onto this checkout's ``MapField`` (the old package
+cannot load its own map reader beside this one: the codec plugins register with one package), so it measures a
+change of the lookup, not of the cache. ``--ab-map pca-64`` uses the pca-64 map.
 """
 import argparse
 import importlib.util
@@ -97,7 +101,8 @@ def record(name: str, map_name: str, field_kind: str, seq, depths, field, startu
 
 
 def load_old(src: Path):
-    """The tracking and densefield modules of the package folder ``src``, imported as ``sdfcodec_old``."""
+    """The tracking and densefield modules of the package folder ``src``, imported as ``sdfcodec_old`` (its
+    ``mapfield`` is imported on demand as ``sdfcodec_old.mapfield``)."""
     spec = importlib.util.spec_from_file_location("sdfcodec_old", src / "__init__.py",
                                                   submodule_search_locations=[str(src)])
     pkg = importlib.util.module_from_spec(spec)
@@ -106,18 +111,40 @@ def load_old(src: Path):
     return il.import_module("sdfcodec_old.tracking"), il.import_module("sdfcodec_old.densefield")
 
 
-def ab(old_src: Path, kitchen: str, raw: Path, frames: int) -> dict:
+def old_map_field(src: Path) -> type:
+    """This checkout's MapField with the ``sample_with_gradient`` of the MapField in the package folder ``src``
+    (its source compiled in this ``sdfcodec.mapfield``'s namespace)."""
+    import ast
+    import sdfcodec.mapfield as mf
+
+    text = (src / "mapfield.py").read_text()
+    cls = next(n for n in ast.parse(text).body if isinstance(n, ast.ClassDef) and n.name == "MapField")
+    fn = next(n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name == "sample_with_gradient")
+    ns = dict(vars(mf))
+    exec(compile(ast.Module([fn], []), str(src / "mapfield.py"), "exec"), ns)
+    return type("OldMapField", (MapField,), {"sample_with_gradient": ns["sample_with_gradient"]})
+
+
+def ab(old_src: Path, kitchen: str, path: Path, frames: int, field: str = "dense") -> dict:
     ot, od = load_old(old_src)
     seq = open_sequence(kitchen)[:frames]
     depths = [seq[i].depth for i in range(len(seq))]
-    m = open_map(raw)
-    vol = m.decode_region()
+    m = open_map(path)
     k = seq.intrinsics
     kk = (k.fx, k.fy, k.cx, k.cy)
-    trackers = {"old": ot.SDFTracker(od.DenseField(vol, m.voxel_size, m.origin, m.truncation), kk,
-                                     ot.TrackerConfig(**EVAL_TRACKER_CONFIG)),
-                "new": SDFTracker(DenseField(vol, m.voxel_size, m.origin, m.truncation), kk,
-                                  TrackerConfig(**EVAL_TRACKER_CONFIG))}
+    if field == "warm":
+        fields = {"old": old_map_field(old_src)(m), "new": MapField(m)}
+    else:
+        vol = m.decode_region()
+        fields = {"old": od.DenseField(vol, m.voxel_size, m.origin, m.truncation),
+                  "new": DenseField(vol, m.voxel_size, m.origin, m.truncation)}
+    trackers = {"old": ot.SDFTracker(fields["old"], kk, ot.TrackerConfig(**EVAL_TRACKER_CONFIG)),
+                "new": SDFTracker(fields["new"], kk, TrackerConfig(**EVAL_TRACKER_CONFIG))}
+    if field == "warm":  # one untimed pass: every block the frames touch decoded and cached
+        for name, tr in trackers.items():
+            pose = seq.poses[0]
+            for depth in depths:
+                pose = tr.track(depth, pose).pose
     st = {n: {"poses": [], "wall": [], "cpu": []} for n in trackers}
     load0 = [round(x, 2) for x in os.getloadavg()]
     for i, depth in enumerate(depths):
@@ -130,7 +157,8 @@ def ab(old_src: Path, kitchen: str, raw: Path, frames: int) -> dict:
             s["wall"].append(time.perf_counter() - t0)
             s["cpu"].append(time.process_time() - c0)
             p.append(np.asarray(res.pose, dtype=np.float64))
-    out = {"frames": len(depths), "torch_threads": torch.get_num_threads(), "load_before": load0,
+    out = {"frames": len(depths), "field": field, "map": path.name, "torch_threads": torch.get_num_threads(),
+           "load_before": load0,
            "load_after": [round(x, 2) for x in os.getloadavg()]}
     for name, s in st.items():
         out[name] = {"ate_rmse_m": float(ate(seq.poses, np.stack(s["poses"])).rmse),
@@ -150,6 +178,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--label", default="", help="what was measured (e.g. the commit), stored in the JSON")
     ap.add_argument("--ab", type=Path, help="the sdfcodec package folder of an older checkout to compare with")
+    ap.add_argument("--ab-field", choices=("dense", "warm"), default="dense",
+                    help="--ab against a dense field (default) or each checkout's warm MapField")
+    ap.add_argument("--ab-map", choices=("lossless", "pca-64"), default="lossless", help="the kitchen map of --ab")
     ap.add_argument("--bench", type=Path, help="write benchmark_tracking of the kitchen maps here instead")
     ap.add_argument("--lazy-frames", type=int, default=200, help="frames of the warm MapField runs")
     ap.add_argument("--tracker", type=Path, help="the sdfcodec package folder of a checkout whose tracker and "
@@ -165,8 +196,10 @@ def main() -> None:
     if a.ab:
         if not a.kitchen:
             ap.error("give the kitchen sequence with --kitchen DIR or $SDFCODEC_KITCHEN")
-        doc = {"command": f"docs/tracking_measure.py --ab OLD --lazy-frames {a.lazy_frames}", "label": a.label,
-               **ab(a.ab, a.kitchen, maps_for(a.kitchen, a.work, "redkitchen", False)["lossless"], a.lazy_frames)}
+        doc = {"command": f"docs/tracking_measure.py --ab OLD --ab-field {a.ab_field} --ab-map {a.ab_map} "
+                          f"--lazy-frames {a.lazy_frames}", "label": a.label,
+               **ab(a.ab, a.kitchen, maps_for(a.kitchen, a.work, "redkitchen", a.ab_map == "pca-64")[a.ab_map],
+                    a.lazy_frames, a.ab_field)}
         print(json.dumps(doc), flush=True)
         if a.out:
             a.out.write_text(json.dumps(doc, indent=1))
