@@ -200,10 +200,10 @@ class MapField:
         return d, g, valid
 
     def _lookup_cpu(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """:meth:`sample_with_gradient` on the CPU, in numpy (as :meth:`DenseField._lookup_rows
-        <sdfcodec.densefield.DenseField>`: numpy's calls cost about a microsecond, torch's 5-10, and the
-        arithmetic runs on contiguous (3, N) rows). Only the slot lookup and the gather hold the lock, so that the
-        tracker's two threads interpolate at the same time."""
+        """:meth:`sample_with_gradient` on the CPU, in numpy, as DenseField's CPU lookup (numpy's calls cost about
+        a microsecond, torch's 5-10, and the arithmetic runs on contiguous (3, N) rows). Only the slot lookup and
+        the gather hold the lock, so that the tracker's two threads interpolate at the same time: 1.35x on warm
+        kitchen maps against torch's ops under the lock (docs/results.md)."""
         q = p.detach().numpy().T  # (3, N); a (3, N).t() view is read without a copy
         n = q.shape[1]
         in_range = np.empty(n, dtype=bool)
