@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -22,6 +23,12 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 pytest_plugins = ["sdfcodec.testing.pytest_plugin"]
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# A shell without job control starts a background job (`make test &`, `nohup ... &`) with SIGINT ignored, and an
+# ignored signal stays ignored across exec: the Ctrl-C tests' child interpreters would then get no
+# KeyboardInterrupt at all. A handler of this process's own is reset to the default in every child it starts.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_configure(config):
