@@ -101,8 +101,7 @@ def record(name: str, map_name: str, field_kind: str, seq, depths, field, startu
 
 
 def load_old(src: Path):
-    """The tracking and densefield modules of the package folder ``src``, imported as ``sdfcodec_old`` (its
-    ``mapfield`` is imported on demand as ``sdfcodec_old.mapfield``)."""
+    """The tracking and densefield modules of the package folder ``src``, imported as ``sdfcodec_old``."""
     spec = importlib.util.spec_from_file_location("sdfcodec_old", src / "__init__.py",
                                                   submodule_search_locations=[str(src)])
     pkg = importlib.util.module_from_spec(spec)

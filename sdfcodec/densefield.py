@@ -71,9 +71,10 @@ def trilinear_rows(corners: np.ndarray, frac: np.ndarray, out: np.ndarray) -> np
     ``out`` (C, n) (any strides) receives the result, which is returned.
 
     Each lerp is ``a += w (b - a)`` in place over two contiguous slabs of n * C values, the fractions repeated to
-    the C channels by ``np.repeat``: numpy's calls cost about a microsecond against torch's 5-10 and its expanded
-    copy of the fractions (a stride-0 inner dimension) ran at 0.7 GB/s on a 2-core AMD EPYC; measured 1.3-1.6x
-    faster than :func:`trilinear` for 4,800-19,200 points of 4 channels, one thread (docs/results.md)."""
+    the C channels (:func:`_repeat4` for 4, else ``np.repeat``): numpy's calls cost about a microsecond against
+    torch's 5-10 and its expanded copy of the fractions (a stride-0 inner dimension) ran at 0.7 GB/s on a 2-core
+    AMD EPYC; with ``np.repeat`` this measured 1.3-1.6x faster than :func:`trilinear` for 4,800-19,200 points of
+    4 channels, one thread (docs/results.md)."""
     n = frac.shape[1]
     ch = corners.shape[-1]
     c = corners.reshape(2, 2, 2, n * ch)
