@@ -7,7 +7,12 @@ from pathlib import Path
 import os
 import signal
 
-import numpy as np
+# As the command line does (sdfcodec/cli/__init__.py): numpy's OpenBLAS threads go to sleep after a product
+# instead of spinning 0.1 s on the cores the next torch call needs. Set before numpy loads, here and in the
+# xdist workers, which inherit it.
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
+
+import numpy as np  # noqa: E402
 import pytest
 from hypothesis import settings
 
@@ -33,8 +38,17 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 
 def pytest_configure(config):
     """Query models the search builds are cached on disk (sdfcodec.search.cache): the suite keeps them in a
-    directory of its own, made fresh per run (xdist workers inherit it), never in the user's ~/.cache."""
+    directory of its own, made fresh per run (xdist workers inherit it), never in the user's ~/.cache.
+
+    Under pytest-xdist each worker gets its share of the cores as torch's and OpenBLAS's default threads
+    (``OMP_NUM_THREADS``, unless set): two workers with two threads each on two cores wait on each other's
+    spinning threads (the suite on the 2-core machine: 484 s with 2 threads a worker, 411 s with 1). Tests that
+    need more threads ask for them (``torch.set_num_threads``, threadpoolctl)."""
     import tempfile
+
+    workers = getattr(config.option, "numprocesses", None)
+    if isinstance(workers, int) and workers > 1:
+        os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // workers)))
 
     from sdfcodec.search.cache import CACHE_ENV
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 import torch
@@ -172,6 +173,7 @@ def test_cli_bench_full_and_compare(tmp_path, smoke):
     doc = json.loads(out.read_text())
     assert doc["schema"] == "sdfcodec-bench/1" and [x["operation"] for x in doc["records"]] == ["search"]
     assert doc["records"][0]["repeats"] == 2 and doc["mode"] == "quick" and doc["machine"]["torch_threads"] == 1
+    assert doc["machine"]["thread_env"]["OPENBLAS_THREAD_TIMEOUT"] == os.environ["OPENBLAS_THREAD_TIMEOUT"]
     assert {"ratio_to_baseline", "ratio_of_bests", "ratio_paired", "ratio_cpu"} <= set(doc["records"][0])
     (tmp_path / "smoke.json").write_text(json.dumps(smoke))
     r = CliRunner().invoke(app, ["bench", "--compare", str(out), str(tmp_path / "smoke.json"), "--json"])

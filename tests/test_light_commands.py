@@ -146,3 +146,32 @@ def test_ctrl_c_during_a_lazy_import_is_raised_after_it(tmp_path):
     """)
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.split() == ["interrupted", "True"], (r.stdout, r.stderr)
+
+
+@pytest.mark.parametrize("given", [None, "9"])
+def test_the_command_line_quiets_openblas_spinning_before_numpy_loads(given):
+    """OpenBLAS reads ``OPENBLAS_THREAD_TIMEOUT`` once, when numpy loads: importing the command line sets it to 4
+    (its threads sleep after a product instead of spinning on the cores torch needs next) before anything
+    imports numpy, and keeps a value the user set."""
+    import os
+
+    code = textwrap.dedent("""
+        import os, sys
+        seen = []
+
+        class Watch:  # notes the variable at the moment numpy is first imported
+            def find_spec(self, name, path=None, target=None):
+                if name == "numpy" and not seen:
+                    seen.append(os.environ.get("OPENBLAS_THREAD_TIMEOUT"))
+                return None
+
+        sys.meta_path.insert(0, Watch())
+        import sdfcodec.cli
+        print(seen, "numpy" in sys.modules)
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    if given is not None:
+        env["OPENBLAS_THREAD_TIMEOUT"] = given
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == [f"['{given or '4'}']", "True"], r.stdout

@@ -193,8 +193,16 @@ def load() -> list[float]:
         return []
 
 
+#: The environment variables that set how the BLAS and OpenMP threads run (recorded with every run: an OpenBLAS
+#: left spinning after its products slows whatever runs next on the same cores; ``sdfcodec``'s command line sets
+#: ``OPENBLAS_THREAD_TIMEOUT``).
+THREAD_ENV = ("OPENBLAS_THREAD_TIMEOUT", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "OMP_WAIT_POLICY",
+              "GOMP_SPINCOUNT", "MKL_NUM_THREADS")
+
+
 def machine(device: str = "cpu") -> dict[str, Any]:
-    """What the figures were measured on: CPU, cores, the torch threads and version, and the device's name."""
+    """What the figures were measured on: CPU, cores, the torch threads and version, the variables of
+    :data:`THREAD_ENV` that are set (``thread_env``), and the device's name."""
     info: dict[str, Any] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                             "cpus": os.cpu_count(), "python": platform.python_version()}
     try:
@@ -208,7 +216,7 @@ def machine(device: str = "cpu") -> dict[str, Any]:
     import torch
 
     info.update(numpy=np.__version__, torch=torch.__version__, torch_threads=torch.get_num_threads(),
-                device=device)
+                device=device, thread_env={k: os.environ[k] for k in THREAD_ENV if k in os.environ})
     if device.startswith("cuda") and torch.cuda.is_available():
         p = torch.cuda.get_device_properties(torch.device(device))
         info.update(device_name=p.name, device_memory_bytes=p.total_memory, cuda=torch.version.cuda)
