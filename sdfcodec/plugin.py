@@ -47,7 +47,6 @@ from typing import Any
 
 from ._lazy import is_tensor, lazy_exports, lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
-from .bench import bench_codec_instance, bench_instance, register_bench, roofline_shapes
 from .codec import Codec, DecodesInto, decodes_into, decodes_tiles
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
@@ -63,10 +62,12 @@ __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "De
            "register_bench", "bench_instance", "bench_codec_instance", "roofline_shapes", "sz3_compress",
            "sz3_decompress", "lazy_module", "is_tensor"]
 
-# Names that import Zarr, loaded on first use (PEP 562): a plugin module imports this one, and `sdfcodec info`
-# (which loads a plugin to name a map's shipped model) must stay light
+# Names that import Zarr, or the benchmarks (an HTTP server and ssl: 30 ms), loaded on first use (PEP 562): a
+# plugin module imports this one, and `sdfcodec info` (which loads a plugin to name a map's shipped model) must
+# stay light
 _LAZY = {"Dataset": ".dataset", "open_dataset": ".dataset", "sz3_compress": ".map.field",
-         "sz3_decompress": ".map.field"}
+         "sz3_decompress": ".map.field", "register_bench": ".bench", "bench_instance": ".bench",
+         "bench_codec_instance": ".bench", "roofline_shapes": ".bench"}
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, "sdfcodec")
