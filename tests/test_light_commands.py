@@ -148,15 +148,21 @@ def test_ctrl_c_during_a_lazy_import_is_raised_after_it(tmp_path):
     assert r.returncode == 0 and r.stdout.split() == ["interrupted", "True"], (r.stdout, r.stderr)
 
 
-@pytest.mark.parametrize("given", [None, "9"])
-def test_the_command_line_quiets_openblas_spinning_before_numpy_loads(given):
+@pytest.mark.parametrize("given, numpy_first", [(None, False), ("9", False), (None, True)])
+def test_the_command_line_quiets_openblas_spinning_before_numpy_loads(given, numpy_first):
     """OpenBLAS reads ``OPENBLAS_THREAD_TIMEOUT`` once, when numpy loads: importing the command line sets it to 4
     (its threads sleep after a product instead of spinning on the cores torch needs next) before anything
-    imports numpy, and keeps a value the user set."""
+    imports numpy, keeps a value the user set, and sets none when numpy had loaded already (too late to act)."""
     import os
 
     code = textwrap.dedent("""
         import os, sys
+        if NUMPY_FIRST:
+            import numpy
+            print(os.environ.get("OPENBLAS_THREAD_TIMEOUT"))
+            import sdfcodec.cli
+            print(os.environ.get("OPENBLAS_THREAD_TIMEOUT"))
+            raise SystemExit
         seen = []
 
         class Watch:  # notes the variable at the moment numpy is first imported
@@ -172,6 +178,8 @@ def test_the_command_line_quiets_openblas_spinning_before_numpy_loads(given):
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
     if given is not None:
         env["OPENBLAS_THREAD_TIMEOUT"] = given
+    code = code.replace("NUMPY_FIRST", str(numpy_first))
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == [f"['{given or '4'}']", "True"], r.stdout
+    want = ["None", "None"] if numpy_first else [f"['{given or '4'}']", "True"]
+    assert r.stdout.split() == want, r.stdout
