@@ -8,8 +8,9 @@ import os
 import signal
 
 # As the command line does (sdfcodec/cli/__init__.py): numpy's OpenBLAS threads go to sleep after a product
-# instead of spinning 0.1 s on the cores the next torch call needs. Set before numpy loads, here and in the
-# xdist workers, which inherit it.
+# instead of spinning 0.1 s on the cores the next torch call needs. Set here unconditionally, not by importing
+# the command line: pytest loads plugins (ours among them) that import numpy before this file, and the xdist
+# workers, which inherit the variable, load numpy after it is set.
 os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
 
 import numpy as np  # noqa: E402
