@@ -23,9 +23,13 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/sdfcodec demo --out demo-out
 
-# two workers (pytest-xdist): most tests are single-threaded Python or wait on subprocesses; about 1.5-2x on 2 cores
+# two workers (pytest-xdist): most tests are single-threaded Python or wait on subprocesses; about 1.5-2x on 2 cores.
+# Bytecode is written even where the environment sets PYTHONDONTWRITEBYTECODE (this project's machines do): the
+# suite starts ~300 Python processes (workers, subprocess and CLI tests), each of which otherwise compiled every
+# sdfcodec module it imported, and pytest's assertion rewriting is cached only as bytecode. __pycache__ is ignored
+# by git. Measured on 4 subprocess-heavy test files: 88-100 s with the variable set, 72 s without.
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q -n 2
 
 # Retrain the shipped eigenshapes (plugins/sdfcodec_pca/models/pca-128.npz) and rewrite docs/default-model.*
 default-model: $(STAMP)

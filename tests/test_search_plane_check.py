@@ -400,3 +400,70 @@ def test_the_foot_rule_holds_upside_down_for_a_ceiling(tmp_path, monkeypatch, h)
     scene = Scene([Box((0.64, 0.64, h * VS + 0.5), (1.0, 1.0, 0.5)),
                    Box((40.5 * VS + 0.5, 0.64, h * VS - 0.3), (0.5, 1.0, 0.4))])
     _check_feet(tmp_path / "c.sdfz", scene, [(np.array([0.0, 0.0, -1.0]), -h * VS)], 2, monkeypatch)
+
+
+@pytest.mark.parametrize("behind, tol", [("unobserved", 2.0), ("solid", 0.8)])
+def test_residuals_equal_a_whole_block_computation(behind, tol):
+    """The check builds each block's candidate fields over its voxels near the plane only: its residuals and moves
+    equal those of every candidate field over the whole block, written out here move by move."""
+    from sdfcodec.search.plane_check import BAND_VOXELS, JUMP_VOXELS, VERIFY_STEP
+    from sdfcodec.search.shapes import MIN_SHAPE_SURFACE
+
+    rng = np.random.default_rng(5)
+    n_blocks, stretches = 70, np.array([1.0, 1.5, 2.5])  # more than one chunk of 64 blocks
+    normals = rng.normal(size=(n_blocks, 3)) * [0.3, 0.3, 1.0]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    dist = _G @ normals.T - rng.uniform(-9, 9, n_blocks)  # planes anywhere across the block, corners included
+    dist = dist.T
+    x = np.clip(_field(dist * rng.uniform(1.0, 2.0, (n_blocks, 1)) + rng.normal(0, 0.3, dist.shape))
+                + rng.normal(0, 0.01, dist.shape), 0, 1).astype(np.float32)
+    observed = rng.random(dist.shape) < 0.9
+    r, _, moved, *_ = plane_residuals(x, observed, dist, voxel_size=VS, truncation=TRUNC, behind=behind,
+                                      stretches=stretches, tol=tol)
+    d_min, d_max = TRUNC
+    want_r, want_m = np.full(n_blocks, np.inf), np.zeros(n_blocks)
+    for b in range(n_blocks):
+        for delta in np.arange(-tol, tol + 1e-9, VERIFY_STEP):
+            m = dist[b] - delta
+            if (np.abs(m) <= 1.0).sum() < MIN_SHAPE_SURFACE:
+                continue
+            for s in stretches:
+                d = (m * s).astype(np.float32) * np.float32(VS)
+                t = np.clip(d, d_min, d_max)
+                use = (np.abs(m) <= BAND_VOXELS) & observed[b]
+                if behind == "unobserved":
+                    t = np.where(d < d_min, d_max, t)
+                    use &= np.abs(d - np.float32(d_min)) > JUMP_VOXELS * VS
+                err = float((((t - d_min) / (d_max - d_min) - x[b]) ** 2 * use).sum())
+                if use.any() and err < want_r[b]:
+                    want_r[b], want_m[b] = err, delta
+    assert np.isfinite(want_r).sum() > n_blocks // 2
+    np.testing.assert_allclose(r, want_r, rtol=1e-4, atol=1e-6)
+    hit = np.isfinite(want_r)
+    assert np.array_equal(moved[hit], want_m[hit])
+
+
+def test_a_blocks_own_plane_equals_the_fit_through_its_surface_points():
+    """The block's own plane comes from weighted moments of the grid and the decoded distances: it equals the
+    principal axes of the surface points themselves (each voxel moved back along the normal by its distance)."""
+    from sdfcodec.search.plane_check import LOCAL_BAND_VOXELS, _local_plane
+
+    n_true = np.array([0.2, 0.1, 1.0]) / np.linalg.norm([0.2, 0.1, 1.0])
+    rel = (_G @ np.array([0.0, 0.0, 1.0]) - 0.4)[None]  # the checked plane: level; the block's: tilted 13 degrees
+    dec = (_G @ n_true - 0.4)[None]  # decoded distances to the block's own plane (voxels)
+    surf = np.abs(dec) <= 1.0
+    local, turned = _local_plane(rel, dec, surf)
+    assert not turned[0]
+    # the fit itself, from the points: the surface voxels near the plane moved back along the checked plane's
+    # normal by their distance; fitted, then refitted to the voxels near that fit
+    n = rel[0] @ _G / (_G[:, 0] ** 2).sum()
+    want = rel[0]
+    for _ in range(2):
+        use = surf[0] & (np.abs(want) <= LOCAL_BAND_VOXELS)
+        pts = _G[use] - dec[0, use, None] * n[None]
+        w, v = np.linalg.eigh(np.cov(pts.T, bias=True))
+        assert w[0] <= 1.0 and w[1] >= 4.0  # a plane, spread across the block
+        normal = v[:, 0] * np.sign(v[:, 0] @ n)
+        want = (_G - pts.mean(axis=0)) @ normal
+    assert np.degrees(np.arccos(min(1.0, normal @ n_true))) < 1.0
+    np.testing.assert_allclose(local[0], want, atol=1e-9)

@@ -270,12 +270,14 @@ def truncate(d: np.ndarray, truncation: tuple[float, float], behind: str) -> np.
     """Signed distances (any shape, metres) -> truncated float32 metres, with voxels more than ``|d_min|``
     behind a surface per ``behind`` (see the package docstring)."""
     d_min, d_max = truncation
-    out = np.clip(d, d_min, d_max)
-    if behind == "unobserved":
-        out = np.where(d < d_min, d_max, out)
-    elif behind != "solid":
+    if behind not in ("solid", "unobserved"):
         raise InvalidValueError(f"behind must be one of {BEHIND}, got {behind!r}")
-    return out.astype(np.float32)
+    # clipped in the input's precision, then float32; the unobserved voxels set in place (a np.where with a
+    # Python float made a float64 copy of the whole array: the plane check's largest cost)
+    out = np.asarray(np.clip(d, d_min, d_max), dtype=np.float32)
+    if behind == "unobserved":
+        np.copyto(out, np.float32(d_max), where=d < d_min)
+    return out
 
 
 def dedupe_blocks(blocks: np.ndarray, *extra: np.ndarray) -> tuple[np.ndarray, ...]:
