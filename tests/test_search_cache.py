@@ -148,3 +148,44 @@ def test_calibrated_threshold_is_cached_and_equal(fresh_cache, tmp_path, monkeyp
     monkeypatch.setenv(cache.CACHE_ENV, "off")
     t4, info4 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
     assert (t4, info4) == (t1, info1) and calls == [1, 1, 1]  # what the cache held is what calibrating gives
+
+
+def test_plane_check_calibration_is_cached_and_equal(fresh_cache, tmp_path, monkeypatch):
+    """The plane check's simulated clean blocks (a weighted encode per checked plane) are calibrated once per key:
+    a repeated search reads them from the cache (memory, then disk) and selects what an uncached one selects."""
+    from sdfcodec.map import state_digest
+    from sdfcodec.sdf import Plane, Scene, sample_volume
+    from sdfcodec.search import plane_check, search
+
+    codec = pretrained_codec("pca", 64)
+    vol = sample_volume(Scene([Plane((0, 0, 1), 0.31)]), (48, 48, 32), VS)
+    path = tmp_path / "p.sdfz"
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, up=(0, 0, 1)) as w:
+        w.write_volume(vol)
+    calls = []
+    real = plane_check.verify_threshold
+    monkeypatch.setattr(plane_check, "verify_threshold", lambda *a, **k: calls.append(1) or real(*a, **k))
+    first = search(path, "floor")
+    n = len(calls)
+    assert n >= 1 and len(first.coords)  # the plane was checked
+    cache.clear_memory_cache()
+    again = search(path, "floor")  # from the disk
+    assert len(calls) == n and np.array_equal(again.coords, first.coords)
+    monkeypatch.setenv(cache.CACHE_ENV, "off")
+    cache.clear_memory_cache()
+    fresh = search(path, "floor")
+    assert len(calls) == 2 * n and np.array_equal(fresh.coords, first.coords)
+
+    # the cached figures are verify_threshold's own, and the key names the plane's normal
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="solid", weighted=False, stretches=np.array([1.0]), tol=1.0,
+              samples=64, seed=0)
+    sha = state_digest(codec.state_dict())
+    monkeypatch.setenv(cache.CACHE_ENV, str(fresh_cache.parent))
+    up, tilted = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.6, 0.8])
+    t, med = plane_check.clean_residuals(up, codec, sha, quantile=0.9, **kw)
+    sim, _ = real(up, codec, quantile=0.9, **kw)
+    assert (t, med) == (float(np.quantile(sim, 0.9)), float(np.median(sim)))
+    before = len(calls)
+    assert plane_check.clean_residuals(up, codec, sha, quantile=0.9, **kw) == (t, med) and len(calls) == before
+    assert plane_check.clean_residuals(tilted, codec, sha, quantile=0.9, **kw) != (t, med)
+    assert len(calls) == before + 1

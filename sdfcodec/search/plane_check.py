@@ -37,11 +37,12 @@ import torch
 
 from .._validate import BLOCK
 from ..blocks import normalise
+from ..map import state_digest
 from .scene import PLANE_TOL_VOXELS
 from .shapes import MIN_SHAPE_SURFACE, truncate
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
-           "verify_threshold", "verify_planes", "check_planes"]
+           "verify_threshold", "clean_residuals", "verify_planes", "check_planes"]
 
 #: Offsets (voxels) along the plane's normal tried at each block, within the plane tolerance.
 VERIFY_STEP = 0.5
@@ -449,6 +450,33 @@ def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, trunc
                            stretches=np.asarray(stretches, np.float64), tol=tol)[:2]
 
 
+def clean_residuals(normal: np.ndarray, codec: Any, state_sha256: str | None, *, quantile: float, **kw: Any
+                    ) -> tuple[float, float]:
+    """The ``quantile`` and the median of :func:`verify_threshold`'s residuals (``kw``: its other arguments;
+    ``state_sha256``: :func:`sdfcodec.map.state_digest` of the codec's state, None for a codec without one),
+    through the query cache (:mod:`sdfcodec.search.cache`): the simulated instances are seeded, so they depend on
+    nothing but what the key names. Each plane a search checks costs a weighted encode of ``samples`` simulated
+    blocks, most of a search's time on large real maps (the kitchen's walls: 5.9 of 14.7 s); a search repeated on
+    the same map, in this process or a later one, reuses them. A change to what the residuals measure MUST bump
+    :data:`~sdfcodec.search.cache.BUILD_VERSION`."""
+    from .cache import cache_key, cached_threshold
+
+    key = cache_key("plane-check", normal=np.asarray(normal, np.float64), codec=codec.get_config(),
+                    state=state_sha256, quantile=float(quantile),
+                    **{k: np.asarray(v, np.float64) if k == "stretches" else v for k, v in kw.items()})
+
+    def compute() -> tuple[float, dict]:
+        sim, _ = verify_threshold(normal, codec, quantile=quantile, **kw)
+        return float(np.quantile(sim, quantile)), {"median": float(np.median(sim))}
+
+    t, info = cached_threshold(key, compute)
+    median = info.get("median")
+    if not (isinstance(median, float) and np.isfinite(median)):  # a foreign file under a valid threshold
+        t, info = compute()
+        median = info["median"]
+    return t, median
+
+
 def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
                   codes_of: Any, *, behind: str, weighted: bool, stretches: Any, quantile: float, samples: int,
                   tol: float
@@ -497,7 +525,10 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     if not weighted:
         is_coded = np.zeros(tuple(int(g) for g in view.grid_blocks), bool)
         is_coded[tuple(coded.T)] = True
+    state = codec.state_dict()
+    sha = state_digest(state) if state else None  # names the codec's state in the calibration's cache key
     accepted, undecided, impure, pure, crossed, report = [], [], [], [], [], []
+
     def crossing(n: np.ndarray, d: float, move: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The coded blocks the plane, moved up to ``move`` voxels along its normal (as the check moves it),
         crosses by more than a corner sliver: indices into ``coded``, the voxels' distances to the unmoved plane
@@ -537,11 +568,11 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
                 feet = _feet(x_next, dist - moved[:, None], n, voxel_size=vs, truncation=trunc)
                 share = np.where(feet > off_plane, np.minimum(share, on_plane / np.maximum(on_plane + feet, 1)),
                                  share)
-            sim, _ = verify_threshold(n, codec, voxel_size=vs, truncation=trunc, behind=behind, weighted=weighted,
-                                      stretches=st, tol=t_used, samples=samples, quantile=quantile, seed=k)
-            t_clean = float(np.quantile(sim, quantile))
+            t_clean, sim_median = clean_residuals(n, codec, sha, voxel_size=vs, truncation=trunc, behind=behind,
+                                                  weighted=weighted, stretches=st, tol=t_used, samples=samples,
+                                                  quantile=quantile, seed=k)
             meas = on & (seen >= MIN_VERDICT_SURFACE)
-            excess = max(0.0, float(np.median(r[meas]) - np.median(sim))) if meas.any() else 0.0
+            excess = max(0.0, float(np.median(r[meas]) - sim_median)) if meas.any() else 0.0
             t = t_clean + excess
             decided = seen >= MIN_VERDICT_SURFACE
             # the block shows the plane: as many decoded surface voxels on it as a check needs observed, or a whole
