@@ -15,7 +15,8 @@ __all__ = ["normalise", "denormalise", "split_blocks", "assemble_blocks", "block
 
 def check_truncation(d_min: float, d_max: float) -> None:
     if not (np.isfinite(d_min) and np.isfinite(d_max) and d_min < d_max):
-        raise InvalidValueError(f"truncation must satisfy d_min < d_max (finite metres), got [{d_min}, {d_max}]")
+        raise InvalidValueError(f"truncation must be d_min,d_max with d_min < d_max (finite metres, e.g. "
+                                f"-0.04,0.1), got [{d_min}, {d_max}]")
 
 
 def normalise(d: np.ndarray, d_min: float, d_max: float) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -177,3 +178,44 @@ def test_the_command_line_quiets_openblas_spinning_before_numpy_loads(given, num
     assert r.returncode == 0, r.stderr
     want = ["[]", "None"] if numpy_first else [f"['{given or '4'}']", given or "4"]
     assert r.stdout.split() == want, r.stdout
+
+
+MISTYPED = [["encode", "{npz}", "{out}", "--voxel-size", "0.02", "--truncation", "0.1,-0.04"],
+            ["encode", "{npz}", "{out}", "--codec-state", "shared"],
+            ["fuse", "{seq}", "{out}", "--truncation", "0.1,-0.04"],
+            ["dataset", "{out}", "--synthetic", "10", "--truncation", "-0.04,nan"]]
+
+
+def test_a_mistyped_flag_is_refused_before_torch_or_open3d_load(tmp_path):
+    """encode, fuse and dataset check their flags first: a reversed --truncation was refused only after torch,
+    Zarr (and for fuse open3d) had loaded, 3.2-3.5 s on this 2-core machine for one line of error."""
+    np.savez(tmp_path / "v.npz", tsdf=np.full((16, 16, 16), 0.1, np.float32))
+    (tmp_path / "seq").mkdir()
+    argvs = [[a.format(npz=tmp_path / "v.npz", out=tmp_path / "out.sdfz", seq=tmp_path / "seq") for a in argv]
+             for argv in MISTYPED]
+    r = _fresh(f"""
+        import contextlib, io, json, sys
+        from sdfcodec.cli import app
+        heavy = set({HEAVY!r})
+        runs = []
+        for argv in json.loads(sys.argv[1]):
+            buf = io.StringIO()
+            with contextlib.redirect_stderr(buf):
+                try:
+                    app(argv)
+                except SystemExit as e:
+                    code = e.code
+            runs.append({{"code": code, "heavy": sorted({{m.split('.')[0] for m in sys.modules}} & heavy),
+                          "err": buf.getvalue()}})
+        print(json.dumps(runs))
+    """, json.dumps(argvs))
+    runs = json.loads(r["stdout"])
+    want = [r"truncation must be d_min,d_max with d_min < d_max .*got \[0\.1, -0\.04\]",
+            r"--codec-state must be embedded or reference, got 'shared'",
+            r"truncation must be d_min,d_max with d_min < d_max .*got \[0\.1, -0\.04\]",
+            r"truncation must be d_min,d_max with d_min < d_max .*got \[-0\.04, nan\]"]
+    for argv, run, pattern in zip(MISTYPED, runs, want):
+        assert run["code"] == 1 and run["err"].startswith("error: "), (argv, run)
+        assert re.search(pattern, " ".join(run["err"].split())), (argv, run["err"])
+        assert run["heavy"] == [], f"sdfcodec {' '.join(argv)} imported {run['heavy']} before refusing the flag"
+    assert not (tmp_path / "out.sdfz").exists()

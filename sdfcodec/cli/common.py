@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from rich.progress import Progress
 
 __all__ = ["app", "out", "err", "fail", "cli", "write_output", "PlainWriter", "progress_bar", "parse_triple",
-           "parse_pair", "parse_region", "print_json", "report", "refuse_existing", "human_bytes", "load_volume"]
+           "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes", "load_volume"]
 
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -297,6 +297,16 @@ def parse_pair(text: str, name: str) -> tuple[float, float]:
     except ValueError:
         fail(f"{name} must be two comma-separated numbers like -0.04,0.1, got {text!r}")
     return a, b
+
+
+def parse_truncation(text: str) -> tuple[float, float]:
+    """``--truncation d_min,d_max``, checked (finite, ``d_min < d_max``): commands parse it before they load
+    torch and Zarr (2-3 s), so that a reversed or mistyped range is refused at once."""
+    from ..blocks import check_truncation
+
+    trunc = parse_pair(text, "--truncation")
+    check_truncation(*trunc)
+    return trunc
 
 
 def parse_region(text: str | None) -> tuple | None:

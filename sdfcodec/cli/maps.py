@@ -10,7 +10,7 @@ from typing import Any, Optional
 import numpy as np
 import typer
 from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError, WriteFailedError
-from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_pair, parse_region,
+from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
                      parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
                      working, write_output)
 
@@ -120,15 +120,20 @@ def encode_cmd(
     blocks (also with --fit). The map stores the codec's state, or with --codec-state reference only a
     reference to the shipped model.
     """
+    # the flags first: a mistyped one is refused before the map machinery loads (torch and Zarr, 2-3 s)
+    trunc_flag = parse_truncation(truncation) if truncation else None
+    org_flag = parse_triple(origin, "--origin")
+    if codec_state not in ("embedded", "reference"):
+        raise InvalidValueError(f"--codec-state must be embedded or reference, got {codec_state!r}")
+    if code_size is not None and model is None:  # 0 or -1 is an error, never the default 64
+        code_size = check_code_size(codec_id or "pca", code_size)
+    refuse_existing(output, overwrite, map_output=True)
     from ..blocks import normalise, split_blocks
     from ..map import create_map, open_map
     from ..map.format import check_volume
     from ..model import load_model
     from ..registry import choose_codec
 
-    if code_size is not None and model is None:  # 0 or -1 is an error, never the default 64
-        code_size = check_code_size(codec_id or "pca", code_size)
-    refuse_existing(output, overwrite, map_output=True)
     src_map = None
     in_path = Path(input)
     if "://" in input or in_path.is_dir():
@@ -141,8 +146,8 @@ def encode_cmd(
         vs = voxel_size if voxel_size is not None else meta.get("voxel_size")
         if vs is None:
             fail(f"{in_path} does not record its voxel size: pass --voxel-size (metres)")
-        trunc = parse_pair(truncation, "--truncation") if truncation else tuple(meta.get("truncation", (-0.04, 0.1)))
-        org = parse_triple(origin, "--origin") or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
+        trunc = trunc_flag or tuple(meta.get("truncation", (-0.04, 0.1)))
+        org = org_flag or tuple(meta.get("origin", (0.0, 0.0, 0.0)))
         vol = check_volume(vol, trunc)
 
     why_fit = "the model given needs fitting"
@@ -158,8 +163,6 @@ def encode_cmd(
     else:  # the shipped model at that size, unless --fit or the plugin ships none (then why_fit says so)
         codec, why_fit = choose_codec(codec_id or "pca", code_size, fit=fit)
 
-    if codec_state not in ("embedded", "reference"):
-        raise InvalidValueError(f"--codec-state must be embedded or reference, got {codec_state!r}")
     if codec_state == "reference" and not codec.is_fitted:  # refused before spending the fit
         raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
                                 f"({why_fit}); drop --fit, pick a shipped size, or store the state "

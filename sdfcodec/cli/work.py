@@ -8,7 +8,7 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
-from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_pair,
+from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_truncation,
                      print_json, print_table, progress_bar, refuse_existing, report, say, working)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
@@ -36,13 +36,13 @@ def fuse_cmd(
     memory-bounded (sdfcodec.online): blocks leave the working set into the map, encoded with --codec, and come
     back when the camera returns. Otherwise transcode afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz`.
     """
+    trunc = parse_truncation(truncation)  # before open3d and torch load: a reversed range is refused at once
+    refuse_existing(output, overwrite, map_output=True)
     from ..evaluation import resolve_sequence
     from ..fusion import fuse
     from ..map import create_map
     from ..online import fusion_codec, fuse_to_map
 
-    refuse_existing(output, overwrite, map_output=True)
-    trunc = parse_pair(truncation, "--truncation")
     sequence = str(resolve_sequence(sequence, Path(output).parent / ".sdfcodec-sequences"))
     codec = fusion_codec(codec_id, code_size)
     if working_set_mb is not None:
@@ -172,12 +172,12 @@ def dataset_cmd(
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Build a training data set: synthetic blocks plus sub-volumes of real maps, split 300:50:50 by batches."""
+    trunc = parse_truncation(truncation)
     from ..data.sampler import iter_windows
     from ..data.synthetic import synthetic_blocks
     from ..dataset import build_dataset
     from ..map import open_map
 
-    trunc = parse_pair(truncation, "--truncation")
     window_kw = dict(stride=stride, truncation=trunc, max_mean=max_mean, empty_fraction=empty_fraction, seed=seed)
 
     def synth(n: int):

@@ -16,6 +16,7 @@ import zarr
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, ZstdCodec
 
 from .._lazy import lazy_module
+from ..blocks import check_truncation
 from ..codec import Codec
 from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..header import CodeQuantisation, CodesSpec, FieldCompression
@@ -301,9 +302,7 @@ def check_volume(volume: Any, truncation: tuple[float, float], shape: tuple | No
     if shape is not None and v.shape != shape:
         raise ShapeError(f"{name} must have shape {shape}, got {v.shape}")
     d_min, d_max = truncation
-    if not d_min < d_max:  # before any clipping: a reversed range would clip everything, then be refused
-        raise InvalidValueError(f"truncation must be d_min,d_max with d_min < d_max (metres, e.g. -0.04,0.1), "
-                                f"got [{d_min}, {d_max}]")
+    check_truncation(d_min, d_max)  # before any clipping: a reversed range would clip everything, then be refused
     finite = np.isfinite(v)
     if not finite.all():
         raise InvalidValueError(f"{name} holds {int((~finite).sum())} NaN/Inf value(s); replace unobserved "
