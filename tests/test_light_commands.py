@@ -78,27 +78,35 @@ COMMANDS = [["--help"], ["codecs", "--json"], ["info", "{map}", "--json"],
             ["verify", "{map}", "--decode-blocks", "0", "--json"]]
 
 
-def test_cli_light_commands_import_nothing_heavy(small_map):
-    """The commands themselves, one after the other in one fresh interpreter (each checked right after it ran)."""
+def _run_commands(argvs: list[list[str]], stream: str) -> list[dict]:
+    """Run the command lines ``argvs`` one after the other in one fresh interpreter: for each, its exit status
+    (``code``, None for a normal return), the heavy modules loaded by then and what it wrote to ``stream``
+    (``out``: "stdout" or "stderr")."""
     r = _fresh(f"""
         import contextlib, io, json, sys
         from sdfcodec.cli import app
         heavy = set({HEAVY!r})
         runs = []
         for argv in json.loads(sys.argv[1]):
-            buf = io.StringIO()
-            with contextlib.redirect_stdout(buf):
+            buf, code = io.StringIO(), None
+            with contextlib.redirect_{stream}(buf):
                 try:
                     app(argv)
                 except SystemExit as e:
-                    assert not e.code, f"{{argv}}: exit status {{e.code}}"
-            runs.append({{"argv": argv, "heavy": sorted({{m.split('.')[0] for m in sys.modules}} & heavy),
-                          "out": buf.getvalue()}})
+                    code = e.code
+            runs.append({{"argv": argv, "code": code, "out": buf.getvalue(),
+                          "heavy": sorted({{m.split('.')[0] for m in sys.modules}} & heavy)}})
         print(json.dumps(runs))
-    """, json.dumps([[a.format(map=small_map) for a in argv] for argv in COMMANDS]))
-    runs = json.loads(r["stdout"])
+    """, json.dumps(argvs))
+    return json.loads(r["stdout"])
+
+
+def test_cli_light_commands_import_nothing_heavy(small_map):
+    """The commands themselves, one after the other in one fresh interpreter (each checked right after it ran)."""
+    runs = _run_commands([[a.format(map=small_map) for a in argv] for argv in COMMANDS], "stdout")
     assert [x["argv"][0] for x in runs] == ["--help", "codecs", "info", "verify"]
     for x in runs:
+        assert not x["code"], f"sdfcodec {' '.join(x['argv'])}: exit status {x['code']}"
         assert x["heavy"] == [], f"sdfcodec {' '.join(x['argv'])} imported {x['heavy']}"
     assert "info" in runs[0]["out"] and "bench" in runs[0]["out"]  # the help lists the commands
     assert {row["id"]: row["status"] for row in json.loads(runs[1]["out"])}["ae"] == "ok"
@@ -193,29 +201,13 @@ def test_a_mistyped_flag_is_refused_before_torch_or_open3d_load(tmp_path):
     (tmp_path / "seq").mkdir()
     argvs = [[a.format(npz=tmp_path / "v.npz", out=tmp_path / "out.sdfz", seq=tmp_path / "seq") for a in argv]
              for argv in MISTYPED]
-    r = _fresh(f"""
-        import contextlib, io, json, sys
-        from sdfcodec.cli import app
-        heavy = set({HEAVY!r})
-        runs = []
-        for argv in json.loads(sys.argv[1]):
-            buf = io.StringIO()
-            with contextlib.redirect_stderr(buf):
-                try:
-                    app(argv)
-                except SystemExit as e:
-                    code = e.code
-            runs.append({{"code": code, "heavy": sorted({{m.split('.')[0] for m in sys.modules}} & heavy),
-                          "err": buf.getvalue()}})
-        print(json.dumps(runs))
-    """, json.dumps(argvs))
-    runs = json.loads(r["stdout"])
+    runs = _run_commands(argvs, "stderr")
     want = [r"truncation must be d_min,d_max with d_min < d_max .*got \[0\.1, -0\.04\]",
             r"--codec-state must be embedded or reference, got 'shared'",
             r"truncation must be d_min,d_max with d_min < d_max .*got \[0\.1, -0\.04\]",
             r"truncation must be d_min,d_max with d_min < d_max .*got \[-0\.04, nan\]"]
     for argv, run, pattern in zip(MISTYPED, runs, want):
-        assert run["code"] == 1 and run["err"].startswith("error: "), (argv, run)
-        assert re.search(pattern, " ".join(run["err"].split())), (argv, run["err"])
+        assert run["code"] == 1 and run["out"].startswith("error: "), (argv, run)
+        assert re.search(pattern, " ".join(run["out"].split())), (argv, run["out"])
         assert run["heavy"] == [], f"sdfcodec {' '.join(argv)} imported {run['heavy']} before refusing the flag"
     assert not (tmp_path / "out.sdfz").exists()
