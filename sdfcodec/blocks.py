@@ -21,7 +21,8 @@ def check_truncation(d_min: float, d_max: float) -> None:
 
 def normalise(d: np.ndarray, d_min: float, d_max: float) -> np.ndarray:
     """Metres in ``[d_min, d_max]`` -> ``[0, 1]`` (free space 1.0). Does not clip."""
-    return ((np.asarray(d, dtype=np.float32) - np.float32(d_min)) / np.float32(d_max - d_min)).astype(np.float32)
+    return ((np.asarray(d, dtype=np.float32) - np.float32(d_min)) / np.float32(d_max - d_min)).astype(np.float32,
+                                                                                                  copy=False)
 
 
 def denormalise(v: np.ndarray, d_min: float, d_max: float) -> np.ndarray:

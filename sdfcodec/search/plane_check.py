@@ -105,12 +105,14 @@ def _ideal(dist: np.ndarray, deltas: np.ndarray, stretches: np.ndarray, voxel_si
     ``d_min`` to ``d_max`` (a sub-voxel move of the plane flips them, so they say nothing about whether the
     block holds it); and which moves keep the plane in the block (``(n, moves x stretches)`` bool)."""
     moved = dist[:, None, None, :] - deltas[None, :, None, None]
-    d = (moved * stretches[None, None, :, None]).astype(np.float32)
+    d = np.empty(moved.shape[:2] + (len(stretches), moved.shape[3]), np.float32)
+    # the product in float64, rounded once into float32 (no float64 temporary of every candidate field)
+    np.multiply(moved, stretches[None, None, :, None], out=d, casting="same_kind")
     d *= np.float32(voxel_size)
     v = normalise(truncate(d, truncation, behind), *truncation).reshape(len(dist), -1, dist.shape[1])
     use = np.broadcast_to(np.abs(moved) <= BAND_VOXELS, d.shape).copy()
     if behind == "unobserved":
-        use = use & (np.abs(d - np.float32(truncation[0])) > JUMP_VOXELS * voxel_size)
+        use &= np.abs(d - np.float32(truncation[0])) > JUMP_VOXELS * voxel_size
     # a move taking the plane out of the block (a corner sliver left) is no candidate
     inside = np.broadcast_to((np.abs(moved) <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE, d.shape[:-1])
     return v, use.reshape(v.shape), inside.reshape(v.shape[:2])
