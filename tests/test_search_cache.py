@@ -189,3 +189,14 @@ def test_plane_check_calibration_is_cached_and_equal(fresh_cache, tmp_path, monk
     assert plane_check.clean_residuals(up, codec, sha, quantile=0.9, **kw) == (t, med) and len(calls) == before
     assert plane_check.clean_residuals(tilted, codec, sha, quantile=0.9, **kw) != (t, med)
     assert len(calls) == before + 1
+    # a cache file with a valid threshold but no median (foreign, or damaged) is recomputed and replaced
+    for f in fresh_cache.glob("*.json"):
+        doc = json.loads(f.read_text())
+        if "median" in doc["info"]:
+            f.write_text(json.dumps({"threshold": doc["threshold"], "info": {}}))
+    cache.clear_memory_cache()
+    assert plane_check.clean_residuals(up, codec, sha, quantile=0.9, **kw) == (t, med)
+    assert len(calls) == before + 2
+    cache.clear_memory_cache()
+    assert plane_check.clean_residuals(up, codec, sha, quantile=0.9, **kw) == (t, med)
+    assert len(calls) == before + 2  # the replaced file serves again

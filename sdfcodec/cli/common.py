@@ -37,7 +37,8 @@ if TYPE_CHECKING:
     from rich.progress import Progress
 
 __all__ = ["app", "out", "err", "fail", "cli", "write_output", "PlainWriter", "progress_bar", "parse_triple",
-           "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes", "load_volume"]
+           "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
+           "load_volume"]
 
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)

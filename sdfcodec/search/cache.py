@@ -114,8 +114,10 @@ def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool
     return _remember(_models, key, model)
 
 
-def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]]) -> tuple[float, dict]:
-    """The calibrated threshold and its report cached under ``key``, else ``compute()`` (then cached)."""
+def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]],
+                     valid: Callable[[dict], bool] = lambda info: True) -> tuple[float, dict]:
+    """The calibrated threshold and its report cached under ``key``, else ``compute()`` (then cached). A report
+    read from disk is used only when ``valid(report)`` holds (it has the fields the caller reads)."""
     if key in _thresholds:
         _thresholds.move_to_end(key)
         return _thresholds[key]
@@ -125,7 +127,7 @@ def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]]) -> tup
             if path.stat().st_size <= 1 << 16:  # a threshold report is a few hundred bytes
                 doc = json.loads(path.read_text(encoding="utf-8"))
                 t, info = doc["threshold"], doc["info"]
-                if isinstance(t, float) and np.isfinite(t) and t >= 0 and isinstance(info, dict):
+                if isinstance(t, float) and np.isfinite(t) and t >= 0 and isinstance(info, dict) and valid(info):
                     return _remember(_thresholds, key, (t, info))
         except (OSError, ValueError, KeyError, TypeError):
             pass

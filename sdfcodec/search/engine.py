@@ -18,9 +18,9 @@ from .._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
-from ..map import Map, open_map, state_digest
+from ..map import Map, open_map
 from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
-from .query import QueryModel, build_query, resolve_query
+from .query import QueryModel, build_query, codec_state_sha256, resolve_query
 from .scoring import ObservedScorer, Scorer, score_codes
 
 __all__ = [
@@ -195,7 +195,7 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
     # the calibration depends on nothing but what the key names (the simulated instances are seeded): cached
     key = cache_key("threshold", spec={k: v for k, v in spec.items() if k != "context"},
                     descriptors=model.descriptors[:, :level], codec=codec.get_config(),
-                    state=state_digest(codec.state_dict()) if codec.state_dict() else None, level=level,
+                    state=codec_state_sha256(codec), level=level,
                     samples=int(samples), observed=observed_scorer is not None, voxel_size=model.voxel_size,
                     truncation=list(model.truncation))
     t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples))

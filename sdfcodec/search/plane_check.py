@@ -37,8 +37,8 @@ import torch
 
 from .._validate import BLOCK
 from ..blocks import normalise
-from ..map import state_digest
 from .scene import PLANE_TOL_VOXELS
+from .query import codec_state_sha256
 from .shapes import MIN_SHAPE_SURFACE, truncate
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
@@ -455,7 +455,7 @@ def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, trunc
 def clean_residuals(normal: np.ndarray, codec: Any, state_sha256: str | None, *, quantile: float, **kw: Any
                     ) -> tuple[float, float]:
     """The ``quantile`` and the median of :func:`verify_threshold`'s residuals (``kw``: its other arguments;
-    ``state_sha256``: :func:`sdfcodec.map.state_digest` of the codec's state, None for a codec without one),
+    ``state_sha256``: :func:`~sdfcodec.search.query.codec_state_sha256` of ``codec``),
     through the query cache (:mod:`sdfcodec.search.cache`): the simulated instances are seeded, so they depend on
     nothing but what the key names. Each plane a search checks costs a weighted encode of ``samples`` simulated
     blocks, most of a search's time on large real maps (the kitchen's walls: 5.9 of 14.7 s); a search repeated on
@@ -471,12 +471,9 @@ def clean_residuals(normal: np.ndarray, codec: Any, state_sha256: str | None, *,
         sim, _ = verify_threshold(normal, codec, quantile=quantile, **kw)
         return float(np.quantile(sim, quantile)), {"median": float(np.median(sim))}
 
-    t, info = cached_threshold(key, compute)
-    median = info.get("median")
-    if not (isinstance(median, float) and np.isfinite(median)):  # a foreign file under a valid threshold
-        t, info = compute()
-        median = info["median"]
-    return t, median
+    t, info = cached_threshold(key, compute,
+                               valid=lambda info: isinstance(info.get("median"), float) and np.isfinite(info["median"]))
+    return t, info["median"]
 
 
 def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
@@ -527,8 +524,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
     if not weighted:
         is_coded = np.zeros(tuple(int(g) for g in view.grid_blocks), bool)
         is_coded[tuple(coded.T)] = True
-    state = codec.state_dict()
-    sha = state_digest(state) if state else None  # names the codec's state in the calibration's cache key
+    sha = codec_state_sha256(codec)  # names the codec's state in the calibration's cache key
     accepted, undecided, impure, pure, crossed, report = [], [], [], [], [], []
 
     def crossing(n: np.ndarray, d: float, move: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

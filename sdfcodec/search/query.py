@@ -28,6 +28,7 @@ __all__ = [
     "QUERY_VERSION",
     "QueryModel",
     "build_query",
+    "codec_state_sha256",
     "encode_query_blocks",
     "like_blocks",
     "save_query",
@@ -116,8 +117,7 @@ class QueryModel:
 
     def matches_codec(self, codec: Codec, state_sha256: str | None = None) -> bool:
         """True when ``codec`` is the one that made the descriptors (same config and state digest)."""
-        sha = state_sha256 if state_sha256 is not None else (state_digest(codec.state_dict())
-                                                               if codec.state_dict() else None)
+        sha = state_sha256 if state_sha256 is not None else codec_state_sha256(codec)
         return codec.get_config() == self.codec_config and sha == self.codec_state_sha256
 
     def without_blocks(self) -> "QueryModel":
@@ -125,7 +125,9 @@ class QueryModel:
         return replace(self, blocks=None)
 
 
-def _codec_sha(codec: Codec) -> str | None:
+def codec_state_sha256(codec: Codec) -> str | None:
+    """:func:`sdfcodec.map.state_digest` of ``codec``'s state, None for a codec without one: what names the
+    codec's state in query models and cache keys."""
     state = codec.state_dict()
     return state_digest(state) if state else None
 
@@ -235,7 +237,7 @@ def _model(name: str, codes: np.ndarray, codec: Codec, voxel_size: float, trunca
     """``sha``: the codec's state digest when the caller has it already (hashing a large state costs)."""
     probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
     return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
-                      codec_state_sha256=_codec_sha(codec) if sha is None else sha, voxel_size=voxel_size,
+                      codec_state_sha256=codec_state_sha256(codec) if sha is None else sha, voxel_size=voxel_size,
                       truncation=truncation,
                       blocks=blocks, rotations=rotations, positions=positions, spec=spec, probe_codes=probes)
 
@@ -252,7 +254,7 @@ def _shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[
             "offsets": offsets if isinstance(offsets, str) else int(offsets), "behind": behind,
             "weighted": weighted, "stretch": list(stretch)}
 
-    config, sha = codec.get_config(), _codec_sha(codec)
+    config, sha = codec.get_config(), codec_state_sha256(codec)
 
     def build() -> QueryModel:
         v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
@@ -323,7 +325,7 @@ def like_blocks(m: Map, coords: Any, codec: Codec) -> QueryModel:
     rows = np.asarray([key[tuple(r)] for r in c.tolist()])
     return QueryModel(name="like " + ";".join(",".join(str(v) for v in r) for r in c.tolist()),
                       descriptors=np.asarray(all_codes, dtype=np.float32)[rows], codec_config=codec.get_config(),
-                      codec_state_sha256=_codec_sha(codec), voxel_size=m.voxel_size, truncation=m.truncation)
+                      codec_state_sha256=codec_state_sha256(codec), voxel_size=m.voxel_size, truncation=m.truncation)
 
 
 def save_query(model: QueryModel, path: str | os.PathLike) -> Path:
@@ -426,7 +428,7 @@ def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None
         weighted = map_context(m, behind="solid").weighted
         return replace(query, descriptors=encode_query_blocks(codec, query.blocks, None, query.truncation,
                                                               query.voxel_size, weighted),
-                       codec_config=codec.get_config(), codec_state_sha256=_codec_sha(codec),
+                       codec_config=codec.get_config(), codec_state_sha256=codec_state_sha256(codec),
                        probe_codes=np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)),
                                               dtype=np.float32))
     # descriptors only: usable where the map's codec encodes the probe blocks to the same leading elements

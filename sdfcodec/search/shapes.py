@@ -270,7 +270,7 @@ def truncate(d: np.ndarray, truncation: tuple[float, float], behind: str) -> np.
     """Signed distances (any shape, metres) -> truncated float32 metres, with voxels more than ``|d_min|``
     behind a surface per ``behind`` (see the package docstring)."""
     d_min, d_max = truncation
-    if behind not in ("solid", "unobserved"):
+    if behind not in BEHIND:
         raise InvalidValueError(f"behind must be one of {BEHIND}, got {behind!r}")
     # clipped in the input's precision, then float32; the unobserved voxels set in place (a np.where with a
     # Python float made a float64 copy of the whole array: the plane check's largest cost)
