@@ -207,3 +207,17 @@ class StateReferenceError(FormatError):
     """A map stores its codec state by reference to a shipped model (spec/map-format.md, section 6c) that the
     installed plugin does not ship, or ships with another state: the message names the model and its digest and
     says what to do (install the plugin version that ships it, or re-store the map with the state embedded)."""
+
+
+__all__ += ["IntegrityError", "SignatureError"]
+
+
+class IntegrityError(FormatError):
+    """An object of a map is not the one its integrity manifest lists at that key (spec/map-format.md, section
+    10): changed, moved, missing, unlisted, or from another map. The message names the map, the array and the
+    key."""
+
+
+class SignatureError(IntegrityError):
+    """Keys were given to trust and the map is unsigned, signed by another key, or changed after signing (spec
+    section 11); or a key file is unusable."""

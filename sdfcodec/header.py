@@ -18,7 +18,8 @@ from .errors import FormatError, VersionError
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
-           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION"]
+           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
+           "ManifestRef", "MAX_MANIFEST_BYTES"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -52,6 +53,12 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {RESIDUAL_EXTENSION}
 #: (spec section 4d); required, since a reader that refuses sharding (section 9a) could not read the codes
 SHARD_EXTENSION = "sharded-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {SHARD_EXTENSION}
+#: "integrity-manifest": the SHA-256 of every stored object keyed by its path, in ``manifest.json``, recorded by
+#: the header field ``manifest`` (spec section 10); required, so that no reader reads such a map unchecked
+MANIFEST_EXTENSION = "integrity-manifest"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {MANIFEST_EXTENSION}
+#: Largest manifest document a reader loads (about 600,000 objects; shard a larger map's codes).
+MAX_MANIFEST_BYTES = 64 << 20
 
 
 class BlockState:
@@ -227,6 +234,14 @@ class Provenance(_Model):
     source: str | None = Field(None, description="input it was made from, free text")
 
 
+class ManifestRef(_Model):
+    """The map's integrity manifest (spec section 10): the document ``manifest.json`` at the map's root."""
+
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="SHA-256 of the bytes of manifest.json")
+    size: int = Field(ge=2, le=MAX_MANIFEST_BYTES, description="its size in bytes")
+    objects: int = Field(ge=0, description="how many objects it lists")
+
+
 class Extension(_Model):
     """An optional feature a map uses. A reader MUST refuse a map with an unknown *required* extension."""
 
@@ -259,13 +274,16 @@ class MapHeader(_Model):
     residual: ResidualSpec | None = Field(
         None, description="OPTIONAL, with the required extension 'residual-bound': the residual stage on top of the "
                           "codes (spec section 6d); omitted otherwise")
+    manifest: ManifestRef | None = Field(
+        None, description="OPTIONAL, with the required extension 'integrity-manifest': the digest of every stored "
+                          "object keyed by its path (spec section 10); omitted in maps without one")
 
     @model_serializer(mode="wrap")
     def _omit_unknown_up(self, handler):
         # an unknown up direction is left out, not written as null: headers without it stay byte-identical to
         # those of writers that predate the field, and readers that predate it open them (so is no residual)
         out = handler(self)
-        for key in ("up", "residual"):
+        for key in ("up", "residual", "manifest"):
             if isinstance(out, dict) and out.get(key, 0) is None:
                 out.pop(key)
         return out
@@ -299,6 +317,10 @@ class MapHeader(_Model):
         if (self.codes.shard_blocks is not None) != bool(shard) or any(not e.required for e in shard):
             raise ValueError(f"codes.shard_blocks and the required extension {SHARD_EXTENSION!r} go together "
                              f"(extensions {[e.name for e in self.extensions]})")
+        man = [e for e in self.extensions if e.name == MANIFEST_EXTENSION]
+        if (self.manifest is not None) != bool(man) or any(not e.required for e in man):
+            raise ValueError(f"manifest and the required extension {MANIFEST_EXTENSION!r} go together "
+                             f"(extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self
@@ -314,7 +336,7 @@ def _number_fields(raw: dict) -> Iterator[tuple[str, Any]]:
                  "grid_blocks", "up", "codes.size", "codes.chunk_blocks", "codes.chunk_code", "codes.levels",
                  "codes.shard_blocks",
                  "codes.quantisation.step", "codes.quantisation.offset", "codes.field_compression.max_error",
-                 "residual.step", "residual.max_error"):
+                 "residual.step", "residual.max_error", "manifest.size", "manifest.objects"):
         value: Any = raw
         for key in path.split("."):
             value = value.get(key) if isinstance(value, dict) else None

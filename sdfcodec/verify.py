@@ -65,6 +65,9 @@ class VerifyReport:
     blocks: dict[str, int] | None = None
     codec: str | None = None
     decoded_blocks: int = 0
+    #: the integrity manifest and signature (spec sections 9b, 9c): ``{"manifest": None or {"objects", "sha256"},
+    #: "signature": None or :func:`~sdfcodec.map.signing.signature_status`}``; None before the header is read
+    integrity: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -428,7 +431,7 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
 
 def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None = None,
                max_decode_bytes: int | None = None, decode_blocks: int = DEFAULT_DECODE_BLOCKS,
-               follow_symlinks: bool = False) -> VerifyReport:
+               follow_symlinks: bool = False, trusted_keys: Any = None) -> VerifyReport:
     """Check the map at ``path_or_url`` end to end (see the module docstring); never raises for a bad map.
 
     Args:
@@ -437,6 +440,8 @@ def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None =
         decode_blocks: how many coded blocks to decode with the codec (0: none, only load it).
         follow_symlinks: follow symbolic links inside a local map, as ``open_map(..., follow_symlinks=True)``
             does (by default each one is a problem: spec section 9a).
+        trusted_keys: Ed25519 public keys (as ``open_map``); a map not signed by one of them as it is has a
+            problem. Default: the process's (``--trusted-key``).
     """
     from .map import DEFAULT_MAX_DECODE_BYTES, Map
     from .map.stores import open_store
@@ -446,13 +451,64 @@ def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None =
     rep = VerifyReport(location=loc)
     try:
         _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map,
-                lambda p, l, o: open_store(p, l, o, follow_symlinks=follow_symlinks))
+                lambda p, l, o: open_store(p, l, o, follow_symlinks=follow_symlinks), trusted_keys)
     except Exception as e:  # noqa: BLE001 - a bug in verify itself: reported, never a traceback
         rep.problem("verify", f"internal error while checking ({type(e).__name__}: {e}); please report it")
     return rep
 
 
-def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, open_store) -> None:
+def _integrity(rep: VerifyReport, store, header, raw, loc: str, trusted_keys: Any):
+    """Load the manifest (installed on ``store``, so every later read is checked against it) and check the
+    signature; returns the manifest or None."""
+    from .map.manifest import load_manifest
+    from .map.signing import check_trust, signature_status, trust_default
+    from .map.stores import MAX_METADATA_BYTES
+
+    keys = trust_default() if trusted_keys is None else trusted_keys
+    rep.integrity = {"manifest": None, "signature": None}
+    try:
+        manifest = load_manifest(store.read_small, header.manifest, "manifest")
+    except SDFCodecError as e:
+        rep.problem("manifest", str(e).removeprefix("manifest: "))
+        return None
+    if manifest is None:
+        rep.note("manifest", "no manifest: this map (written before sdfcodec 0.10, or by another writer) cannot "
+                             "show that its objects are where they were written; write it again to get one")
+        if keys:
+            rep.problem("signature", "keys to trust were given but the map has no manifest, so no signature")
+        return None
+    rep.integrity["manifest"] = {"objects": len(manifest.objects), "sha256": manifest.digest}
+    store.manifest = manifest
+    try:
+        root_doc = store.read_small("zarr.json", MAX_METADATA_BYTES)
+        same = json.loads(root_doc)["attributes"]["sdfcodec"] == raw
+        if not same:
+            rep.problem("signature", "the header read twice differs; signature not checked")
+            return manifest
+        st = signature_status(store.read_small, root_doc, header, loc)
+        rep.integrity["signature"] = st
+        if keys:
+            check_trust(store.read_small, root_doc, header, loc, keys)
+        elif st["signed"] and not st["valid"]:
+            rep.problem("signature", st["problem"])
+    except SDFCodecError as e:
+        rep.problem("signature", str(e).removeprefix(f"{loc}: "))
+    except (TypeError, ValueError, KeyError) as e:
+        rep.problem("signature", f"the root zarr.json could not be read again ({type(e).__name__})")
+    return manifest
+
+
+def _manifest_objects(rep: VerifyReport, store, manifest) -> None:
+    """Every object the manifest lists, checked; every object stored and not listed (local and zip maps)."""
+    from .map.manifest import object_problems
+
+    for p in object_problems(store, manifest, listing=True):
+        rep.problem("manifest", p.removeprefix(f"{manifest.where}: "))
+    rep.chunks_checked["manifest"] = len(manifest.objects)
+
+
+def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, open_store,
+            trusted_keys=None) -> None:
     try:
         store = open_store(path_or_url, loc, storage_options)
         group = zarr.open_group(store, mode="r", zarr_format=3)
@@ -475,12 +531,17 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
         rep.problem("header", str(e).removeprefix("header: "))
         _generic_chunks(rep, group)
         return
+    manifest = _integrity(rep, store, header, raw, loc, trusted_keys)
     try:
         m = Map(group, header, loc, max_decode_bytes=limit)
     except SDFCodecError as e:
         rep.problem("arrays", str(e).removeprefix(f"{loc}: "))
         _generic_chunks(rep, group)
+        if manifest is not None:
+            _manifest_objects(rep, store, manifest)
         return
+    if manifest is not None:
+        _manifest_objects(rep, store, manifest)
     states = _check_states(rep, m)
     if states is not None:
         counts = np.bincount(states.ravel(), minlength=3)
@@ -519,8 +580,13 @@ def verify_command(map_path: str, as_json: bool = False, *, decode_blocks: int =
               + ")")
     if rep.codec is not None:
         out.print(f"  codec: {escape(rep.codec)}, {rep.decoded_blocks} block(s) decoded")
+    if rep.integrity is not None:
+        from .map.summary import integrity_line
+
+        out.print(f"  integrity: {escape(integrity_line(rep.integrity))}")
     for p in rep.problems:
         out.print(f"  [red]problem[/] [bold]{escape(p.where)}[/]: {escape(p.message)}")
     for p in rep.notes:
         out.print(f"  [yellow]note[/] [bold]{escape(p.where)}[/]: {escape(p.message)}")
     return 0 if rep.ok else 1
+

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import inspect
 import json
 import os
 import sys
@@ -22,7 +23,7 @@ import threading
 import time
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, List, Optional, Sequence
 
 import numpy as np
 import typer
@@ -36,7 +37,7 @@ from ..errors import MapExistsError, SDFCodecError, WriteFailedError
 if TYPE_CHECKING:
     from rich.progress import Progress
 
-__all__ = ["app", "out", "err", "fail", "cli", "write_output", "PlainWriter", "progress_bar", "parse_triple",
+__all__ = ["app", "out", "err", "fail", "cli", "reads_maps", "write_output", "PlainWriter", "progress_bar", "parse_triple",
            "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
            "load_volume"]
 
@@ -80,6 +81,42 @@ def cli(fn: Callable) -> Callable:
         finally:
             warnings.showwarning = old
 
+    return wrapper
+
+
+def reads_maps(fn: Callable) -> Callable:
+    """Give a command that reads maps the options ``--trusted-key PATH`` (repeatable: the map must be signed by
+    one of these Ed25519 public keys) and ``--no-verify-chunks`` (skip checking each chunk against the map's
+    manifest: benchmarks only), applied as the process's read defaults while it runs (spec sections 9b, 9c).
+    Put it below :func:`cli`, so that an unusable key file is one line too."""
+    trusted = inspect.Parameter(
+        "trusted_key", inspect.Parameter.KEYWORD_ONLY, annotation=Optional[List[Path]],
+        default=typer.Option(None, "--trusted-key", metavar="PATH", help="Refuse maps not signed by this Ed25519 "
+                             "public key (PEM or raw 32 bytes; repeat for several). See docs/integrity.md."))
+    unchecked = inspect.Parameter(
+        "no_verify_chunks", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
+        default=typer.Option(False, "--no-verify-chunks", help="Do not check chunks against the map's manifest "
+                             "(for benchmarks only: a moved or altered chunk then decodes silently)."))
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, trusted_key: Optional[List[Path]] = None, no_verify_chunks: bool = False,
+                **kwargs: Any) -> Any:
+        if not trusted_key and not no_verify_chunks:
+            return fn(*args, **kwargs)  # the defaults: a light command imports nothing for them
+        from ..map.manifest import set_check_default
+        from ..map.signing import set_trust_defaults
+
+        try:
+            set_trust_defaults(trusted_key)
+            set_check_default(not no_verify_chunks)
+            return fn(*args, **kwargs)
+        finally:  # one command per process, but CliRunner runs many in one
+            set_trust_defaults(None)
+            set_check_default(True)
+
+    sig = inspect.signature(fn)
+    wrapper.__signature__ = sig.replace(parameters=[*sig.parameters.values(), trusted, unchecked])
+    wrapper.__annotations__ = {**fn.__annotations__, "trusted_key": Optional[List[Path]], "no_verify_chunks": bool}
     return wrapper
 
 

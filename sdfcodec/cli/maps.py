@@ -10,6 +10,7 @@ from typing import Any, Optional
 import numpy as np
 import typer
 from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError, WriteFailedError
+from .common import reads_maps
 from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
                      parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
                      working, write_output)
@@ -45,6 +46,7 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
 
 @app.command("info")
 @cli
+@reads_maps
 def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
              as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
     """Show a map's header, blocks by state, bytes on disk and ratio to a dense float32 volume."""
@@ -82,6 +84,10 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
                  if cs["stored"] == "reference" else f"embedded (sha256 {cs['sha256']})"))
     if info["residual"] is not None:
         rows.append(("residual (residual-bound)", _residual_line(info["residual"])))
+    if info.get("integrity") is not None:
+        from ..map.summary import integrity_line
+
+        rows.append(("integrity", integrity_line(info["integrity"])))
     if info["state_warning"]:
         rows.append(("warning", info["state_warning"]))
     print_table(None, rows, title=f"map {map_path}")
@@ -338,6 +344,7 @@ def _encode_quantised(write: Any, codec: Any, step: Optional[float], target: Opt
 
 @app.command("decode")
 @cli
+@reads_maps
 def decode_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     output: Path = typer.Argument(..., metavar="OUTPUT", help="Dense TSDF (metres) to write: .npy (the array), or "
@@ -388,6 +395,7 @@ def decode_cmd(
 
 @app.command("mesh")
 @cli
+@reads_maps
 def mesh_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     output: Path = typer.Argument(..., metavar="OUT.ply", help="Triangle mesh to write (.ply, .obj, .stl...)."),
@@ -435,6 +443,7 @@ def mesh_cmd(
 
 @app.command("search")
 @cli
+@reads_maps
 def search_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     query: str = typer.Option("floor", "--query", help="floor, ceiling, wall, edge, corner, pole, like:X,Y,Z[;X,Y,Z] (blocks like these), or a saved query (.npz)."),
@@ -461,6 +470,7 @@ def search_cmd(
 
 @app.command("verify")
 @cli
+@reads_maps
 def verify_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable report."),
@@ -476,6 +486,7 @@ def verify_cmd(
 
 @app.command("compare")
 @cli
+@reads_maps
 def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="The original: a lossless map, or the .npy/.npz volume DECODED was encoded from."),
                 decoded: str = typer.Argument(..., metavar="DECODED", help="The map to judge, on the same grid."),
                 level: Optional[int] = typer.Option(None, "--level", help="Decode DECODED at this prefix level."),
@@ -497,3 +508,31 @@ def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="Th
         return
     print_table(("metric", "value"), metrics_rows(summary), title=metrics_title(summary))
     report(summary, False, lambda: metrics_sentence(summary))
+
+
+@app.command("sign")
+@cli
+def sign_cmd(map_path: Path = typer.Argument(..., metavar="MAP", help="Local map directory to sign."),
+             key: Path = typer.Option(..., "--key", metavar="KEY", help="Ed25519 private key: PEM (`sdfcodec keygen`, "
+                                      "`openssl genpkey -algorithm ed25519`) or its raw 32-byte seed."),
+             as_json: bool = typer.Option(False, "--json", help="Print a JSON summary.")) -> None:
+    """Sign a map with an Ed25519 key (its manifest and header), atomically; readers trust it with --trusted-key."""
+    from ..map.signing import sign_map
+
+    kid = sign_map(map_path, key)
+    report({"map": str(map_path), "key": kid}, as_json, lambda: f"signed {map_path} with key {kid}")
+
+
+@app.command("keygen")
+@cli
+def keygen_cmd(key: Path = typer.Argument(..., metavar="KEY", help="Private key file to write (PEM); the public key "
+                                          "goes to KEY.pub."),
+               overwrite: bool = typer.Option(False, "--overwrite", help="Replace KEY and KEY.pub if they exist."),
+               as_json: bool = typer.Option(False, "--json", help="Print a JSON summary.")) -> None:
+    """Make an Ed25519 key pair for `sdfcodec sign` (KEY, mode 0600) and `--trusted-key` (KEY.pub)."""
+    from ..map.signing import key_id, keygen
+
+    priv, pub = keygen(key, overwrite=overwrite)
+    kid = key_id(pub)
+    report({"private_key": str(priv), "public_key": str(pub), "key": kid}, as_json,
+           lambda: f"wrote {priv} (keep it secret) and {pub} (give it to readers: --trusted-key); key {kid}")

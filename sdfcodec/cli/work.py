@@ -8,6 +8,7 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
+from .common import reads_maps
 from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_truncation,
                      print_json, print_table, progress_bar, refuse_existing, report, say, working)
 
@@ -78,6 +79,7 @@ def fuse_cmd(
 
 @app.command("track")
 @cli
+@reads_maps
 def track_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     sequence: str = typer.Argument(..., metavar="SEQUENCE", help="TUM RGB-D or 7-Scenes directory."),
@@ -119,6 +121,7 @@ def _track_sentence(s: dict[str, Any], map_path: str, sequence: str) -> str:
 
 @app.command("eval")
 @cli
+@reads_maps
 def eval_cmd(
     sequences: list[str] = typer.Argument(..., metavar="SEQUENCE...",
                                           help="synthetic:PRESET (e.g. synthetic:fast-noisy) or a sequence folder."),

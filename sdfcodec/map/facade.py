@@ -480,7 +480,8 @@ def update_map(path: str | os.PathLike, *, device: str | torch.device = "cpu", t
 
 
 def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
-             max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, follow_symlinks: bool = False) -> Map:
+             max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, follow_symlinks: bool = False,
+             trusted_keys: Sequence[Any] | None = None, verify_chunks: bool | None = None) -> Map:
     """Open a map read-only: a local directory, a ``.zip``, a URL (``http(s)://``, ``s3://``, ``file://``...
     through fsspec) or any Zarr store. Reads only the header and array metadata; data is read on demand.
 
@@ -492,6 +493,13 @@ def open_map(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_o
     block states, one chunk, the codec state): maps whose header or array metadata name more are refused with
     FormatError before anything is read. Opening never runs code from the map. A local map's files must be
     regular files inside it: symbolic links are refused unless ``follow_symlinks`` (spec section 9a).
+
+    A map with an integrity manifest (spec section 9b) has every object it reads checked against it: a chunk
+    moved, changed or from another map is an IntegrityError naming the array and key (``verify_chunks=False``
+    skips that, for benchmarks only). ``trusted_keys`` (Ed25519 public keys: PEM or raw files, key objects;
+    :mod:`sdfcodec.map.signing`): the map must be signed by one of them, as it is (SignatureError otherwise).
+    Both default to the process's (the commands' ``--trusted-key`` and ``--no-verify-chunks``).
     """
     return Map._of(open_reader(path_or_url, storage_options=storage_options, max_decode_bytes=max_decode_bytes,
-                               follow_symlinks=follow_symlinks))
+                               follow_symlinks=follow_symlinks, trusted_keys=trusted_keys,
+                               verify_chunks=verify_chunks))

@@ -688,8 +688,13 @@ class MapReader:
 
 def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
                 max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
-                follow_symlinks: bool = False) -> MapReader:
-    """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there)."""
+                follow_symlinks: bool = False, trusted_keys: Sequence[Any] | None = None,
+                verify_chunks: bool | None = None) -> MapReader:
+    """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there).
+    ``trusted_keys`` and ``verify_chunks`` default to the process's (``--trusted-key``, ``--no-verify-chunks``)."""
+    from .manifest import check_default
+    from .signing import protect, trust_default
+
     loc = str(path_or_url)
     try:
         store = open_store(path_or_url, loc, storage_options, follow_symlinks=follow_symlinks)
@@ -704,6 +709,9 @@ def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storag
     except Exception as e:
         raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
     header = parse_header(raw, where=loc)
+    # the integrity manifest and the signature (spec sections 9b, 9c): before any array's metadata is read
+    protect(store, header, raw, loc, trusted_keys=trust_default() if trusted_keys is None else trusted_keys,
+            verify_chunks=check_default() if verify_chunks is None else verify_chunks)
     inner = unguarded(store)
     # how another process reopens it: the store object itself, the map directory's path (not the pinned
     # /proc/self/fd one), or the location as given

@@ -90,13 +90,31 @@ class GuardStore(zarr.storage.WrapperStore):
     that is not a regular file, is refused), not only from ``stat``."""
 
     def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None,
-                 indexes: ShardIndexCache | None = None):
+                 indexes: ShardIndexCache | None = None, manifest: Any = None):
         super().__init__(store)
         self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
         self.indexes = ShardIndexCache() if indexes is None else indexes
+        #: the map's integrity manifest (:class:`sdfcodec.map.manifest.Manifest`) once the reader loaded it: every
+        #: object read from then on is checked against it (spec section 9b); None: unchecked
+        self.manifest = manifest
 
     def _with_store(self, store):
-        return type(self)(store, self.limits, self.indexes)
+        return type(self)(store, self.limits, self.indexes, self.manifest)
+
+    def read_small(self, key: str, max_bytes: int) -> bytes | None:
+        """The whole object ``key`` (a document beside the arrays: the manifest, a signature), at most
+        ``max_bytes`` read (more is a FormatError), unchecked by the manifest; None when absent."""
+        def too_big(size: int) -> Exception:
+            return FormatError(f"{key} is {size} bytes, more than the {max_bytes} expected; refused")
+
+        inner = self._store
+        if isinstance(inner, (SafeLocalStore, SafeZipStore)):
+            buf = zarr.core.sync.sync(inner.get_bounded(key, None, None, max_bytes, too_big))
+        else:
+            buf = zarr.core.sync.sync(inner.get(key, default_buffer_prototype()))
+        if buf is not None and len(buf) > max_bytes:
+            raise too_big(len(buf))
+        return None if buf is None else buf.to_bytes()
 
     def _local_size(self, key: str) -> int | None:
         inner = self._store
@@ -134,9 +152,13 @@ class GuardStore(zarr.storage.WrapperStore):
             raise ChecksumError(f"{key}: {problem}; refused unread")
         index = isinstance(byte_range, SuffixByteRequest)
         if index and (hit := self.indexes.get(key)) is not None:
+            if self.manifest is not None:  # cached by a read through Zarr before its check
+                self.manifest.check(key, hit, byte_range)
             return hit
         data = self._store.read_file(key, byte_range, read_cap(limit, byte_range, chunk_read_limit(limit[0])),
                                      _chunk_too_big(key, limit))
+        if self.manifest is not None:
+            self.manifest.check(key, data, byte_range)
         if data is not None and index:
             self.indexes.put(key, data)
         elif data is not None:
@@ -144,6 +166,12 @@ class GuardStore(zarr.storage.WrapperStore):
         return data
 
     async def get(self, key, prototype=None, byte_range=None):
+        buf = await self._get(key, prototype, byte_range)
+        if self.manifest is not None:  # after the bounds and frame checks: nothing unbounded is hashed
+            self.manifest.check(key, None if buf is None else buf.as_numpy_array(), byte_range)
+        return buf
+
+    async def _get(self, key, prototype=None, byte_range=None):
         meta = key == "zarr.json" or key.endswith("/zarr.json")
         limit = self.limit_of(key)
 
@@ -447,6 +475,19 @@ class SafeZipStore(zarr.storage.ZipStore):
 
     def __init__(self, path, *, mode: str = "r", read_only: bool | None = None, **kwargs):
         super().__init__(path, mode="r", read_only=True)
+
+    def _sync_open(self) -> None:
+        super()._sync_open()
+        # two members of one name: Python's zipfile reads the last, other readers the first, so two readers
+        # could see two maps (a second zarr.json, a second chunk): the zip is refused, naming the member
+        seen: set[str] = set()
+        for info in self._zf.infolist():
+            if info.filename in seen:
+                self._zf.close()
+                self._is_open = False
+                raise FormatError(f"{self.label}: member {info.filename} appears twice in the zip (readers would "
+                                  "disagree on which counts); refused: zip the map directory again")
+            seen.add(info.filename)
 
     @property
     def label(self) -> str:

@@ -16,9 +16,11 @@ the ordinary path.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import stat
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -29,7 +31,7 @@ from .._validate import BLOCK
 from ..header import BlockState, MapHeader, parse_header
 from .frames import blosc_frame_problem, crc32c_matches
 
-__all__ = ["summarize", "local_info", "dir_bytes"]
+__all__ = ["summarize", "local_info", "dir_bytes", "integrity_line"]
 
 #: the block-state array's chunks are at most this large decompressed (it is one byte per block; a bigger chunk
 #: in a map's metadata is not one sdfcodec wrote): beyond it, the ordinary reader and its limits take over
@@ -83,7 +85,39 @@ def summarize(h: MapHeader, location: str, root: str | None, counts: dict[str, i
                         else {"stored": "embedded", "sha256": h.codec.state_sha256}),
         "state_warning": _state_warning(state_bytes, code_bytes, h) if ref is None else None,
         "residual": _residual_info(h, root, counts["coded"]),
+        "integrity": {"manifest": None if h.manifest is None else {"objects": h.manifest.objects,
+                                                                    "sha256": h.manifest.sha256},
+                      "signature": _signature_key(root) if root is not None else None},
     }
+
+
+def _signature_key(root: str) -> dict[str, Any]:
+    """What a local map's signature file names, unchecked (``verify`` and ``--trusted-key`` check it):
+    ``{"signed": False}`` or ``{"signed": True, "key": its key id, "valid": None}``."""
+    p = Path(root) / "signature.json"
+    try:
+        doc = json.loads(p.read_bytes()[:4096]) if p.is_file() and not p.is_symlink() else None
+        key = hashlib.sha256(bytes.fromhex(doc["public_key"])).hexdigest()[:16] if doc is not None else None
+    except (OSError, ValueError, TypeError, KeyError):
+        return {"signed": True, "key": None, "valid": False, "problem": "signature.json is unreadable"}
+    return {"signed": False} if doc is None else {"signed": True, "key": key, "valid": None}
+
+
+def integrity_line(integrity: dict[str, Any]) -> str:
+    """One line for ``info`` and ``verify``: a map's manifest and signature (spec sections 9b, 9c)."""
+    man, sig = integrity.get("manifest"), integrity.get("signature")
+    if man is None:
+        return "no manifest (objects not bound to their keys), unsigned"
+    text = f"manifest of {man['objects']} objects (sha256 {man['sha256'][:16]}...)"
+    if sig is None:
+        return text + " (signature: see verify)"
+    if not sig.get("signed"):
+        return text + ", unsigned"
+    if sig.get("valid") is None:
+        return text + f", signed by key {sig['key']} (checked by verify and --trusted-key)"
+    if sig.get("valid"):
+        return text + f", signed by key {sig['key']} (signature valid)"
+    return text + f", signature INVALID ({sig.get('problem')})"
 
 
 def _state_warning(state_bytes: int | None, code_bytes: int | None, h: MapHeader) -> str | None:
@@ -140,7 +174,13 @@ def local_info(path: str | os.PathLike) -> dict[str, Any] | None:
         if raw is None:
             return None
         header = parse_header(raw, where=str(path))
-        states = _read_states(fd, tuple(header.grid_blocks))
+        trust = sys.modules.get("sdfcodec.map.signing")
+        if trust is not None and trust.trust_default():
+            return None  # keys to trust: the ordinary reader checks the signature
+        listed = _listed(fd, header)
+        if header.manifest is not None and listed is None:
+            return None  # the ordinary reader says what is wrong with the manifest
+        states = _read_states(fd, tuple(header.grid_blocks), listed)
         if states is None:
             return None
         counts = np.bincount(states.ravel(), minlength=3)
@@ -186,9 +226,32 @@ def _json(root: int, parts: Sequence[str]) -> dict | None:
     return doc if isinstance(doc, dict) else None
 
 
-def _read_states(root: int, grid: tuple[int, ...]) -> np.ndarray | None:
+def _listed(root: int, header: MapHeader) -> dict[str, str] | None:
+    """The objects (key -> SHA-256) of the map's integrity manifest, checked against the header (spec section
+    9b); None without one, or when it does not match (the ordinary reader then names the problem)."""
+    ref = header.manifest
+    if ref is None:
+        return None
+    data = _read(root, ["manifest.json"], ref.size + 1)
+    if not data or len(data) != ref.size or hashlib.sha256(data).hexdigest() != ref.sha256:
+        return None
+    try:
+        objects = json.loads(data).get("objects")
+    except (ValueError, AttributeError):
+        return None
+    return objects if isinstance(objects, dict) else None
+
+
+def _matches(data: bytes | None, key: str, listed: dict[str, str] | None) -> bool:
+    """Whether ``data`` read at ``key`` is what the manifest ``listed`` says (always, without a manifest)."""
+    return listed is None or (data is not None and listed.get(key) == hashlib.sha256(data).hexdigest())
+
+
+def _read_states(root: int, grid: tuple[int, ...], listed: dict[str, str] | None = None) -> np.ndarray | None:
     """The ``(Bx, By, Bz)`` uint8 block-state array (``state``) of the map directory ``root`` (a descriptor), or
-    None (not certain: see the module)."""
+    None (not certain: see the module). ``listed``: the manifest's objects, which every object read must match."""
+    if not _matches(_read(root, ["state", "zarr.json"], 1 << 24), "state/zarr.json", listed):
+        return None
     meta = _json(root, ["state", "zarr.json"])
     if (not meta or meta.get("zarr_format") != 3 or meta.get("node_type") != "array"
             or meta.get("data_type") != "uint8" or list(meta.get("shape", ())) != list(grid)
@@ -212,6 +275,8 @@ def _read_states(root: int, grid: tuple[int, ...]) -> np.ndarray | None:
         data = _read(root, ["state", "c", *map(str, idx)], _MAX_STATE_CHUNK + 1024)
         if not data:  # a chunk not stored is all unobserved only if no codes lie under it: the reader checks that
             return None
+        if not _matches(data, "state/c/" + "/".join(map(str, idx)), listed):
+            return None  # moved, altered or from another map: the ordinary reader refuses it, naming the key
         # the checks the guarded store applies before Blosc sees a frame (its C decoder trusts the header)
         if not crc32c_matches(data) or blosc_frame_problem(data[:-4], nbytes) is not None:
             return None

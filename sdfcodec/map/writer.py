@@ -26,7 +26,7 @@ from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, RESIDUAL_EXTENSION,
+from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, QUANT_EXTENSION, RESIDUAL_EXTENSION,
                       SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                       BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                       now_iso)
@@ -41,6 +41,7 @@ from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, e
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
+from .manifest import previous_digests, write_manifest
 from .shards import pack_shards, unpack_shards
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 
@@ -428,8 +429,12 @@ class MapWriter:
             # (spec section 4d), which nobody reads before the swap
             pack_shards(self.tmp, "codes", self.codes_spec.shard_blocks)
             extensions.append(Extension(name=SHARD_EXTENSION, required=True))
+        # the integrity manifest (spec section 9b): every object of the new version, now complete but for the
+        # root document, which records the manifest's digest; an update's signature no longer holds
+        manifest = write_manifest(self.tmp, None if not self.update else self.update.get("reuse"))
+        extensions.append(Extension(name=MANIFEST_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
-                           extensions=extensions, **self.header_kw)
+                           extensions=extensions, manifest=manifest, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
 
     def _swap(self) -> None:
@@ -689,6 +694,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         refuse_update(final, h.codes.field_compression)
         codec = src.codec  # checks the state digest; the codec encodes the new blocks
         states = src.block_states()
+        manifest = src.group.store.manifest  # its digests of the files copied unchanged are kept at commit
         root = src.local_root()
         source_id = _stat_id(Path(root))
         with _write_errors(final, "updating the map", _UNCHANGED, cleanup=discard):
@@ -703,7 +709,8 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
                          provenance=prov, shape_voxels=h.shape_voxels, up=h.up, residual=h.residual)
         writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
-                         update={"lock": lock, "source": source_id}, header=h)
+                         update={"lock": lock, "source": source_id, "reuse": previous_digests(final, manifest)},
+                         header=h)
     except WriteFailedError:
         raise  # already cleaned up
     except BaseException:
