@@ -60,8 +60,10 @@ def maps(tmp_path_factory):
     out = {"root": root}
     for name, shift, dtype in (("base", 0.0, "float32"), ("donor", 0.013, "float32"), ("int8", 0.0, "int8")):
         path = root / f"{name}.sdfz"
+        # no integrity manifest: these cases test the checks under it (what maps written without one get);
+        # tests/test_manifest.py::test_hostile_cases_on_a_map_with_a_manifest runs them all against one
         with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
-                                 code_dtype=dtype) as m:
+                                 code_dtype=dtype, manifest=False) as m:
             m.write_volume(_volume(shift))
         out[name] = path
         out[name + "_ref"] = sdfcodec.open_map(path).decode_region()
@@ -824,7 +826,7 @@ def test_unwritten_state_chunks_are_told_from_lost_ones(tmp_path):
     blocks = np.clip(analytic_blocks(3, seed=5), 0, 1) * 0.14 - 0.04  # metres within the truncation
     coords = np.array([[0, 0, 0], [65, 0, 0], [129, 0, 0]])  # state chunks of 64 blocks: 0, 1 and 2 hold one each
     path = tmp_path / "long.sdfz"
-    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC) as m:
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, manifest=False) as m:
         m.write_blocks(coords[[0, 2]], blocks[[0, 2]])
     assert sorted(p.name for p in (path / "state" / "c").iterdir()) == ["0", "2"]  # chunk 1: never written
     m = sdfcodec.open_map(path)

@@ -45,8 +45,10 @@ def pair(tmp_path_factory, office, pca64) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("shards")
     out = []
     for name, sb in (("plain.sdfz", None), ("sharded.sdfz", 16)):
+        # no integrity manifest: the tampering below tests the shard checks under it (tests/test_manifest.py
+        # covers sharded maps with one)
         with sdfcodec.create_map(root / name, codec=pca64, voxel_size=VS, truncation=TRUNC, chunk_blocks=4,
-                                 shard_blocks=sb) as m:
+                                 shard_blocks=sb, manifest=False) as m:
             m.write_volume(office)
         out.append(root / name)
     return out[0], out[1]

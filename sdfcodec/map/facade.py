@@ -389,7 +389,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
                codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
-               max_error: float | None = None, sign_exact: bool = False, shard_blocks: int | None = None) -> Map:
+               max_error: float | None = None, sign_exact: bool = False, shard_blocks: int | None = None,
+               manifest: bool = True) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -430,6 +431,9 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             residual stage on top of the codes (extension ``residual-bound``, spec section 6d; docs/error-bounds.md).
         sign_exact: every observed voxel touching a surface crossing of the input decodes with its sign (the
             same residual stage); with ``max_error`` both hold.
+        manifest: write the integrity manifest (default; extension ``integrity-manifest``, spec section 9b):
+            readers check every object against it, and the map can be signed. False writes a map that readers
+            before the extension open, unchecked (updates keep a map's choice).
     """
     up_unit = None
     if up is not None:
@@ -445,7 +449,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source, codec_state=codec_state, code_step=code_step,
                                   code_offset=code_offset, max_error=max_error, sign_exact=sign_exact,
-                                  shard_blocks=shard_blocks)
+                                  shard_blocks=shard_blocks, manifest=manifest)
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit

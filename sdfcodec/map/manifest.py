@@ -292,9 +292,7 @@ def _stored_keys(store: Any) -> list[str] | None:
 
     inner = unguarded(store)
     if isinstance(inner, SafeZipStore):
-        if not inner._is_open:
-            inner._sync_open()
-        return [n for n in inner._zf.namelist() if not n.endswith("/")]
+        return inner.member_names()
     root = getattr(inner, "root", None)
     if not isinstance(inner, SafeLocalStore) or root is None:
         return None

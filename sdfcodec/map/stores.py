@@ -494,6 +494,12 @@ class SafeZipStore(zarr.storage.ZipStore):
         """How errors name the zip file."""
         return str(self.path)
 
+    def member_names(self) -> list[str]:
+        """The names of the zip's file members (what ``verify`` compares with a map's manifest)."""
+        if not self._is_open:
+            self._sync_open()
+        return [n for n in self._zf.namelist() if not n.endswith("/")]
+
     def read_member(self, key: str, byte_range=None, max_bytes: int | None = None, too_big=None) -> bytes | None:
         """The bytes of member ``key`` (``byte_range``: a Zarr byte request), or None when there is none.
 

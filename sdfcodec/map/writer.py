@@ -160,6 +160,8 @@ class MapWriter:
             self.doing = "replacing the map" if os.path.lexists(final) else "creating the map"
         self.outcome = _UNCHANGED if self.doing != "creating the map" else _NOTHING
         self.failed: str | None = None  # why the writer aborted itself (further writes are refused)
+        # the integrity manifest is written at commit (spec 9b): by default, and by an update where the map has one
+        self.manifest = header.manifest is not None if update else True
 
     @contextlib.contextmanager
     def _writing(self):
@@ -431,8 +433,10 @@ class MapWriter:
             extensions.append(Extension(name=SHARD_EXTENSION, required=True))
         # the integrity manifest (spec section 9b): every object of the new version, now complete but for the
         # root document, which records the manifest's digest; an update's signature no longer holds
-        manifest = write_manifest(self.tmp, None if not self.update else self.update.get("reuse"))
-        extensions.append(Extension(name=MANIFEST_EXTENSION, required=True))
+        manifest = None
+        if self.manifest:
+            manifest = write_manifest(self.tmp, None if not self.update else self.update.get("reuse"))
+            extensions.append(Extension(name=MANIFEST_EXTENSION, required=True))
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, manifest=manifest, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
@@ -517,7 +521,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                   codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                   max_error: float | None = None, sign_exact: bool = False,
-                  shard_blocks: int | None = None) -> MapWriter:
+                  shard_blocks: int | None = None, manifest: bool = True) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -589,8 +593,10 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     except BaseException:
         discard()
         raise
-    return MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
-                     overwrite, torch.device(device), header=header)
+    writer = MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
+                       overwrite, torch.device(device), header=header)
+    writer.manifest = bool(manifest)
+    return writer
 
 
 def _quantisation(codec: Codec, code_dtype: str, step: Any, offset: Any) -> CodeQuantisation | None:
