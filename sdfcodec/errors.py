@@ -214,10 +214,10 @@ __all__ += ["IntegrityError", "SignatureError"]
 
 class IntegrityError(FormatError):
     """An object of a map is not the one its integrity manifest lists at that key (spec/map-format.md, section
-    10): changed, moved, missing, unlisted, or from another map. The message names the map, the array and the
+    9b): changed, moved, missing, unlisted, or from another map. The message names the map, the array and the
     key."""
 
 
 class SignatureError(IntegrityError):
     """Keys were given to trust and the map is unsigned, signed by another key, or changed after signing (spec
-    section 11); or a key file is unusable."""
+    section 9c); or a key file is unusable."""

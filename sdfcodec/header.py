@@ -54,7 +54,7 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {RESIDUAL_EXTENSION}
 SHARD_EXTENSION = "sharded-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {SHARD_EXTENSION}
 #: "integrity-manifest": the SHA-256 of every stored object keyed by its path, in ``manifest.json``, recorded by
-#: the header field ``manifest`` (spec section 10); required, so that no reader reads such a map unchecked
+#: the header field ``manifest`` (spec section 9b); required, so that no reader reads such a map unchecked
 MANIFEST_EXTENSION = "integrity-manifest"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {MANIFEST_EXTENSION}
 #: Largest manifest document a reader loads (about 600,000 objects; shard a larger map's codes).
@@ -235,7 +235,7 @@ class Provenance(_Model):
 
 
 class ManifestRef(_Model):
-    """The map's integrity manifest (spec section 10): the document ``manifest.json`` at the map's root."""
+    """The map's integrity manifest (spec section 9b): the document ``manifest.json`` at the map's root."""
 
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="SHA-256 of the bytes of manifest.json")
     size: int = Field(ge=2, le=MAX_MANIFEST_BYTES, description="its size in bytes")
@@ -276,7 +276,7 @@ class MapHeader(_Model):
                           "codes (spec section 6d); omitted otherwise")
     manifest: ManifestRef | None = Field(
         None, description="OPTIONAL, with the required extension 'integrity-manifest': the digest of every stored "
-                          "object keyed by its path (spec section 10); omitted in maps without one")
+                          "object keyed by its path (spec section 9b); omitted in maps without one")
 
     @model_serializer(mode="wrap")
     def _omit_unknown_up(self, handler):

@@ -253,3 +253,52 @@ def test_info_checks_the_state_against_the_manifest(maps, tmp_path):
     st[...] = s
     r = run("info", p)
     assert r.exit_code == 1 and "state/c/0/0/0" in r.stderr and "manifest" in r.stderr
+
+
+GOLDEN = Path(__file__).parent / "golden" / "maps" / "signed-sharded-pca-4"
+#: The golden map's signing key: a test key (its seed is public), so the golden signature is reproducible.
+GOLDEN_SEED = bytes(range(32))
+
+
+def _golden_map(path: Path) -> None:
+    from sdfcodec.map.signing import sign_map
+    from sdfcodec.sdf import sample_volume
+    from sdfcodec.testing import analytic_blocks, analytic_scene
+
+    codec = sdfcodec.get_codec("pca", code_size=4).fit(analytic_blocks(64, seed=5))
+    vol = sample_volume(analytic_scene(), (40, 24, 20), VS, truncation=(-0.04, 0.1))
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, chunk_blocks=1, chunk_code=2, shard_blocks=2,
+                             tool="tests/test_manifest.py golden") as m:
+        m.write_volume(vol)
+    sign_map(path, GOLDEN_SEED)
+
+
+def test_golden_signed_map_decodes_forever(regen_golden):
+    """A small sharded map with a manifest and a signature, written once (regenerate only with --regen-golden,
+    for a format change): today's reader opens it trusting its key, verifies it and decodes the frozen values;
+    its manifest lists each file's SHA-256 (checked here with hashlib, independently of the reader)."""
+    import hashlib
+
+    from _golden_maps import check_golden_map
+
+    pytest.importorskip("cryptography")
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    m = check_golden_map(GOLDEN, _golden_map, regen_golden)
+    root = GOLDEN / "map.zarr"
+    doc = json.loads((root / "manifest.json").read_bytes())
+    assert (doc["format"], doc["version"], doc["algorithm"]) == ("sdfcodec-manifest", 1, "sha256")
+    stored = {f.relative_to(root).as_posix(): f for f in root.rglob("*") if f.is_file()}
+    assert set(doc["objects"]) == set(stored) - {"zarr.json", "manifest.json", "signature.json"}
+    for key, digest in doc["objects"].items():
+        assert hashlib.sha256(stored[key].read_bytes()).hexdigest() == digest, key
+    for key, entry in doc["shards"].items():  # each chunk of each shard, at the range its index gives
+        data = stored[key].read_bytes()
+        for off, n, digest in entry["chunks"]:
+            assert hashlib.sha256(data[off:off + n]).hexdigest() == digest
+    assert m.header.manifest.sha256 == hashlib.sha256((root / "manifest.json").read_bytes()).hexdigest()
+    pub = ed25519.Ed25519PrivateKey.from_private_bytes(GOLDEN_SEED).public_key().public_bytes_raw()
+    signed = sdfcodec.open_map(root, trusted_keys=[pub])
+    np.testing.assert_array_equal(signed.decode_region(), m.decode_region())
+    rep = verify_map(root, trusted_keys=[pub])
+    assert rep.ok and rep.integrity["signature"]["valid"], rep.problems

@@ -1,4 +1,4 @@
-"""The integrity manifest of a map (spec/map-format.md section 10, extension ``integrity-manifest``): the
+"""The integrity manifest of a map (spec/map-format.md section 9b, extension ``integrity-manifest``): the
 SHA-256 of every object the map stores, keyed by its path, in the document ``manifest.json`` at the map's
 root, whose own SHA-256 and size the header records (``manifest``).
 
