@@ -212,7 +212,7 @@ class StateReferenceError(FormatError):
 __all__ += ["IntegrityError", "SignatureError"]
 
 
-class IntegrityError(FormatError):
+class IntegrityError(ChecksumError):
     """An object of a map is not the one its integrity manifest lists at that key (spec/map-format.md, section
     9b): changed, moved, missing, unlisted, or from another map. The message names the map, the array and the
     key."""

@@ -294,4 +294,4 @@ def test_transcoding_a_map_keeps_the_bound(tmp_path, fused, pca64):
     ref = sdfcodec.open_map(src).decode_region()
     assert np.abs(dec - ref)[obs].max() <= 0.005 and (dec[~obs] == TRUNC[1]).all()
     assert ((dec < 0) == (ref < 0))[_crossing_voxels(ref, obs)].all()
-    assert {e.name for e in t.header.extensions} == {"residual-bound", "observation-mask"}
+    assert {e.name for e in t.header.extensions} == {"residual-bound", "observation-mask", "integrity-manifest"}

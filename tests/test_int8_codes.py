@@ -29,7 +29,9 @@ def maps(tmp_path_factory, volume, pca64) -> dict[str, Path]:
     out = {}
     for dtype in ("float32", "int8"):
         out[dtype] = tmp_path_factory.mktemp("maps") / f"{dtype}.sdfz"
-        with sdfcodec.create_map(out[dtype], codec=pca64, voxel_size=VS, truncation=TRUNC, code_dtype=dtype) as m:
+        # no integrity manifest: tests below tamper with these maps to test the checks under it
+        with sdfcodec.create_map(out[dtype], codec=pca64, voxel_size=VS, truncation=TRUNC, code_dtype=dtype,
+                                 manifest=False) as m:
             m.write_volume(volume)
     return out
 

@@ -23,7 +23,9 @@ VS, TRUNC = 0.02, (-0.04, 0.1)
 @pytest.fixture(scope="module")
 def map_path(tmp_path_factory, volume, pca64) -> Path:
     path = tmp_path_factory.mktemp("maps") / "scene.sdfz"
-    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC, origin=(1.0, -2.0, 0.5)) as m:
+    # no integrity manifest: tests below edit array metadata to test the checks under it
+    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC, origin=(1.0, -2.0, 0.5),
+                             manifest=False) as m:
         m.write_volume(volume)
     return path
 
@@ -251,7 +253,8 @@ def _snapshot(path: Path) -> dict[str, bytes]:
 @pytest.fixture
 def existing(tmp_path, volume, pca64):
     path = tmp_path / "keep.sdfz"
-    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC) as m:
+    # no integrity manifest: the tampering tests below test the checksums and digests under it
+    with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, truncation=TRUNC, manifest=False) as m:
         m.write_volume(volume)
     return path
 
@@ -443,7 +446,7 @@ def test_fusion_weights_are_optional_and_lossless(tmp_path):
     with sdfcodec.create_map(tmp_path / "n.sdfz", codec=raw, voxel_size=VS, truncation=TRUNC) as m:
         m.write_blocks(coords, blocks)
     m = sdfcodec.open_map(tmp_path / "n.sdfz")
-    assert not m.has_weights and m.header.extensions == []
+    assert not m.has_weights and [e.name for e in m.header.extensions] == ["integrity-manifest"]
     with pytest.raises(errors.FormatError, match="no fusion weights"):
         m.read_weights(coords)
 

@@ -93,8 +93,9 @@ def test_by_reference_decodes_identically_smaller_and_verifies(ae_maps, tmp_path
     assert not any(f.name != "zarr.json" for f in (ref / "codec").rglob("*") if f.is_file())  # no state arrays
     # smaller by exactly the state's bytes, less the few bytes the reference adds to the header
     grown = os.path.getsize(ref / "zarr.json") - os.path.getsize(emb / "zarr.json")
-    assert 0 < grown < 400 and state_array_bytes(emb) > 7 * MIB
-    assert du(emb) - du(ref) == state_array_bytes(emb) - grown
+    listed = os.path.getsize(emb / "manifest.json") - os.path.getsize(ref / "manifest.json")  # the state's entries
+    assert 0 < grown < 400 and 0 < listed < 2000 and state_array_bytes(emb) > 7 * MIB
+    assert du(emb) - du(ref) == state_array_bytes(emb) - grown + listed
     h = json.loads((ref / "zarr.json").read_text())["attributes"]["sdfcodec"]
     digest = state_digest(sdfcodec.pretrained_codec("ae", 64).state_dict())
     assert h["codec"]["state_reference"] == {"model": "ae-64", "sha256": digest}
@@ -200,7 +201,8 @@ def test_pca_reference_names_the_cut_state(volume, tmp_path):
                              codec_state="reference") as m:
         m.write_volume(np.load(volume)[:16, :16, :16])
     h = sdfcodec.open_map(tmp_path / "raw.sdfz").header
-    assert h.extensions == [] and h.codec.state_reference is None and h.codec.state_arrays == []
+    assert [e.name for e in h.extensions] == ["integrity-manifest"] and h.codec.state_reference is None
+    assert h.codec.state_arrays == []
     # the CLI refuses before fitting anything
     line = one_error_line(run("encode", volume, tmp_path / "y.sdfz", "--voxel-size", VS, "--fit",
                               "--codec-state", "reference"))

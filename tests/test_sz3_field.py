@@ -71,7 +71,7 @@ def test_map_keeps_the_bound_on_observed_voxels_and_the_observation(sz3_map, fus
     vol, observed = fused
     m = sdfcodec.open_map(sz3_map)
     h = m.header
-    assert {e.name for e in h.extensions} == {"field-compression", "observation-mask"}
+    assert {e.name for e in h.extensions} == {"field-compression", "observation-mask", "integrity-manifest"}
     assert h.codes.field_compression.name == "sz3" and h.codes.chunk_blocks == 8
     dec = m.decode_region()
     err = np.abs(dec - vol)[observed]

@@ -26,7 +26,8 @@ from zarr.core.sync import sync as zarr_sync
 from .._lazy import lazy_module
 from .._validate import BLOCK, empty, output_buffer
 from ..codec import Codec
-from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
+from ..errors import (ChecksumError, FormatError, IntegrityError, InvalidValueError, MapNotFoundError, RemoteReadError,
+                      SDFCodecError)
 from ..header import BlockState, MapHeader, parse_header
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
                      check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
@@ -246,8 +247,8 @@ class MapReader:
         return np.concatenate([a[tuple(loc.T)] for a, loc in zip(self.read_many(arr, sels), locs)])
 
     def _chunk_error(self, arr: zarr.Array, sel: tuple, exc: Exception) -> Exception:
-        if isinstance(exc, FormatError) and not isinstance(exc, ChecksumError):
-            return exc  # the store refused a file (a link, a FIFO, a directory...): its message names the key
+        if isinstance(exc, IntegrityError) or (isinstance(exc, FormatError) and not isinstance(exc, ChecksumError)):
+            return exc  # the store refused a file (a link, a FIFO, a manifest mismatch...): its message names the key
         return ChecksumError(f"{self.location}: {self._bad_chunks(arr, sel)} of array '{arr.path}' is "
                              f"corrupted or truncated ({type(exc).__name__}: {exc}); the map cannot be "
                              "trusted there: restore it from a copy or re-encode")
