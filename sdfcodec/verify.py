@@ -10,7 +10,10 @@ What is checked (spec/map-format.md):
 * the codec state under ``codec/`` matches ``codec.state_sha256``, and the listed arrays are all there (a state
   by reference: the installed plugin ships the model named, and its state has the digest named);
 * the codec plugin is installed, accepts the stored configuration and state, and decodes the stored codes
-  (up to ``decode_blocks`` of them) to finite blocks within :data:`sdfcodec.map.format.DECODE_LIMIT`.
+  (up to ``decode_blocks`` of them) to finite blocks within :data:`sdfcodec.map.format.DECODE_LIMIT`;
+* with an integrity manifest (spec section 9b): every object it lists matches its SHA-256 and nothing stored is
+  unlisted (local and zip maps); a signature (section 9c) holds, and with ``trusted_keys`` one of them made it.
+  A map without a manifest gets the note "no manifest".
 
 Problems name the header field, array chunk (``codes/c/0/0/0/1``) or block they are about. Notes are things
 the spec discourages without making the map invalid (stray files, codes stored for blocks that are not coded).
@@ -22,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import warnings
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -224,7 +228,9 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
 def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
     """Without a valid header: still check every chunk of every array found."""
     try:
-        arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+        with warnings.catch_warnings():  # the manifest and the signature are documents beside the hierarchy
+            warnings.filterwarnings("ignore", message=r"Object at (manifest|signature)\.json is not recognized")
+            arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
     except SDFCodecError as e:  # the store refused a member (a link, a FIFO...): its own message
         rep.problem("map", f"its arrays cannot be listed: {e}")
         return

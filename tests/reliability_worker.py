@@ -167,6 +167,8 @@ def read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
         with sdfcodec.open_map(path) as m:
             info = json.loads(m.header.provenance.tool)
             gens.add(info["gen"])
+            # every version carries its integrity manifest, and this reader checks what it reads against it
+            assert m.header.manifest is not None and m.reader.group.store.manifest is not None, "no manifest"
             pinned = m.reader.pinned_fd
             if rng.random() < 0.5:
                 time.sleep(rng.uniform(0, 0.05))  # let a writer swap in a new version under this open map
@@ -209,7 +211,8 @@ def tiny_write(path: str, gen: int) -> None:
 
 def tiny_check(m: sdfcodec.Map, gen: int) -> list[str]:
     """What in the open map is not tiny generation ``gen`` (states, codes, and the decoded blocks)."""
-    bad = []
+    bad = [] if m.header.manifest is not None and m.reader.group.store.manifest is not None else [
+        f"gen {gen}: no integrity manifest, or reads not checked against it"]
     states = m.block_states()
     want = {tiny_coord(i) for i in range(TINY_N)}
     got = {tuple(int(v) for v in c) for c in np.argwhere(states == 2)}
@@ -287,6 +290,13 @@ def _child(cmd: dict) -> int:
             t0 = time.perf_counter()
             tiny_write(cmd["path"], cmd["gen"])
             result = {"steps": counter[0], "seconds": time.perf_counter() - t0}
+        elif cmd["job"] == "sign":  # sign the map with the Ed25519 key of seed ``seed`` (hex), killable
+            from sdfcodec.map.signing import sign_map
+
+            counter = [0]
+            _install_step_kill(cmd.get("kill_at_step"), counter)
+            sign_map(cmd["path"], bytes.fromhex(cmd["seed"]))
+            result = {"steps": counter[0]}
         elif cmd["job"] == "tiny_read":
             result = tiny_read_loop(cmd["path"], cmd["stop"], cmd["deadline"], cmd["seed"])
         else:

@@ -6,6 +6,7 @@ and flagged by ``verify``."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import zipfile
 from pathlib import Path
@@ -302,3 +303,97 @@ def test_golden_signed_map_decodes_forever(regen_golden):
     np.testing.assert_array_equal(signed.decode_region(), m.decode_region())
     rep = verify_map(root, trusted_keys=[pub])
     assert rep.ok and rep.integrity["signature"]["valid"], rep.problems
+
+
+# -- fuzzing the manifest: an attacker who also rewrites the header's record of it --------------------------
+FUZZ_EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "40"))
+
+
+def _mutate(doc: dict, data) -> bytes:
+    """One hostile change to the manifest document ``doc`` (a copy), drawn by hypothesis's ``data``."""
+    from hypothesis import strategies as st
+
+    json_values = st.recursive(st.none() | st.booleans() | st.integers(-2**70, 2**70) | st.text(max_size=80)
+                               | st.floats(allow_nan=False), lambda c: st.lists(c, max_size=4)
+                               | st.dictionaries(st.text(max_size=20), c, max_size=4), max_leaves=12)
+    objects = doc["objects"]
+    keys = sorted(objects)
+    kind = data.draw(st.sampled_from(["drop", "digest", "swap", "add", "value", "field", "shard", "bytes",
+                                      "reorder"]))
+    if kind == "drop":
+        objects.pop(data.draw(st.sampled_from(keys)))
+    elif kind == "digest":
+        k = data.draw(st.sampled_from(keys))
+        i = data.draw(st.integers(0, 63))
+        objects[k] = objects[k][:i] + ("0" if objects[k][i] != "0" else "1") + objects[k][i + 1:]
+    elif kind == "swap":
+        a, b = data.draw(st.sampled_from(keys)), data.draw(st.sampled_from(keys))
+        objects[a], objects[b] = objects[b], objects[a]
+    elif kind == "add":
+        objects[data.draw(st.text(min_size=1, max_size=60))] = data.draw(st.text(max_size=70))
+    elif kind == "value":
+        objects[data.draw(st.sampled_from(keys))] = data.draw(json_values)
+    elif kind == "field":
+        doc[data.draw(st.sampled_from(["format", "version", "algorithm", "objects", "shards", "extra"]))] = \
+            data.draw(json_values)
+    elif kind == "shard" and doc.get("shards"):
+        entry = doc["shards"][data.draw(st.sampled_from(sorted(doc["shards"])))]
+        target = data.draw(st.sampled_from(["index", "chunks", "chunk"]))
+        if target == "chunk" and entry["chunks"]:
+            c = entry["chunks"][data.draw(st.integers(0, len(entry["chunks"]) - 1))]
+            c[data.draw(st.integers(0, 2))] = data.draw(json_values | st.integers(0, 1 << 40))
+        else:
+            entry[target if target != "chunk" else "index"] = data.draw(json_values)
+    raw = json.dumps(doc, sort_keys=data.draw(st.booleans())).encode()
+    if kind == "bytes":
+        raw = bytearray(raw)
+        for _ in range(data.draw(st.integers(1, 4))):
+            raw[data.draw(st.integers(0, len(raw) - 1))] = data.draw(st.integers(0, 255))
+        raw = bytes(raw)
+    return raw
+
+
+@pytest.mark.parametrize("name", ["a", "sharded"])
+def test_fuzzed_manifests_are_refused_or_harmless(maps, tmp_path_factory, name):
+    """Hostile manifests whose digest the header records (what an attacker who rewrites both writes): reading
+    and verifying the map raises only SDFCodecError, and a decode that succeeds is the map's true decode. Runs
+    SDFCODEC_FUZZ_EXAMPLES cases (40; the slow suite's long run sets 10,000)."""
+    from hypothesis import HealthCheck, given, settings, strategies as st
+
+    from sdfcodec.errors import SDFCodecError
+    from sdfcodec.map.manifest import sha256_hex
+
+    ref = sdfcodec.open_map(maps / name).decode_region()
+    base = tmp_path_factory.mktemp("fuzz") / name
+    shutil.copytree(maps / name, base)
+    doc0 = json.loads((base / "manifest.json").read_text())
+    root0 = json.loads((base / "zarr.json").read_text())
+    outcomes = {"refused": 0, "decoded": 0}
+
+    @settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True, database=None,
+              suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+    @given(st.data())
+    def case(data):
+        raw = _mutate(json.loads(json.dumps(doc0)), data)
+        (base / "manifest.json").write_bytes(raw)
+        root = json.loads(json.dumps(root0))
+        try:
+            n = len(json.loads(raw).get("objects"))
+        except Exception:  # noqa: BLE001 - not a dict of objects: any count
+            n = 1
+        root["attributes"]["sdfcodec"]["manifest"] = {"sha256": sha256_hex(raw), "size": max(2, len(raw)),
+                                                      "objects": n}
+        (base / "zarr.json").write_text(json.dumps(root))
+        try:
+            got = sdfcodec.open_map(base).decode_region()
+        except SDFCodecError as e:
+            assert str(e).strip() and "\n" not in str(e).strip()
+            outcomes["refused"] += 1
+        else:
+            np.testing.assert_array_equal(got, ref)
+            outcomes["decoded"] += 1
+        rep = verify_map(base, decode_blocks=4)  # never raises; a foreign exception is an internal-error problem
+        assert not any(p.where == "verify" for p in rep.problems), rep.problems
+
+    case()
+    assert outcomes["refused"] > FUZZ_EXAMPLES // 2, outcomes

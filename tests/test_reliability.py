@@ -511,6 +511,10 @@ class Versions:
         rep = verify_map(self.path, decode_blocks=8)
         assert rep.ok, [str(p) for p in rep.problems]
         with sdfcodec.open_map(self.path) as m:
+            # whichever version it is, it carries its manifest, verify checked every object against it, and
+            # this reader checks what it reads against it (spec section 9b)
+            assert m.header.manifest is not None and m.reader.group.store.manifest is not None
+            assert rep.chunks_checked["manifest"] == m.header.manifest.objects > 0
             info = json.loads(m.header.provenance.tool)
             assert info["gen"] in (self.gen, new_gen), info
             cid, layout = self.gens.get(info["gen"], (new_cid, new_layout))
@@ -633,6 +637,39 @@ def test_sigkill_at_commit_steps_leaves_old_or_new(server, tmp_path):
 @pytest.mark.slow
 def test_sigkill_at_every_step(server, tmp_path):
     print("step kills (all):", _kill_at_steps(server, tmp_path, per_op=None))
+
+
+def test_sigkill_at_every_signing_step_leaves_one_whole_signature(server, tmp_path):
+    """Signing (spec section 9c) killed before each of its file-system steps: the map always verifies with its
+    manifest and holds exactly one valid signature, the previous key's or the new one's; whatever the killed
+    signer left goes with the next signing."""
+    pytest.importorskip("cryptography")
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    from sdfcodec.map.signing import sign_map
+
+    v = Versions(server, tmp_path / "g.sdfz")
+    old, new = bytes(range(32)), bytes(range(1, 33))
+    pubs = {k: ed25519.Ed25519PrivateKey.from_private_bytes(k).public_key().public_bytes_raw() for k in (old, new)}
+    sign_map(v.path, old)
+    out = tmp_path / "steps.json"
+    assert server.run(job="sign", path=str(v.path), seed=new.hex(), out=str(out)) == 0
+    total = json.loads(out.read_text())["steps"]
+    sign_map(v.path, old)
+    seen = set()
+    for n in range(1, total + 1):
+        status = server.run(job="sign", path=str(v.path), seed=new.hex(), kill_at_step=n, out=None)
+        assert status in (0, -signal.SIGKILL)
+        rep = verify_map(v.path, decode_blocks=8)
+        assert rep.ok and rep.integrity["signature"]["valid"], (n, [str(p) for p in rep.problems])
+        which = [k for k in (old, new) if rep.integrity["signature"]["key"] == sdfcodec.map.signing.key_id(pubs[k])]
+        assert len(which) == 1
+        seen.add(which[0])
+        with sdfcodec.open_map(v.path, trusted_keys=[pubs[which[0]]]) as m:
+            rw.check_content(m, 0)
+        sign_map(v.path, old)  # back to the old key; collects what the killed signer left
+        assert _hidden(v.path.parent) == [], (n, _hidden(v.path.parent))
+    assert total >= 3 and seen == {old, new}  # kills before the swap keep the old key, after it the new one
 
 
 # -- concurrency: readers while a writer updates --------------------------------------------------------------

@@ -478,7 +478,8 @@ def verify_cmd(
     decode_blocks: int = typer.Option(4096, "--decode-blocks", min=0, help="Coded blocks to decode as a check "
                                       "(0: none; every other check still runs, and torch is never imported)."),
 ) -> None:
-    """Check a map: header, every chunk's checksum, codec state digest, states against codes, and a decode."""
+    """Check a map: header, every chunk's checksum, codec state digest, states against codes, a decode, and
+    every object against the map's integrity manifest (and its signature)."""
     from ..verify import verify_command
 
     raise typer.Exit(verify_command(map_path, as_json, decode_blocks=decode_blocks))

@@ -291,7 +291,7 @@ def sign_map(path: str | os.PathLike, key: Any, *, wait: float = 60.0) -> str:
     tmp = tmp_fd = None
     try:
         with _atomic.WriterLock(final, wait):
-            src = open_reader(final, trusted_keys=())
+            src = open_reader(final, trusted_keys=(), verify_chunks=True)
             try:
                 h = src.header
                 if h.manifest is None:
@@ -304,6 +304,7 @@ def sign_map(path: str | os.PathLike, key: Any, *, wait: float = 60.0) -> str:
                                          f"{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}); not signed")
                 root_doc = store.read_small("zarr.json", MAX_METADATA_BYTES)
                 source = os.stat(final)
+                _collect_quietly(final)  # what signers or writers killed earlier left
                 tmp, tmp_fd = _atomic.make_temp_dir(final)
                 _atomic.link_tree(src.local_root(), tmp)
             finally:
@@ -323,8 +324,12 @@ def sign_map(path: str | os.PathLike, key: Any, *, wait: float = 60.0) -> str:
             _atomic.remove_tree(tmp)
         if tmp_fd is not None:
             os.close(tmp_fd)
+    _collect_quietly(final)
+    return key_id(k.public_key())
+
+
+def _collect_quietly(final: Path) -> None:
     try:
         _atomic.collect(final)
     except OSError:
-        pass
-    return key_id(k.public_key())
+        pass  # best effort: the next commit tries again
