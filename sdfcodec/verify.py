@@ -478,7 +478,7 @@ def _integrity(rep: VerifyReport, store, header, raw, loc: str, trusted_keys: An
         rep.problem("manifest", str(e).removeprefix("manifest: "))
         return None
     if manifest is None:
-        rep.note("manifest", "no manifest: this map (written before sdfcodec 0.10, or by another writer) cannot "
+        rep.note("manifest", "no manifest: this map (written by an older sdfcodec, or with manifest=False) cannot "
                              "show that its objects are where they were written; write it again to get one")
         if keys:
             rep.problem("signature", "keys to trust were given but the map has no manifest, so no signature")

@@ -82,10 +82,15 @@ class Manifest:
         self.objects, self.shards, self.where, self.digest = objects, shards, where, digest
 
     def _refuse(self, key: str, what: str) -> IntegrityError:
-        array = key.rsplit("/c/", 1)[0] if "/c/" in key else key.rsplit("/", 1)[0] or key
-        return IntegrityError(f"{self.where}: {what} (array '{array}', key {key}); its bytes were changed, moved "
-                              "or come from another map: refused (restore the map from a copy; `sdfcodec verify` "
-                              "lists every such object)")
+        if "/c/" in key:
+            array, chunk = key.rsplit("/c/", 1)
+            name = f"chunk c/{chunk} of array '{array}' ({key})"
+        elif key.endswith("/zarr.json"):
+            name = f"the metadata of '{key[:-len('/zarr.json')]}' ({key})"
+        else:
+            name = key
+        return IntegrityError(f"{self.where}: {name} {what}; its bytes were changed, moved or come from another "
+                              "map: refused (restore the map from a copy; `sdfcodec verify` lists every such object)")
 
     def check(self, key: str, data: Any, byte_range: Any = None) -> None:
         """Refuse ``data`` (bytes-like; None: the store has nothing at ``key``) read at ``key`` (``byte_range``:
@@ -100,32 +105,32 @@ class Manifest:
             want = self.objects.get(key)
             if data is None:
                 if want is not None:
-                    raise self._refuse(key, "an object the manifest lists is missing")
+                    raise self._refuse(key, "is listed in the manifest but missing")
                 return
             if want is None:
-                raise self._refuse(key, "an object the manifest does not list")
+                raise self._refuse(key, "is not listed in the manifest")
             if sha256_hex(data) != want:
-                raise self._refuse(key, "an object does not match its SHA-256 in the manifest")
+                raise self._refuse(key, "does not match its SHA-256 in the manifest")
             return
         shard = self.shards.get(key)
         if shard is None:
-            raise self._refuse(key, "a byte range of an object the manifest lists as no shard")
+            raise self._refuse(key, "is read in byte ranges but the manifest lists it as no shard")
         if data is None:
-            raise self._refuse(key, "a shard the manifest lists is missing")
+            raise self._refuse(key, "is a shard listed in the manifest but missing")
         if isinstance(byte_range, SuffixByteRequest):
             if sha256_hex(data) != shard[0]:
-                raise self._refuse(key, "a shard index does not match its SHA-256 in the manifest")
+                raise self._refuse(key, "has a shard index that does not match its SHA-256 in the manifest")
             return
         if isinstance(byte_range, RangeByteRequest):
             want = shard[1].get((int(byte_range.start), int(byte_range.end - byte_range.start)))
             if want is None:
-                raise self._refuse(key, f"bytes [{byte_range.start}, {byte_range.end}) of a shard are no chunk the "
-                                        "manifest lists")
+                raise self._refuse(key, f"has bytes [{byte_range.start}, {byte_range.end}) read as a chunk, "
+                                        "which the manifest lists as none")
             if sha256_hex(data) != want:
-                raise self._refuse(key, f"the chunk at bytes [{byte_range.start}, {byte_range.end}) of a shard "
+                raise self._refuse(key, f"has a chunk at bytes [{byte_range.start}, {byte_range.end}) that "
                                         "does not match its SHA-256 in the manifest")
             return
-        raise self._refuse(key, f"a byte request ({type(byte_range).__name__}) readers never make")
+        raise self._refuse(key, f"is asked for a byte request ({type(byte_range).__name__}) readers never make")
 
     @classmethod
     def parse(cls, data: bytes, ref: ManifestRef, where: str) -> "Manifest":
