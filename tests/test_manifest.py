@@ -63,6 +63,14 @@ def refused(path, key: str, tmp_path: Path) -> None:
     assert r.exit_code == 1 and key in r.stdout
 
 
+def swap(a: Path, b: Path) -> None:
+    """Exchange the bytes of two stored objects (both sound, each now at the other's key)."""
+    da, db = a.read_bytes(), b.read_bytes()
+    assert da != db
+    a.write_bytes(db)
+    b.write_bytes(da)
+
+
 def coded_chunks(path: Path) -> list[Path]:
     return sorted(f for f in (path / "codes" / "c").rglob("*") if f.is_file())
 
@@ -83,20 +91,13 @@ def test_untampered_maps_read_and_verify(maps, volume):
 
 def test_chunks_swapped_between_positions(maps, tmp_path):
     p = copy(maps, "a", tmp_path)
-    a, b = p / "codes/c/0/0/0/0", p / "codes/c/1/1/0/0"
-    assert a.read_bytes() != b.read_bytes()
-    da, db = a.read_bytes(), b.read_bytes()
-    a.write_bytes(db)
-    b.write_bytes(da)
+    swap(p / "codes/c/0/0/0/0", p / "codes/c/1/1/0/0")
     refused(p, "codes/c/0/0/0/0", tmp_path)
 
 
 def test_chunks_swapped_along_the_code_axis(maps, tmp_path):
     p = copy(maps, "a", tmp_path)
-    a, b = p / "codes/c/1/1/0/0", p / "codes/c/1/1/0/2"
-    da, db = a.read_bytes(), b.read_bytes()
-    a.write_bytes(db)
-    b.write_bytes(da)
+    swap(p / "codes/c/1/1/0/0", p / "codes/c/1/1/0/2")
     refused(p, "codes/c/1/1/0/0", tmp_path)
 
 
@@ -196,10 +197,7 @@ def test_manifest_rewritten_without_the_header_is_refused(maps, tmp_path):
 
 def test_no_verify_chunks_is_for_benchmarks(maps, tmp_path):
     p = copy(maps, "a", tmp_path)
-    a, b = p / "codes/c/0/0/0/0", p / "codes/c/1/1/0/0"
-    da, db = a.read_bytes(), b.read_bytes()
-    a.write_bytes(db)
-    b.write_bytes(da)
+    swap(p / "codes/c/0/0/0/0", p / "codes/c/1/1/0/0")
     m = sdfcodec.open_map(p, verify_chunks=False)
     m.decode_region()  # unchecked: the swap goes through, as it did before manifests
     r = run("decode", p, tmp_path / "o.npy", "--no-verify-chunks")

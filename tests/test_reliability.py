@@ -51,7 +51,10 @@ def small_map(tmp_path, pca16) -> Path:
     coords = np.array([[0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 3, 1], [0, 2, 1], [1, 1, 1], [2, 0, 1], [3, 0, 0],
                        [0, 3, 0], [1, 3, 1]])
     weights = np.ones((len(coords), 16, 16, 16), np.float32)
-    with sdfcodec.create_map(path, codec=pca16, voxel_size=VS, truncation=TRUNC, chunk_blocks=2) as m:
+    # no integrity manifest: the damage below tests the checks under it (the kill and concurrency tests' maps,
+    # written by tests/reliability_worker.py, have one; tests/test_manifest.py damages maps that have one)
+    with sdfcodec.create_map(path, codec=pca16, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
+                             manifest=False) as m:
         m.write_blocks(coords, _blocks(len(coords)), weights=weights)
         m.mark_empty([[2, 2, 0]])
     return path
