@@ -27,7 +27,7 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO, Iterable
+from typing import Any, BinaryIO, Iterable
 
 import numpy as np
 
@@ -92,21 +92,25 @@ def _varint(buf: bytes | memoryview, pos: int, what: str = "a varint") -> tuple[
 
 
 def _varints(b: np.ndarray, what: str) -> np.ndarray:
-    """All the varints of the bytes ``b`` ``(n,)`` uint8, which must end with a whole one: ``(m,)`` uint64."""
+    """All the varints of the bytes ``b`` ``(n,)`` uint8, which must end with a whole one, each of at most 32
+    bits: ``(m,)`` uint32. A few gathers over all the values (no loop over values)."""
     ends = np.flatnonzero(b < 0x80)
     if len(b) and (not len(ends) or ends[-1] != len(b) - 1):
         raise FormatError(f"truncated stream: {what} ends inside a varint")
+    if not len(ends):
+        return np.zeros(0, dtype=np.uint32)
     starts = np.empty_like(ends)
-    starts[:1] = 0
+    starts[0] = 0
     starts[1:] = ends[:-1] + 1
-    lens = ends - starts + 1
-    if len(lens) and lens.max() > 5:
+    if (ends - starts).max() > 4 or (b[ends[ends - starts == 4]] > 0x0F).any():
         raise FormatError(f"{what} holds a value of more than 32 bits (a voxel word is a uint32)")
-    vals = (b[starts] & 0x7F).astype(np.uint64)
-    for k in range(1, int(lens.max()) if len(lens) else 0):
-        more = np.flatnonzero(lens > k)
-        vals[more] |= (b[starts[more] + k] & 0x7F).astype(np.uint64) << np.uint64(7 * k)
-    return vals
+    lens = ends - starts  # bytes after the first
+    out = (b[starts] & 0x7F).astype(np.uint32)
+    last = len(b) - 1
+    for k in range(1, int(lens.max()) + 1):  # a gather of every value's k-th byte, at most 4 more
+        byte = (b[np.minimum(starts + k, last)] & 0x7F).astype(np.uint32)
+        out |= np.where(lens >= k, byte, np.uint32(0)) << np.uint32(7 * k)
+    return out
 
 
 def _fields(msg: bytes, what: str, stop_at: int | None = None) -> tuple[dict[int, list], int]:
@@ -191,15 +195,33 @@ def _parse_block_slow(msg: bytes, what: str) -> tuple[dict[int, list], np.ndarra
     return fields, np.asarray(words, dtype=np.uint32)
 
 
-def _messages(f: BinaryIO, size: int, what: str) -> Iterable[tuple[int, int, int, int]]:
-    """Walk the layers of an open file: yield ``(layer number, message number, offset, length)`` for every
-    message, checking each length against what is left of the file before anything is read."""
+class _Window:
+    """Sequential reads of a file through a large buffer (one read call per few MiB, not two per message)."""
+
+    def __init__(self, f: BinaryIO, size: int, span: int = 1 << 22):
+        self.f, self.size, self.span = f, size, span
+        self.base, self.buf = 0, b""
+        f.seek(0)
+
+    def get(self, pos: int, n: int) -> bytes:
+        """Bytes ``[pos, pos + n)`` (fewer at the end of the file); ``pos`` never goes back before the window."""
+        end = pos + n
+        if pos < self.base or end > self.base + len(self.buf):
+            keep = self.buf[pos - self.base:] if self.base <= pos < self.base + len(self.buf) else b""
+            self.f.seek(pos + len(keep))
+            self.buf = keep + self.f.read(max(n - len(keep), self.span))
+            self.base = pos
+        return self.buf[pos - self.base:end - self.base]
+
+
+def _messages(f: BinaryIO, size: int, what: str) -> Iterable[tuple[int, int, int, bytes | None]]:
+    """Walk the layers of an open file: yield ``(layer number, message number, offset, message)`` for every
+    message, checking each length against what is left of the file before anything is read; the message is
+    read through a large window."""
     pos, layer = 0, 0
-    f.seek(0)
+    win = _Window(f, size)
     while pos < size:
-        f.seek(pos)
-        head = f.read(10)
-        count, p = _varint(head, 0, f"{what}: the message count of layer {layer}")
+        count, p = _varint(win.get(pos, 10), 0, f"{what}: the message count of layer {layer}")
         if count == 0:
             raise FormatError(f"{what}: layer {layer} holds no message (an empty voxblox file?)")
         pos += p
@@ -208,16 +230,46 @@ def _messages(f: BinaryIO, size: int, what: str) -> Iterable[tuple[int, int, int
             raise FormatError(f"{what}: layer {layer} claims {count} messages, more than its {size - pos} bytes "
                               "can hold (a truncated or corrupt file)")
         for i in range(count):
-            f.seek(pos)
-            head = f.read(10)
-            n, p = _varint(head, 0, f"{what}: the length of message {i} of layer {layer}")
+            n, p = _varint(win.get(pos, 10), 0, f"{what}: the length of message {i} of layer {layer}")
             pos += p
             if n == 0 or pos + n > size:
                 raise FormatError(f"truncated stream: {what}: message {i} of layer {layer} claims {n} bytes, "
                                   f"{size - pos} are left (a file cut short?)")
-            yield layer, i, pos, n
+            yield layer, i, pos, win.get(pos, n)
             pos += n
         layer += 1
+
+
+def _parse_blocks(msgs: list[bytes], n_vox: int, whats: list[str]) -> tuple[list[dict[int, list]], Any]:
+    """Many BlockProtos at once: their scalar fields and voxel words ``(k, 3 n_vox)`` uint32 (a list of ``k``
+    arrays, of any length, when a message is not laid out as voxblox writes them). Where every message
+    ends with its words unpacked, as voxblox writes them, the words of all messages are decoded in one numpy
+    pass; otherwise block by block (:func:`_parse_block`, which also names what is wrong)."""
+    heads, tails = [], []
+    for msg, what in zip(msgs, whats):
+        fields, at = _fields(msg, what, stop_at=7)
+        heads.append(fields)
+        tails.append(at)
+    k, per = len(msgs), 6 * n_vox  # a tag and a word per voxel word
+    sizes = np.asarray([len(m) - a for m, a in zip(msgs, tails)], dtype=np.int64)
+    if k and (sizes > 0).all():
+        buf = np.frombuffer(b"".join(m[a:] for m, a in zip(msgs, tails)), dtype=np.uint8)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        term = buf < 0x80
+        if (buf[starts] == _TAG_VOXEL_DATA).all() and term[starts + sizes - 1].all() and (
+                np.add.reduceat(term, starts) == per).all():
+            vals = _varints(buf, whats[0]).reshape(k, per)
+            if (vals[:, 0::2] == _TAG_VOXEL_DATA).all():
+                return heads, vals[:, 1::2].astype(np.uint32)
+    words = []
+    for j, (msg, what) in enumerate(zip(msgs, whats)):
+        heads[j], w = _parse_block(msg, n_vox, what)
+        words.append(w)  # of any length: the caller's check names a mismatch
+    return heads, words
+
+
+#: Blocks decoded together (one numpy pass over their words).
+_PARSE_BATCH = 256
 
 
 def scan_voxblox(path: str | os.PathLike, *, keep_layer: str = "tsdf") -> VoxbloxIndex:
@@ -235,18 +287,37 @@ def scan_voxblox(path: str | os.PathLike, *, keep_layer: str = "tsdf") -> Voxblo
     size = p.stat().st_size
     what = str(p)
     found: list[str] = []
+    offsets: list[int] = []
+    lengths: list[int] = []
+    index: list[tuple[int, int, int]] = []
+    stats = {"lo": np.inf, "hi": -np.inf, "observed": 0, "wmax": 0.0}
+    pending: list[tuple[int, int, bytes]] = []
+    current = None
+
+    def flush() -> None:
+        _, vs, vps, kind = current
+        names = [f"{what}: block {i - 1}" for i, _, _ in pending]
+        heads, words = _parse_blocks([m for _, _, m in pending], vps ** 3, names)
+        for (i, off, msg), fields, w, name in zip(pending, heads, words, names):
+            dist, weight = _check_block(fields, w, vs, vps, kind, name)
+            index.append(_block_index(fields, vs, vps, name))
+            offsets.append(off)
+            lengths.append(len(msg))
+            seen = weight > 0
+            if seen.any():
+                d = dist[seen]
+                if not np.isfinite(d).all():
+                    raise FormatError(f"{name} has an observed voxel whose distance is NaN/Inf")
+                stats["lo"], stats["hi"] = min(stats["lo"], float(d.min())), max(stats["hi"], float(d.max()))
+                stats["observed"] += int(seen.sum())
+                stats["wmax"] = max(stats["wmax"], float(weight.max()))
+        pending.clear()
+
     with open(p, "rb") as f:
-        current = None
-        offsets: list[int] = []
-        lengths: list[int] = []
-        index: list[tuple[int, int, int]] = []
-        lo, hi, observed, wmax = np.inf, -np.inf, 0, 0.0
-        for layer, i, off, n in _messages(f, size, what):
+        for layer, i, off, msg in _messages(f, size, what):
             if i == 0:
                 if current is not None:
                     break  # the TSDF layer is complete; later layers are not ours
-                f.seek(off)
-                msg = f.read(n)
                 fields, _ = _fields(msg, f"{what}: layer header {layer}")
                 vs, vps = fields.get(1, [None])[-1], fields.get(2, [None])[-1]
                 kind = _layer_type(fields, msg)
@@ -261,34 +332,23 @@ def scan_voxblox(path: str | os.PathLike, *, keep_layer: str = "tsdf") -> Voxblo
                     current = (layer, float(vs), int(vps), kind)
                 continue
             if current is None or layer != current[0]:
-                continue  # a block of a layer we skip: its length was checked, its bytes are not read
-            f.seek(off)
-            msg = f.read(n)
-            _, vs, vps, kind = current
-            fields, words = _parse_block(msg, vps ** 3, f"{what}: block {i - 1}")
-            dist, weight = _check_block(fields, words, vs, vps, kind, f"{what}: block {i - 1}")
-            idx = _block_index(fields, vs, vps, f"{what}: block {i - 1}")
-            offsets.append(off)
-            lengths.append(n)
-            index.append(idx)
-            seen = weight > 0
-            if seen.any():
-                d = dist[seen]
-                if not np.isfinite(d).all():
-                    raise FormatError(f"{what}: block {i - 1} has an observed voxel whose distance is NaN/Inf")
-                lo, hi = min(lo, float(d.min())), max(hi, float(d.max()))
-                observed += int(seen.sum())
-                wmax = max(wmax, float(weight.max()))
+                continue  # a block of a layer we skip
+            pending.append((i, off, msg))
+            if len(pending) >= _PARSE_BATCH:
+                flush()
+        if pending:
+            flush()
     if current is None:
         raise FormatError(f"{what} holds no TSDF layer (its layers: {', '.join(found) or 'none'}); only TSDF "
                           "layers can be imported (an ESDF, occupancy or intensity layer is not a TSDF)")
     bi = np.asarray(index, dtype=np.int64).reshape(-1, 3)
     if len(bi) and len(np.unique(bi, axis=0)) != len(bi):
         raise FormatError(f"{what}: the TSDF layer holds the same block twice (a corrupt file)")
+    observed = stats["observed"]
     return VoxbloxIndex(path=p, voxel_size=current[1], voxels_per_side=current[2], layer_type=current[3],
                         offsets=np.asarray(offsets, dtype=np.int64), lengths=np.asarray(lengths, dtype=np.int64),
-                        block_index=bi, d_range=None if observed == 0 else (lo, hi), observed=observed,
-                        weight_max=wmax)
+                        block_index=bi, d_range=None if observed == 0 else (stats["lo"], stats["hi"]),
+                        observed=observed, weight_max=stats["wmax"])
 
 
 def _check_block(fields: dict[int, list], words: np.ndarray, vs: float, vps: int, kind: str,
@@ -332,22 +392,29 @@ def read_voxblox_blocks(index: VoxbloxIndex, ids: np.ndarray, f: BinaryIO | None
     """Distances and weights ``(len(ids), n, n, n)`` float32 of blocks ``ids`` of a scanned file, voxels
     indexed ``(x, y, z)`` (voxblox stores x fastest). ``f``: the file, open (else opened here)."""
     n = index.voxels_per_side
+    ids = np.asarray(ids, dtype=np.int64)
     dist = np.empty((len(ids), n, n, n), dtype=np.float32)
     weight = np.empty_like(dist)
     own = f is None
     f = open(index.path, "rb") if own else f
     try:
-        for k, i in enumerate(ids):
-            f.seek(int(index.offsets[i]))
-            msg = f.read(int(index.lengths[i]))
-            what = f"{index.path}: block {int(i)}"
-            if len(msg) != index.lengths[i]:
-                raise FormatError(f"truncated stream: {what} (the file changed since it was scanned?)")
-            fields, words = _parse_block(msg, n ** 3, what)
-            d, w = _check_block(fields, words, index.voxel_size, n, index.layer_type, what)
-            # voxblox's order is x + n (y + n z): as a C-order (z, y, x) array, transposed to (x, y, z)
-            dist[k] = d.reshape(n, n, n).transpose(2, 1, 0)
-            weight[k] = w.reshape(n, n, n).transpose(2, 1, 0)
+        order = np.argsort(index.offsets[ids], kind="stable")  # through the file front to back
+        for lo in range(0, len(ids), _PARSE_BATCH):
+            sel = order[lo:lo + _PARSE_BATCH]
+            msgs, names = [], []
+            for i in ids[sel]:
+                f.seek(int(index.offsets[i]))
+                msg = f.read(int(index.lengths[i]))
+                names.append(f"{index.path}: block {int(i)}")
+                if len(msg) != index.lengths[i]:
+                    raise FormatError(f"truncated stream: {names[-1]} (the file changed since it was scanned?)")
+                msgs.append(msg)
+            heads, words = _parse_blocks(msgs, n ** 3, names)
+            for k, fields, w, name in zip(sel, heads, words, names):
+                d, wt = _check_block(fields, w, index.voxel_size, n, index.layer_type, name)
+                # voxblox's order is x + n (y + n z): as a C-order (z, y, x) array, transposed to (x, y, z)
+                dist[k] = d.reshape(n, n, n).transpose(2, 1, 0)
+                weight[k] = wt.reshape(n, n, n).transpose(2, 1, 0)
     finally:
         if own:
             f.close()
