@@ -186,7 +186,7 @@ def _assemble(src: Source, g0: np.ndarray, ids: np.ndarray, blocks: np.ndarray, 
 
 def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | None = None, codec: Any = None,
                truncation: Sequence[float] | None = None, trunc_voxel_multiplier: float = DEFAULT_TRUNC_VOXEL_MULTIPLIER,
-               code_dtype: str = "float32", overwrite: bool = False, batch_blocks: int = 2048,
+               code_dtype: str = "float32", overwrite: bool = False, batch_blocks: int = 1024,
                progress: Callable[[int], None] | None = None, **create_kw: Any) -> dict[str, Any]:
     """Import a voxblox TSDF layer or an Open3D VoxelBlockGrid file into a new map at ``out`` (module docstring).
 
