@@ -321,3 +321,25 @@ def test_million_block_import(tmp_path):
     print(json.dumps({"blocks": n, "file_bytes": src.stat().st_size, "seconds": time.perf_counter() - t0,
                       "load_before": load0, "load_after": os.getloadavg(), **out}))
     assert out["rss_mib"] < 2048
+
+
+def test_view_takes_a_7scenes_folder_as_ground_truth(shared_data, tmp_path):
+    pytest.importorskip("rerun")
+    from sdfcodec.trajectory import read_tum, write_tum
+
+    seq_dir = shared_data / "7scenes-redkitchen"
+    sdfcodec.import_map(shared_data / REAL, tmp_path / "real.sdfz")
+    r = subprocess.run([sys.executable, "-m", "sdfcodec", "trajectory", str(seq_dir), "-o", str(tmp_path / "gt.txt")],
+                       capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    gt = read_tum(tmp_path / "gt.txt")
+    est = gt.subset(range(100)).poses.copy()
+    est[:, :3, 3] += [0.03, 0.0, 0.04]  # 5 cm off: the ATE against the folder's poses must say so
+    write_tum(tmp_path / "est.txt", type(gt).from_poses(est, gt.timestamps[:100]))
+    r = subprocess.run([sys.executable, "-m", "sdfcodec", "view", str(tmp_path / "real.sdfz"), "--trajectory",
+                        str(tmp_path / "est.txt"), "--groundtruth", str(seq_dir), "-o", str(tmp_path / "v.rrd"),
+                        "--json"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    t = json.loads(r.stdout)["trajectory"]
+    assert t["groundtruth_poses"] == 500 and t["associated"] == 100
+    assert abs(t["ate_rmse"] - 0.05) < 1e-6
