@@ -26,13 +26,19 @@ def import_cmd(
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 code storage."),
     truncation: Optional[str] = typer.Option(None, "--truncation", help="d_min,d_max metres of the map (default: from the data, so that nothing is clipped)."),
     trunc_voxel_multiplier: float = typer.Option(8.0, "--trunc-voxel-multiplier", help="Open3D only: its truncation in voxels (integrate's default 8); its tsdf is distance / (this x voxel size)."),
+    max_error: Optional[float] = typer.Option(None, "--max-error", help="Block codecs (pca, ae...): a residual stage, every observed voxel within E metres at full level (as encode)."),
+    sign_exact: bool = typer.Option(False, "--sign-exact", help="Block codecs: every voxel at a surface crossing keeps its sign (as encode)."),
+    chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (as encode)."),
+    shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Zarr shards of N blocks per axis (as encode)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT.sdfz if it exists."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
     """Import a voxblox TSDF layer or an Open3D VoxelBlockGrid into a map, streamed (bounded memory).
 
     Lossless by default (raw codec, the data's own truncation, weights kept, weight 0 = unobserved); every voxel
-    lands on the map's grid at its own world position. docs/how-to/import-voxblox.md, import-open3d.md."""
+    lands on the map's grid at its own world position. For a codec that must be fitted, or a rate target,
+    transcode the lossless map afterwards with `sdfcodec encode MAP OUT --codec ...` (every encode option).
+    docs/how-to/import-voxblox.md, import-open3d.md."""
     trunc = parse_truncation(truncation) if truncation else None
     if code_size is not None and model is None:
         code_size = check_code_size(codec_id, code_size)
@@ -45,7 +51,8 @@ def import_cmd(
     with heartbeat(f"importing {source}", as_json):
         summary = import_map(source, output, format=format, codec=codec, truncation=trunc,
                              trunc_voxel_multiplier=trunc_voxel_multiplier, code_dtype=code_dtype,
-                             overwrite=overwrite)
+                             overwrite=overwrite, max_error=max_error, sign_exact=sign_exact,
+                             chunk_blocks=chunk_blocks, shard_blocks=shard_blocks)
     report(summary, as_json, lambda: (
         f"wrote {output}: {summary['format']} {summary['source_blocks']} blocks of {summary['voxels_per_side']}^3 "
         f"voxels ({summary['observed_voxels']} observed) into {summary['blocks']['coded']} coded blocks, voxel "
