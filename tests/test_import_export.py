@@ -344,3 +344,14 @@ def test_view_takes_a_7scenes_folder_as_ground_truth(shared_data, tmp_path):
     t = json.loads(r.stdout)["trajectory"]
     assert t["groundtruth_poses"] == 500 and t["associated"] == 100
     assert abs(t["ate_rmse"] - 0.05) < 1e-6
+
+
+def test_open3d_archive_needing_pickle_refused(tmp_path):
+    # a look-alike archive whose keys are Python objects: reading them would unpickle, which sdfcodec never does
+    p = tmp_path / "evil.npz"
+    np.savez(p, key=np.array([object()], dtype=object), block_resolution=np.array([8]),
+             voxel_size=np.array([0.05], np.float32), attr_name_tsdf=np.array([0]), attr_name_weight=np.array([1]),
+             value_000=np.zeros((1, 8, 8, 8, 1), np.float32), value_001=np.zeros((1, 8, 8, 8, 1), np.float32))
+    with pytest.raises(FormatError, match="never unpickles"):
+        sdfcodec.import_map(p, tmp_path / "o.sdfz")
+    assert not (tmp_path / "o.sdfz").exists()
