@@ -159,6 +159,9 @@ def test_voxblox_bad_inputs_refused_with_one_line(tmp_path):
     assert "claims 4000000000 messages" in _bad(tmp_path, b"\x80\xd0\xac\xf3\x0e" + good[1:])
     assert "not on its layer's block lattice" in _bad(tmp_path, layer_bytes(vs, vps, [
         block_message((0.5, 0, 0), vps, vs, d, w)]))
+    # two blocks 10^5 blocks apart on every axis: a state grid of 10^14 bytes, refused before it is allocated
+    assert "block-state grid" in _bad(tmp_path, layer_bytes(vs, vps, [
+        block_message((0, 0, 0), vps, vs, d, w), block_message((10 ** 5,) * 3, vps, vs, d, w)]))
     # the CLI: one line on stderr, exit status 1, no traceback
     p = tmp_path / "cut.voxblox"
     p.write_bytes(good[:-100])

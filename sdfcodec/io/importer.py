@@ -50,6 +50,9 @@ FORMATS = ("voxblox", "open3d")
 #: that the voxel still reads as observed.
 _MIN_WEIGHT16 = float(np.float16(2.0 ** -24))
 _SCAN_SLICE = 4096  # Open3D blocks scanned at a time for the range of observed distances
+#: The map's block-state grid (one byte a block of its bounding box) may take at most this (1 GiB): more is a
+#: source with a block far from the rest, refused before anything is allocated.
+MAX_GRID_BLOCKS = 1 << 30
 
 
 class Source:
@@ -250,6 +253,11 @@ def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | 
         origin = tuple(float((g + source.centre) * vs) for g in g0)
         extent = (source.starts - g0 + source.resolution).max(axis=0)
         shape = tuple(int(-(-int(e) // BLOCK) * BLOCK) for e in extent)
+        grid = [n // BLOCK for n in shape]
+        if int(np.prod(grid, dtype=object)) > MAX_GRID_BLOCKS:
+            raise FormatError(f"{source.path}: its blocks span {grid} map blocks, whose block-state grid alone "
+                              f"would take more than {MAX_GRID_BLOCKS >> 20} MiB; a block far from the rest (a corrupt "
+                              "file?) or a map too large for one sdfcodec map: split it")
         m = create_map(out, codec=codec, voxel_size=vs, truncation=trunc, origin=origin, shape_voxels=shape,
                        code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec import", source=str(source.path),
                        **create_kw)
