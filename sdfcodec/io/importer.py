@@ -3,7 +3,8 @@
 Import, in two passes over the source and a bounded working set:
 
 1. the source is scanned (:func:`~sdfcodec.io.voxblox.scan_voxblox`, or the arrays of an Open3D grid):
-   its blocks' places and the range of its observed distances, nothing else is kept (24 bytes a block);
+   its blocks' places and the range of its observed distances, nothing else is kept (40 bytes a block; with
+   their assignment to map blocks below, about 100 bytes a block at the peak);
 2. every source block is assigned to the 16^3 map blocks it overlaps; the assignments are sorted by the map's
    chunk of codes, and the map blocks are assembled and written a group of whole chunks at a time (about
    ``batch_blocks`` map blocks): each chunk of the map is written once, and memory holds one group (its map
