@@ -358,3 +358,14 @@ def test_open3d_archive_needing_pickle_refused(tmp_path):
     with pytest.raises(FormatError, match="never unpickles"):
         sdfcodec.import_map(p, tmp_path / "o.sdfz")
     assert not (tmp_path / "o.sdfz").exists()
+
+
+def test_voxblox_file_of_several_layers_imports_its_tsdf_layer(tmp_path):
+    # voxblox's SaveLayer may append layers to one file: an ESDF layer first (2 words a voxel), then the TSDF
+    rng = np.random.default_rng(7)
+    msgs, voxels = _random_layer(rng, 8, 0.05, 6)
+    esdf = [block_message((9, 9, 9), 8, 0.05, np.zeros((8,) * 3), np.ones((8,) * 3), n_words=2 * 8 ** 3)]
+    src = tmp_path / "two.voxblox"
+    src.write_bytes(layer_bytes(0.05, 8, esdf, layer_type="esdf") + layer_bytes(0.05, 8, msgs))
+    sdfcodec.import_map(src, tmp_path / "m.sdfz")
+    _check_voxels(sdfcodec.open_map(tmp_path / "m.sdfz"), voxels, 0.05, 0.5)
