@@ -38,8 +38,6 @@ __all__ = ["VoxbloxIndex", "VOXBLOX_SUFFIXES", "looks_like_voxblox", "scan_voxbl
            "write_voxblox", "encode_block"]
 
 VOXBLOX_SUFFIXES = (".voxblox", ".vxblx", ".tsdf")
-#: Words per voxel of each layer type (for naming a layer that is not a TSDF by what it holds).
-_WORDS = {"tsdf": 3, "esdf": 2, "occupancy": 2, "intensity": 2}
 #: voxels_per_side above this is absurd (a block of 2^30 voxels); refused before anything is allocated.
 MAX_VOXELS_PER_SIDE = 1024
 _TAG_VOXEL_DATA = (7 << 3) | 0  # field 7, varint: one word
@@ -170,9 +168,11 @@ def _parse_block(msg: bytes, n_vox: int, what: str) -> tuple[dict[int, list], np
         words = _varints(raw[p:p + n], what)
         rest = msg[p + n:]
     else:
-        vals = _varints(tail, what)  # tag, word, tag, word... as voxblox writes them
-        tags = vals[0::2]
-        if len(vals) % 2 or not (tags == _TAG_VOXEL_DATA).all():
+        try:
+            vals = _varints(tail, what)  # tag, word, tag, word... as voxblox writes them
+        except FormatError:
+            vals = np.zeros(1, dtype=np.uint32)  # something else follows the words: the slow path says what
+        if len(vals) % 2 or not (vals[0::2] == _TAG_VOXEL_DATA).all():
             # other fields after or between the words (legal protobuf, not what voxblox writes): slow path
             return _parse_block_slow(msg, what)
         words, rest = vals[1::2], b""
