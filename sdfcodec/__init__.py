@@ -16,12 +16,13 @@ from . import errors
 from ._lazy import lazy_exports
 
 __all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "pretrained_codec", "open_map", "create_map",
-           "update_map", "load_model", "save_model", "errors", "__version__"]
+           "update_map", "load_model", "save_model", "import_map", "export_map", "errors", "__version__"]
 
 # Where each public name lives. They load on first use (PEP 562), not at `import sdfcodec`: the codec contract
 # imports torch (about 2 s), which `sdfcodec --help`, `--version` and `info` on a local map never need.
 _LAZY = {"Codec": ".codec", "Map": ".map", "create_map": ".map", "open_map": ".map", "update_map": ".map",
          "load_model": ".model", "save_model": ".model", "get_codec": ".registry", "list_codecs": ".registry",
-         "pretrained_codec": ".registry", "register_codec": ".registry"}
+         "pretrained_codec": ".registry", "register_codec": ".registry",
+         "import_map": ".io.importer", "export_map": ".io.importer"}
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -19,6 +19,7 @@ if "numpy" not in sys.modules:
 
 from . import maps, work  # noqa: E402,F401  (each module registers its commands on the app)
 from . import view  # noqa: E402,F401  (sdfcodec view: a Rerun recording of a map)
+from . import interop  # noqa: E402,F401  (import, export, trajectory: other systems' maps and poses)
 from .common import app  # noqa: E402
 
 __all__ = ["app", "main"]

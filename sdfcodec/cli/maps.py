@@ -400,23 +400,27 @@ def mesh_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     output: Path = typer.Argument(..., metavar="OUT.ply", help="Triangle mesh to write (.ply, .obj, .stl...)."),
     level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
+    region: Optional[str] = typer.Option(None, "--region", help="x0:x1,y0:y1,z0:z1: mesh only the blocks touching it (half-open voxels, or metres with --units m)."),
+    units: str = typer.Option("voxels", "--units", help="Units of --region: voxels or m."),
     overwrite: bool = typer.Option(False, "--overwrite"),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Extract the zero level set of a map as a triangle mesh (marching cubes on the decoded blocks)."""
+    """Extract the zero level set of a map (or of the blocks touching --region) as a triangle mesh (marching
+    cubes on the decoded blocks)."""
     import open3d as o3d
 
     from ..fusion import mesh_from_blocks
     from ..map import open_map
 
+    box = parse_region(region)
     refuse_existing(output, overwrite)
     m = open_map(map_path)
     coords, blocks = [], []
-    for c, b in m.iter_blocks(level=level):
+    for c, b in m.iter_decoded(box, units=units, level=level):
         coords.append(c)
         blocks.append(b)
     if not coords:
-        fail(f"{map_path} has no coded blocks: nothing to mesh")
+        fail(f"{map_path} has no coded blocks{' touching ' + region if region else ''}: nothing to mesh")
     mesh = mesh_from_blocks(np.concatenate(coords), np.concatenate(blocks), origin=m.origin,
                             voxel_size=m.voxel_size, truncation=m.truncation)
     def write_mesh(tmp: Path) -> bool:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import errno
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 
@@ -25,7 +25,7 @@ def view_cmd(
     threshold: Optional[float] = typer.Option(None, "--threshold", help="Select blocks scoring at most this (default: the automatic threshold)."),
     top: Optional[int] = typer.Option(None, "--top", help="Select the K best-scoring blocks."),
     trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Camera trajectory (TUM file) in the map's frame."),
-    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="Ground-truth trajectory (TUM file) to draw the trajectory against, with its ATE."),
+    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="Ground-truth trajectory to draw the trajectory against, with its ATE: a TUM file, or a sequence directory (7-Scenes pose files, TUM groundtruth.txt)."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device for the search (default: cuda if present)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
@@ -48,15 +48,22 @@ def view_cmd(
     if groundtruth is not None and trajectory is None:
         raise InvalidValueError("--groundtruth needs --trajectory: the ground truth is drawn against a trajectory")
     for p in (trajectory, groundtruth):
-        if p is not None and not p.is_file():
+        if p is not None and not p.is_file() and not (p is groundtruth and p.is_dir()):
             raise InputNotFoundError(errno.ENOENT, "no such trajectory file", str(p))
+    gt_source: Any = groundtruth
+    if groundtruth is not None and groundtruth.is_dir():  # a sequence: its own poses (7-Scenes has no TUM file)
+        from ..data.sequences import open_sequence
+
+        gt_source = open_sequence(groundtruth).trajectory
+        if gt_source is None:
+            raise InvalidValueError(f"{groundtruth} has no ground-truth poses")
     refuse_existing(output, overwrite)
     summary: dict = {}
 
     def write(tmp: Path) -> bool:
         summary.update(write_recording(map_path, tmp, query=query, level=level,
                                        threshold=threshold if threshold is not None else ("auto" if top is None else None),
-                                       top=top, trajectory=trajectory, groundtruth=groundtruth, device=device))
+                                       top=top, trajectory=trajectory, groundtruth=gt_source, device=device))
         return True
 
     write_output(output, output.with_name(f".tmp-{output.name}"), write)
