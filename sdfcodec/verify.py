@@ -102,13 +102,26 @@ def _decode_key(enc: Any, rel: str) -> tuple[int, ...]:
         return ()
 
 
-def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str], dict[str, str]] | None:
+def _chunk_keys(arr: zarr.Array, rep: VerifyReport | None = None, blocks: np.ndarray | None = None
+                ) -> tuple[dict[tuple[int, ...], str], list[str], dict[str, str]] | None:
     """Chunk coordinates -> store key of every chunk stored for ``arr`` (of a sharded array: from its shards'
     indexes, the shard's key naming the chunk's place in it), stray keys under it, and shards whose index does
-    not read back (key -> why); None when the store cannot list (every chunk position is then read)."""
+    not read back (key -> why); None when the store cannot list (every chunk position is then read). A remote
+    map is never listed: its chunks are asked for by key, those of ``blocks`` (``(N, 3)`` block coordinates;
+    None: every position), :mod:`sdfcodec.map.unlisted`; a layout too fine for that is a problem in ``rep``."""
     from zarr.core.sync import sync
 
+    from .map.unlisted import chunk_positions, is_unlisted, stored_chunks
+
     store = arr.store
+    if is_unlisted(store):
+        try:
+            found, broken = stored_chunks(arr, chunk_positions(arr, blocks))
+        except FormatError as e:
+            if rep is not None:
+                rep.problem(arr.path, str(e))
+            return {}, [], {}
+        return found, [], broken
     prefix = arr.path + "/"
 
     async def keys() -> list[str]:
@@ -219,7 +232,13 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
 
 
 def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
-    """Without a valid header: still check every chunk of every array found."""
+    """Without a valid header: still check every chunk of every array found (of a local map: a remote one is
+    never listed, and without its header nothing says what it stores)."""
+    from .map.unlisted import is_unlisted
+
+    if is_unlisted(group.store):
+        rep.note("map", "without a valid header, the chunks of a remote map are not checked (it is never listed)")
+        return
     try:
         arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
     except SDFCodecError as e:  # the store refused a member (a link, a FIFO...): its own message
@@ -255,14 +274,24 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
     arr = m.reader.state_array
     states = np.zeros(m.grid_blocks, np.uint8)
     ok = True
-    listing = _chunk_keys(arr)
+    listing = _chunk_keys(arr, rep)
     for coords, key, data in _iter_chunks(rep, arr, listing):
         if data is None:
             ok = False
             continue
         box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, arr.chunks, data.shape))
         states[box] = data
-    if listing is not None:  # a state chunk not stored where code chunks are: its blocks would vanish
+    from .map.unlisted import is_unlisted
+
+    if ok and is_unlisted(arr.store):  # no listing of code chunks to walk: those under each absent state chunk
+        from .map.presence import check_state_chunks
+
+        try:
+            check_state_chunks(m.reader, (slice(None),) * 3, states)
+        except FormatError as e:
+            rep.problem(arr.path, str(e).removeprefix(f"{m.location}: "))
+            ok = False
+    elif listing is not None:  # a state chunk not stored where code chunks are: its blocks would vanish
         # walked from the stored code chunks (bounded by the files there), not over every state chunk position
         # (a hostile grid has billions): the state chunk holding each code chunk's first block must be stored
         lost: dict[tuple[int, ...], list[str]] = {}
@@ -303,7 +332,13 @@ def _check_code_array(rep: VerifyReport, m, codes, states: np.ndarray | None) ->
     cb, cc = codes.chunks[0], codes.chunks[3]
     n_code_chunks = codes.cdata_shape[3]
     stored: set[tuple[int, ...]] = set()
-    listing = _chunk_keys(codes)
+    from .map.unlisted import is_unlisted
+
+    if states is None and is_unlisted(codes.store):
+        rep.note(codes.path, "not checked: without the block states, which of its chunks a remote map stores is "
+                             "unknown (it is never listed)")
+        return
+    listing = _chunk_keys(codes, rep, None if states is None else np.argwhere(states == BlockState.CODED))
     stray_codes = 0
     for coords, key, data in _iter_chunks(rep, codes, listing):
         stored.add(coords)
@@ -347,9 +382,13 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
     spec = m.header.codec
     rep.codec = spec.id
     present = set()
+    from .map.unlisted import is_unlisted
+
     try:
         group = m.reader.member("codec", zarr.Group)
-        if group is not None:
+        if group is not None and is_unlisted(group.store):  # never listed: the arrays the header names
+            present = set(spec.state_arrays)
+        elif group is not None:
             present = {name for name, node in group.members() if isinstance(node, zarr.Array)}
     except SDFCodecError as e:
         rep.problem("codec", str(e))
@@ -374,7 +413,7 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
             rep.problem(f"codec/{name}", "is missing, but header field codec.state_arrays lists it")
             complete = False
             continue
-        for _, _, data in _iter_chunks(rep, arr):
+        for _, _, data in _iter_chunks(rep, arr, _chunk_keys(arr, rep)):
             complete &= data is not None
         if complete:
             try:
@@ -486,10 +525,12 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
         counts = np.bincount(states.ravel(), minlength=3)
         rep.blocks = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
     _check_codes(rep, m, states)
-    # fusion weights, observation mask, residual stage: every chunk read and checked
+    # fusion weights, observation mask, residual stage: every chunk read and checked (of a remote map: those
+    # under the observed blocks, the only ones it may store)
+    observed = None if states is None else np.argwhere(states != BlockState.UNOBSERVED)
     for arr in (*m.reader.observation_arrays(), m.reader.residual_array):
         if arr is not None:
-            for _ in _iter_chunks(rep, arr):
+            for _ in _iter_chunks(rep, arr, _chunk_keys(arr, rep, observed)):
                 pass
     _check_codec(rep, m, decode_blocks)
     m.close()

@@ -686,3 +686,60 @@ def test_random_remote_faults(small_map, http_server, s3_proxy):
     counts = _random_faults(http_server, s3_proxy, small_map[1], 520,
                             _QUICK_FAULTS * 5 + ["drip", "hang", "slow_headers"], seed=21)
     assert sum(c["faults"] for c in counts.values()) >= 500
+
+
+# -- verify of a URL: what the header lists, never a listing (issue 40, item 5) ----------------------------
+
+def _map_objects(path: Path) -> int:
+    return sum(1 for p in path.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("listings", ["none", "loop", "html"])
+def test_verify_url_checks_what_the_header_lists_never_a_listing(small_map, tmp_path, listings):
+    """``verify URL`` against a server without listings (nginx's default, S3 websites), one whose listings are a
+    self-similar tree (a ``loop/`` link in every directory) and an ordinary one: the same verdict, blocks and
+    chunks as the local map's verify, in a bounded number of requests (on main: FAILED "27 unobserved, 0
+    coded" with 0 chunks checked without listings, and a crawl without end through ``loop/``)."""
+    import shutil
+
+    from sdfcodec.bench.serve import FileServer
+    from sdfcodec.verify import verify_map
+
+    path = tmp_path / "x.sdfz"
+    shutil.copytree(small_map[0], path)
+    local = verify_map(path)
+    assert local.ok and local.blocks["coded"] > 0
+    with FileServer(tmp_path, listings=listings) as srv:
+        kind, rep = _bounded(lambda: verify_map(srv.url("x.sdfz"), storage_options={"remote_limits": FAST}), 60)
+        assert kind == "ok", (kind, rep, len(srv.requests))
+        assert rep.ok, rep.problems
+        assert rep.blocks == local.blocks and rep.chunks_checked == local.chunks_checked, (rep, local)
+        assert rep.decoded_blocks == local.decoded_blocks
+        # each object asked for at most three times (a one-byte probe, the read, the decode's read)
+        assert len(srv.requests) <= 3 * _map_objects(path) + 10, sorted(srv.requests)
+        assert not any(r.rstrip("/").endswith(("x.sdfz", "codes", "state", "c", "loop")) for r in srv.requests), \
+            "a directory was listed"
+
+
+@pytest.mark.parametrize("listings", ["none", "loop"])
+def test_verify_url_names_missing_chunks_without_a_listing(small_map, tmp_path, listings):
+    """Damage a remote map cannot hide without listings: a code chunk under coded blocks, a state chunk
+    under stored codes, a codec state array; each is named, as the local verify names it."""
+    import shutil
+
+    from sdfcodec.bench.serve import FileServer
+    from sdfcodec.verify import verify_map
+
+    cases = {"code": CHUNK, "state": "state/c/0/0/0"}
+    for name, rel in cases.items():
+        path = tmp_path / name / "x.sdfz"
+        shutil.copytree(small_map[0], path)
+        (path / rel).unlink()
+    with FileServer(tmp_path, listings=listings) as srv:
+        for name, rel in cases.items():
+            local = verify_map(tmp_path / name / "x.sdfz")
+            kind, rep = _bounded(lambda: verify_map(srv.url(f"{name}/x.sdfz"),
+                                                    storage_options={"remote_limits": FAST}), 60)
+            assert kind == "ok", (kind, rep)
+            assert not local.ok and not rep.ok, (name, rep)
+            assert any(rel in p.where or rel in p.message for p in rep.problems), (name, rep.problems, local.problems)

@@ -42,7 +42,7 @@ import zarr.abc.store
 from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
 from zarr.core.buffer import default_buffer_prototype
 
-from ..errors import InvalidValueError, RemoteReadError
+from ..errors import FormatError, InvalidValueError, RemoteReadError
 
 __all__ = ["RemoteLimits", "RemoteStore", "remote_store", "encoded_bound", "LIMITS_KEY", "set_default_limits",
            "default_limits"]
@@ -203,7 +203,26 @@ class RemoteStore(zarr.storage.WrapperStore):
         return (prototype or default_buffer_prototype()).buffer.from_bytes(data)
 
     async def exists(self, key: str) -> bool:
-        return await self._retried(key, lambda: self._store.exists(key))
+        # a one-byte range read: bounded, timed and retried as any read, with a 5xx retried and then an error
+        # (fsspec's own check reads any error as "missing", and for HTTP sends a GET of the whole object)
+        return await self._retried(key, lambda: self.fetch(key, RangeByteRequest(0, 1))) is not None
+
+    @property
+    def supports_listing(self) -> bool:
+        return False
+
+    def _no_listing(self, prefix: str):
+        raise FormatError(f"{self.object_url(prefix)}: a remote map is never listed (HTTP listings are HTML pages a "
+                          "server may not make, or make without end); what it stores follows from its header")
+
+    def list(self):
+        self._no_listing("")
+
+    def list_prefix(self, prefix: str):
+        self._no_listing(prefix)
+
+    def list_dir(self, prefix: str):
+        self._no_listing(prefix)
 
     async def get_partial_values(self, prototype, key_ranges):
         key_ranges = list(key_ranges)
@@ -286,6 +305,8 @@ class RemoteStore(zarr.storage.WrapperStore):
                                auto_decompress=False, headers=headers, **kw) as resp:
             if resp.status in _MISSING_HTTP:
                 return None
+            if resp.status == 416 and rng is not None:  # a range past the end: the object exists, and is shorter
+                return b""
             if resp.status in _TRANSIENT_HTTP:
                 raise _Transient(f"HTTP {resp.status} {resp.reason or ''}".rstrip())
             if resp.status >= 300:
@@ -314,6 +335,8 @@ class RemoteStore(zarr.storage.WrapperStore):
             code, status = str(err.get("Code", "")), int(meta.get("HTTPStatusCode") or 0)
             if code in _MISSING_S3 or status == 404:
                 return None
+            if rng is not None and (code == "InvalidRange" or status == 416):  # as HTTP 416 above
+                return b""
             if code in _TRANSIENT_S3 or status in _TRANSIENT_HTTP:
                 raise _Transient(f"S3 {code or 'error'} (HTTP {status})")
             raise _Refused(f"S3 {code or 'error'} (HTTP {status}): {err.get('Message', '')}".rstrip(": "))
