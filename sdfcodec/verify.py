@@ -32,6 +32,7 @@ from ._lazy import lazy_module
 from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from .header import BlockState, parse_header
 from .map.shards import chunk_name, shard_contents
+from .map.unlisted import chunk_positions, is_unlisted, stored_chunks
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -111,7 +112,6 @@ def _chunk_keys(arr: zarr.Array, rep: VerifyReport | None = None, blocks: np.nda
     None: every position), :mod:`sdfcodec.map.unlisted`; a layout too fine for that is a problem in ``rep``."""
     from zarr.core.sync import sync
 
-    from .map.unlisted import chunk_positions, is_unlisted, stored_chunks
 
     store = arr.store
     if is_unlisted(store):
@@ -234,8 +234,6 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
 def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
     """Without a valid header: still check every chunk of every array found (of a local map: a remote one is
     never listed, and without its header nothing says what it stores)."""
-    from .map.unlisted import is_unlisted
-
     if is_unlisted(group.store):
         rep.note("map", "without a valid header, the chunks of a remote map are not checked (it is never listed)")
         return
@@ -281,8 +279,6 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
             continue
         box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, arr.chunks, data.shape))
         states[box] = data
-    from .map.unlisted import is_unlisted
-
     if ok and is_unlisted(arr.store):  # no listing of code chunks to walk: those under each absent state chunk
         from .map.presence import check_state_chunks
 
@@ -332,8 +328,6 @@ def _check_code_array(rep: VerifyReport, m, codes, states: np.ndarray | None) ->
     cb, cc = codes.chunks[0], codes.chunks[3]
     n_code_chunks = codes.cdata_shape[3]
     stored: set[tuple[int, ...]] = set()
-    from .map.unlisted import is_unlisted
-
     if states is None and is_unlisted(codes.store):
         rep.note(codes.path, "not checked: without the block states, which of its chunks a remote map stores is "
                              "unknown (it is never listed)")
@@ -382,8 +376,6 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
     spec = m.header.codec
     rep.codec = spec.id
     present = set()
-    from .map.unlisted import is_unlisted
-
     try:
         group = m.reader.member("codec", zarr.Group)
         if group is not None and is_unlisted(group.store):  # never listed: the arrays the header names

@@ -12,6 +12,7 @@ first is sent: at most :data:`MAX_CANDIDATES` chunk positions per array.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import math
 from typing import Any
@@ -86,8 +87,6 @@ def stored_chunks(arr: zarr.Array, positions: list[tuple[int, ...]]
     keys = {s: f"{arr.path}/{arr.metadata.encode_chunk_key(s)}" for s in shards}
 
     async def exist(part):
-        import asyncio
-
         return await asyncio.gather(*(store.exists(keys[s]) for s in part))
 
     present = {}
