@@ -566,7 +566,7 @@ def _scale_cli(data, base: Path, inputs: dict[str, Path]) -> None:
         shutil.copytree(base, tmp / "m.sdfz")
         names = {"map": tmp / "m.sdfz", "out": tmp / "out", "missing": tmp / "missing.npy", **inputs}
         argv = ["--remote-tries", "1", "--remote-timeout", "2", command,
-                *(a.format(**names) if "{" in a else a for a in args)]
+                *(a.format(**names) if a in CLI_PATHS or a.startswith("{out}") else a for a in args)]
         case = " ".join(argv)
 
         def run() -> str:
