@@ -36,6 +36,7 @@ from ._lazy import lazy_module
 from .errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from .header import BlockState, parse_header
 from .map.shards import chunk_name, shard_contents
+from .map.unlisted import chunk_positions, is_unlisted, stored_chunks
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -109,13 +110,25 @@ def _decode_key(enc: Any, rel: str) -> tuple[int, ...]:
         return ()
 
 
-def _chunk_keys(arr: zarr.Array) -> tuple[dict[tuple[int, ...], str], list[str], dict[str, str]] | None:
+def _chunk_keys(arr: zarr.Array, rep: VerifyReport | None = None, blocks: np.ndarray | None = None
+                ) -> tuple[dict[tuple[int, ...], str], list[str], dict[str, str]] | None:
     """Chunk coordinates -> store key of every chunk stored for ``arr`` (of a sharded array: from its shards'
     indexes, the shard's key naming the chunk's place in it), stray keys under it, and shards whose index does
-    not read back (key -> why); None when the store cannot list (every chunk position is then read)."""
+    not read back (key -> why); None when the store cannot list (every chunk position is then read). A remote
+    map is never listed: its chunks are asked for by key, those of ``blocks`` (``(N, 3)`` block coordinates;
+    None: every position), :mod:`sdfcodec.map.unlisted`; a layout too fine for that is a problem in ``rep``."""
     from zarr.core.sync import sync
 
+
     store = arr.store
+    if is_unlisted(store):
+        try:
+            found, broken = stored_chunks(arr, chunk_positions(arr, blocks))
+        except FormatError as e:
+            if rep is not None:
+                rep.problem(arr.path, str(e))
+            return {}, [], {}
+        return found, [], broken
     prefix = arr.path + "/"
 
     async def keys() -> list[str]:
@@ -226,7 +239,11 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
 
 
 def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
-    """Without a valid header: still check every chunk of every array found."""
+    """Without a valid header: still check every chunk of every array found (of a local map: a remote one is
+    never listed, and without its header nothing says what it stores)."""
+    if is_unlisted(group.store):
+        rep.note("map", "without a valid header, the chunks of a remote map are not checked (it is never listed)")
+        return
     try:
         with warnings.catch_warnings():  # the manifest and the signature are documents beside the hierarchy
             warnings.filterwarnings("ignore", message=r"Object at (manifest|signature)\.json is not recognized")
@@ -264,14 +281,22 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
     arr = m.reader.state_array
     states = np.zeros(m.grid_blocks, np.uint8)
     ok = True
-    listing = _chunk_keys(arr)
+    listing = _chunk_keys(arr, rep)
     for coords, key, data in _iter_chunks(rep, arr, listing):
         if data is None:
             ok = False
             continue
         box = tuple(slice(c * n, c * n + s) for c, n, s in zip(coords, arr.chunks, data.shape))
         states[box] = data
-    if listing is not None:  # a state chunk not stored where code chunks are: its blocks would vanish
+    if ok and is_unlisted(arr.store):  # no listing of code chunks to walk: those under each absent state chunk
+        from .map.presence import check_state_chunks
+
+        try:
+            check_state_chunks(m.reader, (slice(None),) * 3, states)
+        except FormatError as e:
+            rep.problem(arr.path, str(e).removeprefix(f"{m.location}: "))
+            ok = False
+    elif listing is not None:  # a state chunk not stored where code chunks are: its blocks would vanish
         # walked from the stored code chunks (bounded by the files there), not over every state chunk position
         # (a hostile grid has billions): the state chunk holding each code chunk's first block must be stored
         lost: dict[tuple[int, ...], list[str]] = {}
@@ -312,7 +337,11 @@ def _check_code_array(rep: VerifyReport, m, codes, states: np.ndarray | None) ->
     cb, cc = codes.chunks[0], codes.chunks[3]
     n_code_chunks = codes.cdata_shape[3]
     stored: set[tuple[int, ...]] = set()
-    listing = _chunk_keys(codes)
+    if states is None and is_unlisted(codes.store):
+        rep.note(codes.path, "not checked: without the block states, which of its chunks a remote map stores is "
+                             "unknown (it is never listed)")
+        return
+    listing = _chunk_keys(codes, rep, None if states is None else np.argwhere(states == BlockState.CODED))
     stray_codes = 0
     for coords, key, data in _iter_chunks(rep, codes, listing):
         stored.add(coords)
@@ -358,7 +387,9 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
     present = set()
     try:
         group = m.reader.member("codec", zarr.Group)
-        if group is not None:
+        if group is not None and is_unlisted(group.store):  # never listed: the arrays the header names
+            present = set(spec.state_arrays)
+        elif group is not None:
             present = {name for name, node in group.members() if isinstance(node, zarr.Array)}
     except SDFCodecError as e:
         rep.problem("codec", str(e))
@@ -383,7 +414,7 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
             rep.problem(f"codec/{name}", "is missing, but header field codec.state_arrays lists it")
             complete = False
             continue
-        for _, _, data in _iter_chunks(rep, arr):
+        for _, _, data in _iter_chunks(rep, arr, _chunk_keys(arr, rep)):
             complete &= data is not None
         if complete:
             try:
@@ -553,10 +584,12 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
         counts = np.bincount(states.ravel(), minlength=3)
         rep.blocks = {name: int(counts[v]) for v, name in BlockState.NAMES.items()}
     _check_codes(rep, m, states)
-    # fusion weights, observation mask, residual stage: every chunk read and checked
+    # fusion weights, observation mask, residual stage: every chunk read and checked (of a remote map: those
+    # under the observed blocks, the only ones it may store)
+    observed = None if states is None else np.argwhere(states != BlockState.UNOBSERVED)
     for arr in (*m.reader.observation_arrays(), m.reader.residual_array):
         if arr is not None:
-            for _ in _iter_chunks(rep, arr):
+            for _ in _iter_chunks(rep, arr, _chunk_keys(arr, rep, observed)):
                 pass
     _check_codec(rep, m, decode_blocks)
     m.close()

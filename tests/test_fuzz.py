@@ -2,7 +2,8 @@
 a valid map, then opens, reads, decodes and verifies it. Every call must either work or raise one of
 sdfcodec's own errors (SDFCodecError): any other exception, a hang, or an allocation past the memory bound is
 a bug. Bounded: a fixed number of examples (derandomized, so CI sees the same ones), a per-example time
-limit, and an address-space limit (RLIMIT_AS) a little above what the process already uses.
+limit, and an address-space limit (RLIMIT_AS) a little above what the process already uses. The scale fuzzers at
+the end of the file (issue 40) run thousands of cases over headers, chunks and command lines in the slow suite.
 """
 
 from __future__ import annotations
@@ -368,3 +369,278 @@ def test_fuzz_counts():
         assert counts["cases"] == EXPECTED[test], (test, counts)
         assert counts["refused"] and counts["read"], (test, counts)
         assert counts["worked"] or test == "geometry", (test, counts)
+
+
+# -- fuzzing at scale (issue 40, item 9): headers, chunks and CLI inputs, thousands of cases -------------------
+# The map is held in memory (a Zarr MemoryStore built from its files), so that a case costs milliseconds, not a
+# copy of a directory: what a store-independent reader checks is the same (the local store's own checks are the
+# fuzzers' above). Foreign exceptions are collected, not raised, so that one run finds them all; the report test
+# at the end of the file fails if there is any. SDFCODEC_FUZZ_SCALE=N sets the slow run's cases in all (10,000);
+# the default suite runs QUICK_SCALE of them.
+
+SCALE = int(os.environ.get("SDFCODEC_FUZZ_SCALE", "10000"))
+QUICK_SCALE = 200
+SHARE = {"scale_headers": 0.4, "scale_chunks": 0.3, "scale_cli": 0.3}  # of the cases, per fuzzer
+SCALE_COUNTS: dict[str, dict[str, int]] = {}
+FOREIGN: list[tuple[str, str, str]] = []  # (fuzzer, exception, case) of every foreign exception or traceback
+
+
+def _scale_settings(total: int, name: str):
+    return settings(SETTINGS, max_examples=max(1, round(total * SHARE[name])))
+
+
+@pytest.fixture(scope="module")
+def base_files(base_map) -> dict[str, bytes]:
+    """The base map as ``{store key: bytes}``."""
+    return {str(p.relative_to(base_map)): p.read_bytes() for p in sorted(base_map.rglob("*")) if p.is_file()}
+
+
+def _count(name: str, outcome: str) -> None:
+    c = SCALE_COUNTS.setdefault(name, {"cases": 0, "worked": 0, "refused": 0, "foreign": 0})
+    c["cases"] += 1
+    c[outcome] += 1
+    if c["cases"] % 500 == 0:  # a long run's progress (pytest -s shows it)
+        print(f"{time.strftime('%H:%M:%S')} {name}: {c}", flush=True)
+
+
+def _guarded(name: str, case: str, fn) -> str:
+    """Run ``fn`` under the per-case time limit: "worked", "refused" (an SDFCodecError) or "foreign" (anything
+    else, recorded in FOREIGN)."""
+    old = signal.signal(signal.SIGALRM, _alarm)
+    signal.setitimer(signal.ITIMER_REAL, PER_EXAMPLE_S)
+    try:
+        return fn()
+    except SDFCodecError:
+        return "refused"
+    except Exception as e:  # noqa: BLE001 - what this fuzzer looks for
+        FOREIGN.append((name, f"{type(e).__name__}: {str(e)[:300]}", case[:300]))
+        return "foreign"
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _exercise_files(name: str, files: dict[str, bytes], case: str) -> None:
+    """Open the map held by ``files`` from memory, read and decode it, verify it; count the outcome."""
+    import zarr
+    from zarr.core.buffer import cpu
+
+    def run() -> str:
+        store = zarr.storage.MemoryStore({k: cpu.Buffer.from_bytes(v) for k, v in files.items()}, read_only=True)
+        outcome = "worked"
+        try:
+            m = sdfcodec.open_map(store, max_decode_bytes=LIMIT)
+        except SDFCodecError:
+            m, outcome = None, "refused"
+        for call in (lambda m: m.decode_region(), lambda m: list(m.iter_codes(level=4))) if m is not None else ():
+            try:
+                call(m)
+            except SDFCodecError:
+                outcome = "refused"
+        if m is not None:
+            m.close()
+        rep = verify_map(store, max_decode_bytes=LIMIT, decode_blocks=16)
+        internal = [str(p) for p in rep.problems if p.where == "verify"]
+        if internal:
+            raise AssertionError(f"verify failed internally: {internal[0]}")
+        return outcome
+
+    _count(name, _guarded(name, case, run))
+
+
+def _scale_headers(data, files: dict[str, bytes]) -> None:
+    """Mutate one metadata document: the sdfcodec header in the root's, or an array's Zarr metadata."""
+    name = data.draw(st.sampled_from(sorted(k for k in files if k.endswith("zarr.json"))))
+    doc = json.loads(files[name])
+    target = doc["attributes"]["sdfcodec"] if name == "zarr.json" and data.draw(st.booleans()) else doc
+    for _ in range(data.draw(st.integers(1, 3))):
+        path = data.draw(st.sampled_from(_paths(target)))
+        how = data.draw(st.sampled_from(["replace", "replace", "delete", "insert", "wrap"]))
+        target = _apply(target, path, how, data.draw(json_value))
+    if target is not doc and isinstance(doc.get("attributes"), dict):
+        doc["attributes"]["sdfcodec"] = target
+    elif target is not doc:
+        doc = target
+    raw = json.dumps(doc).encode()
+    if data.draw(st.integers(0, 19)) == 0:
+        raw = raw[: data.draw(st.integers(0, len(raw)))]  # not even JSON
+    _exercise_files("scale_headers", {**files, name: raw}, f"{name}: {raw[:200]!r}")
+
+
+def _scale_chunks(data, files: dict[str, bytes]) -> None:
+    """Damage chunks: bit flips, truncation, growth, two chunks swapped, a chunk's bytes in another's place of
+    another size; the CRC32C recomputed half the time, so that the damage reaches the decompressor."""
+    chunks = sorted(k for k in files if not k.endswith("zarr.json"))
+    name = data.draw(st.sampled_from(chunks))
+    how = data.draw(st.sampled_from(["flip", "flips", "truncate", "extend", "swap", "resize", "delete"]))
+    out, b = dict(files), bytearray(files[name])
+    if how == "flip" and b:
+        i = data.draw(st.integers(0, len(b) - 1))
+        b[i] ^= 1 << data.draw(st.integers(0, 7))
+    elif how == "flips" and b:
+        for _ in range(data.draw(st.integers(2, 32))):
+            b[data.draw(st.integers(0, len(b) - 1))] ^= data.draw(st.integers(1, 255))
+    elif how == "truncate":
+        b = b[: data.draw(st.integers(0, max(0, len(b) - 1)))]
+    elif how == "extend":
+        b += data.draw(st.binary(min_size=1, max_size=256))
+    elif how in ("swap", "resize"):
+        other = data.draw(st.sampled_from(chunks))
+        if how == "swap":
+            out[other] = bytes(b)
+        b = bytearray(files[other])
+        if how == "resize" and b:
+            b = (b * data.draw(st.integers(1, 4)))[: data.draw(st.integers(1, 4 * len(b)))]
+    if how == "delete":
+        del out[name]
+    else:
+        if len(b) >= 4 and data.draw(st.booleans()):
+            body = bytes(b[:-4])
+            b = bytearray(body + google_crc32c.value(body).to_bytes(4, "little"))
+        out[name] = bytes(b)
+    _exercise_files("scale_chunks", out, f"{how} {name}")
+
+
+# the CLI's vocabulary: options of info, verify, decode and encode, and values for them (good and hostile)
+CLI_OPTIONS = ["--json", "--decode-blocks", "--level", "--region", "--units", "--device", "--overwrite", "--codec",
+               "--code-size", "--model", "--voxel-size", "--truncation", "--origin", "--key", "--code-dtype", "--fit",
+               "--fit-max-blocks", "--codec-state", "--step", "--target-bytes", "--max-error", "--sign-exact",
+               "--chunk-blocks", "--shard-blocks", "--no-such-option", "-o", "--"]
+CLI_VALUES = ["0", "1", "-1", "2", "4", "8", "16", "64", "4096", "2147483648", "1e308", "-1e308", "5e-324", "nan",
+              "inf", "-inf", "0.02", "-0.04,0.1", "0.1,-0.04", "nan,0.1", "0,0,0", "1e308,0,0", "0:16,0:16,0:16",
+              "0:1e9,0:16,0:16", "16:0,0:16,0:16", "0:0.32,0:0.32,0:0.32", "0:16", "a:b,c:d,e:f", "m", "voxels",
+              "km", "cpu", "cuda", "foo", "meta", "raw", "pca", "gaussian-blur", "no-such-codec", "float32", "int8",
+              "float16", "float64", "embedded", "reference", "x", "", " ", "-", "--", "é", "\\", "a\nb"]
+CLI_FLAGS = {"--json", "--overwrite", "--fit", "--sign-exact"}
+CLI_COMMAND_OPTIONS = {
+    "info": ["--json"], "verify": ["--json", "--decode-blocks"],
+    "decode": ["--level", "--region", "--units", "--device", "--overwrite", "--json"],
+    "encode": ["--codec", "--code-size", "--voxel-size", "--truncation", "--origin", "--key", "--code-dtype", "--fit",
+               "--fit-max-blocks", "--codec-state", "--overwrite", "--step", "--target-bytes", "--max-error",
+               "--sign-exact", "--chunk-blocks", "--shard-blocks", "--device", "--json"]}
+CLI_PATHS = ["{map}", "{vol}", "{npz}", "{garbage}", "{empty}", "{dir}", "{missing}", "{out}.npy", "{out}.npz",
+             "{out}.sdfz", "{out}.zip", "{out}", "{out}.txt", "{map}/zarr.json", "{map}/codes", "/dev/null",
+             "http://127.0.0.1:9/x.sdfz", "file:///nonexistent/x.sdfz"]
+
+
+@pytest.fixture(scope="module")
+def cli_inputs(tmp_path_factory, base_map) -> dict[str, Path]:
+    """Inputs the CLI fuzzer's paths name: a small volume (.npy, .npz), garbage, an empty file, a directory."""
+    root = tmp_path_factory.mktemp("cli-inputs")
+    vol = (analytic_blocks(4, seed=9).reshape(2, 2, 16, 16, 16).transpose(0, 2, 1, 3, 4).reshape(32, 32, 16)
+           * (TRUNC[1] - TRUNC[0]) + TRUNC[0]).astype(np.float32)
+    np.save(root / "vol.npy", vol)
+    np.savez(root / "vol.npz", tsdf=vol)
+    (root / "garbage.npy").write_bytes(b"\x93NUMPY\x01\x00garbage" * 3)
+    (root / "empty.npy").write_bytes(b"")
+    (root / "dir").mkdir()
+    return {"vol": root / "vol.npy", "npz": root / "vol.npz", "garbage": root / "garbage.npy",
+            "empty": root / "empty.npy", "dir": root / "dir"}
+
+
+def _scale_cli(data, base: Path, inputs: dict[str, Path]) -> None:
+    """One command line of info, verify, decode or encode from the vocabulary above, on a fresh copy of the map,
+    in a fresh directory: it works, or ends in a clean error (a one-line error or a usage message), never a
+    traceback or an exception escaping the command."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+    from sdfcodec.map.stores import set_read_defaults
+
+    command = data.draw(st.sampled_from(["info", "verify", "decode", "encode"]))
+    n_pos = {"info": 1, "verify": 1, "decode": 2, "encode": 2}[command]
+    token = st.one_of(st.sampled_from(CLI_OPTIONS), st.sampled_from(CLI_VALUES), st.sampled_from(CLI_PATHS),
+                      st.text(max_size=6))
+    if data.draw(st.booleans()):  # a plausible command line: the right inputs, options each with a value
+        first = "{vol}" if command == "encode" and data.draw(st.booleans()) else "{map}"
+        args = [first, "{out}" + data.draw(st.sampled_from([".npy", ".npz", ".sdfz", ""]))][:n_pos]
+        for _ in range(data.draw(st.integers(0, 3))):
+            opt = data.draw(st.sampled_from(CLI_COMMAND_OPTIONS[command]))
+            args += [opt] if opt in CLI_FLAGS else [opt, data.draw(st.sampled_from(CLI_VALUES))]
+    else:  # anything from the vocabulary, in any order
+        args = [data.draw(st.sampled_from(CLI_PATHS)) for _ in range(data.draw(st.integers(0, n_pos)))]
+        args += data.draw(st.lists(token, max_size=6))
+        if data.draw(st.booleans()):
+            args = data.draw(st.permutations(args))
+    tmp = Path(tempfile.mkdtemp(prefix="sdfcodec-fuzz-cli-"))
+    try:
+        shutil.copytree(base, tmp / "m.sdfz")
+        names = {"map": tmp / "m.sdfz", "out": tmp / "out", "missing": tmp / "missing.npy", **inputs}
+        argv = ["--remote-tries", "1", "--remote-timeout", "2", command,
+                *(a.format(**names) if a in CLI_PATHS else a for a in args)]
+        case = " ".join(argv)
+
+        def run() -> str:
+            r = CliRunner().invoke(app, argv)
+            if r.exception is not None and not isinstance(r.exception, SystemExit):
+                raise r.exception
+            if "Traceback" in r.output:
+                raise AssertionError(f"a traceback in the output: {r.output[-300:]}")
+            return "worked" if r.exit_code == 0 else "refused"
+
+        cwd = os.getcwd()
+        os.chdir(tmp)  # relative outputs land in the case's directory
+        try:
+            _count("scale_cli", _guarded("scale_cli", case, run))
+        finally:
+            os.chdir(cwd)
+            set_read_defaults()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+@_scale_settings(QUICK_SCALE, "scale_headers")
+@given(data=st.data())
+def test_fuzz_scale_headers_quick(base_files, bounded_memory, data):
+    _scale_headers(data, base_files)
+
+
+@_scale_settings(QUICK_SCALE, "scale_chunks")
+@given(data=st.data())
+def test_fuzz_scale_chunks_quick(base_files, bounded_memory, data):
+    _scale_chunks(data, base_files)
+
+
+@_scale_settings(QUICK_SCALE, "scale_cli")
+@given(data=st.data())
+def test_fuzz_scale_cli_quick(base_map, cli_inputs, bounded_memory, data):
+    _scale_cli(data, base_map, cli_inputs)
+
+
+@pytest.mark.slow
+@_scale_settings(SCALE, "scale_headers")
+@given(data=st.data())
+def test_fuzz_scale_headers(base_files, bounded_memory, data):
+    """SCALE x 40 % mutated metadata documents of the base map (the slow suite: ``pytest -m slow``)."""
+    _scale_headers(data, base_files)
+
+
+@pytest.mark.slow
+@_scale_settings(SCALE, "scale_chunks")
+@given(data=st.data())
+def test_fuzz_scale_chunks(base_files, bounded_memory, data):
+    """SCALE x 30 % damaged chunk sets."""
+    _scale_chunks(data, base_files)
+
+
+@pytest.mark.slow
+@_scale_settings(SCALE, "scale_cli")
+@given(data=st.data())
+def test_fuzz_scale_cli(base_map, cli_inputs, bounded_memory, data):
+    """SCALE x 30 % command lines."""
+    _scale_cli(data, base_map, cli_inputs)
+
+
+def test_fuzz_scale_report():
+    """Runs after the scale fuzzers (file order): no foreign exception in any case, every case counted, and
+    each fuzzer's cases both refused and worked (its mutations reach the checks, and the checks let sound
+    input through)."""
+    print(f"scale fuzz: {SCALE_COUNTS}")
+    for name, exc, case in FOREIGN[:20]:
+        print(f"foreign: {name}: {exc}\n    case: {case}")
+    if not SCALE_COUNTS:
+        pytest.skip("no scale fuzz test ran in this session (run the file, not this test alone)")
+    assert not FOREIGN, f"{len(FOREIGN)} foreign exception(s), first: {FOREIGN[0]}"
+    for name, c in SCALE_COUNTS.items():
+        assert c["cases"] == c["worked"] + c["refused"] + c["foreign"]
+        assert c["refused"] and c["worked"], (name, c)

@@ -294,9 +294,9 @@ FAILING = [  # fault, object, what the one line must say
     ("reset", "chunk", r"connection .* on each of 3 tries"),
     ("truncate", "chunk", r"truncated body .* on each of 3 tries"),
     ("long_length", "array", r"truncated body .* on each of 3 tries"),
-    ("drip", "chunk", r"no complete response within the timeouts .* on each of 3 tries"),
-    ("slow_headers", "meta", r"no complete response within the timeouts .* on each of 3 tries"),
-    ("hang", "array", r"no complete response within the timeouts .* on each of 3 tries"),
+    ("drip", "chunk", r"no complete response within the timeouts .* stalled .* not retried"),
+    ("slow_headers", "meta", r"no complete response within the timeouts .* stalled .* not retried"),
+    ("hang", "array", r"no complete response within the timeouts .* stalled .* not retried"),
     ("endless", "meta", r"more than 16777216 bytes.*refused \(not retried\)"),
     ("endless", "chunk", r"more than \d+ bytes.*refused \(not retried\)"),
     ("huge_length", "meta", r"declares 1000000000000 bytes.*refused"),
@@ -357,6 +357,65 @@ def test_connection_refused_is_retried_then_one_line():
             _read(url, {"remote_limits": FAST})
 
 
+@pytest.mark.parametrize("fault", ["hang", "drip", "slow_headers"])
+def test_stall_fails_once_within_the_total_deadline(small_map, http_server, fault):
+    """Issue 40: a stalled object is not retried: it ends in one request, within ``total_timeout`` (every try
+    together), not tries x timeout (on main: 3 requests, 3 x 1.5 s here; 4 x 60 s = 244 s by default)."""
+    obj = "/" + TARGETS["array"]
+    http_server.plan = lambda p, n: fault if p == obj else None
+    http_server.counts.clear()
+    lim = {**FAST, "read_timeout": 0.5, "total_timeout": 1.5, "tries": 4}
+    t = time.monotonic()
+    kind, res = _bounded(lambda: _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim}), 30)
+    took = time.monotonic() - t
+    assert kind == "error" and isinstance(res, errors.RemoteReadError), (kind, res)
+    assert re.search(r"no complete response within the timeouts .* not retried", str(res)), res
+    assert http_server.counts[obj] == 1, http_server.counts
+    assert took < 1.5 + 1.0, f"{fault}: {took:.1f} s"
+
+
+def test_errors_are_retried_only_within_the_total_deadline(small_map, http_server):
+    """Retries of a failing object stop at ``total_timeout`` however many tries are allowed."""
+    obj = "/" + TARGETS["chunk"]
+    http_server.plan = lambda p, n: "503" if p == obj else None
+    http_server.counts.clear()
+    lim = {**FAST, "total_timeout": 1.0, "tries": 1000, "backoff": 0.1, "max_backoff": 0.1}
+    t = time.monotonic()
+    with pytest.raises(errors.RemoteReadError, match=r"HTTP 503.* on each of \d+ tries"):
+        _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim})
+    took = time.monotonic() - t
+    assert 2 <= http_server.counts[obj] < 20, http_server.counts
+    assert took < 1.0 + 1.0, f"{took:.1f} s"
+
+
+def test_default_stall_deadline_is_at_most_a_minute(monkeypatch):
+    """What a stall costs with the default limits, every try together: at most 60 s (on main: 4 tries of 60 s
+    plus backoff). The clock is not waited on: each try's timeout is recorded and the try times out at once."""
+    import asyncio
+
+    from sdfcodec.map import remote
+
+    budgets = []
+
+    async def times_out(aw, timeout):
+        aw.close()
+        budgets.append(timeout)
+        raise asyncio.TimeoutError
+
+    monkeypatch.setattr(remote.asyncio, "wait_for", times_out)
+    real_sleep = asyncio.sleep
+    monkeypatch.setattr(remote.asyncio, "sleep", lambda s: real_sleep(0))
+    store = remote.remote_store("http://127.0.0.1:9/x.sdfz", None)
+    assert store.remote == RemoteLimits()
+
+    async def stalled():
+        await asyncio.Event().wait()
+
+    with pytest.raises(errors.RemoteReadError, match="not retried"):
+        asyncio.run(store._retried("zarr.json", stalled))
+    assert len(budgets) == 1 and sum(budgets) <= 60, budgets
+
+
 def test_remote_limits_are_checked_and_documented_defaults(small_map, http_server):
     d = RemoteLimits()
     assert (d.connect_timeout, d.read_timeout, d.total_timeout, d.tries) == (10.0, 30.0, 60.0, 4)
@@ -389,9 +448,9 @@ def test_cli_remote_options_bound_a_drip(small_map, http_server):
             r = runner.invoke(app, ["--remote-timeout", "1", "--remote-tries", "2", cmd, url])
             took = time.monotonic() - t
             assert r.exit_code == 1, r.output
-            assert re.search(r"x\.sdfz/zarr\.json: no complete response within the timeouts .* on each of 2 tries",
+            assert re.search(r"x\.sdfz/zarr\.json: no complete response within the timeouts .* not retried",
                              r.output), r.output
-            assert took < 2 * 1 + 2 * 0.5 * 1.25 + 3, f"{cmd}: {took:.1f} s"
+            assert took < 1 + 3, f"{cmd}: {took:.1f} s"
         assert default_limits().tries == 2  # set for the process by the last invocation...
         http_server.plan = lambda p, n: None
         r = runner.invoke(app, ["info", url])
@@ -428,7 +487,7 @@ S3_FAILING = [
     ("500", "chunk", r"S3 InternalError \(HTTP 500\) on each of 3 tries"),
     ("reset", "meta", r"connection .* on each of 3 tries"),
     ("truncate", "chunk", r"(truncated|connection).* on each of 3 tries"),
-    ("drip", "array", r"(no complete response within the timeouts|connection).* on each of 3 tries"),
+    ("drip", "array", r"no complete response within the timeouts .* not retried|connection.* on each of 3 tries"),
     ("huge_length", "chunk", r"declares 1000000000000 bytes.*refused"),
     ("bomb", "meta", r"decodes \(gzip\) to more than 16777216 bytes.*refused"),
 ]
@@ -628,3 +687,60 @@ def test_random_remote_faults(small_map, http_server, s3_proxy):
     counts = _random_faults(http_server, s3_proxy, small_map[1], 520,
                             _QUICK_FAULTS * 5 + ["drip", "hang", "slow_headers"], seed=21)
     assert sum(c["faults"] for c in counts.values()) >= 500
+
+
+# -- verify of a URL: what the header lists, never a listing (issue 40, item 5) ----------------------------
+
+def _map_objects(path: Path) -> int:
+    return sum(1 for p in path.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("listings", ["none", "loop", "html"])
+def test_verify_url_checks_what_the_header_lists_never_a_listing(small_map, tmp_path, listings):
+    """``verify URL`` against a server without listings (nginx's default, S3 websites), one whose listings are a
+    self-similar tree (a ``loop/`` link in every directory) and an ordinary one: the same verdict, blocks and
+    chunks as the local map's verify, in a bounded number of requests (on main: FAILED "27 unobserved, 0
+    coded" with 0 chunks checked without listings, and a crawl without end through ``loop/``)."""
+    import shutil
+
+    from sdfcodec.bench.serve import FileServer
+    from sdfcodec.verify import verify_map
+
+    path = tmp_path / "x.sdfz"
+    shutil.copytree(small_map[0], path)
+    local = verify_map(path)
+    assert local.ok and local.blocks["coded"] > 0
+    with FileServer(tmp_path, listings=listings) as srv:
+        kind, rep = _bounded(lambda: verify_map(srv.url("x.sdfz"), storage_options={"remote_limits": FAST}), 60)
+        assert kind == "ok", (kind, rep, len(srv.requests))
+        assert rep.ok, rep.problems
+        assert rep.blocks == local.blocks and rep.chunks_checked == local.chunks_checked, (rep, local)
+        assert rep.decoded_blocks == local.decoded_blocks
+        # each object asked for at most three times (a one-byte probe, the read, the decode's read)
+        assert len(srv.requests) <= 3 * _map_objects(path) + 10, sorted(srv.requests)
+        assert not any(r.rstrip("/").endswith(("x.sdfz", "codes", "state", "c", "loop")) for r in srv.requests), \
+            "a directory was listed"
+
+
+@pytest.mark.parametrize("listings", ["none", "loop"])
+def test_verify_url_names_missing_chunks_without_a_listing(small_map, tmp_path, listings):
+    """Damage a remote map cannot hide without listings: a code chunk under coded blocks, a state chunk
+    under stored codes, a codec state array; each is named, as the local verify names it."""
+    import shutil
+
+    from sdfcodec.bench.serve import FileServer
+    from sdfcodec.verify import verify_map
+
+    cases = {"code": CHUNK, "state": "state/c/0/0/0"}
+    for name, rel in cases.items():
+        path = tmp_path / name / "x.sdfz"
+        shutil.copytree(small_map[0], path)
+        (path / rel).unlink()
+    with FileServer(tmp_path, listings=listings) as srv:
+        for name, rel in cases.items():
+            local = verify_map(tmp_path / name / "x.sdfz")
+            kind, rep = _bounded(lambda: verify_map(srv.url(f"{name}/x.sdfz"),
+                                                    storage_options={"remote_limits": FAST}), 60)
+            assert kind == "ok", (kind, rep)
+            assert not local.ok and not rep.ok, (name, rep)
+            assert any(rel in p.where or rel in p.message for p in rep.problems), (name, rep.problems, local.problems)

@@ -2,7 +2,10 @@
 bytes=a-b``, ``bytes=-n``, ``bytes=a-``; what readers of sharded maps send) or, with ``ranges=False``, a server
 that ignores them (sends whole files, as Python's ``http.server`` does), TCP_NODELAY like production servers
 (without it the client's delayed ACK stalls each response by ~40 ms), and a log of ``(path, range, bytes)``
-sent.
+sent. Directories are answered as ``listings`` says: an HTML listing (``"html"``, what ``http.server`` makes),
+404 (``"none"``: nginx's default and S3 websites make no listings), or a self-similar tree (``"loop"``: every
+directory lists a ``loop/`` link back to itself, as a symbolic link to ``.`` served with listings does, so that
+a crawler following links never ends).
 """
 
 from __future__ import annotations
@@ -23,7 +26,9 @@ _RANGE = re.compile(r"bytes=(\d*)-(\d*)$")
 class _Handler(http.server.SimpleHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     ranges = True
+    listings = "html"
     log: list = []
+    requests: list = []  # every request's path, directories and misses included
     lock = threading.Lock()
 
     def log_message(self, *a, **k):
@@ -33,9 +38,39 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
         super().setup()
         self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
+    def translate_path(self, path):
+        if self.listings == "loop":  # x/loop/loop/y is x/y: the tree under every directory is the whole tree again
+            head, sep, query = path.partition("?")
+            head = re.sub(r"(?:/loop)+(?=/|$)", "", head) or "/"
+            path = head + sep + query
+        return super().translate_path(path)
+
+    def list_directory(self, path):
+        if self.listings == "none":
+            self.send_error(404)
+            return None
+        if self.listings != "loop":
+            return super().list_directory(path)
+        names = ["loop/", *sorted(n + ("/" if os.path.isdir(os.path.join(path, n)) else "") for n in os.listdir(path))]
+        body = "".join(f'<a href="{n}">{n}</a>\n' for n in names).encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html; charset=utf-8")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        import io
+
+        return io.BytesIO(body)
+
+    def do_HEAD(self):
+        with self.lock:
+            self.requests.append(self.path)
+        super().do_HEAD()
+
     def do_GET(self):
+        with self.lock:
+            self.requests.append(self.path)
         path = Path(self.translate_path(self.path))
-        if path.is_dir():  # an HTML listing, as fsspec lists HTTP "directories" (verify reads it)
+        if path.is_dir():  # a listing as ``listings`` says (fsspec lists HTTP "directories" from HTML listings)
             super().do_GET()
             return
         if not path.is_file():
@@ -79,11 +114,15 @@ class _Server(http.server.ThreadingHTTPServer):
 
 class FileServer:
     """Serve directory ``root`` on ``127.0.0.1`` in a thread while used as a context manager; ``url(name)`` is
-    the URL of ``root/name``, ``take()`` the requests served since the last call."""
+    the URL of ``root/name``, ``take()`` the files served since the last call, ``requests`` the path of every
+    request (directories and misses too). ``ranges`` and ``listings``: see the module docstring."""
 
-    def __init__(self, root: str | os.PathLike, *, ranges: bool = True):
-        handler = type("Handler", (_Handler,), {"ranges": ranges, "log": [], "lock": threading.Lock()})
-        self.log = handler.log
+    def __init__(self, root: str | os.PathLike, *, ranges: bool = True, listings: str = "html"):
+        if listings not in ("html", "none", "loop"):
+            raise ValueError(f"listings must be 'html', 'none' or 'loop', got {listings!r}")
+        handler = type("Handler", (_Handler,), {"ranges": ranges, "listings": listings, "log": [], "requests": [],
+                                                "lock": threading.Lock()})
+        self.log, self.requests = handler.log, handler.requests
         self.server = _Server(("127.0.0.1", 0), partial(handler, directory=str(root)))
         self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
 

@@ -444,7 +444,8 @@ def _root(version: bool = typer.Option(False, "--version", is_eager=True, callba
               False, "--follow-symlinks", help="Follow symbolic links inside local maps (refused by default)."),
           remote_timeout: float = typer.Option(
               None, "--remote-timeout", metavar="SECONDS",
-              help="Total time for one try of one object of a remote map (default 60)."),
+              help="Most time one object of a remote map may take, every try together; a stall is not retried "
+                   "(default 60)."),
           remote_tries: int = typer.Option(
               None, "--remote-tries", metavar="N", help="Tries per object of a remote map (default 4).")) -> None:
     # --version is eager: handled while the options are parsed, before click asks for a command

@@ -4,7 +4,9 @@
 documents and chunks whole, the indexes and chunks of shards as byte ranges, spec section 4d) with its own,
 which
 
-- time out: connect, silence between bytes (read) and a total per try (:class:`RemoteLimits`);
+- time out: connect, silence between bytes (read), and a total per object, every try of it together
+  (:class:`RemoteLimits`): a stalled object fails within ``total_timeout`` (60 s by default), never
+  ``tries`` x that;
 - bound the body while it streams, before anything is buffered whole: a Content-Length above the object's
   limit is refused unread, the bytes actually received are counted, and a ``Content-Encoding`` of gzip or
   deflate is decoded here, incrementally, never past the limit (a decompression bomb stops at limit + 1
@@ -14,8 +16,10 @@ which
   ``max_metadata_bytes`` (the guard's ``MAX_METADATA_BYTES``), a chunk at most the largest encoding of its
   decoded size (:func:`encoded_bound` of the size its array's checked metadata gives), anything else
   ``RemoteLimits.max_object_bytes``;
-- retry transient failures (HTTP 500/502-504/408/429, S3 ``InternalError``/``SlowDown``..., connection resets,
-  truncated bodies, timeouts) with exponential backoff and jitter, and after the last try raise one
+- retry transient errors (HTTP 500/502-504/408/429, S3 ``InternalError``/``SlowDown``..., connection resets,
+  truncated bodies) with exponential backoff and jitter, within the object's total time; a stall (a timeout)
+  is not retried: a server that stopped answering rarely answers the next try, and each try would cost the
+  whole timeout again. After the last try, or the stall, raise one
   :class:`~sdfcodec.errors.RemoteReadError` naming the object, the status and the number of tries, saying
   the failure is the server's or the network's, not the map's.
 
@@ -38,7 +42,7 @@ import zarr.abc.store
 from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
 from zarr.core.buffer import default_buffer_prototype
 
-from ..errors import InvalidValueError, RemoteReadError
+from ..errors import FormatError, InvalidValueError, RemoteReadError
 
 __all__ = ["RemoteLimits", "RemoteStore", "remote_store", "encoded_bound", "LIMITS_KEY", "set_default_limits",
            "default_limits"]
@@ -62,10 +66,11 @@ class RemoteLimits:
     """How a remote map is read. Times are seconds, sizes bytes.
 
     ``connect_timeout``: to open a connection; ``read_timeout``: the longest silence while waiting for the
-    response or its body; ``total_timeout``: one try of one object, from request to last byte (a server that
-    drips a byte a second ends here); ``tries``: attempts per object (transient failures only; the first
-    retry waits ``backoff`` seconds, each next one twice as long, at most ``max_backoff``, with +-25%
-    jitter); ``max_redirects``: redirects followed per request; ``max_object_bytes``: the bound of an object
+    response or its body; ``total_timeout``: one object, every try and the waits between them together, from
+    the first request to the last byte (a server that drips a byte a second ends here, and a stalled one at
+    ``read_timeout``: a timeout is not retried); ``tries``: attempts per object (transient errors only, within
+    ``total_timeout``; the first retry waits ``backoff`` seconds, each next one twice as long, at most
+    ``max_backoff``, with +-25% jitter); ``max_redirects``: redirects followed per request; ``max_object_bytes``: the bound of an object
     that is neither metadata nor a chunk of a checked array.
     """
 
@@ -198,7 +203,26 @@ class RemoteStore(zarr.storage.WrapperStore):
         return (prototype or default_buffer_prototype()).buffer.from_bytes(data)
 
     async def exists(self, key: str) -> bool:
-        return await self._retried(key, lambda: self._store.exists(key))
+        # a one-byte range read: bounded, timed and retried as any read, with a 5xx retried and then an error
+        # (fsspec's own check reads any error as "missing", and for HTTP sends a GET of the whole object)
+        return await self._retried(key, lambda: self.fetch(key, RangeByteRequest(0, 1))) is not None
+
+    @property
+    def supports_listing(self) -> bool:
+        return False
+
+    def _no_listing(self, prefix: str):
+        raise FormatError(f"{self.object_url(prefix)}: a remote map is never listed (HTTP listings are HTML pages a "
+                          "server may not make, or make without end); what it stores follows from its header")
+
+    def list(self):
+        self._no_listing("")
+
+    def list_prefix(self, prefix: str):
+        self._no_listing(prefix)
+
+    def list_dir(self, prefix: str):
+        self._no_listing(prefix)
 
     async def get_partial_values(self, prototype, key_ranges):
         key_ranges = list(key_ranges)
@@ -208,19 +232,34 @@ class RemoteStore(zarr.storage.WrapperStore):
     async def _retried(self, key: str, attempt) -> Any:
         r = self.remote
         start = time.monotonic()
-        for n in range(1, int(r.tries) + 1):
+        deadline = start + r.total_timeout  # every try of this object together
+        status, n = "no try", 0
+        while n < r.tries:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            n += 1
             try:
-                return await asyncio.wait_for(attempt(), r.total_timeout)
+                return await asyncio.wait_for(attempt(), left)
             except _Refused as e:
                 raise RemoteReadError(f"{self.object_url(key)}: {e}; refused (not retried)") from None
             except Exception as e:  # noqa: BLE001 - every transport failure is sorted here
+                if _is_stall(e):
+                    done = f" after {n - 1} failed {'try' if n == 2 else 'tries'} ({status})" if n > 1 else ""
+                    raise RemoteReadError(
+                        f"{self.object_url(key)}: {_stall_status(r)}{done}, {time.monotonic() - start:.1f} s in "
+                        "all; a stalled server or network is not retried: try again later (--remote-timeout or "
+                        "storage_options['remote_limits'] set the timeouts)") from None
                 status = _transient_status(e, r)
                 if status is None:
                     raise RemoteReadError(f"{self.object_url(key)}: could not be read ({type(e).__name__}: "
                                           f"{_short(e)}); not retried") from None
             if n == r.tries:
                 break
-            await asyncio.sleep(min(r.max_backoff, r.backoff * 2 ** (n - 1)) * random.uniform(0.75, 1.25))
+            wait = min(r.max_backoff, r.backoff * 2 ** (n - 1)) * random.uniform(0.75, 1.25)
+            if time.monotonic() + wait >= deadline:
+                break  # no time left for another try
+            await asyncio.sleep(wait)
         raise RemoteReadError(f"{self.object_url(key)}: {status} on each of {n} {'try' if n == 1 else 'tries'} "
                               f"over {time.monotonic() - start:.1f} s; the server or the network failed, not "
                               "necessarily the map: try again later (storage_options['remote_limits'] sets "
@@ -266,6 +305,8 @@ class RemoteStore(zarr.storage.WrapperStore):
                                auto_decompress=False, headers=headers, **kw) as resp:
             if resp.status in _MISSING_HTTP:
                 return None
+            if resp.status == 416 and rng is not None:  # a range past the end: the object exists, and is shorter
+                return b""
             if resp.status in _TRANSIENT_HTTP:
                 raise _Transient(f"HTTP {resp.status} {resp.reason or ''}".rstrip())
             if resp.status >= 300:
@@ -294,6 +335,8 @@ class RemoteStore(zarr.storage.WrapperStore):
             code, status = str(err.get("Code", "")), int(meta.get("HTTPStatusCode") or 0)
             if code in _MISSING_S3 or status == 404:
                 return None
+            if rng is not None and (code == "InvalidRange" or status == 416):  # as HTTP 416 above
+                return b""
             if code in _TRANSIENT_S3 or status in _TRANSIENT_HTTP:
                 raise _Transient(f"S3 {code or 'error'} (HTTP {status})")
             raise _Refused(f"S3 {code or 'error'} (HTTP {status}): {err.get('Message', '')}".rstrip(": "))
@@ -390,13 +433,27 @@ class _Decoder:
                 data = self.d.unconsumed_tail
 
 
+def _stall_status(r: RemoteLimits) -> str:
+    return (f"no complete response within the timeouts (connect {r.connect_timeout:g} s, read {r.read_timeout:g} s, "
+            f"total {r.total_timeout:g} s)")
+
+
+def _is_stall(e: BaseException) -> bool:
+    """Whether ``e`` is a timeout: the server or the network stopped answering (aiohttp's read and connect
+    timeouts are TimeoutErrors too; botocore's are its own)."""
+    if isinstance(e, (asyncio.TimeoutError, TimeoutError)):
+        return True
+    try:
+        from botocore import exceptions as bx
+    except ImportError:
+        return False
+    return isinstance(e, (bx.ReadTimeoutError, bx.ConnectTimeoutError))
+
+
 def _transient_status(e: BaseException, r: RemoteLimits) -> str | None:
-    """A short status for a transient failure ``e`` (worth another try), or None when it is not one."""
+    """A short status for a transient error ``e`` (worth another try), or None when it is not one."""
     if isinstance(e, _Transient):
         return e.status
-    if isinstance(e, (asyncio.TimeoutError, TimeoutError)):
-        return f"no complete response within the timeouts (connect {r.connect_timeout:g} s, read " \
-               f"{r.read_timeout:g} s, total {r.total_timeout:g} s)"
     try:
         import aiohttp
     except ImportError:  # pragma: no cover - fsspec's HTTP needs it

@@ -30,6 +30,7 @@ from zarr.core.buffer import Buffer, default_buffer_prototype
 
 from .. import _atomic
 from .frames import blosc_frame_problem
+from .metadata_limits import MetadataBudget, check_metadata_size
 from .remote import remote_store, set_default_limits
 from .shards import range_problem, read_cap, shard_problem
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
@@ -47,10 +48,12 @@ def chunk_read_limit(chunk_bytes: int) -> int:
     return 2 * chunk_bytes + (1 << 20)
 
 
-def check_metadata_document(key: str, data: bytes) -> None:
+def check_metadata_document(key: str, data: bytes) -> int:
     """Refuse a ``zarr.json`` that is not one plain JSON object in UTF-8: a byte order mark, other encodings
     and duplicate keys (which parsers resolve differently, so two readers could see two maps) are refused
-    here, nesting beyond the parser's recursion limit too, all as one-line FormatErrors naming ``key``."""
+    here, and, before it is parsed, one with more values or deeper nesting than any map's metadata
+    (:mod:`sdfcodec.map.metadata_limits`), all as one-line FormatErrors naming ``key``. Returns its node
+    count."""
     def no_duplicates(pairs: list[tuple[str, object]]) -> dict:
         seen = dict(pairs)
         if len(seen) != len(pairs):
@@ -61,6 +64,7 @@ def check_metadata_document(key: str, data: bytes) -> None:
 
     if data.startswith(b"\xef\xbb\xbf"):
         raise FormatError(f"{key} starts with a byte order mark; a map's metadata is plain UTF-8 JSON; refused")
+    nodes = check_metadata_size(key, data)
     try:
         doc = json.loads(data.decode("utf-8"), object_pairs_hook=no_duplicates)
     except FormatError:
@@ -73,6 +77,7 @@ def check_metadata_document(key: str, data: bytes) -> None:
         raise FormatError(f"{key} is not valid map metadata JSON ({str(e).splitlines()[0]}); refused") from None
     if not isinstance(doc, dict):
         raise FormatError(f"{key} holds a JSON {type(doc).__name__}, not the object Zarr metadata is; refused")
+    return nodes
 
 
 def is_url(s: str) -> bool:
@@ -90,16 +95,18 @@ class GuardStore(zarr.storage.WrapperStore):
     that is not a regular file, is refused), not only from ``stat``."""
 
     def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None,
-                 indexes: ShardIndexCache | None = None, manifest: Any = None):
+                 indexes: ShardIndexCache | None = None, manifest: Any = None,
+                 metadata: MetadataBudget | None = None):
         super().__init__(store)
         self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
         self.indexes = ShardIndexCache() if indexes is None else indexes
+        self.metadata = MetadataBudget() if metadata is None else metadata  # the map's documents, together
         #: the map's integrity manifest (:class:`sdfcodec.map.manifest.Manifest`) once the reader loaded it: every
         #: object read from then on is checked against it (spec section 9b); None: unchecked
         self.manifest = manifest
 
     def _with_store(self, store):
-        return type(self)(store, self.limits, self.indexes, self.manifest)
+        return type(self)(store, self.limits, self.indexes, self.manifest, self.metadata)
 
     def read_small(self, key: str, max_bytes: int) -> bytes | None:
         """The whole object ``key`` (a document beside the arrays: the manifest, a signature), at most
@@ -210,7 +217,8 @@ class GuardStore(zarr.storage.WrapperStore):
         if meta and len(buf) > MAX_METADATA_BYTES:
             raise meta_error(len(buf))
         if meta:
-            check_metadata_document(key, buf.to_bytes())
+            raw = buf.to_bytes()
+            self.metadata.charge(key, len(raw), check_metadata_document(key, raw))
         if limit and len(limit) > 2 and limit[2] > 1:  # a whole shard: its index, and every chunk's frame
             frames = (lambda f: blosc_frame_problem(f, limit[0])) if limit[1] else None
             problem = shard_problem(memoryview(buf.as_numpy_array()), limit[2], chunk_read_limit(limit[0]), frames)

@@ -29,7 +29,9 @@ import numpy as np
 from .._atomic import pin_dir, release_pin
 from .._validate import BLOCK
 from ..header import BlockState, MapHeader, parse_header
+from ..errors import FormatError
 from .frames import blosc_frame_problem, crc32c_matches
+from .metadata_limits import check_metadata_size
 
 __all__ = ["summarize", "local_info", "dir_bytes", "integrity_line"]
 
@@ -220,8 +222,10 @@ def _read(root: int, parts: Sequence[str], limit: int) -> bytes | None:
 def _json(root: int, parts: Sequence[str]) -> dict | None:
     raw = _read(root, parts, 1 << 24)
     try:
+        if raw:
+            check_metadata_size("/".join(parts), raw)  # before parsing: what it allocates is bounded too
         doc = json.loads(raw) if raw else None
-    except ValueError:
+    except (ValueError, FormatError):  # not certain: the ordinary reader refuses it, naming why
         return None
     return doc if isinstance(doc, dict) else None
 
