@@ -207,3 +207,12 @@ class StateReferenceError(FormatError):
     """A map stores its codec state by reference to a shipped model (spec/map-format.md, section 6c) that the
     installed plugin does not ship, or ships with another state: the message names the model and its digest and
     says what to do (install the plugin version that ships it, or re-store the map with the state embedded)."""
+
+
+__all__ += ["PluginError"]
+
+
+class PluginError(SDFCodecError, RuntimeError):
+    """A codec plugin's own code failed or broke the codec contract while it ran (an exception of its own, or
+    a decode of the wrong shape, a non-float type or NaN/Inf values): the message names the codec and the
+    module that provides it, so the user knows whom to report it to (spec/codec-plugins.md, section 4)."""

@@ -404,7 +404,9 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
         done = 0
         for coords, codes in m.iter_codes():
             z = codes[: decode_blocks - done]
-            out = codec.decode(torch.from_numpy(np.ascontiguousarray(z)))
+            # decode_core: the plugin checks of every decode path (sdfcodec.codec.plugin_calls, the output's shape
+            # and type), the values judged below, block by block
+            out = codec.decode_core(torch.from_numpy(np.ascontiguousarray(z)))
             out = out.numpy() if isinstance(out, torch.Tensor) else np.asarray(out)
             if out.shape != (len(z), 16, 16, 16):
                 rep.problem("codec", f"decoded {len(z)} codes to shape {out.shape}, expected ({len(z)}, 16, 16, 16)")

@@ -435,21 +435,50 @@ def human_bytes(n: float | None) -> str:
     return str(n)
 
 
+_META_SIZES = {"voxel_size": 1, "origin": 3, "truncation": 2}  # the metadata arrays a volume file may carry
+
+
 def load_volume(path: Path, key: str | None) -> tuple[np.ndarray, dict[str, Any]]:
-    """A dense TSDF from .npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation)."""
+    """A dense TSDF from .npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation),
+    checked as untrusted input: a file numpy cannot read (truncated, a header that lies about its size, a
+    pickle: never unpickled), an array of objects, strings or records, or metadata that is not the numbers it
+    names is an :class:`InvalidValueError` naming the file and what is wrong, never numpy's exception."""
+    import zipfile
+
+    from ..errors import InvalidValueError
+
     meta: dict[str, Any] = {}
-    if path.suffix == ".npy":
-        vol = np.load(path, allow_pickle=False, mmap_mode="r")
-    elif path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            names = [n for n in z.files if n not in ("voxel_size", "origin", "truncation")]
-            pick = key or ("tsdf" if "tsdf" in z.files else (names[0] if len(names) == 1 else None))
-            if pick is None or pick not in z.files:
-                fail(f"{path} holds arrays {z.files}; choose one with --key")
-            vol = z[pick]
-            for m in ("voxel_size", "origin", "truncation"):
-                if m in z.files:
-                    meta[m] = z[m].tolist()
-    else:
-        fail(f"{path}: input must be a .npy or .npz volume, or a map directory")
+    what = f"{path}: not a readable dense volume"
+    try:
+        if path.suffix == ".npy":
+            vol = np.load(path, allow_pickle=False, mmap_mode="r")
+        elif path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                names = [n for n in z.files if n not in _META_SIZES]
+                pick = key or ("tsdf" if "tsdf" in z.files else (names[0] if len(names) == 1 else None))
+                if pick is None or pick not in z.files:
+                    fail(f"{path} holds arrays {z.files}; choose one with --key")
+                vol = z[pick]
+                for m, size in _META_SIZES.items():
+                    if m in z.files:
+                        v = z[m]
+                        if v.dtype.kind not in "iuf" or v.size != size or not np.isfinite(v).all():
+                            raise InvalidValueError(f"{path}: array {m!r} must hold {size} finite number(s), got "
+                                                    f"{v.size} value(s) of type {v.dtype}: fix or drop it")
+                        meta[m] = v.item() if size == 1 else v.reshape(-1).tolist()
+        else:
+            fail(f"{path}: input must be a .npy or .npz volume, or a map directory")
+    except SDFCodecError:
+        raise
+    except (ValueError, EOFError, zipfile.BadZipFile, KeyError) as e:  # numpy's reasons, one line
+        reason = " ".join(str(e).split())
+        if "pickle" in reason or "Object arrays" in reason or "Python objects" in reason:
+            reason = "it holds Python objects (a pickle), which sdfcodec never loads"
+        elif "mmap length" in reason or "EOF" in reason or "truncated" in reason.lower():
+            reason = f"it is shorter than its header says (truncated or a lying header: {reason})"
+        raise InvalidValueError(f"{what} ({reason}); save it with numpy.save (float32 metres)") from None
+    if vol.dtype.kind not in "iuf" or vol.dtype.itemsize > 8:
+        raise InvalidValueError(f"{what}: it holds {vol.dtype} values, not numbers; a TSDF is float32 metres")
+    if vol.ndim != 3:
+        raise InvalidValueError(f"{what}: shape {vol.shape}, expected a 3-D (X, Y, Z) volume")
     return np.asarray(vol), meta

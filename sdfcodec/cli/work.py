@@ -8,8 +8,8 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
-from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_truncation,
-                     print_json, print_table, progress_bar, refuse_existing, report, say, working)
+from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, load_volume, note_target,
+                     parse_truncation, print_json, print_table, progress_bar, refuse_existing, report, say, working)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -193,7 +193,7 @@ def dataset_cmd(
     sources = ([("synthetic", synth(synthetic))] if synthetic else []) \
         + [(f"sequence:{p}", fused(p)) for p in sequence] \
         + [(f"map:{p}", iter_windows(open_map(p).decode_region(), **window_kw)) for p in map_paths] \
-        + [(f"volume:{p}", iter_windows(np.load(p, mmap_mode="r", allow_pickle=False), **window_kw)) for p in volume]
+        + [(f"volume:{p}", iter_windows(load_volume(p, None)[0], **window_kw)) for p in volume]
     if not sources:
         fail("give at least one source: --synthetic N, --sequence PATH, --map MAP or --volume X.npy")
     with progress_bar() as prog:

@@ -24,7 +24,7 @@ import zarr.abc.store
 from zarr.core.sync import sync as zarr_sync
 
 from .._lazy import lazy_module
-from .._validate import BLOCK, empty, output_buffer
+from .._validate import BLOCK, check_device, empty, output_buffer
 from ..codec import Codec
 from ..errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, RemoteReadError, SDFCodecError
 from ..header import BlockState, MapHeader, parse_header
@@ -542,7 +542,7 @@ class MapReader:
                        **kw) -> Iterator[tuple[np.ndarray, Any]]:
         """:meth:`_decoded_metres` on ``device``, as numpy when ``device`` is None (decoded on the CPU); fresh
         arrays, or (``copy=False``) views of a ring of :data:`RING` reused buffers."""
-        dev = torch.device(device) if device is not None else torch.device("cpu")
+        dev = check_device(device) if device is not None else torch.device("cpu")
         ring = None if copy else self.rings.borrow(dev)  # kept for the reader's next iteration (RingPool)
         try:
             for coords, blocks in self._decoded_metres(box, level, dev, out_for=None if ring is None else ring.take,
@@ -638,7 +638,7 @@ class MapReader:
             raise InvalidValueError(f"decoding {region or 'the whole map'} needs {nbytes / 2**30:.1f} GiB, above the "
                                     f"limit of {self.max_decode_bytes / 2**30:.1f} GiB; decode a smaller region or "
                                     "raise max_decode_bytes in open_map()")
-        dev = torch.device(device) if device is not None else torch.device("cpu")
+        dev = check_device(device) if device is not None else torch.device("cpu")
         lo, hi = np.array([v[0] for v in vox]), np.array([v[1] for v in vox])
         if out is not None:  # the caller's volume, reused: no allocation, no first-touch page faults
             shape = tuple(int(n) for n in hi - lo)

@@ -21,7 +21,7 @@ import zarr
 
 from .._lazy import lazy_module
 from .. import __version__, _atomic
-from .._validate import BLOCK, as_float_tensor, check_weights
+from .._validate import BLOCK, as_float_tensor, check_device, check_weights
 from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
@@ -518,6 +518,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     final = Path(path)
     if is_url(str(path)):
         raise InvalidValueError(f"maps are written to local paths; got URL {path} (write locally, then upload)")
+    device = check_device(device)  # before the temporary directory: a bad device leaves nothing behind
     if os.path.lexists(final) and not overwrite:
         raise MapExistsError(f"{final} exists; pass overwrite=True (CLI: --overwrite) to replace it")
     check_replaceable(final)
@@ -585,7 +586,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         discard()
         raise
     return MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
-                     overwrite, torch.device(device), header=header)
+                     overwrite, device, header=header)
 
 
 def _quantisation(codec: Codec, code_dtype: str, step: Any, offset: Any) -> CodeQuantisation | None:
@@ -669,6 +670,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         raise InvalidValueError(f"only local directory maps can be updated, got {path} (copy it locally first)")
     if not final.exists():
         raise MapNotFoundError(f"no map at {final}; create it with sdfcodec.create_map")
+    device = check_device(device)  # before the lock and the temporary copy
     with _write_errors(final, "updating the map", _UNCHANGED):
         lock = _atomic.WriterLock(final, wait).acquire()
     tmp = tmp_fd = None
@@ -701,7 +703,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
                          provenance=prov, shape_voxels=h.shape_voxels, up=h.up, residual=h.residual)
-        writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
+        writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, device,
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id}, header=h)
     except WriteFailedError:
