@@ -83,25 +83,14 @@ def cli(fn: Callable) -> Callable:
     return wrapper
 
 
-def write_output(output: Path, tmp: Path, write: Callable[[Path], bool]) -> bool:
-    """Write a file output through ``write(tmp)`` (False: the writer refused, e.g. an unknown mesh format), then
-    rename it over ``output``: never a half-written file at ``output``, and no ``tmp`` left on any failure. A
-    refused write (disk full, permission, I/O error) is a WriteFailedError naming ``output``."""
-    outcome = "the file there is unchanged" if output.exists() else "nothing was written there"
-    ok = False
-    try:
-        ok = write(tmp)
-        if ok:
-            tmp.replace(output)
-        return ok
-    except OSError as e:
-        raise WriteFailedError.from_os_error(e, output, "writing", f"{outcome} and no temporary file is left") from e
-    finally:
-        if not ok:
-            try:
-                tmp.unlink(missing_ok=True)
-            except OSError:
-                pass
+def write_output(output: Path, write: Callable[[Path], Any], doing: str = "writing") -> Path:
+    """Write a file output through ``write(tmp)`` into a hidden sibling renamed over ``output``
+    (:func:`sdfcodec._atomic.write_file`): never a half-written file at ``output``, no temporary left on any
+    failure (an interrupt, an error of ``write``, a refused rename onto a directory), never inside a map. A refused
+    write (disk full, permission, I/O error; ``write`` returning False) is a WriteFailedError naming ``output``."""
+    from .._atomic import write_file
+
+    return write_file(output, write, doing)
 
 
 class PlainWriter:
@@ -384,10 +373,21 @@ def _interrupted() -> str:
     return "interrupted" + (": " + "; ".join(said) if said else "")
 
 
-def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) -> None:
+def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False, directory: bool = False,
+                    files: Sequence[str] = ()) -> None:
+    """Check an output before any work, the one check every writing command makes: the path is not inside a map
+    (or any Zarr store) and names an output of its own (:func:`sdfcodec._atomic.check_output_path`); without
+    ``overwrite`` nothing there is replaced (a file or map at ``path``; for a directory output, ``files``: the
+    names the command writes into it); ``map_output``: only a map (or an empty directory) is ever replaced;
+    ``directory``: the output is a directory the command's library call replaces itself (a data set).
+    Remembers ``path`` for Ctrl-C's report."""
+    from .._atomic import check_output_path
+
     note_target(path)
-    if path.exists() and not overwrite:
-        raise MapExistsError(f"{path} exists; pass --overwrite to replace it")
+    check_output_path(path, directory=map_output or directory or bool(files))
+    clash = [path / f for f in files if os.path.lexists(path / f)] if files else ([path] if path.exists() else [])
+    if clash and not overwrite:
+        raise MapExistsError(f"{clash[0]} exists; pass --overwrite to replace it (or choose another output)")
     if map_output:  # before any work: --overwrite replaces a map, never a directory or file that is not one
         from ..map.writer import check_replaceable
 

@@ -8,7 +8,7 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
-from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, load_volume, note_target,
+from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, load_volume,
                      parse_truncation, print_json, print_table, progress_bar, refuse_existing, report, say, working)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
@@ -89,12 +89,13 @@ def track_cmd(
     start: str = typer.Option("groundtruth", "--start", help="Start pose: groundtruth (the paper) or identity."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Track only the first N frames."),
     stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
+    refuse_existing(output, overwrite)  # before the sequence is read and the map opened
     from ..evaluation import track_command
 
-    note_target(output)
     summary = track_command(map_path, sequence, output, level=level, device=device, cache_mb=cache_mb, dense=dense,
                             start=start, frames=frames, stride=stride,
                             progress=False if as_json else (lambda: progress_bar("frames")))
@@ -131,9 +132,14 @@ def eval_cmd(
     docs_dir: Optional[Path] = typer.Option(None, "--docs", help="Also write eval.md/eval.json/eval/ here."),
     model: list[str] = typer.Option([], "--model", metavar="KEY=FILE",
                                     help="Model file for a row, e.g. ae-32=ae-32.npz (repeatable)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of an earlier run in --out "
+                                   "(and --docs)."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Reproduce the paper's Table 1: reconstruction error and tracking ATE per compression method."""
+    refuse_existing(out_dir, overwrite, files=("eval.json", "eval.md"))
+    if docs_dir is not None:
+        refuse_existing(docs_dir, overwrite, files=("eval.json", "eval.md"))
     from ..evaluation import eval_command, markdown_table
 
     if any("=" not in m for m in model):
@@ -173,6 +179,7 @@ def dataset_cmd(
 ) -> None:
     """Build a training data set: synthetic blocks plus sub-volumes of real maps, split 300:50:50 by batches."""
     trunc = parse_truncation(truncation)
+    refuse_existing(output, overwrite, directory=True)  # build_dataset replaces only a data set
     from ..data.sampler import iter_windows
     from ..data.synthetic import synthetic_blocks
     from ..dataset import build_dataset
@@ -287,6 +294,7 @@ def bench_cmd(
     tolerance: float = typer.Option(0.15, "--tolerance", help="--compare: the disagreement counted as agreeing."),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="Threads for torch and numpy's BLAS "
                                           "(default: as configured; 1 measures steadier on a loaded machine)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the --out file if it exists."),
 ) -> None:
     """Encode/decode throughput (blocks/s) beside numpy matrix products of the codec's shapes, same run.
 
@@ -313,10 +321,13 @@ def bench_cmd(
 
     if compare and all(compare):
         return _bench_compare(compare, tolerance, as_json)
+    if full and out is None:
+        out = Path(f"bench-{device.replace(':', '-')}.json")
+    if out is not None:  # before minutes of measuring
+        refuse_existing(out, overwrite)
     with limit_threads(threads):
         if full:
-            return _bench_full(device, quick, repeats, out or Path(f"bench-{device.replace(':', '-')}.json"), cases,
-                               as_json)
+            return _bench_full(device, quick, repeats, out, cases, as_json)
         return _bench_codec(codec_id, sizes, batches, device, quick, read, http, search, as_json, repeats, out)
 
 
@@ -451,6 +462,7 @@ def demo_cmd(
     track_frames: int = typer.Option(60, "--track-frames", min=2, help="Frames to track (every --track-stride-th)."),
     track_stride: int = typer.Option(2, "--track-stride", min=1, help="Track every N-th rendered frame."),
     ae: bool = typer.Option(True, "--ae/--no-ae", help="Also encode with the shipped AE-64 when installed."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of an earlier run in --out."),
     as_json: bool = typer.Option(False, "--json", help="Print the results (results.json) as JSON."),
 ) -> None:
     """Render, fuse, compress, search and track a synthetic room; write OUT/report.md with tables and pictures.
@@ -459,6 +471,7 @@ def demo_cmd(
     AE-64 when its plugin is installed), measures every map's surfaces against the original, searches the
     pca-64 map for floors and expands only them, and tracks the sequence against every map (pca-64 on demand).
     """
+    refuse_existing(out_dir, overwrite, files=("report.md", "results.json"))
     from ..demo import run_demo
 
     t0 = time.perf_counter()

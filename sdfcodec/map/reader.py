@@ -688,9 +688,10 @@ class MapReader:
 
 def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
                 max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
-                follow_symlinks: bool = False) -> MapReader:
-    """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there)."""
-    loc = str(path_or_url)
+                follow_symlinks: bool = False, location: str | None = None) -> MapReader:
+    """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there); ``location``:
+    what messages call it (default ``str(path_or_url)``; a held version's store names its map directory)."""
+    loc = location or str(path_or_url)
     try:
         store = open_store(path_or_url, loc, storage_options, follow_symlinks=follow_symlinks)
         group = zarr.open_group(store, mode="r", zarr_format=3)

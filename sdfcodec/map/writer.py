@@ -139,6 +139,7 @@ class MapWriter:
                  codes_spec: CodesSpec, overwrite: bool, device: torch.device, *, header: MapHeader,
                  max_state_bytes: int = DEFAULT_MAX_DECODE_BYTES, grid: tuple | None = None,
                  state: np.ndarray | None = None, update: dict | None = None):
+        self.committed_fd: int | None = None  # commit(keep=True): the descriptor of the version written
         self.final, self.tmp, self.tmp_fd, self.group, self.codec = final, tmp, tmp_fd, group, codec
         self.header, self.location = header, str(final)  # the header as opened (the final one is made on commit)
         self.header_kw, self.codes_spec, self.overwrite, self.device = header_kw, codes_spec, overwrite, device
@@ -365,8 +366,11 @@ class MapWriter:
                                  had)
         self.set_state(coords, BlockState.CODED)
 
-    def commit(self) -> Path:
+    def commit(self, keep: bool = False) -> Path:
         """Write the block states and the header, then swap the new version into place (spec section 9).
+        ``keep``: hold the version just written (a shared lock on its directory, the descriptor left in
+        ``committed_fd`` for the caller to read it through and close), so that what the caller reports is the map
+        this writer wrote, even if another writer replaced it at the path a moment later.
 
         On any failure before the swap (a refused write: :class:`~sdfcodec.errors.WriteFailedError`) the writer
         is aborted: the map at the path is exactly as it was and the temporary directory is gone. After the
@@ -386,7 +390,11 @@ class MapWriter:
                 raise
             finally:
                 lock.release()
-        os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
+        if keep and _atomic.HAVE_PROC_FD:
+            _atomic.share_lock(self.tmp_fd)  # a reader now, like any other: the version stays while it is held
+            self.committed_fd = self.tmp_fd
+        else:
+            os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
         self.tmp_fd = None
         try:
             _atomic.collect(self.final)  # the version replaced, if nobody reads it, and dead writers' leftovers
