@@ -303,10 +303,10 @@ def check_output_path(path: Path | str, *, directory: bool = False) -> Path:
         raise InvalidValueError(f"output {str(path)!r} names a directory, not an output of its own: give it a name "
                                 f"(e.g. {os.path.join(str(path), 'out.sdfz' if directory else 'out.npy')})")
     parent = Path(os.path.realpath(p.parent))
-    for d in (parent, *parent.parents):
-        if os.path.isfile(d / "zarr.json"):
-            raise InvalidValueError(f"output {path} lies inside {d}, a Zarr store (a map or a data set): writing "
-                                    "there would corrupt it; write the output elsewhere")
+    stores = [d for d in (parent, *parent.parents) if os.path.isfile(d / "zarr.json")]
+    if stores:  # named by its outermost folder: the map, not its array
+        raise InvalidValueError(f"output {path} lies inside {stores[-1]}, a Zarr store (a map or a data set): "
+                                "writing there would corrupt it; write the output elsewhere")
     if not directory and p.is_dir():
         raise InvalidValueError(f"output {path} is a directory; name a file to write (e.g. {p / 'out'}{p.suffix})")
     return p
