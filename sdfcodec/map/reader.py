@@ -708,7 +708,8 @@ def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storag
     inner = unguarded(store)
     # how another process reopens it: the store object itself, the map directory's path (not the pinned
     # /proc/self/fd one), or the location as given
-    source = (path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
+    source = (location if location else  # a held version (a writer's commit): reopened by its map's path
+              path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
               str(inner.path) if isinstance(inner, PinnedStore) else loc, storage_options)
     return MapReader(group, header, loc, max_decode_bytes=max_decode_bytes, cache=cache, source=source)
 
