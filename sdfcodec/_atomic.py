@@ -33,10 +33,11 @@ import time
 import uuid
 from pathlib import Path
 
-from .errors import MapBusyError, WriteFailedError
+from .errors import InvalidValueError, MapBusyError, WriteFailedError
 
 __all__ = ["HAVE_PROC_FD", "hidden_path", "make_temp_dir", "pin_dir", "release_pin", "swap_into_place",
-           "collect", "WriterLock", "write_new_file", "link_tree", "same_dir", "dir_id", "remove_tree"]
+           "collect", "WriterLock", "write_new_file", "link_tree", "same_dir", "dir_id", "remove_tree",
+           "check_output_path", "share_lock"]
 
 #: Readers can hold a directory through ``/proc/self/fd`` (Linux). Elsewhere they read by path and must reopen
 #: a map after it was replaced (documented in spec section 9).
@@ -112,6 +113,12 @@ def make_temp_dir(final: Path) -> tuple[Path, int]:
             return tmp, fd
         os.close(fd)
     raise OSError(f"could not create a temporary directory beside {final}")
+
+
+def share_lock(fd: int) -> None:
+    """Turn a writer's exclusive lock on its directory ``fd`` into a reader's shared one (one ``flock`` call: the
+    lock is converted, never released in between), so that the version it wrote is held like any read one."""
+    _try_lock(fd, fcntl.LOCK_SH)
 
 
 def pin_dir(path: Path, timeout: float = 30.0) -> int:
@@ -281,6 +288,30 @@ class WriterLock:
         self.release()
 
 
+def check_output_path(path: Path | str, *, directory: bool = False) -> Path:
+    """Refuse an output path before anything is written there; returns it as a Path. Refused: a path naming no
+    entry of its own (``.``, ``..``, a trailing ``/``: ``encode v.npy .`` would have replaced the current
+    directory), a path inside a Zarr store (a directory above it, links resolved, holds ``zarr.json``: a map or a
+    data set; ``track MAP SEQ -o MAP/zarr.json`` once replaced the header of the map it had just read), and, for a
+    file output (``directory`` False), an existing directory (its rename would fail after all the work).
+
+    Raises:
+        InvalidValueError: saying which and what to do.
+    """
+    p = Path(path)
+    if p.name in ("", ".", "..") or str(path).endswith(os.sep):
+        raise InvalidValueError(f"output {str(path)!r} names a directory, not an output of its own: give it a name "
+                                f"(e.g. {os.path.join(str(path), 'out.sdfz' if directory else 'out.npy')})")
+    parent = Path(os.path.realpath(p.parent))
+    stores = [d for d in (parent, *parent.parents) if os.path.isfile(d / "zarr.json")]
+    if stores:  # named by its outermost folder: the map, not its array
+        raise InvalidValueError(f"output {path} lies inside {stores[-1]}, a Zarr store (a map or a data set): "
+                                "writing there would corrupt it; write the output elsewhere")
+    if not directory and p.is_dir():
+        raise InvalidValueError(f"output {path} is a directory; name a file to write (e.g. {p / 'out'}{p.suffix})")
+    return p
+
+
 def write_file(path: Path | str, write, doing: str = "writing") -> Path:
     """Write the file ``path`` (a trajectory, a model, a picture, a mesh: any output that is not a map)
     through ``write(tmp)``, into a hidden sibling ``.NAME.<hex>.partial.EXT`` (the extension kept, so that
@@ -293,7 +324,7 @@ def write_file(path: Path | str, write, doing: str = "writing") -> Path:
         WriteFailedError: any OSError while writing or renaming (disk full, no permission, a file too large,
             an I/O error), naming ``path`` and saying what to do.
     """
-    path = Path(path)
+    path = check_output_path(path)  # never inside a map, never onto a directory
     outcome = ("the file there is unchanged" if os.path.lexists(path) else "nothing was written there") + \
         " and no temporary file is left"
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.partial{path.suffix}")

@@ -16,7 +16,8 @@ from .errors import DTypeError, InvalidValueError, ShapeError
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into"]  # public through sdfcodec.plugin
+__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into",  # public through sdfcodec.plugin
+           "check_device"]
 
 BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 
@@ -133,3 +134,36 @@ def affine_into(values: torch.Tensor, out: torch.Tensor, scale: float, offset: f
         out.copy_(src)
     else:
         torch.add(torch.tensor(offset, dtype=out.dtype, device=out.device), src, alpha=scale, out=out)
+
+
+def check_device(device: Any, what: str = "device") -> torch.device:
+    """``device`` (``"cpu"``, ``"cuda"``, ``"cuda:1"``, a :class:`torch.device`) as a torch device that exists
+    here, checked before any work starts (a map writer checks it before making its temporary directory).
+
+    Raises:
+        InvalidValueError: not a device name torch knows (``"foo"``), or a device this machine or this torch
+            build does not have (``"cuda"`` on a CPU-only torch, ``"cuda:3"`` with one GPU), naming ``what``
+            (e.g. ``--device``) and what to pass instead.
+    """
+    if isinstance(device, torch.device):
+        dev = device
+    else:
+        try:
+            dev = torch.device(device)
+        except (RuntimeError, TypeError, ValueError):
+            raise InvalidValueError(f"{what} {device!r} is not a torch device; use cpu, cuda or cuda:N") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch is a CPU-only build" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise InvalidValueError(f"{what} {device!r}: {why}; use {what} cpu (or install a CUDA build of torch "
+                                    "on a machine with a GPU)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise InvalidValueError(f"{what} {device!r}: this machine has {torch.cuda.device_count()} CUDA "
+                                    f"device(s), cuda:0 to cuda:{torch.cuda.device_count() - 1}")
+    elif dev.type not in ("cpu", "meta"):
+        try:  # any other backend (mps, xpu...): usable only if a tensor can be made there
+            torch.empty(1, device=dev)
+        except Exception as e:  # noqa: BLE001 - torch raises RuntimeError, AssertionError... per backend
+            raise InvalidValueError(f"{what} {device!r} is not available here ({type(e).__name__}: "
+                                    f"{' '.join(str(e).split())[:200]}); use {what} cpu") from None
+    return dev

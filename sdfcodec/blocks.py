@@ -10,13 +10,38 @@ import numpy as np
 from ._validate import BLOCK
 from .errors import InvalidValueError, ShapeError
 
-__all__ = ["normalise", "denormalise", "split_blocks", "assemble_blocks", "blocks_grid_shape", "BLOCK"]
+__all__ = ["normalise", "denormalise", "split_blocks", "assemble_blocks", "blocks_grid_shape", "BLOCK",
+           "DECODE_LIMIT", "truncation_problem"]
+
+#: Decoded normalised values (0 at d_min, 1 at d_max) a reader accepts: anything beyond +-DECODE_LIMIT (1000
+#: truncation ranges, 140 m at the paper's defaults) is absurd output of corrupted codes or a corrupted codec
+#: state, refused like NaN/Inf (spec section 9a). A codec whose ``decode_bound`` is at most this skips the
+#: pass over its output.
+DECODE_LIMIT = 1e3
+
+
+def truncation_problem(d_min: float, d_max: float) -> str | None:
+    """What is wrong with the truncation ``[d_min, d_max]`` metres (a phrase following "truncation"), or None.
+    Beyond finite and ordered, the decode's arithmetic must not overflow: readers compute
+    ``v * (d_max - d_min) + d_min`` in float32 for normalised values ``v`` up to :data:`DECODE_LIMIT` in size, so
+    a finite header such as ``[-1e308, 1e308]`` (whose range is infinite in float32) would decode every voxel to
+    NaN; and the range must stay positive once rounded to float32 (else normalising divides by zero)."""
+    usage = "must be d_min,d_max with d_min < d_max (finite metres, e.g. -0.04,0.1)"
+    if not (np.isfinite(d_min) and np.isfinite(d_max) and d_min < d_max):
+        return f"{usage}, got [{d_min}, {d_max}]"
+    with np.errstate(all="ignore"):
+        lo, hi = np.float32(d_min), np.float32(d_max)
+        scale = hi - lo
+        ends = np.array([lo - np.float32(DECODE_LIMIT) * scale, hi + np.float32(DECODE_LIMIT) * scale], np.float32)
+    if not (np.isfinite(scale) and scale > 0 and np.isfinite(ends).all()):
+        return (f"{usage}, got [{d_min}, {d_max}], which overflows the float32 arithmetic of a decode (d_max - d_min "
+                f"must be a positive float32 number and {DECODE_LIMIT:g} ranges beyond either end finite)")
+    return None
 
 
 def check_truncation(d_min: float, d_max: float) -> None:
-    if not (np.isfinite(d_min) and np.isfinite(d_max) and d_min < d_max):
-        raise InvalidValueError(f"truncation must be d_min,d_max with d_min < d_max (finite metres, e.g. "
-                                f"-0.04,0.1), got [{d_min}, {d_max}]")
+    if (problem := truncation_problem(d_min, d_max)) is not None:
+        raise InvalidValueError(f"truncation {problem}")
 
 
 def normalise(d: np.ndarray, d_min: float, d_max: float) -> np.ndarray:

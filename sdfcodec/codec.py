@@ -20,6 +20,7 @@ from :mod:`sdfcodec.plugin`; :func:`sdfcodec.testing.check_codec` checks the con
 from __future__ import annotations
 
 import abc
+import contextlib
 import copy
 import inspect
 import warnings
@@ -30,12 +31,16 @@ import numpy as np
 from ._lazy import lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input, output_buffer
 from ._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
-from .errors import DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, ShapeError
+from .errors import (DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, PluginError, SDFCodecError,
+                     ShapeError)
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "decodes_tiles", "uses_weights", "learns_weights"]
+__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "decodes_tiles", "uses_weights", "learns_weights",
+           "plugin_calls", "checked_decode_output", "FINITE_BOUND"]
 
+#: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
+FINITE_BOUND = 1e37
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
 
@@ -68,6 +73,53 @@ def _legacy_alias(old: str) -> Callable[..., Any]:
 def _same_array(a: Any, b: Any) -> bool:
     a, b = np.asarray(a), np.asarray(b)
     return a.dtype == b.dtype and a.shape == b.shape and bool(np.array_equal(a, b))
+
+
+def _plugin_name(codec: Any) -> str:
+    cls = codec if isinstance(codec, type) else type(codec)
+    return f"codec {getattr(cls, 'codec_id', cls.__qualname__)!r} (module {cls.__module__.split('.')[0]})"
+
+
+@contextlib.contextmanager
+def plugin_calls(codec: Any, doing: str) -> Iterator[None]:
+    """Around calls into a codec plugin's own code: an exception that is not an ``SDFCodecError`` (a bug in the
+    plugin, or its reaction to input it did not expect) becomes one :class:`PluginError` line naming the codec,
+    its module and what it was doing, the original chained. Every decode path goes through it (the codec's
+    public methods, map readers calling hooks, ``verify``), so a failing plugin reads the same everywhere."""
+    try:
+        yield
+    except SDFCodecError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a plugin may raise anything; the user gets one line naming it
+        text = " ".join(str(e).split()) or "(no message)"
+        raise PluginError(f"{_plugin_name(codec)} failed while {doing}: {type(e).__name__}: {text}; this is a "
+                          "fault of the codec's plugin: report it to its authors (or upgrade it)") from e
+
+
+def checked_decode_output(codec: Any, out: Any, n: int, device: Any, doing: str = "decoding") -> torch.Tensor:
+    """What a plugin's decode returned for ``n`` codes, checked against the contract: a tensor (a numpy array is
+    taken as one) on ``device``, ``n * 4096`` values of a float type (float16/bfloat16/float64 are converted to
+    float32; integers or booleans are refused: an int32 decode once read 6.6 cm off), returned as
+    ``(n, 16, 16, 16)`` float32. Finite values are checked by the callers (map readers name the block).
+
+    Raises:
+        PluginError: naming the codec, what it returned and what was expected."""
+    if isinstance(out, np.ndarray):
+        out = torch.from_numpy(out)
+    if not isinstance(out, torch.Tensor):
+        raise PluginError(f"{_plugin_name(codec)} returned {type(out).__name__} while {doing}, not a tensor of "
+                          f"({n}, 16, 16, 16) float32 blocks: a fault of the codec's plugin")
+    if not out.dtype.is_floating_point:
+        raise PluginError(f"{_plugin_name(codec)} returned {str(out.dtype).removeprefix('torch.')} values while "
+                          f"{doing}, not float32 blocks: a fault of the codec's plugin (report it to its authors)")
+    if out.ndim < 1 or out.shape[0] != n or out.numel() != n * BLOCK ** 3:
+        raise PluginError(f"{_plugin_name(codec)} returned shape {tuple(out.shape)} while {doing} {n} codes, "
+                          f"expected ({n}, 16, 16, 16): a fault of the codec's plugin (report it to its authors)")
+    if out.device != torch.device(device) and not (out.device.type == torch.device(device).type == "cuda"):
+        out = out.to(device)
+    if out.dtype != torch.float32:
+        out = out.float()
+    return out.reshape(n, BLOCK, BLOCK, BLOCK)
 
 
 class Codec(abc.ABC):
@@ -133,6 +185,16 @@ class Codec(abc.ABC):
             raise InvalidValueError(f"codec {self.codec_id!r} has no learned state, got arrays {sorted(state)}")
         return self
 
+    def validate_state(self) -> None:
+        """Hook: check that the learned state just loaded (:meth:`load_state_dict`) is one this codec's decode
+        can be trusted with, beyond the shapes and finiteness ``load_state_dict`` checks, and raise an
+        :class:`~sdfcodec.errors.InvalidValueError` saying what is wrong otherwise (PCA: the basis is
+        orthonormal). Map readers call it on every codec state they load, stored or shipped, and so do
+        :func:`sdfcodec.model.load_model` and ``sdfcodec verify``: a map is untrusted input, and a state digest
+        proves only that the header and the arrays agree, not that the arrays are sane (a PCA basis scaled by 3
+        with its digest recomputed decodes centimetres off). The default accepts every state. It must be cheap
+        (it runs on every open) and use only numpy."""
+
     # -- the public, checked surface -----------------------------------------------------------------
     def fit(self, blocks: Any, weights: Any = None) -> "Codec":
         """Learn the codec's state from normalised blocks ``(N, 16, 16, 16)``; returns ``self``.
@@ -173,7 +235,8 @@ class Codec(abc.ABC):
         w = None if weights is None else check_weights(weights, len(t), t.device)
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, self.code_size)), was_numpy)
-        return like_input(self._encode(t) if w is None else self.encode_weighted(t, w), was_numpy)
+        with plugin_calls(self, "encoding"):
+            return like_input(self._encode(t) if w is None else self.encode_weighted(t, w), was_numpy)
 
     def _checked_codes(self, codes: Any) -> tuple[torch.Tensor, bool]:
         """``codes`` as a float32 tensor, checked: finite, ``(N, k)`` with ``k == code_size`` or, for prefix-ordered
@@ -210,22 +273,49 @@ class Codec(abc.ABC):
         if out is not None:
             dst = self._checked_out(out, t, was_numpy)
             if len(t):
-                if self.halo:  # blocks alone have their own faces as context: the plain decode, copied
-                    dst.copy_(self._decode_alone(t))
-                else:
-                    self.decode_into(t, dst, 1.0, 0.0)
+                with plugin_calls(self, "decoding"):
+                    if self.halo:  # blocks alone have their own faces as context: the plain decode, copied
+                        dst.copy_(self._decode_alone(t))
+                    else:
+                        self.decode_into(t, dst, 1.0, 0.0)
+                self._check_finite(t, dst)
             return out
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
-        return like_input(self._decode_alone(t), was_numpy)
+        with plugin_calls(self, "decoding"):
+            res = self._decode_alone(t)
+        return like_input(self._check_finite(t, res), was_numpy)
+
+    def _decode_checked(self, t: torch.Tensor) -> torch.Tensor:
+        """``_decode`` of checked codes ``(N, k)``, its output checked against the contract (shape, float type:
+        :func:`checked_decode_output`)."""
+        return checked_decode_output(self, self._decode(t), len(t), t.device)
+
+    def _check_finite(self, codes: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """``v``, the decode of ``codes``, refused when it holds NaN/Inf (a corrupted state or a faulty plugin:
+        spec/map-format.md section 9a refuses them on every decode path) unless :meth:`decode_bound` proves it
+        finite (then no pass over it)."""
+        if v.device.type == "meta":  # shapes only, no values to check
+            return v
+        bound = self.decode_bound(codes)
+        if bound is not None and bound <= FINITE_BOUND:
+            return v
+        finite = torch.isfinite(v.reshape(len(v), -1)).all(dim=1)
+        if bool(finite.all()):
+            return v
+        bad = (~finite).nonzero().flatten().cpu().numpy()
+        raise PluginError(f"{_plugin_name(self)} decoded NaN/Inf values for {len(bad)} of {len(v)} codes (e.g. row "
+                          f"{int(bad[0])}): the codes or the codec's learned state are corrupted, or the plugin is "
+                          "faulty")
 
     def _decode_alone(self, t: torch.Tensor) -> torch.Tensor:
         """``_decode`` of checked codes, halo codecs given each block's own faces, repeated, as context."""
-        out = self._decode(t)
+        out = self._decode_checked(t)
         if self.halo:
             # alone, a block has no neighbours: repeat its faces as the context (maps give the real ones)
             h = self.halo
-            out = self._decode_context(torch.nn.functional.pad(out[:, None], (h,) * 6, mode="replicate")[:, 0])
+            out = checked_decode_output(self, self._decode_context(
+                torch.nn.functional.pad(out[:, None], (h,) * 6, mode="replicate")[:, 0]), len(t), t.device)
         return out
 
     def _checked_out(self, out: Any, codes: torch.Tensor, was_numpy: bool) -> torch.Tensor:
@@ -261,13 +351,16 @@ class Codec(abc.ABC):
         if out is not None:
             dst = self._checked_out(out, t, was_numpy)
             if len(t):
-                self.decode_into(t, dst, float(scale), float(offset))
+                with plugin_calls(self, "decoding"):
+                    self.decode_into(t, dst, float(scale), float(offset))
             return out
         if t.shape[0] == 0:
             return like_input(t.new_zeros((0, BLOCK, BLOCK, BLOCK)), was_numpy)
-        if not self.halo and scale == 1.0 and offset == 0.0:
-            return like_input(self._decode(t), was_numpy)
-        return like_input(self.decode_affine(t, float(scale), float(offset)), was_numpy)
+        with plugin_calls(self, "decoding"):
+            if not self.halo and scale == 1.0 and offset == 0.0:
+                return like_input(self._decode_checked(t), was_numpy)
+            res = checked_decode_output(self, self.decode_affine(t, float(scale), float(offset)), len(t), t.device)
+        return like_input(res, was_numpy)
 
     # -- optional public hooks (spec section 4): the defaults are correct for every codec; overriding one only
     # makes it faster. They take already checked input: callers are the base class and map readers.
@@ -276,7 +369,7 @@ class Codec(abc.ABC):
         ``(N, k)``, on their device (:meth:`decode_core` calls it). The default adds one fused pass over the
         output (in place unless the output is a view of ``codes``); a codec whose decode ends in a linear layer
         MAY override it to fold ``scale`` and ``offset`` into that layer (PCA does)."""
-        out = self._decode(codes)
+        out = self._decode_checked(codes)
         if scale == 1.0 and offset == 0.0:
             return out
         aliased = out.untyped_storage().data_ptr() == codes.untyped_storage().data_ptr()
@@ -294,7 +387,7 @@ class Codec(abc.ABC):
         if _overrides(self, "decode_affine"):  # the codec's own affine decode (folded, say), then one copy
             out.copy_(self.decode_affine(codes, scale, offset))
         else:  # the plain decode, scaled into ``out`` in the one pass the default decode_affine would spend
-            affine_into(self._decode(codes), out, scale, offset)
+            affine_into(self._decode_checked(codes), out, scale, offset)
 
     def decode_tiles(self, codes: torch.Tensor, scale: float, offset: float, clip: tuple[float, float],
                      each: Callable[[int, int, torch.Tensor], None] | None = None, out: torch.Tensor | None = None

@@ -221,3 +221,12 @@ class IntegrityError(ChecksumError):
 class SignatureError(IntegrityError):
     """Keys were given to trust and the map is unsigned, signed by another key, or changed after signing (spec
     section 9c); or a key file is unusable."""
+
+
+__all__ += ["PluginError"]
+
+
+class PluginError(SDFCodecError, RuntimeError):
+    """A codec plugin's own code failed or broke the codec contract while it ran (an exception of its own, or
+    a decode of the wrong shape, a non-float type or NaN/Inf values): the message names the codec and the
+    module that provides it, so the user knows whom to report it to (spec/codec-plugins.md, section 4)."""

@@ -23,6 +23,7 @@ averaged over blocks. ATE in metres, without alignment (the tracker starts in th
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -32,7 +33,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from ._validate import BLOCK
+from ._validate import BLOCK, check_device
 from .errors import InvalidValueError
 from .header import BlockState
 
@@ -272,6 +273,15 @@ def track_command(map_path: str | Path, sequence: str | Path, output: str | Path
         raise InvalidValueError(f"start must be 'groundtruth' or 'identity', got {start!r}")
     if not (isinstance(stride, int) and stride >= 1):
         raise InvalidValueError(f"stride must be an int >= 1, got {stride!r}")
+    # checked before the sequence is rendered or read: --frames -1 once silently dropped the last frame (a
+    # Python slice), --frames 0 and --cache-mb nan ended in tracebacks after minutes of work
+    if frames is not None and not (isinstance(frames, int) and frames >= 1):
+        raise InvalidValueError(f"frames must be a whole number >= 1 (the first N frames; leave it out for all), "
+                                f"got {frames!r}")
+    if not (isinstance(cache_mb, (int, float)) and math.isfinite(cache_mb) and cache_mb > 0):
+        raise InvalidValueError(f"cache_mb (--cache-mb) must be a positive number of MiB, got {cache_mb!r}")
+    if device is not None:
+        check_device(device, "device (--device)")
     path = resolve_sequence(str(sequence), Path(output).parent / ".sdfcodec-sequences")
     seq = open_sequence(path, missing_pose="keep")[::stride]
     if frames is not None:

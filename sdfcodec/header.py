@@ -11,8 +11,10 @@ from collections.abc import Iterator
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
+from .blocks import truncation_problem
 from .errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
@@ -28,6 +30,7 @@ MAX_EXTENT = 2**31 - 1
 #: Names of codec state arrays: plain path segments, so a header cannot point a reader outside ``codec/``.
 STATE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 FORMAT_VERSION = 1
+BLOCK_EXTENT = 16  # voxels per block edge (block_size, the only one defined)
 #: Extensions this reader implements. "fusion-weights": an optional ``weights`` array (spec section 6a);
 #: "int8-codes": 8-bit codes with a per-block ``code_scale`` array (spec section 4a), required when used;
 #: "codec-state-reference": the codec state named by a shipped model instead of stored (spec section 6c), required.
@@ -85,6 +88,8 @@ class Truncation(_Model):
     def _ordered(self) -> "Truncation":
         if not self.d_min < self.d_max:
             raise ValueError(f"d_min ({self.d_min}) must be below d_max ({self.d_max})")
+        if (problem := truncation_problem(self.d_min, self.d_max)) is not None:  # overflows the float32 decode
+            raise ValueError(problem)
         return self
 
 
@@ -323,7 +328,36 @@ class MapHeader(_Model):
                              f"(extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
+        if (problem := self._arithmetic_problem()) is not None:
+            raise ValueError(problem)
         return self
+
+    def _arithmetic_problem(self) -> str | None:
+        """Numbers the decode's float32 arithmetic cannot use (spec section 9a), though finite and positive: a
+        voxel size that is 0 (or subnormal) in float32 or whose extent overflows (a region in metres divides by
+        it), a residual step that is not a positive float32 number or whose largest residual overflows (``q *
+        step`` with ``q`` up to the dtype's maximum, spec 6d). The truncation checks itself (:class:`Truncation`)."""
+        f32 = np.float32
+        with np.errstate(all="ignore"):
+            vs = f32(self.voxel_size)
+            extent = np.array([abs(f32(o)) + f32(BLOCK_EXTENT * g + 1) * vs for o, g in zip(self.origin, self.grid_blocks)],
+                              np.float32)
+            if not (np.isfinite(vs) and vs >= np.finfo(np.float32).tiny and np.isfinite(extent).all()
+                    and np.isfinite(np.float64(MAX_EXTENT) / self.voxel_size)):
+                return (f"voxel_size {self.voxel_size} m (with origin {list(self.origin)} and grid_blocks "
+                        f"{list(self.grid_blocks)}) does not fit the float32 arithmetic of a decode: a voxel size is "
+                        "a normal positive float32 number of metres, e.g. 0.02, and the map's extent finite")
+            if self.residual is not None:
+                step, qmax = f32(self.residual.step), f32(127 if self.residual.dtype == "int8" else 32767)
+                t = self.truncation
+                reach = abs(f32(t.d_min)) + abs(f32(t.d_max)) + qmax * step
+                norm = qmax * f32(self.residual.step / (t.d_max - t.d_min))
+                if not (np.isfinite(step) and step >= np.finfo(np.float32).tiny and np.isfinite(reach)
+                        and np.isfinite(norm)):
+                    return (f"residual.step {self.residual.step} m does not fit the float32 arithmetic of a decode "
+                            f"(spec 6d: q * step for {self.residual.dtype} q must be finite and step a normal "
+                            "positive float32 number)")
+        return None
 
 
 def now_iso() -> str:
@@ -375,8 +409,9 @@ def parse_header(raw: Any, where: str = "map") -> MapHeader:
         return MapHeader.model_validate(raw)
     except ValidationError as e:
         first = e.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"]) or "(root)"
-        raise FormatError(f"{where}: invalid header field {loc}: {first['msg']} "
+        loc = ".".join(str(p) for p in first["loc"])
+        # a check across fields (the header's own validator) names its fields in its message
+        raise FormatError(f"{where}: invalid header{' field ' + loc if loc else ''}: {first['msg']} "
                           f"({e.error_count()} problem(s) in all)") from e
 
 

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ._validate import BLOCK
+from ._validate import BLOCK, check_device
 from .densefield import cell_rows, trilinear, trilinear_rows
 from .errors import InvalidValueError, ShapeError
 from .header import BlockState
@@ -95,7 +95,7 @@ class MapField:
         self.level = map.reader.level(level)
         self.codec = map.codec
         self._halo = int(self.codec.halo)
-        self._device = torch.device(device) if device is not None else torch.device("cpu")
+        self._device = check_device(device) if device is not None else torch.device("cpu")
         self.voxel_size = float(map.voxel_size)
         self.origin = tuple(float(o) for o in map.origin)
         self._truncation = tuple(float(t) for t in map.truncation)

@@ -15,7 +15,7 @@ from typing import Mapping
 import numpy as np
 
 from .codec import Codec
-from .errors import FormatError, ModelNotFoundError, NotFittedError, VersionError
+from .errors import FormatError, ModelNotFoundError, NotFittedError, SDFCodecError, VersionError
 
 __all__ = ["save_model", "load_model", "save_state_file", "load_state_file", "load_meta_file"]
 
@@ -96,4 +96,9 @@ def load_model(path: str | Path) -> Codec:
 
     meta, arrays = load_meta_file(path, _META, MODEL_FORMAT, MODEL_VERSION, "model",
                                   "`sdfcodec train` or sdfcodec.model.save_model")
-    return get_codec(meta["config"]).load_state_dict(arrays)
+    codec = get_codec(meta["config"]).load_state_dict(arrays)
+    try:
+        codec.validate_state()
+    except SDFCodecError as e:
+        raise FormatError(f"{path}: {e}") from e
+    return codec

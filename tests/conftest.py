@@ -136,3 +136,6 @@ def pca64():
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
 
+
+# frozen third-party codec packages: run by tests/test_plugin_compat.py in their own pytest, never collected here
+collect_ignore = ["plugin_packages"]

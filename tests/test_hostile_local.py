@@ -58,16 +58,17 @@ def maps(tmp_path_factory):
     root = tmp_path_factory.mktemp("hostile")
     codec = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=11))
     out = {"root": root}
-    for name, shift, dtype in (("base", 0.0, "float32"), ("donor", 0.013, "float32"), ("int8", 0.0, "int8")):
+    for name, shift, dtype, extra in (("base", 0.0, "float32", {}), ("donor", 0.013, "float32", {}),
+                                      ("int8", 0.0, "int8", {}), ("residual", 0.0, "float32", {"max_error": 0.01})):
         path = root / f"{name}.sdfz"
         # no integrity manifest: these cases test the checks under it (what maps written without one get);
         # tests/test_manifest.py::test_hostile_cases_on_a_map_with_a_manifest runs them all against one
         with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
-                                 code_dtype=dtype, manifest=False) as m:
+                                 code_dtype=dtype, manifest=False, **extra) as m:
             m.write_volume(_volume(shift))
         out[name] = path
         out[name + "_ref"] = sdfcodec.open_map(path).decode_region()
-    for name in ("base", "donor", "int8"):
+    for name in ("base", "donor", "int8", "residual"):
         assert (out[name] / CHUNK).is_file() and (out[name] / CHUNK2).is_file()
         assert verify_map(out[name]).ok
     return out
@@ -403,6 +404,23 @@ CASES = [
     ("codec-mean-huge", codec_state("mean", lambda a: a + 1e30), r"absurd", None, "base"),
     ("codec-components-nan", codec_state("components", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7,
                                                                            np.nan, a)), r"NaN", None, "base"),
+    # values the decode's float32 arithmetic cannot use, though finite and valid JSON (issue 40, item 3): each
+    # decoded to NaN voxels with exit status 0, and verify called the map sound
+    ("header-truncation-1e308", header(lambda h: h.update(truncation={"d_min": -1e308, "d_max": 1e308})),
+     r"truncation.*float32", None, "base"),
+    ("header-truncation-range-zero-in-float32", header(lambda h: h.update(truncation={"d_min": 0.1,
+                                                                                      "d_max": 0.1 + 1e-12})),
+     r"truncation.*float32", None, "base"),
+    ("residual-step-1e300", header(lambda h: _set(h, "residual.step", 1e300)), r"residual\.step.*float32", None,
+     "residual"),
+    ("residual-step-1e-300", header(lambda h: _set(h, "residual.step", 1e-300)), r"residual\.step.*float32", None,
+     "residual"),
+    ("header-voxel-size-5e-324", header(lambda h: h.update(voxel_size=5e-324)), r"voxel_size.*float32", None,
+     "base"),
+    ("header-origin-overflows-float32", header(lambda h: h.update(origin=[1e39, 0.0, 0.0])), r"voxel_size.*origin",
+     None, "base"),
+    # codec state valid in shape and digest but not one the codec can be trusted with (Codec.validate_state)
+    ("codec-components-scaled-x3", codec_state("components", lambda a: a * 3), r"not orthonormal", None, "base"),
     # sizes and bytes
     ("chunk-padded-3mib", append_bytes(CHUNK, 3 << 20), r"bytes on disk", None, "base"),
     ("metadata-over-16mib", overwrite_bytes("codes/zarr.json", lambda b: b + b" " * (17 << 20)),

@@ -48,6 +48,9 @@ RIDGE = 1e-4
 #: Alternations per stage of the weighted fit (fit_weighted); measured on the kitchen: the held-out error stops
 #: improving after 2-3
 WEIGHTED_FIT_ITERATIONS = 3
+#: Largest |C C^T - I| of an accepted basis: fitted float32 bases measure ~1e-6; a basis altered by a few
+#: percent (or scaled) is far beyond it.
+ORTHONORMAL_TOLERANCE = 1e-3
 _GRAM_TABLE_MAX_K = 128  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
 
 
@@ -240,6 +243,18 @@ class PCACodec(Codec):
         self._row_max, self._bias_max = np.abs(dec_w).max(axis=1), float(np.abs(dec_b).max())
         self._device_cache: dict[Any, tuple[Any, ...]] = {}
         return self
+
+    def validate_state(self) -> None:
+        """The basis must be orthonormal (``C C^T = I`` within :data:`ORTHONORMAL_TOLERANCE`): every fit makes it
+        so, encode and decode assume it, and a basis scaled or skewed under a recomputed digest would decode
+        silently off (x3: centimetres)."""
+        comp = self.components_
+        gram = comp @ comp.T  # float32: a (k, 4096) x (4096, k) product, ~1 ms at k = 128
+        worst = float(np.abs(gram - np.eye(len(comp), dtype=np.float32)).max()) if len(comp) else 0.0
+        if not worst <= ORTHONORMAL_TOLERANCE:
+            raise InvalidValueError(f"pca state: the basis 'components' is not orthonormal (|C C^T - I| reaches "
+                                    f"{worst:.3g}, tolerance {ORTHONORMAL_TOLERANCE:g}): it was altered or corrupted; "
+                                    "restore the map or model from a copy, or re-fit the codec")
 
     def _build_affine(self) -> tuple[np.ndarray, ...]:
         """Fold the mean handling into ``code = x E + e`` and ``x = code D + d`` (float64 while folding)."""

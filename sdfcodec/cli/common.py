@@ -120,25 +120,14 @@ def reads_maps(fn: Callable) -> Callable:
     return wrapper
 
 
-def write_output(output: Path, tmp: Path, write: Callable[[Path], bool]) -> bool:
-    """Write a file output through ``write(tmp)`` (False: the writer refused, e.g. an unknown mesh format), then
-    rename it over ``output``: never a half-written file at ``output``, and no ``tmp`` left on any failure. A
-    refused write (disk full, permission, I/O error) is a WriteFailedError naming ``output``."""
-    outcome = "the file there is unchanged" if output.exists() else "nothing was written there"
-    ok = False
-    try:
-        ok = write(tmp)
-        if ok:
-            tmp.replace(output)
-        return ok
-    except OSError as e:
-        raise WriteFailedError.from_os_error(e, output, "writing", f"{outcome} and no temporary file is left") from e
-    finally:
-        if not ok:
-            try:
-                tmp.unlink(missing_ok=True)
-            except OSError:
-                pass
+def write_output(output: Path, write: Callable[[Path], Any], doing: str = "writing") -> Path:
+    """Write a file output through ``write(tmp)`` into a hidden sibling renamed over ``output``
+    (:func:`sdfcodec._atomic.write_file`): never a half-written file at ``output``, no temporary left on any
+    failure (an interrupt, an error of ``write``, a refused rename onto a directory), never inside a map. A refused
+    write (disk full, permission, I/O error; ``write`` returning False) is a WriteFailedError naming ``output``."""
+    from .._atomic import write_file
+
+    return write_file(output, write, doing)
 
 
 class PlainWriter:
@@ -421,10 +410,21 @@ def _interrupted() -> str:
     return "interrupted" + (": " + "; ".join(said) if said else "")
 
 
-def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False) -> None:
+def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False, directory: bool = False,
+                    files: Sequence[str] = ()) -> None:
+    """Check an output before any work, the one check every writing command makes: the path is not inside a map
+    (or any Zarr store) and names an output of its own (:func:`sdfcodec._atomic.check_output_path`); without
+    ``overwrite`` nothing there is replaced (a file or map at ``path``; for a directory output, ``files``: the
+    names the command writes into it); ``map_output``: only a map (or an empty directory) is ever replaced;
+    ``directory``: the output is a directory the command's library call replaces itself (a data set).
+    Remembers ``path`` for Ctrl-C's report."""
+    from .._atomic import check_output_path
+
     note_target(path)
-    if path.exists() and not overwrite:
-        raise MapExistsError(f"{path} exists; pass --overwrite to replace it")
+    check_output_path(path, directory=map_output or directory or bool(files))
+    clash = [path / f for f in files if os.path.lexists(path / f)] if files else ([path] if path.exists() else [])
+    if clash and not overwrite:
+        raise MapExistsError(f"{clash[0]} exists; pass --overwrite to replace it (or choose another output)")
     if map_output:  # before any work: --overwrite replaces a map, never a directory or file that is not one
         from ..map.writer import check_replaceable
 
@@ -473,21 +473,50 @@ def human_bytes(n: float | None) -> str:
     return str(n)
 
 
+_META_SIZES = {"voxel_size": 1, "origin": 3, "truncation": 2}  # the metadata arrays a volume file may carry
+
+
 def load_volume(path: Path, key: str | None) -> tuple[np.ndarray, dict[str, Any]]:
-    """A dense TSDF from .npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation)."""
+    """A dense TSDF from .npy or .npz (``tsdf`` or the only array; optional voxel_size/origin/truncation),
+    checked as untrusted input: a file numpy cannot read (truncated, a header that lies about its size, a
+    pickle: never unpickled), an array of objects, strings or records, or metadata that is not the numbers it
+    names is an :class:`InvalidValueError` naming the file and what is wrong, never numpy's exception."""
+    import zipfile
+
+    from ..errors import InvalidValueError
+
     meta: dict[str, Any] = {}
-    if path.suffix == ".npy":
-        vol = np.load(path, allow_pickle=False, mmap_mode="r")
-    elif path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            names = [n for n in z.files if n not in ("voxel_size", "origin", "truncation")]
-            pick = key or ("tsdf" if "tsdf" in z.files else (names[0] if len(names) == 1 else None))
-            if pick is None or pick not in z.files:
-                fail(f"{path} holds arrays {z.files}; choose one with --key")
-            vol = z[pick]
-            for m in ("voxel_size", "origin", "truncation"):
-                if m in z.files:
-                    meta[m] = z[m].tolist()
-    else:
-        fail(f"{path}: input must be a .npy or .npz volume, or a map directory")
+    what = f"{path}: not a readable dense volume"
+    try:
+        if path.suffix == ".npy":
+            vol = np.load(path, allow_pickle=False, mmap_mode="r")
+        elif path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                names = [n for n in z.files if n not in _META_SIZES]
+                pick = key or ("tsdf" if "tsdf" in z.files else (names[0] if len(names) == 1 else None))
+                if pick is None or pick not in z.files:
+                    fail(f"{path} holds arrays {z.files}; choose one with --key")
+                vol = z[pick]
+                for m, size in _META_SIZES.items():
+                    if m in z.files:
+                        v = z[m]
+                        if v.dtype.kind not in "iuf" or v.size != size or not np.isfinite(v).all():
+                            raise InvalidValueError(f"{path}: array {m!r} must hold {size} finite number(s), got "
+                                                    f"{v.size} value(s) of type {v.dtype}: fix or drop it")
+                        meta[m] = v.item() if size == 1 else v.reshape(-1).tolist()
+        else:
+            fail(f"{path}: input must be a .npy or .npz volume, or a map directory")
+    except SDFCodecError:
+        raise
+    except (ValueError, EOFError, zipfile.BadZipFile, KeyError) as e:  # numpy's reasons, one line
+        reason = " ".join(str(e).split())
+        if "pickle" in reason or "Object arrays" in reason or "Python objects" in reason:
+            reason = "it holds Python objects (a pickle), which sdfcodec never loads"
+        elif "mmap length" in reason or "EOF" in reason or "truncated" in reason.lower():
+            reason = f"it is shorter than its header says (truncated or a lying header: {reason})"
+        raise InvalidValueError(f"{what} ({reason}); save it with numpy.save (float32 metres)") from None
+    if vol.dtype.kind not in "iuf" or vol.dtype.itemsize > 8:
+        raise InvalidValueError(f"{what}: it holds {vol.dtype} values, not numbers; a TSDF is float32 metres")
+    if vol.ndim != 3:
+        raise InvalidValueError(f"{what}: shape {vol.shape}, expected a 3-D (X, Y, Z) volume")
     return np.asarray(vol), meta

@@ -89,7 +89,7 @@ def export_cmd(
 
     summary: dict = {}
     with heartbeat(f"exporting {map_path}", as_json):
-        write_output(output, output.with_name(f".tmp-{output.name}"), write)
+        write_output(output, write, "exporting the map")
     summary["output"] = str(output)
     moved = any(abs(s) > 0 for s in summary["shift"])
     report(summary, as_json, lambda: (
@@ -122,6 +122,6 @@ def trajectory_cmd(
         write_tum(tmp, traj, header=f"ground truth of {sequence} ({seq.layout})")
         return True
 
-    write_output(output, output.with_name(f".tmp-{output.name}"), write)
+    write_output(output, write, "writing the trajectory")
     summary = {"output": str(output), "poses": len(traj), "layout": seq.layout}
     report(summary, as_json, lambda: f"wrote {output}: {len(traj)} poses of {sequence} ({seq.layout})")

@@ -9,13 +9,15 @@ from typing import Any, Optional
 
 import numpy as np
 import typer
-from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError, WriteFailedError
+from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError
 from .common import reads_maps
 from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
                      parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
                      working, write_output)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")  # what open3d writes
 
 
 @app.command("codecs")
@@ -385,7 +387,7 @@ def decode_cmd(
                 np.save(PlainWriter(f), vol)
         return True
 
-    write_output(output, output.with_name(f".{output.name}.tmp"), save)
+    write_output(output, save)
     summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
                "voxel_size": m.voxel_size, "origin": origin, "truncation": list(m.truncation)}
     report(summary, as_json, lambda: (
@@ -407,13 +409,15 @@ def mesh_cmd(
 ) -> None:
     """Extract the zero level set of a map (or of the blocks touching --region) as a triangle mesh (marching
     cubes on the decoded blocks)."""
+    if output.suffix.lower() not in MESH_SUFFIXES:  # before any work: open3d would say only that it failed
+        fail(f"could not write {output}: unsupported extension; use .ply, .obj or .stl")
+    box = parse_region(region)
+    refuse_existing(output, overwrite)
     import open3d as o3d
 
     from ..fusion import mesh_from_blocks
     from ..map import open_map
 
-    box = parse_region(region)
-    refuse_existing(output, overwrite)
     m = open_map(map_path)
     coords, blocks = [], []
     for c, b in m.iter_decoded(box, units=units, level=level):
@@ -430,16 +434,8 @@ def mesh_cmd(
         back = o3d.io.read_triangle_mesh(str(tmp))
         return len(back.vertices) == len(mesh.vertices) and len(back.triangles) == len(mesh.triangles)
 
-    existed = output.exists()
-    if not write_output(output, output.with_name(f".tmp-{output.name}"), write_mesh):
-        if output.suffix.lower() not in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb"):
-            fail(f"could not write {output}: unsupported extension; use .ply, .obj or .stl")
-        # open3d reports only failure, not why: with a known format it is the file system
-        raise WriteFailedError(f"could not finish writing {output}: open3d could not write the file (is the disk "
-                               f"full or the directory not writable?); "
-                               f"{'the file there is unchanged' if existed else 'nothing was written there'} and "
-                               "no temporary file is left. What to do: free space or fix the directory's "
-                               "permissions, or write elsewhere", None, None, str(output))
+    # open3d reports only failure, not why: with a known format it is the file system (write_output says so)
+    write_output(output, write_mesh, "writing the mesh")
     summary = {"output": str(output), "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
     report(summary, as_json, lambda: (
         f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles"))
@@ -465,6 +461,8 @@ def search_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
 ) -> None:
     """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""
+    if out_dir is not None:
+        refuse_existing(out_dir, overwrite, files=("search.png", "expanded.ply"))
     from ..search_cli import format_summary, search_command
 
     summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,

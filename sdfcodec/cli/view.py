@@ -66,7 +66,7 @@ def view_cmd(
                                        top=top, trajectory=trajectory, groundtruth=gt_source, device=device))
         return True
 
-    write_output(output, output.with_name(f".tmp-{output.name}"), write)
+    write_output(output, write, "writing the recording")
     summary["output"] = str(output)
     report(summary, as_json, lambda: _line(summary))
 

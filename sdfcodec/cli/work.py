@@ -9,8 +9,8 @@ from typing import Any, Optional
 import numpy as np
 import typer
 from .common import reads_maps
-from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_truncation,
-                     print_json, print_table, progress_bar, refuse_existing, report, say, working)
+from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, load_volume,
+                     parse_truncation, print_json, print_table, progress_bar, refuse_existing, report, say, working)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -91,12 +91,13 @@ def track_cmd(
     start: str = typer.Option("groundtruth", "--start", help="Start pose: groundtruth (the paper) or identity."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Track only the first N frames."),
     stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
+    refuse_existing(output, overwrite)  # before the sequence is read and the map opened
     from ..evaluation import track_command
 
-    note_target(output)
     summary = track_command(map_path, sequence, output, level=level, device=device, cache_mb=cache_mb, dense=dense,
                             start=start, frames=frames, stride=stride,
                             progress=False if as_json else (lambda: progress_bar("frames")))
@@ -134,9 +135,14 @@ def eval_cmd(
     docs_dir: Optional[Path] = typer.Option(None, "--docs", help="Also write eval.md/eval.json/eval/ here."),
     model: list[str] = typer.Option([], "--model", metavar="KEY=FILE",
                                     help="Model file for a row, e.g. ae-32=ae-32.npz (repeatable)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of an earlier run in --out "
+                                   "(and --docs)."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Reproduce the paper's Table 1: reconstruction error and tracking ATE per compression method."""
+    refuse_existing(out_dir, overwrite, files=("eval.json", "eval.md"))
+    if docs_dir is not None:
+        refuse_existing(docs_dir, overwrite, files=("eval.json", "eval.md"))
     from ..evaluation import eval_command, markdown_table
 
     if any("=" not in m for m in model):
@@ -176,6 +182,7 @@ def dataset_cmd(
 ) -> None:
     """Build a training data set: synthetic blocks plus sub-volumes of real maps, split 300:50:50 by batches."""
     trunc = parse_truncation(truncation)
+    refuse_existing(output, overwrite, directory=True)  # build_dataset replaces only a data set
     from ..data.sampler import iter_windows
     from ..data.synthetic import synthetic_blocks
     from ..dataset import build_dataset
@@ -196,7 +203,7 @@ def dataset_cmd(
     sources = ([("synthetic", synth(synthetic))] if synthetic else []) \
         + [(f"sequence:{p}", fused(p)) for p in sequence] \
         + [(f"map:{p}", iter_windows(open_map(p).decode_region(), **window_kw)) for p in map_paths] \
-        + [(f"volume:{p}", iter_windows(np.load(p, mmap_mode="r", allow_pickle=False), **window_kw)) for p in volume]
+        + [(f"volume:{p}", iter_windows(load_volume(p, None)[0], **window_kw)) for p in volume]
     if not sources:
         fail("give at least one source: --synthetic N, --sequence PATH, --map MAP or --volume X.npy")
     with progress_bar() as prog:
@@ -290,6 +297,7 @@ def bench_cmd(
     tolerance: float = typer.Option(0.15, "--tolerance", help="--compare: the disagreement counted as agreeing."),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="Threads for torch and numpy's BLAS "
                                           "(default: as configured; 1 measures steadier on a loaded machine)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the --out file if it exists."),
 ) -> None:
     """Encode/decode throughput (blocks/s) beside numpy matrix products of the codec's shapes, same run.
 
@@ -316,10 +324,13 @@ def bench_cmd(
 
     if compare and all(compare):
         return _bench_compare(compare, tolerance, as_json)
+    if full and out is None:
+        out = Path(f"bench-{device.replace(':', '-')}.json")
+    if out is not None:  # before minutes of measuring
+        refuse_existing(out, overwrite)
     with limit_threads(threads):
         if full:
-            return _bench_full(device, quick, repeats, out or Path(f"bench-{device.replace(':', '-')}.json"), cases,
-                               as_json)
+            return _bench_full(device, quick, repeats, out, cases, as_json)
         return _bench_codec(codec_id, sizes, batches, device, quick, read, http, search, as_json, repeats, out)
 
 
@@ -454,6 +465,7 @@ def demo_cmd(
     track_frames: int = typer.Option(60, "--track-frames", min=2, help="Frames to track (every --track-stride-th)."),
     track_stride: int = typer.Option(2, "--track-stride", min=1, help="Track every N-th rendered frame."),
     ae: bool = typer.Option(True, "--ae/--no-ae", help="Also encode with the shipped AE-64 when installed."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of an earlier run in --out."),
     as_json: bool = typer.Option(False, "--json", help="Print the results (results.json) as JSON."),
 ) -> None:
     """Render, fuse, compress, search and track a synthetic room; write OUT/report.md with tables and pictures.
@@ -462,6 +474,7 @@ def demo_cmd(
     AE-64 when its plugin is installed), measures every map's surfaces against the original, searches the
     pca-64 map for floors and expands only them, and tracks the sequence against every map (pca-64 on demand).
     """
+    refuse_existing(out_dir, overwrite, files=("report.md", "results.json"))
     from ..demo import run_demo
 
     t0 = time.perf_counter()

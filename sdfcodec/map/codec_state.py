@@ -168,6 +168,7 @@ def load_codec(reader: MapReader) -> Codec:
     try:
         if state:
             codec = codec.load_state_dict(state)
+            codec.validate_state()  # the codec's own judgement of what the digest cannot vouch for
         fitted = codec.is_fitted
     except Exception as e:
         raise FormatError(f"{where}: the codec state under codec/ does not fit codec {spec.id!r} "

@@ -23,6 +23,7 @@ from ..header import MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
+from .stores import PinnedStore
 from .summary import summarize
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
@@ -342,9 +343,15 @@ class Map:
 
     def commit(self) -> None:
         """Finish writing and move the map into place atomically; the object then reads the committed map."""
-        final = self.writer.commit()
+        writer = self.writer
+        final = writer.commit(keep=True)
         self._writer = None
-        self.reader = open_reader(final, max_decode_bytes=self.max_decode_bytes, cache=self.reader.cache)
+        # the version this writer committed, held since the swap: not whatever is at the path by now (another
+        # writer may have replaced it), so that info() and the commands' reports describe what was written
+        fd, writer.committed_fd = writer.committed_fd, None
+        src = final if fd is None else PinnedStore.hold(final, fd)
+        self.reader = open_reader(src, max_decode_bytes=self.max_decode_bytes, cache=self.reader.cache,
+                                  location=str(final))
 
     def abort(self) -> None:
         """Discard everything written; the previous map at the path (if any) is untouched."""

@@ -16,8 +16,8 @@ import zarr
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, ZstdCodec
 
 from .._lazy import lazy_module
-from ..blocks import check_truncation
-from ..codec import Codec
+from ..blocks import DECODE_LIMIT, check_truncation  # DECODE_LIMIT: defined beside the truncation check
+from ..codec import FINITE_BOUND, Codec  # FINITE_BOUND: defined where the codec checks its own decodes
 from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..header import CodeQuantisation, CodesSpec, FieldCompression
 from ..quantize import dequantise_step, dequantize_codes
@@ -44,13 +44,6 @@ ALLOWED_ZARR_CODECS = (BytesCodec, BloscCodec, ZstdCodec, GzipCodec, Crc32cCodec
 #: A read may touch at most max(MIN_CHUNKS_PER_READ, max_decode_bytes // BYTES_PER_CHUNK) chunks.
 MIN_CHUNKS_PER_READ, BYTES_PER_CHUNK = 64, 4096
 EMPTY_EPS = 1e-6  # a normalised voxel >= 1 - eps is free space
-#: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
-FINITE_BOUND = 1e37
-#: Decoded normalised values (0 at d_min, 1 at d_max) a reader accepts: anything beyond +-DECODE_LIMIT (1000
-#: truncation ranges, 140 m at the paper's defaults) is absurd output of corrupted codes or a corrupted codec
-#: state, refused like NaN/Inf (spec section 9a). A codec whose ``decode_bound`` is at most this skips the
-#: pass over its output.
-DECODE_LIMIT = 1e3
 #: How codes may be stored (spec sections 4 and 4a).
 CODE_DTYPES = ("float32", "float16", "int8", "int16")
 #: Blosc zstd level of int16 (step-quantised) codes: on the kitchen map level 5 stores 1 % fewer bytes and level
@@ -89,6 +82,11 @@ def code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: 
     """The ``codes`` layout of a new map for ``codec``: chunk shape and prefix levels (defaults when None), and
     the step and offset of int16 codes."""
     size = codec.code_size
+    for name, value, top in (("chunk_blocks (--chunk-blocks)", chunk_blocks, 256), ("chunk_code", chunk_code, None)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+                                  or not 1 <= value <= (top or value)):
+            raise InvalidValueError(f"{name} must be a whole number of {'blocks per axis' if top else 'code elements'}"
+                                    f" from 1{f' to {top}' if top else ''} (e.g. 8 or 16), got {value!r}")
     fc = field_compression_of(codec, dtype)
     if fc is not None and chunk_blocks is None:
         chunk_blocks = FIELD_CHUNK_BLOCKS  # SZ3's predictor gains from larger fields (sdfcodec.map.field)
@@ -387,10 +385,16 @@ def region_voxels(region: Region | None, units: str, shape: Sequence[int], origi
     pairs = _bound_pairs(region)
     if units in ("m", "metres", "meters"):
         vs = voxel_size
-        # half-open like voxel ranges: the voxels whose centre lies in [lo, hi), so that -1:1 at 2 cm is 100
-        # voxels and adjacent ranges share none; 1e-9 guards against rounding at exact voxel positions
-        vox = tuple((0 if lo is None else int(np.ceil((lo - oo) / vs - 1e-9)),
-                     int(n) if hi is None else int(np.ceil((hi - oo) / vs - 1e-9)))
+
+        def voxel(x: float, oo: float, n: int) -> int:
+            # half-open like voxel ranges: the voxels whose centre lies in [lo, hi), so that -1:1 at 2 cm is 100
+            # voxels and adjacent ranges share none; 1e-9 guards against rounding at exact voxel positions.
+            # Clamped just past the map: a bound of 1e300 m is far outside it, not an integer overflow
+            with np.errstate(all="ignore"):
+                q = np.ceil((x - oo) / vs - 1e-9)
+            return int(np.clip(q, -1, n + 1)) if not np.isnan(q) else -1
+
+        vox = tuple((0 if lo is None else voxel(lo, oo, n), int(n) if hi is None else voxel(hi, oo, n))
                     for (lo, hi), oo, n in zip(pairs, origin, shape))
     elif units in ("voxels", "vox"):
         vox = tuple((0 if lo is None else int(lo), int(n) if hi is None else int(hi))

@@ -19,7 +19,7 @@ import numpy as np
 
 from .._lazy import lazy_module
 from .._validate import BLOCK, empty
-from ..codec import decodes_tiles
+from ..codec import decodes_tiles, plugin_calls
 from ..errors import InvalidValueError
 from .format import DECODE_LIMIT, check_decoded
 from .observed import read_block_rows, restore_unobserved
@@ -50,17 +50,19 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
                                 "blocks' coords")
     if placer is not None and coords is None:
         raise InvalidValueError("decode_codes needs the blocks' coords to place them")
-    bound = codec.decode_bound(codes)
+    with plugin_calls(codec, "bounding its decode"):
+        bound = codec.decode_bound(codes)
     proven = bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT
     tiles = placer is not None or decodes_tiles(codec)
     if metres and proven and mask is None and res is None and len(codes) and tiles:
         # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles; a codec keeping
         # the default, only to be placed: then it is the plain path below, in one call)
-        if placer is not None:  # each tile placed from its core's cache
-            _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max), out)
-            return None
-        out = empty((len(codes), BLOCK, BLOCK, BLOCK), codes.device) if out is None else out
-        codec.decode_tiles(codes, scale, offset, (d_min, d_max), None, out)
+        with plugin_calls(codec, "decoding"):  # a plugin's exception is one line naming it, as on every path
+            if placer is not None:  # each tile placed from its core's cache
+                _decode_placed(codec, codes, coords, placer, scale, offset, (d_min, d_max), out)
+                return None
+            out = empty((len(codes), BLOCK, BLOCK, BLOCK), codes.device) if out is None else out
+            codec.decode_tiles(codes, scale, offset, (d_min, d_max), None, out)
         return out
     v = codec.decode_core(codes, scale=scale, offset=offset, out=out)
     if not proven:

@@ -24,7 +24,7 @@ import zarr.abc.store
 from zarr.core.sync import sync as zarr_sync
 
 from .._lazy import lazy_module
-from .._validate import BLOCK, empty, output_buffer
+from .._validate import BLOCK, check_device, empty, output_buffer
 from ..codec import Codec
 from ..errors import (ChecksumError, FormatError, IntegrityError, InvalidValueError, MapNotFoundError, RemoteReadError,
                       SDFCodecError)
@@ -543,7 +543,7 @@ class MapReader:
                        **kw) -> Iterator[tuple[np.ndarray, Any]]:
         """:meth:`_decoded_metres` on ``device``, as numpy when ``device`` is None (decoded on the CPU); fresh
         arrays, or (``copy=False``) views of a ring of :data:`RING` reused buffers."""
-        dev = torch.device(device) if device is not None else torch.device("cpu")
+        dev = check_device(device) if device is not None else torch.device("cpu")
         ring = None if copy else self.rings.borrow(dev)  # kept for the reader's next iteration (RingPool)
         try:
             for coords, blocks in self._decoded_metres(box, level, dev, out_for=None if ring is None else ring.take,
@@ -639,7 +639,7 @@ class MapReader:
             raise InvalidValueError(f"decoding {region or 'the whole map'} needs {nbytes / 2**30:.1f} GiB, above the "
                                     f"limit of {self.max_decode_bytes / 2**30:.1f} GiB; decode a smaller region or "
                                     "raise max_decode_bytes in open_map()")
-        dev = torch.device(device) if device is not None else torch.device("cpu")
+        dev = check_device(device) if device is not None else torch.device("cpu")
         lo, hi = np.array([v[0] for v in vox]), np.array([v[1] for v in vox])
         if out is not None:  # the caller's volume, reused: no allocation, no first-touch page faults
             shape = tuple(int(n) for n in hi - lo)
@@ -690,13 +690,15 @@ class MapReader:
 def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
                 max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
                 follow_symlinks: bool = False, trusted_keys: Sequence[Any] | None = None,
-                verify_chunks: bool | None = None) -> MapReader:
+                verify_chunks: bool | None = None, location: str | None = None) -> MapReader:
     """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there).
-    ``trusted_keys`` and ``verify_chunks`` default to the process's (``--trusted-key``, ``--no-verify-chunks``)."""
+    ``trusted_keys`` and ``verify_chunks`` default to the process's (``--trusted-key``, ``--no-verify-chunks``);
+    ``location``: what messages call it (default ``str(path_or_url)``; a held version's store names its map
+    directory)."""
     from .manifest import check_default
     from .signing import protect, trust_default
 
-    loc = str(path_or_url)
+    loc = location or str(path_or_url)
     try:
         store = open_store(path_or_url, loc, storage_options, follow_symlinks=follow_symlinks)
         group = zarr.open_group(store, mode="r", zarr_format=3)
@@ -716,7 +718,8 @@ def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storag
     inner = unguarded(store)
     # how another process reopens it: the store object itself, the map directory's path (not the pinned
     # /proc/self/fd one), or the location as given
-    source = (path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
+    source = (location if location else  # a held version (a writer's commit): reopened by its map's path
+              path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
               str(inner.path) if isinstance(inner, PinnedStore) else loc, storage_options)
     return MapReader(group, header, loc, max_decode_bytes=max_decode_bytes, cache=cache, source=source)
 

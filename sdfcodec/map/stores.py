@@ -577,7 +577,12 @@ class PinnedStore(SafeLocalStore):
 
     @classmethod
     def pin(cls, path: Path, follow_symlinks: bool = False) -> "PinnedStore":
-        fd = _atomic.pin_dir(path)
+        return cls.hold(path, _atomic.pin_dir(path), follow_symlinks)
+
+    @classmethod
+    def hold(cls, path: Path, fd: int, follow_symlinks: bool = False) -> "PinnedStore":
+        """The store of the version of ``path`` that the directory descriptor ``fd`` (already locked shared, e.g.
+        by the writer that just committed it) holds; the store owns ``fd`` from now on."""
         return cls(f"/proc/self/fd/{fd}", follow_symlinks=follow_symlinks, _path=path, _fd=fd)
 
     @property

@@ -21,7 +21,7 @@ import zarr
 
 from .._lazy import lazy_module
 from .. import __version__, _atomic
-from .._validate import BLOCK, as_float_tensor, check_weights
+from .._validate import BLOCK, as_float_tensor, check_device, check_weights
 from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
@@ -140,6 +140,7 @@ class MapWriter:
                  codes_spec: CodesSpec, overwrite: bool, device: torch.device, *, header: MapHeader,
                  max_state_bytes: int = DEFAULT_MAX_DECODE_BYTES, grid: tuple | None = None,
                  state: np.ndarray | None = None, update: dict | None = None):
+        self.committed_fd: int | None = None  # commit(keep=True): the descriptor of the version written
         self.final, self.tmp, self.tmp_fd, self.group, self.codec = final, tmp, tmp_fd, group, codec
         self.header, self.location = header, str(final)  # the header as opened (the final one is made on commit)
         self.header_kw, self.codes_spec, self.overwrite, self.device = header_kw, codes_spec, overwrite, device
@@ -368,8 +369,11 @@ class MapWriter:
                                  had)
         self.set_state(coords, BlockState.CODED)
 
-    def commit(self) -> Path:
+    def commit(self, keep: bool = False) -> Path:
         """Write the block states and the header, then swap the new version into place (spec section 9).
+        ``keep``: hold the version just written (a shared lock on its directory, the descriptor left in
+        ``committed_fd`` for the caller to read it through and close), so that what the caller reports is the map
+        this writer wrote, even if another writer replaced it at the path a moment later.
 
         On any failure before the swap (a refused write: :class:`~sdfcodec.errors.WriteFailedError`) the writer
         is aborted: the map at the path is exactly as it was and the temporary directory is gone. After the
@@ -389,7 +393,11 @@ class MapWriter:
                 raise
             finally:
                 lock.release()
-        os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
+        if keep and _atomic.HAVE_PROC_FD:
+            _atomic.share_lock(self.tmp_fd)  # a reader now, like any other: the version stays while it is held
+            self.committed_fd = self.tmp_fd
+        else:
+            os.close(self.tmp_fd)  # the new version is in place: readers may now hold it
         self.tmp_fd = None
         try:
             _atomic.collect(self.final)  # the version replaced, if nobody reads it, and dead writers' leftovers
@@ -527,6 +535,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     final = Path(path)
     if is_url(str(path)):
         raise InvalidValueError(f"maps are written to local paths; got URL {path} (write locally, then upload)")
+    device = check_device(device)  # before the temporary directory: a bad device leaves nothing behind
     if os.path.lexists(final) and not overwrite:
         raise MapExistsError(f"{final} exists; pass overwrite=True (CLI: --overwrite) to replace it")
     check_replaceable(final)
@@ -594,7 +603,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         discard()
         raise
     writer = MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
-                       overwrite, torch.device(device), header=header)
+                       overwrite, device, header=header)
     writer.manifest = bool(manifest)
     return writer
 
@@ -680,6 +689,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         raise InvalidValueError(f"only local directory maps can be updated, got {path} (copy it locally first)")
     if not final.exists():
         raise MapNotFoundError(f"no map at {final}; create it with sdfcodec.create_map")
+    device = check_device(device)  # before the lock and the temporary copy
     with _write_errors(final, "updating the map", _UNCHANGED):
         lock = _atomic.WriterLock(final, wait).acquire()
     tmp = tmp_fd = None
@@ -713,7 +723,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
         prov = h.provenance if tool is None else h.provenance.model_copy(update={"tool": tool})
         header_kw = dict(voxel_size=h.voxel_size, truncation=h.truncation, origin=h.origin, codec=h.codec,
                          provenance=prov, shape_voxels=h.shape_voxels, up=h.up, residual=h.residual)
-        writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, torch.device(device),
+        writer = MapWriter(final, tmp, tmp_fd, group, codec, header_kw, h.codes, True, device,
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id, "reuse": previous_digests(final, manifest)},
                          header=h)

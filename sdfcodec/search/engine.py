@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._validate import BLOCK
+from .._validate import BLOCK, check_device
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..header import BlockState
@@ -96,7 +96,7 @@ class SearchResult:
 def _default_device(device: str | torch.device | None) -> torch.device:
     if device is None:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    return check_device(device)
 
 
 def _search_level(m: Map, query: QueryModel, level: int | None) -> int:

@@ -307,12 +307,16 @@ def like_blocks(m: Map, coords: Any, codec: Codec) -> QueryModel:
     """
     from ..header import BlockState
 
-    if isinstance(coords, str):
-        try:
+    text = coords
+    try:
+        if isinstance(coords, str):
             coords = [[int(v) for v in part.split(",")] for part in coords.split(";") if part.strip()]
-        except ValueError as e:
-            raise InvalidValueError(f"like: wants block indices X,Y,Z[;X,Y,Z...], got {coords!r}") from e
-    c = np.asarray(coords, dtype=np.int64).reshape(-1, 3) if len(coords) else np.zeros((0, 3), np.int64)
+        if len(coords) and any(len(p) != 3 for p in coords):  # "1,2": two numbers are no block index
+            raise ValueError(coords)
+        c = np.asarray(coords, dtype=np.int64).reshape(-1, 3) if len(coords) else np.zeros((0, 3), np.int64)
+    except (ValueError, TypeError) as e:
+        raise InvalidValueError(f"like: wants block indices X,Y,Z[;X,Y,Z...] (three whole numbers each), got "
+                                f"{text!r}") from e
     if not len(c):
         raise InvalidValueError("like: needs at least one block index X,Y,Z")
     states = m.block_states()
