@@ -13,6 +13,7 @@ from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError, Write
 from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
                      parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
                      working, write_output)
+from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -392,8 +393,8 @@ def mesh_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     output: Path = typer.Argument(..., metavar="OUT.ply", help="Triangle mesh to write (.ply, .obj, .stl...)."),
     level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option(),
+    as_json: bool = json_option(),
 ) -> None:
     """Extract the zero level set of a map as a triangle mesh (marching cubes on the decoded blocks)."""
     import open3d as o3d
@@ -448,7 +449,7 @@ def search_cmd(
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
     no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
+    overwrite: bool = overwrite_option(),
     as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
 ) -> None:
     """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""

@@ -10,6 +10,7 @@ import numpy as np
 import typer
 from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, note_target, parse_truncation,
                      print_json, print_table, progress_bar, refuse_existing, report, say, working)
+from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -27,8 +28,8 @@ def fuse_cmd(
     codec_id: str = typer.Option("raw", "--codec", help="Codec of the map: raw (lossless), pca (the shipped eigenshapes), or another fitted one."),
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length of --codec pca (default 64)."),
     working_set_mb: Optional[float] = typer.Option(None, "--working-set-mb", help="Fuse online: at most this many MiB of dense blocks in memory, the rest paged out into the map (32 KiB a block)."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option(),
+    as_json: bool = json_option(),
 ) -> None:
     """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a map (lossless `raw` by default).
 
@@ -89,7 +90,7 @@ def track_cmd(
     start: str = typer.Option("groundtruth", "--start", help="Start pose: groundtruth (the paper) or identity."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Track only the first N frames."),
     stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
-    as_json: bool = typer.Option(False, "--json"),
+    as_json: bool = json_option(),
 ) -> None:
     """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
     from ..evaluation import track_command
@@ -127,11 +128,11 @@ def eval_cmd(
     frames: int = typer.Option(60, "--frames", help="Frames per sequence (0: all)."),
     stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
     size: str = typer.Option("320x240", "--size", help="Image size of rendered synthetic sequences, WxH."),
-    voxel_size: float = typer.Option(0.02, "--voxel-size"),
+    voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge in metres."),
     docs_dir: Optional[Path] = typer.Option(None, "--docs", help="Also write eval.md/eval.json/eval/ here."),
     model: list[str] = typer.Option([], "--model", metavar="KEY=FILE",
                                     help="Model file for a row, e.g. ae-32=ae-32.npz (repeatable)."),
-    as_json: bool = typer.Option(False, "--json"),
+    as_json: bool = json_option(),
 ) -> None:
     """Reproduce the paper's Table 1: reconstruction error and tracking ATE per compression method."""
     from ..evaluation import eval_command, markdown_table
@@ -167,9 +168,9 @@ def dataset_cmd(
     max_mean: float = typer.Option(0.85, "--max-mean", help="Drop windows whose normalised mean is above this."),
     empty_fraction: float = typer.Option(0.02, "--empty-fraction", help="Share of dropped windows kept anyway."),
     batch_size: int = typer.Option(500, "--batch-size", help="Blocks per batch (the paper: 500)."),
-    seed: int = typer.Option(0, "--seed"),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    seed: int = typer.Option(0, "--seed", help="Seed of the sampling and the split."),
+    overwrite: bool = overwrite_option(),
+    as_json: bool = json_option(),
 ) -> None:
     """Build a training data set: synthetic blocks plus sub-volumes of real maps, split 300:50:50 by batches."""
     trunc = parse_truncation(truncation)
@@ -215,8 +216,8 @@ def train_cmd(
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length."),
     max_memory_gb: float = typer.Option(4.0, "--max-memory-gb",
                                         help="Train in memory below this; stream the data set above it."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option(),
+    as_json: bool = json_option(),
 ) -> None:
     """Train a codec on a data set and save it as a model (.npz of plain arrays); report validation/test error."""
     from ..dataset import open_dataset
