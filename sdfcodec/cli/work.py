@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -59,10 +60,12 @@ def fuse_cmd(
             f"{summary['blocks_paged_in']}; peak working set {summary['peak_working_set_blocks']} blocks "
             f"({summary['peak_working_set_mib']:.0f} MiB), peak RSS {summary['peak_rss_mib']:.0f} MiB"))
         return
-    with heartbeat(f"fusing {sequence}", as_json):
-        # fusion draws its own bar on a terminal; without one, the CLI's progress lines
+    # fusion draws its own bar (frames done of all) on a terminal; without one, the CLI's lines count the frames
+    with (contextlib.nullcontext() if live_progress() or as_json else progress_bar("frames")) as prog:
+        task = None if prog is None else prog.add_task(f"fusing {sequence}", total=None, rate="")
         fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max,
-                     quiet=as_json or not live_progress())
+                     quiet=as_json or not live_progress(),
+                     progress=None if prog is None else (lambda total: prog.update(task, advance=1, total=total)))
     with create_map(output, codec=codec, voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse", up=fused.up,
                     source=str(sequence)) as m:
