@@ -306,9 +306,10 @@ def empty_hint(res: SearchResult, mode: str, query: str) -> str:
     return "; ".join(tips)
 
 
-def format_summary(s: dict) -> str:
-    """Human-readable lines for a :func:`search_command` summary: the details first, then one sentence with the
-    headline figures as the last line (what ``| tail -1`` gives)."""
+def format_summary(s: dict, verbose: bool = True) -> str:
+    """Human-readable lines for a :func:`search_command` summary: with ``verbose`` the details first, then (always)
+    why nothing was selected when nothing was, and one sentence with the headline figures (selected blocks, code
+    bytes read, time, end-to-end blocks/s) as the last line (what ``| tail -1`` gives)."""
     def kib(n):
         return "n/a" if n is None else f"{n / 1024:.1f} KiB"
 
@@ -347,10 +348,13 @@ def format_summary(s: dict) -> str:
             planes = pc.get("planes", [])
             lines.append(f"plane check: {pc['rule']}; {sum(p.get('checked', 0) for p in planes)} blocks on "
                          f"{len(planes)} plane(s) checked, {pc.get('selected', 0)} selected")
+    if not verbose:
+        lines = []
     if s.get("hint"):
         lines.append(f"nothing selected: {s['hint']}")
-    headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}' in "
-                f"{s['seconds']:.3f} s ({s['blocks_per_s'] or 0:,.0f} blocks/s on {s['device']})")
+    headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}', "
+                f"{kib(s['code_bytes_read'])} of codes read, in {s['seconds']:.2f} s ({s['blocks_per_s'] or 0:,.0f} "
+                f"blocks/s end to end on {s['device']}, building and calibrating the query included)")
     if "expanded" in s:
         e = s["expanded"]
         headline += (f", expanded {e['blocks_decoded']} ({kib(e['code_bytes_read'])} of codes read, "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Optional
 
@@ -515,13 +516,33 @@ def search_cmd(
     no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
     overwrite: bool = overwrite_option(),
     as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Also print how the threshold was chosen, what the "
+                                 "map says about itself and what the map-level stage and plane check kept."),
 ) -> None:
-    """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""
+    """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7).
+
+    The first search of a map with a codec builds the query and calibrates its thresholds for the map's up
+    direction and planes (tens of seconds on 2 cores; said on stderr) and caches them (sdfcodec.search.cache);
+    later searches reuse them."""
+    from ..search.cache import announce_builds, cache_dir
     from ..search_cli import format_summary, search_command
 
-    summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
-                             overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
-    report(summary, as_json, lambda: format_summary(summary))
+    said: set[str] = set()
+
+    def tell(what: str) -> None:  # once per kind of work (a wall search calibrates one plane check per wall)
+        kind = " ".join(what.split()[:4])
+        if kind not in said:
+            said.add(kind)
+            where = cache_dir()
+            err.print(f"{what} (once; {f'cached in {where}' if where else 'the disk cache is off'})", markup=False,
+                      highlight=False)
+
+    # with --json, stdout is one document and stderr only errors: no notes, no progress lines
+    with (nullcontext() if as_json else announce_builds(tell)), \
+            (nullcontext() if as_json else working(f"searching {map_path} for {query}")):
+        summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
+                                 overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
+    report(summary, as_json, lambda: format_summary(summary, verbose=verbose))
 
 
 @app.command("verify")

@@ -198,7 +198,8 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
                     state=codec_state_sha256(codec), level=level,
                     samples=int(samples), observed=observed_scorer is not None, voxel_size=model.voxel_size,
                     truncation=list(model.truncation))
-    t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples))
+    t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples),
+                               what=f"calibrating the {spec['shape']} threshold for {codec.codec_id}-{codec.code_size}")
     return t, json.loads(json.dumps(info))  # a copy: the caller may add to its report
 
 
