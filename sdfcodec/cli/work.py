@@ -267,18 +267,22 @@ def train_cmd(
 @cli
 def bench_cmd(
     codec_id: str = typer.Option("pca", "--codec", help="Codec to measure."),
-    sizes: str = typer.Option("32,64,128", "--sizes", help="Code sizes."),
-    batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4)."),
+    sizes: Optional[str] = typer.Option(None, "--sizes", help="Code sizes (default 32,64,128; --quick: 64)."),
+    batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4; --quick: "
+                                          "1,64,256)."),
     device: str = typer.Option("cpu", "--device", help="Torch device."),
-    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (4.8-5 min on the 2-core CI machine at load 3.4-4.7, 6.3-7.5 min at load 4.2-7.9)."),
+    quick: bool = typer.Option(False, "--quick", help="Fewer, smaller measurements, the same kinds of figures: "
+                               "code size 64, batches 1, 64, 256, a 4,096-block map, 3 rounds (under a minute "
+                               "on 2 cores)."),
     read: Optional[int] = typer.Option(None, "--read", help="Blocks in the map timed for decode-on-read "
-                                       "(default 65536, --quick 8192; 0: skip)."),
+                                       "(default 65536, --quick 4096; 0: skip)."),
     http: bool = typer.Option(True, "--http/--no-http", help="Also time decode-on-read over HTTP (loopback)."),
     search: bool = typer.Option(True, "--search/--no-search", help="Also time the descriptor search kernel "
                                 "(pca only: search scores pca codes)."),
     as_json: bool = typer.Option(False, "--json", help="Print records as JSON."),
-    repeats: int = typer.Option(5, "--repeats", min=1, help="Equal rounds per figure, each interleaved with its "
-                                "baselines (best and median reported)."),
+    repeats: Optional[int] = typer.Option(None, "--repeats", min=1, help="Equal rounds per figure, each "
+                                          "interleaved with its baselines (best and median reported; default 5, "
+                                          "--quick 3)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Write the run (machine, load, command, records) as one "
                                        "JSON document (--full: default bench-DEVICE.json)."),
     full: bool = typer.Option(False, "--full", help="The device check instead: pca decode (fp32/bf16/fp16) beside "
@@ -317,6 +321,8 @@ def bench_cmd(
 
     if compare and all(compare):
         return _bench_compare(compare, tolerance, as_json)
+    repeats = repeats or (3 if quick else 5)
+    sizes = sizes or ("64" if quick else "32,64,128")
     with limit_threads(threads):
         if full:
             return _bench_full(device, quick, repeats, out or Path(f"bench-{device.replace(':', '-')}.json"), cases,
@@ -328,13 +334,12 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
                  http: bool, search: bool, as_json: bool, repeats: int, out: Path | None) -> None:
     """``sdfcodec bench`` without --full or --compare: a codec's figures (see bench_cmd)."""
     from ..bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
-    from ..codec import uses_weights
-    from ..registry import get_codec_class
+    from ..bench.codecs import bench_steps
 
     ks = [int(s) for s in sizes.split(",")]
-    bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
+    bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 256] if quick else
                                                                [1, 16, 256, 1024, 4096, 16384, 65536])
-    n_read = (8192 if quick else 65536) if read is None else read
+    n_read = (4096 if quick else 65536) if read is None else read
     if n_read < 0:
         fail(f"--read must be >= 0, got {n_read}")
     do_search = search and codec_id == "pca"
@@ -344,14 +349,23 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
     doc = run_document("quick" if quick else "codec", device)
     t0 = time.perf_counter()
     with progress_bar("steps") as prog:
-        task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search) + (n_read > 0), rate="")
-        step = lambda s: prog.update(task, advance=1, description=s)  # noqa: E731
+        # every step counted (the final ones too: decode on read, search, the start-up of `info`), so that the
+        # bar and its "about N s left" stay true to the end
+        searched = [k for k in ks if 1 <= k <= 128] if do_search else []  # one search kernel step per size
+        total = bench_steps(codec_id, ks, bs, read_blocks=n_read, http=http) + len(searched) + (n_read > 0)
+        task = prog.add_task("bench", total=total, rate="")
+        begun: list[str] = []
+
+        def step(what: str) -> None:  # a step is counted done when the next begins: the last one shows as running
+            prog.update(task, advance=1 if begun else 0, description=what)
+            begun.append(what)
+
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
                               read_blocks=n_read, http=http, repeats=repeats)
         if do_search:
             from ..bench import bench_search
 
-            found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
+            found = bench_search(searched, batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step, repeats=repeats)
             records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
         if n_read > 0:  # with the map benchmarks: a light command's start-up (issue 19, item 4)
@@ -359,6 +373,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
 
             step("sdfcodec info start-up")
             records += bench_info_startup(repeats=repeats)
+        prog.update(task, advance=1 if begun else 0)
     doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1), records=records)
     if out is not None:
         _write_run(out, doc)
