@@ -354,7 +354,8 @@ def format_summary(s: dict, verbose: bool = True) -> str:
         lines.append(f"nothing selected: {s['hint']}")
     headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}', "
                 f"{kib(s['code_bytes_read'])} of codes read, in {s['seconds']:.2f} s ({s['blocks_per_s'] or 0:,.0f} "
-                f"blocks/s end to end on {s['device']}, building and calibrating the query included)")
+                f"blocks/s end to end on {s['device']}" + (", building and calibrating the query included)"
+                                                           if s.get("built") else ")"))
     if "expanded" in s:
         e = s["expanded"]
         headline += (f", expanded {e['blocks_decoded']} ({kib(e['code_bytes_read'])} of codes read, "

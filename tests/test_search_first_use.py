@@ -57,6 +57,8 @@ def test_first_search_says_what_it_builds_and_prints_one_line(floor_map, tmp_pat
     clear_memory_cache()
     again = CliRunner().invoke(app, ["search", str(floor_map), "--query", "floor", "--verbose"])
     assert again.exit_code == 0 and "(once;" not in again.stderr
+    assert "building and calibrating the query included" in lines[0]
+    assert "building and calibrating" not in again.stdout  # nothing was built the second time
     detail = again.stdout.splitlines()
     assert len(detail) > 2 and detail[-1].split(", in ")[0] == lines[0].split(", in ")[0]
     assert any(line.startswith("behind=") for line in detail) and any("threshold" in line for line in detail[:-1])

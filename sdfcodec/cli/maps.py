@@ -542,7 +542,8 @@ def search_cmd(
             (nullcontext() if as_json else working(f"searching {map_path} for {query}")):
         summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
                                  overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
-    report(summary, as_json, lambda: format_summary(summary, verbose=verbose))
+    # the line says whether the time includes building the query (nothing is listened for with --json)
+    report(summary, as_json, lambda: format_summary(dict(summary, built=sorted(said)), verbose=verbose))
 
 
 @app.command("verify")
