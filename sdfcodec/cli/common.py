@@ -100,12 +100,14 @@ app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigen
 
 def overwrite_option(what: str = "OUTPUT") -> Any:
     """The ``--overwrite`` flag every command that writes a file or map shares (the same words everywhere)."""
-    return typer.Option(False, "--overwrite", help=f"Replace {what} if it exists.")
+    return typer.Option(False, "--overwrite", help=f"Replace {what} if already there.")
 
 
 def json_option(text: str = "Print the summary as JSON (only JSON on stdout).") -> Any:
     """The ``--json`` flag every command shares; ``text`` says what the JSON holds where it differs."""
     return typer.Option(False, "--json", help=text)
+
+
 out = Console()
 err = Console(stderr=True, soft_wrap=True)
 

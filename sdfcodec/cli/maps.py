@@ -457,7 +457,7 @@ def mesh_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     output: Path = typer.Argument(..., metavar="OUT.ply", help="Triangle mesh to write (.ply, .obj, .stl...)."),
     level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
-    overwrite: bool = overwrite_option(),
+    overwrite: bool = overwrite_option("OUT.ply"),
     as_json: bool = json_option(),
 ) -> None:
     """Extract the zero level set of a map as a triangle mesh (marching cubes on the decoded blocks)."""
@@ -514,7 +514,7 @@ def search_cmd(
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
     no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
-    overwrite: bool = overwrite_option(),
+    overwrite: bool = overwrite_option("search.png and expanded.ply in --out"),
     as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Also print how the threshold was chosen, what the "
                                  "map says about itself and what the map-level stage and plane check kept."),

@@ -219,7 +219,7 @@ def train_cmd(
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length."),
     max_memory_gb: float = typer.Option(4.0, "--max-memory-gb",
                                         help="Train in memory below this; stream the data set above it."),
-    overwrite: bool = overwrite_option(),
+    overwrite: bool = overwrite_option("--output"),
     as_json: bool = json_option(),
 ) -> None:
     """Train a codec on a data set and save it as a model (.npz of plain arrays); report validation/test error."""
