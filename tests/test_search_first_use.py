@@ -64,3 +64,15 @@ def test_first_search_says_what_it_builds_and_prints_one_line(floor_map, tmp_pat
     assert any(line.startswith("behind=") for line in detail) and any("threshold" in line for line in detail[:-1])
     s = json.loads(CliRunner().invoke(app, ["search", str(floor_map), "--query", "floor", "--json"]).stdout)
     assert lines[0].startswith(f"selected {s['selected']} of {s['coded_blocks']} coded blocks")
+
+
+def test_bad_input_is_one_line_before_any_build(floor_map, tmp_path, monkeypatch):
+    """A bad --level or an --out through a file is refused before the query is built: one line, no notes."""
+    monkeypatch.setenv("SDFCODEC_CACHE_DIR", str(tmp_path / "cold"))
+    clear_memory_cache()
+    (tmp_path / "afile").write_text("x")
+    for args, says in ((["--level", "65"], "1..64"), (["--out", str(tmp_path / "afile" / "sub")], "Not a directory")):
+        r = CliRunner().invoke(app, ["search", str(floor_map), *args])
+        assert r.exit_code == 1 and r.stderr.startswith("error: ") and says in r.stderr, r.stderr
+        assert r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "cold").exists()  # nothing was built
