@@ -345,6 +345,10 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
         "expand_bytes_read": exp.stats["bytes_read"], "bytes_read_total": bytes_search + bytes_expand,
         "map_bytes_on_disk": pca64.info()["bytes_on_disk"], "code_bytes_full": res.stats["code_bytes_full"],
         "triangles": len(exp.mesh.triangles),
+        # the selection is not "score <= threshold": the map-level stage and the plane check change it (the report
+        # says so beside the threshold sweep, which counts scores alone)
+        "scored_under_threshold": int((res.all_scores <= res.threshold).sum()),
+        "threshold_method": (res.stats.get("threshold_info") or {}).get("method"),
         # the same scores at other thresholds: the precision/recall trade-off, with no further reads
         "pr_at": [{"threshold": th, "selected": int((res.all_scores <= th).sum()),
                    "precision": float(((res.all_scores <= th) & truth).sum() / max(int((res.all_scores <= th).sum()), 1)),
@@ -493,6 +497,19 @@ def _ate_cell(r: dict, base: float | None) -> str:
     return f"{1000 * a:.1f} mm" + ("" if base is None or r["map"] == "raw" or base <= 0 else f" ({a / base:.1f}x)")
 
 
+def _selection_sentence(se: dict) -> str:
+    """Why the search selected a different number of blocks than scored under its threshold (older results.json
+    files lack the fields: then nothing is said)."""
+    if "scored_under_threshold" not in se:
+        return ""
+    how = ("calibrated on this map (it keeps 99 % of simulated clean floor blocks encoded the map's way)"
+           if se.get("threshold_method") == "calibrated" else "automatic")
+    return (f"The threshold {se['threshold']:.2f} is {how}; {se['scored_under_threshold']} blocks scored at or "
+            f"under it, and the map-level stage (the lowest large level of up-facing patches is the floor) and the "
+            f"plane check that follows it (docs/search.md) made that {se['selected']}: blocks on the floor plane "
+            "join it even over the threshold, blocks under it elsewhere leave.")
+
+
 def _looser(se: dict) -> str:
     """A clause on the looser thresholds that found more floor at no loss of precision, if any did."""
     better = [p for p in se["pr_at"] if p["threshold"] > se["threshold"] and p["precision"] >= se["precision"]
@@ -591,12 +608,12 @@ def _report(s: dict, raw: Map) -> str:
           "",
           f"Against the room's analytic floor ({se['floor_blocks_truth']} blocks whose surface is mostly floor): "
           f"precision {se['precision']:.2f}, recall {se['recall']:.2f}. Search {se['search_seconds']:.2f} s, "
-          f"expansion {se['expand_seconds']:.2f} s ({se['triangles']:,} triangles). The same scores at other "
-          "thresholds (no further reads): "
-          + "; ".join(f"{p['threshold']:g}: {p['selected']} selected, precision {p['precision']:.2f}, recall "
-                      f"{p['recall']:.2f}" for p in se["pr_at"])
-          + ". The automatic threshold is a heuristic, close to the best-F1 thresholds on exact synthetic rooms "
-          "(docs/search.md)" + _looser(se) + ".", "",
+          f"expansion {se['expand_seconds']:.2f} s ({se['triangles']:,} triangles). "
+          + _selection_sentence(se) + " The scores alone at other thresholds (no further reads, no map-level "
+          "stage): "
+          + "; ".join(f"{p['threshold']:g}: {p['selected']} scored at or under it, precision {p['precision']:.2f}, "
+                      f"recall {p['recall']:.2f}" for p in se["pr_at"])
+          + _looser(se) + ".", "",
           "![floor selection](floors.png)", "",
           "## Tracking against the compressed map", "",
           f"The SDF Tracker followed {tr['frames']} frames (stride {tr['stride']} through the sequence) from the first "

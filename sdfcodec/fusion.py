@@ -53,7 +53,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -288,6 +288,7 @@ class FrameFeed:
         self.mult = self.half / voxel_size
         self.dmax_shifted = (1e6 if depth_max is None else float(depth_max)) - float(self.shift)
         self.integrated = self.skipped = 0
+        self.on_frame: Callable[[int | None], None] | None = None  # called per frame with ``total`` (fuse's progress)
 
     def touched(self, vbg: Any, img: Any, extrinsic: Any) -> Any:
         """The block keys (open3d tensor) a frame's band reaches."""
@@ -309,6 +310,8 @@ class FrameFeed:
             for frame in frames:
                 if progress is not None:
                     progress.advance(task)
+                if self.on_frame is not None:
+                    self.on_frame(self.total)
                 if frame.pose is None:
                     self.skipped += 1
                     continue
@@ -338,7 +341,8 @@ class FrameFeed:
 def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 0.02,
          truncation: tuple[float, float] = (-0.04, 0.1), *, depth_max: float | None = 4.0,
          origin: np.ndarray | None = None, intrinsics: Intrinsics | None = None, device: str = "CPU:0",
-         block_count: int = 4096, quiet: bool = False) -> FusedBlocks:
+         block_count: int = 4096, quiet: bool = False,
+         progress: Callable[[int | None], None] | None = None) -> FusedBlocks:
     """Fuse a posed depth sequence into a block TSDF with open3d's VoxelBlockGrid.
 
     Parameters
@@ -367,6 +371,9 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
         Initial capacity of open3d's block hash map (it grows as needed; each block costs 32 KiB).
     quiet : bool
         No progress bar (otherwise a rich bar on stderr shows frames and frames/s).
+    progress : callable, optional
+        Called once per frame read with the number of frames in the sequence (None when unknown): a caller's own
+        progress report (``sdfcodec fuse`` without a terminal).
 
     Returns
     -------
@@ -391,6 +398,7 @@ def fuse(sequence: Sequence | str | Path | Iterable[Frame], voxel_size: float = 
     vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (o3d.core.float32, o3d.core.float32), ((1,), (1,)),
                                         float(voxel_size), BLOCK, int(block_count), dev)
     feed = FrameFeed(intrinsics, (d_min, d_max), voxel_size, depth_max, anchor, dev, total, quiet)
+    feed.on_frame = progress
     half, shift = feed.half, feed.shift
     t0 = time.perf_counter()
     for _, img, extrinsic in feed.inputs(frames):

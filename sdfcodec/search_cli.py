@@ -12,6 +12,7 @@ of the selected blocks, decoded at full quality and nothing else).
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 from typing import Any
@@ -242,6 +243,10 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
         clash = [p for p in (out / "search.png", out / "expanded.ply") if p.exists()]
         if clash:
             raise MapExistsError(f"{clash[0]} exists; pass --overwrite to replace it or choose another --out")
+        # a path through a file is refused before the search's work (and its notes), not after it
+        blocked = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+        if blocked is not None:
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(out))
     mode = "given" if threshold is not None else ("none" if top is not None else "auto")
     res = search(m, query, level=level, threshold="auto" if mode == "auto" else threshold, top=top, device=device,
                  keep_scores=True, behind=behind, up=up, tilt=tilt, scene=scene)
@@ -306,9 +311,10 @@ def empty_hint(res: SearchResult, mode: str, query: str) -> str:
     return "; ".join(tips)
 
 
-def format_summary(s: dict) -> str:
-    """Human-readable lines for a :func:`search_command` summary: the details first, then one sentence with the
-    headline figures as the last line (what ``| tail -1`` gives)."""
+def format_summary(s: dict, verbose: bool = True) -> str:
+    """Human-readable lines for a :func:`search_command` summary: with ``verbose`` the details first, then (always)
+    why nothing was selected when nothing was, and one sentence with the headline figures (selected blocks, code
+    bytes read, time, end-to-end blocks/s) as the last line (what ``| tail -1`` gives)."""
     def kib(n):
         return "n/a" if n is None else f"{n / 1024:.1f} KiB"
 
@@ -347,10 +353,14 @@ def format_summary(s: dict) -> str:
             planes = pc.get("planes", [])
             lines.append(f"plane check: {pc['rule']}; {sum(p.get('checked', 0) for p in planes)} blocks on "
                          f"{len(planes)} plane(s) checked, {pc.get('selected', 0)} selected")
+    if not verbose:
+        lines = []
     if s.get("hint"):
         lines.append(f"nothing selected: {s['hint']}")
-    headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}' in "
-                f"{s['seconds']:.3f} s ({s['blocks_per_s'] or 0:,.0f} blocks/s on {s['device']})")
+    headline = (f"selected {s['selected']} of {s['coded_blocks']} coded blocks for '{s['query']}', "
+                f"{kib(s['code_bytes_read'])} of codes read, in {s['seconds']:.2f} s ({s['blocks_per_s'] or 0:,.0f} "
+                f"blocks/s end to end on {s['device']}" + (", building and calibrating the query included)"
+                                                           if s.get("built") else ")"))
     if "expanded" in s:
         e = s["expanded"]
         headline += (f", expanded {e['blocks_decoded']} ({kib(e['code_bytes_read'])} of codes read, "

@@ -70,6 +70,10 @@ def test_demo_short_run(tmp_path):
     # the search reads each code chunk once; the expansion at most the chunks holding the selection
     assert 0 < se["search_bytes_read"]["codes"] <= se["code_bytes_full"]
     assert 0 < se["expand_bytes_read"]["codes"] <= se["code_bytes_full"]
+    # the report explains why the selection differs from the count of scores under the threshold (issue 44)
+    assert se["threshold_method"] == "calibrated"
+    assert (f"{se['scored_under_threshold']} blocks scored at or under it, and the map-level stage" in report
+            and f"made that {se['selected']}" in report)
 
     tr = res["tracking"]
     assert tr["frames"] == 5

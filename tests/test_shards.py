@@ -276,9 +276,13 @@ def test_dask_encode_of_a_sharded_map_equals_the_single_process_one(pair, tmp_pa
     from sdfcodec.scale import encode_volume_dask
 
     out = tmp_path / "d.sdfz"
+    # from a file, as large volumes go to a cluster (each worker reads its chunks): the 78 MiB array itself in the
+    # graph made distributed warn "Sending large graph" at the end of the suite
+    np.save(tmp_path / "office.npy", office)
     with distributed.LocalCluster(n_workers=2, processes=False, threads_per_worker=1, dashboard_address=None) as c, \
             distributed.Client(c):
-        encode_volume_dask(office, out, pca64, voxel_size=VS, truncation=TRUNC, chunk_blocks=4, shard_blocks=16)
+        encode_volume_dask(tmp_path / "office.npy", out, pca64, voxel_size=VS, truncation=TRUNC, chunk_blocks=4,
+                           shard_blocks=16)
     a, b = sdfcodec.open_map(pair[1]), sdfcodec.open_map(out)
     assert b.header.codes.shard_blocks == 16
     np.testing.assert_array_equal(a.block_states(), b.block_states())

@@ -59,7 +59,7 @@ torch = lazy_module("torch")  # imported on first use: sdfcodec.plugin imports t
 
 __all__ = ["bench_codec", "fused_style_weights", "bench_codec_instance", "bench_decode_on_read", "memcpy_bytes_per_s",
            "roofline_shapes", "register_bench", "bench_instance", "BenchSpec", "vs_paper", "PAPER_US_PER_BLOCK",
-           "roofline_fn", "memcpy_fn", "timed_record", "bench_decode_in_place", "write_bench_map"]
+           "roofline_fn", "memcpy_fn", "timed_record", "bench_decode_in_place", "write_bench_map", "bench_steps"]
 
 PAPER_US_PER_BLOCK = (405.0, 645.0)
 _N = 16 ** 3
@@ -246,7 +246,7 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
         x = torch.from_numpy(np.concatenate([data] * -(-b // len(data)))[:b]).to(dev)
         codes = codec.encode(x)
         ops = [("encode", lambda: (codec.encode(x), sync())), ("decode", lambda: (codec.decode(codes), sync()))]
-        if uses_weights(codec) and 4 * _N * codec.code_size * (codec.code_size + 1) // 2 <= _MAX_GRAM_TABLE_BYTES:
+        if _times_weighted(codec):
             w = torch.from_numpy(fused_style_weights(x.cpu().numpy())).to(dev)
             ops.append(("encode-weighted", lambda: (codec.encode(x, weights=w), sync())))
             # what a map writer runs on a fused block: the weighted fit refitted for the reader's truncation
@@ -277,6 +277,25 @@ def bench_codec_instance(codec: Codec, batches: Iterable[int], *, device: str = 
     return records
 
 
+def _times_weighted(codec: Codec) -> bool:
+    """Whether :func:`bench_codec_instance` times the weighted encodes of ``codec`` (``encode-weighted``,
+    ``encode-masked``) beside the plain encode and decode."""
+    return uses_weights(codec) and 4 * _N * codec.code_size * (codec.code_size + 1) // 2 <= _MAX_GRAM_TABLE_BYTES
+
+
+def bench_steps(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, read_blocks: int = 0,
+                http: bool = False) -> int:
+    """How many times :func:`bench_codec` with these arguments calls its ``progress``: one per timed operation
+    and batch, and per code size with ``read_blocks`` one for decode on read, one over HTTP, one for decoding into
+    place (a progress bar counted from it stays true to the end)."""
+    nb = len(list(batches))
+    steps = 0
+    for k in code_sizes:
+        codec, _ = bench_instance(codec_id, k)
+        steps += nb * (4 if _times_weighted(codec) else 2) + (2 + bool(http) if read_blocks > 0 else 0)
+    return steps
+
+
 def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int], *, device: str = "cpu",
                 min_time: float = 0.2, progress: Callable[[str], None] | None = None,
                 read_blocks: int = 0, http: bool = False, repeats: int = 5) -> list[dict]:
@@ -297,17 +316,19 @@ def bench_codec(codec_id: str, code_sizes: Iterable[int], batches: Iterable[int]
         records += bench_codec_instance(codec, batches, device=device, min_time=min_time, weights=weights,
                                         name=codec_id, progress=progress, repeats=repeats)
         if read_blocks > 0:
-            if progress:
-                progress(f"{codec_id}-{codec.code_size} decode-on-read {read_blocks} blocks")
             records += bench_decode_on_read(codec, read_blocks, device=device, min_time=min_time,
-                                            name=codec_id, weights=weights, http=http, repeats=repeats)
+                                            name=codec_id, weights=weights, http=http, repeats=repeats,
+                                            progress=progress)
+            if progress:
+                progress(f"{codec_id}-{codec.code_size} decoding {read_blocks} blocks into place")
             records += bench_decode_in_place(codec, read_blocks, device=device, name=codec_id, repeats=repeats)
     return records
 
 
 def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", min_time: float = 0.2,
                          name: str | None = None, weights: str | None = None, prefetch: int = 2,
-                         http: bool = False, repeats: int = 5) -> list[dict]:
+                         http: bool = False, repeats: int = 5, progress: Callable[[str], None] | None = None
+                         ) -> list[dict]:
     """Decode on read: blocks/s of :meth:`sdfcodec.Map.iter_decoded` over a whole map of ``n_blocks`` coded
     blocks (codes read, checksummed, decompressed, decoded to float32 metres) from local disk, and with
     ``http`` also over HTTP from a server on loopback, beside four baselines interleaved with it: the numpy
@@ -350,6 +371,8 @@ def bench_decode_on_read(codec: Codec, n_blocks: int, *, device: str = "cpu", mi
             if http:
                 sources["decode-on-read-http"] = stack.enter_context(FileServer(tmp)).url("bench.sdfz")
             for op, where in sources.items():
+                if progress:
+                    progress(f"{name or codec.codec_id}-{codec.code_size} {op} {n_blocks} blocks")
                 m = open_map(where)
 
                 def read() -> None:

@@ -22,11 +22,13 @@ import sys
 import threading
 import time
 import warnings
+import weakref
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, List, Optional, Sequence
 
 import numpy as np
 import typer
+from typer.core import TyperGroup
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
@@ -39,10 +41,74 @@ if TYPE_CHECKING:
 
 __all__ = ["app", "out", "err", "fail", "cli", "reads_maps", "write_output", "PlainWriter", "progress_bar", "parse_triple",
            "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
-           "load_volume"]
+           "load_volume", "overwrite_option", "json_option"]
+
+
+def unwrap_paragraphs(text: str | None) -> str | None:
+    """``text`` with the line breaks inside each paragraph (blank-line separated) turned into spaces, so that help
+    wraps by paragraph at the terminal's width: docstrings are hard-wrapped at 120 columns in the source, and
+    typer's rich mode keeps those breaks after the first paragraph. A paragraph that starts with ``\\b`` (click's
+    "keep these lines") is left as it is."""
+    if not text:
+        return text
+    import inspect
+
+    paragraphs = inspect.cleandoc(text).split("\n\n")
+    return "\n\n".join(p if p.startswith("\b") else " ".join(p.split("\n")) for p in paragraphs)
+
+
+_tidied: "weakref.WeakSet[Any]" = weakref.WeakSet()  # the commands whose help is tidied (click builds them once)
+
+
+def _tidy_help(command: Any, ctx: Any) -> None:
+    """One command's help as the project shows it: paragraphs unwrapped (:func:`unwrap_paragraphs`), and no type
+    name where it says nothing: none on a flag (``<bool>``: a flag takes no value) or on text (``<str>``: every
+    value on a command line is text); ``<int>``, ``<float>`` and ``<path>`` stay."""
+    if command in _tidied:
+        return
+    command.help = unwrap_paragraphs(command.help)
+    helper = command.get_help_option(ctx)  # made on first use, then kept: --help is a flag too
+    for param in [*command.params, *([helper] if helper is not None else [])]:
+        says_nothing = getattr(param, "is_bool_flag", False) or (
+            hasattr(param, "display_type") and param.display_type(ctx) == "<str>")
+        if not says_nothing:
+            continue
+        if param.param_type_name == "argument":  # an argument's type column ignores its metavar (its name)
+            param.display_type_rich = lambda ctx: None
+        elif param.metavar is None:
+            param.metavar = ""  # an option's type column shows its metavar when one is set
+    _tidied.add(command)
+
+
+class _Commands(TyperGroup):
+    """The ``sdfcodec`` group: every command's help tidied (:func:`_tidy_help`) when click first looks it up, so a
+    command added anywhere gets the same help without repeating settings on each option."""
+
+    def get_command(self, ctx: Any, cmd_name: str) -> Any:
+        command = super().get_command(ctx, cmd_name)
+        if command is not None:
+            _tidy_help(command, ctx)
+        return command
+
+    def format_help(self, ctx: Any, formatter: Any) -> None:
+        _tidy_help(self, ctx)
+        super().format_help(ctx, formatter)
+
 
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
-                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False, cls=_Commands)
+
+
+def overwrite_option(what: str = "OUTPUT") -> Any:
+    """The ``--overwrite`` flag every command that writes a file or map shares (the same words everywhere)."""
+    return typer.Option(False, "--overwrite", help=f"Replace {what} if already there.")
+
+
+def json_option(text: str = "Print the summary as JSON (only JSON on stdout).") -> Any:
+    """The ``--json`` flag every command shares; ``text`` says what the JSON holds where it differs."""
+    return typer.Option(False, "--json", help=text)
+
+
 out = Console()
 err = Console(stderr=True, soft_wrap=True)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Optional
 
@@ -14,6 +15,7 @@ from .common import reads_maps
 from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
                      parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
                      working, write_output)
+from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -31,19 +33,44 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
         row: dict[str, Any] = {"id": entry.id, "package": entry.package, "version": entry.version}
         try:
             cls = get_codec_class(entry.id)
+            shipped = cls.shipped_models()
             row.update(code_sizes=list(cls.code_sizes), prefix_ordered=cls.prefix_ordered,
-                       requires_fit=cls.requires_fit, status="ok")
+                       requires_fit=cls.requires_fit, shipped_models=None if shipped is None else {
+                           k: list(v) for k, v in shipped.items()}, status="ok")
+            row["sizes"] = _sizes_text(cls, shipped)
         except SDFCodecError as e:  # one broken plugin is reported, the rest still listed
-            row.update(code_sizes=None, prefix_ordered=None, requires_fit=None, status=f"failed: {e}")
+            row.update(code_sizes=None, prefix_ordered=None, requires_fit=None, shipped_models=None, sizes="?",
+                       status=f"failed: {e}")
         rows.append(row)
     if as_json:
         print_json(rows)
         return
     yn = {True: "yes", False: "no", None: "?"}
     print_table(("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"),
-                [(r["id"], ", ".join(map(str, r["code_sizes"] or [])) or "?", yn[r["prefix_ordered"]],
+                [(r["id"], r["sizes"], yn[r["prefix_ordered"]],
                   yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}".strip(), r["status"])
                  for r in rows], title="installed sdfcodec codecs")
+
+
+def _sizes_text(cls: Any, shipped: dict | None) -> str:
+    """The code sizes column of ``codecs``: what ships trained and what only ``--fit`` makes, a mixture as its
+    parts (``64 + 64``, as the README names it, not its 129 code elements)."""
+    import inspect
+
+    params = inspect.signature(cls.__init__).parameters
+    if "pca_size" in params and "ae_size" in params:  # a mixture: a PCA part and an autoencoder part
+        parts = f"{params['pca_size'].default} + {params['ae_size'].default}"
+        return f"{parts} shipped ({', '.join(shipped)})" if shipped else f"{parts} (with --fit)"
+    sizes = list(cls.code_sizes)
+    if not cls.requires_fit or shipped is None:
+        return ", ".join(map(str, sizes)) or "?"
+    have = sorted({k for v in shipped.values() for k in v})
+    ready = [k for k in sizes if k in have]
+    text = ", ".join(map(str, ready)) + (f" shipped ({', '.join(shipped)})" if ready else "")
+    if cls.prefix_ordered and len(have) > len(ready):  # a shipped basis cut to any length (pca)
+        text += f", any prefix 1-{have[-1]}"
+    fit = [k for k in sizes if k not in have]
+    return "; ".join(t for t in (text, f"{', '.join(map(str, fit))} with --fit" if fit else "") if t)
 
 
 @app.command("info")
@@ -77,13 +104,20 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
         ("dense float32", human_bytes(info["dense_float32_bytes"])),
         ("codes (uncompressed)", human_bytes(info["code_bytes_raw"])),
     ]
+    bound = _field_bound(info)
+    if bound is not None:  # the codec's config keeps it in normalised units: the user gave (and reads) metres
+        rows.insert(2, ("error bound", bound))
     if info["bytes_on_disk"] is not None:
         rows += [("on disk", f"{human_bytes(info['bytes_on_disk'])} (codec state {human_bytes(info['codec_state_bytes'])})"),
                  ("ratio dense : disk", f"{info['ratio_dense_to_disk']:.1f} : 1"),
                  ("ratio dense : disk without codec state", f"{info['ratio_dense_to_codes']:.1f} : 1")]
+    else:
+        rows.append(("on disk", "not known for a remote map (a server does not list its files); "
+                                "`sdfcodec info` on a local copy shows it"))
     cs = info["codec_state"]
     rows.append(("codec state", f"by reference to shipped model {cs['model']} (sha256 {cs['sha256']})"
-                 if cs["stored"] == "reference" else f"embedded (sha256 {cs['sha256']})"))
+                 if cs["stored"] == "reference" else "none (the codec learns nothing)" if cs["sha256"] is None
+                 else f"embedded (sha256 {cs['sha256']})"))
     if info["residual"] is not None:
         rows.append(("residual (residual-bound)", _residual_line(info["residual"])))
     if info.get("integrity") is not None:
@@ -170,6 +204,13 @@ def encode_cmd(
         codec = _bounded_codec(codec_id, max_error, trunc)
     else:  # the shipped model at that size, unless --fit or the plugin ships none (then why_fit says so)
         codec, why_fit = choose_codec(codec_id or "pca", code_size, fit=fit)
+        if why_fit is not None and not fit and codec.shipped_models():  # it ships models, not at this size
+            raise InvalidValueError(f"{why_fit}, or pass --fit to fit one on the input (slow; the map then stores "
+                                    "the fitted state)")
+        if codec_id == "sz3" and max_error is None and not as_json:  # a bound the user did not choose: said
+            err.print(f"note: --codec sz3 without --max-error: error bound "
+                      f"{codec.get_config()['max_error'] * (trunc[1] - trunc[0]) * 1000:.3g} mm (the codec's "
+                      "default); pass --max-error METRES to choose it", markup=False, highlight=False)
 
     if codec_state == "reference" and not codec.is_fitted:  # refused before spending the fit
         raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
@@ -236,6 +277,17 @@ def encode_cmd(
         f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes)" +
         (f", target {quant['target_bytes']:g} after {quant['passes']} pass(es)" if quant.get("target_bytes") else ""))
         + ("" if info["residual"] is None else f"; {_residual_line(info['residual'])}")))
+
+
+def _field_bound(info: dict) -> str | None:
+    """``info``'s line for a field compressor's error bound (sz3: ``max_error`` in its config is in normalised
+    units, 1 = d_max - d_min), in millimetres; None for a codec without one."""
+    normalised = info["codec"].get("max_error") if info["codec"].get("id") == "sz3" else None
+    if normalised is None:
+        return None
+    d_min, d_max = info["truncation"]
+    return (f"{normalised * (d_max - d_min) * 1000:.3g} mm on every observed voxel "
+            f"(max_error {normalised:.4g} of the truncation range in the codec's config)")
 
 
 def _residual_line(r: dict) -> str:
@@ -369,6 +421,7 @@ def decode_cmd(
         fail(f"OUTPUT must end in .npy or .npz, got {output}")
     refuse_existing(output, overwrite)
     m = open_map(map_path)
+    _warn_lossy_level(m, level)
     box = parse_region(region)
     lo = [a for a, _ in region_voxels(box, units, m.shape_voxels, m.origin, m.voxel_size)]
     origin = [float(o + a * m.voxel_size) for o, a in zip(m.origin, lo)]  # where voxel (0, 0, 0) of OUTPUT lies
@@ -395,6 +448,18 @@ def decode_cmd(
         f"voxel {m.voxel_size} m, origin {tuple(round(o, 6) for o in origin)} m)"))
 
 
+def _warn_lossy_level(m: Any, level: Optional[int]) -> None:
+    """A warning when ``--level`` drops the guarantee of a map's residual stage (``--max-error``/``--sign-exact``
+    hold at the full level only): the decode is then the codes' alone."""
+    r = m.header.residual
+    if r is None or level is None or level >= m.code_size:
+        return
+    what = " and ".join(([f"the {r.max_error * 1000:g} mm error bound"] if r.max_error is not None else [])
+                        + (["the exact signs"] if r.sign_exact else []))
+    err.print(f"warning: {m.location}: --level {level} decodes without the residual stage, so {what} of the full "
+              f"level ({m.code_size}) no longer hold; leave --level out to keep them", markup=False, highlight=False)
+
+
 @app.command("mesh")
 @cli
 @reads_maps
@@ -404,8 +469,8 @@ def mesh_cmd(
     level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
     region: Optional[str] = typer.Option(None, "--region", help="x0:x1,y0:y1,z0:z1: mesh only the blocks touching it (half-open voxels, or metres with --units m)."),
     units: str = typer.Option("voxels", "--units", help="Units of --region: voxels or m."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option("OUT.ply"),
+    as_json: bool = json_option(),
 ) -> None:
     """Extract the zero level set of a map (or of the blocks touching --region) as a triangle mesh (marching
     cubes on the decoded blocks)."""
@@ -419,6 +484,7 @@ def mesh_cmd(
     from ..map import open_map
 
     m = open_map(map_path)
+    _warn_lossy_level(m, level)
     coords, blocks = [], []
     for c, b in m.iter_decoded(box, units=units, level=level):
         coords.append(c)
@@ -457,17 +523,38 @@ def search_cmd(
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Write the picture (and mesh of the selection) here."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device for scoring (default: cuda if present)."),
     no_mesh: bool = typer.Option(False, "--no-mesh", help="Do not write the mesh of the expanded blocks."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
+    overwrite: bool = overwrite_option("search.png and expanded.ply in --out"),
     as_json: bool = typer.Option(False, "--json", help="Print every selected block's coordinates and score."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Also print how the threshold was chosen, what the "
+                                 "map says about itself and what the map-level stage and plane check kept."),
 ) -> None:
-    """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""
+    """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7).
+
+    The first search of a map with a codec builds the query and calibrates its thresholds for the map's up
+    direction and planes (tens of seconds on 2 cores; said on stderr) and caches them (sdfcodec.search.cache);
+    later searches reuse them."""
     if out_dir is not None:
         refuse_existing(out_dir, overwrite, files=("search.png", "expanded.ply"))
+    from ..search.cache import announce_builds, cache_dir
     from ..search_cli import format_summary, search_command
 
-    summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
-                             overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
-    report(summary, as_json, lambda: format_summary(summary))
+    said: set[str] = set()
+
+    def tell(what: str) -> None:  # once per kind of work (a wall search calibrates one plane check per wall)
+        kind = " ".join(what.split()[:4])
+        if kind not in said:
+            said.add(kind)
+            where = cache_dir()
+            err.print(f"{what} (once; {f'cached in {where}' if where else 'the disk cache is off'})", markup=False,
+                      highlight=False)
+
+    # with --json, stdout is one document and stderr only errors: no notes, no progress lines
+    with (nullcontext() if as_json else announce_builds(tell)), \
+            (nullcontext() if as_json else working(f"searching {map_path} for {query}")):
+        summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
+                                 overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
+    # the line says whether the time includes building the query (nothing is listened for with --json)
+    report(summary, as_json, lambda: format_summary(dict(summary, built=sorted(said)), verbose=verbose))
 
 
 @app.command("verify")

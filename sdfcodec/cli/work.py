@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -11,6 +12,7 @@ import typer
 from .common import reads_maps
 from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, load_volume,
                      parse_truncation, print_json, print_table, progress_bar, refuse_existing, report, say, working)
+from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -28,8 +30,8 @@ def fuse_cmd(
     codec_id: str = typer.Option("raw", "--codec", help="Codec of the map: raw (lossless), pca (the shipped eigenshapes), or another fitted one."),
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length of --codec pca (default 64)."),
     working_set_mb: Optional[float] = typer.Option(None, "--working-set-mb", help="Fuse online: at most this many MiB of dense blocks in memory, the rest paged out into the map (32 KiB a block)."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option(),
+    as_json: bool = json_option(),
 ) -> None:
     """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a map (lossless `raw` by default).
 
@@ -59,10 +61,12 @@ def fuse_cmd(
             f"{summary['blocks_paged_in']}; peak working set {summary['peak_working_set_blocks']} blocks "
             f"({summary['peak_working_set_mib']:.0f} MiB), peak RSS {summary['peak_rss_mib']:.0f} MiB"))
         return
-    with heartbeat(f"fusing {sequence}", as_json):
-        # fusion draws its own bar on a terminal; without one, the CLI's progress lines
+    # fusion draws its own bar (frames done of all) on a terminal; without one, the CLI's lines count the frames
+    with (contextlib.nullcontext() if live_progress() or as_json else progress_bar("frames")) as prog:
+        task = None if prog is None else prog.add_task(f"fusing {sequence}", total=None, rate="")
         fused = fuse(sequence, voxel_size=voxel_size, truncation=trunc, depth_max=depth_max,
-                     quiet=as_json or not live_progress())
+                     quiet=as_json or not live_progress(),
+                     progress=None if prog is None else (lambda total: prog.update(task, advance=1, total=total)))
     with create_map(output, codec=codec, voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse", up=fused.up,
                     source=str(sequence)) as m:
@@ -91,8 +95,8 @@ def track_cmd(
     start: str = typer.Option("groundtruth", "--start", help="Start pose: groundtruth (the paper) or identity."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Track only the first N frames."),
     stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option("OUTPUT"),
+    as_json: bool = json_option(),
 ) -> None:
     """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
     refuse_existing(output, overwrite)  # before the sequence is read and the map opened
@@ -131,13 +135,13 @@ def eval_cmd(
     frames: int = typer.Option(60, "--frames", help="Frames per sequence (0: all)."),
     stride: int = typer.Option(1, "--stride", help="Use every K-th frame."),
     size: str = typer.Option("320x240", "--size", help="Image size of rendered synthetic sequences, WxH."),
-    voxel_size: float = typer.Option(0.02, "--voxel-size"),
+    voxel_size: float = typer.Option(0.02, "--voxel-size", help="Voxel edge in metres."),
     docs_dir: Optional[Path] = typer.Option(None, "--docs", help="Also write eval.md/eval.json/eval/ here."),
     model: list[str] = typer.Option([], "--model", metavar="KEY=FILE",
                                     help="Model file for a row, e.g. ae-32=ae-32.npz (repeatable)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of an earlier run in --out "
                                    "(and --docs)."),
-    as_json: bool = typer.Option(False, "--json"),
+    as_json: bool = json_option(),
 ) -> None:
     """Reproduce the paper's Table 1: reconstruction error and tracking ATE per compression method."""
     refuse_existing(out_dir, overwrite, files=("eval.json", "eval.md"))
@@ -176,9 +180,9 @@ def dataset_cmd(
     max_mean: float = typer.Option(0.85, "--max-mean", help="Drop windows whose normalised mean is above this."),
     empty_fraction: float = typer.Option(0.02, "--empty-fraction", help="Share of dropped windows kept anyway."),
     batch_size: int = typer.Option(500, "--batch-size", help="Blocks per batch (the paper: 500)."),
-    seed: int = typer.Option(0, "--seed"),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    seed: int = typer.Option(0, "--seed", help="Seed of the sampling and the split."),
+    overwrite: bool = overwrite_option(),
+    as_json: bool = json_option(),
 ) -> None:
     """Build a training data set: synthetic blocks plus sub-volumes of real maps, split 300:50:50 by batches."""
     trunc = parse_truncation(truncation)
@@ -225,8 +229,8 @@ def train_cmd(
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length."),
     max_memory_gb: float = typer.Option(4.0, "--max-memory-gb",
                                         help="Train in memory below this; stream the data set above it."),
-    overwrite: bool = typer.Option(False, "--overwrite"),
-    as_json: bool = typer.Option(False, "--json"),
+    overwrite: bool = overwrite_option("--output"),
+    as_json: bool = json_option(),
 ) -> None:
     """Train a codec on a data set and save it as a model (.npz of plain arrays); report validation/test error."""
     from ..dataset import open_dataset
@@ -273,18 +277,22 @@ def train_cmd(
 @cli
 def bench_cmd(
     codec_id: str = typer.Option("pca", "--codec", help="Codec to measure."),
-    sizes: str = typer.Option("32,64,128", "--sizes", help="Code sizes."),
-    batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4)."),
+    sizes: Optional[str] = typer.Option(None, "--sizes", help="Code sizes (default 32,64,128; --quick: 64)."),
+    batches: Optional[str] = typer.Option(None, "--batches", help="Batch sizes (default 1..65536 by x4; --quick: "
+                                          "1,64,256)."),
     device: str = typer.Option("cpu", "--device", help="Torch device."),
-    quick: bool = typer.Option(False, "--quick", help="Fewer, shorter measurements (4.8-5 min on the 2-core CI machine at load 3.4-4.7, 6.3-7.5 min at load 4.2-7.9)."),
+    quick: bool = typer.Option(False, "--quick", help="Fewer, smaller measurements, the same kinds of figures: "
+                               "code size 64, batches 1, 64, 256, a 4,096-block map, 3 rounds (under a minute "
+                               "on 2 cores)."),
     read: Optional[int] = typer.Option(None, "--read", help="Blocks in the map timed for decode-on-read "
-                                       "(default 65536, --quick 8192; 0: skip)."),
+                                       "(default 65536, --quick 4096; 0: skip)."),
     http: bool = typer.Option(True, "--http/--no-http", help="Also time decode-on-read over HTTP (loopback)."),
     search: bool = typer.Option(True, "--search/--no-search", help="Also time the descriptor search kernel "
                                 "(pca only: search scores pca codes)."),
     as_json: bool = typer.Option(False, "--json", help="Print records as JSON."),
-    repeats: int = typer.Option(5, "--repeats", min=1, help="Equal rounds per figure, each interleaved with its "
-                                "baselines (best and median reported)."),
+    repeats: Optional[int] = typer.Option(None, "--repeats", min=1, help="Equal rounds per figure, each "
+                                          "interleaved with its baselines (best and median reported; default 5, "
+                                          "--quick 3)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Write the run (machine, load, command, records) as one "
                                        "JSON document (--full: default bench-DEVICE.json)."),
     full: bool = typer.Option(False, "--full", help="The device check instead: pca decode (fp32/bf16/fp16) beside "
@@ -324,6 +332,8 @@ def bench_cmd(
 
     if compare and all(compare):
         return _bench_compare(compare, tolerance, as_json)
+    repeats = repeats or (3 if quick else 5)
+    sizes = sizes or ("64" if quick else "32,64,128")
     if full and out is None:
         out = Path(f"bench-{device.replace(':', '-')}.json")
     if out is not None:  # before minutes of measuring
@@ -338,13 +348,12 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
                  http: bool, search: bool, as_json: bool, repeats: int, out: Path | None) -> None:
     """``sdfcodec bench`` without --full or --compare: a codec's figures (see bench_cmd)."""
     from ..bench import PAPER_US_PER_BLOCK, bench_codec, vs_paper
-    from ..codec import uses_weights
-    from ..registry import get_codec_class
+    from ..bench.codecs import bench_steps
 
     ks = [int(s) for s in sizes.split(",")]
-    bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 4096] if quick else
+    bs = [int(b) for b in batches.split(",")] if batches else ([1, 64, 256] if quick else
                                                                [1, 16, 256, 1024, 4096, 16384, 65536])
-    n_read = (8192 if quick else 65536) if read is None else read
+    n_read = (4096 if quick else 65536) if read is None else read
     if n_read < 0:
         fail(f"--read must be >= 0, got {n_read}")
     do_search = search and codec_id == "pca"
@@ -354,14 +363,23 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
     doc = run_document("quick" if quick else "codec", device)
     t0 = time.perf_counter()
     with progress_bar("steps") as prog:
-        task = prog.add_task("bench", total=len(ks) * (len(bs) * (2 + uses_weights(get_codec_class(codec_id))) + (n_read > 0) + do_search) + (n_read > 0), rate="")
-        step = lambda s: prog.update(task, advance=1, description=s)  # noqa: E731
+        # every step counted (the final ones too: decode on read, search, the start-up of `info`), so that the
+        # bar and its "about N s left" stay true to the end
+        searched = [k for k in ks if 1 <= k <= 128] if do_search else []  # one search kernel step per size
+        total = bench_steps(codec_id, ks, bs, read_blocks=n_read, http=http) + len(searched) + (n_read > 0)
+        task = prog.add_task("bench", total=total, rate="")
+        begun: list[str] = []
+
+        def step(what: str) -> None:  # a step is counted done when the next begins: the last one shows as running
+            prog.update(task, advance=1 if begun else 0, description=what)
+            begun.append(what)
+
         records = bench_codec(codec_id, ks, bs, device=device, min_time=0.05 if quick else 0.2, progress=step,
                               read_blocks=n_read, http=http, repeats=repeats)
         if do_search:
             from ..bench import bench_search
 
-            found = bench_search([k for k in ks if 1 <= k <= 128], batches=[n_search], device=device,
+            found = bench_search(searched, batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step, repeats=repeats)
             records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
         if n_read > 0:  # with the map benchmarks: a light command's start-up (issue 19, item 4)
@@ -369,6 +387,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
 
             step("sdfcodec info start-up")
             records += bench_info_startup(repeats=repeats)
+        prog.update(task, advance=1 if begun else 0)
     doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1), records=records)
     if out is not None:
         _write_run(out, doc)

@@ -18,17 +18,19 @@ written leaves the cache in memory only. Deleting the directory is always safe.
 from __future__ import annotations
 
 import collections
+import contextlib
 import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from ..errors import SDFCodecError
 
-__all__ = ["CACHE_ENV", "cache_dir", "cache_key", "cached_model", "cached_threshold", "clear_memory_cache"]
+__all__ = ["CACHE_ENV", "cache_dir", "cache_key", "cached_model", "cached_threshold", "clear_memory_cache",
+           "announce_builds"]
 
 #: Environment variable naming the cache directory (empty, ``0`` or ``off``: no disk cache).
 CACHE_ENV = "SDFCODEC_CACHE_DIR"
@@ -39,6 +41,7 @@ BUILD_VERSION = 2
 MEMORY_ENTRIES = 64
 
 _models: collections.OrderedDict[str, Any] = collections.OrderedDict()
+_listeners: list[Callable[[str], None]] = []  # told what is being built, before a cache miss is built
 _thresholds: collections.OrderedDict[str, tuple[float, dict]] = collections.OrderedDict()
 
 
@@ -84,14 +87,32 @@ def clear_memory_cache() -> None:
     _thresholds.clear()
 
 
+@contextlib.contextmanager
+def announce_builds(listener: Callable[[str], None]) -> Iterator[None]:
+    """Within the block, ``listener(what)`` is called before each model or threshold that is not cached is built
+    (``what``: e.g. "building the wall query for pca-64"): a first search spends most of its time there, and a
+    command says so instead of looking hung (``sdfcodec search``)."""
+    _listeners.append(listener)
+    try:
+        yield
+    finally:
+        _listeners.remove(listener)
+
+
+def _announce(what: str | None) -> None:
+    for listener in list(_listeners) if what else ():
+        listener(what)  # type: ignore[arg-type]
+
+
 def _path(key: str, suffix: str) -> Path | None:
     d = cache_dir()
     return None if d is None else d / "queries" / f"{key}{suffix}"
 
 
-def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool]) -> Any:
-    """The query model cached under ``key``, else ``build()`` (then cached). A model read from disk is used
-    only when ``valid(model)`` holds (it was made by the codec and with the spec the key names)."""
+def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool], what: str | None = None) -> Any:
+    """The query model cached under ``key``, else ``build()`` (then cached; ``what`` names it for
+    :func:`announce_builds`). A model read from disk is used only when ``valid(model)`` holds (it was made by the
+    codec and with the spec the key names)."""
     from .query import load_query, save_query
 
     if key in _models:
@@ -105,6 +126,7 @@ def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool
                 return _remember(_models, key, model)
         except (SDFCodecError, OSError, ValueError):
             pass  # a damaged or foreign file: rebuilt and replaced below
+    _announce(what)
     model = build()
     if path is not None:
         try:
@@ -115,9 +137,10 @@ def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool
 
 
 def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]],
-                     valid: Callable[[dict], bool] = lambda info: True) -> tuple[float, dict]:
-    """The calibrated threshold and its report cached under ``key``, else ``compute()`` (then cached). A report
-    read from disk is used only when ``valid(report)`` holds (it has the fields the caller reads)."""
+                     valid: Callable[[dict], bool] = lambda info: True, what: str | None = None) -> tuple[float, dict]:
+    """The calibrated threshold and its report cached under ``key``, else ``compute()`` (then cached; ``what``
+    names it for :func:`announce_builds`). A report read from disk is used only when ``valid(report)`` holds (it
+    has the fields the caller reads)."""
     if key in _thresholds:
         _thresholds.move_to_end(key)
         return _thresholds[key]
@@ -131,6 +154,7 @@ def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]],
                     return _remember(_thresholds, key, (t, info))
         except (OSError, ValueError, KeyError, TypeError):
             pass
+    _announce(what)
     t, info = compute()
     if path is not None:
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

@@ -100,9 +100,18 @@ def _default_device(device: str | torch.device | None) -> torch.device:
 
 
 def _search_level(m: Map, query: QueryModel, level: int | None) -> int:
-    size, prefix = m.code_size, m.header.codes.prefix_ordered
     if level is None:
-        level = min(size, query.code_size)
+        level = min(m.code_size, query.code_size)
+    _check_map_level(m, level)
+    if level > query.code_size:
+        raise InvalidValueError(f"level {level} exceeds the query's {query.code_size}-element descriptors; use a "
+                                f"level <= {query.code_size}")
+    return int(level)
+
+
+def _check_map_level(m: Map, level: Any) -> None:
+    """What the map alone says of ``level`` (checked before the query is built: a bad level costs nothing)."""
+    size, prefix = m.code_size, m.header.codes.prefix_ordered
     if isinstance(level, bool) or not isinstance(level, (int, np.integer)) or not 1 <= level <= size:
         raise InvalidValueError(f"level must be an int in 1..{size} (the map's code size), got {level!r}")
     if level < size and not prefix:
@@ -110,10 +119,6 @@ def _search_level(m: Map, query: QueryModel, level: int | None) -> int:
                                 f"{level} of {size} elements are not a coarser descriptor and a prefix search is "
                                 f"meaningless; search at the full size (omit level / --level), or encode the map "
                                 "with a prefix-ordered codec such as pca")
-    if level > query.code_size:
-        raise InvalidValueError(f"level {level} exceeds the query's {query.code_size}-element descriptors; use a "
-                                f"level <= {query.code_size}")
-    return int(level)
 
 
 #: :func:`auto_threshold`'s fraction of the model's median nearest-neighbour squared distance.
@@ -198,7 +203,8 @@ def calibrate_threshold(model: QueryModel, codec: Codec, level: int, scorer: "Sc
                     state=codec_state_sha256(codec), level=level,
                     samples=int(samples), observed=observed_scorer is not None, voxel_size=model.voxel_size,
                     truncation=list(model.truncation))
-    t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples))
+    t, info = cached_threshold(key, lambda: _calibrate(model, codec, level, scorer, observed_scorer, samples),
+                               what=f"calibrating the {spec['shape']} threshold for {codec.codec_id}-{codec.code_size}")
     return t, json.loads(json.dumps(info))  # a copy: the caller may add to its report
 
 
@@ -328,6 +334,8 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         raise InvalidValueError(f"threshold must be a finite squared distance >= 0 or 'auto', got {threshold!r}")
     if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
         raise InvalidValueError(f"top must be a positive int, got {top!r}")
+    if level is not None:
+        _check_map_level(m, level)
     view, store = counting_view(m)
     codec = view.codec  # loads (and counts) the codec state unless the map already holds it
     model = resolve_query(query, m, codec, behind=behind, up=up, tilt=tilt)

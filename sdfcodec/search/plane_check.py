@@ -472,7 +472,9 @@ def clean_residuals(normal: np.ndarray, codec: Any, state_sha256: str | None, *,
         return float(np.quantile(sim, quantile)), {"median": float(np.median(sim))}
 
     t, info = cached_threshold(key, compute,
-                               valid=lambda info: isinstance(info.get("median"), float) and np.isfinite(info["median"]))
+                               valid=lambda info: isinstance(info.get("median"), float) and np.isfinite(info["median"]),
+                               what=f"calibrating the plane check of a plane facing {np.round(normal, 2).tolist()} "
+                                    f"for {codec.codec_id}-{codec.code_size}")
     return t, info["median"]
 
 

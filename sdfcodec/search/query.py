@@ -276,7 +276,7 @@ def _shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[
                 and q.descriptors.shape[1] == codec.code_size and q.descriptors.dtype == np.float32
                 and bool(np.isfinite(q.descriptors).all()))
 
-    q = cached_model(key, build, valid)
+    q = cached_model(key, build, valid, what=f"building the {shape} query for {codec.codec_id}-{codec.code_size}")
     # a copy: callers may write into what they get without changing the cached model
     return replace(q, descriptors=q.descriptors.copy(), spec=dict(q.spec),
                    blocks=None if q.blocks is None else q.blocks.copy())
