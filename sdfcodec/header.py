@@ -18,7 +18,8 @@ from .errors import FormatError, VersionError
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
-           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION"]
+           "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION",
+           "VARIABLE_RATE_EXTENSION", "VariableRate"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -52,6 +53,10 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {RESIDUAL_EXTENSION}
 #: (spec section 4d); required, since a reader that refuses sharding (section 9a) could not read the codes
 SHARD_EXTENSION = "sharded-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {SHARD_EXTENSION}
+#: "variable-rate-codes": per block a prefix of its code, quantised and entropy-coded into one stream per chunk
+#: (the array ``code_streams``), described by ``codes.variable_rate`` (spec section 4e)
+VARIABLE_RATE_EXTENSION = "variable-rate-codes"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {VARIABLE_RATE_EXTENSION}
 
 
 class BlockState:
@@ -159,6 +164,19 @@ class ResidualSpec(_Model):
         return self
 
 
+class VariableRate(_Model):
+    """Variable-rate codes (spec section 4e): element ``j`` of a block's prefix decodes as ``step[j] * q``; ``q``
+    follows ``decay[j] ** |q - center[j]|`` on ``center[j] +- extent[j]``, prefix lengths the table ``lengths``."""
+
+    step: list[Annotated[float, Field(gt=0)]] = Field(description="quantisation step per code element (> 0)")
+    coder: Literal["constriction-ans-1"] = Field(description="the entropy coder of the chunk streams")
+    center: list[int] = Field(description="centre of each element's quantised values")
+    decay: list[Annotated[float, Field(gt=0, lt=1)]] = Field(description="decay of each element's two-sided "
+                                                                         "geometric law")
+    extent: list[Annotated[int, Field(ge=0, le=1 << 20)]] = Field(description="largest |q - center| per element")
+    lengths: list[Annotated[int, Field(ge=0)]] = Field(description="frequency of each prefix length 0..D")
+
+
 class CodesSpec(_Model):
     """How code vectors are stored in the ``codes`` array."""
 
@@ -178,12 +196,15 @@ class CodesSpec(_Model):
     shard_blocks: int | None = Field(
         None, ge=2, le=256, description="with the required extension 'sharded-codes': blocks per axis of one shard "
                                         "of codes, a multiple of chunk_blocks (spec section 4d); omitted otherwise")
+    variable_rate: VariableRate | None = Field(
+        None, description="with the required extension 'variable-rate-codes': float32 codes stored as one "
+                          "entropy-coded stream per chunk (spec section 4e); omitted otherwise")
 
     @model_serializer(mode="wrap")
     def _omit_no_quantisation(self, handler):
         # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b-4d
         out = handler(self)
-        for key in ("quantisation", "field_compression", "shard_blocks"):
+        for key in ("quantisation", "field_compression", "shard_blocks", "variable_rate"):
             if isinstance(out, dict) and out.get(key, 0) is None:
                 out.pop(key)
         return out
@@ -215,6 +236,12 @@ class CodesSpec(_Model):
                                               or self.shard_blocks == self.chunk_blocks):
             raise ValueError(f"codes.shard_blocks ({self.shard_blocks}) must be a multiple of chunk_blocks "
                              f"({self.chunk_blocks}) and larger")
+        vr = self.variable_rate
+        if vr is not None and (self.dtype != "float32" or not self.prefix_ordered or self.shard_blocks is not None
+                               or not len(vr.step) == len(vr.center) == len(vr.decay) == len(vr.extent) == self.size
+                               or len(vr.lengths) != self.size + 1):
+            raise ValueError(f"codes.variable_rate needs float32, prefix-ordered, unsharded codes and {self.size} "
+                             f"steps, centres, decays and extents and {self.size + 1} length frequencies")
         if self.shard_blocks is not None and self.field_compression is not None:
             raise ValueError("codes.shard_blocks and codes.field_compression do not go together (spec section 4d)")
         return self
@@ -299,6 +326,10 @@ class MapHeader(_Model):
         if (self.codes.shard_blocks is not None) != bool(shard) or any(not e.required for e in shard):
             raise ValueError(f"codes.shard_blocks and the required extension {SHARD_EXTENSION!r} go together "
                              f"(extensions {[e.name for e in self.extensions]})")
+        vrx = [e for e in self.extensions if e.name == VARIABLE_RATE_EXTENSION]
+        if (self.codes.variable_rate is not None) != bool(vrx) or any(not e.required for e in vrx):
+            raise ValueError(f"codes.variable_rate and the required extension {VARIABLE_RATE_EXTENSION!r} go "
+                             f"together (extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         return self

@@ -41,6 +41,7 @@ from .stores import GuardStore, PinnedStore, open_store, unguarded
 from .device_feed import DeviceFeed
 from .fastfetch import local_chunks
 from .shards import chunk_name, chunk_stored, shard_layout
+from .varrate import VariableRateReader
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -194,6 +195,8 @@ class MapReader:
         self.mask_array = checked_mask_array(self)
         self.residual_array = checked_residual_array(self)
         self.codes_array, self.state_array = codes, state
+        # variable-rate codes (spec 4e): read from their chunk streams, the codes array holds no chunk
+        self.vr = None if h.codes.variable_rate is None else VariableRateReader(self, h.codes.variable_rate)
 
     # -- reading --------------------------------------------------------------------------------------
     def read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
@@ -355,10 +358,12 @@ class MapReader:
             raise InvalidValueError(f"reading the codes of blocks {[(s.start, s.stop) for s in box]} densely needs "
                                     f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
                                     " GiB; read a smaller region, use iter_codes(), or raise max_decode_bytes")
+        coords = local + np.array([s.start for s in box], dtype=np.int64)
+        if self.vr is not None:
+            return coords, self.vr.codes_for(coords, level)
         codes = self.read(self.codes_array, (*box, slice(0, level)))[tuple(local.T)]
         params = (None if self.code_scale_array is None
                   else self.read(self.code_scale_array, (*box, slice(0, 2)))[tuple(local.T)])
-        coords = local + np.array([s.start for s in box], dtype=np.int64)
         return coords, self._code_values(coords, codes, params)
 
     def _code_values(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> np.ndarray:
@@ -432,8 +437,10 @@ class MapReader:
             sels.append((*(slice(int(a), int(b)) for a, b in zip(lo, hi)), slice(0, level)))
             locs.append(np.argwhere(sub == BlockState.CODED))
             los.append(lo)
-        codes = self.gather(self.codes_array, sels, locs)
         coords = np.concatenate([loc + lo for loc, lo in zip(locs, los)]).astype(np.int64, copy=False)
+        if self.vr is not None:
+            return coords, self.vr.codes_for(coords, level)
+        codes = self.gather(self.codes_array, sels, locs)
         params = None
         if self.code_scale_array is not None:
             params = self.gather(self.code_scale_array, [(*sel[:3], slice(0, 2)) for sel in sels], locs)
