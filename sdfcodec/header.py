@@ -165,16 +165,14 @@ class ResidualSpec(_Model):
 
 
 class VariableRate(_Model):
-    """Variable-rate codes (spec section 4e): element ``j`` of a block's prefix decodes as ``step[j] * q``; ``q``
-    follows ``decay[j] ** |q - center[j]|`` on ``center[j] +- extent[j]``, prefix lengths the table ``lengths``."""
+    """Variable-rate codes (spec section 4e): element ``j`` of a block's prefix decodes as ``step[j] * q`` (one step:
+    every element's); ``model`` packs each element's law of ``q`` and the law of the prefix lengths."""
 
-    step: list[Annotated[float, Field(gt=0)]] = Field(description="quantisation step per code element (> 0)")
+    step: list[Annotated[float, Field(gt=0)]] = Field(description="quantisation step, one for all elements or one "
+                                                                  "per element (> 0)")
     coder: Literal["constriction-ans-1"] = Field(description="the entropy coder of the chunk streams")
-    center: list[int] = Field(description="centre of each element's quantised values")
-    decay: list[Annotated[float, Field(gt=0, lt=1)]] = Field(description="decay of each element's two-sided "
-                                                                         "geometric law")
-    extent: list[Annotated[int, Field(ge=0, le=1 << 20)]] = Field(description="largest |q - center| per element")
-    lengths: list[Annotated[int, Field(ge=0)]] = Field(description="frequency of each prefix length 0..D")
+    model: str = Field(max_length=1 << 20, pattern=r"^[A-Za-z0-9+/=]*$",
+                       description="base64 of the zlib-compressed probability model (spec section 4e)")
 
 
 class CodesSpec(_Model):
@@ -238,10 +236,9 @@ class CodesSpec(_Model):
                              f"({self.chunk_blocks}) and larger")
         vr = self.variable_rate
         if vr is not None and (self.dtype != "float32" or not self.prefix_ordered or self.shard_blocks is not None
-                               or not len(vr.step) == len(vr.center) == len(vr.decay) == len(vr.extent) == self.size
-                               or len(vr.lengths) != self.size + 1):
-            raise ValueError(f"codes.variable_rate needs float32, prefix-ordered, unsharded codes and {self.size} "
-                             f"steps, centres, decays and extents and {self.size + 1} length frequencies")
+                               or len(vr.step) not in (1, self.size)):
+            raise ValueError(f"codes.variable_rate needs float32, prefix-ordered, unsharded codes and 1 or {self.size} "
+                             "steps")
         if self.shard_blocks is not None and self.field_compression is not None:
             raise ValueError("codes.shard_blocks and codes.field_compression do not go together (spec section 4d)")
         return self

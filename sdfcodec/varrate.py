@@ -23,6 +23,8 @@ first their lengths, then element by element (all blocks with ``K > j`` for elem
 
 from __future__ import annotations
 
+import base64
+import zlib
 from typing import Sequence
 
 import numpy as np
@@ -39,6 +41,8 @@ CODER = "constriction-ans-1"
 #: entropy-coded element (``dD/dR = -2 ln 2 * step ** 2 / 12``), ln 2 / 6.
 LAGRANGE = float(np.log(2) / 6)
 _MIN_DECAY, _MAX_DECAY = 1e-6, 1 - 1e-9
+#: Entries of all of a model's tables together a reader builds at most (128 MiB of float64).
+MAX_TABLE = 1 << 24
 
 
 def _coder():
@@ -63,6 +67,9 @@ class EntropyModel:
                 or not self.lengths.sum() > 0:
             raise FormatError("variable-rate model: decay must lie in (0, 1), extent and lengths be >= 0 "
                               "(lengths not all 0)")
+        if int((2 * self.extent + 1).sum()) > MAX_TABLE:
+            raise FormatError(f"variable-rate model: its tables would hold {int((2 * self.extent + 1).sum())} "
+                              f"entries, above the limit of {MAX_TABLE} (a step far too small, or a corrupted header)")
         self._models = None
 
     @property
@@ -96,9 +103,41 @@ class EntropyModel:
         p = np.maximum(self.lengths, 0.5) / self.lengths.sum()
         return -np.log2(p)
 
-    def to_fields(self) -> dict:
-        return {"center": [int(v) for v in self.center], "decay": [float(v) for v in self.decay],
-                "extent": [int(v) for v in self.extent], "lengths": [int(v) for v in self.lengths]}
+    def pack(self) -> str:
+        """The model as the header stores it (spec section 4e): base64 of zlib of the little-endian arrays
+        ``D`` (uint32), ``decay`` as uint16 ``round(decay * 65536)``, ``center`` int32, ``extent`` uint32, ``lengths``
+        uint32 (``D + 1``)."""
+        d = self.size
+        raw = b"".join([np.uint32(d).astype("<u4").tobytes(), _decay_code(self.decay).astype("<u2").tobytes(),
+                        self.center.astype("<i4").tobytes(), self.extent.astype("<u4").tobytes(),
+                        self.lengths.astype("<u4").tobytes()])
+        return base64.b64encode(zlib.compress(raw, 9)).decode("ascii")
+
+    @classmethod
+    def unpack(cls, text: str, size: int) -> "EntropyModel":
+        """:meth:`pack` read back for codes of ``size`` elements; a malformed one is a FormatError."""
+        try:
+            raw = zlib.decompressobj().decompress(base64.b64decode(text, validate=True), 64 + 18 * (size + 1))
+            d = int(np.frombuffer(raw[:4], "<u4")[0])
+            if d != size or len(raw) != 4 + 14 * d + 4:
+                raise ValueError(f"it holds {len(raw)} bytes for {d} elements")
+            o = 4
+            dec = np.frombuffer(raw[o:o + 2 * d], "<u2").astype(np.float64) / 65536
+            o += 2 * d
+            center = np.frombuffer(raw[o:o + 4 * d], "<i4")
+            o += 4 * d
+            extent = np.frombuffer(raw[o:o + 4 * d], "<u4")
+            o += 4 * d
+            lengths = np.frombuffer(raw[o:], "<u4")
+        except (ValueError, TypeError, zlib.error) as e:
+            raise FormatError(f"codes.variable_rate.model does not unpack into a model of {size} elements ({e})") \
+                from e
+        return cls(center, dec, extent, lengths)
+
+
+def _decay_code(decay: np.ndarray) -> np.ndarray:
+    """Decays as the model stores them: ``round(decay * 65536)`` in ``[1, 65535]``."""
+    return np.clip(np.rint(np.asarray(decay) * 65536), 1, 65535).astype(np.uint16)
 
 
 def quantise(z: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -121,7 +160,10 @@ def fit_model(q: np.ndarray, k: np.ndarray) -> EntropyModel:
         m = float(dist.mean())
         decay[j] = (np.sqrt(1 + m * m) - 1) / m if m > 0 else _MIN_DECAY
         extent[j] = int(dist.max())
-    decay = np.clip(decay, _MIN_DECAY, _MAX_DECAY)
+    # 16 bits each, as the header stores them: the coder builds its tables from what is stored
+    decay = _decay_code(np.clip(decay, _MIN_DECAY, _MAX_DECAY)) / 65536
+    if (np.abs(center) > 2 ** 31 - 1).any() or (extent > 2 ** 32 - 1).any():
+        raise InvalidValueError("quantised codes beyond 2**31 steps: use a larger step")
     return EntropyModel(center, decay, extent, np.bincount(k, minlength=d + 1))
 
 

@@ -158,7 +158,9 @@ class VariableRateWriter:
             streams, model, k = self._encode_all(z, g, chunk_ids, step)
         else:
             streams, model, k = [], EntropyModel([0] * self.d, [0.5] * self.d, [0] * self.d, [1] + [0] * self.d), []
-        spec = VariableRate(step=[float(s) for s in step], coder=CODER, **model.to_fields())
+        uniform = bool((step == step[0]).all())
+        spec = VariableRate(step=[float(step[0])] if uniform else [float(s) for s in step], coder=CODER,
+                            model=model.pack())
         width = max([stream_bytes(s) for s in streams], default=4)
         arr = group.create_array(STREAM_ARRAY, shape=(*cgrid, width), dtype="uint8", fill_value=0,
                                  chunks=(1, 1, 1, width), compressors=stream_compressors(),
@@ -191,10 +193,10 @@ class VariableRateWriter:
 
         def total(s: float) -> tuple[float, float]:
             streams, model, _ = self._encode_all(z, g, chunk_ids, np.full(self.d, s))
-            other = other_bytes(dict(step=[s] * self.d, coder=CODER, **model.to_fields()))
+            other = other_bytes(dict(step=[s], coder=CODER, model=model.pack()))
             return (self._rows_bytes(streams) + other) / n, other / n
 
-        lo, hi = -14.0, 4.0  # log2 of steps: 6e-5 .. 16 normalised units
+        lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
         t_hi, other_hi = total(2 ** hi)
         if t_hi > t * (1 + TOLERANCE):
             raise InvalidValueError(f"a target of {t:g} bytes per coded block is below what this map can take: at "
@@ -228,7 +230,7 @@ class VariableRateWriter:
             q, _, _ = choose_lengths(z, g, st, self._lam(st, g))
             return surface_error(self.codec, v, obs, q * st, truncation)
 
-        lo, hi = -14.0, 4.0
+        lo, hi = -10.0, 4.0
         floor = err(2 ** lo)
         if floor > e:
             raise InvalidValueError(f"a target error of {e * 1000:g} mm is below what this codec reaches on this map: "
@@ -278,8 +280,8 @@ class VariableRateReader:
 
     def __init__(self, reader: Any, spec: VariableRate):
         self.reader, self.spec = reader, spec
-        self.model = EntropyModel(spec.center, spec.decay, spec.extent, spec.lengths)
-        self.step = np.asarray(spec.step, np.float64)
+        self.model = EntropyModel.unpack(spec.model, reader.header.codes.size)
+        self.step = np.broadcast_to(np.asarray(spec.step, np.float64), (reader.header.codes.size,))
         arr = reader.member(STREAM_ARRAY)
         h = reader.header
         cb = h.codes.chunk_blocks
