@@ -67,7 +67,7 @@ class EntropyModel:
                 or not self.lengths.sum() > 0:
             raise FormatError("variable-rate model: decay must lie in (0, 1), extent and lengths be >= 0 "
                               "(lengths not all 0)")
-        if int((2 * self.extent + 1).sum()) > MAX_TABLE:
+        if int((2 * np.maximum(self.extent, 1) + 1).sum()) > MAX_TABLE:
             raise FormatError(f"variable-rate model: its tables would hold {int((2 * self.extent + 1).sum())} "
                               f"entries, above the limit of {MAX_TABLE} (a step far too small, or a corrupted header)")
         self._models = None
@@ -77,8 +77,9 @@ class EntropyModel:
         return len(self.center)
 
     def table(self, j: int) -> np.ndarray:
-        """Unnormalised probabilities ``(2 extent_j + 1,)`` float64 of ``q - center_j + extent_j``."""
-        half = np.cumprod(np.concatenate([[1.0], np.full(int(self.extent[j]), self.decay[j])]))
+        """Unnormalised probabilities ``(2 e + 1,)`` float64 of ``q - center_j + e``, ``e = max(extent_j, 1)`` (the
+        coder needs two symbols at least)."""
+        half = np.cumprod(np.concatenate([[1.0], np.full(max(int(self.extent[j]), 1), self.decay[j])]))
         return np.concatenate([half[:0:-1], half])
 
     def models(self):
@@ -202,12 +203,13 @@ def encode_chunk(q: np.ndarray, k: np.ndarray, model: EntropyModel) -> np.ndarra
     by element, the quantised values ``q`` ``(n, D)`` of the blocks with ``k > j``."""
     lm, em = model.models()
     coder = _coder().stack.AnsCoder()
-    off = model.extent - model.center  # symbol = q + extent - center
+    ext = np.maximum(model.extent, 1)
+    off = ext - model.center  # symbol = q + e - center
     for j in range(model.size - 1, -1, -1):  # a stack: the last pushed is the first read
         sel = k > j
         if sel.any():
             sym = q[sel, j] + off[j]
-            if sym.min() < 0 or sym.max() > 2 * model.extent[j]:
+            if sym.min() < 0 or sym.max() > 2 * ext[j]:
                 raise InvalidValueError(f"code element {j} holds a value beyond the model's extent")
             coder.encode_reverse(sym.astype(np.int32), em[j])
     coder.encode_reverse(np.asarray(k, np.int32), lm)
@@ -224,7 +226,7 @@ def decode_chunk(words: np.ndarray, n: int, model: EntropyModel, level: int | No
     coder = _coder().stack.AnsCoder(np.ascontiguousarray(words, np.uint32))
     k = coder.decode(lm, n) if n else np.zeros(0, np.int32)
     out = np.zeros((n, level), np.int32)
-    off = model.extent - model.center
+    off = np.maximum(model.extent, 1) - model.center
     for j in range(level):
         sel = np.flatnonzero(k > j)
         if not len(sel):

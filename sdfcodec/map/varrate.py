@@ -28,7 +28,7 @@ from .observed import error_weights, write_block_rows
 
 torch = lazy_module("torch")
 
-__all__ = ["STREAM_ARRAY", "GAIN_ARRAY", "VariableRateWriter", "VariableRateReader", "surface_error",
+__all__ = ["STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_compressors", "VariableRateWriter", "VariableRateReader", "surface_error",
            "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE"]
 
 STREAM_ARRAY = "code_streams"
@@ -39,6 +39,8 @@ SAMPLE_BLOCKS = 2048
 #: ``--target-bytes``: the step search stops within this fraction of the target (what it counts is exact but
 #: the compressor's frame of each row, estimated at 20 bytes).
 TOLERANCE = 0.01
+#: Bytes of the ``code_streams`` array document (``zarr.json``; measured 717).
+STREAM_METADATA_BYTES = 720
 _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
 
 

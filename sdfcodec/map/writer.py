@@ -29,6 +29,7 @@ from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoun
 from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, QUANT_EXTENSION, RESIDUAL_EXTENSION,
                       SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION, VARIABLE_RATE_EXTENSION,
                       BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
+                      VariableRate,
                       now_iso)
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
@@ -43,7 +44,7 @@ from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, re
                        stored_code_values)
 from .shards import pack_shards, unpack_shards
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
-from .varrate import GAIN_ARRAY, STREAM_ARRAY, VariableRateWriter
+from .varrate import GAIN_ARRAY, STREAM_ARRAY, STREAM_METADATA_BYTES, VariableRateWriter
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -443,12 +444,14 @@ class MapWriter:
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
 
             def other_bytes(fields: dict) -> int:  # every file but the codes, with the header they will have
-                spec = self.codes_spec.model_copy(update={"variable_rate": fields})
+                spec = self.codes_spec.model_copy(update={"variable_rate": VariableRate(**fields)})
                 h = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=spec,
                               extensions=extensions, **self.header_kw)
                 skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
                 files = [f for f in Path(self.tmp).rglob("*") if f.is_file() and not any(p in skip for p in f.parents)]
-                return sum(f.stat().st_size for f in files) + len(h.model_dump_json())
+                # the header as Zarr stores it (indented JSON), and the document of code_streams (made after this)
+                doc = json.dumps({"attributes": {"sdfcodec": json.loads(h.model_dump_json())}}, indent=2)
+                return sum(f.stat().st_size for f in files) + len(doc) + STREAM_METADATA_BYTES
 
             vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
             self.codes_spec = self.codes_spec.model_copy(update={"variable_rate": vr})
