@@ -258,6 +258,12 @@ def _variable_rate_wanted(flag: Optional[bool], step: Optional[float], target_by
                           target_error: Optional[float], code_dtype: str) -> bool:
     """Whether ``encode`` writes variable-rate codes: ``--variable-rate``, else a byte or error target with float32
     codes (the default ``--code-dtype``; ``--code-dtype int16`` keeps the fixed-length int16 codes)."""
+    from ..map.rate import check_target
+
+    if target_bytes is not None:
+        check_target(target_bytes)
+    if target_error is not None and not (np.isfinite(target_error) and target_error > 0):
+        raise InvalidValueError(f"--target-error must be a finite number of metres > 0, got {target_error}")
     if flag is not None:
         if flag and code_dtype != "float32":
             raise InvalidValueError(f"--variable-rate stores its own codes; --code-dtype {code_dtype} contradicts it")
