@@ -103,6 +103,14 @@ def test_stored_prefixes_are_the_dequantised_codes(tmp_path, scene_volume, pca32
         sl = tuple(slice(16 * int(v), 16 * int(v) + 16) for v in c)
         part = dec[sl]
         np.testing.assert_allclose(part, got[tuple(c)][tuple(slice(0, s) for s in part.shape)], atol=1e-5)
+    # the streaming decode (blocks regrouped by prefix length inside) yields each block with its own decode
+    full = dict(zip(map(tuple, c1), np.clip(pca32.decode(z1) * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)))
+    seen = 0
+    for cs, blocks in vr.iter_decoded():
+        for c, b in zip(cs, np.asarray(blocks)):
+            np.testing.assert_allclose(b, full[tuple(c)], atol=1e-5)
+            seen += 1
+    assert seen == len(c1)
     # search reads codes: on the variable-rate map it selects mostly what it selects on the float map
     from sdfcodec.search import search
     a = search(vr, "floor", top=10)

@@ -41,7 +41,7 @@ from .stores import GuardStore, PinnedStore, open_store, unguarded
 from .device_feed import DeviceFeed
 from .fastfetch import local_chunks
 from .shards import chunk_name, chunk_stored, shard_layout
-from .varrate import VariableRateReader
+from .varrate import VariableRateReader, decode_runs, prefix_lengths
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -481,6 +481,9 @@ class MapReader:
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
 
         def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
+            if self.vr is not None:  # blocks by prefix length, so that runs of like lengths decode their prefix
+                order = np.argsort(prefix_lengths(codes), kind="stable")
+                coords[:], codes = coords[order], codes[order]
             # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals)
             return (feed.stage(codes), None if mask is None else read_block_rows(self, mask, coords),
                     None if res is None else self.read_residual(coords))
@@ -488,6 +491,9 @@ class MapReader:
         for coords, (staged, rows, resid) in self.fetch_stream(box, level, stage=stage, **kw):
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
+            if self.vr is not None:
+                yield coords, decode_runs(self, codes, coords, rows, out, placer, metres)
+                continue
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
                                             residual_rows=resid, out=out, placer=placer)
 

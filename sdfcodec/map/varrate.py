@@ -28,7 +28,8 @@ from .observed import error_weights, write_block_rows
 
 torch = lazy_module("torch")
 
-__all__ = ["STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_compressors", "VariableRateWriter", "VariableRateReader", "surface_error",
+__all__ = ["STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_compressors", "prefix_lengths",
+           "decode_runs", "VariableRateWriter", "VariableRateReader", "surface_error",
            "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE"]
 
 STREAM_ARRAY = "code_streams"
@@ -339,3 +340,38 @@ class VariableRateReader:
                 raise InvalidValueError("codes_for was asked for a block that is not coded")
             out[sel] = q[r] * self.step[:level]
         return out
+
+
+#: Prefix lengths decoded together are rounded up to a multiple of this: runs of blocks of like lengths decode
+#: their own prefix, not the longest of the group (a pca-128 map's blocks keep 60-120 elements).
+RUN_WIDTH = 16
+
+
+def prefix_lengths(codes: Any) -> np.ndarray:
+    """``(n,)`` int64: each row's prefix length (last non-zero element + 1) of codes ``(n, L)`` (numpy or a tensor)."""
+    nz = np.asarray(codes.cpu() if hasattr(codes, "cpu") else codes) != 0
+    return np.where(nz.any(axis=1), nz.shape[1] - np.argmax(nz[:, ::-1], axis=1), 0)
+
+
+def decode_runs(reader: Any, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: Any,
+                metres: bool) -> Any:
+    """:meth:`MapReader.decode_codes` of a group whose blocks are sorted by prefix length: each run of blocks whose
+    lengths round up to the same multiple of :data:`RUN_WIDTH` decodes only that prefix (into its slice of
+    ``out``, or placed by ``placer``); the decodes in the group's order, or None with a placer."""
+    k = prefix_lengths(codes)
+    width = np.maximum(-(-k // RUN_WIDTH) * RUN_WIDTH, RUN_WIDTH).clip(max=codes.shape[1])
+    bounds = np.r_[0, np.flatnonzero(np.diff(width)) + 1, len(k)]
+    parts = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if a == b:
+            continue
+        w = int(width[a])
+        part = reader.decode_codes(codes[a:b, :w].contiguous(), metres=metres, coords=coords[a:b],
+                                   mask_rows=None if rows is None else rows[a:b],
+                                   out=None if out is None else out[a:b], placer=placer)
+        parts.append(part)
+    if placer is not None:
+        return None
+    if out is not None:
+        return out
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
