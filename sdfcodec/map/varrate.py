@@ -24,7 +24,7 @@ from ..errors import FormatError, InvalidValueError
 from ..header import BlockState, VariableRate
 from ..varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                        stream_bytes)
-from .observed import error_weights, write_block_rows
+from .observed import error_weights, read_block_rows, write_block_rows
 
 torch = lazy_module("torch")
 
@@ -256,17 +256,17 @@ def stream_compressors() -> list:
     return [ZstdCodec(level=1), Crc32cCodec()]
 
 
+class _PlainReads:
+    """What :func:`~sdfcodec.map.observed.read_block_rows` needs of a reader, for the writer's own arrays."""
+
+    @staticmethod
+    def read_many(arr: Any, sels: list) -> list[np.ndarray]:
+        return [np.asarray(arr[sel]) for sel in sels]
+
+
 def _rows(arr: Any, coords: np.ndarray) -> np.ndarray:
     """Rows ``arr[bx, by, bz, :]`` of blocks ``coords`` ``(n, 3)``, one read per chunk (the writer's own arrays)."""
-    out = np.zeros((len(coords), arr.shape[3]), arr.dtype)
-    cb = np.asarray(arr.chunks[:3])
-    keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    for i, k in enumerate(keys):
-        box = tuple(slice(int(c) * b, min(int(c) * b + b, g)) for c, b, g in zip(k, cb, arr.shape))
-        sel = np.flatnonzero(inverse == i)
-        out[sel] = np.asarray(arr[box])[tuple((coords[sel] - k * cb).T)]
-    return out
+    return read_block_rows(_PlainReads, arr, coords)
 
 
 def _drop_chunks(group: Any, name: str) -> None:
@@ -292,10 +292,12 @@ class VariableRateReader:
         if arr is None:
             raise FormatError(f"{reader.location}: map has variable-rate codes but lacks array '{STREAM_ARRAY}' "
                               "(spec section 4e); it is incomplete")
-        if tuple(arr.shape[:3]) != cgrid or arr.dtype != np.uint8 or tuple(arr.chunks[:3]) != (1, 1, 1) \
-                or arr.chunks[3] != arr.shape[3]:
-            raise FormatError(f"{reader.location}: array '{STREAM_ARRAY}' must be uint8 of shape ({cgrid}, L) in "
-                              f"chunks (1, 1, 1, L); got {arr.dtype} {arr.shape} in chunks {arr.chunks}")
+        if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
+            raise FormatError(f"{reader.location}: array '{STREAM_ARRAY}' must have shape ({cgrid}, L), one row per "
+                              f"chunk of codes; got {arr.shape}")
+        # dtype, chunking, fill value and codecs (section 9a), and the size limit of every chunk read
+        reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
+                           zero_fill=True)
         self.arr, self.cb, self.cgrid = arr, cb, cgrid
         self._states = None
 
