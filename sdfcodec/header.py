@@ -21,7 +21,7 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
-           "ManifestRef", "MAX_MANIFEST_BYTES"]
+           "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -62,6 +62,10 @@ MANIFEST_EXTENSION = "integrity-manifest"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {MANIFEST_EXTENSION}
 #: Largest manifest document a reader loads (about 600,000 objects; shard a larger map's codes).
 MAX_MANIFEST_BYTES = 64 << 20
+#: "variable-rate-codes": per block a prefix of its code, quantised and entropy-coded into one stream per chunk
+#: (the array ``code_streams``), described by ``codes.variable_rate`` (spec section 4e)
+VARIABLE_RATE_EXTENSION = "variable-rate-codes"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {VARIABLE_RATE_EXTENSION}
 
 
 class BlockState:
@@ -171,6 +175,17 @@ class ResidualSpec(_Model):
         return self
 
 
+class VariableRate(_Model):
+    """Variable-rate codes (spec section 4e): element ``j`` of a block's prefix decodes as ``step[j] * q`` (one step:
+    every element's); ``model`` packs each element's law of ``q`` and the law of the prefix lengths."""
+
+    step: list[Annotated[float, Field(gt=0)]] = Field(description="quantisation step, one for all elements or one "
+                                                                  "per element (> 0)")
+    coder: Literal["constriction-ans-1"] = Field(description="the entropy coder of the chunk streams")
+    model: str = Field(max_length=1 << 20, pattern=r"^[A-Za-z0-9+/=]*$",
+                       description="base64 of the zlib-compressed probability model (spec section 4e)")
+
+
 class CodesSpec(_Model):
     """How code vectors are stored in the ``codes`` array."""
 
@@ -190,12 +205,15 @@ class CodesSpec(_Model):
     shard_blocks: int | None = Field(
         None, ge=2, le=256, description="with the required extension 'sharded-codes': blocks per axis of one shard "
                                         "of codes, a multiple of chunk_blocks (spec section 4d); omitted otherwise")
+    variable_rate: VariableRate | None = Field(
+        None, description="with the required extension 'variable-rate-codes': float32 codes stored as one "
+                          "entropy-coded stream per chunk (spec section 4e); omitted otherwise")
 
     @model_serializer(mode="wrap")
     def _omit_no_quantisation(self, handler):
         # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b-4d
         out = handler(self)
-        for key in ("quantisation", "field_compression", "shard_blocks"):
+        for key in ("quantisation", "field_compression", "shard_blocks", "variable_rate"):
             if isinstance(out, dict) and out.get(key, 0) is None:
                 out.pop(key)
         return out
@@ -227,6 +245,11 @@ class CodesSpec(_Model):
                                               or self.shard_blocks == self.chunk_blocks):
             raise ValueError(f"codes.shard_blocks ({self.shard_blocks}) must be a multiple of chunk_blocks "
                              f"({self.chunk_blocks}) and larger")
+        vr = self.variable_rate
+        if vr is not None and (self.dtype != "float32" or not self.prefix_ordered or self.shard_blocks is not None
+                               or len(vr.step) not in (1, self.size)):
+            raise ValueError(f"codes.variable_rate needs float32, prefix-ordered, unsharded codes and 1 or {self.size} "
+                             "steps")
         if self.shard_blocks is not None and self.field_compression is not None:
             raise ValueError("codes.shard_blocks and codes.field_compression do not go together (spec section 4d)")
         return self
@@ -326,6 +349,10 @@ class MapHeader(_Model):
         if (self.manifest is not None) != bool(man) or any(not e.required for e in man):
             raise ValueError(f"manifest and the required extension {MANIFEST_EXTENSION!r} go together "
                              f"(extensions {[e.name for e in self.extensions]})")
+        vrx = [e for e in self.extensions if e.name == VARIABLE_RATE_EXTENSION]
+        if (self.codes.variable_rate is not None) != bool(vrx) or any(not e.required for e in vrx):
+            raise ValueError(f"codes.variable_rate and the required extension {VARIABLE_RATE_EXTENSION!r} go "
+                             f"together (extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         if (problem := self._arithmetic_problem()) is not None:

@@ -327,7 +327,15 @@ def _check_states(rep: VerifyReport, m) -> np.ndarray | None:
 
 def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
     """Every chunk of ``codes`` (and of ``code_scale`` for int8 maps: same block chunking, spec section 4a)
-    reads back, holds finite values for coded blocks, and is present wherever a block is coded."""
+    reads back, holds finite values for coded blocks, and is present wherever a block is coded; for variable-rate
+    codes (spec 4e), every chunk stream holding coded blocks is present and decodes."""
+    if m.reader.vr is not None:
+        if states is not None:
+            try:
+                m.reader.vr.codes_for(np.argwhere(states == BlockState.CODED), m.reader.header.codes.size)
+            except SDFCodecError as e:
+                rep.problem("code_streams", str(e))
+        return
     for arr in (m.reader.codes_array, m.reader.code_scale_array):
         if arr is not None:
             _check_code_array(rep, m, arr, states)

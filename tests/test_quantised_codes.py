@@ -233,7 +233,8 @@ def test_encode_target_bytes_through_a_subprocess(room_file, tmp_path):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "plugins"),
                                                        os.environ.get("PYTHONPATH", "")]))
     r = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "encode", str(room_file), str(out), "--voxel-size",
-                        str(VS), "--target-bytes", "100", "--json"], capture_output=True, text=True, env=env,
+                        str(VS), "--target-bytes", "100", "--code-dtype", "int16", "--json"], capture_output=True,
+                       text=True, env=env,
                        timeout=300)
     assert r.returncode == 0, r.stderr
     q = json.loads(r.stdout[r.stdout.index("{"):])["quantisation"]
@@ -245,7 +246,7 @@ def test_encode_target_bytes_through_a_subprocess(room_file, tmp_path):
     assert q["bytes_per_coded_block"] == pytest.approx(per_block)
     assert m.header.codes.dtype == "int16" and m.header.codes.quantisation.step == [q["step"]] * 64
     r = CliRunner().invoke(app, ["encode", str(room_file), str(tmp_path / "x.sdfz"), "--voxel-size", str(VS),
-                                 "--target-bytes", "3"])
+                                 "--target-bytes", "3", "--code-dtype", "int16"])
     assert r.exit_code == 1 and "below what this codec can reach on this map: at least" in r.output, r.output
     assert not (tmp_path / "x.sdfz").exists()
 

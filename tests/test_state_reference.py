@@ -3,6 +3,8 @@ spec/map-format.md section 6c), through the CLI as a user runs it (piped: CliRun
 
 from __future__ import annotations
 
+import re
+
 import json
 import os
 from pathlib import Path
@@ -144,7 +146,9 @@ def test_a_reference_that_does_not_resolve_is_one_clear_error(ae_maps, tmp_path)
     assert "--codec ae --code-size 64 --codec-state embedded" in line
     r = run("verify", tampered)
     assert r.exit_code != 0 and "codec.state_reference" in r.stdout and bad in r.stdout, r.output
-    with pytest.raises(errors.StateReferenceError, match="install the version of the plugin"):
+    # issue 42: the line names the package and version to install, the one that wrote the map (its header)
+    wrote = f"{sdfcodec.open_map(tampered).header.codec.package}=={sdfcodec.open_map(tampered).header.codec.package_version}"
+    with pytest.raises(errors.StateReferenceError, match=f"install {re.escape(wrote)} \\(the plugin version that wrote"):
         sdfcodec.open_map(tampered).codec
 
     unknown = _tampered(ref, tmp_path / "u.sdfz", model="ae-64-v9", sha256=bad)  # a later plugin's model

@@ -144,12 +144,14 @@ def encode_cmd(
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 code storage (int8: per-block offset and scale, a quarter of float32)."),
     fit: bool = typer.Option(False, "--fit", help="Fit the codec on the input instead of the shipped model."),
     fit_max_blocks: int = typer.Option(100_000, "--fit-max-blocks", help="Blocks sampled to fit a codec."),
-    codec_state: str = typer.Option("embedded", "--codec-state", help="embedded: the map stores the codec's learned state (self-contained); reference: only the name and digest of the shipped model (readers need it in the installed plugin)."),
+    codec_state: Optional[str] = typer.Option(None, "--codec-state", help="reference (default for a shipped model): only the name and digest of the shipped model (readers need the plugin version that ships it); embedded (default for a fitted or trained codec): the map stores the codec's learned state (self-contained)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUTPUT if it exists."),
     device: str = typer.Option("cpu", "--device", help="Torch device to encode on (cpu, cuda)."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
     step: Optional[float] = typer.Option(None, "--step", help="Quantise the codes with this step (int16 codes, entropy-coded; |error| <= step/2 per element; pca, raw)."),
-    target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Choose the step so the map takes about B stored bytes per coded block (everything but the codec state)."),
+    target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Make the map take B stored bytes per coded block, every file counted (a referenced shipped model excepted): variable-rate codes (pca-128 prefixes chosen per block, unless --code-size), or with --code-dtype int16 fixed-length int16 codes."),
+    target_error: Optional[float] = typer.Option(None, "--target-error", help="The smallest variable-rate map whose surface stays within E metres: every observed voxel touching a surface crossing decodes within E, checked on a sample of 2048 coded blocks (docs/variable-rate.md)."),
+    variable_rate: Optional[bool] = typer.Option(None, "--variable-rate/--fixed-rate", help="Variable-rate codes (prefix per block, entropy-coded; default with --target-bytes/--target-error) or fixed-length int16 codes (default with --step)."),
     max_error: Optional[float] = typer.Option(None, "--max-error", help="Absolute error bound in metres on observed voxels: with --codec sz3 SZ3's own bound (field compression), with block codecs (pca, ae...) a residual stage on top of the codes (full level only)."),
     sign_exact: bool = typer.Option(False, "--sign-exact", help="Every voxel touching a surface crossing of the input decodes with its sign (a residual stage on top of the codes; block codecs)."),
     chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (default: 16 for pca-64; smaller chunks transfer less per small remote region)."),
@@ -165,10 +167,13 @@ def encode_cmd(
     # the flags first: a mistyped one is refused before the map machinery loads (torch and Zarr, 2-3 s)
     trunc_flag = parse_truncation(truncation) if truncation else None
     org_flag = parse_triple(origin, "--origin")
-    if codec_state not in ("embedded", "reference"):
+    if codec_state not in (None, "embedded", "reference"):
         raise InvalidValueError(f"--codec-state must be embedded or reference, got {codec_state!r}")
     if code_size is not None and model is None:  # 0 or -1 is an error, never the default 64
         code_size = check_code_size(codec_id or "pca", code_size)
+    vr = _variable_rate_wanted(variable_rate, step, target_bytes, target_error, code_dtype)
+    if vr and code_size is None and model is None and (codec_id or "pca") == "pca" and not fit:
+        code_size = 128  # the longest shipped eigenshapes: each block keeps the prefix its rate buys
     refuse_existing(output, overwrite, map_output=True)
     from ..blocks import normalise, split_blocks
     from ..map import create_map, open_map
@@ -212,17 +217,27 @@ def encode_cmd(
                       f"{codec.get_config()['max_error'] * (trunc[1] - trunc[0]) * 1000:.3g} mm (the codec's "
                       "default); pass --max-error METRES to choose it", markup=False, highlight=False)
 
+    if codec_state is None:  # a shipped model by reference (issue 42: the whole map is what a map needs)
+        codec_state = "reference" if codec.is_fitted and model is None and _ships(codec) else "embedded"
     if codec_state == "reference" and not codec.is_fitted:  # refused before spending the fit
         raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
                                 f"({why_fit}); drop --fit, pick a shipped size, or store the state "
                                 "(--codec-state embedded)")
-    _check_quantised_options(codec, step, target_bytes, code_dtype)  # before a fit, which may take long
+    if vr:
+        from ..map.varrate import check_variable_rate
+        check_variable_rate(codec)  # before a fit, which may take long
+        if max_error is not None or sign_exact:
+            raise InvalidValueError("variable-rate codes carry no residual stage: drop --max-error/--sign-exact, or "
+                                    "use --fixed-rate")
+    else:
+        _check_quantised_options(codec, step, target_bytes, code_dtype)
     residual_kw = {} if codec.field_compression() is not None and not sign_exact else {
         "max_error": max_error, "sign_exact": sign_exact}  # sz3's --max-error is its own bound
     if residual_kw:
         from ..map.residual import residual_spec
 
-        residual_spec(codec, "int16" if step or target_bytes else code_dtype, vs, trunc, max_error, sign_exact)
+        residual_spec(codec, "int16" if step or target_bytes else code_dtype, vs, trunc, max_error, sign_exact) \
+            if not vr else None
     fitted_on = None
     if not codec.is_fitted:
         # asked to (--fit), or no shipped model: learn from the input's blocks as the map will encode them
@@ -245,7 +260,7 @@ def encode_cmd(
                                              code_dtype="int16" if code_step is not None else code_dtype,
                                              code_step=code_step, tool="sdfcodec encode", source=str(input),
                                              codec_state=codec_state, chunk_blocks=chunk_blocks,
-                                             shard_blocks=shard_blocks, **residual_kw) as m:
+                                             shard_blocks=shard_blocks, variable_rate=vr_kw, **residual_kw) as m:
             if src_map is not None:
                 total = src_map.count_states()["coded"]
                 task = prog.add_task("transcoding", total=total, rate="")
@@ -256,9 +271,18 @@ def encode_cmd(
                 m.write_volume(vol, progress=lambda n: prog.advance(task, n))
         return m
 
-    m, quant = _encode_quantised(write, codec, step, target_bytes, code_dtype,
-                                 lambda: _rate_sample(codec, None if src_map is not None else vol, src_map, trunc,
-                                                      vs, device), output)
+    vr_kw = None
+    if vr:
+        vr_kw = {k: v for k, v in (("step", step), ("target_bytes", target_bytes), ("target_error", target_error))
+                 if v is not None}
+        m, quant = write(), None
+        quant = _variable_rate_summary(m, output, target_bytes, target_error)
+    else:
+        if target_error is not None:
+            raise InvalidValueError("--target-error chooses variable-rate codes: drop --fixed-rate/--code-dtype")
+        m, quant = _encode_quantised(write, codec, step, target_bytes, code_dtype,
+                                     lambda: _rate_sample(codec, None if src_map is not None else vol, src_map,
+                                                          trunc, vs, device), output)
     info = m.info()
     if info["state_warning"] and not as_json:  # --json carries it in the summary, stdout stays one document
         err.print(f"warning: {output}: {info['state_warning']}", markup=False)
@@ -288,6 +312,56 @@ def _field_bound(info: dict) -> str | None:
     d_min, d_max = info["truncation"]
     return (f"{normalised * (d_max - d_min) * 1000:.3g} mm on every observed voxel "
             f"(max_error {normalised:.4g} of the truncation range in the codec's config)")
+
+
+def _variable_rate_wanted(flag: Optional[bool], step: Optional[float], target_bytes: Optional[float],
+                          target_error: Optional[float], code_dtype: str) -> bool:
+    """Whether ``encode`` writes variable-rate codes: ``--variable-rate``, else a byte or error target with float32
+    codes (the default ``--code-dtype``; ``--code-dtype int16`` keeps the fixed-length int16 codes)."""
+    from ..map.rate import check_target
+
+    if target_bytes is not None:
+        check_target(target_bytes)
+    if target_error is not None and not (np.isfinite(target_error) and target_error > 0):
+        raise InvalidValueError(f"--target-error must be a finite number of metres > 0, got {target_error}")
+    if flag is not None:
+        if flag and code_dtype != "float32":
+            raise InvalidValueError(f"--variable-rate stores its own codes; --code-dtype {code_dtype} contradicts it")
+        if flag and sum(v is not None for v in (step, target_bytes, target_error)) != 1:
+            raise InvalidValueError("--variable-rate needs one of --step, --target-bytes or --target-error")
+        return flag
+    return (target_bytes is not None or target_error is not None) and code_dtype == "float32" and step is None
+
+
+def _ships(codec: Any) -> bool:
+    """Whether ``codec`` holds the state of a model its plugin ships (then a map references it by default)."""
+    from ..errors import SDFCodecError
+    from ..map.codec_state import shipped_reference
+
+    try:
+        return bool(codec.state_dict()) and shipped_reference(codec) is not None
+    except SDFCodecError:
+        return False
+
+
+def _variable_rate_summary(m: Any, output: Path, target: Optional[float], error: Optional[float]) -> dict:
+    """The ``quantisation`` summary of a variable-rate map: its step, bytes per coded block (every file, and the
+    code streams alone), the mean prefix length, the target met."""
+    from ..map.rate import stored_bytes
+
+    got = stored_bytes(output)
+    vr = m.header.codes.variable_rate
+    _, codes = m.read_codes()
+    nz = codes != 0
+    mean_len = float(np.where(nz.any(1), codes.shape[1] - np.argmax(nz[:, ::-1], axis=1), 0).mean()) if len(codes) else 0.0
+    out = {"variable_rate": True, "step": vr.step[0] if len(vr.step) == 1 else vr.step,
+           "bytes_per_coded_block": got["total"], "codes_bytes_per_coded_block": got["codes"],
+           "mean_prefix_length": mean_len}
+    if target is not None:
+        out["target_bytes"], out["passes"] = target, 1
+    if error is not None:
+        out["target_error"] = error
+    return out
 
 
 def _residual_line(r: dict) -> str:

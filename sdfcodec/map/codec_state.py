@@ -88,10 +88,13 @@ def shipped_reference(codec: Codec) -> StateReference:
                             "reference: store it in the map (codec_state='embedded', CLI --codec-state embedded)")
 
 
-def resolve_reference(cls: type[Codec], ref: StateReference, code_size: int, where: str) -> dict[str, np.ndarray]:
+def resolve_reference(cls: type[Codec], ref: StateReference, code_size: int, where: str,
+                      wrote: str | None = None) -> dict[str, np.ndarray]:
     """The state a map's ``ref`` names: the model ``ref.model`` that ``cls``'s installed plugin ships, cut to
     ``code_size``, whose digest MUST equal ``ref.sha256``; failing that, any model of that plugin with that digest
     (content-addressed: a model renamed by a later plugin version still resolves). Never a path from the header.
+    ``wrote``: the distribution and version that wrote the map (``"sdfcodec==0.1.0"``, from the header), named as
+    what to install.
 
     Raises:
         StateReferenceError: no shipped model gives that state (names the model, the digest and what to do).
@@ -124,7 +127,8 @@ def resolve_reference(cls: type[Codec], ref: StateReference, code_size: int, whe
                f"{describe_shipped(cls)}{f'; listing its models failed: {failed}' if failed else ''})")
     raise StateReferenceError(
         f"{where}: the codec state is stored by reference to model {ref.model!r} of codec {cls.codec_id!r} with "
-        f"sha256 {ref.sha256}, and {why}. What to do: install the version of the plugin that ships that model, "
+        f"sha256 {ref.sha256}, and {why}. What to do: install "
+        f"{f'{wrote} (the plugin version that wrote the map)' if wrote else 'the version of the plugin that ships that model'}, "
         f"or, on a machine that has it, re-store the map with its state embedded, codes copied unchanged "
         f"(sdfcodec encode {where} OUT --codec {cls.codec_id} --code-size {code_size} --codec-state embedded)")
 
@@ -147,7 +151,8 @@ def load_codec(reader: MapReader) -> Codec:
                           f"({type(e).__name__}: {e})") from e
     state = {}
     if spec.state_reference is not None:
-        state = resolve_reference(cls, spec.state_reference, h.codes.size, where)
+        wrote = f"{spec.package}=={spec.package_version}" if spec.package and spec.package_version else None
+        state = resolve_reference(cls, spec.state_reference, h.codes.size, where, wrote)
     elif spec.state_arrays:
         total = 0
         for name in spec.state_arrays:

@@ -25,6 +25,7 @@ from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
 from .stores import PinnedStore
 from .summary import summarize
+from .varrate import VariableRateWriter
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
@@ -321,7 +322,7 @@ class Map:
         knows = source.records_observation
         dtype = self.header.codes.dtype
         if (dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec
-                and self.header.residual is None):  # a residual needs the voxels: they are decoded and encoded
+                and self.header.residual is None and self.writer.vr is None):  # a residual needs the voxels: they are decoded and encoded
             for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
                 self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
                 if progress is not None:
@@ -397,7 +398,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
                codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                max_error: float | None = None, sign_exact: bool = False, shard_blocks: int | None = None,
-               manifest: bool = True) -> Map:
+               manifest: bool = True, variable_rate: dict | None = None) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -441,6 +442,11 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         manifest: write the integrity manifest (default; extension ``integrity-manifest``, spec section 9b):
             readers check every object against it, and the map can be signed. False writes a map that readers
             before the extension open, unchecked (updates keep a map's choice).
+        variable_rate: variable-rate codes (extension ``variable-rate-codes``, spec section 4e;
+            docs/variable-rate.md): per block a prefix of its code chosen by rate-distortion, entropy-coded on
+            commit; a dict with one of ``step`` (normalised code units), ``target_bytes`` (stored bytes per coded
+            block, every file counted) or ``target_error`` (metres, surface error), and optionally ``lagrange``.
+            Prefix-ordered codecs (pca) only; such a map is not updated in place.
     """
     up_unit = None
     if up is not None:
@@ -451,12 +457,18 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     if isinstance(surface_weight, bool) or not isinstance(surface_weight, (int, float)) or not (
             math.isfinite(surface_weight) and surface_weight >= 0):
         raise InvalidValueError(f"surface_weight must be a finite number >= 0, got {surface_weight!r}")
+    if variable_rate is not None and (not isinstance(variable_rate, dict) or not set(variable_rate) <= {
+            "step", "target_bytes", "target_error", "lagrange"}):
+        raise InvalidValueError(f"variable_rate must be a dict with one of step, target_bytes, target_error (and "
+                                f"optionally lagrange), got {variable_rate!r}")
     writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source, codec_state=codec_state, code_step=code_step,
                                   code_offset=code_offset, max_error=max_error, sign_exact=sign_exact,
-                                  shard_blocks=shard_blocks, manifest=manifest)
+                                  shard_blocks=shard_blocks, manifest=manifest,
+                                  variable_rate=None if variable_rate is None else VariableRateWriter(
+                                      codec, **variable_rate))
     writer.surface_weight = float(surface_weight)
     if up_unit is not None:
         writer.header_kw["up"] = up_unit

@@ -28,7 +28,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
@@ -37,7 +37,7 @@ from ..errors import FormatError, IntegrityError
 from ..header import MAX_MANIFEST_BYTES, ManifestRef
 from .shards import index_size
 
-__all__ = ["MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
+__all__ = ["manifest_bytes_estimate", "MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
            "load_manifest", "sha256_hex", "set_check_default", "check_default", "object_problems",
            "previous_digests", "write_manifest"]
 
@@ -251,15 +251,26 @@ def build_manifest(root: str | os.PathLike, reuse: Callable[[str, os.stat_result
                 with open(path, "rb") as f:
                     hit = hashlib.file_digest(f, "sha256").hexdigest()
             objects[key] = hit
-    doc = {"format": _FORMAT, "version": 1, "algorithm": "sha256", "objects": objects}
-    if shards:
-        doc["shards"] = shards
-    data = json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
+    data = _document(objects, shards)
     if len(data) > MAX_MANIFEST_BYTES:
         raise InvalidValueError(f"the map's manifest would take {len(data)} bytes, above the format's limit of "
                                 f"{MAX_MANIFEST_BYTES} ({len(objects)} objects): store fewer, larger objects "
                                 "(larger --chunk-blocks, or --shard-blocks)")
     return data, len(objects)
+
+
+def _document(objects: dict[str, str], shards: dict[str, Any]) -> bytes:
+    """The manifest document's bytes (compact JSON, keys sorted)."""
+    doc = {"format": _FORMAT, "version": 1, "algorithm": "sha256", "objects": objects}
+    if shards:
+        doc["shards"] = shards
+    return json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
+
+
+def manifest_bytes_estimate(keys: Iterable[str]) -> int:
+    """The size of the manifest that will list ``keys`` (unsharded objects): exact, since a digest's length is
+    fixed; what rate control counts before the files exist."""
+    return len(_document({k: "0" * 64 for k in keys if k not in UNLISTED}, {}))
 
 
 def manifest_ref(data: bytes, objects: int) -> ManifestRef:

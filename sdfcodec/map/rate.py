@@ -28,6 +28,7 @@ from ..quantize import RateModel, fit_rate_model, step_for_bytes
 from .format import QUANT_CLEVEL
 from .observed import MASK_ARRAY
 from .residual import RESIDUAL_ARRAY
+from .varrate import STREAM_ARRAY
 
 __all__ = ["TOLERANCE", "SAMPLE_BLOCKS", "codes_rate_model", "mask_bytes_estimate", "stored_bytes", "plan_step",
            "correct_step", "check_target", "metadata_bytes_estimate"]
@@ -100,7 +101,7 @@ def stored_bytes(path: str | os.PathLike) -> dict[str, float]:
         return sum(f.stat().st_size for f in p.rglob("*") if f.is_file()) if p.is_dir() else 0
 
     total = size("") - size("codec")
-    codes = size("codes")
+    codes = size("codes") + size(STREAM_ARRAY)  # variable-rate codes live in their chunk streams (spec 4e)
     return {"total": total / n, "codes": codes / n, "mask": size(MASK_ARRAY) / n, "residual": size(RESIDUAL_ARRAY) / n,
             "other": (total - codes) / n}
 

@@ -42,6 +42,7 @@ from .stores import GuardStore, PinnedStore, open_store, unguarded
 from .device_feed import DeviceFeed
 from .fastfetch import local_chunks
 from .shards import chunk_name, chunk_stored, shard_layout
+from .varrate import VariableRateReader, decode_runs, prefix_lengths
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -195,6 +196,8 @@ class MapReader:
         self.mask_array = checked_mask_array(self)
         self.residual_array = checked_residual_array(self)
         self.codes_array, self.state_array = codes, state
+        # variable-rate codes (spec 4e): read from their chunk streams, the codes array holds no chunk
+        self.vr = None if h.codes.variable_rate is None else VariableRateReader(self, h.codes.variable_rate)
 
     # -- reading --------------------------------------------------------------------------------------
     def read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
@@ -356,10 +359,12 @@ class MapReader:
             raise InvalidValueError(f"reading the codes of blocks {[(s.start, s.stop) for s in box]} densely needs "
                                     f"{nbytes / 2**30:.1f} GiB, above the limit of {self.max_decode_bytes / 2**30:.1f}"
                                     " GiB; read a smaller region, use iter_codes(), or raise max_decode_bytes")
+        coords = local + np.array([s.start for s in box], dtype=np.int64)
+        if self.vr is not None:
+            return coords, self.vr.codes_for(coords, level)
         codes = self.read(self.codes_array, (*box, slice(0, level)))[tuple(local.T)]
         params = (None if self.code_scale_array is None
                   else self.read(self.code_scale_array, (*box, slice(0, 2)))[tuple(local.T)])
-        coords = local + np.array([s.start for s in box], dtype=np.int64)
         return coords, self._code_values(coords, codes, params)
 
     def _code_values(self, coords: np.ndarray, codes: np.ndarray, params: np.ndarray | None) -> np.ndarray:
@@ -433,8 +438,10 @@ class MapReader:
             sels.append((*(slice(int(a), int(b)) for a, b in zip(lo, hi)), slice(0, level)))
             locs.append(np.argwhere(sub == BlockState.CODED))
             los.append(lo)
-        codes = self.gather(self.codes_array, sels, locs)
         coords = np.concatenate([loc + lo for loc, lo in zip(locs, los)]).astype(np.int64, copy=False)
+        if self.vr is not None:
+            return coords, self.vr.codes_for(coords, level)
+        codes = self.gather(self.codes_array, sels, locs)
         params = None
         if self.code_scale_array is not None:
             params = self.gather(self.code_scale_array, [(*sel[:3], slice(0, 2)) for sel in sels], locs)
@@ -475,6 +482,9 @@ class MapReader:
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
 
         def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
+            if self.vr is not None:  # blocks by prefix length, so that runs of like lengths decode their prefix
+                order = np.argsort(prefix_lengths(codes), kind="stable")
+                coords[:], codes = coords[order], codes[order]
             # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals)
             return (feed.stage(codes), None if mask is None else read_block_rows(self, mask, coords),
                     None if res is None else self.read_residual(coords))
@@ -482,6 +492,9 @@ class MapReader:
         for coords, (staged, rows, resid) in self.fetch_stream(box, level, stage=stage, **kw):
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
+            if self.vr is not None:
+                yield coords, decode_runs(self, codes, coords, rows, out, placer, metres)
+                continue
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
                                             residual_rows=resid, out=out, placer=placer)
 

@@ -26,9 +26,11 @@ from ..blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, QUANT_EXTENSION, RESIDUAL_EXTENSION,
-                      SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, QUANT_EXTENSION,
+                      RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+                      VARIABLE_RATE_EXTENSION,
                       BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
+                      VariableRate,
                       now_iso)
 from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
@@ -41,9 +43,10 @@ from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, e
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
-from .manifest import previous_digests, write_manifest
+from .manifest import manifest_bytes_estimate, previous_digests, write_manifest
 from .shards import pack_shards, unpack_shards
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
+from .varrate import GAIN_ARRAY, STREAM_ARRAY, STREAM_METADATA_BYTES, VariableRateWriter, stream_chunk_keys
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -163,6 +166,7 @@ class MapWriter:
         self.failed: str | None = None  # why the writer aborted itself (further writes are refused)
         # the integrity manifest is written at commit (spec 9b): by default, and by an update where the map has one
         self.manifest = header.manifest is not None if update else True
+        self.vr: VariableRateWriter | None = None  # variable-rate codes: their pass on commit (spec 4e)
 
     @contextlib.contextmanager
     def _writing(self):
@@ -198,6 +202,8 @@ class MapWriter:
                 self.mask.resize((*grid, MASK_BYTES))
             if self.residual is not None:
                 self.residual.resize((*grid, self.residual.shape[3]))
+            if self.vr is not None:
+                self.group[GAIN_ARRAY].resize((*grid, self.codes_spec.size))
 
     def grow_blocks(self, max_coord: np.ndarray) -> None:
         """Make the grid hold block ``max_coord``; the voxel extent grows only on axes the grid grows."""
@@ -266,6 +272,8 @@ class MapWriter:
             if len(c):
                 self.grow_blocks(c.max(axis=0))
             self.put_codes(c, z.numpy(), masks=masks, residual_ok=False)
+            if self.vr is not None and len(c):  # no voxels: every voxel weighs 1
+                write_block_rows(self.group[GAIN_ARRAY], c, np.ones((len(c), self.codes_spec.size), np.float32))
 
     def mark_empty(self, coords: Any) -> None:
         """Record blocks ``(N, 3)`` as observed free space (no code stored)."""
@@ -309,6 +317,9 @@ class MapWriter:
                                       self.surface_weight, self.device)
                 packed = None if obs is None else pack_mask(obs)
                 self.put_codes(c[~empty], codes, masks=packed)
+                if self.vr is not None:  # the gains the variable-rate pass weighs errors with
+                    self.vr.observe(self.group[GAIN_ARRAY], c[~empty], v[~empty], obs, codes, self.truncation,
+                                    self.header_kw["voxel_size"], self.surface_weight)
                 if spec is not None:
                     self.put_residual(c[~empty], codes, blocks_m[i:i + batch_size][~empty], obs, packed,
                                       None if cross is None else cross[i:i + batch_size][~empty])
@@ -439,6 +450,28 @@ class MapWriter:
             # (spec section 4d), which nobody reads before the swap
             pack_shards(self.tmp, "codes", self.codes_spec.shard_blocks)
             extensions.append(Extension(name=SHARD_EXTENSION, required=True))
+        if self.vr is not None:  # the float codes become one entropy-coded stream per chunk (spec 4e)
+            if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
+                self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
+            extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
+
+            def other_bytes(fields: dict) -> int:  # every file but the codes, with the header they will have
+                spec = self.codes_spec.model_copy(update={"variable_rate": VariableRate(**fields)})
+                h = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=spec,
+                              extensions=extensions, **self.header_kw)
+                skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
+                files = [f for f in Path(self.tmp).rglob("*") if f.is_file() and not any(p in skip for p in f.parents)]
+                # the header as Zarr stores it (indented JSON), and the document of code_streams (made after this)
+                doc = json.dumps({"attributes": {"sdfcodec": json.loads(h.model_dump_json())}}, indent=2)
+                listed = 0
+                if self.manifest:  # the manifest lists every file, the code streams' chunks among them
+                    keys = [f.relative_to(self.tmp).as_posix() for f in files]
+                    keys += [f"{STREAM_ARRAY}/zarr.json"] + stream_chunk_keys(self.state, self.codes_spec.chunk_blocks)
+                    listed = manifest_bytes_estimate(keys)
+                return sum(f.stat().st_size for f in files) + len(doc) + STREAM_METADATA_BYTES + listed
+
+            vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
+            self.codes_spec = self.codes_spec.model_copy(update={"variable_rate": vr})
         # the integrity manifest (spec section 9b): every object of the new version, now complete but for the
         # root document, which records the manifest's digest; an update's signature no longer holds
         manifest = None
@@ -529,7 +562,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                   codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                   max_error: float | None = None, sign_exact: bool = False,
-                  shard_blocks: int | None = None, manifest: bool = True) -> MapWriter:
+                  shard_blocks: int | None = None, manifest: bool = True,
+                  variable_rate: VariableRateWriter | None = None) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -557,6 +591,10 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                                                                   code_offset))
     if shard_blocks is not None:
         spec = _sharded(spec, shard_blocks)
+    if variable_rate is not None and (code_dtype != "float32" or shard_blocks is not None or max_error is not None
+                                      or sign_exact):
+        raise InvalidValueError("variable-rate codes are their own storage: leave code_dtype float32 and shard_blocks, "
+                                "max_error and sign_exact unset")
     residual = residual_spec(codec, code_dtype, voxel_size, truncation, max_error, sign_exact)
     state = codec.state_dict()
     # by reference: the header names the shipped model and its digest, and no state array is written; a codec
@@ -605,6 +643,10 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     writer = MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
                        overwrite, device, header=header)
     writer.manifest = bool(manifest)
+    if variable_rate is not None:
+        writer.vr = variable_rate
+        group.create_array(GAIN_ARRAY, shape=(*header.grid_blocks, spec.size), dtype="float32", fill_value=0,
+                           chunks=(spec.chunk_blocks,) * 3 + (spec.size,), compressors=compressors())
     return writer
 
 
@@ -708,6 +750,9 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
             raise VersionError(f"{final} uses extension(s) {unknown} that this sdfcodec cannot keep consistent "
                                "while changing blocks; update it with a newer sdfcodec")
         refuse_update(final, h.codes.field_compression)
+        if h.codes.variable_rate is not None:
+            raise InvalidValueError(f"{final} stores variable-rate codes (one entropy-coded stream per chunk), which "
+                                    "are not updated in place; encode it again from its source")
         codec = src.codec  # checks the state digest; the codec encodes the new blocks
         states = src.block_states()
         manifest = src.group.store.manifest  # its digests of the files copied unchanged are kept at commit

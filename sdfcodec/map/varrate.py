@@ -1,0 +1,386 @@
+"""Variable-rate codes in a map (extension ``variable-rate-codes``, spec section 4e): the writer's pass that turns
+the float codes written so far into one entropy-coded stream per chunk of blocks (:class:`VariableRateWriter`,
+with rate control: a step, a byte budget or an error bound), and the reader's decode of those streams back
+into dequantised float codes, zero beyond each block's prefix (:class:`VariableRateReader`).
+
+While a map is written its ``codes`` array holds the writer's full-precision float32 codes and a temporary array
+the per-block gains (:func:`sdfcodec.varrate.gains`); on commit both are replaced by the array ``code_streams``
+``(Cx, Cy, Cz, L)`` uint8, one row per chunk of ``codes`` (a chunk of ``chunk_blocks`` ^ 3 blocks): a little-endian
+uint32 word count ``W``, then ``W`` little-endian uint32 words of the chunk's rANS stream, zeros after. The
+``codes`` array keeps its metadata and no chunk. The pass holds the map's codes and gains in memory (512 bytes
+per coded block at code size 64).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .._lazy import lazy_module
+from .._validate import BLOCK
+from ..errors import FormatError, InvalidValueError
+from ..header import BlockState, VariableRate
+from ..varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
+                       stream_bytes)
+from .observed import error_weights, read_block_rows, write_block_rows
+
+torch = lazy_module("torch")
+
+__all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_compressors", "prefix_lengths",
+           "decode_runs", "VariableRateWriter", "VariableRateReader", "surface_error",
+           "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE"]
+
+STREAM_ARRAY = "code_streams"
+#: Temporary array of the writer (never in a committed map): per coded block the gains of its code elements.
+GAIN_ARRAY = "variable_rate_gains"
+#: Coded blocks the writer keeps (voxels, mask, codes) to check ``--target-error`` on.
+SAMPLE_BLOCKS = 2048
+#: ``--target-bytes``: the step search stops within this fraction of the target (what it counts is exact but
+#: the compressor's frame of each row, estimated at 20 bytes).
+TOLERANCE = 0.01
+#: Bytes of the ``code_streams`` array document (``zarr.json``; measured 717).
+STREAM_METADATA_BYTES = 720
+_ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
+
+
+def check_variable_rate(codec: Any) -> None:
+    """Refuse a codec whose codes a prefix does not decode (variable-rate codes drop each block's tail)."""
+    from ..quantize import check_quantisable
+
+    check_quantisable(codec)
+    if not getattr(codec, "prefix_ordered", False):
+        raise InvalidValueError(f"codec {codec.codec_id!r} codes are not prefix-ordered: variable-rate codes keep a "
+                                "prefix of each block's code, so they need a codec such as pca")
+
+
+def _basis(codec: Any) -> np.ndarray:
+    """``(D, 4096)`` float64: what each code element adds to the normalised decode (the codec is linear)."""
+    d = codec.code_size
+    eye = torch.from_numpy(np.vstack([np.zeros((1, d)), np.eye(d)]).astype(np.float32))
+    dec = codec.decode(eye).reshape(d + 1, -1).double().numpy()
+    return dec[1:] - dec[:1]
+
+
+def surface_error(codec: Any, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
+                  truncation: tuple[float, float]) -> float:
+    """The surface error (metres) of decoding ``codes`` ``(n, D)`` against normalised blocks ``v`` ``(n, 16, 16, 16)``:
+    the largest ``|decoded - input|`` over observed voxels that touch a surface crossing of the input inside
+    their block (:func:`~sdfcodec.map.residual.crossing_voxels`): the voxels whose values place the surface.
+    0 when there are none."""
+    from .residual import crossing_voxels
+
+    d_min, d_max = truncation
+    x = v * (d_max - d_min) + d_min
+    far = np.arange(len(v))[:, None] * np.array([[3, 0, 0]])  # blocks never neighbours: no face crossings
+    cross = crossing_voxels(far, x, observed)
+    if not cross.any():
+        return 0.0
+    dec = codec.decode(torch.from_numpy(np.asarray(codes, np.float32))).numpy()
+    dec = np.clip(dec * (d_max - d_min) + d_min, d_min, d_max)
+    return float(np.abs(dec - x)[cross].max())
+
+
+def stream_chunk_keys(state: np.ndarray, chunk_blocks: int) -> list[str]:
+    """The store keys of the ``code_streams`` chunks a map with block states ``state`` (Bx, By, Bz) writes: one per
+    chunk of ``chunk_blocks``^3 blocks holding a coded block (Zarr v3's default chunk key encoding)."""
+    chunks = np.unique(np.argwhere(state == BlockState.CODED) // chunk_blocks, axis=0)
+    return [f"{STREAM_ARRAY}/c/{i}/{j}/{k}/0" for i, j, k in chunks.tolist()]
+
+
+class VariableRateWriter:
+    """The variable-rate pass of a :class:`~sdfcodec.map.writer.MapWriter`: ``observe`` the blocks as they are
+    encoded (gains, a sample), ``finish`` on commit. Exactly one of ``step`` (metres-free: normalised code
+    units, one number or one per element), ``target_bytes`` (per coded block, every file of the map counted) and
+    ``target_error`` (metres, :func:`surface_error` on the sample) chooses the step; ``lagrange`` scales the
+    Lagrange multiplier (:data:`sdfcodec.varrate.LAGRANGE`)."""
+
+    def __init__(self, codec: Any, *, step: Any = None, target_bytes: float | None = None,
+                 target_error: float | None = None, lagrange: float = LAGRANGE):
+        check_variable_rate(codec)
+        if sum(x is not None for x in (step, target_bytes, target_error)) != 1:
+            raise InvalidValueError("variable-rate codes need one of a step, a target of bytes per coded block or "
+                                    "a target error")
+        for name, val in (("target bytes", target_bytes), ("target error", target_error)):
+            if val is not None and not (np.isfinite(val) and val > 0):
+                raise InvalidValueError(f"the {name} must be a finite number > 0, got {val!r}")
+        self.codec, self.d = codec, codec.code_size
+        if step is not None:
+            from ..quantize import check_step
+            step = check_step(step, self.d)
+        self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
+        self.lagrange = float(lagrange)
+        basis = _basis(codec)
+        self.basis_sq = (basis * basis).astype(np.float32)
+        self._rng = np.random.default_rng(0)
+        self._sample: list[tuple[np.ndarray, ...]] = []  # (priority, v, observed, codes, gains) per kept block
+        self.report: dict[str, Any] = {}
+
+    def observe(self, gain_arr: Any, coords: np.ndarray, v: np.ndarray, observed: np.ndarray | None,
+                codes: np.ndarray, truncation: tuple[float, float], voxel_size: float, surface_weight: float
+                ) -> None:
+        """Blocks ``coords`` ``(n, 3)`` just encoded to ``codes`` ``(n, D)`` from normalised ``v`` with ``observed``:
+        store their gains in ``gain_arr`` and keep a random sample for the error target."""
+        w = error_weights(v, observed, truncation, voxel_size, surface_weight)
+        w = np.ones((len(v), BLOCK ** 3), np.float32) if w is None else w.reshape(len(v), -1)
+        g = gains(w, self.basis_sq)
+        write_block_rows(gain_arr, coords, g)
+        if self.target_error is not None:  # a reservoir: the blocks with the SAMPLE_BLOCKS smallest priorities
+            pr = self._rng.random(len(v))
+            for i in np.argsort(pr)[:SAMPLE_BLOCKS]:
+                self._sample.append((pr[i], v[i], None if observed is None else observed[i], codes[i], g[i]))
+            self._sample.sort(key=lambda t: t[0])
+            del self._sample[SAMPLE_BLOCKS:]
+
+    # -- the pass on commit ---------------------------------------------------------------------------
+    def _lam(self, step: np.ndarray, g: np.ndarray) -> float:
+        return self.lagrange * float(np.mean(step) ** 2) * max(float(g.mean()), 1e-12)
+
+    def _encode_all(self, z: np.ndarray, g: np.ndarray, chunk_ids: np.ndarray, step: np.ndarray
+                    ) -> tuple[list[np.ndarray], EntropyModel, np.ndarray]:
+        q, k, model = choose_lengths(z, g, step, self._lam(step, g))
+        bounds = np.flatnonzero(np.diff(chunk_ids)) + 1
+        streams = [encode_chunk(q[a:b], k[a:b], model) for a, b in zip(np.r_[0, bounds], np.r_[bounds, len(z)])]
+        return streams, model, k
+
+    def _rows_bytes(self, streams: list[np.ndarray]) -> int:
+        return sum(stream_bytes(s) + _ROW_FRAME for s in streams)
+
+    def finish(self, group: Any, state: np.ndarray, chunk_blocks: int, other_bytes: Callable[[dict], int],
+               truncation: tuple[float, float]) -> VariableRate:
+        """Replace the float codes of ``group`` by the chunk streams (module docstring); ``other_bytes(fields)``:
+        the bytes of every other file of the map once its header holds ``fields`` (rate control). Returns the
+        header field."""
+        coded = np.argwhere(state == BlockState.CODED)
+        cb = chunk_blocks
+        ch, loc = coded // cb, coded % cb
+        order = np.lexsort((loc[:, 2], loc[:, 1], loc[:, 0], ch[:, 2], ch[:, 1], ch[:, 0]))
+        coded, ch = coded[order], ch[order]
+        cgrid = tuple(-(-n // cb) for n in state.shape)
+        chunk_ids = np.ravel_multi_index(tuple(ch.T), cgrid) if len(ch) else np.zeros(0, np.int64)
+        z = _rows(group["codes"], coded).astype(np.float64)
+        g = _rows(group[GAIN_ARRAY], coded).astype(np.float64)
+        if len(z) and not np.isfinite(z).all():
+            raise InvalidValueError("codes hold NaN/Inf values; they cannot be quantised")
+        step = self._choose_step(z, g, chunk_ids, other_bytes, len(coded), truncation)
+        if len(z):
+            streams, model, k = self._encode_all(z, g, chunk_ids, step)
+        else:
+            streams, model, k = [], EntropyModel([0] * self.d, [0.5] * self.d, [0] * self.d, [1] + [0] * self.d), []
+        uniform = bool((step == step[0]).all())
+        spec = VariableRate(step=[float(step[0])] if uniform else [float(s) for s in step], coder=CODER,
+                            model=model.pack())
+        width = max([stream_bytes(s) for s in streams], default=4)
+        arr = group.create_array(STREAM_ARRAY, shape=(*cgrid, width), dtype="uint8", fill_value=0,
+                                 chunks=(1, 1, 1, width), compressors=stream_compressors(),
+                                 dimension_names=["cx", "cy", "cz", "byte"])
+        arr = arr.with_config({"write_empty_chunks": True})
+        for s, cid in zip(streams, chunk_ids[np.r_[0, np.flatnonzero(np.diff(chunk_ids)) + 1]] if len(z) else []):
+            row = np.zeros(width, np.uint8)
+            row[:4] = np.frombuffer(np.uint32(len(s)).astype("<u4").tobytes(), np.uint8)
+            row[4:4 + 4 * len(s)] = np.frombuffer(s.astype("<u4").tobytes(), np.uint8)
+            arr[(*np.unravel_index(cid, cgrid), slice(None))] = row
+        _drop_chunks(group, "codes")
+        del group[GAIN_ARRAY]
+        n = max(len(coded), 1)
+        self.report.update(step=float(np.mean(step)), mean_length=float(np.mean(k)) if len(k) else 0.0,
+                           stream_bytes_per_coded_block=self._rows_bytes(streams) / n)
+        return spec
+
+    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation) -> np.ndarray:
+        if self.step is not None:
+            return self.step
+        if not len(z):
+            raise InvalidValueError("the map has no coded blocks (all free space): there are no codes to rate-control")
+        if self.target_error is not None:
+            return self._step_for_error(truncation)
+        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n)
+
+    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n) -> np.ndarray:
+        """Bisection on log(step): the codes' exact stream bytes plus everything else against the target."""
+        t = self.target_bytes
+
+        def total(s: float) -> tuple[float, float]:
+            streams, model, _ = self._encode_all(z, g, chunk_ids, np.full(self.d, s))
+            other = other_bytes(dict(step=[s], coder=CODER, model=model.pack()))
+            return (self._rows_bytes(streams) + other) / n, other / n
+
+        lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
+        t_hi, other_hi = total(2 ** hi)
+        if t_hi > t * (1 + TOLERANCE):
+            raise InvalidValueError(f"a target of {t:g} bytes per coded block is below what this map can take: at "
+                                    f"least {t_hi:.1f} (of it {other_hi:.1f} of observation mask, weights, block "
+                                    "states, header and metadata; codes all but empty)")
+        t_lo, _ = total(2 ** lo)
+        if t_lo < t:
+            raise InvalidValueError(f"a target of {t:g} bytes per coded block is above what variable-rate codes take "
+                                    f"on this map: at most {t_lo:.1f} (at step {2 ** lo:g}); store float32 codes")
+        for _ in range(24):
+            mid = (lo + hi) / 2
+            got, _ = total(2 ** mid)
+            if abs(got - t) <= TOLERANCE * t:
+                return np.full(self.d, 2 ** mid)
+            lo, hi = (mid, hi) if got > t else (lo, mid)
+        return np.full(self.d, 2 ** hi)
+
+    def _step_for_error(self, truncation) -> np.ndarray:
+        """The largest step (a smaller map) whose sample's :func:`surface_error` stays within the target:
+        bisection on log(step) from a step that meets it."""
+        if not self._sample:
+            raise InvalidValueError("the map has no coded blocks (all free space): there is no surface to bound")
+        v = np.stack([s[1] for s in self._sample])
+        obs = None if self._sample[0][2] is None else np.stack([s[2] for s in self._sample])
+        z = np.stack([s[3] for s in self._sample]).astype(np.float64)
+        g = np.stack([s[4] for s in self._sample]).astype(np.float64)
+        e = self.target_error
+
+        def err(s: float) -> float:
+            st = np.full(self.d, s)
+            q, _, _ = choose_lengths(z, g, st, self._lam(st, g))
+            return surface_error(self.codec, v, obs, q * st, truncation)
+
+        lo, hi = -10.0, 4.0
+        floor = err(2 ** lo)
+        if floor > e:
+            raise InvalidValueError(f"a target error of {e * 1000:g} mm is below what this codec reaches on this map: "
+                                    f"{floor * 1000:.2f} mm at its finest step; use --max-error (a residual stage) "
+                                    "for a bound")
+        if err(2 ** hi) <= e:
+            return np.full(self.d, 2 ** hi)
+        for _ in range(16):
+            mid = (lo + hi) / 2
+            lo, hi = (mid, hi) if err(2 ** mid) <= e else (lo, mid)
+        self.report["sample_surface_error"] = err(2 ** lo)
+        return np.full(self.d, 2 ** lo)
+
+
+def stream_compressors() -> list:
+    """The chain of ``code_streams``: zstd level 1 (the zero padding of each row takes a few bytes; the stream
+    itself is incompressible) and a CRC32C checksum."""
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    return [ZstdCodec(level=1), Crc32cCodec()]
+
+
+class _PlainReads:
+    """What :func:`~sdfcodec.map.observed.read_block_rows` needs of a reader, for the writer's own arrays."""
+
+    @staticmethod
+    def read_many(arr: Any, sels: list) -> list[np.ndarray]:
+        return [np.asarray(arr[sel]) for sel in sels]
+
+
+def _rows(arr: Any, coords: np.ndarray) -> np.ndarray:
+    """Rows ``arr[bx, by, bz, :]`` of blocks ``coords`` ``(n, 3)``, one read per chunk (the writer's own arrays)."""
+    return read_block_rows(_PlainReads, arr, coords)
+
+
+def _drop_chunks(group: Any, name: str) -> None:
+    """Delete every chunk file of array ``name`` of a local group (its metadata stays)."""
+    import shutil
+
+    root = Path(group.store.root) / name / "c"
+    if root.exists():
+        shutil.rmtree(root)
+
+
+class VariableRateReader:
+    """Reads the dequantised codes of coded blocks of a variable-rate map (``reader``: a MapReader)."""
+
+    def __init__(self, reader: Any, spec: VariableRate):
+        self.reader, self.spec = reader, spec
+        self.model = EntropyModel.unpack(spec.model, reader.header.codes.size)
+        self.step = np.broadcast_to(np.asarray(spec.step, np.float64), (reader.header.codes.size,))
+        arr = reader.member(STREAM_ARRAY)
+        h = reader.header
+        cb = h.codes.chunk_blocks
+        cgrid = tuple(-(-n // cb) for n in h.grid_blocks)
+        if arr is None:
+            raise FormatError(f"{reader.location}: map has variable-rate codes but lacks array '{STREAM_ARRAY}' "
+                              "(spec section 4e); it is incomplete")
+        if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
+            raise FormatError(f"{reader.location}: array '{STREAM_ARRAY}' must have shape ({cgrid}, L), one row per "
+                              f"chunk of codes; got {arr.shape}")
+        # dtype, chunking, fill value and codecs (section 9a), and the size limit of every chunk read
+        reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
+                           zero_fill=True)
+        self.arr, self.cb, self.cgrid = arr, cb, cgrid
+        self._states = None
+
+    def states(self) -> np.ndarray:
+        if self._states is None:
+            self._states = self.reader.block_states()
+        return self._states
+
+    def codes_for(self, coords: np.ndarray, level: int) -> np.ndarray:
+        """``(n, level)`` float32 dequantised codes of coded blocks ``coords`` ``(n, 3)``: each chunk they lie in
+        is read and decoded once."""
+        out = np.zeros((len(coords), level), np.float32)
+        if not len(coords):
+            return out
+        cb = self.cb
+        ch = coords // cb
+        keys, inverse = np.unique(ch, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        rows = self.reader.read_many(self.arr, [(*(slice(int(c), int(c) + 1) for c in k), slice(None))
+                                                for k in keys])
+        states = self.states()
+        for i, (key, row) in enumerate(zip(keys, rows)):
+            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(key, states.shape))
+            local = np.argwhere(states[box] == BlockState.CODED)
+            row = np.ascontiguousarray(row.reshape(-1))
+            nw = int(row[:4].view("<u4")[0])
+            if nw == 0 or 4 + 4 * nw > len(row):
+                raise FormatError(f"{self.reader.location}: chunk {tuple(int(c) for c in key)} of array "
+                                  f"'{STREAM_ARRAY}' holds no stream (or a truncated one) but {len(local)} coded "
+                                  "block(s) lie in it; the map is incomplete there: restore it from a copy or "
+                                  "re-encode")
+            try:
+                q = decode_chunk(row[4:4 + 4 * nw].view("<u4"), len(local), self.model, level)
+            except Exception as e:  # a checksum-valid but inconsistent stream
+                raise FormatError(f"{self.reader.location}: the stream of chunk {tuple(int(c) for c in key)} of "
+                                  f"array '{STREAM_ARRAY}' does not decode ({e}); the map is corrupted there") from e
+            index = np.full(tuple(s.stop - s.start for s in box), -1, np.int64)
+            index[tuple(local.T)] = np.arange(len(local))
+            sel = np.flatnonzero(inverse == i)
+            r = index[tuple((coords[sel] - key * cb).T)]
+            if (r < 0).any():
+                raise InvalidValueError("codes_for was asked for a block that is not coded")
+            out[sel] = q[r] * self.step[:level]
+        return out
+
+
+#: Prefix lengths decoded together are rounded up to a multiple of this: runs of blocks of like lengths decode
+#: their own prefix, not the longest of the group (a pca-128 map's blocks keep 60-120 elements).
+RUN_WIDTH = 16
+
+
+def prefix_lengths(codes: Any) -> np.ndarray:
+    """``(n,)`` int64: each row's prefix length (last non-zero element + 1) of codes ``(n, L)`` (numpy or a tensor)."""
+    nz = np.asarray(codes.cpu() if hasattr(codes, "cpu") else codes) != 0
+    return np.where(nz.any(axis=1), nz.shape[1] - np.argmax(nz[:, ::-1], axis=1), 0)
+
+
+def decode_runs(reader: Any, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: Any,
+                metres: bool) -> Any:
+    """:meth:`MapReader.decode_codes` of a group whose blocks are sorted by prefix length: each run of blocks whose
+    lengths round up to the same multiple of :data:`RUN_WIDTH` decodes only that prefix (into its slice of
+    ``out``, or placed by ``placer``); the decodes in the group's order, or None with a placer."""
+    k = prefix_lengths(codes)
+    width = np.maximum(-(-k // RUN_WIDTH) * RUN_WIDTH, RUN_WIDTH).clip(max=codes.shape[1])
+    bounds = np.r_[0, np.flatnonzero(np.diff(width)) + 1, len(k)]
+    parts = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if a == b:
+            continue
+        w = int(width[a])
+        part = reader.decode_codes(codes[a:b, :w].contiguous(), metres=metres, coords=coords[a:b],
+                                   mask_rows=None if rows is None else rows[a:b],
+                                   out=None if out is None else out[a:b], placer=placer)
+        parts.append(part)
+    if placer is not None:
+        return None
+    if out is not None:
+        return out
+    return parts[0] if len(parts) == 1 else torch.cat(parts)

@@ -1,0 +1,237 @@
+"""Variable-rate codes (issue 42, items 2 and 4; spec/map-format.md section 4e): the entropy coder, the prefix codes
+a map stores and reads back, rate control by bytes and by surface error, the golden map, the CLI defaults."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import sdfcodec
+from _golden_maps import check_golden_map
+from sdfcodec import errors
+from sdfcodec.blocks import split_blocks
+from sdfcodec.cli import app
+from sdfcodec.map.varrate import STREAM_ARRAY
+from sdfcodec.registry import pretrained_codec
+from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+from sdfcodec.testing import analytic_blocks, analytic_scene
+from sdfcodec.varrate import EntropyModel, decode_chunk, encode_chunk, fit_model
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+GOLDEN = Path(__file__).parent / "golden" / "maps" / "varrate-pca-8"
+
+
+def _files_per_block(path: Path) -> float:
+    """Every file of a map (a referenced model's empty codec/ too) per coded block: counted here, not by sdfcodec."""
+    total = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    return total / sdfcodec.open_map(path).count_states()["coded"]
+
+
+# -- the entropy coder ----------------------------------------------------------------------------------------
+
+def test_chunk_stream_round_trip_is_exact_and_near_the_entropy():
+    rng = np.random.default_rng(3)
+    n, d = 700, 16
+    scales = 30 * 0.8 ** np.arange(d)
+    q = np.rint(rng.laplace(0, scales, (n, d))).astype(np.int64)
+    k = rng.integers(0, d + 1, n)
+    q[np.arange(d)[None] >= k[:, None]] = 0
+    model = EntropyModel.unpack(fit_model(q, k).pack(), d)  # what a reader builds from the header
+    words = encode_chunk(q, k, model)
+    assert np.array_equal(decode_chunk(words, n, model), q)
+    assert np.array_equal(decode_chunk(words, n, model, level=5), q[:, :5])  # a prefix level stops early
+    # the ideal code length under the model (an independent sum of -log2 p), plus a few words of rANS overhead
+    ideal = sum(model.bits(q)[i, :k[i]].sum() for i in range(n)) + model.length_bits()[k].sum()
+    assert ideal / 8 <= words.nbytes <= ideal / 8 * 1.01 + 16
+    # the same numbers give the same model: the tables are built with IEEE-exact arithmetic from what is stored
+    again = EntropyModel.unpack(model.pack(), d)
+    assert all(np.array_equal(again.table(j), model.table(j)) for j in range(d))
+
+
+def test_model_refuses_a_malformed_or_oversized_header_field():
+    with pytest.raises(errors.FormatError, match="does not unpack"):
+        EntropyModel.unpack("bm90IGEgbW9kZWw=", 8)
+    with pytest.raises(errors.FormatError, match="above the limit"):
+        EntropyModel([0], [0.5], [1 << 25], [1, 1])
+
+
+# -- maps -------------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def scene_volume() -> np.ndarray:
+    return sample_volume(analytic_scene(), (90, 70, 45), VS, truncation=TRUNC)
+
+
+@pytest.fixture(scope="module")
+def pca32():
+    return sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(800, seed=11))
+
+
+def _write(path: Path, codec, volume: np.ndarray, **kw) -> sdfcodec.Map:
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, overwrite=True, **kw) as m:
+        m.write_volume(volume)
+    return sdfcodec.open_map(path)
+
+
+def test_stored_prefixes_are_the_dequantised_codes(tmp_path, scene_volume, pca32):
+    step = 0.05
+    vr = _write(tmp_path / "vr.sdfz", pca32, scene_volume, variable_rate={"step": step})
+    ref = _write(tmp_path / "f.sdfz", pca32, scene_volume)  # float32 codes: the writer's same encode, unquantised
+    (c1, z1), (c2, z2) = vr.read_codes(), ref.read_codes()
+    assert np.array_equal(c1, c2) and z1.shape == z2.shape == (len(c1), 32)
+    assert vr.header.codes.variable_rate.step == [step] and not (tmp_path / "vr.sdfz" / "codes" / "c").exists()
+    q = z1 / step
+    assert np.abs(q - np.rint(q)).max() < 1e-4  # every stored value a whole number of steps
+    nz = z1 != 0
+    length = np.where(nz.any(1), 32 - np.argmax(nz[:, ::-1], axis=1), 0)
+    inside = np.arange(32)[None] < length[:, None]
+    # inside its prefix every element lies within half a step of the float code; beyond it, zero
+    assert np.abs(z1 - z2)[inside].max() <= step / 2 + 1e-5
+    assert (z1[~inside] == 0).all() and length.min() < 32 and length.mean() > 2
+    # a level reads the first elements; decoding is the codec's decode of the zero-padded codes
+    cl, zl = vr.read_codes(level=8)
+    assert np.array_equal(zl, z1[:, :8])
+    want = np.clip(pca32.decode(z1[:, :8]) * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)
+    got = dict(zip(map(tuple, c1), want))
+    dec = vr.decode_region(level=8)
+    for c in c1[:20]:
+        sl = tuple(slice(16 * int(v), 16 * int(v) + 16) for v in c)
+        part = dec[sl]
+        np.testing.assert_allclose(part, got[tuple(c)][tuple(slice(0, s) for s in part.shape)], atol=1e-5)
+    # the streaming decode (blocks regrouped by prefix length inside) yields each block with its own decode
+    full = dict(zip(map(tuple, c1), np.clip(pca32.decode(z1) * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)))
+    seen = 0
+    for cs, blocks in vr.iter_decoded():
+        for c, b in zip(cs, np.asarray(blocks)):
+            np.testing.assert_allclose(b, full[tuple(c)], atol=1e-5)
+            seen += 1
+    assert seen == len(c1)
+    # search reads codes: on the variable-rate map it selects mostly what it selects on the float map
+    from sdfcodec.search import search
+    a = search(vr, "floor", top=10)
+    b = search(ref, "floor", top=10)
+    ca, cb = {tuple(c) for c in np.asarray(a.coords)}, {tuple(c) for c in np.asarray(b.coords)}
+    assert len(ca) == 10 and len(ca & cb) >= 6, (ca, cb)
+
+
+def test_a_missing_or_corrupt_stream_is_one_clear_error(tmp_path, scene_volume, pca32):
+    root = tmp_path / "vr.sdfz"
+    _write(root, pca32, scene_volume, variable_rate={"step": 0.1}, chunk_blocks=2)
+    chunk = next(p for p in sorted((root / STREAM_ARRAY / "c").rglob("*")) if p.is_file())
+    chunk.unlink()
+    with pytest.raises(errors.FormatError, match="holds no stream"):
+        sdfcodec.open_map(root).read_codes()
+    from sdfcodec.verify import verify_map
+    assert not verify_map(root).ok
+    with pytest.raises(errors.InvalidValueError, match="not updated in place"):
+        sdfcodec.update_map(root)
+
+
+def _fused_room(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A synthetic room as fusion leaves it (unobserved behind surfaces): block coords, blocks, observation."""
+    from _fused_maps import fused_like
+    from sdfcodec.data.rooms import synthetic_room
+
+    vol, observed = fused_like(synthetic_room(seed, size=(2.2, 2.0, 1.8)).volume)
+    blocks = split_blocks(vol, fill=TRUNC[1])
+    obs = split_blocks(observed.astype(np.float32), fill=1.0).reshape(-1, 16, 16, 16) > 0.5
+    return np.argwhere(np.ones(blocks.shape[:3], bool)), blocks.reshape(-1, 16, 16, 16), obs
+
+
+@pytest.mark.parametrize("target", [60.0, 120.0])
+def test_target_bytes_lands_within_5_percent(tmp_path, target):
+    """Rate control on two synthetic fused rooms (masked) and an analytic scene: every file counted."""
+    codec = pretrained_codec("pca", 64)
+    for i, seed in enumerate((0, 1)):
+        coords, blocks, obs = _fused_room(seed)
+        p = tmp_path / f"room{i}.sdfz"
+        with sdfcodec.create_map(p, codec=codec, voxel_size=VS, truncation=TRUNC, overwrite=True,
+                                 codec_state="reference", variable_rate={"target_bytes": target}) as m:
+            m.write_blocks(coords, blocks, observed=obs)
+        assert abs(_files_per_block(p) - target) <= 0.05 * target, (seed, _files_per_block(p))
+    p = tmp_path / "scene.sdfz"
+    vol = sample_volume(Scene([Plane((0, 0, 1), 0.3), Box((1.0, 1.2, 0.6), (0.3, 0.2, 0.25)),
+                               Sphere((2.0, 0.8, 0.7), 0.35)]), (128, 96, 64), VS, truncation=TRUNC)
+    _write(p, codec, vol, codec_state="reference", variable_rate={"target_bytes": target})
+    assert abs(_files_per_block(p) - target) <= 0.05 * target, _files_per_block(p)
+
+
+def test_surface_at_a_fixed_rate_and_the_error_target(tmp_path, scene_volume):
+    """The analytic scene at 100 B per coded block: surface metrics against the exact field above a bound;
+    ``target_error`` keeps every observed voxel touching a crossing of the exact field within E."""
+    from sdfcodec.surface import compare_volumes, crossing_edges
+
+    codec = pretrained_codec("pca", 128)
+    m = _write(tmp_path / "b.sdfz", codec, scene_volume, codec_state="reference",
+               variable_rate={"target_bytes": 100.0})
+    met = compare_volumes(scene_volume, m.decode_region(), VS)
+    assert met.f_score_1 >= 0.9 and met.chamfer_l1 <= 0.01, met
+    e = 0.03
+    m = _write(tmp_path / "e.sdfz", codec, scene_volume, codec_state="reference", variable_rate={"target_error": e})
+    dec, x = m.decode_region(), scene_volume
+    touch = np.zeros(x.shape, bool)  # voxels of a crossing between axis neighbours of one block (the definition)
+    for ax in range(3):
+        a, b = np.moveaxis(x, ax, 0)[:-1], np.moveaxis(x, ax, 0)[1:]
+        same_block = (np.arange(x.shape[ax] - 1) % 16 != 15).reshape(-1, 1, 1)
+        edge = crossing_edges(a, b) & same_block
+        t = np.moveaxis(touch, ax, 0)
+        t[:-1] |= edge
+        t[1:] |= edge
+    # the scene's 70 coded blocks are all in the writer's sample (2048), so the bound holds on the whole map
+    assert np.abs(dec - x)[touch].max() <= e + 1e-6, np.abs(dec - x)[touch].max()
+    tighter = _write(tmp_path / "e2.sdfz", codec, scene_volume, codec_state="reference",
+                     variable_rate={"target_error": e / 1.5})
+    assert _files_per_block(tmp_path / "e2.sdfz") > _files_per_block(tmp_path / "e.sdfz")
+
+
+# -- golden -------------------------------------------------------------------------------------------------------
+
+def _golden_map(path: Path) -> None:
+    codec = sdfcodec.get_codec("pca", code_size=8).fit(analytic_blocks(64, seed=5))
+    vol = sample_volume(analytic_scene(), (40, 24, 20), VS, truncation=TRUNC)
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
+                             variable_rate={"step": 0.05}, tool="tests/test_variable_rate.py golden") as m:
+        m.write_volume(vol)
+
+
+def test_golden_variable_rate_map_decodes_forever(regen_golden):
+    """A small variable-rate map written once (regenerate only with --regen-golden, for a format change): today's
+    reader must open it, verify it and decode it to the frozen values."""
+    m = check_golden_map(GOLDEN, _golden_map, regen_golden)
+    vr = m.header.codes.variable_rate
+    assert vr.step == [0.05] and vr.coder == "constriction-ans-1"
+    assert any(e.name == "variable-rate-codes" and e.required for e in m.header.extensions)
+
+
+# -- CLI ------------------------------------------------------------------------------------------------------------
+
+def test_encode_target_bytes_alone_references_the_shipped_model(tmp_path, scene_volume):
+    src = tmp_path / "scene.npy"
+    np.save(src, scene_volume)
+    out = tmp_path / "s.sdfz"
+    r = CliRunner().invoke(app, ["encode", str(src), str(out), "--voxel-size", str(VS), "--target-bytes", "90",
+                                 "--json"])
+    assert r.exit_code == 0, r.output
+    q = json.loads(r.stdout[r.stdout.index("{"):])["quantisation"]
+    m = sdfcodec.open_map(out)
+    h = m.header
+    assert q["variable_rate"] and h.codes.size == 128 and h.codec.state_reference is not None
+    assert abs(_files_per_block(out) - 90) <= 0.05 * 90
+    # a fitted codec is embedded: its state is not shipped anywhere
+    r = CliRunner().invoke(app, ["encode", str(src), str(tmp_path / "f.sdfz"), "--voxel-size", str(VS),
+                                 "--code-size", "8", "--fit"])
+    assert r.exit_code == 0, r.output
+    assert sdfcodec.open_map(tmp_path / "f.sdfz").header.codec.state_arrays
+    for args, msg in ((["--target-bytes", "1"], "below what this map can take"),
+                      (["--target-error", "-1"], "finite number of metres > 0"),
+                      (["--target-error", "0.0001"], "below what this codec reaches"),
+                      (["--variable-rate", "--step", "0.1", "--codec", "ae"], "cannot store step-quantised")):
+        r = CliRunner().invoke(app, ["encode", str(src), str(tmp_path / "bad.sdfz"), "--voxel-size", str(VS), *args])
+        assert r.exit_code == 1 and msg in r.output, (args, r.output)
+        assert not (tmp_path / "bad.sdfz").exists()
+    shutil.rmtree(out)
