@@ -52,6 +52,8 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {RESIDUAL_EXTENSION}
 #: (spec section 4d); required, since a reader that refuses sharding (section 9a) could not read the codes
 SHARD_EXTENSION = "sharded-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {SHARD_EXTENSION}
+#: "quantised-fusion-weights": the optional ``weights`` array as uint8 counts instead of float16 (spec section 6a)
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {"quantised-fusion-weights"}
 
 
 class BlockState:

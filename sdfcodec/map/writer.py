@@ -43,6 +43,7 @@ from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, re
                        stored_code_values)
 from .shards import pack_shards, unpack_shards
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
+from .weights import WEIGHTS_ARRAY, finish_weights, quantise_weights, weights_mode
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -153,6 +154,8 @@ class MapWriter:
         self.residual = group[RESIDUAL_ARRAY] if header_kw.get("residual") is not None else None
         self._live_reader: MapReader | None = None
         self.surface_weight = SURFACE_WEIGHT  # error weight near surfaces (sdfcodec.map.observed); 0: none
+        # what commit does with the fusion weights written (sdfcodec.map.weights): an update keeps the map's kind
+        self.weights_mode = "float16"
         if update:
             self.doing = "updating the map"
         else:
@@ -272,16 +275,18 @@ class MapWriter:
             self.set_state(c, BlockState.EMPTY)
 
     def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
-        if "weights" not in self.group:
-            self.group.create_array("weights", shape=(*self.grid, 4096), dtype="float16", fill_value=0,
+        if WEIGHTS_ARRAY not in self.group:
+            self.group.create_array(WEIGHTS_ARRAY, shape=(*self.grid, 4096), dtype="float16", fill_value=0,
                                     chunks=(4, 4, 4, 4096), compressors=compressors(),
                                     dimension_names=["bx", "by", "bz", "voxel"])
-        arr = self.group["weights"]
+        arr = self.group[WEIGHTS_ARRAY]
         if tuple(arr.shape[:3]) != self.grid:
             arr.resize((*self.grid, 4096))
-        # float16 counts are exact to 2048 frames and saturate at its maximum beyond
-        w16 = np.minimum(weights.reshape(len(weights), 4096), 65504).astype(np.float16)
-        write_block_rows(arr, coords, w16)  # one write per chunk, not one per block
+        w = weights.reshape(len(weights), 4096)
+        # float16 counts are exact to 2048 frames and saturate at its maximum beyond; an updated map that stores
+        # uint8 counts gets them by their rule (spec section 6a)
+        rows = quantise_weights(w) if arr.dtype == np.uint8 else np.minimum(w, 65504).astype(np.float16)
+        write_block_rows(arr, coords, rows)  # one write per chunk, not one per block
 
     def set_state(self, coords: np.ndarray, value: int) -> None:
         self.state[tuple(coords.T)] = value
@@ -400,11 +405,8 @@ class MapWriter:
                                      chunks=tuple(min(64, max(1, n)) for n in self.grid),
                                      compressors=compressors(), overwrite=True)
         st[...] = self.state
-        extensions = []
-        if "weights" in self.group:
-            if tuple(self.group["weights"].shape[:3]) != self.grid:
-                self.group["weights"].resize((*self.grid, 4096))
-            extensions.append(Extension(name="fusion-weights", required=False))
+        weights_ext = finish_weights(self.group, Path(self.tmp), self.weights_mode, self.grid)
+        extensions = [] if weights_ext is None else [weights_ext]
         if self.code_scale is not None:
             extensions.append(Extension(name=INT8_EXTENSION, required=True))
         if self.codes_spec.quantisation is not None:
@@ -512,7 +514,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   device: str | torch.device = "cpu", tool: str | None = None, source: str | None = None,
                   codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                   max_error: float | None = None, sign_exact: bool = False,
-                  shard_blocks: int | None = None) -> MapWriter:
+                  shard_blocks: int | None = None, keep_weights: bool | None = None) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -584,8 +586,10 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     except BaseException:
         discard()
         raise
-    return MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
-                     overwrite, torch.device(device), header=header)
+    writer = MapWriter(final, tmp, tmp_fd, group, codec, dict(header_kw, shape_voxels=header.shape_voxels), spec,
+                       overwrite, torch.device(device), header=header)
+    writer.weights_mode = weights_mode(codec, keep_weights)
+    return writer
 
 
 def _quantisation(codec: Codec, code_dtype: str, step: Any, offset: Any) -> CodeQuantisation | None:
