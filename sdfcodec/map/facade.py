@@ -319,17 +319,20 @@ class Map:
                                     "create the new map with the source's voxel size and truncation")
         if source.header.up is not None and self.writer.header_kw.get("up") is None:
             self.writer.header_kw["up"] = source.header.up  # the gravity direction travels with the map
-        self.mark_empty(np.argwhere(source.block_states() == 1))
+        empty = np.argwhere(source.block_states() == 1)
+        self.mark_empty(empty)
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
         carry = keep_weights and source.has_weights
+        if carry:  # empty blocks were observed too (free space): their weights travel with the coded ones'
+            self.writer.write_weights(empty, source.read_weights(empty))
         dtype = self.header.codes.dtype
         if (dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec
                 and self.header.residual is None):  # a residual needs the voxels: they are decoded and encoded
             for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
                 self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
                 if carry:
-                    self.writer.put_weights(coords, source.read_weights(coords))
+                    self.writer.write_weights(coords, source.read_weights(coords))
                 if progress is not None:
                     progress(len(coords))
             return

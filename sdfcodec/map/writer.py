@@ -274,6 +274,14 @@ class MapWriter:
                 self.grow_blocks(c.max(axis=0))
             self.set_state(c, BlockState.EMPTY)
 
+    def write_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
+        """Store fusion weights ``(N, 16, 16, 16)`` (checked: finite, non-negative) of blocks ``coords`` ``(N, 3)``
+        already written (a transcode carrying its source's weights, ``Map.write_map(keep_weights=True)``)."""
+        if len(coords):
+            with self._writing():
+                self.grow_blocks(coords.max(axis=0))
+                self.put_weights(coords, np.asarray(weights, dtype=np.float32))
+
     def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
         if WEIGHTS_ARRAY not in self.group:
             self.group.create_array(WEIGHTS_ARRAY, shape=(*self.grid, 4096), dtype="float16", fill_value=0,

@@ -1,0 +1,143 @@
+"""What a map stores beside its codes (issue 42, item 3): fusion weights dropped from lossy maps unless kept,
+then quantised to uint8 counts (spec section 6a, sdfcodec.map.weights); the observation mask (6b) kept exactly."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from typer.testing import CliRunner
+
+import sdfcodec
+from sdfcodec.blocks import split_blocks
+from sdfcodec.cli import app
+from sdfcodec.map.weights import QUANT_WEIGHTS_EXTENSION, WEIGHTS_EXTENSION, quantise_weights
+from sdfcodec.sdf import Sphere, sample_volume
+from sdfcodec.verify import verify_map
+
+VS, TRUNC = 0.02, (-0.04, 0.1)
+
+
+def run(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_quantised_weights_follow_their_stated_rule():
+    # hand-computed: 0 stays 0 (unobserved), anything observed reads at least 1, rounding half to even below,
+    # saturating at 255 above
+    w = np.array([0, 0.2, 0.5, 0.7, 1.4, 2.5, 3.5, 254.6, 255.4, 300, 1e4], np.float32)
+    np.testing.assert_array_equal(quantise_weights(w), [0, 1, 1, 1, 1, 2, 4, 255, 255, 255, 255])
+    rng = np.random.default_rng(0)
+    w = np.where(rng.random(20000) < 0.3, 0, rng.uniform(0, 400, 20000)).astype(np.float32)
+    q = quantise_weights(w).astype(np.float32)
+    inside = (w >= 0.5) & (w <= 255.5)
+    assert np.abs(q - w)[inside].max() <= 0.5  # within half a step (1 count) where the levels reach
+    np.testing.assert_array_equal(q > 0, w > 0)  # the observation survives bit for bit
+
+
+@pytest.fixture(scope="module")
+def fused(tmp_path_factory):
+    """A sphere fused-like: voxels deeper than |d_min| behind the surface unobserved (weight 0), integer weights
+    0-299 elsewhere (some above 255), written to a raw map with its weights."""
+    vol = sample_volume(Sphere((0.32, 0.32, 0.32), 0.2), (48, 48, 48), VS, truncation=TRUNC)
+    rng = np.random.default_rng(3)
+    weights = np.where(vol > TRUNC[0] + 1e-6, rng.integers(1, 300, vol.shape), 0).astype(np.float32)
+    vol = np.where(weights > 0, vol, TRUNC[1]).astype(np.float32)
+    blocks, wb = split_blocks(vol, TRUNC[1]), split_blocks(weights, 0.0)
+    coords = np.argwhere(np.ones(blocks.shape[:3], bool))
+    path = tmp_path_factory.mktemp("fused") / "raw.sdfz"
+    with sdfcodec.create_map(path, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC) as m:
+        m.write_blocks(coords, blocks[tuple(coords.T)], weights=wb[tuple(coords.T)])
+    return path, coords, wb[tuple(coords.T)]
+
+
+def _names(m):
+    return [e.name for e in m.header.extensions]
+
+
+def test_lossy_map_drops_weights_by_default_and_keeps_them_quantised_when_asked(fused, tmp_path):
+    raw_path, coords, weights = fused
+    raw = sdfcodec.open_map(raw_path)
+    assert _names(raw) == [WEIGHTS_EXTENSION, "observation-mask"]  # lossless raw keeps float16, as before
+    np.testing.assert_array_equal(raw.read_weights(coords), weights)
+    codec = sdfcodec.pretrained_codec("pca", 32)
+    blocks = np.concatenate([b for _, b in raw.iter_blocks()])
+    order = np.concatenate([c for c, _ in raw.iter_blocks()])
+    w_of = {tuple(c): w for c, w in zip(coords.tolist(), weights)}
+    w_ordered = np.stack([w_of[tuple(c)] for c in order.tolist()])
+    for keep, path in ((None, tmp_path / "drop.sdfz"), (True, tmp_path / "keep.sdfz")):
+        with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, keep_weights=keep) as m:
+            m.write_blocks(order, blocks, weights=w_ordered)
+    drop, keep = sdfcodec.open_map(tmp_path / "drop.sdfz"), sdfcodec.open_map(tmp_path / "keep.sdfz")
+    assert not drop.has_weights and _names(drop) == ["observation-mask"]
+    assert not (tmp_path / "drop.sdfz" / "weights").exists()
+    assert keep.has_weights and QUANT_WEIGHTS_EXTENSION in _names(keep) and WEIGHTS_EXTENSION not in _names(keep)
+    assert zarr.open_group(tmp_path / "keep.sdfz", mode="r")["weights"].dtype == np.uint8
+    # integer counts: exact up to 255, 255 above (the rule, computed independently here)
+    np.testing.assert_array_equal(keep.read_weights(order), np.minimum(w_ordered, 255))
+    # both know exactly which voxels were observed, and decode alike: the weights never change a decode
+    for m in (drop, keep):
+        np.testing.assert_array_equal(m.read_observed(order), w_ordered > 0)
+    np.testing.assert_array_equal(drop.decode_region(), keep.decode_region())
+    assert verify_map(tmp_path / "keep.sdfz").ok
+
+
+def test_transcode_keeps_weights_only_when_asked(fused, tmp_path):
+    raw_path, coords, weights = fused
+    assert run("encode", raw_path, tmp_path / "a.sdfz", "--code-size", 32).exit_code == 0
+    r = run("encode", raw_path, tmp_path / "b.sdfz", "--code-size", 32, "--keep-weights")
+    assert r.exit_code == 0, r.output
+    a, b = sdfcodec.open_map(tmp_path / "a.sdfz"), sdfcodec.open_map(tmp_path / "b.sdfz")
+    assert not a.has_weights and a.records_observation
+    np.testing.assert_array_equal(b.read_weights(coords), np.minimum(weights, 255))
+    # a volume has no weights to keep: one line, no traceback
+    np.save(tmp_path / "v.npy", np.full((16, 16, 16), 0.1, np.float32))
+    r = run("encode", tmp_path / "v.npy", tmp_path / "c.sdfz", "--voxel-size", VS, "--keep-weights")
+    assert r.exit_code != 0 and "--keep-weights" in r.output and "Traceback" not in r.output
+
+
+def test_old_readers_ignore_quantised_weights(fused, tmp_path):
+    """The extension is optional: a reader that knows only the format before it (fusion-weights, float16) opens
+    the map and reads its mask. Simulated by listing the weights under an extension name nobody knows."""
+    raw_path, coords, weights = fused
+    path = tmp_path / "k.sdfz"
+    assert run("encode", raw_path, path, "--code-size", 32, "--keep-weights").exit_code == 0
+    g = zarr.open_group(path, mode="r+")
+    h = dict(g.attrs["sdfcodec"])
+    h["extensions"] = [dict(e, name="some-later-weights") if e["name"] == QUANT_WEIGHTS_EXTENSION else e
+                       for e in h["extensions"]]
+    g.attrs["sdfcodec"] = h
+    m = sdfcodec.open_map(path)
+    assert not m.has_weights
+    np.testing.assert_array_equal(m.read_observed(coords), weights > 0)
+
+
+def test_a_map_without_weights_tracks_and_searches_as_one_with_them(tmp_path):
+    """`fuse --codec pca` now writes no weights by default: tracking and search on that map give exactly what
+    they give on the same map fused with --keep-weights (weights never enter a decode)."""
+    from sdfcodec.data.render import render_sequence
+    from sdfcodec.data.sequences import Intrinsics
+    from sdfcodec.metrics import read_tum
+
+    seq = render_sequence(tmp_path / "seq", "slow-clean", frames=6,
+                          intrinsics=Intrinsics(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120))
+    out = {}
+    for name, flag in (("plain", []), ("kept", ["--keep-weights"])):
+        path = tmp_path / f"{name}.sdfz"
+        r = run("fuse", seq, path, "--codec", "pca", "--code-size", 32, *flag)
+        assert r.exit_code == 0, r.output
+        assert sdfcodec.open_map(path).has_weights == bool(flag)
+        r = run("track", path, seq, "-o", tmp_path / f"{name}.txt", "--json")
+        assert r.exit_code == 0, r.output
+        s = run("search", path, "--query", "floor", "--json")
+        assert s.exit_code == 0, s.output
+        res = json.loads(s.stdout)
+        out[name] = (read_tum(tmp_path / f"{name}.txt"), res.get("blocks", res.get("matches")))
+    (tp, sp), (tk, sk) = out["plain"], out["kept"]
+    assert len(tp) == 6
+    np.testing.assert_array_equal(tp.positions, tk.positions)
+    np.testing.assert_array_equal(tp.quaternions, tk.quaternions)
+    assert sp == sk
