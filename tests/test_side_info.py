@@ -141,3 +141,37 @@ def test_a_map_without_weights_tracks_and_searches_as_one_with_them(tmp_path):
     np.testing.assert_array_equal(tp.positions, tk.positions)
     np.testing.assert_array_equal(tp.quaternions, tk.quaternions)
     assert sp == sk
+
+
+GOLDEN = Path(__file__).parent / "golden" / "maps" / "quantised-weights-pca-4"
+
+
+def _golden_weights(shape) -> np.ndarray:
+    """Deterministic integer counts 0-299 (0 where ``(i + j + k) % 7 == 0``): some above the 255 uint8 counts keep."""
+    i, j, k = np.indices(shape)
+    return np.where((i + j + k) % 7 == 0, 0, (i * 31 + j * 17 + k * 7) % 300).astype(np.float32)
+
+
+def _golden_map(path: Path) -> None:
+    from sdfcodec.testing import analytic_blocks
+
+    codec = sdfcodec.get_codec("pca", code_size=4).fit(analytic_blocks(64, seed=5))
+    vol = sample_volume(Sphere((0.2, 0.2, 0.2), 0.12), (32, 32, 32), VS, truncation=TRUNC)
+    blocks, wb = split_blocks(vol, TRUNC[1]), split_blocks(_golden_weights(vol.shape), 0.0)
+    coords = np.argwhere(np.ones(blocks.shape[:3], bool))
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2, keep_weights=True,
+                             tool="tests/test_side_info.py golden") as m:
+        m.write_blocks(coords, blocks[tuple(coords.T)], weights=wb[tuple(coords.T)])
+
+
+def test_golden_quantised_weights_map_reads_forever(regen_golden):
+    """A small pca-4 map with uint8 weight counts (extension quantised-fusion-weights), written once: today's
+    reader opens, verifies and decodes it, and reads the counts the rule gives for its (integer) weights."""
+    from _golden_maps import check_golden_map
+
+    m = check_golden_map(GOLDEN, _golden_map, regen_golden)
+    assert {"name": QUANT_WEIGHTS_EXTENSION, "required": False} in [e.model_dump() for e in m.header.extensions]
+    coords = np.argwhere(m.block_states() == 2)
+    w = split_blocks(_golden_weights((32, 32, 32)), 0.0)[tuple(coords.T)]
+    np.testing.assert_array_equal(m.read_weights(coords), np.minimum(w, 255))
+    np.testing.assert_array_equal(m.read_observed(coords), w > 0)
