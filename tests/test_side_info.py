@@ -175,3 +175,31 @@ def test_golden_quantised_weights_map_reads_forever(regen_golden):
     w = split_blocks(_golden_weights((32, 32, 32)), 0.0)[tuple(coords.T)]
     np.testing.assert_array_equal(m.read_weights(coords), np.minimum(w, 255))
     np.testing.assert_array_equal(m.read_observed(coords), w > 0)
+
+
+def test_mask_is_stored_at_zstd_9_and_older_masks_still_read(tmp_path, monkeypatch):
+    """The observation mask of an analytic sphere fused-like (unobserved exactly where the SDF is below d_min)
+    reads back bit for bit, stored with the new chain; a map whose mask has the previous chain (zstd 5) reads
+    the same bits."""
+    import sdfcodec.map.writer as writer
+    from _fused_maps import fused_like, write_volume_map
+    from zarr.codecs import BloscCodec, Crc32cCodec
+
+    vol = sample_volume(Sphere((0.32, 0.32, 0.32), 0.2), (48, 48, 48), VS, truncation=TRUNC)
+    fused_vol, observed = fused_like(vol)
+    np.testing.assert_array_equal(observed, vol > TRUNC[0] + 1e-6)
+    codec = sdfcodec.pretrained_codec("pca", 32)
+    write_volume_map(tmp_path / "new.sdfz", fused_vol, observed, codec)
+    monkeypatch.setattr(writer, "mask_compressors",
+                        lambda: [BloscCodec(cname="zstd", clevel=5, shuffle="noshuffle"), Crc32cCodec()])
+    write_volume_map(tmp_path / "old.sdfz", fused_vol, observed, codec)
+    for name, level in (("new", 9), ("old", 5)):
+        blosc = [c for c in zarr.open_group(tmp_path / f"{name}.sdfz", mode="r")["observed"].metadata.codecs
+                 if isinstance(c, BloscCodec)]
+        assert [(b.cname.value, b.clevel, b.shuffle.value) for b in blosc] == [("zstd", level, "noshuffle")]
+    split = split_blocks(observed.astype(np.float32), 1.0).reshape(-1, 16, 16, 16) > 0.5
+    coords = np.argwhere(np.ones((3, 3, 3), bool))
+    for name in ("new", "old"):
+        m = sdfcodec.open_map(tmp_path / f"{name}.sdfz")
+        coded = m.block_states()[tuple(coords.T)] == 2
+        np.testing.assert_array_equal(m.read_observed(coords[coded]), split[coded])
