@@ -177,22 +177,26 @@ def test_golden_quantised_weights_map_reads_forever(regen_golden):
     np.testing.assert_array_equal(m.read_observed(coords), w > 0)
 
 
-def test_mask_is_stored_at_zstd_9_and_older_masks_still_read(tmp_path, monkeypatch):
+def test_mask_is_stored_at_zstd_9_and_older_masks_still_read(tmp_path):
     """The observation mask of an analytic sphere fused-like (unobserved exactly where the SDF is below d_min)
-    reads back bit for bit, stored with the new chain; a map whose mask has the previous chain (zstd 5) reads
-    the same bits."""
-    import sdfcodec.map.writer as writer
+    reads back bit for bit, stored with the final chain (zstd 9, recompressed at commit); the same map with its
+    mask stored by the previous chain (zstd 5, as older writers did) reads the same bits."""
+    import shutil
+
     from _fused_maps import fused_like, write_volume_map
     from zarr.codecs import BloscCodec, Crc32cCodec
 
     vol = sample_volume(Sphere((0.32, 0.32, 0.32), 0.2), (48, 48, 48), VS, truncation=TRUNC)
     fused_vol, observed = fused_like(vol)
     np.testing.assert_array_equal(observed, vol > TRUNC[0] + 1e-6)
-    codec = sdfcodec.pretrained_codec("pca", 32)
-    write_volume_map(tmp_path / "new.sdfz", fused_vol, observed, codec)
-    monkeypatch.setattr(writer, "mask_compressors",
-                        lambda: [BloscCodec(cname="zstd", clevel=5, shuffle="noshuffle"), Crc32cCodec()])
-    write_volume_map(tmp_path / "old.sdfz", fused_vol, observed, codec)
+    write_volume_map(tmp_path / "new.sdfz", fused_vol, observed, sdfcodec.pretrained_codec("pca", 32))
+    shutil.copytree(tmp_path / "new.sdfz", tmp_path / "old.sdfz")
+    g = zarr.open_group(tmp_path / "old.sdfz", mode="r+")
+    rows, a = g["observed"][...], g["observed"]
+    del g["observed"]
+    g.create_array("observed", shape=rows.shape, dtype="uint8", fill_value=255, chunks=a.chunks,
+                   compressors=[BloscCodec(cname="zstd", clevel=5, shuffle="noshuffle"), Crc32cCodec()],
+                   dimension_names=["bx", "by", "bz", "byte"])[...] = rows
     for name, level in (("new", 9), ("old", 5)):
         blosc = [c for c in zarr.open_group(tmp_path / f"{name}.sdfz", mode="r")["observed"].metadata.codecs
                  if isinstance(c, BloscCodec)]
@@ -203,3 +207,35 @@ def test_mask_is_stored_at_zstd_9_and_older_masks_still_read(tmp_path, monkeypat
         m = sdfcodec.open_map(tmp_path / f"{name}.sdfz")
         coded = m.block_states()[tuple(coords.T)] == 2
         np.testing.assert_array_equal(m.read_observed(coords[coded]), split[coded])
+        assert verify_map(tmp_path / f"{name}.sdfz").ok
+
+
+def test_an_update_recompresses_only_the_mask_chunks_it_wrote(tmp_path):
+    """Mask chunks are written fast and recompressed at commit: an update recompresses the chunks it wrote and
+    leaves the others' files byte for byte (links to the version readers hold), which still read the same."""
+    codec = sdfcodec.pretrained_codec("pca", 32)
+    vol = sample_volume(Sphere((0.64, 0.64, 0.64), 0.2), (96, 96, 96), VS, truncation=TRUNC)  # over 2^3 chunks
+    blocks = split_blocks(vol, TRUNC[1])
+    obs = split_blocks((vol > 0.0).astype(np.float32), 1.0) > 0.5  # the solid side unobserved
+    coords = np.argwhere(np.ones(blocks.shape[:3], bool))
+    path = tmp_path / "m.sdfz"
+    with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2) as m:
+        m.write_blocks(coords, blocks[tuple(coords.T)], observed=obs[tuple(coords.T)])
+    before = sdfcodec.open_map(path)
+    coded = coords[before.block_states()[tuple(coords.T)] == 2]
+    files = {f.relative_to(path): f.read_bytes() for f in (path / "observed" / "c").rglob("*") if f.is_file()}
+    assert len(files) >= 2
+    # rewrite the coded blocks of chunk (0, 0, 0) only, their voxel layer x = 12 (inside the sphere) now observed
+    mine = coded[(coded // 2 == 0).all(axis=1)]
+    new = obs[tuple(mine.T)].copy()
+    new[:, 12] = True
+    assert len(mine) and not new.all()
+    with sdfcodec.update_map(path) as m:
+        m.write_blocks(mine, blocks[tuple(mine.T)], observed=new)
+    after = sdfcodec.open_map(path)
+    changed = {k for k, v in files.items() if (path / k).read_bytes() != v}
+    assert changed == {Path("observed/c/0/0/0/0")}
+    expect = obs[tuple(coded.T)].copy()
+    expect[(coded // 2 == 0).all(axis=1)] = new
+    np.testing.assert_array_equal(after.read_observed(coded), expect)
+    np.testing.assert_array_equal(before.read_observed(coded), obs[tuple(coded.T)])  # the old version, intact

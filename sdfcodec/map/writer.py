@@ -36,8 +36,8 @@ from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compressors, free_space, mask_compressors)
-from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
-                       store_mask_chunk, write_block_rows)
+from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, finish_mask,
+                       pack_mask, store_mask_chunk, write_block_rows)
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
@@ -150,6 +150,7 @@ class MapWriter:
         self.codes = group["codes"]
         self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
         self.mask = group[MASK_ARRAY] if MASK_ARRAY in group else None  # observation mask, once one is written
+        self.mask_touched: set[tuple[int, int, int]] = set()  # its chunks written here: recompressed at commit
         # the residual stage (spec 6d): its array is made with the map, its step and bound are in the header
         self.residual = group[RESIDUAL_ARRAY] if header_kw.get("residual") is not None else None
         self._live_reader: MapReader | None = None
@@ -359,7 +360,7 @@ class MapWriter:
             self.mask = self.group.create_array(MASK_ARRAY, shape=(*self.grid, MASK_BYTES), dtype="uint8",
                                                 fill_value=255, chunks=(*(self.codes_spec.chunk_blocks,) * 3,
                                                                         MASK_BYTES),
-                                                compressors=mask_compressors(),
+                                                compressors=mask_compressors(final=False),
                                                 dimension_names=["bx", "by", "bz", "byte"])
         cb = self.codes_spec.chunk_blocks
         chunk_of = coords // cb
@@ -376,6 +377,7 @@ class MapWriter:
             if self.mask is not None:
                 store_mask_chunk(self.mask, box, coords[lo:hi] - ch * cb, None if masks is None else masks[lo:hi],
                                  had)
+                self.mask_touched.add(tuple(int(c) for c in ch))
         self.set_state(coords, BlockState.CODED)
 
     def commit(self) -> Path:
@@ -422,6 +424,7 @@ class MapWriter:
         if self.mask is not None:
             if tuple(self.mask.shape[:3]) != self.grid:
                 self.mask.resize((*self.grid, MASK_BYTES))
+            finish_mask(self.group, Path(self.tmp), self.mask_touched)
             extensions.append(Extension(name=MASK_EXTENSION, required=True))
         if self.header_kw["codec"].state_reference is not None:
             extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
