@@ -66,6 +66,8 @@ MAX_MANIFEST_BYTES = 64 << 20
 #: (the array ``code_streams``), described by ``codes.variable_rate`` (spec section 4e)
 VARIABLE_RATE_EXTENSION = "variable-rate-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {VARIABLE_RATE_EXTENSION}
+#: "quantised-fusion-weights": the optional ``weights`` array as uint8 counts instead of float16 (spec section 6a)
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {"quantised-fusion-weights"}
 
 
 class BlockState:

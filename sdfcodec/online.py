@@ -28,7 +28,8 @@ Curless-Levoy averaging from its decoded distances with its true weights, so a n
 weight 1 and the next frame would count as much as all the earlier ones together. The distances are the lossy
 part: a block paged out and in is re-fused from its decoded state, so its error is the codec's error of its
 last page-out, not a sum (a PCA code of a decoded block is the same code: the projection is idempotent, the
-clipping and error weights aside).
+clipping and error weights aside). At commit a map with a lossy codec drops them by default (its observation
+mask stays; ``keep_weights=True`` keeps them as uint8 counts, :mod:`sdfcodec.map.weights`): the fusion is over.
 
 The lattice must be known before the first frame, so the origin is worked out from the poses (every camera
 centre minus the farthest a ray can allocate, ``depth_max`` along the widest ray plus the band, rounded down
@@ -123,7 +124,7 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
                 truncation: tuple[float, float] = (-0.04, 0.1), depth_max: float | None = 4.0,
                 origin: np.ndarray | None = None, intrinsics: Intrinsics | None = None, code_dtype: str = "float32",
                 overwrite: bool = False, low_water: float = 0.8, quiet: bool = False, tool: str = "sdfcodec fuse",
-                device: str = "CPU:0") -> dict[str, Any]:
+                device: str = "CPU:0", keep_weights: bool | None = None) -> dict[str, Any]:
     """Fuse a posed depth sequence into a compressed map at ``output`` through a working set of at most
     ``working_set_mb`` MiB of dense blocks (module docstring).
 
@@ -147,6 +148,9 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
         A page-out empties the working set down to this fraction of the budget (0 < low_water <= 1).
     quiet : bool
         No progress bar.
+    keep_weights : bool, optional
+        As for :func:`sdfcodec.create_map`: the weights are written while fusing (a block paged back in resumes
+        from them) and, by default, dropped at commit from a map with a lossy codec (its observation mask stays).
 
     Returns
     -------
@@ -156,7 +160,8 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
         (with the final flush and commit), ``blocks_paged_out`` / ``blocks_paged_in`` (page-out and page-in events, block
         by block), ``page_outs`` (batches), ``blocks_flushed`` (written at the end), ``peak_working_set_blocks``
         and ``peak_working_set_mib``, ``budget_blocks``, ``peak_rss_mib`` (the process's), ``blocks`` (the map's
-        coded / empty counts), ``bytes_on_disk``, ``origin``, ``stores`` ("weights").
+        coded / empty counts), ``bytes_on_disk``, ``origin``, ``stores`` ("weights", or "observation mask" when they
+        were dropped at commit: ``keep_weights``).
 
     Raises
     ------
@@ -280,7 +285,7 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
     t_start, cpu_start = time.perf_counter(), time.process_time()
     m = create_map(output, codec=codec, voxel_size=voxel_size, truncation=(d_min, d_max), origin=tuple(anchor),
                    code_dtype=code_dtype, overwrite=overwrite, tool=tool, up=up,
-                   source=str(getattr(sequence, "path", "")) or None)
+                   source=str(getattr(sequence, "path", "")) or None, keep_weights=keep_weights)
     with m:
         for frame, img, extrinsic in feed.inputs(frames):
             keys = feed.touched(vbg, img, extrinsic)
@@ -326,4 +331,4 @@ def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str |
             "page_in_seconds": stats["page_in_s"], "blocks_flushed": flushed,
             "allocated_blocks": int(stored.grid.sum()), "blocks": info["blocks"],
             "bytes_on_disk": info["bytes_on_disk"], "peak_rss_mib": rss, "origin": [float(v) for v in anchor],
-            "stores": "weights"}
+            "stores": "weights" if m.has_weights else "observation mask"}

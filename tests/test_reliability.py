@@ -46,7 +46,8 @@ def _blocks(n: int, seed: int = 0) -> np.ndarray:
 
 @pytest.fixture
 def small_map(tmp_path, pca16) -> Path:
-    """A pca-16 map: 10 coded blocks over two chunks (chunk_blocks 2), one empty block, fusion weights."""
+    """A pca-16 map: 10 coded blocks over two chunks (chunk_blocks 2), one empty block, fusion weights (kept:
+    uint8 counts, spec 6a)."""
     path = tmp_path / "small.sdfz"
     coords = np.array([[0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 3, 1], [0, 2, 1], [1, 1, 1], [2, 0, 1], [3, 0, 0],
                        [0, 3, 0], [1, 3, 1]])
@@ -54,7 +55,7 @@ def small_map(tmp_path, pca16) -> Path:
     # no integrity manifest: the damage below tests the checks under it (the kill and concurrency tests' maps,
     # written by tests/reliability_worker.py, have one; tests/test_manifest.py damages maps that have one)
     with sdfcodec.create_map(path, codec=pca16, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
-                             manifest=False) as m:
+                             manifest=False, keep_weights=True) as m:
         m.write_blocks(coords, _blocks(len(coords)), weights=weights)
         m.mark_empty([[2, 2, 0]])
     return path

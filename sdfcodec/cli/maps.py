@@ -156,6 +156,7 @@ def encode_cmd(
     sign_exact: bool = typer.Option(False, "--sign-exact", help="Every voxel touching a surface crossing of the input decodes with its sign (a residual stage on top of the codes; block codecs)."),
     chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (default: 16 for pca-64; smaller chunks transfer less per small remote region)."),
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Store the chunks of codes in Zarr shards of N blocks per axis (a multiple of --chunk-blocks dividing 64, e.g. 32): objects of megabytes for maps of millions of blocks on object storage (readers before the extension sharded-codes refuse the map)."),
+    keep_weights: bool = typer.Option(False, "--keep-weights", help="Carry the input map's fusion weights (uint8 counts in a lossy map, float16 with raw); by default only its observation mask is kept."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
@@ -186,9 +187,14 @@ def encode_cmd(
     if "://" in input or in_path.is_dir():
         src_map = open_map(input)
         vs, trunc, org = src_map.voxel_size, src_map.truncation, src_map.origin
+        if keep_weights and not src_map.has_weights:
+            fail(f"--keep-weights: {input} stores no fusion weights (only a map written with them has any); drop "
+                 "the flag")
     else:
         if not in_path.exists():
             raise InputNotFoundError(errno.ENOENT, "no such input file", str(in_path))
+        if keep_weights:
+            fail(f"--keep-weights carries the fusion weights of a map; {in_path} is a volume, which has none")
         vol, meta = load_volume(in_path, key)
         vs = voxel_size if voxel_size is not None else meta.get("voxel_size")
         if vs is None:
@@ -260,11 +266,12 @@ def encode_cmd(
                                              code_dtype="int16" if code_step is not None else code_dtype,
                                              code_step=code_step, tool="sdfcodec encode", source=str(input),
                                              codec_state=codec_state, chunk_blocks=chunk_blocks,
-                                             shard_blocks=shard_blocks, variable_rate=vr_kw, **residual_kw) as m:
+                                             shard_blocks=shard_blocks, variable_rate=vr_kw,
+                                             keep_weights=keep_weights or None, **residual_kw) as m:
             if src_map is not None:
                 total = src_map.count_states()["coded"]
                 task = prog.add_task("transcoding", total=total, rate="")
-                m.write_map(src_map, progress=lambda n: prog.advance(task, n))
+                m.write_map(src_map, progress=lambda n: prog.advance(task, n), keep_weights=keep_weights)
             else:
                 nblocks = int(np.prod([-(-n // 16) for n in vol.shape]))
                 task = prog.add_task("encoding", total=nblocks, rate="")

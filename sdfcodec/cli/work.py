@@ -26,7 +26,7 @@ def fuse_cmd(
     truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
     depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 storage of the field (int8: per-block offset and scale)."),
-    weights: bool = typer.Option(True, "--weights/--no-weights", help="Store the per-voxel fusion weights (which voxels were observed: transcoding keeps them as a mask)."),
+    weights: Optional[bool] = typer.Option(None, "--keep-weights/--no-keep-weights", "--weights/--no-weights", help="Store the per-voxel fusion weights [default: with raw (float16); not with a lossy --codec, whose map keeps only the observation mask; kept, they are uint8 counts]."),
     codec_id: str = typer.Option("raw", "--codec", help="Codec of the map: raw (lossless), pca (the shipped eigenshapes), or another fitted one."),
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length of --codec pca (default 64)."),
     working_set_mb: Optional[float] = typer.Option(None, "--working-set-mb", help="Fuse online: at most this many MiB of dense blocks in memory, the rest paged out into the map (32 KiB a block)."),
@@ -49,10 +49,8 @@ def fuse_cmd(
     sequence = str(resolve_sequence(sequence, Path(output).parent / ".sdfcodec-sequences"))
     codec = fusion_codec(codec_id, code_size)
     if working_set_mb is not None:
-        if not weights:
-            fail("--working-set-mb stores the fusion weights (a block paged back in resumes from them): drop --no-weights")
         with heartbeat(f"fusing {sequence} online", as_json):
-            summary = fuse_to_map(sequence, output, codec=codec, working_set_mb=working_set_mb,
+            summary = fuse_to_map(sequence, output, codec=codec, working_set_mb=working_set_mb, keep_weights=weights,
                                   voxel_size=voxel_size, truncation=trunc, depth_max=depth_max, code_dtype=code_dtype,
                                   overwrite=overwrite, quiet=as_json or not live_progress())
         report(summary, as_json, lambda: (
@@ -69,8 +67,10 @@ def fuse_cmd(
                      progress=None if prog is None else (lambda total: prog.update(task, advance=1, total=total)))
     with create_map(output, codec=codec, voxel_size=voxel_size, truncation=trunc,
                     origin=tuple(fused.origin), code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec fuse", up=fused.up,
-                    source=str(sequence)) as m:
-        m.write_blocks(fused.coords, fused.tsdf, **({"weights": fused.weights} if weights else {"observed": fused.weights > 0}))
+                    source=str(sequence), keep_weights=weights) as m:
+        # weights the map would drop at commit are not written at all
+        keep = weights if weights is not None else codec.codec_id == "raw"
+        m.write_blocks(fused.coords, fused.tsdf, **({"weights": fused.weights} if keep else {"observed": fused.weights > 0}))
     info = m.info()
     summary = {"output": str(output), "frames_integrated": fused.frames_integrated,
                "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],

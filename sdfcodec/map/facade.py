@@ -305,32 +305,43 @@ class Map:
         b = check_volume(blocks, self.truncation, shape=(len(c), BLOCK, BLOCK, BLOCK), name="blocks")
         w.write_blocks(c, b, weights=weights, observed=observed, batch_size=batch_size, progress=progress)
 
-    def write_map(self, source: "Map", *, progress: Callable[[int], None] | None = None) -> None:
+    def write_map(self, source: "Map", *, progress: Callable[[int], None] | None = None,
+                  keep_weights: bool = False) -> None:
         """Transcode every block of the map ``source`` (same voxel size and truncation) into this one: its empty
         blocks stay empty, its coded blocks are decoded (clipped to the truncation: a lossy decode overshoots a
         little) and encoded here with their observation (fusion weights or mask), ``progress(n)`` per batch.
         When this map has the source's very codec (class, configuration and state) and float codes of the same
-        type, the codes are copied, not re-encoded: lossless, e.g. to store a state by reference or embed it."""
+        type, the codes are copied, not re-encoded: lossless, e.g. to store a state by reference or embed it.
+        ``keep_weights``: carry the source's fusion weights too (stored as this map's ``keep_weights`` says: a
+        map created with the default stores them only when its codec is lossless; create it with
+        ``keep_weights=True`` to keep them quantised in a lossy map)."""
         if (source.voxel_size, source.truncation) != (self.voxel_size, self.truncation):
             raise InvalidValueError(f"cannot transcode {source.location} (voxel size {source.voxel_size} m, truncation "
                                     f"{source.truncation}) into a map with {self.voxel_size} m, {self.truncation}: "
                                     "create the new map with the source's voxel size and truncation")
         if source.header.up is not None and self.writer.header_kw.get("up") is None:
             self.writer.header_kw["up"] = source.header.up  # the gravity direction travels with the map
-        self.mark_empty(np.argwhere(source.block_states() == 1))
+        empty = np.argwhere(source.block_states() == 1)
+        self.mark_empty(empty)
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
+        carry = keep_weights and source.has_weights
+        if carry:  # empty blocks were observed too (free space): their weights travel with the coded ones'
+            self.writer.write_weights(empty, source.read_weights(empty))
         dtype = self.header.codes.dtype
         if (dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec
                 and self.header.residual is None and self.writer.vr is None):  # a residual needs the voxels: they are decoded and encoded
             for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
                 self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
+                if carry:
+                    self.writer.write_weights(coords, source.read_weights(coords))
                 if progress is not None:
                     progress(len(coords))
             return
         for coords, blocks in source.iter_blocks():
             self.write_blocks(coords, np.clip(blocks, *self.truncation),
-                              observed=source.read_observed(coords) if knows else None)
+                              observed=source.read_observed(coords) if knows else None,
+                              weights=source.read_weights(coords) if carry else None)
             if progress is not None:
                 progress(len(coords))
 
@@ -398,7 +409,8 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                surface_weight: float = SURFACE_WEIGHT, up: Sequence[float] | None = None,
                codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                max_error: float | None = None, sign_exact: bool = False, shard_blocks: int | None = None,
-               manifest: bool = True, variable_rate: dict | None = None) -> Map:
+               manifest: bool = True, variable_rate: dict | None = None,
+               keep_weights: bool | None = None) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -447,6 +459,11 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             commit; a dict with one of ``step`` (normalised code units), ``target_bytes`` (stored bytes per coded
             block, every file counted) or ``target_error`` (metres, surface error), and optionally ``lagrange``.
             Prefix-ordered codecs (pca) only; such a map is not updated in place.
+        keep_weights: what becomes of the fusion weights given to ``write_blocks(weights=...)``: None (default)
+            keeps them (float16) for the lossless ``raw`` codec and drops them at commit for lossy codecs (the
+            observation mask keeps which voxels were observed); True keeps them, quantised to uint8 counts for
+            lossy codecs (extension ``quantised-fusion-weights``, spec section 6a); False drops them
+            (:mod:`sdfcodec.map.weights`).
     """
     up_unit = None
     if up is not None:
@@ -466,7 +483,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source, codec_state=codec_state, code_step=code_step,
                                   code_offset=code_offset, max_error=max_error, sign_exact=sign_exact,
-                                  shard_blocks=shard_blocks, manifest=manifest,
+                                  shard_blocks=shard_blocks, manifest=manifest, keep_weights=keep_weights,
                                   variable_rate=None if variable_rate is None else VariableRateWriter(
                                       codec, **variable_rate))
     writer.surface_weight = float(surface_weight)

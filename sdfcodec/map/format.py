@@ -69,12 +69,14 @@ def code_compressors(dtype: str) -> list:
     return compressors()
 
 
-def mask_compressors() -> list:
-    """The chain of the observation mask ``observed``: packed bits gain nothing from a byte shuffle, and zstd
-    level 5 of Blosc stores the kitchen map's mask in 75.4 B per coded block against 82.3 at level 3 with byte
-    shuffle, synthetic fused rooms' in 15-36 B against 18-40 B (docs/rate-distortion.md, "Quantised codes");
-    readers decode any allowed Blosc settings, so old readers read it."""
-    return [BloscCodec(cname="zstd", clevel=5, shuffle="noshuffle"), Crc32cCodec()]
+def mask_compressors(final: bool = True) -> list:
+    """The chain of the observation mask ``observed``: packed bits gain nothing from a byte shuffle; zstd level 9
+    of Blosc stores the 500-frame kitchen map's mask (pca-64 int8) in 65.3 B per coded block against 73.8 at level
+    5 and 84.1 with bit shuffle (docs/side-information.md); readers decode any allowed Blosc settings, so old
+    readers read it. Level 9 writes 13x slower than 5 (medians of 5, interleaved), so a writer writes its mask
+    chunks at level 5 (``final=False``: online fusion rewrites them at every page-out) and recompresses the
+    chunks it wrote once, at commit (:func:`sdfcodec.map.observed.finish_mask`)."""
+    return [BloscCodec(cname="zstd", clevel=9 if final else 5, shuffle="noshuffle"), Crc32cCodec()]
 
 
 def code_layout(codec: Codec, dtype: str, chunk_blocks: int | None, chunk_code: int | None,

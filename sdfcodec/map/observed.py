@@ -21,6 +21,9 @@ Both are the writer's and reader's business; codecs only see weights.
 
 from __future__ import annotations
 
+import json
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,12 +34,13 @@ from .._validate import BLOCK
 from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
 from ..header import BlockState
+from .format import mask_compressors
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "TRUNCATION_ROUNDS", "error_weights", "fill_unobserved", "encode_blocks", "encode_truncated", "fit_codec",
            "pack_mask", "unpack_mask", "restore_unobserved", "restore_unobserved_voxels", "read_block_rows", "write_block_rows", "store_mask_chunk", "read_observed",
-           "checked_mask_array"]
+           "checked_mask_array", "finish_mask"]
 
 MASK_EXTENSION = "observation-mask"
 MASK_ARRAY = "observed"
@@ -321,3 +325,24 @@ def read_observed(reader: Any, coords: np.ndarray) -> np.ndarray:
     if mask is not None:
         return unpack_mask(read_block_rows(reader, mask, coords))
     return np.ones((len(coords), BLOCK, BLOCK, BLOCK), dtype=bool)
+
+
+def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]]) -> None:
+    """At a writer's commit: give the mask array of the map being written in ``tmp`` (its ``group``) its final
+    compressor chain (:func:`~sdfcodec.map.format.mask_compressors`) and recompress with it the chunks this writer
+    wrote (``touched``: chunk indices along the block axes), which it wrote at the fast level. Chunks it did not
+    write (an update's, hard links to the version readers hold) keep their bytes: Blosc frames decode whatever
+    level made them."""
+    meta_path = Path(tmp) / MASK_ARRAY / "zarr.json"
+    meta = json.loads(meta_path.read_bytes())
+    final = [c.to_dict() for c in mask_compressors()]
+    if meta["codecs"][1:] != final:
+        meta["codecs"] = meta["codecs"][:1] + final
+        part = meta_path.with_name("zarr.json.part")
+        part.write_text(json.dumps(meta, indent=2))
+        os.replace(part, meta_path)  # a new file: an update's zarr.json may be a link into the previous version
+    arr = zarr.open_array(group.store, path=MASK_ARRAY, mode="r+")
+    cb = np.asarray(arr.chunks[:3])
+    for key in sorted(touched):
+        box = tuple(slice(int(k) * c, min(int(k) * c + c, n)) for k, c, n in zip(key, cb, arr.shape))
+        arr[box] = np.asarray(arr[box])

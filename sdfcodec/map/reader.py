@@ -39,6 +39,7 @@ from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
 from .residual import check_residual_stored, checked_residual_array
 from .stores import GuardStore, PinnedStore, open_store, unguarded
+from .weights import checked_weights_array
 from .device_feed import DeviceFeed
 from .fastfetch import local_chunks
 from .shards import chunk_name, chunk_stored, shard_layout
@@ -188,11 +189,7 @@ class MapReader:
                                   "4a); it is incomplete")
             self.check_array(self.code_scale_array, dtype=np.float32, shape=(*h.grid_blocks, 2),
                              chunks=(cb, cb, cb, 2), zero_fill=True)
-        self.weights_array = None
-        if any(e.name == "fusion-weights" for e in h.extensions):
-            self.weights_array = self.member("weights")
-            if self.weights_array is not None:
-                self.check_array(self.weights_array, dtype=np.float16, shape=(*h.grid_blocks, 4096))
+        self.weights_array = checked_weights_array(self)  # float16, or uint8 counts (spec section 6a)
         self.mask_array = checked_mask_array(self)
         self.residual_array = checked_residual_array(self)
         self.codes_array, self.state_array = codes, state

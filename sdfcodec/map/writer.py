@@ -38,8 +38,8 @@ from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compressors, free_space, mask_compressors)
-from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, pack_mask,
-                       store_mask_chunk, write_block_rows)
+from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, finish_mask,
+                       pack_mask, store_mask_chunk, write_block_rows)
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
@@ -47,6 +47,7 @@ from .manifest import manifest_bytes_estimate, previous_digests, write_manifest
 from .shards import pack_shards, unpack_shards
 from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 from .varrate import GAIN_ARRAY, STREAM_ARRAY, STREAM_METADATA_BYTES, VariableRateWriter, stream_chunk_keys
+from .weights import WEIGHTS_ARRAY, finish_weights, quantise_weights, weights_mode
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -154,10 +155,13 @@ class MapWriter:
         self.codes = group["codes"]
         self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
         self.mask = group[MASK_ARRAY] if MASK_ARRAY in group else None  # observation mask, once one is written
+        self.mask_touched: set[tuple[int, int, int]] = set()  # its chunks written here: recompressed at commit
         # the residual stage (spec 6d): its array is made with the map, its step and bound are in the header
         self.residual = group[RESIDUAL_ARRAY] if header_kw.get("residual") is not None else None
         self._live_reader: MapReader | None = None
         self.surface_weight = SURFACE_WEIGHT  # error weight near surfaces (sdfcodec.map.observed); 0: none
+        # what commit does with the fusion weights written (sdfcodec.map.weights): an update keeps the map's kind
+        self.weights_mode = "float16"
         if update:
             self.doing = "updating the map"
         else:
@@ -283,17 +287,27 @@ class MapWriter:
                 self.grow_blocks(c.max(axis=0))
             self.set_state(c, BlockState.EMPTY)
 
+    def write_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
+        """Store fusion weights ``(N, 16, 16, 16)`` (checked: finite, non-negative) of blocks ``coords`` ``(N, 3)``
+        already written (a transcode carrying its source's weights, ``Map.write_map(keep_weights=True)``)."""
+        if len(coords):
+            with self._writing():
+                self.grow_blocks(coords.max(axis=0))
+                self.put_weights(coords, np.asarray(weights, dtype=np.float32))
+
     def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
-        if "weights" not in self.group:
-            self.group.create_array("weights", shape=(*self.grid, 4096), dtype="float16", fill_value=0,
+        if WEIGHTS_ARRAY not in self.group:
+            self.group.create_array(WEIGHTS_ARRAY, shape=(*self.grid, 4096), dtype="float16", fill_value=0,
                                     chunks=(4, 4, 4, 4096), compressors=compressors(),
                                     dimension_names=["bx", "by", "bz", "voxel"])
-        arr = self.group["weights"]
+        arr = self.group[WEIGHTS_ARRAY]
         if tuple(arr.shape[:3]) != self.grid:
             arr.resize((*self.grid, 4096))
-        # float16 counts are exact to 2048 frames and saturate at its maximum beyond
-        w16 = np.minimum(weights.reshape(len(weights), 4096), 65504).astype(np.float16)
-        write_block_rows(arr, coords, w16)  # one write per chunk, not one per block
+        w = weights.reshape(len(weights), 4096)
+        # float16 counts are exact to 2048 frames and saturate at its maximum beyond; an updated map that stores
+        # uint8 counts gets them by their rule (spec section 6a)
+        rows = quantise_weights(w) if arr.dtype == np.uint8 else np.minimum(w, 65504).astype(np.float16)
+        write_block_rows(arr, coords, rows)  # one write per chunk, not one per block
 
     def set_state(self, coords: np.ndarray, value: int) -> None:
         self.state[tuple(coords.T)] = value
@@ -361,7 +375,7 @@ class MapWriter:
             self.mask = self.group.create_array(MASK_ARRAY, shape=(*self.grid, MASK_BYTES), dtype="uint8",
                                                 fill_value=255, chunks=(*(self.codes_spec.chunk_blocks,) * 3,
                                                                         MASK_BYTES),
-                                                compressors=mask_compressors(),
+                                                compressors=mask_compressors(final=False),
                                                 dimension_names=["bx", "by", "bz", "byte"])
         cb = self.codes_spec.chunk_blocks
         chunk_of = coords // cb
@@ -378,6 +392,7 @@ class MapWriter:
             if self.mask is not None:
                 store_mask_chunk(self.mask, box, coords[lo:hi] - ch * cb, None if masks is None else masks[lo:hi],
                                  had)
+                self.mask_touched.add(tuple(int(c) for c in ch))
         self.set_state(coords, BlockState.CODED)
 
     def commit(self, keep: bool = False) -> Path:
@@ -422,11 +437,8 @@ class MapWriter:
                                      chunks=tuple(min(64, max(1, n)) for n in self.grid),
                                      compressors=compressors(), overwrite=True)
         st[...] = self.state
-        extensions = []
-        if "weights" in self.group:
-            if tuple(self.group["weights"].shape[:3]) != self.grid:
-                self.group["weights"].resize((*self.grid, 4096))
-            extensions.append(Extension(name="fusion-weights", required=False))
+        weights_ext = finish_weights(self.group, Path(self.tmp), self.weights_mode, self.grid)
+        extensions = [] if weights_ext is None else [weights_ext]
         if self.code_scale is not None:
             extensions.append(Extension(name=INT8_EXTENSION, required=True))
         if self.codes_spec.quantisation is not None:
@@ -434,6 +446,7 @@ class MapWriter:
         if self.mask is not None:
             if tuple(self.mask.shape[:3]) != self.grid:
                 self.mask.resize((*self.grid, MASK_BYTES))
+            finish_mask(self.group, Path(self.tmp), self.mask_touched)
             extensions.append(Extension(name=MASK_EXTENSION, required=True))
         if self.header_kw["codec"].state_reference is not None:
             extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
@@ -563,7 +576,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                   max_error: float | None = None, sign_exact: bool = False,
                   shard_blocks: int | None = None, manifest: bool = True,
-                  variable_rate: VariableRateWriter | None = None) -> MapWriter:
+                  variable_rate: VariableRateWriter | None = None, keep_weights: bool | None = None) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -647,6 +660,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         writer.vr = variable_rate
         group.create_array(GAIN_ARRAY, shape=(*header.grid_blocks, spec.size), dtype="float32", fill_value=0,
                            chunks=(spec.chunk_blocks,) * 3 + (spec.size,), compressors=compressors())
+    writer.weights_mode = weights_mode(codec, keep_weights)
     return writer
 
 
