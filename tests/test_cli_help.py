@@ -78,5 +78,7 @@ def test_every_option_is_described(command):
         if p.param_type_name == "option":
             # the first word of its help sits on the option's row of the panel
             name = max(p.opts, key=len)
-            row = next(line for line in text.splitlines() if re.match(rf"│\s*(\*\s+)?{re.escape(name)}(\s|,)", line))
+            # the option's own row (its name a few spaces in), not a wrapped help line that mentions it
+            own = re.compile(rf"│\s{{1,5}}(\*\s+)?{re.escape(name)}(\s|,)")
+            row = next(line for line in text.splitlines() if own.match(line))
             assert p.help.split()[0] in row, (command, name, row)

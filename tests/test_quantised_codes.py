@@ -262,7 +262,7 @@ def test_encode_step_and_bad_input(room_file, tmp_path):
                       (["--step", "-2"], "finite and > 0"), (["--target-bytes", "0"], "finite and > 0"),
                       (["--step", "0.1", "--target-bytes", "50"], "pass one of them"),
                       (["--step", "0.1", "--code-dtype", "int8"], "contradicts"),
-                      (["--step", "0.1", "--codec", "ae", "--code-size", "8"], "cannot store step-quantised")):
+                      (["--step", "0.1", "--codec", "ae", "--code-size", "64"], "cannot store step-quantised")):
         r = runner.invoke(app, ["encode", str(room_file), str(tmp_path / "bad.sdfz"), "--voxel-size", str(VS),
                                 *args])
         assert r.exit_code == 1 and msg in r.output, (args, r.output)

@@ -121,11 +121,18 @@ def test_stored_prefixes_are_the_dequantised_codes(tmp_path, scene_volume, pca32
 
 def test_a_missing_or_corrupt_stream_is_one_clear_error(tmp_path, scene_volume, pca32):
     root = tmp_path / "vr.sdfz"
-    _write(root, pca32, scene_volume, variable_rate={"step": 0.1}, chunk_blocks=2)
+    # without the integrity manifest, which would refuse the missing chunk first (tests/test_manifest.py): the
+    # reader's own check of the streams is what maps written without one rely on
+    _write(root, pca32, scene_volume, variable_rate={"step": 0.1}, chunk_blocks=2, manifest=False)
     chunk = next(p for p in sorted((root / STREAM_ARRAY / "c").rglob("*")) if p.is_file())
     chunk.unlink()
     with pytest.raises(errors.FormatError, match="holds no stream"):
         sdfcodec.open_map(root).read_codes()
+    with_manifest = tmp_path / "vr-manifest.sdfz"
+    _write(with_manifest, pca32, scene_volume, variable_rate={"step": 0.1}, chunk_blocks=2)
+    next(p for p in sorted((with_manifest / STREAM_ARRAY / "c").rglob("*")) if p.is_file()).unlink()
+    with pytest.raises(errors.IntegrityError, match="code_streams.*missing"):
+        sdfcodec.open_map(with_manifest).read_codes()
     from sdfcodec.verify import verify_map
     assert not verify_map(root).ok
     with pytest.raises(errors.InvalidValueError, match="not updated in place"):
