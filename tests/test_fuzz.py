@@ -57,9 +57,11 @@ def base_map(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("fuzz") / "base.sdfz"
     blocks = analytic_blocks(6, seed=5) * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
     coords = [[0, 0, 0], [1, 0, 0], [2, 1, 0], [0, 1, 1], [2, 0, 1], [1, 1, 1]]
-    # keep_weights: a lossy map drops its weights by default (sdfcodec.map.weights); kept, they are uint8 counts
+    # keep_weights: a lossy map drops its weights by default (sdfcodec.map.weights); kept, they are uint8 counts.
+    # No integrity manifest: the fuzzers test the checks under it (every mutated chunk would fail its digest;
+    # tests/test_manifest.py fuzzes manifests)
     with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2, chunk_code=4,
-                             keep_weights=True) as m:
+                             keep_weights=True, manifest=False) as m:
         m.write_blocks(coords, blocks, weights=np.ones((6, 16, 16, 16), np.float32))
         m.mark_empty([[1, 0, 1]])
     assert verify_map(path).ok

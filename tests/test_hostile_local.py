@@ -62,7 +62,7 @@ def maps(tmp_path_factory):
                                       ("int8", 0.0, "int8", {}), ("residual", 0.0, "float32", {"max_error": 0.01})):
         path = root / f"{name}.sdfz"
         # no integrity manifest: these cases test the checks under it (what maps written without one get);
-        # tests/test_manifest.py::test_hostile_cases_on_a_map_with_a_manifest runs them all against one
+        # test_hostile_case_on_a_map_with_a_manifest (slow) runs them all against maps that have one
         with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
                                  code_dtype=dtype, manifest=False, **extra) as m:
             m.write_volume(_volume(shift))
@@ -653,6 +653,46 @@ def test_hostile_local_case(case, maps, tmp_path):
     # the maps a case points into are untouched, and still decode bit for bit
     for other in ("donor", which):
         assert np.array_equal(sdfcodec.open_map(maps[other]).decode_region(), maps[other + "_ref"]), other
+
+
+@pytest.fixture(scope="module")
+def manifest_maps(maps, tmp_path_factory):
+    """The same three maps written with an integrity manifest (spec section 9b)."""
+    root = tmp_path_factory.mktemp("hostile-manifest")
+    out = {"root": root}
+    for name in ("base", "donor", "int8"):
+        src = sdfcodec.open_map(maps[name])
+        path = root / f"{name}.sdfz"
+        with sdfcodec.create_map(path, codec=src.codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
+                                 code_dtype=src.header.codes.dtype) as m:
+            m.write_volume(src.decode_region())
+        out[name] = path
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_hostile_case_on_a_map_with_a_manifest(case, manifest_maps, tmp_path):
+    """Every hostile edit applied to a map with an integrity manifest: refused (by the manifest or an earlier
+    check), one line, never a foreign exception, and flagged by verify."""
+    name, edit, _, _, which = case
+    path = tmp_path / "case.sdfz"
+    shutil.copytree(manifest_maps[which], path, symlinks=True)
+    outside = tmp_path / "outside.bin"
+    outside.write_bytes(os.urandom(4096))
+    ctx = {"donor": manifest_maps["donor"], "outside": outside}
+    try:
+        edit(path, ctx)
+    except (KeyError, FileNotFoundError, IndexError) as e:  # an edit of the layout of maps without a manifest
+        pytest.skip(f"the edit does not apply to this map ({type(e).__name__}: {e})")
+    try:
+        res = run_probes(path)
+    finally:
+        for s in ctx.get("sockets", []):
+            s.close()
+    assert not {k: v for k, v in res.items() if v[0] == "foreign"}, res
+    assert res["decode"][0] == "error" and "\n" not in res["decode"][2].strip(), res["decode"]
+    assert res["verify"][0] == "problems", res["verify"]
 
 
 def test_case_count():
