@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 __all__ = ["app", "out", "err", "fail", "cli", "write_output", "PlainWriter", "progress_bar", "parse_triple",
            "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
-           "load_volume"]
+           "load_volume", "check_device_flag"]
 
 app = typer.Typer(help="Compress TSDF robot maps into per-block codes (PCA eigenshapes and friends).",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -308,6 +308,15 @@ def parse_region(text: str | None) -> tuple | None:
     except (ValueError, AssertionError):
         fail(f"--region must look like x0:x1,y0:y1,z0:z1, got {text!r}")
     return tuple(parts)
+
+
+def check_device_flag(device: str | None) -> None:
+    """``--device``, checked before the work starts (a name torch knows, a device this machine and torch build
+    have): the command's error names the flag (:func:`sdfcodec._validate.check_device`)."""
+    if device is not None:
+        from .._validate import check_device
+
+        check_device(device, "--device")
 
 
 def check_code_size(codec_id: str, code_size: int) -> int | None:

@@ -10,9 +10,9 @@ from typing import Any, Optional
 import numpy as np
 import typer
 from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError
-from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
-                     parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
-                     working, write_output)
+from .common import (app, check_code_size, check_device_flag, cli, err, fail, human_bytes, load_volume, parse_region,
+                     parse_truncation, parse_triple, PlainWriter, print_json, print_table, progress_bar,
+                     refuse_existing, report, working, write_output)
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -130,6 +130,7 @@ def encode_cmd(
     if code_size is not None and model is None:  # 0 or -1 is an error, never the default 64
         code_size = check_code_size(codec_id or "pca", code_size)
     refuse_existing(output, overwrite, map_output=True)
+    check_device_flag(device)
     from ..blocks import normalise, split_blocks
     from ..map import create_map, open_map
     from ..map.format import check_volume
@@ -361,6 +362,7 @@ def decode_cmd(
     if output.suffix not in (".npy", ".npz"):
         fail(f"OUTPUT must end in .npy or .npz, got {output}")
     refuse_existing(output, overwrite)
+    check_device_flag(device)
     m = open_map(map_path)
     box = parse_region(region)
     lo = [a for a, _ in region_voxels(box, units, m.shape_voxels, m.origin, m.voxel_size)]
@@ -450,6 +452,7 @@ def search_cmd(
     """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7)."""
     if out_dir is not None:
         refuse_existing(out_dir, overwrite, files=("search.png", "expanded.ply"))
+    check_device_flag(device)
     from ..search_cli import format_summary, search_command
 
     summary = search_command(map_path, query, level, threshold, top, out_dir, as_json, device, mesh=not no_mesh,
