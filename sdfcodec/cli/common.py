@@ -90,6 +90,8 @@ def write_output(output: Path, write: Callable[[Path], Any], doing: str = "writi
     write (disk full, permission, I/O error; ``write`` returning False) is a WriteFailedError naming ``output``."""
     from .._atomic import write_file
 
+    if not output.parent.is_dir():  # a typo in the folder is not created silently (write_file would make it)
+        raise FileNotFoundError(errno.ENOENT, "no such directory for the output", str(output))
     return write_file(output, write, doing)
 
 
