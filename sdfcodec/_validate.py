@@ -16,8 +16,8 @@ from .errors import DTypeError, InvalidValueError, ShapeError
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into",  # public through sdfcodec.plugin
-           "check_device"]
+# most are public through sdfcodec.plugin (check_device is for the map readers, writers and the CLI)
+__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into", "check_device"]
 
 BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 

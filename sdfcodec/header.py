@@ -369,8 +369,8 @@ class MapHeader(_Model):
         f32 = np.float32
         with np.errstate(all="ignore"):
             vs = f32(self.voxel_size)
-            extent = np.array([abs(f32(o)) + f32(BLOCK_EXTENT * g + 1) * vs for o, g in zip(self.origin, self.grid_blocks)],
-                              np.float32)
+            extent = np.array([abs(f32(o)) + f32(BLOCK_EXTENT * g + 1) * vs
+                               for o, g in zip(self.origin, self.grid_blocks)], np.float32)
             if not (np.isfinite(vs) and vs >= np.finfo(np.float32).tiny and np.isfinite(extent).all()
                     and np.isfinite(np.float64(MAX_EXTENT) / self.voxel_size)):
                 return (f"voxel_size {self.voxel_size} m (with origin {list(self.origin)} and grid_blocks "

@@ -462,8 +462,8 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
                 what = "NaN/Inf" if not np.isfinite(out[~sane]).all() else f"absurd (beyond {DECODE_LIMIT:g})"
                 rep.problem("codec", f"{codec.codec_id!r} decodes the stored codes of {len(bad)} block(s) to {what} "
                                      "values, block(s) "
-                                     f"{_blocks_text(bad)}: the codes or the codec state are corrupted, or its plugin is "
-                                     "faulty")
+                                     f"{_blocks_text(bad)}: the codes or the codec state are corrupted, or its "
+                                     "plugin is faulty")
                 return
             done += len(z)
             if done >= decode_blocks:

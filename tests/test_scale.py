@@ -181,12 +181,13 @@ def test_pipeline_guards(map_path, tmp_path):
 
 @pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # numpy's, on the hostile state
 def test_decoded_values_are_checked_unless_the_codec_bound_proves_them_finite(tmp_path, monkeypatch):
-    """A PCA state with huge (finite) components decodes codes of 1e6 to Inf in float32: the codec's bound
-    says it cannot vouch for them, so the reader checks the output and refuses; with a sane state the bound
-    proves the output finite and the pass over it is skipped."""
+    """A PCA state with a huge (finite) mean decodes to absurd values: the codec's bound says it cannot vouch
+    for them, so the reader checks the output and refuses; with a sane state the bound proves the output finite
+    and the pass over it is skipped. (Huge components, the case this test used before, are refused earlier now:
+    the codec's validate_state finds the basis not orthonormal, as the last lines check.)"""
     pca = sdfcodec.get_codec("pca", code_size=8).fit(analytic_blocks(64, seed=4))
     state = pca.state_dict()
-    huge = sdfcodec.get_codec("pca", code_size=8).load_state_dict(dict(state, components=state["components"] * 1e36))
+    huge = sdfcodec.get_codec("pca", code_size=8).load_state_dict(dict(state, mean=state["mean"] + 1e30))
     coords = np.array([[0, 0, 0], [1, 0, 0]])
     codes = np.full((2, 8), 1e6, np.float32)
     checked = []
@@ -202,9 +203,14 @@ def test_decoded_values_are_checked_unless_the_codec_bound_proves_them_finite(tm
     assert checked == []  # the bound proved the decodes finite: no pass over them
     bad = sdfcodec.open_map(tmp_path / "huge.sdfz")
     for read in (lambda: list(bad.iter_decoded()), bad.decode_region):
-        with pytest.raises(errors.FormatError, match="decoded NaN/Inf"):
+        with pytest.raises(errors.FormatError, match="decoded absurd values"):
             read()
     assert checked  # the output was checked
+    scaled = sdfcodec.get_codec("pca", code_size=8).load_state_dict(dict(state, components=state["components"] * 1e36))
+    with sdfcodec.create_map(tmp_path / "scaled.sdfz", codec=scaled, voxel_size=VS, truncation=TRUNC) as w:
+        w.write_codes(coords, codes)
+    with pytest.raises(errors.FormatError, match="not orthonormal"):
+        sdfcodec.open_map(tmp_path / "scaled.sdfz").decode_region()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["app", "out", "err", "fail", "cli", "reads_maps", "write_output", "PlainWriter", "progress_bar", "parse_triple",
            "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
-           "load_volume", "overwrite_option", "json_option"]
+           "load_volume", "overwrite_option", "json_option", "check_device_flag"]
 
 
 def unwrap_paragraphs(text: str | None) -> str | None:
@@ -193,6 +193,8 @@ def write_output(output: Path, write: Callable[[Path], Any], doing: str = "writi
     write (disk full, permission, I/O error; ``write`` returning False) is a WriteFailedError naming ``output``."""
     from .._atomic import write_file
 
+    if not output.parent.is_dir():  # a typo in the folder is not created silently (write_file would make it)
+        raise FileNotFoundError(errno.ENOENT, "no such directory for the output", str(output))
     return write_file(output, write, doing)
 
 
@@ -411,6 +413,15 @@ def parse_region(text: str | None) -> tuple | None:
     except (ValueError, AssertionError):
         fail(f"--region must look like x0:x1,y0:y1,z0:z1, got {text!r}")
     return tuple(parts)
+
+
+def check_device_flag(device: str | None) -> None:
+    """``--device``, checked before the work starts (a name torch knows, a device this machine and torch build
+    have): the command's error names the flag (:func:`sdfcodec._validate.check_device`)."""
+    if device is not None:
+        from .._validate import check_device
+
+        check_device(device, "--device")
 
 
 def check_code_size(codec_id: str, code_size: int) -> int | None:

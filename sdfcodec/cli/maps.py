@@ -12,7 +12,7 @@ import numpy as np
 import typer
 from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError
 from .common import reads_maps
-from .common import (app, check_code_size, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
+from .common import (app, check_code_size, check_device_flag, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
                      parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
                      working, write_output)
 from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
@@ -176,6 +176,7 @@ def encode_cmd(
     if vr and code_size is None and model is None and (codec_id or "pca") == "pca" and not fit:
         code_size = 128  # the longest shipped eigenshapes: each block keeps the prefix its rate buys
     refuse_existing(output, overwrite, map_output=True)
+    check_device_flag(device)
     from ..blocks import normalise, split_blocks
     from ..map import create_map, open_map
     from ..map.format import check_volume
@@ -501,6 +502,7 @@ def decode_cmd(
     if output.suffix not in (".npy", ".npz"):
         fail(f"OUTPUT must end in .npy or .npz, got {output}")
     refuse_existing(output, overwrite)
+    check_device_flag(device)
     m = open_map(map_path)
     _warn_lossy_level(m, level)
     box = parse_region(region)
@@ -616,6 +618,7 @@ def search_cmd(
     later searches reuse them."""
     if out_dir is not None:
         refuse_existing(out_dir, overwrite, files=("search.png", "expanded.ply"))
+    check_device_flag(device)
     from ..search.cache import announce_builds, cache_dir
     from ..search_cli import format_summary, search_command
 
