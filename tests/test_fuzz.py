@@ -640,8 +640,11 @@ def test_fuzz_scale_report():
     each fuzzer's cases both refused and worked (its mutations reach the checks, and the checks let sound
     input through)."""
     print(f"scale fuzz: {SCALE_COUNTS}")
-    for name, exc, case in FOREIGN[:20]:
-        print(f"foreign: {name}: {exc}\n    case: {case}")
+    kinds: dict[str, list[str]] = {}  # one line per kind of foreign exception, with its count and first case
+    for name, exc, case in FOREIGN:
+        kinds.setdefault(f"{name}: {exc.splitlines()[0][:90]}", []).append(case)
+    for kind, cases in sorted(kinds.items(), key=lambda kv: -len(kv[1])):
+        print(f"foreign x{len(cases)}: {kind}\n    first case: {cases[0]}")
     if not SCALE_COUNTS:
         pytest.skip("no scale fuzz test ran in this session (run the file, not this test alone)")
     assert not FOREIGN, f"{len(FOREIGN)} foreign exception(s), first: {FOREIGN[0]}"
