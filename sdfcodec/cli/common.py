@@ -39,8 +39,8 @@ from ..errors import MapExistsError, SDFCodecError, WriteFailedError
 if TYPE_CHECKING:
     from rich.progress import Progress
 
-__all__ = ["app", "out", "err", "fail", "cli", "reads_maps", "write_output", "PlainWriter", "progress_bar", "parse_triple",
-           "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
+__all__ = ["app", "out", "err", "fail", "cli", "reads_maps", "write_output", "PlainWriter", "progress_bar",
+           "parse_triple", "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
            "load_volume", "overwrite_option", "json_option", "check_device_flag"]
 
 

@@ -12,9 +12,9 @@ import numpy as np
 import typer
 from ..errors import InputNotFoundError, InvalidValueError, SDFCodecError
 from .common import reads_maps
-from .common import (app, check_code_size, check_device_flag, cli, err, fail, human_bytes, load_volume, parse_region, parse_truncation,
-                     parse_triple, PlainWriter, print_json, print_table, progress_bar, refuse_existing, report,
-                     working, write_output)
+from .common import (app, check_code_size, check_device_flag, cli, err, fail, human_bytes, load_volume, parse_region,
+                     parse_truncation, parse_triple, PlainWriter, print_json, print_table, progress_bar,
+                     refuse_existing, report, working, write_output)
 from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
