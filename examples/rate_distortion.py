@@ -200,8 +200,8 @@ def map_bytes(path: Path) -> dict:
             n = (Path(dirpath) / f).stat().st_size
             if top == "codec":
                 out["codec_state"] += n
-            elif f == "zarr.json":
-                out["metadata"] += n
+            elif f == "zarr.json" or (not rel.parts and f in ("manifest.json", "signature.json")):
+                out["metadata"] += n  # the integrity manifest and a signature are the map's metadata too
             elif top in ("codes", "code_scale"):
                 out["codes"] += n
             elif top == "state":

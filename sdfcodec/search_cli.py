@@ -12,7 +12,6 @@ of the selected blocks, decoded at full quality and nothing else).
 
 from __future__ import annotations
 
-import errno
 import os
 from pathlib import Path
 from typing import Any
@@ -246,7 +245,7 @@ def search_command(map_path: str | os.PathLike, query: str = "floor", level: int
         # a path through a file is refused before the search's work (and its notes), not after it
         blocked = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
         if blocked is not None:
-            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(out))
+            raise InvalidValueError(f"--out {out}: Not a directory ({blocked} is a file); choose another --out")
     mode = "given" if threshold is not None else ("none" if top is not None else "auto")
     res = search(m, query, level=level, threshold="auto" if mode == "auto" else threshold, top=top, device=device,
                  keep_scores=True, behind=behind, up=up, tilt=tilt, scene=scene)

@@ -115,7 +115,7 @@ class NotPrefix(Downsample):
 
 
 @pytest.mark.parametrize("cls, match", [
-    (WrongShape, "decode must give float32 numpy"),
+    (WrongShape, "decode must give float32 numpy|returned shape"),
     (ForgetfulState, "round trip|state"),
     (NotPrefix, "prefix"),
 ])

@@ -18,6 +18,8 @@ import threading
 from functools import partial
 from pathlib import Path
 
+from ..errors import InvalidValueError
+
 __all__ = ["FileServer"]
 
 _RANGE = re.compile(r"bytes=(\d*)-(\d*)$")
@@ -119,7 +121,7 @@ class FileServer:
 
     def __init__(self, root: str | os.PathLike, *, ranges: bool = True, listings: str = "html"):
         if listings not in ("html", "none", "loop"):
-            raise ValueError(f"listings must be 'html', 'none' or 'loop', got {listings!r}")
+            raise InvalidValueError(f"listings must be 'html', 'none' or 'loop', got {listings!r}")
         handler = type("Handler", (_Handler,), {"ranges": ranges, "listings": listings, "log": [], "requests": [],
                                                 "lock": threading.Lock()})
         self.log, self.requests = handler.log, handler.requests

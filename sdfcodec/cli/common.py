@@ -34,7 +34,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .. import __version__
-from ..errors import MapExistsError, SDFCodecError, WriteFailedError
+from ..errors import InputNotFoundError, MapExistsError, SDFCodecError, WriteFailedError
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -194,7 +194,7 @@ def write_output(output: Path, write: Callable[[Path], Any], doing: str = "writi
     from .._atomic import write_file
 
     if not output.parent.is_dir():  # a typo in the folder is not created silently (write_file would make it)
-        raise FileNotFoundError(errno.ENOENT, "no such directory for the output", str(output))
+        raise InputNotFoundError(f"no such directory for the output {output}: {output.parent} (create it first)")
     return write_file(output, write, doing)
 
 
