@@ -274,10 +274,67 @@ def m_nanovdb(d: Data, quick: bool) -> None:
         d.point("nanovdb-style", f"{bits}-bit", "nanovdb", len(blob), decode().astype(np.float32), decode)
 
 
+def m_sperr(d: Data, quick: bool) -> None:
+    """SPERR (numcodecs-wasm-sperr 0.2.3: SPERR compiled to WebAssembly) on the whole dense field at a fixed
+    bit rate, chosen so that the stream takes B bytes per coded block (the bytes counted are its own output)."""
+    from numcodecs_wasm_sperr import Sperr
+
+    vol, blocks = _dense(d)
+    for b in ((128, 512) if quick else X_BYTES):
+        codec = Sperr(mode="bpp", bpp=8.0 * b * d.n / vol.size)
+        s = np.frombuffer(bytes(codec.encode(vol)), np.uint8)  # its stream, header included
+        d.point("sperr (peer, whole field)", f"{b:g} B/block asked", "sperr", s.nbytes,
+                blocks(np.asarray(codec.decode(s)).reshape(vol.shape)),
+                lambda: codec.decode(s), bpp=8.0 * b * d.n / vol.size)
+
+
+def m_ours(d: Data, quick: bool) -> None:
+    """Our maps as ``sdfcodec encode`` writes them, one curve point per entry of :data:`OURS` (its options as
+    they would be typed; ``--codec-state reference`` added for the shipped models), every file of the map
+    counted: transcoded from a lossless (``raw``) map of the data set with its observation."""
+    import sdfcodec
+    from sdfcodec.cli import app
+    from typer.main import get_command
+
+    src = d.work / f"{d.name}-lossless.sdfz".replace(" ", "_")
+    with sdfcodec.create_map(src, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC,
+                             overwrite=True, tool="examples/peers_study.py") as m:
+        m.write_blocks(d.coords, d.tsdf, observed=d.obs)
+    index = {tuple(c): i for i, c in enumerate(d.coords)}
+    for opts in (OURS[:2] if quick else OURS):
+        label = " ".join(f"{k} {v}" for k, v in opts.items() if k != "codec")
+        path = d.work / f"{d.name}-ours-{label}.sdfz".replace(" ", "_")
+        argv = ["encode", str(src), str(path), "--overwrite", "--codec-state", "reference"]
+        argv += [a for k, v in opts.items() for a in (f"--{k}", str(v))]
+        get_command(app).main(argv, standalone_mode=False)
+        total = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+        m = sdfcodec.open_map(path)
+        y = np.ones_like(d.x)
+
+        def decode():
+            for c, blocks in m.iter_decoded():
+                y[[index[tuple(cc)] for cc in c]] = normalised(blocks)
+
+        decode()
+        d.point(f"ours: {opts['codec']}", label, "ours", total, y, decode, options=opts)
+
+
+#: Our curves: ``sdfcodec encode`` options per point (a dict, as typed without the dashes). A new configuration
+#: (another codec, a variable-rate mode) is one more entry.
+OURS: list[dict] = (
+    [{"codec": "pca", "code-size": 16, "step": s} for s in (0.64, 0.16)]
+    + [{"codec": "pca", "code-size": k, "code-dtype": t} for k in (16, 64) for t in ("int8", "float16")]
+    + [{"codec": "pca", "code-size": 64, "step": s} for s in (0.08, 0.02)]
+    + [{"codec": "pca", "target-bytes": b} for b in (64, 128, 256, 512)]
+)
+#: bytes per coded block of interest: 256:1 .. 32:1 of dense float32, and beside them
+X_BYTES = (32, 64, 128, 256, 512, 1024)
+
+
 #: name -> (function, description). Add an entry to add a method (bounds' residual stages: one entry each).
 METHODS: dict[str, Callable[[Data, bool], None]] = {
     "pca": m_pca, "bounds": m_bounds, "networks": m_nn, "sz3-map": m_sz3_map, "sz3-peer": m_sz3_peer, "zfp": m_zfp, "dct": m_dct,
-    "nanovdb": m_nanovdb,
+    "nanovdb": m_nanovdb, "sperr": m_sperr, "ours": m_ours,
 }
 REGISTRY = ("eigenshapes", "bounds", "networks", "sz3-registry")
 
