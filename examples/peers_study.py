@@ -1,11 +1,17 @@
-"""Rate-distortion of the registry's codecs against every peer, surfaces included (issue 16, item 4).
+"""Rate-distortion of the registry's codecs against every peer, surfaces included (issues 16 and 42).
 
-    python examples/peers_study.py                     # kitchen (held-out half) + synthetic room, minutes
+    python examples/peers_study.py                     # kitchen half, synthetic room, rooms, building: long
     python examples/peers_study.py --quick             # a tiny synthetic corner (the CI test's path)
     python examples/peers_study.py --methods sz3-map,zfp-rate ...   # a subset (names: --list)
 
-Writes docs/rd-peers.json, docs/rd-peers.png and the section "peers" of docs/rate-distortion.md (other sections
-of that page are left as they are).
+Writes docs/rd-peers.json, one figure per data set docs/rd-peers-<data set>.png (F@1, Chamfer-L1 and max error
+against bytes per coded block) and the section "peers" of docs/rate-distortion.md (other sections of that page
+are left as they are): per data set the methods read at 64, 128, 256 and 512 bytes per coded block (256:1 ..
+32:1 of dense float32) and their decode throughput, each table with the machine, load, date and command.
+
+Peers: SZ3 (pysz), ZFP (zfpy), SPERR (numcodecs-wasm-sperr), each on its own bytes. Ours: the entries of
+:data:`OURS`, ``sdfcodec encode`` options as dicts (``--target-bytes`` included), every file of the map counted
+with the shipped model referenced; a new configuration is one more dict.
 
 Data sets (normalised units v = (d - d_min) / (d_max - d_min), truncation (-0.04, 0.1) m, 2 cm voxels):
 ``kitchen``: 7-Scenes redkitchen (500 frames) fused by ``sdfcodec.fusion.fuse``, the blocks of the second half
@@ -14,7 +20,9 @@ on (the SZ3 field layout, 8^3-block chunks and free space in unobserved voxels, 
 ``synthetic``: the furnished room of ``sdfcodec.data.render.room_scene(seed=0, geometry="rich")`` sampled
 exactly on a lattice moved by 0.3 voxel (so that no wall lies on voxel centres, where the side of a crossing is a
 rounding accident: unshifted, even an 8-bit NanoVDB-style copy with 0.3 mm max error measured 3.5 mm Chamfer) and
-made fused-like (voxels more than 4 cm behind a surface unobserved, as fusion leaves them).
+made fused-like (voxels more than 4 cm behind a surface unobserved, as fusion leaves them). ``rooms``: two
+randomly posed furnished rooms of ``sdfcodec.data.rooms.synthetic_room`` side by side; ``building``:
+``sdfcodec.data.building.building_scene`` (two rooms off a corridor), both fused-like as ``synthetic``.
 
 Every method codes the same coded (not all-free) blocks. Distortion over the observed voxels of those blocks:
 MSE (normalised), max error (cm); surfaces (``sdfcodec.surface.compare_volumes`` against the lossless blocks,
@@ -52,6 +60,38 @@ R = TRUNC[1] - TRUNC[0]
 F32 = BLOCK ** 3 * 4
 BUDGETS = (256, 128, 64)  # 64:1, 128:1, 256:1
 STEPS = (0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28)
+
+
+def rooms_blocks(seeds: tuple[int, ...] = (1, 2)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``sdfcodec.data.rooms.synthetic_room(seed, behind="solid")`` for each of ``seeds`` (randomly posed
+    furnished rooms, exact distances), side by side along x one block apart, fused-like: coords, metres,
+    observed."""
+    from sdfcodec.blocks import split_blocks
+    from sdfcodec.data.rooms import synthetic_room
+
+    coords, tsdf, x0 = [], [], 0
+    for seed in seeds:
+        b = split_blocks(synthetic_room(seed, behind="solid", voxel_size=VS, truncation=TRUNC).volume, fill=TRUNC[1])
+        c = np.argwhere(np.ones(b.shape[:3], bool)).astype(np.int64)
+        coords.append(c + [x0, 0, 0])
+        tsdf.append(b.reshape(-1, BLOCK, BLOCK, BLOCK))
+        x0 += b.shape[0] + 1
+    return (np.concatenate(coords), *fused_like(np.concatenate(tsdf).astype(np.float32)))
+
+
+def building_blocks(seed: int = 0, rooms_per_side: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``sdfcodec.data.building.building_scene(seed, rooms_per_side)`` (rooms off a corridor, furnished)
+    sampled exactly on a lattice moved by 0.3 voxel with a 16 cm margin, fused-like: coords, metres, observed."""
+    from sdfcodec.blocks import split_blocks
+    from sdfcodec.data.building import building_scene
+    from sdfcodec.sdf import sample_volume
+
+    scene, margin = building_scene(seed, rooms_per_side)[0], 0.16
+    shape = tuple(int(round((s + 2 * margin) / VS)) for s in scene.size)
+    vol = sample_volume(scene.sdf, shape, VS, origin=(-margin + 0.3 * VS,) * 3, truncation=TRUNC)
+    b = split_blocks(vol, fill=TRUNC[1])
+    coords = np.argwhere(np.ones(b.shape[:3], bool)).astype(np.int64)
+    return (coords, *fused_like(np.ascontiguousarray(b.reshape(-1, BLOCK, BLOCK, BLOCK), dtype=np.float32)))
 
 
 class Data:
@@ -274,12 +314,78 @@ def m_nanovdb(d: Data, quick: bool) -> None:
         d.point("nanovdb-style", f"{bits}-bit", "nanovdb", len(blob), decode().astype(np.float32), decode)
 
 
+def m_sperr(d: Data, quick: bool) -> None:
+    """SPERR (numcodecs-wasm-sperr 0.2.3: SPERR compiled to WebAssembly) on the whole dense field at a fixed
+    bit rate, chosen so that the stream takes B bytes per coded block (the bytes counted are its own output)."""
+    from numcodecs_wasm_sperr import Sperr
+
+    vol, blocks = _dense(d)
+    for b in ((128, 512) if quick else X_BYTES):
+        codec = Sperr(mode="bpp", bpp=8.0 * b * d.n / vol.size)
+        s = np.frombuffer(bytes(codec.encode(vol)), np.uint8)  # its stream, header included
+        d.point("sperr (peer, whole field)", f"{b:g} B/block asked", "sperr", s.nbytes,
+                blocks(np.asarray(codec.decode(s)).reshape(vol.shape)),
+                lambda: codec.decode(s), bpp=8.0 * b * d.n / vol.size)
+
+
+def m_ours(d: Data, quick: bool) -> None:
+    """Our maps as ``sdfcodec encode`` writes them, one curve point per entry of :data:`OURS` (its options as
+    they would be typed; ``--codec-state reference`` added for the shipped models), every file of the map
+    counted: transcoded from a lossless (``raw``) map of the data set with its observation."""
+    import sdfcodec
+    from sdfcodec.cli import app
+    from typer.main import get_command
+
+    src = d.work / f"{d.name}-lossless.sdfz".replace(" ", "_")
+    with sdfcodec.create_map(src, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC,
+                             overwrite=True, tool="examples/peers_study.py") as m:
+        m.write_blocks(d.coords, d.tsdf, observed=d.obs)
+    index = {tuple(c): i for i, c in enumerate(d.coords)}
+    for opts in (OURS[:2] if quick else OURS):
+        label = " ".join(f"{k} {v}" for k, v in opts.items() if k != "codec")
+        path = d.work / f"{d.name}-ours-{label}.sdfz".replace(" ", "_")
+        argv = ["encode", str(src), str(path), "--overwrite", "--codec-state", "reference"]
+        argv += [a for k, v in opts.items() for a in (f"--{k}", str(v))]
+        if path.exists():
+            import shutil
+
+            shutil.rmtree(path)
+        get_command(app).main(argv, standalone_mode=False)
+        if not path.exists():  # refused (its one-line reason is printed): the run goes on, the page says so
+            REFUSED.append({"dataset": d.name, "options": opts})
+            continue
+        total = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+        m = sdfcodec.open_map(path)
+        y = np.ones_like(d.x)
+
+        def decode():
+            for c, blocks in m.iter_decoded():
+                y[[index[tuple(cc)] for cc in c]] = normalised(blocks)
+
+        decode()
+        d.point(f"ours: {opts['codec']}", label, "ours", total, y, decode, options=opts)
+
+
+#: Our curves: ``sdfcodec encode`` options per point (a dict, as typed without the dashes). A new configuration
+#: (another codec, a variable-rate mode) is one more entry.
+OURS: list[dict] = (
+    [{"codec": "pca", "code-size": 16, "step": s} for s in (0.64, 0.16)]
+    + [{"codec": "pca", "code-size": k, "code-dtype": t} for k in (16, 64) for t in ("int8", "float16")]
+    + [{"codec": "pca", "code-size": 64, "step": s} for s in (0.08, 0.02)]
+    + [{"codec": "pca", "target-bytes": b} for b in (64, 128, 256, 512)]
+)
+#: ``{"dataset", "options"}`` of the :data:`OURS` entries ``sdfcodec encode`` refused (e.g. a target below reach)
+REFUSED: list[dict] = []
+#: bytes per coded block of interest: 256:1 .. 32:1 of dense float32, and beside them
+X_BYTES = (32, 64, 128, 256, 512, 1024)
+
+
 #: name -> (function, description). Add an entry to add a method (bounds' residual stages: one entry each).
 METHODS: dict[str, Callable[[Data, bool], None]] = {
     "pca": m_pca, "bounds": m_bounds, "networks": m_nn, "sz3-map": m_sz3_map, "sz3-peer": m_sz3_peer, "zfp": m_zfp, "dct": m_dct,
-    "nanovdb": m_nanovdb,
+    "nanovdb": m_nanovdb, "sperr": m_sperr, "ours": m_ours,
 }
-REGISTRY = ("eigenshapes", "bounds", "networks", "sz3-registry")
+REGISTRY = ("eigenshapes", "ours", "bounds", "networks", "sz3-registry")
 
 
 # ----------------------------------------------------------------------------------------------- targets
@@ -295,7 +401,7 @@ def _interp(points: list[dict], at: float, key: str) -> float | None:
 
 def targets(points: list[dict], ds: str) -> dict:
     P = [p for p in points if p["dataset"] == ds]
-    eig = [p for p in P if p["family"] == "eigenshapes"]
+    eig = [p for p in P if p["family"] in ("eigenshapes", "ours")]
     reg = [p for p in P if p["family"] in REGISTRY]
     sz3 = [p for p in P if p["family"] == "sz3-peer"]
     out: dict = {}
@@ -335,40 +441,52 @@ def _brief(p: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ output
-def plot(points: list[dict], datasets: list[str], path: Path) -> None:
+def _slug(ds: str) -> str:
+    return "".join(ch if ch.isalnum() else "-" for ch in ds).strip("-")
+
+
+def _curve(p: dict) -> str:
+    """The curve a point belongs to: its method, with the options that do not vary along a curve."""
+    label = p["method"] + ("" if p["family"] != "eigenshapes" else " " + p["setting"].split(" step")[0])
+    if p["family"] == "ours":  # one curve per option set but the varying one (--step, --target-bytes)
+        label += "".join(f" {k} {v}" for k, v in p["options"].items() if k not in ("codec", "step", "target-bytes"))
+        label += " target-bytes" if "target-bytes" in p["options"] else " step" if "step" in p["options"] else ""
+    return label
+
+
+def plot(points: list[dict], ds: str, path: Path) -> None:
+    """One figure for data set ``ds``: F@1, Chamfer-L1 and max error against bytes per coded block."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = (("mse", "MSE (normalised)", True), ("chamfer_mm", "Chamfer-L1 (mm)", True), ("f1", "F-score @ 1 voxel",
-                                                                                          False))
-    fig, axes = plt.subplots(len(datasets), 3, figsize=(18, 5.5 * len(datasets)), squeeze=False)
-    for row, ds in enumerate(datasets):
-        P = [p for p in points if p["dataset"] == ds]
-        series: dict[str, list[dict]] = {}
-        for p in P:
-            label = p["method"] + ("" if p["family"] != "eigenshapes" else " " + p["setting"].split(" step")[0])
-            series.setdefault(label, []).append(p)
-        for col, (key, name, log) in enumerate(keys):
-            ax = axes[row][col]
-            for label, S in sorted(series.items()):
-                S = sorted(S, key=lambda p: p["bytes_per_block"])
-                ys = [np.nan if p[key] is None else p[key] for p in S]
-                ax.plot([p["bytes_per_block"] for p in S], ys, marker=".", label=label, lw=1)
-            for b in BUDGETS:
-                ax.axvline(b, color="0.8", lw=0.8, zorder=0)
-            ax.set_xscale("log")
-            if log:
-                ax.set_yscale("log")
-            ax.set_xlim(16, 1024)  # 1000:1 to 16:1 of dense float32
-            ax.set_xlabel("bytes per coded block (all but the codec state)")
-            ax.set_ylabel(name)
-            ax.set_title(f"{ds}: {name}")
-            ax.grid(True, which="both", alpha=0.25)
-        axes[row][2].legend(fontsize=6, ncol=2, loc="lower right")
+    keys = (("f1", "F-score @ 1 voxel", False), ("chamfer_mm", "Chamfer-L1 (mm)", True),
+            ("max_error_cm", "max error (cm)", True))
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.5), squeeze=False)
+    series: dict[str, list[dict]] = {}
+    for p in (p for p in points if p["dataset"] == ds):
+        series.setdefault(_curve(p), []).append(p)
+    for col, (key, name, log) in enumerate(keys):
+        ax = axes[0][col]
+        for label, S in sorted(series.items()):
+            S = sorted(S, key=lambda p: p["bytes_per_block"])
+            ys = [np.nan if p[key] is None else p[key] for p in S]
+            ax.plot([p["bytes_per_block"] for p in S], ys, marker=".", label=label,
+                    lw=2 if S[0]["family"] == "ours" else 1)
+        for b in X_BYTES[1:5]:  # 256:1 .. 32:1 of dense float32
+            ax.axvline(b, color="0.8", lw=0.8, zorder=0)
+        ax.set_xscale("log")
+        if log:
+            ax.set_yscale("log")
+        ax.set_xlim(16, 2048)
+        ax.set_xlabel("bytes per coded block (every stored byte)")
+        ax.set_ylabel(name)
+        ax.set_title(f"{ds}: {name}")
+        ax.grid(True, which="both", alpha=0.25)
+    axes[0][0].legend(fontsize=6, ncol=2, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
 
 
@@ -377,9 +495,9 @@ def _fmt(v, f="{:.3g}") -> str:
 
 
 def markdown(res: dict) -> str:
-    L = ["## The registry against every peer (issue 16, item 4)", "", "Made by:", "", "```", res["command"], "```",
+    L = ["## The registry against every peer (issues 16 and 42)", "", "Made by:", "", "```", res["command"], "```",
          "", "Method: the docstring of `examples/peers_study.py`. " + res["note"], "",
-         "![peers](rd-peers.png)", "", "### Targets (measured, wins and losses alike)", ""]
+         "", "### Targets (measured, wins and losses alike)", ""]
     for ds, t in res["targets"].items():
         L.append(f"**{ds}**")
         L.append("")
@@ -432,6 +550,39 @@ def markdown(res: dict) -> str:
                      f"{p['codec_state_bytes']:,} | {p['bytes_per_block_1M']:.1f} | "
                      f"{_fmt(p.get('decode_vs_memcpy'), '{:.3f}')} |")
         L.append("")
+        measured = (f"Measured on {res['machine']['cpus']} CPUs at load {res['load_before'][0]:.1f}-"
+                    f"{res['load_after'][0]:.1f}, {res['date']}, by `{res['command']}`.")
+        L += [f"![{ds}](rd-peers-{_slug(ds)}.png)", "", f"**{ds}: at {', '.join(f'{b} B' for b in X_BYTES[1:5])} "
+              "per coded block** (each method's curve read in log(bytes) between its measured points; - outside "
+              "its range)", "", "| method | " + " | ".join(f"{b} B: F@1 / Chamfer mm / max cm" for b in X_BYTES[1:5])
+              + " |", "|---|" + "---:|" * 4]
+        curves: dict[str, list[dict]] = {}
+        for p in P:
+            curves.setdefault(_curve(p), []).append(p)
+        for name, S in sorted(curves.items()):
+            cells = []
+            for b in X_BYTES[1:5]:
+                v = [_interp(S, b, k) for k in ("f1", "chamfer_mm", "max_error_cm")]
+                cells.append("-" if v[0] is None else f"{v[0]:.3f} / {_fmt(v[1], '{:.2f}')} / {_fmt(v[2], '{:.2f}')}")
+            L.append(f"| {name} | " + " | ".join(cells) + " |")
+        ours = [p for p in P if p["family"] == "ours"]
+        if ours:  # our configurations are short curves: the best point (F@1) that fits each budget
+            cells = []
+            for b in X_BYTES[1:5]:
+                fit = [p for p in ours if p["bytes_per_block"] <= b]
+                q = max(fit, key=lambda p: p["f1"]) if fit else None
+                cells.append("-" if q is None else f"{q['f1']:.3f} / {_fmt(q['chamfer_mm'], '{:.2f}')} / "
+                             f"{q['max_error_cm']:.2f} ({q['setting']}, {q['bytes_per_block']:.0f} B)")
+            L.append("| ours: best point that fits | " + " | ".join(cells) + " |")
+        L += [f"- `sdfcodec encode` refused {' '.join(f'--{k} {v}' for k, v in r['options'].items())} (out of "
+              "its range on this map)" for r in res.get("refused", []) if r["dataset"] == ds]
+        L += ["", measured, "", f"**{ds}: decode throughput** (blocks/s, best of 3, and as a ratio to a memory "
+              "copy of the decoded float32 blocks timed beside it)", "",
+              "| method | setting | B/block | decode blocks/s | x memcpy |", "|---|---|---:|---:|---:|"]
+        for p in sorted(P, key=lambda p: (p["method"], p["bytes_per_block"])):
+            L.append(f"| {p['method']} | {p['setting']} | {p['bytes_per_block']:.1f} | "
+                     f"{_fmt(p.get('decode_blocks_per_s'), '{:,.0f}')} | {_fmt(p.get('decode_vs_memcpy'), '{:.3f}')} |")
+        L += ["", measured, ""]
     m = res["machine"]
     L += [f"Run: {m['cpus']} CPUs, Python {m['python']}, pysz {m['pysz']}, zfpy {m['zfpy']}; load average "
           f"{res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; wall time {res['wall_s']:.0f} s."
@@ -448,7 +599,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (default: all; "
                                                     "--quick: all but the networks)")
     ap.add_argument("--list", action="store_true", help="list the methods and exit")
-    ap.add_argument("--datasets", default="kitchen,synthetic", help="comma-separated: kitchen, synthetic")
+    ap.add_argument("--datasets", default="kitchen,synthetic,rooms,building",
+                    help="comma-separated: kitchen, synthetic, rooms, building")
     ap.add_argument("--out", type=Path, default=None, help="docs/ (default), or the work directory with --quick")
     ap.add_argument("--workdir", type=Path, default=None, help="maps and the fused-kitchen cache")
     a = ap.parse_args(argv)
@@ -472,22 +624,24 @@ def _study(a, argv) -> dict:
     out = a.out or (work if a.quick else ROOT / "docs")
     out.mkdir(parents=True, exist_ok=True)
     t0, load_before = time.perf_counter(), os.getloadavg()
-    sets = []
+    sets = []  # (name, thunk): each data set is built when its turn comes, so a long run writes as it goes
     if a.quick:
-        coords, tsdf = synthetic_blocks(True)
-        sets.append(("synthetic (quick)", coords, *fused_like(tsdf)))
+        sets.append(("synthetic (quick)", lambda: (lambda c, t: (c, *fused_like(t)))(*synthetic_blocks(True))))
     else:
         want = a.datasets.split(",")
         if "kitchen" in want and a.kitchen.is_dir():
-            sets.append(("kitchen", *kitchen_blocks(a.kitchen, work)))
+            sets.append(("kitchen", lambda: kitchen_blocks(a.kitchen, work)))
         elif "kitchen" in want:
             print(f"no kitchen data at {a.kitchen}: skipped", file=sys.stderr)
-        if "synthetic" in want:
-            coords, tsdf = synthetic_blocks(False, shift=0.3)  # no wall on voxel centres (see its docstring)
-            sets.append(("synthetic", coords, *fused_like(tsdf)))
+        if "synthetic" in want:  # the lattice moved by 0.3 voxel: no wall on voxel centres (see its docstring)
+            sets.append(("synthetic", lambda: (lambda c, t: (c, *fused_like(t)))(*synthetic_blocks(False, shift=0.3))))
+        if "rooms" in want:
+            sets.append(("rooms", rooms_blocks))
+        if "building" in want:
+            sets.append(("building", building_blocks))
     points, names, res = [], [], {}
-    for name, coords, tsdf, observed in sets:
-        d = Data(name, coords, tsdf, observed, work)
+    for name, build in sets:
+        d = Data(name, *build(), work)
         print(f"{name}: {d.n} coded blocks", flush=True)
         for m in a.methods.split(","):
             METHODS[m](d, a.quick)
@@ -504,19 +658,25 @@ def _write(a, argv, out: Path, points: list[dict], names: list[str], t0: float, 
 
     cmd = "python examples/peers_study.py" + ("" if argv is None and len(sys.argv) <= 1 else " " + shlex.join(
         sys.argv[1:] if argv is None else argv))
-    res = {"command": cmd, "datasets": names, "points": points,
+    res = {"command": cmd, "datasets": names, "points": points, "refused": REFUSED,
            "targets": {ds: targets(points, ds) for ds in names},
            "note": ("Data sets: kitchen = the held-out half (x > middle) of the 7-Scenes redkitchen fused at 2 cm; "
                     "synthetic = room_scene(seed=0, geometry='rich', ceiling=True) at 2 cm on a lattice moved by "
-                    "0.3 voxel, fused-like. Our maps are surface-true (observation mask, counted in their bytes); the "
-                    "peers code the plain field (unobserved voxels as free space), with no mask to count."),
+                    "0.3 voxel, fused-like; rooms = synthetic_room(seed 1 and 2, behind='solid') side by side, fused-like; "
+                    "building = building_scene(seed=0, rooms_per_side=1) like synthetic. Our maps are surface-true "
+                    "(observation mask, counted in their bytes); 'ours' rows count every file of the map, the "
+                    "shipped model referenced (--codec-state reference); the peers (SZ3, ZFP, SPERR) code the plain "
+                    "field (unobserved voxels as free space), with no mask to count, bytes as their own libraries "
+                    "return them."),
            "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0], "pysz": version("pysz"),
-                       "zfpy": version("zfpy")},
-           "load_before": load_before, "load_after": os.getloadavg(), "wall_s": time.perf_counter() - t0}
+                       "zfpy": version("zfpy"), "numcodecs-wasm-sperr": version("numcodecs-wasm-sperr")},
+           "load_before": load_before, "load_after": os.getloadavg(), "wall_s": time.perf_counter() - t0,
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     (out / "rd-peers.json").write_text(json.dumps(res, indent=1) + "\n")
-    plot(points, names, out / "rd-peers.png")
+    for ds in names:
+        plot(points, ds, out / f"rd-peers-{_slug(ds)}.png")
     replace_section(out / "rate-distortion.md", "peers", markdown(res), title="# Rate-distortion")
-    print(f"wrote {out / 'rd-peers.json'}, rd-peers.png and the 'peers' section of rate-distortion.md after "
+    print(f"wrote {out / 'rd-peers.json'}, rd-peers-*.png and the 'peers' section of rate-distortion.md after "
           f"{res['wall_s']:.0f} s", flush=True)
     return res
 

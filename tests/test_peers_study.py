@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("pysz", reason="the study's SZ3 methods need pysz (pip install 'sdfcodec[sz3]')")
+pytest.importorskip("numcodecs_wasm_sperr", reason="the study's SPERR peer needs numcodecs-wasm-sperr (the test extra)")
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +25,7 @@ def run(tmp_path_factory):
     work = tmp_path_factory.mktemp("peers")
     (work / "rate-distortion.md").write_text("# Rate-distortion\n\n<!-- section other -->\nkept\n<!-- end other -->\n")
     res = mod.main(["--quick", "--workdir", str(work), "--out", str(work),
-                    "--methods", "pca,sz3-map,sz3-peer,zfp,dct,nanovdb"])
+                    "--methods", "pca,sz3-map,sz3-peer,zfp,dct,nanovdb,sperr,ours"])
     return mod, work, res
 
 
@@ -32,7 +33,10 @@ def test_every_method_measured_with_its_bounds(run):
     mod, work, res = run
     P = res["points"]
     fams = {p["family"] for p in P}
-    assert fams == {"eigenshapes", "sz3-registry", "sz3-peer", "zfp", "dct", "nanovdb"}
+    assert fams == {"eigenshapes", "sz3-registry", "sz3-peer", "zfp", "dct", "nanovdb", "sperr", "ours"}
+    keys = {"dataset", "method", "setting", "family", "bytes_per_block", "ratio", "mse", "max_error_cm", "chamfer_mm",
+            "f1", "decode_blocks_per_s", "decode_vs_memcpy", "blocks"}
+    assert all(keys <= p.keys() for p in P)
     for p in P:
         assert p["bytes_per_block"] > 0 and p["mse"] >= 0 and 0 <= p["f1"] <= 1
         assert p["ratio"] == pytest.approx(16384 / p["bytes_per_block"])
@@ -42,6 +46,10 @@ def test_every_method_measured_with_its_bounds(run):
             assert p["max_error_cm"] <= float(p["setting"].split()[1]) * (1 + 1e-4) + 1e-6
         if p["setting"] == "8-bit":  # a leaf's range / 255 / 2, at most half of 1 / 255 (normalised)
             assert p["max_error_cm"] <= 14 / 255 / 2 + 1e-6
+        if p["family"] == "sperr":  # its own stream at the bit rate asked (header included): within 5 %
+            asked = float(p["setting"].split()[0])
+            assert p["bpp"] == pytest.approx(8 * asked * p["blocks"] / (64 * 64 * 48))
+            assert asked <= p["bytes_per_block"] <= 1.05 * asked
         if p["method"] == "zfp fixed-rate (block)":  # rate x 4096 bits, zfpy's 16-byte header not counted
             assert p["bytes_per_block"] == pytest.approx(float(p["setting"].split()[1]) * 512)
 
@@ -49,6 +57,12 @@ def test_every_method_measured_with_its_bounds(run):
 def test_maps_bytes_are_the_files_on_disk(run):
     mod, work, res = run
     for p in res["points"]:
+        if p["family"] == "ours":  # every file of the map, the shipped model only referenced
+            path = next(work.glob(f"*-ours-{p['setting']}.sdfz".replace(" ", "_")))
+            files = [os.path.join(d, f) for d, _, fs in os.walk(path) for f in fs]
+            assert p["bytes_per_block"] * p["blocks"] == pytest.approx(sum(os.path.getsize(f) for f in files))
+            assert sum(os.path.getsize(f) for f in files if f"{os.sep}codec{os.sep}" in f) < 10_000
+            continue
         if p["family"] not in ("eigenshapes", "sz3-registry"):
             continue
         path = next(work.glob(f"*-{p['method']}-{p['setting']}.sdfz".replace(" ", "_")))
@@ -65,4 +79,5 @@ def test_outputs_and_sections(run):
     page = (work / "rate-distortion.md").read_text()
     assert "<!-- section other -->\nkept\n<!-- end other -->" in page  # another script's section is kept
     assert "<!-- section peers -->" in page and "moonshot" in page and "--quick" in page
-    assert (work / "rd-peers.png").stat().st_size > 10_000
+    assert (work / "rd-peers-synthetic--quick.png").stat().st_size > 10_000
+    assert "decode throughput" in page and page.count("Measured on") == 2
