@@ -323,38 +323,22 @@ class MapHeader(_Model):
         need = tuple(-(-n // self.block_size) for n in self.shape_voxels)
         if any(g < n for g, n in zip(self.grid_blocks, need)):
             raise ValueError(f"grid_blocks {self.grid_blocks} cannot hold shape_voxels {self.shape_voxels}")
-        int8 = [e for e in self.extensions if e.name == INT8_EXTENSION]
-        if (self.codes.dtype == "int8") != bool(int8) or any(not e.required for e in int8):
-            raise ValueError(f"codes.dtype 'int8' and the required extension {INT8_EXTENSION!r} go together "
-                             f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
-        refs = [e for e in self.extensions if e.name == STATE_REFERENCE_EXTENSION]
-        if (self.codec.state_reference is not None) != bool(refs) or any(not e.required for e in refs):
-            raise ValueError(f"codec.state_reference and the required extension {STATE_REFERENCE_EXTENSION!r} go "
-                             f"together (extensions {[e.name for e in self.extensions]})")
-        quant = [e for e in self.extensions if e.name == QUANT_EXTENSION]
-        if (self.codes.dtype == "int16") != bool(quant) or any(not e.required for e in quant):
-            raise ValueError(f"codes.dtype 'int16' and the required extension {QUANT_EXTENSION!r} go together "
-                             f"(codes.dtype is {self.codes.dtype!r}, extensions {[e.name for e in self.extensions]})")
-        field = [e for e in self.extensions if e.name == FIELD_EXTENSION]
-        if (self.codes.field_compression is not None) != bool(field) or any(not e.required for e in field):
-            raise ValueError(f"codes.field_compression and the required extension {FIELD_EXTENSION!r} go together "
-                             f"(extensions {[e.name for e in self.extensions]})")
-        res = [e for e in self.extensions if e.name == RESIDUAL_EXTENSION]
-        if (self.residual is not None) != bool(res) or any(not e.required for e in res):
-            raise ValueError(f"residual and the required extension {RESIDUAL_EXTENSION!r} go together "
-                             f"(extensions {[e.name for e in self.extensions]})")
-        shard = [e for e in self.extensions if e.name == SHARD_EXTENSION]
-        if (self.codes.shard_blocks is not None) != bool(shard) or any(not e.required for e in shard):
-            raise ValueError(f"codes.shard_blocks and the required extension {SHARD_EXTENSION!r} go together "
-                             f"(extensions {[e.name for e in self.extensions]})")
-        man = [e for e in self.extensions if e.name == MANIFEST_EXTENSION]
-        if (self.manifest is not None) != bool(man) or any(not e.required for e in man):
-            raise ValueError(f"manifest and the required extension {MANIFEST_EXTENSION!r} go together "
-                             f"(extensions {[e.name for e in self.extensions]})")
-        vrx = [e for e in self.extensions if e.name == VARIABLE_RATE_EXTENSION]
-        if (self.codes.variable_rate is not None) != bool(vrx) or any(not e.required for e in vrx):
-            raise ValueError(f"codes.variable_rate and the required extension {VARIABLE_RATE_EXTENSION!r} go "
-                             f"together (extensions {[e.name for e in self.extensions]})")
+        # each required extension goes with the field it describes: one without the other, or the extension not
+        # required, would let a reader that ignores it misread the map (spec section 8)
+        dtype = f"codes.dtype is {self.codes.dtype!r}, "
+        for what, present, name, detail in (
+                ("codes.dtype 'int8'", self.codes.dtype == "int8", INT8_EXTENSION, dtype),
+                ("codec.state_reference", self.codec.state_reference is not None, STATE_REFERENCE_EXTENSION, ""),
+                ("codes.dtype 'int16'", self.codes.dtype == "int16", QUANT_EXTENSION, dtype),
+                ("codes.field_compression", self.codes.field_compression is not None, FIELD_EXTENSION, ""),
+                ("residual", self.residual is not None, RESIDUAL_EXTENSION, ""),
+                ("codes.shard_blocks", self.codes.shard_blocks is not None, SHARD_EXTENSION, ""),
+                ("manifest", self.manifest is not None, MANIFEST_EXTENSION, ""),
+                ("codes.variable_rate", self.codes.variable_rate is not None, VARIABLE_RATE_EXTENSION, "")):
+            listed = [e for e in self.extensions if e.name == name]
+            if present != bool(listed) or any(not e.required for e in listed):
+                raise ValueError(f"{what} and the required extension {name!r} go together "
+                                 f"({detail}extensions {[e.name for e in self.extensions]})")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         if (problem := self._arithmetic_problem()) is not None:
