@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
 import sdfcodec
+from sdfcodec.cli import app
 from sdfcodec.errors import FormatError
 
 from _voxblox_stream import block_message, layer_bytes, layer_voxels, parse_layers, synthetic_layer
@@ -135,6 +137,14 @@ def test_import_with_another_codec(tmp_path):
     assert m.header.codec.id == "pca" and m.code_size == 32
     assert s["blocks"] == lossless["blocks"] and m.origin == sdfcodec.open_map(tmp_path / "raw.sdfz").origin
     _check_voxels(m, voxels, 0.02, 0.5, tol=0.004 * (1 + 1e-4))
+    # weights kept when asked, as uint8 counts (spec 6a): the CLI flag, checked against the source's own weights
+    out = tmp_path / "pca-w.sdfz"
+    r = CliRunner().invoke(app, ["import", str(src), str(out), "--codec", "pca", "--code-size", "32", "--keep-weights"])
+    assert r.exit_code == 0, r.output
+    kept = sdfcodec.open_map(out)
+    coords = np.argwhere(kept.block_states() == 2)
+    w = kept.read_weights(coords)
+    assert kept.has_weights and w.max() <= 255 and (w > 0).sum() == len(voxels)
 
 
 def _bad(tmp_path, data: bytes) -> str:

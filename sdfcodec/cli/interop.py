@@ -30,6 +30,8 @@ def import_cmd(
     sign_exact: bool = typer.Option(False, "--sign-exact", help="Block codecs: every voxel at a surface crossing keeps its sign (as encode)."),
     chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (as encode)."),
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Zarr shards of N blocks per axis (as encode)."),
+    keep_weights: bool = typer.Option(False, "--keep-weights", help="With a lossy --codec: keep the fusion weights "
+                                      "(uint8 counts; a lossy map drops them by default, its observation mask kept)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT.sdfz if it exists."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
@@ -52,7 +54,8 @@ def import_cmd(
         summary = import_map(source, output, format=format, codec=codec, truncation=trunc,
                              trunc_voxel_multiplier=trunc_voxel_multiplier, code_dtype=code_dtype,
                              overwrite=overwrite, max_error=max_error, sign_exact=sign_exact,
-                             chunk_blocks=chunk_blocks, shard_blocks=shard_blocks)
+                             chunk_blocks=chunk_blocks, shard_blocks=shard_blocks,
+                             keep_weights=True if keep_weights else None)
     report(summary, as_json, lambda: (
         f"wrote {output}: {summary['format']} {summary['source_blocks']} blocks of {summary['voxels_per_side']}^3 "
         f"voxels ({summary['observed_voxels']} observed) into {summary['blocks']['coded']} coded blocks, voxel "
