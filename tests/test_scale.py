@@ -237,9 +237,9 @@ class _CountingServer:
 
             def copyfile(self, source, outputfile):
                 data = source.read()
-                outputfile.write(data)
-                with lock:
+                with lock:  # recorded before the client can have it: a reader done with its reads sees every one
                     sent.append((self.path, len(data)))
+                outputfile.write(data)
 
         self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), partial(Handler, directory=str(root)))
         self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
