@@ -657,8 +657,11 @@ def _study(a, argv) -> dict:
 def _write(a, argv, out: Path, points: list[dict], names: list[str], t0: float, load_before) -> dict:
     from importlib.metadata import version
 
-    cmd = "python examples/peers_study.py" + ("" if argv is None and len(sys.argv) <= 1 else " " + shlex.join(
-        sys.argv[1:] if argv is None else argv))
+    args = list(sys.argv[1:] if argv is None else argv)
+    for i, a in enumerate(args[:-1]):  # this machine's folders say nothing to a reader: their role instead
+        if a in ("--kitchen", "--workdir", "--out"):
+            args[i + 1] = a[2:].upper() + "_DIR"
+    cmd = "python examples/peers_study.py" + (" " + shlex.join(args) if args else "")
     res = {"command": cmd, "datasets": names, "points": points, "refused": REFUSED,
            "targets": {ds: targets(points, ds) for ds in names},
            "note": ("Data sets: kitchen = the held-out half (x > middle) of the 7-Scenes redkitchen fused at 2 cm; "
