@@ -249,8 +249,9 @@ class PCACodec(Codec):
         so, encode and decode assume it, and a basis scaled or skewed under a recomputed digest would decode
         silently off (x3: centimetres)."""
         comp = self.components_
-        gram = comp @ comp.T  # float32: a (k, 4096) x (4096, k) product, ~1 ms at k = 128
-        worst = float(np.abs(gram - np.eye(len(comp), dtype=np.float32)).max()) if len(comp) else 0.0
+        with np.errstate(all="ignore"):  # an absurd basis overflows here: it is refused below, not warned about
+            gram = comp @ comp.T  # float32: a (k, 4096) x (4096, k) product, ~1 ms at k = 128
+            worst = float(np.abs(gram - np.eye(len(comp), dtype=np.float32)).max()) if len(comp) else 0.0
         if not worst <= ORTHONORMAL_TOLERANCE:
             raise InvalidValueError(f"pca state: the basis 'components' is not orthonormal (|C C^T - I| reaches "
                                     f"{worst:.3g}, tolerance {ORTHONORMAL_TOLERANCE:g}): it was altered or corrupted; "
