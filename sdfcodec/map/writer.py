@@ -468,20 +468,23 @@ class MapWriter:
                 self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
 
+            # every file but the codes, and what the manifest will take to list them with the code streams' chunks:
+            # fixed while rate control searches the step (nothing else is written meanwhile), so measured once
+            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
+            files = [f for f in Path(self.tmp).rglob("*") if f.is_file() and not any(p in skip for p in f.parents)]
+            fixed = sum(f.stat().st_size for f in files) + STREAM_METADATA_BYTES
+            if self.manifest:
+                keys = [f.relative_to(self.tmp).as_posix() for f in files]
+                keys += [f"{STREAM_ARRAY}/zarr.json"] + stream_chunk_keys(self.state, self.codes_spec.chunk_blocks)
+                fixed += manifest_bytes_estimate(keys)
+
             def other_bytes(fields: dict) -> int:  # every file but the codes, with the header they will have
                 spec = self.codes_spec.model_copy(update={"variable_rate": VariableRate(**fields)})
                 h = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=spec,
                               extensions=extensions, **self.header_kw)
-                skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
-                files = [f for f in Path(self.tmp).rglob("*") if f.is_file() and not any(p in skip for p in f.parents)]
                 # the header as Zarr stores it (indented JSON), and the document of code_streams (made after this)
                 doc = json.dumps({"attributes": {"sdfcodec": json.loads(h.model_dump_json())}}, indent=2)
-                listed = 0
-                if self.manifest:  # the manifest lists every file, the code streams' chunks among them
-                    keys = [f.relative_to(self.tmp).as_posix() for f in files]
-                    keys += [f"{STREAM_ARRAY}/zarr.json"] + stream_chunk_keys(self.state, self.codes_spec.chunk_blocks)
-                    listed = manifest_bytes_estimate(keys)
-                return sum(f.stat().st_size for f in files) + len(doc) + STREAM_METADATA_BYTES + listed
+                return fixed + len(doc)
 
             vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
             self.codes_spec = self.codes_spec.model_copy(update={"variable_rate": vr})
