@@ -5,7 +5,7 @@ from functools import partial
 from pathlib import Path
 import numpy as np, torch, sdfcodec
 from sdfcodec.testing import analytic_blocks
-from sdfcodec.sdf import Box, Cylinder, Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Box, Cylinder, Plane, Scene, Sphere, sample_volume
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "/tmp/scalebench")
 out.mkdir(exist_ok=True)
@@ -76,7 +76,7 @@ with sdfcodec.create_map(out / "single.sdfz", codec=pca, voxel_size=0.02, overwr
     w.write_volume(vol)
 res["write_volume_single_s"] = time.perf_counter() - t
 from distributed import Client, LocalCluster
-from sdfcodec.scale import encode_volume_dask
+from sdfcodec.map.scale import encode_volume_dask
 with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as c, Client(c):
     t = time.perf_counter()
     encode_volume_dask(out / "vol.npy", out / "dask.sdfz", pca, voxel_size=0.02, overwrite=True)

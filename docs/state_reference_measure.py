@@ -47,7 +47,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     import sdfcodec
-    from sdfcodec.data.rooms import synthetic_room
+    from sdfcodec.search.rooms import synthetic_room
 
     args.out.mkdir(parents=True, exist_ok=True)
     room = synthetic_room(0)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 import sdfcodec
-import sdfcodec.tiling
+import sdfcodec.core.tiling
 from sdfcodec.bench.codecs import roofline_fn, roofline_shapes, write_bench_map
 from sdfcodec.bench.harness import interleave, load
 from sdfcodec.codec import Codec
@@ -85,14 +85,14 @@ if rows_swept:
     def rows_case(rows, run):
         def case():
             use("decode_tiles")
-            sdfcodec.tiling.TILE_ROWS = rows
+            sdfcodec.core.tiling.TILE_ROWS = rows
             try:
                 run()
             finally:
-                sdfcodec.tiling.TILE_ROWS = default_rows
+                sdfcodec.core.tiling.TILE_ROWS = default_rows
         return case
 
-    default_rows = sdfcodec.tiling.TILE_ROWS
+    default_rows = sdfcodec.core.tiling.TILE_ROWS
     cases = {"roofline": cases["roofline"]}  # the sweep alone: fresh volumes' page faults disturb every round
     for r in rows_swept:
         cases[f"ring-{r}"] = rows_case(r, read)

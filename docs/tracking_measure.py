@@ -36,12 +36,12 @@ import numpy as np
 import torch
 
 from sdfcodec.data.sequences import open_sequence
-from sdfcodec.densefield import DenseField
-from sdfcodec.evaluation import EVAL_TRACKER_CONFIG, benchmark_tracking, resolve_sequence
+from sdfcodec.tracking.densefield import DenseField
+from sdfcodec.evaluation.tracking import EVAL_TRACKER_CONFIG, benchmark_tracking, resolve_sequence
 from sdfcodec.map import open_map
-from sdfcodec.mapfield import MapField
-from sdfcodec.metrics import ate
-from sdfcodec.tracking import SDFTracker, TrackerConfig
+from sdfcodec.tracking.mapfield import MapField
+from sdfcodec.core.metrics import ate
+from sdfcodec.tracking.tracker import SDFTracker, TrackerConfig
 
 PRESETS = ("slow-clean", "slow-noisy", "fast-clean", "fast-noisy", "poor-geometry", "rich-geometry")
 
@@ -112,9 +112,9 @@ def load_old(src: Path):
 
 def old_map_field(src: Path) -> type:
     """This checkout's MapField with the ``sample_with_gradient`` of the MapField in the package folder ``src``
-    (its source compiled in this ``sdfcodec.mapfield``'s namespace)."""
+    (its source compiled in this ``sdfcodec.tracking.mapfield``'s namespace)."""
     import ast
-    import sdfcodec.mapfield as mf
+    import sdfcodec.tracking.mapfield as mf
 
     text = (src / "mapfield.py").read_text()
     cls = next(n for n in ast.parse(text).body if isinstance(n, ast.ClassDef) and n.name == "MapField")

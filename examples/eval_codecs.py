@@ -65,12 +65,12 @@ def non_empty(v: np.ndarray) -> np.ndarray:
 
 
 def test_sets(kitchen: str, n_synth: int) -> dict[str, np.ndarray]:
-    from sdfcodec.blocks import normalise, split_blocks
+    from sdfcodec.core.blocks import normalise, split_blocks
     from sdfcodec.data.sampler import sample_windows
     from sdfcodec.data.synthetic import synthetic_blocks
     from sdfcodec.data.render import room_scene
-    from sdfcodec.fusion import fuse
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.fusion.tsdf import fuse
+    from sdfcodec.core.sdf import sample_volume
 
     sets = {}
     if Path(kitchen).is_dir():
@@ -156,7 +156,7 @@ def load_codecs(workdir: Path, data: Path | None, val_blocks: int) -> tuple[dict
                                 f"`python examples/train_ae_models.py --only '' --sizes {k}`")
     val = None
     if data is not None and data.exists():
-        from sdfcodec.dataset import open_dataset
+        from sdfcodec.data.dataset import open_dataset
 
         val = open_dataset(data).load("validation", val_blocks)
     for name, make in (("parallel", mixed.default_parallel), ("sequential", mixed.default_sequential)):

@@ -20,7 +20,7 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec.data.sequences import open_sequence
-from sdfcodec.fusion import fuse
+from sdfcodec.fusion.tsdf import fuse
 
 # a TUM RGB-D or 7-Scenes sequence folder: $SDFCODEC_KITCHEN (the 7-Scenes redkitchen), else ./7scenes-redkitchen
 DEFAULT_SEQUENCE = Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen"))

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import sdfcodec
-from sdfcodec.fusion import fuse, mesh_from_blocks
-from sdfcodec.viz import render_mesh, save_png
+from sdfcodec.fusion.tsdf import fuse, mesh_from_blocks
+from sdfcodec.view.pictures import render_mesh, save_png
 
 ROOT = Path(__file__).resolve().parents[1]
 

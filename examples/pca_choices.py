@@ -16,10 +16,10 @@ import json
 import numpy as np
 
 import sdfcodec
-from sdfcodec.blocks import normalise, split_blocks
+from sdfcodec.core.blocks import normalise, split_blocks
 from sdfcodec.data.synthetic import synthetic_blocks
 from sdfcodec.data.render import room_scene
-from sdfcodec.sdf import sample_volume
+from sdfcodec.core.sdf import sample_volume
 
 TRUNC = (-0.04, 0.1)
 
@@ -45,7 +45,7 @@ def main() -> None:
     room = sample_volume(room_scene(seed=0).sdf, (200, 160, 125), 0.02, truncation=TRUNC)
     sets["analytic room"] = nonempty(normalise(split_blocks(room, TRUNC[1]).reshape(-1, 16, 16, 16), *TRUNC))
     if args.kitchen:
-        from sdfcodec.fusion import fuse
+        from sdfcodec.fusion.tsdf import fuse
 
         fused = fuse(args.kitchen, voxel_size=0.02, truncation=TRUNC, quiet=True)
         sets["7-scenes kitchen (real)"] = nonempty(normalise(fused.tsdf, *TRUNC))

@@ -14,18 +14,18 @@ Peers: SZ3 (pysz), ZFP (zfpy), SPERR (numcodecs-wasm-sperr), each on its own byt
 with the shipped model referenced; a new configuration is one more dict.
 
 Data sets (normalised units v = (d - d_min) / (d_max - d_min), truncation (-0.04, 0.1) m, 2 cm voxels):
-``kitchen``: 7-Scenes redkitchen (500 frames) fused by ``sdfcodec.fusion.fuse``, the blocks of the second half
+``kitchen``: 7-Scenes redkitchen (500 frames) fused by ``sdfcodec.fusion.tsdf.fuse``, the blocks of the second half
 along x: the half the shipped eigenshapes never saw in training, and the half no choice of this study was tuned
 on (the SZ3 field layout, 8^3-block chunks and free space in unobserved voxels, was chosen on the first half).
 ``synthetic``: the furnished room of ``sdfcodec.data.render.room_scene(seed=0, geometry="rich")`` sampled
 exactly on a lattice moved by 0.3 voxel (so that no wall lies on voxel centres, where the side of a crossing is a
 rounding accident: unshifted, even an 8-bit NanoVDB-style copy with 0.3 mm max error measured 3.5 mm Chamfer) and
 made fused-like (voxels more than 4 cm behind a surface unobserved, as fusion leaves them). ``rooms``: two
-randomly posed furnished rooms of ``sdfcodec.data.rooms.synthetic_room`` side by side; ``building``:
+randomly posed furnished rooms of ``sdfcodec.search.rooms.synthetic_room`` side by side; ``building``:
 ``sdfcodec.data.building.building_scene`` (two rooms off a corridor), both fused-like as ``synthetic``.
 
 Every method codes the same coded (not all-free) blocks. Distortion over the observed voxels of those blocks:
-MSE (normalised), max error (cm); surfaces (``sdfcodec.surface.compare_volumes`` against the lossless blocks,
+MSE (normalised), max error (cm); surfaces (``sdfcodec.core.surface.compare_volumes`` against the lossless blocks,
 over their observation): Chamfer-L1 (mm) and F-score at 1 voxel. Rate: bytes per coded block with everything
 but the codec state counted (maps: every file but ``codec/``: codes, observation mask, block states, Zarr
 metadata); the codec state is reported apart and amortised over a 1M-block map. Decode speed: blocks per second
@@ -63,11 +63,11 @@ STEPS = (0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28)
 
 
 def rooms_blocks(seeds: tuple[int, ...] = (1, 2)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``sdfcodec.data.rooms.synthetic_room(seed, behind="solid")`` for each of ``seeds`` (randomly posed
+    """``sdfcodec.search.rooms.synthetic_room(seed, behind="solid")`` for each of ``seeds`` (randomly posed
     furnished rooms, exact distances), side by side along x one block apart, fused-like: coords, metres,
     observed."""
-    from sdfcodec.blocks import split_blocks
-    from sdfcodec.data.rooms import synthetic_room
+    from sdfcodec.core.blocks import split_blocks
+    from sdfcodec.search.rooms import synthetic_room
 
     coords, tsdf, x0 = [], [], 0
     for seed in seeds:
@@ -82,9 +82,9 @@ def rooms_blocks(seeds: tuple[int, ...] = (1, 2)) -> tuple[np.ndarray, np.ndarra
 def building_blocks(seed: int = 0, rooms_per_side: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``sdfcodec.data.building.building_scene(seed, rooms_per_side)`` (rooms off a corridor, furnished)
     sampled exactly on a lattice moved by 0.3 voxel with a 16 cm margin, fused-like: coords, metres, observed."""
-    from sdfcodec.blocks import split_blocks
+    from sdfcodec.core.blocks import split_blocks
     from sdfcodec.data.building import building_scene
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
 
     scene, margin = building_scene(seed, rooms_per_side)[0], 0.16
     shape = tuple(int(round((s + 2 * margin) / VS)) for s in scene.size)

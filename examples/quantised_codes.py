@@ -11,7 +11,7 @@ with the observation and the surface weight) into a pca-K map with the shipped e
 
 * bytes per coded block: every file of the map but its codec state (``codec/``), divided by the coded blocks
   ("all-in": codes, observation mask, block states, Zarr metadata), and the ``codes/`` files alone;
-* surfaces: ``sdfcodec.surface.compare_volumes`` of the decoded map against the lossless one over the observed
+* surfaces: ``sdfcodec.core.surface.compare_volumes`` of the decoded map against the lossless one over the observed
   voxels (Chamfer-L1 in mm, F-score at 1 voxel);
 * MSE: mean squared error in normalised units (1 = the truncation range) over the observed voxels of coded
   blocks; max error: largest absolute error there, in metres;
@@ -36,7 +36,7 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec.map.rate import stored_bytes
-from sdfcodec.surface import compare_volumes
+from sdfcodec.core.surface import compare_volumes
 
 DEFAULT_STEPS = (0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64)
 

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     room_npy = args.tsdf
     if room_npy is None:  # a floor, two walls, a box and a ball, sampled with exact distances
-        from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+        from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
 
         e = args.size
         room = Scene([Plane((0, 0, 1), 0.1), Plane((1, 0, 0), 0.1), Plane((0, 1, 0), 0.1),

@@ -8,7 +8,7 @@ truncation baseline and Blosc-compressed float16 raw blocks. Writes docs/rate-di
 Data sets (normalised units v = (d - d_min) / (d_max - d_min), d in [-0.04, 0.1] m, so 1 unit = 0.14 m):
 
 ``kitchen``
-    7-Scenes redkitchen fused at 2 cm (``sdfcodec.fusion.fuse``), the allocated blocks of the second half along
+    7-Scenes redkitchen fused at 2 cm (``sdfcodec.fusion.tsdf.fuse``), the allocated blocks of the second half along
     x (``coords[:, 0] > grid_shape[0] // 2``): the split the shipped PCA was *not* trained on, exactly as
     ``examples/eval_codecs.py`` takes it. The fused blocks and their observation (fusion weight > 0) are cached
     in ``--workdir``.
@@ -25,7 +25,7 @@ stores fused maps, too: each learned codec is also written **surface-true** (``w
 observed=...)``: observation mask, surface-weighted least squares, unobserved voxels decode to ``d_max``;
 docs/surface.md), its bytes counting the mask chunks (``observed/``) with the codes; the plain maps (no
 observation, every voxel fitted alike) are what every other method is compared with on the MSE. And every
-point of a fused-map data set gets the **surface metrics** of ``sdfcodec.surface.compare_volumes`` against
+point of a fused-map data set gets the **surface metrics** of ``sdfcodec.core.surface.compare_volumes`` against
 the lossless blocks (Chamfer-L1, F-score at 1 and 2 voxels, sign agreement, near-surface RMSE and bias; the
 band over observed voxels only), on the dense volume of the data set's blocks (blocks no method codes read
 ``d_max``): a point's ``surface`` dict, metres.
@@ -42,7 +42,7 @@ codes); an empty block stores no code in any method, only its state. Errors: per
   block, and are reported separately. The error is that of the blocks decoded from the map
   (``Map.iter_decoded``).
 * int8 codes with per-component scales: SIMULATED, not a map format. The float32 codes read from the map are
-  quantised by ``sdfcodec.quantize.quantize_codes(per="component")`` (one float32 offset and scale per code
+  quantised by ``sdfcodec.core.quantize.quantize_codes(per="component")`` (one float32 offset and scale per code
   element, 8 k bytes per map); bytes = the int8 codes and scales compressed with the map's Blosc/zstd (level 3,
   byte shuffle) through numcodecs in chunks of 512 blocks, plus the float32 map's ``state/`` bytes.
 * ZFP (zfpy): each 16^3 block compressed on its own, fixed-rate and fixed-accuracy; bytes = the stream length
@@ -92,7 +92,7 @@ def kitchen_blocks(path: Path, workdir: Path) -> tuple[np.ndarray, np.ndarray, n
         z = np.load(cache)
         coords, tsdf, observed = z["coords"], z["tsdf"], np.unpackbits(z["observed"], axis=1).astype(bool)
     else:
-        from sdfcodec.fusion import fuse
+        from sdfcodec.fusion.tsdf import fuse
 
         fused = fuse(path, voxel_size=VS, truncation=TRUNC)
         held = fused.select(fused.coords[:, 0] > fused.grid_shape[0] // 2)  # as eval_codecs.py
@@ -109,9 +109,9 @@ def synthetic_blocks(quick: bool, shift: float | None = None) -> tuple[np.ndarra
     0.3 voxel so that no wall lies on voxel centres (where the exact distance is 0, the side a crossing falls on
     is a rounding accident, which would dominate its surface metrics). ``shift``: the lattice shift in voxels
     (default: 0.3 when ``quick``, else 0, as this page's sections were measured)."""
-    from sdfcodec.blocks import split_blocks
+    from sdfcodec.core.blocks import split_blocks
     from sdfcodec.data.render import room_scene
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
 
     room, margin = room_scene(seed=0, geometry="rich", ceiling=True), 0.16
     shape = (64, 64, 48) if quick else tuple(int(round((s + 2 * margin) / VS)) for s in (4.0, 3.2, 2.5))
@@ -130,7 +130,7 @@ def fused_like(tsdf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def normalised(tsdf: np.ndarray) -> np.ndarray:
-    from sdfcodec.blocks import normalise
+    from sdfcodec.core.blocks import normalise
 
     return normalise(tsdf, *TRUNC)
 
@@ -181,7 +181,7 @@ class SurfaceReference:
     def metrics(self, y: np.ndarray) -> dict:
         """``SurfaceMetrics.to_dict()`` (metres) of the decoded non-empty blocks ``y`` (normalised, in the
         order of the coded blocks)."""
-        from sdfcodec.surface import compare_volumes
+        from sdfcodec.core.surface import compare_volumes
 
         decoded = self._dense(np.asarray(y, np.float32) * (TRUNC[1] - TRUNC[0]) + TRUNC[0])
         return compare_volumes(self.original, decoded, VS, observed=self.observed).to_dict()
@@ -244,7 +244,7 @@ def measure_learned(name: str, codec, dataset: str, coords: np.ndarray, tsdf: np
     ``observed`` voxels, surface-true; and int8 with per-component scales simulated from the plain float32
     codes."""
     import sdfcodec
-    from sdfcodec.quantize import dequantize_codes, quantize_codes
+    from sdfcodec.core.quantize import dequantize_codes, quantize_codes
 
     pts, codes32, state_bytes = [], None, None
     index = {tuple(c): i for i, c in enumerate(coords[coded])}
@@ -517,7 +517,7 @@ def surface_md(res: dict) -> list[str]:
         if not L:
             L += ["## Surfaces: Chamfer-L1 and F-score on fused maps", "",
                   "Fused-map data sets only (those with an observation). Every point's surfaces against the lossless "
-                  "blocks' (`sdfcodec.surface.compare_volumes`; docs/surface.md): Chamfer-L1 and F@1 voxel (2 cm). "
+                  "blocks' (`sdfcodec.core.surface.compare_volumes`; docs/surface.md): Chamfer-L1 and F@1 voxel (2 cm). "
                   "*plain*: maps written without the observation (every voxel fitted alike, as ZFP, the DCT and "
                   "Blosc see them); *surface-true*: with it (mask, surface-weighted fit, unobserved voxels decode "
                   "to d_max), its mask chunks counted in the bytes.", ""]

@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="sdfcodec-http-"))
     if args.map is None:  # a floor, a wall and a box, long enough along x for two chunks of blocks
-        from sdfcodec.sdf import Box, Plane, Scene, sample_volume
+        from sdfcodec.core.sdf import Box, Plane, Scene, sample_volume
 
         e = args.size
         scene = Scene([Plane((0, 0, 1), 0.1), Plane((0, 1, 0), 0.1), Box((0.7 * e, 0.6, 0.4), (0.3, 0.3, 0.3))])

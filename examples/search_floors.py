@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 
 import sdfcodec
-from sdfcodec.search import expand, search
+from sdfcodec.search.engine import expand, search
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> None:
     room = None
     path = args.map
     if path is None:
-        from sdfcodec.search import synthetic_room
+        from sdfcodec.search.rooms import synthetic_room
 
         room = synthetic_room(0, size=(args.size, args.size, 2.0))          # exact TSDF with labelled primitives
         path = Path(tempfile.mkdtemp(prefix="sdfcodec-floors-")) / "room.sdfz"
@@ -62,14 +62,14 @@ def main(argv: list[str] | None = None) -> None:
         print(f"against the analytic floor ({int(all_floor.sum())} blocks): precision {tp / max(len(res), 1):.2f}, "
               f"recall {tp / max(int(all_floor.sum()), 1):.2f}")
     if args.picture is not None:
-        from sdfcodec.search_cli import search_picture
+        from sdfcodec.view.search import search_picture
 
         print(f"picture: {search_picture(m, res, args.picture, up=up)}")
 
 
 def _floor_query(m, up):
     """The built-in floor model for this map, posed with the room's up direction."""
-    from sdfcodec.search import build_query
+    from sdfcodec.search.query import build_query
 
     return build_query("floor", map=m, up=tuple(float(u) for u in up))
 

@@ -7,7 +7,7 @@ with the shipped PCA basis at 64 and 128 components two ways: **plain** (every v
 voxels as if they were free space and left as the codec decodes them: what sdfcodec did before the
 observation mask) and **surface-true** (the default of `sdfcodec encode MAP OUT --codec pca`: observation
 mask, surface-weighted least squares). For each map: bytes on disk per coded block, the surface metrics
-against the lossless map (sdfcodec.surface.compare_maps) and, with --track, the tracking ATE of the frames
+against the lossless map (sdfcodec.core.surface.compare_maps) and, with --track, the tracking ATE of the frames
 against it from the first ground-truth pose (sdfcodec track's defaults). Then the same surface metrics for
 surface-true pca-32/64/128 on the **held-out half** alone: the blocks past the middle of the map along x, which
 the shipped basis never saw in training (examples/train_default_model.py trains on the other half), each half
@@ -26,9 +26,9 @@ import numpy as np
 
 import sdfcodec
 import sdfcodec.map.observed
-from sdfcodec.evaluation import track_command
-from sdfcodec.fusion import fuse
-from sdfcodec.surface import compare_maps
+from sdfcodec.evaluation.tracking import track_command
+from sdfcodec.fusion.tsdf import fuse
+from sdfcodec.core.surface import compare_maps
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import sdfcodec
 from sdfcodec.data.render import render_sequence
 from sdfcodec.data.sequences import open_sequence
-from sdfcodec.evaluation import EVAL_TRACKER_CONFIG
-from sdfcodec.fusion import fuse
-from sdfcodec.mapfield import MapField
-from sdfcodec.metrics import Trajectory, ate
-from sdfcodec.tracking import SDFTracker, TrackerConfig
+from sdfcodec.evaluation.tracking import EVAL_TRACKER_CONFIG
+from sdfcodec.fusion.tsdf import fuse
+from sdfcodec.tracking.mapfield import MapField
+from sdfcodec.core.metrics import Trajectory, ate
+from sdfcodec.tracking.tracker import SDFTracker, TrackerConfig
 
 TRUNC = (-0.04, 0.1)
 

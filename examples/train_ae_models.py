@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 import sdfcodec
-from sdfcodec.dataset import build_dataset, open_dataset
+from sdfcodec.data.dataset import build_dataset, open_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUNC, VS = (-0.04, 0.1), 0.02
@@ -50,7 +50,7 @@ def build_training_set(path: Path, kitchen: str, synthetic: int = 60_000, real_s
     """The data set of examples/train_default_model.py ("synthetic + real"), same sources, seeds and split."""
     from sdfcodec.data.sampler import iter_windows
     from sdfcodec.data.synthetic import synthetic_blocks
-    from sdfcodec.fusion import fuse
+    from sdfcodec.fusion.tsdf import fuse
 
     fused = fuse(kitchen, voxel_size=VS, truncation=TRUNC)
     train_half = fused.select(fused.coords[:, 0] < fused.grid_shape[0] // 2)

@@ -9,7 +9,7 @@ Reproducible: fixed seeds, nothing downloaded. Steps:
    along x, one block apart: windows sampled from the first half (the paper's sub-volume sampler, every 4
    voxels by default here, six axis orders) join the training data; the allocated non-empty blocks of the second half are
    the held-out real test set. A spatial split, so no held-out surface was seen in training.
-2. Build a data set (sdfcodec.dataset, split 300:50:50 by batches of 500) of synthetic primitive blocks, and
+2. Build a data set (sdfcodec.data.dataset, split 300:50:50 by batches of 500) of synthetic primitive blocks, and
    cut windows with their observation masks from the training half (every ``--real-stride`` voxels, six
    axis orders; windows mostly free or hardly observed are dropped). The shipped model, "weighted": pca-128
    fitted on the synthetic training split (weight 1 everywhere: exact blocks are encoded plainly) plus the
@@ -36,12 +36,12 @@ from pathlib import Path
 import numpy as np
 
 import sdfcodec
-from sdfcodec.blocks import denormalise, normalise
+from sdfcodec.core.blocks import denormalise, normalise
 from sdfcodec.map.observed import error_weights
-from sdfcodec.surface import compare_volumes
+from sdfcodec.core.surface import compare_volumes
 from sdfcodec.data.synthetic import synthetic_blocks
-from sdfcodec.dataset import build_dataset
-from sdfcodec.fusion import fuse
+from sdfcodec.data.dataset import build_dataset
+from sdfcodec.fusion.tsdf import fuse
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUNC, VS = (-0.04, 0.1), 0.02
@@ -53,7 +53,7 @@ def errors(codec, x: np.ndarray) -> dict:
 
 
 def surface_errors(codec, part) -> dict:
-    """Surface metrics (sdfcodec.surface) of fused blocks ``part`` encoded as a map writer encodes them (weighted,
+    """Surface metrics (sdfcodec.core.surface) of fused blocks ``part`` encoded as a map writer encodes them (weighted,
     unobserved voxels restored to d_max) against the blocks themselves."""
     obs = part.weights > 0
     v = part.normalised()
@@ -136,7 +136,7 @@ def main() -> None:
              "Made by `make default-model` (`python examples/train_default_model.py`). Errors in normalised units "
              f"(distance / {TRUNC[1] - TRUNC[0]:.2f} m) on {len(held_v)} held-out real blocks: the non-empty blocks "
              "of the half of the 7-Scenes redkitchen map (fused at 2 cm) that training never saw.", "",
-             "Surface metrics (sdfcodec.surface; docs/surface.md) of the same held-out half encoded as a map writer "
+             "Surface metrics (sdfcodec.core.surface; docs/surface.md) of the same held-out half encoded as a map writer "
              "encodes it (observation mask, surface-weighted least squares), against the lossless blocks.", "",
              "| model | code size | per-voxel MSE | per-block SSE | synthetic test-split MSE | Chamfer-L1 (mm) | "
              "F@1 voxel | F@2 voxels |", "|---|---|---|---|---|---|---|---|"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from . import errors
-from ._lazy import lazy_exports
+from .core._lazy import lazy_exports
 
 __all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "pretrained_codec", "open_map", "create_map",
            "update_map", "load_model", "save_model", "import_map", "export_map", "errors", "__version__"]
@@ -23,6 +23,6 @@ __all__ = ["Codec", "Map", "get_codec", "list_codecs", "register_codec", "pretra
 _LAZY = {"Codec": ".codec", "Map": ".map", "create_map": ".map", "open_map": ".map", "update_map": ".map",
          "load_model": ".model", "save_model": ".model", "get_codec": ".registry", "list_codecs": ".registry",
          "pretrained_codec": ".registry", "register_codec": ".registry",
-         "import_map": ".io.importer", "export_map": ".io.importer"}
+         "import_map": ".interop.importer", "export_map": ".interop.importer"}
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)

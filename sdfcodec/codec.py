@@ -28,9 +28,9 @@ from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Protoco
 
 import numpy as np
 
-from ._lazy import lazy_module
-from ._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input, output_buffer
-from ._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
+from .core._lazy import lazy_module
+from .core._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input, output_buffer
+from .core._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
 from .errors import (DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, PluginError, SDFCodecError,
                      ShapeError)
 
@@ -401,7 +401,7 @@ class Codec(abc.ABC):
         (metres, the bound of :meth:`decode_bound` proving the output finite) so that the product, the clip and
         the placing of a block into a volume cost one pass over memory. The default is one tile: :meth:`decode_into`
         into ``out`` (or a fresh buffer), one clip pass, ``each(0, N, out)``. A codec whose decode is a row-wise
-        product MAY override it (PCA: cache-sized tiles on every core, :func:`sdfcodec.tiling.run_tiles`);
+        product MAY override it (PCA: cache-sized tiles on every core, :func:`sdfcodec.core.tiling.run_tiles`);
         :func:`decodes_tiles` tells whether a codec does."""
         n = len(codes)
         dst = out if out is not None else _empty((n, BLOCK, BLOCK, BLOCK), codes.device)
@@ -544,7 +544,7 @@ def __getattr__(name: str) -> Any:
     if name == "empty":  # the huge-page allocator moved to the plugin toolkit
         warnings.warn("sdfcodec.codec.empty is deprecated: use sdfcodec.plugin.empty", DeprecationWarning,
                       stacklevel=2)
-        from ._validate import empty
+        from .core._validate import empty
 
         return empty
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -31,7 +31,7 @@ def save_state_file(path: str | Path, arrays: Mapping[str, np.ndarray], doing: s
         WriteFailedError: the file system refused the write (disk full, permission...); nothing is left at
             ``path`` but what was there before.
     """
-    from ._atomic import write_file
+    from .core._atomic import write_file
 
     def write(tmp: Path) -> None:
         with open(tmp, "xb") as f:  # an ordinary file (mode 0666 less the umask), shareable like any model

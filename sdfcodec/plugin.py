@@ -45,13 +45,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ._lazy import is_tensor, lazy_exports, lazy_module
-from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
+from .core._lazy import is_tensor, lazy_exports, lazy_module
+from .core._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
 from .codec import Codec, DecodesInto, decodes_into, decodes_tiles
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
-from .tiling import run_tiles, scratch
+from .core.tiling import run_tiles, scratch
 
 __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "DecodesInto", "decodes_into",
            "decodes_tiles", "run_tiles", "scratch",

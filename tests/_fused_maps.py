@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 import sdfcodec
-from sdfcodec.blocks import split_blocks
+from sdfcodec.core.blocks import split_blocks
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 

@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 
 import sdfcodec
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 
 def check_golden_map(golden: Path, make: Callable[[Path], object], regen: bool) -> sdfcodec.Map:

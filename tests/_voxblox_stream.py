@@ -1,4 +1,4 @@
-"""Test helpers for voxblox files, written independently of sdfcodec.io.voxblox: a plain byte-by-byte protobuf
+"""Test helpers for voxblox files, written independently of sdfcodec.interop.voxblox: a plain byte-by-byte protobuf
 reader and writer (the tests check the importer and exporter against these, not against themselves), and a
 generator of large synthetic layers (``python tests/_voxblox_stream.py N OUT`` writes N blocks)."""
 

@@ -115,7 +115,7 @@ def volume() -> np.ndarray:
     """The exact analytic scene (sdfcodec.testing.analytic_scene) sampled at 2 cm, truncation (-0.04, 0.1) m:
     float32 metres, 90 x 70 x 45 voxels, a multiple neither of 16 (padding, true extent) nor of small chunks;
     read-only."""
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_scene
 
     vol = sample_volume(analytic_scene(), (90, 70, 45), 0.02, truncation=(-0.04, 0.1))

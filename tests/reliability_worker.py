@@ -42,12 +42,12 @@ import numpy as np
 
 import sdfcodec
 import sdfcodec.map  # noqa: F401  (loaded once here: `import sdfcodec` is lazy, and each forked job would
-import sdfcodec.verify  # noqa: F401  import torch, zarr and the map package again, ~2 s a job)
+import sdfcodec.map.verify  # noqa: F401  import torch, zarr and the map package again, ~2 s a job)
 import scipy.linalg  # noqa: F401
 import scipy.spatial  # noqa: F401  (the map modules take these on first use since the light-command change:
 import sklearn.decomposition  # noqa: F401  imported here, before any fork, or every job pays for them)
 import torch  # noqa: F401
-from sdfcodec import _atomic
+from sdfcodec.core import _atomic
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 N0, ADD, NMAX = 24, 8, 200
@@ -239,7 +239,7 @@ def tiny_read_loop(path: str, stop: str, deadline: float, seed: int) -> dict:
     open map a random while so that updates swap under it. Counts instead of stopping at a problem."""
     from pathlib import Path
 
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     rng = random.Random(seed)
     reads = verifies = 0

@@ -1,5 +1,5 @@
 """The synthetic building (sdfcodec.data.building) and online, memory-bounded fusion into a compressed map
-(sdfcodec.online). CI-sized: the small building, a short fast walk at 160x120, a working set far smaller than
+(sdfcodec.fusion.online). CI-sized: the small building, a short fast walk at 160x120, a working set far smaller than
 the map so that blocks are paged out and back in."""
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ from scipy import ndimage
 from sdfcodec.data.building import BUILDINGS, building_path, building_scene, building_sequence
 from sdfcodec.data.render import PRESETS
 from sdfcodec.errors import InvalidValueError
-from sdfcodec.evaluation import resolve_sequence
-from sdfcodec.fusion import fuse
+from sdfcodec.evaluation.tracking import resolve_sequence
+from sdfcodec.fusion.tsdf import fuse
 from sdfcodec.map import create_map, open_map
-from sdfcodec.online import BLOCK_BYTES, fuse_to_map
+from sdfcodec.fusion.online import BLOCK_BYTES, fuse_to_map
 from sdfcodec.registry import get_codec, pretrained_codec
-from sdfcodec.surface import compare_maps
-from sdfcodec.verify import verify_map
+from sdfcodec.core.surface import compare_maps
+from sdfcodec.map.verify import verify_map
 
 # the walk's start: corridor, into the first room and back (blocks page in); 1/64 of the pixels. 60 frames, not
 # 100: the map is still over three working sets (1303 blocks against 384) and 85 blocks page back in (100 frames:

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 import sdfcodec
 from sdfcodec.cli import app
-from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
 
 runner = CliRunner()
 VS = 0.02
@@ -211,7 +211,7 @@ def test_fuse_and_mesh_a_rendered_sequence(tmp_path):
     """`sdfcodec fuse` writes a lossless raw map whose field matches the fusion, `mesh` extracts its surface."""
     from sdfcodec.data.render import render_sequence
     from sdfcodec.data.sequences import Intrinsics
-    from sdfcodec.fusion import fuse
+    from sdfcodec.fusion.tsdf import fuse
 
     seq = render_sequence(tmp_path / "seq", "fast-clean", frames=12,
                           intrinsics=Intrinsics(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120))
@@ -238,7 +238,7 @@ def test_fuse_and_mesh_a_rendered_sequence(tmp_path):
 def test_track_cli_against_a_compressed_map(tmp_path):
     from sdfcodec.data.render import render_sequence
     from sdfcodec.data.sequences import Intrinsics
-    from sdfcodec.metrics import ate, read_tum
+    from sdfcodec.core.metrics import ate, read_tum
 
     seq = render_sequence(tmp_path / "seq", "slow-clean", frames=8,
                           intrinsics=Intrinsics(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120))

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import sdfcodec
-from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Plane, Scene, Sphere, sample_volume
 
 VS = 0.02
 ROOT = Path(__file__).resolve().parents[1]
@@ -213,8 +213,8 @@ def test_track_prints_one_sentence_with_its_ate(tmp_path):
     printed a dict dump without the ATE); the ATE is the one of the written trajectory."""
     from sdfcodec.data.render import render_sequence
     from sdfcodec.data.sequences import Intrinsics
-    from sdfcodec.fusion import fuse
-    from sdfcodec.metrics import ate, read_tum
+    from sdfcodec.fusion.tsdf import fuse
+    from sdfcodec.core.metrics import ate, read_tum
 
     seq = render_sequence(tmp_path / "seq", "slow-clean", frames=6,
                           intrinsics=Intrinsics(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120))

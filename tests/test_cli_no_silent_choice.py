@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 import sdfcodec
 from sdfcodec.cli import app
-from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Plane, Scene, Sphere, sample_volume
 
 VS = 0.02
 

@@ -161,7 +161,7 @@ def test_gaussian_blur_map_has_no_seams(tmp_path):
     """Decoding a blurred map equals scipy's filter of the whole field: the halo carries neighbour context."""
     from scipy.ndimage import correlate1d
 
-    from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+    from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
 
     trunc = (-0.04, 0.1)
     vol = sample_volume(Scene([Plane((0, 0, 1), 0.2), Sphere((0.4, 0.3, 0.35), 0.15), Box((0.2, 0.5, 0.3), (0.1, 0.1, 0.1))]),

@@ -285,7 +285,7 @@ def test_bad_parameters_and_state(small_ae, blocks):
 @pytest.mark.parametrize("which", ["ae", "sequential"])
 def test_map_round_trip(which, small_ae, small_seq, tmp_path):
     """A map stores the whole codec (PCA arrays included) and decodes with no other file."""
-    from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+    from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
 
     codec = small_ae if which == "ae" else small_seq
     scene = Scene([Plane((0, 0, -1), -0.1), Box((0.3, 0.3, 0.2), (0.1, 0.15, 0.1)), Sphere((0.45, 0.2, 0.3), 0.08)])
@@ -523,7 +523,7 @@ def test_cli_trains_ae(tmp_path):
     from typer.testing import CliRunner
 
     from sdfcodec.cli import app
-    from sdfcodec.dataset import build_dataset
+    from sdfcodec.data.dataset import build_dataset
 
     ds = tmp_path / "ds.zarr"
     build_dataset(ds, [("synthetic", [synthetic_blocks(3000, seed=1)])])

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 import sdfcodec
 from sdfcodec.cli import app
-from sdfcodec.surface import compare_maps
+from sdfcodec.core.surface import compare_maps
 
 SURFACE_KEYS = {"chamfer_l1", "f_score_1", "f_score_2", "precision_1", "recall_1", "precision_2", "recall_2",
                 "sign_agreement", "near_surface_rmse", "near_surface_bias", "n_original", "n_decoded", "n_band"}
@@ -110,9 +110,9 @@ def test_selection_mesh_keeps_a_floor_on_a_block_seam(tmp_path):
     """A floor exactly between two layers of blocks (z = 15.5 voxels): a mesh of the blocks below it alone has
     no cube across the seam, so no floor (the fragments of the old floors.png panel (b)); selection_mesh keeps
     it, over the chosen blocks' footprint and no further than a voxel beyond."""
-    from sdfcodec.sdf import Plane, Scene, sample_volume
-    from sdfcodec.search import expand
-    from sdfcodec.search_cli import selection_mesh
+    from sdfcodec.core.sdf import Plane, Scene, sample_volume
+    from sdfcodec.search.engine import expand
+    from sdfcodec.view.search import selection_mesh
 
     vs = 0.02
     vol = sample_volume(Scene([Plane((0, 0, 1), 15.5 * vs)]), (64, 64, 48), vs)
@@ -136,7 +136,7 @@ def test_mesh_pictures_are_upright():
     picture by 180 degrees)."""
     import open3d as o3d
 
-    from sdfcodec.viz import render_view
+    from sdfcodec.view.pictures import render_view
 
     floor = o3d.geometry.TriangleMesh.create_box(3, 2, 0.02)
     tower = o3d.geometry.TriangleMesh.create_box(0.3, 0.3, 1.5)

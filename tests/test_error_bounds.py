@@ -16,8 +16,8 @@ import pytest
 
 import sdfcodec
 from sdfcodec.errors import FormatError, InvalidValueError, VersionError, WriteFailedError
-from sdfcodec.surface import compare_volumes
-from sdfcodec.verify import verify_map
+from sdfcodec.core.surface import compare_volumes
+from sdfcodec.map.verify import verify_map
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -122,7 +122,7 @@ def test_info_reports_the_stage_and_its_bytes(maps):
 
 
 def test_reader_without_the_extension_refuses_by_name(maps, monkeypatch):
-    import sdfcodec.header as header
+    import sdfcodec.core.header as header
 
     monkeypatch.setattr(header, "KNOWN_EXTENSIONS", header.KNOWN_EXTENSIONS - {"residual-bound"})
     with pytest.raises(VersionError, match="residual-bound"):

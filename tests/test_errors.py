@@ -140,7 +140,7 @@ def test_error_classes_mix_in_a_builtin(name):
 
 def test_converted_raises_keep_their_builtin():
     """The raises converted in issue 14 are still caught as the built-ins callers used."""
-    from sdfcodec.sdf import Scene
+    from sdfcodec.core.sdf import Scene
 
     with pytest.raises(errors.InvalidValueError, match="at least one primitive"):
         Scene()(np.zeros((1, 3)))

@@ -1,4 +1,4 @@
-"""`sdfcodec track` / `sdfcodec eval` logic (sdfcodec.evaluation) on a tiny synthetic sequence (10 frames at
+"""`sdfcodec track` / `sdfcodec eval` logic (sdfcodec.evaluation.tracking) on a tiny synthetic sequence (10 frames at
 160 x 120): outputs exist and are consistent, unavailable methods are skipped with a reason, the tracker stays
 within 1 cm of the ground truth on the original map, and lazy decoding tracks like dense decoding."""
 
@@ -13,8 +13,8 @@ pytest.importorskip("open3d")
 pytest.importorskip("matplotlib")
 
 from sdfcodec.errors import InvalidValueError  # noqa: E402
-from sdfcodec.evaluation import METHODS, eval_command, markdown_table, track_command  # noqa: E402
-from sdfcodec.metrics import read_tum  # noqa: E402
+from sdfcodec.evaluation.tracking import METHODS, eval_command, markdown_table, track_command  # noqa: E402
+from sdfcodec.core.metrics import read_tum  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -60,9 +60,9 @@ def test_eval_surface_metrics_and_ate_ratio(tiny_eval):
     """The surface metrics of a row are compare_volumes of its decoded map against the lossless map, the band
     restricted to the voxels the lossless map records as observed; ate_ratio is over the lossless row's ATE."""
     import sdfcodec
-    from sdfcodec.surface import compare_volumes
-    from sdfcodec.evaluation import SURFACE_FIELDS
-    from sdfcodec.header import BlockState
+    from sdfcodec.core.surface import compare_volumes
+    from sdfcodec.evaluation.tracking import SURFACE_FIELDS
+    from sdfcodec.core.header import BlockState
 
     out, _, res = tiny_eval
     rows = res["sequences"]["slow-clean"]["methods"]
@@ -97,7 +97,7 @@ def test_markdown_table_without_a_surface():
     row = {"mse": 0.01, "block_sse": 41.0, "chamfer_l1": None, "f_score_1": 0.0, "ate_mean": 0.02,
            "ate_std": 0.001, "ate_median": 0.02, "ate_ratio": None, "failures": 0, "frames_per_s": 10.0}
     res = {"sequences": {"s": {"frames": 3, "blocks": 1, "methods": {"pca-64": row}}}, "skipped": {}}
-    from sdfcodec.evaluation import _aggregate
+    from sdfcodec.evaluation.tracking import _aggregate
 
     res["aggregate"] = _aggregate(res, ["pca-64"])
     md = markdown_table(res)
@@ -134,7 +134,7 @@ def test_rows_take_model_files(tmp_path):
     """A row's codec can come from a model file (ae-32 and ae-128 are not shipped); a file of another codec or
     size is refused."""
     import sdfcodec
-    from sdfcodec.evaluation import build_codec
+    from sdfcodec.evaluation.tracking import build_codec
     from sdfcodec.testing import analytic_blocks
 
     pca = sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(100, seed=1))

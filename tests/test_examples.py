@@ -82,7 +82,7 @@ def test_search_floors(tmp_path, capsys):
 
 
 def test_search_floors_on_a_given_map_with_top(tmp_path, capsys):
-    from sdfcodec.sdf import Plane, sample_volume
+    from sdfcodec.core.sdf import Plane, sample_volume
 
     # a map of a single horizontal plane at z = 0.5 m: every coded block is floor, so top-k selects k of them
     vol = sample_volume(Plane((0, 0, 1), 0.5), (64, 64, 64), 0.02)
@@ -138,7 +138,7 @@ def test_side_information(tmp_path, capsys):
     """The per-array table adds up to the map's files (counted here), and the mask study's context-model bounds
     never rise as the context grows (nested contexts: conditioning never raises an empirical entropy)."""
     from _fused_maps import fused_like, write_volume_map
-    from sdfcodec.sdf import Sphere, sample_volume
+    from sdfcodec.core.sdf import Sphere, sample_volume
 
     vol, observed = fused_like(sample_volume(Sphere((0.32, 0.32, 0.32), 0.2), (48, 48, 48), 0.02,
                                              truncation=(-0.04, 0.1)))

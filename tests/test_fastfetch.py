@@ -1,4 +1,4 @@
-"""Local chunk reads without Zarr's event loop (sdfcodec.map.fastfetch): what they read equals plain Zarr's
+"""Local chunk reads without Zarr's event loop (sdfcodec.map.io.fastfetch): what they read equals plain Zarr's
 reading of the same arrays, their checks refuse what Zarr refuses (a chunk failing its CRC32C, a frame that
 decompresses to too few bytes), sharded maps read the same, and maps they do not serve (zip) keep Zarr's path."""
 
@@ -14,7 +14,7 @@ import zarr
 
 import sdfcodec
 from sdfcodec import errors
-from sdfcodec.map.fastfetch import local_chunks
+from sdfcodec.map.io.fastfetch import local_chunks
 from sdfcodec.registry import pretrained_codec
 
 VS = 0.02

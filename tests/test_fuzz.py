@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 import sdfcodec
 from sdfcodec.errors import SDFCodecError
 from sdfcodec.testing import analytic_blocks
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 LIMIT = 64 << 20  # max_decode_bytes for the fuzzed reads: every allocation the header could ask for is below it
@@ -549,7 +549,7 @@ def _scale_cli(data, base: Path, inputs: dict[str, Path]) -> None:
     from typer.testing import CliRunner
 
     from sdfcodec.cli import app
-    from sdfcodec.map.stores import set_read_defaults
+    from sdfcodec.map.io.stores import set_read_defaults
 
     command = data.draw(st.sampled_from(["info", "verify", "decode", "encode"]))
     n_pos = {"info": 1, "verify": 1, "decode": 2, "encode": 2}[command]

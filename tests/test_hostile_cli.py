@@ -32,7 +32,7 @@ VS, TRUNC = 0.02, (-0.04, 0.1)
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     """A valid volume, a map encoded from it, and the hostile input files, in one folder the cases copy."""
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_blocks, analytic_scene
 
     d = tmp_path_factory.mktemp("hostile-cli")
@@ -163,7 +163,7 @@ def test_decode_write_failure_leaves_no_temporary(inputs, tmp_path, monkeypatch)
     """A decode whose write fails after the data were written (the rename over the output refused: here the
     output turned into a directory while the command ran) leaves no hidden temporary, and says so truthfully;
     before, a full-size ``.x.npy.tmp`` stayed while the message said none was left."""
-    from sdfcodec import _atomic
+    from sdfcodec.core import _atomic
 
     d = tmp_path / "in"
     shutil.copytree(inputs, d, symlinks=True)
@@ -194,7 +194,7 @@ def test_overwrite_replaces_and_reports(inputs, tmp_path):
 def test_commit_reports_the_version_it_wrote(inputs, tmp_path, monkeypatch):
     """A map committed while another writer replaces it at once: the writer's map object (and so ``encode``'s
     report) describes the version it wrote, not the one now at the path."""
-    from sdfcodec import _atomic
+    from sdfcodec.core import _atomic
     from sdfcodec.testing import analytic_blocks
 
     path = tmp_path / "race.sdfz"

@@ -41,7 +41,7 @@ COMPONENTS_CHUNK = "codec/components/c/0/0"  # 1 MiB: two 512 KiB Blosc blocks w
 
 
 def _volume(shift: float) -> np.ndarray:
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_scene
 
     v = sample_volume(analytic_scene(), (48, 40, 36), VS, truncation=TRUNC)
@@ -53,7 +53,7 @@ def maps(tmp_path_factory):
     """The base map (float32 pca-64, 2^3-block chunks, two code chunks per block), a donor map (other data, for
     links to point at) and an int8 map, with their reference decodes."""
     from sdfcodec.testing import analytic_blocks
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     root = tmp_path_factory.mktemp("hostile")
     codec = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=11))
@@ -559,8 +559,8 @@ CASES = [
 
 # -- probes (in the forked child) ------------------------------------------------------------------------
 def _probes(path: str) -> dict:
-    from sdfcodec.search import search
-    from sdfcodec.verify import verify_map
+    from sdfcodec.search.engine import search
+    from sdfcodec.map.verify import verify_map
 
     def decode():
         return float(np.asarray(sdfcodec.open_map(path).decode_region(), np.float64).sum())
@@ -703,7 +703,7 @@ def test_case_count():
 def test_follow_symlinks_opt_in(maps, tmp_path):
     """``open_map(..., follow_symlinks=True)`` reads a map whose chunk files are links (e.g. into a shared
     store of identical chunks), still refusing links to devices; so does ``verify_map``."""
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     path = tmp_path / "linked.sdfz"
     shutil.copytree(maps["base"], path, symlinks=True)
@@ -724,7 +724,7 @@ def test_blosc_split_streams_are_walked(maps, tmp_path):
     walks every one of every block: a valid split frame reads as before (a map chunk re-compressed that way
     decodes bit for bit), and each stream's length set past the frame, negative, or one byte too long is
     named, block and stream, before the decompressor sees it."""
-    from sdfcodec.map.stores import blosc_frame_problem
+    from sdfcodec.map.io.stores import blosc_frame_problem
 
     from numcodecs import Blosc
 
@@ -842,7 +842,7 @@ def test_hostile_zip_case(case, maps, tmp_path):
     member, and the Python heap of a refused read stays under twice the chunk's bound plus 2 MiB."""
     import tracemalloc
 
-    from sdfcodec.map.stores import chunk_read_limit
+    from sdfcodec.map.io.stores import chunk_read_limit
 
     name, build, expect = case
     good = _zip_map(maps["base"], tmp_path / "good.zip")
@@ -878,7 +878,7 @@ def test_unwritten_state_chunks_are_told_from_lost_ones(tmp_path):
     fill value): such a map reads and verifies. A state chunk deleted where code chunks are stored is an error
     naming it, for reads and ``verify`` (its coded blocks used to read as unobserved: they vanished)."""
     from sdfcodec.testing import analytic_blocks
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     codec = sdfcodec.get_codec("pca", code_size=16).fit(analytic_blocks(100, seed=3))
     blocks = np.clip(analytic_blocks(3, seed=5), 0, 1) * 0.14 - 0.04  # metres within the truncation

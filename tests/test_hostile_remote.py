@@ -33,7 +33,7 @@ import pytest
 
 import sdfcodec
 from sdfcodec import errors
-from sdfcodec.map.remote import RemoteLimits, encoded_bound
+from sdfcodec.map.io.remote import RemoteLimits, encoded_bound
 
 ROOT = Path(__file__).resolve().parents[1]
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -214,7 +214,7 @@ class HostileServer:
 @pytest.fixture(scope="module")
 def small_map(tmp_path_factory):
     """A raw-codec map of 3 x 3 x 2 blocks in chunks of 2^3 blocks (4 chunks of codes, 128 KiB each decoded)."""
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_scene
 
     root = tmp_path_factory.mktemp("hostile")
@@ -393,7 +393,7 @@ def test_default_stall_deadline_is_at_most_a_minute(monkeypatch):
     plus backoff). The clock is not waited on: each try's timeout is recorded and the try times out at once."""
     import asyncio
 
-    from sdfcodec.map import remote
+    from sdfcodec.map.io import remote
 
     budgets = []
 
@@ -436,8 +436,8 @@ def test_cli_remote_options_bound_a_drip(small_map, http_server):
     from typer.testing import CliRunner
 
     from sdfcodec.cli import app
-    from sdfcodec.map.remote import default_limits
-    from sdfcodec.map.stores import set_read_defaults
+    from sdfcodec.map.io.remote import default_limits
+    from sdfcodec.map.io.stores import set_read_defaults
 
     runner = CliRunner()
     url = f"{http_server.address}/x.sdfz"
@@ -469,7 +469,7 @@ def test_verify_says_no_map_at_for_a_missing_remote_map(http_server):
     from typer.testing import CliRunner
 
     from sdfcodec.cli import app
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     http_server.plan = lambda p, n: None
     url = f"{http_server.address}/nosuch.sdfz"
@@ -531,7 +531,7 @@ def test_s3_transient_500_is_retried_and_deleted_objects_are_named(small_map, s3
     with pytest.raises(errors.SDFCodecError, match="s3://maps/y.sdfz"):
         sdfcodec.open_map("s3://maps/y.sdfz", storage_options={**opts, "remote_limits": FAST})
     # a deleted code chunk under coded blocks: verify names it
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     fs.cp("maps/x.sdfz", "maps/z.sdfz", recursive=True)
     fs.rm("maps/z.sdfz/" + CHUNK)
@@ -704,7 +704,7 @@ def test_verify_url_checks_what_the_header_lists_never_a_listing(small_map, tmp_
     import shutil
 
     from sdfcodec.bench.serve import FileServer
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     path = tmp_path / "x.sdfz"
     shutil.copytree(small_map[0], path)
@@ -729,7 +729,7 @@ def test_verify_url_names_missing_chunks_without_a_listing(small_map, tmp_path, 
     import shutil
 
     from sdfcodec.bench.serve import FileServer
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     cases = {"code": CHUNK, "state": "state/c/0/0/0"}
     for name, rel in cases.items():

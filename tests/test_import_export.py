@@ -292,7 +292,7 @@ def test_import_memory_is_bounded_by_the_working_set(tmp_path):
 
 def test_trajectory_of_7scenes_poses(shared_data, tmp_path):
     from sdfcodec.data.sequences import open_sequence
-    from sdfcodec.trajectory import read_tum
+    from sdfcodec.core.trajectory import read_tum
 
     seq_dir = shared_data / "7scenes-redkitchen"
     r = subprocess.run([sys.executable, "-m", "sdfcodec", "trajectory", str(seq_dir), "-o", str(tmp_path / "gt.txt")],
@@ -342,7 +342,7 @@ def test_million_block_import(tmp_path):
 
 def test_view_takes_a_7scenes_folder_as_ground_truth(shared_data, tmp_path):
     pytest.importorskip("rerun")
-    from sdfcodec.trajectory import read_tum, write_tum
+    from sdfcodec.core.trajectory import read_tum, write_tum
 
     seq_dir = shared_data / "7scenes-redkitchen"
     sdfcodec.import_map(shared_data / REAL, tmp_path / "real.sdfz")

@@ -15,10 +15,10 @@ import pytest
 import sdfcodec
 from _golden_maps import check_golden_map
 from sdfcodec import errors
-from sdfcodec.quantize import dequantize_codes, quantize_codes
-from sdfcodec.sdf import sample_volume
+from sdfcodec.core.quantize import dequantize_codes, quantize_codes
+from sdfcodec.core.sdf import sample_volume
 from sdfcodec.testing import analytic_blocks, analytic_scene
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 GOLDEN = Path(__file__).parent / "golden" / "maps" / "int8-pca-4"
@@ -129,7 +129,7 @@ def _edit_header(path: Path, fn) -> None:
 
 
 def test_readers_without_the_extension_refuse_int8_maps(maps, tmp_path, monkeypatch):
-    import sdfcodec.header as header
+    import sdfcodec.core.header as header
 
     # a reader that does not implement int8-codes (as sdfcodec 0.1) refuses by the extension, naming it
     monkeypatch.setattr(header, "KNOWN_EXTENSIONS", frozenset({"fusion-weights"}))

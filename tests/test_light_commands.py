@@ -145,7 +145,7 @@ def test_ctrl_c_during_a_lazy_import_is_raised_after_it(tmp_path):
     code = textwrap.dedent(f"""
         import sys
         sys.path.insert(0, {str(tmp_path)!r})
-        from sdfcodec._lazy import lazy_module
+        from sdfcodec.core._lazy import lazy_module
         mod = lazy_module("swallower")
         try:
             mod.VALUE

@@ -20,7 +20,7 @@ import sdfcodec
 from sdfcodec.cli import app
 from sdfcodec.errors import FormatError
 from sdfcodec.map.codec_state import state_digest
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 VS = 0.02
 runner = CliRunner()
@@ -261,7 +261,7 @@ GOLDEN_SEED = bytes(range(32))
 
 def _golden_map(path: Path) -> None:
     from sdfcodec.map.signing import sign_map
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_blocks, analytic_scene
 
     codec = sdfcodec.get_codec("pca", code_size=4).fit(analytic_blocks(64, seed=5))

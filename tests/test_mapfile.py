@@ -14,7 +14,7 @@ import zarr
 
 import sdfcodec
 from sdfcodec import errors
-from sdfcodec.header import BlockState
+from sdfcodec.core.header import BlockState
 from sdfcodec.testing import analytic_blocks
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -66,7 +66,7 @@ def test_a_volume_that_ends_inside_solid_decodes_solid_to_its_last_layer(tmp_pat
     """A volume cut inside solid (the slab above a ceiling, 40 voxels: two and a half blocks) holds no surface
     where it ends. Padded with free space, its last blocks held one, and pca-64's smear of it decoded solid voxels
     of the last layers as free space (948 of them, up to +0.016 m where the field is -0.04 m)."""
-    from sdfcodec.sdf import Plane, sample_volume
+    from sdfcodec.core.sdf import Plane, sample_volume
 
     vol = sample_volume(Plane((0.0, 0.0, -1.0), -0.305), (32, 32, 40), VS, truncation=TRUNC)  # solid above 0.305
     with sdfcodec.create_map(tmp_path / "slab.sdfz", codec=pca64, voxel_size=VS, truncation=TRUNC) as m:
@@ -283,7 +283,7 @@ def test_values_outside_truncation_are_clipped_with_a_warning(tmp_path, volume, 
     raw = sdfcodec.get_codec("raw")
     wild = volume.copy()
     wild[0, 0, 0], wild[1, 1, 1] = 5.0, -3.0
-    if lazy:  # chunk by chunk (sdfcodec.scale): one warning for the whole volume all the same
+    if lazy:  # chunk by chunk (sdfcodec.map.scale): one warning for the whole volume all the same
         import dask.array as da
 
         wild = da.from_array(wild, chunks=32)
@@ -424,11 +424,11 @@ def test_decode_size_limit(map_path):
 
 
 def test_header_schema_is_current():
-    from sdfcodec.header import json_schema
+    from sdfcodec.core.header import json_schema
 
     spec = Path(__file__).resolve().parents[1] / "spec" / "map-header.schema.json"
     assert json.loads(spec.read_text()) == json_schema(), \
-        "spec/map-header.schema.json is stale: python -m sdfcodec.header > spec/map-header.schema.json"
+        "spec/map-header.schema.json is stale: python -m sdfcodec.core.header > spec/map-header.schema.json"
 
 
 def test_fusion_weights_are_optional_and_lossless(tmp_path):
@@ -521,14 +521,14 @@ def test_mapfile_is_a_deprecated_alias():
 
 
 def test_map_package_imports_no_cycle_and_no_deprecated_module():
-    """The map package never imports the dask layer (sdfcodec.scale imports the package's reader and writer, not
+    """The map package never imports the dask layer (sdfcodec.map.scale imports the package's reader and writer, not
     the other way round) and the package's own modules do not import the deprecated sdfcodec.mapfile."""
     code = textwrap.dedent("""
         import sys, warnings
         warnings.simplefilter("error", DeprecationWarning)
-        import sdfcodec.map, sdfcodec.map.stores, sdfcodec.map.format, sdfcodec.map.reader, sdfcodec.map.writer
-        assert "sdfcodec.scale" not in sys.modules, "the map package imported sdfcodec.scale"
-        import sdfcodec.scale, sdfcodec.verify, sdfcodec.mapfield, sdfcodec.cli
+        import sdfcodec.map, sdfcodec.map.io.stores, sdfcodec.map.format, sdfcodec.map.reader, sdfcodec.map.writer
+        assert "sdfcodec.map.scale" not in sys.modules, "the map package imported sdfcodec.map.scale"
+        import sdfcodec.map.scale, sdfcodec.map.verify, sdfcodec.tracking.mapfield, sdfcodec.cli
         assert "sdfcodec.mapfile" not in sys.modules
         print("ok")
     """)
@@ -543,7 +543,7 @@ def test_safe_local_store_reads_like_zarrs_local_store(map_path):
     from zarr.core.buffer import default_buffer_prototype
     from zarr.core.sync import sync
 
-    from sdfcodec.map.stores import SafeLocalStore
+    from sdfcodec.map.io.stores import SafeLocalStore
 
     safe, plain = SafeLocalStore(map_path), zarr.storage.LocalStore(map_path, read_only=True)
     proto = default_buffer_prototype()
@@ -570,7 +570,7 @@ def test_zero_chunk_edge_is_a_clear_error(map_path, tmp_path, array):
     import re
     import shutil
 
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     bad = tmp_path / "bad.sdfz"
     shutil.copytree(map_path, bad)
@@ -596,7 +596,7 @@ def test_blosc_frames_are_checked_before_decompression(map_path, tmp_path):
     import google_crc32c
     from numcodecs import Blosc
 
-    from sdfcodec.map.stores import blosc_frame_problem
+    from sdfcodec.map.io.stores import blosc_frame_problem
 
     data = np.random.default_rng(0).random(4096).astype(np.float32).tobytes()
     for shuffle in (Blosc.NOSHUFFLE, Blosc.SHUFFLE, Blosc.BITSHUFFLE):

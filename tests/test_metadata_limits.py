@@ -17,9 +17,9 @@ import pytest
 
 import sdfcodec
 from sdfcodec import errors
-from sdfcodec.map.metadata_limits import (MAX_MAP_METADATA_NODES, MAX_METADATA_DEPTH, MAX_METADATA_NODES,
-                                          metadata_size)
-from sdfcodec.map.stores import MAX_METADATA_BYTES, check_metadata_document
+from sdfcodec.map.io.metadata_limits import (MAX_MAP_METADATA_NODES, MAX_METADATA_DEPTH, MAX_METADATA_NODES,
+                                             metadata_size)
+from sdfcodec.map.io.stores import MAX_METADATA_BYTES, check_metadata_document
 
 ROOT = Path(__file__).resolve().parents[1]
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -28,7 +28,7 @@ VS, TRUNC = 0.02, (-0.04, 0.1)
 @pytest.fixture(scope="module")
 def small_map(tmp_path_factory) -> Path:
     """A pca-8 map of 3 x 3 x 2 blocks: its metadata documents (root, codes, state, codec and its arrays)."""
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_blocks, analytic_scene
 
     path = tmp_path_factory.mktemp("meta") / "x.sdfz"

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sdfcodec import metrics
+from sdfcodec.core import metrics
 from sdfcodec.errors import FormatError, InvalidValueError, ShapeError
-from sdfcodec.metrics import Trajectory, associate, ate, read_tum, rpe, write_tum
+from sdfcodec.core.metrics import Trajectory, associate, ate, read_tum, rpe, write_tum
 
 STATS = ("rmse", "mean", "median", "std", "min", "max", "sse")
 
@@ -307,9 +307,9 @@ def test_agrees_with_evo(shared_data, ref_name, est_name):
 
 
 def test_old_import_paths_are_the_moved_objects():
-    """Trajectories live in sdfcodec.trajectory and rotations in sdfcodec.geometry; sdfcodec.metrics re-exports
+    """Trajectories live in sdfcodec.core.trajectory and rotations in sdfcodec.core.geometry; sdfcodec.core.metrics re-exports
     the very same objects (no copies that could drift apart)."""
-    from sdfcodec import geometry, trajectory
+    from sdfcodec.core import geometry, trajectory
 
     for name in ("Trajectory", "read_tum", "write_tum", "associate", "association_indices", "align_trajectory"):
         assert getattr(metrics, name) is getattr(trajectory, name), name
@@ -320,7 +320,7 @@ def test_old_import_paths_are_the_moved_objects():
 
 
 def test_se3_helpers(rng):
-    from sdfcodec import geometry
+    from sdfcodec.core import geometry
 
     poses = np.stack([geometry.se3_exp(rng.normal(scale=0.5, size=6)) for _ in range(5)])
     np.testing.assert_allclose(geometry.se3_compose(geometry.se3_inverse(poses), poses), np.tile(np.eye(4), (5, 1, 1)),

@@ -12,11 +12,11 @@ from scipy import ndimage
 from typer.testing import CliRunner
 
 import sdfcodec
-from sdfcodec.blocks import normalise
+from sdfcodec.core.blocks import normalise
 from sdfcodec.cli import app
 from sdfcodec.errors import DTypeError, FormatError, InvalidValueError, ShapeError
 from sdfcodec.map.observed import MASK_EXTENSION, error_weights, fill_unobserved, pack_mask, unpack_mask
-from sdfcodec.surface import compare_volumes
+from sdfcodec.core.surface import compare_volumes
 
 TRUNC, VS = (-0.04, 0.1), 0.02
 
@@ -335,7 +335,7 @@ def test_mesh_of_a_masked_map_has_no_false_surfaces(tmp_path):
 
 def test_a_damaged_mask_chunk_is_found_by_verify_and_refused_by_reads(tmp_path):
     from sdfcodec.errors import ChecksumError
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     vol, obs = fused_like(scene())
     write(tmp_path / "m.sdfz", vol, obs)

@@ -130,7 +130,7 @@ BROKEN = [(_Raises, r"failed while decoding: KeyError"), (_WrongShape, r"returne
 
 @pytest.fixture(scope="module")
 def plugin_map(tmp_path_factory):
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_scene
 
     path = tmp_path_factory.mktemp("plugin-decode") / "m.sdfz"
@@ -143,7 +143,7 @@ def plugin_map(tmp_path_factory):
 
 @pytest.mark.parametrize("broken", BROKEN, ids=[b[0].__name__.strip("_") for b in BROKEN])
 def test_broken_plugin_decode_is_one_line_everywhere(broken, plugin_map, tmp_path):
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
 
     cls, expect = broken
     sdfcodec.register_codec(cls, replace=True)  # the installed plugin now decodes badly

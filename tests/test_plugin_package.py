@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Plane, Scene, Sphere, sample_volume
 
 PLUGIN = Path(__file__).resolve().parents[1] / "examples" / "sdfcodec-dct"
 

@@ -19,11 +19,11 @@ import sdfcodec
 from _golden_maps import check_golden_map
 from sdfcodec import errors
 from sdfcodec.cli import app
-from sdfcodec.quantize import (QMAX16, check_quantisable, check_step, dequantise_step, fit_rate_model,
-                               quantise_step, step_for_bytes)
-from sdfcodec.sdf import sample_volume
+from sdfcodec.core.quantize import (QMAX16, check_quantisable, check_step, dequantise_step, fit_rate_model,
+                                    quantise_step, step_for_bytes)
+from sdfcodec.core.sdf import sample_volume
 from sdfcodec.testing import analytic_blocks, analytic_scene
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 STEP = 0.05
@@ -160,7 +160,7 @@ def _codes(h: dict, **kw) -> None:
 
 
 def test_readers_without_the_extension_refuse_and_bad_headers_are_named(maps, tmp_path, monkeypatch):
-    import sdfcodec.header as header
+    import sdfcodec.core.header as header
 
     # a reader that predates quantised-codes refuses by the extension it does not know, naming it
     monkeypatch.setattr(header, "KNOWN_EXTENSIONS", header.KNOWN_EXTENSIONS - {"quantised-codes"})

@@ -133,7 +133,7 @@ def test_surface_metrics_fused_like(quick, blocks):
     map's own dense decode (an independent path: Map.decode_region, not the script's block scatter), a
     near-lossless point has no surface moved, and the surface-true maps keep surfaces closer than plain ones."""
     import sdfcodec
-    from sdfcodec.surface import compare_volumes
+    from sdfcodec.core.surface import compare_volumes
 
     rd, work, res = quick
     P = res["points"]

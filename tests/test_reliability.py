@@ -23,7 +23,7 @@ import zarr
 import sdfcodec
 from sdfcodec import errors
 from sdfcodec.testing import analytic_blocks
-from sdfcodec.verify import verify_command, verify_map
+from sdfcodec.map.verify import verify_command, verify_map
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -1,6 +1,6 @@
-"""Synthetic rooms and rendering (sdfcodec.data.render) and TSDF fusion (sdfcodec.fusion).
+"""Synthetic rooms and rendering (sdfcodec.data.render) and TSDF fusion (sdfcodec.fusion.tsdf).
 
-Independent expectations: the exact analytic SDF of the rendered scene (sdfcodec.sdf primitives), open3d's
+Independent expectations: the exact analytic SDF of the rendered scene (sdfcodec.core.sdf primitives), open3d's
 own distance queries and voxel coordinates, a plain open3d fusion written out here, and the real 7-Scenes
 kitchen (about 590 blocks at 2 cm with truncation 0.1 m, per the data README). The issue's acceptance test
 is :func:`test_acceptance_room_fused_back_matches_analytic_sdf`.
@@ -28,8 +28,8 @@ from sdfcodec.data.render import (  # noqa: E402
 )
 from sdfcodec.data.sequences import Frame, Intrinsics, open_sequence  # noqa: E402
 from sdfcodec.errors import InvalidValueError, MapExistsError, SDFCodecWarning  # noqa: E402
-from sdfcodec.fusion import FusedBlocks, fuse, mesh_from_blocks  # noqa: E402
-from sdfcodec.sdf import Box, Plane, Sphere, sample_volume  # noqa: E402
+from sdfcodec.fusion.tsdf import FusedBlocks, fuse, mesh_from_blocks  # noqa: E402
+from sdfcodec.core.sdf import Box, Plane, Sphere, sample_volume  # noqa: E402
 
 VS = 0.02
 TRUNC = (-0.04, 0.1)

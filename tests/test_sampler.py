@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sdfcodec.blocks import normalise
+from sdfcodec.core.blocks import normalise
 from sdfcodec.data import sampler
 from sdfcodec.data.sampler import PERMUTATIONS, iter_windows, sample_windows, window_origins
 from sdfcodec.errors import DTypeError, InvalidValueError, ShapeError
-from sdfcodec.sdf import Plane, sample_volume
+from sdfcodec.core.sdf import Plane, sample_volume
 
 TRUNC = (-0.04, 0.1)
 D_MIN, D_MAX = TRUNC

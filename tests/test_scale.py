@@ -22,7 +22,7 @@ import zarr
 import sdfcodec
 from sdfcodec import errors
 from sdfcodec.map import MapReader
-from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Plane, Scene, Sphere, sample_volume
 from sdfcodec.testing import analytic_blocks, analytic_scene
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -328,7 +328,7 @@ def s3(monkeypatch):
     opts = {"key": "testing", "secret": "testing", "endpoint_url": f"http://{host}:{port}",
             "client_kwargs": {"region_name": "eu-west-1"}, "skip_instance_cache": True}
     fetched: list[tuple[str, int]] = []
-    from sdfcodec.map.remote import RemoteStore  # every object a remote map reads, one try each
+    from sdfcodec.map.io.remote import RemoteStore  # every object a remote map reads, one try each
 
     real = RemoteStore.fetch
 
@@ -422,7 +422,7 @@ def _same_map(a: Path, b: Path) -> None:
 def test_encode_from_memmap_and_zarr_on_a_local_cluster(tmp_path, volume, pca64, map_path):
     from distributed import Client, LocalCluster
 
-    from sdfcodec.scale import encode_volume_dask
+    from sdfcodec.map.scale import encode_volume_dask
 
     np.save(tmp_path / "vol.npy", volume)
     mm = np.load(tmp_path / "vol.npy", mmap_mode="r")
@@ -481,7 +481,7 @@ def _nonempty_blocks(volume: np.ndarray) -> np.ndarray:
 
 
 def test_fit_volume_stream_feeds_every_nonempty_block_once(tmp_path, volume):
-    from sdfcodec.scale import fit_volume_stream
+    from sdfcodec.map.scale import fit_volume_stream
 
     np.save(tmp_path / "vol.npy", volume)
     codec = sdfcodec.get_codec("pca", code_size=8)
@@ -497,7 +497,7 @@ def test_fit_volume_stream_feeds_every_nonempty_block_once(tmp_path, volume):
 
 @pytest.mark.slow
 def test_fit_volume_stream_equals_fit_stream_in_memory(tmp_path, volume):
-    from sdfcodec.scale import fit_volume_stream
+    from sdfcodec.map.scale import fit_volume_stream
 
     np.save(tmp_path / "vol.npy", volume)
     streamed = fit_volume_stream(sdfcodec.get_codec("pca", code_size=8), tmp_path / "vol.npy", TRUNC,
@@ -511,7 +511,7 @@ def test_fit_volume_stream_equals_fit_stream_in_memory(tmp_path, volume):
 def test_encode_and_to_dask_on_worker_processes(tmp_path, volume, pca64, map_path):
     from distributed import Client, LocalCluster
 
-    from sdfcodec.scale import encode_volume_dask
+    from sdfcodec.map.scale import encode_volume_dask
 
     np.save(tmp_path / "vol.npy", volume)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \

@@ -17,7 +17,7 @@ from sdfcodec import search as S
 from sdfcodec.search import engine, scoring
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning
 from sdfcodec import pretrained_codec
-from sdfcodec.search_cli import format_summary, search_command
+from sdfcodec.view.search import format_summary, search_command
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 
@@ -464,8 +464,9 @@ def test_split_modules_keep_the_old_names():
     import subprocess
     import sys
 
-    from sdfcodec import bench, geometry
-    from sdfcodec.data import rooms
+    from sdfcodec import bench
+    from sdfcodec.core import geometry
+    from sdfcodec.search import rooms
 
     for name in S.__all__:
         if name != "bench_search":
@@ -479,7 +480,7 @@ def test_split_modules_keep_the_old_names():
     for mod in ("shapes", "query", "engine", "scoring", "metrics"):
         assert importlib.import_module(f"sdfcodec.search.{mod}").__all__
     # the labelled rooms import on their own (no import cycle with sdfcodec.search)
-    subprocess.run([sys.executable, "-c", "import sdfcodec.data.rooms as r; r.synthetic_room"], check=True)
+    subprocess.run([sys.executable, "-c", "import sdfcodec.search.rooms as r; r.synthetic_room"], check=True)
 
 
 @pytest.mark.gpu

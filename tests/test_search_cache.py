@@ -126,7 +126,7 @@ def test_disk_cache_off_and_unwritable(tmp_path, monkeypatch, count_builds):
 def test_calibrated_threshold_is_cached_and_equal(fresh_cache, tmp_path, monkeypatch):
     import torch
 
-    from sdfcodec.sdf import Plane, Scene, sample_volume
+    from sdfcodec.core.sdf import Plane, Scene, sample_volume
     from sdfcodec.search import shapes
 
     codec = pretrained_codec("pca", 64)
@@ -154,8 +154,9 @@ def test_plane_check_calibration_is_cached_and_equal(fresh_cache, tmp_path, monk
     """The plane check's simulated clean blocks (a weighted encode per checked plane) are calibrated once per key:
     a repeated search reads them from the cache (memory, then disk) and selects what an uncached one selects."""
     from sdfcodec.map import state_digest
-    from sdfcodec.sdf import Plane, Scene, sample_volume
-    from sdfcodec.search import plane_check, search
+    from sdfcodec.core.sdf import Plane, Scene, sample_volume
+    from sdfcodec.search import plane_check
+    from sdfcodec.search.engine import search
 
     codec = pretrained_codec("pca", 64)
     vol = sample_volume(Scene([Plane((0, 0, 1), 0.31)]), (48, 48, 32), VS)

@@ -17,8 +17,8 @@ import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec import search as S
 from sdfcodec.errors import InvalidValueError
-from sdfcodec.geometry import rot_x
-from sdfcodec.sdf import Box, Plane, Scene, sample_volume
+from sdfcodec.core.geometry import rot_x
+from sdfcodec.core.sdf import Box, Plane, Scene, sample_volume
 from sdfcodec.search.context import map_context
 from sdfcodec.search.metrics import TRUTH
 
@@ -39,7 +39,7 @@ def _map(path, vol, codec, **kw):
 def _plane_blocks(normal, offset, shape, origin=(0.0, 0.0, 0.0), min_voxels: int = 1) -> set:
     """Blocks of a grid holding at least ``min_voxels`` voxels within half a voxel of the plane n.p = offset
     (0.6: a plane midway between voxel layers counts on both sides; a plane crossing a whole block has about 256 such voxels, a corner sliver a few)."""
-    from sdfcodec.sdf import grid_points
+    from sdfcodec.core.sdf import grid_points
 
     d = np.abs(Plane(normal, offset)(grid_points(shape, VS, origin)))
     idx, counts = np.unique(np.argwhere(d <= 0.6 * VS) // 16, axis=0, return_counts=True)
@@ -48,7 +48,7 @@ def _plane_blocks(normal, offset, shape, origin=(0.0, 0.0, 0.0), min_voxels: int
 
 def _blocks(vol: np.ndarray, fill) -> tuple[np.ndarray, np.ndarray]:
     """Every block of a volume: ``(N, 3)`` indices and ``(N, 16, 16, 16)`` values (padded with ``fill``)."""
-    from sdfcodec.blocks import split_blocks
+    from sdfcodec.core.blocks import split_blocks
 
     b = split_blocks(vol, fill)
     return np.argwhere(np.ones(b.shape[:3], bool)), b.reshape(-1, 16, 16, 16)
@@ -75,7 +75,7 @@ def test_header_up_is_optional_kept_by_transcoding_and_checked(tmp_path, pca64):
 
 
 def test_sequence_up_is_minus_gravity_in_the_world(tmp_path):
-    from sdfcodec.fusion import sequence_up
+    from sdfcodec.fusion.tsdf import sequence_up
 
     (tmp_path / "gravity-direction.txt").write_text("0\n0\n9.81\n")  # gravity along the first camera's +z
     pose = np.eye(4)
@@ -89,7 +89,7 @@ def test_sequence_up_is_minus_gravity_in_the_world(tmp_path):
 def test_context_from_what_the_map_records(tmp_path, pca64):
     shape = (48, 48, 48)
     solid = sample_volume(Plane((0, 0, 1), 0.37), shape, VS, truncation=TRUNC)
-    fused_style = np.where(Plane((0, 0, 1), 0.37)(sdfcodec.sdf.grid_points(shape, VS)) < TRUNC[0], TRUNC[1],
+    fused_style = np.where(Plane((0, 0, 1), 0.37)(sdfcodec.core.sdf.grid_points(shape, VS)) < TRUNC[0], TRUNC[1],
                            solid).astype(np.float32)
     c = map_context(_map(tmp_path / "s.sdfz", solid, pca64))
     assert c.behind == "solid" and not c.weighted and c.up == (0.0, 0.0, 1.0) and "+z" in c.up_source
@@ -98,7 +98,7 @@ def test_context_from_what_the_map_records(tmp_path, pca64):
     # a map that records its observation is fused, whatever its values
     path = tmp_path / "m.sdfz"
     coords, blocks = _blocks(fused_style, TRUNC[1])
-    _, obs = _blocks(Plane((0, 0, 1), 0.37)(sdfcodec.sdf.grid_points(shape, VS)) >= TRUNC[0], False)
+    _, obs = _blocks(Plane((0, 0, 1), 0.37)(sdfcodec.core.sdf.grid_points(shape, VS)) >= TRUNC[0], False)
     with sdfcodec.create_map(path, codec=pca64, voxel_size=VS, up=(0, 1, 1)) as w:
         w.write_blocks(coords, blocks, observed=obs)
     c = map_context(sdfcodec.open_map(path))
@@ -148,7 +148,7 @@ def test_walls_of_any_yaw_and_the_ceiling(tmp_path, pca64):
 def test_fused_style_map_with_mask_is_searched_surface_true(tmp_path, pca64):
     # a fused-style field (unobserved beyond |d_min| behind surfaces) with its observation mask: a floor slab
     # and a box on it; the query is encoded surface-true, partly observed blocks are scored where observed
-    from sdfcodec.sdf import grid_points
+    from sdfcodec.core.sdf import grid_points
 
     shape, h = (96, 96, 48), 0.171  # mid-block: the blocks above and below hold no surface within a voxel
     scene = Scene([Box((1.0, 1.0, h - 0.5), (3.0, 3.0, 0.5)), Box((1.25, 1.2, h + 0.25), (0.2, 0.25, 0.25))])
@@ -204,7 +204,7 @@ def test_up_is_estimated_from_a_tilted_map_and_a_given_up_wins(tmp_path, pca64):
 
 
 def test_pole_and_blocks_like_these(tmp_path, pca64):
-    from sdfcodec.sdf import Cylinder, grid_points
+    from sdfcodec.core.sdf import Cylinder, grid_points
 
     shape = (64, 64, 64)
     floor_h = 0.13

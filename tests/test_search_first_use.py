@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec.cli import app
-from sdfcodec.sdf import Plane, sample_volume
+from sdfcodec.core.sdf import Plane, sample_volume
 from sdfcodec.search.cache import announce_builds, cache_key, cached_threshold, clear_memory_cache
 
 VS, TRUNC = 0.02, (-0.04, 0.1)

@@ -14,8 +14,8 @@ import pytest
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec import search as S
-from sdfcodec.blocks import normalise
-from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
+from sdfcodec.core.blocks import normalise
+from sdfcodec.core.sdf import Box, Plane, Scene, grid_points, sample_volume
 from sdfcodec.search.plane_check import PURITY, plane_residuals
 
 VS, TRUNC = 0.02, (-0.04, 0.1)

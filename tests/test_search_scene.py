@@ -14,7 +14,7 @@ import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec import search as S
 from sdfcodec.errors import InvalidValueError
-from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
+from sdfcodec.core.sdf import Box, Plane, Scene, grid_points, sample_volume
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 
@@ -109,8 +109,8 @@ def test_scene_stage_units():
 
 def test_oblique_wall_blocks_are_clean_in_the_section_truth():
     from sdfcodec.data.render import RoomScene
-    from sdfcodec.data.rooms import LabelledRoom
-    from sdfcodec.geometry import rot_z
+    from sdfcodec.search.rooms import LabelledRoom
+    from sdfcodec.core.geometry import rot_z
     from sdfcodec.search.metrics import TRUTH
 
     yaw = math.radians(35.0)
@@ -142,7 +142,7 @@ def test_a_tilted_floor_alone_in_a_block_is_clean_or_a_sliver_in_the_section_tru
     floor passes a block's face (measured: 11 of the 17 "false positives" of a tilted exact room, seed 9301,
     were blocks holding nothing but floor, "covering" 0.56-0.84 of their section)."""
     from sdfcodec.data.render import RoomScene
-    from sdfcodec.data.rooms import LabelledRoom
+    from sdfcodec.search.rooms import LabelledRoom
     from sdfcodec.search.metrics import SLIVER_SECTION, TRUTH
 
     tilt = math.radians(tilt_deg)

@@ -26,7 +26,7 @@ from sdfcodec.data.sequences import (
     read_depth_png,
     write_depth_png,
 )
-from sdfcodec.metrics import read_tum as read_tum_trajectory  # the one TUM reader lives in sdfcodec.metrics
+from sdfcodec.core.metrics import read_tum as read_tum_trajectory  # the one TUM reader lives in sdfcodec.core.metrics
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecError, SDFCodecWarning
 
 KITCHEN = "7scenes-redkitchen"

@@ -18,9 +18,9 @@ from _golden_maps import check_golden_map
 from sdfcodec import errors
 from sdfcodec.bench.serve import FileServer
 from sdfcodec.data.offices import OfficeVolume
-from sdfcodec.map.shards import index_size
+from sdfcodec.map.io.shards import index_size
 from sdfcodec.registry import pretrained_codec
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 from test_scale import s3  # noqa: F401 - the moto S3 fixture
 
@@ -138,7 +138,7 @@ def test_a_shard_index_too_large_is_refused_before_reading(pair, tmp_path):
 
 
 def test_reader_without_the_extension_refuses_sharded_maps(pair, monkeypatch):
-    import sdfcodec.header as header
+    import sdfcodec.core.header as header
 
     monkeypatch.setattr(header, "KNOWN_EXTENSIONS", header.KNOWN_EXTENSIONS - {"sharded-codes"})
     with pytest.raises(errors.VersionError, match="sharded-codes"):
@@ -273,7 +273,7 @@ def test_s3_region_reads_byte_ranges_of_shards(pair, s3):  # noqa: F811
 
 def test_dask_encode_of_a_sharded_map_equals_the_single_process_one(pair, tmp_path, office, pca64):
     distributed = pytest.importorskip("dask.distributed")
-    from sdfcodec.scale import encode_volume_dask
+    from sdfcodec.map.scale import encode_volume_dask
 
     out = tmp_path / "d.sdfz"
     # from a file, as large volumes go to a cluster (each worker reads its chunks): the 78 MiB array itself in the
@@ -351,7 +351,7 @@ def test_million_block_map_targets(tmp_path):
 
 def _golden_map(path: Path) -> None:
     from sdfcodec.testing import analytic_blocks, analytic_scene
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
 
     codec = sdfcodec.get_codec("pca", code_size=4).fit(analytic_blocks(64, seed=5))
     vol = sample_volume(analytic_scene(), (40, 24, 20), VS, truncation=TRUNC)

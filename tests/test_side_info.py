@@ -12,11 +12,11 @@ import zarr
 from typer.testing import CliRunner
 
 import sdfcodec
-from sdfcodec.blocks import split_blocks
+from sdfcodec.core.blocks import split_blocks
 from sdfcodec.cli import app
 from sdfcodec.map.weights import QUANT_WEIGHTS_EXTENSION, WEIGHTS_EXTENSION, quantise_weights
-from sdfcodec.sdf import Sphere, sample_volume
-from sdfcodec.verify import verify_map
+from sdfcodec.core.sdf import Sphere, sample_volume
+from sdfcodec.map.verify import verify_map
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 
@@ -121,7 +121,7 @@ def test_a_map_without_weights_tracks_and_searches_as_one_with_them(tmp_path):
     they give on the same map fused with --keep-weights (weights never enter a decode)."""
     from sdfcodec.data.render import render_sequence
     from sdfcodec.data.sequences import Intrinsics
-    from sdfcodec.metrics import read_tum
+    from sdfcodec.core.metrics import read_tum
 
     seq = render_sequence(tmp_path / "seq", "slow-clean", frames=6,
                           intrinsics=Intrinsics(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120))

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 import sdfcodec
 from sdfcodec.cli import app
 from sdfcodec.errors import FormatError, IntegrityError, SignatureError, WriteFailedError
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 pytest.importorskip("cryptography")
 from cryptography.hazmat.primitives import serialization  # noqa: E402
@@ -180,7 +180,7 @@ def test_bad_key_files_are_one_line(signed, tmp_path):
 
 
 def test_signing_is_atomic(signed, keys, tmp_path, monkeypatch):
-    from sdfcodec import _atomic
+    from sdfcodec.core import _atomic
 
     p = copy(signed / "signed", tmp_path / "m")
     before = files(p)

@@ -14,11 +14,12 @@ import pytest
 from typer.testing import CliRunner
 
 import sdfcodec
-from sdfcodec import errors, header
+from sdfcodec import errors
+from sdfcodec.core import header
 from sdfcodec.cli import app
 from sdfcodec.map import state_digest
 from sdfcodec.registry import choose_codec
-from sdfcodec.sdf import Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Plane, Scene, Sphere, sample_volume
 
 runner = CliRunner()
 VS = 0.02

@@ -1,4 +1,4 @@
-"""Surface metrics (sdfcodec.surface, docs/surface.md) against independent expectations: analytic planes and
+"""Surface metrics (sdfcodec.core.surface, docs/surface.md) against independent expectations: analytic planes and
 spheres, known shifts, open3d's point-cloud distances, and the dense computation for the streamed map version."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from scipy.ndimage import gaussian_filter
 from typer.testing import CliRunner
 
 import sdfcodec
-from sdfcodec.blocks import assemble_blocks, split_blocks
+from sdfcodec.core.blocks import assemble_blocks, split_blocks
 from sdfcodec.cli import app
 from sdfcodec.errors import InvalidValueError, ShapeError
-from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
-from sdfcodec.surface import SurfaceMetrics, compare_maps, compare_volumes, surface_points
+from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.surface import SurfaceMetrics, compare_maps, compare_volumes, surface_points
 
 VS = 0.02
 TRUNC = (-0.04, 0.1)

@@ -14,11 +14,11 @@ from hypothesis import strategies as st
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from sdfcodec.blocks import denormalise, normalise
+from sdfcodec.core.blocks import denormalise, normalise
 from sdfcodec.data import synthetic
 from sdfcodec.data.synthetic import CATEGORIES, synthetic_blocks, synthetic_shapes
 from sdfcodec.errors import InvalidValueError
-from sdfcodec.sdf import Barrel, Box, ConcaveCorner, Cylinder, grid_points, sample_volume
+from sdfcodec.core.sdf import Barrel, Box, ConcaveCorner, Cylinder, grid_points, sample_volume
 
 H = 0.02  # default voxel size (m)
 TRUNC = (-0.04, 0.1)

@@ -20,7 +20,7 @@ import sdfcodec  # noqa: E402
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecError, VersionError  # noqa: E402
 from sdfcodec.map.field import chunks_of, field_of, sz3_compress, sz3_decompress  # noqa: E402
 from sdfcodec.testing import analytic_blocks, parametrize_codec_checks  # noqa: E402
-from sdfcodec.verify import verify_map  # noqa: E402
+from sdfcodec.map.verify import verify_map  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _fused_maps import TRUNC, VS, fused_like, write_volume_map  # noqa: E402
@@ -117,7 +117,7 @@ assert "sdfcodec" not in sys.modules
 
 
 def test_reader_without_the_extension_refuses_by_name(sz3_map, monkeypatch):
-    import sdfcodec.header as header
+    import sdfcodec.core.header as header
 
     monkeypatch.setattr(header, "KNOWN_EXTENSIONS", header.KNOWN_EXTENSIONS - {"field-compression"})
     with pytest.raises(VersionError, match="field-compression"):

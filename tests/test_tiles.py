@@ -1,4 +1,4 @@
-"""Decoding in cache-sized tiles (issue 19; ``sdfcodec.tiling``, the ``decode_tiles`` hook, the reader's fused
+"""Decoding in cache-sized tiles (issue 19; ``sdfcodec.core.tiling``, the ``decode_tiles`` hook, the reader's fused
 decode + truncation + placement): tiles cover every row once on several threads, BLAS gets its threads back,
 and the decodes placed tile by tile equal an independent decode (codes times the basis, then ``np.clip``) placed
 by hand and the analytic volume the map was written from, with tiles small enough to split runs of blocks."""
@@ -14,7 +14,7 @@ import torch
 from threadpoolctl import ThreadpoolController
 
 import sdfcodec
-from sdfcodec import tiling
+from sdfcodec.core import tiling
 from sdfcodec.codec import decodes_tiles
 
 TRUNC = (-0.04, 0.1)

@@ -12,11 +12,11 @@ import torch
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from sdfcodec import metrics
+from sdfcodec.core import metrics
 from sdfcodec.errors import DTypeError, InvalidValueError, ShapeError
-from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
-from sdfcodec.tracking import (CameraIntrinsics, DenseField, FieldSampler, SDFTracker, TrackerConfig, backproject,
-                               se3_exp)
+from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
+from sdfcodec.tracking.tracker import (CameraIntrinsics, DenseField, FieldSampler, SDFTracker, TrackerConfig, backproject,
+                                       se3_exp)
 
 VOXEL = 0.02
 ORIGIN = (-0.2, -0.2, -0.2)
@@ -276,9 +276,10 @@ def test_se3_exp_matches_matrix_exponential():
 
 
 def test_moved_names_keep_their_tracking_import_path():
-    """se3_exp lives in sdfcodec.geometry and DenseField in sdfcodec.densefield; sdfcodec.tracking re-exports
+    """se3_exp lives in sdfcodec.core.geometry and DenseField in sdfcodec.tracking.densefield; sdfcodec.tracking.tracker re-exports
     the same objects."""
-    from sdfcodec import densefield, geometry, tracking
+    from sdfcodec.tracking.tracker import densefield, tracker as tracking
+    from sdfcodec.core import geometry
 
     assert tracking.se3_exp is geometry.se3_exp and tracking.DenseField is densefield.DenseField
     assert isinstance(densefield.DenseField(np.zeros((4, 4, 4)), 0.02), FieldSampler)
@@ -595,7 +596,7 @@ def raw_map(volume, tmp_path_factory):
 
 
 def test_map_field_matches_dense_decode(raw_map, depth):
-    from sdfcodec.mapfield import MapField
+    from sdfcodec.tracking.mapfield import MapField
 
     dense = DenseField(raw_map.decode_region(), VOXEL, ORIGIN, raw_map.truncation)
     lazy = MapField(raw_map)
@@ -628,7 +629,7 @@ def test_map_field_cpu_path_matches_the_torch_ops_a_device_runs(raw_map):
     """On the CPU MapField's lookup runs in numpy (``MapField._lookup_cpu``); on a device, torch's ops do the same
     work. Both are run here on the CPU and must agree, on points in and out of the map, NaN and infinite ones
     included, and load and hit the same blocks."""
-    from sdfcodec.mapfield import MapField
+    from sdfcodec.tracking.mapfield import MapField
 
     cpu, ops = MapField(raw_map), MapField(raw_map)
     ops._pool_np = None  # the torch ops a CUDA device runs
@@ -644,7 +645,7 @@ def test_map_field_cpu_path_matches_the_torch_ops_a_device_runs(raw_map):
 
 
 def test_map_field_partial_view_and_cache_bound(raw_map, depth):
-    from sdfcodec.mapfield import MapField, _SLOT_BYTES
+    from sdfcodec.tracking.mapfield import MapField, _SLOT_BYTES
 
     start = perturb(TRUE_POSE, np.random.default_rng(9), 0.02, 2.0)
     lazy = MapField(raw_map)
@@ -678,7 +679,7 @@ def test_map_field_partial_view_and_cache_bound(raw_map, depth):
 
 def test_map_field_halo_codec_has_no_seams(volume, tmp_path):
     from sdfcodec import create_map, get_codec, open_map
-    from sdfcodec.mapfield import MapField
+    from sdfcodec.tracking.mapfield import MapField
 
     path = tmp_path / "blur.sdfz"
     with create_map(path, codec=get_codec("gaussian-blur"), voxel_size=VOXEL, origin=ORIGIN) as m:

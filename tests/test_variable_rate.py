@@ -14,13 +14,13 @@ from typer.testing import CliRunner
 import sdfcodec
 from _golden_maps import check_golden_map
 from sdfcodec import errors
-from sdfcodec.blocks import split_blocks
+from sdfcodec.core.blocks import split_blocks
 from sdfcodec.cli import app
 from sdfcodec.map.varrate import STREAM_ARRAY
 from sdfcodec.registry import pretrained_codec
-from sdfcodec.sdf import Box, Plane, Scene, Sphere, sample_volume
+from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
 from sdfcodec.testing import analytic_blocks, analytic_scene
-from sdfcodec.varrate import EntropyModel, decode_chunk, encode_chunk, fit_model
+from sdfcodec.core.varrate import EntropyModel, decode_chunk, encode_chunk, fit_model
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
 GOLDEN = Path(__file__).parent / "golden" / "maps" / "varrate-pca-8"
@@ -112,7 +112,7 @@ def test_stored_prefixes_are_the_dequantised_codes(tmp_path, scene_volume, pca32
             seen += 1
     assert seen == len(c1)
     # search reads codes: on the variable-rate map it selects mostly what it selects on the float map
-    from sdfcodec.search import search
+    from sdfcodec.search.engine import search
     a = search(vr, "floor", top=10)
     b = search(ref, "floor", top=10)
     ca, cb = {tuple(c) for c in np.asarray(a.coords)}, {tuple(c) for c in np.asarray(b.coords)}
@@ -133,7 +133,7 @@ def test_a_missing_or_corrupt_stream_is_one_clear_error(tmp_path, scene_volume, 
     next(p for p in sorted((with_manifest / STREAM_ARRAY / "c").rglob("*")) if p.is_file()).unlink()
     with pytest.raises(errors.IntegrityError, match="code_streams.*missing"):
         sdfcodec.open_map(with_manifest).read_codes()
-    from sdfcodec.verify import verify_map
+    from sdfcodec.map.verify import verify_map
     assert not verify_map(root).ok
     with pytest.raises(errors.InvalidValueError, match="not updated in place"):
         sdfcodec.update_map(root)
@@ -142,7 +142,7 @@ def test_a_missing_or_corrupt_stream_is_one_clear_error(tmp_path, scene_volume, 
 def _fused_room(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A synthetic room as fusion leaves it (unobserved behind surfaces): block coords, blocks, observation."""
     from _fused_maps import fused_like
-    from sdfcodec.data.rooms import synthetic_room
+    from sdfcodec.search.rooms import synthetic_room
 
     vol, observed = fused_like(synthetic_room(seed, size=(2.2, 2.0, 1.8)).volume)
     blocks = split_blocks(vol, fill=TRUNC[1])
@@ -171,7 +171,7 @@ def test_target_bytes_lands_within_5_percent(tmp_path, target):
 def test_surface_at_a_fixed_rate_and_the_error_target(tmp_path, scene_volume):
     """The analytic scene at 100 B per coded block: surface metrics against the exact field above a bound;
     ``target_error`` keeps every observed voxel touching a crossing of the exact field within E."""
-    from sdfcodec.surface import compare_volumes, crossing_edges
+    from sdfcodec.core.surface import compare_volumes, crossing_edges
 
     codec = pretrained_codec("pca", 128)
     m = _write(tmp_path / "b.sdfz", codec, scene_volume, codec_state="reference",

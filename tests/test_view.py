@@ -16,9 +16,9 @@ import pytest
 
 import sdfcodec
 from sdfcodec.errors import InvalidValueError, MissingDependencyError
-from sdfcodec.fusion import mesh_from_blocks
-from sdfcodec.search import search
-from sdfcodec.view import up_rotation, write_recording
+from sdfcodec.fusion.tsdf import mesh_from_blocks
+from sdfcodec.search.engine import search
+from sdfcodec.view.recording import up_rotation, write_recording
 
 pytest.importorskip("rerun", reason="rerun-sdk (the view extra) is not installed")
 from rerun.chunk import RrdReader  # noqa: E402

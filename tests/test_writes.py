@@ -10,7 +10,7 @@ Real failures where this machine allows them without privileges we lack:
   uid 1000 in a user namespace without capabilities (``unshare --user --map-user=1000``);
 * EFBIG: ``RLIMIT_FSIZE`` set in a child process.
 Those children are tests/reliability_worker.py ``faults ...``. Fault injection covers the rest: every data
-write of a small map (the lowest-level file write, in ``sdfcodec._atomic``) and every file-system step
+write of a small map (the lowest-level file write, in ``sdfcodec.core._atomic``) and every file-system step
 (mkdir, link, rename, replace, the exchange) failing in turn with ENOSPC, EACCES and EIO.
 """
 
@@ -30,10 +30,11 @@ import numpy as np
 import pytest
 
 import sdfcodec
-from sdfcodec import _atomic, errors
+from sdfcodec.core import _atomic
+from sdfcodec import errors
 from sdfcodec.map import writer as writer_mod
 from sdfcodec.testing import analytic_blocks
-from sdfcodec.verify import verify_map
+from sdfcodec.map.verify import verify_map
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -155,8 +156,8 @@ class _Failing:
 
 
 class Faults:
-    """Counts the data writes (``open`` in sdfcodec._atomic) or the file-system steps (``os`` functions in
-    sdfcodec._atomic and the map writer, and the exchange) and makes the ``n``-th fail with ``err``."""
+    """Counts the data writes (``open`` in sdfcodec.core._atomic) or the file-system steps (``os`` functions in
+    sdfcodec.core._atomic and the map writer, and the exchange) and makes the ``n``-th fail with ``err``."""
 
     STEPS = ("mkdir", "link", "rename", "replace")
 
@@ -371,7 +372,7 @@ from sdfcodec.errors import WriteFailedError
 
 d, map_path = Path(sys.argv[1]), sys.argv[2]
 old = d / "old.txt"
-from sdfcodec.trajectory import Trajectory, write_tum
+from sdfcodec.core.trajectory import Trajectory, write_tum
 rng = np.random.default_rng(0)
 traj = Trajectory(np.arange(20000) * 0.1, rng.normal(size=(20000, 3)), np.tile([0.0, 0, 0, 1], (20000, 1)))
 small = Trajectory(np.arange(3) * 0.1, np.zeros((3, 3)), np.tile([0.0, 0, 0, 1], (3, 1)))
@@ -391,12 +392,12 @@ def model():
     save_model(sdfcodec.get_codec("pca", code_size=16).fit(analytic_blocks(64, seed=1)), d / "model.npz")
 
 def dataset():
-    from sdfcodec.dataset import build_dataset
+    from sdfcodec.data.dataset import build_dataset
     from sdfcodec.testing import analytic_blocks
     build_dataset(d / "ds", [("a", [analytic_blocks(60, seed=2)])], batch_size=20)
 
 def search(mesh=True):
-    from sdfcodec.search_cli import search_command
+    from sdfcodec.view.search import search_command
     search_command(map_path, "floor", out_dir=d / "search", top=8, mesh=mesh)
 
 cases = {"trajectory": (lambda: write_tum(d / "traj.txt", traj), d / "traj.txt"),
@@ -425,7 +426,7 @@ def test_other_outputs_on_a_full_disk(tmp_path):
     left, and a trajectory file it was replacing is byte-identical (before: a raw OSError, a truncated file)."""
     if shutil.which("unshare") is None:
         pytest.skip("no unshare(1) here to mount a small tmpfs")
-    from sdfcodec.sdf import sample_volume
+    from sdfcodec.core.sdf import sample_volume
 
     map_path = tmp_path / "room.sdfz"
     vol = sample_volume(sdfcodec.testing.analytic_scene(), (48, 40, 36), VS, truncation=TRUNC)
@@ -455,7 +456,7 @@ def test_other_outputs_on_a_full_disk(tmp_path):
 def test_dataset_overwrite_replaces_only_a_data_set(tmp_path):
     """``build_dataset(..., overwrite=True)`` replaces a data set, never a directory of other files or a
     plain file (it used to delete whatever directory was there)."""
-    from sdfcodec.dataset import build_dataset, open_dataset
+    from sdfcodec.data.dataset import build_dataset, open_dataset
 
     src = [("a", [analytic_blocks(60, seed=2)])]
     other = tmp_path / "photos"
@@ -479,7 +480,7 @@ def test_a_write_into_an_abandoned_directory_is_dropped_quietly(tmp_path):
     while the directory is still there raises as before."""
     from zarr.core.buffer import default_buffer_prototype
 
-    from sdfcodec.map.stores import CowLocalStore
+    from sdfcodec.map.io.stores import CowLocalStore
 
     root = _atomic.hidden_path(tmp_path / "map.sdfz", "tmp")  # where a writer writes a map before its commit
     root.mkdir()

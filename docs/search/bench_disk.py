@@ -7,7 +7,7 @@ A pca-64 map of ``--blocks`` coded blocks (random codes with the shipped eigensh
 floor model at a fixed threshold, the code-space score alone (``scene=False``: the streaming fetch-and-score
 loop that issue 17's throughput target is about); the baseline reads the same codes
 (``Map.iter_codes(level=64)``) and does nothing with them. Both read the local map's chunks without Zarr's
-event loop (``sdfcodec.map.fastfetch``); the search scores each batch in the reader's fetching threads. Prints
+event loop (``sdfcodec.map.io.fastfetch``); the search scores each batch in the reader's fetching threads. Prints
 JSON with blocks/s, the harness's ratios, CPU milliseconds per call and the load before and after.
 ``--unpruned`` adds a third candidate, interleaved with the two: the same search with the scorer's prefix pruning
 off (``sdfcodec.search.scoring.PRUNE_PREFIX`` out of reach for the call), every code scored in full.
@@ -27,7 +27,9 @@ import numpy as np
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec.bench.harness import interleave, load, ratio
-from sdfcodec.search import build_query, scoring, search
+from sdfcodec.search.query import build_query
+from sdfcodec.search import scoring
+from sdfcodec.search.engine import search
 
 
 def main(argv=None) -> int:

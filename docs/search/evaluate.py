@@ -6,14 +6,14 @@ Every map is searched exactly as ``sdfcodec search MAP --query Q`` does with no 
 the calibrated threshold, ``behind`` and ``up`` from the map); precision and recall of the selection are
 pooled over the rooms of a kind. Room kinds:
 
-* ``exact``: exact truncated SDFs of furnished rooms (``sdfcodec.data.rooms.synthetic_room(behind="solid")``,
-  primitives of ``sdfcodec.sdf``), layouts ``poor``, ``normal``, ``rich``, written with ``write_volume`` (what
+* ``exact``: exact truncated SDFs of furnished rooms (``sdfcodec.search.rooms.synthetic_room(behind="solid")``,
+  primitives of ``sdfcodec.core.sdf``), layouts ``poor``, ``normal``, ``rich``, written with ``write_volume`` (what
   ``sdfcodec encode room.npy`` does);
 * ``exact-open``: the issue's analytic scene, a floor over solid ground with two boxes, a sphere and a
   cylinder, 160 x 160 x 64 voxels, no walls (only floor truth);
 * ``exact-tilted``: exact rooms tilted by up to 10 degrees;
 * ``fused`` / ``fused-tilted``: rooms rendered as depth frames along a camera path and fused
-  (``sdfcodec.fusion.fuse``), encoded with their observation (what ``sdfcodec fuse`` + ``sdfcodec encode``
+  (``sdfcodec.fusion.tsdf.fuse``), encoded with their observation (what ``sdfcodec fuse`` + ``sdfcodec encode``
   do); the tilted ones turned by up to 10 degrees with their camera path;
 * ``kitchen``: the real 7-Scenes kitchen, fused, up from its gravity file; labels from plane fits on the
   lossless map (``kitchen_labels``).
@@ -65,8 +65,8 @@ def _write(path: Path, room: S.LabelledRoom, codec) -> sdfcodec.Map:
 def open_room(seed: int) -> S.LabelledRoom:
     """The issue's analytic scene: a floor over solid ground, two boxes, a sphere, a cylinder (160 x 160 x 64)."""
     from sdfcodec.data.render import RoomScene
-    from sdfcodec.data.rooms import LabelledRoom
-    from sdfcodec.sdf import Box, Cylinder, Sphere, sample_volume, Scene
+    from sdfcodec.search.rooms import LabelledRoom
+    from sdfcodec.core.sdf import Box, Cylinder, Sphere, sample_volume, Scene
 
     rng = np.random.default_rng([seed, 3])
     vs, shape = 0.02, (160, 160, 64)
@@ -93,11 +93,11 @@ def open_room(seed: int) -> S.LabelledRoom:
 def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120) -> tuple[sdfcodec.Map, S.LabelledRoom]:
     """Render a furnished room with a ceiling along a camera path, fuse it, encode it with its observation."""
     from sdfcodec.data.render import DEFAULT_INTRINSICS, Renderer, RoomScene, camera_path, room_scene
-    from sdfcodec.data.rooms import LabelledRoom
+    from sdfcodec.search.rooms import LabelledRoom
     from sdfcodec.data.sequences import Frame
-    from sdfcodec.fusion import fuse
-    from sdfcodec.geometry import rot_x, rot_z
-    from sdfcodec.sdf import grid_points
+    from sdfcodec.fusion.tsdf import fuse
+    from sdfcodec.core.geometry import rot_x, rot_z
+    from sdfcodec.core.sdf import grid_points
 
     rng = np.random.default_rng([seed, 11])
     scene = room_scene(seed, geometry=("normal", "rich")[seed % 2], ceiling=True)
@@ -105,7 +105,7 @@ def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120)
     if tilt_deg:
         a = rng.uniform(0, 2 * math.pi)
         rot = rot_z(a) @ rot_x(math.radians(rng.uniform(0.5 * tilt_deg, tilt_deg))) @ rot_z(-a)
-    from sdfcodec.data.rooms import _pose  # noqa: the evaluation poses primitives as synthetic_room does
+    from sdfcodec.search.rooms import _pose  # noqa: the evaluation poses primitives as synthetic_room does
     posed = RoomScene([_pose(p, rot) for p in scene.primitives], list(scene.labels), scene.size, seed, scene.geometry)
     poses = camera_path(scene, frames, 3.0)
     lift = np.eye(4)
@@ -121,7 +121,7 @@ def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120)
     m = sdfcodec.open_map(path)
     # exact distances on the fused grid, for the labels
     shape = tuple(int(n) for n in m.shape_voxels)
-    from sdfcodec.data.rooms import _sample_union  # noqa: the same sampler as synthetic_room
+    from sdfcodec.search.rooms import _sample_union  # noqa: the same sampler as synthetic_room
     raw = _sample_union(posed.primitives, shape, 0.02, np.asarray(m.origin), reach=0.12)
     vol = np.clip(raw, -0.04, 0.1).astype(np.float32)
     lab = LabelledRoom(volume=vol, origin=np.asarray(m.origin), voxel_size=0.02, truncation=(-0.04, 0.1),
@@ -285,7 +285,7 @@ def _tally(kinds: list, seeds: list) -> dict:
                 if kdir is None or not kdir.is_dir():
                     print("no kitchen data (--kitchen DIR or $SDFCODEC_KITCHEN); skipped", file=sys.stderr)
                     continue
-                from sdfcodec.fusion import fuse
+                from sdfcodec.fusion.tsdf import fuse
                 fused = fuse(kdir, voxel_size=0.02, truncation=(-0.04, 0.1), quiet=True)
                 rawp = tmp / "kitchen-raw.sdfz"
                 with sdfcodec.create_map(rawp, codec=sdfcodec.get_codec("raw"), voxel_size=0.02,

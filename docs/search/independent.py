@@ -1,11 +1,11 @@
 """Search with the CLI's defaults on rooms built by other code: a second room generator, written apart from
-``sdfcodec.data.rooms`` (its own layout, furniture, voxel sizes, extents that are not multiples of 16, its own
+``sdfcodec.search.rooms`` (its own layout, furniture, voxel sizes, extents that are not multiples of 16, its own
 truth), so that what the evaluation in ``evaluate.py`` measures is not a property of one generator.
 
     PYTHONPATH=. .venv/bin/python docs/search/independent.py [--seeds 21 22 23] [--jobs 2] [--out FILE.json]
 
 Each room: a floor slab over ground, four walls, a ceiling slab, 2-3 tables (a top on four legs), 1-2 cabinets
-against a wall, a sphere and a yawed box on the floor, all ``sdfcodec.sdf`` primitives, the whole room tilted by
+against a wall, a sphere and a yawed box on the floor, all ``sdfcodec.core.sdf`` primitives, the whole room tilted by
 ``--tilts`` degrees about a horizontal axis, sampled at ``--voxels`` metres with a truncation of -2 and +5 voxels.
 It is stored two ways through the public API: ``exact`` (the truncated SDF, ``create_map`` + ``write_blocks``,
 what ``sdfcodec encode room.npy`` writes) and ``fused-style`` (voxels more than |d_min| behind a surface never
@@ -33,8 +33,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import sdfcodec
-from sdfcodec.blocks import split_blocks
-from sdfcodec.sdf import Box, Cylinder, Sphere, grid_points
+from sdfcodec.core.blocks import split_blocks
+from sdfcodec.core.sdf import Box, Cylinder, Sphere, grid_points
 
 QUERIES = ("floor", "wall", "ceiling")
 

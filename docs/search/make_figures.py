@@ -25,7 +25,7 @@ import sdfcodec
 from sdfcodec import search as S
 from sdfcodec.bench import bench_search
 from sdfcodec import pretrained_codec
-from sdfcodec.search_cli import format_summary, search_command
+from sdfcodec.view.search import format_summary, search_command
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -218,7 +218,7 @@ def room() -> None:
 def kitchen() -> None:
     """Fuse the 7-Scenes kitchen, encode it with the shipped pca-64, search floors along the true up
     direction (minus gravity), and draw Fig. 7. Also searches the lossless raw map for comparison."""
-    from sdfcodec.fusion import fuse
+    from sdfcodec.fusion.tsdf import fuse
 
     if KITCHEN is None or not KITCHEN.is_dir():
         raise SystemExit(f"no kitchen data at {KITCHEN or '(none given)'}: pass --kitchen DIR (a 7-Scenes "

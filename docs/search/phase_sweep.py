@@ -21,7 +21,7 @@ import numpy as np
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec import search as S
-from sdfcodec.sdf import Box, Plane, Scene, grid_points, sample_volume
+from sdfcodec.core.sdf import Box, Plane, Scene, grid_points, sample_volume
 
 VS, TRUNC, SHAPE = 0.02, (-0.04, 0.1), (96, 96, 96)
 

@@ -3,7 +3,7 @@ opening, reading a region, decoding it all and verifying it cost, from a local s
 
 ``python -m sdfcodec.bench.bigmap build OUT --rooms 26 24 3`` encodes :class:`sdfcodec.data.offices.OfficeVolume`
 (about 1.06 million coded blocks at 2 cm with these rooms) with the shipped pca-64 model on a
-``dask.distributed.LocalCluster`` of worker processes (:func:`sdfcodec.scale.encode_volume_dask`: one task per
+``dask.distributed.LocalCluster`` of worker processes (:func:`sdfcodec.map.scale.encode_volume_dask`: one task per
 chunk of codes, the volume computed by each task for its own chunk, never whole anywhere).
 ``python -m sdfcodec.bench.bigmap measure MAP...`` prints the figures of ``docs/scale.md`` as JSON (a region
 read's peak memory is measured in a fresh process each: ``ru_maxrss``).
@@ -36,7 +36,7 @@ def build(out: str | os.PathLike, rooms: Sequence[int], *, workers: int = 2, pro
     from ..data.offices import OfficeVolume
     from ..map import open_map
     from ..registry import pretrained_codec
-    from ..scale import encode_volume_dask
+    from ..map.scale import encode_volume_dask
     from .harness import load
 
     vol = OfficeVolume(rooms, voxel_size=VOXEL_SIZE, truncation=TRUNCATION, seed=seed)
@@ -158,7 +158,7 @@ def measure(maps: Sequence[str], *, centres: Sequence[Sequence[float]] = ((10.0,
     """The figures of docs/scale.md for each local map in ``maps``: objects and bytes; open and 1 m^3 region read
     (seconds, peak RSS of a fresh process per read) locally, over HTTP (byte ranges, loopback) and from S3 (moto
     on loopback); whole-map decode on read; ``verify_map``. Loads are recorded before each step."""
-    from ..verify import verify_map
+    from ..map.verify import verify_map
     from .harness import load
     from .serve import FileServer
 

@@ -35,7 +35,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .._lazy import lazy_module
+from ..core._lazy import lazy_module
 from .codecs import bench_decode_on_read
 from .harness import interleave, load, ratio, run_document
 from .search import bench_search
@@ -188,11 +188,11 @@ def _ray_cast(sdf: Callable[[np.ndarray], np.ndarray], pose: np.ndarray, k: tupl
 
 def tracking(setup: Setup) -> list[dict]:
     from ..data.render import look_at
-    from ..densefield import DenseField
-    from ..geometry import se3_exp
-    from ..sdf import sample_volume
+    from ..tracking.densefield import DenseField
+    from ..core.geometry import se3_exp
+    from ..core.sdf import sample_volume
     from ..testing import analytic_scene
-    from ..tracking import SDFTracker, backproject
+    from ..tracking.tracker import SDFTracker, backproject
 
     w, h = setup.sizes["image"]
     scene = analytic_scene()

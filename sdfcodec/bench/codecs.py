@@ -48,7 +48,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .._lazy import lazy_module
+from ..core._lazy import lazy_module
 from ..codec import Codec, uses_weights
 from ..errors import CodecTypeError, InvalidValueError, RegistrationError
 from ..registry import get_codec, get_codec_class

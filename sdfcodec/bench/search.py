@@ -7,7 +7,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .._lazy import lazy_module
+from ..core._lazy import lazy_module
 from .codecs import timed_record
 from .harness import interleave, load, time_call
 
@@ -64,7 +64,8 @@ def bench_search(code_sizes: Iterable[int] = (64,), *, descriptors: int = 15, ba
 
     from ..map import create_map, open_map
     from ..registry import pretrained_codec
-    from ..search import build_query, search
+    from ..search.query import build_query
+    from ..search.engine import search
     from ..search.scoring import Scorer
 
     records = []

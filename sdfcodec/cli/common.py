@@ -188,10 +188,10 @@ def reads_maps(fn: Callable) -> Callable:
 
 def write_output(output: Path, write: Callable[[Path], Any], doing: str = "writing") -> Path:
     """Write a file output through ``write(tmp)`` into a hidden sibling renamed over ``output``
-    (:func:`sdfcodec._atomic.write_file`): never a half-written file at ``output``, no temporary left on any
+    (:func:`sdfcodec.core._atomic.write_file`): never a half-written file at ``output``, no temporary left on any
     failure (an interrupt, an error of ``write``, a refused rename onto a directory), never inside a map. A refused
     write (disk full, permission, I/O error; ``write`` returning False) is a WriteFailedError naming ``output``."""
-    from .._atomic import write_file
+    from ..core._atomic import write_file
 
     if not output.parent.is_dir():  # a typo in the folder is not created silently (write_file would make it)
         raise InputNotFoundError(f"no such directory for the output {output}: {output.parent} (create it first)")
@@ -397,7 +397,7 @@ def parse_pair(text: str, name: str) -> tuple[float, float]:
 def parse_truncation(text: str) -> tuple[float, float]:
     """``--truncation d_min,d_max``, checked (finite, ``d_min < d_max``): commands parse it before they load
     torch and Zarr (2-3 s), so that a reversed or mistyped range is refused at once."""
-    from ..blocks import check_truncation
+    from ..core.blocks import check_truncation
 
     trunc = parse_pair(text, "--truncation")
     check_truncation(*trunc)
@@ -417,9 +417,9 @@ def parse_region(text: str | None) -> tuple | None:
 
 def check_device_flag(device: str | None) -> None:
     """``--device``, checked before the work starts (a name torch knows, a device this machine and torch build
-    have): the command's error names the flag (:func:`sdfcodec._validate.check_device`)."""
+    have): the command's error names the flag (:func:`sdfcodec.core._validate.check_device`)."""
     if device is not None:
-        from .._validate import check_device
+        from ..core._validate import check_device
 
         check_device(device, "--device")
 
@@ -490,12 +490,12 @@ def _interrupted() -> str:
 def refuse_existing(path: Path, overwrite: bool, *, map_output: bool = False, directory: bool = False,
                     files: Sequence[str] = ()) -> None:
     """Check an output before any work, the one check every writing command makes: the path is not inside a map
-    (or any Zarr store) and names an output of its own (:func:`sdfcodec._atomic.check_output_path`); without
+    (or any Zarr store) and names an output of its own (:func:`sdfcodec.core._atomic.check_output_path`); without
     ``overwrite`` nothing there is replaced (a file or map at ``path``; for a directory output, ``files``: the
     names the command writes into it); ``map_output``: only a map (or an empty directory) is ever replaced;
     ``directory``: the output is a directory the command's library call replaces itself (a data set).
     Remembers ``path`` for Ctrl-C's report."""
-    from .._atomic import check_output_path
+    from ..core._atomic import check_output_path
 
     note_target(path)
     check_output_path(path, directory=map_output or directory or bool(files))
@@ -527,11 +527,11 @@ def _root(version: bool = typer.Option(False, "--version", is_eager=True, callba
               None, "--remote-tries", metavar="N", help="Tries per object of a remote map (default 4).")) -> None:
     # --version is eager: handled while the options are parsed, before click asks for a command
     # the read options are a process default, not arguments: every command (and the library functions that open
-    # maps for it: verify, search, compare, track, eval, the tracker's map field) reads through sdfcodec.map.stores
+    # maps for it: verify, search, compare, track, eval, the tracker's map field) reads through sdfcodec.map.io.stores
     limits = {k: v for k, v in (("total_timeout", remote_timeout), ("tries", remote_tries)) if v is not None}
-    if not follow_symlinks and not limits and "sdfcodec.map.stores" not in sys.modules:
+    if not follow_symlinks and not limits and "sdfcodec.map.io.stores" not in sys.modules:
         return  # the built-in defaults, untouched in this process: a light command need not import Zarr for them
-    from ..map.stores import set_read_defaults
+    from ..map.io.stores import set_read_defaults
 
     try:
         set_read_defaults(follow_symlinks=follow_symlinks, remote_limits=limits)

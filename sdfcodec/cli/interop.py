@@ -45,9 +45,9 @@ def import_cmd(
     if code_size is not None and model is None:
         code_size = check_code_size(codec_id, code_size)
     refuse_existing(output, overwrite, map_output=True)
-    from ..io.importer import import_map
+    from ..interop.importer import import_map
     from ..model import load_model
-    from ..online import fusion_codec
+    from ..fusion.online import fusion_codec
 
     codec = load_model(model) if model is not None else fusion_codec(codec_id, code_size)
     with heartbeat(f"importing {source}", as_json):
@@ -82,7 +82,7 @@ def export_cmd(
     Voxels not observed, or outside --region, are written with weight 0 (voxblox and Open3D: unobserved)."""
     box = parse_region(region)
     refuse_existing(output, overwrite)
-    from ..io.importer import export_map
+    from ..interop.importer import export_map
 
     def write(tmp: Path) -> bool:
         summary.update(export_map(map_path, tmp, format=format, region=box, units=units, level=level,
@@ -114,7 +114,7 @@ def trajectory_cmd(
     at i/30 s, the times `track` gives its frames), for `view --groundtruth` and `evo`."""
     refuse_existing(output, overwrite)
     from ..data.sequences import open_sequence
-    from ..trajectory import write_tum
+    from ..core.trajectory import write_tum
 
     seq = open_sequence(sequence)
     if seq.trajectory is None or not len(seq.trajectory):

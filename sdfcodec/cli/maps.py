@@ -177,7 +177,7 @@ def encode_cmd(
         code_size = 128  # the longest shipped eigenshapes: each block keeps the prefix its rate buys
     refuse_existing(output, overwrite, map_output=True)
     check_device_flag(device)
-    from ..blocks import normalise, split_blocks
+    from ..core.blocks import normalise, split_blocks
     from ..map import create_map, open_map
     from ..map.format import check_volume
     from ..model import load_model
@@ -395,7 +395,7 @@ def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float],
     """Codes (and packed observation masks, or None) of up to ``SAMPLE_BLOCKS`` coded blocks of the input (a
     volume ``vol``, or the map ``src_map``), encoded as the map writer encodes them: the rate model's sample;
     and the number of blocks the map will code."""
-    from ..blocks import normalise, split_blocks
+    from ..core.blocks import normalise, split_blocks
     from ..map.format import free_space
     from ..map.observed import SURFACE_WEIGHT, encode_blocks, pack_mask
     from ..map.rate import SAMPLE_BLOCKS
@@ -426,7 +426,7 @@ def _check_quantised_options(codec: Any, step: Optional[float], target: Optional
     if step is None and target is None:
         return
     from ..map.rate import check_target
-    from ..quantize import check_quantisable, check_step
+    from ..core.quantize import check_quantisable, check_step
 
     if step is not None and target is not None:
         raise InvalidValueError("--step and --target-bytes both choose the step: pass one of them")
@@ -563,7 +563,7 @@ def mesh_cmd(
     refuse_existing(output, overwrite)
     import open3d as o3d
 
-    from ..fusion import mesh_from_blocks
+    from ..fusion.tsdf import mesh_from_blocks
     from ..map import open_map
 
     m = open_map(map_path)
@@ -620,7 +620,7 @@ def search_cmd(
         refuse_existing(out_dir, overwrite, files=("search.png", "expanded.ply"))
     check_device_flag(device)
     from ..search.cache import announce_builds, cache_dir
-    from ..search_cli import format_summary, search_command
+    from ..view.search import format_summary, search_command
 
     said: set[str] = set()
 
@@ -647,13 +647,13 @@ def search_cmd(
 def verify_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable report."),
-    # 4096 = sdfcodec.verify.DEFAULT_DECODE_BLOCKS (not imported here: --help stays light)
+    # 4096 = sdfcodec.map.verify.DEFAULT_DECODE_BLOCKS (not imported here: --help stays light)
     decode_blocks: int = typer.Option(4096, "--decode-blocks", min=0, help="Coded blocks to decode as a check "
                                       "(0: none; every other check still runs, and torch is never imported)."),
 ) -> None:
     """Check a map: header, every chunk's checksum, codec state digest, states against codes, a decode, and
     every object against the map's integrity manifest (and its signature)."""
-    from ..verify import verify_command
+    from ..map.verify import verify_command
 
     raise typer.Exit(verify_command(map_path, as_json, decode_blocks=decode_blocks))
 
@@ -669,7 +669,7 @@ def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="Th
     """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md).
 
     A volume ORIGINAL lies on DECODED's grid (its voxel size and origin) and is truncated as the map was."""
-    from ..surface import compare_command, metrics_rows, metrics_sentence, metrics_title
+    from ..evaluation.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
 
     volume = None
     if key is not None and Path(original).suffix != ".npz":

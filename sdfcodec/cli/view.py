@@ -34,7 +34,7 @@ def view_cmd(
     the selected blocks, with --trajectory the camera path (against --groundtruth). Positions in metres, the
     map's up (its header's, else +z) shown up. Needs rerun-sdk: pip install 'sdfcodec\\[view]'."""
     from ..errors import InputNotFoundError, InvalidValueError, MissingDependencyError
-    from ..view import require_rerun, write_recording
+    from ..view.recording import require_rerun, write_recording
 
     try:
         require_rerun()

@@ -36,15 +36,15 @@ def fuse_cmd(
     """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a map (lossless `raw` by default).
 
     SEQUENCE may be synthetic:PRESET (e.g. synthetic:building). With --working-set-mb the fusion is online and
-    memory-bounded (sdfcodec.online): blocks leave the working set into the map, encoded with --codec, and come
+    memory-bounded (sdfcodec.fusion.online): blocks leave the working set into the map, encoded with --codec, and come
     back when the camera returns. Otherwise transcode afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz`.
     """
     trunc = parse_truncation(truncation)  # before open3d and torch load: a reversed range is refused at once
     refuse_existing(output, overwrite, map_output=True)
-    from ..evaluation import resolve_sequence
-    from ..fusion import fuse
+    from ..evaluation.tracking import resolve_sequence
+    from ..fusion.tsdf import fuse
     from ..map import create_map
-    from ..online import fusion_codec, fuse_to_map
+    from ..fusion.online import fusion_codec, fuse_to_map
 
     sequence = str(resolve_sequence(sequence, Path(output).parent / ".sdfcodec-sequences"))
     codec = fusion_codec(codec_id, code_size)
@@ -100,7 +100,7 @@ def track_cmd(
 ) -> None:
     """Track a depth sequence against a (compressed) map from the ground-truth start pose; write TUM poses."""
     refuse_existing(output, overwrite)  # before the sequence is read and the map opened
-    from ..evaluation import track_command
+    from ..evaluation.tracking import track_command
 
     summary = track_command(map_path, sequence, output, level=level, device=device, cache_mb=cache_mb, dense=dense,
                             start=start, frames=frames, stride=stride,
@@ -147,7 +147,7 @@ def eval_cmd(
     refuse_existing(out_dir, overwrite, files=("eval.json", "eval.md"))
     if docs_dir is not None:
         refuse_existing(docs_dir, overwrite, files=("eval.json", "eval.md"))
-    from ..evaluation import eval_command, markdown_table
+    from ..evaluation.tracking import eval_command, markdown_table
 
     if any("=" not in m for m in model):
         fail(f"--model must look like ae-32=ae-32.npz, got {[m for m in model if '=' not in m]}")
@@ -189,7 +189,7 @@ def dataset_cmd(
     refuse_existing(output, overwrite, directory=True)  # build_dataset replaces only a data set
     from ..data.sampler import iter_windows
     from ..data.synthetic import synthetic_blocks
-    from ..dataset import build_dataset
+    from ..data.dataset import build_dataset
     from ..map import open_map
 
     window_kw = dict(stride=stride, truncation=trunc, max_mean=max_mean, empty_fraction=empty_fraction, seed=seed)
@@ -199,7 +199,7 @@ def dataset_cmd(
             yield synthetic_blocks(min(10_000, n - i), seed=seed + i, voxel_size=voxel_size, truncation=trunc)
 
     def fused(path: str):
-        from ..fusion import fuse
+        from ..fusion.tsdf import fuse
 
         yield from iter_windows(fuse(path, voxel_size=voxel_size, truncation=trunc, quiet=True).to_dense(),
                                 **window_kw)
@@ -233,7 +233,7 @@ def train_cmd(
     as_json: bool = json_option(),
 ) -> None:
     """Train a codec on a data set and save it as a model (.npz of plain arrays); report validation/test error."""
-    from ..dataset import open_dataset
+    from ..data.dataset import open_dataset
     from ..model import save_model
     from ..registry import get_codec
 
@@ -426,7 +426,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
 def _write_run(path: Path, doc: dict) -> None:
     import json
 
-    from .._atomic import write_file
+    from ..core._atomic import write_file
 
     text = json.dumps(doc, indent=1, default=str) + "\n"
     write_file(path, lambda tmp: tmp.write_text(text) and None, "writing the benchmark run")
@@ -494,7 +494,7 @@ def demo_cmd(
     pca-64 map for floors and expands only them, and tracks the sequence against every map (pca-64 on demand).
     """
     refuse_existing(out_dir, overwrite, files=("report.md", "results.json"))
-    from ..demo import run_demo
+    from ..demo.run import run_demo
 
     t0 = time.perf_counter()
     with heartbeat("demo", as_json):

@@ -4,7 +4,7 @@
 with rooms on both sides, every room joined to the corridor by a door (an opening in a 0.2 m thick wall, with
 a lintel above it) and, at random, to its neighbour on the same side; a floor slab and a ceiling slab over
 everything; furniture-like boxes and cylinders along the rooms' walls, clear of the doors and of the middle of
-each room, where the camera loops. Everything is a :mod:`sdfcodec.sdf` primitive (Box, Cylinder), so the scene
+each room, where the camera loops. Everything is a :mod:`sdfcodec.core.sdf` primitive (Box, Cylinder), so the scene
 is a :class:`~sdfcodec.data.render.RoomScene` (exact SDF, labels, a mesh for the ray caster, ``scene.json``).
 
 :func:`building_path` walks it: along the corridor's centre line, into each room through its door (south
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidValueError
-from ..sdf import Box, Cylinder
+from ..core.sdf import Box, Cylinder
 
 __all__ = ["BuildingLayout", "Room", "BUILDINGS", "building_scene", "building_path", "building_sequence"]
 

@@ -5,13 +5,13 @@ so that no part of it needs to fit in memory and nothing is downloaded.
 The building is a lattice of rooms ``cell`` metres apart (``rooms`` per axis, the z axis being storeys):
 walls and floor slabs ``wall`` metres thick on the lattice planes, a door in every wall (0.9 x 2.1 m, centred
 in the wall), and in every room one box of furniture whose size and place come from the room's index and the
-seed (numpy's ``default_rng(seed)``, drawn once for all rooms). Distances are those of :mod:`sdfcodec.sdf`'s
+seed (numpy's ``default_rng(seed)``, drawn once for all rooms). Distances are those of :mod:`sdfcodec.core.sdf`'s
 primitives, combined as a union (minimum) and a door cut (maximum with the door's negated distance): exact
 outside the solid wherever one primitive is nearest, a lower bound of the true distance elsewhere, truncated
 to ``[d_min, d_max]`` like any fused map.
 
 :class:`OfficeVolume` is a picklable, sliceable array (``shape``, ``dtype``, ``volume[x0:x1, y0:y1, z0:z1]``), so
-``dask.array.from_array`` and :func:`sdfcodec.scale.as_dask_volume` read it chunk by chunk on any worker.
+``dask.array.from_array`` and :func:`sdfcodec.map.scale.as_dask_volume` read it chunk by chunk on any worker.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Synthetic RGB-D sequences of an analytic room: the project's built-in data, nothing downloaded.
 
-A room is a union of exact primitives from :mod:`sdfcodec.sdf` (floor, walls and optional ceiling as thick
+A room is a union of exact primitives from :mod:`sdfcodec.core.sdf` (floor, walls and optional ceiling as thick
 slabs, furniture as boxes, cylinders and balls), so its signed distance is known everywhere that matters:
 the union's distance (the minimum) is exact outside all solids, i.e. in the whole free space a camera sees.
 The same primitives are also built as an open3d triangle mesh, which :class:`Renderer` ray casts with
@@ -54,8 +54,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InvalidValueError, MapExistsError, MissingDependencyError
-from ..metrics import Trajectory, write_tum
-from ..sdf import Box, Cylinder, Plane, Scene, Sphere
+from ..core.metrics import Trajectory, write_tum
+from ..core.sdf import Box, Cylinder, Plane, Scene, Sphere
 from .sequences import TUM_DEPTH_SCALE, Intrinsics, write_depth_png
 
 __all__ = [
@@ -183,7 +183,7 @@ class RoomScene:
     Attributes
     ----------
     primitives : list
-        :mod:`sdfcodec.sdf` primitives (Box, Cylinder, Sphere); the room is their union.
+        :mod:`sdfcodec.core.sdf` primitives (Box, Cylinder, Sphere); the room is their union.
     labels : list of str
         One of :data:`LABELS` per primitive.
     size : tuple of float
@@ -203,7 +203,7 @@ class RoomScene:
 
     @property
     def sdf(self) -> Scene:
-        """The union as a :class:`sdfcodec.sdf.Scene` (callable on ``(..., 3)`` points, metres)."""
+        """The union as a :class:`sdfcodec.core.sdf.Scene` (callable on ``(..., 3)`` points, metres)."""
         return Scene(list(self.primitives))
 
     def __call__(self, points: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from typing import Iterator, Sequence
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from ..blocks import BLOCK, check_truncation, normalise
+from ..core.blocks import BLOCK, check_truncation, normalise
 from ..errors import DTypeError, InvalidValueError, ShapeError
 
 __all__ = ["PERMUTATIONS", "window_origins", "sample_windows", "iter_windows"]
@@ -104,7 +104,7 @@ def iter_windows(volumes, *, stride: int = 8, truncation: tuple[float, float] = 
     stride : int
         Step between window origins in voxels (the paper: 8).
     truncation : (float, float)
-        ``(d_min, d_max)`` in metres; values are mapped to ``[0, 1]`` with :func:`sdfcodec.blocks.normalise`.
+        ``(d_min, d_max)`` in metres; values are mapped to ``[0, 1]`` with :func:`sdfcodec.core.blocks.normalise`.
     permute : bool
         Also emit the 5 axis permutations of each window (the paper's "reflections"); False gives only the
         windows as they are.

@@ -59,9 +59,9 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError, MissingDependencyError, OutOfRangeError, SDFCodecWarning
 
-# one implementation of trajectories, TUM files and rotations for the whole package: sdfcodec.metrics
+# one implementation of trajectories, TUM files and rotations for the whole package: sdfcodec.core.metrics
 # (re-exported here because sequences carry their ground truth as a Trajectory)
-from ..metrics import Trajectory, check_pose, matrix_to_quaternion, quaternion_to_matrix, read_tum
+from ..core.metrics import Trajectory, check_pose, matrix_to_quaternion, quaternion_to_matrix, read_tum
 
 __all__ = [
     "Intrinsics",

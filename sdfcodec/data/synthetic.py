@@ -4,18 +4,18 @@ Section IV-A of the paper trains on 16^3 blocks sampled from randomly parametris
 primitives of a few shape categories. This module generates them with exact signed distances:
 
 ``"cuboid"``
-    A solid box (:class:`~sdfcodec.sdf.Box`). A block usually sees only part of it, so planes, convex edges
+    A solid box (:class:`~sdfcodec.core.sdf.Box`). A block usually sees only part of it, so planes, convex edges
     and convex corners all appear as fragments of cuboids, as the paper intends.
 ``"cylinder"``
-    A barrel-like solid of revolution (:class:`~sdfcodec.sdf.Barrel`) for curved convex edges: half of them
+    A barrel-like solid of revolution (:class:`~sdfcodec.core.sdf.Barrel`) for curved convex edges: half of them
     are straight capped cylinders, the other half bulge along a circular-arc profile (the radius shrinks from
     the middle to the caps by 5-35 % of the smaller of the middle radius and the half height). The
     distance is exact (closed form), not an approximation.
 ``"concave"``
-    A concave room corner (:class:`~sdfcodec.sdf.ConcaveCorner`): the free space is an octant (floor and
+    A concave room corner (:class:`~sdfcodec.core.sdf.ConcaveCorner`): the free space is an octant (floor and
     two walls, 3 planes) or a quadrant wedge (two walls, the concave 2-plane edge), half each.
 ``"plane"``
-    A half-space (:class:`~sdfcodec.sdf.Plane`).
+    A half-space (:class:`~sdfcodec.core.sdf.Plane`).
 
 Pose. Each shape gets a rotation drawn uniformly over SO(3) (``scipy.spatial.transform.Rotation.random``
 with the seeded generator) and a displacement chosen so that its surface passes through the block: a
@@ -30,7 +30,7 @@ size: cuboid half extents and barrel half heights are log-uniform in [2, 32] vox
 [2, 24] voxels. Truncation stays in metres.
 
 Coordinates: voxel ``(i, j, k)`` of a block is at ``voxel_size * (i, j, k)`` metres (the convention of
-:func:`sdfcodec.sdf.grid_points`), so :func:`synthetic_shapes` returns primitives that reproduce each
+:func:`sdfcodec.core.sdf.grid_points`), so :func:`synthetic_shapes` returns primitives that reproduce each
 block exactly when sampled with ``sample_volume(shape.sdf, (16, 16, 16), voxel_size)``.
 """
 
@@ -42,9 +42,9 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..blocks import BLOCK, check_truncation, normalise
+from ..core.blocks import BLOCK, check_truncation, normalise
 from ..errors import InvalidValueError, SamplingError
-from ..sdf import Barrel, Box, ConcaveCorner, Plane, grid_points
+from ..core.sdf import Barrel, Box, ConcaveCorner, Plane, grid_points
 
 __all__ = ["CATEGORIES", "SyntheticShape", "synthetic_blocks", "synthetic_shapes"]
 
@@ -102,7 +102,7 @@ def synthetic_blocks(n: int, *, seed: int = 0, voxel_size: float = 0.02,
         Voxel edge in metres (``> 0``).
     truncation : (float, float)
         ``(d_min, d_max)`` in metres, with ``d_min < 0 < d_max``; distances are clipped to it and then mapped
-        to ``[0, 1]`` with :func:`sdfcodec.blocks.normalise` (free space 1.0).
+        to ``[0, 1]`` with :func:`sdfcodec.core.blocks.normalise` (free space 1.0).
     categories : sequence of str, or str
         Which of :data:`CATEGORIES` to draw from (distinct names; one name alone is allowed).
     weights : sequence of float, optional

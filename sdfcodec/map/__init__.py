@@ -2,7 +2,7 @@
 
 ::
 
-    <map>/zarr.json            group; attribute "sdfcodec" = the header (sdfcodec.header.MapHeader)
+    <map>/zarr.json            group; attribute "sdfcodec" = the header (sdfcodec.core.header.MapHeader)
     <map>/codes                (Bx, By, Bz, D) float32|float16|int8|int16 code vectors, chunked (c, c, c, chunk_code)
     <map>/code_scale           (Bx, By, Bz, 2) float32 [offset, scale] per block, int8 codes only (spec 4a)
     <map>/state                (Bx, By, Bz) uint8 block state (0 unobserved, 1 empty, 2 coded)
@@ -11,13 +11,13 @@
 Every chunk is Blosc/zstd-compressed and carries a CRC32C checksum (Zarr's ``crc32c`` codec). A map is
 written (or, by :func:`update_map`, copied and changed) in a hidden sibling directory and swapped into place
 on commit, so an interrupted write leaves the previous map (or none), never half of one; readers hold the
-version they opened, so a swap never mixes two versions under them (``sdfcodec._atomic``, spec section 9).
+version they opened, so a swap never mixes two versions under them (``sdfcodec.core._atomic``, spec section 9).
 
 Maps are untrusted input: opening one never runs code from it (codec ids resolve only to installed entry
 points, array codecs come from a fixed list, nothing is unpickled), and every size the header or the array
 metadata names is checked against ``max_decode_bytes`` before anything that large is allocated.
 
-One job per module: :mod:`~sdfcodec.map.stores` (the stores a map is read through),
+One job per module: :mod:`~sdfcodec.map.io.stores` (the stores a map is read through),
 :mod:`~sdfcodec.map.format` (array and input checks, digests, layout), :mod:`~sdfcodec.map.reader`
 (:class:`MapReader`: codes, states, the decode pipeline), :mod:`~sdfcodec.map.writer` (:class:`MapWriter`:
 create, update, commit) and :mod:`~sdfcodec.map.facade` (:class:`Map` and the functions below).
@@ -25,7 +25,7 @@ create, update, commit) and :mod:`~sdfcodec.map.facade` (:class:`Map` and the fu
 
 from __future__ import annotations
 
-from .._lazy import lazy_exports
+from ..core._lazy import lazy_exports
 
 __all__ = ["Map", "open_map", "create_map", "update_map", "state_digest", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES",
            "MapReader", "MapWriter"]

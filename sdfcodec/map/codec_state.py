@@ -16,7 +16,7 @@ import numpy as np
 from ..codec import Codec
 from ..errors import (ChecksumError, FormatError, InvalidValueError, ModelNotFoundError, SDFCodecError,
                       StateReferenceError)
-from ..header import StateReference
+from ..core.header import StateReference
 from ..registry import describe_shipped, get_codec_class, list_codecs
 
 if TYPE_CHECKING:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .._lazy import lazy_module
+from ..core._lazy import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 

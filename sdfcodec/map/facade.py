@@ -15,15 +15,15 @@ import numpy as np
 import zarr
 import zarr.abc.store
 
-from .._lazy import lazy_module
-from .._validate import BLOCK
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
-from ..header import MapHeader
+from ..core.header import MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
-from .stores import PinnedStore
+from .io.stores import PinnedStore
 from .summary import summarize
 from .varrate import VariableRateWriter
 from .writer import LOCK_TIMEOUT, MapWriter, create_writer, update_writer
@@ -121,7 +121,7 @@ class Map:
 
     # -- reading --------------------------------------------------------------------------------------
     def block_states(self) -> np.ndarray:
-        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
+        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.core.header.BlockState`)."""
         return self.reader.block_states()
 
     def count_states(self) -> dict[str, int]:
@@ -154,7 +154,7 @@ class Map:
         :meth:`to_dask`): the chunks holding coded blocks are grouped (consecutive chunks until they hold about
         ``batch_blocks`` blocks, capped by ``max_decode_bytes``); while the calling thread decodes one group
         in a single batched call, ``prefetch`` worker threads fetch the next groups (each group's chunks
-        concurrently: a local map's decoded by a few threads straight into the batch, :mod:`sdfcodec.map.fastfetch`;
+        concurrently: a local map's decoded by a few threads straight into the batch, :mod:`sdfcodec.map.io.fastfetch`;
         HTTP, S3 and zip through Zarr's async I/O), decompress them and, when
         ``device`` is CUDA, copy their codes into pinned host memory and start the host-to-device copy on a
         side stream (non-blocking), so transfers overlap decoding. Empty and unobserved blocks are not
@@ -194,8 +194,8 @@ class Map:
         """A lazy dask array of the decoded map: shape :attr:`shape_voxels`, float32 metres (``d_max`` where no
         block is coded), one dask chunk per chunk of the code array (``16 * chunk_blocks`` voxels per axis),
         each decoded on demand by :meth:`decode_region`. It pickles (a worker process reopens the map by its
-        path or URL), so it computes on a ``dask.distributed`` cluster. See :func:`sdfcodec.scale.map_to_dask`."""
-        from ..scale import map_to_dask  # dask is imported only by those who use it
+        path or URL), so it computes on a ``dask.distributed`` cluster. See :func:`sdfcodec.map.scale.map_to_dask`."""
+        from .scale import map_to_dask  # dask is imported only by those who use it
 
         return map_to_dask(self, level=level)
 
@@ -275,11 +275,11 @@ class Map:
 
         A dask array (e.g. ``dask.array.from_zarr`` of a volume larger than memory) is encoded chunk by chunk by
         dask's scheduler, or a ``dask.distributed`` cluster if a client is active, each task writing its chunks
-        of codes into this map's temporary directory (:func:`sdfcodec.scale.write_volume_dask`).
+        of codes into this map's temporary directory (:func:`sdfcodec.map.scale.write_volume_dask`).
         """
         w = self.writer
         if is_dask_array(volume):
-            from ..scale import write_volume_dask
+            from .scale import write_volume_dask
 
             if self.header.residual is not None:
                 raise InvalidValueError(f"{self.location} has a residual stage (--max-error/--sign-exact), which the "
@@ -429,7 +429,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             sdfcodec 0.2 refuse such maps by the extension they require), or ``"int16"``: codes quantised with
             one step per map (``code_step``: one number, or one per code element; ``code_offset``: optional,
             default 0) and entropy-coded, ``|error| <= step / 2`` per element (spec section 4b; codecs with
-            orthonormal codes only, :data:`sdfcodec.quantize.UNIFORM_STEP_CODECS`).
+            orthonormal codes only, :data:`sdfcodec.core.quantize.UNIFORM_STEP_CODECS`).
         chunk_blocks, chunk_code: chunk shape (blocks per axis, code elements); sensible defaults.
         shard_blocks: store the chunks of codes in Zarr shards of this many blocks per axis (a multiple of
             ``chunk_blocks`` that divides 64, e.g. 32 or 64): objects of megabytes instead of one file per chunk,

@@ -30,7 +30,7 @@ from zarr.codecs import Crc32cCodec
 from zarr.core.buffer import Buffer, NDBuffer
 
 from ..errors import ChecksumError, FormatError, InvalidValueError, MissingDependencyError
-from ..header import BlockState, FieldCompression
+from ..core.header import BlockState, FieldCompression
 
 __all__ = ["SZ3_ZARR_CODEC", "SZ3Field", "sz3_compress", "sz3_decompress", "field_compressors", "field_of",
            "chunks_of", "compress_codes", "refuse_update", "check_field_pipeline", "sz3_version", "MIN_MAX_ERROR",

@@ -15,14 +15,14 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, ZstdCodec
 
-from .._lazy import lazy_module
-from ..blocks import DECODE_LIMIT, check_truncation  # DECODE_LIMIT: defined beside the truncation check
+from ..core._lazy import lazy_module
+from ..core.blocks import DECODE_LIMIT, check_truncation  # DECODE_LIMIT: defined beside the truncation check
 from ..codec import FINITE_BOUND, Codec  # FINITE_BOUND: defined where the codec checks its own decodes
 from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning, ShapeError
-from ..header import CodeQuantisation, CodesSpec, FieldCompression
-from ..quantize import dequantise_step, dequantize_codes
+from ..core.header import CodeQuantisation, CodesSpec, FieldCompression
+from ..core.quantize import dequantise_step, dequantize_codes
 from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
-from .shards import check_sharding
+from .io.shards import check_sharding
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -136,7 +136,7 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     Returns:
         ``(chunk_bytes, blosc_frame, per_object)``: the decoded size of one chunk, whether a stored chunk is one
         Blosc frame followed by its CRC32C (the writers' chain; then the frame can be checked unread,
-        :class:`~sdfcodec.map.stores.GuardStore`), and the chunks one stored object holds (1; a shard's
+        :class:`~sdfcodec.map.io.stores.GuardStore`), and the chunks one stored object holds (1; a shard's
         chunks when the array is sharded).
 
     ``field``: the header's ``codes.field_compression`` when ``arr`` is a field-compressed ``codes`` array (spec

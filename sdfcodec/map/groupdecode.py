@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._lazy import lazy_module
-from .._validate import BLOCK, empty
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK, empty
 from ..codec import decodes_tiles, plugin_calls
 from ..errors import InvalidValueError
 from .format import DECODE_LIMIT, check_decoded

@@ -15,9 +15,9 @@ from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
-from .._validate import BLOCK
+from ..core._validate import BLOCK
 from ..errors import InvalidValueError
-from ..header import BlockState, CodesSpec
+from ..core.header import BlockState, CodesSpec
 
 __all__ = ["Box", "chunk_groups", "prefetched"]
 

@@ -7,7 +7,7 @@ moved to another key (two chunks swapped, along the block axes or the code axis)
 recomputed, a shard index entry pointing at another chunk, or a server sending another map's objects under the
 right names: each of those is a sound object in the wrong place. The manifest binds each object's bytes to its
 key, so a reader refuses any of them (:meth:`Manifest.check`, called by
-:class:`~sdfcodec.map.stores.GuardStore` on every read, the fast local path included), and ``verify`` checks
+:class:`~sdfcodec.map.io.stores.GuardStore` on every read, the fast local path included), and ``verify`` checks
 every listed object and that nothing stored is unlisted. It does not say who wrote the map: anyone who can
 rewrite the map can rewrite the manifest and the header too; a signature over the header
 (:mod:`sdfcodec.map.signing`) does.
@@ -34,8 +34,8 @@ import numpy as np
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 
 from ..errors import FormatError, IntegrityError
-from ..header import MAX_MANIFEST_BYTES, ManifestRef
-from .shards import index_size
+from ..core.header import MAX_MANIFEST_BYTES, ManifestRef
+from .io.shards import index_size
 
 __all__ = ["manifest_bytes_estimate", "MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
            "load_manifest", "sha256_hex", "set_check_default", "check_default", "object_problems",
@@ -224,7 +224,7 @@ def build_manifest(root: str | os.PathLike, reuse: Callable[[str, os.stat_result
 
     Raises:
         OSError: a file could not be read (the writer turns it into WriteFailedError).
-        InvalidValueError: the manifest would exceed :data:`~sdfcodec.header.MAX_MANIFEST_BYTES`.
+        InvalidValueError: the manifest would exceed :data:`~sdfcodec.core.header.MAX_MANIFEST_BYTES`.
     """
     from ..errors import InvalidValueError
 
@@ -304,7 +304,7 @@ def load_manifest(read: Callable[[str, int], bytes | None], ref: ManifestRef | N
 
 def _stored_keys(store: Any) -> list[str] | None:
     """Every key a local directory or zip map stores (None for stores that cannot be listed: remote maps)."""
-    from .stores import SafeLocalStore, SafeZipStore, unguarded
+    from .io.stores import SafeLocalStore, SafeZipStore, unguarded
 
     inner = unguarded(store)
     if isinstance(inner, SafeZipStore):
@@ -320,7 +320,7 @@ def _stored_keys(store: Any) -> list[str] | None:
 
 
 def object_problems(store: Any, manifest: Manifest, *, listing: bool = True, limit: int = 1000) -> list[str]:
-    """Every way the objects of the map behind ``store`` (a :class:`~sdfcodec.map.stores.GuardStore` checking
+    """Every way the objects of the map behind ``store`` (a :class:`~sdfcodec.map.io.stores.GuardStore` checking
     against ``manifest``) differ from it: each listed object read and checked (a shard's index and chunks too),
     and with ``listing`` each stored object the manifest does not list (local and zip maps). At most
     ``limit`` problems are collected."""
@@ -384,7 +384,7 @@ def write_manifest(root: str | os.PathLike, reuse: Callable[[str, os.stat_result
     """Write the manifest of the map directory ``root`` (a writer's temporary copy, complete but for its root
     document) as ``manifest.json`` there, dropping a signature copied from the previous version (it signed
     that version); returns the header's record of it."""
-    from .. import _atomic
+    from ..core import _atomic
 
     root = Path(root)
     sig = root / SIGNATURE_KEY

@@ -29,11 +29,11 @@ from typing import Any
 import numpy as np
 import zarr
 
-from .._lazy import lazy_module
-from .._validate import BLOCK
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK
 from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
-from ..header import BlockState
+from ..core.header import BlockState
 from .format import mask_compressors
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it

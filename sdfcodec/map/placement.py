@@ -16,8 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .._lazy import lazy_module
-from .._validate import BLOCK, empty
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK, empty
 from ..errors import InvalidValueError
 
 torch = lazy_module("torch")  # imported on first use: reading a header never needs it

@@ -19,7 +19,7 @@ import numpy as np
 from zarr.core.sync import sync as zarr_sync
 
 from ..errors import FormatError
-from .shards import storage_shape
+from .io.shards import storage_shape
 
 __all__ = ["state_chunk_regions", "check_state_chunks", "MAX_PROBES"]
 

@@ -24,7 +24,7 @@ import numcodecs
 import numpy as np
 
 from ..errors import InvalidValueError
-from ..quantize import RateModel, fit_rate_model, step_for_bytes
+from ..core.quantize import RateModel, fit_rate_model, step_for_bytes
 from .format import QUANT_CLEVEL
 from .observed import MASK_ARRAY
 from .residual import RESIDUAL_ARRAY
@@ -57,7 +57,7 @@ def _blosc_bytes(rows: np.ndarray, chunk_rows: int, codec: numcodecs.abc.Codec) 
 
 
 def codes_rate_model(codes: np.ndarray, chunk_code: int, chunk_blocks: int) -> RateModel:
-    """:class:`~sdfcodec.quantize.RateModel` of sample codes ``(n, k)`` stored as int16 in chunks of
+    """:class:`~sdfcodec.core.quantize.RateModel` of sample codes ``(n, k)`` stored as int16 in chunks of
     ``chunk_blocks`` ^ 3 blocks by ``chunk_code`` elements (the sample's blocks packed densely: a sparse map's
     chunks hold zeros between coded blocks too, which bit shuffle and zstd store almost for free)."""
     blosc = numcodecs.Blosc("zstd", QUANT_CLEVEL, numcodecs.Blosc.BITSHUFFLE)

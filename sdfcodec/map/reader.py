@@ -1,7 +1,7 @@
 """The map reader: :class:`MapReader` reads one open map's header-checked arrays (the codes of a region or a
 level, block states, fusion weights), loads its codec, and decodes through the streaming pipeline to blocks
 or dense voxels. :class:`sdfcodec.Map` is a thin facade over it; ``MapField``, search, verify and the dask
-path (``sdfcodec.scale``) call it directly as ``Map.reader``.
+path (``sdfcodec.map.scale``) call it directly as ``Map.reader``.
 
 Maps are untrusted input: opening one never runs code from it, and every size the header or the array
 metadata names is checked against ``max_decode_bytes`` before anything that large is allocated. A coded block
@@ -23,12 +23,12 @@ import zarr
 import zarr.abc.store
 from zarr.core.sync import sync as zarr_sync
 
-from .._lazy import lazy_module
-from .._validate import BLOCK, check_device, empty, output_buffer
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK, check_device, empty, output_buffer
 from ..codec import Codec
 from ..errors import (ChecksumError, FormatError, IntegrityError, InvalidValueError, MapNotFoundError, RemoteReadError,
                       SDFCodecError)
-from ..header import BlockState, MapHeader, parse_header
+from ..core.header import BlockState, MapHeader, parse_header
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
                      check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
 from .groupdecode import decode_group
@@ -38,11 +38,11 @@ from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
 from .residual import check_residual_stored, checked_residual_array
-from .stores import GuardStore, PinnedStore, open_store, unguarded
+from .io.stores import GuardStore, PinnedStore, open_store, unguarded
 from .weights import checked_weights_array
 from .device_feed import DeviceFeed
-from .fastfetch import local_chunks
-from .shards import chunk_name, chunk_stored, shard_layout
+from .io.fastfetch import local_chunks
+from .io.shards import chunk_name, chunk_stored, shard_layout
 from .varrate import VariableRateReader, decode_runs, prefix_lengths
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
@@ -211,7 +211,7 @@ class MapReader:
     def read_many(self, arr: zarr.Array, sels: Sequence[tuple]) -> list[np.ndarray]:
         """Read ``arr[sel]`` for every selection concurrently (one batch of Zarr's async I/O: the chunks are
         fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`. A local
-        map's chunks are read without Zarr (:mod:`~sdfcodec.map.fastfetch`); one failing there is read again
+        map's chunks are read without Zarr (:mod:`~sdfcodec.map.io.fastfetch`); one failing there is read again
         through Zarr, whose error names it as :meth:`read` does."""
         for sel in sels:
             self._check_read(arr, sel)
@@ -294,7 +294,7 @@ class MapReader:
         return ", ".join(bad[:5]) + (" and more" if len(bad) > 5 else "")
 
     def block_states(self) -> np.ndarray:
-        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.header.BlockState`)."""
+        """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.core.header.BlockState`)."""
         if self.live is not None:
             return self.live.state.copy()
         return self._valid_states(self.read(self.state_array, (slice(None),) * 3), (slice(None),) * 3)
@@ -397,7 +397,7 @@ class MapReader:
     # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
     # to_dask, the tracker's map field): the chunks of the code array that hold coded blocks of a block box are
     # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently: a local
-    # map's by sdfcodec.map.fastfetch's decoding threads, others through Zarr's async I/O) and stages codes for the
+    # map's by sdfcodec.map.io.fastfetch's decoding threads, others through Zarr's async I/O) and stages codes for the
     # device (pinned host memory + an asynchronous copy on CUDA) while the calling thread decodes the current
     # group in one batched call.
 

@@ -11,7 +11,7 @@ truncation. The codes stay as they are, so they still work as search descriptors
   with ``--sign-exact`` too (then a lattice point within the bound with the right sign always exists).
   The margin absorbs the float32 differences of the codec's decode between devices and batch sizes.
 * ``--sign-exact``: every observed voxel touching a surface crossing of the input (an edge of
-  :func:`sdfcodec.surface.crossing_edges` with both voxels observed) whose decode has the wrong sign is moved
+  :func:`sdfcodec.core.surface.crossing_edges` with both voxels observed) whose decode has the wrong sign is moved
   to the nearest lattice point with the right sign (within ``[-step, step)`` of 0). Crossings are found among
   the blocks of one write call (neighbouring blocks written in separate calls do not see each other's edges).
 
@@ -29,12 +29,12 @@ import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec
 from zarr.core.sync import sync as zarr_sync
 
-from .._lazy import lazy_module
-from .._validate import BLOCK
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK
 from ..errors import FormatError, InvalidValueError
-from ..header import CodesSpec, ResidualSpec
-from ..quantize import quantise_step, quantize_codes
-from ..surface import JUMP, crossing_edges
+from ..core.header import CodesSpec, ResidualSpec
+from ..core.quantize import quantise_step, quantize_codes
+from ..core.surface import JUMP, crossing_edges
 from .format import code_values
 
 torch = lazy_module("torch")  # imported on first use: reading a header never needs it
@@ -127,7 +127,7 @@ def _face(blocks: np.ndarray, ax: int, index: int) -> tuple:
 def crossing_voxels(coords: np.ndarray, blocks: np.ndarray, observed: np.ndarray | None,
                     jump: float = JUMP) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: the voxels of blocks ``blocks`` ``(n, 16, 16, 16)`` float32 metres at block indices
-    ``coords`` ``(n, 3)`` that touch a surface crossing (:func:`~sdfcodec.surface.crossing_edges`) whose two voxels
+    ``coords`` ``(n, 3)`` that touch a surface crossing (:func:`~sdfcodec.core.surface.crossing_edges`) whose two voxels
     are observed (``observed`` ``(n, 16, 16, 16)`` bool; None: all), inside a block or across the face of two of
     these blocks."""
     obs = np.ones(blocks.shape, bool) if observed is None else observed

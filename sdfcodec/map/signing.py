@@ -19,12 +19,12 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
-from .. import _atomic
+from ..core import _atomic
 from ..errors import (FormatError, InputNotFoundError, IntegrityError, InvalidValueError, MapExistsError,
                       MissingDependencyError, SDFCodecError, SignatureError, WriteFailedError)
-from ..header import MapHeader
+from ..core.header import MapHeader
 from .manifest import SIGNATURE_KEY, Manifest, load_manifest, sha256_hex
-from .stores import MAX_METADATA_BYTES, GuardStore, is_url
+from .io.stores import MAX_METADATA_BYTES, GuardStore, is_url
 
 __all__ = ["keygen", "load_public_key", "load_private_key", "key_id", "sign_map", "check_trust",
            "signature_status", "set_trust_defaults", "trust_default", "protect", "MAX_SIGNATURE_BYTES"]

@@ -8,9 +8,9 @@ map directory, with the same header parser and the same CRC32C check Zarr applie
 certain (a zip, a URL, a symbolic link anywhere on its way (it opens every path component without
 following one), a codec pipeline other than the ``bytes`` + Blosc + ``crc32c`` that sdfcodec writes, a checksum
 that does not match or a Blosc frame whose structure does not hold (the guarded store's own checks,
-:mod:`~sdfcodec.map.frames`), an array whose shape disagrees with the header) makes it return None, and the caller reads
+:mod:`~sdfcodec.map.io.frames`), an array whose shape disagrees with the header) makes it return None, and the caller reads
 the map the ordinary way, which gives the canonical answer or error. It never writes and never runs code from
-the map; a header with an unknown required extension is refused by :func:`~sdfcodec.header.parse_header` as on
+the map; a header with an unknown required extension is refused by :func:`~sdfcodec.core.header.parse_header` as on
 the ordinary path.
 """
 
@@ -26,12 +26,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .._atomic import pin_dir, release_pin
-from .._validate import BLOCK
-from ..header import BlockState, MapHeader, parse_header
+from ..core._atomic import pin_dir, release_pin
+from ..core._validate import BLOCK
+from ..core.header import BlockState, MapHeader, parse_header
 from ..errors import FormatError
-from .frames import blosc_frame_problem, crc32c_matches
-from .metadata_limits import check_metadata_size
+from .io.frames import blosc_frame_problem, crc32c_matches
+from .io.metadata_limits import check_metadata_size
 
 __all__ = ["summarize", "local_info", "dir_bytes", "integrity_line"]
 

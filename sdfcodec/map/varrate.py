@@ -4,7 +4,7 @@ with rate control: a step, a byte budget or an error bound), and the reader's de
 into dequantised float codes, zero beyond each block's prefix (:class:`VariableRateReader`).
 
 While a map is written its ``codes`` array holds the writer's full-precision float32 codes and a temporary array
-the per-block gains (:func:`sdfcodec.varrate.gains`); on commit both are replaced by the array ``code_streams``
+the per-block gains (:func:`sdfcodec.core.varrate.gains`); on commit both are replaced by the array ``code_streams``
 ``(Cx, Cy, Cz, L)`` uint8, one row per chunk of ``codes`` (a chunk of ``chunk_blocks`` ^ 3 blocks): a little-endian
 uint32 word count ``W``, then ``W`` little-endian uint32 words of the chunk's rANS stream, zeros after. The
 ``codes`` array keeps its metadata and no chunk. The pass holds the map's codes and gains in memory (512 bytes
@@ -18,12 +18,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .._lazy import lazy_module
-from .._validate import BLOCK
+from ..core._lazy import lazy_module
+from ..core._validate import BLOCK
 from ..errors import FormatError, InvalidValueError
-from ..header import BlockState, VariableRate
-from ..varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
-                       stream_bytes)
+from ..core.header import BlockState, VariableRate
+from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
+                            stream_bytes)
 from .observed import error_weights, read_block_rows, write_block_rows
 
 torch = lazy_module("torch")
@@ -47,7 +47,7 @@ _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, byte
 
 def check_variable_rate(codec: Any) -> None:
     """Refuse a codec whose codes a prefix does not decode (variable-rate codes drop each block's tail)."""
-    from ..quantize import check_quantisable
+    from ..core.quantize import check_quantisable
 
     check_quantisable(codec)
     if not getattr(codec, "prefix_ordered", False):
@@ -94,7 +94,7 @@ class VariableRateWriter:
     encoded (gains, a sample), ``finish`` on commit. Exactly one of ``step`` (metres-free: normalised code
     units, one number or one per element), ``target_bytes`` (per coded block, every file of the map counted) and
     ``target_error`` (metres, :func:`surface_error` on the sample) chooses the step; ``lagrange`` scales the
-    Lagrange multiplier (:data:`sdfcodec.varrate.LAGRANGE`)."""
+    Lagrange multiplier (:data:`sdfcodec.core.varrate.LAGRANGE`)."""
 
     def __init__(self, codec: Any, *, step: Any = None, target_bytes: float | None = None,
                  target_error: float | None = None, lagrange: float = LAGRANGE):
@@ -107,7 +107,7 @@ class VariableRateWriter:
                 raise InvalidValueError(f"the {name} must be a finite number > 0, got {val!r}")
         self.codec, self.d = codec, codec.code_size
         if step is not None:
-            from ..quantize import check_step
+            from ..core.quantize import check_step
             step = check_step(step, self.d)
         self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
         self.lagrange = float(lagrange)

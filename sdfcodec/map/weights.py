@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import zarr
 
-from .._atomic import remove_tree
+from ..core._atomic import remove_tree
 from ..errors import FormatError
-from ..header import Extension
+from ..core.header import Extension
 from .format import compressors
 
 __all__ = ["WEIGHTS_ARRAY", "WEIGHTS_EXTENSION", "QUANT_WEIGHTS_EXTENSION", "WEIGHT_LEVELS", "weights_mode",

@@ -1,8 +1,8 @@
 """The map writer: :class:`MapWriter` holds a map being written in its hidden temporary directory (a new map
 from :func:`create_writer`, or a copy of the current version from :func:`update_writer`), encodes volumes and
 blocks into it, and commits it into place atomically (or aborts, leaving the previous map untouched;
-``sdfcodec._atomic``, spec section 9). :class:`sdfcodec.Map` is the facade users write through; the dask
-encoder (``sdfcodec.scale``) writes chunks into :attr:`MapWriter.tmp` with :func:`store_code_chunk`.
+``sdfcodec.core._atomic``, spec section 9). :class:`sdfcodec.Map` is the facade users write through; the dask
+encoder (``sdfcodec.map.scale``) writes chunks into :attr:`MapWriter.tmp` with :func:`store_code_chunk`.
 """
 
 from __future__ import annotations
@@ -19,20 +19,21 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import zarr
 
-from .._lazy import lazy_module
-from .. import __version__, _atomic
-from .._validate import BLOCK, as_float_tensor, check_device, check_weights
-from ..blocks import check_truncation, normalise, split_blocks
+from ..core._lazy import lazy_module
+from .. import __version__
+from ..core import _atomic
+from ..core._validate import BLOCK, as_float_tensor, check_device, check_weights
+from ..core.blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, QUANT_EXTENSION,
-                      RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
-                      VARIABLE_RATE_EXTENSION,
-                      BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
-                      VariableRate,
-                      now_iso)
-from ..quantize import check_quantisable, check_step, quantise_step, quantize_codes
+from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, QUANT_EXTENSION,
+                           RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
+                           VARIABLE_RATE_EXTENSION,
+                           BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
+                           VariableRate,
+                           now_iso)
+from ..core.quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
@@ -44,8 +45,8 @@ from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
 from .manifest import manifest_bytes_estimate, previous_digests, write_manifest
-from .shards import pack_shards, unpack_shards
-from .stores import MAX_METADATA_BYTES, CowLocalStore, is_url
+from .io.shards import pack_shards, unpack_shards
+from .io.stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 from .varrate import GAIN_ARRAY, STREAM_ARRAY, STREAM_METADATA_BYTES, VariableRateWriter, stream_chunk_keys
 from .weights import WEIGHTS_ARRAY, finish_weights, quantise_weights, weights_mode
 
@@ -230,7 +231,7 @@ class MapWriter:
                      progress: Callable[[int], None] | None = None) -> None:
         """Encode a checked dense volume ``(X, Y, Z)`` float32 metres placed at voxel ``offset`` (multiples of
         16): the grid grows to hold it, the far faces of its last blocks padded by repeating its last voxel
-        layer (:func:`~sdfcodec.blocks.split_blocks`: no surface where the volume ends)."""
+        layer (:func:`~sdfcodec.core.blocks.split_blocks`: no surface where the volume ends)."""
         with self._writing():
             self._write_volume(vol, offset, batch_size, progress)
 

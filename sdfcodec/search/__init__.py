@@ -19,7 +19,7 @@ Conventions
   the map's level surfaces (``+z`` when they say the map is level within a degree). ``up=`` / ``--up`` wins.
 * ``behind``: how the shapes treat voxels more than ``|d_min|`` behind a surface. ``"unobserved"`` stores them
   as free space ``d_max``, which is what fusion produces (a camera never sees behind a surface, see
-  ``sdfcodec/fusion.py``); ``"solid"`` clips them to ``d_min``, as a truncated exact SDF of a solid
+  ``sdfcodec/fusion/tsdf.py``); ``"solid"`` clips them to ``d_min``, as a truncated exact SDF of a solid
   (``write_volume(sample_volume(...))``) does. By default it comes from the map: ``"unobserved"`` for maps
   that record their observation (fusion weights, observation mask) or were written by ``sdfcodec fuse``, else
   a vote of the map's plane-like blocks between the two plane families. ``behind=`` / ``--behind`` wins.
@@ -48,7 +48,7 @@ scores. Codecs whose codes are not prefix-ordered (``raw``, ``ae``) are searched
 
 Bytes read are counted by wrapping the map's Zarr store (:class:`CountingStore`): what the search actually
 fetched, per array (``codes``, ``state``, ``codec``, metadata), for any store (local, zip, HTTP...); a local
-map's chunks, read without Zarr (:mod:`sdfcodec.map.fastfetch`), are counted as they are read.
+map's chunks, read without Zarr (:mod:`sdfcodec.map.io.fastfetch`), are counted as they are read.
 
 Query models are saved as ``.npz`` files of plain arrays (:func:`save_query`, :func:`load_query`, never
 pickles): the descriptors, optionally the normalised shape blocks (so the model can be re-encoded for any
@@ -71,8 +71,8 @@ works as before):
 * :mod:`sdfcodec.search.plane_check`: the plane check that ends those searches (every block a chosen plane
   crosses, checked against that plane with a calibrated threshold; its functions are not re-exported here);
 * :mod:`sdfcodec.search.metrics`: precision/recall of retrieval on labelled rooms;
-* the labelled rooms themselves are :mod:`sdfcodec.data.rooms`, the rotations :mod:`sdfcodec.geometry`, and
-  the search benchmark ``sdfcodec.bench.bench_search`` (``sdfcodec.search.bench_search`` still works, with a
+* the labelled rooms themselves are :mod:`sdfcodec.search.rooms`, the rotations :mod:`sdfcodec.core.geometry`, and
+  the search benchmark ``sdfcodec.bench.bench_search`` (``sdfcodec.bench.search.bench_search`` still works, with a
   :class:`DeprecationWarning`).
 """
 
@@ -81,8 +81,8 @@ from __future__ import annotations
 import warnings
 from typing import Any
 
-from ..data.rooms import LabelledRoom, synthetic_room
-from ..geometry import axis_rotations, rotation_to
+from .rooms import LabelledRoom, synthetic_room
+from ..core.geometry import axis_rotations, rotation_to
 from .context import MapContext, estimate_up, map_context
 from .counting import CountingStore
 from .engine import Expansion, SearchResult, auto_threshold, calibrate_threshold, expand, search
@@ -127,7 +127,7 @@ def __getattr__(name: str) -> Any:
     # the search benchmark moved to the benchmark module; resolved lazily because sdfcodec.bench imports the
     # conformance toolkit, which a plain search does not need
     if name == "bench_search":
-        warnings.warn("sdfcodec.search.bench_search moved to sdfcodec.bench.bench_search; import it from there",
+        warnings.warn("sdfcodec.bench.search.bench_search moved to sdfcodec.bench.bench_search; import it from there",
                       DeprecationWarning, stacklevel=2)
         from ..bench import bench_search
 

@@ -1,6 +1,6 @@
 """What a search reads, counted: the store wrapper that counts the bytes read per array
 (:class:`CountingStore`), a map's view through it (:func:`counting_view`), and the bytes its code chunks take on
-disk (:func:`code_chunk_bytes`), which :func:`sdfcodec.search.search` reports beside what it read.
+disk (:func:`code_chunk_bytes`), which :func:`sdfcodec.search.engine.search` reports beside what it read.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ class CountingStore(zarr.storage.WrapperStore):
         return self._store
 
     def observe(self, key: str, nbytes: int) -> None:
-        """Count ``nbytes`` read at ``key`` outside the store interface (:mod:`sdfcodec.map.fastfetch`)."""
+        """Count ``nbytes`` read at ``key`` outside the store interface (:mod:`sdfcodec.map.io.fastfetch`)."""
         kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
         with self._lock:
             self.bytes[kind] = self.bytes.get(kind, 0) + nbytes

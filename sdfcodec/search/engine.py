@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._validate import BLOCK, check_device
+from ..core._validate import BLOCK, check_device
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
-from ..header import BlockState
+from ..core.header import BlockState
 from ..map import Map, open_map
 from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
 from .query import QueryModel, build_query, codec_state_sha256, resolve_query
@@ -555,7 +555,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
         A search result, or block indices ``(N, 3)`` of coded blocks.
     as_ : {"blocks", "dense", "mesh"}
         ``"blocks"``: the decoded blocks; ``"dense"``: also a dense sub-volume over their bounding box;
-        ``"mesh"``: also a marching-cubes mesh (``sdfcodec.fusion.mesh_from_blocks``, open3d).
+        ``"mesh"``: also a marching-cubes mesh (``sdfcodec.fusion.tsdf.mesh_from_blocks``, open3d).
     level : int, optional
         Decode from the first ``level`` code elements (default: the full code, the best reconstruction,
         whatever level the search compared).
@@ -616,7 +616,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
     elif as_ == "dense":
         out.dense, out.dense_offset = np.full((0, 0, 0), d_max, np.float32), np.zeros(3, np.int64)
     if as_ == "mesh":
-        from ..fusion import mesh_from_blocks
+        from ..fusion.tsdf import mesh_from_blocks
 
         out.mesh = mesh_from_blocks(coords, blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
     out.stats = {"blocks_decoded": int(len(coords)), "coded_blocks": int((states == BlockState.CODED).sum()),

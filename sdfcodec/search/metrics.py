@@ -12,7 +12,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..codec import Codec
-from ..data.rooms import LabelledRoom
+from .rooms import LabelledRoom
 from ..errors import InvalidValueError
 from ..map import open_map
 from .engine import search

@@ -35,8 +35,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._validate import BLOCK
-from ..blocks import normalise
+from ..core._validate import BLOCK
+from ..core.blocks import normalise
 from .scene import PLANE_TOL_VOXELS
 from .query import codec_state_sha256
 from .shapes import MIN_SHAPE_SURFACE, truncate

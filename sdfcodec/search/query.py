@@ -15,8 +15,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .._validate import BLOCK
-from ..blocks import check_truncation, normalise
+from ..core._validate import BLOCK
+from ..core.blocks import check_truncation, normalise
 from ..codec import Codec
 from ..errors import FormatError, InvalidValueError, SDFCodecWarning, ShapeError
 from ..map import Map, state_digest
@@ -305,7 +305,7 @@ def like_blocks(m: Map, coords: Any, codec: Codec) -> QueryModel:
     InvalidValueError
         Unparseable coordinates, or a block that is not coded in the map.
     """
-    from ..header import BlockState
+    from ..core.header import BlockState
 
     text = coords
     try:
@@ -365,9 +365,9 @@ def load_query(path: str | os.PathLike) -> QueryModel:
 
     if not Path(path).is_file():
         raise InvalidValueError(f"no query model at {path}: give a built-in query ({', '.join(QUERY_NAMES)}) or the "
-                                "path of a model written by sdfcodec.search.save_query")
+                                "path of a model written by sdfcodec.search.query.save_query")
     meta, arrays = load_meta_file(path, _QUERY_META, QUERY_FORMAT, QUERY_VERSION, "query model",
-                                  "sdfcodec.search.save_query")
+                                  "sdfcodec.search.query.save_query")
     if "descriptors" not in arrays:
         raise FormatError(f"{path}: query model lacks its descriptors array")
     try:
@@ -383,7 +383,7 @@ def load_query(path: str | os.PathLike) -> QueryModel:
 # ------------------------------------------------------------------------------------- resolving a query
 def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None, up: Any = None,
                   tilt: float | None = None) -> QueryModel:
-    """Any query :func:`sdfcodec.search.search` accepts (a built-in name, the path of a saved model, a
+    """Any query :func:`sdfcodec.search.engine.search` accepts (a built-in name, the path of a saved model, a
     :class:`QueryModel`, user blocks ``(N, 16, 16, 16)`` metres) -> a model for the map ``m`` whose descriptors
     come from ``codec`` (the map's) or agree with it (re-encoded, rebuilt for the map's geometry, or checked
     with the probe codes). ``behind``, ``up``, ``tilt`` (see :func:`build_query`) apply to built-in names;

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import BLOCK
+from ..core._validate import BLOCK
 from ..errors import InvalidValueError
 
 __all__ = [

@@ -3,7 +3,7 @@ the rotation sets a query model can be made invariant to.
 
 Shapes are posed about the block's centre ``(7.5, 7.5, 7.5)`` (voxel ``i`` at position ``i``), defined with
 ``+z`` up and rotated onto the map's ``up``; ``behind`` says how voxels more than ``|d_min|`` behind a surface
-are stored (see :mod:`sdfcodec.search`). Rotations themselves come from :mod:`sdfcodec.geometry`.
+are stored (see :mod:`sdfcodec.search`). Rotations themselves come from :mod:`sdfcodec.core.geometry`.
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .._validate import BLOCK
-from ..blocks import check_truncation, normalise
+from ..core._validate import BLOCK
+from ..core.blocks import check_truncation, normalise
 from ..errors import InvalidValueError, ShapeError
-from ..geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
+from ..core.geometry import axis_rotations, rot_x, rot_y, rot_z, rotation_to
 
 __all__ = [
     "WALL_YAWS",
@@ -55,7 +55,7 @@ BEHIND: tuple[str, ...] = ("unobserved", "solid")
 FUSED_STRETCH: tuple[float, ...] = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5)
 #: Shapes a query must not match, for the queries whose clean instances vary more than their model samples (a
 #: threshold keeping 99 % of simulated edges would keep planes too): the calibrated threshold also keeps at most
-#: 1 % of simulated instances of these (:func:`sdfcodec.search.calibrate_threshold`).
+#: 1 % of simulated instances of these (:func:`sdfcodec.search.engine.calibrate_threshold`).
 NEAR_MISSES: dict[str, tuple[str, ...]] = {"edge": ("floor", "wall", "ceiling"),
                                            "corner": ("edge", "floor", "wall"),
                                            "pole": ("wall", "floor", "edge")}

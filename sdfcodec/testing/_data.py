@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..blocks import normalise
-from ..sdf import Box, Cylinder, Plane, Scene, Sphere, grid_points
+from ..core.blocks import normalise
+from ..core.sdf import Box, Cylinder, Plane, Scene, Sphere, grid_points
 
 __all__ = ["analytic_blocks", "analytic_scene"]
 
@@ -43,6 +43,6 @@ def analytic_blocks(n: int, seed: int = 0, voxel_size: float = 0.02,
 
 def analytic_scene() -> Scene:
     """A small exact scene for map tests: a floor (z = 0.1 m), a wall (x = 0.05 m), a sphere, a box and a
-    cylinder inside about 1.8 x 1.4 x 0.9 m. Sample it with :func:`sdfcodec.sdf.sample_volume`."""
+    cylinder inside about 1.8 x 1.4 x 0.9 m. Sample it with :func:`sdfcodec.core.sdf.sample_volume`."""
     return Scene([Plane((0, 0, 1), 0.1), Plane((1, 0, 0), 0.05), Sphere((0.6, 0.6, 0.5), 0.2),
                   Box((1.2, 0.4, 0.35), (0.15, 0.1, 0.2)), Cylinder((1.5, 1.1, 0.45), 0.15, 0.3)])

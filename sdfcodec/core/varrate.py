@@ -1,0 +1,240 @@
+"""Variable-rate codes (the map extension ``variable-rate-codes``, spec section 4e): per block a prefix of its code
+(the first ``K`` elements of a prefix-ordered codec such as PCA), each element quantised with its own step and
+entropy-coded with a rANS coder (``constriction``) under a probability model fitted on the map's codes.
+
+Pure functions of arrays; the map glue (writing the chunk streams, reading them back) is
+:mod:`sdfcodec.map.varrate`.
+
+**The probability model** (:class:`EntropyModel`): element ``j``'s quantised value ``q`` follows a two-sided
+geometric (discrete Laplace) law ``P(q) ~ decay_j ** |q - center_j|`` on ``[center_j - extent_j, center_j +
+extent_j]``; the prefix length ``K`` follows the table ``lengths`` (frequencies of ``0..D``). The tables are built
+from these numbers with IEEE-exact arithmetic only (a running product), so every machine builds the same ones.
+
+**The length of each block** (:func:`choose_lengths`): the ``K`` minimising the Lagrangian ``D(K) + lam * R(K)``,
+where ``R(K)`` is the bits of the length and of the first ``K`` quantised elements under the model, and ``D(K) =
+sum_j g_j (z_j - zhat_j) ** 2`` (``zhat_j = 0`` for ``j >= K``) is the writer's weighted squared error to second
+order: the writer fits ``z`` by weighted least squares (error weights of :mod:`sdfcodec.map.observed`), so the
+error of another code ``zhat`` is ``E(z) + (zhat - z)^T G (zhat - z)`` with ``G = B W B^T`` (``B`` the basis);
+``g`` is the diagonal of ``G`` (:func:`gains`), which drops the cross terms of the weighted Gram matrix.
+
+**Chunk streams** (:func:`encode_chunk` / :func:`decode_chunk`): the blocks of one chunk of the map in C order,
+first their lengths, then element by element (all blocks with ``K > j`` for element ``j``), in one rANS stream.
+"""
+
+from __future__ import annotations
+
+import base64
+import zlib
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import FormatError, InvalidValueError
+
+__all__ = ["EntropyModel", "fit_model", "quantise", "choose_lengths", "encode_chunk", "decode_chunk", "gains",
+           "LAGRANGE", "CODER", "stream_bytes"]
+
+#: The coder a map names (spec section 4e): constriction's AnsCoder (32-bit words, 64-bit state) with
+#: ``Categorical(table, perfect=False)`` models (24-bit precision).
+CODER = "constriction-ans-1"
+#: ``lam = LAGRANGE * step ** 2 * mean gain``: the slope of distortion against rate of a finely quantised,
+#: entropy-coded element (``dD/dR = -2 ln 2 * step ** 2 / 12``), ln 2 / 6.
+LAGRANGE = float(np.log(2) / 6)
+_MIN_DECAY, _MAX_DECAY = 1e-6, 1 - 1e-9
+#: Entries of all of a model's tables together a reader builds at most (128 MiB of float64).
+MAX_TABLE = 1 << 24
+
+
+def _coder():
+    import constriction  # imported on first use: only variable-rate maps need it
+
+    return constriction.stream
+
+
+class EntropyModel:
+    """Per-element two-sided geometric laws (``center``, ``decay``, ``extent``: ``(D,)``) and the prefix-length
+    frequencies ``lengths`` ``(D + 1,)`` of a variable-rate map; the constriction models are built on first use."""
+
+    def __init__(self, center: Sequence[int], decay: Sequence[float], extent: Sequence[int], lengths: Sequence[int]):
+        self.center = np.asarray(center, np.int64)
+        self.decay = np.asarray(decay, np.float64)
+        self.extent = np.asarray(extent, np.int64)
+        self.lengths = np.asarray(lengths, np.float64)
+        d = len(self.center)
+        if not (self.decay.shape == self.extent.shape == (d,) and self.lengths.shape == (d + 1,)):
+            raise FormatError(f"variable-rate model: center, decay and extent need {d} entries and lengths {d + 1}")
+        if not ((self.decay > 0) & (self.decay < 1)).all() or (self.extent < 0).any() or (self.lengths < 0).any() \
+                or not self.lengths.sum() > 0:
+            raise FormatError("variable-rate model: decay must lie in (0, 1), extent and lengths be >= 0 "
+                              "(lengths not all 0)")
+        if int((2 * np.maximum(self.extent, 1) + 1).sum()) > MAX_TABLE:
+            raise FormatError(f"variable-rate model: its tables would hold {int((2 * self.extent + 1).sum())} "
+                              f"entries, above the limit of {MAX_TABLE} (a step far too small, or a corrupted header)")
+        self._models = None
+
+    @property
+    def size(self) -> int:
+        return len(self.center)
+
+    def table(self, j: int) -> np.ndarray:
+        """Unnormalised probabilities ``(2 e + 1,)`` float64 of ``q - center_j + e``, ``e = max(extent_j, 1)`` (the
+        coder needs two symbols at least)."""
+        half = np.cumprod(np.concatenate([[1.0], np.full(max(int(self.extent[j]), 1), self.decay[j])]))
+        return np.concatenate([half[:0:-1], half])
+
+    def models(self):
+        """(length model, [element models]) as constriction Categorical models."""
+        if self._models is None:
+            cat = _coder().model.Categorical
+            self._models = (cat(self.lengths, perfect=False),
+                            [cat(self.table(j), perfect=False) for j in range(self.size)])
+        return self._models
+
+    def bits(self, q: np.ndarray) -> np.ndarray:
+        """``(n, D)`` ideal code lengths (bits) of quantised values ``q`` ``(n, D)`` under each element's law (the
+        rate the length choice weighs; values beyond the extent cost as its edge)."""
+        logd = np.log2(self.decay)
+        # log2 of the normaliser of each truncated two-sided geometric: 1 + 2 d (1 - d^T) / (1 - d)
+        norm = np.log2(1 + 2 * self.decay * (1 - self.decay ** self.extent) / (1 - self.decay))
+        dist = np.minimum(np.abs(q - self.center), self.extent)
+        return norm - dist * logd
+
+    def length_bits(self) -> np.ndarray:
+        """``(D + 1,)`` bits of each prefix length."""
+        p = np.maximum(self.lengths, 0.5) / self.lengths.sum()
+        return -np.log2(p)
+
+    def pack(self) -> str:
+        """The model as the header stores it (spec section 4e): base64 of zlib of the little-endian arrays
+        ``D`` (uint32), ``decay`` as uint16 ``round(decay * 65536)``, ``center`` int32, ``extent`` uint32, ``lengths``
+        uint32 (``D + 1``)."""
+        d = self.size
+        raw = b"".join([np.uint32(d).astype("<u4").tobytes(), _decay_code(self.decay).astype("<u2").tobytes(),
+                        self.center.astype("<i4").tobytes(), self.extent.astype("<u4").tobytes(),
+                        self.lengths.astype("<u4").tobytes()])
+        return base64.b64encode(zlib.compress(raw, 9)).decode("ascii")
+
+    @classmethod
+    def unpack(cls, text: str, size: int) -> "EntropyModel":
+        """:meth:`pack` read back for codes of ``size`` elements; a malformed one is a FormatError."""
+        try:
+            raw = zlib.decompressobj().decompress(base64.b64decode(text, validate=True), 64 + 18 * (size + 1))
+            d = int(np.frombuffer(raw[:4], "<u4")[0])
+            if d != size or len(raw) != 4 + 14 * d + 4:
+                raise ValueError(f"it holds {len(raw)} bytes for {d} elements")
+            o = 4
+            dec = np.frombuffer(raw[o:o + 2 * d], "<u2").astype(np.float64) / 65536
+            o += 2 * d
+            center = np.frombuffer(raw[o:o + 4 * d], "<i4")
+            o += 4 * d
+            extent = np.frombuffer(raw[o:o + 4 * d], "<u4")
+            o += 4 * d
+            lengths = np.frombuffer(raw[o:], "<u4")
+        except (ValueError, TypeError, zlib.error) as e:
+            raise FormatError(f"codes.variable_rate.model does not unpack into a model of {size} elements ({e})") \
+                from e
+        return cls(center, dec, extent, lengths)
+
+
+def _decay_code(decay: np.ndarray) -> np.ndarray:
+    """Decays as the model stores them: ``round(decay * 65536)`` in ``[1, 65535]``."""
+    return np.clip(np.rint(np.asarray(decay) * 65536), 1, 65535).astype(np.uint16)
+
+
+def quantise(z: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """``rint(z / step)`` as int64 ``(n, D)`` (offsets are 0)."""
+    return np.rint(np.asarray(z, np.float64) / step).astype(np.int64)
+
+
+def fit_model(q: np.ndarray, k: np.ndarray) -> EntropyModel:
+    """The :class:`EntropyModel` of quantised codes ``q`` ``(n, D)`` with prefix lengths ``k`` ``(n,)`` (elements
+    ``j >= k`` are not coded): per element the median as centre, the maximum-likelihood decay of the coded values'
+    mean distance ``m`` from it (``(sqrt(1 + m^2) - 1) / m``), the largest distance as extent."""
+    n, d = q.shape
+    center, decay, extent = np.zeros(d, np.int64), np.full(d, 0.5), np.zeros(d, np.int64)
+    for j in range(d):
+        col = q[k > j, j]
+        if not len(col):
+            continue
+        center[j] = int(np.median(col))
+        dist = np.abs(col - center[j])
+        m = float(dist.mean())
+        decay[j] = (np.sqrt(1 + m * m) - 1) / m if m > 0 else _MIN_DECAY
+        extent[j] = int(dist.max())
+    # 16 bits each, as the header stores them: the coder builds its tables from what is stored
+    decay = _decay_code(np.clip(decay, _MIN_DECAY, _MAX_DECAY)) / 65536
+    if (np.abs(center) > 2 ** 31 - 1).any() or (extent > 2 ** 32 - 1).any():
+        raise InvalidValueError("quantised codes beyond 2**31 steps: use a larger step")
+    return EntropyModel(center, decay, extent, np.bincount(k, minlength=d + 1))
+
+
+def gains(weights: np.ndarray, basis_sq: np.ndarray) -> np.ndarray:
+    """``(n, D)`` float32 diagonal of each block's weighted Gram matrix ``B W B^T``: error ``weights`` ``(n, 4096)``
+    times the squared basis ``basis_sq`` ``(D, 4096)`` (None weights: every voxel 1)."""
+    return np.asarray(weights, np.float32).reshape(len(weights), -1) @ basis_sq.T.astype(np.float32)
+
+
+def choose_lengths(z: np.ndarray, g: np.ndarray, step: np.ndarray, lam: float, rounds: int = 2
+                   ) -> tuple[np.ndarray, np.ndarray, EntropyModel]:
+    """Per block the prefix length minimising ``D(K) + lam * R(K)`` (module docstring) for codes ``z`` ``(n, D)``
+    with gains ``g`` ``(n, D)`` at ``step`` ``(D,)``: ``(q (n, D) int64, zero from K on; K (n,) int64; the model
+    fitted on them)``. The model the rate is measured with is refitted ``rounds`` times on the lengths chosen.
+    ``K`` is the last non-zero element + 1 (a zero tail costs bits and changes nothing)."""
+    z = np.asarray(z, np.float64)
+    n, d = z.shape
+    q = quantise(z, step)
+    err = g * ((z - q * step) ** 2 - z * z)  # distortion change when element j is coded instead of dropped
+    k = np.full(n, d, np.int64)
+    model = fit_model(q, k)
+    cols = np.arange(d)
+    for _ in range(rounds):
+        cost = np.cumsum(err + lam * model.bits(q), axis=1)
+        cost = np.concatenate([np.zeros((n, 1)), cost], axis=1) + lam * model.length_bits()
+        k = np.argmin(cost, axis=1)
+        qk = np.where(cols < k[:, None], q, 0)
+        nz = qk != 0
+        k = np.where(nz.any(axis=1), d - np.argmax(nz[:, ::-1], axis=1), 0)
+        model = fit_model(qk, k)
+    return np.where(cols < k[:, None], q, 0), k, model
+
+
+def encode_chunk(q: np.ndarray, k: np.ndarray, model: EntropyModel) -> np.ndarray:
+    """One chunk's stream: uint32 words of the rANS coder holding the lengths ``k`` ``(n,)`` and then, element
+    by element, the quantised values ``q`` ``(n, D)`` of the blocks with ``k > j``."""
+    lm, em = model.models()
+    coder = _coder().stack.AnsCoder()
+    ext = np.maximum(model.extent, 1)
+    off = ext - model.center  # symbol = q + e - center
+    for j in range(model.size - 1, -1, -1):  # a stack: the last pushed is the first read
+        sel = k > j
+        if sel.any():
+            sym = q[sel, j] + off[j]
+            if sym.min() < 0 or sym.max() > 2 * ext[j]:
+                raise InvalidValueError(f"code element {j} holds a value beyond the model's extent")
+            coder.encode_reverse(sym.astype(np.int32), em[j])
+    coder.encode_reverse(np.asarray(k, np.int32), lm)
+    return np.asarray(coder.get_compressed(), np.uint32)
+
+
+def decode_chunk(words: np.ndarray, n: int, model: EntropyModel, level: int | None = None
+                 ) -> np.ndarray:
+    """Quantised codes ``(n, level)`` int32 of the ``n`` blocks of a chunk stream (``level``: only the first
+    elements, default all; elements beyond a block's length are 0)."""
+    d = model.size
+    level = d if level is None else level
+    lm, em = model.models()
+    coder = _coder().stack.AnsCoder(np.ascontiguousarray(words, np.uint32))
+    k = coder.decode(lm, n) if n else np.zeros(0, np.int32)
+    out = np.zeros((n, level), np.int32)
+    off = np.maximum(model.extent, 1) - model.center
+    for j in range(level):
+        sel = np.flatnonzero(k > j)
+        if not len(sel):
+            break
+        out[sel, j] = coder.decode(em[j], len(sel)) - off[j]
+    return out
+
+
+def stream_bytes(words: np.ndarray) -> int:
+    """Bytes a chunk's stream takes in a map row: the 4-byte word count and the words."""
+    return 4 + 4 * len(words)
