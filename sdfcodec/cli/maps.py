@@ -24,8 +24,12 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")  # what open3d
 
 @app.command("codecs")
 @cli
-def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+               verbose: bool = typer.Option(False, "--verbose", "-v",
+                                            help="Also the capabilities each codec declares (fast paths, weights, "
+                                                 "shipped models: spec/codec-plugins.md, section 4a).")) -> None:
     """List installed codecs: id, code sizes, prefix-ordered, needs fitting, providing package."""
+    from ..codec import capabilities
     from ..registry import get_codec_class, list_codecs
 
     rows = []
@@ -36,19 +40,22 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
             shipped = cls.shipped_models()
             row.update(code_sizes=list(cls.code_sizes), prefix_ordered=cls.prefix_ordered,
                        requires_fit=cls.requires_fit, shipped_models=None if shipped is None else {
-                           k: list(v) for k, v in shipped.items()}, status="ok")
+                           k: list(v) for k, v in shipped.items()}, capabilities=sorted(capabilities(cls)),
+                       status="ok")
             row["sizes"] = _sizes_text(cls, shipped)
         except SDFCodecError as e:  # one broken plugin is reported, the rest still listed
             row.update(code_sizes=None, prefix_ordered=None, requires_fit=None, shipped_models=None, sizes="?",
-                       status=f"failed: {e}")
+                       capabilities=None, status=f"failed: {e}")
         rows.append(row)
     if as_json:
         print_json(rows)
         return
     yn = {True: "yes", False: "no", None: "?"}
-    print_table(("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"),
-                [(r["id"], r["sizes"], yn[r["prefix_ordered"]],
-                  yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}".strip(), r["status"])
+    caps = ("capabilities",) if verbose else ()
+    print_table(("id", "code sizes", "prefix-ordered", "needs fitting", *caps, "package", "status"),
+                [(r["id"], r["sizes"], yn[r["prefix_ordered"]], yn[r["requires_fit"]],
+                  *((", ".join(r["capabilities"]) if r["capabilities"] is not None else "?",) if verbose else ()),
+                  f"{r['package'] or '(run time)'} {r['version'] or ''}".strip(), r["status"])
                  for r in rows], title="installed sdfcodec codecs")
 
 
