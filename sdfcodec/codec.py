@@ -83,13 +83,13 @@ def _same_array(a: Any, b: Any) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and bool(np.array_equal(a, b))
 
 
-def _plugin_name(codec: Any) -> str:
+def _plugin_name(codec: Codec | type[Codec]) -> str:
     cls = codec if isinstance(codec, type) else type(codec)
     return f"codec {getattr(cls, 'codec_id', cls.__qualname__)!r} (module {cls.__module__.split('.')[0]})"
 
 
 @contextlib.contextmanager
-def plugin_calls(codec: Any, doing: str) -> Iterator[None]:
+def plugin_calls(codec: Codec | type[Codec], doing: str) -> Iterator[None]:
     """Around calls into a codec plugin's own code: an exception that is not an ``SDFCodecError`` (a bug in the
     plugin, or its reaction to input it did not expect) becomes one :class:`PluginError` line naming the codec,
     its module and what it was doing, the original chained. Every decode path goes through it (the codec's
@@ -104,7 +104,7 @@ def plugin_calls(codec: Any, doing: str) -> Iterator[None]:
                           "fault of the codec's plugin: report it to its authors (or upgrade it)") from e
 
 
-def checked_decode_output(codec: Any, out: Any, n: int, device: Any, doing: str = "decoding") -> torch.Tensor:
+def checked_decode_output(codec: Codec, out: Any, n: int, device: Any, doing: str = "decoding") -> torch.Tensor:
     """What a plugin's decode returned for ``n`` codes, checked against the contract: a tensor (a numpy array is
     taken as one) on ``device``, ``n * 4096`` values of a float type (float16/bfloat16/float64 are converted to
     float32; integers or booleans are refused: an int32 decode once read 6.6 cm off), returned as

@@ -46,7 +46,7 @@ import abc
 import warnings
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ._lazy import is_tensor, lazy_exports, lazy_module
 from ._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
@@ -55,6 +55,9 @@ from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
 from .tiling import run_tiles, scratch
+
+if TYPE_CHECKING:
+    from .dataset import Dataset
 
 __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "CAPABILITIES", "capabilities",
            "DecodesInto", "decodes_into",
@@ -133,7 +136,7 @@ class TrainableCodec(Codec):
             InvalidValueError: the codec was loaded, not trained in this process (no ``history_``).
         """
 
-    def fit_dataset(self, dataset: Any, *, max_train: int | None = None, **kwargs: Any) -> "TrainableCodec":
+    def fit_dataset(self, dataset: Dataset, *, max_train: int | None = None, **kwargs: Any) -> "TrainableCodec":
         """Train on a :class:`Dataset`'s ``train`` split (at most ``max_train`` blocks), early-stopping on its
         ``validation`` split (the paper's protocol); ``kwargs`` as :meth:`fit_validated`."""
         return self.fit_validated(dataset.load("train", max_train), dataset.load("validation"), **kwargs)

@@ -28,7 +28,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import google_crc32c
 import numpy as np
@@ -41,6 +41,9 @@ from zarr.core.sync import sync as zarr_sync
 from .. import _atomic
 from ..errors import ChecksumError, FormatError, InvalidValueError
 from ..header import SHARD_EXTENSION
+
+if TYPE_CHECKING:
+    from zarr.abc.store import Store
 
 __all__ = ["shard_contents", "index_size", "index_entry", "check_sharding", "read_cap", "range_problem", "shard_problem",
            "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
@@ -178,7 +181,7 @@ def chunk_name(arr: zarr.Array, chunk: tuple[int, ...]) -> str:
     return f"{arr.path}/{arr.metadata.encode_chunk_key(shard)} (chunk {chunk} in it)"
 
 
-async def _stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
+async def _stored(store: Store, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
     if arr.shards is None:
         keys = [f"{arr.path}/{arr.metadata.encode_chunk_key(tuple(int(v) for v in c))}" for c in chunks]
         return list(await asyncio.gather(*(store.exists(k) for k in keys)))
@@ -207,7 +210,7 @@ async def _stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) ->
     return out
 
 
-def shard_contents(store: Any, arr: zarr.Array, shards: dict[tuple[int, ...], str]
+def shard_contents(store: Store, arr: zarr.Array, shards: dict[tuple[int, ...], str]
                    ) -> tuple[dict[tuple[int, ...], str], dict[str, str]]:
     """The chunks stored in the given shards of ``arr`` (shard coordinates -> key), from their indexes (read
     concurrently, each checked): ``({chunk coordinates: name}, {shard key: problem})``."""
@@ -236,7 +239,7 @@ def shard_contents(store: Any, arr: zarr.Array, shards: dict[tuple[int, ...], st
     return found, broken
 
 
-def chunk_stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
+def chunk_stored(store: Store, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
     """Whether each chunk of ``arr`` (chunk coordinates) is stored: its file exists, or its shard's index (read
     and checked) has an entry for it."""
     return zarr_sync(_stored(store, arr, list(chunks)))
