@@ -265,7 +265,7 @@ def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
 def _absent(m, key: str) -> str:
     """What a chunk key that is not listed holds, as the reads say it: "is missing", or why the store refuses
     what is there instead (a directory where the chunk file belongs, a link, a FIFO...)."""
-    from zarr.core.buffer import default_buffer_prototype
+    from zarr.buffer import default_buffer_prototype
     from zarr.core.sync import sync
 
     try:

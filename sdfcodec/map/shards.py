@@ -35,17 +35,17 @@ import numpy as np
 import zarr
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 from zarr.codecs import BytesCodec, Crc32cCodec, ShardingCodec
-from zarr.core.buffer import default_buffer_prototype
+from zarr.buffer import default_buffer_prototype
 from zarr.core.sync import sync as zarr_sync
 
 from .. import _atomic
-from ..errors import ChecksumError, FormatError, InvalidValueError
+from ..errors import FormatError, InvalidValueError
 from ..header import SHARD_EXTENSION
 
 if TYPE_CHECKING:
     from zarr.abc.store import Store
 
-__all__ = ["shard_contents", "index_size", "index_entry", "check_sharding", "read_cap", "range_problem", "shard_problem",
+__all__ = ["shard_contents", "index_size", "check_sharding", "read_cap", "range_problem", "shard_problem",
            "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
@@ -130,17 +130,6 @@ def _parse_index(data: bytes | memoryview, per: int) -> tuple[np.ndarray | None,
     if google_crc32c.value(body).to_bytes(4, "little") != crc:
         return None, "its index fails its CRC32C checksum"
     return np.frombuffer(body, dtype="<u8").reshape(per, 2), None
-
-
-def index_entry(data: bytes, per: int, i: int) -> tuple[int, int] | None:
-    """``(offset, nbytes)`` of chunk ``i`` (C order inside its shard of ``per`` chunks) from the shard's index
-    bytes, or None when that chunk is not stored. Raises ChecksumError for an index of the wrong size or failing
-    its CRC32C."""
-    index, problem = _parse_index(data, per)
-    if problem:
-        raise ChecksumError(f"shard index: {problem}")
-    off, n = index[i]
-    return None if off == _EMPTY and n == _EMPTY else (int(off), int(n))
 
 
 def shard_problem(data: bytes | memoryview, per: int, chunk_cap: int, frame_problem: Any = None) -> str | None:
