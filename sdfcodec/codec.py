@@ -11,7 +11,8 @@ that follow it (numpy in, numpy out; a tensor in, a tensor on its device out).
 Optional public hooks, each with a default that is correct for every codec (spec section 4):
 :meth:`Codec.decode_affine`, :meth:`Codec.decode_into`, :meth:`Codec.decode_bound` (decode on read),
 :meth:`Codec.encode_weighted`
-(per-voxel error weights: unobserved voxels and surfaces) and :meth:`Codec.fit_batches` (streamed fitting). Shipped weights are offered by :meth:`Codec.pretrained` and listed by
+(per-voxel error weights: unobserved voxels and surfaces) and :meth:`Codec.fit_batches` (streamed fitting). A codec declares the
+hooks it provides in ``capabilities`` (:data:`CAPABILITIES`, :func:`capabilities`; spec section 4a). Shipped weights are offered by :meth:`Codec.pretrained` and listed by
 :meth:`Codec.shipped_models` / :meth:`Codec.shipped_state`. Benchmark shapes are
 registered with :func:`sdfcodec.bench.register_bench`, not declared here. Plugin authors import their tools
 from :mod:`sdfcodec.plugin`; :func:`sdfcodec.testing.check_codec` checks the contract.
@@ -24,6 +25,7 @@ import contextlib
 import copy
 import inspect
 import warnings
+import weakref
 from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Protocol, runtime_checkable
 
 import numpy as np
@@ -31,18 +33,24 @@ import numpy as np
 from .core._lazy import lazy_module
 from .core._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input, output_buffer
 from .core._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
-from .errors import (DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, PluginError, SDFCodecError,
-                     ShapeError)
+from .errors import (DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, PluginError,
+                     RegistrationError, SDFCodecError, ShapeError)
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["Codec", "BLOCK", "DecodesInto", "decodes_into", "decodes_tiles", "uses_weights", "learns_weights",
-           "plugin_calls", "checked_decode_output", "FINITE_BOUND"]
+__all__ = ["Codec", "BLOCK", "CAPABILITIES", "capabilities", "check_capabilities", "DecodesInto", "decodes_into",
+           "decodes_tiles", "uses_weights", "learns_weights", "plugin_calls", "checked_decode_output", "FINITE_BOUND"]
 
 #: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
 FINITE_BOUND = 1e37
 #: Spec-1 names of the optional hooks -> their public names since spec 2 (spec/codec-plugins.md, change log).
 LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_bound", "_fit_stream": "fit_batches"}
+#: What a codec may declare in ``Codec.capabilities`` (spec/codec-plugins.md, section 4a): each capability is
+#: named after the optional hook that provides it; True where declaring it requires overriding that hook (the
+#: weighted hooks' defaults are right for a codec whose plain encode or fit already minimises every weighted
+#: error: a lossless one).
+CAPABILITIES: dict[str, bool] = {"decode_affine": True, "decode_into": True, "decode_tiles": True,
+                                 "encode_weighted": False, "fit_weighted": False, "pretrained": True}
 
 
 def _forward_to(old: str) -> Callable[..., Any]:
@@ -75,13 +83,13 @@ def _same_array(a: Any, b: Any) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and bool(np.array_equal(a, b))
 
 
-def _plugin_name(codec: Any) -> str:
+def _plugin_name(codec: Codec | type[Codec]) -> str:
     cls = codec if isinstance(codec, type) else type(codec)
     return f"codec {getattr(cls, 'codec_id', cls.__qualname__)!r} (module {cls.__module__.split('.')[0]})"
 
 
 @contextlib.contextmanager
-def plugin_calls(codec: Any, doing: str) -> Iterator[None]:
+def plugin_calls(codec: Codec | type[Codec], doing: str) -> Iterator[None]:
     """Around calls into a codec plugin's own code: an exception that is not an ``SDFCodecError`` (a bug in the
     plugin, or its reaction to input it did not expect) becomes one :class:`PluginError` line naming the codec,
     its module and what it was doing, the original chained. Every decode path goes through it (the codec's
@@ -96,7 +104,7 @@ def plugin_calls(codec: Any, doing: str) -> Iterator[None]:
                           "fault of the codec's plugin: report it to its authors (or upgrade it)") from e
 
 
-def checked_decode_output(codec: Any, out: Any, n: int, device: Any, doing: str = "decoding") -> torch.Tensor:
+def checked_decode_output(codec: Codec, out: Any, n: int, device: Any, doing: str = "decoding") -> torch.Tensor:
     """What a plugin's decode returned for ``n`` codes, checked against the contract: a tensor (a numpy array is
     taken as one) on ``device``, ``n * 4096`` values of a float type (float16/bfloat16/float64 are converted to
     float32; integers or booleans are refused: an int32 decode once read 6.6 cm off), returned as
@@ -136,6 +144,10 @@ class Codec(abc.ABC):
     code_sizes: ClassVar[tuple[int, ...]] = ()
     #: Voxels of neighbour context the decoder needs on each side (0: none; spec section 3, "Halo").
     halo: ClassVar[int] = 0
+    #: The optional fast paths and promises this codec declares (names from :data:`CAPABILITIES`; spec section
+    #: 4a). Readers, writers and the registry act on this set (:func:`capabilities`), never on which methods a
+    #: class happens to override.
+    capabilities: ClassVar[frozenset[str]] = frozenset()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -146,6 +158,7 @@ class Codec(abc.ABC):
                               f"name since codec spec 2 is {new!r}; rename it (spec/codec-plugins.md, section 4)",
                               DeprecationWarning, stacklevel=3)  # the class statement (past ABCMeta)
                 setattr(cls, new, _forward_to(old))
+        _warn_undeclared(cls)
 
     #: Length ``k`` of one block's code vector: an ``__init__`` argument or a property of the subclass.
     code_size: int
@@ -384,7 +397,7 @@ class Codec(abc.ABC):
         one copy into ``out``): correct for every codec. A codec that can write its output where it is told
         SHOULD override it (PCA: one matrix product into ``out``, scale and offset folded in; raw: one fused
         pass); :class:`DecodesInto` declares the signature, :func:`decodes_into` tells whether a codec does."""
-        if _overrides(self, "decode_affine"):  # the codec's own affine decode (folded, say), then one copy
+        if "decode_affine" in capabilities(self):  # the codec's own affine decode (folded, say), then one copy
             out.copy_(self.decode_affine(codes, scale, offset))
         else:  # the plain decode, scaled into ``out`` in the one pass the default decode_affine would spend
             affine_into(self._decode_checked(codes), out, scale, offset)
@@ -476,7 +489,7 @@ class Codec(abc.ABC):
         The default: ``{}`` (none) for a codec that does not override :meth:`pretrained`, ``None`` (cannot tell)
         for one that does. Maps that store their codec state by reference name these models (spec/map-format.md,
         section 6c), so a name MUST NOT be reused for other weights."""
-        return None if _overrides(cls, "pretrained") else {}
+        return None if "pretrained" in capabilities(cls) else {}
 
     @classmethod
     def shipped_state(cls, model: str, code_size: int) -> dict[str, np.ndarray]:
@@ -561,27 +574,83 @@ class DecodesInto(Protocol):
 
 
 def decodes_into(codec: Codec | type[Codec]) -> bool:
-    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_into`, i.e. decodes straight
-    into a caller's buffer rather than decoding and copying."""
-    return _overrides(codec, "decode_into")
+    """Whether ``codec`` (an instance or a class) declares ``decode_into``: it decodes straight into a caller's
+    buffer rather than decoding and copying."""
+    return "decode_into" in capabilities(codec)
 
 
 def decodes_tiles(codec: Codec | type[Codec]) -> bool:
-    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.decode_tiles`, i.e. decodes, clips and
-    hands out cache-sized tiles rather than decoding, clipping and handing out the whole batch."""
-    return _overrides(codec, "decode_tiles")
+    """Whether ``codec`` (an instance or a class) declares ``decode_tiles``: it decodes, clips and hands out
+    cache-sized tiles rather than decoding, clipping and handing out the whole batch."""
+    return "decode_tiles" in capabilities(codec)
 
 
 def uses_weights(codec: Codec | type[Codec]) -> bool:
-    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.encode_weighted`, i.e. its encode fits
-    the error weights it is given rather than ignoring them."""
-    return _overrides(codec, "encode_weighted")
+    """Whether ``codec`` (an instance or a class) declares ``encode_weighted``: its encode fits the error weights
+    it is given (or is lossless), so map writers give it weights rather than filled blocks."""
+    return "encode_weighted" in capabilities(codec)
 
 
 def learns_weights(codec: Codec | type[Codec]) -> bool:
-    """Whether ``codec`` (an instance or a class) overrides :meth:`Codec.fit_weighted`, i.e. its fit minimises
-    the weighted error rather than ignoring the weights."""
-    return _overrides(codec, "fit_weighted")
+    """Whether ``codec`` (an instance or a class) declares ``fit_weighted``: its fit minimises the weighted
+    error rather than ignoring the weights."""
+    return "fit_weighted" in capabilities(codec)
+
+
+_resolved: "weakref.WeakKeyDictionary[type, frozenset[str]]" = weakref.WeakKeyDictionary()
+
+
+def capabilities(codec: Codec | type[Codec]) -> frozenset[str]:
+    """What ``codec`` (an instance or a class) can do beyond the contract's defaults (spec section 4a): its
+    declared ``capabilities``, checked (:func:`check_capabilities`), plus, for a plugin written before
+    declarations (codec spec 2 before issue 41), each optional hook it overrides without declaring it (its
+    class warned when it was defined). Worked out once per class."""
+    cls = codec if isinstance(codec, type) else type(codec)
+    found = _resolved.get(cls)
+    if found is None:
+        declared = check_capabilities(cls)
+        found = declared | {hook for hook in CAPABILITIES if hook not in declared and _overrides(cls, hook)}
+        _resolved[cls] = found
+    return found
+
+
+def check_capabilities(cls: type[Codec]) -> frozenset[str]:
+    """``cls.capabilities``, checked: a set of names from :data:`CAPABILITIES`, each of those that need a method
+    provided by the class (overridden, not the base class's default). The registry checks it when a codec is
+    registered or loaded, :func:`capabilities` on first use, and the conformance check ``attributes``.
+
+    Raises:
+        RegistrationError: naming the class, the declaration and what to do."""
+    declared = getattr(cls, "capabilities", frozenset())
+    where = f"{cls.__module__}.{cls.__qualname__}.capabilities"
+    if not isinstance(declared, (frozenset, set)) or not all(isinstance(c, str) for c in declared):
+        raise RegistrationError(f"{where} must be a frozenset of capability names, got {declared!r}")
+    unknown = sorted(set(declared) - CAPABILITIES.keys())
+    if unknown:
+        raise RegistrationError(f"{where} names unknown capabilities {unknown}; known: {sorted(CAPABILITIES)} "
+                                "(spec/codec-plugins.md, section 4a)")
+    missing = sorted(c for c in declared if CAPABILITIES[c] and not _overrides(cls, c))
+    if missing:
+        raise RegistrationError(f"{where} declares {missing} but the class does not implement "
+                                f"{', '.join(m + '()' for m in missing)}: implement the hook or drop the "
+                                "declaration (spec/codec-plugins.md, section 4a)")
+    return frozenset(declared)
+
+
+def _warn_undeclared(cls: type[Codec]) -> None:
+    """The one place a codec that overrides an optional hook without declaring it (written from the docs before
+    declarations) is told what to add; :func:`capabilities` keeps using the override until codec spec 3."""
+    declared = getattr(cls, "capabilities", frozenset())
+    if not isinstance(declared, (frozenset, set)):
+        return  # refused with a clear error by check_capabilities
+    undeclared = sorted(hook for hook in CAPABILITIES if hook in cls.__dict__ and hook not in declared
+                        and not getattr(cls.__dict__[hook], "__sdfcodec_legacy__", False))  # legacy names warned
+    if undeclared:
+        wanted = ", ".join(repr(c) for c in sorted(set(declared) | set(undeclared)))
+        warnings.warn(f"{cls.__module__}.{cls.__qualname__} overrides the optional hook(s) {undeclared} without "
+                      f"declaring them: add `capabilities = frozenset({{{wanted}}})` to the class (spec/codec-"
+                      "plugins.md, section 4a); undeclared overrides are used until codec spec 3",
+                      DeprecationWarning, stacklevel=4)  # the class statement (past __init_subclass__, ABCMeta)
 
 
 def _overrides(codec: Codec | type[Codec], hook: str) -> bool:

@@ -7,13 +7,16 @@ Checked tensors
     uninitialised float32 tensor; on the CPU allocated so that large outputs get huge pages),
     :func:`affine_into` (``scale * values + offset`` written into a buffer in one pass: ``decode_into`` of a codec
     whose decode is a reshape).
+Capabilities
+    :func:`capabilities` (what a codec declares in ``capabilities``, checked; spec section 4a),
+    :data:`CAPABILITIES` (the names a codec may declare).
 Decoding into a caller's buffer
     :class:`DecodesInto` (the optional ``decode_into`` hook's signature), :func:`decodes_into` (does a codec
-    override it).
+    declare it).
 Decoding in cache-sized tiles
     :func:`run_tiles` (rows split into tiles over the CPU's cores, one BLAS thread each: the optional
     ``decode_tiles`` hook of a row-wise codec), :func:`scratch` (a per-thread reusable buffer),
-    :func:`decodes_tiles` (does a codec override ``decode_tiles``).
+    :func:`decodes_tiles` (does a codec declare ``decode_tiles``).
 State and model files
     :func:`save_state_file` / :func:`load_state_file` (plain-array ``.npz``, never pickled),
     :func:`load_meta_file` (a ``.npz`` with a JSON metadata entry), :func:`save_model` / :func:`load_model`.
@@ -43,17 +46,21 @@ import abc
 import warnings
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .core._lazy import is_tensor, lazy_exports, lazy_module
 from .core._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
-from .codec import Codec, DecodesInto, decodes_into, decodes_tiles
+from .codec import CAPABILITIES, Codec, DecodesInto, capabilities, decodes_into, decodes_tiles
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
 from .core.tiling import run_tiles, scratch
 
-__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "DecodesInto", "decodes_into",
+if TYPE_CHECKING:
+    from .data.dataset import Dataset
+
+__all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "CAPABILITIES", "capabilities",
+           "DecodesInto", "decodes_into",
            "decodes_tiles", "run_tiles", "scratch",
            "save_state_file", "load_state_file", "load_meta_file", "save_model", "load_model",
            "shipped_model_file", "load_shipped_model",
@@ -129,7 +136,7 @@ class TrainableCodec(Codec):
             InvalidValueError: the codec was loaded, not trained in this process (no ``history_``).
         """
 
-    def fit_dataset(self, dataset: Any, *, max_train: int | None = None, **kwargs: Any) -> "TrainableCodec":
+    def fit_dataset(self, dataset: Dataset, *, max_train: int | None = None, **kwargs: Any) -> "TrainableCodec":
         """Train on a :class:`Dataset`'s ``train`` split (at most ``max_train`` blocks), early-stopping on its
         ``validation`` split (the paper's protocol); ``kwargs`` as :meth:`fit_validated`."""
         return self.fit_validated(dataset.load("train", max_train), dataset.load("validation"), **kwargs)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import Any, Mapping
 
-from .codec import Codec
+from .codec import Codec, capabilities
 from .errors import (CodecTypeError, InvalidValueError, ModelNotFoundError, PluginLoadError, RegistrationError,
                      UnknownCodecError)
 
@@ -104,6 +104,10 @@ def get_codec_class(codec_id: str, *, package_hint: str | None = None) -> type[C
     if getattr(cls, "codec_id", None) != codec_id:
         raise PluginLoadError(f"entry point {codec_id!r} loads {cls.__qualname__} whose codec_id is "
                               f"{getattr(cls, 'codec_id', None)!r}; they must match")
+    try:
+        capabilities(cls)  # a declared capability the class does not implement: refused here, by name
+    except RegistrationError as exc:
+        raise PluginLoadError(f"codec plugin {codec_id!r} ({ep.value}): {exc}") from exc
     _loaded[codec_id] = cls
     return cls
 
@@ -190,5 +194,6 @@ def register_codec(cls: type[Codec], *, replace: bool = False) -> type[Codec]:
     if not replace and cid in _runtime and _runtime[cid] is not cls:
         raise RegistrationError(f"codec {cid!r} is already registered ({_runtime[cid].__qualname__}); "
                                 "pass replace=True")
+    capabilities(cls)  # RegistrationError for a capability declared but not implemented
     _runtime[cid] = cls
     return cls

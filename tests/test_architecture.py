@@ -173,3 +173,34 @@ def test_plugins_import_only_the_public_api(plugin):
                 if n.split(".")[0].startswith("sdfcodec") and n.split(".")[0] != plugin and n not in allowed:
                     bad.append(f"{f.relative_to(ROOT)}:{node.lineno} imports {n}")
     assert not bad, f"{plugin} reaches beyond the public API: {bad}"
+
+
+#: Parameter names (exact, or the suffix after "_") that hold a type sdfcodec owns: they are annotated with it
+#: (under ``if TYPE_CHECKING:`` where a run-time import would cycle), never ``Any``; a function named so (or
+#: ending so) returns it, also never ``Any``. ``model`` is search's QueryModel, ``m`` a Map.
+OWNED_NAMES = {"reader", "writer", "codec", "header", "map", "m", "store", "manifest", "placer", "dataset", "model"}
+
+
+def _owned_any(source: str) -> list[str]:
+    """``line name`` of every parameter or return annotated ``Any`` whose name says it holds an owned type."""
+    def owned(name: str) -> bool:
+        return name in OWNED_NAMES or name.rsplit("_", 1)[-1] in OWNED_NAMES - {"m", "model", "map"}
+
+    found = []
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        a = fn.args
+        for arg in [*a.posonlyargs, *a.args, *a.kwonlyargs]:
+            if arg.annotation is not None and ast.unparse(arg.annotation) == "Any" and owned(arg.arg):
+                found.append(f"{arg.lineno} {fn.name}({arg.arg})")
+        if fn.returns is not None and ast.unparse(fn.returns) == "Any" and owned(fn.name.lstrip("_")):
+            found.append(f"{fn.lineno} {fn.name} -> Any")
+    return found
+
+
+def test_no_any_for_a_type_the_package_owns():
+    planted = "def check(reader: Any, n: int) -> None: ...\ndef load_codec(x: int) -> Any: ...\n"
+    assert _owned_any(planted) == ["1 check(reader)", "2 load_codec -> Any"]  # the check can fail
+    bad = [f"{f.relative_to(ROOT)}:{hit}" for f in MODULES.values() for hit in _owned_any(f.read_text())]
+    assert not bad, f"Any where the type is sdfcodec's own (annotate it; TYPE_CHECKING import if it cycles): {bad}"

@@ -72,6 +72,7 @@ class AECodec(TrainableCodec):
     prefix_ordered = False
     requires_fit = True
     code_sizes = (32, 64, 128)
+    capabilities = frozenset({"pretrained"})  # spec/codec-plugins.md, section 4a
 
     def __init__(self, code_size: int = 64, hidden: int = 512, output: str = "sigmoid",
                  training: dict | None = None):

@@ -32,6 +32,7 @@ class GaussianBlurCodec(Codec):
     prefix_ordered = False
     requires_fit = False
     code_sizes = (4096,)
+    capabilities = frozenset({"decode_into"})  # spec/codec-plugins.md, section 4a
     code_size = 4096
 
     def __init__(self, size: int = 9, sigma: float = 4.0 / 3.0):

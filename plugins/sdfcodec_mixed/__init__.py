@@ -130,6 +130,7 @@ class _Mixture(TrainableCodec):
     prefix_ordered = False
     requires_fit = True
     code_sizes = (129,)
+    capabilities = frozenset({"pretrained"})  # spec/codec-plugins.md, section 4a
     _ae_output: ClassVar[str]
     _shipped_phrase: ClassVar[str]  # where the shipped 64 + 64's weights come from, for benchmark records
 

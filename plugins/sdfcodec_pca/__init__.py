@@ -122,6 +122,9 @@ class PCACodec(Codec):
     prefix_ordered = True
     requires_fit = True
     code_sizes = (32, 64, 128)
+    # spec/codec-plugins.md, section 4a: every optional fast path, weighted encode and fit, shipped bases
+    capabilities = frozenset({"decode_affine", "decode_into", "decode_tiles", "encode_weighted", "fit_weighted",
+                              "pretrained"})
 
     def __init__(self, code_size: int = 64, mean: str = "dataset", svd_solver: str = "auto",
                  random_state: int | None = 0):

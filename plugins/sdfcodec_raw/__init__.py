@@ -23,14 +23,13 @@ class RawCodec(Codec):
     requires_fit = False
     code_sizes = (4096,)
     code_size = 4096
+    # spec/codec-plugins.md, section 4a. encode_weighted without overriding it: lossless, every weighting has the
+    # same best code (the block itself), so map writers store the voxels as they are rather than filling
+    # unobserved space as they do for a lossy codec that ignores weights
+    capabilities = frozenset({"decode_into", "encode_weighted"})
 
     def _encode(self, blocks: torch.Tensor) -> torch.Tensor:
         return blocks.reshape(len(blocks), 4096).clone()
-
-    def encode_weighted(self, blocks: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        # lossless: every weighting has the same best code, the block itself; overriding the hook says so, so
-        # map writers store the voxels as they are rather than filling unobserved space for a lossy codec
-        return self._encode(blocks)
 
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         return codes.reshape(len(codes), 16, 16, 16).clone()

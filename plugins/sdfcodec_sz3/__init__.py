@@ -36,6 +36,7 @@ class SZ3Codec(Codec):
     prefix_ordered = False
     requires_fit = False
     code_sizes = (4096,)
+    capabilities = frozenset({"decode_into"})  # spec/codec-plugins.md, section 4a
     code_size = 4096
 
     def __init__(self, max_error: float = 0.05):

@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import TYPE_CHECKING, Any, Callable, Iterable
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from ..core._lazy import lazy_module
 from .codecs import bench_decode_on_read
 from .harness import interleave, load, ratio, run_document
 from .search import bench_search
+
+if TYPE_CHECKING:
+    from ..codec import Codec
 
 torch = lazy_module("torch")
 
@@ -107,7 +110,7 @@ def run_figure(setup: Setup, fig: Figure) -> dict[str, Any]:
     return rec
 
 
-def _analytic_codes(codec: Any, n: int, dev: Any) -> Any:
+def _analytic_codes(codec: Codec, n: int, dev: Any) -> Any:
     from ..testing import analytic_blocks
 
     x = torch.from_numpy(np.concatenate([analytic_blocks(512, seed=3)] * -(-n // 512))[:n]).to(dev)

@@ -6,7 +6,7 @@ import errno
 import json
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
 import typer
@@ -17,6 +17,10 @@ from .common import (app, check_code_size, check_device_flag, cli, err, fail, hu
                      refuse_existing, report, working, write_output)
 from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
 
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from ..map.facade import Map
+
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")  # what open3d writes
@@ -24,8 +28,12 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")  # what open3d
 
 @app.command("codecs")
 @cli
-def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+               verbose: bool = typer.Option(False, "--verbose", "-v",
+                                            help="Also the capabilities each codec declares (fast paths, weights, "
+                                                 "shipped models: spec/codec-plugins.md, section 4a).")) -> None:
     """List installed codecs: id, code sizes, prefix-ordered, needs fitting, providing package."""
+    from ..codec import capabilities
     from ..registry import get_codec_class, list_codecs
 
     rows = []
@@ -36,19 +44,22 @@ def codecs_cmd(as_json: bool = typer.Option(False, "--json", help="Machine-reada
             shipped = cls.shipped_models()
             row.update(code_sizes=list(cls.code_sizes), prefix_ordered=cls.prefix_ordered,
                        requires_fit=cls.requires_fit, shipped_models=None if shipped is None else {
-                           k: list(v) for k, v in shipped.items()}, status="ok")
+                           k: list(v) for k, v in shipped.items()}, capabilities=sorted(capabilities(cls)),
+                       status="ok")
             row["sizes"] = _sizes_text(cls, shipped)
         except SDFCodecError as e:  # one broken plugin is reported, the rest still listed
             row.update(code_sizes=None, prefix_ordered=None, requires_fit=None, shipped_models=None, sizes="?",
-                       status=f"failed: {e}")
+                       capabilities=None, status=f"failed: {e}")
         rows.append(row)
     if as_json:
         print_json(rows)
         return
     yn = {True: "yes", False: "no", None: "?"}
-    print_table(("id", "code sizes", "prefix-ordered", "needs fitting", "package", "status"),
-                [(r["id"], r["sizes"], yn[r["prefix_ordered"]],
-                  yn[r["requires_fit"]], f"{r['package'] or '(run time)'} {r['version'] or ''}".strip(), r["status"])
+    caps = ("capabilities",) if verbose else ()
+    print_table(("id", "code sizes", "prefix-ordered", "needs fitting", *caps, "package", "status"),
+                [(r["id"], r["sizes"], yn[r["prefix_ordered"]], yn[r["requires_fit"]],
+                  *((", ".join(r["capabilities"]) if r["capabilities"] is not None else "?",) if verbose else ()),
+                  f"{r['package'] or '(run time)'} {r['version'] or ''}".strip(), r["status"])
                  for r in rows], title="installed sdfcodec codecs")
 
 
@@ -341,7 +352,7 @@ def _variable_rate_wanted(flag: Optional[bool], step: Optional[float], target_by
     return (target_bytes is not None or target_error is not None) and code_dtype == "float32" and step is None
 
 
-def _ships(codec: Any) -> bool:
+def _ships(codec: Codec) -> bool:
     """Whether ``codec`` holds the state of a model its plugin ships (then a map references it by default)."""
     from ..errors import SDFCodecError
     from ..map.codec_state import shipped_reference
@@ -352,7 +363,7 @@ def _ships(codec: Any) -> bool:
         return False
 
 
-def _variable_rate_summary(m: Any, output: Path, target: Optional[float], error: Optional[float]) -> dict:
+def _variable_rate_summary(m: Map, output: Path, target: Optional[float], error: Optional[float]) -> dict:
     """The ``quantisation`` summary of a variable-rate map: its step, bytes per coded block (every file, and the
     code streams alone), the mean prefix length, the target met."""
     from ..map.rate import stored_bytes
@@ -380,7 +391,7 @@ def _residual_line(r: dict) -> str:
     return f"residual stage ({what}; step {r['step'] * 1000:.4g} mm{per}; holds at {r['holds_at']})"
 
 
-def _bounded_codec(codec_id: Optional[str], max_error: float, trunc: tuple[float, float]) -> Any:
+def _bounded_codec(codec_id: Optional[str], max_error: float, trunc: tuple[float, float]) -> Codec:
     """The codec ``--codec sz3 --max-error`` (metres) asks for: sz3 at that bound in normalised units (other codecs
     get the bound as a residual stage, :mod:`sdfcodec.map.residual`)."""
     from ..registry import get_codec
@@ -390,7 +401,7 @@ def _bounded_codec(codec_id: Optional[str], max_error: float, trunc: tuple[float
     return get_codec("sz3", max_error=float(max_error) / (trunc[1] - trunc[0]))
 
 
-def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float], vs: float,
+def _rate_sample(codec: Codec, vol: Any, src_map: Map | None, trunc: tuple[float, float], vs: float,
                  device: str) -> tuple[np.ndarray, Any, int]:
     """Codes (and packed observation masks, or None) of up to ``SAMPLE_BLOCKS`` coded blocks of the input (a
     volume ``vol``, or the map ``src_map``), encoded as the map writer encodes them: the rate model's sample;
@@ -421,7 +432,7 @@ def _rate_sample(codec: Any, vol: Any, src_map: Any, trunc: tuple[float, float],
     return codes, None if obs is None else pack_mask(obs), n_coded
 
 
-def _check_quantised_options(codec: Any, step: Optional[float], target: Optional[float], code_dtype: str) -> None:
+def _check_quantised_options(codec: Codec, step: Optional[float], target: Optional[float], code_dtype: str) -> None:
     """Refuse bad ``--step`` / ``--target-bytes`` input (checked before any fit or encode)."""
     if step is None and target is None:
         return
@@ -440,7 +451,7 @@ def _check_quantised_options(codec: Any, step: Optional[float], target: Optional
     check_quantisable(codec)
 
 
-def _encode_quantised(write: Any, codec: Any, step: Optional[float], target: Optional[float], code_dtype: str,
+def _encode_quantised(write: Any, codec: Codec, step: Optional[float], target: Optional[float], code_dtype: str,
                       sample: Any, output: Path) -> tuple[Any, Optional[dict]]:
     """``encode --step S`` / ``--target-bytes B``: int16 codes at step S, or at the step a rate model fitted on a
     sample of the input's blocks gives for B stored bytes per coded block, rewritten once with a corrected step
@@ -531,7 +542,7 @@ def decode_cmd(
         f"voxel {m.voxel_size} m, origin {tuple(round(o, 6) for o in origin)} m)"))
 
 
-def _warn_lossy_level(m: Any, level: Optional[int]) -> None:
+def _warn_lossy_level(m: Map, level: Optional[int]) -> None:
     """A warning when ``--level`` drops the guarantee of a map's residual stage (``--max-error``/``--sign-exact``
     hold at the full level only): the decode is then the codes' alone."""
     r = m.header.residual
@@ -669,7 +680,7 @@ def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="Th
     """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md).
 
     A volume ORIGINAL lies on DECODED's grid (its voxel size and origin) and is truncated as the map was."""
-    from ..evaluation.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
+    from ..evaluation.tracking.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
 
     volume = None
     if key is not None and Path(original).suffix != ".npz":
@@ -691,7 +702,7 @@ def sign_cmd(map_path: Path = typer.Argument(..., metavar="MAP", help="Local map
                                       "`openssl genpkey -algorithm ed25519`) or its raw 32-byte seed."),
              as_json: bool = typer.Option(False, "--json", help="Print a JSON summary.")) -> None:
     """Sign a map with an Ed25519 key (its manifest and header), atomically; readers trust it with --trusted-key."""
-    from ..map.signing import sign_map
+    from ..map.sign import sign_map
 
     kid = sign_map(map_path, key)
     report({"map": str(map_path), "key": kid}, as_json, lambda: f"signed {map_path} with key {kid}")

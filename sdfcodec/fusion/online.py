@@ -43,7 +43,7 @@ import math
 import resource
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 import torch
@@ -55,6 +55,9 @@ from .tsdf import FrameFeed, check_fusion_parameters, fusion_input, open3d_modul
 from ..core.header import BlockState
 from ..map.observed import read_block_rows
 
+if TYPE_CHECKING:
+    from ..codec import Codec
+
 __all__ = ["BLOCK_BYTES", "fuse_to_map", "fusion_codec", "lattice_origin"]
 
 #: Bytes a block takes in the working set: float32 distance and float32 weight per voxel.
@@ -62,7 +65,7 @@ BLOCK_BYTES = BLOCK ** 3 * 8
 PAGE_SLICE = 512  # blocks read out of the grid and written into the map at a time
 
 
-def fusion_codec(codec_id: str = "raw", code_size: int | None = None) -> Any:
+def fusion_codec(codec_id: str = "raw", code_size: int | None = None) -> Codec:
     """The codec a fused map is written with (``sdfcodec fuse --codec --code-size``): ``raw`` (lossless), ``pca``
     (the shipped eigenshapes cut to ``code_size``, default 64, as ``sdfcodec encode`` picks them), or any other
     registered codec that is fitted as constructed (fusion has nothing to fit it on before it writes)."""
@@ -119,7 +122,7 @@ class _Stored:
         return out
 
 
-def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str | Path, *, codec: Any,
+def fuse_to_map(sequence: Sequence | str | Path | Iterable[Frame], output: str | Path, *, codec: Codec,
                 working_set_mb: float = 512.0, voxel_size: float = 0.02,
                 truncation: tuple[float, float] = (-0.04, 0.1), depth_max: float | None = 4.0,
                 origin: np.ndarray | None = None, intrinsics: Intrinsics | None = None, code_dtype: str = "float32",

@@ -33,7 +33,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -43,6 +43,10 @@ from ..core.header import BlockState
 from .open3d_grid import (DEFAULT_TRUNC_VOXEL_MULTIPLIER, looks_like_open3d_grid, open_open3d_grid,
                           write_open3d_grid)
 from .voxblox import looks_like_voxblox, read_voxblox_blocks, scan_voxblox, encode_block, write_voxblox
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from ..map.facade import Map
 
 __all__ = ["FORMATS", "Source", "open_source", "detect_format", "import_map", "export_map", "lossless_truncation"]
 
@@ -188,7 +192,7 @@ def _assemble(src: Source, g0: np.ndarray, ids: np.ndarray, blocks: np.ndarray, 
     return ub, dist, weight
 
 
-def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | None = None, codec: Any = None,
+def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | None = None, codec: Codec | None = None,
                truncation: Sequence[float] | None = None, trunc_voxel_multiplier: float = DEFAULT_TRUNC_VOXEL_MULTIPLIER,
                code_dtype: str = "float32", overwrite: bool = False, batch_blocks: int = 1024,
                progress: Callable[[int], None] | None = None, **create_kw: Any) -> dict[str, Any]:
@@ -286,7 +290,7 @@ def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | 
             "blocks": info["blocks"], "codec": codec.get_config(), "seconds": time.perf_counter() - t0}
 
 
-def _lattice(m: Any, centre: float, per_side: int, fmt: str) -> tuple[np.ndarray, list[float]]:
+def _lattice(m: Map, centre: float, per_side: int, fmt: str) -> tuple[np.ndarray, list[float]]:
     """The global voxel index of map voxel (0, 0, 0) on the target format's lattice (voxel ``g`` at
     ``(g + centre) x voxel_size``), and the shift (metres) that putting the map there costs (0 for a map whose
     origin is on that lattice, as every imported map's is)."""
@@ -300,7 +304,7 @@ def _lattice(m: Any, centre: float, per_side: int, fmt: str) -> tuple[np.ndarray
     return g0, shift
 
 
-def _export_blocks(m: Any, region: Any, units: str, level: int | None) -> Any:
+def _export_blocks(m: Map, region: Any, units: str, level: int | None) -> Any:
     """Yield ``(coords (n, 3), distances (n, 16, 16, 16) metres, weights (n, 16, 16, 16))`` of the map's coded
     and observed-empty blocks touching ``region``; weight 0 on voxels not observed or outside the region."""
     from ..map.format import region_voxels

@@ -154,8 +154,7 @@ class Map:
         :meth:`to_dask`): the chunks holding coded blocks are grouped (consecutive chunks until they hold about
         ``batch_blocks`` blocks, capped by ``max_decode_bytes``); while the calling thread decodes one group
         in a single batched call, ``prefetch`` worker threads fetch the next groups (each group's chunks
-        concurrently: a local map's decoded by a few threads straight into the batch, :mod:`sdfcodec.map.io.fastfetch`;
-        HTTP, S3 and zip through Zarr's async I/O), decompress them and, when
+        concurrently, through Zarr's async I/O), decompress them and, when
         ``device`` is CUDA, copy their codes into pinned host memory and start the host-to-device copy on a
         side stream (non-blocking), so transfers overlap decoding. Empty and unobserved blocks are not
         yielded (they decode to ``d_max``).

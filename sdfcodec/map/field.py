@@ -27,7 +27,7 @@ import numpy as np
 import zarr
 from zarr.abc.codec import ArrayBytesCodec
 from zarr.codecs import Crc32cCodec
-from zarr.core.buffer import Buffer, NDBuffer
+from zarr.abc.buffer import Buffer, NDBuffer
 
 from ..errors import ChecksumError, FormatError, InvalidValueError, MissingDependencyError
 from ..core.header import BlockState, FieldCompression

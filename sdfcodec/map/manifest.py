@@ -28,7 +28,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import TYPE_CHECKING, Any, Callable, Iterable
 
 import numpy as np
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
@@ -36,6 +36,9 @@ from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 from ..errors import FormatError, IntegrityError
 from ..core.header import MAX_MANIFEST_BYTES, ManifestRef
 from .io.shards import index_size
+
+if TYPE_CHECKING:
+    from zarr.abc.store import Store
 
 __all__ = ["manifest_bytes_estimate", "MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
            "load_manifest", "sha256_hex", "set_check_default", "check_default", "object_problems",
@@ -302,7 +305,7 @@ def load_manifest(read: Callable[[str, int], bytes | None], ref: ManifestRef | N
 
 
 
-def _stored_keys(store: Any) -> list[str] | None:
+def _stored_keys(store: Store) -> list[str] | None:
     """Every key a local directory or zip map stores (None for stores that cannot be listed: remote maps)."""
     from .io.stores import SafeLocalStore, SafeZipStore, unguarded
 
@@ -319,7 +322,7 @@ def _stored_keys(store: Any) -> list[str] | None:
     return out
 
 
-def object_problems(store: Any, manifest: Manifest, *, listing: bool = True, limit: int = 1000) -> list[str]:
+def object_problems(store: Store, manifest: Manifest, *, listing: bool = True, limit: int = 1000) -> list[str]:
     """Every way the objects of the map behind ``store`` (a :class:`~sdfcodec.map.io.stores.GuardStore` checking
     against ``manifest``) differ from it: each listed object read and checked (a shard's index and chunks too),
     and with ``listing`` each stored object the manifest does not list (local and zip maps). At most

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
@@ -35,6 +35,10 @@ from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
 from ..core.header import BlockState
 from .format import mask_compressors
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from .reader import MapReader
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -134,7 +138,7 @@ def _grow(val: np.ndarray, observed: np.ndarray) -> np.ndarray:
         known[new] = 1
 
 
-def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
+def encode_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
                   voxel_size: float, surface_weight: float, device: Any) -> np.ndarray:
     """Codes ``(N, k)`` float32 numpy of normalised blocks ``v`` ``(N, 16, 16, 16)``, encoded on ``device`` with
     the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes.
@@ -153,7 +157,7 @@ def encode_blocks(codec: Any, v: np.ndarray, observed: np.ndarray | None, trunca
     return encode_truncated(codec, x, torch.from_numpy(w).to(device)).cpu().numpy()
 
 
-def encode_truncated(codec: Any, x: Any, w: Any, rounds: int = TRUNCATION_ROUNDS) -> Any:
+def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUNDS) -> Any:
     """Weighted codes ``(N, k)`` of normalised blocks ``x`` ``(N, 16, 16, 16)`` (tensor) under error weights
     ``w`` (same shape), for a reader that truncates what it decodes to ``[0, 1]`` (``[d_min, d_max]``).
 
@@ -184,7 +188,7 @@ def encode_truncated(codec: Any, x: Any, w: Any, rounds: int = TRUNCATION_ROUNDS
     return codes
 
 
-def fit_codec(codec: Any, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
+def fit_codec(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
               voxel_size: float, *, max_blocks: int, surface_weight: float = SURFACE_WEIGHT, seed: int = 0,
               log: Any = None) -> int:
     """Fit ``codec`` on the non-empty ones of normalised blocks ``v`` ``(N, 16, 16, 16)`` (at most
@@ -230,7 +234,7 @@ def restore_unobserved(blocks: torch.Tensor, rows: np.ndarray, free: float) -> t
     return blocks
 
 
-def restore_unobserved_voxels(reader: Any, vol: torch.Tensor, lo: np.ndarray, hi: np.ndarray,
+def restore_unobserved_voxels(reader: MapReader, vol: torch.Tensor, lo: np.ndarray, hi: np.ndarray,
                               free: float) -> torch.Tensor:
     """Set the unobserved voxels of ``vol``, the dense decode of voxels ``[lo, hi)`` (inside the grid) of the map
     ``reader`` opens, to ``free``, in place; a map without a mask is left as it is. For halo codecs: their
@@ -256,7 +260,7 @@ def restore_unobserved_voxels(reader: Any, vol: torch.Tensor, lo: np.ndarray, hi
     return vol
 
 
-def checked_mask_array(reader: Any) -> zarr.Array | None:
+def checked_mask_array(reader: MapReader) -> zarr.Array | None:
     """The observation mask of the map ``reader`` opens (a :class:`~sdfcodec.map.reader.MapReader`), its
     metadata checked against the header; None when the header lists no ``observation-mask``.
 
@@ -275,7 +279,7 @@ def checked_mask_array(reader: Any) -> zarr.Array | None:
     return arr
 
 
-def read_block_rows(reader: Any, arr: zarr.Array, coords: np.ndarray) -> np.ndarray:
+def read_block_rows(reader: MapReader, arr: zarr.Array, coords: np.ndarray) -> np.ndarray:
     """``(n, R)`` rows of blocks ``coords`` ``(n, 3)`` of a per-block array ``arr`` ``(Bx, By, Bz, R)`` (the mask,
     fusion weights), read through ``reader`` (a :class:`~sdfcodec.map.reader.MapReader`: its checked,
     concurrent reads), one read per chunk touched."""
@@ -316,7 +320,7 @@ def store_mask_chunk(arr: zarr.Array, box: tuple[slice, ...], local: np.ndarray,
     arr[box] = buf
 
 
-def read_observed(reader: Any, coords: np.ndarray) -> np.ndarray:
+def read_observed(reader: MapReader, coords: np.ndarray) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: which voxels of blocks ``coords`` ``(n, 3)`` (checked, inside the grid) were
     observed: fusion weight > 0 where the map stores weights, else its observation mask, else all of them."""
     arr, mask = reader.observation_arrays()

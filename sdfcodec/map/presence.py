@@ -13,13 +13,18 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from zarr.core.sync import sync as zarr_sync
 
 from ..errors import FormatError
 from .io.shards import storage_shape
+
+if TYPE_CHECKING:
+    from zarr.abc.store import Store
+
+    from .reader import MapReader
 
 __all__ = ["state_chunk_regions", "check_state_chunks", "MAX_PROBES"]
 
@@ -37,11 +42,11 @@ def state_chunk_regions(state_chunks: tuple[int, ...], grid: tuple[int, ...], bo
             for idx in itertools.product(*ranges)]
 
 
-async def _exist(store: Any, keys: list[str]) -> list[bool]:
+async def _exist(store: Store, keys: list[str]) -> list[bool]:
     return list(await asyncio.gather(*(store.exists(k) for k in keys)))
 
 
-def check_state_chunks(reader: Any, box: tuple[slice, ...], state: np.ndarray) -> None:
+def check_state_chunks(reader: MapReader, box: tuple[slice, ...], state: np.ndarray) -> None:
     """Refuse a missing ``state`` chunk in block box ``box`` (whose states ``state`` were just read) under
     which a code chunk is stored (see the module docstring). ``reader``: a
     :class:`~sdfcodec.map.reader.MapReader` of a committed map; its ``state_chunks_checked`` set caches the

@@ -12,7 +12,6 @@ beyond :data:`~sdfcodec.map.format.DECODE_LIMIT` or non-finite are refused namin
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import math
 import os
@@ -41,7 +40,6 @@ from .residual import check_residual_stored, checked_residual_array
 from .io.stores import GuardStore, PinnedStore, open_store, unguarded
 from .weights import checked_weights_array
 from .device_feed import DeviceFeed
-from .io.fastfetch import local_chunks
 from .io.shards import chunk_name, chunk_stored, shard_layout
 from .varrate import VariableRateReader, decode_runs, prefix_lengths
 
@@ -210,15 +208,9 @@ class MapReader:
 
     def read_many(self, arr: zarr.Array, sels: Sequence[tuple]) -> list[np.ndarray]:
         """Read ``arr[sel]`` for every selection concurrently (one batch of Zarr's async I/O: the chunks are
-        fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`. A local
-        map's chunks are read without Zarr (:mod:`~sdfcodec.map.io.fastfetch`); one failing there is read again
-        through Zarr, whose error names it as :meth:`read` does."""
+        fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`."""
         for sel in sels:
             self._check_read(arr, sel)
-        fast = local_chunks(self.group.store, arr)
-        with contextlib.suppress(SDFCodecError, OSError, RuntimeError, ValueError):
-            if fast is not None:
-                return fast.read_many(sels)
         if len(sels) == 1:
             return [self.read(arr, sels[0])]
         aarr = arr.async_array
@@ -236,14 +228,7 @@ class MapReader:
         return out
 
     def gather(self, arr: zarr.Array, sels: Sequence[tuple], locs: Sequence[np.ndarray]) -> np.ndarray:
-        """The rows ``arr[sel][tuple(loc.T)]`` of every selection, stacked: a local map's chunks decoded straight
-        into the output (:meth:`LocalChunks.gather`), else :meth:`read_many`."""
-        for sel in sels:
-            self._check_read(arr, sel)
-        fast = local_chunks(self.group.store, arr)
-        with contextlib.suppress(SDFCodecError, OSError, RuntimeError, ValueError):
-            if fast is not None:
-                return fast.gather(sels, locs)
+        """The rows ``arr[sel][tuple(loc.T)]`` of every selection, stacked (:meth:`read_many`)."""
         return np.concatenate([a[tuple(loc.T)] for a, loc in zip(self.read_many(arr, sels), locs)])
 
     def _chunk_error(self, arr: zarr.Array, sel: tuple, exc: Exception) -> Exception:
@@ -396,8 +381,8 @@ class MapReader:
     # -- the decode-on-read pipeline ------------------------------------------------------------------
     # One path reads and decodes codes for every reader (iter_codes, iter_decoded, iter_blocks, decode_region,
     # to_dask, the tracker's map field): the chunks of the code array that hold coded blocks of a block box are
-    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently: a local
-    # map's by sdfcodec.map.io.fastfetch's decoding threads, others through Zarr's async I/O) and stages codes for the
+    # cut into groups; a small thread pool fetches the next groups (each group's chunks concurrently, through Zarr's
+    # async I/O) and stages codes for the
     # device (pinned host memory + an asynchronous copy on CUDA) while the calling thread decodes the current
     # group in one batched call.
 

@@ -22,7 +22,7 @@ The writer computes ``q`` from the decode a reader makes (:func:`stored_code_val
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import zarr
@@ -36,6 +36,10 @@ from ..core.header import CodesSpec, ResidualSpec
 from ..core.quantize import quantise_step, quantize_codes
 from ..core.surface import JUMP, crossing_edges
 from .format import code_values
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from .reader import MapReader
 
 torch = lazy_module("torch")  # imported on first use: reading a header never needs it
 
@@ -54,7 +58,7 @@ SIGN_STEP_VOXELS = 0.5
 MIN_ERROR = 1e-4
 
 
-def residual_spec(codec: Any, code_dtype: str, voxel_size: float, truncation: tuple[float, float],
+def residual_spec(codec: Codec, code_dtype: str, voxel_size: float, truncation: tuple[float, float],
                   max_error: float | None, sign_exact: bool) -> ResidualSpec | None:
     """The header's ``residual`` for a new map (None: neither flag), the flags checked against the codec.
 
@@ -236,7 +240,7 @@ def _simulate(d32: np.ndarray, q: np.ndarray, spec: ResidualSpec, d_min: float, 
     return apply_residual(v, rows, spec.step, d_min, d_max).numpy().reshape(len(d32), -1).astype(np.float64)
 
 
-def checked_residual_array(reader: Any) -> zarr.Array | None:
+def checked_residual_array(reader: MapReader) -> zarr.Array | None:
     """The ``residual`` array of the map ``reader`` opens, its metadata checked against the header; None when the
     header has no residual stage.
 
@@ -257,7 +261,7 @@ def checked_residual_array(reader: Any) -> zarr.Array | None:
     return arr
 
 
-def check_residual_stored(reader: Any, arr: zarr.Array, coords: np.ndarray, rows: np.ndarray) -> None:
+def check_residual_stored(reader: MapReader, arr: zarr.Array, coords: np.ndarray, rows: np.ndarray) -> None:
     """Refuse coded blocks ``coords`` ``(n, 3)`` whose ``residual`` chunk is not stored (writers store every chunk
     holding coded blocks): Zarr reads it as zeros. Only the chunks of blocks whose ``rows`` ``(n, 4096)`` are all
     zero are looked up, each once per reader."""

@@ -24,7 +24,7 @@ import os
 import threading
 import uuid
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import torch
@@ -41,6 +41,9 @@ from .observed import encode_blocks
 from .reader import MapReader, open_reader
 from .io.stores import CowLocalStore
 from .writer import MapWriter, create_writer, store_code_chunk
+
+if TYPE_CHECKING:
+    from .facade import Map
 
 __all__ = ["map_to_dask", "write_volume_dask", "encode_volume_dask", "fit_volume_stream", "as_dask_volume"]
 
@@ -69,7 +72,7 @@ class _MapVoxels:
     (``MapReader.decode_region``). In the process that made it, it uses the open map's reader (the version it
     holds); a copy unpickled elsewhere reopens the map by path or URL, once per process."""
 
-    def __init__(self, m: Any, level: int | None):
+    def __init__(self, m: Map | MapReader, level: int | None):
         reader = m if isinstance(m, MapReader) else m.reader
         if reader.source is None:
             raise InvalidValueError(f"{m.location}: to_dask needs a map opened for reading (sdfcodec.open_map); "
@@ -102,7 +105,7 @@ class _MapVoxels:
         return self._map.decode_region(bounds, level=self.level)
 
 
-def map_to_dask(m: Any, level: int | None = None):
+def map_to_dask(m: Map | MapReader, level: int | None = None):
     """The decoded map ``m`` (a :class:`sdfcodec.Map` or its reader) as a lazy ``dask.array.Array``: shape
     ``m.shape_voxels``, float32 metres (``d_max`` for
     unobserved and empty blocks and nothing beyond the true extent), chunked as the code array
@@ -278,7 +281,7 @@ def _encode_chunk_or_error(*args: Any) -> tuple:
         return (e,)
 
 
-def write_volume_dask(m: Any, volume: Any, *, offset: Sequence[int] = (0, 0, 0), scheduler: Any = None) -> None:
+def write_volume_dask(m: Map | MapWriter, volume: Any, *, offset: Sequence[int] = (0, 0, 0), scheduler: Any = None) -> None:
     """Encode a dense TSDF ``(X, Y, Z)`` in metres into the map ``m`` being written (a :class:`sdfcodec.Map` from
     ``create_map`` or ``update_map``, or its ``MapWriter``), placed at voxel ``offset`` (multiples of 16),
     with dask: one task per chunk of the code

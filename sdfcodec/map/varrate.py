@@ -14,7 +14,7 @@ per coded block at code size 64).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -25,6 +25,11 @@ from ..core.header import BlockState, VariableRate
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
 from .observed import error_weights, read_block_rows, write_block_rows
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from .placement import BlockPlacer
+    from .reader import MapReader
 
 torch = lazy_module("torch")
 
@@ -45,7 +50,7 @@ STREAM_METADATA_BYTES = 720
 _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
 
 
-def check_variable_rate(codec: Any) -> None:
+def check_variable_rate(codec: Codec) -> None:
     """Refuse a codec whose codes a prefix does not decode (variable-rate codes drop each block's tail)."""
     from ..core.quantize import check_quantisable
 
@@ -55,7 +60,7 @@ def check_variable_rate(codec: Any) -> None:
                                 "prefix of each block's code, so they need a codec such as pca")
 
 
-def _basis(codec: Any) -> np.ndarray:
+def _basis(codec: Codec) -> np.ndarray:
     """``(D, 4096)`` float64: what each code element adds to the normalised decode (the codec is linear)."""
     d = codec.code_size
     eye = torch.from_numpy(np.vstack([np.zeros((1, d)), np.eye(d)]).astype(np.float32))
@@ -63,7 +68,7 @@ def _basis(codec: Any) -> np.ndarray:
     return dec[1:] - dec[:1]
 
 
-def surface_error(codec: Any, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
+def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
                   truncation: tuple[float, float]) -> float:
     """The surface error (metres) of decoding ``codes`` ``(n, D)`` against normalised blocks ``v`` ``(n, 16, 16, 16)``:
     the largest ``|decoded - input|`` over observed voxels that touch a surface crossing of the input inside
@@ -96,7 +101,7 @@ class VariableRateWriter:
     ``target_error`` (metres, :func:`surface_error` on the sample) chooses the step; ``lagrange`` scales the
     Lagrange multiplier (:data:`sdfcodec.core.varrate.LAGRANGE`)."""
 
-    def __init__(self, codec: Any, *, step: Any = None, target_bytes: float | None = None,
+    def __init__(self, codec: Codec, *, step: Any = None, target_bytes: float | None = None,
                  target_error: float | None = None, lagrange: float = LAGRANGE):
         check_variable_rate(codec)
         if sum(x is not None for x in (step, target_bytes, target_error)) != 1:
@@ -288,7 +293,7 @@ def _drop_chunks(group: Any, name: str) -> None:
 class VariableRateReader:
     """Reads the dequantised codes of coded blocks of a variable-rate map (``reader``: a MapReader)."""
 
-    def __init__(self, reader: Any, spec: VariableRate):
+    def __init__(self, reader: MapReader, spec: VariableRate):
         self.reader, self.spec = reader, spec
         self.model = EntropyModel.unpack(spec.model, reader.header.codes.size)
         self.step = np.broadcast_to(np.asarray(spec.step, np.float64), (reader.header.codes.size,))
@@ -362,7 +367,7 @@ def prefix_lengths(codes: Any) -> np.ndarray:
     return np.where(nz.any(axis=1), nz.shape[1] - np.argmax(nz[:, ::-1], axis=1), 0)
 
 
-def decode_runs(reader: Any, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: Any,
+def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: BlockPlacer,
                 metres: bool) -> Any:
     """:meth:`MapReader.decode_codes` of a group whose blocks are sorted by prefix length: each run of blocks whose
     lengths round up to the same multiple of :data:`RUN_WIDTH` decodes only that prefix (into its slice of

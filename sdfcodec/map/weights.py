@@ -13,7 +13,7 @@ lossless ``raw`` codec keeps its float16 weights as before. Online fusion writes
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import zarr
@@ -22,6 +22,10 @@ from ..core._atomic import remove_tree
 from ..errors import FormatError
 from ..core.header import Extension
 from .format import compressors
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from .reader import MapReader
 
 __all__ = ["WEIGHTS_ARRAY", "WEIGHTS_EXTENSION", "QUANT_WEIGHTS_EXTENSION", "WEIGHT_LEVELS", "weights_mode",
            "quantise_weights", "finish_weights", "checked_weights_array"]
@@ -35,7 +39,7 @@ WEIGHT_LEVELS = 255
 _SLAB = 1024
 
 
-def weights_mode(codec: Any, keep_weights: bool | None) -> str:
+def weights_mode(codec: Codec, keep_weights: bool | None) -> str:
     """What a writer of ``codec`` does with the fusion weights it is given: ``"float16"`` (stored as written: the
     lossless ``raw`` codec, by default or when kept), ``"uint8"`` (a lossy codec asked to keep them: quantised at
     commit) or ``"drop"`` (a lossy codec by default, or anyone told ``keep_weights=False``)."""
@@ -81,7 +85,7 @@ def finish_weights(group: zarr.Group, tmp: Path, mode: str, grid: tuple[int, int
     return Extension(name=QUANT_WEIGHTS_EXTENSION if arr.dtype == np.uint8 else WEIGHTS_EXTENSION, required=False)
 
 
-def checked_weights_array(reader: Any) -> zarr.Array | None:
+def checked_weights_array(reader: MapReader) -> zarr.Array | None:
     """The fusion weights of the map ``reader`` opens (a :class:`~sdfcodec.map.reader.MapReader`), checked: float16
     under ``fusion-weights``, uint8 counts under ``quantised-fusion-weights``; None when neither is listed or the
     array is absent (the extensions are optional)."""

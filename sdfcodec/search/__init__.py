@@ -47,8 +47,7 @@ bases share their leading components (pca-32/64/128 prefixes of one basis) give 
 scores. Codecs whose codes are not prefix-ordered (``raw``, ``ae``) are searched at their full size only.
 
 Bytes read are counted by wrapping the map's Zarr store (:class:`CountingStore`): what the search actually
-fetched, per array (``codes``, ``state``, ``codec``, metadata), for any store (local, zip, HTTP...); a local
-map's chunks, read without Zarr (:mod:`sdfcodec.map.io.fastfetch`), are counted as they are read.
+fetched, per array (``codes``, ``state``, ``codec``, metadata), for any store (local, zip, HTTP...).
 
 Query models are saved as ``.npz`` files of plain arrays (:func:`save_query`, :func:`load_query`, never
 pickles): the descriptors, optionally the normalised shape blocks (so the model can be re-encoded for any

@@ -37,11 +37,11 @@ class CountingStore(zarr.storage.WrapperStore):
 
     @property
     def inner(self) -> zarr.abc.store.Store:
-        """The store counted (with :meth:`observe`, local chunk reads bypassing Zarr count too)."""
+        """The store counted."""
         return self._store
 
     def observe(self, key: str, nbytes: int) -> None:
-        """Count ``nbytes`` read at ``key`` outside the store interface (:mod:`sdfcodec.map.io.fastfetch`)."""
+        """Count ``nbytes`` read at ``key`` (from several threads)."""
         kind = "meta" if key.endswith("zarr.json") else key.split("/", 1)[0]
         with self._lock:
             self.bytes[kind] = self.bytes.get(kind, 0) + nbytes

@@ -30,7 +30,7 @@ What it adds (maps without an observation record): blocks of the plane that scor
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -40,6 +40,10 @@ from ..core.blocks import normalise
 from .scene import PLANE_TOL_VOXELS
 from .query import codec_state_sha256
 from .shapes import MIN_SHAPE_SURFACE, truncate
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from .query import QueryModel
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
            "verify_threshold", "clean_residuals", "verify_planes", "check_planes"]
@@ -80,7 +84,7 @@ _CENTRE = (BLOCK - 1) / 2.0
 _GRID = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
 
 
-def _decode(codec: Any, codes: np.ndarray) -> np.ndarray:
+def _decode(codec: Codec, codes: np.ndarray) -> np.ndarray:
     """Normalised blocks ``(n, 4096)`` float32 decoded from codes (a prefix of a prefix-ordered codec's codes is
     decoded with the rest zero: the search's level)."""
     if codes.shape[1] < codec.code_size:
@@ -281,7 +285,7 @@ def _feet(x_next: np.ndarray, rel: np.ndarray, normal: np.ndarray, *, voxel_size
     return (other * column).sum(axis=(1, 2))
 
 
-def _next_blocks(codec: Any, c: np.ndarray, normal: np.ndarray, is_coded: np.ndarray, codes_of: Any) -> np.ndarray:
+def _next_blocks(codec: Codec, c: np.ndarray, normal: np.ndarray, is_coded: np.ndarray, codes_of: Any) -> np.ndarray:
     """For blocks ``c`` ``(n, 3)``: the normalised decodes ``(n, 4096)`` of their neighbours one block along the
     grid axis nearest ``normal``, towards its free side; free space (1.0) where that neighbour is not coded
     (``is_coded``: the grid's blocks, bool) or outside the grid."""
@@ -420,7 +424,7 @@ def _crossing(normal: np.ndarray) -> float:
     return float(_CENTRE * np.abs(normal).sum() + 1.0)
 
 
-def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, truncation: tuple[float, float],
+def verify_threshold(normal: np.ndarray, codec: Codec, *, voxel_size: float, truncation: tuple[float, float],
                      behind: str, weighted: bool, stretches: np.ndarray, tol: float, samples: int,
                      quantile: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Residuals of simulated clean blocks of the plane with ``normal`` (grid axes): ``samples`` instances at
@@ -452,7 +456,7 @@ def verify_threshold(normal: np.ndarray, codec: Any, *, voxel_size: float, trunc
                            stretches=np.asarray(stretches, np.float64), tol=tol)[:2]
 
 
-def clean_residuals(normal: np.ndarray, codec: Any, state_sha256: str | None, *, quantile: float, **kw: Any
+def clean_residuals(normal: np.ndarray, codec: Codec, state_sha256: str | None, *, quantile: float, **kw: Any
                     ) -> tuple[float, float]:
     """The ``quantile`` and the median of :func:`verify_threshold`'s residuals (``kw``: its other arguments;
     ``state_sha256``: :func:`~sdfcodec.search.query.codec_state_sha256` of ``codec``),
@@ -665,7 +669,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
 
 
 
-def check_planes(view: Any, model: Any, scene_info: dict, kept: np.ndarray, kept_strong: np.ndarray,
+def check_planes(view: Any, model: QueryModel, scene_info: dict, kept: np.ndarray, kept_strong: np.ndarray,
                  coded: np.ndarray, codes_of: Any) -> np.ndarray:
     """The final selection of a staged floor, ceiling or wall search: the blocks the planes the map-level stage
     chose (``scene_info["planes"]``, moved to ``scene_info["plane_check"]`` with the check's report) accept,

@@ -26,12 +26,15 @@ dict the search reports (``stats["scene"]``).
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..core._validate import BLOCK
 from ..errors import InvalidValueError
+
+if TYPE_CHECKING:
+    from .query import QueryModel
 
 __all__ = [
     "SCENE_QUERIES",
@@ -77,7 +80,7 @@ MAP_SHARE = 0.1
 BEYOND_SHARE = 0.03
 
 
-def block_planes(model: Any, coords: np.ndarray, nearest: np.ndarray, origin: np.ndarray, voxel_size: float
+def block_planes(model: QueryModel, coords: np.ndarray, nearest: np.ndarray, origin: np.ndarray, voxel_size: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """The plane of each block's nearest plane descriptor, in the map's grid.
 
@@ -256,7 +259,7 @@ def _footprint(coded: np.ndarray, up: np.ndarray) -> int:
     return int(len(np.unique(cells, axis=0)))
 
 
-def scene_select(query: str, model: Any, coords: np.ndarray, scores: np.ndarray, nearest: np.ndarray,
+def scene_select(query: str, model: QueryModel, coords: np.ndarray, scores: np.ndarray, nearest: np.ndarray,
                  threshold: float, coded: np.ndarray, origin: np.ndarray, voxel_size: float,
                  has_surface: Any = None) -> tuple[np.ndarray, dict]:
     """Keep the candidates that are what ``query`` means in this map (module docstring).

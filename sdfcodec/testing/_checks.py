@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from .. import errors
-from ..codec import Codec
+from ..codec import Codec, capabilities
 from ..registry import get_codec
 from ._compare import assert_close, assert_raises
 from ._data import analytic_blocks
@@ -84,7 +84,7 @@ def _mse(a: Any, b: np.ndarray) -> float:
 # -- the checks ---------------------------------------------------------------------------------------------
 def check_attributes(case: Case) -> None:
     """Class attributes: ``codec_id`` matches the id pattern, ``prefix_ordered``/``requires_fit`` are bools,
-    ``code_size`` is a positive int."""
+    ``code_size`` is a positive int, ``capabilities`` names known capabilities the class implements."""
     cls = type(case.codec)
     assert isinstance(getattr(cls, "codec_id", None), str) and _ID.match(cls.codec_id), \
         f"attributes: codec_id must match {_ID.pattern}, got {getattr(cls, 'codec_id', None)!r}"
@@ -92,6 +92,10 @@ def check_attributes(case: Case) -> None:
         "attributes: prefix_ordered and requires_fit must be bools"
     k = case.codec.code_size
     assert isinstance(k, int) and k > 0, f"attributes: code_size must be a positive int, got {k!r}"
+    try:  # declared capabilities: known names, each implemented (spec section 4a)
+        capabilities(cls)
+    except errors.SDFCodecError as e:
+        raise AssertionError(f"attributes: {e}") from e
 
 
 def check_config_round_trip(case: Case) -> None:

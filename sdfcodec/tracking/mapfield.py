@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import os
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -40,6 +40,9 @@ from ..core._validate import BLOCK, check_device
 from .densefield import cell_rows, trilinear, trilinear_rows
 from ..errors import InvalidValueError, ShapeError
 from ..core.header import BlockState
+
+if TYPE_CHECKING:
+    from ..map.facade import Map
 
 __all__ = ["MapField", "DEFAULT_CACHE_BYTES"]
 
@@ -83,7 +86,7 @@ class MapField:
     the interpolation arithmetic outside it.
     """
 
-    def __init__(self, map: Any, level: int | None = None, device: str | torch.device | None = None,
+    def __init__(self, map: Map, level: int | None = None, device: str | torch.device | None = None,
                  cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         from ..map import Map, open_map
 

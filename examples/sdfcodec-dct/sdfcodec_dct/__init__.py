@@ -34,6 +34,9 @@ class DCTCodec(Codec):
     prefix_ordered = True
     requires_fit = False
     code_sizes = (32, 64, 128)
+    # the optional fast paths this codec provides (spec/codec-plugins.md, section 4a): its decode is one matrix
+    # product, which can write the caller's buffer itself
+    capabilities = frozenset({"decode_into"})
 
     def __init__(self, code_size: int = 64):
         self.code_size = code_size
@@ -57,3 +60,9 @@ class DCTCodec(Codec):
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         b = self._basis(codes.device)[: codes.shape[1]]
         return (codes @ b).reshape(len(codes), 16, 16, 16)
+
+    def decode_into(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
+        # scale * (codes @ basis) + offset as one product written straight into the caller's buffer
+        b = self._basis(codes.device)[: codes.shape[1]]
+        base = torch.tensor(offset, dtype=out.dtype, device=out.device)
+        torch.addmm(base, codes, b, beta=1.0, alpha=scale, out=out.view(len(codes), 4096))

@@ -1,8 +1,8 @@
 """A stored chunk's frame checked before anything decodes it: its CRC32C (Zarr's ``crc32c`` codec: the last four
 bytes are the little-endian CRC32C of the bytes before them) and the structure of its Blosc frame
 (:func:`blosc_frame_problem`). The guarded stores check every chunk Zarr reads with them
-(:mod:`~sdfcodec.map.io.stores`); the readers that go without Zarr (:mod:`~sdfcodec.map.io.fastfetch`,
-:mod:`~sdfcodec.map.summary`) call them directly. Nothing here imports Zarr."""
+(:mod:`~sdfcodec.map.io.stores`); the reader that goes without Zarr (:mod:`~sdfcodec.map.summary`'s, for
+``info``) calls them directly. Nothing here imports Zarr."""
 
 from __future__ import annotations
 

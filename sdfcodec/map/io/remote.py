@@ -40,7 +40,7 @@ from typing import Any
 import zarr
 import zarr.abc.store
 from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
-from zarr.core.buffer import default_buffer_prototype
+from zarr.buffer import default_buffer_prototype
 
 from ...errors import FormatError, InvalidValueError, RemoteReadError
 

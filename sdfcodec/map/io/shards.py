@@ -28,21 +28,24 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import google_crc32c
 import numpy as np
 import zarr
 from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 from zarr.codecs import BytesCodec, Crc32cCodec, ShardingCodec
-from zarr.core.buffer import default_buffer_prototype
+from zarr.buffer import default_buffer_prototype
 from zarr.core.sync import sync as zarr_sync
 
 from ...core import _atomic
-from ...errors import ChecksumError, FormatError, InvalidValueError
+from ...errors import FormatError, InvalidValueError
 from ...core.header import SHARD_EXTENSION
 
-__all__ = ["shard_contents", "index_size", "index_entry", "check_sharding", "read_cap", "range_problem", "shard_problem",
+if TYPE_CHECKING:
+    from zarr.abc.store import Store
+
+__all__ = ["shard_contents", "index_size", "check_sharding", "read_cap", "range_problem", "shard_problem",
            "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
@@ -129,17 +132,6 @@ def _parse_index(data: bytes | memoryview, per: int) -> tuple[np.ndarray | None,
     return np.frombuffer(body, dtype="<u8").reshape(per, 2), None
 
 
-def index_entry(data: bytes, per: int, i: int) -> tuple[int, int] | None:
-    """``(offset, nbytes)`` of chunk ``i`` (C order inside its shard of ``per`` chunks) from the shard's index
-    bytes, or None when that chunk is not stored. Raises ChecksumError for an index of the wrong size or failing
-    its CRC32C."""
-    index, problem = _parse_index(data, per)
-    if problem:
-        raise ChecksumError(f"shard index: {problem}")
-    off, n = index[i]
-    return None if off == _EMPTY and n == _EMPTY else (int(off), int(n))
-
-
 def shard_problem(data: bytes | memoryview, per: int, chunk_cap: int, frame_problem: Any = None) -> str | None:
     """What is wrong with a whole shard of ``per`` chunks (each at most ``chunk_cap`` bytes), or None: its index
     (size, CRC32C, every entry inside the chunks' bytes) and, with ``frame_problem(frame)`` (a chunk's Blosc
@@ -178,7 +170,7 @@ def chunk_name(arr: zarr.Array, chunk: tuple[int, ...]) -> str:
     return f"{arr.path}/{arr.metadata.encode_chunk_key(shard)} (chunk {chunk} in it)"
 
 
-async def _stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
+async def _stored(store: Store, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
     if arr.shards is None:
         keys = [f"{arr.path}/{arr.metadata.encode_chunk_key(tuple(int(v) for v in c))}" for c in chunks]
         return list(await asyncio.gather(*(store.exists(k) for k in keys)))
@@ -207,7 +199,7 @@ async def _stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) ->
     return out
 
 
-def shard_contents(store: Any, arr: zarr.Array, shards: dict[tuple[int, ...], str]
+def shard_contents(store: Store, arr: zarr.Array, shards: dict[tuple[int, ...], str]
                    ) -> tuple[dict[tuple[int, ...], str], dict[str, str]]:
     """The chunks stored in the given shards of ``arr`` (shard coordinates -> key), from their indexes (read
     concurrently, each checked): ``({chunk coordinates: name}, {shard key: problem})``."""
@@ -236,7 +228,7 @@ def shard_contents(store: Any, arr: zarr.Array, shards: dict[tuple[int, ...], st
     return found, broken
 
 
-def chunk_stored(store: Any, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
+def chunk_stored(store: Store, arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[bool]:
     """Whether each chunk of ``arr`` (chunk coordinates) is stored: its file exists, or its shard's index (read
     and checked) has an entry for it."""
     return zarr_sync(_stored(store, arr, list(chunks)))

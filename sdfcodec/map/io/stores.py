@@ -21,12 +21,13 @@ import weakref
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zarr
 import zarr.abc.store
+from zarr.abc.buffer import Buffer
 from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
-from zarr.core.buffer import Buffer, default_buffer_prototype
+from zarr.buffer import default_buffer_prototype
 
 from ...core import _atomic
 from .frames import blosc_frame_problem
@@ -34,6 +35,9 @@ from .metadata_limits import MetadataBudget, check_metadata_size
 from .remote import remote_store, set_default_limits
 from .shards import range_problem, read_cap, shard_problem
 from ...errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
+
+if TYPE_CHECKING:
+    from ..manifest import Manifest
 
 __all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
            "unguarded", "chunk_read_limit", "check_metadata_document"]
@@ -95,7 +99,7 @@ class GuardStore(zarr.storage.WrapperStore):
     that is not a regular file, is refused), not only from ``stat``."""
 
     def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None,
-                 indexes: ShardIndexCache | None = None, manifest: Any = None,
+                 indexes: ShardIndexCache | None = None, manifest: Manifest | None = None,
                  metadata: MetadataBudget | None = None):
         super().__init__(store)
         self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
@@ -142,35 +146,6 @@ class GuardStore(zarr.storage.WrapperStore):
         if key == "zarr.json" or key.endswith("/zarr.json"):
             return None
         return next((v for p, v in self.limits.items() if key.startswith(p + "/")), None)
-
-    def read_chunk_file(self, key: str, byte_range: Any = None) -> bytes | None:
-        """The stored bytes of chunk ``key`` of a checked array whose chunks are Blosc frames, over a local
-        directory store, read on the calling thread (no event loop; :mod:`sdfcodec.map.io.fastfetch`) with the
-        checks :meth:`get` makes: bounded while read, the frame's structure checked before anything decompresses
-        it. In a shard: its index (``byte_range`` a suffix request, kept in ``indexes``) or one chunk (a range
-        request). None: nothing is stored there."""
-        limit = self.limit_of(key)
-        sharded = limit is not None and len(limit) > 2 and limit[2] > 1
-        if (not isinstance(self._store, SafeLocalStore) or limit is None or not limit[1]
-                or sharded != (byte_range is not None)):
-            raise InvalidValueError(f"{key}: only a Blosc-framed chunk of a local map is read this way")
-        problem = range_problem(limit, byte_range, chunk_read_limit(limit[0])) if sharded else None
-        if problem:
-            raise ChecksumError(f"{key}: {problem}; refused unread")
-        index = isinstance(byte_range, SuffixByteRequest)
-        if index and (hit := self.indexes.get(key)) is not None:
-            if self.manifest is not None:  # cached by a read through Zarr before its check
-                self.manifest.check(key, hit, byte_range)
-            return hit
-        data = self._store.read_file(key, byte_range, read_cap(limit, byte_range, chunk_read_limit(limit[0])),
-                                     _chunk_too_big(key, limit))
-        if self.manifest is not None:
-            self.manifest.check(key, data, byte_range)
-        if data is not None and index:
-            self.indexes.put(key, data)
-        elif data is not None:
-            _check_frame(_range_name(key, byte_range), memoryview(data), limit)
-        return data
 
     async def get(self, key, prototype=None, byte_range=None):
         buf = await self._get(key, prototype, byte_range)

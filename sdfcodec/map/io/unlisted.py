@@ -15,7 +15,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
@@ -26,6 +26,9 @@ from .remote import RemoteStore
 from .shards import chunk_name, chunk_stored, shard_contents
 from .stores import unguarded
 
+if TYPE_CHECKING:
+    from zarr.abc.store import Store
+
 __all__ = ["is_unlisted", "chunk_positions", "stored_chunks", "MAX_CANDIDATES"]
 
 #: Chunk positions of one array a remote map's check may ask for: a million-block map in the writer's
@@ -35,7 +38,7 @@ MAX_CANDIDATES = 1 << 18
 _BATCH = 1024  # requests in flight at a time
 
 
-def is_unlisted(store: Any) -> bool:
+def is_unlisted(store: Store) -> bool:
     """Whether ``store`` (guarded or not) is one that is never listed: a remote map's."""
     return isinstance(unguarded(store), RemoteStore)
 
