@@ -283,6 +283,24 @@ def test_encode_exact_and_what_it_refuses(tmp_path):
     assert not (tmp_path / "w.sdfz").exists()
 
 
+def test_update_of_an_exact_map_stays_exact(tmp_path):
+    """Blocks written by an update (the map's weights array new then) read back bit for bit beside the old ones."""
+    rng = np.random.default_rng(9)
+    b = rng.uniform(-0.05, 0.2, (2, 16, 16, 16)).astype(np.float32)
+    w = rng.uniform(1e-9, 1e5, b.shape).astype(np.float32)
+    with sdfcodec.create_map(tmp_path / "u.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=0.02,
+                             truncation=(-0.05, 0.2), exact=True) as m:
+        m.write_blocks(np.array([[0, 0, 0]]), b[:1])
+    with sdfcodec.update_map(tmp_path / "u.sdfz") as m:
+        m.write_blocks(np.array([[2, 1, 0]]), b[1:], weights=w[1:])
+    m = sdfcodec.open_map(tmp_path / "u.sdfz")
+    assert m.header.codes.units == "metres" and m.has_weights
+    vol = m.decode_region()
+    assert np.array_equal(_bits(vol[:16, :16, :16]), _bits(b[0])) and np.array_equal(_bits(vol[32:, 16:, :16]),
+                                                                                       _bits(b[1]))
+    assert np.array_equal(_bits(m.read_weights(np.array([[2, 1, 0]]))), _bits(w[1:]))
+
+
 def _golden_inputs():
     """The golden map's blocks, weights and the values they must decode to (chosen here, not read back)."""
     rng = np.random.default_rng(43)

@@ -787,6 +787,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id, "reuse": previous_digests(final, manifest)},
                          header=h)
+        writer.weights_mode = "float32" if is_metric(h.codes) else writer.weights_mode  # weights as exact as codes
     except WriteFailedError:
         raise  # already cleaned up
     except BaseException:
