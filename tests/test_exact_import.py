@@ -199,7 +199,8 @@ def test_normalised_import_and_old_readers(shared_data, tmp_path, monkeypatch):
     without the extension refuses the exact one by name instead of misreading it."""
     src = shared_data / REAL
     r = CliRunner().invoke(app, ["import", str(src), str(tmp_path / "n.sdfz"), "--no-exact", "--json"])
-    assert r.exit_code == 0, r.output and json.loads(r.output)["exact"] is False
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["exact"] is False
     sdfcodec.import_map(src, tmp_path / "e.sdfz")
     n, e = sdfcodec.open_map(tmp_path / "n.sdfz"), sdfcodec.open_map(tmp_path / "e.sdfz")
     assert n.header.codes.units is None and not {x.name for x in n.header.extensions} & {

@@ -325,8 +325,9 @@ class MapWriter:
         cross = crossing_voxels(coords, blocks_m, observed) if spec is not None and spec.sign_exact else None
         for i in range(0, len(coords), batch_size):
             c = coords[i:i + batch_size]
-            # metric codes are the metres themselves (spec 4f), only exact free space is empty
-            v = blocks_m[i:i + batch_size] if metric else normalise(blocks_m[i:i + batch_size], d_min, d_max)
+            # metric codes are the metres themselves, within the range in float32; only exact free space is empty (4f)
+            v = (np.clip(blocks_m[i:i + batch_size], np.float32(d_min), np.float32(d_max)) if metric
+                 else normalise(blocks_m[i:i + batch_size], d_min, d_max))
             empty = metric_empty(v, d_max) if metric else free_space(v)
             self.set_state(c[empty], BlockState.EMPTY)
             if (~empty).any():
