@@ -246,6 +246,18 @@ def test_commands_on_an_exact_map(shared_data, tmp_path):
     c = json.loads(r.output)
     assert r.exit_code == 0 and c["chamfer_l1"] < 1e-7 and c["n_band"] == 1981 and c["near_surface_rmse"] < 1e-7
     assert verify_map(path).ok
+    # an export of a region: its voxels bit for bit, nothing outside it
+    sdfcodec.export_map(path, tmp_path / "part.voxblox", format="voxblox", voxels_per_side=8,
+                        region=((0, 16), (0, 16), (8, 32)))
+    (h, b), = parse_layers((tmp_path / "part.voxblox").read_bytes())
+    part_voxels = layer_voxels(h, b)
+    (h0, b0), = parse_layers((shared_data / REAL).read_bytes())
+    source = layer_voxels(h0, b0)
+    g0 = np.round(np.asarray(m.origin) / m.voxel_size - 0.5).astype(np.int64)
+    inside = {k: v for k, v in source.items() if all(lo <= k[i] - g0[i] < hi for i, (lo, hi) in
+                                                      enumerate(((0, 16), (0, 16), (8, 32))))}
+    assert set(part_voxels) == set(inside) and 0 < len(inside) < len(source)
+    assert np.array_equal(_bits([part_voxels[k] for k in inside]), _bits([inside[k] for k in inside]))
     r = run(app, ["info", str(path)])
     assert r.exit_code == 0 and "metres as written (metric-codes)" in r.output
     with pytest.raises(errors.SDFCodecError, match="level"):
@@ -282,6 +294,12 @@ def test_encode_exact_and_what_it_refuses(tmp_path):
                                  exact=True) as m:
             m.write_codes(np.zeros((1, 3), np.int64), np.zeros((1, 4096), np.float32))
     assert not (tmp_path / "w.sdfz").exists()
+    da = pytest.importorskip("dask.array")
+    with pytest.raises(errors.InvalidValueError, match="dask"):  # its tasks would store normalised codes
+        with sdfcodec.create_map(tmp_path / "k.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=0.02,
+                                 truncation=(-0.04, 0.1), exact=True) as m:
+            m.write_volume(da.from_array(vol, chunks=16))
+    assert not (tmp_path / "k.sdfz").exists()
 
 
 def test_update_of_an_exact_map_stays_exact(tmp_path):
