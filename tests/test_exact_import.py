@@ -222,6 +222,17 @@ def test_normalised_import_and_old_readers(shared_data, tmp_path, monkeypatch):
     sdfcodec.open_map(tmp_path / "n.sdfz")
 
 
+def test_search_scores_an_exact_map_as_its_normalised_twin(shared_data, tmp_path):
+    """Descriptor search sees the codes as the codec encodes them (normalised), whatever the storage."""
+    from sdfcodec import search as S
+
+    sdfcodec.import_map(shared_data / REAL, tmp_path / "e.sdfz")
+    sdfcodec.import_map(shared_data / REAL, tmp_path / "n.sdfz", exact=False)
+    a, b = (S.search(tmp_path / f"{k}.sdfz", "floor", keep_scores=True, threshold=1e9, scene=False) for k in "en")
+    assert np.array_equal(a.all_coords, b.all_coords) and len(a.all_scores) == 4
+    np.testing.assert_allclose(a.all_scores, b.all_scores, rtol=1e-5)
+
+
 def test_commands_on_an_exact_map(shared_data, tmp_path):
     """decode, a region, mesh, compare, verify, info and a remote read all see the exact metres."""
     from sdfcodec.bench.serve import FileServer
