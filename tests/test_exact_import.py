@@ -369,3 +369,23 @@ def test_golden_metric_map_decodes_forever(regen_golden):
     assert raw["codes"]["units"] == "metres"
     assert {"name": "metric-codes", "required": True} in raw["extensions"]
     assert {"name": "float32-fusion-weights", "required": False} in raw["extensions"]
+
+
+@pytest.mark.parametrize("mutate,says", [
+    (lambda h: h["extensions"].remove({"name": "metric-codes", "required": True}), "metric-codes"),
+    (lambda h: h["codes"].pop("units"), "metric-codes"),
+    (lambda h: h["extensions"][h["extensions"].index({"name": "metric-codes", "required": True})].update(
+        required=False), "metric-codes"),
+    (lambda h: h["codes"].update(dtype="float16"), "units"),
+    (lambda h: h["codes"].update(units="millimetres"), "units"),
+    (lambda h: (h["codec"].update(id="gaussian-blur"), h["codec"]["config"].update(id="gaussian-blur")), "raw"),
+])
+def test_inconsistent_metric_headers_are_refused(mutate, says):
+    """The field and the required extension go together, on raw float32 codes only (spec 4f)."""
+    from sdfcodec.header import parse_header
+
+    raw = json.loads((GOLDEN / "map.zarr" / "zarr.json").read_text())["attributes"]["sdfcodec"]
+    parse_header(raw)
+    mutate(raw)
+    with pytest.raises(errors.FormatError, match=says):
+        parse_header(raw, "golden")
