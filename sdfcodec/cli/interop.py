@@ -40,8 +40,9 @@ def import_cmd(
 
     Lossless by default: raw codec, every observed voxel's distance and weight bit for bit (voxblox's float32
     metres; Open3D's float32(tsdf x trunc_voxel_multiplier x voxel size)), the data's own truncation, weight 0 =
-    unobserved; every voxel lands on the map's grid at its own world position. For a codec that must be fitted, or a rate target,
-    transcode the lossless map afterwards with `sdfcodec encode MAP OUT --codec ...` (every encode option).
+    unobserved; every voxel lands on the map's grid at its own world position. For a codec that must be fitted,
+    or a rate target, transcode the lossless map afterwards with `sdfcodec encode MAP OUT --codec ...` (every
+    encode option).
     docs/how-to/import-voxblox.md, import-open3d.md."""
     trunc = parse_truncation(truncation) if truncation else None
     if code_size is not None and model is None:

@@ -68,8 +68,8 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
     v = codec.decode_core(codes, scale=scale, offset=offset, out=out)
     if not proven:
         # the values judged in the map's own units, whatever the stored codes' (metres or normalised)
-        v = check_decoded(v, **dict(zip(("scale", "offset"), (d_max - d_min, d_min) if metres else (1.0, 0.0))),
-                          coords=coords, location=reader.location,
+        unit, zero = (d_max - d_min, d_min) if metres else (1.0, 0.0)
+        v = check_decoded(v, scale=unit, offset=zero, coords=coords, location=reader.location,
                           codec_id=reader.header.codec.id, chunk_blocks=reader.header.codes.chunk_blocks)
     if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
         if v.device.type == "cpu":  # numpy's: torch's threaded clamp after a numpy product waits for BLAS threads

@@ -7,8 +7,9 @@ map needs of them, which voxels were observed, its observation mask keeps in 65 
 whose codec is lossy drops them at commit unless ``keep_weights=True`` (``--keep-weights``), and then stores
 them quantised (:func:`quantise_weights`) under the optional extension ``quantised-fusion-weights``; the
 lossless ``raw`` codec keeps its float16 weights as before, and a map with metric codes (spec 4f: ``sdfcodec
-import``, ``exact=True``) keeps them as float32, exactly, under the optional extension ``float32-fusion-weights``. Online fusion writes the weights while it fuses
-(a block paged back in resumes from them) and the choice is applied when the map is committed.
+import``, ``exact=True``) keeps them as float32, exactly, under the optional extension
+``float32-fusion-weights``. Online fusion writes the weights while it fuses (a block paged back in resumes from
+them) and the choice is applied when the map is committed.
 """
 
 from __future__ import annotations
