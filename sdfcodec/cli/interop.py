@@ -32,14 +32,17 @@ def import_cmd(
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Zarr shards of N blocks per axis (as encode)."),
     keep_weights: bool = typer.Option(False, "--keep-weights", help="With a lossy --codec: keep the fusion weights "
                                       "(uint8 counts; a lossy map drops them by default, its observation mask kept)."),
+    exact: Optional[bool] = typer.Option(None, "--exact/--no-exact", help="Store the voxels' own float32 metres and float32 weights, read back bit for bit (the default with the raw codec); --no-exact writes the normalised raw map readers before the extension metric-codes open (distances to (d_max - d_min) x 2^-24 m, weights float16)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT.sdfz if it exists."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
 ) -> None:
     """Import a voxblox TSDF layer or an Open3D VoxelBlockGrid into a map, streamed (bounded memory).
 
-    Lossless by default (raw codec, the data's own truncation, weights kept, weight 0 = unobserved); every voxel
-    lands on the map's grid at its own world position. For a codec that must be fitted, or a rate target,
-    transcode the lossless map afterwards with `sdfcodec encode MAP OUT --codec ...` (every encode option).
+    Lossless by default: raw codec, every observed voxel's distance and weight bit for bit (voxblox's float32
+    metres; Open3D's float32(tsdf x trunc_voxel_multiplier x voxel size)), the data's own truncation, weight 0 =
+    unobserved; every voxel lands on the map's grid at its own world position. For a codec that must be fitted,
+    or a rate target, transcode the lossless map afterwards with `sdfcodec encode MAP OUT --codec ...` (every
+    encode option).
     docs/how-to/import-voxblox.md, import-open3d.md."""
     trunc = parse_truncation(truncation) if truncation else None
     if code_size is not None and model is None:
@@ -55,12 +58,12 @@ def import_cmd(
                              trunc_voxel_multiplier=trunc_voxel_multiplier, code_dtype=code_dtype,
                              overwrite=overwrite, max_error=max_error, sign_exact=sign_exact,
                              chunk_blocks=chunk_blocks, shard_blocks=shard_blocks,
-                             keep_weights=True if keep_weights else None)
+                             keep_weights=True if keep_weights else None, exact=exact)
     report(summary, as_json, lambda: (
         f"wrote {output}: {summary['format']} {summary['source_blocks']} blocks of {summary['voxels_per_side']}^3 "
         f"voxels ({summary['observed_voxels']} observed) into {summary['blocks']['coded']} coded blocks, voxel "
         f"{summary['voxel_size']:.6g} m, truncation [{summary['truncation'][0]:.6g}, {summary['truncation'][1]:.6g}] m"
-        f", codec {summary['codec']['id']} ({summary['seconds']:.1f} s)"))
+        f", codec {summary['codec']['id']}{' (exact metres)' if summary['exact'] else ''} ({summary['seconds']:.1f} s)"))
 
 
 @app.command("export")

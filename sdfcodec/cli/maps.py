@@ -104,7 +104,8 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
     rows = [
         ("format version", str(info["format_version"])),
         ("codec", json.dumps(info["codec"])),
-        ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"),
+        ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"
+                 + (", metres as written (metric-codes)" if info.get("code_units") == "metres" else "")),
         ("layout", f"{info['chunk_blocks']}^3-block chunks of codes" + (
             f" in {info['shard_blocks']}^3-block shards (sharded-codes)" if info["shard_blocks"] else "")),
         ("voxel size", f"{info['voxel_size']} m"),
@@ -168,6 +169,7 @@ def encode_cmd(
     chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (default: 16 for pca-64; smaller chunks transfer less per small remote region)."),
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Store the chunks of codes in Zarr shards of N blocks per axis (a multiple of --chunk-blocks dividing 64, e.g. 32): objects of megabytes for maps of millions of blocks on object storage (readers before the extension sharded-codes refuse the map)."),
     keep_weights: bool = typer.Option(False, "--keep-weights", help="Carry the input map's fusion weights (uint8 counts in a lossy map, float16 with raw); by default only its observation mask is kept."),
+    exact: bool = typer.Option(False, "--exact", help="With --codec raw: store the voxels' own float32 metres (and float32 weights), read back bit for bit; without it raw is exact to (d_max - d_min) x 2^-24 m. Readers before the extension metric-codes refuse such maps."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
 
@@ -279,7 +281,7 @@ def encode_cmd(
                                              code_step=code_step, tool="sdfcodec encode", source=str(input),
                                              codec_state=codec_state, chunk_blocks=chunk_blocks,
                                              shard_blocks=shard_blocks, variable_rate=vr_kw,
-                                             keep_weights=keep_weights or None, **residual_kw) as m:
+                                             keep_weights=keep_weights or None, exact=exact, **residual_kw) as m:
             if src_map is not None:
                 total = src_map.count_states()["coded"]
                 task = prog.add_task("transcoding", total=total, rate="")
@@ -680,7 +682,7 @@ def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="Th
     """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md).
 
     A volume ORIGINAL lies on DECODED's grid (its voxel size and origin) and is truncated as the map was."""
-    from ..evaluation.tracking.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
+    from ..evaluation.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
 
     volume = None
     if key is not None and Path(original).suffix != ".npz":

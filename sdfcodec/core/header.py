@@ -21,7 +21,8 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
            "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
-           "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate"]
+           "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate",
+           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -68,6 +69,12 @@ VARIABLE_RATE_EXTENSION = "variable-rate-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {VARIABLE_RATE_EXTENSION}
 #: "quantised-fusion-weights": the optional ``weights`` array as uint8 counts instead of float16 (spec section 6a)
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {"quantised-fusion-weights"}
+#: "metric-codes": raw codes stored as the voxels' own float32 metres, not normalised (spec section 4f), so a
+#: lossless map returns its input bit for bit; required: a reader that ignored it would scale metres again
+METRIC_EXTENSION = "metric-codes"
+#: "float32-fusion-weights": the optional ``weights`` array as float32, the weights exactly (spec section 6a)
+FLOAT32_WEIGHTS_EXTENSION = "float32-fusion-weights"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {METRIC_EXTENSION, FLOAT32_WEIGHTS_EXTENSION}
 
 
 class BlockState:
@@ -210,12 +217,16 @@ class CodesSpec(_Model):
     variable_rate: VariableRate | None = Field(
         None, description="with the required extension 'variable-rate-codes': float32 codes stored as one "
                           "entropy-coded stream per chunk (spec section 4e); omitted otherwise")
+    units: Literal["metres"] | None = Field(
+        None, description="with the required extension 'metric-codes' (codec raw, float32 codes only): the codes "
+                          "are the voxels in metres, decoded without the normalisation (spec section 4f); omitted "
+                          "otherwise (codes in normalised units)")
 
     @model_serializer(mode="wrap")
     def _omit_no_quantisation(self, handler):
-        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b-4d
+        # omitted, never null: headers of float and int8 maps stay byte-identical to those written before 4b-4f
         out = handler(self)
-        for key in ("quantisation", "field_compression", "shard_blocks", "variable_rate"):
+        for key in ("quantisation", "field_compression", "shard_blocks", "variable_rate", "units"):
             if isinstance(out, dict) and out.get(key, 0) is None:
                 out.pop(key)
         return out
@@ -254,6 +265,10 @@ class CodesSpec(_Model):
                              "steps")
         if self.shard_blocks is not None and self.field_compression is not None:
             raise ValueError("codes.shard_blocks and codes.field_compression do not go together (spec section 4d)")
+        if self.units is not None and (self.dtype != "float32" or self.size != 4096 or vr is not None
+                                       or self.field_compression is not None):
+            raise ValueError("codes.units 'metres' needs plain float32 voxel codes of size 4096 (spec section 4f), "
+                             f"got dtype {self.dtype!r}, size {self.size}")
         return self
 
 
@@ -334,11 +349,15 @@ class MapHeader(_Model):
                 ("residual", self.residual is not None, RESIDUAL_EXTENSION, ""),
                 ("codes.shard_blocks", self.codes.shard_blocks is not None, SHARD_EXTENSION, ""),
                 ("manifest", self.manifest is not None, MANIFEST_EXTENSION, ""),
-                ("codes.variable_rate", self.codes.variable_rate is not None, VARIABLE_RATE_EXTENSION, "")):
+                ("codes.variable_rate", self.codes.variable_rate is not None, VARIABLE_RATE_EXTENSION, ""),
+                ("codes.units", self.codes.units is not None, METRIC_EXTENSION, "")):
             listed = [e for e in self.extensions if e.name == name]
             if present != bool(listed) or any(not e.required for e in listed):
                 raise ValueError(f"{what} and the required extension {name!r} go together "
                                  f"({detail}extensions {[e.name for e in self.extensions]})")
+        if self.codes.units is not None and (self.codec.id != "raw" or self.residual is not None):
+            raise ValueError(f"codes.units 'metres' is defined for the codec 'raw' without a residual stage (spec "
+                             f"section 4f), got codec {self.codec.id!r}")
         if self.up is not None and not 0.5 < sum(u * u for u in self.up) < 2.0:
             raise ValueError(f"up must be a unit vector, got {list(self.up)}")
         if (problem := self._arithmetic_problem()) is not None:

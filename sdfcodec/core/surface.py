@@ -15,7 +15,7 @@ Robots care where surfaces are, so a decoded TSDF is judged by its surfaces:
 :func:`compare_volumes` judges two dense volumes, :func:`compare_maps` two maps, streamed in slabs along x
 (bounded memory for the volumes; the point sets, which grow with the surface area, are held whole). Maps are
 taken as opened (any object with a map's ``decode_region``, ``truncation``, ``voxel_size``...): this module
-sits in the core, below the map package; ``sdfcodec compare``'s work is :mod:`sdfcodec.evaluation.tracking.compare`.
+sits in the core, below the map package; ``sdfcodec compare``'s work is :mod:`sdfcodec.evaluation.compare`.
 
     m = compare_maps(sdfcodec.open_map("room.sdfz"), sdfcodec.open_map("room-pca32.sdfz"))
     print(m.chamfer_l1 * 1000, m.f_score_1)

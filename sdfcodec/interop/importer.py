@@ -15,11 +15,13 @@ lies at ``(g + c) x voxel_size`` (``c`` = 0.5 for voxblox, whose voxels sample t
 so the map's origin is put at ``(G0 + c) x voxel_size`` with ``G0`` the least ``g`` of the source, and source
 voxel ``g`` becomes map voxel ``g - G0``, at its own world position.
 
-Lossless by default: the ``raw`` codec, the map's truncation chosen from the data (its least observed
-distance, and just above its greatest, so that no observed voxel is clipped or taken for free space), the
-weights kept (the map's ``weights`` array, float16: relative precision 2^-11) and weight 0 as unobserved
-(the observation mask). Observed distances come back to float32 rounding of the map's ``[0, 1]`` normalisation,
-``|error| <= (d_max - d_min) x 2^-24``: the map format stores normalised values, not the metres' own bits.
+Lossless by default: the ``raw`` codec with metric codes (spec section 4f: the codes are the voxels' own float32
+metres, not normalised), the map's truncation chosen from the data (its least observed distance, and just above
+its greatest, so that no observed voxel is clipped or taken for free space), the weights kept as float32 and
+weight 0 as unobserved (the observation mask). Every observed voxel then reads back bit for bit: voxblox's
+float32 distance and weight, and for Open3D ``float32(float64(tsdf) x float64(trunc_voxel_multiplier x
+voxel_size))`` (Open3D stores distance divided by its truncation) and its weight. ``exact=False`` writes the
+normalised raw map older readers open (distances to ``(d_max - d_min) x 2^-24``, weights float16).
 What is not kept: voxblox's colour, Open3D attributes other than ``tsdf`` and ``weight``.
 
 Export decodes a map (a region, a prefix level) to either format, a map block at a time; its voxels that were
@@ -40,7 +42,7 @@ import numpy as np
 from ..core._validate import BLOCK
 from ..errors import FormatError, InputNotFoundError, InvalidValueError
 from ..core.header import BlockState
-from .open3d_grid import (DEFAULT_TRUNC_VOXEL_MULTIPLIER, looks_like_open3d_grid, open_open3d_grid,
+from .open3d_grid import (DEFAULT_TRUNC_VOXEL_MULTIPLIER, looks_like_open3d_grid, open3d_tsdf, open_open3d_grid,
                           write_open3d_grid)
 from .voxblox import looks_like_voxblox, read_voxblox_blocks, scan_voxblox, encode_block, write_voxblox
 
@@ -166,10 +168,10 @@ def _groups(blocks: np.ndarray, chunk: int, batch_blocks: int) -> list[tuple[int
     return out
 
 
-def _assemble(src: Source, g0: np.ndarray, ids: np.ndarray, blocks: np.ndarray, d_max: float
+def _assemble(src: Source, g0: np.ndarray, ids: np.ndarray, blocks: np.ndarray, d_max: float, exact: bool
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The map blocks ``(m, 3)`` of one group of assignments with their distances (``d_max`` where nothing was
-    observed) and weights ``(m, 16, 16, 16)`` float32."""
+    observed) and weights ``(m, 16, 16, 16)`` float32 (raised to float16's least where that map stores them)."""
     ub, inv = np.unique(blocks, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     need, where = np.unique(ids, return_inverse=True)
@@ -188,14 +190,16 @@ def _assemble(src: Source, g0: np.ndarray, ids: np.ndarray, blocks: np.ndarray, 
         weight[(inv[k],) + b] = sw[(where[k],) + a]
     unseen = weight <= 0
     dist[unseen] = np.float32(d_max)
-    weight[(weight > 0) & (weight < _MIN_WEIGHT16)] = _MIN_WEIGHT16
+    if not exact:  # float16 weights: the least positive one, so that the voxel still reads as observed
+        weight[(weight > 0) & (weight < _MIN_WEIGHT16)] = _MIN_WEIGHT16
     return ub, dist, weight
 
 
 def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | None = None, codec: Codec | None = None,
                truncation: Sequence[float] | None = None, trunc_voxel_multiplier: float = DEFAULT_TRUNC_VOXEL_MULTIPLIER,
                code_dtype: str = "float32", overwrite: bool = False, batch_blocks: int = 1024,
-               progress: Callable[[int], None] | None = None, **create_kw: Any) -> dict[str, Any]:
+               progress: Callable[[int], None] | None = None, exact: bool | None = None,
+               **create_kw: Any) -> dict[str, Any]:
     """Import a voxblox TSDF layer or an Open3D VoxelBlockGrid file into a new map at ``out`` (module docstring).
 
     Parameters
@@ -218,6 +222,9 @@ def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | 
         As for :func:`sdfcodec.create_map`.
     batch_blocks : int
         About how many map blocks are assembled and written at once (the working set).
+    exact : bool, optional
+        Metric codes and float32 weights (spec section 4f; every observed voxel and weight bit for bit). Default:
+        True for the raw codec with float32 codes and no residual stage, else False (lossy codecs normalise).
     progress : callable, optional
         Called with the number of map blocks written after each group.
 
@@ -254,6 +261,9 @@ def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | 
                 raise InvalidValueError(f"truncation [{trunc[0]}, {trunc[1]}] m would clip observed distances of "
                                         f"{source.path} (they span [{lo}, {hi}] m); widen it or leave it out")
         codec = get_codec("raw") if codec is None else codec
+        if exact is None:
+            exact = (codec.codec_id == "raw" and code_dtype == "float32" and create_kw.get("max_error") is None
+                     and not create_kw.get("sign_exact") and create_kw.get("variable_rate") is None)
         g0 = source.starts.min(axis=0) if len(source.starts) else np.zeros(3, np.int64)
         origin = tuple(float((g + source.centre) * vs) for g in g0)
         extent = (source.starts - g0 + source.resolution).max(axis=0)
@@ -265,13 +275,13 @@ def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | 
                               "file?) or a map too large for one sdfcodec map: split it")
         m = create_map(out, codec=codec, voxel_size=vs, truncation=trunc, origin=origin, shape_voxels=shape,
                        code_dtype=code_dtype, overwrite=overwrite, tool="sdfcodec import", source=str(source.path),
-                       **create_kw)
+                       exact=bool(exact), **create_kw)
         written = observed = 0
         with m:
             chunk = m.writer.codes_spec.chunk_blocks
             ids, blocks = _assignments(source, g0, chunk)
             for lo, hi in _groups(blocks, chunk, batch_blocks):
-                coords, dist, weight = _assemble(source, g0, ids[lo:hi], blocks[lo:hi], trunc[1])
+                coords, dist, weight = _assemble(source, g0, ids[lo:hi], blocks[lo:hi], trunc[1], bool(exact))
                 seen = (weight > 0).reshape(len(coords), -1)
                 keep = seen.any(axis=1)
                 if keep.any():
@@ -287,7 +297,8 @@ def import_map(src: str | os.PathLike, out: str | os.PathLike, *, format: str | 
     return {"output": str(out), "format": source.kind, "source": str(source.path),
             "source_blocks": int(len(source.starts)), "voxels_per_side": int(source.resolution), "voxel_size": vs,
             "origin": list(origin), "truncation": list(trunc), "observed_voxels": observed, "map_blocks": written,
-            "blocks": info["blocks"], "codec": codec.get_config(), "seconds": time.perf_counter() - t0}
+            "blocks": info["blocks"], "codec": codec.get_config(), "exact": bool(exact),
+            "seconds": time.perf_counter() - t0}
 
 
 def _lattice(m: Map, centre: float, per_side: int, fmt: str) -> tuple[np.ndarray, list[float]]:
@@ -316,7 +327,8 @@ def _export_blocks(m: Map, region: Any, units: str, level: int | None) -> Any:
     def weights_of(coords: np.ndarray) -> np.ndarray:
         w = m.read_weights(coords) if m.has_weights else m.read_observed(coords).astype(np.float32)
         obs = m.read_observed(coords)
-        w = np.where(obs, np.maximum(w, _MIN_WEIGHT16), 0).astype(np.float32)
+        # an observed voxel keeps its weight (exact in a map with float32 weights), or the least float16 one
+        w = np.where(obs, np.where(w > 0, w, _MIN_WEIGHT16), 0).astype(np.float32)
         inside = np.ones_like(obs)
         for c, b in enumerate(coords):
             v0 = b * BLOCK
@@ -388,7 +400,7 @@ def export_map(map_path: str | os.PathLike, out: str | os.PathLike, *, format: s
                             body.write(encode_block(idx, ds, ws, vs))
                         else:
                             keys.append(idx)
-                            tsdfs.append((ds.astype(np.float64) / unit).astype(np.float32))
+                            tsdfs.append(open3d_tsdf(ds, unit))
                             weights.append(ws)
                         count += 1
                         observed += int((ws > 0).sum())

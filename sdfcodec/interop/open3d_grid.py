@@ -27,7 +27,7 @@ import numpy as np
 from ..errors import FormatError, InputNotFoundError
 
 __all__ = ["Open3DGrid", "open_open3d_grid", "looks_like_open3d_grid", "write_open3d_grid",
-           "DEFAULT_TRUNC_VOXEL_MULTIPLIER"]
+           "DEFAULT_TRUNC_VOXEL_MULTIPLIER", "metres_of", "open3d_tsdf"]
 
 #: Open3D's default truncation of ``integrate``, in voxels.
 DEFAULT_TRUNC_VOXEL_MULTIPLIER = 8.0
@@ -55,8 +55,29 @@ class Open3DGrid:
         w = np.empty_like(s)
         s[order] = np.asarray(self.tsdf[ids[order], ..., 0], dtype=np.float32)
         w[order] = np.asarray(self.weight[ids[order], ..., 0], dtype=np.float32)
-        d = (s.astype(np.float64) * unit).astype(np.float32)
-        return d.transpose(0, 3, 2, 1), w.transpose(0, 3, 2, 1)
+        return metres_of(s, unit).transpose(0, 3, 2, 1), w.transpose(0, 3, 2, 1)
+
+
+def metres_of(tsdf: np.ndarray, unit: float) -> np.ndarray:
+    """Open3D's stored ``tsdf`` (float32, distance / truncation) as float32 metres: ``float32(float64(tsdf) x
+    unit)``, ``unit`` the truncation ``trunc_voxel_multiplier x voxel_size`` in float64; what an import stores, bit
+    for bit (docs/how-to/import-open3d.md)."""
+    return (np.asarray(tsdf, dtype=np.float32).astype(np.float64) * unit).astype(np.float32)
+
+
+def open3d_tsdf(d: np.ndarray, unit: float) -> np.ndarray:
+    """float32 ``tsdf`` of metres ``d`` (any shape, float32) that :func:`metres_of` turns back into ``d`` exactly
+    wherever a float32 does (every distance an import from Open3D gave): the float32 nearest ``d / unit``, or
+    the neighbour of it that does (the two roundings can miss by one unit in the last place)."""
+    d = np.asarray(d, dtype=np.float32)
+    t = (d.astype(np.float64) / unit).astype(np.float32)
+    for towards in (np.float32(np.inf), np.float32(-np.inf)):
+        miss = metres_of(t, unit) != d
+        if not miss.any():
+            break
+        alt = np.nextafter(t, towards)
+        t = np.where(miss & (metres_of(alt, unit) == d), alt, t)
+    return t
 
 
 def looks_like_open3d_grid(path: Path) -> bool:

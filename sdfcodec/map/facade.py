@@ -329,6 +329,7 @@ class Map:
             self.writer.write_weights(empty, source.read_weights(empty))
         dtype = self.header.codes.dtype
         if (dtype != "int8" and dtype == source.header.codes.dtype and source.codec == self.codec
+                and self.header.codes.units is None and source.header.codes.units is None  # metric: via blocks
                 and self.header.residual is None and self.writer.vr is None):  # a residual needs the voxels: they are decoded and encoded
             for coords, codes in source.iter_codes():  # int8 is left out: quantising again may move a code
                 self.writer.write_codes(coords, codes, pack_mask(source.read_observed(coords)) if knows else None)
@@ -409,7 +410,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                max_error: float | None = None, sign_exact: bool = False, shard_blocks: int | None = None,
                manifest: bool = True, variable_rate: dict | None = None,
-               keep_weights: bool | None = None) -> Map:
+               keep_weights: bool | None = None, exact: bool = False) -> Map:
     """Start writing a new map at ``path`` (a local directory). Use as a context manager::
 
         with sdfcodec.create_map("room.sdfz", codec=codec, voxel_size=0.02) as m:
@@ -463,6 +464,10 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             observation mask keeps which voxels were observed); True keeps them, quantised to uint8 counts for
             lossy codecs (extension ``quantised-fusion-weights``, spec section 6a); False drops them
             (:mod:`sdfcodec.map.weights`).
+        exact: store the voxels' own float32 metres (extension ``metric-codes``, spec section 4f; raw codec,
+            float32 codes only): every voxel written reads back bit for bit, and the weights are kept as float32
+            (extension ``float32-fusion-weights``); without it a raw map returns its input to float32 rounding
+            of the normalisation, ``(d_max - d_min) x 2^-24`` m. Readers before the extension refuse such maps.
     """
     up_unit = None
     if up is not None:
@@ -482,7 +487,7 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,
                                   source=source, codec_state=codec_state, code_step=code_step,
                                   code_offset=code_offset, max_error=max_error, sign_exact=sign_exact,
-                                  shard_blocks=shard_blocks, manifest=manifest, keep_weights=keep_weights,
+                                  shard_blocks=shard_blocks, manifest=manifest, keep_weights=keep_weights, exact=exact,
                                   variable_rate=None if variable_rate is None else VariableRateWriter(
                                       codec, **variable_rate))
     writer.surface_weight = float(surface_weight)

@@ -22,6 +22,7 @@ from ..core._validate import BLOCK, empty
 from ..codec import decodes_tiles, plugin_calls
 from ..errors import InvalidValueError
 from .format import DECODE_LIMIT, check_decoded
+from .metric import decode_affine
 from .observed import read_block_rows, restore_unobserved
 from .placement import BlockPlacer
 from .residual import apply_residual
@@ -42,7 +43,7 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
     several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned."""
     codec = reader.codec
     d_min, d_max = reader.truncation
-    scale, offset = (d_max - d_min, d_min) if metres else (1.0, 0.0)
+    scale, offset = decode_affine(reader.header.codes, (d_min, d_max), metres)  # metric codes: no scaling (4f)
     mask = reader.observation_arrays()[1]
     res = reader.residual_rows_array(codes.shape[1]) if residual else None
     if (mask is not None or res is not None) and coords is None:
@@ -66,7 +67,9 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
         return out
     v = codec.decode_core(codes, scale=scale, offset=offset, out=out)
     if not proven:
-        v = check_decoded(v, scale=scale, offset=offset, coords=coords, location=reader.location,
+        # the values judged in the map's own units, whatever the stored codes' (metres or normalised)
+        unit, zero = (d_max - d_min, d_min) if metres else (1.0, 0.0)
+        v = check_decoded(v, scale=unit, offset=zero, coords=coords, location=reader.location,
                           codec_id=reader.header.codec.id, chunk_blocks=reader.header.codes.chunk_blocks)
     if metres:  # a TSDF lies in [d_min, d_max]; a lossy decode may overshoot it (after the corruption check)
         if v.device.type == "cpu":  # numpy's: torch's threaded clamp after a numpy product waits for BLAS threads

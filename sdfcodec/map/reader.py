@@ -32,6 +32,7 @@ from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_R
                      check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
 from .groupdecode import decode_group
 from .grouping import Box, chunk_groups, prefetched
+from .metric import codec_codes, is_metric
 from .codec_state import load_codec
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
@@ -319,10 +320,12 @@ class MapReader:
 
     def read_codes(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`sdfcodec.Map.read_codes`: ``(coords (N, 3) int64, codes (N, L) float32)``."""
+        """:meth:`sdfcodec.Map.read_codes`: ``(coords (N, 3) int64, codes (N, L) float32)``, as the codec encodes
+        them (metric codes normalised: sdfcodec.map.metric)."""
         lv = self.level(level)
         box = self.block_range(self.block_box(region, units))
-        return self.codes_in(box, lv)
+        coords, codes = self.codes_in(box, lv)
+        return coords, codec_codes(self.header.codes, self.truncation, codes)
 
     @staticmethod
     def block_range(vox: tuple[tuple[int, int], ...]) -> Box:
@@ -516,11 +519,14 @@ class MapReader:
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """:meth:`sdfcodec.Map.iter_codes`: ``(coords (n, 3) int64, codes (n, L) float32)`` per batch."""
+        """:meth:`sdfcodec.Map.iter_codes`: ``(coords (n, 3) int64, codes (n, L) float32)`` per batch, as the codec
+        encodes them (as :meth:`read_codes`)."""
         lv = self.level(level)
         box = tuple(slice(0, n) for n in self.grid())
+        as_codec = None if not is_metric(self.header.codes) else (
+            lambda c, z: codec_codes(self.header.codes, self.truncation, z))
         yield from self.fetch_stream(box, lv, chunks_per_group=chunks_per_batch, batch_blocks=None,
-                                     prefetch=prefetch)
+                                     prefetch=prefetch, stage=as_codec)
 
     def iter_decoded(self, region: Region | None = None, *, units: str = "voxels", level: int | None = None,
                      device: str | torch.device | None = None, batch_blocks: int = 8192, prefetch: int = 2,

@@ -300,6 +300,9 @@ def write_volume_dask(m: Map | MapWriter, volume: Any, *, offset: Sequence[int] 
     if off.shape != (3,) or (off % BLOCK).any() or (off < 0).any():
         raise ShapeError(f"offset must be three non-negative multiples of {BLOCK} voxels, got {tuple(offset)}")
     spec_c = w.codes_spec
+    if spec_c.units is not None:  # its tasks encode normalised blocks (spec 4f: metric codes store metres)
+        raise InvalidValueError(f"{w.final} stores metric codes (exact=True), which the dask encoder does not write: "
+                                "pass a numpy volume (m.write_volume) or create the map without exact")
     cb = spec_c.chunk_blocks
     vol = as_dask_volume(volume, cb * BLOCK, off)
     if np.dtype(vol.dtype).kind != "f":

@@ -65,6 +65,7 @@ def summarize(h: MapHeader, location: str, root: str | None, counts: dict[str, i
         "codec": h.codec.config,
         "code_size": h.codes.size,
         "code_dtype": h.codes.dtype,
+        "code_units": h.codes.units or "normalised",  # "metres": metric codes, bit-exact (spec 4f)
         "levels": h.codes.levels,
         "chunk_blocks": h.codes.chunk_blocks,
         "shard_blocks": h.codes.shard_blocks,

@@ -387,7 +387,7 @@ def _check_code_array(rep: VerifyReport, m, codes, states: np.ndarray | None) ->
 
 
 def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
-    from .. import state_digest
+    from . import state_digest
     from .format import DECODE_LIMIT
 
     spec = m.header.codec
@@ -489,7 +489,7 @@ def verify_map(path_or_url: str | os.PathLike, *, storage_options: dict | None =
         trusted_keys: Ed25519 public keys (as ``open_map``); a map not signed by one of them as it is has a
             problem. Default: the process's (``--trusted-key``).
     """
-    from .. import DEFAULT_MAX_DECODE_BYTES, Map
+    from . import DEFAULT_MAX_DECODE_BYTES, Map
     from .io.stores import open_store
 
     limit = DEFAULT_MAX_DECODE_BYTES if max_decode_bytes is None else max_decode_bytes

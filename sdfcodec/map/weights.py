@@ -6,21 +6,23 @@ as float16 and 1.3-1.4 KB as uint8 (docs/side-information.md): ten times a 128:1
 map needs of them, which voxels were observed, its observation mask keeps in 65 B (section 6b). So a writer
 whose codec is lossy drops them at commit unless ``keep_weights=True`` (``--keep-weights``), and then stores
 them quantised (:func:`quantise_weights`) under the optional extension ``quantised-fusion-weights``; the
-lossless ``raw`` codec keeps its float16 weights as before. Online fusion writes the weights while it fuses
-(a block paged back in resumes from them) and the choice is applied when the map is committed.
+lossless ``raw`` codec keeps its float16 weights as before, and a map with metric codes (spec 4f: ``sdfcodec
+import``, ``exact=True``) keeps them as float32, exactly, under the optional extension
+``float32-fusion-weights``. Online fusion writes the weights while it fuses (a block paged back in resumes from
+them) and the choice is applied when the map is committed.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
 
 from ..core._atomic import remove_tree
 from ..errors import FormatError
-from ..core.header import Extension
+from ..core.header import FLOAT32_WEIGHTS_EXTENSION, Extension
 from .format import compressors
 
 if TYPE_CHECKING:
@@ -28,7 +30,7 @@ if TYPE_CHECKING:
     from .reader import MapReader
 
 __all__ = ["WEIGHTS_ARRAY", "WEIGHTS_EXTENSION", "QUANT_WEIGHTS_EXTENSION", "WEIGHT_LEVELS", "weights_mode",
-           "quantise_weights", "finish_weights", "checked_weights_array"]
+           "quantise_weights", "stored_weights", "finish_weights", "checked_weights_array"]
 
 WEIGHTS_ARRAY = "weights"
 WEIGHTS_EXTENSION = "fusion-weights"
@@ -39,16 +41,26 @@ WEIGHT_LEVELS = 255
 _SLAB = 1024
 
 
-def weights_mode(codec: Codec, keep_weights: bool | None) -> str:
+def weights_mode(codec: Codec, keep_weights: bool | None, exact: bool = False) -> str:
     """What a writer of ``codec`` does with the fusion weights it is given: ``"float16"`` (stored as written: the
-    lossless ``raw`` codec, by default or when kept), ``"uint8"`` (a lossy codec asked to keep them: quantised at
-    commit) or ``"drop"`` (a lossy codec by default, or anyone told ``keep_weights=False``)."""
+    lossless ``raw`` codec, by default or when kept), ``"float32"`` (the same, in a map with metric codes:
+    ``exact``), ``"uint8"`` (a lossy codec asked to keep them: quantised at commit) or ``"drop"`` (a lossy codec
+    by default, or anyone told ``keep_weights=False``)."""
     lossless = codec.codec_id == "raw"
     if keep_weights is None:
         keep_weights = lossless
     if not keep_weights:
         return "drop"
-    return "float16" if lossless else "uint8"
+    return ("float32" if exact else "float16") if lossless else "uint8"
+
+
+def stored_weights(w: np.ndarray, dtype: Any) -> np.ndarray:
+    """Weights ``w`` (float32, non-negative) as a ``weights`` array of ``dtype`` stores them: uint8 counts
+    (:func:`quantise_weights`), float32 as they are, float16 exact to 2048 frames and saturating at its maximum
+    beyond (spec section 6a)."""
+    if dtype == np.uint8:
+        return quantise_weights(w)
+    return np.asarray(w, np.float32) if dtype == np.float32 else np.minimum(w, 65504).astype(np.float16)
 
 
 def quantise_weights(w: np.ndarray) -> np.ndarray:
@@ -82,18 +94,21 @@ def finish_weights(group: zarr.Group, tmp: Path, mode: str, grid: tuple[int, int
         remove_tree(Path(tmp) / WEIGHTS_ARRAY)
         (Path(tmp) / (WEIGHTS_ARRAY + ".q")).rename(Path(tmp) / WEIGHTS_ARRAY)
         return Extension(name=QUANT_WEIGHTS_EXTENSION, required=False)
-    return Extension(name=QUANT_WEIGHTS_EXTENSION if arr.dtype == np.uint8 else WEIGHTS_EXTENSION, required=False)
+    name = {np.dtype(np.uint8): QUANT_WEIGHTS_EXTENSION, np.dtype(np.float32): FLOAT32_WEIGHTS_EXTENSION}
+    return Extension(name=name.get(np.dtype(arr.dtype), WEIGHTS_EXTENSION), required=False)
 
 
 def checked_weights_array(reader: MapReader) -> zarr.Array | None:
     """The fusion weights of the map ``reader`` opens (a :class:`~sdfcodec.map.reader.MapReader`), checked: float16
-    under ``fusion-weights``, uint8 counts under ``quantised-fusion-weights``; None when neither is listed or the
-    array is absent (the extensions are optional)."""
+    under ``fusion-weights``, uint8 counts under ``quantised-fusion-weights``, float32 under
+    ``float32-fusion-weights``; None when none is listed or the array is absent (the extensions are optional)."""
     names = {e.name for e in reader.header.extensions}
-    if WEIGHTS_EXTENSION in names and QUANT_WEIGHTS_EXTENSION in names:
-        raise FormatError(f"{reader.location}: header lists both '{WEIGHTS_EXTENSION}' and "
-                          f"'{QUANT_WEIGHTS_EXTENSION}' (spec section 6a allows one); the map is corrupted")
-    dtype = np.float16 if WEIGHTS_EXTENSION in names else np.uint8 if QUANT_WEIGHTS_EXTENSION in names else None
+    kinds = {WEIGHTS_EXTENSION: np.float16, QUANT_WEIGHTS_EXTENSION: np.uint8, FLOAT32_WEIGHTS_EXTENSION: np.float32}
+    listed = [n for n in kinds if n in names]
+    if len(listed) > 1:
+        raise FormatError(f"{reader.location}: header lists {' and '.join(repr(n) for n in listed)} (spec section "
+                          "6a allows one); the map is corrupted")
+    dtype = kinds[listed[0]] if listed else None
     arr = reader.member(WEIGHTS_ARRAY) if dtype is not None else None
     if arr is not None:
         reader.check_array(arr, dtype=dtype, shape=(*reader.header.grid_blocks, 4096))

@@ -27,7 +27,8 @@ from ..core.blocks import check_truncation, normalise, split_blocks
 from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
-from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, QUANT_EXTENSION,
+from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, METRIC_EXTENSION,
+                           QUANT_EXTENSION,
                            RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                            VARIABLE_RATE_EXTENSION,
                            BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
@@ -45,10 +46,11 @@ from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
 from .manifest import manifest_bytes_estimate, previous_digests, write_manifest
-from .io.shards import pack_shards, unpack_shards
+from .metric import check_metric, is_metric, metric_empty, metric_spec
+from .io.shards import pack_shards, sharded_spec, unpack_shards
 from .io.stores import MAX_METADATA_BYTES, CowLocalStore, is_url
 from .varrate import GAIN_ARRAY, STREAM_ARRAY, STREAM_METADATA_BYTES, VariableRateWriter, stream_chunk_keys
-from .weights import WEIGHTS_ARRAY, finish_weights, quantise_weights, weights_mode
+from .weights import WEIGHTS_ARRAY, finish_weights, stored_weights, weights_mode
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -272,6 +274,9 @@ class MapWriter:
         """Store already-encoded codes ``(N, D)`` (from this map's codec) at block indices ``coords`` ``(N, 3)``,
         with their packed observation masks ``(N, 512)`` uint8 (None: observed everywhere)."""
         c = check_coords(coords)
+        if is_metric(self.codes_spec):
+            raise InvalidValueError(f"{self.final} stores the voxels' metres bit for bit (metric codes, spec 4f): "
+                                    "write blocks or volumes (write_blocks, write_volume), not codes")
         z, _ = as_float_tensor(codes, "codes", (len(c), self.codes_spec.size))
         with self._writing():
             if len(c):
@@ -298,16 +303,14 @@ class MapWriter:
 
     def put_weights(self, coords: np.ndarray, weights: np.ndarray) -> None:
         if WEIGHTS_ARRAY not in self.group:
-            self.group.create_array(WEIGHTS_ARRAY, shape=(*self.grid, 4096), dtype="float16", fill_value=0,
+            dtype = "float32" if self.weights_mode == "float32" else "float16"  # metric maps: exact (spec 6a)
+            self.group.create_array(WEIGHTS_ARRAY, shape=(*self.grid, 4096), dtype=dtype, fill_value=0,
                                     chunks=(4, 4, 4, 4096), compressors=compressors(),
                                     dimension_names=["bx", "by", "bz", "voxel"])
         arr = self.group[WEIGHTS_ARRAY]
         if tuple(arr.shape[:3]) != self.grid:
             arr.resize((*self.grid, 4096))
-        w = weights.reshape(len(weights), 4096)
-        # float16 counts are exact to 2048 frames and saturate at its maximum beyond; an updated map that stores
-        # uint8 counts gets them by their rule (spec section 6a)
-        rows = quantise_weights(w) if arr.dtype == np.uint8 else np.minimum(w, 65504).astype(np.float16)
+        rows = stored_weights(weights.reshape(len(weights), 4096), arr.dtype)  # an update keeps the map's kind
         write_block_rows(arr, coords, rows)  # one write per chunk, not one per block
 
     def set_state(self, coords: np.ndarray, value: int) -> None:
@@ -318,18 +321,21 @@ class MapWriter:
         """Encode blocks (metres) with error weights (:func:`~sdfcodec.map.observed.error_weights`: the
         observation mask ``observed`` (N, 16, 16, 16) bool, and the surface), storing the mask with them."""
         d_min, d_max = self.truncation
-        spec = self.header_kw.get("residual")
+        spec, metric = self.header_kw.get("residual"), is_metric(self.codes_spec)
         # --sign-exact: the crossings of the whole call, so that those across the faces of two batches count too
         cross = crossing_voxels(coords, blocks_m, observed) if spec is not None and spec.sign_exact else None
         for i in range(0, len(coords), batch_size):
             c = coords[i:i + batch_size]
-            v = normalise(blocks_m[i:i + batch_size], d_min, d_max)
-            empty = free_space(v)
+            # metric codes are the metres themselves, within the range in float32; only exact free space is empty (4f)
+            v = (np.clip(blocks_m[i:i + batch_size], np.float32(d_min), np.float32(d_max)) if metric
+                 else normalise(blocks_m[i:i + batch_size], d_min, d_max))
+            empty = metric_empty(v, d_max) if metric else free_space(v)
             self.set_state(c[empty], BlockState.EMPTY)
             if (~empty).any():
                 obs = None if observed is None else observed[i:i + batch_size][~empty]
-                codes = encode_blocks(self.codec, v[~empty], obs, (d_min, d_max), self.header_kw["voxel_size"],
-                                      self.surface_weight, self.device)
+                codes = (v[~empty].reshape(-1, BLOCK ** 3) if metric  # raw's encode: the identity
+                         else encode_blocks(self.codec, v[~empty], obs, (d_min, d_max), self.header_kw["voxel_size"],
+                                            self.surface_weight, self.device))
                 packed = None if obs is None else pack_mask(obs)
                 self.put_codes(c[~empty], codes, masks=packed)
                 if self.vr is not None:  # the gains the variable-rate pass weighs errors with
@@ -464,6 +470,8 @@ class MapWriter:
             # (spec section 4d), which nobody reads before the swap
             pack_shards(self.tmp, "codes", self.codes_spec.shard_blocks)
             extensions.append(Extension(name=SHARD_EXTENSION, required=True))
+        if is_metric(self.codes_spec):
+            extensions.append(Extension(name=METRIC_EXTENSION, required=True))
         if self.vr is not None:  # the float codes become one entropy-coded stream per chunk (spec 4e)
             if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
                 self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
@@ -580,7 +588,8 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
                   codec_state: str = "embedded", code_step: Any = None, code_offset: Any = None,
                   max_error: float | None = None, sign_exact: bool = False,
                   shard_blocks: int | None = None, manifest: bool = True,
-                  variable_rate: VariableRateWriter | None = None, keep_weights: bool | None = None) -> MapWriter:
+                  variable_rate: VariableRateWriter | None = None, keep_weights: bool | None = None,
+                  exact: bool = False) -> MapWriter:
     """Start a new map at ``path`` in its temporary directory (:func:`sdfcodec.create_map` documents the
     arguments); commit or abort the writer returned."""
     final = Path(path)
@@ -607,11 +616,15 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
     spec = code_layout(codec, code_dtype, chunk_blocks, chunk_code, _quantisation(codec, code_dtype, code_step,
                                                                                   code_offset))
     if shard_blocks is not None:
-        spec = _sharded(spec, shard_blocks)
+        spec = sharded_spec(spec, shard_blocks)
     if variable_rate is not None and (code_dtype != "float32" or shard_blocks is not None or max_error is not None
                                       or sign_exact):
         raise InvalidValueError("variable-rate codes are their own storage: leave code_dtype float32 and shard_blocks, "
                                 "max_error and sign_exact unset")
+    if exact:  # codes in metres, bit for bit (spec 4f)
+        check_metric(codec, code_dtype, step=code_step, residual=max_error is not None or sign_exact,
+                     variable_rate=variable_rate is not None)
+        spec = metric_spec(spec)
     residual = residual_spec(codec, code_dtype, voxel_size, truncation, max_error, sign_exact)
     state = codec.state_dict()
     # by reference: the header names the shipped model and its digest, and no state array is written; a codec
@@ -650,6 +663,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         extensions += [Extension(name=FIELD_EXTENSION)] if spec.field_compression is not None else []
         extensions += [Extension(name=RESIDUAL_EXTENSION)] if residual is not None else []
         extensions += [Extension(name=SHARD_EXTENSION)] if spec.shard_blocks is not None else []
+        extensions += [Extension(name=METRIC_EXTENSION)] if exact else []
         header = MapHeader(shape_voxels=tuple(int(n) for n in shape_voxels), grid_blocks=_grid_of(shape_voxels),
                            codes=spec, extensions=extensions, **header_kw)
     except WriteFailedError:
@@ -664,7 +678,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         writer.vr = variable_rate
         group.create_array(GAIN_ARRAY, shape=(*header.grid_blocks, spec.size), dtype="float32", fill_value=0,
                            chunks=(spec.chunk_blocks,) * 3 + (spec.size,), compressors=compressors())
-    writer.weights_mode = weights_mode(codec, keep_weights)
+    writer.weights_mode = weights_mode(codec, keep_weights, exact)
     return writer
 
 
@@ -684,21 +698,6 @@ def _quantisation(codec: Codec, code_dtype: str, step: Any, offset: Any) -> Code
     if off.shape != (codec.code_size,) or not np.isfinite(off).all():
         raise InvalidValueError(f"code_offset must be {codec.code_size} finite numbers, got shape {off.shape}")
     return CodeQuantisation(step=[float(v) for v in st], offset=[float(v) for v in off])
-
-
-def _sharded(spec: CodesSpec, shard_blocks: Any) -> CodesSpec:
-    """``spec`` with its chunks of codes stored in shards of ``shard_blocks`` blocks per axis (spec section 4d),
-    checked: a whole number of chunks per axis (at least two) that divides the 64-block chunks of ``state``, so
-    a shard never straddles two state chunks (the state-chunk presence check looks at a state chunk's shards)."""
-    cb = spec.chunk_blocks
-    if (isinstance(shard_blocks, bool) or not isinstance(shard_blocks, (int, np.integer)) or shard_blocks <= cb
-            or shard_blocks % cb or 64 % shard_blocks):
-        raise InvalidValueError(f"shard_blocks must be a multiple of chunk_blocks ({cb}) above it that divides 64 "
-                                f"(e.g. {min(64, 4 * cb)}), got {shard_blocks!r}")
-    if spec.field_compression is not None:
-        raise InvalidValueError("field-compressed codes (sz3) are not sharded: their chunks are already 8 MiB "
-                                "fields; leave shard_blocks unset")
-    return spec.model_copy(update={"shard_blocks": int(shard_blocks)})
 
 
 def _grid_of(shape_voxels: Sequence[int]) -> tuple[int, int, int]:
@@ -790,6 +789,7 @@ def update_writer(path: str | os.PathLike, *, device: str | torch.device = "cpu"
                          max_state_bytes=max_decode_bytes, grid=h.grid_blocks, state=states.copy(),
                          update={"lock": lock, "source": source_id, "reuse": previous_digests(final, manifest)},
                          header=h)
+        writer.weights_mode = "float32" if is_metric(h.codes) else writer.weights_mode  # weights as exact as codes
     except WriteFailedError:
         raise  # already cleaned up
     except BaseException:

@@ -19,6 +19,7 @@ from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..core.header import BlockState
 from ..map import Map, open_map
+from ..map.metric import codec_codes
 from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
 from .query import QueryModel, build_query, codec_state_sha256, resolve_query
 from .scoring import ObservedScorer, Scorer, score_codes
@@ -365,7 +366,9 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     held_bytes = 0
     n_scored = 0
     def scored(coords: np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # in the reader's fetching threads, so that scoring a batch overlaps reading the next ones
+        # in the reader's fetching threads, so that scoring a batch overlaps reading the next ones; metric codes
+        # (spec 4f) scored as the codec encodes them, normalised
+        codes = codec_codes(m.header.codes, m.truncation, codes)
         return codes, *score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None,
                                    bound=None if keep_scores else loop_t)  # bounded: scores over it not exact
 
@@ -453,7 +456,7 @@ def codes_at(m: Map, coords: np.ndarray, level: int) -> np.ndarray:
         box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
         chunk = m.reader.read(arr, (*box, slice(0, level)))
         codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
-    return codes
+    return codec_codes(m.header.codes, m.truncation, codes)  # metric codes: as the codec encodes them
 
 
 #: :func:`search` holds the codes it streams, up to this many bytes, so the plane check of a floor, ceiling or wall

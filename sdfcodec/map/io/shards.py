@@ -40,13 +40,14 @@ from zarr.core.sync import sync as zarr_sync
 
 from ...core import _atomic
 from ...errors import FormatError, InvalidValueError
-from ...core.header import SHARD_EXTENSION
+from ...core.header import SHARD_EXTENSION, CodesSpec
 
 if TYPE_CHECKING:
     from zarr.abc.store import Store
 
 __all__ = ["shard_contents", "index_size", "check_sharding", "read_cap", "range_problem", "shard_problem",
-           "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
+           "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout",
+           "sharded_spec"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
 #: The largest shard index a reader fetches (1,048,575 chunks per shard; writers' shards hold at most 4^3 x 2)
@@ -332,3 +333,18 @@ def unpack_shards(root: str | os.PathLike, path: str) -> int:
     meta["chunk_grid"]["configuration"]["chunk_shape"] = list(chunks)
     _replace_chunks(array_dir, built, meta)
     return n
+
+
+def sharded_spec(spec: CodesSpec, shard_blocks: Any) -> CodesSpec:
+    """``spec`` with its chunks of codes stored in shards of ``shard_blocks`` blocks per axis (spec section 4d),
+    checked: a whole number of chunks per axis (at least two) that divides the 64-block chunks of ``state``, so
+    a shard never straddles two state chunks (the state-chunk presence check looks at a state chunk's shards)."""
+    cb = spec.chunk_blocks
+    if (isinstance(shard_blocks, bool) or not isinstance(shard_blocks, (int, np.integer)) or shard_blocks <= cb
+            or shard_blocks % cb or 64 % shard_blocks):
+        raise InvalidValueError(f"shard_blocks must be a multiple of chunk_blocks ({cb}) above it that divides 64 "
+                                f"(e.g. {min(64, 4 * cb)}), got {shard_blocks!r}")
+    if spec.field_compression is not None:
+        raise InvalidValueError("field-compressed codes (sz3) are not sharded: their chunks are already 8 MiB "
+                                "fields; leave shard_blocks unset")
+    return spec.model_copy(update={"shard_blocks": int(shard_blocks)})
