@@ -40,7 +40,7 @@ def test_the_tutorial_covers_the_first_hour():
 def test_every_tutorial_command_runs_as_written(tmp_path, monkeypatch):
     # step 3's map: lossless, as `fuse` writes it, of a small analytic room (floor, wall, a ball)
     vol = sample_volume(Scene([Plane((0, 0, 1), 0.1), Plane((0, 1, 0), 0.07), Sphere((0.7, 0.8, 0.5), 0.25)]),
-                        (96, 96, 64), 0.02)
+                        (64, 64, 48), 0.02)
     with sdfcodec.create_map(tmp_path / "room.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=0.02) as m:
         m.write_volume(vol)
     monkeypatch.chdir(tmp_path)
