@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench setup clean default-model
+.PHONY: demo test bench setup clean default-model docs
 
 $(STAMP): pyproject.toml Makefile
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
@@ -30,6 +30,11 @@ demo: $(STAMP)
 # by git. Measured on 4 subprocess-heavy test files: 88-100 s with the variable set, 72 s without.
 test: $(STAMP)
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q -n 2
+
+# Render the generated pages of docs/ (results, search, rate-distortion, eval, scale, the CLI and API reference)
+# from the committed JSON and the code; `make docs` after a re-measurement (tests/test_docs_pages.py checks them).
+docs: $(STAMP)
+	$(PY) docs/generate/pages.py
 
 # Retrain the shipped eigenshapes (plugins/sdfcodec_pca/models/pca-128.npz) and rewrite docs/default-model.*
 default-model: $(STAMP)

@@ -553,7 +553,9 @@ def surface_md(res: dict) -> list[str]:
     return L
 
 
-def write_md(res: dict, path: Path, png: str) -> None:
+def markdown(res: dict, png: str = "rate-distortion.png") -> str:
+    """This script's section of docs/rate-distortion.md, from the results it writes (docs/generate/ renders the
+    page from the committed JSON with this same function)."""
     L = ["## Storage formats of our codecs against ZFP, DCT truncation and Blosc (examples/rate_distortion.py)", "",
          "Made by (machine, load and wall time at the end):", "", "```", res["command"], "```", "",
          "Method: see the docstring of `examples/rate_distortion.py`. In short: error is per-voxel MSE and per-block "
@@ -634,8 +636,12 @@ def write_md(res: dict, path: Path, png: str) -> None:
           f"{m['zfpy']}, numcodecs {m['numcodecs']}, zarr {m['zarr']}. Load average (1, 5, 15 min) before "
           f"{' '.join(f'{v:.2f}' for v in res['load_before'])}, after "
           f"{' '.join(f'{v:.2f}' for v in res['load_after'])}. Wall time {res['wall_s']:.1f} s.", ""]
+    return "\n".join(L)
+
+
+def write_md(res: dict, path: Path, png: str) -> None:
     # only this script's section of the page: the others are made by their own scripts (examples/_page.py)
-    replace_section(path, "codecs", "\n".join(L), title="# Rate-distortion")
+    replace_section(path, "codecs", markdown(res, png), title="# Rate-distortion")
 
 
 def main(argv: list[str] | None = None) -> dict:
