@@ -744,3 +744,48 @@ def test_verify_url_names_missing_chunks_without_a_listing(small_map, tmp_path, 
             assert kind == "ok", (kind, rep)
             assert not local.ok and not rep.ok, (name, rep)
             assert any(rel in p.where or rel in p.message for p in rep.problems), (name, rep.problems, local.problems)
+
+
+_SESSION_SCRIPT = r"""
+import gc, os, sys, urllib.request
+os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
+import s3fs
+from moto.server import ThreadedMotoServer
+import sdfcodec
+
+server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+server.start()
+host, port = server.get_host_and_port()
+urllib.request.urlopen(urllib.request.Request(f"http://{host}:{port}/moto-api/reset", method="POST"), timeout=10)
+opts = {"key": "testing", "secret": "testing", "client_kwargs": {"region_name": "eu-west-1"},
+        "endpoint_url": f"http://{host}:{port}", "skip_instance_cache": True}  # as the suite's S3 tests
+fs = s3fs.S3FileSystem(**opts)
+fs.mkdir("maps")
+fs.put(sys.argv[1], "maps/x.sdfz", recursive=True)
+closed = sdfcodec.open_map("s3://maps/x.sdfz", storage_options=opts)
+closed.decode_region()
+closed.close()
+dropped = sdfcodec.open_map("s3://maps/x.sdfz", storage_options=opts)
+dropped.decode_region()
+del dropped
+gc.collect()
+kept = sdfcodec.open_map("s3://maps/x.sdfz", storage_options=opts)  # still open when the process ends
+kept.decode_region()
+print("read", flush=True)
+"""
+
+
+def test_s3_maps_close_their_sessions(small_map, tmp_path):
+    """A remote map closes the S3 client session its reads opened, whether closed, dropped or still open when the
+    process ends: aiohttp printed "Unclosed client session" at the end of every process that read an S3 map."""
+    pytest.importorskip("moto.server", reason="S3 tests need moto[server] (pip install moto[server])")
+    pytest.importorskip("s3fs", reason="S3 maps need s3fs (pip install s3fs)")
+    script = tmp_path / "s3_sessions.py"
+    script.write_text(_SESSION_SCRIPT)
+    env = {k: v for k, v in os.environ.items() if k not in ("AWS_PROFILE", "AWS_CONFIG_FILE",
+                                                            "AWS_SHARED_CREDENTIALS_FILE")}
+    env["PYTHONWARNINGS"] = "always::ResourceWarning"
+    p = subprocess.run([sys.executable, str(script), str(small_map[0])], capture_output=True, text=True,
+                       timeout=120, env=env)
+    assert p.returncode == 0 and "read" in p.stdout, p.stderr[-2000:]
+    assert "Unclosed" not in p.stderr and "ResourceWarning" not in p.stderr, p.stderr[-2000:]

@@ -366,7 +366,10 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
         # every step counted (the final ones too: decode on read, search, the start-up of `info`), so that the
         # bar and its "about N s left" stay true to the end
         searched = [k for k in ks if 1 <= k <= 128] if do_search else []  # one search kernel step per size
-        total = bench_steps(codec_id, ks, bs, read_blocks=n_read, http=http) + len(searched) + (n_read > 0)
+        from ..bench.startup import startup_steps
+
+        total = (bench_steps(codec_id, ks, bs, read_blocks=n_read, http=http) + len(searched)
+                 + (startup_steps(repeats) if n_read > 0 else 0))
         task = prog.add_task("bench", total=total, rate="")
         begun: list[str] = []
 
@@ -385,8 +388,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
         if n_read > 0:  # with the map benchmarks: a light command's start-up (issue 19, item 4)
             from ..bench.startup import bench_info_startup
 
-            step("sdfcodec info start-up")
-            records += bench_info_startup(repeats=repeats)
+            records += bench_info_startup(repeats=repeats, progress=step)
         prog.update(task, advance=1 if begun else 0)
     doc.update(load_after=load(), seconds=round(time.perf_counter() - t0, 1), records=records)
     if out is not None:

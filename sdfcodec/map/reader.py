@@ -38,6 +38,7 @@ from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
 from .residual import check_residual_stored, checked_residual_array
+from .io.remote import RemoteStore
 from .io.stores import GuardStore, PinnedStore, open_store, unguarded
 from .weights import checked_weights_array
 from .device_feed import DeviceFeed
@@ -686,6 +687,8 @@ class MapReader:
         inner = unguarded(self.group.store)
         if self._owns_store and isinstance(inner, PinnedStore):
             inner.close_pin()
+        elif self._owns_store and isinstance(inner, RemoteStore):
+            inner.close()  # its HTTP or S3 session
 
 
 def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,

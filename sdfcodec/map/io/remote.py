@@ -31,9 +31,11 @@ written. The limits travel inside ``storage_options`` under the key ``"remote_li
 from __future__ import annotations
 
 import asyncio
+import atexit
 import dataclasses
 import random
 import time
+import weakref
 import zlib
 from typing import Any
 
@@ -172,6 +174,29 @@ class RemoteStore(zarr.storage.WrapperStore):
     def _with_store(self, store):
         return type(self)(store, self.remote, self.limits, url=self.url, max_metadata_bytes=self.max_metadata_bytes)
 
+    def close(self) -> None:
+        """Close the store and the HTTP or S3 client session its filesystem opened (each remote map owns its
+        filesystem: ``skip_instance_cache``). Without it aiohttp warns "Unclosed client session" when the process
+        ends, and the connections stay open until then. A map dropped without ``close()`` closes it when its
+        filesystem is collected."""
+        super().close()
+        _close_sessions(_SESSIONS.get(id(self._store.fs)))
+
+    def _opened(self, close: Any) -> None:
+        """Remember the session ``close`` (a coroutine function) of this store's filesystem, once, with the loop it
+        runs on (Zarr's: a session belongs to the loop that made it)."""
+        fs = self._store.fs
+        opened = _SESSIONS.get(id(fs))
+        if opened is None:
+            # by identity: fsspec filesystems made with equal options compare equal, yet each has its own session
+            opened = _SESSIONS[id(fs)] = []
+            weakref.finalize(fs, _forget, id(fs))
+            if not _AT_EXIT:
+                # registered after Zarr's own exit hook, which stops its loop: this one runs first (last in, first out)
+                _AT_EXIT.append(atexit.register(_close_all))
+        if not any(c == close for _, c in opened):
+            opened.append((asyncio.get_running_loop(), close))
+
     @property
     def inner(self) -> zarr.storage.FsspecStore:
         """The fsspec store this one reads through."""
@@ -292,6 +317,7 @@ class RemoteStore(zarr.storage.WrapperStore):
         fs, r = self._store.fs, self.remote
         url = f"{self._store.path.rstrip('/')}/{key}"
         session = await fs.set_session()
+        self._opened(session.close)
         kw = dict(fs.kwargs)  # request options from storage_options (headers, auth, ...)
         kw.pop("timeout", None)
         headers = dict(kw.pop("headers", None) or {})
@@ -325,7 +351,8 @@ class RemoteStore(zarr.storage.WrapperStore):
         from botocore.exceptions import ClientError
 
         fs = self._store.fs
-        await fs.set_session()
+        client = await fs.set_session()
+        self._opened(client.close)
         bucket, obj, version = fs.split_path(f"{self._store.path.rstrip('/')}/{key}")
         extra = {**({"VersionId": version} if version else {}), **({"Range": rng} if rng else {})}
         try:
@@ -346,6 +373,42 @@ class RemoteStore(zarr.storage.WrapperStore):
             return await _bounded(body.read, resp.get("ContentLength"), enc, limit)
         finally:
             body.close()
+
+
+#: The client sessions each remote filesystem opened, by the filesystem's id: ``[(loop, close coroutine function)]``.
+_SESSIONS: dict[int, list] = {}
+_AT_EXIT: list = []  # the exit hook, once registered
+
+
+def _forget(key: int) -> None:
+    """A filesystem was collected: close what it opened."""
+    _close_sessions(_SESSIONS.pop(key, None))
+
+
+def _close_all() -> None:
+    """At exit: close every session still open, while Zarr's loop still runs them."""
+    for key in list(_SESSIONS):
+        _close_sessions(_SESSIONS.get(key))
+
+
+def _close_sessions(opened: list | None) -> None:
+    """Close the sessions in ``opened`` on their loops (waiting up to 5 s each unless called on that loop), then
+    forget them."""
+    while opened:
+        loop, close = opened.pop()
+        if loop.is_closed() or not loop.is_running():
+            continue  # nothing can run it any more (the process is ending)
+        try:
+            here = asyncio.get_running_loop()
+        except RuntimeError:
+            here = None
+        if here is loop:
+            loop.create_task(close())
+            continue
+        try:
+            asyncio.run_coroutine_threadsafe(close(), loop).result(timeout=5)
+        except Exception:  # noqa: BLE001 - a session that fails to close is no reason to fail closing a map
+            pass
 
 
 def _range_header(byte_range: Any) -> str | None:
@@ -519,5 +582,7 @@ def remote_store(url: str, storage_options: dict | None, *, limits: dict[str, tu
     protocol = url.split("://", 1)[0].lower()
     if protocol not in ("http", "https", "s3", "s3a"):
         return zarr.storage.FsspecStore.from_url(url, read_only=True, storage_options=opts or None)
+    # a filesystem of its own (fsspec shares equal ones between callers): closing the map closes its session
+    opts.setdefault("skip_instance_cache", True)
     store = zarr.storage.FsspecStore.from_url(url, read_only=True, storage_options=_with_defaults(protocol, opts, r))
     return RemoteStore(store, r, limits, url=url, max_metadata_bytes=max_metadata_bytes)
