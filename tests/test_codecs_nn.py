@@ -351,10 +351,6 @@ def test_shipped_models():
         assert shipped_model_path("ae-64.npz") == shipped_model_file("sdfcodec_ae", "ae-64.npz")
     with pytest.warns(DeprecationWarning, match="pretrained"):
         assert AECodec.shipped(64) == ae
-    with pytest.warns(DeprecationWarning, match="pretrained_codec"):
-        from sdfcodec.models import default_codec
-
-        assert default_codec("pca", 64) == pca and default_codec("ae", 64) == ae
     with pytest.raises(errors.ModelNotFoundError, match="no shipped model"):
         shipped_model_file("sdfcodec_ae", "ae-7.npz")
 

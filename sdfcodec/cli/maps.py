@@ -669,7 +669,7 @@ def compare_cmd(original: str = typer.Argument(..., metavar="ORIGINAL", help="Th
     """Surface fidelity of DECODED against ORIGINAL: Chamfer-L1, F-score, near-surface error (docs/surface.md).
 
     A volume ORIGINAL lies on DECODED's grid (its voxel size and origin) and is truncated as the map was."""
-    from ..evaluation.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
+    from ..evaluation.tracking.compare import compare_command, metrics_rows, metrics_sentence, metrics_title
 
     volume = None
     if key is not None and Path(original).suffix != ".npz":
@@ -691,7 +691,7 @@ def sign_cmd(map_path: Path = typer.Argument(..., metavar="MAP", help="Local map
                                       "`openssl genpkey -algorithm ed25519`) or its raw 32-byte seed."),
              as_json: bool = typer.Option(False, "--json", help="Print a JSON summary.")) -> None:
     """Sign a map with an Ed25519 key (its manifest and header), atomically; readers trust it with --trusted-key."""
-    from ..map.signing import sign_map
+    from ..map.sign import sign_map
 
     kid = sign_map(map_path, key)
     report({"map": str(map_path), "key": kid}, as_json, lambda: f"signed {map_path} with key {kid}")

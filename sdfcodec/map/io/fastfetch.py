@@ -39,7 +39,7 @@ from zarr.abc.store import RangeByteRequest, SuffixByteRequest
 
 from ...errors import ChecksumError
 from .frames import crc32c_matches
-from ..format import chunk_ranges
+from .shards import chunk_ranges
 from .shards import index_entry, index_size
 from .stores import GuardStore, SafeLocalStore
 

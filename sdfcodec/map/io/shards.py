@@ -42,7 +42,7 @@ from ...core import _atomic
 from ...errors import ChecksumError, FormatError, InvalidValueError
 from ...core.header import SHARD_EXTENSION
 
-__all__ = ["shard_contents", "index_size", "index_entry", "check_sharding", "read_cap", "range_problem", "shard_problem",
+__all__ = ["chunk_ranges", "shard_contents", "index_size", "index_entry", "check_sharding", "read_cap", "range_problem", "shard_problem",
            "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
@@ -340,3 +340,13 @@ def unpack_shards(root: str | os.PathLike, path: str) -> int:
     meta["chunk_grid"]["configuration"]["chunk_shape"] = list(chunks)
     _replace_chunks(array_dir, built, meta)
     return n
+
+
+def chunk_ranges(arr: Any, sel: tuple) -> list[range]:
+    """Chunk indices per axis that reading ``arr[sel]`` touches (``sel``: ints and step-1 slices; ``arr``: a Zarr
+    array, or anything with its ``shape`` and ``chunks``)."""
+    ranges = []
+    for s, n, c in zip(sel, arr.shape, arr.chunks):
+        start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
+        ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
+    return ranges
