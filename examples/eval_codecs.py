@@ -156,7 +156,7 @@ def load_codecs(workdir: Path, data: Path | None, val_blocks: int) -> tuple[dict
                                 f"`python examples/train_ae_models.py --only '' --sizes {k}`")
     val = None
     if data is not None and data.exists():
-        from sdfcodec.data.dataset import open_dataset
+        from sdfcodec.core.dataset import open_dataset
 
         val = open_dataset(data).load("validation", val_blocks)
     for name, make in (("parallel", mixed.default_parallel), ("sequential", mixed.default_sequential)):

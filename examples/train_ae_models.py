@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 import sdfcodec
-from sdfcodec.data.dataset import build_dataset, open_dataset
+from sdfcodec.core.dataset import build_dataset, open_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUNC, VS = (-0.04, 0.1), 0.02

@@ -9,7 +9,7 @@ Reproducible: fixed seeds, nothing downloaded. Steps:
    along x, one block apart: windows sampled from the first half (the paper's sub-volume sampler, every 4
    voxels by default here, six axis orders) join the training data; the allocated non-empty blocks of the second half are
    the held-out real test set. A spatial split, so no held-out surface was seen in training.
-2. Build a data set (sdfcodec.data.dataset, split 300:50:50 by batches of 500) of synthetic primitive blocks, and
+2. Build a data set (sdfcodec.core.dataset, split 300:50:50 by batches of 500) of synthetic primitive blocks, and
    cut windows with their observation masks from the training half (every ``--real-stride`` voxels, six
    axis orders; windows mostly free or hardly observed are dropped). The shipped model, "weighted": pca-128
    fitted on the synthetic training split (weight 1 everywhere: exact blocks are encoded plainly) plus the
@@ -40,7 +40,7 @@ from sdfcodec.core.blocks import denormalise, normalise
 from sdfcodec.map.observed import error_weights
 from sdfcodec.core.surface import compare_volumes
 from sdfcodec.data.synthetic import synthetic_blocks
-from sdfcodec.data.dataset import build_dataset
+from sdfcodec.core.dataset import build_dataset
 from sdfcodec.fusion.tsdf import fuse
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -57,7 +57,7 @@ from .registry import get_codec, get_codec_class, pretrained_codec
 from .core.tiling import run_tiles, scratch
 
 if TYPE_CHECKING:
-    from .data.dataset import Dataset
+    from .core.dataset import Dataset
 
 __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "CAPABILITIES", "capabilities",
            "DecodesInto", "decodes_into",
@@ -72,7 +72,7 @@ __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "CA
 # Names that import Zarr, or the benchmarks (an HTTP server and ssl: 30 ms), loaded on first use (PEP 562): a
 # plugin module imports this one, and `sdfcodec info` (which loads a plugin to name a map's shipped model) must
 # stay light
-_LAZY = {"Dataset": ".dataset", "open_dataset": ".dataset", "sz3_compress": ".map.field",
+_LAZY = {"Dataset": ".core.dataset", "open_dataset": ".core.dataset", "sz3_compress": ".map.field",
          "sz3_decompress": ".map.field", "register_bench": ".bench", "bench_instance": ".bench",
          "bench_codec_instance": ".bench", "roofline_shapes": ".bench"}
 

@@ -291,7 +291,7 @@ def _child(cmd: dict) -> int:
             tiny_write(cmd["path"], cmd["gen"])
             result = {"steps": counter[0], "seconds": time.perf_counter() - t0}
         elif cmd["job"] == "sign":  # sign the map with the Ed25519 key of seed ``seed`` (hex), killable
-            from sdfcodec.map.signing import sign_map
+            from sdfcodec.map.sign import sign_map
 
             counter = [0]
             _install_step_kill(cmd.get("kill_at_step"), counter)

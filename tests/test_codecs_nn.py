@@ -351,10 +351,6 @@ def test_shipped_models():
         assert shipped_model_path("ae-64.npz") == shipped_model_file("sdfcodec_ae", "ae-64.npz")
     with pytest.warns(DeprecationWarning, match="pretrained"):
         assert AECodec.shipped(64) == ae
-    with pytest.warns(DeprecationWarning, match="pretrained_codec"):
-        from sdfcodec.models import default_codec
-
-        assert default_codec("pca", 64) == pca and default_codec("ae", 64) == ae
     with pytest.raises(errors.ModelNotFoundError, match="no shipped model"):
         shipped_model_file("sdfcodec_ae", "ae-7.npz")
 
@@ -523,7 +519,7 @@ def test_cli_trains_ae(tmp_path):
     from typer.testing import CliRunner
 
     from sdfcodec.cli import app
-    from sdfcodec.data.dataset import build_dataset
+    from sdfcodec.core.dataset import build_dataset
 
     ds = tmp_path / "ds.zarr"
     build_dataset(ds, [("synthetic", [synthetic_blocks(3000, seed=1)])])

@@ -224,7 +224,7 @@ def test_normalised_import_and_old_readers(shared_data, tmp_path, monkeypatch):
 
 def test_search_scores_an_exact_map_as_its_normalised_twin(shared_data, tmp_path):
     """Descriptor search sees the codes as the codec encodes them (normalised), whatever the storage."""
-    from sdfcodec import search as S
+    from sdfcodec.search import engine as S
 
     sdfcodec.import_map(shared_data / REAL, tmp_path / "e.sdfz")
     sdfcodec.import_map(shared_data / REAL, tmp_path / "n.sdfz", exact=False)

@@ -260,7 +260,7 @@ GOLDEN_SEED = bytes(range(32))
 
 
 def _golden_map(path: Path) -> None:
-    from sdfcodec.map.signing import sign_map
+    from sdfcodec.map.sign import sign_map
     from sdfcodec.core.sdf import sample_volume
     from sdfcodec.testing import analytic_blocks, analytic_scene
 

@@ -508,28 +508,15 @@ def test_with_store_reads_through_the_wrapper_and_shares_the_codec(map_path):
         w.mark_empty([[0, 0, 0]])
 
 
-def test_mapfile_is_a_deprecated_alias():
-    """The old module still imports the public names, with a DeprecationWarning on (first) import."""
-    code = ("import warnings; warnings.simplefilter('error', DeprecationWarning); import sdfcodec\n"
-            "try:\n    import sdfcodec.mapfile\nexcept DeprecationWarning as e:\n    print('warned', e)\n"
-            "warnings.simplefilter('ignore', DeprecationWarning)\n"
-            "import sdfcodec.mapfile as mf, sdfcodec.map as mp\n"
-            "assert mf.Map is mp.Map and mf.open_map is mp.open_map and mf.state_digest is mp.state_digest\n"
-            "assert mf.create_map is sdfcodec.create_map and mf.update_map is sdfcodec.update_map\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.startswith("warned sdfcodec.mapfile is deprecated")
-
-
-def test_map_package_imports_no_cycle_and_no_deprecated_module():
+def test_map_package_imports_no_cycle():
     """The map package never imports the dask layer (sdfcodec.map.scale imports the package's reader and writer, not
-    the other way round) and the package's own modules do not import the deprecated sdfcodec.mapfile."""
+    the other way round)."""
     code = textwrap.dedent("""
         import sys, warnings
         warnings.simplefilter("error", DeprecationWarning)
         import sdfcodec.map, sdfcodec.map.io.stores, sdfcodec.map.format, sdfcodec.map.reader, sdfcodec.map.writer
         assert "sdfcodec.map.scale" not in sys.modules, "the map package imported sdfcodec.map.scale"
         import sdfcodec.map.scale, sdfcodec.map.verify, sdfcodec.tracking.mapfield, sdfcodec.cli
-        assert "sdfcodec.mapfile" not in sys.modules
         print("ok")
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

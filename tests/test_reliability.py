@@ -651,7 +651,7 @@ def test_sigkill_at_every_signing_step_leaves_one_whole_signature(server, tmp_pa
     pytest.importorskip("cryptography")
     from cryptography.hazmat.primitives.asymmetric import ed25519
 
-    from sdfcodec.map.signing import sign_map
+    from sdfcodec.map.sign import sign_map
 
     v = Versions(server, tmp_path / "g.sdfz")
     old, new = bytes(range(32)), bytes(range(1, 33))

@@ -13,7 +13,14 @@ import torch
 import zarr
 
 import sdfcodec
-from sdfcodec import search as S
+from sdfcodec.bench.search import bench_search
+from sdfcodec.core.geometry import axis_rotations, rotation_to
+from sdfcodec.search.engine import expand, search
+from sdfcodec.search.metrics import TRUTH, evaluate_retrieval
+from sdfcodec.search.query import build_query
+from sdfcodec.search.models import load_query, save_query
+from sdfcodec.search.rooms import LabelledRoom, synthetic_room
+from sdfcodec.search.shapes import ConeRotations, cone_rotations, query_blocks
 from sdfcodec.search import engine, scoring
 from sdfcodec.errors import FormatError, InvalidValueError, SDFCodecWarning
 from sdfcodec import pretrained_codec
@@ -24,9 +31,9 @@ VS, TRUNC = 0.02, (-0.04, 0.1)
 
 # ----------------------------------------------------------------------------------------------- fixtures
 @pytest.fixture(scope="module")
-def room() -> S.LabelledRoom:
+def room() -> LabelledRoom:
     # a small furnished room with a ceiling, turned by a random yaw, its floor at a random height in its blocks
-    return S.synthetic_room(2, size=(2.2, 2.0, 1.9))
+    return synthetic_room(2, size=(2.2, 2.0, 1.9))
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +58,7 @@ def maps(tmp_path_factory, room, pca128) -> dict:
 
 @pytest.fixture(scope="module")
 def labels(room, maps) -> dict:
-    res = S.search(sdfcodec.open_map(maps[64]), "floor", keep_scores=True)
+    res = search(sdfcodec.open_map(maps[64]), "floor", keep_scores=True)
     return {"coords": res.all_coords, **room.block_labels(res.all_coords)}
 
 
@@ -70,7 +77,7 @@ def _plain_zarr_codes(path, level=None) -> tuple[np.ndarray, np.ndarray]:
 
 # ----------------------------------------------------------------------------------------------- query models
 def test_floor_model_is_the_analytic_plane_family():
-    blocks, rots, pos = S.query_blocks("floor", behind="solid", offsets=15)
+    blocks, rots, pos = query_blocks("floor", behind="solid", offsets=15)
     assert blocks.shape == (15, 16, 16, 16)
     # 15 heights evenly spanning the block's extent [-0.5, 15.5] (voxel centres 0..15), 16/15 voxels apart
     heights = pos[:, 2] + 7.5
@@ -81,7 +88,7 @@ def test_floor_model_is_the_analytic_plane_family():
         expected = (np.clip(z - h * VS, *TRUNC) - TRUNC[0]) / (TRUNC[1] - TRUNC[0])  # solid below the plane
         np.testing.assert_allclose(b, np.broadcast_to(expected, (16, 16, 16)), atol=1e-6)
     # fused maps never observe more than |d_min| behind a surface: those voxels read as free space
-    unobs, _, pos_u = S.query_blocks("floor")
+    unobs, _, pos_u = query_blocks("floor")
     assert len(unobs) == 17 and np.allclose(np.diff(pos_u[:, 2]), 1.0)
     for b, h in zip(unobs, pos_u[:, 2] + 7.5):
         d = z - h * VS
@@ -90,55 +97,55 @@ def test_floor_model_is_the_analytic_plane_family():
 
 
 def test_rotation_sampling():
-    rots = S.axis_rotations()
+    rots = axis_rotations()
     assert rots.shape == (24, 3, 3)
     np.testing.assert_allclose(np.linalg.det(rots), 1.0)
     assert len({r.tobytes() for r in rots.round(6)}) == 24
     # the floor under the 24 cube rotations: 6 plane directions at 15 offsets each, duplicates removed
-    assert S.query_blocks("floor", rotations="axis", offsets=15, behind="solid")[0].shape[0] == 90
-    cone = S.cone_rotations(10.0, 32, seed=3)
+    assert query_blocks("floor", rotations="axis", offsets=15, behind="solid")[0].shape[0] == 90
+    cone = cone_rotations(10.0, 32, seed=3)
     np.testing.assert_allclose(cone[0], np.eye(3))
     tilt = np.degrees(np.arccos(np.clip(cone[:, 2, 2], -1, 1)))
     assert tilt.max() <= 10.0 + 1e-6 and tilt.max() > 5.0
     # tilted floors: every plane normal of the model lies within the cone about up
-    _, r, _ = S.query_blocks("floor", rotations=S.ConeRotations(10.0, 8))
+    _, r, _ = query_blocks("floor", rotations=ConeRotations(10.0, 8))
     assert np.all(np.degrees(np.arccos(np.clip(r[:, 2, 2], -1, 1))) <= 10.0 + 1e-4)
     # the built-in families: ceilings are floors upside down; edges: a room's three concave edges (wall-wall,
     # floor-wall, ceiling-wall) at 12 yaws and 5 x 5 places, each holding two perpendicular faces (its
     # voxels' free side is a quarter space: free where both faces' distances are positive)
-    floor, ceiling = S.query_blocks("floor")[0], S.query_blocks("ceiling")[0]
+    floor, ceiling = query_blocks("floor")[0], query_blocks("ceiling")[0]
     np.testing.assert_allclose(ceiling, floor[..., ::-1], atol=1e-6)
-    edges, er, ep = S.query_blocks("edge")
+    edges, er, ep = query_blocks("edge")
     assert edges.shape[0] == 3 * 12 * 25
     yaws = np.degrees(np.arctan2(er[:, 1, 0], er[:, 0, 0])) % 30.0  # the shape's x axis turned about up
     np.testing.assert_allclose(np.minimum(yaws, 30.0 - yaws), 0.0, atol=1e-4)  # every 30 degrees
     # an up direction other than +z rotates the whole model onto it
-    _, r, _ = S.query_blocks("floor", up=(0.0, 1.0, 1.0))
+    _, r, _ = query_blocks("floor", up=(0.0, 1.0, 1.0))
     np.testing.assert_allclose(r[:, :, 2], np.broadcast_to([0, 2 ** -0.5, 2 ** -0.5], (len(r), 3)), atol=1e-6)
 
 
 def test_query_model_save_load_roundtrip(tmp_path, pca128):
-    model = S.build_query("wall", codec=pca128.prefix(64), rotations="cone:5:3")
-    path = S.save_query(model, tmp_path / "wall.npz")
+    model = build_query("wall", codec=pca128.prefix(64), rotations="cone:5:3")
+    path = save_query(model, tmp_path / "wall.npz")
     with np.load(path, allow_pickle=False) as z:  # plain arrays only: this would raise on an object array
         assert {"descriptors", "blocks", "__sdfcodec_query__"} <= set(z.files)
-    back = S.load_query(path)
+    back = load_query(path)
     np.testing.assert_array_equal(back.descriptors, model.descriptors)
     np.testing.assert_array_equal(back.blocks, model.blocks)
     assert back.spec == model.spec and back.codec_config == model.codec_config
     assert back.codec_state_sha256 == model.codec_state_sha256 and back.truncation == model.truncation
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(FormatError):
-        S.load_query(tmp_path / "bad.npz")
+        load_query(tmp_path / "bad.npz")
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     with pytest.raises(FormatError, match="not an sdfcodec query model"):
-        S.load_query(tmp_path / "other.npz")
+        load_query(tmp_path / "other.npz")
 
 
 # ----------------------------------------------------------------------------------------------- searching
 def test_floor_retrieval_matches_analytic_labels(maps, labels):
-    res = S.search(sdfcodec.open_map(maps[64]), "floor", threshold="auto", keep_scores=True)
-    pos, neg = S.TRUTH["floor-vs-none"](labels)
+    res = search(sdfcodec.open_map(maps[64]), "floor", threshold="auto", keep_scores=True)
+    pos, neg = TRUTH["floor-vs-none"](labels)
     assert pos.sum() >= 20
     selected = np.isin(np.arange(len(labels["coords"])),
                        [i for i, c in enumerate(map(tuple, labels["coords"])) if c in _key(res.coords)])
@@ -151,15 +158,15 @@ def test_floor_retrieval_matches_analytic_labels(maps, labels):
 
 def test_scores_equal_brute_force_numpy(maps):
     m = sdfcodec.open_map(maps[64])
-    model = S.build_query("floor", map=m)
+    model = build_query("floor", map=m)
     # the descriptors are the map codec's encoding of the analytic planes
-    blocks, _, _ = S.query_blocks("floor", voxel_size=VS, truncation=TRUNC)
+    blocks, _, _ = query_blocks("floor", voxel_size=VS, truncation=TRUNC)
     np.testing.assert_allclose(model.descriptors, m.codec.encode(blocks), rtol=1e-5, atol=1e-4)
     idx, codes = _plain_zarr_codes(maps[64])
     q = model.descriptors.astype(np.float64)
     d = ((codes[:, None, :] - q[None]) ** 2).sum(-1)
     expected = d.min(1)
-    res = S.search(m, model, keep_scores=True)
+    res = search(m, model, keep_scores=True)
     order = {tuple(c): i for i, c in enumerate(res.all_coords)}
     got = res.all_scores[[order[tuple(c)] for c in idx]]
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=2e-3)
@@ -167,7 +174,7 @@ def test_scores_equal_brute_force_numpy(maps):
     srt = np.sort(expected)
     k = next(i for i in range(len(srt) // 10, len(srt) - 1) if srt[i + 1] - srt[i] > 0.05)
     t = float(srt[k] + srt[k + 1]) / 2  # a threshold in a gap: no float ties at the boundary
-    sel = S.search(m, model, threshold=t, scene=False)  # the shape score alone (the scene stage is tested apart)
+    sel = search(m, model, threshold=t, scene=False)  # the shape score alone (the scene stage is tested apart)
     assert _key(sel.coords) == _key(idx[expected <= t])
     assert np.all(np.diff(sel.scores) >= 0)
     row = {tuple(c): i for i, c in enumerate(idx)}
@@ -175,9 +182,9 @@ def test_scores_equal_brute_force_numpy(maps):
         i = row[tuple(c)]
         assert abs(s - expected[i]) <= 2e-3 + 1e-4 * expected[i]
         assert abs(d[i, n] - expected[i]) <= 2e-3 + 1e-4 * expected[i]  # the reported descriptor is a nearest one
-    top = S.search(m, model, top=7, scene=False)
+    top = search(m, model, top=7, scene=False)
     np.testing.assert_allclose(top.scores, np.sort(expected)[:7], rtol=1e-4, atol=2e-3)
-    both = S.search(m, model, threshold=t, top=5, scene=False)
+    both = search(m, model, threshold=t, top=5, scene=False)
     assert len(both) == 5 and _key(both.coords) <= _key(sel.coords)
 
 
@@ -215,38 +222,38 @@ def test_scorer_in_tiles_equals_brute_force(n_desc):
 
 
 def test_prefix_matching_across_code_sizes(maps, pca128):
-    r128 = S.search(sdfcodec.open_map(maps[128]), "floor", level=32, keep_scores=True)
-    r64 = S.search(sdfcodec.open_map(maps[64]), "floor", level=32, keep_scores=True)
-    r32 = S.search(sdfcodec.open_map(maps[32]), "floor", keep_scores=True)
+    r128 = search(sdfcodec.open_map(maps[128]), "floor", level=32, keep_scores=True)
+    r64 = search(sdfcodec.open_map(maps[64]), "floor", level=32, keep_scores=True)
+    r32 = search(sdfcodec.open_map(maps[32]), "floor", keep_scores=True)
     for r in (r64, r32):
         assert r.level == 32
         np.testing.assert_array_equal(r.all_coords, r128.all_coords)
         np.testing.assert_allclose(r.all_scores, r128.all_scores, rtol=1e-5, atol=1e-3)
     # the level-32 scores are distances between the first 32 elements of the 128-element codes
     idx, codes = _plain_zarr_codes(maps[128], level=32)
-    q = S.build_query("floor", codec=pca128).descriptors[:, :32].astype(np.float64)
+    q = build_query("floor", codec=pca128).descriptors[:, :32].astype(np.float64)
     expected = ((codes[:, None] - q[None]) ** 2).sum(-1).min(1)
     order = {tuple(c): i for i, c in enumerate(r128.all_coords)}
     np.testing.assert_allclose(r128.all_scores[[order[tuple(c)] for c in idx]], expected, rtol=1e-4, atol=2e-3)
     # a 32-element descriptors-only model made with the pca-32 codec matches the first 32 of a 128 map's codes
-    small = S.build_query("floor", codec=pca128.prefix(32), keep_blocks=False)
-    r = S.search(sdfcodec.open_map(maps[128]), small, keep_scores=True)
+    small = build_query("floor", codec=pca128.prefix(32), keep_blocks=False)
+    r = search(sdfcodec.open_map(maps[128]), small, keep_scores=True)
     assert r.level == 32
     np.testing.assert_allclose(r.all_scores, r128.all_scores, rtol=1e-5, atol=1e-3)
     with pytest.raises(InvalidValueError, match="exceeds the query"):
-        S.search(sdfcodec.open_map(maps[128]), small, level=64)
+        search(sdfcodec.open_map(maps[128]), small, level=64)
 
 
 def test_descriptors_from_another_basis_are_refused(maps):
     from sdfcodec.testing import analytic_blocks
 
     other = sdfcodec.get_codec("pca", code_size=32).fit(analytic_blocks(300, seed=4))
-    model = S.build_query("floor", codec=other, keep_blocks=False)
+    model = build_query("floor", codec=other, keep_blocks=False)
     with pytest.raises(InvalidValueError, match="different codec or basis"):
-        S.search(sdfcodec.open_map(maps[64]), model)
+        search(sdfcodec.open_map(maps[64]), model)
     # with its blocks kept, the same model is re-encoded with the map's codec and works
-    res = S.search(sdfcodec.open_map(maps[64]), S.build_query("floor", codec=other), top=3)
-    ref = S.search(sdfcodec.open_map(maps[64]), "floor", top=3)
+    res = search(sdfcodec.open_map(maps[64]), build_query("floor", codec=other), top=3)
+    ref = search(sdfcodec.open_map(maps[64]), "floor", top=3)
     np.testing.assert_allclose(res.scores, ref.scores, rtol=1e-5, atol=1e-3)
 
 
@@ -258,12 +265,12 @@ def test_non_prefix_codec_refuses_a_prefix_level(tmp_path, room):
     m = sdfcodec.open_map(path)
     assert not m.header.codes.prefix_ordered
     with pytest.raises(InvalidValueError, match="not prefix-ordered"):
-        S.search(m, "floor", level=32)
+        search(m, "floor", level=32)
     with pytest.raises(InvalidValueError, match="not prefix-ordered"):
-        S.search(m, S.build_query("floor", codec=pretrained_codec("pca", 64), keep_blocks=False))
+        search(m, build_query("floor", codec=pretrained_codec("pca", 64), keep_blocks=False))
     # at full size, raw codes are the normalised voxels: scores are exact squared voxel distances
-    res = S.search(m, "floor", keep_scores=True)
-    blocks, _, _ = S.query_blocks("floor")
+    res = search(m, "floor", keep_scores=True)
+    blocks, _, _ = query_blocks("floor")
     q = blocks.reshape(len(blocks), -1).astype(np.float64)
     for c, s in zip(res.all_coords[:20], res.all_scores[:20]):
         v = (vol[tuple(slice(16 * a, 16 * a + 16) for a in c)] - TRUNC[0]) / (TRUNC[1] - TRUNC[0])
@@ -286,8 +293,8 @@ class _Counting(zarr.storage.WrapperStore):
 def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     m = sdfcodec.open_map(maps[128])
     # the shape score alone: the scene stage may re-read the chunks of blocks beyond a level (solid or surface?)
-    full = S.search(m, "floor", top=5, scene=False)
-    low = S.search(m, "floor", level=32, top=5, scene=False)
+    full = search(m, "floor", top=5, scene=False)
+    low = search(m, "floor", level=32, top=5, scene=False)
     assert full.stats["code_bytes_read"] == full.stats["code_bytes_full"] > 0
     assert low.stats["code_bytes_read"] == low.stats["code_bytes_level"]
     # the code chunks are 32 elements wide: level 32 reads only the first one along the code axis
@@ -295,7 +302,7 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     assert 0.15 < ratio < 0.35, ratio
     # independently of the search's own counter: which chunk keys the store is asked for
     store = _Counting(zarr.storage.LocalStore(maps[128], read_only=True))
-    S.search(sdfcodec.open_map(store), "floor", level=32, top=5, scene=False)
+    search(sdfcodec.open_map(store), "floor", level=32, top=5, scene=False)
     keys = [k for k in store.keys if k.startswith("codes/c/")]
     assert keys and all(k.endswith("/0") for k in keys)
     # bounded memory: codes are scored a batch of chunks at a time, never the whole map at once
@@ -311,7 +318,7 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
     with sdfcodec.create_map(small, codec=m.codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=4) as w:
         w.write_codes(*m.read_codes())
     ms = sdfcodec.open_map(small)
-    res = S.search(ms, "floor", level=32, chunks_per_batch=1, behind="unobserved", up=(0, 0, 1),
+    res = search(ms, "floor", level=32, chunks_per_batch=1, behind="unobserved", up=(0, 0, 1),
                    scene=False)  # no estimates
     assert max(sizes) <= 4 ** 3 and sum(sizes) == res.stats["blocks_scored"] == m.count_states()["coded"]
     assert len(sizes) > 1
@@ -320,37 +327,37 @@ def test_level32_reads_a_quarter_of_the_code_bytes(maps, monkeypatch, tmp_path):
 def test_bad_arguments(maps):
     m = sdfcodec.open_map(maps[64])
     with pytest.raises(InvalidValueError, match="floor, ceiling, wall, edge, corner"):
-        S.search(m, "sofa")
+        search(m, "sofa")
     with pytest.raises(InvalidValueError, match="threshold"):
-        S.search(m, "floor", threshold=-1.0)
+        search(m, "floor", threshold=-1.0)
     with pytest.raises(InvalidValueError, match="top"):
-        S.search(m, "floor", top=0)
+        search(m, "floor", top=0)
     with pytest.raises(InvalidValueError, match="level"):
-        S.search(m, "floor", level=65)
+        search(m, "floor", level=65)
     # one user block: its threshold comes from copies of it shifted by up to half a voxel (a constant block is
     # its own shifted copy, so only blocks coded like it are selected)
-    res = S.search(m, np.full((1, 16, 16, 16), TRUNC[1] / 2, np.float32), threshold="auto")
+    res = search(m, np.full((1, 16, 16, 16), TRUNC[1] / 2, np.float32), threshold="auto")
     assert res.stats["threshold_info"]["method"] == "calibrated on shifted copies" and res.threshold < 1e-2
 
 
 def test_query_for_another_geometry_is_rebuilt_or_warned(maps, pca128):
     m = sdfcodec.open_map(maps[64])
-    coarse = S.build_query("floor", codec=pca128.prefix(64), voxel_size=0.05)
-    res = S.search(m, coarse, top=3)  # named query: rebuilt for the map's 2 cm voxels
+    coarse = build_query("floor", codec=pca128.prefix(64), voxel_size=0.05)
+    res = search(m, coarse, top=3)  # named query: rebuilt for the map's 2 cm voxels
     assert res.query.voxel_size == VS
-    np.testing.assert_allclose(res.scores, S.search(m, "floor", top=3).scores, rtol=1e-5)
-    user = S.build_query(np.full((2, 16, 16, 16), 0.05, np.float32) + np.arange(2)[:, None, None, None] * 0.01,
+    np.testing.assert_allclose(res.scores, search(m, "floor", top=3).scores, rtol=1e-5)
+    user = build_query(np.full((2, 16, 16, 16), 0.05, np.float32) + np.arange(2)[:, None, None, None] * 0.01,
                          codec=pca128.prefix(64), voxel_size=0.05)
     with pytest.warns(SDFCodecWarning, match="voxel size"):
-        S.search(m, user, top=1)
+        search(m, user, top=1)
 
 
 # ----------------------------------------------------------------------------------------------- expanding
 def test_expand_decodes_only_the_selection(maps, room):
     m = sdfcodec.open_map(maps[64])
-    res = S.search(m, "floor", threshold="auto")
+    res = search(m, "floor", threshold="auto")
     assert len(res) > 0
-    exp = S.expand(m, res, as_="dense")
+    exp = expand(m, res, as_="dense")
     full = m.decode_region()
     for c, b in zip(exp.coords, exp.blocks):
         box = tuple(slice(16 * a, min(16 * a + 16, n)) for a, n in zip(c, full.shape))
@@ -362,13 +369,13 @@ def test_expand_decodes_only_the_selection(maps, room):
     st = exp.stats
     assert st["blocks_decoded"] == len(res) < st["coded_blocks"]
     assert 0 < st["code_bytes_read"] <= st["code_bytes_full"]
-    mesh = S.expand(m, res, as_="mesh").mesh
+    mesh = expand(m, res, as_="mesh").mesh
     v = np.asarray(mesh.vertices)
     assert len(mesh.triangles) > 100
     # the floor of the (yawed, untilted) room is the plane z = 0: the expanded surface lies on it
     assert np.median(np.abs(v[:, 2])) < 0.01
     with pytest.raises(InvalidValueError, match="not coded"):
-        S.expand(m, np.zeros((1, 3), np.int64))
+        expand(m, np.zeros((1, 3), np.int64))
 
 
 # ----------------------------------------------------------------------------------------------- CLI backend
@@ -414,7 +421,7 @@ def test_cli_search_json(tmp_path, maps, pca128):
         assert isinstance(b["coords"], list) and len(b["coords"]) == 3 and all(type(v) is int for v in b["coords"])
         assert type(b["score"]) is float
     idx, codes = _plain_zarr_codes(maps[128], level=32)
-    q = S.query_blocks("floor", voxel_size=VS, truncation=TRUNC)[0]
+    q = query_blocks("floor", voxel_size=VS, truncation=TRUNC)[0]
     q = pca128.encode(q)[:, :32].astype(np.float64)
     expected = ((codes[:, None] - q[None]) ** 2).sum(-1).min(1)
     order = np.argsort(expected, kind="stable")
@@ -456,47 +463,20 @@ def test_cli_search_errors_are_one_line(tmp_path, room):
     assert r.exit_code != 0 and "floor, ceiling, wall, edge, corner" in r.stderr
 
 
-
-def test_split_modules_keep_the_old_names():
-    """sdfcodec.search is a package now; every name of its former __all__ still imports from it, the moved ones
-    are the very objects of their new homes, and the benchmark's old path warns that it moved."""
-    import importlib
-    import subprocess
-    import sys
-
-    from sdfcodec import bench
-    from sdfcodec.core import geometry
-    from sdfcodec.search import rooms
-
-    for name in S.__all__:
-        if name != "bench_search":
-            assert getattr(S, name) is not None, name
-    assert S.synthetic_room is rooms.synthetic_room and S.LabelledRoom is rooms.LabelledRoom
-    assert S.axis_rotations is geometry.axis_rotations and S.rotation_to is geometry.rotation_to
-    with pytest.warns(DeprecationWarning, match="sdfcodec.bench.bench_search"):
-        assert S.bench_search is bench.bench_search
-    with pytest.raises(AttributeError):
-        S.no_such_name
-    for mod in ("shapes", "query", "engine", "scoring", "metrics"):
-        assert importlib.import_module(f"sdfcodec.search.{mod}").__all__
-    # the labelled rooms import on their own (no import cycle with sdfcodec.search)
-    subprocess.run([sys.executable, "-c", "import sdfcodec.search.rooms as r; r.synthetic_room"], check=True)
-
-
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_gpu_scores_equal_cpu(maps):
     m = sdfcodec.open_map(maps[128])
-    cpu = S.search(m, "floor", keep_scores=True, device="cpu")
-    gpu = S.search(m, "floor", keep_scores=True, device="cuda")
+    cpu = search(m, "floor", keep_scores=True, device="cpu")
+    gpu = search(m, "floor", keep_scores=True, device="cuda")
     np.testing.assert_allclose(gpu.all_scores, cpu.all_scores, rtol=1e-4, atol=1e-2)
 
 
 @pytest.mark.slow
 def test_floor_precision_recall_target():
     """Paper-scale check (minutes): precision >= 0.9 at recall >= 0.9 for clean floor blocks at pca-64."""
-    rooms = [S.synthetic_room(s, geometry="normal" if s % 2 == 0 else "rich") for s in range(4)]
-    rec = S.evaluate_retrieval(rooms, {"pca-64": pretrained_codec("pca", 64)}, truths=("floor-vs-none",),
+    rooms = [synthetic_room(s, geometry="normal" if s % 2 == 0 else "rich") for s in range(4)]
+    rec = evaluate_retrieval(rooms, {"pca-64": pretrained_codec("pca", 64)}, truths=("floor-vs-none",),
                                keep_curves=False)[0]
     assert rec["precision_at_recall"] >= 0.9, rec
 
@@ -507,8 +487,8 @@ def test_repeated_searches_reuse_the_counting_view_and_count_alone(maps):
     from sdfcodec.search.counting import counting_view, release_view
 
     m = sdfcodec.open_map(maps[64])
-    first = S.search(m, "floor", threshold=1.0, scene=False).stats
-    second = S.search(m, "floor", threshold=1.0, scene=False).stats
+    first = search(m, "floor", threshold=1.0, scene=False).stats
+    second = search(m, "floor", threshold=1.0, scene=False).stats
     assert first["code_bytes_read"] == second["code_bytes_read"] == first["code_bytes_full"] > 0
     assert "meta" in first["bytes_read"] and "meta" not in second["bytes_read"]
     assert second["code_bytes_level"] == first["code_bytes_level"]

@@ -12,7 +12,7 @@ import pytest
 import sdfcodec
 from sdfcodec import pretrained_codec
 from sdfcodec.search import cache
-from sdfcodec.search import engine, query, scoring
+from sdfcodec.search import calibrate, engine, models, query, scoring
 from sdfcodec.search.query import build_query
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -30,8 +30,8 @@ def fresh_cache(tmp_path, monkeypatch):
 def count_builds(monkeypatch):
     """How often shapes were sampled (each model build samples once)."""
     calls = []
-    real = query.query_blocks
-    monkeypatch.setattr(query, "query_blocks", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = models.query_blocks
+    monkeypatch.setattr(models, "query_blocks", lambda *a, **k: calls.append(1) or real(*a, **k))
     return calls
 
 
@@ -94,7 +94,7 @@ def test_damaged_or_foreign_cache_files_are_rebuilt(fresh_cache, count_builds):
     other = build_query("wall", **kw)  # a valid query file, but another model than the key names
     for content in (b"not an npz", None):
         if content is None:
-            query.save_query(other, path)
+            models.save_query(other, path)
         else:
             path.write_bytes(content)
         cache.clear_memory_cache()
@@ -102,7 +102,7 @@ def test_damaged_or_foreign_cache_files_are_rebuilt(fresh_cache, count_builds):
         got = build_query("floor", **kw)
         assert len(count_builds) == n + 1  # rebuilt, not trusted
         np.testing.assert_array_equal(got.descriptors, ref.descriptors)
-        np.testing.assert_array_equal(query.load_query(path).descriptors, ref.descriptors)  # and replaced
+        np.testing.assert_array_equal(models.load_query(path).descriptors, ref.descriptors)  # and replaced
 
 
 def test_disk_cache_off_and_unwritable(tmp_path, monkeypatch, count_builds):
@@ -136,17 +136,17 @@ def test_calibrated_threshold_is_cached_and_equal(fresh_cache, tmp_path, monkeyp
     model = build_query("floor", map=sdfcodec.open_map(tmp_path / "p.sdfz"))
     calls = []
     real = shapes.sample_shapes
-    monkeypatch.setattr(shapes, "sample_shapes", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(calibrate, "sample_shapes", lambda *a, **k: calls.append(1) or real(*a, **k))
     cpu = torch.device("cpu")
-    t1, info1 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
+    t1, info1 = calibrate.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
     cache.clear_memory_cache()
-    t2, info2 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))  # the disk
-    t3, _ = engine.calibrate_threshold(model, codec, 32, scoring.Scorer(model.descriptors[:, :32], cpu))
+    t2, info2 = calibrate.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))  # the disk
+    t3, _ = calibrate.calibrate_threshold(model, codec, 32, scoring.Scorer(model.descriptors[:, :32], cpu))
     assert calls == [1, 1]  # level 64 once, level 32 once
     assert t1 == t2 and info1 == info2 and info1["method"] == "calibrated" and t3 != t1
     cache.clear_memory_cache()
     monkeypatch.setenv(cache.CACHE_ENV, "off")
-    t4, info4 = engine.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
+    t4, info4 = calibrate.calibrate_threshold(model, codec, 64, scoring.Scorer(model.descriptors, cpu))
     assert (t4, info4) == (t1, info1) and calls == [1, 1, 1]  # what the cache held is what calibrating gives
 
 

@@ -15,7 +15,7 @@ import pytest
 
 import sdfcodec
 from sdfcodec import pretrained_codec
-from sdfcodec import search as S
+from sdfcodec.search import engine as S
 from sdfcodec.errors import InvalidValueError
 from sdfcodec.core.geometry import rot_x
 from sdfcodec.core.sdf import Box, Plane, Scene, sample_volume

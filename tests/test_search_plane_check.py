@@ -13,7 +13,7 @@ import pytest
 
 import sdfcodec
 from sdfcodec import pretrained_codec
-from sdfcodec import search as S
+from sdfcodec.search.engine import search
 from sdfcodec.core.blocks import normalise
 from sdfcodec.core.sdf import Box, Plane, Scene, grid_points, sample_volume
 from sdfcodec.search.plane_check import PURITY, plane_residuals
@@ -107,7 +107,7 @@ def tilted_floor(tmp_path_factory):
 
 def test_tilted_floor_keeps_clean_blocks_and_drops_the_box_foot(tilted_floor):
     m, n, clean, mixed = tilted_floor
-    res = S.search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    res = search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
     got = {tuple(int(v) for v in c) for c in res.coords}
     assert mixed, "the box stands on the floor: some blocks hold both"
     assert len(got & clean) >= 0.9 * len(clean)
@@ -126,7 +126,7 @@ def test_a_map_with_its_observation_keeps_clean_blocks_and_drops_mixed(tmp_path,
     vol, observed = fused_like(_tilted_scene()[4])
     write_volume_map(tmp_path / "f.sdfz", vol, observed, pretrained_codec("pca", 64))
     m = sdfcodec.open_map(tmp_path / "f.sdfz")
-    res = S.search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    res = search(m, "floor", threshold="auto", up=tuple(n), tilt=8.0)
     got = {tuple(int(v) for v in c) for c in res.coords}
     check = res.stats["scene"]["plane_check"]
     assert check["selected"] == len(got) == res.stats["scene"]["kept"] - check["dropped"] + check["added"]
@@ -161,7 +161,7 @@ def test_a_floor_at_a_block_face_keeps_the_blocks_on_both_sides(tmp_path, behind
     path = tmp_path / "f.sdfz"
     with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=VS, truncation=TRUNC) as w:
         w.write_volume(vol)
-    res = S.search(sdfcodec.open_map(path), "floor", threshold="auto")
+    res = search(sdfcodec.open_map(path), "floor", threshold="auto")
     got = {tuple(int(v) for v in c) for c in res.coords}
     want = {(i, j, k) for i in range(4) for j in range(4) for k in (0, 1)}
     assert got == want, (sorted(want - got), sorted(got - want))
@@ -351,7 +351,7 @@ def test_a_fused_style_floor_smeared_just_past_the_band_is_kept(tmp_path, k):
                              truncation=TRUNC) as w:
         w.write_volume(vol)
     with sdfcodec.open_map(tmp_path / "r.sdfz") as m:
-        res = S.search(m, "floor", threshold="auto")
+        res = search(m, "floor", threshold="auto")
     got = {tuple(int(v) for v in c) for c in res.coords}
     d = np.abs(Plane((0, 0, 1), h)(grid_points(shape, VS)))
     idx, cnt = np.unique(np.argwhere(d <= 0.6 * VS) // 16, axis=0, return_counts=True)

@@ -12,7 +12,10 @@ import pytest
 
 import sdfcodec
 from sdfcodec import pretrained_codec
-from sdfcodec import search as S
+from sdfcodec.search.engine import search
+from sdfcodec.search.query import build_query
+from sdfcodec.search.models import load_query, save_query
+from sdfcodec.search.rooms import synthetic_room
 from sdfcodec.errors import InvalidValueError
 from sdfcodec.core.sdf import Box, Plane, Scene, grid_points, sample_volume
 
@@ -67,9 +70,9 @@ class SimpleRoom:
 
 def test_floor_is_the_lowest_level_not_the_table_top(furnished):
     room = furnished
-    shape_only = _sel(S.search(room.m, "floor", threshold="auto", scene=False))
+    shape_only = _sel(search(room.m, "floor", threshold="auto", scene=False))
     assert shape_only & room.top_blocks, "the table top is floor-shaped: the shape score alone selects it"
-    res = S.search(room.m, "floor", threshold="auto")
+    res = search(room.m, "floor", threshold="auto")
     got = _sel(res)
     assert not (got & room.top_blocks)
     clean = {b for b in room.floor_blocks if b[0] >= 2}  # away from the wall (x < 0.45 m holds both)
@@ -81,15 +84,15 @@ def test_floor_is_the_lowest_level_not_the_table_top(furnished):
 def test_no_ceiling_in_view_selects_none(furnished):
     room = furnished
     # the table's underside is a down-facing plane: the shape score alone takes it for a ceiling
-    assert len(S.search(room.m, "ceiling", threshold="auto", scene=False)) > 0
-    res = S.search(room.m, "ceiling", threshold="auto")
+    assert len(search(room.m, "ceiling", threshold="auto", scene=False)) > 0
+    res = search(room.m, "ceiling", threshold="auto")
     assert len(res) == 0 and "no ceiling in view" in res.stats["scene"]["rejected"]
 
 
 def test_walls_are_large_vertical_planes(furnished):
     room = furnished
-    got = _sel(S.search(room.m, "wall", threshold="auto"))
-    shape_only = _sel(S.search(room.m, "wall", threshold="auto", scene=False))
+    got = _sel(search(room.m, "wall", threshold="auto"))
+    shape_only = _sel(search(room.m, "wall", threshold="auto", scene=False))
     table_sides = {b for b in shape_only if b[2] in (2, 3) and b[0] >= 2}  # the shelf's sides
     assert got <= shape_only and not (got & table_sides)
     assert len(got & room.wall_blocks) >= 0.8 * len({b for b in room.wall_blocks if b[2] >= 1})
@@ -202,14 +205,14 @@ def test_saved_model_of_another_basis_is_one_line_naming_both_digests(tmp_path, 
     from sdfcodec.testing import analytic_blocks
 
     other = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=4))
-    model = S.build_query("floor", codec=other, keep_blocks=False)
-    S.save_query(model, tmp_path / "other.npz")
+    model = build_query("floor", codec=other, keep_blocks=False)
+    save_query(model, tmp_path / "other.npz")
     r = CliRunner().invoke(app, ["search", str(furnished.m.location), "--query", str(tmp_path / "other.npz")])
     line = r.stderr.strip()
     assert r.exit_code != 0 and len(line.splitlines()) == 1
     assert model.codec_state_sha256[:16] in line and furnished.m.header.codec.state_sha256[:16] in line
     with pytest.raises(InvalidValueError, match="different codec or basis"):
-        S.search(furnished.m, S.load_query(tmp_path / "other.npz"))
+        search(furnished.m, load_query(tmp_path / "other.npz"))
 
 
 def test_a_floor_over_the_threshold_everywhere_is_found_among_the_weak_candidates(furnished):
@@ -222,15 +225,15 @@ def test_a_floor_over_the_threshold_everywhere_is_found_among_the_weak_candidate
     from sdfcodec.search.scene import WEAK_FACTOR
 
     room = furnished
-    best = float(np.min(S.search(room.m, "floor", threshold="auto", scene=False, keep_scores=True).scores))
+    best = float(np.min(search(room.m, "floor", threshold="auto", scene=False, keep_scores=True).scores))
     assert best > 0
-    res = S.search(room.m, "floor", threshold=best / (0.5 + WEAK_FACTOR / 2))
+    res = search(room.m, "floor", threshold=best / (0.5 + WEAK_FACTOR / 2))
     got = _sel(res)
     clean = {b for b in room.floor_blocks if b[0] >= 2}  # away from the wall (x < 0.45 m holds both)
     assert not (got & room.top_blocks) and got <= room.floor_blocks and len(got & clean) >= 0.9 * len(clean)
     sc = res.stats["scene"]
     assert sc["under_threshold"] == 0 and "weak" in sc["anchored_by"] and abs(sc["height"] - room.h) < 2 * VS
-    none = S.search(room.m, "floor", threshold=best / (2 * WEAK_FACTOR))
+    none = search(room.m, "floor", threshold=best / (2 * WEAK_FACTOR))
     assert len(none.coords) == 0
 
 
@@ -269,14 +272,14 @@ def test_a_fused_style_floor_on_a_layer_of_voxel_centres_is_found(tmp_path, pca6
     candidates it is selected as the room's truth says (sdfcodec.search.metrics.TRUTH)."""
     from sdfcodec.search.metrics import TRUTH
 
-    room = S.synthetic_room(8201, geometry=geometry, behind="unobserved")
+    room = synthetic_room(8201, geometry=geometry, behind="unobserved")
     rel = (0.0 - room.origin[2]) / room.voxel_size  # the floor's top is at z = 0 in this room
     assert abs(rel - round(rel)) < 1e-2  # on a layer of voxel centres (the premise)
     with sdfcodec.create_map(tmp_path / "room.sdfz", codec=pca64, voxel_size=room.voxel_size,
                              truncation=room.truncation, origin=tuple(room.origin)) as w:
         w.write_volume(room.volume)
     with sdfcodec.open_map(tmp_path / "room.sdfz") as m:
-        res = S.search(m, "floor", threshold="auto", keep_scores=True)
+        res = search(m, "floor", threshold="auto", keep_scores=True)
         pos, neg = TRUTH["floor"](room.block_labels(res.all_coords))
         chosen = {tuple(c) for c in res.coords.tolist()}
         sel = np.array([tuple(c) in chosen for c in res.all_coords.tolist()])

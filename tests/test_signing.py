@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 import sdfcodec
 from sdfcodec.cli import app
+import sdfcodec.map.sign
 from sdfcodec.errors import FormatError, IntegrityError, SignatureError, WriteFailedError
 from sdfcodec.map.verify import verify_map
 
@@ -144,7 +145,7 @@ def test_changed_after_signing_is_refused(signed, keys, tmp_path):
     other = copy(signed / "plain", tmp_path / "e")
     with sdfcodec.update_map(other) as m:
         m.mark_empty([[0, 0, 0]])
-    sdfcodec.map.signing.sign_map(other, keys / "maker")
+    sdfcodec.map.sign.sign_map(other, keys / "maker")
     shutil.copy(other / "signature.json", p / "signature.json")
     with pytest.raises(SignatureError, match="changed after signing"):
         sdfcodec.open_map(p, trusted_keys=trust)
@@ -156,7 +157,7 @@ def test_raw_and_openssl_keys(signed, tmp_path):
     pub = ed25519.Ed25519PrivateKey.from_private_bytes(seed).public_key().public_bytes_raw()
     (tmp_path / "raw.pub").write_bytes(pub)
     p = copy(signed / "plain", tmp_path / "m")
-    sdfcodec.map.signing.sign_map(p, tmp_path / "raw.key")
+    sdfcodec.map.sign.sign_map(p, tmp_path / "raw.key")
     sdfcodec.open_map(p, trusted_keys=[tmp_path / "raw.pub"])
     sdfcodec.open_map(p, trusted_keys=[pub])  # the raw bytes themselves
     if shutil.which("openssl") is None:
@@ -190,7 +191,7 @@ def test_signing_is_atomic(signed, keys, tmp_path, monkeypatch):
 
     monkeypatch.setattr(_atomic, "write_new_file", full)
     with pytest.raises(WriteFailedError, match="No space left"):
-        sdfcodec.map.signing.sign_map(p, keys / "other")
+        sdfcodec.map.sign.sign_map(p, keys / "other")
     monkeypatch.undo()
     assert files(p) == before  # the previous signature, untouched
     assert [e.name for e in p.parent.iterdir()] == [p.name]  # no temporary copy (nor lock) left
@@ -202,7 +203,7 @@ def test_sign_refuses_a_changed_or_unmanifested_map(signed, keys, tmp_path, volu
     a = p / "codes/c/0/0/0/0"
     a.write_bytes((p / "codes/c/1/1/0/0").read_bytes())
     with pytest.raises(IntegrityError, match="not signed"):
-        sdfcodec.map.signing.sign_map(p, keys / "maker")
+        sdfcodec.map.sign.sign_map(p, keys / "maker")
     assert not (p / "signature.json").exists()
     with sdfcodec.create_map(tmp_path / "old", codec=pca64, voxel_size=VS, manifest=False) as m:
         m.write_volume(volume[:32, :32, :32])

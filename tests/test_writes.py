@@ -392,7 +392,7 @@ def model():
     save_model(sdfcodec.get_codec("pca", code_size=16).fit(analytic_blocks(64, seed=1)), d / "model.npz")
 
 def dataset():
-    from sdfcodec.data.dataset import build_dataset
+    from sdfcodec.core.dataset import build_dataset
     from sdfcodec.testing import analytic_blocks
     build_dataset(d / "ds", [("a", [analytic_blocks(60, seed=2)])], batch_size=20)
 
@@ -456,7 +456,7 @@ def test_other_outputs_on_a_full_disk(tmp_path):
 def test_dataset_overwrite_replaces_only_a_data_set(tmp_path):
     """``build_dataset(..., overwrite=True)`` replaces a data set, never a directory of other files or a
     plain file (it used to delete whatever directory was there)."""
-    from sdfcodec.data.dataset import build_dataset, open_dataset
+    from sdfcodec.core.dataset import build_dataset, open_dataset
 
     src = [("a", [analytic_blocks(60, seed=2)])]
     other = tmp_path / "photos"

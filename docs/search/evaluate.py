@@ -41,7 +41,8 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec import pretrained_codec
-from sdfcodec import search as S
+from sdfcodec.search.engine import expand, search
+from sdfcodec.search.rooms import LabelledRoom, synthetic_room
 from sdfcodec.search.metrics import TRUTH
 
 HERE = Path(__file__).resolve().parent
@@ -55,14 +56,14 @@ QUERIES = ("floor", "wall", "ceiling")
 PARTS = ("edge", "corner", "pole")
 
 
-def _write(path: Path, room: S.LabelledRoom, codec) -> sdfcodec.Map:
+def _write(path: Path, room: LabelledRoom, codec) -> sdfcodec.Map:
     with sdfcodec.create_map(path, codec=codec, voxel_size=room.voxel_size, truncation=room.truncation,
                              origin=tuple(room.origin), overwrite=True) as w:
         w.write_volume(room.volume)
     return sdfcodec.open_map(path)
 
 
-def open_room(seed: int) -> S.LabelledRoom:
+def open_room(seed: int) -> LabelledRoom:
     """The issue's analytic scene: a floor over solid ground, two boxes, a sphere, a cylinder (160 x 160 x 64)."""
     from sdfcodec.data.render import RoomScene
     from sdfcodec.search.rooms import LabelledRoom
@@ -90,7 +91,7 @@ def open_room(seed: int) -> S.LabelledRoom:
                         rotation=np.eye(3), size=(3.2, 3.2, 1.28), up=np.array([0.0, 0.0, 1.0]), behind="solid")
 
 
-def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120) -> tuple[sdfcodec.Map, S.LabelledRoom]:
+def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120) -> tuple[sdfcodec.Map, LabelledRoom]:
     """Render a furnished room with a ceiling along a camera path, fuse it, encode it with its observation."""
     from sdfcodec.data.render import DEFAULT_INTRINSICS, Renderer, RoomScene, camera_path, room_scene
     from sdfcodec.search.rooms import LabelledRoom
@@ -158,7 +159,7 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
     with fewer than 64 observed crossings (a surface passing near a face, or seen in part) cannot be labelled and
     are left out of every truth. *Ceiling*: none is in view."""
     vs = raw.voxel_size
-    blocks = S.expand(raw, coords, device="cpu").blocks
+    blocks = expand(raw, coords, device="cpu").blocks
     obs = raw.read_observed(coords)
     normal, rms, centroid, npts, pts_of = [], [], [], [], []
     for c, b, o in zip(coords, blocks, obs):
@@ -229,7 +230,7 @@ def kitchen_labels(raw: sdfcodec.Map, coords: np.ndarray, gravity_up: np.ndarray
             "floor_tilt_deg": float(np.degrees(np.arccos(min(1.0, fn @ gravity_up))))}
 
 
-def _observed_surface(m: sdfcodec.Map, room: S.LabelledRoom, coords: np.ndarray) -> np.ndarray:
+def _observed_surface(m: sdfcodec.Map, room: LabelledRoom, coords: np.ndarray) -> np.ndarray:
     """Per block, how many voxels within one voxel of the exact surface the fused map observed."""
     pad = [(0, (-n) % 16) for n in room.volume.shape]
     vol = np.pad(room.volume, pad, constant_values=room.truncation[1])
@@ -262,7 +263,7 @@ def _count(tally: dict, key: tuple, res, selected: np.ndarray, pos: np.ndarray) 
 
 def _search(m: sdfcodec.Map, q: str, scene: bool = True):
     # the CLI's defaults (scene=False: --shape-only, the code-space score alone)
-    res = S.search(m, q, threshold="auto", keep_scores=True, device="cpu", scene=scene)
+    res = search(m, q, threshold="auto", keep_scores=True, device="cpu", scene=scene)
     sel = np.zeros(len(res.all_coords), bool)
     key = {tuple(c): i for i, c in enumerate(res.all_coords.tolist())}
     for c in res.coords.tolist():
@@ -301,20 +302,20 @@ def _tally(kinds: list, seeds: list) -> dict:
                 path = tmp / f"{kind}-{seed}.sdfz"
                 if kind == "exact":
                     for g in ("poor", "normal", "rich"):
-                        room = S.synthetic_room(seed, geometry=g, behind="solid")
+                        room = synthetic_room(seed, geometry=g, behind="solid")
                         items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec), room, None))
                 elif kind == "exact-open":
                     room = open_room(seed)
                     items.append((_write(path, room, codec), room, None))
                 elif kind == "exact-tilted":
-                    room = S.synthetic_room(seed, geometry=("normal", "rich")[seed % 2], behind="solid", tilt_deg=10)
+                    room = synthetic_room(seed, geometry=("normal", "rich")[seed % 2], behind="solid", tilt_deg=10)
                     items.append((_write(path, room, codec), room, None))
                 elif kind in ("fused-style", "fused-style-tilted"):
                     # exact distances in a band, unobserved (d_max) beyond it, written as a plain volume: the map
                     # records neither weights nor up, so what is behind surfaces and up are found from its blocks
                     tilt = 10.0 if kind.endswith("tilted") else 0.0
                     for g in (("poor", "normal", "rich") if not tilt else (("normal", "rich")[seed % 2],)):
-                        room = S.synthetic_room(seed, geometry=g, behind="unobserved", tilt_deg=tilt)
+                        room = synthetic_room(seed, geometry=g, behind="unobserved", tilt_deg=tilt)
                         items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec), room, None))
                 elif kind in ("fused", "fused-tilted"):
                     m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec)

@@ -22,7 +22,11 @@ from pathlib import Path
 import numpy as np
 
 import sdfcodec
-from sdfcodec import search as S
+from sdfcodec.search.engine import expand
+from sdfcodec.search.metrics import evaluate_retrieval
+from sdfcodec.search.query import build_query
+from sdfcodec.search.models import save_query
+from sdfcodec.search.rooms import synthetic_room
 from sdfcodec.bench import bench_search
 from sdfcodec import pretrained_codec
 from sdfcodec.view.search import format_summary, search_command
@@ -86,7 +90,7 @@ def pr(rooms_n: int = 12, tilted_n: int = 8, solid_n: int = 6) -> None:
     t0 = time.perf_counter()
     machine = _machine()
     log = lambda m: print(f"[{time.perf_counter() - t0:6.0f} s] {m}", flush=True)  # noqa: E731
-    rooms = [S.synthetic_room(s, geometry="normal" if s % 2 == 0 else "rich") for s in range(rooms_n)]
+    rooms = [synthetic_room(s, geometry="normal" if s % 2 == 0 else "rich") for s in range(rooms_n)]
     log(f"{rooms_n} rooms")
     from sdfcodec.data.synthetic import synthetic_blocks
 
@@ -97,27 +101,27 @@ def pr(rooms_n: int = 12, tilted_n: int = 8, solid_n: int = 6) -> None:
     levels = {"pca-32": [32], "pca-64": [32, 64], "pca-128": [32, 64, 128], "synthetic-fit pca-64": [64]}
     queries = {"floor": {"shape": "floor"}, "floor, paper's 15 offsets": {"shape": "floor", "offsets": 15}}
     truths = ("floor", "floor-vs-none", "floor-majority", "up")
-    records = S.evaluate_retrieval(rooms, codecs, queries=queries, levels=levels, truths=truths, progress=log)
+    records = evaluate_retrieval(rooms, codecs, queries=queries, levels=levels, truths=truths, progress=log)
     for r in records:
         r["scenes"] = "level"
-    tilted = [S.synthetic_room(100 + s, geometry="normal" if s % 2 == 0 else "rich", tilt_deg=10.0)
+    tilted = [synthetic_room(100 + s, geometry="normal" if s % 2 == 0 else "rich", tilt_deg=10.0)
               for s in range(tilted_n)]
     log(f"{tilted_n} tilted rooms")
     tq = {"floor": {"shape": "floor"}, "floor, cone 10 deg x 16": {"shape": "floor", "rotations": "cone:10:16"},
           "floor, cone 10 deg x 48": {"shape": "floor", "rotations": "cone:10:48"},
           "floor, true up": {"shape": "floor", "up": "room"}}
-    trecs = S.evaluate_retrieval(tilted, {"pca-64": pretrained_codec("pca", 64)}, queries=tq,
+    trecs = evaluate_retrieval(tilted, {"pca-64": pretrained_codec("pca", 64)}, queries=tq,
                                  truths=("floor", "floor-vs-none"), progress=log)
     for r in trecs:
         r["scenes"] = "tilted up to 10 deg"
     records += trecs
-    solid = [S.synthetic_room(200 + s, geometry="normal" if s % 2 == 0 else "rich", behind="solid")
+    solid = [synthetic_room(200 + s, geometry="normal" if s % 2 == 0 else "rich", behind="solid")
              for s in range(solid_n)]
     log(f"{solid_n} rooms sampled as exact truncated SDFs (solid behind surfaces)")
     sq = {"floor, solid, paper's 15 offsets": {"shape": "floor", "behind": "solid"},
           "floor, solid, 17 offsets": {"shape": "floor", "behind": "solid", "offsets": "lattice"},
           "floor (unobserved-behind model)": {"shape": "floor"}}
-    srecs = S.evaluate_retrieval(solid, {"pca-64": pretrained_codec("pca", 64)}, queries=sq,
+    srecs = evaluate_retrieval(solid, {"pca-64": pretrained_codec("pca", 64)}, queries=sq,
                                  truths=("floor", "floor-vs-none"), progress=log)
     for r in srecs:
         r["scenes"] = "solid-behind"
@@ -198,7 +202,7 @@ def bench() -> None:
 
 def room() -> None:
     """Fig. 7 on a synthetic room (pca-64 map, full-level search, automatic threshold)."""
-    lab = S.synthetic_room(3, geometry="rich")
+    lab = synthetic_room(3, geometry="rich")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "room-64.sdfz"
         with sdfcodec.create_map(path, codec=pretrained_codec("pca", 64), voxel_size=lab.voxel_size,
@@ -244,9 +248,9 @@ def kitchen() -> None:
                 w.write_blocks(coords, blocks)
         for name, path in (("pca-64", p64), ("raw", raw)):
             m = sdfcodec.open_map(path)
-            model = S.build_query("floor", map=m, up=up, rotations="cone:5:16")
+            model = build_query("floor", map=m, up=up, rotations="cone:5:16")
             qpath = tmp / f"floor-{name}.npz"
-            S.save_query(model, qpath)
+            save_query(model, qpath)
             out = tmp / f"out-{name}"
             auto = search_command(path, str(qpath), None, None, None, None, False, "cpu")
             # the automatic threshold selects only the few cleanest blocks of this noisy real map: show the
@@ -256,7 +260,7 @@ def kitchen() -> None:
             c = np.array([b["coords"] for b in s.pop("blocks")])
             s["selected_heights_m"] = np.round((np.asarray(m.origin) + 0.02 * (16 * c + 7.5)) @ up, 3).tolist()
             # independent check on the lossless fused blocks: the mean surface normal of each selected block
-            lossless = S.expand(m_raw, c).blocks
+            lossless = expand(m_raw, c).blocks
             cosines = []
             for b in lossless:
                 grads = np.stack(np.gradient(b), -1)[(np.abs(b) < 0.02)]

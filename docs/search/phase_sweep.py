@@ -20,7 +20,7 @@ import numpy as np
 
 import sdfcodec
 from sdfcodec import pretrained_codec
-from sdfcodec import search as S
+from sdfcodec.search.engine import search
 from sdfcodec.core.sdf import Box, Plane, Scene, grid_points, sample_volume
 
 VS, TRUNC, SHAPE = 0.02, (-0.04, 0.1), (96, 96, 96)
@@ -42,7 +42,7 @@ def main(argv: list[str]) -> int:
             with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC) as w:
                 w.write_volume(vol)
             with sdfcodec.open_map(path) as m:
-                res = S.search(m, "floor", threshold="auto")
+                res = search(m, "floor", threshold="auto")
             got = {tuple(c) for c in res.coords.tolist()}
             d = np.abs(Plane((0, 0, 1), h)(grid_points(SHAPE, VS)))
             idx, cnt = np.unique(np.argwhere(d <= 0.6 * VS) // 16, axis=0, return_counts=True)

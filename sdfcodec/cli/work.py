@@ -189,7 +189,7 @@ def dataset_cmd(
     refuse_existing(output, overwrite, directory=True)  # build_dataset replaces only a data set
     from ..data.sampler import iter_windows
     from ..data.synthetic import synthetic_blocks
-    from ..data.dataset import build_dataset
+    from ..core.dataset import build_dataset
     from ..map import open_map
 
     window_kw = dict(stride=stride, truncation=trunc, max_mean=max_mean, empty_fraction=empty_fraction, seed=seed)
@@ -233,7 +233,7 @@ def train_cmd(
     as_json: bool = json_option(),
 ) -> None:
     """Train a codec on a data set and save it as a model (.npz of plain arrays); report validation/test error."""
-    from ..data.dataset import open_dataset
+    from ..core.dataset import open_dataset
     from ..model import save_model
     from ..registry import get_codec
 

@@ -18,14 +18,11 @@ gives a byte budget (``sdfcodec encode --target-bytes``).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..errors import InvalidValueError, ShapeError
-
-if TYPE_CHECKING:
-    from ..codec import Codec
 
 __all__ = ["quantize_codes", "dequantize_codes", "QMAX", "QMAX16", "check_step", "check_quantisable",
            "quantise_step", "dequantise_step", "RateModel", "fit_rate_model", "step_for_bytes",
@@ -89,7 +86,7 @@ def dequantize_codes(q: np.ndarray, params: np.ndarray, per: str = "block") -> n
     return offset + scale * q.astype(np.float32)
 
 
-def check_quantisable(codec: Codec) -> None:
+def check_quantisable(codec: Any) -> None:
     """Refuse a codec whose codes one step per element does not quantise soundly (:data:`UNIFORM_STEP_CODECS`)."""
     cid = getattr(codec, "codec_id", None)
     if cid in UNIFORM_STEP_CODECS or getattr(codec, "uniform_step_codes", False) is True:

@@ -25,14 +25,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
 from ..errors import DTypeError, InvalidValueError, ShapeError
-
-if TYPE_CHECKING:
-    from ..map.facade import Map
 
 __all__ = ["surface_points", "crossing_edges", "SurfaceMetrics", "compare_volumes", "compare_maps",
            "compare_volume_map", "JUMP", "SLAB"]
@@ -241,7 +238,7 @@ def _check_pair(original: Any, decoded: Any) -> None:
                          f"{tuple(decoded.shape_voxels)} voxels; compare a map with one encoded from all of it")
 
 
-def _observed(m: Map, idx: tuple[np.ndarray, ...], x0: int) -> np.ndarray:
+def _observed(m: Any, idx: tuple[np.ndarray, ...], x0: int) -> np.ndarray:
     """Whether the voxels at slab indices ``idx`` (slab starting at voxel ``x0``) of map ``m`` were observed
     (fusion weight above 0, or the map's observation mask); blocks are read only where the band has voxels."""
     g = np.stack([idx[0] + x0, idx[1], idx[2]], axis=1)
@@ -259,7 +256,7 @@ def _slabs(nx: int, slab: int) -> Iterator[tuple[int, int, int]]:
         yield x0, own, min(x0 + own + 1, nx)
 
 
-def compare_maps(original_map: Map, decoded_map: Map, *, level: int | None = None,
+def compare_maps(original_map: Any, decoded_map: Any, *, level: int | None = None,
                  progress: Callable[[int], None] | None = None, jump: float = JUMP, band: float | None = None,
                  slab: int = SLAB) -> SurfaceMetrics:
     """Surface metrics of ``decoded_map`` against ``original_map`` (two :class:`sdfcodec.Map`), equal to
@@ -306,7 +303,7 @@ def compare_maps(original_map: Map, decoded_map: Map, *, level: int | None = Non
 
 
 # -------------------------------------------------------------------------------------- `sdfcodec compare`
-def compare_volume_map(volume: Any, decoded_map: Map, *, level: int | None = None,
+def compare_volume_map(volume: Any, decoded_map: Any, *, level: int | None = None,
                        meta: dict[str, Any] | None = None) -> SurfaceMetrics:
     """Surface metrics of ``decoded_map`` against the dense volume it was encoded from: :func:`compare_volumes`
     on the map's lattice (its voxel size and origin), the volume truncated to the map's truncation as the

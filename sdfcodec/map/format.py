@@ -28,7 +28,7 @@ torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a
 
 __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors",
-           "code_layout", "check_array_metadata", "unstored_suspects", "chunk_ranges", "check_coords", "check_volume",
+           "code_layout", "check_array_metadata", "unstored_suspects", "check_coords", "check_volume",
            "warn_clipped", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
            "QUANT_CLEVEL", "mask_compressors", "field_compression_of"]
@@ -203,15 +203,6 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     blosc_frame = (len(codecs) == 3 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
                    and isinstance(codecs[2], Crc32cCodec))
     return chunk_bytes, blosc_frame, per_object
-
-
-def chunk_ranges(arr: zarr.Array, sel: tuple) -> list[range]:
-    """Chunk indices per axis that reading ``arr[sel]`` touches (``sel``: ints and step-1 slices)."""
-    ranges = []
-    for s, n, c in zip(sel, arr.shape, arr.chunks):
-        start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
-        ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
-    return ranges
 
 
 def is_dask_array(x: Any) -> bool:

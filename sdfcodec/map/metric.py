@@ -13,12 +13,15 @@ The codec still sees normalised blocks wherever it is asked for codes (``read_co
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import InvalidValueError
 from ..core.header import CodesSpec
+
+if TYPE_CHECKING:
+    from ..codec import Codec
 
 __all__ = ["is_metric", "check_metric", "metric_spec", "decode_affine", "codec_codes", "metric_empty"]
 
@@ -28,7 +31,7 @@ def is_metric(spec: CodesSpec) -> bool:
     return spec.units == "metres"
 
 
-def check_metric(codec: Any, code_dtype: str, *, step: Any = None, residual: bool = False,
+def check_metric(codec: Codec, code_dtype: str, *, step: Any = None, residual: bool = False,
                  variable_rate: bool = False) -> None:
     """Refuse ``exact=True`` where metric codes are not defined: another codec than ``raw`` (its codes are not
     the voxels), codes other than float32 (float16 or integers would round the metres), a residual stage or

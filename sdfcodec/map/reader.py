@@ -29,7 +29,8 @@ from ..errors import (ChecksumError, FormatError, IntegrityError, InvalidValueEr
                       SDFCodecError)
 from ..core.header import BlockState, MapHeader, parse_header
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
-                     check_coords, chunk_ranges, code_values, region_voxels, unstored_suspects)
+                     check_coords, code_values, region_voxels, unstored_suspects)
+from .io.shards import chunk_ranges
 from .groupdecode import decode_group
 from .grouping import Box, chunk_groups, prefetched
 from .metric import codec_codes, is_metric

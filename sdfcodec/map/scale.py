@@ -361,7 +361,7 @@ def fit_volume_stream(codec: Codec, volume: Any, truncation: tuple[float, float]
 
     Memory stays bounded only for codecs that learn incrementally (``fit_batches``: PCA accumulates the exact
     4096 x 4096 covariance in one pass); the others get the concatenated blocks. For a block data set on disk
-    (``sdfcodec.data.dataset``), ``codec.fit_stream(ds.iter_batches("train"))`` is the same thing, and what
+    (``sdfcodec.core.dataset``), ``codec.fit_stream(ds.iter_batches("train"))`` is the same thing, and what
     ``sdfcodec train`` does when the data set exceeds ``--max-memory-gb``."""
     if chunk_voxels % BLOCK or chunk_voxels <= 0:
         raise InvalidValueError(f"chunk_voxels must be a positive multiple of {BLOCK}, got {chunk_voxels}")

@@ -1,8 +1,8 @@
 """Who made a map (spec/map-format.md section 9c): an Ed25519 signature over the map's root document (the header,
 which records the SHA-256 of the integrity manifest, which records the SHA-256 of every other object), kept in
 ``signature.json`` at the map's root; keys a reader trusts (:func:`open_map(..., trusted_keys=...)
-<sdfcodec.open_map>`, ``--trusted-key``); signing a map in place, atomically (:func:`sign_map`); and making a
-key pair (:func:`keygen`).
+<sdfcodec.open_map>`, ``--trusted-key``); the signature document of a map (:func:`signature_document`; signing a map in place, atomically, is
+:func:`sdfcodec.map.sign.sign_map`); and making a key pair (:func:`keygen`).
 
 A map with an integrity manifest (section 9b) but no signature proves only that its objects are where its
 writer put them. With keys to trust, a reader refuses a map that is unsigned, signed by a key it was not given,
@@ -20,13 +20,13 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 from ..core import _atomic
-from ..errors import (FormatError, InputNotFoundError, IntegrityError, InvalidValueError, MapExistsError,
-                      MissingDependencyError, SDFCodecError, SignatureError, WriteFailedError)
+from ..errors import (InputNotFoundError, IntegrityError, InvalidValueError, MapExistsError, MissingDependencyError,
+                      SignatureError)
 from ..core.header import MapHeader
 from .manifest import SIGNATURE_KEY, Manifest, load_manifest, sha256_hex
-from .io.stores import MAX_METADATA_BYTES, GuardStore, is_url
+from .io.stores import MAX_METADATA_BYTES, GuardStore
 
-__all__ = ["keygen", "load_public_key", "load_private_key", "key_id", "sign_map", "check_trust",
+__all__ = ["keygen", "load_public_key", "load_private_key", "key_id", "signature_document", "check_trust",
            "signature_status", "set_trust_defaults", "trust_default", "protect", "MAX_SIGNATURE_BYTES"]
 
 _FORMAT = "sdfcodec-signature"
@@ -260,76 +260,11 @@ def protect(store: GuardStore, header: MapHeader, raw: Any, where: str, *, trust
     return manifest
 
 
-def _sign_doc(key, root_doc: bytes, header: MapHeader) -> bytes:
+def signature_document(key: Any, root_doc: bytes, header: MapHeader) -> bytes:
+    """The ``signature.json`` bytes signing a map's root document ``root_doc`` (whose header ``header`` records
+    its manifest's SHA-256) with the Ed25519 private ``key`` object."""
     root_sha, man_sha = sha256_hex(root_doc), header.manifest.sha256
     doc = {"format": _FORMAT, "version": 1, "algorithm": "ed25519", "public_key": _raw(key.public_key()).hex(),
            "root_sha256": root_sha, "manifest_sha256": man_sha,
            "signature": key.sign(_message(root_sha, man_sha)).hex()}
     return (json.dumps(doc, indent=2) + "\n").encode()
-
-
-def sign_map(path: str | os.PathLike, key: Any, *, wait: float = 60.0) -> str:
-    """Sign the local directory map at ``path`` with the Ed25519 private ``key`` (a key object or file, see
-    :func:`load_private_key`), replacing any signature it had; returns the key's id.
-
-    Every object is first checked against the map's manifest (a changed map is never signed). The signed map is
-    a new version swapped into place as a writer's commit is (spec section 9): interrupted or failing, the map
-    at ``path`` is the one before, never half-signed.
-
-    Raises:
-        IntegrityError: the map has no manifest, or an object does not match it. MapBusyError: another writer
-        held it for ``wait`` seconds. WriteFailedError: the file system refused the write (nothing changed).
-    """
-    from .manifest import object_problems
-    from .reader import open_reader
-
-    k = load_private_key(key)
-    final = Path(path)
-    if is_url(str(path)) or not final.is_dir():
-        raise InvalidValueError(f"only local directory maps are signed, got {path} (sign it locally, then upload)")
-    outcome = "the map there is unchanged and no temporary files are left"
-    tmp = tmp_fd = None
-    try:
-        with _atomic.WriterLock(final, wait):
-            src = open_reader(final, trusted_keys=(), verify_chunks=True)
-            try:
-                h = src.header
-                if h.manifest is None:
-                    raise IntegrityError(f"{final} has no integrity manifest to sign: write it again with this "
-                                         "sdfcodec (e.g. `sdfcodec encode OLD NEW`), then sign the new map")
-                store = src.group.store
-                bad = object_problems(store, store.manifest, listing=True)
-                if bad:
-                    raise IntegrityError(f"{final} does not match its manifest ({bad[0]}"
-                                         f"{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}); not signed")
-                root_doc = store.read_small("zarr.json", MAX_METADATA_BYTES)
-                source = os.stat(final)
-                _collect_quietly(final)  # what signers or writers killed earlier left
-                tmp, tmp_fd = _atomic.make_temp_dir(final)
-                _atomic.link_tree(src.local_root(), tmp)
-            finally:
-                src.close()
-            _atomic.write_new_file(tmp / SIGNATURE_KEY, _sign_doc(k, root_doc, h))
-            now = os.stat(final)
-            if (now.st_dev, now.st_ino) != (source.st_dev, source.st_ino):
-                raise FormatError(f"{final} was replaced while being signed; nothing was changed: sign it again")
-            _atomic.swap_into_place(tmp, final)
-            tmp = None
-    except SDFCodecError:
-        raise
-    except OSError as e:
-        raise WriteFailedError.from_os_error(e, final, "signing the map", outcome) from e
-    finally:
-        if tmp is not None:
-            _atomic.remove_tree(tmp)
-        if tmp_fd is not None:
-            os.close(tmp_fd)
-    _collect_quietly(final)
-    return key_id(k.public_key())
-
-
-def _collect_quietly(final: Path) -> None:
-    try:
-        _atomic.collect(final)
-    except OSError:
-        pass  # best effort: the next commit tries again

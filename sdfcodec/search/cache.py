@@ -109,19 +109,20 @@ def _path(key: str, suffix: str) -> Path | None:
     return None if d is None else d / "queries" / f"{key}{suffix}"
 
 
-def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool], what: str | None = None) -> Any:
+def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool], what: str | None = None, *,
+                 load: Callable[[Path], Any], save: Callable[[Any, Path], Any]) -> Any:
     """The query model cached under ``key``, else ``build()`` (then cached; ``what`` names it for
     :func:`announce_builds`). A model read from disk is used only when ``valid(model)`` holds (it was made by the
-    codec and with the spec the key names)."""
-    from .query import load_query, save_query
-
+    codec and with the spec the key names). ``load(path)`` / ``save(model, path)`` read and write a model's file
+    (:func:`sdfcodec.search.models.load_query` / ``save_query``: passed in, as the models module builds through
+    this cache)."""
     if key in _models:
         _models.move_to_end(key)
         return _models[key]
     path = _path(key, ".npz")
     if path is not None and path.is_file():
         try:
-            model = load_query(path)
+            model = load(path)
             if valid(model):
                 return _remember(_models, key, model)
         except (SDFCodecError, OSError, ValueError):
@@ -130,7 +131,7 @@ def cached_model(key: str, build: Callable[[], Any], valid: Callable[[Any], bool
     model = build()
     if path is not None:
         try:
-            save_query(model, path)
+            save(model, path)
         except (SDFCodecError, OSError):
             pass  # a read-only or full cache directory: the cache stays in memory
     return _remember(_models, key, model)

@@ -30,6 +30,7 @@ import torch
 from ..errors import InvalidValueError
 from ..map import Map
 from ..map.observed import MASK_EXTENSION
+from .models import shape_model
 from .shapes import BEHIND
 
 __all__ = ["MapContext", "map_context", "check_up", "VOTE_SAMPLE", "UP_CONE_DEG", "LEVEL_DEG", "MIN_UP_VOTES", "UP_CALIBRATION_SAMPLES", "BLOCK_MIDDLE", "estimate_up"]
@@ -88,14 +89,12 @@ def _behind_vote(m: Map, sample: int = VOTE_SAMPLE) -> tuple[float, int]:
     stored fused-style (unobserved behind) than to planes of an exact SDF (solid behind), both in the 6 axis
     orientations; and how many blocks voted (0.5 and 0 when no block tells them apart)."""
     from .scoring import Scorer
-    from .query import build_query
 
     codec = m.codec
     # the same fine offsets for both (half a voxel apart): where a block does not reach |d_min| behind its
     # surface the two families agree and the block abstains
-    kw = dict(codec=codec, voxel_size=m.voxel_size, truncation=m.truncation, rotations="axis", keep_blocks=False,
-              offsets=2 * 16 + 1, weighted=False, up=(0.0, 0.0, 1.0))
-    models = {b: build_query("floor", behind=b, **kw) for b in BEHIND}
+    models = {b: shape_model("floor", codec, float(m.voxel_size), _truncation(m), (0.0, 0.0, 1.0), "axis", 2 * 16 + 1,
+                             b, False, (1.0,), False) for b in BEHIND}
     # the map's first level only (prefix-ordered codecs): the bytes a search at that level reads anyway
     lv = m.header.codes.levels[0] if m.header.codes.prefix_ordered else m.code_size
     scorers = {b: Scorer(q.descriptors[:, :lv], torch.device("cpu")) for b, q in models.items()}
@@ -124,9 +123,8 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     blocks under its calibrated threshold each vote for their nearest descriptor's normal, and the mean of the
     votes is refined twice, with cones of 4 and 2 degrees about it. An estimate within :data:`LEVEL_DEG` of ``+z``, or
     fewer than :data:`MIN_UP_VOTES` votes, keeps ``+z``. Returns ``(up, where it came from)``."""
-    from .engine import SURFACE_SHARE, calibrate_threshold
+    from .calibrate import SURFACE_SHARE, calibrate_threshold
     from .scoring import ObservedScorer, Scorer, score_codes
-    from .query import build_query
 
     codec = m.codec
     lv = m.header.codes.levels[0] if m.header.codes.prefix_ordered else m.code_size
@@ -144,8 +142,8 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
                               np.float32)[:, :lv], torch.device("cpu"))
     for cone in (f"cone:{UP_CONE_DEG:g}:48", "cone:4:16", "cone:2:16"):
         # unstretched shapes: a direction does not need fusion's stretches (6 times fewer descriptors)
-        model = build_query("floor", map=m, behind=behind, up=tuple(up), rotations=cone, keep_blocks=False,
-                            stretch=(1.0,))
+        model = shape_model("floor", codec, float(m.voxel_size), _truncation(m), check_up(up), cone, "auto", behind,
+                            _weighted(m), (1.0,), False)
         scorer = Scorer(model.descriptors[:, :lv], torch.device("cpu"))
         obs = ObservedScorer(model.descriptors[:, :lv], codec, m.truncation, m.voxel_size) if masked else None
         t, _ = calibrate_threshold(model, codec, lv, scorer, obs, samples=UP_CALIBRATION_SAMPLES)
@@ -178,6 +176,17 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
 _CONTEXTS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
 
 
+def _weighted(m: Map) -> bool:
+    """Whether ``m``'s blocks were encoded surface-true: it records its observation (module docstring)."""
+    arrays = m.reader.observation_arrays()
+    return arrays[0] is not None or arrays[1] is not None or MASK_EXTENSION in {e.name for e in m.header.extensions}
+
+
+def _truncation(m: Map) -> tuple[float, float]:
+    d_min, d_max = m.truncation
+    return float(d_min), float(d_max)
+
+
 def map_context(m: Map, *, behind: str | None = None, up: Sequence[float] | str | None = None) -> MapContext:
     """The query context of map ``m`` (module docstring); ``behind`` / ``up`` given override the map's."""
     key = (behind, up if up is None or isinstance(up, str) else tuple(float(u) for u in np.ravel(up)))
@@ -191,8 +200,7 @@ def _work_out_context(m: Map, behind: str | None, up: Sequence[float] | str | No
     h = m.header
     names = {e.name for e in h.extensions}
     behind = None if behind == "auto" else behind
-    arrays = m.reader.observation_arrays()
-    weighted = arrays[0] is not None or arrays[1] is not None or MASK_EXTENSION in names
+    weighted = _weighted(m)
     if behind is not None:
         if behind not in BEHIND:
             raise InvalidValueError(f"behind must be one of {', '.join(BEHIND)}, got {behind!r}")

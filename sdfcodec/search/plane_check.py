@@ -14,7 +14,7 @@ maps, stretch as fusion stretches it; and it measures how much of the block's de
 A block is kept when its residual is under a threshold calibrated the way the search's threshold is
 (:func:`verify_threshold`): clean instances of the plane crossing a block anywhere (the level's own normal,
 fitted off by up to the plane tolerance), stored, encoded and decoded with the map's codec the map's way, and
-checked exactly as the map's blocks are; the threshold keeps :data:`~sdfcodec.search.engine.CALIBRATION_QUANTILE`
+checked exactly as the map's blocks are; the threshold keeps :data:`~sdfcodec.search.calibrate.CALIBRATION_QUANTILE`
 of them. A real map is noisier than those instances (a sensor's noise, a floor that is not flat): the blocks
 the code-space stage already put on the plane measure by how much, and the median excess of their residuals
 over the simulated ones is added (:func:`verify_planes` reports both).
@@ -38,12 +38,12 @@ import torch
 from ..core._validate import BLOCK
 from ..core.blocks import normalise
 from .scene import PLANE_TOL_VOXELS
-from .query import codec_state_sha256
+from .models import codec_state_sha256
 from .shapes import MIN_SHAPE_SURFACE, truncate
 
 if TYPE_CHECKING:
     from ..codec import Codec
-    from .query import QueryModel
+    from .models import QueryModel
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
            "verify_threshold", "clean_residuals", "verify_planes", "check_planes"]
@@ -432,7 +432,7 @@ def verify_threshold(normal: np.ndarray, codec: Codec, *, voxel_size: float, tru
     ``tol`` voxels, the field stretched within ``stretches``' range, stored per ``behind``, encoded the map's way
     (``weighted``: surface-true with the observation mask, as the map's writer does) and decoded with
     ``codec``. Returns the residuals ``(samples,)`` and how many observed surface voxels each had."""
-    from .query import encode_query_blocks
+    from .models import encode_query_blocks
 
     rng = np.random.default_rng([int(seed), 29])
     n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
@@ -459,7 +459,7 @@ def verify_threshold(normal: np.ndarray, codec: Codec, *, voxel_size: float, tru
 def clean_residuals(normal: np.ndarray, codec: Codec, state_sha256: str | None, *, quantile: float, **kw: Any
                     ) -> tuple[float, float]:
     """The ``quantile`` and the median of :func:`verify_threshold`'s residuals (``kw``: its other arguments;
-    ``state_sha256``: :func:`~sdfcodec.search.query.codec_state_sha256` of ``codec``),
+    ``state_sha256``: :func:`~sdfcodec.search.models.codec_state_sha256` of ``codec``),
     through the query cache (:mod:`sdfcodec.search.cache`): the simulated instances are seeded, so they depend on
     nothing but what the key names. Each plane a search checks costs a weighted encode of ``samples`` simulated
     blocks, most of a search's time on large real maps (the kitchen's walls: 5.9 of 14.7 s); a search repeated on
@@ -677,7 +677,7 @@ def check_planes(view: Any, model: QueryModel, scene_info: dict, kept: np.ndarra
     comment in the body). ``kept`` ``(K, 3)``: the map-level stage's
     blocks, ``kept_strong`` ``(K,)`` bool: those scoring under the threshold; ``coded``: every coded block;
     ``codes_of``: see :func:`verify_planes`."""
-    from .engine import CALIBRATION_QUANTILE, CALIBRATION_SAMPLES
+    from .calibrate import CALIBRATION_QUANTILE, CALIBRATION_SAMPLES
     from .scene import PLANE_TOL_VOXELS
 
     spec = model.spec or {}

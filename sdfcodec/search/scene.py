@@ -34,7 +34,7 @@ from ..core._validate import BLOCK
 from ..errors import InvalidValueError
 
 if TYPE_CHECKING:
-    from .query import QueryModel
+    from .models import QueryModel
 
 __all__ = [
     "SCENE_QUERIES",

@@ -55,7 +55,7 @@ BEHIND: tuple[str, ...] = ("unobserved", "solid")
 FUSED_STRETCH: tuple[float, ...] = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5)
 #: Shapes a query must not match, for the queries whose clean instances vary more than their model samples (a
 #: threshold keeping 99 % of simulated edges would keep planes too): the calibrated threshold also keeps at most
-#: 1 % of simulated instances of these (:func:`sdfcodec.search.engine.calibrate_threshold`).
+#: 1 % of simulated instances of these (:func:`sdfcodec.search.calibrate.calibrate_threshold`).
 NEAR_MISSES: dict[str, tuple[str, ...]] = {"edge": ("floor", "wall", "ceiling"),
                                            "corner": ("edge", "floor", "wall"),
                                            "pole": ("wall", "floor", "edge")}

@@ -45,9 +45,9 @@ from ...core.header import SHARD_EXTENSION, CodesSpec
 if TYPE_CHECKING:
     from zarr.abc.store import Store
 
-__all__ = ["shard_contents", "index_size", "check_sharding", "read_cap", "range_problem", "shard_problem",
-           "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape", "shard_layout",
-           "sharded_spec"]
+__all__ = ["chunk_ranges", "shard_contents", "index_size", "check_sharding", "read_cap", "range_problem",
+           "shard_problem", "pack_shards", "unpack_shards", "chunk_stored", "chunk_name", "storage_shape",
+           "shard_layout", "sharded_spec"]
 
 _EMPTY = np.uint64(2 ** 64 - 1)  # an index entry of a chunk not stored (both offset and nbytes)
 #: The largest shard index a reader fetches (1,048,575 chunks per shard; writers' shards hold at most 4^3 x 2)
@@ -348,3 +348,13 @@ def sharded_spec(spec: CodesSpec, shard_blocks: Any) -> CodesSpec:
         raise InvalidValueError("field-compressed codes (sz3) are not sharded: their chunks are already 8 MiB "
                                 "fields; leave shard_blocks unset")
     return spec.model_copy(update={"shard_blocks": int(shard_blocks)})
+
+
+def chunk_ranges(arr: Any, sel: tuple) -> list[range]:
+    """Chunk indices per axis that reading ``arr[sel]`` touches (``sel``: ints and step-1 slices; ``arr``: a Zarr
+    array, or anything with its ``shape`` and ``chunks``)."""
+    ranges = []
+    for s, n, c in zip(sel, arr.shape, arr.chunks):
+        start, stop, _ = s.indices(n) if isinstance(s, slice) else (s, s + 1, 1)
+        ranges.append(range(start // c, max(start // c + 1, -(-stop // c))))
+    return ranges

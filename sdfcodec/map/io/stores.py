@@ -21,7 +21,7 @@ import weakref
 import zipfile
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import zarr
 import zarr.abc.store
@@ -36,8 +36,6 @@ from .remote import remote_store, set_default_limits
 from .shards import range_problem, read_cap, shard_problem
 from ...errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
-if TYPE_CHECKING:
-    from ..manifest import Manifest
 
 __all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
            "unguarded", "chunk_read_limit", "check_metadata_document"]
@@ -99,7 +97,7 @@ class GuardStore(zarr.storage.WrapperStore):
     that is not a regular file, is refused), not only from ``stat``."""
 
     def __init__(self, store: zarr.abc.store.Store, limits: dict[str, tuple[int, bool]] | None = None,
-                 indexes: ShardIndexCache | None = None, manifest: Manifest | None = None,
+                 indexes: ShardIndexCache | None = None, manifest: Any = None,
                  metadata: MetadataBudget | None = None):
         super().__init__(store)
         self.limits: dict[str, tuple[int, bool]] = {} if limits is None else limits
