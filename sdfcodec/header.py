@@ -18,7 +18,7 @@ from .blocks import truncation_problem
 from .errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
-           "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
+           "parse_header", "CODED_MASK_EXTENSION", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
            "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate"]
@@ -68,6 +68,10 @@ VARIABLE_RATE_EXTENSION = "variable-rate-codes"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {VARIABLE_RATE_EXTENSION}
 #: "quantised-fusion-weights": the optional ``weights`` array as uint8 counts instead of float16 (spec section 6a)
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {"quantised-fusion-weights"}
+#: "coded-observation-mask": the ``observed`` array's chunks context-coded by the Zarr codec ``sdfcodec.mask-ans``
+#: (spec section 6e); required, since a reader without that codec cannot read the mask
+CODED_MASK_EXTENSION = "coded-observation-mask"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {CODED_MASK_EXTENSION}
 
 
 class BlockState:

@@ -22,6 +22,7 @@ from ..errors import DTypeError, FormatError, InvalidValueError, SDFCodecWarning
 from ..header import CodeQuantisation, CodesSpec, FieldCompression
 from ..quantize import dequantise_step, dequantize_codes
 from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
+from .maskcoder import MaskANS
 from .shards import check_sharding
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
@@ -69,13 +70,17 @@ def code_compressors(dtype: str) -> list:
     return compressors()
 
 
-def mask_compressors(final: bool = True) -> list:
+def mask_compressors(final: bool = True, coded: bool = False) -> list:
     """The chain of the observation mask ``observed``: packed bits gain nothing from a byte shuffle; zstd level 9
     of Blosc stores the 500-frame kitchen map's mask (pca-64 int8) in 65.3 B per coded block against 73.8 at level
     5 and 84.1 with bit shuffle (docs/side-information.md); readers decode any allowed Blosc settings, so old
     readers read it. Level 9 writes 13x slower than 5 (medians of 5, interleaved), so a writer writes its mask
     chunks at level 5 (``final=False``: online fusion rewrites them at every page-out) and recompresses the
-    chunks it wrote once, at commit (:func:`sdfcodec.map.observed.finish_mask`)."""
+    chunks it wrote once, at commit (:func:`sdfcodec.map.observed.finish_mask`). ``coded`` (with ``final``): the
+    whole chain of a context-coded mask (extension ``coded-observation-mask``, :mod:`sdfcodec.map.maskcoder`),
+    which replaces the ``bytes`` codec too."""
+    if coded and final:
+        return [MaskANS(), Crc32cCodec()]
     return [BloscCodec(cname="zstd", clevel=9 if final else 5, shuffle="noshuffle"), Crc32cCodec()]
 
 
@@ -130,7 +135,7 @@ def field_compression_of(codec: Codec, dtype: str = "float32") -> FieldCompressi
 
 def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shape: tuple | None = None,
                          chunks: tuple | None = None, zero_fill: bool = False, field: FieldCompression | None = None,
-                         shards: tuple | None = None) -> tuple[int, bool, int]:
+                         shards: tuple | None = None, mask_coded: bool = False) -> tuple[int, bool, int]:
     """Validate an array's metadata against the spec *before* reading from it (``where`` names it in errors).
 
     Returns:
@@ -141,6 +146,8 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
 
     ``field``: the header's ``codes.field_compression`` when ``arr`` is a field-compressed ``codes`` array (spec
     section 4c): its chain must then be exactly SZ3 and CRC32C; anywhere else the SZ3 codec is refused.
+    ``mask_coded``: ``arr`` is the mask of a map listing ``coded-observation-mask`` (section 6e): its chain must
+    then be exactly ``sdfcodec.mask-ans`` and CRC32C; anywhere else that codec is refused.
     """
     try:
         dt = np.dtype(arr.dtype)
@@ -169,6 +176,14 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
         # Zarr accepts a zero chunk edge in metadata; every chunk index computation would divide by it
         raise FormatError(f"{where} has chunk shape {ch}; every chunk edge must be >= 1, one per axis")
     fielded = check_field_pipeline(codecs, field, where)
+    ans = [c for c in codecs if isinstance(c, MaskANS)]
+    if mask_coded and (len(codecs) != 2 or not isinstance(codecs[0], MaskANS)):
+        raise FormatError(f"{where} must have the chain sdfcodec.mask-ans, crc32c: its map lists "
+                          "coded-observation-mask (spec section 6e)")
+    if ans and not mask_coded:
+        raise FormatError(f"{where} uses the Zarr codec sdfcodec.mask-ans, which only the observation mask of a map "
+                          "listing coded-observation-mask may use (spec section 6e)")
+    fielded = fielded or bool(ans)
     bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs[fielded:]
            if not isinstance(c, ALLOWED_ZARR_CODECS)]
     if bad:

@@ -38,6 +38,7 @@ from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compressors, free_space, mask_compressors)
+from .maskcoder import CODED_MASK_EXTENSION
 from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, finish_mask,
                        pack_mask, store_mask_chunk, write_block_rows)
 from .reader import CodecCache, MapReader, open_reader
@@ -446,8 +447,11 @@ class MapWriter:
         if self.mask is not None:
             if tuple(self.mask.shape[:3]) != self.grid:
                 self.mask.resize((*self.grid, MASK_BYTES))
-            finish_mask(self.group, Path(self.tmp), self.mask_touched)
+            coded = self.vr is not None  # a variable-rate map codes its mask too (spec 6e): both need constriction
+            finish_mask(self.group, Path(self.tmp), self.mask_touched, coded=coded)
             extensions.append(Extension(name=MASK_EXTENSION, required=True))
+            if coded:
+                extensions.append(Extension(name=CODED_MASK_EXTENSION, required=True))
         if self.header_kw["codec"].state_reference is not None:
             extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
         if self.header_kw.get("residual") is not None:
