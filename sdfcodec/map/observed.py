@@ -33,9 +33,8 @@ from .._lazy import lazy_module
 from .._validate import BLOCK
 from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
-from ..header import BlockState
+from ..header import CODED_MASK_EXTENSION, BlockState, Extension
 from .format import mask_compressors
-from .maskcoder import CODED_MASK_EXTENSION
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -330,13 +329,14 @@ def read_observed(reader: Any, coords: np.ndarray) -> np.ndarray:
     return np.ones((len(coords), BLOCK, BLOCK, BLOCK), dtype=bool)
 
 
-def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]], coded: bool = False) -> None:
+def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]], coded: bool = False
+                ) -> list[Extension]:
     """At a writer's commit: give the mask array of the map being written in ``tmp`` (its ``group``) its final
     compressor chain (:func:`~sdfcodec.map.format.mask_compressors`) and recompress with it the chunks this writer
     wrote (``touched``: chunk indices along the block axes), which it wrote at the fast level. Chunks it did not
     write (an update's, hard links to the version readers hold) keep their bytes: Blosc frames decode whatever
     level made them. ``coded``: the context-coded chain instead (extension ``coded-observation-mask``): the
-    writer of a new map only (``touched`` then holds every chunk it has)."""
+    writer of a new map only (``touched`` then holds every chunk it has). Returns the extensions the header lists."""
     meta_path = Path(tmp) / MASK_ARRAY / "zarr.json"
     meta = json.loads(meta_path.read_bytes())
     final = [c.to_dict() for c in mask_compressors(coded=coded)]
@@ -354,6 +354,7 @@ def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]]
     for key in sorted(touched):
         box = _box(key, meta)
         arr[box] = rows[key] if key in rows else np.asarray(arr[box])
+    return [Extension(name=n, required=True) for n in (MASK_EXTENSION, CODED_MASK_EXTENSION)[:1 + coded]]
 
 
 def _box(key: tuple[int, int, int], meta: dict) -> tuple[slice, ...]:
