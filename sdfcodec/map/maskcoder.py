@@ -112,7 +112,7 @@ def _cube_states(bits: np.ndarray) -> np.ndarray:
     """``(P, 4096)`` voxel bits (0/1) -> ``(P, 512)`` int64 sub-cube states: 0 none observed, 1 all, 2 mixed."""
     b = bits.reshape(-1, BLOCK, BLOCK, BLOCK)
     s = sum(b[:, i::2, j::2, k::2].astype(np.uint8) for i in (0, 1) for j in (0, 1) for k in (0, 1))  # 8 strided adds
-    return np.where(s == 0, 0, np.where(s == 8, 1, 2)).reshape(len(b), -1).astype(np.int64)
+    return np.where(s == 0, 0, np.where(s == 8, 1, 2)).reshape(len(b), _SUB ** 3).astype(np.int64)
 
 
 def _per_voxel(states: np.ndarray) -> np.ndarray:
@@ -146,7 +146,7 @@ def encode_mask_rows(rows: np.ndarray) -> bytes:
         model.add(ctx, sym)
     vpad = np.pad(bits.reshape(p_rows, BLOCK, BLOCK, BLOCK), ((0, 0), (1, 1), (1, 1), (1, 1))).astype(np.int64)
     vflat, model = vpad.reshape(-1), _Adaptive(_NCTX, 2)
-    mixed = (_per_voxel(states) == 2).reshape(p_rows, -1)
+    mixed = (_per_voxel(states) == 2).reshape(p_rows, BLOCK ** 3)
     for wpad, wflat in vox_waves:
         r, c = np.nonzero(mixed[:, wflat])
         at = r * _PAD ** 3 + wpad[c]
@@ -201,7 +201,7 @@ def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a co
         per = _per_voxel(states)
         vpad = np.zeros((p_rows, _PAD, _PAD, _PAD), dtype=np.int64)
         vpad[:, 1:-1, 1:-1, 1:-1] = per == 1  # uniform sub-cubes known; mixed ones decoded next
-        vflat, model, mixed = vpad.reshape(-1), _Adaptive(_NCTX, 2), (per == 2).reshape(p_rows, -1)
+        vflat, model, mixed = vpad.reshape(-1), _Adaptive(_NCTX, 2), (per == 2).reshape(p_rows, BLOCK ** 3)
         for wpad, wflat in vox_waves:
             r, c = np.nonzero(mixed[:, wflat])
             if not len(r):
