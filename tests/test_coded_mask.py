@@ -112,6 +112,10 @@ def test_variable_rate_map_stores_the_coded_mask_and_compact_documents(tmp_path,
     assert np.asarray(zarr.open_array(p / "code_streams", mode="r")[:]).any()
     from sdfcodec.verify import verify_map
     assert verify_map(p).ok
+    from typer.testing import CliRunner
+    from sdfcodec.cli import app
+    out = CliRunner().invoke(app, ["info", str(p)])
+    assert out.exit_code == 0 and "context-coded (coded-observation-mask)" in out.output, out.output
 
 
 def test_the_codec_without_the_extension_is_refused(tmp_path, room):
