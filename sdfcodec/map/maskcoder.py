@@ -2,24 +2,25 @@
 
 The mask of a fused map (one bit per voxel of each coded block, section 6b) is spatially coherent: whether a
 voxel was observed is well predicted by whether its neighbours were. Blosc's zstd sees packed bytes and stores
-the kitchen's mask in ~65-74 B per coded block; coded voxel by voxel with a binary rANS coder under adaptive
-probabilities conditioned on ten already-decoded neighbours it takes ~45 B (docs/side-information.md).
+the held-out kitchen half's mask in 66.1 B per coded block; this coder, lossless, in 46.2
+(docs/side-information.md).
 
-Order and contexts: within each partial block (a row not all 255), voxel ``(i, j, k)`` is coded on wavefront
-``s = i + j + k`` (46 of them); its context is the ten face, edge and corner neighbours with a smaller
-coordinate sum (:data:`OFFSETS`; outside the block they read 0), so a whole wavefront of every partial block
-of the chunk decodes in one vectorised call: 46 calls a chunk instead of 4096 (the voxel-serial context coder
-measured earlier decoded the kitchen's mask 27x slower than zstd).
+Order and contexts: per partial block (a row not all 255), first the states of its 512 sub-cubes of 2^3 voxels
+(none observed, all, mixed; context: the states of the sub-cubes before it along each axis), then the voxels of
+the mixed sub-cubes only (a tenth of them on the kitchen: 4x fewer symbols to decode), each under the context of
+the ten face, edge and corner neighbours with a smaller coordinate sum (:data:`OFFSETS`; outside the block they
+read 0). Both steps go wavefront by wavefront (cells with equal ``i + j + k``), so a whole wavefront of every
+partial block of the chunk decodes in one vectorised call: 22 + 46 calls a chunk instead of 4096 per block.
 
 Probabilities: ``p(1 | c) = (n1[c] + 1/2) / (n[c] + 1)`` (Krichevsky-Trofimov) from the counts of the wavefronts
 before, per chunk, so that no table is stored and any mask is coded. The probabilities are computed in float64
 from integer counts (exact, identical on every machine) and constriction's Bernoulli model quantises them the
 same way in the writer and the reader.
 
-Stream (the chunk's bytes before the CRC32C): ``b"M1"``, the number ``P`` of partial rows (uint32 LE), then
-constriction's AnsCoder words (uint32 LE). Decoded first: one flag per row, partial or not, under the fixed
-probability ``P / R`` (``R`` rows in the chunk; no flags when ``P`` is 0 or ``R``); then the partial rows'
-voxels wavefront by wavefront. Rows that are not partial are 255.
+Stream (the chunk's bytes before the CRC32C; spec section 6e): ``b"M1"``, the number ``P`` of partial rows
+(uint32 LE), then constriction's AnsCoder words (uint32 LE). Decoded first: one flag per row, partial or not,
+under the fixed probability ``P / R`` (``R`` rows in the chunk; no flags when ``P`` is 0 or ``R``); then the
+sub-cube states, then the voxels of mixed sub-cubes. Rows that are not partial are 255.
 """
 
 from __future__ import annotations
@@ -44,8 +45,8 @@ __all__ = ["MASK_ANS_CODEC", "CODED_MASK_EXTENSION", "MaskANS", "encode_mask_row
 MASK_ANS_CODEC = "sdfcodec.mask-ans"
 #: Context neighbours ``(di, dj, dk)`` of a voxel, bit ``q`` of its context for ``OFFSETS[q]``: the three faces,
 #: three edges and the corner before it along every axis, and the three neighbours one step back along two axes
-#: and one forward along the third (all on earlier wavefronts). Measured on the held-out kitchen half (191
-#: partial blocks, adaptive counts): these ten 45.5 B per block, the first seven alone 49.2.
+#: and one forward along the third (all on earlier wavefronts). Entropy of the kitchen half's voxels (191 partial
+#: blocks, every voxel coded under adaptive counts): these ten 45.5 B per block, the first seven alone 49.2.
 OFFSETS = ((-1, 0, 0), (0, -1, 0), (0, 0, -1), (-1, -1, 0), (-1, 0, -1), (0, -1, -1), (-1, -1, -1),
            (-1, 1, -1), (-1, -1, 1), (1, -1, -1))
 _MAGIC = b"M1"
