@@ -130,6 +130,9 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
     rows.append(("codec state", f"by reference to shipped model {cs['model']} (sha256 {cs['sha256']})"
                  if cs["stored"] == "reference" else "none (the codec learns nothing)" if cs["sha256"] is None
                  else f"embedded (sha256 {cs['sha256']})"))
+    if info.get("observation_mask") is not None:
+        rows.append(("observation mask", "context-coded (coded-observation-mask)"
+                     if info["observation_mask"] == "context-coded" else "Blosc-compressed"))
     if info["residual"] is not None:
         rows.append(("residual (residual-bound)", _residual_line(info["residual"])))
     if info.get("integrity") is not None:

@@ -18,7 +18,7 @@ from .blocks import truncation_problem
 from ..errors import FormatError, VersionError
 
 __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "Extension", "StateReference",
-           "parse_header", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
+           "parse_header", "CODED_MASK_EXTENSION", "FORMAT_NAME", "FORMAT_VERSION", "BlockState", "KNOWN_EXTENSIONS", "INT8_EXTENSION",
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
            "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate",
@@ -75,6 +75,10 @@ METRIC_EXTENSION = "metric-codes"
 #: "float32-fusion-weights": the optional ``weights`` array as float32, the weights exactly (spec section 6a)
 FLOAT32_WEIGHTS_EXTENSION = "float32-fusion-weights"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {METRIC_EXTENSION, FLOAT32_WEIGHTS_EXTENSION}
+#: "coded-observation-mask": the ``observed`` array's chunks context-coded by the Zarr codec ``sdfcodec.mask-ans``
+#: (spec section 6e); required, since a reader without that codec cannot read the mask
+CODED_MASK_EXTENSION = "coded-observation-mask"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {CODED_MASK_EXTENSION}
 
 
 class BlockState:

@@ -7,8 +7,11 @@ Pure functions of their arguments: nothing here opens or reads a store.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import warnings
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -23,6 +26,7 @@ from ..core.header import CodeQuantisation, CodesSpec, FieldCompression
 from ..core.quantize import dequantise_step, dequantize_codes
 from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
 from .io.shards import check_sharding
+from .maskcoder import MaskANS
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -31,7 +35,7 @@ __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_
            "code_layout", "check_array_metadata", "unstored_suspects", "check_coords", "check_volume",
            "warn_clipped", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
-           "QUANT_CLEVEL", "mask_compressors", "field_compression_of"]
+           "QUANT_CLEVEL", "mask_compressors", "compact_documents", "root_document", "field_compression_of"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
 #: block-state array, one chunk, the codec state) is refused unless the caller raises the limit, so a hostile
@@ -69,13 +73,42 @@ def code_compressors(dtype: str) -> list:
     return compressors()
 
 
-def mask_compressors(final: bool = True) -> list:
+def root_document(attributes: dict[str, Any]) -> bytes:
+    """The root ``zarr.json`` of a map whose header is ``attributes`` (the ``sdfcodec`` object), as
+    :func:`compact_documents` stores it."""
+    return _compact({"attributes": {"sdfcodec": attributes}, "zarr_format": 3, "node_type": "group"})
+
+
+def _compact(doc: Any) -> bytes:
+    return json.dumps(doc, separators=(",", ":")).encode()
+
+
+def compact_documents(root: str | Path, *, root_doc: bool = False) -> None:
+    """Rewrite the Zarr documents of the map being written in ``root`` as compact JSON: its arrays'
+    ``zarr.json`` (the root's too with ``root_doc``). zarr-python indents them, 40 % of their bytes, and on a
+    small lossy map the documents are a fifth of it (docs/side-information.md); any JSON reader reads both.
+    Each is written as a new file (an update's may be a hard link into the version readers hold)."""
+    root = Path(root)
+    for path in [root / "zarr.json"] if root_doc else root.glob("*/zarr.json"):
+        raw = path.read_bytes()
+        data = _compact(json.loads(raw))
+        if data != raw:
+            part = path.with_name("zarr.json.part")
+            part.write_bytes(data)
+            os.replace(part, path)
+
+
+def mask_compressors(final: bool = True, coded: bool = False) -> list:
     """The chain of the observation mask ``observed``: packed bits gain nothing from a byte shuffle; zstd level 9
     of Blosc stores the 500-frame kitchen map's mask (pca-64 int8) in 65.3 B per coded block against 73.8 at level
     5 and 84.1 with bit shuffle (docs/side-information.md); readers decode any allowed Blosc settings, so old
     readers read it. Level 9 writes 13x slower than 5 (medians of 5, interleaved), so a writer writes its mask
     chunks at level 5 (``final=False``: online fusion rewrites them at every page-out) and recompresses the
-    chunks it wrote once, at commit (:func:`sdfcodec.map.observed.finish_mask`)."""
+    chunks it wrote once, at commit (:func:`sdfcodec.map.observed.finish_mask`). ``coded`` (with ``final``): the
+    whole chain of a context-coded mask (extension ``coded-observation-mask``, :mod:`sdfcodec.map.maskcoder`),
+    which replaces the ``bytes`` codec too."""
+    if coded and final:
+        return [MaskANS(), Crc32cCodec()]
     return [BloscCodec(cname="zstd", clevel=9 if final else 5, shuffle="noshuffle"), Crc32cCodec()]
 
 
@@ -130,7 +163,7 @@ def field_compression_of(codec: Codec, dtype: str = "float32") -> FieldCompressi
 
 def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shape: tuple | None = None,
                          chunks: tuple | None = None, zero_fill: bool = False, field: FieldCompression | None = None,
-                         shards: tuple | None = None) -> tuple[int, bool, int]:
+                         shards: tuple | None = None, mask_coded: bool = False) -> tuple[int, bool, int]:
     """Validate an array's metadata against the spec *before* reading from it (``where`` names it in errors).
 
     Returns:
@@ -141,6 +174,8 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
 
     ``field``: the header's ``codes.field_compression`` when ``arr`` is a field-compressed ``codes`` array (spec
     section 4c): its chain must then be exactly SZ3 and CRC32C; anywhere else the SZ3 codec is refused.
+    ``mask_coded``: ``arr`` is the mask of a map listing ``coded-observation-mask`` (section 6e): its chain must
+    then be exactly ``sdfcodec.mask-ans`` and CRC32C; anywhere else that codec is refused.
     """
     try:
         dt = np.dtype(arr.dtype)
@@ -169,6 +204,14 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
         # Zarr accepts a zero chunk edge in metadata; every chunk index computation would divide by it
         raise FormatError(f"{where} has chunk shape {ch}; every chunk edge must be >= 1, one per axis")
     fielded = check_field_pipeline(codecs, field, where)
+    ans = [c for c in codecs if isinstance(c, MaskANS)]
+    if mask_coded and (len(codecs) != 2 or not isinstance(codecs[0], MaskANS)):
+        raise FormatError(f"{where} must have the chain sdfcodec.mask-ans, crc32c: its map lists "
+                          "coded-observation-mask (spec section 6e)")
+    if ans and not mask_coded:
+        raise FormatError(f"{where} uses the Zarr codec sdfcodec.mask-ans, which only the observation mask of a map "
+                          "listing coded-observation-mask may use (spec section 6e)")
+    fielded = fielded or bool(ans)
     bad = [getattr(c, "codec_name", None) or type(c).__name__ for c in codecs[fielded:]
            if not isinstance(c, ALLOWED_ZARR_CODECS)]
     if bad:

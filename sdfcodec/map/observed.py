@@ -33,7 +33,7 @@ from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
 from ..codec import learns_weights, uses_weights
 from ..errors import FormatError
-from ..core.header import BlockState
+from ..core.header import CODED_MASK_EXTENSION, BlockState, Extension
 from .format import mask_compressors
 
 if TYPE_CHECKING:
@@ -275,7 +275,9 @@ def checked_mask_array(reader: MapReader) -> zarr.Array | None:
         raise FormatError(f"{reader.location}: map lists the observation mask but lacks array '{MASK_ARRAY}' (spec "
                           "section 6b); it is incomplete")
     cb = h.codes.chunk_blocks
-    reader.check_array(arr, dtype=np.uint8, shape=(*h.grid_blocks, MASK_BYTES), chunks=(cb, cb, cb, MASK_BYTES))
+    coded = any(e.name == CODED_MASK_EXTENSION for e in h.extensions)
+    reader.check_array(arr, dtype=np.uint8, shape=(*h.grid_blocks, MASK_BYTES), chunks=(cb, cb, cb, MASK_BYTES),
+                       mask_coded=coded)
     return arr
 
 
@@ -331,22 +333,35 @@ def read_observed(reader: MapReader, coords: np.ndarray) -> np.ndarray:
     return np.ones((len(coords), BLOCK, BLOCK, BLOCK), dtype=bool)
 
 
-def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]]) -> None:
+def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]], coded: bool = False
+                ) -> list[Extension]:
     """At a writer's commit: give the mask array of the map being written in ``tmp`` (its ``group``) its final
     compressor chain (:func:`~sdfcodec.map.format.mask_compressors`) and recompress with it the chunks this writer
     wrote (``touched``: chunk indices along the block axes), which it wrote at the fast level. Chunks it did not
     write (an update's, hard links to the version readers hold) keep their bytes: Blosc frames decode whatever
-    level made them."""
+    level made them. ``coded``: the context-coded chain instead (extension ``coded-observation-mask``): the
+    writer of a new map only (``touched`` then holds every chunk it has). Returns the extensions the header lists."""
     meta_path = Path(tmp) / MASK_ARRAY / "zarr.json"
     meta = json.loads(meta_path.read_bytes())
-    final = [c.to_dict() for c in mask_compressors()]
-    if meta["codecs"][1:] != final:
-        meta["codecs"] = meta["codecs"][:1] + final
+    final = [c.to_dict() for c in mask_compressors(coded=coded)]
+    final = final if coded else meta["codecs"][:1] + final
+    if meta["codecs"] != final:
+        rows = {key: np.asarray(zarr.open_array(group.store, path=MASK_ARRAY, mode="r")[_box(key, meta)])
+                for key in sorted(touched)} if coded else {}  # read through the old chain before it changes
+        meta["codecs"] = final
         part = meta_path.with_name("zarr.json.part")
         part.write_text(json.dumps(meta, indent=2))
         os.replace(part, meta_path)  # a new file: an update's zarr.json may be a link into the previous version
+    else:
+        rows = {}
     arr = zarr.open_array(group.store, path=MASK_ARRAY, mode="r+")
-    cb = np.asarray(arr.chunks[:3])
     for key in sorted(touched):
-        box = tuple(slice(int(k) * c, min(int(k) * c + c, n)) for k, c, n in zip(key, cb, arr.shape))
-        arr[box] = np.asarray(arr[box])
+        box = _box(key, meta)
+        arr[box] = rows[key] if key in rows else np.asarray(arr[box])
+    return [Extension(name=n, required=True) for n in (MASK_EXTENSION, CODED_MASK_EXTENSION)[:1 + coded]]
+
+
+def _box(key: tuple[int, int, int], meta: dict) -> tuple[slice, ...]:
+    """The block box of mask chunk ``key`` of the array whose metadata is ``meta``."""
+    cb, shape = meta["chunk_grid"]["configuration"]["chunk_shape"], meta["shape"]
+    return tuple(slice(int(k) * c, min(int(k) * c + c, n)) for k, c, n in zip(key, cb, shape))

@@ -152,12 +152,12 @@ class MapReader:
 
     def check_array(self, arr: zarr.Array, *, dtype: Any = None, shape: tuple | None = None,
                     chunks: tuple | None = None, zero_fill: bool = False, field: Any = None,
-                    shards: tuple | None = None) -> None:
+                    shards: tuple | None = None, mask_coded: bool = False) -> None:
         """Validate an array's metadata against the spec and the reader's limits *before* reading from it, and
         register its chunk size with the guard store (a chunk claiming more is refused unread)."""
         chunk_bytes, blosc_first, per_object = check_array_metadata(
             arr, f"{self.location}: array '{arr.path}'", dtype=dtype, shape=shape, chunks=chunks,
-            zero_fill=zero_fill, field=field, shards=shards)
+            zero_fill=zero_fill, field=field, shards=shards, mask_coded=mask_coded)
         # the chunk size is checked when reading (read), so that a small limit still lets a map open and say
         # what is too big
         self._chunk_bytes[arr.path] = chunk_bytes

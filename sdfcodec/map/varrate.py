@@ -45,8 +45,8 @@ SAMPLE_BLOCKS = 2048
 #: ``--target-bytes``: the step search stops within this fraction of the target (what it counts is exact but
 #: the compressor's frame of each row, estimated at 20 bytes).
 TOLERANCE = 0.01
-#: Bytes of the ``code_streams`` array document (``zarr.json``; measured 717).
-STREAM_METADATA_BYTES = 720
+#: Bytes of the ``code_streams`` array document (``zarr.json``, compact JSON; measured 437).
+STREAM_METADATA_BYTES = 440
 _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
 
 

@@ -39,8 +39,8 @@ from ..registry import codec_package
 from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
-                     code_layout, compressors, free_space, mask_compressors)
-from .observed import (MASK_ARRAY, MASK_BYTES, MASK_EXTENSION, SURFACE_WEIGHT, encode_blocks, finish_mask,
+                     code_layout, compact_documents, compressors, free_space, mask_compressors, root_document)
+from .observed import (MASK_ARRAY, MASK_BYTES, SURFACE_WEIGHT, encode_blocks, finish_mask,
                        pack_mask, store_mask_chunk, write_block_rows)
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
@@ -453,8 +453,8 @@ class MapWriter:
         if self.mask is not None:
             if tuple(self.mask.shape[:3]) != self.grid:
                 self.mask.resize((*self.grid, MASK_BYTES))
-            finish_mask(self.group, Path(self.tmp), self.mask_touched)
-            extensions.append(Extension(name=MASK_EXTENSION, required=True))
+            # a variable-rate map codes its mask too (spec 6e): both need constriction
+            extensions += finish_mask(self.group, Path(self.tmp), self.mask_touched, coded=self.vr is not None)
         if self.header_kw["codec"].state_reference is not None:
             extensions.append(Extension(name=STATE_REFERENCE_EXTENSION, required=True))
         if self.header_kw.get("residual") is not None:
@@ -472,6 +472,7 @@ class MapWriter:
             extensions.append(Extension(name=SHARD_EXTENSION, required=True))
         if is_metric(self.codes_spec):
             extensions.append(Extension(name=METRIC_EXTENSION, required=True))
+        compact_documents(self.tmp)  # before anything counts or lists their bytes
         if self.vr is not None:  # the float codes become one entropy-coded stream per chunk (spec 4e)
             if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
                 self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
@@ -491,14 +492,13 @@ class MapWriter:
                 spec = self.codes_spec.model_copy(update={"variable_rate": VariableRate(**fields)})
                 h = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=spec,
                               extensions=extensions, **self.header_kw)
-                # the header as Zarr stores it (indented JSON), and the document of code_streams (made after this)
-                doc = json.dumps({"attributes": {"sdfcodec": json.loads(h.model_dump_json())}}, indent=2)
-                return fixed + len(doc)
+                return fixed + len(root_document(json.loads(h.model_dump_json())))  # as compact_documents stores it
 
             vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
             self.codes_spec = self.codes_spec.model_copy(update={"variable_rate": vr})
         # the integrity manifest (spec section 9b): every object of the new version, now complete but for the
         # root document, which records the manifest's digest; an update's signature no longer holds
+        compact_documents(self.tmp)  # code_streams' document, made since
         manifest = None
         if self.manifest:
             manifest = write_manifest(self.tmp, None if not self.update else self.update.get("reuse"))
@@ -506,6 +506,7 @@ class MapWriter:
         header = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=self.codes_spec,
                            extensions=extensions, manifest=manifest, **self.header_kw)
         self.group.attrs["sdfcodec"] = json.loads(header.model_dump_json())
+        compact_documents(self.tmp, root_doc=True)
 
     def _swap(self) -> None:
         """Under the writer lock: check the path still holds what we may replace, then swap or rename."""
