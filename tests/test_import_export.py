@@ -316,11 +316,11 @@ def test_mesh_region(shared_data, tmp_path):
     sdfcodec.import_map(shared_data / REAL, tmp_path / "real.sdfz")
     runs = {}
     for name, region in (("all", None), ("part", "0:8,0:16,0:32")):
-        args = [sys.executable, "-m", "sdfcodec", "mesh", str(tmp_path / "real.sdfz"), str(tmp_path / f"{name}.ply"),
-                "--json"] + (["--region", region] if region else [])
-        r = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
-        assert r.returncode == 0, r.stderr
-        runs[name] = json.loads(r.stdout)
+        # in process (CliRunner): the same command's code without two fresh interpreters importing torch
+        args = ["mesh", str(tmp_path / "real.sdfz"), str(tmp_path / f"{name}.ply"), "--json"]
+        r = CliRunner().invoke(app, args + (["--region", region] if region else []))
+        assert r.exit_code == 0, r.output
+        runs[name] = json.loads(r.stdout[r.stdout.index("{"):])
     assert 0 < runs["part"]["triangles"] < runs["all"]["triangles"]
 
 
@@ -346,14 +346,13 @@ def test_million_block_import(tmp_path):
 
 def test_view_takes_a_7scenes_folder_as_ground_truth(shared_data, tmp_path):
     pytest.importorskip("rerun")
-    from sdfcodec.core.trajectory import read_tum, write_tum
+    from sdfcodec.core.trajectory import write_tum
+    from sdfcodec.data.sequences import open_sequence
 
     seq_dir = shared_data / "7scenes-redkitchen"
     sdfcodec.import_map(shared_data / REAL, tmp_path / "real.sdfz")
-    r = subprocess.run([sys.executable, "-m", "sdfcodec", "trajectory", str(seq_dir), "-o", str(tmp_path / "gt.txt")],
-                       capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
-    gt = read_tum(tmp_path / "gt.txt")
+    # the folder's poses in process: `sdfcodec trajectory` writing them is test_trajectory_of_7scenes_poses's
+    gt = open_sequence(seq_dir).trajectory
     est = gt.subset(range(100)).poses.copy()
     est[:, :3, 3] += [0.03, 0.0, 0.04]  # 5 cm off: the ATE against the folder's poses must say so
     write_tum(tmp_path / "est.txt", type(gt).from_poses(est, gt.timestamps[:100]))
