@@ -233,7 +233,7 @@ def test_encode_target_bytes_through_a_subprocess(room_file, tmp_path):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "plugins"),
                                                        os.environ.get("PYTHONPATH", "")]))
     r = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "encode", str(room_file), str(out), "--voxel-size",
-                        str(VS), "--target-bytes", "100", "--code-dtype", "int16", "--json"], capture_output=True,
+                        str(VS), "--target-bytes", "80", "--code-dtype", "int16", "--json"], capture_output=True,
                        text=True, env=env,
                        timeout=300)
     assert r.returncode == 0, r.stderr
@@ -242,7 +242,7 @@ def test_encode_target_bytes_through_a_subprocess(room_file, tmp_path):
     m = sdfcodec.open_map(out)
     files = [f for f in out.rglob("*") if f.is_file() and "codec" not in f.relative_to(out).parts[:1]]
     per_block = sum(f.stat().st_size for f in files) / m.count_states()["coded"]
-    assert abs(per_block - 100) <= 0.1 * 100, q
+    assert abs(per_block - 80) <= 0.1 * 80, q
     assert q["bytes_per_coded_block"] == pytest.approx(per_block)
     assert m.header.codes.dtype == "int16" and m.header.codes.quantisation.step == [q["step"]] * 64
     r = CliRunner().invoke(app, ["encode", str(room_file), str(tmp_path / "x.sdfz"), "--voxel-size", str(VS),

@@ -278,7 +278,7 @@ def test_se3_exp_matches_matrix_exponential():
 def test_moved_names_keep_their_tracking_import_path():
     """se3_exp lives in sdfcodec.core.geometry and DenseField in sdfcodec.tracking.densefield; sdfcodec.tracking.tracker re-exports
     the same objects."""
-    from sdfcodec.tracking.tracker import densefield, tracker as tracking
+    from sdfcodec.tracking import densefield, tracker as tracking
     from sdfcodec.core import geometry
 
     assert tracking.se3_exp is geometry.se3_exp and tracking.DenseField is densefield.DenseField
