@@ -40,7 +40,8 @@ boxes, lying cylinders and balls. Images are 320x240 with fx = fy = 262.5 (the K
 Labels. Every primitive has a label in :data:`LABELS` (``floor``, ``wall``, ``ceiling``, ``furniture``);
 :meth:`RoomScene.surface_labels` labels points near the surface by their nearest primitive, and
 :meth:`RoomScene.floor_blocks` says which 16^3 blocks of a map hold mostly floor surface (the ground truth
-for floor retrieval).
+for floor retrieval); given the map's observation mask it counts only the floor the map observed (a fused map
+never holds the slab's underside or floor the camera did not see).
 """
 
 from __future__ import annotations
