@@ -75,6 +75,18 @@ def test_demo_short_run(tmp_path):
     assert (f"{se['scored_under_threshold']} blocks scored at or under it, and the map-level stage" in report
             and f"made that {se['selected']}" in report)
 
+    # precision and recall count the floor the fused map observed (issue 44), recomputed here from the analytic
+    # room and the map's observation mask alone
+    from sdfcodec.data.render import RoomScene
+
+    scene = RoomScene.load(out / "sequence" / "scene.json")
+    coords = np.argwhere(raw.block_states() == 2)
+    truth = scene.floor_blocks(coords, raw.origin, raw.voxel_size, observed=raw.read_observed(coords))
+    assert se["floor_truth"] == "observed" and se["floor_blocks_truth"] == int(truth.sum()) > 0
+    assert se["floor_blocks_truth"] >= se["clean_floor_blocks"] >= se["clean_found"]
+    assert f"precision {se['precision_clean']:.2f}, recall {se['recall_clean']:.2f}" in report
+    assert se["precision_clean"] >= 0.9 and se["recall_clean"] >= 0.9  # 0.96 and 0.96 (16 frames, seed 0)
+
     tr = res["tracking"]
     assert tr["frames"] == 5
     try:

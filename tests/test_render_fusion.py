@@ -371,3 +371,28 @@ def test_kitchen_500_frames_about_590_blocks(shared_data):
     assert 570 <= len(fb) <= 610  # data README: about 590 allocated blocks at 2 cm, truncation 0.1 m
     asym = fuse(seq, VS, TRUNC, quiet=True)
     assert 480 <= len(asym) < len(fb)  # a narrower band behind surfaces allocates fewer blocks
+
+
+def test_floor_blocks_count_only_observed_floor(tmp_path):
+    """Issue 44: the floor label of a fused room counts only floor the fusion observed. The floor slab's
+    underside (z = -0.2 m, analytic floor surface too) is never seen from inside the room: blocks holding only
+    it are floor by the analytic scene alone, never with the observation; floor blocks the camera saw stay
+    floor. Expectation: the slab's geometry (top at z = 0, 0.2 m thick), independent of any search."""
+    out = render_sequence(tmp_path / "room", "fast-clean", seed=1, frames=12, intrinsics=SMALL)
+    fb = fuse(open_sequence(out), VS, TRUNC, quiet=True)
+    scene = RoomScene.load(out)
+    assert scene.to_dict()["primitives"][0]["half"][2] == 0.1 and scene.labels[0] == "floor"  # slab -0.2..0
+    observed = fb.weights > 0
+    analytic = scene.floor_blocks(fb.coords, fb.origin, VS)
+    seen = scene.floor_blocks(fb.coords, fb.origin, VS, observed=observed)
+    z_lo = fb.origin[2] + VS * 16 * fb.coords[:, 2]  # each block's z range [z_lo, z_lo + 15 voxels]
+    under = (z_lo <= -0.2) & (z_lo + 15 * VS >= -0.2) & (z_lo + 15 * VS < -VS)  # the underside, not the top
+    assert (analytic & under).sum() > 0  # the scene alone labels unseen underside blocks floor
+    assert not (seen & under).any()
+    top = (z_lo <= 0) & (z_lo + 15 * VS >= 0)
+    assert (seen & top).sum() >= 0.5 * (analytic & top & (observed.reshape(len(fb), -1).sum(1) > 1000)).sum() > 0
+    # a block with its floor observed is floor; the same block with nothing observed is not
+    i = np.flatnonzero(seen)[0]
+    none = np.zeros((1, 16, 16, 16), bool)
+    assert not scene.floor_blocks(fb.coords[i:i + 1], fb.origin, VS, observed=none)[0]
+    assert scene.floor_blocks(fb.coords[i:i + 1], fb.origin, VS, observed=~none)[0]

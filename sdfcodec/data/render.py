@@ -40,7 +40,8 @@ boxes, lying cylinders and balls. Images are 320x240 with fx = fy = 262.5 (the K
 Labels. Every primitive has a label in :data:`LABELS` (``floor``, ``wall``, ``ceiling``, ``furniture``);
 :meth:`RoomScene.surface_labels` labels points near the surface by their nearest primitive, and
 :meth:`RoomScene.floor_blocks` says which 16^3 blocks of a map hold mostly floor surface (the ground truth
-for floor retrieval).
+for floor retrieval); given the map's observation mask it counts only the floor the map observed (a fused map
+never holds the slab's underside or floor the camera did not see).
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ from .sequences import TUM_DEPTH_SCALE, Intrinsics, write_depth_png
 
 __all__ = [
     "LABELS",
+    "MIN_OBSERVED_FLOOR",
     "PRESETS",
     "DepthNoise",
     "KINECT_NOISE",
@@ -74,6 +76,11 @@ __all__ = [
 ]
 
 LABELS = ("floor", "wall", "ceiling", "furniture")
+
+#: :meth:`RoomScene.floor_blocks` on a map's observation: the fewest observed floor surface voxels of a floor
+#: block, a quarter of a block face (fewer is a corner clipped by the floor or a few observed voxels at the
+#: edge of what the camera saw).
+MIN_OBSERVED_FLOOR = 64
 DEFAULT_INTRINSICS = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
 _SLAB = 0.2  # thickness (m) of floor, wall and ceiling slabs: thicker than any truncation band
 _FACETS = 96  # segments of cylinder and ball meshes
@@ -240,7 +247,7 @@ class RoomScene:
         return np.where(np.abs(best) <= band, label, np.int8(-1)).astype(np.int8)
 
     def block_label_fractions(self, coords: np.ndarray, origin, voxel_size: float, band: float | None = None,
-                              batch: int = 128) -> np.ndarray:
+                              batch: int = 128, observed: np.ndarray | None = None) -> np.ndarray:
         """Per block, the fraction of its surface voxels nearest to each label.
 
         Parameters
@@ -255,32 +262,54 @@ class RoomScene:
         band : float, optional
             A voxel is a surface voxel when the scene's distance there is within ``band`` (default half a
             voxel diagonal, ``0.87 voxel_size``: each surface point has one such voxel nearby).
+        observed : np.ndarray, optional
+            ``(N, 16, 16, 16)`` bool, what a map observed of each block (``Map.read_observed``): only observed
+            surface voxels count. Without it every surface voxel counts, seen or not (the underside of the
+            floor slab, the back of a wall).
 
         Returns
         -------
         np.ndarray
-            ``(N, len(LABELS))`` float32; rows sum to 1 for blocks with surface voxels, 0 otherwise.
+            ``(N, len(LABELS))`` float32; rows sum to 1 for blocks with (observed) surface voxels, 0 otherwise.
         """
+        return self._label_counts(coords, origin, voxel_size, band, batch, observed)[1]
+
+    def _label_counts(self, coords, origin, voxel_size, band, batch, observed) -> tuple[np.ndarray, np.ndarray]:
+        """``(N, len(LABELS))`` float32 surface-voxel counts and fractions (:meth:`block_label_fractions`)."""
         coords = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
         band = 0.5 * math.sqrt(3.0) * voxel_size if band is None else float(band)
         local = np.stack(np.meshgrid(*[np.arange(16)] * 3, indexing="ij"), -1).reshape(-1, 3)
         out = np.zeros((len(coords), len(LABELS)), dtype=np.float32)
+        counted = np.zeros_like(out)
+        if observed is not None:
+            observed = np.asarray(observed, dtype=bool).reshape(len(coords), 16 ** 3)
         origin = np.asarray(origin, dtype=np.float64)
         for s in range(0, len(coords), batch):
             c = coords[s:s + batch]
             pts = origin + voxel_size * (16 * c[:, None, :] + local[None]).astype(np.float64)
             lab = self.surface_labels(pts, band)
+            if observed is not None:
+                lab = np.where(observed[s:s + batch], lab, np.int8(-1))
             counts = np.stack([(lab == k).sum(axis=1) for k in range(len(LABELS))], axis=1).astype(np.float32)
             total = counts.sum(axis=1, keepdims=True)
             out[s:s + batch] = np.divide(counts, total, out=np.zeros_like(counts), where=total > 0)
-        return out
+            counted[s:s + batch] = counts
+        return counted, out
 
     def floor_blocks(self, coords: np.ndarray, origin, voxel_size: float, min_fraction: float = 0.5,
-                     band: float | None = None) -> np.ndarray:
+                     band: float | None = None, observed: np.ndarray | None = None,
+                     min_observed: int = MIN_OBSERVED_FLOOR) -> np.ndarray:
         """``(N,)`` bool: blocks whose surface voxels are at least ``min_fraction`` floor (see
-        :meth:`block_label_fractions` for the arguments). This is the ground truth of floor retrieval."""
-        frac = self.block_label_fractions(coords, origin, voxel_size, band)
-        return frac[:, LABELS.index("floor")] >= min_fraction
+        :meth:`block_label_fractions` for the arguments). This is the ground truth of floor retrieval.
+
+        With ``observed`` (``(N, 16, 16, 16)`` bool, the map's observation of each block) only what the map
+        observed counts: a block is floor when its observed surface voxels are at least ``min_fraction`` floor
+        and at least ``min_observed`` of them are (less is a sliver no search can tell from noise). Without
+        it, the floor's unseen underside and floor the camera never saw count too, which no map can hold."""
+        counts, frac = self._label_counts(coords, origin, voxel_size, band, 128, observed)
+        fl = LABELS.index("floor")
+        got = frac[:, fl] >= min_fraction
+        return got if observed is None else got & (counts[:, fl] >= min_observed)
 
     # ---- serialisation (JSON only, never pickles)
     def to_dict(self) -> dict:
