@@ -263,9 +263,6 @@ def test_no_import_runs_upward():
 
 # Cycles left to untangle, each named with why it stays for now (none may be added).
 KNOWN_CYCLES = [
-    # render_sequence renders the building presets (building_sequence), whose scenes are RoomScenes: the fix is
-    # a scene module below both (RoomScene, look_at)
-    ["sdfcodec.data.building", "sdfcodec.data.render", "sdfcodec.data.building"],
     # a built-in plugin's own modules (its package, not sdfcodec's layers)
     ["sdfcodec_ae._net", "sdfcodec_ae.network", "sdfcodec_ae._net"],
 ]

@@ -5,7 +5,7 @@ with rooms on both sides, every room joined to the corridor by a door (an openin
 a lintel above it) and, at random, to its neighbour on the same side; a floor slab and a ceiling slab over
 everything; furniture-like boxes and cylinders along the rooms' walls, clear of the doors and of the middle of
 each room, where the camera loops. Everything is a :mod:`sdfcodec.core.sdf` primitive (Box, Cylinder), so the scene
-is a :class:`~sdfcodec.data.render.RoomScene` (exact SDF, labels, a mesh for the ray caster, ``scene.json``).
+is a :class:`~sdfcodec.data.scene.RoomScene` (exact SDF, labels, a mesh for the ray caster, ``scene.json``).
 
 :func:`building_path` walks it: along the corridor's centre line, into each room through its door (south
 side, then north side, room by room), once round the room looking across it at the far walls and furniture,
@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import InvalidValueError
 from ..core.sdf import Box, Cylinder
+from .scene import RoomScene, look_at
 
 __all__ = ["BuildingLayout", "Room", "BUILDINGS", "building_scene", "building_path", "building_sequence"]
 
@@ -118,14 +119,12 @@ def building_scene(seed: int = 0, rooms_per_side: int = 2):
 
     Returns
     -------
-    scene : sdfcodec.data.render.RoomScene
+    scene : sdfcodec.data.scene.RoomScene
         Its primitives (labels floor, wall, ceiling, furniture), ``size`` the overall extent, geometry
         ``"building"``.
     layout : BuildingLayout
         The plan (rooms, doors, corridor) the camera path follows.
     """
-    from .render import RoomScene
-
     if int(rooms_per_side) != rooms_per_side or rooms_per_side < 1:
         raise InvalidValueError(f"rooms_per_side must be a positive integer, got {rooms_per_side!r}")
     n = int(rooms_per_side)
@@ -232,8 +231,6 @@ def building_path(layout: BuildingLayout, frames: int) -> np.ndarray:
     """Camera-to-world poses ``(frames, 4, 4)`` walking through every room of ``layout`` (module docstring):
     along the corridor, in through each door, once round the room, out again."""
     from scipy.ndimage import gaussian_filter1d
-
-    from .render import look_at
 
     if int(frames) != frames or frames < 2:
         raise InvalidValueError(f"a building walk needs at least 2 frames, got {frames!r}")

@@ -17,7 +17,7 @@ from ..core.geometry import rot_x, rot_z
 
 __all__ = ["LabelledRoom", "synthetic_room"]
 
-LABELS_FURNITURE = 3  # sdfcodec.data.render.LABELS.index("furniture"), checked in block_labels
+LABELS_FURNITURE = 3  # sdfcodec.data.scene.LABELS.index("furniture"), checked in block_labels
 
 
 @dataclass
@@ -32,7 +32,7 @@ class LabelledRoom:
         ``(3,)`` float64 metres (use it as the map's origin).
     voxel_size : float
     truncation : tuple of float
-    scene : sdfcodec.data.render.RoomScene
+    scene : sdfcodec.data.scene.RoomScene
         The room's exact primitives, posed in the same world frame, with labels (floor, wall, ceiling,
         furniture).
     rotation : np.ndarray
@@ -92,7 +92,7 @@ class LabelledRoom:
             ``(N,)`` float32 fractions (``"floor"``, ``"up"``, ``"floor_cover"``, ``"up_cover"``) and int64
             counts (``"surface_voxels"``).
         """
-        from ..data.render import LABELS
+        from ..data.scene import LABELS
 
         coords = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
         vs = self.voxel_size
@@ -368,7 +368,8 @@ def synthetic_room(seed: int = 0, *, geometry: str = "normal", size: Sequence[fl
     """
     from ..core.sdf import grid_points
     from .shapes import BEHIND, truncate  # here: sdfcodec.search imports this module
-    from ..data.render import RoomScene, room_scene
+    from ..data.render import room_scene
+    from ..data.scene import RoomScene
 
     if behind not in BEHIND:
         raise InvalidValueError(f"behind must be one of {BEHIND}, got {behind!r}")
