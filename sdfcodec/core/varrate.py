@@ -109,10 +109,14 @@ class EntropyModel:
 
     def pack(self) -> str:
         """The model as the header stores it (spec section 4e): base64 of zlib of the magic ``ff ff ff 02``, then
-        LEB128 varints: ``D``, ``decay`` as uint16 ``round(decay * 65536)`` (little-endian, not a varint),
-        ``center`` zigzag-mapped, ``extent``, ``lengths`` (``D + 1``). Half the bytes of the fixed-width layout
-        :meth:`unpack` still reads (most extents and lengths fit in one byte, most centres are 0)."""
-        raw = b"".join([COMPACT_MAGIC, _varints([self.size]), _decay_code(self.decay).astype("<u2").tobytes(),
+        ``D`` as a LEB128 varint, ``decay`` as one byte each (:func:`_decay_byte`), then varints: ``center``
+        zigzag-mapped, ``extent``, ``lengths`` (``D + 1``). Under half the bytes of the fixed-width layout
+        :meth:`unpack` still reads (most extents and lengths fit in one byte, most centres are 0). Decays must
+        lie on the byte grid (:func:`fit_model`'s do)."""
+        codes = _decay_byte(self.decay)
+        if not np.array_equal(_DECAYS[codes], self.decay):
+            raise InvalidValueError("variable-rate model: a decay off the one-byte grid cannot be stored")
+        raw = b"".join([COMPACT_MAGIC, _varints([self.size]), codes.astype(np.uint8).tobytes(),
                         _varints(np.where(self.center >= 0, 2 * self.center, -2 * self.center - 1)),
                         _varints(self.extent), _varints(self.lengths.astype(np.int64))])
         return base64.b64encode(zlib.compress(raw, 9)).decode("ascii")
@@ -129,10 +133,11 @@ class EntropyModel:
                 d = int(d[0])
                 if d != size:
                     raise ValueError(f"it holds {d} elements")
-                dec = np.frombuffer(raw[o:o + 2 * d], "<u2").astype(np.float64) / 65536
-                if len(dec) != d:
-                    raise ValueError("it ends inside the decays")
-                zig, o = _read_varints(raw, o + 2 * d, d)
+                byte = np.frombuffer(raw[o:o + d], np.uint8)
+                if len(byte) != d or not ((byte >= 1) & (byte < len(_DECAYS))).all():
+                    raise ValueError(f"its decay bytes are truncated or outside 1..{len(_DECAYS) - 1}")
+                dec = _DECAYS[byte]
+                zig, o = _read_varints(raw, o + d, d)
                 center = np.where(zig % 2 == 0, zig // 2, -(zig + 1) // 2)
                 extent, o = _read_varints(raw, o, d)
                 lengths, o = _read_varints(raw, o, d + 1)
@@ -185,9 +190,24 @@ def _read_varints(raw: bytes, o: int, n: int) -> tuple[np.ndarray, int]:
     return out, o
 
 
-def _decay_code(decay: np.ndarray) -> np.ndarray:
-    """Decays as the model stores them: ``round(decay * 65536)`` in ``[1, 65535]``."""
-    return np.clip(np.rint(np.asarray(decay) * 65536), 1, 65535).astype(np.uint16)
+def _decay_table() -> np.ndarray:
+    """Decay of each byte ``c`` (index 0 unused): ``1 - u / 65536`` with ``u = c`` below 16, else
+    ``u = (16 + c % 16) * 2 ** (c // 16 - 1)`` (a 4-bit mantissa: 1 - decay to within 1/32 relative), up to
+    ``c = 207``; each an exact binary64 number."""
+    c = np.arange(208)
+    u = np.where(c < 16, c, (16 + c % 16) << np.maximum(c // 16 - 1, 0))
+    return np.where(c == 0, np.nan, (65536 - u) / 65536)
+
+
+#: ``_DECAYS[c]``: the decay byte ``c`` of the compact model layout stands for (spec section 4e).
+_DECAYS = _decay_table()
+
+
+def _decay_byte(decay: np.ndarray) -> np.ndarray:
+    """The byte (1..207, int64) whose decay is nearest to ``decay`` in ``log(1 - decay)``."""
+    u = np.clip((1 - np.asarray(decay, np.float64)) * 65536, 1, 65536 - _DECAYS[-1] * 65536)
+    grid = np.log(65536 * (1 - _DECAYS[1:]))
+    return 1 + np.abs(np.log(u)[..., None] - grid).argmin(axis=-1)
 
 
 def quantise(z: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -210,8 +230,8 @@ def fit_model(q: np.ndarray, k: np.ndarray) -> EntropyModel:
         m = float(dist.mean())
         decay[j] = (np.sqrt(1 + m * m) - 1) / m if m > 0 else _MIN_DECAY
         extent[j] = int(dist.max())
-    # 16 bits each, as the header stores them: the coder builds its tables from what is stored
-    decay = _decay_code(np.clip(decay, _MIN_DECAY, _MAX_DECAY)) / 65536
+    # one byte each, as the header stores them: the coder builds its tables from what is stored
+    decay = _DECAYS[_decay_byte(np.clip(decay, _MIN_DECAY, _MAX_DECAY))]
     if (np.abs(center) > 2 ** 31 - 1).any() or (extent > 2 ** 32 - 1).any():
         raise InvalidValueError("quantised codes beyond 2**31 steps: use a larger step")
     return EntropyModel(center, decay, extent, np.bincount(k, minlength=d + 1))
