@@ -477,9 +477,9 @@ class MapWriter:
             if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
                 self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
-            # every file but the codes and the manifest's listing of all: fixed while rate control searches the step
+            # all files but the codes and the root document (other_bytes counts it), and the manifest: fixed meanwhile
             skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
-            files = [f for f in Path(self.tmp).rglob("*") if f.is_file() and not any(p in skip for p in f.parents)]
+            files = [f for f in Path(self.tmp).glob("*/**/*") if f.is_file() and not any(p in skip for p in f.parents)]
             fixed = sum(f.stat().st_size for f in files) + STREAM_METADATA_BYTES
             if self.manifest:
                 keys = [f.relative_to(self.tmp).as_posix() for f in files]
