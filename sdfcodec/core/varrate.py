@@ -43,6 +43,9 @@ LAGRANGE = float(np.log(2) / 6)
 _MIN_DECAY, _MAX_DECAY = 1e-6, 1 - 1e-9
 #: Entries of all of a model's tables together a reader builds at most (128 MiB of float64).
 MAX_TABLE = 1 << 24
+#: First bytes of a model in the compact layout (spec section 4e); the fixed-width layout before it starts with
+#: ``D`` as a little-endian uint32 <= 65536, never these.
+COMPACT_MAGIC = b"\xff\xff\xff\x02"
 
 
 def _coder():
@@ -105,20 +108,42 @@ class EntropyModel:
         return -np.log2(p)
 
     def pack(self) -> str:
-        """The model as the header stores it (spec section 4e): base64 of zlib of the little-endian arrays
-        ``D`` (uint32), ``decay`` as uint16 ``round(decay * 65536)``, ``center`` int32, ``extent`` uint32, ``lengths``
-        uint32 (``D + 1``)."""
-        d = self.size
-        raw = b"".join([np.uint32(d).astype("<u4").tobytes(), _decay_code(self.decay).astype("<u2").tobytes(),
-                        self.center.astype("<i4").tobytes(), self.extent.astype("<u4").tobytes(),
-                        self.lengths.astype("<u4").tobytes()])
+        """The model as the header stores it (spec section 4e): base64 of zlib of the magic ``ff ff ff 02``, then
+        ``D`` as a LEB128 varint, ``decay`` as one byte each (:func:`_decay_byte`), then varints: ``center``
+        zigzag-mapped, ``extent``, ``lengths`` (``D + 1``). Under half the bytes of the fixed-width layout
+        :meth:`unpack` still reads (most extents and lengths fit in one byte, most centres are 0). Decays must
+        lie on the byte grid (:func:`fit_model`'s do)."""
+        codes = _decay_byte(self.decay)
+        if not np.array_equal(_DECAYS[codes], self.decay):
+            raise InvalidValueError("variable-rate model: a decay off the one-byte grid cannot be stored")
+        raw = b"".join([COMPACT_MAGIC, _varints([self.size]), codes.astype(np.uint8).tobytes(),
+                        _varints(np.where(self.center >= 0, 2 * self.center, -2 * self.center - 1)),
+                        _varints(self.extent), _varints(self.lengths.astype(np.int64))])
         return base64.b64encode(zlib.compress(raw, 9)).decode("ascii")
 
     @classmethod
     def unpack(cls, text: str, size: int) -> "EntropyModel":
-        """:meth:`pack` read back for codes of ``size`` elements; a malformed one is a FormatError."""
+        """:meth:`pack` read back for codes of ``size`` elements, the compact layout or the fixed-width one of
+        maps written before it (``D`` uint32, decay uint16, centre int32, extent and lengths uint32); a malformed
+        one is a FormatError."""
         try:
             raw = zlib.decompressobj().decompress(base64.b64decode(text, validate=True), 64 + 18 * (size + 1))
+            if raw[:4] == COMPACT_MAGIC:
+                d, o = _read_varints(raw, 4, 1)
+                d = int(d[0])
+                if d != size:
+                    raise ValueError(f"it holds {d} elements")
+                byte = np.frombuffer(raw[o:o + d], np.uint8)
+                if len(byte) != d or not ((byte >= 1) & (byte < len(_DECAYS))).all():
+                    raise ValueError(f"its decay bytes are truncated or outside 1..{len(_DECAYS) - 1}")
+                dec = _DECAYS[byte]
+                zig, o = _read_varints(raw, o + d, d)
+                center = np.where(zig % 2 == 0, zig // 2, -(zig + 1) // 2)
+                extent, o = _read_varints(raw, o, d)
+                lengths, o = _read_varints(raw, o, d + 1)
+                if o != len(raw) or (np.abs(center) > 2 ** 31 - 1).any() or (extent > 2 ** 32 - 1).any():
+                    raise ValueError("trailing bytes or values out of range")
+                return cls(center, dec, extent, lengths)
             d = int(np.frombuffer(raw[:4], "<u4")[0])
             if d != size or len(raw) != 4 + 14 * d + 4:
                 raise ValueError(f"it holds {len(raw)} bytes for {d} elements")
@@ -130,15 +155,59 @@ class EntropyModel:
             extent = np.frombuffer(raw[o:o + 4 * d], "<u4")
             o += 4 * d
             lengths = np.frombuffer(raw[o:], "<u4")
-        except (ValueError, TypeError, zlib.error) as e:
+        except (ValueError, TypeError, IndexError, zlib.error) as e:
             raise FormatError(f"codes.variable_rate.model does not unpack into a model of {size} elements ({e})") \
                 from e
         return cls(center, dec, extent, lengths)
 
 
-def _decay_code(decay: np.ndarray) -> np.ndarray:
-    """Decays as the model stores them: ``round(decay * 65536)`` in ``[1, 65535]``."""
-    return np.clip(np.rint(np.asarray(decay) * 65536), 1, 65535).astype(np.uint16)
+def _varints(values) -> bytes:
+    """LEB128 of non-negative integers: 7 bits a byte, low first, the high bit set on all but the last."""
+    out = bytearray()
+    for v in np.asarray(values, np.int64).tolist():
+        while v >= 0x80:
+            out.append((v & 0x7F) | 0x80)
+            v >>= 7
+        out.append(v)
+    return bytes(out)
+
+
+def _read_varints(raw: bytes, o: int, n: int) -> tuple[np.ndarray, int]:
+    """``n`` LEB128 integers of ``raw`` from offset ``o``: ``(values (n,) int64, offset after them)``."""
+    out = np.zeros(n, np.int64)
+    for i in range(n):
+        v = shift = 0
+        while True:
+            if o >= len(raw) or shift > 35:  # 5 bytes hold every value the model allows
+                raise ValueError("a varint is truncated or too long")
+            b = raw[o]
+            o += 1
+            v |= (b & 0x7F) << shift
+            shift += 7
+            if b < 0x80:
+                break
+        out[i] = v
+    return out, o
+
+
+def _decay_table() -> np.ndarray:
+    """Decay of each byte ``c`` (index 0 unused): ``1 - u / 65536`` with ``u = c`` below 16, else
+    ``u = (16 + c % 16) * 2 ** (c // 16 - 1)`` (a 4-bit mantissa: 1 - decay to within 1/32 relative), up to
+    ``c = 207``; each an exact binary64 number."""
+    c = np.arange(208)
+    u = np.where(c < 16, c, (16 + c % 16) << np.maximum(c // 16 - 1, 0))
+    return np.where(c == 0, np.nan, (65536 - u) / 65536)
+
+
+#: ``_DECAYS[c]``: the decay byte ``c`` of the compact model layout stands for (spec section 4e).
+_DECAYS = _decay_table()
+
+
+def _decay_byte(decay: np.ndarray) -> np.ndarray:
+    """The byte (1..207, int64) whose decay is nearest to ``decay`` in ``log(1 - decay)``."""
+    u = np.clip((1 - np.asarray(decay, np.float64)) * 65536, 1, 65536 - _DECAYS[-1] * 65536)
+    grid = np.log(65536 * (1 - _DECAYS[1:]))
+    return 1 + np.abs(np.log(u)[..., None] - grid).argmin(axis=-1)
 
 
 def quantise(z: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -161,8 +230,8 @@ def fit_model(q: np.ndarray, k: np.ndarray) -> EntropyModel:
         m = float(dist.mean())
         decay[j] = (np.sqrt(1 + m * m) - 1) / m if m > 0 else _MIN_DECAY
         extent[j] = int(dist.max())
-    # 16 bits each, as the header stores them: the coder builds its tables from what is stored
-    decay = _decay_code(np.clip(decay, _MIN_DECAY, _MAX_DECAY)) / 65536
+    # one byte each, as the header stores them: the coder builds its tables from what is stored
+    decay = _DECAYS[_decay_byte(np.clip(decay, _MIN_DECAY, _MAX_DECAY))]
     if (np.abs(center) > 2 ** 31 - 1).any() or (extent > 2 ** 32 - 1).any():
         raise InvalidValueError("quantised codes beyond 2**31 steps: use a larger step")
     return EntropyModel(center, decay, extent, np.bincount(k, minlength=d + 1))

@@ -80,6 +80,10 @@ def root_document(attributes: dict[str, Any]) -> bytes:
 
 
 def _compact(doc: Any) -> bytes:
+    if isinstance(doc, dict) and doc.get("node_type") in ("array", "group"):
+        # both OPTIONAL in Zarr v3 and empty in every map array (and the codec group): 40 bytes a document, which
+        # readers never miss
+        doc = {k: v for k, v in doc.items() if not (k in ("attributes", "storage_transformers") and not v)}
     return json.dumps(doc, separators=(",", ":")).encode()
 
 

@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from zarr.abc.store import Store
 
 __all__ = ["manifest_bytes_estimate", "MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
+           "manifest_placeholder",
            "load_manifest", "sha256_hex", "set_check_default", "check_default", "object_problems",
            "previous_digests", "write_manifest"]
 
@@ -274,6 +275,13 @@ def manifest_bytes_estimate(keys: Iterable[str]) -> int:
     """The size of the manifest that will list ``keys`` (unsharded objects): exact, since a digest's length is
     fixed; what rate control counts before the files exist."""
     return len(_document({k: "0" * 64 for k in keys if k not in UNLISTED}, {}))
+
+
+def manifest_placeholder(keys: Iterable[str]) -> ManifestRef:
+    """A record of the manifest that will list ``keys`` as long as the real one (digest zeros): what rate control
+    counts in the root document before the manifest exists."""
+    listed = [k for k in keys if k not in UNLISTED]
+    return ManifestRef(sha256="0" * 64, size=manifest_bytes_estimate(listed), objects=len(listed))
 
 
 def manifest_ref(data: bytes, objects: int) -> ManifestRef:

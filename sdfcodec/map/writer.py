@@ -45,7 +45,7 @@ from .observed import (MASK_ARRAY, MASK_BYTES, SURFACE_WEIGHT, encode_blocks, fi
 from .reader import CodecCache, MapReader, open_reader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
-from .manifest import manifest_bytes_estimate, previous_digests, write_manifest
+from .manifest import manifest_bytes_estimate, manifest_placeholder, previous_digests, write_manifest
 from .metric import check_metric, is_metric, metric_empty, metric_spec
 from .io.shards import pack_shards, sharded_spec, unpack_shards
 from .io.stores import MAX_METADATA_BYTES, CowLocalStore, is_url
@@ -477,21 +477,21 @@ class MapWriter:
             if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
                 self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
-
-            # every file but the codes, and what the manifest will take to list them with the code streams' chunks:
-            # fixed while rate control searches the step (nothing else is written meanwhile), so measured once
+            # all files but the codes and the root document (other_bytes counts it), and the manifest: fixed meanwhile
             skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
-            files = [f for f in Path(self.tmp).rglob("*") if f.is_file() and not any(p in skip for p in f.parents)]
+            files = [f for f in Path(self.tmp).glob("*/**/*") if f.is_file() and not any(p in skip for p in f.parents)]
             fixed = sum(f.stat().st_size for f in files) + STREAM_METADATA_BYTES
             if self.manifest:
                 keys = [f.relative_to(self.tmp).as_posix() for f in files]
                 keys += [f"{STREAM_ARRAY}/zarr.json"] + stream_chunk_keys(self.state, self.codes_spec.chunk_blocks)
                 fixed += manifest_bytes_estimate(keys)
+            mref = manifest_placeholder(keys) if self.manifest else None  # the root document records it
 
             def other_bytes(fields: dict) -> int:  # every file but the codes, with the header they will have
                 spec = self.codes_spec.model_copy(update={"variable_rate": VariableRate(**fields)})
-                h = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=spec,
-                              extensions=extensions, **self.header_kw)
+                h = MapHeader(shape_voxels=self.shape_voxels, grid_blocks=self.grid, codes=spec, manifest=mref,
+                              extensions=extensions + [Extension(name=MANIFEST_EXTENSION, required=True)] * bool(mref),
+                              **self.header_kw)
                 return fixed + len(root_document(json.loads(h.model_dump_json())))  # as compact_documents stores it
 
             vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
