@@ -179,7 +179,7 @@ def _read_varints(raw: bytes, o: int, n: int) -> tuple[np.ndarray, int]:
         v = shift = 0
         while True:
             if o >= len(raw) or shift > 35:  # 5 bytes hold every value the model allows
-                raise ValueError("a varint is truncated or too long")
+                raise FormatError("a varint is truncated or too long")  # a ValueError: unpack names the field
             b = raw[o]
             o += 1
             v |= (b & 0x7F) << shift
