@@ -32,8 +32,8 @@ from zarr.abc.buffer import Buffer, NDBuffer
 from ..errors import ChecksumError, FormatError, InvalidValueError, MissingDependencyError
 from ..core.header import BlockState, FieldCompression
 
-__all__ = ["SZ3_ZARR_CODEC", "SZ3Field", "sz3_compress", "sz3_decompress", "field_compressors", "field_of",
-           "chunks_of", "compress_codes", "refuse_update", "check_field_pipeline", "sz3_version", "MIN_MAX_ERROR",
+__all__ = ["SZ3_ZARR_CODEC", "ThreadedArrayBytesCodec", "SZ3Field", "sz3_compress", "sz3_decompress",
+           "field_compressors", "field_of", "chunks_of", "compress_codes", "refuse_update", "check_field_pipeline", "sz3_version", "MIN_MAX_ERROR",
            "FIELD_CHUNK_BLOCKS"]
 
 #: Name of the Zarr v3 codec in a map's array metadata.
@@ -122,7 +122,23 @@ def chunks_of(field: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class SZ3Field(ArrayBytesCodec):
+class ThreadedArrayBytesCodec(ArrayBytesCodec):
+    """A Zarr array-to-bytes codec whose work is plain synchronous numpy (``_encode_sync``, ``_decode_sync``),
+    run off Zarr's event loop in a worker thread, so chunks of one read encode or decode side by side; its
+    streams have no fixed length. The map's own Zarr codecs (SZ3 fields here, the context-coded mask of
+    :mod:`sdfcodec.map.maskcoder`) derive from it."""
+
+    async def _encode_single(self, chunk_array: NDBuffer, chunk_spec) -> Buffer | None:
+        return await asyncio.to_thread(self._encode_sync, chunk_array, chunk_spec)
+
+    async def _decode_single(self, chunk_bytes: Buffer, chunk_spec) -> NDBuffer:
+        return await asyncio.to_thread(self._decode_sync, chunk_bytes, chunk_spec)
+
+    def compute_encoded_size(self, input_byte_length: int, _chunk_spec) -> int:
+        raise NotImplementedError  # variable-length streams
+
+
+class SZ3Field(ThreadedArrayBytesCodec):
     """Zarr v3 array-to-bytes codec ``sdfcodec.sz3``: a float32 chunk ``(c, c, c, 4096)`` of voxel codes as one
     SZ3 stream of its ``(16c)^3`` field, every value within ``max_error`` (absolute, the array's units)."""
 
@@ -166,14 +182,6 @@ class SZ3Field(ArrayBytesCodec):
             raise ChecksumError(str(e)) from e
         return chunk_spec.prototype.nd_buffer.from_numpy_array(chunks_of(field))
 
-    async def _encode_single(self, chunk_array: NDBuffer, chunk_spec) -> Buffer | None:
-        return await asyncio.to_thread(self._encode_sync, chunk_array, chunk_spec)
-
-    async def _decode_single(self, chunk_bytes: Buffer, chunk_spec) -> NDBuffer:
-        return await asyncio.to_thread(self._decode_sync, chunk_bytes, chunk_spec)
-
-    def compute_encoded_size(self, input_byte_length: int, _chunk_spec) -> int:
-        raise NotImplementedError  # variable-length streams
 
 
 zarr.registry.register_codec(SZ3_ZARR_CODEC, SZ3Field)

@@ -25,19 +25,18 @@ sub-cube states, then the voxels of mixed sub-cubes. Rows that are not partial a
 
 from __future__ import annotations
 
-import asyncio
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import zarr
-from zarr.abc.codec import ArrayBytesCodec
-from zarr.core.buffer import Buffer, NDBuffer
+from zarr.abc.buffer import Buffer, NDBuffer
 
 from ..core._validate import BLOCK
 from ..errors import ChecksumError, FormatError
 from ..core.header import CODED_MASK_EXTENSION
+from .field import ThreadedArrayBytesCodec
 
 __all__ = ["MASK_ANS_CODEC", "CODED_MASK_EXTENSION", "MaskANS", "encode_mask_rows", "decode_mask_rows", "OFFSETS"]
 
@@ -224,7 +223,7 @@ def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a co
 
 
 @dataclass(frozen=True)
-class MaskANS(ArrayBytesCodec):
+class MaskANS(ThreadedArrayBytesCodec):
     """Zarr v3 array-to-bytes codec ``sdfcodec.mask-ans``: a uint8 chunk ``(c, c, c, 512)`` of packed observation
     masks as one stream (:func:`encode_mask_rows`). It has no configuration."""
 
@@ -256,14 +255,6 @@ class MaskANS(ArrayBytesCodec):
         rows = decode_mask_rows(chunk_bytes.as_numpy_array(), int(np.prod(shape[:3])))
         return chunk_spec.prototype.nd_buffer.from_numpy_array(rows.reshape(shape))
 
-    async def _encode_single(self, chunk_array: NDBuffer, chunk_spec) -> Buffer | None:
-        return await asyncio.to_thread(self._encode_sync, chunk_array, chunk_spec)
-
-    async def _decode_single(self, chunk_bytes: Buffer, chunk_spec) -> NDBuffer:
-        return await asyncio.to_thread(self._decode_sync, chunk_bytes, chunk_spec)
-
-    def compute_encoded_size(self, input_byte_length: int, _chunk_spec) -> int:
-        raise NotImplementedError  # variable-length streams
 
 
 zarr.registry.register_codec(MASK_ANS_CODEC, MaskANS)
