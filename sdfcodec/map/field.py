@@ -33,8 +33,8 @@ from ..errors import ChecksumError, FormatError, InvalidValueError, MissingDepen
 from ..core.header import BlockState, FieldCompression
 
 __all__ = ["SZ3_ZARR_CODEC", "ThreadedArrayBytesCodec", "SZ3Field", "sz3_compress", "sz3_decompress",
-           "field_compressors", "field_of", "chunks_of", "compress_codes", "refuse_update", "check_field_pipeline", "sz3_version", "MIN_MAX_ERROR",
-           "FIELD_CHUNK_BLOCKS"]
+           "field_compressors", "field_of", "chunks_of", "compress_codes", "refuse_update", "check_field_pipeline",
+           "sz3_version", "MIN_MAX_ERROR", "FIELD_CHUNK_BLOCKS"]
 
 #: Name of the Zarr v3 codec in a map's array metadata.
 SZ3_ZARR_CODEC = "sdfcodec.sz3"
