@@ -10,7 +10,7 @@ import sys
 # numpy's OpenBLAS keeps its worker threads spinning for 2^28 cycles (about 0.1 s) after every product, on the
 # cores that torch's threads (encode, decode) and the map reader's threads need next: on 2 cores torch's product
 # of a pca-64 encode of 64 blocks, alternated with numpy products, ran 13-16x slower than alone, and the masked
-# encode of 64 blocks 3x (docs/results.md, "OpenBLAS's idle threads"). 2^4 cycles puts them to sleep at once.
+# encode of 64 blocks 3x (measured on a 2-core AMD EPYC). 2^4 cycles puts them to sleep at once.
 # OpenBLAS reads the variable when numpy first loads, so it is set before any command module imports numpy; a
 # value the user set is kept, and none is set once numpy has loaded (the command run from a Python program),
 # where it would change nothing here and the bench's record of it (``machine.thread_env``) would be wrong.

@@ -8,8 +8,8 @@ per core takes in turn; each runs a one-threaded BLAS on its tile (OpenBLAS's th
 call), so the product, the clip and the placing of a tile all see the same core's cache (a tile of
 :data:`TILE_ROWS`, four times the core's L2, comes back from L3 at worst: :func:`tile_rows_for`).
 The work function releases the GIL in its numpy calls (matmul, clip, copies), so Python threads run in parallel.
-What it is worth on 2 cores, interleaved with the bare product: docs/results.md, "Decoding in cache-sized tiles",
-"Tiles of 512 rows" and "Tiles sized by the L2".
+What it is worth, interleaved with the bare product, is measured at :func:`tile_rows_for`; ``sdfcodec bench``
+reports it on the machine at hand (record ``decode-on-read`` against the memory copy).
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def tile_rows_for(l2: int | None) -> int:
     the roofline, 65,536 pca-64 blocks, decode_region into a reused volume: Intel Xeon, L2 2 MiB a core, 0.45 /
     0.47 / 0.50 / 0.51 of the roofline at 128 / 256 / 512 / 1024 rows (decode on read 0.65 / 0.74 / 0.72 at 256 /
     512 / 1024); AMD EPYC, L2 512 KiB a core, 0.52 / 0.46-0.47 / 0.38-0.40 at 128 / 256 / 512 (64 rows: 0.48;
-    decode on read 0.55-0.62 at every size). docs/results.md, "Tiles sized by the L2"."""
+    decode on read 0.55-0.62 at every size)."""
     if not l2:
         return 512
     rows = max(64, min(1024, 4 * l2 // (16 << 10)))

@@ -212,7 +212,7 @@ class Map:
             out: a volume to decode into, e.g. the previous call's, reused: a writeable C-contiguous float32 numpy
                 array (``device=None``) or a contiguous float32 tensor on ``device``, of exactly the region's
                 shape. Every voxel is written. A fresh volume costs its page faults on first touch: reuse one
-                for repeated decodes of a region (docs/results.md, issue 19).
+                for repeated decodes of a region.
 
         Returns:
             ``(x1 - x0, y1 - y0, z1 - z0)`` float32 metres (``out`` itself when given); voxels of no coded block

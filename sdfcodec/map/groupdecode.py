@@ -6,8 +6,8 @@ blocks to their destination, e.g. a dense volume.
 The plain path is one pass per step over the group's 16 KiB per block. When nothing but the truncation follows
 the decode (no mask, no residual) and the codec's bound proves the output finite, the group goes through the
 codec's ``decode_tiles`` hook instead: a codec that overrides it (PCA) decodes, truncates and places
-cache-sized tiles on every core: the clip and the placing read the tile from cache, not memory (docs/results.md,
-issue 19).
+cache-sized tiles on every core: the clip and the placing read the tile from cache, not memory
+(:mod:`sdfcodec.core.tiling` gives the measurements).
 """
 
 from __future__ import annotations
@@ -97,10 +97,10 @@ def _decode_placed(codec, codes: torch.Tensor, coords: np.ndarray, placer: Block
     (``decode_tiles``; a codec keeping the default decodes the group whole, into ``scratch`` when given, the
     reader's reused buffer). Measured: writing runs of whole blocks straight into the volume with one batched
     product per run (a (r, 65) x (65, 16) product per voxel column) measured 0.4-0.8x as fast as this (medians,
-    interleaved, 2 loaded cores; docs/results.md, issue 19)."""
+    interleaved, 2 loaded cores)."""
     # rows in the volume's C order: a group of whole chunk columns then holds each row of blocks along z in
     # one piece, copied as runs of contiguous voxels as long as the region's z extent (chunk order gave runs of
-    # one chunk's 16 blocks: the copy ran 1.4x slower, docs/results.md, issue 19)
+    # one chunk's 16 blocks: the copy ran 1.4x slower)
     order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
     if np.any(order[1:] < order[:-1]):
         coords = coords[order]

@@ -50,7 +50,7 @@ class RingPool:
     """The rings of one reader, kept between its iterations: :meth:`borrow` lends a ring to one iteration at a
     time (a second iteration running meanwhile gets a ring of its own), :meth:`give_back` keeps it for the next.
     A kept ring's buffers are already faulted in: a fresh 2 x 128 MiB ring per whole-map read cost 15-20 % of
-    its time on 2 cores (docs/results.md, issue 19). :meth:`clear` lets them go."""
+    its time on 2 cores. :meth:`clear` lets them go."""
 
     def __init__(self, size: int):
         self.size = int(size)

@@ -74,7 +74,7 @@ def trilinear_rows(corners: np.ndarray, frac: np.ndarray, out: np.ndarray) -> np
     the C channels (:func:`_repeat4` for 4, else ``np.repeat``): numpy's calls cost about a microsecond against
     torch's 5-10 and its expanded copy of the fractions (a stride-0 inner dimension) ran at 0.7 GB/s on a 2-core
     AMD EPYC; with ``np.repeat`` this measured 1.3-1.6x faster than :func:`trilinear` for 4,800-19,200 points of
-    4 channels, one thread (docs/results.md)."""
+    4 channels, one thread."""
     n = frac.shape[1]
     ch = corners.shape[-1]
     c = corners.reshape(2, 2, 2, n * ch)
@@ -334,7 +334,7 @@ class DenseField:
         values, and torch's CPU ops cost 5-10 microseconds a call (a coarse pyramid level has 4,000 points),
         numpy's about one. Pieces of 4,096 points (to keep the gathered corners in a 512 KiB L2) measured slower
         in the tracker than 32,768: more calls, and two tracker threads wait for each other's GIL between them
-        (docs/results.md). Cells and fractions: :func:`cell_rows`."""
+        (kitchen frames, 2-core AMD EPYC). Cells and fractions: :func:`cell_rows`."""
         table, offsets, origin, strides, lo, hi = self._np
         q = points.detach().numpy().T  # (3, N)
         n = q.shape[1]

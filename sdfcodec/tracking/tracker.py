@@ -530,7 +530,7 @@ class SDFTracker:
         numpy's calls cost about a microsecond against torch's 5-10, and the coarse levels' few thousand points
         a chunk are dominated by the per-call cost. Whole chunks, not cache-sized pieces of them: pieces of
         4,096 points measured 0.86x of the torch ops on kitchen frames (more short calls, whose Python part
-        holds the GIL the other thread waits for), whole chunks 1.2-1.3x (docs/results.md)."""
+        holds the GIL the other thread waits for), whole chunks 1.2-1.3x (2-core AMD EPYC)."""
         cfg = self.config
         d_min, d_max = self.field.truncation
         lo, hi = d_min + cfg.plateau_margin, d_max - cfg.plateau_margin
