@@ -13,6 +13,7 @@ from typing import Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import page_codecs  # noqa: E402
 import page_eval  # noqa: E402
 import page_rate_distortion  # noqa: E402
 import page_reference  # noqa: E402
@@ -29,6 +30,7 @@ PAGES: dict[str, Callable[[], str]] = {
     page_search.PAGE: page_search.render,
     page_rate_distortion.PAGE: page_rate_distortion.render,
     page_eval.PAGE: page_eval.render,
+    page_codecs.PAGE: page_codecs.render,
     page_scale.PAGE: page_scale.render,
     page_reference.CLI_PAGE: page_reference.render_cli,
     page_reference.API_PAGE: page_reference.render_api,
