@@ -86,7 +86,7 @@ def test_a_damaged_stream_is_one_checksum_error():
 
 def _masked_varrate_map(path: Path, room) -> None:
     write_volume_map(path, *room, pretrained_codec("pca", 64), codec_state="reference",
-                     variable_rate={"target_bytes": 96.0})
+                     variable_rate={"target_bytes": 96.0, "exact_mask": True})
 
 
 def test_variable_rate_map_stores_the_coded_mask_and_compact_documents(tmp_path, room):

@@ -32,8 +32,7 @@ from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MA
                            RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                            VARIABLE_RATE_EXTENSION,
                            BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
-                           VariableRate,
-                           now_iso)
+                           VariableRate, now_iso)
 from ..core.quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference, state_digest
@@ -474,8 +473,8 @@ class MapWriter:
             extensions.append(Extension(name=METRIC_EXTENSION, required=True))
         compact_documents(self.tmp)  # before anything counts or lists their bytes
         if self.vr is not None:  # the float codes become one entropy-coded stream per chunk (spec 4e)
-            if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
-                self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
+            if (gain := self.group[GAIN_ARRAY]).shape[:3] != self.grid:
+                gain.resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
             # all files but the codes and the root document (other_bytes counts it), and the manifest: fixed meanwhile
             skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
@@ -494,7 +493,8 @@ class MapWriter:
                               **self.header_kw)
                 return fixed + len(root_document(json.loads(h.model_dump_json())))  # as compact_documents stores it
 
-            vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
+            vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation,
+                                extensions)  # which the lossy mask's extension joins (spec 6f)
             self.codes_spec = self.codes_spec.model_copy(update={"variable_rate": vr})
         # the integrity manifest (spec section 9b): every object of the new version, now complete but for the
         # root document, which records the manifest's digest; an update's signature no longer holds

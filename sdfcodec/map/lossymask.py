@@ -1,0 +1,156 @@
+"""An observation mask that is exact only where it can change the surface (map extension
+``approximate-observation-mask``, spec/map-format.md section 6f).
+
+A reader sets the unobserved voxels of a decoded block to ``d_max`` (section 6b), so the mask changes the
+decoded field only through which voxels read the codec's decode and which read ``d_max``. The surface of the
+field (its zero crossings, as :func:`sdfcodec.core.surface.crossing_edges` counts them, and the marching-cubes
+cells :func:`sdfcodec.fusion.tsdf.mesh_from_blocks` meshes) is decided cell by cell, a cell being 2 x 2 x 2
+neighbouring voxels. Where the codec's decode ``f`` of a cell's eight corners:
+
+* changes sign (or comes within :data:`PIN_MARGIN` of zero): the mask decides the cell, so its corners keep
+  their true mask bits (they are *pinned*);
+* is ``>= 0`` everywhere: every corner reads ``>= 0`` under any mask (``d_max > 0``): no crossing, no triangle;
+* is ``< 0`` everywhere: a corner read as ``d_max`` makes no crossing with a negative neighbour (their
+  difference exceeds ``d_max``, at least the crossing rule's ``jump``) and no triangle (marching cubes skips a
+  cube with a corner at ``d_max``, above its free threshold). Only when ``d_max`` is below ``jump`` are these
+  cells pinned too.
+
+So every voxel not pinned may take either bit without moving any surface point or triangle: the F-score and
+Chamfer distance against any reference are those of the exact mask, bit for bit. :func:`relax_mask` gives those
+voxels the bits that the context coder (:mod:`sdfcodec.map.maskcoder`) stores most cheaply: the bit shared by
+the pinned voxels of their 2^3 sub-cube, else (no pinned voxel there) observed, so that a block with no pinned
+voxel that disagrees becomes a fully observed row, which costs one flag. What changes: a voxel far from any
+surface may read the codec's decode instead of ``d_max`` (or the reverse), and its mask bit is not the fusion's.
+
+The decode here is the writer's (the codec's float32 decode of the dequantised codes, clipped); a reader's may
+differ by rounding, far below :data:`PIN_MARGIN`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..core._validate import BLOCK
+from ..core.surface import JUMP
+from .maskcoder import encode_mask_rows
+
+__all__ = ["PIN_MARGIN", "pinned_voxels", "relax_mask", "MaskChunks"]
+
+#: Metres: a decoded value within this of zero counts as either sign (the writer's decode and a reader's may
+#: round differently; float32 rounding of values of 0.1 m is ~1e-8 m).
+PIN_MARGIN = 1e-5
+_NEIGHBOURS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                        if (a, b, c) != (0, 0, 0)], dtype=np.int64)
+
+
+def _keys(coords: np.ndarray) -> np.ndarray:
+    """One int64 per block index (offset so that neighbours of index 0 stay non-negative)."""
+    c = np.asarray(coords, np.int64) + 1
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def _padded(coords: np.ndarray, dec: np.ndarray, free: float) -> np.ndarray:
+    """``(n, 18, 18, 18)``: each block of ``dec`` ``(n, 16, 16, 16)`` with the one-voxel layer of its 26
+    neighbours around it, ``free`` where the neighbour is not among ``coords`` (empty or unobserved blocks
+    decode to ``d_max``; outside the grid nothing is meshed)."""
+    n = len(dec)
+    out = np.full((n, BLOCK + 2, BLOCK + 2, BLOCK + 2), free, dtype=dec.dtype)
+    out[:, 1:-1, 1:-1, 1:-1] = dec
+    keys = _keys(coords)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    src = {-1: slice(BLOCK - 1, BLOCK), 0: slice(0, BLOCK), 1: slice(0, 1)}  # what the neighbour lends
+    dst = {-1: slice(0, 1), 0: slice(1, BLOCK + 1), 1: slice(BLOCK + 1, BLOCK + 2)}
+    for off in _NEIGHBOURS:
+        want = _keys(np.asarray(coords) + off)
+        pos = np.clip(np.searchsorted(sorted_keys, want), 0, max(n - 1, 0))
+        hit = np.flatnonzero(sorted_keys[pos] == want) if n else np.zeros(0, np.int64)
+        if len(hit):
+            a, b, c = (int(x) for x in off)
+            out[(hit, dst[a], dst[b], dst[c])] = dec[(order[pos[hit]], src[a], src[b], src[c])]
+    return out
+
+
+def pinned_voxels(coords: np.ndarray, dec: np.ndarray, truncation: tuple[float, float], jump: float = JUMP
+                  ) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool: the voxels of blocks ``coords`` ``(n, 3)`` int whose mask bit can change the
+    surface, given the codec's decode ``dec`` ``(n, 16, 16, 16)`` float metres (clipped to the truncation, before
+    any mask; the coded blocks of the whole map, so that cells across block faces see both sides): the corners
+    of every cell where ``dec`` changes sign (module docstring)."""
+    d_min, d_max = (float(t) for t in truncation)
+    p = _padded(np.asarray(coords, np.int64).reshape(-1, 3), np.asarray(dec, np.float32), d_max)
+    neg, pos = p < PIN_MARGIN, p >= -PIN_MARGIN
+    any_neg = _cells(neg, np.logical_or)
+    cell = any_neg if d_max < jump else any_neg & _cells(pos, np.logical_or)  # (n, 17, 17, 17)
+    return _cells(cell, np.logical_or)  # a voxel is pinned when any of its 8 cells is
+
+
+def _cells(a: np.ndarray, op: Any) -> np.ndarray:
+    """Reduce ``a`` ``(n, m, m, m)`` over 2 x 2 x 2 windows with ``op``: ``(n, m-1, m-1, m-1)``."""
+    a = op(a[:, 1:], a[:, :-1])
+    a = op(a[:, :, 1:], a[:, :, :-1])
+    return op(a[:, :, :, 1:], a[:, :, :, :-1])
+
+
+def relax_mask(observed: np.ndarray, pinned: np.ndarray) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool: ``observed`` where ``pinned``; elsewhere the bit of the pinned voxels of the
+    voxel's 2^3 sub-cube when they agree, the true bit when they disagree (the sub-cube is coded voxel by voxel
+    anyway, and the truth is smooth), and observed in a sub-cube without pinned voxels."""
+    obs, pin = np.asarray(observed, bool), np.asarray(pinned, bool)
+    n, h = len(obs), BLOCK // 2
+    o = obs.reshape(n, h, 2, h, 2, h, 2)
+    q = pin.reshape(n, h, 2, h, 2, h, 2)
+    axes = (2, 4, 6)
+    n_pin = q.sum(axis=axes, keepdims=True)
+    n_on = (q & o).sum(axis=axes, keepdims=True)
+    fill = np.where(n_on == n_pin, True, np.where(n_on == 0, False, o))  # agree on 1 (or none), agree on 0, mixed
+    return np.where(q, o, fill).reshape(obs.shape)
+
+
+class MaskChunks:
+    """The coded mask chunks of a map being written, for rate control: ``bytes(rows)`` is what the ``observed``
+    array's chunks take once the coded blocks' rows are ``rows``, ``write(rows)`` stores them.
+
+    Args:
+        arr: the writer's ``observed`` Zarr array (chunks of ``c`` ^ 3 blocks, chain ``sdfcodec.mask-ans``).
+        coords: ``(n, 3)`` the coded blocks, grouped by chunk.
+    """
+
+    def __init__(self, arr: Any, coords: np.ndarray):
+        self.arr, self.coords = arr, np.asarray(coords, np.int64).reshape(-1, 3)
+        c = int(arr.chunks[0])
+        keys = self.coords // c
+        self.chunks, inverse = np.unique(keys, axis=0, return_inverse=True)
+        self.inverse = inverse.reshape(-1)
+        self.local = self.coords - keys * c
+        self.c = c
+        # the rows of each chunk's other blocks (empty, unobserved, beyond the grid: the fill), read once
+        self.base = []
+        for key in self.chunks:
+            box = self._box(key)
+            full = np.full((c, c, c, arr.shape[3]), 255, np.uint8)
+            got = np.asarray(arr[box])
+            full[tuple(slice(0, s) for s in got.shape[:3])] = got
+            self.base.append(full)
+
+    def _box(self, key: np.ndarray) -> tuple[slice, ...]:
+        return tuple(slice(int(k) * self.c, min(int(k) * self.c + self.c, n)) for k, n in zip(key, self.arr.shape))
+
+    def _chunk(self, i: int, rows: np.ndarray) -> np.ndarray:
+        full = self.base[i].copy()
+        sel = np.flatnonzero(self.inverse == i)
+        loc = self.local[sel]
+        full[loc[:, 0], loc[:, 1], loc[:, 2]] = rows[sel]
+        return full
+
+    def bytes(self, rows: np.ndarray) -> int:
+        """Bytes of every chunk holding coded blocks with these rows ``(n, 512)`` uint8 (stream + CRC32C)."""
+        return sum(len(encode_mask_rows(self._chunk(i, rows).reshape(-1, self.arr.shape[3]))) + 4
+                   for i in range(len(self.chunks)))
+
+    def write(self, rows: np.ndarray) -> None:
+        for i, key in enumerate(self.chunks):
+            box = self._box(key)
+            self.arr[box] = self._chunk(i, rows)[tuple(slice(0, s.stop - s.start) for s in box[:3])]

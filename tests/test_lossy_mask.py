@@ -1,0 +1,147 @@
+"""The observation mask exact only where it decides the surface (sdfcodec/map/lossymask.py, spec section 6f)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import sdfcodec
+from _fused_maps import TRUNC, VS, fused_like, write_volume_map
+from _golden_maps import check_golden_map
+from sdfcodec.core.blocks import split_blocks
+from sdfcodec.core.sdf import sample_volume
+from sdfcodec.core.surface import compare_volumes, surface_points
+from sdfcodec.map.lossymask import pinned_voxels, relax_mask
+from sdfcodec.registry import pretrained_codec
+from sdfcodec.testing import analytic_scene
+
+GOLDEN = Path(__file__).parent / "golden" / "maps" / "lossy-mask-pca-8"
+
+
+@pytest.fixture(scope="module")
+def room():
+    vol, obs = fused_like(sample_volume(analytic_scene(), (96, 80, 48), VS, truncation=TRUNC))
+    assert 0.05 < (~obs).mean() < 0.5
+    return vol, obs
+
+
+def test_pinned_voxels_of_a_plane_are_the_corners_of_its_crossing_cells():
+    """A plane x = 7.5 voxels in one block with no coded neighbour (they read d_max): the cells that change sign
+    are those between x = 7 and 8 and those between an empty neighbour (d_max) and the block's negative side
+    (x <= 7): across the -x face, and across the four y and z faces next to a voxel with x <= 7. The pinned
+    voxels are their corners, by hand: x in {0, 7, 8}, and the y/z face voxels with x <= 8."""
+    x = (np.arange(16) - 7.5) * VS
+    dec = np.clip(np.broadcast_to(x[:, None, None], (16, 16, 16)), *TRUNC).astype(np.float32)[None]
+    pin = pinned_voxels(np.array([[3, 3, 3]]), dec, TRUNC)
+    face = np.zeros((16, 16, 16), bool)
+    face[:9, [0, 15], :] = face[:9, :, [0, 15]] = True
+    want = face.copy()
+    want[[0, 7, 8]] = True
+    assert np.array_equal(pin[0], want)
+    # a coded neighbour at -x, as negative as the block's first layer, lends its values instead of d_max
+    pin2 = pinned_voxels(np.array([[3, 3, 3], [2, 3, 3]]), np.concatenate([dec, np.full_like(dec, TRUNC[0])]), TRUNC)
+    want = face.copy()
+    want[[7, 8]] = True
+    assert np.array_equal(pin2[0], want)
+
+
+def test_relax_mask_keeps_pinned_bits_and_fills_sub_cubes_by_hand():
+    obs = np.zeros((1, 16, 16, 16), bool)
+    obs[0, :2, :2, :2] = [[[1, 0], [1, 1]], [[0, 1], [1, 0]]]  # a mixed sub-cube
+    pin = np.zeros_like(obs)
+    got = relax_mask(obs, pin)
+    assert got.all()  # nothing pinned: observed everywhere (a fully observed row costs one flag)
+    pin[0, 0, 0, 0] = pin[0, 0, 0, 1] = True  # pinned bits disagree: the free voxels keep the truth
+    assert np.array_equal(relax_mask(obs, pin)[0, :2, :2, :2], obs[0, :2, :2, :2])
+    pin[0, 0, 0, 0] = False  # one pinned voxel, unobserved: its sub-cube becomes unobserved
+    got = relax_mask(obs, pin)
+    assert not got[0, :2, :2, :2].any() and got[0, 2:].all()
+
+
+def _pair(tmp_path: Path, room, codec, step: float) -> tuple[sdfcodec.Map, sdfcodec.Map]:
+    maps = []
+    for exact in (True, False):
+        p = tmp_path / f"exact{exact}.sdfz"
+        write_volume_map(p, *room, codec, codec_state="reference",
+                         variable_rate={"step": step, "exact_mask": exact})
+        maps.append(sdfcodec.open_map(p))
+    return maps[0], maps[1]
+
+
+@pytest.mark.parametrize("step", [0.05, 0.6])
+def test_lossy_mask_gives_the_exact_masks_surface_and_mesh(tmp_path, room, step):
+    """Same codes (a fixed step), the two masks: the masks differ and the lossy one is smaller, yet the surface
+    points (every zero crossing of the dense decode) and open3d's marching-cubes mesh of the decoded blocks are
+    identical, bit for bit (triangle corners), and so are F-score and Chamfer distance against the input."""
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    exact, lossy = _pair(tmp_path, room, pretrained_codec("pca", 64), step)
+    names = [e.name for e in lossy.header.extensions]
+    assert "approximate-observation-mask" in names
+    assert "approximate-observation-mask" not in [e.name for e in exact.header.extensions]
+    coords = np.argwhere(exact.block_states() == 2)
+    m_exact, m_lossy = exact.read_observed(coords), lossy.read_observed(coords)
+    assert (m_exact != m_lossy).mean() > 0.01
+    size = {m: sum(f.stat().st_size for f in (Path(m.reader.local_root()) / "observed").rglob("*") if f.is_file())
+            for m in (exact, lossy)}
+    assert size[lossy] < 0.9 * size[exact], size
+    a, b = exact.decode_region(), lossy.decode_region()
+    assert not np.array_equal(a, b)  # voxels far from the surface read differently
+    np.testing.assert_array_equal(surface_points(a, VS), surface_points(b, VS))
+    meshes = []
+    for vol in (a, b):
+        blocks = split_blocks(vol, fill=TRUNC[1])[tuple(coords.T)]
+        mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
+        v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        # open3d lists vertices in a thread-dependent order: compare the triangles as sets of corner positions
+        meshes.append(sorted(tuple(sorted(map(tuple, v[tri]))) for tri in t))
+    assert len(meshes[0]) > 1000
+    assert meshes[0] == meshes[1]
+    vol = room[0]
+    ra, rb = (compare_volumes(vol, v, VS) for v in (a, b))
+    assert (ra.chamfer_l1, ra.f_score_1) == (rb.chamfer_l1, rb.f_score_1)
+
+
+def test_rate_control_spends_what_the_mask_saves_on_the_codes(tmp_path, room):
+    """At the same byte target the lossy mask leaves more bytes to the codes: a finer step, a better surface."""
+    reports = {}
+    for exact in (True, False):
+        p = tmp_path / f"t{exact}.sdfz"
+        write_volume_map(p, *room, pretrained_codec("pca", 64), codec_state="reference",
+                         variable_rate={"target_bytes": 110.0, "exact_mask": exact})
+        from sdfcodec.map.rate import stored_bytes
+        got = stored_bytes(p)
+        assert 110.0 * 0.95 <= got["total"] <= 110.0, got
+        reports[exact] = got
+    saved = reports[True]["mask"] - reports[False]["mask"]
+    # most of it goes to the codes (the rest: the header's extension entry and the model, on 70 coded blocks)
+    assert saved > 3 and reports[False]["codes"] - reports[True]["codes"] > 0.5 * saved, reports
+
+
+def test_golden_lossy_mask_map(regen_golden):
+    vol, obs = fused_like(sample_volume(analytic_scene(), (48, 48, 32), VS, truncation=TRUNC))  # 18 blocks
+    codec = sdfcodec.get_codec("pca", code_size=8).fit(
+        split_blocks(vol, fill=0.1).reshape(-1, 16, 16, 16)[:64].astype(np.float32))
+
+    def make(path: Path) -> None:
+        write_volume_map(path, vol, obs, codec, variable_rate={"step": 0.2})
+
+    m = check_golden_map(GOLDEN, make, regen_golden)
+    ext = {e.name: e.required for e in m.header.extensions}
+    assert ext["approximate-observation-mask"] is False and ext["coded-observation-mask"] is True
+    # the frozen surface is the one the exact mask gives with the same codes
+    r = m.reader
+    coords, codes = r.codes_in(r.block_range(r.block_box(None, "voxels")), r.level(None))
+    raw = np.asarray(r.decode_codes(torch.from_numpy(codes), metres=True, coords=coords,
+                                    mask_rows=np.full((len(coords), 512), 255, np.uint8)))
+    true = (split_blocks(obs.astype(np.float32), fill=1.0) > 0.5)[tuple(coords.T)].reshape(-1, 16, 16, 16)
+    dec = m.decode_region()
+    exact = split_blocks(dec, fill=TRUNC[1])
+    exact[tuple(coords.T)] = np.where(true, raw, np.float32(TRUNC[1]))
+    nx, ny, nz = dec.shape
+    exact = exact.transpose(0, 3, 1, 4, 2, 5).reshape(exact.shape[0] * 16, exact.shape[1] * 16, -1)[:nx, :ny, :nz]
+    assert (m.read_observed(coords) != true).mean() > 0.01  # the mask is not the truth
+    np.testing.assert_array_equal(surface_points(dec, VS), surface_points(exact, VS))
