@@ -145,3 +145,24 @@ def test_golden_lossy_mask_map(regen_golden):
     exact = exact.transpose(0, 3, 1, 4, 2, 5).reshape(exact.shape[0] * 16, exact.shape[1] * 16, -1)[:nx, :ny, :nz]
     assert (m.read_observed(coords) != true).mean() > 0.01  # the mask is not the truth
     np.testing.assert_array_equal(surface_points(dec, VS), surface_points(exact, VS))
+
+
+def test_info_and_a_transcode_say_the_mask_is_approximate(tmp_path, room):
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    exact, lossy = _pair(tmp_path, room, pretrained_codec("pca", 16), 0.3)
+    out = CliRunner().invoke(app, ["info", lossy.reader.local_root()])
+    assert out.exit_code == 0 and "exact only where it decides the surface" in out.output, out.output
+    out = CliRunner().invoke(app, ["info", exact.reader.local_root()])
+    assert out.exit_code == 0 and "exact only where" not in out.output, out.output
+    for src, want in ((lossy, True), (exact, False)):  # a fixed-rate copy keeps what its source's mask is
+        p = tmp_path / f"copy{want}.sdfz"
+        with sdfcodec.create_map(p, codec=pretrained_codec("pca", 16), voxel_size=VS, truncation=TRUNC,
+                                 shape_voxels=src.shape_voxels, codec_state="reference") as m:
+            m.write_map(src)
+        copy = sdfcodec.open_map(p)
+        assert ("approximate-observation-mask" in [e.name for e in copy.header.extensions]) is want
+        coords = np.argwhere(copy.block_states() == 2)
+        assert np.array_equal(copy.read_observed(coords), src.read_observed(coords))

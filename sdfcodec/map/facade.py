@@ -19,7 +19,7 @@ from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
-from ..core.header import MapHeader
+from ..core.header import APPROX_MASK_EXTENSION, Extension, MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
@@ -324,6 +324,9 @@ class Map:
         self.mark_empty(empty)
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
+        if knows and APPROX_MASK_EXTENSION in {e.name for e in source.header.extensions}:
+            # its mask, exact only near its own decode's surface, is all this map learns of the observation
+            self.writer.carried.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
         carry = keep_weights and source.has_weights
         if carry:  # empty blocks were observed too (free space): their weights travel with the coded ones'
             self.writer.write_weights(empty, source.read_weights(empty))

@@ -183,7 +183,8 @@ class VariableRateWriter:
         slim = _slim_codes_document(group.store.root, write=False)  # done below, once the float codes are read
         if not self.exact_mask and MASK_ARRAY in group and len(coded) and extensions is not None:
             self._mask = _LossyMask(self.codec, group[MASK_ARRAY], coded, truncation)
-            extensions.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
+            if APPROX_MASK_EXTENSION not in {e.name for e in extensions}:  # a transcode's may be there already
+                extensions.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
         mask = self._mask
 
         def other(f: dict) -> int:
@@ -216,7 +217,8 @@ class VariableRateWriter:
         self.report.update(step=float(np.mean(step)), mean_length=float(np.mean(k)) if len(k) else 0.0,
                            stream_bytes_per_coded_block=self._rows_bytes(streams) / n)
         if mask is not None:
-            self.report.update(mask_bytes_per_coded_block=mask.bytes / n, exact_mask_bytes_per_coded_block=mask.exact / n)
+            self.report.update(mask_bytes_per_coded_block=mask.bytes / n,
+                               exact_mask_bytes_per_coded_block=mask.exact / n)
         return spec
 
     def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation) -> np.ndarray:
