@@ -50,15 +50,19 @@ def test_pinned_voxels_of_a_plane_are_the_corners_of_its_crossing_cells():
 
 def test_relax_mask_keeps_pinned_bits_and_fills_sub_cubes_by_hand():
     obs = np.zeros((1, 16, 16, 16), bool)
-    obs[0, :2, :2, :2] = [[[1, 0], [1, 1]], [[0, 1], [1, 0]]]  # a mixed sub-cube
+    obs[0, :2, :2, :2] = [[[1, 0], [1, 1]], [[0, 1], [1, 0]]]  # a mixed sub-cube, 5 of 8 observed
     pin = np.zeros_like(obs)
-    got = relax_mask(obs, pin)
-    assert got.all()  # nothing pinned: observed everywhere (a fully observed row costs one flag)
-    pin[0, 0, 0, 0] = pin[0, 0, 0, 1] = True  # pinned bits disagree: the free voxels keep the truth
+    got = relax_mask(obs, pin)  # nothing pinned: each sub-cube takes the majority of its true bits
+    assert got[0, :2, :2, :2].all() and not got[0, 2:].any() and not got[0, :, 2:].any()
+    obs[0, 0, 1, 0] = False  # 4 of 8: a tie reads observed
+    assert relax_mask(obs, pin)[0, :2, :2, :2].all()
+    obs[0, 0, 1, 1] = False  # 3 of 8: unobserved
+    assert not relax_mask(obs, pin)[0, :2, :2, :2].any()
+    pin[0, 0, 0, 0] = pin[0, 0, 0, 1] = True  # pinned bits disagree (1, 0): the free voxels keep the truth
     assert np.array_equal(relax_mask(obs, pin)[0, :2, :2, :2], obs[0, :2, :2, :2])
-    pin[0, 0, 0, 0] = False  # one pinned voxel, unobserved: its sub-cube becomes unobserved
+    pin[0, 0, 0, 1] = False  # one pinned voxel, observed: its sub-cube becomes observed
     got = relax_mask(obs, pin)
-    assert not got[0, :2, :2, :2].any() and got[0, 2:].all()
+    assert got[0, :2, :2, :2].all() and not got[0, 2:].any()
 
 
 def _pair(tmp_path: Path, room, codec, step: float) -> tuple[sdfcodec.Map, sdfcodec.Map]:
@@ -143,7 +147,7 @@ def test_golden_lossy_mask_map(regen_golden):
     exact[tuple(coords.T)] = np.where(true, raw, np.float32(TRUNC[1]))
     nx, ny, nz = dec.shape
     exact = exact.transpose(0, 3, 1, 4, 2, 5).reshape(exact.shape[0] * 16, exact.shape[1] * 16, -1)[:nx, :ny, :nz]
-    assert (m.read_observed(coords) != true).mean() > 0.01  # the mask is not the truth
+    assert (m.read_observed(coords) != true).mean() > 0.002  # the mask is not the truth
     np.testing.assert_array_equal(surface_points(dec, VS), surface_points(exact, VS))
 
 

@@ -17,10 +17,15 @@ neighbouring voxels. Where the codec's decode ``f`` of a cell's eight corners:
 
 So every voxel not pinned may take either bit without moving any surface point or triangle: the F-score and
 Chamfer distance against any reference are those of the exact mask, bit for bit. :func:`relax_mask` gives those
-voxels the bits that the context coder (:mod:`sdfcodec.map.maskcoder`) stores most cheaply: the bit shared by
-the pinned voxels of their 2^3 sub-cube, else (no pinned voxel there) observed, so that a block with no pinned
-voxel that disagrees becomes a fully observed row, which costs one flag. What changes: a voxel far from any
-surface may read the codec's decode instead of ``d_max`` (or the reverse), and its mask bit is not the fusion's.
+voxels bits that the context coder (:mod:`sdfcodec.map.maskcoder`) stores cheaply: the bit shared by the pinned
+voxels of their 2^3 sub-cube, the true bit where those disagree, and the majority of the true bits in a
+sub-cube without pinned voxels, which makes it uniform and keeps the mask's coarse shape. Measured on the kitchen
+half's mask with the decode of its 128 B map (B per coded block): exact 45.8; sub-cubes without pinned voxels
+set to their majority 29.6, to observed 38.8, to observed if any voxel is, 29.7, to their block's majority
+29.7. Keeping fewer pinned voxels (one unobserved corner suffices in a cell the true mask does not mesh) pinned
+29 % fewer voxels and saved nothing (38.74 against 38.79 with the fill to observed): the coder pays for the
+borders, not the count. What changes: a voxel far from any surface may read the codec's decode instead of
+``d_max`` (or the reverse), and its mask bit is not the fusion's.
 
 The decode here is the writer's (the codec's float32 decode of the dequantised codes, clipped); a reader's may
 differ by rounding, far below :data:`PIN_MARGIN`.
@@ -97,7 +102,8 @@ def _cells(a: np.ndarray, op: Any) -> np.ndarray:
 def relax_mask(observed: np.ndarray, pinned: np.ndarray) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: ``observed`` where ``pinned``; elsewhere the bit of the pinned voxels of the
     voxel's 2^3 sub-cube when they agree, the true bit when they disagree (the sub-cube is coded voxel by voxel
-    anyway, and the truth is smooth), and observed in a sub-cube without pinned voxels."""
+    anyway, and the truth is smooth), and in a sub-cube without pinned voxels the majority of its true bits
+    (observed at a tie)."""
     obs, pin = np.asarray(observed, bool), np.asarray(pinned, bool)
     n, h = len(obs), BLOCK // 2
     o = obs.reshape(n, h, 2, h, 2, h, 2)
@@ -105,7 +111,8 @@ def relax_mask(observed: np.ndarray, pinned: np.ndarray) -> np.ndarray:
     axes = (2, 4, 6)
     n_pin = q.sum(axis=axes, keepdims=True)
     n_on = (q & o).sum(axis=axes, keepdims=True)
-    fill = np.where(n_on == n_pin, True, np.where(n_on == 0, False, o))  # agree on 1 (or none), agree on 0, mixed
+    majority = o.sum(axis=axes, keepdims=True) >= 4
+    fill = np.where(n_pin == 0, majority, np.where(n_on == n_pin, True, np.where(n_on == 0, False, o)))
     return np.where(q, o, fill).reshape(obs.shape)
 
 
