@@ -170,3 +170,16 @@ def test_info_and_a_transcode_say_the_mask_is_approximate(tmp_path, room):
         assert ("approximate-observation-mask" in [e.name for e in copy.header.extensions]) is want
         coords = np.argwhere(copy.block_states() == 2)
         assert np.array_equal(copy.read_observed(coords), src.read_observed(coords))
+
+
+def test_pins_in_batches_equal_the_whole_maps():
+    """Batches of 5 blocks, each decoded with its coded neighbours, pin exactly what one pass over all does."""
+    from sdfcodec.map.lossymask import pinned_in_batches
+
+    vol, _ = fused_like(sample_volume(analytic_scene(), (64, 64, 48), VS, truncation=TRUNC))
+    blocks = split_blocks(vol, fill=TRUNC[1])
+    coords = np.argwhere((blocks < 0).reshape(*blocks.shape[:3], -1).any(axis=3))  # blocks with a surface
+    dec = blocks[tuple(coords.T)] + np.float32(0.004)  # a decode that moves the surface a little
+    whole = pinned_voxels(coords, dec, TRUNC)
+    assert 0.05 < whole.mean() < 0.9
+    np.testing.assert_array_equal(pinned_in_batches(coords, lambda idx: dec[idx], TRUNC, batch=5), whole)

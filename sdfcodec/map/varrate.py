@@ -307,12 +307,16 @@ class _LossyMask:
 
     def at(self, codes: np.ndarray) -> None:
         """``codes`` ``(n, D)``: the dequantised codes of the coded blocks, in ``coords``' order."""
-        from .lossymask import pinned_voxels, relax_mask
+        from .lossymask import pinned_in_batches, relax_mask
 
         d_min, d_max = self.truncation
-        dec = self.codec.decode(torch.from_numpy(np.asarray(codes, np.float32))).numpy()
-        dec = np.clip(dec * (d_max - d_min) + d_min, d_min, d_max)
-        self.rows = pack_mask(relax_mask(self.truth, pinned_voxels(self.coords, dec, self.truncation)))
+        codes = np.asarray(codes, np.float32)
+
+        def decode(idx: np.ndarray) -> np.ndarray:
+            dec = self.codec.decode(torch.from_numpy(codes[idx])).numpy()
+            return np.clip(dec * (d_max - d_min) + d_min, d_min, d_max)
+
+        self.rows = pack_mask(relax_mask(self.truth, pinned_in_batches(self.coords, decode, self.truncation)))
         self.bytes = self.chunks.bytes(self.rows)
 
     def write(self) -> None:
