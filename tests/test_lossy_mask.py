@@ -52,7 +52,8 @@ def test_relax_mask_keeps_pinned_bits_and_fills_sub_cubes_by_hand():
     obs = np.zeros((1, 16, 16, 16), bool)
     obs[0, :2, :2, :2] = [[[1, 0], [1, 1]], [[0, 1], [1, 0]]]  # a mixed sub-cube, 5 of 8 observed
     pin = np.zeros_like(obs)
-    got = relax_mask(obs, pin)  # nothing pinned: each sub-cube takes the majority of its true bits
+    pin[0, 15, 15, 15] = True  # an unobserved pinned voxel far away: the block is not made fully observed
+    got = relax_mask(obs, pin)  # sub-cubes without pinned voxels take the majority of their true bits
     assert got[0, :2, :2, :2].all() and not got[0, 2:].any() and not got[0, :, 2:].any()
     obs[0, 0, 1, 0] = False  # 4 of 8: a tie reads observed
     assert relax_mask(obs, pin)[0, :2, :2, :2].all()
@@ -60,9 +61,13 @@ def test_relax_mask_keeps_pinned_bits_and_fills_sub_cubes_by_hand():
     assert not relax_mask(obs, pin)[0, :2, :2, :2].any()
     pin[0, 0, 0, 0] = pin[0, 0, 0, 1] = True  # pinned bits disagree (1, 0): the free voxels keep the truth
     assert np.array_equal(relax_mask(obs, pin)[0, :2, :2, :2], obs[0, :2, :2, :2])
-    pin[0, 0, 0, 1] = False  # one pinned voxel, observed: its sub-cube becomes observed
-    got = relax_mask(obs, pin)
-    assert got[0, :2, :2, :2].all() and not got[0, 2:].any()
+    pin[0, 0, 0, 0] = False  # one pinned voxel there, unobserved: its sub-cube becomes unobserved
+    assert not relax_mask(obs, pin)[0, :2, :2, :2].any()
+    pin[0] = False
+    pin[0, 0, 0, 0] = True  # the block's only pinned voxel is observed: observed everywhere (a row of 255)
+    assert relax_mask(obs, pin).all()
+    assert relax_mask(obs, np.zeros_like(pin)).all()  # nothing pinned: the same
+    assert np.array_equal(relax_mask(obs, np.ones_like(pin)), obs)  # everything pinned: the truth
 
 
 def _pair(tmp_path: Path, room, codec, step: float) -> tuple[sdfcodec.Map, sdfcodec.Map]:

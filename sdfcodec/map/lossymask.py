@@ -22,7 +22,8 @@ voxels of their 2^3 sub-cube, the true bit where those disagree, and the majorit
 sub-cube without pinned voxels, which makes it uniform and keeps the mask's coarse shape. Measured on the kitchen
 half's mask with the decode of its 128 B map (B per coded block): exact 45.8; sub-cubes without pinned voxels
 set to their majority 29.6, to observed 38.8, to observed if any voxel is, 29.7, to their block's majority
-29.7. Keeping fewer pinned voxels (one unobserved corner suffices in a cell the true mask does not mesh) pinned
+29.7; then blocks whose pinned voxels are all observed made fully observed, 29.1 (three passes of a 3^3
+majority filter over the sub-cubes without pinned voxels would give 28.2 more). Keeping fewer pinned voxels (one unobserved corner suffices in a cell the true mask does not mesh) pinned
 29 % fewer voxels and saved nothing (38.74 against 38.79 with the fill to observed): the coder pays for the
 borders, not the count. What changes: a voxel far from any surface may read the codec's decode instead of
 ``d_max`` (or the reverse), and its mask bit is not the fusion's.
@@ -124,7 +125,7 @@ def relax_mask(observed: np.ndarray, pinned: np.ndarray) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: ``observed`` where ``pinned``; elsewhere the bit of the pinned voxels of the
     voxel's 2^3 sub-cube when they agree, the true bit when they disagree (the sub-cube is coded voxel by voxel
     anyway, and the truth is smooth), and in a sub-cube without pinned voxels the majority of its true bits
-    (observed at a tie)."""
+    (observed at a tie); a block none of whose pinned voxels is unobserved is observed everywhere."""
     obs, pin = np.asarray(observed, bool), np.asarray(pinned, bool)
     n, h = len(obs), BLOCK // 2
     corners = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
@@ -136,7 +137,9 @@ def relax_mask(observed: np.ndarray, pinned: np.ndarray) -> np.ndarray:
     # 2: keep the truth (pinned bits disagree); else the bit the sub-cube takes
     fill = np.where(n_pin == 0, n_obs >= 4, np.where(n_on == n_pin, 1, np.where(n_on == 0, 0, 2))).astype(np.uint8)
     f = np.broadcast_to(fill.reshape(n, h, 1, h, 1, h, 1), (n, h, 2, h, 2, h, 2)).reshape(obs.shape)
-    return np.where(pin | (f == 2), obs, f == 1)
+    out = np.where(pin | (f == 2), obs, f == 1)
+    out[~(pin & ~obs).reshape(n, -1).any(axis=1)] = True  # no pinned voxel unobserved: a full row, one flag
+    return out
 
 
 class MaskChunks:
