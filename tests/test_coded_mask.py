@@ -86,7 +86,7 @@ def test_a_damaged_stream_is_one_checksum_error():
 
 def _masked_varrate_map(path: Path, room) -> None:
     write_volume_map(path, *room, pretrained_codec("pca", 64), codec_state="reference",
-                     variable_rate={"target_bytes": 96.0})
+                     variable_rate={"target_bytes": 96.0, "exact_mask": True})
 
 
 def test_variable_rate_map_stores_the_coded_mask_and_compact_documents(tmp_path, room):
@@ -143,7 +143,7 @@ def test_golden_coded_mask_map(regen_golden):
         split_blocks(vol, fill=0.1).reshape(-1, 16, 16, 16)[:64].astype(np.float32))
 
     def make(path: Path) -> None:
-        write_volume_map(path, vol, obs, codec, variable_rate={"step": 0.2})
+        write_volume_map(path, vol, obs, codec, variable_rate={"step": 0.2, "exact_mask": True})
 
     m = check_golden_map(GOLDEN, make, regen_golden)
     assert "coded-observation-mask" in [e.name for e in m.header.extensions]

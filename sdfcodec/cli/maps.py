@@ -131,8 +131,10 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
                  if cs["stored"] == "reference" else "none (the codec learns nothing)" if cs["sha256"] is None
                  else f"embedded (sha256 {cs['sha256']})"))
     if info.get("observation_mask") is not None:
-        rows.append(("observation mask", "context-coded (coded-observation-mask)"
-                     if info["observation_mask"] == "context-coded" else "Blosc-compressed"))
+        kind = info["observation_mask"]
+        rows.append(("observation mask", ("context-coded (coded-observation-mask)" if kind.startswith("context-coded")
+                                          else "Blosc-compressed") + (", exact only where it decides the surface "
+                                          "(approximate-observation-mask)" if kind.endswith("approximate") else "")))
     if info["residual"] is not None:
         rows.append(("residual (residual-bound)", _residual_line(info["residual"])))
     if info.get("integrity") is not None:
@@ -172,6 +174,7 @@ def encode_cmd(
     chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (default: 16 for pca-64; smaller chunks transfer less per small remote region)."),
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Store the chunks of codes in Zarr shards of N blocks per axis (a multiple of --chunk-blocks dividing 64, e.g. 32): objects of megabytes for maps of millions of blocks on object storage (readers before the extension sharded-codes refuse the map)."),
     keep_weights: bool = typer.Option(False, "--keep-weights", help="Carry the input map's fusion weights (uint8 counts in a lossy map, float16 with raw); by default only its observation mask is kept."),
+    exact_mask: bool = typer.Option(False, "--exact-mask", help="Variable-rate maps: keep the observation mask exact. By default it is exact only where it decides the decoded surface (the same surface, a smaller mask; extension approximate-observation-mask, docs/variable-rate.md)."),
     exact: bool = typer.Option(False, "--exact", help="With --codec raw: store the voxels' own float32 metres (and float32 weights), read back bit for bit; without it raw is exact to (d_max - d_min) x 2^-24 m. Readers before the extension metric-codes refuse such maps."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
@@ -298,7 +301,7 @@ def encode_cmd(
     vr_kw = None
     if vr:
         vr_kw = {k: v for k, v in (("step", step), ("target_bytes", target_bytes), ("target_error", target_error))
-                 if v is not None}
+                 if v is not None} | ({"exact_mask": True} if exact_mask else {})
         m, quant = write(), None
         quant = _variable_rate_summary(m, output, target_bytes, target_error)
     else:

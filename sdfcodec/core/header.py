@@ -22,7 +22,7 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
            "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate",
-           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION"]
+           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION", "APPROX_MASK_EXTENSION"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -79,6 +79,10 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {METRIC_EXTENSION, FLOAT32_WEIGHTS_EXTENSI
 #: (spec section 6e); required, since a reader without that codec cannot read the mask
 CODED_MASK_EXTENSION = "coded-observation-mask"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {CODED_MASK_EXTENSION}
+#: "approximate-observation-mask": the mask is exact only where it decides the surface of the decoded field (spec
+#: section 6f); optional: the mask reads as any mask does, only what it says of voxels far from a surface differs
+APPROX_MASK_EXTENSION = "approximate-observation-mask"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {APPROX_MASK_EXTENSION}
 
 
 class BlockState:

@@ -19,7 +19,7 @@ from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
 from ..codec import Codec
 from ..errors import InvalidValueError, ReadOnlyError
-from ..core.header import MapHeader
+from ..core.header import APPROX_MASK_EXTENSION, Extension, MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
 from .reader import CodecCache, MapReader, open_reader
@@ -324,6 +324,9 @@ class Map:
         self.mark_empty(empty)
         # a source that records no observation (a dense exact SDF) is observed everywhere: encoded plainly
         knows = source.records_observation
+        if knows and APPROX_MASK_EXTENSION in {e.name for e in source.header.extensions}:
+            # its mask, exact only near its own decode's surface, is all this map learns of the observation
+            self.writer.carried.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
         carry = keep_weights and source.has_weights
         if carry:  # empty blocks were observed too (free space): their weights travel with the coded ones'
             self.writer.write_weights(empty, source.read_weights(empty))
@@ -457,7 +460,9 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         variable_rate: variable-rate codes (extension ``variable-rate-codes``, spec section 4e;
             docs/variable-rate.md): per block a prefix of its code chosen by rate-distortion, entropy-coded on
             commit; a dict with one of ``step`` (normalised code units), ``target_bytes`` (stored bytes per coded
-            block, every file counted) or ``target_error`` (metres, surface error), and optionally ``lagrange``.
+            block, every file counted) or ``target_error`` (metres, surface error), and optionally ``lagrange`` and
+            ``exact_mask`` (True keeps the observation mask exact; by default it is exact only where it decides
+            the decoded surface, extension ``approximate-observation-mask``, spec section 6f).
             Prefix-ordered codecs (pca) only; such a map is not updated in place.
         keep_weights: what becomes of the fusion weights given to ``write_blocks(weights=...)``: None (default)
             keeps them (float16) for the lossless ``raw`` codec and drops them at commit for lossy codecs (the
@@ -479,9 +484,9 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             math.isfinite(surface_weight) and surface_weight >= 0):
         raise InvalidValueError(f"surface_weight must be a finite number >= 0, got {surface_weight!r}")
     if variable_rate is not None and (not isinstance(variable_rate, dict) or not set(variable_rate) <= {
-            "step", "target_bytes", "target_error", "lagrange"}):
+            "step", "target_bytes", "target_error", "lagrange", "exact_mask"}):
         raise InvalidValueError(f"variable_rate must be a dict with one of step, target_bytes, target_error (and "
-                                f"optionally lagrange), got {variable_rate!r}")
+                                f"optionally lagrange, exact_mask), got {variable_rate!r}")
     writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,

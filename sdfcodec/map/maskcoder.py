@@ -78,6 +78,15 @@ def _waves() -> tuple[tuple[tuple[np.ndarray, np.ndarray], ...], tuple[tuple[np.
     return _wavefronts(BLOCK, 1), _wavefronts(_SUB, 1)
 
 
+@lru_cache(maxsize=1)
+def _voxel_tables() -> tuple[np.ndarray, np.ndarray]:
+    """Per C-order voxel of a block: its wavefront ``i + j + k`` and its flat index in the padded block."""
+    wave, padded = np.zeros(BLOCK ** 3, np.int64), np.zeros(BLOCK ** 3, np.int64)
+    for w, (wpad, wflat) in enumerate(_waves()[0]):
+        wave[wflat], padded[wflat] = w, wpad
+    return wave, padded
+
+
 _DELTAS = np.array([(a * _PAD + b) * _PAD + c for a, b, c in OFFSETS], dtype=np.int64)
 _CUBE_DELTAS = np.array([-(_SUB + 2) ** 2, -(_SUB + 2), -1], dtype=np.int64)  # its -x, -y, -z neighbours
 
@@ -199,14 +208,19 @@ def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a co
             states[:, wflat] = sym.reshape(p_rows, -1)
             model.add(ctx, sym)
         per = _per_voxel(states)
-        vpad = np.zeros((p_rows, _PAD, _PAD, _PAD), dtype=np.int64)
+        vpad = np.zeros((p_rows, _PAD, _PAD, _PAD), dtype=np.uint8)
         vpad[:, 1:-1, 1:-1, 1:-1] = per == 1  # uniform sub-cubes known; mixed ones decoded next
-        vflat, model, mixed = vpad.reshape(-1), _Adaptive(_NCTX, 2), (per == 2).reshape(p_rows, BLOCK ** 3)
-        for wpad, wflat in vox_waves:
-            r, c = np.nonzero(mixed[:, wflat])
-            if not len(r):
+        vflat, model = vpad.reshape(-1), _Adaptive(_NCTX, 2)
+        # every mixed voxel at once, grouped by wavefront; a stable sort keeps rows, then C order, in each
+        wave_of, padded_of = _voxel_tables()
+        r, c = np.nonzero((per == 2).reshape(p_rows, BLOCK ** 3))
+        order = np.argsort(wave_of[c], kind="stable")
+        at_all = (r * _PAD ** 3 + padded_of[c])[order]
+        bounds = np.searchsorted(wave_of[c][order], np.arange(len(vox_waves) + 1))
+        for w in range(len(vox_waves)):
+            at = at_all[bounds[w]:bounds[w + 1]]
+            if not len(at):
                 continue
-            at = r * _PAD ** 3 + wpad[c]
             ctx = _gather_context(vflat, at, _DELTAS, 2)
             sym = coder.decode(bern, model.probabilities(ctx)).astype(np.int64)
             vflat[at] = sym

@@ -9,6 +9,10 @@ the per-block gains (:func:`sdfcodec.core.varrate.gains`); on commit both are re
 uint32 word count ``W``, then ``W`` little-endian uint32 words of the chunk's rANS stream, zeros after. The
 ``codes`` array keeps its metadata and no chunk. The pass holds the map's codes and gains in memory (512 bytes
 per coded block at code size 64).
+
+Unless asked for the exact mask, the pass also replaces the coded observation mask by one exact only where it
+can change the decoded surface at the step chosen (:mod:`sdfcodec.map.lossymask`, spec section 6f), recomputed
+at every step rate control tries: the bytes it saves go to the codes.
 """
 
 from __future__ import annotations
@@ -21,10 +25,10 @@ import numpy as np
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
 from ..errors import FormatError, InvalidValueError
-from ..core.header import BlockState, VariableRate
+from ..core.header import APPROX_MASK_EXTENSION, BlockState, Extension, VariableRate
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
-from .observed import error_weights, read_block_rows, write_block_rows
+from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -100,10 +104,11 @@ class VariableRateWriter:
     encoded (gains, a sample), ``finish`` on commit. Exactly one of ``step`` (metres-free: normalised code
     units, one number or one per element), ``target_bytes`` (per coded block, every file of the map counted) and
     ``target_error`` (metres, :func:`surface_error` on the sample) chooses the step; ``lagrange`` scales the
-    Lagrange multiplier (:data:`sdfcodec.core.varrate.LAGRANGE`)."""
+    Lagrange multiplier (:data:`sdfcodec.core.varrate.LAGRANGE`); ``exact_mask`` keeps the observation mask exact
+    (by default it is exact only where it decides the surface, :mod:`sdfcodec.map.lossymask`)."""
 
     def __init__(self, codec: Codec, *, step: Any = None, target_bytes: float | None = None,
-                 target_error: float | None = None, lagrange: float = LAGRANGE):
+                 target_error: float | None = None, lagrange: float = LAGRANGE, exact_mask: bool = False):
         check_variable_rate(codec)
         if sum(x is not None for x in (step, target_bytes, target_error)) != 1:
             raise InvalidValueError("variable-rate codes need one of a step, a target of bytes per coded block or "
@@ -117,6 +122,8 @@ class VariableRateWriter:
             step = check_step(step, self.d)
         self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
         self.lagrange = float(lagrange)
+        self.exact_mask = bool(exact_mask)
+        self._mask: _LossyMask | None = None
         basis = _basis(codec)
         self.basis_sq = (basis * basis).astype(np.float32)
         self._rng = np.random.default_rng(0)
@@ -148,16 +155,20 @@ class VariableRateWriter:
         q, k, model = choose_lengths(z, g, step, self._lam(step, g))
         bounds = np.flatnonzero(np.diff(chunk_ids)) + 1
         streams = [encode_chunk(q[a:b], k[a:b], model) for a, b in zip(np.r_[0, bounds], np.r_[bounds, len(z)])]
+        if self._mask is not None:  # the mask that goes with these codes, and its bytes
+            self._mask.at(q * step)
         return streams, model, k
 
     def _rows_bytes(self, streams: list[np.ndarray]) -> int:
         return sum(stream_bytes(s) + _ROW_FRAME for s in streams)
 
     def finish(self, group: Any, state: np.ndarray, chunk_blocks: int, other_bytes: Callable[[dict], int],
-               truncation: tuple[float, float]) -> VariableRate:
+               truncation: tuple[float, float], extensions: list | None = None) -> VariableRate:
         """Replace the float codes of ``group`` by the chunk streams (module docstring); ``other_bytes(fields)``:
-        the bytes of every other file of the map once its header holds ``fields`` (rate control). Returns the
-        header field."""
+        the bytes of every other file of the map once its header holds ``fields`` (rate control; counting the
+        mask as written so far). With a coded mask and not ``exact_mask``, its lossy version is written and
+        ``extensions`` (the header's list, which ``other_bytes`` counts) gets ``approximate-observation-mask``.
+        Returns the header field."""
         coded = np.argwhere(state == BlockState.CODED)
         cb = chunk_blocks
         ch, loc = coded // cb, coded % cb
@@ -170,9 +181,20 @@ class VariableRateWriter:
         if len(z) and not np.isfinite(z).all():
             raise InvalidValueError("codes hold NaN/Inf values; they cannot be quantised")
         slim = _slim_codes_document(group.store.root, write=False)  # done below, once the float codes are read
-        step = self._choose_step(z, g, chunk_ids, lambda f: other_bytes(f) - slim, len(coded), truncation)
+        if not self.exact_mask and MASK_ARRAY in group and len(coded) and extensions is not None:
+            self._mask = _LossyMask(self.codec, group[MASK_ARRAY], coded, truncation)
+            if APPROX_MASK_EXTENSION not in {e.name for e in extensions}:  # a transcode's may be there already
+                extensions.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
+        mask = self._mask
+
+        def other(f: dict) -> int:
+            return other_bytes(f) - slim + (0 if mask is None else mask.saved)
+
+        step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
         if len(z):
             streams, model, k = self._encode_all(z, g, chunk_ids, step)
+            if mask is not None:
+                mask.write()
         else:
             streams, model, k = [], EntropyModel([0] * self.d, [0.5] * self.d, [0] * self.d, [1] + [0] * self.d), []
         uniform = bool((step == step[0]).all())
@@ -194,6 +216,9 @@ class VariableRateWriter:
         n = max(len(coded), 1)
         self.report.update(step=float(np.mean(step)), mean_length=float(np.mean(k)) if len(k) else 0.0,
                            stream_bytes_per_coded_block=self._rows_bytes(streams) / n)
+        if mask is not None:
+            self.report.update(mask_bytes_per_coded_block=mask.bytes / n,
+                               exact_mask_bytes_per_coded_block=mask.exact / n)
         return spec
 
     def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation) -> np.ndarray:
@@ -261,6 +286,41 @@ class VariableRateWriter:
             lo, hi = (mid, hi) if err(2 ** mid) <= e else (lo, mid)
         self.report["sample_surface_error"] = err(2 ** lo)
         return np.full(self.d, 2 ** lo)
+
+
+class _LossyMask:
+    """The lossy mask of the coded blocks ``coords`` for the codes last given to :meth:`at`: ``bytes`` its chunks'
+    bytes, ``saved`` what they take beyond the exact mask's (negative: saved), :meth:`write` stores it."""
+
+    def __init__(self, codec: Codec, arr: Any, coords: np.ndarray, truncation: tuple[float, float]):
+        from .lossymask import MaskChunks
+
+        self.codec, self.coords, self.truncation = codec, coords, truncation
+        self.chunks = MaskChunks(arr, coords)
+        self.truth = unpack_mask(_rows(arr, coords))
+        self.exact = self.bytes = self.chunks.bytes(pack_mask(self.truth))
+        self.rows: np.ndarray | None = None
+
+    @property
+    def saved(self) -> int:
+        return self.bytes - self.exact
+
+    def at(self, codes: np.ndarray) -> None:
+        """``codes`` ``(n, D)``: the dequantised codes of the coded blocks, in ``coords``' order."""
+        from .lossymask import pinned_in_batches, relax_mask
+
+        d_min, d_max = self.truncation
+        codes = np.asarray(codes, np.float32)
+
+        def decode(idx: np.ndarray) -> np.ndarray:
+            dec = self.codec.decode(torch.from_numpy(codes[idx])).numpy()
+            return np.clip(dec * (d_max - d_min) + d_min, d_min, d_max)
+
+        self.rows = pack_mask(relax_mask(self.truth, pinned_in_batches(self.coords, decode, self.truncation)))
+        self.bytes = self.chunks.bytes(self.rows)
+
+    def write(self) -> None:
+        self.chunks.write(self.rows)
 
 
 def _slim_codes_document(root: str | Path, write: bool) -> int:

@@ -32,8 +32,7 @@ from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MA
                            RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                            VARIABLE_RATE_EXTENSION,
                            BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
-                           VariableRate,
-                           now_iso)
+                           VariableRate, now_iso)
 from ..core.quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference, state_digest
@@ -158,7 +157,8 @@ class MapWriter:
         self.codes = group["codes"]
         self.code_scale = group["code_scale"] if codes_spec.dtype == "int8" else None
         self.mask = group[MASK_ARRAY] if MASK_ARRAY in group else None  # observation mask, once one is written
-        self.mask_touched: set[tuple[int, int, int]] = set()  # its chunks written here: recompressed at commit
+        # its chunks written here (recompressed at commit); what a transcode's source says of its mask (spec 6f)
+        self.mask_touched, self.carried = set(), []
         # the residual stage (spec 6d): its array is made with the map, its step and bound are in the header
         self.residual = group[RESIDUAL_ARRAY] if header_kw.get("residual") is not None else None
         self._live_reader: MapReader | None = None
@@ -445,7 +445,7 @@ class MapWriter:
                                      compressors=compressors(), overwrite=True)
         st[...] = self.state
         weights_ext = finish_weights(self.group, Path(self.tmp), self.weights_mode, self.grid)
-        extensions = [] if weights_ext is None else [weights_ext]
+        extensions = [e for e in self.carried if self.mask is not None] + ([weights_ext] if weights_ext else [])
         if self.code_scale is not None:
             extensions.append(Extension(name=INT8_EXTENSION, required=True))
         if self.codes_spec.quantisation is not None:
@@ -474,11 +474,10 @@ class MapWriter:
             extensions.append(Extension(name=METRIC_EXTENSION, required=True))
         compact_documents(self.tmp)  # before anything counts or lists their bytes
         if self.vr is not None:  # the float codes become one entropy-coded stream per chunk (spec 4e)
-            if tuple(self.group[GAIN_ARRAY].shape[:3]) != self.grid:
-                self.group[GAIN_ARRAY].resize((*self.grid, self.codes_spec.size))
+            if (gain := self.group[GAIN_ARRAY]).shape[:3] != self.grid:
+                gain.resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
-            # all files but the codes and the root document (other_bytes counts it), and the manifest: fixed meanwhile
-            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}
+            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}  # all but them, root, manifest
             files = [f for f in Path(self.tmp).glob("*/**/*") if f.is_file() and not any(p in skip for p in f.parents)]
             fixed = sum(f.stat().st_size for f in files) + STREAM_METADATA_BYTES
             if self.manifest:
@@ -494,7 +493,8 @@ class MapWriter:
                               **self.header_kw)
                 return fixed + len(root_document(json.loads(h.model_dump_json())))  # as compact_documents stores it
 
-            vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation)
+            vr = self.vr.finish(self.group, self.state, self.codes_spec.chunk_blocks, other_bytes, self.truncation,
+                                extensions)  # which the lossy mask's extension joins (spec 6f)
             self.codes_spec = self.codes_spec.model_copy(update={"variable_rate": vr})
         # the integrity manifest (spec section 9b): every object of the new version, now complete but for the
         # root document, which records the manifest's digest; an update's signature no longer holds
