@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from .models import QueryModel
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
-           "verify_threshold", "clean_residuals", "verify_planes", "check_planes"]
+           "verify_threshold", "clean_residuals", "plane_check_key", "verify_planes", "check_planes"]
 
 #: Offsets (voxels) along the plane's normal tried at each block, within the plane tolerance.
 VERIFY_STEP = 0.5
@@ -479,15 +479,10 @@ def clean_residuals(normal: np.ndarray, codec: Codec, state_sha256: str | None, 
     of ``samples`` simulated blocks, most of a cold search's time (the kitchen's walls: 11.5 of 21.8 s for 11
     planes and refits). Others keep one calibration per normal: a plain projection is cheap, and an exact field's
     residuals do depend on it (pca-64: 1.01 axis-aligned, 1.32 along a cube diagonal)."""
-    from .cache import cache_key, cached_threshold
+    from .cache import cached_threshold
 
+    key, kw = plane_check_key(normal, codec, state_sha256, quantile=quantile, **kw)
     pooled = bool(kw.get("weighted"))
-    if pooled:  # and at the plane tolerance rounded to the moves' step: a refit's tolerance is any number, but
-        # the clean residuals move with it less than with the sampling (1.0, 1.5, 2.0 voxels: 2.30, 2.17, 2.08)
-        kw = {**kw, "seed": 0, "tol": float(max(VERIFY_STEP, VERIFY_STEP * np.round(kw["tol"] / VERIFY_STEP)))}
-    key = cache_key("plane-check", normal=None if pooled else np.asarray(normal, np.float64),
-                    codec=codec.get_config(), state=state_sha256, quantile=float(quantile),
-                    **{k: np.asarray(v, np.float64) if k == "stretches" else v for k, v in kw.items()})
 
     def compute() -> tuple[float, dict]:
         sim, _ = verify_threshold(None if pooled else normal, codec, quantile=quantile, **kw)
@@ -498,6 +493,23 @@ def clean_residuals(normal: np.ndarray, codec: Codec, state_sha256: str | None, 
                                valid=lambda info: isinstance(info.get("median"), float) and np.isfinite(info["median"]),
                                what=f"calibrating the plane check of {facing} for {codec.codec_id}-{codec.code_size}")
     return t, info["median"]
+
+
+def plane_check_key(normal: np.ndarray | None, codec: Codec, state_sha256: str | None, *, quantile: float,
+                    **kw: Any) -> tuple[str, dict]:
+    """The cache key of :func:`clean_residuals`' calibration and the :func:`verify_threshold` arguments it is
+    computed with (``kw`` with, for surface-true maps, the seed and the rounded tolerance that calibration uses):
+    also the key of the tables shipped for the shipped codecs (:func:`sdfcodec.search.cache.shipped_thresholds`)."""
+    from .cache import cache_key
+
+    pooled = bool(kw.get("weighted"))
+    if pooled:  # and at the plane tolerance rounded to the moves' step: a refit's tolerance is any number, but
+        # the clean residuals move with it less than with the sampling (1.0, 1.5, 2.0 voxels: 2.30, 2.17, 2.08)
+        kw = {**kw, "seed": 0, "tol": float(max(VERIFY_STEP, VERIFY_STEP * np.round(kw["tol"] / VERIFY_STEP)))}
+    key = cache_key("plane-check", normal=None if pooled else np.asarray(normal, np.float64),
+                    codec=codec.get_config(), state=state_sha256, quantile=float(quantile),
+                    **{k: np.asarray(v, np.float64) if k == "stretches" else v for k, v in kw.items()})
+    return key, kw
 
 
 def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
