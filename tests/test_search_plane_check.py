@@ -507,3 +507,28 @@ def test_surface_true_calibration_is_one_for_every_direction(tmp_path, monkeypat
     b = plane_check.clean_residuals(diag, codec, sha, quantile=0.9, tol=2.0, **exact)
     assert a != b and len(calls) == 3 and calls[-1] is not None
     cache.clear_memory_cache()
+
+
+def test_shipped_calibrations_select_what_fresh_ones_select(tmp_path, tilted_floor, monkeypatch):
+    """The tilted floor with a box on it, as fusion leaves it: a search that takes the plane check's calibrations
+    from the shipped table selects exactly what one that calibrates them afresh (no table, no cache) selects,
+    and that holds the analytic floor's clean blocks and none holding the box's foot."""
+    from sdfcodec.search import cache, plane_check
+
+    _, n, clean, mixed = tilted_floor
+    vol, observed = fused_like(_tilted_scene()[4])
+    write_volume_map(tmp_path / "f.sdfz", vol, observed, pretrained_codec("pca", 32))
+    calls = []
+    real = plane_check.verify_threshold
+    monkeypatch.setattr(plane_check, "verify_threshold", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setenv(cache.CACHE_ENV, "off")
+    cache.clear_memory_cache()
+    shipped = search(tmp_path / "f.sdfz", "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    assert calls == [] and len(shipped.stats["scene"]["plane_check"]["planes"]) >= 1
+    monkeypatch.setattr(cache, "_shipped", {})
+    cache.clear_memory_cache()
+    fresh = search(tmp_path / "f.sdfz", "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    assert len(calls) >= 1 and np.array_equal(fresh.coords, shipped.coords)
+    got = {tuple(int(v) for v in c) for c in shipped.coords}
+    assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
+    cache.clear_memory_cache()
