@@ -488,7 +488,7 @@ def clean_residuals(normal: np.ndarray, codec: Codec, state_sha256: str | None, 
         sim, _ = verify_threshold(None if pooled else normal, codec, quantile=quantile, **kw)
         return float(np.quantile(sim, quantile)), {"median": float(np.median(sim))}
 
-    facing = "any direction" if pooled else f"a plane facing {np.round(normal, 2).tolist()}"
+    facing = "planes of any direction" if pooled else f"a plane facing {np.round(normal, 2).tolist()}"
     t, info = cached_threshold(key, compute,
                                valid=lambda info: isinstance(info.get("median"), float) and np.isfinite(info["median"]),
                                what=f"calibrating the plane check of {facing} for {codec.codec_id}-{codec.code_size}")
