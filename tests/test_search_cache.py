@@ -245,3 +245,22 @@ def test_shipped_calibrations_equal_a_fresh_calibration(fresh_cache, monkeypatch
     again = plane_check.clean_residuals(np.array([0.0, 0.0, 1.0]), codec, sha, quantile=CALIBRATION_QUANTILE, tol=2.0,
                                         **kw)
     assert calls == [1] and np.allclose(again, got, rtol=1e-4, atol=0)
+
+
+def test_ship_calibrations_script_rewrites_the_shipped_entries(fresh_cache):
+    """examples/ship_calibrations.py (`make calibrations`) computes, for pca-32, the very entries shipped: same keys,
+    thresholds and medians to float tolerance."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "ship_calibrations.py"
+    spec = importlib.util.spec_from_file_location("ship_calibrations", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    got = module.entries(sizes=(32,))
+    shipped = json.loads(cache.SHIPPED_FILE.read_text())["entries"]
+    assert len(got) == 4 and set(got) <= set(shipped)
+    for key, e in got.items():
+        assert e["args"] == shipped[key]["args"] and e["codec"] == shipped[key]["codec"]
+        assert np.isclose(e["threshold"], shipped[key]["threshold"], rtol=1e-4, atol=0)
+        assert np.isclose(e["info"]["median"], shipped[key]["info"]["median"], rtol=1e-4, atol=0)
