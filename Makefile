@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench setup clean default-model docs
+.PHONY: demo test bench setup clean default-model calibrations docs
 
 $(STAMP): pyproject.toml Makefile
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
@@ -39,6 +39,10 @@ docs: $(STAMP)
 # Retrain the shipped eigenshapes (plugins/sdfcodec_pca/models/pca-128.npz) and rewrite docs/default-model.*
 default-model: $(STAMP)
 	$(PY) examples/train_default_model.py
+
+# Recompute the calibrations shipped for the shipped codecs (sdfcodec/search/shipped-calibrations.json)
+calibrations: $(STAMP)
+	$(PY) examples/ship_calibrations.py
 
 bench: $(STAMP)
 	$(VENV)/bin/sdfcodec bench

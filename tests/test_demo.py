@@ -75,17 +75,27 @@ def test_demo_short_run(tmp_path):
     assert (f"{se['scored_under_threshold']} blocks scored at or under it, and the map-level stage" in report
             and f"made that {se['selected']}" in report)
 
-    # precision and recall count the floor the fused map observed (issue 44), recomputed here from the analytic
-    # room and the map's observation mask alone
-    from sdfcodec.data.render import RoomScene
+    # precision and recall count the floor the fused map observed, with one truth (issue 44): the clean floor blocks
+    # of search.metrics.TRUTH["floor"] (a block where the floor meets a wall counts against precision), recomputed
+    # here from the analytic room and the map's observation mask alone
+    from sdfcodec.data.render import LABELS, RoomScene
 
     scene = RoomScene.load(out / "sequence" / "scene.json")
     coords = np.argwhere(raw.block_states() == 2)
-    truth = scene.floor_blocks(coords, raw.origin, raw.voxel_size, observed=raw.read_observed(coords))
-    assert se["floor_truth"] == "observed" and se["floor_blocks_truth"] == int(truth.sum()) > 0
-    assert se["floor_blocks_truth"] >= se["clean_floor_blocks"] >= se["clean_found"]
-    assert f"precision {se['precision_clean']:.2f}, recall {se['recall_clean']:.2f}" in report
-    assert se["precision_clean"] >= 0.9 and se["recall_clean"] >= 0.9  # 0.96 and 0.96 (16 frames, seed 0)
+    obs = raw.read_observed(coords)
+    half = scene.floor_blocks(coords, raw.origin, raw.voxel_size, observed=obs)
+    frac = scene.block_label_fractions(coords, raw.origin, raw.voxel_size, observed=obs)[:, LABELS.index("floor")]
+    clean = half & (frac >= 0.9)
+    seam = scene.floor_blocks(coords, raw.origin, raw.voxel_size, observed=obs,
+                              band=raw.voxel_size * (1 + 1e-6)) & ~half
+    assert se["floor_truth"] == "clean" and se["floor_blocks_truth"] == int(clean.sum()) > 0
+    assert se["half_floor_blocks"] == int(half.sum()) >= se["floor_blocks_truth"] >= se["true_positives"]
+    assert se["seam_blocks"] == int(seam.sum())
+    assert np.isclose(se["recall"], se["true_positives"] / se["floor_blocks_truth"])
+    assert f"precision {se['precision']:.2f}, recall {se['recall']:.2f}** ({se['true_positives']} found)" in report
+    assert f"precision {se['precision_half_floor']:.2f}, recall {se['recall_half_floor']:.2f}" in report
+    assert se["precision"] >= 0.9 and se["recall"] >= 0.9  # 0.96 and 0.96 (16 frames, seed 0)
+    assert se["precision_half_floor"] >= se["precision"]  # a block half floor selected is no false positive there
 
     tr = res["tracking"]
     assert tr["frames"] == 5

@@ -201,3 +201,66 @@ def test_plane_check_calibration_is_cached_and_equal(fresh_cache, tmp_path, monk
     cache.clear_memory_cache()
     assert plane_check.clean_residuals(up, codec, sha, quantile=0.9, **kw) == (t, med)
     assert len(calls) == before + 2  # the replaced file serves again
+
+
+def test_shipped_calibrations_equal_a_fresh_calibration(fresh_cache, monkeypatch):
+    """The plane-check calibrations shipped for the shipped pca sizes (examples/ship_calibrations.py) are found
+    under the keys a search computes for a fused map at the default voxel size and truncation, so a first search
+    calibrates none of them; every entry is keyed for the eigenshapes shipped today (a retrained model needs
+    `make calibrations`), and one recomputed from its recorded arguments gives the shipped figures."""
+    from sdfcodec.map import state_digest
+    from sdfcodec.search import plane_check
+    from sdfcodec.search.calibrate import CALIBRATION_QUANTILE, CALIBRATION_SAMPLES
+    from sdfcodec.search.query import FUSED_STRETCH
+
+    doc = json.loads(cache.SHIPPED_FILE.read_text())
+    assert doc["build"] == cache.BUILD_VERSION and len(doc["entries"]) == len(cache.shipped_thresholds()) >= 12
+    codecs = {}
+    for key, e in doc["entries"].items():
+        size = e["codec"]["code_size"]
+        codec = codecs.setdefault(size, pretrained_codec("pca", size))
+        a = dict(e["args"])
+        quantile = a.pop("quantile")
+        a["stretches"] = np.asarray(a["stretches"])
+        assert plane_check.plane_check_key(None, codec, state_digest(codec.state_dict()), quantile=quantile,
+                                           **a)[0] == key
+    calls = []
+    real = plane_check.verify_threshold
+    monkeypatch.setattr(plane_check, "verify_threshold", lambda *a, **k: calls.append(1) or real(*a, **k))
+    codec = codecs[64]
+    sha = state_digest(codec.state_dict())
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="unobserved", weighted=True, stretches=np.asarray(FUSED_STRETCH),
+              samples=CALIBRATION_SAMPLES)
+    got = plane_check.clean_residuals(np.array([0.1, -0.9, -0.4]), codec, sha, quantile=CALIBRATION_QUANTILE,
+                                      tol=1.8, seed=2, **kw)
+    assert calls == []  # shipped: no weighted encode
+    key, args = plane_check.plane_check_key(None, codec, sha, quantile=CALIBRATION_QUANTILE, tol=1.8, **kw)
+    assert args["tol"] == 2.0 and got == (doc["entries"][key]["threshold"], doc["entries"][key]["info"]["median"])
+    sim, _ = real(None, codec, quantile=CALIBRATION_QUANTILE, **args)
+    assert np.allclose(got, (np.quantile(sim, CALIBRATION_QUANTILE), np.median(sim)), rtol=1e-4, atol=0)
+    # a table that does not load ships nothing: the calibration is computed, with the same figures
+    monkeypatch.setattr(cache, "SHIPPED_FILE", cache.SHIPPED_FILE.with_name("no-such-file.json"))
+    monkeypatch.setattr(cache, "_shipped", None)
+    cache.clear_memory_cache()
+    again = plane_check.clean_residuals(np.array([0.0, 0.0, 1.0]), codec, sha, quantile=CALIBRATION_QUANTILE, tol=2.0,
+                                        **kw)
+    assert calls == [1] and np.allclose(again, got, rtol=1e-4, atol=0)
+
+
+def test_ship_calibrations_script_rewrites_the_shipped_entries(fresh_cache):
+    """examples/ship_calibrations.py (`make calibrations`) computes, for pca-32, the very entries shipped: same keys,
+    thresholds and medians to float tolerance."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "ship_calibrations.py"
+    spec = importlib.util.spec_from_file_location("ship_calibrations", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    got = module.entries(sizes=(32,))
+    shipped = json.loads(cache.SHIPPED_FILE.read_text())["entries"]
+    assert len(got) == 4 and set(got) <= set(shipped)
+    for key, e in got.items():
+        assert e["args"] == shipped[key]["args"] and e["codec"] == shipped[key]["codec"]
+        assert np.isclose(e["threshold"], shipped[key]["threshold"], rtol=1e-4, atol=0)
+        assert np.isclose(e["info"]["median"], shipped[key]["info"]["median"], rtol=1e-4, atol=0)

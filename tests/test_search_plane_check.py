@@ -470,3 +470,65 @@ def test_a_blocks_own_plane_equals_the_fit_through_its_surface_points():
         want = (_G - pts.mean(axis=0)) @ normal
     assert np.degrees(np.arccos(min(1.0, normal @ n_true))) < 1.0
     np.testing.assert_allclose(local[0], want, atol=1e-9)
+
+
+def test_surface_true_calibration_is_one_for_every_direction(tmp_path, monkeypatch):
+    """A surface-true (weighted) map's plane check is calibrated once for all planes, over normals drawn uniformly
+    over the sphere, at the tolerance rounded to the moves' step: what it gives is what calibrating any single
+    direction gives, within the sampling (the 90 % quantile of an axis-aligned, a cube-diagonal and a kitchen-like
+    normal's own clean residuals within 20 % of the pooled one), and a second plane or a nearby tolerance costs no
+    second weighted encode."""
+    from sdfcodec.map import state_digest
+    from sdfcodec.search import cache, plane_check
+    from sdfcodec.search.query import FUSED_STRETCH
+
+    monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path / "cache"))
+    cache.clear_memory_cache()
+    codec = pretrained_codec("pca", 64)
+    sha = state_digest(codec.state_dict())
+    calls = []
+    real = plane_check.verify_threshold
+    monkeypatch.setattr(plane_check, "verify_threshold", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="unobserved", weighted=True,
+              stretches=np.asarray(FUSED_STRETCH), samples=256)
+    pooled = plane_check.clean_residuals(np.array([0.0, 0.0, 1.0]), codec, sha, quantile=0.9, tol=2.0, seed=3, **kw)
+    assert calls == [None]  # drawn over the sphere, not along the plane given
+    diag = np.ones(3) / math.sqrt(3.0)
+    assert plane_check.clean_residuals(diag, codec, sha, quantile=0.9, tol=1.9, seed=5, **kw) == pooled
+    assert calls == [None]  # another normal, seed and a tolerance rounding to the same step: from the cache
+    sim, _ = real(None, codec, quantile=0.9, tol=2.0, seed=0, **kw)
+    assert pooled == (float(np.quantile(sim, 0.9)), float(np.median(sim)))
+    for n in (np.array([0.0, 0.0, 1.0]), diag, np.array([-0.104, -0.891, -0.442])):
+        own, _ = real(n / np.linalg.norm(n), codec, quantile=0.9, tol=2.0, seed=1, **kw)
+        assert abs(float(np.quantile(own, 0.9)) / pooled[0] - 1.0) < 0.2
+    # an exact (plain-projected) map keeps one calibration per normal: there the direction matters
+    exact = dict(kw, behind="solid", weighted=False, stretches=np.array([1.0]))
+    a = plane_check.clean_residuals(np.array([0.0, 0.0, 1.0]), codec, sha, quantile=0.9, tol=2.0, **exact)
+    b = plane_check.clean_residuals(diag, codec, sha, quantile=0.9, tol=2.0, **exact)
+    assert a != b and len(calls) == 3 and calls[-1] is not None
+    cache.clear_memory_cache()
+
+
+def test_shipped_calibrations_select_what_fresh_ones_select(tmp_path, tilted_floor, monkeypatch):
+    """The tilted floor with a box on it, as fusion leaves it: a search that takes the plane check's calibrations
+    from the shipped table selects exactly what one that calibrates them afresh (no table, no cache) selects,
+    and that holds the analytic floor's clean blocks and none holding the box's foot."""
+    from sdfcodec.search import cache, plane_check
+
+    _, n, clean, mixed = tilted_floor
+    vol, observed = fused_like(_tilted_scene()[4])
+    write_volume_map(tmp_path / "f.sdfz", vol, observed, pretrained_codec("pca", 32))
+    calls = []
+    real = plane_check.verify_threshold
+    monkeypatch.setattr(plane_check, "verify_threshold", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setenv(cache.CACHE_ENV, "off")
+    cache.clear_memory_cache()
+    shipped = search(tmp_path / "f.sdfz", "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    assert calls == [] and len(shipped.stats["scene"]["plane_check"]["planes"]) >= 1
+    monkeypatch.setattr(cache, "_shipped", {})
+    cache.clear_memory_cache()
+    fresh = search(tmp_path / "f.sdfz", "floor", threshold="auto", up=tuple(n), tilt=8.0)
+    assert len(calls) >= 1 and np.array_equal(fresh.coords, shipped.coords)
+    got = {tuple(int(v) for v in c) for c in shipped.coords}
+    assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
+    cache.clear_memory_cache()

@@ -7,7 +7,8 @@ depend only on what the key names (the shape, the codec's configuration and stat
 truncation, up direction, rotations, offsets, what lies behind surfaces, the weighting and stretches), never
 on the map's blocks, so they are built once and reused: within a process from memory (least recently used
 first out), across processes from ``.npz`` files of plain arrays (``save_query``/``load_query``; never
-pickles) under the cache directory.
+pickles) under the cache directory; and the calibrations that depend on no map (the plane check of fused maps)
+come shipped for the shipped codecs (:func:`shipped_thresholds`).
 
 The directory is ``$SDFCODEC_CACHE_DIR`` if set (set it empty, ``0`` or ``off`` to keep nothing on disk), else
 ``$XDG_CACHE_HOME/sdfcodec`` or ``~/.cache/sdfcodec``. A cache file is untrusted like any input: one that does
@@ -29,8 +30,8 @@ import numpy as np
 
 from ..errors import SDFCodecError
 
-__all__ = ["CACHE_ENV", "cache_dir", "cache_key", "cached_model", "cached_threshold", "clear_memory_cache",
-           "announce_builds"]
+__all__ = ["CACHE_ENV", "SHIPPED_FILE", "cache_dir", "cache_key", "cached_model", "cached_threshold",
+           "clear_memory_cache", "announce_builds", "shipped_thresholds"]
 
 #: Environment variable naming the cache directory (empty, ``0`` or ``off``: no disk cache).
 CACHE_ENV = "SDFCODEC_CACHE_DIR"
@@ -43,6 +44,9 @@ MEMORY_ENTRIES = 64
 _models: collections.OrderedDict[str, Any] = collections.OrderedDict()
 _listeners: list[Callable[[str], None]] = []  # told what is being built, before a cache miss is built
 _thresholds: collections.OrderedDict[str, tuple[float, dict]] = collections.OrderedDict()
+#: Calibrations shipped with sdfcodec, under the keys a search computes (:func:`shipped_thresholds`).
+SHIPPED_FILE = Path(__file__).with_name("shipped-calibrations.json")
+_shipped: dict[str, tuple[float, dict]] | None = None
 
 
 def cache_dir() -> Path | None:
@@ -71,6 +75,26 @@ def cache_key(kind: str, **parts: Any) -> str:
 
     doc = json.dumps({"kind": kind, "build": BUILD_VERSION, **plain(parts)}, sort_keys=True, allow_nan=False)
     return hashlib.sha256(doc.encode()).hexdigest()
+
+
+def shipped_thresholds() -> dict[str, tuple[float, dict]]:
+    """The calibrations shipped with sdfcodec (:data:`SHIPPED_FILE`, written by ``examples/ship_calibrations.py``:
+    the plane check of surface-true maps for the shipped pca sizes at the default voxel size and truncation), by
+    cache key: a first search on a fused map finds them as a warm cache would. A key names the codec's state
+    digest and :data:`BUILD_VERSION`, so an entry made for other eigenshapes or an older build is never found;
+    an unreadable file ships nothing."""
+    global _shipped
+    if _shipped is None:
+        table: dict[str, tuple[float, dict]] = {}
+        try:
+            for key, e in json.loads(SHIPPED_FILE.read_text(encoding="utf-8"))["entries"].items():
+                t, info = e["threshold"], e["info"]
+                if isinstance(t, float) and np.isfinite(t) and t >= 0 and isinstance(info, dict):
+                    table[key] = (t, info)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            table = {}
+        _shipped = table
+    return _shipped
 
 
 def _remember(store: collections.OrderedDict, key: str, value: Any) -> Any:
@@ -145,6 +169,9 @@ def cached_threshold(key: str, compute: Callable[[], tuple[float, dict]],
     if key in _thresholds:
         _thresholds.move_to_end(key)
         return _thresholds[key]
+    shipped = shipped_thresholds().get(key)
+    if shipped is not None and valid(shipped[1]):
+        return _remember(_thresholds, key, (shipped[0], dict(shipped[1])))
     path = _path(key, ".json")
     if path is not None and path.is_file():
         try:

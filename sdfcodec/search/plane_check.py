@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from .models import QueryModel
 
 __all__ = ["VERIFY_STEP", "BAND_VOXELS", "JUMP_VOXELS", "PURITY", "MIN_VERDICT_SURFACE", "plane_residuals",
-           "verify_threshold", "clean_residuals", "verify_planes", "check_planes"]
+           "verify_threshold", "clean_residuals", "plane_check_key", "verify_planes", "check_planes"]
 
 #: Offsets (voxels) along the plane's normal tried at each block, within the plane tolerance.
 VERIFY_STEP = 0.5
@@ -424,27 +424,34 @@ def _crossing(normal: np.ndarray) -> float:
     return float(_CENTRE * np.abs(normal).sum() + 1.0)
 
 
-def verify_threshold(normal: np.ndarray, codec: Codec, *, voxel_size: float, truncation: tuple[float, float],
-                     behind: str, weighted: bool, stretches: np.ndarray, tol: float, samples: int,
-                     quantile: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def verify_threshold(normal: np.ndarray | None, codec: Codec, *, voxel_size: float,
+                     truncation: tuple[float, float], behind: str, weighted: bool, stretches: np.ndarray, tol: float,
+                     samples: int, quantile: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Residuals of simulated clean blocks of the plane with ``normal`` (grid axes): ``samples`` instances at
     offsets uniform across the block (corner slivers redrawn), the checked plane off the true one by up to
     ``tol`` voxels, the field stretched within ``stretches``' range, stored per ``behind``, encoded the map's way
     (``weighted``: surface-true with the observation mask, as the map's writer does) and decoded with
-    ``codec``. Returns the residuals ``(samples,)`` and how many observed surface voxels each had."""
+    ``codec``. ``normal=None``: each instance's normal drawn uniformly over the sphere (the calibration of
+    surface-true maps, :func:`clean_residuals`). Returns the residuals ``(samples,)`` and how many observed
+    surface voxels each had."""
     from .models import encode_query_blocks
 
     rng = np.random.default_rng([int(seed), 29])
-    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
-    along = _GRID @ n  # voxels along the normal from the block centre
-    ext = _crossing(n)
+    g = _GRID.reshape(-1, 3)
+    n = None if normal is None else np.asarray(normal, np.float64) / np.linalg.norm(normal)
     true_d, shown_d = [], []
     while len(true_d) < samples:
+        nk = n
+        if nk is None:
+            nk = rng.normal(size=3)
+            nk /= max(float(np.linalg.norm(nk)), 1e-12)
+        along = g @ nk  # voxels along the normal from the block centre
+        ext = _crossing(nk)
         c = rng.uniform(-ext, ext)
         if (np.abs(along - c) <= 1.0).sum() < MIN_SHAPE_SURFACE:
             continue
-        true_d.append(along.ravel() - c)
-        shown_d.append(along.ravel() - (c + rng.uniform(-tol, tol)))
+        true_d.append(along - c)
+        shown_d.append(along - (c + rng.uniform(-tol, tol)))
     true_d, shown_d = np.asarray(true_d), np.asarray(shown_d)
     st = rng.uniform(float(np.min(stretches)), float(np.max(stretches)), (samples, 1))
     d = true_d * st * voxel_size
@@ -460,26 +467,49 @@ def clean_residuals(normal: np.ndarray, codec: Codec, state_sha256: str | None, 
                     ) -> tuple[float, float]:
     """The ``quantile`` and the median of :func:`verify_threshold`'s residuals (``kw``: its other arguments;
     ``state_sha256``: :func:`~sdfcodec.search.models.codec_state_sha256` of ``codec``),
-    through the query cache (:mod:`sdfcodec.search.cache`): the simulated instances are seeded, so they depend on
-    nothing but what the key names. Each plane a search checks costs a weighted encode of ``samples`` simulated
-    blocks, most of a search's time on large real maps (the kitchen's walls: 5.9 of 14.7 s); a search repeated on
-    the same map, in this process or a later one, reuses them. A change to what the residuals measure MUST bump
-    :data:`~sdfcodec.search.cache.BUILD_VERSION`."""
-    from .cache import cache_key, cached_threshold
+    through the query cache (:mod:`sdfcodec.search.cache`, with the tables shipped for the shipped codecs first):
+    the simulated instances are seeded, so they depend on nothing but what the key names. A change to what the
+    residuals measure MUST bump :data:`~sdfcodec.search.cache.BUILD_VERSION`.
 
-    key = cache_key("plane-check", normal=np.asarray(normal, np.float64), codec=codec.get_config(),
-                    state=state_sha256, quantile=float(quantile),
-                    **{k: np.asarray(v, np.float64) if k == "stretches" else v for k, v in kw.items()})
+    Surface-true maps (``weighted``) are calibrated once for every plane, over normals drawn uniformly over the
+    sphere (``normal`` and ``seed`` are not used): their clean residuals do not depend on the plane's direction
+    beyond the calibration's own sampling noise (pca-64, the fused kitchen's context, 256 instances per normal:
+    99 % quantiles 1.93-2.61 over 14 normals, axis-aligned, diagonal and random, with no order among them; 1,024
+    instances of four of those normals, two seeds each: 2.26-2.68), and each calibration is a weighted encode
+    of ``samples`` simulated blocks, most of a cold search's time (the kitchen's walls: 11.5 of 21.8 s for 11
+    planes and refits). Others keep one calibration per normal: a plain projection is cheap, and an exact field's
+    residuals do depend on it (pca-64: 1.01 axis-aligned, 1.32 along a cube diagonal)."""
+    from .cache import cached_threshold
+
+    key, kw = plane_check_key(normal, codec, state_sha256, quantile=quantile, **kw)
+    pooled = bool(kw.get("weighted"))
 
     def compute() -> tuple[float, dict]:
-        sim, _ = verify_threshold(normal, codec, quantile=quantile, **kw)
+        sim, _ = verify_threshold(None if pooled else normal, codec, quantile=quantile, **kw)
         return float(np.quantile(sim, quantile)), {"median": float(np.median(sim))}
 
+    facing = "planes of any direction" if pooled else f"a plane facing {np.round(normal, 2).tolist()}"
     t, info = cached_threshold(key, compute,
                                valid=lambda info: isinstance(info.get("median"), float) and np.isfinite(info["median"]),
-                               what=f"calibrating the plane check of a plane facing {np.round(normal, 2).tolist()} "
-                                    f"for {codec.codec_id}-{codec.code_size}")
+                               what=f"calibrating the plane check of {facing} for {codec.codec_id}-{codec.code_size}")
     return t, info["median"]
+
+
+def plane_check_key(normal: np.ndarray | None, codec: Codec, state_sha256: str | None, *, quantile: float,
+                    **kw: Any) -> tuple[str, dict]:
+    """The cache key of :func:`clean_residuals`' calibration and the :func:`verify_threshold` arguments it is
+    computed with (``kw`` with, for surface-true maps, the seed and the rounded tolerance that calibration uses):
+    also the key of the tables shipped for the shipped codecs (:func:`sdfcodec.search.cache.shipped_thresholds`)."""
+    from .cache import cache_key
+
+    pooled = bool(kw.get("weighted"))
+    if pooled:  # and at the plane tolerance rounded to the moves' step: a refit's tolerance is any number, but
+        # the clean residuals move with it less than with the sampling (1.0, 1.5, 2.0 voxels: 2.30, 2.17, 2.08)
+        kw = {**kw, "seed": 0, "tol": float(max(VERIFY_STEP, VERIFY_STEP * np.round(kw["tol"] / VERIFY_STEP)))}
+    key = cache_key("plane-check", normal=None if pooled else np.asarray(normal, np.float64),
+                    codec=codec.get_config(), state=state_sha256, quantile=float(quantile),
+                    **{k: np.asarray(v, np.float64) if k == "stretches" else v for k, v in kw.items()})
+    return key, kw
 
 
 def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.ndarray, strong: np.ndarray,
@@ -615,6 +645,8 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
             if np.degrees(np.arccos(min(1.0, float(n2 @ n)))) > PLANE_REFIT_DEG:
                 n2 = n  # too few blocks, or all in a line: keep the normal, refit the offset
             n, d = n2, float(n2 @ mu)
+            # rounded to the moves' step: the moves tried are then whole steps (0 among them), and the few
+            # tolerances that remain share their calibrations (clean_residuals)
             t_used = float(min(tol, VERIFY_STEP + np.quantile(np.abs((q[fit] - mu) @ n) / vs, 0.95)))
             if len(st) == 1:  # a stretched (fused) field's decoded distances are not Euclidean: no sub-voxel fit
                 d = _surface_offset(x[fit], obs[fit], dist[fit] - moved[fit, None], centres[near[fit]], n, d,
