@@ -26,7 +26,7 @@ def fuse_cmd(
     truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
     depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 storage of the field (int8: per-block offset and scale)."),
-    weights: Optional[bool] = typer.Option(None, "--keep-weights/--no-keep-weights", "--weights/--no-weights", help="Store the per-voxel fusion weights [default: with raw (float16); not with a lossy --codec, whose map keeps only the observation mask; kept, they are uint8 counts]."),
+    weights: Optional[bool] = typer.Option(None, "--keep-weights/--no-keep-weights", "--weights/--no-weights", help="Store the per-voxel fusion weights (default: yes with raw, as float16; no with a lossy --codec, whose map keeps only the observation mask; kept there, they are uint8 counts)."),
     codec_id: str = typer.Option("raw", "--codec", help="Codec of the map: raw (lossless), pca (the shipped eigenshapes), or another fitted one."),
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length of --codec pca (default 64)."),
     working_set_mb: Optional[float] = typer.Option(None, "--working-set-mb", help="Fuse online: at most this many MiB of dense blocks in memory, the rest paged out into the map (32 KiB a block)."),
@@ -108,10 +108,13 @@ def track_cmd(
     report(summary, as_json, lambda: _track_sentence(summary, map_path, sequence))
 
 
+_START_WORDS = {"groundtruth": "ground-truth first pose", "identity": "identity pose (--start identity)"}
+
+
 def _track_sentence(s: dict[str, Any], map_path: str, sequence: str) -> str:
     """``sdfcodec track``'s summary: frames, ATE/RPE against the ground truth when there is one, speed, file."""
     text = f"tracked {s['frames']} frames of {sequence} in {map_path} ({s['frames_per_s']:.1f} frames/s, " \
-           f"{s['seconds']:.1f} s, start {s['start']})"
+           f"{s['seconds']:.1f} s, from the {_START_WORDS.get(s['start'], s['start'])})"
     if s.get("failures"):
         text += f", {len(s['failures'])} frame(s) lost"
     if s.get("ate"):
