@@ -82,3 +82,15 @@ def test_every_option_is_described(command):
             own = re.compile(rf"│\s{{1,5}}(\*\s+)?{re.escape(name)}(\s|,)")
             row = next(line for line in text.splitlines() if own.match(line))
             assert p.help.split()[0] in row, (command, name, row)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_no_help_text_is_lost_as_markup(command):
+    """Every word of every option's help reaches the screen: typer renders help as rich markup, where a bracketed
+    phrase starting with a letter (``[default: with raw ...]``) is a style tag and silently disappears (fuse's
+    ``--keep-weights`` lost its whole default that way)."""
+    cmd = typer.main.get_command(app).commands[command]  # type: ignore[attr-defined]
+    shown = set(re.findall(r"[A-Za-z]{3,}", _help(command)))
+    for p in cmd.params:
+        lost = set(re.findall(r"[A-Za-z]{3,}", getattr(p, "help", None) or "")) - shown
+        assert not lost, f"sdfcodec {command} {p.name}: {sorted(lost)} of its help is not shown"
