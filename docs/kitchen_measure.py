@@ -30,6 +30,7 @@ STEPS = [
     "sdfcodec fuse 7scenes-redkitchen kitchen.sdfz",
     "sdfcodec info kitchen.sdfz",
     "sdfcodec encode kitchen.sdfz kitchen-pca.sdfz",
+    "sdfcodec encode kitchen.sdfz kitchen-pca32.sdfz --code-size 32",
     "sdfcodec encode kitchen.sdfz kitchen-128.sdfz --target-bytes 128",
     "sdfcodec encode kitchen.sdfz kitchen-sz3.sdfz --codec sz3",
     "sdfcodec encode kitchen.sdfz kitchen-sz3-1cm.sdfz --codec sz3 --max-error 0.01",

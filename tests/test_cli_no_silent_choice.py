@@ -112,6 +112,11 @@ def test_fuse_progress_counts_frames(tmp_path):
     lines = [line for line in r.stderr.splitlines() if line.startswith("fusing")]
     assert lines and all(" of 40 frames (" in line for line in lines if "so far" not in line), lines
     assert any(" of 40 frames (" in line for line in lines), lines
+    # the summary states the grid it chose (the defaults but for --voxel-size) and what it kept beside the field
+    m = sdfcodec.open_map(tmp_path / "room.sdfz")
+    assert m.voxel_size == 0.04 and m.truncation == (-0.04, 0.1) and m.has_weights
+    assert (f"at 0.04 m voxels, truncation [-0.04, 0.1] m; " in r.stdout
+            and f"{human_bytes(m.info()['bytes_on_disk'])} with the fusion weights" in r.stdout), r.stdout
 
 
 def test_encode_names_the_codec_it_chose(volume, tmp_path):

@@ -12,7 +12,7 @@ import typer
 from .common import reads_maps
 from .common import (app, check_code_size, cli, err, fail, heartbeat, live_progress, load_volume,
                      parse_truncation, print_json, print_table, progress_bar, refuse_existing, report, say, working)
-from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
+from .common import human_bytes, json_option, overwrite_option  # the --json and --overwrite every command shares
 
 __all__: list[str] = []  # commands register on the app; nothing to import from here
 
@@ -76,9 +76,12 @@ def fuse_cmd(
                "frames_skipped": fused.frames_skipped, "allocated_blocks": len(fused), "blocks": info["blocks"],
                "fusion_seconds": fused.seconds, "frames_per_s": fused.frames_integrated / max(fused.seconds, 1e-9),
                "bytes_on_disk": info["bytes_on_disk"]}
+    skipped = f", {fused.frames_skipped} skipped" if fused.frames_skipped else ""  # e.g. no pose: said, not silent
     report(summary, as_json, lambda: (
-        f"wrote {output}: {fused.frames_integrated} frames ({summary['frames_per_s']:.0f} frames/s), "
-        f"{len(fused)} allocated blocks ({info['blocks']['coded']} coded, {info['blocks']['empty']} empty)"))
+        f"wrote {output}: {fused.frames_integrated} frames{skipped} ({summary['frames_per_s']:.0f} frames/s) at "
+        f"{voxel_size:g} m voxels, truncation [{trunc[0]:g}, {trunc[1]:g}] m; {len(fused)} allocated blocks "
+        f"({info['blocks']['coded']} coded, {info['blocks']['empty']} empty), {human_bytes(info['bytes_on_disk'])} "
+        + ("with the fusion weights" if keep else "with the observation mask")))
 
 
 @app.command("track")
