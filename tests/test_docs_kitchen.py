@@ -184,3 +184,14 @@ def test_the_readme_quotes_the_recorded_run():
     assert len(figures) >= 8, figures
     for f in figures:
         assert f in printed, f"README quotes {f!r}, which the recorded walk-through did not print"
+
+
+def test_the_cost_table_is_the_record():
+    """The page's table of what each step cost is the record's wall, CPU and load, row by row."""
+    rows = re.findall(r"^\| `(sdfcodec [^`]+)`(?: \(again\))? \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) \|$",
+                      PAGE.read_text(encoding="utf-8"), flags=re.M)
+    assert len(rows) == len(RECORD["records"])
+    for (cmd, wall, cpu, load), rec in zip(rows, RECORD["records"]):
+        assert cmd == rec["command"]
+        assert (float(wall), float(cpu), float(load)) == (round(rec["wall_s"], 1), round(rec["cpu_s"], 1),
+                                                          round(rec["load_before"], 1)), cmd
