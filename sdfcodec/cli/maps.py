@@ -579,10 +579,12 @@ def _warn_lossy_level(m: Map, level: Optional[int]) -> None:
     r = m.header.residual
     if r is None or level is None or level >= m.code_size:
         return
-    what = " and ".join(([f"the {r.max_error * 1000:g} mm error bound"] if r.max_error is not None else [])
-                        + (["the exact signs"] if r.sign_exact else []))
-    err.print(f"warning: {m.location}: --level {level} decodes without the residual stage, so {what} of the full "
-              f"level ({m.code_size}) no longer hold; leave --level out to keep them", markup=False, highlight=False)
+    held = ([f"the {r.max_error * 1000:g} mm error bound"] if r.max_error is not None else []) + (
+        ["the exact signs"] if r.sign_exact else [])
+    verb, it = ("no longer hold", "them") if len(held) > 1 or not r.max_error else ("no longer holds", "it")
+    err.print(f"warning: {m.location}: --level {level} decodes without the residual stage, so {' and '.join(held)} "
+              f"of the full level ({m.code_size}) {verb}; leave --level out to keep {it}", markup=False,
+              highlight=False)
 
 
 @app.command("mesh")
