@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import re
 import shlex
@@ -127,6 +128,8 @@ def test_the_quick_commands_still_print_what_the_page_quotes(small, monkeypatch)
         args = shlex.split(cmd)[1:]
         if args[0] not in QUICK or any("://" in a for a in args):
             continue
+        if "sz3" in cmd and importlib.util.find_spec("pysz") is None:
+            continue  # the optional extra sdfcodec[sz3]; its steps are checked against the record above
         r = runner.invoke(app, args + (["--overwrite"] if args[0] in ("encode", "decode", "mesh") else []))
         assert r.exit_code == 0, (cmd, r.output[-2000:])
         printed = r.output.splitlines()
