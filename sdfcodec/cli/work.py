@@ -26,12 +26,16 @@ def fuse_cmd(
     truncation: str = typer.Option("-0.04,0.1", "--truncation", help="d_min,d_max in metres."),
     depth_max: float = typer.Option(4.0, "--depth-max", help="Ignore depth beyond this (metres)."),
     code_dtype: str = typer.Option("float32", "--code-dtype", help="float32, float16 or int8 storage of the field (int8: per-block offset and scale)."),
-    weights: Optional[bool] = typer.Option(None, "--keep-weights/--no-keep-weights", "--weights/--no-weights", help="Store the per-voxel fusion weights (default: yes with raw, as float16; no with a lossy --codec, whose map keeps only the observation mask; kept there, they are uint8 counts)."),
+    weights: Optional[bool] = typer.Option(None, "--keep-weights/--no-keep-weights", help="Store the per-voxel fusion weights (default: yes with raw, as float16; no with a lossy --codec, whose map keeps only the observation mask; kept there, they are uint8 counts)."),
     codec_id: str = typer.Option("raw", "--codec", help="Codec of the map: raw (lossless), pca (the shipped eigenshapes), or another fitted one."),
     code_size: Optional[int] = typer.Option(None, "--code-size", help="Code length of --codec pca (default 64)."),
     working_set_mb: Optional[float] = typer.Option(None, "--working-set-mb", help="Fuse online: at most this many MiB of dense blocks in memory, the rest paged out into the map (32 KiB a block)."),
     overwrite: bool = overwrite_option(),
     as_json: bool = json_option(),
+    # the older spelling, still taken; hidden so that the options column stays narrow (at 80 columns all four
+    # names truncated the column and squeezed every option's help)
+    weights_alias: Optional[bool] = typer.Option(None, "--weights/--no-weights", hidden=True,
+                                                 help="Same as --keep-weights/--no-keep-weights."),
 ) -> None:
     """Fuse a posed depth sequence (Curless-Levoy, open3d VoxelBlockGrid) into a map (lossless `raw` by default).
 
@@ -40,6 +44,9 @@ def fuse_cmd(
     back when the camera returns. Otherwise transcode afterwards with `sdfcodec encode OUTPUT SMALLER.sdfz`.
     """
     trunc = parse_truncation(truncation)  # before open3d and torch load: a reversed range is refused at once
+    if weights is not None and weights_alias is not None and weights != weights_alias:
+        fail("--keep-weights and --no-weights (or the reverse) contradict each other: pass one")
+    weights = weights if weights is not None else weights_alias
     refuse_existing(output, overwrite, map_output=True)
     from ..evaluation.tracking import resolve_sequence
     from ..fusion.tsdf import fuse
@@ -305,7 +312,7 @@ def bench_cmd(
                               "the GEMM roofline and a device copy, decode on read into the device, search scoring, "
                               "tracking (sdfcodec.bench.cases); with --quick tiny sizes."),
     cases: Optional[str] = typer.Option(None, "--cases", help="--full: the cases to run (default all: "
-                                        "pca-decode,decode-on-read,search,tracking)."),
+                                        "pca-decode, decode-on-read, search, tracking)."),
     compare: Optional[tuple[Path, Path]] = typer.Option(None, "--compare", help="Compare two run files (A B, from "
                                                         "--out) instead: how far every ratio agrees."),
     tolerance: float = typer.Option(0.15, "--tolerance", help="--compare: the disagreement counted as agreeing."),
