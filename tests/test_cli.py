@@ -162,9 +162,16 @@ def test_bench_json_records():
         x = next(x for x in recs if x["operation"] == op)
         assert x["memcpy_blocks_per_s"] == pytest.approx(x["memcpy_bytes_per_s"] / 16384)
         assert x["ratio_to_memcpy"] > 0  # paired round by round with the copy (sdfcodec.bench.harness.paired)
-    # --read 0 --no-search works (two rounds, as above: what is checked is the path, not the figures)
-    assert run("bench", "--quick", "--sizes", "32", "--batches", "1", "--read", "0", "--no-search", "--repeats", "2",
-               "--json").exit_code == 0
+    # --read 0 --no-search works (two rounds, as above: what is checked is the path, not the figures), and its table
+    # says each speed-up against the paper's 405 us/block to two figures (a slow encode read "0x" before)
+    r = run("bench", "--quick", "--sizes", "32", "--batches", "1", "--read", "0", "--no-search", "--repeats", "2")
+    assert r.exit_code == 0, r.output
+    rows = [line.split("\t") for line in r.stdout.splitlines() if line.startswith("32\t")]
+    assert rows and any(line.startswith("code\t") and line.endswith("\tvs paper's 405 us/block")
+                        for line in r.stdout.splitlines()), r.stdout
+    for row in rows:
+        want = 405 / float(row[-2])
+        assert row[-1] != "0x" and float(row[-1].rstrip("x").replace(",", "")) == pytest.approx(want, rel=0.06), row
     read = next(x for x in recs if x["operation"] == "decode-on-read")
     # 300 pca-32 codes of float32 were really stored and read: at least their compressed bytes (4 B x 32 each,
     # Blosc-compressible, so bounded below loosely) and at most their raw size plus chunk overhead

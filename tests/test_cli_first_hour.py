@@ -106,7 +106,7 @@ def test_encode_summary_is_one_line_on_a_pipe(scene, tmp_path):
     out.parent.mkdir()
     r = sdfcodec_cli("encode", src, out, "--voxel-size", VS)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.count("\n") == 1 and len(r.stdout) > 120 and r.stdout.startswith(f"wrote {out}: ")
+    assert r.stdout.count("\n") == 1 and len(r.stdout) > 120 and r.stdout.startswith(f"wrote {out} with pca-64 (shipped model, by reference): ")
     assert f"{sdfcodec.open_map(out).count_states()['coded']} coded blocks" in r.stdout
 
 
@@ -227,6 +227,6 @@ def test_track_prints_one_sentence_with_its_ate(tmp_path):
     assert r.stdout.count("\n") == 1 and "{" not in r.stdout and "frames_per_s" not in r.stdout
     rmse = 1000 * ate(read_tum(seq / "groundtruth.txt"), read_tum(tmp_path / "t.txt")).rmse
     assert re.fullmatch(rf"tracked 6 frames of {re.escape(str(seq))} in {re.escape(str(tmp_path / 'raw.sdfz'))} "
-                        rf"\([\d.]+ frames/s, [\d.]+ s, start groundtruth\): ATE RMSE {rmse:.1f} mm \(max [\d.]+ mm\), "
+                        rf"\([\d.]+ frames/s, [\d.]+ s, from the ground-truth first pose\): ATE RMSE {rmse:.1f} mm \(max [\d.]+ mm\), "
                         rf"RPE [\d.]+ mm/frame against the ground truth; wrote {re.escape(str(tmp_path / 't.txt'))}\n",
                         r.stdout), r.stdout

@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 import sdfcodec
 from sdfcodec.cli import app
+from sdfcodec.cli.common import human_bytes
 from sdfcodec.core.sdf import Plane, Scene, Sphere, sample_volume
 
 VS = 0.02
@@ -74,7 +75,8 @@ def test_decode_at_a_level_below_a_max_error_map_warns(volume, tmp_path):
     assert full.exit_code == 0 and "warning" not in full.stderr
     low = run("decode", m, tmp_path / "low.npy", "--level", 8)
     assert low.exit_code == 0, low.output
-    assert "--level 8 decodes without the residual stage" in low.stderr and "10 mm error bound" in low.stderr
+    assert ("--level 8 decodes without the residual stage, so the 10 mm error bound of the full level (64) no "
+            "longer holds; leave --level out to keep it") in " ".join(low.stderr.split()), low.stderr
     # what the warning says is so: the full level holds the bound, level 8 does not
     src = np.clip(np.load(volume), -0.04, 0.1)
     observed = src < 0.1 - 1e-6  # the band around the surfaces
@@ -111,3 +113,47 @@ def test_fuse_progress_counts_frames(tmp_path):
     lines = [line for line in r.stderr.splitlines() if line.startswith("fusing")]
     assert lines and all(" of 40 frames (" in line for line in lines if "so far" not in line), lines
     assert any(" of 40 frames (" in line for line in lines), lines
+    # the summary states the grid it chose (the defaults but for --voxel-size) and what it kept beside the field
+    m = sdfcodec.open_map(tmp_path / "room.sdfz")
+    assert m.voxel_size == 0.04 and m.truncation == (-0.04, 0.1) and m.has_weights
+    assert (f"at 0.04 m voxels, truncation [-0.04, 0.1] m; " in r.stdout
+            and f"{human_bytes(m.info()['bytes_on_disk'])} with the fusion weights" in r.stdout), r.stdout
+
+
+def test_encode_names_the_codec_it_chose(volume, tmp_path):
+    """The walk-through's `encode` lines: a byte budget picks pca-128 prefixes and says so (it said only "codes
+    quantised with step ..."), the default says pca-64 from the shipped model; info then says the codes are
+    variable-rate, and a decode or compare of all a map holds says "full level", not sz3's "level 4096"."""
+    r = run("encode", volume, tmp_path / "d.sdfz", "--voxel-size", VS)
+    assert r.exit_code == 0 and r.stdout.startswith(f"wrote {tmp_path / 'd.sdfz'} with pca-64 (shipped model, by "
+                                                    "reference): "), r.output
+    r = run("encode", volume, tmp_path / "v.sdfz", "--voxel-size", VS, "--target-bytes", 128)
+    assert r.exit_code == 0, r.output
+    m = sdfcodec.open_map(tmp_path / "v.sdfz")
+    assert m.code_size == 128 and m.header.codes.variable_rate is not None  # what the line must then say
+    assert r.stdout.startswith(f"wrote {tmp_path / 'v.sdfz'} with pca-128 prefixes (shipped model, by reference): ")
+    assert "target 128 B (1 pass)" in r.stdout or "target 128 B (2 passes)" in r.stdout, r.stdout
+    info = run("info", tmp_path / "v.sdfz")
+    row = next(line for line in info.stdout.splitlines() if line.startswith("code\t"))
+    assert "variable-rate: each block keeps the prefix its rate buys" in row, row
+    assert json.loads(run("info", tmp_path / "v.sdfz", "--json").stdout)["code_storage"] == "variable-rate"
+    r = run("decode", tmp_path / "d.sdfz", tmp_path / "d.npy", "--level", 32)
+    assert r.exit_code == 0 and "(level 32 of 64, voxel 0.02 m" in r.stdout, r.output
+    r = run("decode", tmp_path / "d.sdfz", tmp_path / "f.npy")
+    assert r.exit_code == 0 and "(full level, voxel 0.02 m" in r.stdout, r.output
+
+
+def test_info_shows_no_codec_state_size_when_none_is_stored(volume, tmp_path):
+    """A map referencing the shipped model stores no state: `info` showed "on disk ... (codec state 37 B)" (the
+    codec group's metadata) beside "by reference", and a second ratio "without codec state" that differed by 0.1."""
+    assert run("encode", volume, tmp_path / "p.sdfz", "--voxel-size", VS).exit_code == 0
+    r = run("info", tmp_path / "p.sdfz")
+    rows = dict(line.split("\t", 1) for line in r.stdout.splitlines() if "\t" in line)
+    assert "codec state" not in rows["on disk"] and "ratio dense : disk without codec state" not in rows
+    assert rows["codec state"].startswith("not stored: the shipped model pca-128 at code size 64, by reference")
+    r = run("encode", volume, tmp_path / "fit.sdfz", "--voxel-size", VS, "--fit", "--code-size", 8)
+    assert r.exit_code == 0 and " with pca-8 (fitted on " in r.stdout, r.output
+    rows = dict(line.split("\t", 1) for line in run("info", tmp_path / "fit.sdfz").stdout.splitlines() if "\t" in line)
+    state = sdfcodec.open_map(tmp_path / "fit.sdfz").info()["codec_state_bytes"]
+    assert rows["on disk"].endswith(f"(codec state {human_bytes(state)})"), rows["on disk"]
+    assert "ratio dense : disk without codec state" in rows

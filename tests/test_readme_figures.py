@@ -38,4 +38,10 @@ def test_the_lossless_kitchen_is_the_size_fuse_writes():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     assert "1.7 MiB" not in text
     assert "2.5 MiB as the lossless map `sdfcodec fuse` writes (fusion weights included)" in text
-    assert "/ 2.5 MiB / 0.5 MiB" in _readme_row("real kitchen at 2 cm")
+    # the pca-32 map as `encode --code-size 32` writes it (the shipped model by reference), from the recorded
+    # walk-through of the kitchen (docs/how-to/kitchen.json); 0.5 MiB is that map with the basis embedded
+    walk = json.loads((ROOT / "docs/how-to/kitchen.json").read_text())["records"]
+    (pca32,) = [r for r in walk if r["command"] == "sdfcodec encode kitchen.sdfz kitchen-pca32.sdfz --code-size 32"]
+    kib = float(re.search(r"([\d.]+) KiB on disk", pca32["stdout"])[1])
+    assert f"/ 2.5 MiB / {kib:.0f} KiB; 0.5 MiB" in _readme_row("real kitchen at 2 cm")
+    assert f"{kib:.0f} KiB with 32-element PCA codes" in text

@@ -112,7 +112,7 @@ def test_by_reference_decodes_identically_smaller_and_verifies(ae_maps, tmp_path
         r = run("verify", m)
         assert r.exit_code == 0 and "OK" in r.stdout, r.output
     r = run("info", ref)
-    assert r.exit_code == 0 and "by reference to shipped model ae-64" in r.stdout
+    assert r.exit_code == 0 and "not stored: the shipped model ae-64 at code size 64, by reference" in r.stdout
     assert json.loads(run("info", ref, "--json").stdout)["codec_state"] == {"stored": "reference", "model": "ae-64",
                                                                            "sha256": digest}
 

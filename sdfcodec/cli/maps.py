@@ -105,7 +105,10 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
         ("format version", str(info["format_version"])),
         ("codec", json.dumps(info["codec"])),
         ("code", f"{info['code_size']} x {info['code_dtype']} (levels {info['levels']})"
-                 + (", metres as written (metric-codes)" if info.get("code_units") == "metres" else "")),
+                 + (", metres as written (metric-codes)" if info.get("code_units") == "metres" else "")
+                 + {"variable-rate": ", variable-rate: each block keeps the prefix its rate buys, entropy-coded "
+                                     "(variable-rate-codes)",
+                    "quantised": ", quantised with a step per element, entropy-coded"}.get(info.get("code_storage"), "")),
         ("layout", f"{info['chunk_blocks']}^3-block chunks of codes" + (
             f" in {info['shard_blocks']}^3-block shards (sharded-codes)" if info["shard_blocks"] else "")),
         ("voxel size", f"{info['voxel_size']} m"),
@@ -119,15 +122,19 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
     bound = _field_bound(info)
     if bound is not None:  # the codec's config keeps it in normalised units: the user gave (and reads) metres
         rows.insert(2, ("error bound", bound))
+    cs = info["codec_state"]
+    embedded = cs["stored"] == "embedded" and cs["sha256"] is not None  # else codec/ holds only its metadata
     if info["bytes_on_disk"] is not None:
-        rows += [("on disk", f"{human_bytes(info['bytes_on_disk'])} (codec state {human_bytes(info['codec_state_bytes'])})"),
-                 ("ratio dense : disk", f"{info['ratio_dense_to_disk']:.1f} : 1"),
-                 ("ratio dense : disk without codec state", f"{info['ratio_dense_to_codes']:.1f} : 1")]
+        rows += [("on disk", human_bytes(info["bytes_on_disk"]) + (
+                     f" (codec state {human_bytes(info['codec_state_bytes'])})" if embedded else "")),
+                 ("ratio dense : disk", f"{info['ratio_dense_to_disk']:.1f} : 1")]
+        if embedded:
+            rows.append(("ratio dense : disk without codec state", f"{info['ratio_dense_to_codes']:.1f} : 1"))
     else:
         rows.append(("on disk", "not known for a remote map (a server does not list its files); "
                                 "`sdfcodec info` on a local copy shows it"))
-    cs = info["codec_state"]
-    rows.append(("codec state", f"by reference to shipped model {cs['model']} (sha256 {cs['sha256']})"
+    rows.append(("codec state", f"not stored: the shipped model {cs['model']} at code size {info['code_size']}, "
+                                f"by reference (sha256 {cs['sha256'][:16]}...)"
                  if cs["stored"] == "reference" else "none (the codec learns nothing)" if cs["sha256"] is None
                  else f"embedded (sha256 {cs['sha256']})"))
     if info.get("observation_mask") is not None:
@@ -322,12 +329,28 @@ def encode_cmd(
     if info["residual"] is not None:
         summary["residual"] = info["residual"]
     report(summary, as_json, lambda: (
-        f"wrote {output}: {info['blocks']['coded']} coded blocks, {human_bytes(info['bytes_on_disk'])} on disk, "
+        f"wrote {output} with {_codec_words(codec, info, model, fitted_on, vr)}: "
+        f"{info['blocks']['coded']} coded blocks, {human_bytes(info['bytes_on_disk'])} on disk, "
         f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32" + ("" if quant is None else
         f"; codes quantised with step {quant['step']:.4g}: {quant['bytes_per_coded_block']:.1f} stored bytes per "
         f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes)" +
-        (f", target {quant['target_bytes']:g} after {quant['passes']} pass(es)" if quant.get("target_bytes") else ""))
+        (f", target {quant['target_bytes']:g} B ({quant['passes']} {'pass' if quant['passes'] == 1 else 'passes'})" if quant.get("target_bytes") else ""))
         + ("" if info["residual"] is None else f"; {_residual_line(info['residual'])}")))
+
+
+def _codec_words(codec: Codec, info: dict, model: Optional[Path], fitted_on: Optional[int], vr: bool) -> str:
+    """What ``encode`` chose, said (issue 44: no silent choice): ``pca-64 (shipped model, by reference)``,
+    ``pca-128 prefixes (...)`` for variable-rate codes, ``sz3 (7 mm bound)``, ``ae-64 (fitted on N blocks)``."""
+    bound = _field_bound(info)
+    if bound is not None:
+        return f"{codec.codec_id} ({bound.split(' on ')[0]} bound)"
+    sized = len(type(codec).code_sizes) > 1  # raw has one size (its 4,096 voxels): no choice to state
+    name = (f"{codec.codec_id}-{codec.code_size}" if sized else codec.codec_id) + (" prefixes" if vr else "")
+    where = (f"from {model}" if model is not None else f"fitted on {fitted_on} blocks" if fitted_on else
+             "shipped model" if info["codec_state"]["stored"] == "reference" or _ships(codec) else None)
+    if where is not None and info["codec_state"]["stored"] == "reference":
+        where += ", by reference"
+    return name + (f" ({where})" if where else "")
 
 
 def _field_bound(info: dict) -> str | None:
@@ -545,8 +568,11 @@ def decode_cmd(
     write_output(output, save)
     summary = {"output": str(output), "shape": list(vol.shape), "level": level or m.code_size,
                "voxel_size": m.voxel_size, "origin": origin, "truncation": list(m.truncation)}
+    from ..evaluation.compare import level_text
+
     report(summary, as_json, lambda: (
-        f"wrote {output}: {' x '.join(map(str, vol.shape))} voxels of float32 metres (level {summary['level']}, "
+        f"wrote {output}: {' x '.join(map(str, vol.shape))} voxels of float32 metres "
+        f"({level_text(summary['level'], m.code_size)}, "
         f"voxel {m.voxel_size} m, origin {tuple(round(o, 6) for o in origin)} m)"))
 
 
@@ -556,10 +582,12 @@ def _warn_lossy_level(m: Map, level: Optional[int]) -> None:
     r = m.header.residual
     if r is None or level is None or level >= m.code_size:
         return
-    what = " and ".join(([f"the {r.max_error * 1000:g} mm error bound"] if r.max_error is not None else [])
-                        + (["the exact signs"] if r.sign_exact else []))
-    err.print(f"warning: {m.location}: --level {level} decodes without the residual stage, so {what} of the full "
-              f"level ({m.code_size}) no longer hold; leave --level out to keep them", markup=False, highlight=False)
+    held = ([f"the {r.max_error * 1000:g} mm error bound"] if r.max_error is not None else []) + (
+        ["the exact signs"] if r.sign_exact else [])
+    verb, it = ("no longer hold", "them") if len(held) > 1 or not r.max_error else ("no longer holds", "it")
+    err.print(f"warning: {m.location}: --level {level} decodes without the residual stage, so {' and '.join(held)} "
+              f"of the full level ({m.code_size}) {verb}; leave --level out to keep {it}", markup=False,
+              highlight=False)
 
 
 @app.command("mesh")
@@ -606,7 +634,8 @@ def mesh_cmd(
     write_output(output, write_mesh, "writing the mesh")
     summary = {"output": str(output), "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
     report(summary, as_json, lambda: (
-        f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles"))
+        f"wrote {output}: {summary['vertices']} vertices, {summary['triangles']} triangles (metres, in the map's "
+        "frame)"))
 
 
 @app.command("search")

@@ -337,7 +337,7 @@ def _run(out: Path, bars: _Bars, *, voxel_size: float, code_sizes: tuple, preset
         maps[name] = m
         r = rows[-1]
         log(f"{name}: codes {dense_bytes / r['code_bytes']:.0f}:1, file {dense_bytes / r['bytes_on_disk']:.0f}:1 against "
-            f"dense float32; MSE {r['mse_vs_fused']:.2e} vs fused, {r['rmse_near_vs_exact_mm']:.1f} mm RMSE vs exact; "
+            f"dense float32; MSE {r['mse_vs_fused']:.2e} vs fused (in units of the {_RANGE:g} m truncation range), {r['rmse_near_vs_exact_mm']:.1f} mm RMSE vs exact; "
             f"surfaces vs fused: Chamfer-L1 {_mm(r['surface']['chamfer_l1'])}, F@1 {r['surface']['f_score_1']:.3f}; "
             f"encode {t_enc:.1f} s, decode {t_dec:.2f} s")
     timings["encode_s"] = sum(r["encode_s"] for r in rows[1:])

@@ -9,7 +9,7 @@ from typing import Any
 from ..core.surface import compare_maps, compare_volume_map
 from ..map import open_map
 
-__all__ = ["compare_command", "metrics_table", "metrics_rows", "metrics_title", "metrics_sentence"]
+__all__ = ["compare_command", "metrics_table", "metrics_rows", "metrics_title", "metrics_sentence", "level_text"]
 
 
 def compare_command(original: str, decoded: str, *, level: int | None = None, quiet: bool = False,
@@ -25,7 +25,7 @@ def compare_command(original: str, decoded: str, *, level: int | None = None, qu
         with open_map(decoded) as b:
             metrics = compare_volume_map(volume[0], b, level=level, meta=volume[1])
             return {"original": str(original), "decoded": str(decoded), "level": level or b.code_size,
-                    "voxel_size": b.voxel_size, **metrics.to_dict()}
+                    "code_size": b.code_size, "voxel_size": b.voxel_size, **metrics.to_dict()}
     a = open_map(original)
     try:
         b = open_map(decoded)
@@ -38,7 +38,7 @@ def compare_command(original: str, decoded: str, *, level: int | None = None, qu
             task = prog.add_task("comparing (x-layers)", total=int(a.shape_voxels[0]))
             metrics = compare_maps(a, b, level=level, progress=lambda n: prog.advance(task, n))
         summary = {"original": str(original), "decoded": str(decoded), "level": level or b.code_size,
-                   "voxel_size": a.voxel_size}
+                   "code_size": b.code_size, "voxel_size": a.voxel_size}
     finally:
         a.close()
         b.close()
@@ -57,9 +57,17 @@ def metrics_table(summary: dict[str, Any]) -> Any:
     return t
 
 
+def level_text(level: int, code_size: int | None) -> str:
+    """The words for the level a map was decoded at: ``level 32 of 64`` for a prefix, ``full level`` for all of
+    its ``code_size`` elements (a field codec's 4,096 "elements" are its voxels, not a level anyone chose)."""
+    return "full level" if code_size is not None and level >= code_size else \
+        f"level {level}" + (f" of {code_size}" if code_size is not None else "")
+
+
 def metrics_title(summary: dict[str, Any]) -> str:
-    """What a :func:`compare_command` summary compares: ``DECODED (level K) against ORIGINAL``."""
-    return f"{summary['decoded']} (level {summary['level']}) against {summary['original']}"
+    """What a :func:`compare_command` summary compares: ``DECODED (level K of N) against ORIGINAL``."""
+    return (f"{summary['decoded']} ({level_text(summary['level'], summary.get('code_size'))}) against "
+            f"{summary['original']}")
 
 
 def metrics_sentence(summary: dict[str, Any]) -> str:

@@ -677,7 +677,7 @@ class MapReader:
         """:meth:`sdfcodec.Map.read_weights`: ``(N, 16, 16, 16)`` float32 fusion weights of blocks ``coords``."""
         if not self.has_weights:
             raise FormatError(f"{self.location} stores no fusion weights (write them with write_blocks(weights=...),"
-                              " e.g. `sdfcodec fuse --weights`)")
+                              " e.g. `sdfcodec fuse --keep-weights`)")
         c = check_coords(coords, grid=self.grid_blocks)
         return read_block_rows(self, self.observation_arrays()[0], c).astype(np.float32).reshape(len(c), BLOCK, BLOCK, BLOCK)
 

@@ -67,6 +67,9 @@ def summarize(h: MapHeader, location: str, root: str | None, counts: dict[str, i
         "code_dtype": h.codes.dtype,
         "code_units": h.codes.units or "normalised",  # "metres": metric codes, bit-exact (spec 4f)
         "levels": h.codes.levels,
+        # how the codes are stored beyond their dtype: variable-rate (a prefix per block, spec 4e) or int16 steps (4b)
+        "code_storage": ("variable-rate" if h.codes.variable_rate is not None else
+                         "quantised" if h.codes.quantisation is not None else "plain"),
         "chunk_blocks": h.codes.chunk_blocks,
         "shard_blocks": h.codes.shard_blocks,
         "voxel_size": h.voxel_size,
