@@ -19,7 +19,7 @@ What the kernel does instead, per block, in cache:
   fewer voxels), then refactorised (``k^3 / 3`` flops). Only the bound voxels are decoded to find the flips.
 
 Blocks are independent: ``prange`` runs them on every core. Results equal the batched path's to float32
-rounding (the Gram sums in float32, as the batched path's; the factorisation in float64).
+rounding (Grams, factorisations and solves in float32, as the batched path's).
 """
 
 from __future__ import annotations
@@ -129,39 +129,60 @@ def _build():  # noqa: C901 - one kernel: the per-block steps share their scratc
         return wsum
 
     @njit(fastmath=_FAST, cache=True)
-    def solve(g, rhs, c0i, lam, u, sol):
-        """sol = (G + lam I)^-1 (rhs + lam c0) in float64: G = U^T U by right-looking Cholesky (rows of U
-        contiguous: every inner loop a vector update); False where not positive definite or not finite."""
+    def solve(g, rhs, c0i, lam, chol, panel, sol):
+        """sol = (G + lam I)^-1 (rhs + lam c0) by Cholesky (float32, as the batched path): right-looking in
+        panels of four columns, the trailing triangle updated four columns at a time (the Gram's loop: 1.8
+        projections per factorisation here, against 3.1 unblocked and 3.5 for torch's batched LAPACK); False
+        where not positive definite or not finite."""
         k = g.shape[0]
         for i in range(k):
-            for j in range(i, k):
-                u[i, j] = g[j, i]
-            u[i, i] += lam
-        for j in range(k):
-            p = u[j, j]
-            if not p > 0:
-                return False
-            p = np.sqrt(p)
-            u[j, j] = p
-            uj = u[j]
-            for i in range(j + 1, k):
-                uj[i] /= p
-            for i in range(j + 1, k):
-                c = uj[i]
-                ui = u[i]
-                for b in range(i, k):
-                    ui[b] -= c * uj[b]
-        for i in range(k):  # forward: U^T y = b
-            s = np.float64(rhs[i]) + lam * c0i[i]
+            for j in range(i + 1):
+                chol[i, j] = g[i, j]
+            chol[i, i] += lam
+        for jb in range(0, k, 4):
+            je = min(jb + 4, k)
+            for j in range(jb, je):  # the panel, unblocked
+                d = chol[j, j]
+                if not d > 0:
+                    return False
+                d = np.sqrt(d)
+                chol[j, j] = d
+                for r in range(j + 1, k):
+                    chol[r, j] /= d
+                for j2 in range(j + 1, je):
+                    c = chol[j2, j]
+                    for r in range(j2, k):
+                        chol[r, j2] -= chol[r, j] * c
+            for q in range(je - jb):  # its columns below it, contiguous
+                for r in range(k):
+                    panel[q, r] = chol[r, jb + q] if r >= je else 0
+            if je - jb == 4:
+                p0, p1, p2, p3 = panel[0], panel[1], panel[2], panel[3]
+                for r in range(je, k):
+                    u0, u1, u2, u3 = p0[r], p1[r], p2[r], p3[r]
+                    cr = chol[r]
+                    for b in range(je, r + 1):
+                        cr[b] -= u0 * p0[b] + u1 * p1[b] + u2 * p2[b] + u3 * p3[b]
+            else:
+                for q in range(je - jb):
+                    pq = panel[q]
+                    for r in range(je, k):
+                        u, cr = pq[r], chol[r]
+                        for b in range(je, r + 1):
+                            cr[b] -= u * pq[b]
+        for i in range(k):  # forward: L y = b
+            sol[i] = rhs[i] + lam * c0i[i]
+        for i in range(k):
+            ci = chol[i]
+            acc = sol[i]
             for t in range(i):
-                s -= u[t, i] * sol[t]
-            sol[i] = s / u[i, i]
-        for i in range(k - 1, -1, -1):  # back: U c = y
-            s = sol[i]
-            ui = u[i]
-            for t in range(i + 1, k):
-                s -= ui[t] * sol[t]
-            sol[i] = s / ui[i]
+                acc -= ci[t] * sol[t]
+            sol[i] = acc / ci[i]
+        for i in range(k - 1, -1, -1):  # back: L^T c = y, by columns of L^T (rows of L)
+            sol[i] /= chol[i, i]
+            ci, v = chol[i], sol[i]
+            for t in range(i):
+                sol[t] -= v * ci[t]
         for i in range(k):
             if not np.isfinite(sol[i]):
                 return False
@@ -175,14 +196,15 @@ def _build():  # noqa: C901 - one kernel: the per-block steps share their scratc
             xi, wi, c0i = x[i], w[i], c0[i]
             g = np.zeros((k, k), np.float32)
             rhs = np.zeros(k, np.float32)
-            chol = np.zeros((k, k), np.float64)
-            sol = np.zeros(k, np.float64)
+            chol = np.zeros((k, k), np.float32)
+            panel = np.zeros((4, k), np.float32)
+            sol = np.zeros(k, np.float32)
             idx = np.empty(n_vox, np.int64)
             scale = np.empty(n_vox, np.float32)
             wc = wi.copy()
             wsum = build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale)
-            lam = (ridge / n_vox) * max(wsum, 1e-12)
-            if not solve(g, rhs, c0i, lam, chol, sol):
+            lam = np.float32((ridge / n_vox) * max(wsum, 1e-12))
+            if not solve(g, rhs, c0i, lam, chol, panel, sol):
                 out[i] = c0i
                 continue
             for a in range(k):
@@ -238,8 +260,8 @@ def _build():  # noqa: C901 - one kernel: the per-block steps share their scratc
                         wsum += wc[j]
                 else:
                     wsum = build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale)
-                lam = (ridge / n_vox) * max(wsum, 1e-12)
-                if not solve(g, rhs, c0i, lam, chol, sol):  # as the batched path: the plain projection
+                lam = np.float32((ridge / n_vox) * max(wsum, 1e-12))
+                if not solve(g, rhs, c0i, lam, chol, panel, sol):  # as the batched path: the plain projection
                     out[i] = c0i
                     break
                 for a in range(k):
