@@ -86,10 +86,11 @@ def assert_weighted_fit(codec, got: np.ndarray, x: np.ndarray, w: np.ndarray) ->
 
 
 @pytest.mark.parametrize("case", list(WEIGHTS))
-def test_compiled_weighted_fit_is_the_weighted_least_squares(fused, case):
+@pytest.mark.parametrize("k", [32, 33])  # an odd code size: the Gram loop's last row and the last short panel
+def test_compiled_weighted_fit_is_the_weighted_least_squares(fused, case, k):
     v, w0 = fused
     x, w = v[:6], WEIGHTS[case](w0[:6], np.random.default_rng(1))
-    codec = sdfcodec.pretrained_codec("pca", 32)
+    codec = sdfcodec.pretrained_codec("pca", k)
     got = codec.encode(x, weights=w)  # encode_weighted: the compiled pass without refits
     assert_weighted_fit(codec, got, x, w)
     if case == "none observed":  # nothing weighs: the ridge keeps the plain projection
