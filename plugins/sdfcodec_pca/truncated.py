@@ -24,12 +24,9 @@ rounding (Grams, factorisations and solves in float32, as the batched path's).
 
 from __future__ import annotations
 
-import numpy as np
+import importlib.util
 
-try:  # optional (extra ``fast``): without it the batched torch path runs, slower, with the same results
-    import numba
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    numba = None
+import numpy as np
 
 __all__ = ["available", "truncated_codes"]
 
@@ -39,8 +36,15 @@ _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # a stored value within t
 
 
 def available() -> bool:
-    """Whether the compiled kernel can run here (numba importable)."""
-    return numba is not None
+    """Whether the compiled kernel can run here: numba (optional, the extra ``fast``) is installed. Without it
+    the batched torch path runs, slower, with the same codes. Checked without importing it: listing codecs and
+    reading headers import this plugin and must stay light."""
+    if not _FOUND:
+        _FOUND.append(importlib.util.find_spec("numba") is not None)
+    return _FOUND[0]
+
+
+_FOUND: list[bool] = []
 
 
 def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray, c0: np.ndarray,
@@ -71,6 +75,8 @@ def _kernel():
 
 
 def _build():  # noqa: C901 - one kernel: the per-block steps share their scratch arrays
+    import numba
+
     njit, prange = numba.njit, numba.prange
 
     @njit(fastmath=_FAST, cache=True)
