@@ -204,6 +204,17 @@ def _build():  # noqa: C901 - one kernel: the per-block steps share their scratc
                 return False
         return True
 
+    @njit(fastmath=_FAST, cache=True)
+    def decode_at(code, dt, dec_b, vox, nb, out):
+        """out[:nb] = the decode of ``code`` at voxels ``vox[:nb]`` (reordered sums: vector dot products)."""
+        k = dt.shape[1]
+        for t in range(nb):
+            r = dt[vox[t]]
+            d = np.float32(0)
+            for a in range(k):
+                d += code[a] * r[a]
+            out[t] = d + dec_b[vox[t]]
+
     @njit(parallel=True, fastmath=False, cache=True)
     def kernel(x, w, dt, dec_b, gfull, c0, ridge, rounds, out):
         n = x.shape[0]
@@ -236,13 +247,13 @@ def _build():  # noqa: C901 - one kernel: the per-block steps share their scratc
             bound = idx[:nb].copy()
             active = np.zeros(nb, np.bool_)
             flip = np.empty(nb, np.int64)
+            dec = np.empty(nb, np.float32)
             for _ in range(rounds):
                 nf = 0
-                for t in range(nb):  # decode the bound voxels only, as the codes stored (float32)
+                decode_at(out[i], dt, dec_b, bound, nb, dec)  # the bound voxels only, as the codes stored
+                for t in range(nb):
                     j = bound[t]
-                    d = dec_b[j]
-                    for a in range(k):
-                        d += out[i, a] * dt[j, a]
+                    d = dec[t]
                     now = (d >= 1) if xi[j] >= 1 - _BOUND_EPS else (d <= 0)
                     if now != active[t]:
                         flip[nf] = t
