@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install -q --upgrade pip
 	# The CPU wheel of torch is pinned here; the package itself only asks for a range.
 	$(PY) -m pip install -q "torch==2.13.0" "zfpy==1.0.1" "numcodecs-wasm-sperr==0.2.3"
-	$(PY) -m pip install -q -e ".[fusion,plot,scale,s3,test,view,sz3,sign]"
+	$(PY) -m pip install -q -e ".[fusion,plot,scale,s3,test,view,sz3,sign,fast]"
 	touch $(STAMP)
 
 setup: $(STAMP)

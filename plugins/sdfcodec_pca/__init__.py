@@ -34,6 +34,8 @@ from sdfcodec import Codec
 from sdfcodec.errors import InvalidValueError, ModelNotFoundError, ShapeError
 from sdfcodec.plugin import empty, lazy_module, load_shipped_model, run_tiles, scratch, shipped_model_file
 
+from . import truncated
+
 # imported on first use: listing codecs and reading map headers (the shipped model's digest) never need them
 torch = lazy_module("torch")
 scipy_linalg = lazy_module("scipy.linalg")
@@ -51,7 +53,8 @@ WEIGHTED_FIT_ITERATIONS = 3
 #: Largest |C C^T - I| of an accepted basis: fitted float32 bases measure ~1e-6; a basis altered by a few
 #: percent (or scaled) is far beyond it.
 ORTHONORMAL_TOLERANCE = 1e-3
-_GRAM_TABLE_MAX_K = 128  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
+_GRAM_TABLE_MAX_K = 128
+_FAST_MAX_K = 256  # the compiled pass's per-thread scratch: two k x k matrices  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
 
 
 def _refit_rows(x: torch.Tensor, w: torch.Tensor, codes: torch.Tensor, fixed: torch.Tensor, mean: torch.Tensor
@@ -347,6 +350,22 @@ class PCACodec(Codec):
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         return self.decode_affine(codes, 1.0, 0.0)
 
+    def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int) -> torch.Tensor | None:
+        """What :func:`sdfcodec.map.observed.encode_truncated` computes from :meth:`encode_weighted` (the weighted
+        fit, then at most ``rounds`` refits without the bound voxels a reader's truncation makes exact), in one
+        compiled pass per block (:mod:`sdfcodec_pca.truncated`): codes ``(N, k)`` float32 of blocks ``(N, 16, 16,
+        16)`` float32 under checked weights of the same shape. None where that pass does not apply (not on the
+        CPU, ``mean="block"``, numba not installed): the caller then runs its batched loop."""
+        if (blocks.device.type != "cpu" or self.mean != "dataset" or not truncated.available()
+                or blocks.dtype != torch.float32 or self.code_size > _FAST_MAX_K):
+            return None
+        n = len(blocks)
+        c0 = self._encode(blocks)
+        w = weights if weights.dtype == torch.float32 else weights.float()
+        codes = truncated.truncated_codes(blocks.reshape(n, _N).numpy(), w.reshape(n, _N).numpy(),
+                                          self._affine[2].T, self._affine[3], c0.numpy(), RIDGE, rounds)
+        return torch.from_numpy(codes)
+
     def encode_weighted(self, blocks: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """The weighted least-squares code of each block: ``c = argmin sum_j w_j (x_j - (c D + d)_j)^2 +
         lam |c - c0|^2`` with ``c0`` the plain projection and ``lam = RIDGE * mean(w)`` (a block of zero weights
@@ -356,7 +375,11 @@ class PCACodec(Codec):
         come from one matrix product of the weights with a precomputed table (the outer products of the basis
         columns, lower triangles only, beside ``D^T diag(d)`` and a column of ones), then one batched Cholesky
         solve; no loop over blocks. The Gram product is ``(n, 4096) @ (4096, k (k + 1) / 2)``: ``(k + 1) / 2``
-        times the plain projection's work, the physical cost of an exact weighted fit."""
+        times the plain projection's work. On the CPU the compiled pass of :meth:`encode_truncated` (no refits)
+        solves the same systems with Grams built from the voxels whose weight differs from 0 or 1 only."""
+        fast = self.encode_truncated(blocks, weights, 0)
+        if fast is not None:
+            return fast
         n = len(blocks)
         x = blocks.reshape(n, _N)
         w = weights.reshape(n, _N)

@@ -167,7 +167,14 @@ def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUN
     active-set iteration solves it: decode, give weight 0 to the bound voxels decoded beyond their bound,
     refit the blocks whose set changed; ``rounds`` refits at most (each one weighted encode of the blocks
     still changing). Measured on the held-out half of a fused kitchen, pca-64 (docs/surface.md): Chamfer-L1
-    5.29 mm with none, 5.15 / 5.08 / 5.02 mm after 1 / 2 / 3."""
+    5.29 mm with none, 5.15 / 5.08 / 5.02 mm after 1 / 2 / 3.
+
+    A codec MAY compute the same in one pass of its own: a method ``encode_truncated(x, w, rounds)`` returning
+    the codes, or None where it does not apply (the pca codec's compiled pass on the CPU, spec/codec-plugins.md
+    section 4)."""
+    own = getattr(codec, "encode_truncated", None)
+    if own is not None and (codes := own(x, w, rounds)) is not None:
+        return codes
     codes = codec.encode(x, weights=w)
     n = len(x)
     xf, wf = x.reshape(n, -1), w.reshape(n, -1)
