@@ -5,9 +5,9 @@
 A pca-64 map of ``--blocks`` coded blocks (random codes with the shipped eigenshapes' per-component spread, as
 ``sdfcodec.bench.bench_search`` writes) in a temporary directory; the candidate is a whole search of it for a
 floor model at a fixed threshold, the code-space score alone (``scene=False``: the streaming fetch-and-score
-loop that issue 17's throughput target is about); the baseline reads the same codes
-(``Map.iter_codes(level=64)``) and does nothing with them. Both read the local map's chunks without Zarr's
-event loop (``sdfcodec.map.io.fastfetch``); the search scores each batch in the reader's fetching threads. Prints
+loop whose throughput the search page reports); the baseline reads the same codes
+(``Map.iter_codes(level=64)``) and does nothing with them. Both read the local map's chunks through the map's
+reader; the search scores each batch in the reader's fetching threads. Prints
 JSON with blocks/s, the harness's ratios, CPU milliseconds per call and the load before and after.
 ``--unpruned`` adds a third candidate, interleaved with the two: the same search with the scorer's prefix pruning
 off (``sdfcodec.search.scoring.PRUNE_PREFIX`` out of reach for the call), every code scored in full.
