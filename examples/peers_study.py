@@ -1,17 +1,24 @@
-"""Rate-distortion of the registry's codecs against every peer, surfaces included (issues 16 and 42).
+"""Rate-distortion of our maps against SZ3, ZFP and SPERR at equal total bytes, surfaces included (issues 16, 42).
 
-    python examples/peers_study.py                     # kitchen half, synthetic room, rooms, building: long
-    python examples/peers_study.py --quick             # a tiny synthetic corner (the CI test's path)
-    python examples/peers_study.py --methods sz3-map,zfp-rate ...   # a subset (names: --list)
+    python examples/peers_study.py --kitchen KITCHEN_DIR --kitchen-map KITCHEN.sdfz
+                                                         # the four data sets and the whole kitchen: long
+    python examples/peers_study.py --ours-only --kitchen KITCHEN_DIR --kitchen-map KITCHEN.sdfz
+                                                         # only our maps again, the committed peers' points kept
+    python examples/peers_study.py --quick               # a tiny synthetic corner (the CI test's path)
 
 Writes docs/rd-peers.json, one figure per data set docs/rd-peers-<data set>.png (F@1, Chamfer-L1 and max error
 against bytes per coded block) and the section "peers" of docs/rate-distortion.md (other sections of that page
-are left as they are): per data set the methods read at 64, 128, 256 and 512 bytes per coded block (256:1 ..
-32:1 of dense float32) and their decode throughput, each table with the machine, load, date and command.
+are left as they are; ``make docs`` renders the same text from the JSON): issue 42's targets
+(examples/peers_targets.py) per data set at 32:1 .. 256:1 (512 .. 64 B per coded block), decode on read of our
+variable-rate maps against a fixed-length pca-64 map, the whole kitchen at equal Chamfer, and every point with
+its decode throughput.
 
-Peers: SZ3 (pysz), ZFP (zfpy), SPERR (numcodecs-wasm-sperr), each on its own bytes. Ours: the entries of
-:data:`OURS`, ``sdfcodec encode`` options as dicts (``--target-bytes`` included), every file of the map counted
-with the shipped model referenced; a new configuration is one more dict.
+Peers: SZ3 (pysz; its absolute bound bisected to land on each byte count), ZFP (zfpy, fixed rate per block) and
+SPERR (numcodecs-wasm-sperr, fixed bit rate) on their own bytes, measured at :data:`PEER_BYTES`. Ours: the
+entries of :data:`OURS` (``sdfcodec encode LOSSLESS OUT --target-bytes B``), every file of the map counted with
+the shipped model referenced (``encode``'s default); a target ``encode`` refuses is recorded with its reason.
+``--ours-only`` reruns every ``sdfcodec encode`` of the study (our points, decode on read, the whole kitchen's
+maps) and keeps the peers' points of the JSON already in the output folder.
 
 Data sets (normalised units v = (d - d_min) / (d_max - d_min), truncation (-0.04, 0.1) m, 2 cm voxels):
 ``kitchen``: 7-Scenes redkitchen (500 frames) fused by ``sdfcodec.fusion.tsdf.fuse``, the blocks of the second half
@@ -33,7 +40,8 @@ of the method's decoder over all blocks (best of 3) as a ratio to a memory copy 
 timed interleaved with it (``decode_vs_memcpy``: 1 = as fast as copying the decoded bytes).
 
 Methods are entries of :data:`METHODS` (a name and a function giving points), so a new one is one entry to add
-(``bounds``: pca-64 with the residual stage of ``--max-error`` 1, 2, 4 cm and ``--sign-exact``).
+(also kept from earlier runs, not in the default set of the page: the shipped eigenshapes at fixed dtypes, the
+networks, the registry's sz3 maps, residual bounds, a DCT and a NanoVDB-style quantiser).
 """
 
 from __future__ import annotations
@@ -59,7 +67,6 @@ from rate_distortion import (BLOCK, TRUNC, VS, SurfaceReference, fused_like, kit
 ROOT = Path(__file__).resolve().parents[1]
 R = TRUNC[1] - TRUNC[0]
 F32 = BLOCK ** 3 * 4
-BUDGETS = (256, 128, 64)  # 64:1, 128:1, 256:1
 STEPS = (0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28)
 
 
@@ -637,8 +644,8 @@ def main(argv: list[str] | None = None) -> dict:
                     help="the whole fused kitchen as a lossless map (sdfcodec fuse KITCHEN OUT): the target 'smaller "
                          "than SZ3's at equal Chamfer' (skipped without it)")
     ap.add_argument("--quick", action="store_true", help="a tiny synthetic corner, few settings (the CI test)")
-    ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (default: all; "
-                                                    "--quick: all but the networks)")
+    ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (--list; default: "
+                                                    "ours,sz3-peer,zfp,sperr)")
     ap.add_argument("--ours-only", action="store_true",
                     help="rerun only our maps (every `sdfcodec encode`: our points, decode on read, the whole-kitchen "
                          "maps) and re-render, keeping the peers' points of the committed OUT/rd-peers.json")
@@ -652,7 +659,7 @@ def main(argv: list[str] | None = None) -> dict:
         for k, f in METHODS.items():
             print(f"{k}: {f.__doc__.splitlines()[0]}")
         return {}
-    a.methods = "ours" if a.ours_only else a.methods or ",".join(m for m in METHODS if not (a.quick and m == "networks"))
+    a.methods = "ours" if a.ours_only else a.methods or "ours,sz3-peer,zfp,sperr"
     unknown = [m for m in a.methods.split(",") if m not in METHODS]
     if unknown:
         ap.error(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
