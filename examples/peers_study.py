@@ -649,6 +649,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--ours-only", action="store_true",
                     help="rerun only our maps (every `sdfcodec encode`: our points, decode on read, the whole-kitchen "
                          "maps) and re-render, keeping the peers' points of the committed OUT/rd-peers.json")
+    ap.add_argument("--render", action="store_true", help="only recompute the targets from OUT/rd-peers.json's "
+                                                           "points and rewrite it, the figures and the page section")
     ap.add_argument("--list", action="store_true", help="list the methods and exit")
     ap.add_argument("--datasets", default="kitchen,synthetic,rooms,building",
                     help="comma-separated: kitchen, synthetic, rooms, building")
@@ -659,6 +661,8 @@ def main(argv: list[str] | None = None) -> dict:
         for k, f in METHODS.items():
             print(f"{k}: {f.__doc__.splitlines()[0]}")
         return {}
+    if a.render:
+        return rerender(a.out or ROOT / "docs")
     a.methods = "ours" if a.ours_only else a.methods or "ours,sz3-peer,zfp,sperr"
     unknown = [m for m in a.methods.split(",") if m not in METHODS]
     if unknown:
@@ -745,12 +749,28 @@ def _write(out: Path, points: list[dict], names: list[str], run: dict, old: dict
                     "libraries return them."),
            "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0], "pysz": version("pysz"),
                        "zfpy": version("zfpy"), "numcodecs-wasm-sperr": version("numcodecs-wasm-sperr")}}
+    _save(out, res)
+    print(f"  after {now['wall_s']:.0f} s", flush=True)
+    return res
+
+
+def _save(out: Path, res: dict) -> None:
     (out / "rd-peers.json").write_text(json.dumps(res, indent=1) + "\n")
-    for ds in names:
-        plot(points, ds, out / f"rd-peers-{_slug(ds)}.png")
+    for ds in res["datasets"]:
+        plot(res["points"], ds, out / f"rd-peers-{_slug(ds)}.png")
     replace_section(out / "rate-distortion.md", "peers", markdown(res), title="# Rate-distortion")
-    print(f"wrote {out / 'rd-peers.json'}, rd-peers-*.png and the 'peers' section of rate-distortion.md after "
-          f"{now['wall_s']:.0f} s", flush=True)
+    print(f"wrote {out / 'rd-peers.json'}, rd-peers-*.png and the 'peers' section of rate-distortion.md", flush=True)
+
+
+def rerender(out: Path) -> dict:
+    """Recompute the targets from the points of ``out``/rd-peers.json (nothing measured) and rewrite it, the
+    figures and the page's section: after a change to examples/peers_targets.py."""
+    res = json.loads((out / "rd-peers.json").read_text())
+    res["targets"] = {ds: targets(res["points"], ds, res["refused"]) for ds in res["datasets"]}
+    kf = res.get("kitchen_full")
+    if kf:
+        kf.update(equal_chamfer=pt.equal_chamfer(kf["ours"], kf["sz3"]), reverse=pt.equal_chamfer(kf["sz3"], kf["ours"]))
+    _save(out, res)
     return res
 
 

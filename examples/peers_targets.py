@@ -82,6 +82,11 @@ def equal_bytes_rows(ours: list[dict], peers: dict[str, list[dict]], refused: li
             row[f"chamfer_over_{name}"] = ratios[name] = c
         half = [ratios.get(n) for n in ("sz3", "sperr")]
         row["met"] = None if any(c is None for c in half) else all(c <= 0.5 for c in half)
+        fit = [p for p in ours if p["bytes_per_block"] <= B and p["chamfer_mm"] is not None]
+        if o is None and fit:  # refused: our largest map within B against the peers given all of B (their favour)
+            w = max(fit, key=lambda p: p["bytes_per_block"])
+            row["within_budget"] = {"ours": _brief(w), **{f"chamfer_over_{n}_at_budget": (
+                None if (c := at_bytes(P, B, "chamfer_mm")) is None else w["chamfer_mm"] / c) for n, P in peers.items()}}
         if B == 128:
             row["absolute"] = "F@1 >= 0.95 and Chamfer <= 5 mm"
             row["absolute_met"] = None if o is None else bool(o["f1"] >= 0.95 and o["chamfer_mm"] <= 5)
@@ -134,6 +139,11 @@ def markdown_targets(t: dict, measured: str) -> list[str]:
         met = {True: "**met**", False: "**missed**", None: "not measurable"}[r["met"]]
         ab = "" if "absolute" not in r else f"{r['absolute']}: " + {True: "**met**", False: "**missed**",
                                                                     None: "refused"}[r["absolute_met"]]
+        w = r.get("within_budget")
+        if w:
+            ours += (f"; our largest map within it, {w['ours']['setting']} ({w['ours']['bytes_per_block']:.1f} B, "
+                     f"{_cell(w['ours'])}), has {_f(w['chamfer_over_sz3_at_budget'])}x SZ3's and "
+                     f"{_f(w['chamfer_over_sperr_at_budget'])}x SPERR's Chamfer at {r['budget']} B")
         L.append(f"| {r['ratio']}:1 ({r['budget']}) | {ours} | {_cell(r.get('sz3'))} | {_cell(r.get('sperr'))} | "
                  f"{_cell(r.get('zfp'))} | {_f(r.get('chamfer_over_sz3'))} | {_f(r.get('chamfer_over_sperr'))} | "
                  f"{met} | {ab} |")

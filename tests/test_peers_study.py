@@ -115,6 +115,14 @@ def test_decode_on_read_interleaved(run):
         assert r == pytest.approx(min(t["fixed pca-64"]) / min(t[name]))
 
 
+def test_render_recomputes_the_same_targets(run):
+    """--render (nothing measured) recomputes the targets from the saved points: the same as the run's."""
+    mod, work, res = run
+    before = json.loads((work / "rd-peers.json").read_text())
+    again = mod.main(["--render", "--out", str(work)])
+    assert json.loads(json.dumps(again["targets"])) == before["targets"] and again["points"] == before["points"]
+
+
 def test_ours_only_keeps_the_peers_points(run, tmp_path):
     """--ours-only re-measures our maps and keeps every peer point of the committed JSON as it was."""
     mod, work, res = run

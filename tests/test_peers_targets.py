@@ -58,6 +58,19 @@ def test_equal_bytes_rows_ratios_and_verdicts():
     assert rows[256]["ratio"] == 64 and rows[128]["ratio"] == 128
     assert rows[64]["ours"] is None and rows[64]["refused"]["message"] == "below: at least 70.1"
     assert rows[64]["met"] is None and rows[64]["absolute_met"] is None
+    assert "within_budget" not in rows[64]  # nothing of ours fits in 64 B
+
+
+def test_refused_above_the_ceiling_reads_our_largest_map_against_the_peers_at_the_budget():
+    ours = [P(100.0, 4.0, options={"target-bytes": 100}), P(279.0, 3.0, options={"target-bytes": 280})]
+    peers = {"sz3": [P(256, 8.0), P(1024, 2.0)], "sperr": [P(512, 6.0)]}
+    refused = [{"dataset": "d", "options": {"target-bytes": 512}, "message": "above: at most 279.0"}]
+    (r,) = pt.equal_bytes_rows(ours, peers, refused, budgets=(512,))
+    assert r["ours"] is None and r["met"] is None
+    w = r["within_budget"]
+    assert w["ours"]["bytes_per_block"] == 279.0
+    assert w["chamfer_over_sz3_at_budget"] == pytest.approx(3.0 / 4.0)  # SZ3 at 512 B: half-way in log, 4 mm
+    assert w["chamfer_over_sperr_at_budget"] == pytest.approx(0.5)
 
 
 def test_equal_chamfer_whole_map():
