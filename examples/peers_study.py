@@ -574,7 +574,9 @@ def markdown(res: dict) -> str:
          "with the floor or ceiling it names); each peer's F@1 / Chamfer-L1 / max error are read off its curve at "
          "our exact bytes per coded block (between its two measured points either side, linear in log(bytes), and "
          "in log(value) for Chamfer and max error; the peers are measured at " + ", ".join(map(str, res["peer_bytes"]))
-         + " B per coded block). Target: our Chamfer <= 0.5x SZ3's and SPERR's at equal bytes.", ""]
+         + " B per coded block; beyond a curve that stops short, as SZ3's does at float precision on the exact "
+         "synthetic fields, its largest point, with fewer bytes than ours). Target: our Chamfer <= 0.5x SZ3's and "
+         "SPERR's at equal bytes.", ""]
     for ds, t in res["targets"].items():
         L += [f"**{ds}**", ""] + pt.markdown_targets(
             {**t, "decode_on_read": res.get("decode_on_read", {}).get(ds)},

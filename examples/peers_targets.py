@@ -4,15 +4,15 @@ against hand computations.
 
 A point has at least ``bytes_per_block`` (every stored byte per coded block), ``chamfer_mm``, ``f1`` and
 ``max_error_cm``. A peer's value "at equal bytes" is read off its measured curve at our point's exact byte count
-by :func:`at_bytes` (the peers are measured on a grid of byte counts around each ratio, so the two points read
-are at most 1.5x apart in bytes).
+by :func:`peer_at` (the peers are measured on a grid of byte counts around each ratio, so the two points read
+are at most 1.5x apart in bytes; beyond a curve that stops short, its largest point).
 """
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["LOG_KEYS", "at_bytes", "bytes_at_chamfer", "equal_bytes_rows", "equal_chamfer", "decode_on_read",
+__all__ = ["LOG_KEYS", "at_bytes", "peer_at", "bytes_at_chamfer", "equal_bytes_rows", "equal_chamfer", "decode_on_read",
            "markdown_targets"]
 
 #: error measures read in log(value) (they fall as a power of the bytes); F@1 is read linearly
@@ -42,6 +42,17 @@ def at_bytes(points: list[dict], b: float, key: str) -> float | None:
             return _lerp(math.log(lo["bytes_per_block"]), math.log(hi["bytes_per_block"]), lo[key], hi[key],
                          math.log(b), key in LOG_KEYS)
     return None
+
+
+def peer_at(points: list[dict], b: float, key: str) -> float | None:
+    """A peer's ``key`` at ``b`` bytes: :func:`at_bytes`, or beyond its largest point (a curve that stops short:
+    SZ3 reaches float precision on exact synthetic fields and gives no more bytes) that point's value, read with
+    fewer bytes than ``b``. None below its smallest point."""
+    v = at_bytes(points, b, key)
+    P = [p for p in points if p.get(key) is not None]
+    if v is None and P and b > max(p["bytes_per_block"] for p in P):
+        v = float(max(P, key=lambda p: p["bytes_per_block"])[key])
+    return v
 
 
 def bytes_at_chamfer(points: list[dict], chamfer: float) -> float | None:
@@ -76,7 +87,7 @@ def equal_bytes_rows(ours: list[dict], peers: dict[str, list[dict]], refused: li
         row["ours"], row["refused"] = _brief(o), ref
         ratios = {}
         for name, P in peers.items():
-            v = None if o is None else {k: at_bytes(P, o["bytes_per_block"], k) for k in KEYS}
+            v = None if o is None else {k: peer_at(P, o["bytes_per_block"], k) for k in KEYS}
             row[name] = v
             c = None if v is None or v["chamfer_mm"] is None or o["chamfer_mm"] is None else o["chamfer_mm"] / v["chamfer_mm"]
             row[f"chamfer_over_{name}"] = ratios[name] = c
@@ -86,7 +97,7 @@ def equal_bytes_rows(ours: list[dict], peers: dict[str, list[dict]], refused: li
         if o is None and fit:  # refused: our largest map within B against the peers given all of B (their favour)
             w = max(fit, key=lambda p: p["bytes_per_block"])
             row["within_budget"] = {"ours": _brief(w), **{f"chamfer_over_{n}_at_budget": (
-                None if (c := at_bytes(P, B, "chamfer_mm")) is None else w["chamfer_mm"] / c) for n, P in peers.items()}}
+                None if (c := peer_at(P, B, "chamfer_mm")) is None else w["chamfer_mm"] / c) for n, P in peers.items()}}
         if B == 128:
             row["absolute"] = "F@1 >= 0.95 and Chamfer <= 5 mm"
             row["absolute_met"] = None if o is None else bool(o["f1"] >= 0.95 and o["chamfer_mm"] <= 5)

@@ -92,3 +92,10 @@ def test_equal_chamfer_whole_map():
 def test_decode_on_read_is_best_time_over_best_time():
     times = {"fixed": [0.2, 0.1, 0.15], "vr": [0.3, 0.25], "fast": [0.05]}
     assert pt.decode_on_read(times, "fixed") == pytest.approx({"vr": 0.4, "fast": 2.0})
+
+
+def test_peer_at_holds_a_curve_that_stops_short_at_its_largest_point():
+    sz3 = [P(64, 0.8), P(221.8, 0.001)]  # SZ3 at float precision: no more bytes to give
+    assert pt.peer_at(sz3, 512, "chamfer_mm") == 0.001
+    assert pt.peer_at(sz3, 128, "chamfer_mm") == pytest.approx(pt.at_bytes(sz3, 128, "chamfer_mm"))
+    assert pt.peer_at(sz3, 32, "chamfer_mm") is None  # below its smallest point: nothing
