@@ -550,6 +550,12 @@ def _fmt(v, f="{:.3g}") -> str:
     return "-" if v is None else f.format(v)
 
 
+def _runs(res: dict) -> str:
+    """Where, when and how our points and the peers' were measured (one sentence when one run did both)."""
+    o, p = res["ours_run"], res["peers_run"]
+    return _measured(o, "Measured") if o == p else _measured(o, "Ours") + " " + _measured(p, "Peers")
+
+
 def _measured(run: dict, what: str) -> str:
     return (f"{what} measured on {run['cpus']} CPUs at load {run['load_before'][0]:.1f}-{run['load_after'][0]:.1f}, "
             f"{run['date']}, by `{run['command']}`.")
@@ -579,8 +585,7 @@ def markdown(res: dict) -> str:
          "SPERR's at equal bytes.", ""]
     for ds, t in res["targets"].items():
         L += [f"**{ds}**", ""] + pt.markdown_targets(
-            {**t, "decode_on_read": res.get("decode_on_read", {}).get(ds)},
-            _measured(ours_run, "Ours") + " " + _measured(peers_run, "Peers"))
+            {**t, "decode_on_read": res.get("decode_on_read", {}).get(ds)}, _runs(res))
     kf = res.get("kitchen_full")
     if kf:
         L += [f"### The whole kitchen map (frames 0-499, {kf['coded_blocks']} coded blocks): smaller than SZ3's at "
@@ -602,7 +607,7 @@ def markdown(res: dict) -> str:
               f"Measured at load {kf['load']:.1f} (after the run).", ""]
     for ds in res["datasets"]:
         P = [p for p in res["points"] if p["dataset"] == ds]
-        run = (f"{_measured(ours_run, 'Ours')} {_measured(peers_run, 'Peers')}")
+        run = _runs(res)
         L += [f"### {ds} ({P[0]['blocks']} coded blocks)" if P else f"### {ds}", "",
               f"![{ds}](rd-peers-{_slug(ds)}.png)", "", f"**{ds}: at {', '.join(f'{b} B' for b in X_BYTES[1:5])} "
               "per coded block** (each curve read as above; - outside its range)", "",
