@@ -1,17 +1,24 @@
-"""Rate-distortion of the registry's codecs against every peer, surfaces included (issues 16 and 42).
+"""Rate-distortion of our maps against SZ3, ZFP and SPERR at equal total bytes, surfaces included (issues 16, 42).
 
-    python examples/peers_study.py                     # kitchen half, synthetic room, rooms, building: long
-    python examples/peers_study.py --quick             # a tiny synthetic corner (the CI test's path)
-    python examples/peers_study.py --methods sz3-map,zfp-rate ...   # a subset (names: --list)
+    python examples/peers_study.py --kitchen KITCHEN_DIR --kitchen-map KITCHEN.sdfz
+                                                         # the four data sets and the whole kitchen: long
+    python examples/peers_study.py --ours-only --kitchen KITCHEN_DIR --kitchen-map KITCHEN.sdfz
+                                                         # only our maps again, the committed peers' points kept
+    python examples/peers_study.py --quick               # a tiny synthetic corner (the CI test's path)
 
 Writes docs/rd-peers.json, one figure per data set docs/rd-peers-<data set>.png (F@1, Chamfer-L1 and max error
 against bytes per coded block) and the section "peers" of docs/rate-distortion.md (other sections of that page
-are left as they are): per data set the methods read at 64, 128, 256 and 512 bytes per coded block (256:1 ..
-32:1 of dense float32) and their decode throughput, each table with the machine, load, date and command.
+are left as they are; ``make docs`` renders the same text from the JSON): issue 42's targets
+(examples/peers_targets.py) per data set at 32:1 .. 256:1 (512 .. 64 B per coded block), decode on read of our
+variable-rate maps against a fixed-length pca-64 map, the whole kitchen at equal Chamfer, and every point with
+its decode throughput.
 
-Peers: SZ3 (pysz), ZFP (zfpy), SPERR (numcodecs-wasm-sperr), each on its own bytes. Ours: the entries of
-:data:`OURS`, ``sdfcodec encode`` options as dicts (``--target-bytes`` included), every file of the map counted
-with the shipped model referenced; a new configuration is one more dict.
+Peers: SZ3 (pysz; its absolute bound bisected to land on each byte count), ZFP (zfpy, fixed rate per block) and
+SPERR (numcodecs-wasm-sperr, fixed bit rate) on their own bytes, measured at :data:`PEER_BYTES`. Ours: the
+entries of :data:`OURS` (``sdfcodec encode LOSSLESS OUT --target-bytes B``), every file of the map counted with
+the shipped model referenced (``encode``'s default); a target ``encode`` refuses is recorded with its reason.
+``--ours-only`` reruns every ``sdfcodec encode`` of the study (our points, decode on read, the whole kitchen's
+maps) and keeps the peers' points of the JSON already in the output folder.
 
 Data sets (normalised units v = (d - d_min) / (d_max - d_min), truncation (-0.04, 0.1) m, 2 cm voxels):
 ``kitchen``: 7-Scenes redkitchen (500 frames) fused by ``sdfcodec.fusion.tsdf.fuse``, the blocks of the second half
@@ -33,7 +40,8 @@ of the method's decoder over all blocks (best of 3) as a ratio to a memory copy 
 timed interleaved with it (``decode_vs_memcpy``: 1 = as fast as copying the decoded bytes).
 
 Methods are entries of :data:`METHODS` (a name and a function giving points), so a new one is one entry to add
-(``bounds``: pca-64 with the residual stage of ``--max-error`` 1, 2, 4 cm and ``--sign-exact``).
+(also kept from earlier runs, not in the default set of the page: the shipped eigenshapes at fixed dtypes, the
+networks, the registry's sz3 maps, residual bounds, a DCT and a NanoVDB-style quantiser).
 """
 
 from __future__ import annotations
@@ -52,13 +60,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _page import replace_section  # noqa: E402
+import peers_targets as pt  # noqa: E402
 from rate_distortion import (BLOCK, TRUNC, VS, SurfaceReference, fused_like, kitchen_blocks,  # noqa: E402
                              nonempty_mask, normalised, synthetic_blocks)
 
 ROOT = Path(__file__).resolve().parents[1]
 R = TRUNC[1] - TRUNC[0]
 F32 = BLOCK ** 3 * 4
-BUDGETS = (256, 128, 64)  # 64:1, 128:1, 256:1
 STEPS = (0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28)
 
 
@@ -107,7 +115,7 @@ class Data:
         self.ref = SurfaceReference(coords, tsdf, observed, coded)
         self.n = len(self.x)
         self.points: list[dict] = []
-        self._mask_bytes = None
+        self.maps: dict[str, Path] = {}  # our maps by setting (m_ours), for decode_on_read
 
     def point(self, method: str, setting: str, family: str, nbytes: float, y: np.ndarray,
               decode: Callable[[], object] | None = None, state_bytes: int = 0, **extra) -> dict:
@@ -226,37 +234,47 @@ def _dense(d: Data) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
     return vol.astype(np.float32), blocks
 
 
+def _sz3_at(vol: np.ndarray, nbytes: float, tries: int = 24) -> tuple[bytes, float]:
+    """SZ3's stream of ``vol`` nearest ``nbytes`` in all, and its absolute bound (normalised): SZ3 has no rate
+    mode, so its bound is bisected (in log) until the stream is within 0.5 % of ``nbytes``."""
+    from sdfcodec.map.field import sz3_compress
+
+    lo, hi, best = np.log(1e-5), 0.0, None  # bound 1e-5 .. 1 (the whole truncation range, 14 cm)
+    for _ in range(tries):
+        e = float(np.exp((lo + hi) / 2))
+        s = sz3_compress(vol, e)
+        if best is None or abs(np.log(len(s) / nbytes)) < abs(np.log(len(best[0]) / nbytes)):
+            best = (s, e)
+        if abs(len(s) / nbytes - 1) < 0.005:
+            break
+        lo, hi = (lo, np.log(e)) if len(s) < nbytes else (np.log(e), hi)  # too small: a tighter bound
+    return best
+
+
 def m_sz3_peer(d: Data, quick: bool) -> None:
-    """SZ3 (pysz) on the whole dense field with an absolute bound, no mask (what the issue measured)."""
-    from sdfcodec.map.field import sz3_compress, sz3_decompress
+    """SZ3 (pysz) on the whole dense field (no mask: what the issue measured) at each byte count of
+    :data:`PEER_BYTES`, its absolute bound bisected to land within 0.5 % of it."""
+    from sdfcodec.map.field import sz3_decompress
 
     vol, blocks = _dense(d)
-    for cm in ((1, 4) if quick else (0.5, 1, 2, 4, 6, 8, 10, 14)):
-        s = sz3_compress(vol, cm / 100 / R)
-        d.point("sz3 (peer, whole field)", f"bound {cm:g} cm", "sz3-peer", len(s),
-                blocks(sz3_decompress(s, vol.shape)), lambda: sz3_decompress(s, vol.shape))
+    for b in (PEER_BYTES[3::4] if quick else PEER_BYTES):
+        s, e = _sz3_at(vol, b * d.n)
+        d.point("sz3 (peer, whole field)", f"{b:g} B/block asked", "sz3-peer", len(s),
+                blocks(sz3_decompress(s, vol.shape)), lambda: sz3_decompress(s, vol.shape), bound_cm=e * R * 100)
 
 
 def m_zfp(d: Data, quick: bool) -> None:
-    """ZFP (zfpy 1.0.1): fixed rate per block (headerless payload counted: rate x 512 B exactly), fixed accuracy
-    per block and on the whole field."""
+    """ZFP (zfpy 1.0.1) fixed rate per block at each byte count of :data:`PEER_BYTES` (rate = 8 B / 4096 bits a
+    value; headerless payload counted: rate x 512 B exactly, zfpy's 16-byte header per block left out). From
+    96 B up: at 8 bits per 4^3 block (64 B) and below zfpy 1.0.1 returns a wrong stream or crashes the process."""
     import zfpy
 
-    for r in ((0.25, 0.5) if quick else (0.1875, 0.25, 0.375, 0.5, 1.0)):
-        streams = [zfpy.compress_numpy(b, rate=r) for b in d.x]
+    for b in (PEER_BYTES[3::4] if quick else [b for b in PEER_BYTES if b >= 96]):
+        r = 8 * b / BLOCK ** 3
+        streams = [zfpy.compress_numpy(x, rate=r) for x in d.x]
         y = np.stack([zfpy.decompress_numpy(s) for s in streams])
         d.point("zfp fixed-rate (block)", f"rate {r:g}", "zfp", sum(len(s) - 16 for s in streams), y,
                 lambda: [zfpy.decompress_numpy(s) for s in streams], header_bytes_per_block=16)
-    vol, blocks = _dense(d)
-    for cm in ((4,) if quick else (2, 4, 8, 16, 32)):
-        t = cm / 100 / R
-        streams = [zfpy.compress_numpy(b, tolerance=t) for b in d.x]
-        y = np.stack([zfpy.decompress_numpy(s) for s in streams])
-        d.point("zfp fixed-accuracy (block)", f"tolerance {cm:g} cm", "zfp", sum(len(s) for s in streams), y,
-                lambda: [zfpy.decompress_numpy(s) for s in streams])
-        s = zfpy.compress_numpy(vol, tolerance=t)
-        d.point("zfp fixed-accuracy (field)", f"tolerance {cm:g} cm", "zfp", len(s),
-                blocks(zfpy.decompress_numpy(s)), lambda: zfpy.decompress_numpy(s))
 
 
 def _zstd(a: np.ndarray) -> bytes:
@@ -320,7 +338,7 @@ def m_sperr(d: Data, quick: bool) -> None:
     from numcodecs_wasm_sperr import Sperr
 
     vol, blocks = _dense(d)
-    for b in ((128, 512) if quick else X_BYTES):
+    for b in (PEER_BYTES[3::4] if quick else PEER_BYTES):
         codec = Sperr(mode="bpp", bpp=8.0 * b * d.n / vol.size)
         s = np.frombuffer(bytes(codec.encode(vol)), np.uint8)  # its stream, header included
         d.point("sperr (peer, whole field)", f"{b:g} B/block asked", "sperr", s.nbytes,
@@ -328,31 +346,55 @@ def m_sperr(d: Data, quick: bool) -> None:
                 lambda: codec.decode(s), bpp=8.0 * b * d.n / vol.size)
 
 
-def m_ours(d: Data, quick: bool) -> None:
-    """Our maps as ``sdfcodec encode`` writes them, one curve point per entry of :data:`OURS` (its options as
-    they would be typed; ``--codec-state reference`` added for the shipped models), every file of the map
-    counted: transcoded from a lossless (``raw``) map of the data set with its observation."""
-    import sdfcodec
+def encode(src: Path, out: Path, opts: dict) -> str | None:
+    """Run ``sdfcodec encode SRC OUT --OPTION VALUE ...`` (the real command, in this process); None when it wrote
+    the map, else its one-line refusal (also printed)."""
+    import contextlib
+    import io
+    import shutil
+
     from sdfcodec.cli import app
     from typer.main import get_command
+
+    if out.exists():
+        shutil.rmtree(out)
+    argv = ["encode", str(src), str(out), "--overwrite"] + [a for k, v in opts.items() for a in (f"--{k}", str(v))]
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):  # the command's one-line error goes to stderr: kept for the page
+        code = get_command(app).main(argv, standalone_mode=False)
+    text = err.getvalue().strip()
+    if text:
+        print(text, file=sys.stderr, flush=True)
+    if out.exists() and not code:
+        return None
+    return " ".join(text.splitlines()[-1:]).removeprefix("error: ") or f"exit status {code}"
+
+
+def lossless_map(d: Data) -> Path:
+    """The data set's lossless (``raw``) map with its observation: what every ``encode`` of ours reads."""
+    import sdfcodec
 
     src = d.work / f"{d.name}-lossless.sdfz".replace(" ", "_")
     with sdfcodec.create_map(src, codec=sdfcodec.get_codec("raw"), voxel_size=VS, truncation=TRUNC,
                              overwrite=True, tool="examples/peers_study.py") as m:
         m.write_blocks(d.coords, d.tsdf, observed=d.obs)
-    index = {tuple(c): i for i, c in enumerate(d.coords)}
-    for opts in (OURS[:2] if quick else OURS):
-        label = " ".join(f"{k} {v}" for k, v in opts.items() if k != "codec")
-        path = d.work / f"{d.name}-ours-{label}.sdfz".replace(" ", "_")
-        argv = ["encode", str(src), str(path), "--overwrite", "--codec-state", "reference"]
-        argv += [a for k, v in opts.items() for a in (f"--{k}", str(v))]
-        if path.exists():
-            import shutil
+    return src
 
-            shutil.rmtree(path)
-        get_command(app).main(argv, standalone_mode=False)
-        if not path.exists():  # refused (its one-line reason is printed): the run goes on, the page says so
-            REFUSED.append({"dataset": d.name, "options": opts})
+
+def m_ours(d: Data, quick: bool) -> None:
+    """Our maps as ``sdfcodec encode LOSSLESS OUT --target-bytes B`` writes them (one point per entry of
+    :data:`OURS`, options as typed), every file of the map counted (a shipped model is referenced by default);
+    a refused target is recorded with its one-line reason (the floor or ceiling it names)."""
+    import sdfcodec
+
+    src = lossless_map(d)
+    index = {tuple(c): i for i, c in enumerate(d.coords)}
+    for opts in (OURS_QUICK if quick else OURS):
+        label = " ".join(f"{k} {v}" for k, v in opts.items())
+        path = d.work / f"{d.name}-ours-{label}.sdfz".replace(" ", "_")
+        refusal = encode(src, path, opts)
+        if refusal is not None:  # the run goes on, the page says so
+            REFUSED.append({"dataset": d.name, "options": opts, "message": refusal})
             continue
         total = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
         m = sdfcodec.open_map(path)
@@ -363,21 +405,77 @@ def m_ours(d: Data, quick: bool) -> None:
                 y[[index[tuple(cc)] for cc in c]] = normalised(blocks)
 
         decode()
-        d.point(f"ours: {opts['codec']}", label, "ours", total, y, decode, options=opts)
+        d.point("ours: sdfcodec encode", label, "ours", total, y, decode, options=opts)
+        d.maps[label] = path
 
 
-#: Our curves: ``sdfcodec encode`` options per point (a dict, as typed without the dashes). A new configuration
-#: (another codec, a variable-rate mode) is one more entry.
-OURS: list[dict] = (
-    [{"codec": "pca", "code-size": 16, "step": s} for s in (0.64, 0.16)]
-    + [{"codec": "pca", "code-size": k, "code-dtype": t} for k in (16, 64) for t in ("int8", "float16")]
-    + [{"codec": "pca", "code-size": 64, "step": s} for s in (0.08, 0.02)]
-    # variable-rate codes (the default of --target-bytes alone; spec 4e): a curve, not only the four ratios
-    + [{"codec": "pca", "target-bytes": b} for b in (64, 96, 128, 160, 192, 256, 320, 512)]
-)
-#: ``{"dataset", "options"}`` of the :data:`OURS` entries ``sdfcodec encode`` refused (e.g. a target below reach)
+def decode_on_read(d: Data, quick: bool, repeat: int = 5) -> dict | None:
+    """Decode on read (open the map, decode every block, close) of each variable-rate map :func:`m_ours` wrote
+    against the fixed-length pca-64 map (``encode --codec pca --code-size 64``) of the same blocks, the maps timed
+    in turn within each of ``repeat`` rounds; best time of each. None without maps of ours."""
+    import sdfcodec
+
+    if not d.maps:
+        return None
+    ref = d.work / f"{d.name}-fixed-pca-64.sdfz".replace(" ", "_")
+    if encode(lossless_map(d), ref, {"codec": "pca", "code-size": 64}) is not None:
+        return None
+    paths = {"fixed pca-64": ref, **d.maps}
+    times: dict[str, list[float]] = {k: [] for k in paths}
+    for _ in range(2 if quick else repeat):
+        for name, path in paths.items():
+            t = time.perf_counter()
+            with sdfcodec.open_map(path) as m:
+                for _c, _b in m.iter_decoded():
+                    pass
+            times[name].append(time.perf_counter() - t)
+    nbytes = {k: sum(f.stat().st_size for f in p.rglob("*") if f.is_file()) / d.n for k, p in paths.items()}
+    return {"repeat": 2 if quick else repeat, "load": os.getloadavg()[0], "times_s": times, "bytes": nbytes,
+            "reference_blocks_per_s": d.n / min(times["fixed pca-64"]),
+            "ratios": pt.decode_on_read(times, "fixed pca-64")}
+
+
+def kitchen_full(path: Path, work: Path, quick: bool) -> dict:
+    """The whole fused kitchen map (``path``, lossless): SZ3 maps through our own ``encode --codec sz3
+    --max-error E`` and ours through ``encode --target-bytes B``, every file of each counted, surfaces by
+    ``sdfcodec compare`` against ``path``; then our bytes at each SZ3 map's Chamfer (peers_targets.equal_chamfer)."""
+    import sdfcodec
+    from sdfcodec.evaluation.compare import compare_command
+
+    with sdfcodec.open_map(path) as m:
+        n = m.count_states()["coded"]
+    sides: dict[str, list[dict]] = {"sz3": [], "ours": []}
+    runs = [("sz3", {"codec": "sz3", "max-error": e}) for e in ((0.01,) if quick else (0.005, 0.01, 0.02, 0.03))]
+    runs += [("ours", {"target-bytes": b}) for b in ((128,) if quick else (96, 128, 160, 192, 256))]
+    refused = []
+    for side, opts in runs:
+        out = work / ("kitchen-full-" + "-".join(f"{k}-{v}" for k, v in opts.items()) + ".sdfz")
+        why = encode(path, out, opts)
+        if why is not None:
+            refused.append({"options": opts, "message": why})
+            continue
+        s = compare_command(str(path), str(out), quiet=True)
+        total = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+        sides[side].append({"setting": " ".join(f"--{k} {v}" for k, v in opts.items()), "bytes": total,
+                            "bytes_per_block": total / n, "chamfer_mm": 1000 * s["chamfer_l1"], "f1": s["f_score_1"],
+                            "max_error_cm": None})
+        print(f"  kitchen full {sides[side][-1]['setting']}: {total / n:.1f} B/block, Chamfer "
+              f"{1000 * s['chamfer_l1']:.2f} mm, F@1 {s['f_score_1']:.3f}", flush=True)
+    return {"coded_blocks": n, **sides, "refused": refused, "equal_chamfer": pt.equal_chamfer(sides["ours"], sides["sz3"]),
+            "reverse": pt.equal_chamfer(sides["sz3"], sides["ours"]),
+            "load": os.getloadavg()[0]}
+
+
+#: Our points: ``sdfcodec encode`` options per point (a dict, as typed without the dashes): ``--target-bytes B``
+#: alone (it picks codec, lengths and steps) at the four ratios and between them. A new configuration is one more
+#: entry.
+OURS: list[dict] = [{"target-bytes": b} for b in (64, 96, 128, 192, 256, 384, 512)]
+OURS_QUICK: list[dict] = [{"target-bytes": b} for b in (128, 512)]
+#: ``{"dataset", "options", "message"}`` of the :data:`OURS` entries ``sdfcodec encode`` refused
 REFUSED: list[dict] = []
-#: bytes per coded block of interest: 256:1 .. 32:1 of dense float32, and beside them
+#: bytes per coded block the peers are measured at: the four ratios (512 .. 64 B = 32:1 .. 256:1 of dense
+#: float32) and between and beside them, so that each is read at our exact bytes between two near points
+PEER_BYTES = (48, 64, 96, 128, 192, 256, 384, 512, 768)
 X_BYTES = (32, 64, 128, 256, 512, 1024)
 
 
@@ -390,55 +488,12 @@ REGISTRY = ("eigenshapes", "ours", "bounds", "networks", "sz3-registry")
 
 
 # ----------------------------------------------------------------------------------------------- targets
-def _interp(points: list[dict], at: float, key: str) -> float | None:
-    """``key`` of a method's curve at ``at`` bytes per block, linear in log(bytes) between measured points
-    (None outside their range: nothing is extrapolated)."""
-    P = sorted((p for p in points if p[key] is not None), key=lambda p: p["bytes_per_block"])
-    xs = np.log([p["bytes_per_block"] for p in P])
-    if len(P) < 2 or not xs[0] <= np.log(at) <= xs[-1]:
-        return None
-    return float(np.interp(np.log(at), xs, [p[key] for p in P]))
-
-
-def targets(points: list[dict], ds: str) -> dict:
+def targets(points: list[dict], ds: str, refused: list[dict]) -> dict:
+    """Issue 42's equal-bytes targets on data set ``ds`` (:func:`peers_targets.equal_bytes_rows`)."""
     P = [p for p in points if p["dataset"] == ds]
-    eig = [p for p in P if p["family"] in ("eigenshapes", "ours")]
-    reg = [p for p in P if p["family"] in REGISTRY]
-    sz3 = [p for p in P if p["family"] == "sz3-peer"]
-    out: dict = {}
-    zfp128 = next((p for p in P if p["method"] == "zfp fixed-rate (block)" and p["setting"] == "rate 0.25"), None)
-    fit = [p for p in eig if p["bytes_per_block"] <= 128]
-    if fit and zfp128:
-        best = min(fit, key=lambda p: p["mse"])
-        bestf = max(fit, key=lambda p: p["f1"])
-        out["128B"] = {"eigenshapes_best_mse": _brief(best), "zfp_at_128B": _brief(zfp128),
-                       "mse_ratio": best["mse"] / zfp128["mse"], "mse_target_met": best["mse"] <= 0.4 * zfp128["mse"],
-                       "eigenshapes_best_f1": _brief(bestf), "f1_target_met": bestf["f1"] >= 0.9}
-    for budget in BUDGETS:
-        row = {}
-        for label, fam in (("eigenshapes", eig), ("registry", reg)):
-            within = [p for p in fam if p["bytes_per_block"] <= budget]
-            if not within:
-                row[label] = None
-                continue
-            best = {"chamfer_mm": min(within, key=lambda p: p["chamfer_mm"] or np.inf),
-                    "f1": max(within, key=lambda p: p["f1"]), "mse": min(within, key=lambda p: p["mse"]),
-                    "max_error_cm": min(within, key=lambda p: p["max_error_cm"])}
-            r = {}
-            for key, b in best.items():
-                sz = _interp(sz3, b["bytes_per_block"], key)
-                better = None if sz is None or b[key] is None else (b[key] >= sz if key == "f1" else b[key] <= sz)
-                r[key] = {"ours": b[key], "by": _brief(b), "sz3_at_equal_bytes": sz, "at_least_as_good": better}
-            row[label] = r
-        out[f"{budget}B"] = row if budget != 128 else {**out.get("128B", {}), **row}
-    fit64 = [p for p in reg if p["bytes_per_block"] <= 64]
-    out["moonshot_64B"] = None if not fit64 else {"best": _brief(max(fit64, key=lambda p: p["f1"])),
-                                                   "met": max(p["f1"] for p in fit64) >= 0.95}
-    return out
-
-
-def _brief(p: dict) -> dict:
-    return {k: p[k] for k in ("method", "setting", "bytes_per_block", "mse", "max_error_cm", "chamfer_mm", "f1")}
+    fam = {f: [p for p in P if p["family"] == f] for f in ("ours", "sz3-peer", "sperr", "zfp")}
+    peers = {"sz3": fam["sz3-peer"], "sperr": fam["sperr"], "zfp": fam["zfp"]}
+    return {"equal_bytes": pt.equal_bytes_rows(fam["ours"], peers, [r for r in refused if r["dataset"] == ds])}
 
 
 # ------------------------------------------------------------------------------------------------ output
@@ -495,100 +550,96 @@ def _fmt(v, f="{:.3g}") -> str:
     return "-" if v is None else f.format(v)
 
 
+def _runs(res: dict) -> str:
+    """Where, when and how our points and the peers' were measured (one sentence when one run did both)."""
+    o, p = res["ours_run"], res["peers_run"]
+    return _measured(o, "Measured") if o == p else _measured(o, "Ours") + " " + _measured(p, "Peers")
+
+
+def _measured(run: dict, what: str) -> str:
+    return (f"{what} measured on {run['cpus']} CPUs at load {run['load_before'][0]:.1f}-{run['load_after'][0]:.1f}, "
+            f"{run['date']}, by `{run['command']}`.")
+
+
+def _chamfer_row(r: dict) -> str:
+    s, o = r["ref"], r["smallest_reaching"]
+    return (f"| {s['setting']} | {s['bytes_per_block']:.1f} | {s['chamfer_mm']:.2f} / {s['f1']:.3f} | "
+            f"{_fmt(r['bytes_at_equal_chamfer'], '{:.1f}')} | "
+            + ("none" if o is None else f"{o['setting']}: {o['bytes_per_block']:.1f} B, {o['chamfer_mm']:.2f} mm, "
+               f"F@1 {o['f1']:.3f}") + f" | {_fmt(r['bytes_ratio'], '{:.2f}')} | "
+            + {True: "**yes**", False: "**no**", None: "not measurable"}[r["met"]] + " |")
+
+
 def markdown(res: dict) -> str:
-    L = ["## The registry against every peer (issues 16 and 42)", "", "Made by:", "", "```", res["command"], "```",
-         "", "Method: the docstring of `examples/peers_study.py`. " + res["note"], "",
-         "", "### Targets (measured, wins and losses alike)", ""]
+    peers_run, ours_run = res["peers_run"], res["ours_run"]
+    L = ["## The registry against every peer at equal bytes (issues 16 and 42)", "", "Made by:", "", "```",
+         peers_run["command"]] + ([ours_run["command"]] if ours_run["command"] != peers_run["command"] else []) + [
+         "```", "", "Method: the docstrings of `examples/peers_study.py` and `examples/peers_targets.py`. "
+         + res["note"], "", "### Targets (measured, wins and losses alike)", "",
+         "Per data set and ratio: our point is `sdfcodec encode LOSSLESS OUT --target-bytes B` (a refused target "
+         "with the floor or ceiling it names); each peer's F@1 / Chamfer-L1 / max error are read off its curve at "
+         "our exact bytes per coded block (between its two measured points either side, linear in log(bytes), and "
+         "in log(value) for Chamfer and max error; the peers are measured at " + ", ".join(map(str, res["peer_bytes"]))
+         + " B per coded block; beyond a curve that stops short, as SZ3's does at float precision on the exact "
+         "synthetic fields, its largest point, with fewer bytes than ours). Target: our Chamfer <= 0.5x SZ3's and "
+         "SPERR's at equal bytes.", ""]
     for ds, t in res["targets"].items():
-        L.append(f"**{ds}**")
-        L.append("")
-        a = t.get("128B", {})
-        if "mse_ratio" in a:
-            e, z = a["eigenshapes_best_mse"], a["zfp_at_128B"]
-            L.append(f"- 128 B/block, eigenshapes' MSE <= 0.4x ZFP's at exactly 128 B: "
-                     f"**{'met' if a['mse_target_met'] else 'missed'}**: {e['method']} {e['setting']} "
-                     f"({e['bytes_per_block']:.1f} B) MSE {e['mse']:.3g} against ZFP rate 0.25 (128 B payload) "
-                     f"{z['mse']:.3g}: {a['mse_ratio']:.2f}x.")
-            f = a["eigenshapes_best_f1"]
-            L.append(f"- 128 B/block, eigenshapes' F@1 >= 0.9: **{'met' if a['f1_target_met'] else 'missed'}**: "
-                     f"{f['method']} {f['setting']} ({f['bytes_per_block']:.1f} B) F@1 {f['f1']:.3f}.")
-        for budget in BUDGETS:
-            row = t[f"{budget}B"]
-            for label in ("eigenshapes", "registry"):
-                r = row.get(label)
-                if r is None:
-                    L.append(f"- {F32 // budget}:1 ({budget} B/block), {label}: nothing fits.")
-                    continue
-                keys = ("chamfer_mm", "f1") if label == "eigenshapes" else ("chamfer_mm", "f1", "mse", "max_error_cm")
-                cells, ok = [], []
-                for k in keys:
-                    c = r[k]
-                    ok.append(c["at_least_as_good"])
-                    cells.append(f"{k} {_fmt(c['ours'])} ({c['by']['method']} {c['by']['setting']}, "
-                                 f"{c['by']['bytes_per_block']:.0f} B) vs SZ3 {_fmt(c['sz3_at_equal_bytes'])}")
-                verdict = ("met" if all(o is True for o in ok) else "not measurable (SZ3 has no point there)"
-                           if any(o is None for o in ok) else "missed")
-                L.append(f"- {F32 // budget}:1 ({budget} B/block), {label} at least as good as SZ3 at equal bytes on "
-                         f"{', '.join(keys)}: **{verdict}**: " + "; ".join(cells) + ".")
-        m = t.get("moonshot_64B")
-        if not m:
-            L.append("- moonshot, F@1 >= 0.95 at 64 B/block: **missed**: no registry point at or below 64 B/block.")
-        else:
-            b = m["best"]
-            L.append(f"- moonshot, F@1 >= 0.95 at 64 B/block: **{'met' if m['met'] else 'missed'}**: best "
-                     f"{b['method']} {b['setting']} ({b['bytes_per_block']:.1f} B) F@1 {b['f1']:.3f}.")
-        L.append("")
-    L += ["SZ3 values at equal bytes are interpolated in log(bytes) between SZ3's measured points (peer, whole "
-          "field, no mask); outside its range nothing is extrapolated.", ""]
+        L += [f"**{ds}**", ""] + pt.markdown_targets(
+            {**t, "decode_on_read": res.get("decode_on_read", {}).get(ds)}, _runs(res))
+    kf = res.get("kitchen_full")
+    if kf:
+        L += [f"### The whole kitchen map (frames 0-499, {kf['coded_blocks']} coded blocks): smaller than SZ3's at "
+              "equal Chamfer?", "", "Both sides written by `sdfcodec encode` (SZ3: `--codec sz3 --max-error E`, "
+              "ours: `--target-bytes B`), every file of each map counted, surfaces by `sdfcodec compare LOSSLESS "
+              "MAP`. Our bytes at SZ3's Chamfer: our curve read in log-log between the two maps either side.", "",
+              "| SZ3 map | SZ3 B/block | SZ3 Chamfer (mm) / F@1 | our B/block at that Chamfer | our smallest map "
+              "reaching it | ours / SZ3 bytes | smaller? |", "|---|---:|---|---:|---|---:|---|"]
+        for r in kf["equal_chamfer"]:
+            L.append(_chamfer_row(r))
+        L += ["", "The reverse reading: SZ3's bytes (its curve, log-log) at each of our maps' Chamfer.", "",
+              "| our map | our B/block | our Chamfer (mm) / F@1 | SZ3 B/block at that Chamfer | SZ3's smallest map "
+              "reaching it | SZ3 / our bytes | SZ3 smaller? |", "|---|---:|---|---:|---|---:|---|"]
+        for r in kf.get("reverse", []):
+            L.append(_chamfer_row(r))
+        L += ["", "Our maps: " + "; ".join(f"{p['setting']}: {p['bytes_per_block']:.1f} B, {p['chamfer_mm']:.2f} mm, "
+                                           f"F@1 {p['f1']:.3f}" for p in kf["ours"])
+              + "".join(f"; {r['options']}: refused ({r['message']})" for r in kf["refused"]) + ".", "",
+              f"Measured at load {kf['load']:.1f} (after the run).", ""]
     for ds in res["datasets"]:
         P = [p for p in res["points"] if p["dataset"] == ds]
-        L += [f"### {ds}: every point ({P[0]['blocks']} coded blocks)" if P else f"### {ds}", "",
-              "| method | setting | B/block | ratio | MSE | max (cm) | Chamfer (mm) | F@1 | codec state (B) | "
-              "B/block at 1M blocks | decode, x memcpy |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-        for p in sorted(P, key=lambda p: (p["family"], p["method"], p["bytes_per_block"])):
-            L.append(f"| {p['method']} | {p['setting']} | {p['bytes_per_block']:.1f} | {p['ratio']:.0f} | "
-                     f"{p['mse']:.3g} | {p['max_error_cm']:.2f} | {_fmt(p['chamfer_mm'], '{:.2f}')} | {p['f1']:.3f} | "
-                     f"{p['codec_state_bytes']:,} | {p['bytes_per_block_1M']:.1f} | "
-                     f"{_fmt(p.get('decode_vs_memcpy'), '{:.3f}')} |")
-        L.append("")
-        measured = (f"Measured on {res['machine']['cpus']} CPUs at load {res['load_before'][0]:.1f}-"
-                    f"{res['load_after'][0]:.1f}, {res['date']}, by `{res['command']}`.")
-        L += [f"![{ds}](rd-peers-{_slug(ds)}.png)", "", f"**{ds}: at {', '.join(f'{b} B' for b in X_BYTES[1:5])} "
-              "per coded block** (each method's curve read in log(bytes) between its measured points; - outside "
-              "its range)", "", "| method | " + " | ".join(f"{b} B: F@1 / Chamfer mm / max cm" for b in X_BYTES[1:5])
-              + " |", "|---|" + "---:|" * 4]
+        run = _runs(res)
+        L += [f"### {ds} ({P[0]['blocks']} coded blocks)" if P else f"### {ds}", "",
+              f"![{ds}](rd-peers-{_slug(ds)}.png)", "", f"**{ds}: at {', '.join(f'{b} B' for b in X_BYTES[1:5])} "
+              "per coded block** (each curve read as above; - outside its range)", "",
+              "| method | " + " | ".join(f"{b} B: F@1 / Chamfer mm / max cm" for b in X_BYTES[1:5]) + " |",
+              "|---|" + "---:|" * 4]
         curves: dict[str, list[dict]] = {}
         for p in P:
             curves.setdefault(_curve(p), []).append(p)
         for name, S in sorted(curves.items()):
             cells = []
             for b in X_BYTES[1:5]:
-                v = [_interp(S, b, k) for k in ("f1", "chamfer_mm", "max_error_cm")]
+                v = [pt.at_bytes(S, b, k) for k in ("f1", "chamfer_mm", "max_error_cm")]
                 cells.append("-" if v[0] is None else f"{v[0]:.3f} / {_fmt(v[1], '{:.2f}')} / {_fmt(v[2], '{:.2f}')}")
             L.append(f"| {name} | " + " | ".join(cells) + " |")
-        ours = [p for p in P if p["family"] == "ours"]
-        if ours:  # our configurations are short curves: the best point (F@1) that fits each budget
-            cells = []
-            for b in X_BYTES[1:5]:
-                fit = [p for p in ours if p["bytes_per_block"] <= b]
-                q = max(fit, key=lambda p: p["f1"]) if fit else None
-                cells.append("-" if q is None else f"{q['f1']:.3f} / {_fmt(q['chamfer_mm'], '{:.2f}')} / "
-                             f"{q['max_error_cm']:.2f} ({q['setting']}, {q['bytes_per_block']:.0f} B)")
-            L.append("| ours: best point that fits | " + " | ".join(cells) + " |")
-        L += [f"- `sdfcodec encode` refused {' '.join(f'--{k} {v}' for k, v in r['options'].items())} (out of "
-              "its range on this map)" for r in res.get("refused", []) if r["dataset"] == ds]
-        L += ["", measured, "", f"**{ds}: decode throughput** (blocks/s, best of 3, and as a ratio to a memory "
-              "copy of the decoded float32 blocks timed beside it)", "",
-              "| method | setting | B/block | decode blocks/s | x memcpy |", "|---|---|---:|---:|---:|"]
-        for p in sorted(P, key=lambda p: (p["method"], p["bytes_per_block"])):
-            L.append(f"| {p['method']} | {p['setting']} | {p['bytes_per_block']:.1f} | "
+        L += [f"- `sdfcodec encode` refused {' '.join(f'--{k} {v}' for k, v in r['options'].items())}: {r['message']}"
+              for r in res.get("refused", []) if r["dataset"] == ds]
+        L += ["", f"**{ds}: every point, with decode throughput** (blocks/s of the method's decoder over all blocks, "
+              "best of 3, and as a ratio to a memory copy of the decoded float32 blocks timed interleaved with it)", "",
+              "| method | setting | B/block | ratio | MSE | max (cm) | Chamfer (mm) | F@1 | decode blocks/s | "
+              "decode, x memcpy |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for p in sorted(P, key=lambda p: (p["family"], p["method"], p["bytes_per_block"])):
+            L.append(f"| {p['method']} | {p['setting']} | {p['bytes_per_block']:.1f} | {p['ratio']:.0f} | "
+                     f"{p['mse']:.3g} | {p['max_error_cm']:.2f} | {_fmt(p['chamfer_mm'], '{:.2f}')} | {p['f1']:.3f} | "
                      f"{_fmt(p.get('decode_blocks_per_s'), '{:,.0f}')} | {_fmt(p.get('decode_vs_memcpy'), '{:.3f}')} |")
-        L += ["", measured, ""]
+        L += ["", run, ""]
     m = res["machine"]
-    L += [f"Run: {m['cpus']} CPUs, Python {m['python']}, pysz {m['pysz']}, zfpy {m['zfpy']}; load average "
-          f"{res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; wall time {res['wall_s']:.0f} s."
-          + (" Decode ratios were taken under load (more than one job per core): re-measure idle."
-             if max(res["load_before"][0], res["load_after"][0]) > m["cpus"] else ""), ""]
+    L += [f"Run: {m['cpus']} CPUs, Python {m['python']}, pysz {m['pysz']}, zfpy {m['zfpy']}, numcodecs-wasm-sperr "
+          f"{m['numcodecs-wasm-sperr']}; peers' run {peers_run['wall_s']:.0f} s, ours {ours_run['wall_s']:.0f} s."
+          + (" Decode figures were taken under load (more than one job per core): compare the ratios taken "
+             "interleaved, not the blocks/s." if max(peers_run["load_before"][0], peers_run["load_after"][0],
+                                                     ours_run["load_before"][0], ours_run["load_after"][0])
+             > m["cpus"] else ""), ""]
     return "\n".join(L)
 
 
@@ -596,9 +647,17 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--kitchen", type=Path, default=Path(os.environ.get("SDFCODEC_KITCHEN", "7scenes-redkitchen")),
                     help="a 7-Scenes redkitchen sequence folder (colour and depth frames, poses, gravity); default: $SDFCODEC_KITCHEN, else ./7scenes-redkitchen")
+    ap.add_argument("--kitchen-map", type=Path, default=None,
+                    help="the whole fused kitchen as a lossless map (sdfcodec fuse KITCHEN OUT): the target 'smaller "
+                         "than SZ3's at equal Chamfer' (skipped without it)")
     ap.add_argument("--quick", action="store_true", help="a tiny synthetic corner, few settings (the CI test)")
-    ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (default: all; "
-                                                    "--quick: all but the networks)")
+    ap.add_argument("--methods", default=None, help="comma-separated entries of METHODS (--list; default: "
+                                                    "ours,sz3-peer,zfp,sperr)")
+    ap.add_argument("--ours-only", action="store_true",
+                    help="rerun only our maps (every `sdfcodec encode`: our points, decode on read, the whole-kitchen "
+                         "maps) and re-render, keeping the peers' points of the committed OUT/rd-peers.json")
+    ap.add_argument("--render", action="store_true", help="only recompute the targets from OUT/rd-peers.json's "
+                                                           "points and rewrite it, the figures and the page section")
     ap.add_argument("--list", action="store_true", help="list the methods and exit")
     ap.add_argument("--datasets", default="kitchen,synthetic,rooms,building",
                     help="comma-separated: kitchen, synthetic, rooms, building")
@@ -609,7 +668,9 @@ def main(argv: list[str] | None = None) -> dict:
         for k, f in METHODS.items():
             print(f"{k}: {f.__doc__.splitlines()[0]}")
         return {}
-    a.methods = a.methods or ",".join(m for m in METHODS if not (a.quick and m == "networks"))
+    if a.render:
+        return rerender(a.out or ROOT / "docs")
+    a.methods = "ours" if a.ours_only else a.methods or "ours,sz3-peer,zfp,sperr"
     unknown = [m for m in a.methods.split(",") if m not in METHODS]
     if unknown:
         ap.error(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
@@ -619,69 +680,104 @@ def main(argv: list[str] | None = None) -> dict:
         return _study(a, argv)
 
 
+def _datasets(a, work: Path) -> list[tuple[str, Callable]]:
+    """(name, thunk) of each data set asked: each is built when its turn comes, so a long run writes as it goes."""
+    if a.quick:
+        return [("synthetic (quick)", lambda: (lambda c, t: (c, *fused_like(t)))(*synthetic_blocks(True)))]
+    want, sets = a.datasets.split(","), []
+    if "kitchen" in want and a.kitchen.is_dir():
+        sets.append(("kitchen", lambda: kitchen_blocks(a.kitchen, work)))
+    elif "kitchen" in want:
+        print(f"no kitchen data at {a.kitchen}: skipped", file=sys.stderr)
+    if "synthetic" in want:  # the lattice moved by 0.3 voxel: no wall on voxel centres (see its docstring)
+        sets.append(("synthetic", lambda: (lambda c, t: (c, *fused_like(t)))(*synthetic_blocks(False, shift=0.3))))
+    if "rooms" in want:
+        sets.append(("rooms", rooms_blocks))
+    if "building" in want:
+        sets.append(("building", building_blocks))
+    return sets
+
+
 def _study(a, argv) -> dict:
     work = a.workdir or (Path(tempfile.mkdtemp(prefix="rd-peers-")) if a.quick else ROOT / "build" / "rd-peers")
     work.mkdir(parents=True, exist_ok=True)
     out = a.out or (work if a.quick else ROOT / "docs")
     out.mkdir(parents=True, exist_ok=True)
-    t0, load_before = time.perf_counter(), os.getloadavg()
-    sets = []  # (name, thunk): each data set is built when its turn comes, so a long run writes as it goes
-    if a.quick:
-        sets.append(("synthetic (quick)", lambda: (lambda c, t: (c, *fused_like(t)))(*synthetic_blocks(True))))
-    else:
-        want = a.datasets.split(",")
-        if "kitchen" in want and a.kitchen.is_dir():
-            sets.append(("kitchen", lambda: kitchen_blocks(a.kitchen, work)))
-        elif "kitchen" in want:
-            print(f"no kitchen data at {a.kitchen}: skipped", file=sys.stderr)
-        if "synthetic" in want:  # the lattice moved by 0.3 voxel: no wall on voxel centres (see its docstring)
-            sets.append(("synthetic", lambda: (lambda c, t: (c, *fused_like(t)))(*synthetic_blocks(False, shift=0.3))))
-        if "rooms" in want:
-            sets.append(("rooms", rooms_blocks))
-        if "building" in want:
-            sets.append(("building", building_blocks))
-    points, names, res = [], [], {}
+    run = {"command": _command(argv), "cpus": os.cpu_count(), "load_before": os.getloadavg(), "t0": time.perf_counter()}
+    old = json.loads((out / "rd-peers.json").read_text()) if a.ours_only else None
+    sets = _datasets(a, work)
+    if old is not None:  # the committed run's data sets and its peers' points
+        sets = [(n, b) for n, b in sets if n in old["datasets"]]
+    points, names, res, dor = [], [], {}, {}
+    kf = None if old is None else old.get("kitchen_full")
     for name, build in sets:
         d = Data(name, *build(), work)
         print(f"{name}: {d.n} coded blocks", flush=True)
         for m in a.methods.split(","):
             METHODS[m](d, a.quick)
+        dor[name] = decode_on_read(d, a.quick)
         for p in d.points:
             p["blocks"] = d.n
-        points += d.points
+        kept = [] if old is None else [p for p in old["points"] if p["dataset"] == name and p["family"] != "ours"]
+        points += kept + d.points
         names.append(name)
-        res = _write(a, argv, out, points, names, t0, load_before)  # after each data set: a long run keeps its part
+        res = _write(out, points, names, run, old, dor, kf)  # after each data set: a long run keeps its part
+    if a.kitchen_map is not None:
+        kf = kitchen_full(a.kitchen_map, work, a.quick)
+        res = _write(out, points, names, run, old, dor, kf)
     return res
 
 
-def _write(a, argv, out: Path, points: list[dict], names: list[str], t0: float, load_before) -> dict:
-    from importlib.metadata import version
-
+def _command(argv) -> str:
     args = list(sys.argv[1:] if argv is None else argv)
     for i, a in enumerate(args[:-1]):  # this machine's folders say nothing to a reader: their role instead
-        if a in ("--kitchen", "--workdir", "--out"):
-            args[i + 1] = a[2:].upper() + "_DIR"
-    cmd = "python examples/peers_study.py" + (" " + shlex.join(args) if args else "")
-    res = {"command": cmd, "datasets": names, "points": points, "refused": REFUSED,
-           "targets": {ds: targets(points, ds) for ds in names},
+        if a in ("--kitchen", "--kitchen-map", "--workdir", "--out"):
+            args[i + 1] = a[2:].upper().replace("-", "_") + ("" if a == "--kitchen-map" else "_DIR")
+    return "python examples/peers_study.py" + (" " + shlex.join(args) if args else "")
+
+
+def _write(out: Path, points: list[dict], names: list[str], run: dict, old: dict | None, dor: dict,
+           kf: dict | None) -> dict:
+    from importlib.metadata import version
+
+    now = {**{k: v for k, v in run.items() if k != "t0"}, "load_after": os.getloadavg(),
+           "wall_s": time.perf_counter() - run["t0"], "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    refused = [r for r in REFUSED if r["dataset"] in names]
+    res = {"datasets": names, "points": points, "refused": refused, "peer_bytes": list(PEER_BYTES),
+           "targets": {ds: targets(points, ds, refused) for ds in names}, "decode_on_read": dor,
+           "kitchen_full": kf, "peers_run": now if old is None else old["peers_run"], "ours_run": now,
            "note": ("Data sets: kitchen = the held-out half (x > middle) of the 7-Scenes redkitchen fused at 2 cm; "
                     "synthetic = room_scene(seed=0, geometry='rich', ceiling=True) at 2 cm on a lattice moved by "
                     "0.3 voxel, fused-like; rooms = synthetic_room(seed 1 and 2, behind='solid') side by side, fused-like; "
                     "building = building_scene(seed=0, rooms_per_side=1) like synthetic. Our maps are surface-true "
                     "(observation mask, counted in their bytes); 'ours' rows count every file of the map, the "
-                    "shipped model referenced (--codec-state reference); the peers (SZ3, ZFP, SPERR) code the plain "
-                    "field (unobserved voxels as free space), with no mask to count, bytes as their own libraries "
-                    "return them."),
+                    "shipped model referenced (the default of `sdfcodec encode`); the peers (SZ3, ZFP, SPERR) code "
+                    "the plain field (unobserved voxels as free space), with no mask to count, bytes as their own "
+                    "libraries return them."),
            "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0], "pysz": version("pysz"),
-                       "zfpy": version("zfpy"), "numcodecs-wasm-sperr": version("numcodecs-wasm-sperr")},
-           "load_before": load_before, "load_after": os.getloadavg(), "wall_s": time.perf_counter() - t0,
-           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+                       "zfpy": version("zfpy"), "numcodecs-wasm-sperr": version("numcodecs-wasm-sperr")}}
+    _save(out, res)
+    print(f"  after {now['wall_s']:.0f} s", flush=True)
+    return res
+
+
+def _save(out: Path, res: dict) -> None:
     (out / "rd-peers.json").write_text(json.dumps(res, indent=1) + "\n")
-    for ds in names:
-        plot(points, ds, out / f"rd-peers-{_slug(ds)}.png")
+    for ds in res["datasets"]:
+        plot(res["points"], ds, out / f"rd-peers-{_slug(ds)}.png")
     replace_section(out / "rate-distortion.md", "peers", markdown(res), title="# Rate-distortion")
-    print(f"wrote {out / 'rd-peers.json'}, rd-peers-*.png and the 'peers' section of rate-distortion.md after "
-          f"{res['wall_s']:.0f} s", flush=True)
+    print(f"wrote {out / 'rd-peers.json'}, rd-peers-*.png and the 'peers' section of rate-distortion.md", flush=True)
+
+
+def rerender(out: Path) -> dict:
+    """Recompute the targets from the points of ``out``/rd-peers.json (nothing measured) and rewrite it, the
+    figures and the page's section: after a change to examples/peers_targets.py."""
+    res = json.loads((out / "rd-peers.json").read_text())
+    res["targets"] = {ds: targets(res["points"], ds, res["refused"]) for ds in res["datasets"]}
+    kf = res.get("kitchen_full")
+    if kf:
+        kf.update(equal_chamfer=pt.equal_chamfer(kf["ours"], kf["sz3"]), reverse=pt.equal_chamfer(kf["sz3"], kf["ours"]))
+    _save(out, res)
     return res
 
 

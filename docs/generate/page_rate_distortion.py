@@ -60,9 +60,10 @@ def render() -> str:
          "SPERR, a DCT, a NanoVDB-style quantiser). Each section is measured by its own command and rendered from "
          "the JSON it writes:", "",
          "| section | command | what |", "|---|---|---|",
-         "| peers | `python examples/peers_study.py` (`--quick`: the CI test's tiny map) | the registry and our "
-         "`sdfcodec encode` configurations against SZ3, ZFP, SPERR, DCT + zstd and NanoVDB-style, surfaces "
-         "included, on the held-out kitchen half, a synthetic room, two posed rooms and a building |",
+         "| peers | `python examples/peers_study.py` (`--quick`: the CI test's tiny map; `--ours-only`: rerun "
+         "our maps only, keeping the committed peers' points) | our `sdfcodec encode --target-bytes B` maps "
+         "against SZ3, ZFP and SPERR at equal bytes, surfaces included, on the held-out kitchen half, a synthetic "
+         "room, two posed rooms and a building, and issue 42's targets |",
          "| quantised | `python examples/quantised_codes.py ...` | int16 step codes against float32/float16/int8 "
          "on the whole kitchen |",
          "| codecs | `python examples/rate_distortion.py` | float32/float16/int8 maps of every learned codec "
