@@ -132,6 +132,47 @@ def pca64():
     return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
 
 
+def once_per_run(tmp_path_factory, name: str, make):
+    """``make()``'s JSON-able result, computed by one process of the run: under pytest-xdist the first worker to
+    ask computes it while the others wait on a lock, then read what it saved (pytest-xdist's documented recipe
+    for a session fixture that runs once). For results that cost seconds and that several workers' tests share:
+    a session fixture alone is built again in every worker that runs one of its tests."""
+    import fcntl
+    import json
+
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return make()
+    shared = tmp_path_factory.getbasetemp().parent  # the run's directory, above every worker's own
+    saved = shared / f"{name}.json"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not saved.is_file():
+            saved.write_text(json.dumps(make()))
+        return json.loads(saved.read_text())
+
+
+# One quick codec benchmark serves two modules (~10 s of the suite's time): tests/test_cli.py checks its JSON
+# records, tests/test_bench_progress.py the progress it drew on stderr.
+QUICK_BENCH = ("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--repeats", "2", "--json")
+
+
+@pytest.fixture(scope="session")
+def quick_bench(tmp_path_factory):
+    """``sdfcodec QUICK_BENCH`` run in process (typer's CliRunner), the progress redrawn every 0.05 s
+    (``SDFCODEC_PROGRESS_SECONDS``): ``exit_code``, ``stdout``, ``stderr`` and ``output`` (both) of the run."""
+    from types import SimpleNamespace
+
+    def make() -> dict:
+        from typer.testing import CliRunner
+
+        from sdfcodec.cli import app
+
+        r = CliRunner().invoke(app, list(QUICK_BENCH), env={"SDFCODEC_PROGRESS_SECONDS": "0.05"})
+        return {"exit_code": r.exit_code, "stdout": r.stdout, "stderr": r.stderr, "output": r.output}
+
+    return SimpleNamespace(**once_per_run(tmp_path_factory, "quick-bench", make))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
