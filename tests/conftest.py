@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import os
+import shutil
 import signal
 
 # As the command line does (sdfcodec/cli/__init__.py): numpy's OpenBLAS threads go to sleep after a product
@@ -132,23 +134,58 @@ def pca64():
     return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
 
 
-def once_per_run(tmp_path_factory, name: str, make):
-    """``make()``'s JSON-able result, computed by one process of the run: under pytest-xdist the first worker to
-    ask computes it while the others wait on a lock, then read what it saved (pytest-xdist's documented recipe
-    for a session fixture that runs once). For results that cost seconds and that several workers' tests share:
-    a session fixture alone is built again in every worker that runs one of its tests."""
-    import fcntl
-    import json
+class RunShared:
+    """What one process of the run builds for all: under pytest-xdist a session or module fixture is built again
+    in every worker that runs one of its tests; through this, the first worker to ask builds it while the others
+    wait on a lock, then they take what it saved (pytest-xdist's documented recipe for a session fixture that
+    runs once). For results that cost seconds and that several workers' tests share."""
 
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
-        return make()
-    shared = tmp_path_factory.getbasetemp().parent  # the run's directory, above every worker's own
-    saved = shared / f"{name}.json"
-    with open(shared / f"{name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
-        if not saved.is_file():
-            saved.write_text(json.dumps(make()))
-        return json.loads(saved.read_text())
+    def __init__(self, tmp_path_factory):
+        self.factory = tmp_path_factory
+        # the run's directory, above every worker's own temporary directory; None outside xdist (one process)
+        self.shared = tmp_path_factory.getbasetemp().parent if os.environ.get("PYTEST_XDIST_WORKER") else None
+
+    @contextmanager
+    def _lock(self, name: str):
+        import fcntl
+
+        with open(self.shared / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            yield
+
+    def once(self, name: str, make):
+        """``make()``'s JSON-able result, computed once in the run."""
+        import json
+
+        if self.shared is None:
+            return make()
+        saved = self.shared / f"{name}.json"
+        with self._lock(name):
+            if not saved.is_file():
+                saved.write_text(json.dumps(make()))
+            return json.loads(saved.read_text())
+
+    def built(self, name: str, build) -> Path:
+        """A directory that ``build(directory)`` fills, once in the run: every worker gets the same directory,
+        so tests only read what is in it (a test that changes a map copies it first)."""
+        if self.shared is None:
+            d = self.factory.mktemp(name)
+            build(d)
+            return d
+        d, done = self.shared / name, self.shared / f"{name}.built"
+        with self._lock(name):
+            if not done.is_file():
+                shutil.rmtree(d, ignore_errors=True)  # what a failed build left
+                d.mkdir()
+                build(d)
+                done.touch()
+        return d
+
+
+@pytest.fixture(scope="session")
+def run_shared(tmp_path_factory) -> RunShared:
+    """Results and directories built once per run, whichever xdist worker asks first (:class:`RunShared`)."""
+    return RunShared(tmp_path_factory)
 
 
 # One quick codec benchmark serves two modules (~10 s of the suite's time): tests/test_cli.py checks its JSON
@@ -157,7 +194,7 @@ QUICK_BENCH = ("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read
 
 
 @pytest.fixture(scope="session")
-def quick_bench(tmp_path_factory):
+def quick_bench(run_shared):
     """``sdfcodec QUICK_BENCH`` run in process (typer's CliRunner), the progress redrawn every 0.05 s
     (``SDFCODEC_PROGRESS_SECONDS``): ``exit_code``, ``stdout``, ``stderr`` and ``output`` (both) of the run."""
     from types import SimpleNamespace
@@ -170,7 +207,7 @@ def quick_bench(tmp_path_factory):
         r = CliRunner().invoke(app, list(QUICK_BENCH), env={"SDFCODEC_PROGRESS_SECONDS": "0.05"})
         return {"exit_code": r.exit_code, "stdout": r.stdout, "stderr": r.stderr, "output": r.output}
 
-    return SimpleNamespace(**once_per_run(tmp_path_factory, "quick-bench", make))
+    return SimpleNamespace(**run_shared.once("quick-bench", make))
 
 
 @pytest.fixture
