@@ -130,9 +130,8 @@ def test_codecs_listing():
     assert rows["raw"]["requires_fit"] is False and rows["pca"]["package"] == "sdfcodec"
 
 
-def test_bench_json_records(quick_bench):
-    # sdfcodec bench --quick --sizes 32 --batches 1,64 --read 300 --repeats 2 --json (tests/conftest.py)
-    r = quick_bench
+def test_bench_json_records():
+    r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--repeats", "2", "--json")
     assert r.exit_code == 0, r.output
     recs = json.loads(r.stdout)
     (start,) = [x for x in recs if x["operation"] == "info-startup"]  # `sdfcodec info` in fresh processes
