@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import os
+import shutil
 import signal
 
 # As the command line does (sdfcodec/cli/__init__.py): numpy's OpenBLAS threads go to sleep after a product
@@ -130,6 +132,72 @@ def pca64():
     from sdfcodec.testing import analytic_blocks
 
     return sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(800, seed=11))
+
+
+class RunShared:
+    """What one process of the run builds for all: under pytest-xdist a session or module fixture is built again
+    in every worker that runs one of its tests; through this, a worker takes what another one already built
+    (saved in the run's directory, above every worker's own). A worker that asks while another is still
+    building builds its own copy rather than wait: a waiting worker would leave its core idle (measured with a
+    shared benchmark run: one worker waited 10 s), so sharing saves only what the workers need at different
+    times, and never costs more than a fixture per worker did."""
+
+    def __init__(self, tmp_path_factory):
+        self.factory = tmp_path_factory
+        # the run's directory; None outside xdist (one process: nothing to share)
+        self.shared = tmp_path_factory.getbasetemp().parent if os.environ.get("PYTEST_XDIST_WORKER") else None
+
+    @contextmanager
+    def _lock(self, name: str):
+        """Yields whether this process holds ``name``'s lock (False: another process is building it)."""
+        import fcntl
+
+        with open(self.shared / f"{name}.lock", "w") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released when the file closes
+            except BlockingIOError:
+                yield False
+                return
+            yield True
+
+    def once(self, name: str, make):
+        """``make()``'s JSON-able result, computed once in the run where the workers need it at different
+        times."""
+        import json
+
+        if self.shared is None:
+            return make()
+        saved = self.shared / f"{name}.json"
+        with self._lock(name) as held:
+            if not held:
+                return make()
+            if not saved.is_file():
+                saved.write_text(json.dumps(make()))
+            return json.loads(saved.read_text())
+
+    def built(self, name: str, build) -> Path:
+        """A directory that ``build(directory)`` fills, once in the run where the workers need it at different
+        times: workers get the same directory, so tests only read what is in it (a test that changes a map
+        copies it first)."""
+        if self.shared is not None:
+            d, done = self.shared / name, self.shared / f"{name}.built"
+            with self._lock(name) as held:
+                if held:
+                    if not done.is_file():
+                        shutil.rmtree(d, ignore_errors=True)  # what a failed build left
+                        d.mkdir()
+                        build(d)
+                        done.touch()
+                    return d
+        d = self.factory.mktemp(name)
+        build(d)
+        return d
+
+
+@pytest.fixture(scope="session")
+def run_shared(tmp_path_factory) -> RunShared:
+    """Results and directories built once per run, whichever xdist worker asks first (:class:`RunShared`)."""
+    return RunShared(tmp_path_factory)
 
 
 @pytest.fixture

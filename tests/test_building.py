@@ -5,15 +5,14 @@ the map so that blocks are paged out and back in."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import ndimage
+from typer.testing import CliRunner
 
+from sdfcodec.cli import app
 from sdfcodec.data.building import BUILDINGS, building_path, building_scene, building_sequence
 from sdfcodec.data.render import PRESETS
 from sdfcodec.errors import InvalidValueError
@@ -166,13 +165,13 @@ def test_online_fusion_refuses_a_working_set_smaller_than_a_frame(small_sequence
 def test_cli_fuse_online_json(tmp_path):
     # a synthetic: sequence straight from the command line, rendered tiny; the JSON report on a pipe
     out = tmp_path / "cli.sdfz"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
     seq = resolve_sequence("synthetic:building-small", tmp_path / "seq", frames=40, size=(80, 60))
-    proc = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "fuse", str(seq), str(out), "--codec", "pca",
-                           "--code-size", "64", "--working-set-mb", "12", "--json"],
-                          capture_output=True, text=True, env=env, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    rep = json.loads(proc.stdout)
+    # in process (typer's runner; its output is not a terminal either): a fresh interpreter would add only the
+    # start-up of torch and open3d
+    r = CliRunner().invoke(app, ["fuse", str(seq), str(out), "--codec", "pca", "--code-size", "64",
+                                 "--working-set-mb", "12", "--json"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.stdout)
     assert rep["budget_blocks"] == 384 and 0 < rep["peak_working_set_blocks"] <= 384
     assert rep["blocks_paged_out"] > 0 and rep["allocated_blocks"] > 384
     assert rep["peak_rss_mib"] > 0 and rep["frames_per_s"] > 0 and rep["frames_integrated"] == 40

@@ -51,17 +51,20 @@ def fused(volume):
 
 
 @pytest.fixture(scope="module")
-def maps(tmp_path_factory, volume, fused, pca64) -> dict:
-    """The analytic room (dense) and the fused-like room, pca-64, at several settings."""
-    d = tmp_path_factory.mktemp("bounds")
-    out = {}
-    for name, kw in {"e10": dict(max_error=0.01), "sign": dict(sign_exact=True),
-                     "e10sign": dict(max_error=0.01, sign_exact=True), "plain": {}}.items():
-        for kind, (vol, obs) in {"exact": (volume, None), "fused": fused}.items():
-            p = d / f"{kind}-{name}.sdfz"
-            write_volume_map(p, vol, obs, pca64, **kw)
-            out[kind, name] = p
-    return out
+def maps(run_shared, volume, fused, pca64) -> dict:
+    """The analytic room (dense) and the fused-like room, pca-64, at several settings; written once per run
+    (conftest.RunShared): tests read them, or change a copy."""
+    settings = {"e10": dict(max_error=0.01), "sign": dict(sign_exact=True),
+                "e10sign": dict(max_error=0.01, sign_exact=True), "plain": {}}
+    rooms = {"exact": (volume, None), "fused": fused}
+
+    def build(d: Path) -> None:
+        for name, kw in settings.items():
+            for kind, (vol, obs) in rooms.items():
+                write_volume_map(d / f"{kind}-{name}.sdfz", vol, obs, pca64, **kw)
+
+    d = run_shared.built("error-bounds-maps", build)
+    return {(kind, name): d / f"{kind}-{name}.sdfz" for name in settings for kind in rooms}
 
 
 @pytest.mark.parametrize("kind", ["exact", "fused"])

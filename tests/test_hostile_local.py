@@ -49,28 +49,35 @@ def _volume(shift: float) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def maps(tmp_path_factory):
+def maps(run_shared):
     """The base map (float32 pca-64, 2^3-block chunks, two code chunks per block), a donor map (other data, for
-    links to point at) and an int8 map, with their reference decodes."""
-    from sdfcodec.testing import analytic_blocks
-    from sdfcodec.map.verify import verify_map
+    links to point at) and an int8 map, with their reference decodes; written once per run (conftest.RunShared):
+    each case edits a copy."""
+    names = ("base", "donor", "int8", "residual")
 
-    root = tmp_path_factory.mktemp("hostile")
-    codec = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=11))
+    def build(root: Path) -> None:
+        from sdfcodec.testing import analytic_blocks
+        from sdfcodec.map.verify import verify_map
+
+        codec = sdfcodec.get_codec("pca", code_size=64).fit(analytic_blocks(300, seed=11))
+        for name, shift, dtype, extra in (("base", 0.0, "float32", {}), ("donor", 0.013, "float32", {}),
+                                          ("int8", 0.0, "int8", {}), ("residual", 0.0, "float32", {"max_error": 0.01})):
+            path = root / f"{name}.sdfz"
+            # no integrity manifest: these cases test the checks under it (what maps written without one get);
+            # test_hostile_case_on_a_map_with_a_manifest (slow) runs them all against maps that have one
+            with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
+                                     code_dtype=dtype, manifest=False, **extra) as m:
+                m.write_volume(_volume(shift))
+            np.save(root / f"{name}_ref.npy", sdfcodec.open_map(path).decode_region())
+        for name in names:
+            assert (root / f"{name}.sdfz" / CHUNK).is_file() and (root / f"{name}.sdfz" / CHUNK2).is_file()
+            assert verify_map(root / f"{name}.sdfz").ok
+
+    root = run_shared.built("hostile-local-maps", build)
     out = {"root": root}
-    for name, shift, dtype, extra in (("base", 0.0, "float32", {}), ("donor", 0.013, "float32", {}),
-                                      ("int8", 0.0, "int8", {}), ("residual", 0.0, "float32", {"max_error": 0.01})):
-        path = root / f"{name}.sdfz"
-        # no integrity manifest: these cases test the checks under it (what maps written without one get);
-        # test_hostile_case_on_a_map_with_a_manifest (slow) runs them all against maps that have one
-        with sdfcodec.create_map(path, codec=codec, voxel_size=VS, truncation=TRUNC, chunk_blocks=2,
-                                 code_dtype=dtype, manifest=False, **extra) as m:
-            m.write_volume(_volume(shift))
-        out[name] = path
-        out[name + "_ref"] = sdfcodec.open_map(path).decode_region()
-    for name in ("base", "donor", "int8", "residual"):
-        assert (out[name] / CHUNK).is_file() and (out[name] / CHUNK2).is_file()
-        assert verify_map(out[name]).ok
+    for name in names:
+        out[name] = root / f"{name}.sdfz"
+        out[name + "_ref"] = np.load(root / f"{name}_ref.npy")
     return out
 
 

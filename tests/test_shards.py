@@ -29,9 +29,12 @@ GOLDEN = Path(__file__).parent / "golden" / "maps" / "sharded-pca-4"
 
 
 @pytest.fixture(scope="module")
-def office() -> np.ndarray:
-    """Two rooms by two of the office volume: 5,460 blocks, 3,365 coded."""
-    return OfficeVolume((2, 2, 1), voxel_size=VS, truncation=TRUNC)[0:410, 0:330, 0:150]
+def office(run_shared) -> np.ndarray:
+    """Two rooms by two of the office volume: 5,460 blocks, 3,365 coded (made once per run: conftest.RunShared)."""
+    def build(d: Path) -> None:
+        np.save(d / "office.npy", OfficeVolume((2, 2, 1), voxel_size=VS, truncation=TRUNC)[0:410, 0:330, 0:150])
+
+    return np.load(run_shared.built("shards-office", build) / "office.npy")
 
 
 @pytest.fixture(scope="module")
@@ -40,18 +43,19 @@ def pca64():
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory, office, pca64) -> tuple[Path, Path]:
-    """The same volume as a plain map (4^3-block chunks) and a sharded one (16^3-block shards)."""
-    root = tmp_path_factory.mktemp("shards")
-    out = []
-    for name, sb in (("plain.sdfz", None), ("sharded.sdfz", 16)):
-        # no integrity manifest: the tampering below tests the shard checks under it (tests/test_manifest.py
-        # covers sharded maps with one)
-        with sdfcodec.create_map(root / name, codec=pca64, voxel_size=VS, truncation=TRUNC, chunk_blocks=4,
-                                 shard_blocks=sb, manifest=False) as m:
-            m.write_volume(office)
-        out.append(root / name)
-    return out[0], out[1]
+def pair(run_shared, office, pca64) -> tuple[Path, Path]:
+    """The same volume as a plain map (4^3-block chunks) and a sharded one (16^3-block shards), written once per
+    run (conftest.RunShared): tests read them, or change a copy."""
+    def build(root: Path) -> None:
+        for name, sb in (("plain.sdfz", None), ("sharded.sdfz", 16)):
+            # no integrity manifest: the tampering below tests the shard checks under it (tests/test_manifest.py
+            # covers sharded maps with one)
+            with sdfcodec.create_map(root / name, codec=pca64, voxel_size=VS, truncation=TRUNC, chunk_blocks=4,
+                                     shard_blocks=sb, manifest=False) as m:
+                m.write_volume(office)
+
+    root = run_shared.built("shards-pair", build)
+    return root / "plain.sdfz", root / "sharded.sdfz"
 
 
 def _code_files(p: Path) -> list[Path]:

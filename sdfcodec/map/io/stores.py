@@ -258,7 +258,26 @@ def _kind(mode: int) -> str:
     return next((name for test, name in _KINDS if test(mode)), "not a regular file")
 
 
-class SafeLocalStore(zarr.storage.LocalStore):
+class _BoundedGets:
+    """Zarr's ``get`` as :meth:`get_bounded`: the store's own bounded reader (``read_bounded``: a local map's
+    :meth:`SafeLocalStore.read_file`, a zip's :meth:`SafeZipStore.read_member`) run in a worker thread."""
+
+    def read_bounded(self, key: str, byte_range=None, max_bytes: int | None = None, too_big=None) -> bytes | None:
+        raise NotImplementedError
+
+    async def get_bounded(self, key, prototype=None, byte_range=None, max_bytes: int | None = None,
+                          too_big=None) -> Buffer | None:
+        """:meth:`get`, reading at most ``max_bytes`` (see ``read_file`` or ``read_member``)."""
+        if prototype is None:
+            prototype = default_buffer_prototype()
+        data = await asyncio.to_thread(self.read_bounded, key, byte_range, max_bytes, too_big)
+        return None if data is None else prototype.buffer.from_bytes(data)
+
+    async def get(self, key, prototype=None, byte_range=None):
+        return await self.get_bounded(key, prototype, byte_range)
+
+
+class SafeLocalStore(_BoundedGets, zarr.storage.LocalStore):
     """A read-only local store that reads only regular files inside its root directory (spec section 9a).
 
     Every key is resolved one path segment at a time from a directory descriptor of the root: a symbolic link
@@ -379,16 +398,8 @@ class SafeLocalStore(zarr.storage.LocalStore):
             for fd in reversed(fds):
                 os.close(fd)
 
-    async def get_bounded(self, key, prototype=None, byte_range=None, max_bytes: int | None = None,
-                          too_big=None) -> Buffer | None:
-        """:meth:`get`, reading at most ``max_bytes`` (see :meth:`read_file`)."""
-        if prototype is None:
-            prototype = default_buffer_prototype()
-        data = await asyncio.to_thread(self.read_file, key, byte_range, max_bytes, too_big)
-        return None if data is None else prototype.buffer.from_bytes(data)
-
-    async def get(self, key, prototype=None, byte_range=None):
-        return await self.get_bounded(key, prototype, byte_range)
+    def read_bounded(self, key: str, byte_range=None, max_bytes: int | None = None, too_big=None) -> bytes | None:
+        return self.read_file(key, byte_range, max_bytes, too_big)
 
     async def get_partial_values(self, prototype, key_ranges):
         return list(await asyncio.gather(*(self.get_bounded(k, prototype, r) for k, r in key_ranges)))
@@ -447,7 +458,7 @@ def _byte_span(byte_range, size: int) -> tuple[int, int]:
 MAX_OTHER_MEMBER_BYTES = 256 << 20
 
 
-class SafeZipStore(zarr.storage.ZipStore):
+class SafeZipStore(_BoundedGets, zarr.storage.ZipStore):
     """A read-only Zarr zip store whose reads are bounded while they happen, as a local map's are: a member's
     size declared in the zip's directory is checked against the caller's cap before it is opened (a deflate
     bomb that declares its size), at most that many bytes are decompressed (a member that lies about its size
@@ -520,16 +531,8 @@ class SafeZipStore(zarr.storage.ZipStore):
                                     "declares; refused")
             return data
 
-    async def get_bounded(self, key, prototype=None, byte_range=None, max_bytes: int | None = None,
-                          too_big=None) -> Buffer | None:
-        """:meth:`get`, reading at most ``max_bytes`` (see :meth:`read_member`)."""
-        if prototype is None:
-            prototype = default_buffer_prototype()
-        data = await asyncio.to_thread(self.read_member, key, byte_range, max_bytes, too_big)
-        return None if data is None else prototype.buffer.from_bytes(data)
-
-    async def get(self, key, prototype=None, byte_range=None):
-        return await self.get_bounded(key, prototype, byte_range)
+    def read_bounded(self, key: str, byte_range=None, max_bytes: int | None = None, too_big=None) -> bytes | None:
+        return self.read_member(key, byte_range, max_bytes, too_big)
 
     async def get_partial_values(self, prototype, key_ranges):
         return [await self.get_bounded(k, prototype, r) for k, r in key_ranges]
