@@ -15,6 +15,12 @@ from sdfcodec.search import cache
 from sdfcodec.search import calibrate, engine, models, query, scoring
 from sdfcodec.search.query import build_query
 
+#: Shipped against fresh calibration figures: the pca plugin's weighted encode has two exact solvers (the compiled
+#: one with the extra 'fast', the batched torch one without it or on a GPU) that agree to the float32 rounding of
+#: their active-set refits; a quantile of their residuals measured 1.7e-4 apart, so a table computed by either
+#: must match the other.
+RTOL = 1e-3
+
 VS, TRUNC = 0.02, (-0.04, 0.1)
 
 
@@ -237,14 +243,15 @@ def test_shipped_calibrations_equal_a_fresh_calibration(fresh_cache, monkeypatch
     key, args = plane_check.plane_check_key(None, codec, sha, quantile=CALIBRATION_QUANTILE, tol=1.8, **kw)
     assert args["tol"] == 2.0 and got == (doc["entries"][key]["threshold"], doc["entries"][key]["info"]["median"])
     sim, _ = real(None, codec, quantile=CALIBRATION_QUANTILE, **args)
-    assert np.allclose(got, (np.quantile(sim, CALIBRATION_QUANTILE), np.median(sim)), rtol=1e-4, atol=0)
+    # RTOL: the table may have been computed by the other of the pca plugin's two exact solvers
+    assert np.allclose(got, (np.quantile(sim, CALIBRATION_QUANTILE), np.median(sim)), rtol=RTOL, atol=0)
     # a table that does not load ships nothing: the calibration is computed, with the same figures
     monkeypatch.setattr(cache, "SHIPPED_FILE", cache.SHIPPED_FILE.with_name("no-such-file.json"))
     monkeypatch.setattr(cache, "_shipped", None)
     cache.clear_memory_cache()
     again = plane_check.clean_residuals(np.array([0.0, 0.0, 1.0]), codec, sha, quantile=CALIBRATION_QUANTILE, tol=2.0,
                                         **kw)
-    assert calls == [1] and np.allclose(again, got, rtol=1e-4, atol=0)
+    assert calls == [1] and np.allclose(again, got, rtol=RTOL, atol=0)
 
 
 def test_ship_calibrations_script_rewrites_the_shipped_entries(fresh_cache):
@@ -262,5 +269,5 @@ def test_ship_calibrations_script_rewrites_the_shipped_entries(fresh_cache):
     assert len(got) == 4 and set(got) <= set(shipped)
     for key, e in got.items():
         assert e["args"] == shipped[key]["args"] and e["codec"] == shipped[key]["codec"]
-        assert np.isclose(e["threshold"], shipped[key]["threshold"], rtol=1e-4, atol=0)
-        assert np.isclose(e["info"]["median"], shipped[key]["info"]["median"], rtol=1e-4, atol=0)
+        assert np.isclose(e["threshold"], shipped[key]["threshold"], rtol=RTOL, atol=0)
+        assert np.isclose(e["info"]["median"], shipped[key]["info"]["median"], rtol=RTOL, atol=0)

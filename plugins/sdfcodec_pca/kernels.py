@@ -6,7 +6,13 @@ cached, and compiling them takes tens of seconds: every process would pay it).""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import config, njit, prange
+
+# numba tries TBB first and warns (at the first parallel call) when the installed TBB is older than it supports;
+# OpenMP is what torch's CPU build runs on too and, unlike numba's own workqueue, may be entered from several
+# threads at once. A layer the user chose (NUMBA_THREADING_LAYER) is kept: only the order of the default's tries
+# changes.
+config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 __all__ = ["kernel"]
 
