@@ -17,6 +17,7 @@ import errno
 import functools
 import inspect
 import json
+import logging
 import os
 import sys
 import threading
@@ -133,6 +134,10 @@ def cli(fn: Callable) -> Callable:
         try:
             return fn(*args, **kwargs)
         except KeyboardInterrupt:  # Ctrl-C: the shell's 128 + SIGINT, and what became of the output
+            # Zarr's event loop still holds the interrupted write's tasks; when the process exits, asyncio would log
+            # "Task was destroyed but it is pending!" for each of them after our line. The output is already dealt
+            # with (rolled back or named), so they say nothing the user can act on.
+            logging.getLogger("asyncio").setLevel(logging.CRITICAL)
             fail(_interrupted(), 130)
         # file errors first: one that names its file (InputNotFoundError too) prints "reason: path", not "[Errno 2]"
         except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
