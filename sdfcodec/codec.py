@@ -50,7 +50,8 @@ LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_boun
 #: weighted hooks' defaults are right for a codec whose plain encode or fit already minimises every weighted
 #: error: a lossless one).
 CAPABILITIES: dict[str, bool] = {"decode_affine": True, "decode_into": True, "decode_tiles": True,
-                                 "encode_weighted": False, "fit_weighted": False, "pretrained": True}
+                                 "encode_truncated": True, "encode_weighted": False, "fit_weighted": False,
+                                 "pretrained": True}
 
 
 def _forward_to(old: str) -> Callable[..., Any]:
@@ -441,6 +442,15 @@ class Codec(abc.ABC):
         :meth:`encode` calls it when given weights. The default ignores the weights (``_encode(blocks)``): every
         codec accepts them; a codec that can use them overrides it (PCA solves the weighted least squares)."""
         return self._encode(blocks)
+
+    def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int) -> torch.Tensor | None:
+        """Hook: the codes ``(N, code_size)`` that :func:`sdfcodec.map.observed.encode_truncated` computes from
+        :meth:`encode_weighted` (the weighted fit, then at most ``rounds`` refits without the bound voxels a
+        reader's truncation makes exact), to float32 rounding, for checked blocks ``(N, 16, 16, 16)`` float32 and
+        checked weights of the same shape; or None where the codec has no faster way for these inputs (that
+        function then runs its batched refits). The default is None; a codec declaring the capability
+        ``encode_truncated`` overrides it (PCA: one compiled pass per block on the CPU)."""
+        return None
 
     def fit_weighted(self, blocks: np.ndarray, weights: np.ndarray) -> None:
         """Hook: learn from checked float32 numpy blocks ``(N, 16, 16, 16)`` and checked weights of the same

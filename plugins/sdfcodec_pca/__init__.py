@@ -53,8 +53,8 @@ WEIGHTED_FIT_ITERATIONS = 3
 #: Largest |C C^T - I| of an accepted basis: fitted float32 bases measure ~1e-6; a basis altered by a few
 #: percent (or scaled) is far beyond it.
 ORTHONORMAL_TOLERANCE = 1e-3
-_GRAM_TABLE_MAX_K = 128
-_FAST_MAX_K = 256  # the compiled pass's per-thread scratch: two k x k matrices  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
+_GRAM_TABLE_MAX_K = 128  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
+_FAST_MAX_K = 256  # the compiled pass's per-thread scratch: two k x k matrices
 
 
 def _refit_rows(x: torch.Tensor, w: torch.Tensor, codes: torch.Tensor, fixed: torch.Tensor, mean: torch.Tensor
@@ -126,8 +126,8 @@ class PCACodec(Codec):
     requires_fit = True
     code_sizes = (32, 64, 128)
     # spec/codec-plugins.md, section 4a: every optional fast path, weighted encode and fit, shipped bases
-    capabilities = frozenset({"decode_affine", "decode_into", "decode_tiles", "encode_weighted", "fit_weighted",
-                              "pretrained"})
+    capabilities = frozenset({"decode_affine", "decode_into", "decode_tiles", "encode_truncated", "encode_weighted",
+                              "fit_weighted", "pretrained"})
 
     def __init__(self, code_size: int = 64, mean: str = "dataset", svd_solver: str = "auto",
                  random_state: int | None = 0):

@@ -31,7 +31,7 @@ import zarr
 
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
-from ..codec import learns_weights, uses_weights
+from ..codec import capabilities, learns_weights, uses_weights
 from ..errors import FormatError
 from ..core.header import CODED_MASK_EXTENSION, BlockState, Extension
 from .format import mask_compressors
@@ -169,11 +169,10 @@ def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUN
     still changing). Measured on the held-out half of a fused kitchen, pca-64 (docs/surface.md): Chamfer-L1
     5.29 mm with none, 5.15 / 5.08 / 5.02 mm after 1 / 2 / 3.
 
-    A codec MAY compute the same in one pass of its own: a method ``encode_truncated(x, w, rounds)`` returning
-    the codes, or None where it does not apply (the pca codec's compiled pass on the CPU, spec/codec-plugins.md
-    section 4)."""
-    own = getattr(codec, "encode_truncated", None)
-    if own is not None and (codes := own(x, w, rounds)) is not None:
+    A codec declaring the capability ``encode_truncated`` MAY compute the same in one pass of its own
+    (:meth:`Codec.encode_truncated`; None where it does not apply: the pca codec's compiled pass on the CPU,
+    spec/codec-plugins.md section 4a)."""
+    if "encode_truncated" in capabilities(codec) and (codes := codec.encode_truncated(x, w, rounds)) is not None:
         return codes
     codes = codec.encode(x, weights=w)
     n = len(x)
