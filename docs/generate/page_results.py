@@ -1,6 +1,6 @@
 """docs/results.md: encode/decode throughput, decode on read, the start-up of `sdfcodec info`, the agreement of
 two `sdfcodec bench --quick` runs and the tracker's frame rate, from the JSON `sdfcodec bench` and
-docs/tracking_measure.py wrote into docs/results/."""
+docs/results/tracking_measure.py wrote into docs/results/."""
 
 from __future__ import annotations
 
@@ -109,7 +109,7 @@ def tracking() -> list[str]:
     L += table(("map", "image", "frames", "dense frames/s", "on demand, warm", "on demand, cold", "start-up s",
                 "ATE mm"), rows, right=(2, 3, 4, 5, 6, 7))
     L += ["", measured_on(doc, source=TRACKING,
-                          command="python docs/tracking_measure.py --kitchen KITCHEN --work WORK --bench FILE"), ""]
+                          command="python docs/results/tracking_measure.py --kitchen KITCHEN --work WORK --bench FILE"), ""]
     return L
 
 

@@ -1,5 +1,5 @@
 """docs/scale.md: decode on read from local disk and HTTP, chunk sizes, and dask, from the JSON
-docs/scale_measure.py wrote (docs/results/scale-measure.json)."""
+docs/results/scale_measure.py wrote (docs/results/scale-measure.json)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def render() -> str:
                  f"{d['c8_http_region_bytes']:,} of {d['c8_map_bytes']:,}"))
     doc = {"load_before": d["loadavg_start"], "load_after": d["loadavg_end"]}
     machine = {"cpus": d["cpus"]}
-    cmd = "python docs/scale_measure.py WORKDIR"
+    cmd = "python docs/results/scale_measure.py WORKDIR"
     L = ["# Scale: measured", "", banner("page_scale.py", (SOURCE,)), "",
          "How fast a map decodes as it is read, locally and over HTTP, with the default 16^3-block chunks and with "
          "8^3, and what dask adds. How the decode-on-read pipeline, remote stores, dask and sharded maps work: "

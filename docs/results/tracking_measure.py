@@ -1,6 +1,6 @@
 """Measurements for the SDF Tracker rows of docs/results.md (issue 19, item 3): frames/s per frame and ATE.
 
-Run: ``.venv/bin/python docs/tracking_measure.py --kitchen DIR --work WORKDIR [--out FILE.json]`` where DIR is a
+Run: ``.venv/bin/python docs/results/tracking_measure.py --kitchen DIR --work WORKDIR [--out FILE.json]`` where DIR is a
 7-Scenes redkitchen sequence folder (or set ``$SDFCODEC_KITCHEN``). It fuses the kitchen into a lossless map
 and transcodes it to pca-64 (once, kept in WORKDIR), fuses the synthetic presets likewise, then tracks every
 frame of each sequence from the first ground-truth pose with ``sdfcodec track``'s settings
@@ -195,7 +195,7 @@ def main() -> None:
     if a.ab:
         if not a.kitchen:
             ap.error("give the kitchen sequence with --kitchen DIR or $SDFCODEC_KITCHEN")
-        doc = {"command": f"docs/tracking_measure.py --ab OLD --ab-field {a.ab_field} --ab-map {a.ab_map} "
+        doc = {"command": f"docs/results/tracking_measure.py --ab OLD --ab-field {a.ab_field} --ab-map {a.ab_map} "
                           f"--lazy-frames {a.lazy_frames}", "label": a.label,
                **ab(a.ab, a.kitchen, maps_for(a.kitchen, a.work, "redkitchen", a.ab_map == "pca-64")[a.ab_map],
                     a.lazy_frames, a.ab_field)}
@@ -238,7 +238,7 @@ def main() -> None:
                 sub, few = seq[:a.lazy_frames], depths[:a.lazy_frames]
                 track_all(lazy, sub, few, TrackerConfig(**EVAL_TRACKER_CONFIG))
                 records.append(record(name, map_name, "mapfield-warm", sub, few, lazy, time.perf_counter() - t0))
-    doc = {"command": f"docs/tracking_measure.py --kitchen KITCHEN --work WORK --only {a.only}"
+    doc = {"command": f"docs/results/tracking_measure.py --kitchen KITCHEN --work WORK --only {a.only}"
                       + (" --tracker OLD" if a.tracker else ""),
            "label": a.label, "cpus": os.cpu_count(), "records": records}
     if a.out:

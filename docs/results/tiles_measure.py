@@ -1,4 +1,4 @@
-"""Measurements for docs/results.md, "Decoding in cache-sized tiles" (run: .venv/bin/python docs/tiles_measure.py
+"""Measurements for docs/results.md, "Decoding in cache-sized tiles" (run: .venv/bin/python docs/results/tiles_measure.py
 [WORKDIR] [REPEATS] [ROWS,...]): what each part of the tiled decode is worth, every case interleaved with the
 roofline (numpy's (65536, 65) x (65, 4096) product into a preallocated output) in the same rounds
 (sdfcodec.bench.harness):

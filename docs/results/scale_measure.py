@@ -1,4 +1,4 @@
-"""Measurements for docs/scale.md (run: .venv/bin/python docs/scale_measure.py [WORKDIR]): decode-on-read
+"""Measurements for docs/scale.md (run: .venv/bin/python docs/results/scale_measure.py [WORKDIR]): decode-on-read
 throughput from a local store, bytes fetched over HTTP for a region, and the dask paths. Prints JSON."""
 import http.server, json, os, threading, time, sys
 from functools import partial
