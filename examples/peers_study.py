@@ -1,4 +1,4 @@
-"""Rate-distortion of our maps against SZ3, ZFP and SPERR at equal total bytes, surfaces included (issues 16, 42).
+"""Rate-distortion of our maps against SZ3, ZFP and SPERR at equal total bytes, surfaces included.
 
     python examples/peers_study.py --kitchen KITCHEN_DIR --kitchen-map KITCHEN.sdfz
                                                          # the four data sets and the whole kitchen: long
@@ -8,7 +8,7 @@
 
 Writes docs/rd-peers.json, one figure per data set docs/rd-peers-<data set>.png (F@1, Chamfer-L1 and max error
 against bytes per coded block) and the section "peers" of docs/rate-distortion.md (other sections of that page
-are left as they are; ``make docs`` renders the same text from the JSON): issue 42's targets
+are left as they are; ``make docs`` renders the same text from the JSON): the targets we hold our maps to
 (examples/peers_targets.py) per data set at 32:1 .. 256:1 (512 .. 64 B per coded block), decode on read of our
 variable-rate maps against a fixed-length pca-64 map, the whole kitchen at equal Chamfer, and every point with
 its decode throughput.
@@ -214,7 +214,7 @@ def m_bounds(d: Data, quick: bool) -> None:
     import sdfcodec
 
     k = 16 if quick else 64
-    # the plain map first: the issue's target for --sign-exact is <= 1.5x its bytes
+    # the plain map first: the target we hold --sign-exact to is <= 1.5x its bytes
     sets = [("plain", {})] + [(f"max-error {cm:g} cm", {"max_error": cm / 100}) for cm in ((2,) if quick else (1, 2, 4))]
     sets.append(("sign-exact", {"sign_exact": True}))
     _map_points(d, f"pca-{k} + residual", "bounds", sdfcodec.pretrained_codec("pca", k), sets)
@@ -252,7 +252,7 @@ def _sz3_at(vol: np.ndarray, nbytes: float, tries: int = 24) -> tuple[bytes, flo
 
 
 def m_sz3_peer(d: Data, quick: bool) -> None:
-    """SZ3 (pysz) on the whole dense field (no mask: what the issue measured) at each byte count of
+    """SZ3 (pysz) on the whole dense field (no mask: the plain field, as SZ3 users code it) at each byte count of
     :data:`PEER_BYTES`, its absolute bound bisected to land within 0.5 % of it."""
     from sdfcodec.map.field import sz3_decompress
 
@@ -572,7 +572,7 @@ def _chamfer_row(r: dict) -> str:
 
 def markdown(res: dict) -> str:
     peers_run, ours_run = res["peers_run"], res["ours_run"]
-    L = ["## The registry against every peer at equal bytes (issues 16 and 42)", "", "Made by:", "", "```",
+    L = ["## The registry against every peer at equal bytes", "", "Made by:", "", "```",
          peers_run["command"]] + ([ours_run["command"]] if ours_run["command"] != peers_run["command"] else []) + [
          "```", "", "Method: the docstrings of `examples/peers_study.py` and `examples/peers_targets.py`. "
          + res["note"], "", "### Targets (measured, wins and losses alike)", "",
@@ -581,7 +581,7 @@ def markdown(res: dict) -> str:
          "our exact bytes per coded block (between its two measured points either side, linear in log(bytes), and "
          "in log(value) for Chamfer and max error; the peers are measured at " + ", ".join(map(str, res["peer_bytes"]))
          + " B per coded block; beyond a curve that stops short, as SZ3's does at float precision on the exact "
-         "synthetic fields, its largest point, with fewer bytes than ours). Target: our Chamfer <= 0.5x SZ3's and "
+         "synthetic fields, its largest point, with fewer bytes than ours). The target we hold our maps to: our Chamfer <= 0.5x SZ3's and "
          "SPERR's at equal bytes.", ""]
     for ds, t in res["targets"].items():
         L += [f"**{ds}**", ""] + pt.markdown_targets(

@@ -1,5 +1,5 @@
 """Rate-distortion of step-quantised (int16) codes against float32, float16 and int8 code storage on a fused map
-(issue 16, item 1; docs/rate-distortion.md, "Quantised codes").
+(docs/rate-distortion.md, "Quantised codes").
 
     python examples/quantised_codes.py KITCHEN.sdfz [--sizes 32,64,128] [--steps ...] [--allocated]
         [--speed-tiles 16] [--out docs/quantised-codes.json]

@@ -604,7 +604,7 @@ def markdown(res: dict, png: str = "rate-distortion.png") -> str:
                          f"{ob['bytes_per_block']:.1f} B/block, MSE {ob['mse_voxel']:.3g}{cmp}.")
         c = g.get("pca64_float32_vs_zfp_rate_0.5")
         if c:
-            L.append(f"- {ds}: the issue's first measurement, pca-64 float32 ({c['pca64_bytes']:.1f} B/block, MSE "
+            L.append(f"- {ds}: fixed-length pca-64 float32 ({c['pca64_bytes']:.1f} B/block, MSE "
                      f"{c['pca64_mse']:.3g}) against ZFP fixed-rate 0.5 bit/value ({c['zfp_bytes']:.0f} B/block, MSE "
                      f"{c['zfp_mse']:.3g}): error ratio {c['error_ratio']:.2f}.")
     L += ["", "ZFP values at our bytes are interpolated linearly in log(bytes)-log(MSE) between its measured points "

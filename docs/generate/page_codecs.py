@@ -57,7 +57,7 @@ DISCUSSION = """
 
 TRAIN_COMMANDS = ("python examples/train_ae_models.py   # shipped ae-64 and sequential-64-64",
                   "python examples/train_ae_models.py --only '' --sizes 32,128   # ae-32, ae-128 (not shipped)")
-TARGET_S = 30 * 60  # the issue's target for training AE-64 to early stopping on this 2-core machine
+TARGET_S = 30 * 60  # the target we hold AE-64's training to (early stopping, 2-core machine)
 
 
 def _f(v: float) -> str:
@@ -127,8 +127,8 @@ def _training(res: dict) -> list[str]:
         t = ae["training_seconds_all_runs"]
         loads = [float(v) for v in (ae["load_before"] + " " + ae["load_after"]).split()]
         met = t <= TARGET_S
-        L += ["", f"**AE-64 training time** (the issue's target: early stopping on >= 50,000 blocks in under "
-              f"{TARGET_S // 60} minutes on this {m.get('cpus')}-core machine): {ae['n_train']:,} training blocks, "
+        L += ["", f"**AE-64 training time** (the target we hold it to: early stopping on >= 50,000 blocks in under "
+              f"{TARGET_S // 60} minutes on a {m.get('cpus')}-core machine): {ae['n_train']:,} training blocks, "
               f"{ae['stopped']} after epoch {ae['epochs']} (best epoch {ae['best_epoch']}), **{t:.0f} s = "
               f"{t / 60:.1f} min** of training summed over the runs it took (it was resumed from checkpoints), "
               f"{t / ae['epochs']:.0f} s per epoch, with {m.get('threads')} torch thread; the load average was "

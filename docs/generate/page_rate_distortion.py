@@ -63,7 +63,7 @@ def render() -> str:
          "| peers | `python examples/peers_study.py` (`--quick`: the CI test's tiny map; `--ours-only`: rerun "
          "our maps only, keeping the committed peers' points) | our `sdfcodec encode --target-bytes B` maps "
          "against SZ3, ZFP and SPERR at equal bytes, surfaces included, on the held-out kitchen half, a synthetic "
-         "room, two posed rooms and a building, and issue 42's targets |",
+         "room, two posed rooms and a building, against the targets we hold our maps to |",
          "| quantised | `python examples/quantised_codes.py ...` | int16 step codes against float32/float16/int8 "
          "on the whole kitchen |",
          "| codecs | `python examples/rate_distortion.py` | float32/float16/int8 maps of every learned codec "
