@@ -17,7 +17,7 @@ __all__ = ["LOG_KEYS", "at_bytes", "peer_at", "bytes_at_chamfer", "equal_bytes_r
 
 #: error measures read in log(value) (they fall as a power of the bytes); F@1 is read linearly
 LOG_KEYS = frozenset({"chamfer_mm", "max_error_cm", "mse"})
-#: the issue's ratios of dense float32 (16^3 x 4 B = 16,384 B a block): 32:1 .. 256:1
+#: the target ratios to dense float32 (16^3 x 4 B = 16,384 B a block): 32:1 .. 256:1
 BUDGETS = (512, 256, 128, 64)
 KEYS = ("f1", "chamfer_mm", "max_error_cm")
 

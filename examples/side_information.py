@@ -1,5 +1,5 @@
-"""What a map stores beside its codes, per array, and what its observation mask could cost (issue 42, item 3;
-docs/side-information.md).
+"""What a map stores beside its codes, per array, and what its observation mask could cost
+(docs/side-information.md).
 
     python examples/side_information.py MAP [MAP ...]                    # bytes per coded block, per array
     python examples/side_information.py --mask-study MAP                 # predicting the observation mask
@@ -9,7 +9,7 @@ divided by the map's coded blocks; ``total`` leaves out the codec state (``codec
 reference removes (spec section 6c).
 
 ``--mask-study`` takes a lossy map with an observation mask (a fused map transcoded with a block codec such as
-pca) and measures, on its coded blocks, the predictors of the mask issue 42 proposed, each as the compressed
+pca) and measures, on its coded blocks, the predictors of the mask from the decoded field, each as the compressed
 bytes per coded block of what would be stored (Blosc zstd level 9, 512 blocks per chunk, as dense as possible):
 
 * ``plain``: the packed mask itself (what spec section 6b stores);

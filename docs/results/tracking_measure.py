@@ -1,4 +1,4 @@
-"""Measurements for the SDF Tracker rows of docs/results.md (issue 19, item 3): frames/s per frame and ATE.
+"""Measurements for the SDF Tracker rows of docs/results.md: frames/s per frame and ATE.
 
 Run: ``.venv/bin/python docs/results/tracking_measure.py --kitchen DIR --work WORKDIR [--out FILE.json]`` where DIR is a
 7-Scenes redkitchen sequence folder (or set ``$SDFCODEC_KITCHEN``). It fuses the kitchen into a lossless map

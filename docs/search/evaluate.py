@@ -9,7 +9,7 @@ pooled over the rooms of a kind. Room kinds:
 * ``exact``: exact truncated SDFs of furnished rooms (``sdfcodec.search.rooms.synthetic_room(behind="solid")``,
   primitives of ``sdfcodec.core.sdf``), layouts ``poor``, ``normal``, ``rich``, written with ``write_volume`` (what
   ``sdfcodec encode room.npy`` does);
-* ``exact-open``: the issue's analytic scene, a floor over solid ground with two boxes, a sphere and a
+* ``exact-open``: an analytic scene, a floor over solid ground with two boxes, a sphere and a
   cylinder, 160 x 160 x 64 voxels, no walls (only floor truth);
 * ``exact-tilted``: exact rooms tilted by up to 10 degrees;
 * ``fused`` / ``fused-tilted``: rooms rendered as depth frames along a camera path and fused
@@ -64,7 +64,7 @@ def _write(path: Path, room: LabelledRoom, codec) -> sdfcodec.Map:
 
 
 def open_room(seed: int) -> LabelledRoom:
-    """The issue's analytic scene: a floor over solid ground, two boxes, a sphere, a cylinder (160 x 160 x 64)."""
+    """An analytic scene: a floor over solid ground, two boxes, a sphere, a cylinder (160 x 160 x 64)."""
     from sdfcodec.data.render import RoomScene
     from sdfcodec.search.rooms import LabelledRoom
     from sdfcodec.core.sdf import Box, Cylinder, Sphere, sample_volume, Scene

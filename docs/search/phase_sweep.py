@@ -1,4 +1,4 @@
-"""A floor search with the defaults on one analytic room at every sub-block floor height (issue 17).
+"""A floor search with the defaults on one analytic room at every sub-block floor height.
 
     PYTHONPATH=. .venv/bin/python docs/search/phase_sweep.py solid|unobserved [K ...]
 
