@@ -62,3 +62,44 @@ def test_the_generator_writes_and_checks(tmp_path, monkeypatch, capsys):
     assert (tmp_path / page).read_text() == "stale\n"
     assert PAGES.main([page]) == 0 and PAGES.main(["--check", page]) == 0
     assert (tmp_path / page).read_text() == (DOCS / page).read_text(encoding="utf-8")
+
+
+def _anchors(page: Path) -> set[str]:
+    """The fragment ids a renderer gives the headings of ``page`` (GitHub's rule: lower case, punctuation other
+    than ``-`` and ``_`` dropped, spaces to ``-``, a repeated heading numbered ``-1``, ``-2``...), plus explicit
+    ``<a name=...>``/``id=`` anchors. Headings inside fenced code are not headings."""
+    found, seen, fenced = set(), {}, False
+    for line in page.read_text(encoding="utf-8").splitlines():
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+        if fenced:
+            continue
+        m = re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
+        if m:
+            slug = re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
+            n = seen.get(slug, 0)
+            seen[slug] = n + 1
+            found.add(slug if n == 0 else f"{slug}-{n}")
+        found.update(re.findall(r'<a (?:name|id)="([^"]+)"', line))
+    return found
+
+
+def test_relative_links_resolve():
+    """Every relative link of the README, docs/, spec/ and examples/ pages leads to a file or folder of the
+    repository, and a link into a page's section to a heading that page has (pages move and headings change:
+    a user following a dead link gets nothing)."""
+    pages = [ROOT / "README.md", *[p for d in ("docs", "spec", "examples") for p in (ROOT / d).rglob("*.md")]]
+    dead = []
+    for page in pages:
+        text = re.sub(r"```.*?```", "", page.read_text(encoding="utf-8"), flags=re.S)  # code is not links
+        for target in re.findall(r"\]\(([^)\s]+)\)", text):
+            if re.match(r"[a-zA-Z][a-zA-Z+.-]*:", target):  # http:, https:, mailto: ...
+                continue
+            path, _, fragment = target.partition("#")
+            dest = (page.parent / path).resolve() if path else page
+            where = f"{page.relative_to(ROOT)}: ({target})"
+            if not dest.exists():
+                dead.append(f"{where}: no such file")
+            elif fragment and dest.suffix == ".md" and fragment not in _anchors(dest):
+                dead.append(f"{where}: no heading '{fragment}' in {dest.relative_to(ROOT)}")
+    assert not dead, "dead links:\n" + "\n".join(dead)
