@@ -153,10 +153,11 @@ def sz3_rows(orig: np.ndarray, obs: np.ndarray, region: np.ndarray, n_coded: int
 
 
 def mask_bytes(kitchen: sdfcodec.Map, rooms: list[str], work: Path) -> list[dict]:
-    """Bytes per coded block of the observation mask (``observed/`` files) as the writer stores it now (Blosc
-    zstd 5, no shuffle) and as it did before (``compressors()``: zstd 3, byte shuffle), on the kitchen and on
-    fused synthetic rooms (``.npz`` with ``coords``, ``tsdf`` metres and ``observed``, as /tmp/s15/fusedrooms.py
-    writes them), pca-32 maps (the mask does not depend on the codec)."""
+    """Bytes per coded block of the observation mask (``observed/`` files) through the writer's mask chain
+    (``mask_compressors``: Blosc zstd 5 without shuffle when the committed run was made) and through the general
+    chain ``compressors()`` (zstd 3, byte shuffle), on the kitchen and on fused synthetic rooms (``.npz`` with
+    ``coords``, ``tsdf`` metres, ``observed`` and ``origin``), pca-32 maps (the mask does not depend on the
+    codec). Row keys ``mask_before`` (general chain) and ``mask_now`` (mask chain) are those of the JSON."""
     import sdfcodec.map.writer as writer_module
     from sdfcodec.map.format import compressors, mask_compressors
 
@@ -199,8 +200,10 @@ def markdown(doc: dict) -> str:
                      f"{r['decode_blocks_per_s']:.0f} | {ratio(r, 'encode_vs_float32_same_run')} | "
                      f"{ratio(r, 'decode_vs_float32')} |")
     if doc.get("mask"):
-        lines += ["", "| input | coded blocks | mask before (zstd 3, byte shuffle) | mask now (zstd 5, no shuffle) |",
-                  "|---|---|---|---|"]
+        lines += ["", "The observation mask's bytes per coded block through two Blosc settings (pca-32 maps; the mask "
+                  "does not depend on the codec). What the writer stores today, context-coded or at zstd level 9: "
+                  "[side-information.md](side-information.md).", "",
+                  "| input | coded blocks | mask, zstd 3, byte shuffle | mask, zstd 5, no shuffle |", "|---|---|---|---|"]
         lines += [f"| {r['input']} | {r['coded_blocks']} | {r['mask_before']:.1f} | {r['mask_now']:.1f} |"
                   for r in doc["mask"]]
     if doc.get("storage_speed"):
