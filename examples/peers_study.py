@@ -489,7 +489,7 @@ REGISTRY = ("eigenshapes", "ours", "bounds", "networks", "sz3-registry")
 
 # ----------------------------------------------------------------------------------------------- targets
 def targets(points: list[dict], ds: str, refused: list[dict]) -> dict:
-    """Issue 42's equal-bytes targets on data set ``ds`` (:func:`peers_targets.equal_bytes_rows`)."""
+    """The equal-bytes targets on data set ``ds`` (:func:`peers_targets.equal_bytes_rows`)."""
     P = [p for p in points if p["dataset"] == ds]
     fam = {f: [p for p in P if p["family"] == f] for f in ("ours", "sz3-peer", "sperr", "zfp")}
     peers = {"sz3": fam["sz3-peer"], "sperr": fam["sperr"], "zfp": fam["zfp"]}

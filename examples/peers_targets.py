@@ -1,4 +1,4 @@
-"""Issue 42's targets, computed from the points of examples/peers_study.py (JSON dicts, one per measured map or
+"""The targets we hold our maps to against the peers, computed from the points of examples/peers_study.py (JSON dicts, one per measured map or
 stream) and rendered for docs/rate-distortion.md. Pure functions: tests/test_peers_targets.py checks them
 against hand computations.
 
