@@ -581,7 +581,8 @@ def markdown(res: dict) -> str:
          "our exact bytes per coded block (between its two measured points either side, linear in log(bytes), and "
          "in log(value) for Chamfer and max error; the peers are measured at " + ", ".join(map(str, res["peer_bytes"]))
          + " B per coded block; beyond a curve that stops short, as SZ3's does at float precision on the exact "
-         "synthetic fields, its largest point, with fewer bytes than ours). The target we hold our maps to: our Chamfer <= 0.5x SZ3's and "
+         "synthetic fields, its largest point, with fewer bytes than ours). The target we hold our maps to: our "
+         "Chamfer <= 0.5x SZ3's and "
          "SPERR's at equal bytes.", ""]
     for ds, t in res["targets"].items():
         L += [f"**{ds}**", ""] + pt.markdown_targets(

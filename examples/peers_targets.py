@@ -1,6 +1,6 @@
-"""The targets we hold our maps to against the peers, computed from the points of examples/peers_study.py (JSON dicts, one per measured map or
-stream) and rendered for docs/rate-distortion.md. Pure functions: tests/test_peers_targets.py checks them
-against hand computations.
+"""The targets we hold our maps to against the peers, computed from the points of examples/peers_study.py (JSON
+dicts, one per measured map or stream) and rendered for docs/rate-distortion.md. Pure functions:
+tests/test_peers_targets.py checks them against hand computations.
 
 A point has at least ``bytes_per_block`` (every stored byte per coded block), ``chamfer_mm``, ``f1`` and
 ``max_error_cm``. A peer's value "at equal bytes" is read off its measured curve at our point's exact byte count

@@ -203,7 +203,8 @@ def markdown(doc: dict) -> str:
         lines += ["", "The observation mask's bytes per coded block through two Blosc settings (pca-32 maps; the mask "
                   "does not depend on the codec). What the writer stores today, context-coded or at zstd level 9: "
                   "[side-information.md](side-information.md).", "",
-                  "| input | coded blocks | mask, zstd 3, byte shuffle | mask, zstd 5, no shuffle |", "|---|---|---|---|"]
+                  "| input | coded blocks | mask, zstd 3, byte shuffle | mask, zstd 5, no shuffle |",
+                  "|---|---|---|---|"]
         lines += [f"| {r['input']} | {r['coded_blocks']} | {r['mask_before']:.1f} | {r['mask_now']:.1f} |"
                   for r in doc["mask"]]
     if doc.get("storage_speed"):

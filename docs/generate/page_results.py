@@ -109,7 +109,8 @@ def tracking() -> list[str]:
     L += table(("map", "image", "frames", "dense frames/s", "on demand, warm", "on demand, cold", "start-up s",
                 "ATE mm"), rows, right=(2, 3, 4, 5, 6, 7))
     L += ["", measured_on(doc, source=TRACKING,
-                          command="python docs/results/tracking_measure.py --kitchen KITCHEN --work WORK --bench FILE"), ""]
+                          command="python docs/results/tracking_measure.py --kitchen KITCHEN --work WORK "
+                                  "--bench FILE"), ""]
     return L
 
 

@@ -1,7 +1,7 @@
-"""Measurements for docs/results.md, "Decoding in cache-sized tiles" (run: .venv/bin/python docs/results/tiles_measure.py
-[WORKDIR] [REPEATS] [ROWS,...]): what each part of the tiled decode is worth, every case interleaved with the
-roofline (numpy's (65536, 65) x (65, 4096) product into a preallocated output) in the same rounds
-(sdfcodec.bench.harness):
+"""Measurements for docs/results.md, "Decoding in cache-sized tiles" (run:
+.venv/bin/python docs/results/tiles_measure.py [WORKDIR] [REPEATS] [ROWS,...]): what each part of the tiled decode
+is worth, every case interleaved with the roofline (numpy's (65536, 65) x (65, 4096) product into a preallocated
+output) in the same rounds (sdfcodec.bench.harness):
 
 - ``decode-tiles`` / ``decode-plain``: 8 groups of 8,192 codes in memory decoded to clipped metres into a ring of
   two touched buffers, through PCA's ``decode_tiles`` or the base class's (one product with all BLAS threads,
