@@ -16,6 +16,7 @@ the ordinary path.
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import json
 import os
@@ -257,7 +258,12 @@ def _listed(root: int, header: MapHeader) -> dict[str, str] | None:
 
 def _matches(data: bytes | None, key: str, listed: dict[str, str] | None) -> bool:
     """Whether ``data`` read at ``key`` is what the manifest ``listed`` says (always, without a manifest)."""
-    return listed is None or (data is not None and listed.get(key) == hashlib.sha256(data).hexdigest())
+    if listed is None:
+        return True
+    if data is None:
+        return False
+    digest = hashlib.sha256(data).digest()  # as manifest version 1 (hex) or 2 (unpadded base64url) spells it
+    return listed.get(key) in (digest.hex(), base64.urlsafe_b64encode(digest).rstrip(b"=").decode())
 
 
 def _read_states(root: int, grid: tuple[int, ...], listed: dict[str, str] | None = None) -> np.ndarray | None:

@@ -28,7 +28,7 @@ from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
 from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, METRIC_EXTENSION,
-                           QUANT_EXTENSION,
+                           QUANT_EXTENSION, public_source,
                            RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
                            VARIABLE_RATE_EXTENSION,
                            BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
@@ -638,7 +638,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         codec=CodecSpec(id=codec.codec_id, config=codec.get_config(), package=pkg, package_version=pkg_version,
                         state_arrays=[] if ref else sorted(state), state_sha256=state_digest(state) if state else None,
                         state_reference=ref),
-        provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
+        provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=public_source(source)),
         residual=residual,
     )
     bad_names = [n for n in state if not re.fullmatch(STATE_NAME_PATTERN, n)]
@@ -731,7 +731,7 @@ def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype
         group.create_array(RESIDUAL_ARRAY, shape=(*grid, BLOCK ** 3), dtype=residual.dtype, fill_value=0,
                            chunks=(cb, cb, cb, BLOCK ** 3), compressors=residual_compressors(),
                            dimension_names=["bx", "by", "bz", "voxel"])
-    cgroup = group.create_group("codec")
+    cgroup = group.create_group("codec") if state else None  # none without state arrays (spec section 2)
     for name, arr in state.items():
         arr = np.ascontiguousarray(arr)
         a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
