@@ -10,6 +10,7 @@ import base64
 import hashlib
 import json
 import shutil
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -62,8 +63,54 @@ def test_documents_are_plain_zarr_v3_without_what_zarr_makes_optional(tmp_path, 
         assert doc.read_bytes() == json.dumps(meta, separators=(",", ":")).encode()  # compact
         arr = zarr.open_array(str(root), path=doc.parent.name, mode="r")  # plain zarr-python reads each array
         assert arr.metadata.chunk_key_encoding.separator == "/"
-    states = zarr.open_array(str(root), path="state", mode="r")[...]
-    assert np.array_equal(states, sdfcodec.open_map(root).block_states())
+    # the block states travel in the header (spec 4e): base64 of zlib of the grid's bytes, read here with the stdlib
+    assert not (root / "state").exists() and not (root / "codes").exists()
+    grid = tuple(header["grid_blocks"])
+    states = np.frombuffer(zlib.decompress(base64.b64decode(header["codes"]["variable_rate"]["states"])), np.uint8)
+    assert np.array_equal(states.reshape(grid), sdfcodec.open_map(root).block_states())
+
+
+def test_inline_states_read_as_stored_ones_in_fewer_bytes(tmp_path, volume, monkeypatch):
+    from sdfcodec.map import implied
+
+    inline = _write(tmp_path / "inline.sdfz", volume)
+    monkeypatch.setattr(implied, "INLINE_MAX", -1)  # what a writer does for a grid too large to inline
+    stored = _write(tmp_path / "stored.sdfz", volume)
+    assert (stored / "state" / "zarr.json").is_file() and (stored / "codes" / "zarr.json").is_file()
+    assert "states" not in json.loads((stored / "zarr.json").read_bytes())["attributes"]["sdfcodec"]["codes"][
+        "variable_rate"]
+    a, b = sdfcodec.open_map(inline), sdfcodec.open_map(stored)
+    plain = zarr.open_array(str(stored), path="state", mode="r")[...]  # zarr-python's read of the stored array
+    assert np.array_equal(a.block_states(), plain) and (plain == 2).sum() == 10 and (plain == 1).any()
+    np.testing.assert_array_equal(a.decode_region(), b.decode_region())
+    box = ((8, 30), (0, 24), (4, 20))
+    np.testing.assert_array_equal(a.decode_region(box), b.decode_region(box))
+    assert verify_map(inline).ok and verify_map(stored).ok
+
+    def size(p: Path) -> int:
+        return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+    saved = sum(size(stored / n) for n in ("state", "codes"))  # their files, less what the header takes instead
+    assert size(inline) < size(stored) and saved > 400
+
+
+@pytest.mark.parametrize("how, match", [("truncated", "not base64 of zlib|holds"), ("longer", "holds 1"),
+                                        ("reserved", "reserved value"), ("text", "not base64"),
+                                        ("charset", "codes.variable_rate.states: String should match")])
+def test_hostile_inline_states_are_refused_in_one_line(tmp_path, volume, how, match):
+    root = _write(tmp_path / "m.sdfz", volume)
+    top = json.loads((root / "zarr.json").read_bytes())
+    vr = top["attributes"]["sdfcodec"]["codes"]["variable_rate"]
+    raw = zlib.decompress(base64.b64decode(vr["states"]))
+    packed = {"truncated": base64.b64encode(zlib.compress(raw)[:-6]).decode(),
+              "longer": base64.b64encode(zlib.compress(raw + b"\0")).decode(),
+              "reserved": base64.b64encode(zlib.compress(b"\3" + raw[1:])).decode(),
+              "text": "AAAAA", "charset": "AAAA!"}[how]
+    vr["states"] = packed
+    (root / "zarr.json").write_text(json.dumps(top))
+    with pytest.raises(errors.SDFCodecError, match=match) as e:
+        sdfcodec.open_map(root).decode_region()
+    assert "\n" not in str(e.value)
 
 
 def test_manifest_v2_lists_every_object_in_base64url_and_refuses_a_swap(tmp_path, volume):
@@ -137,6 +184,8 @@ def test_golden_side_docs_map_decodes_forever(regen_golden):
     values."""
     m = check_golden_map(GOLDEN, _golden_map, regen_golden)
     root = GOLDEN / "map.zarr"
-    assert json.loads((root / "manifest.json").read_bytes())["version"] == 2 and not (root / "codec").exists()
+    assert json.loads((root / "manifest.json").read_bytes())["version"] == 2
+    assert not any((root / n).exists() for n in ("codec", "codes", "state"))  # implied (spec 2, 4e, 6c)
+    assert m.count_states()["coded"] == 10
     assert m.header.codec.state_sha256 == m.header.codec.state_reference.sha256
     assert m.header.provenance.source == "scene.npy"

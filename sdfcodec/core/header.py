@@ -215,6 +215,17 @@ class VariableRate(_Model):
     coder: Literal["constriction-ans-1"] = Field(description="the entropy coder of the chunk streams")
     model: str = Field(max_length=1 << 20, pattern=r"^[A-Za-z0-9+/=]*$",
                        description="base64 of the zlib-compressed probability model (spec section 4e)")
+    states: str | None = Field(None, max_length=1 << 20, pattern=r"^[A-Za-z0-9+/=]*$",
+                               description="OPTIONAL: base64 of the zlib-compressed block states (grid_blocks, "
+                                           "uint8, C order); the map then stores neither 'state' nor 'codes' "
+                                           "(spec section 4e); omitted otherwise")
+
+    @model_serializer(mode="wrap")
+    def _omit_no_states(self, handler):
+        out = handler(self)  # maps whose states are in the array stay byte-identical to those before the field
+        if isinstance(out, dict) and out.get("states", 0) is None:
+            out.pop("states")
+        return out
 
 
 class CodesSpec(_Model):

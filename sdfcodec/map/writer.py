@@ -28,15 +28,15 @@ from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
 from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, METRIC_EXTENSION,
-                           QUANT_EXTENSION, public_source,
-                           RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
-                           VARIABLE_RATE_EXTENSION,
+                           QUANT_EXTENSION, RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN,
+                           STATE_REFERENCE_EXTENSION, VARIABLE_RATE_EXTENSION, public_source,
                            BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                            VariableRate, now_iso)
 from ..core.quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
+from .implied import IMPLIED, inline_states
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compact_documents, compressors, free_space, mask_compressors, root_document)
 from .observed import (MASK_ARRAY, MASK_BYTES, SURFACE_WEIGHT, encode_blocks, finish_mask,
@@ -440,9 +440,8 @@ class MapWriter:
 
     def _finish(self) -> None:
         """The ``state`` array and the header (last: until the swap nobody sees any of this anyway)."""
-        st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0,
-                                     chunks=tuple(min(64, max(1, n)) for n in self.grid),
-                                     compressors=compressors(), overwrite=True)
+        st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0, overwrite=True,
+                                     chunks=tuple(min(64, max(1, n)) for n in self.grid), compressors=compressors())
         st[...] = self.state
         weights_ext = finish_weights(self.group, Path(self.tmp), self.weights_mode, self.grid)
         extensions = [e for e in self.carried if self.mask is not None] + ([weights_ext] if weights_ext else [])
@@ -477,7 +476,8 @@ class MapWriter:
             if (gain := self.group[GAIN_ARRAY]).shape[:3] != self.grid:
                 gain.resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
-            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}  # all but them, root, manifest
+            implied = IMPLIED if inline_states(self.state) else ("codes/c",)  # what the streams replace (spec 4e)
+            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, *implied)}  # all but them, root, manifest
             files = [f for f in Path(self.tmp).glob("*/**/*") if f.is_file() and not any(p in skip for p in f.parents)]
             fixed = sum(f.stat().st_size for f in files) + STREAM_METADATA_BYTES
             if self.manifest:
