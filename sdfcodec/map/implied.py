@@ -18,10 +18,8 @@ import math
 import shutil
 import zlib
 from pathlib import Path
+from typing import Any
 import numpy as np
-import zarr
-from zarr.codecs import Crc32cCodec
-from zarr.storage import MemoryStore
 
 from ..errors import FormatError
 from ..core.header import MapHeader
@@ -60,7 +58,7 @@ def unpack_states(text: str, grid: tuple[int, int, int], where: str) -> np.ndarr
         d = zlib.decompressobj()
         raw = d.decompress(base64.b64decode(text, validate=True), n + 1)
         complete = d.eof and not d.unconsumed_tail and not d.unused_data
-    except (binascii.Error, ValueError, zlib.error) as e:
+    except (binascii.Error, ValueError, OverflowError, zlib.error) as e:
         raise FormatError(f"{where}: header field codes.variable_rate.states is not base64 of zlib data ({e}); the "
                           "map is corrupted: restore it from a copy") from None
     if len(raw) != n or not complete:
@@ -69,9 +67,14 @@ def unpack_states(text: str, grid: tuple[int, int, int], where: str) -> np.ndarr
     return np.frombuffer(raw, np.uint8).reshape(grid)
 
 
-def implied_arrays(h: MapHeader, where: str) -> tuple[zarr.Array, zarr.Array]:
+def implied_arrays(h: MapHeader, where: str) -> tuple[Any, Any]:
     """``(codes, state)`` of a map whose header holds its states, in memory, as a writer would have stored them:
-    ``codes`` without a chunk, ``state`` holding the states (the reader's checks then apply unchanged)."""
+    ``codes`` without a chunk, ``state`` holding the states (the reader's checks then apply unchanged): two
+    ``zarr.Array`` (zarr is imported here only, so that the light reader of ``info`` unpacks states without it)."""
+    import zarr
+    from zarr.codecs import Crc32cCodec
+    from zarr.storage import MemoryStore
+
     from .format import compressors
 
     states = unpack_states(h.codes.variable_rate.states, tuple(h.grid_blocks), where)
