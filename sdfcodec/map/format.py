@@ -99,7 +99,9 @@ def compact_documents(root: str | Path, *, root_doc: bool = False) -> None:
     small lossy map the documents are a fifth of it (docs/side-information.md); any JSON reader reads both.
     Each is written as a new file (an update's may be a hard link into the version readers hold)."""
     root = Path(root)
-    for path in [root / "zarr.json"] if root_doc else root.glob("*/zarr.json"):
+    # the arrays' and an embedded codec state's (codec/NAME/zarr.json); no walk through the chunk directories
+    docs = [*root.glob("*/zarr.json"), *root.glob("codec/*/zarr.json")]
+    for path in [root / "zarr.json"] if root_doc else docs:
         raw = path.read_bytes()
         data = _compact(json.loads(raw))
         if data != raw:
