@@ -3,8 +3,8 @@ its block states travel in the header and neither ``state`` nor ``codes`` is sto
 
 A variable-rate map's ``codes`` array holds no chunk (the chunk streams replace them) and its metadata follows
 from the header; its ``state`` array is one small chunk. On a map of a few hundred coded blocks the two
-documents, the state chunk and their three manifest entries are 3 B per coded block of a 64 B budget (kitchen
-half: 297 + 356 + 136 + 3 x 61 bytes), where the states take 132 base64 characters in the header. Such maps are
+documents, the state chunk and their three manifest entries are 5 B per coded block of a 64 B budget (kitchen
+half: 297 + 356 + 136 + 190 bytes), where the states take 144 bytes of header. Such maps are
 never updated in place, so nothing writes those arrays again. Writers inline the states when they compress to
 at most :data:`INLINE_MAX` bytes; readers rebuild both arrays in memory (:func:`implied_arrays`), so every
 reading path (regions, verify, search) reads them as it reads stored ones.
