@@ -154,6 +154,11 @@ def _set(d: dict, dotted: str, value) -> None:
     d[last] = value
 
 
+def _dot_separator(d: dict) -> None:
+    """The default chunk key encoding with the separator "." (writers spell the default "/" by omitting it)."""
+    d["chunk_key_encoding"] = {"name": "default", "configuration": {"separator": "."}}
+
+
 def codes_values(value):
     """Store ``value`` in every code of the coded blocks, with valid checksums (written through zarr)."""
     def edit(path: Path, ctx: dict) -> None:
@@ -375,15 +380,15 @@ CASES = [
     ("codes-metadata-deleted", delete("codes/zarr.json"), r"lacks array 'codes'", None, "base"),
     ("codec-state-chunk-deleted", delete(MEAN_CHUNK), r"digest", r"state_sha256|codec", "base"),
     # chunk key encodings that name other files (every chunk would read as missing)
-    ("codes-key-separator-dot", meta("codes", lambda d: _set(d, "chunk_key_encoding.configuration.separator", ".")),
+    ("codes-key-separator-dot", meta("codes", _dot_separator),
      r"chunk_key_encoding", None, "base"),
     ("codes-key-encoding-v2", meta("codes", lambda d: d.update(chunk_key_encoding={"name": "v2", "configuration":
                                                                                    {"separator": "."}})),
      r"chunk_key_encoding", None, "base"),
-    ("state-key-separator-dot", meta("state", lambda d: _set(d, "chunk_key_encoding.configuration.separator", ".")),
+    ("state-key-separator-dot", meta("state", _dot_separator),
      r"chunk_key_encoding", None, "base"),
     ("codec-state-key-separator-dot",
-     meta("codec/mean", lambda d: _set(d, "chunk_key_encoding.configuration.separator", ".")),
+     meta("codec/mean", _dot_separator),
      r"chunk_key_encoding", None, "base"),
     # byte order, data types and the other array fields
     ("codes-big-endian", meta("codes", lambda d: _bytes_codec(d).update(configuration={"endian": "big"})),

@@ -324,7 +324,7 @@ def _mutate(doc: dict, data) -> bytes:
         objects.pop(data.draw(st.sampled_from(keys)))
     elif kind == "digest":
         k = data.draw(st.sampled_from(keys))
-        i = data.draw(st.integers(0, 63))
+        i = data.draw(st.integers(0, len(objects[k]) - 1))
         objects[k] = objects[k][:i] + ("0" if objects[k][i] != "0" else "1") + objects[k][i + 1:]
     elif kind == "swap":
         a, b = data.draw(st.sampled_from(keys)), data.draw(st.sampled_from(keys))

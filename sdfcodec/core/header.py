@@ -22,7 +22,7 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
            "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate",
-           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION", "APPROX_MASK_EXTENSION"]
+           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION", "APPROX_MASK_EXTENSION", "public_source"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -146,7 +146,21 @@ class CodecSpec(_Model):
         out = handler(self)
         if isinstance(out, dict) and out.get("state_reference", 0) is None:
             out.pop("state_reference")
+        elif isinstance(out, dict) and not out.get("state_arrays") and \
+                out.get("state_sha256") == (out.get("state_reference") or {}).get("sha256"):
+            # by reference both say nothing the reference does not (spec section 6c): 100 bytes of every such map
+            out.pop("state_arrays", None)
+            out.pop("state_sha256", None)
         return out
+
+    @model_validator(mode="before")
+    @classmethod
+    def _digest_of_reference(cls, data: Any) -> Any:
+        # a header by reference may leave out state_sha256 (spec 6c): it is the reference's digest
+        ref = data.get("state_reference") if isinstance(data, dict) else None
+        if isinstance(ref, dict) and "state_sha256" not in data and "sha256" in ref:
+            data = {**data, "state_sha256": ref["sha256"]}
+        return data
 
     @model_validator(mode="after")
     def _id_matches(self) -> "CodecSpec":
@@ -201,6 +215,17 @@ class VariableRate(_Model):
     coder: Literal["constriction-ans-1"] = Field(description="the entropy coder of the chunk streams")
     model: str = Field(max_length=1 << 20, pattern=r"^[A-Za-z0-9+/=]*$",
                        description="base64 of the zlib-compressed probability model (spec section 4e)")
+    states: str | None = Field(None, max_length=1 << 20, pattern=r"^[A-Za-z0-9+/=]*$",
+                               description="OPTIONAL: base64 of the zlib-compressed block states (grid_blocks, "
+                                           "uint8, C order); the map then stores neither 'state' nor 'codes' "
+                                           "(spec section 4e); omitted otherwise")
+
+    @model_serializer(mode="wrap")
+    def _omit_no_states(self, handler):
+        out = handler(self)  # maps whose states are in the array stay byte-identical to those before the field
+        if isinstance(out, dict) and out.get("states", 0) is None:
+            out.pop("states")
+        return out
 
 
 class CodesSpec(_Model):
@@ -285,6 +310,21 @@ class Provenance(_Model):
     sdfcodec_version: str
     tool: str | None = Field(None, description="what wrote it, e.g. 'sdfcodec encode'")
     source: str | None = Field(None, description="input it was made from, free text")
+
+
+def public_source(source: str | None) -> str | None:
+    """What a writer records as ``provenance.source`` for the input ``source`` (a local path or a URL): its last
+    component only. A map is shared; the directories of the machine that wrote it (user names, project
+    layout) or a URL's credentials and query are not the reader's business, and its name is what a user needs
+    to find the input again."""
+    if not source:
+        return source
+    from urllib.parse import urlsplit
+
+    url = urlsplit(source)
+    if url.scheme and url.netloc:  # no user, password, query or fragment: the path's last part, or the host
+        return url.path.rstrip("/").rsplit("/", 1)[-1] or url.hostname or None
+    return source.replace("\\", "/").rstrip("/").rsplit("/", 1)[-1] or None
 
 
 class ManifestRef(_Model):

@@ -23,6 +23,8 @@ language's standard library, and hardware-accelerated (SHA-NI, ARMv8 SHA2) where
 
 from __future__ import annotations
 
+import base64
+import binascii
 import hashlib
 import json
 import math
@@ -40,7 +42,7 @@ from .io.shards import index_size
 if TYPE_CHECKING:
     from zarr.abc.store import Store
 
-__all__ = ["manifest_bytes_estimate", "MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
+__all__ = ["VERSION", "manifest_bytes_estimate", "MANIFEST_KEY", "SIGNATURE_KEY", "UNLISTED", "Manifest", "build_manifest", "manifest_ref",
            "manifest_placeholder",
            "load_manifest", "sha256_hex", "set_check_default", "check_default", "object_problems",
            "previous_digests", "write_manifest"]
@@ -53,7 +55,12 @@ SIGNATURE_KEY = "signature.json"
 #: signature is made after the manifest.
 UNLISTED = frozenset({"zarr.json", MANIFEST_KEY, SIGNATURE_KEY})
 _FORMAT = "sdfcodec-manifest"
+#: The version writers write: 2 spells each SHA-256 as 43 characters of unpadded base64url, not 64 hex digits
+#: (168 bytes of the kitchen half's 773 at 64 B per block: a fifth of its documents' bytes are digests);
+#: version 1 (hex) is still read.
+VERSION = 2
 _HEX = frozenset("0123456789abcdef")
+_B64 = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_")
 #: Longest key a manifest may list (a map's keys are a few dozen characters).
 _MAX_KEY = 512
 
@@ -155,13 +162,28 @@ class Manifest:
         bad = _structure_problem(doc, ref)
         if bad:
             raise FormatError(f"{where}: {MANIFEST_KEY} is malformed ({bad}); refused")
-        shards = {k: (v["index"], {(int(o), int(n)): h for o, n, h in v["chunks"]})
+        hx = _hex if doc["version"] == 2 else str  # held as hex whatever the version
+        shards = {k: (hx(v["index"]), {(int(o), int(n)): hx(h) for o, n, h in v["chunks"]})
                   for k, v in doc.get("shards", {}).items()}
-        return cls(dict(doc["objects"]), shards, where, ref.sha256)
+        return cls({k: hx(h) for k, h in doc["objects"].items()}, shards, where, ref.sha256)
 
 
-def _digest_ok(h: Any) -> bool:
-    return isinstance(h, str) and len(h) == 64 and set(h) <= _HEX
+def _b64(hex_digest: str) -> str:
+    """A SHA-256 given as 64 hex digits, as version 2 spells it: 43 characters of unpadded base64url."""
+    return base64.urlsafe_b64encode(bytes.fromhex(hex_digest)).rstrip(b"=").decode()
+
+
+def _hex(b64_digest: str) -> str:
+    return base64.urlsafe_b64decode(b64_digest + "=").hex()
+
+
+def _digest_ok(h: Any, version: int = 1) -> bool:
+    if version == 1:
+        return isinstance(h, str) and len(h) == 64 and set(h) <= _HEX
+    try:  # canonical only: one spelling per digest (the last character's unused bits zero)
+        return isinstance(h, str) and len(h) == 43 and set(h) <= _B64 and _b64(_hex(h)) == h
+    except (ValueError, binascii.Error):
+        return False
 
 
 def _key_ok(k: Any) -> bool:
@@ -170,8 +192,11 @@ def _key_ok(k: Any) -> bool:
 
 
 def _structure_problem(doc: Any, ref: ManifestRef) -> str | None:
-    if not isinstance(doc, dict) or doc.get("format") != _FORMAT or doc.get("version") != 1:
-        return f"not a {_FORMAT} version 1 document"
+    version = doc.get("version") if isinstance(doc, dict) else None
+    if not isinstance(doc, dict) or doc.get("format") != _FORMAT or version not in (1, 2) \
+            or isinstance(version, bool):
+        return f"not a {_FORMAT} version 1 or 2 document"
+    what = "64 hex digits" if version == 1 else "43 base64url characters"
     if doc.get("algorithm") != "sha256":
         return f"algorithm {doc.get('algorithm')!r}, not 'sha256'"
     objects, shards = doc.get("objects"), doc.get("shards", {})
@@ -180,15 +205,15 @@ def _structure_problem(doc: Any, ref: ManifestRef) -> str | None:
     if len(objects) != ref.objects:
         return f"{len(objects)} objects, the header says {ref.objects}"
     for k, h in objects.items():
-        if not _key_ok(k) or not _digest_ok(h):
-            return f"entry {str(k)[:80]!r}: a relative key and 64 hex digits are required"
+        if not _key_ok(k) or not _digest_ok(h, version):
+            return f"entry {str(k)[:80]!r}: a relative key and a SHA-256 of {what} are required"
     for k, v in shards.items():
-        if k not in objects or not isinstance(v, dict) or not _digest_ok(v.get("index")) \
+        if k not in objects or not isinstance(v, dict) or not _digest_ok(v.get("index"), version) \
                 or not isinstance(v.get("chunks"), list):
             return f"shard {str(k)[:80]!r}: a listed object with an index digest and a list of chunks is required"
         for c in v["chunks"]:
             if not (isinstance(c, list) and len(c) == 3 and all(isinstance(x, int) and not isinstance(x, bool)
-                                                                and x >= 0 for x in c[:2]) and _digest_ok(c[2])):
+                                                                and x >= 0 for x in c[:2]) and _digest_ok(c[2], version)):
                 return f"shard {k!r}: each chunk is [offset, nbytes, sha256]"
     return None
 
@@ -264,10 +289,13 @@ def build_manifest(root: str | os.PathLike, reuse: Callable[[str, os.stat_result
 
 
 def _document(objects: dict[str, str], shards: dict[str, Any]) -> bytes:
-    """The manifest document's bytes (compact JSON, keys sorted)."""
-    doc = {"format": _FORMAT, "version": 1, "algorithm": "sha256", "objects": objects}
+    """The manifest document's bytes (compact JSON, keys sorted, version :data:`VERSION`) of ``objects`` and
+    ``shards`` as :func:`build_manifest` makes them (hex digests)."""
+    doc = {"format": _FORMAT, "version": VERSION, "algorithm": "sha256",
+           "objects": {k: _b64(h) for k, h in objects.items()}}
     if shards:
-        doc["shards"] = shards
+        doc["shards"] = {k: {"index": _b64(v["index"]), "chunks": [[o, n, _b64(h)] for o, n, h in v["chunks"]]}
+                         for k, v in shards.items()}
     return json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
 
 

@@ -35,6 +35,7 @@ from .groupdecode import decode_group
 from .grouping import Box, chunk_groups, prefetched
 from .metric import codec_codes, is_metric
 from .codec_state import load_codec
+from .implied import implied_arrays
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
@@ -172,7 +173,10 @@ class MapReader:
             raise FormatError(f"{self.location}: header field grid_blocks {h.grid_blocks} needs {state_bytes} bytes "
                               f"of block states, above the reader's limit of {self.max_decode_bytes} bytes (raise "
                               "max_decode_bytes in open_map() if the map is genuine)")
-        codes, state = self.member("codes"), self.member("state")
+        if h.codes.variable_rate is not None and h.codes.variable_rate.states is not None:
+            codes, state = implied_arrays(h, self.location)  # in the header, not stored (spec 4e)
+        else:
+            codes, state = self.member("codes"), self.member("state")
         if codes is None or state is None:
             missing = "codes" if codes is None else "state"
             raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec map")

@@ -16,8 +16,10 @@ the ordinary path.
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import json
+import math
 import os
 import stat
 import sys
@@ -30,6 +32,7 @@ from ..core._atomic import pin_dir, release_pin
 from ..core._validate import BLOCK
 from ..core.header import APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, BlockState, MapHeader, parse_header
 from ..errors import FormatError
+from .implied import unpack_states
 from .io.frames import blosc_frame_problem, crc32c_matches
 from .io.metadata_limits import check_metadata_size
 
@@ -191,7 +194,16 @@ def local_info(path: str | os.PathLike) -> dict[str, Any] | None:
         listed = _listed(fd, header)
         if header.manifest is not None and listed is None:
             return None  # the ordinary reader says what is wrong with the manifest
-        states = _read_states(fd, tuple(header.grid_blocks), listed)
+        vr = header.codes.variable_rate
+        if vr is not None and vr.states is not None:  # in the header (spec 4e)
+            if math.prod(header.grid_blocks) > _MAX_STATE_CHUNK:
+                return None  # the ordinary reader applies its limit, naming it
+            try:
+                states = unpack_states(vr.states, tuple(header.grid_blocks), str(path))
+            except FormatError:
+                return None  # the ordinary reader names it
+        else:
+            states = _read_states(fd, tuple(header.grid_blocks), listed)
         if states is None:
             return None
         counts = np.bincount(states.ravel(), minlength=3)
@@ -257,7 +269,12 @@ def _listed(root: int, header: MapHeader) -> dict[str, str] | None:
 
 def _matches(data: bytes | None, key: str, listed: dict[str, str] | None) -> bool:
     """Whether ``data`` read at ``key`` is what the manifest ``listed`` says (always, without a manifest)."""
-    return listed is None or (data is not None and listed.get(key) == hashlib.sha256(data).hexdigest())
+    if listed is None:
+        return True
+    if data is None:
+        return False
+    digest = hashlib.sha256(data).digest()  # as manifest version 1 (hex) or 2 (unpadded base64url) spells it
+    return listed.get(key) in (digest.hex(), base64.urlsafe_b64encode(digest).rstrip(b"=").decode())
 
 
 def _read_states(root: int, grid: tuple[int, ...], listed: dict[str, str] | None = None) -> np.ndarray | None:

@@ -28,6 +28,7 @@ from ..errors import FormatError, InvalidValueError
 from ..core.header import APPROX_MASK_EXTENSION, BlockState, Extension, VariableRate
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
+from .implied import drop_implied, inline_states
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
 
 if TYPE_CHECKING:
@@ -50,8 +51,8 @@ SAMPLE_BLOCKS = 2048
 #: counts is exact but the compressor's frame of each row, estimated at 20 bytes): a byte the side information
 #: saves goes to the codes.
 TOLERANCE = 0.0005
-#: Bytes of the ``code_streams`` array document (``zarr.json``, compact JSON; measured 395).
-STREAM_METADATA_BYTES = 395
+#: Bytes of the ``code_streams`` array document (``zarr.json``, compact JSON; measured 317).
+STREAM_METADATA_BYTES = 317
 _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
 
 
@@ -180,7 +181,10 @@ class VariableRateWriter:
         g = _rows(group[GAIN_ARRAY], coded).astype(np.float64)
         if len(z) and not np.isfinite(z).all():
             raise InvalidValueError("codes hold NaN/Inf values; they cannot be quantised")
-        slim = _slim_codes_document(group.store.root, write=False)  # done below, once the float codes are read
+        # small states travel in the header and neither codes' nor state's files are stored (spec 4e; the
+        # writer counts neither); otherwise the codes document is slimmed, done below once the codes are read
+        inline = inline_states(state)
+        slim = 0 if inline else _slim_codes_document(group.store.root, write=False)
         if not self.exact_mask and MASK_ARRAY in group and len(coded) and extensions is not None:
             self._mask = _LossyMask(self.codec, group[MASK_ARRAY], coded, truncation)
             if APPROX_MASK_EXTENSION not in {e.name for e in extensions}:  # a transcode's may be there already
@@ -188,7 +192,7 @@ class VariableRateWriter:
         mask = self._mask
 
         def other(f: dict) -> int:
-            return other_bytes(f) - slim + (0 if mask is None else mask.saved)
+            return other_bytes({**f, "states": inline}) - slim + (0 if mask is None else mask.saved)
 
         step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
         if len(z):
@@ -199,7 +203,7 @@ class VariableRateWriter:
             streams, model, k = [], EntropyModel([0] * self.d, [0.5] * self.d, [0] * self.d, [1] + [0] * self.d), []
         uniform = bool((step == step[0]).all())
         spec = VariableRate(step=[float(step[0])] if uniform else [float(s) for s in step], coder=CODER,
-                            model=model.pack())
+                            model=model.pack(), states=inline)
         width = max([stream_bytes(s) for s in streams], default=4)
         arr = group.create_array(STREAM_ARRAY, shape=(*cgrid, width), dtype="uint8", fill_value=0,
                                  chunks=(1, 1, 1, width), compressors=stream_compressors(),
@@ -210,8 +214,11 @@ class VariableRateWriter:
             row[:4] = np.frombuffer(np.uint32(len(s)).astype("<u4").tobytes(), np.uint8)
             row[4:4 + 4 * len(s)] = np.frombuffer(s.astype("<u4").tobytes(), np.uint8)
             arr[(*np.unravel_index(cid, cgrid), slice(None))] = row
-        _drop_chunks(group, "codes")
-        _slim_codes_document(group.store.root, write=True)
+        if inline:
+            drop_implied(group.store.root)
+        else:
+            _drop_chunks(group, "codes")
+            _slim_codes_document(group.store.root, write=True)
         del group[GAIN_ARRAY]
         n = max(len(coded), 1)
         self.report.update(step=float(np.mean(step)), mean_length=float(np.mean(k)) if len(k) else 0.0,

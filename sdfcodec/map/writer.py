@@ -28,15 +28,15 @@ from ..codec import Codec
 from ..errors import (FormatError, InvalidValueError, MapExistsError, MapNotFoundError, NotFittedError,
                       SDFCodecError, ShapeError, VersionError, WriteFailedError)
 from ..core.header import (FIELD_EXTENSION, INT8_EXTENSION, KNOWN_EXTENSIONS, MANIFEST_EXTENSION, METRIC_EXTENSION,
-                           QUANT_EXTENSION,
-                           RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN, STATE_REFERENCE_EXTENSION,
-                           VARIABLE_RATE_EXTENSION,
+                           QUANT_EXTENSION, RESIDUAL_EXTENSION, SHARD_EXTENSION, STATE_NAME_PATTERN,
+                           STATE_REFERENCE_EXTENSION, VARIABLE_RATE_EXTENSION, public_source,
                            BlockState, CodecSpec, CodeQuantisation, CodesSpec, Extension, MapHeader, Provenance, Truncation,
                            VariableRate, now_iso)
 from ..core.quantize import check_quantisable, check_step, quantise_step, quantize_codes
 from ..registry import codec_package
 from .codec_state import shipped_reference, state_digest
 from .field import compress_codes, refuse_update
+from .implied import IMPLIED, inline_states
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compact_documents, compressors, free_space, mask_compressors, root_document)
 from .observed import (MASK_ARRAY, MASK_BYTES, SURFACE_WEIGHT, encode_blocks, finish_mask,
@@ -440,9 +440,8 @@ class MapWriter:
 
     def _finish(self) -> None:
         """The ``state`` array and the header (last: until the swap nobody sees any of this anyway)."""
-        st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0,
-                                     chunks=tuple(min(64, max(1, n)) for n in self.grid),
-                                     compressors=compressors(), overwrite=True)
+        st = self.group.create_array("state", shape=self.grid, dtype="uint8", fill_value=0, overwrite=True,
+                                     chunks=tuple(min(64, max(1, n)) for n in self.grid), compressors=compressors())
         st[...] = self.state
         weights_ext = finish_weights(self.group, Path(self.tmp), self.weights_mode, self.grid)
         extensions = [e for e in self.carried if self.mask is not None] + ([weights_ext] if weights_ext else [])
@@ -477,7 +476,8 @@ class MapWriter:
             if (gain := self.group[GAIN_ARRAY]).shape[:3] != self.grid:
                 gain.resize((*self.grid, self.codes_spec.size))
             extensions.append(Extension(name=VARIABLE_RATE_EXTENSION, required=True))
-            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, "codes/c")}  # all but them, root, manifest
+            implied = IMPLIED if inline_states(self.state) else ("codes/c",)  # what the streams replace (spec 4e)
+            skip = {Path(self.tmp) / n for n in (GAIN_ARRAY, STREAM_ARRAY, *implied)}  # all but them, root, manifest
             files = [f for f in Path(self.tmp).glob("*/**/*") if f.is_file() and not any(p in skip for p in f.parents)]
             fixed = sum(f.stat().st_size for f in files) + STREAM_METADATA_BYTES
             if self.manifest:
@@ -638,7 +638,7 @@ def create_writer(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         codec=CodecSpec(id=codec.codec_id, config=codec.get_config(), package=pkg, package_version=pkg_version,
                         state_arrays=[] if ref else sorted(state), state_sha256=state_digest(state) if state else None,
                         state_reference=ref),
-        provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=source),
+        provenance=Provenance(created=now_iso(), sdfcodec_version=__version__, tool=tool, source=public_source(source)),
         residual=residual,
     )
     bad_names = [n for n in state if not re.fullmatch(STATE_NAME_PATTERN, n)]
@@ -731,7 +731,7 @@ def _new_group(tmp: Path, codec: Codec, state: dict, spec: CodesSpec, code_dtype
         group.create_array(RESIDUAL_ARRAY, shape=(*grid, BLOCK ** 3), dtype=residual.dtype, fill_value=0,
                            chunks=(cb, cb, cb, BLOCK ** 3), compressors=residual_compressors(),
                            dimension_names=["bx", "by", "bz", "voxel"])
-    cgroup = group.create_group("codec")
+    cgroup = group.create_group("codec") if state else None  # none without state arrays (spec section 2)
     for name, arr in state.items():
         arr = np.ascontiguousarray(arr)
         a = cgroup.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=arr.shape or (1,),
