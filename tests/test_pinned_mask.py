@@ -1,0 +1,181 @@
+"""The pinned observation mask (sdfcodec.map.pinmask, stream M2): an exact integer decode decides which voxels
+carry a stored bit; the bits stored there give the exact mask's surface and mesh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import sdfcodec
+from _fused_maps import TRUNC, VS, fused_like, write_volume_map
+from sdfcodec.core.blocks import split_blocks
+from sdfcodec.core.sdf import sample_volume
+from sdfcodec.core.surface import surface_points
+from sdfcodec.errors import ChecksumError
+from sdfcodec.map import pinmask as pm
+from sdfcodec.map.lossymask import pinned_voxels, relax_mask
+from sdfcodec.map.maskcoder import encode_mask_rows
+from sdfcodec.map.observed import pack_mask
+from sdfcodec.registry import pretrained_codec
+from sdfcodec.testing import analytic_scene
+
+S = 2.0 ** pm.FRACTION_BITS
+
+
+@pytest.fixture(scope="module")
+def codec():
+    return pretrained_codec("pca", 64)
+
+
+def _basis(codec, step):
+    sd = codec.state_dict()
+    return pm.fixed_point_basis(sd["components"], sd["mean"], np.full(len(sd["components"]), step), TRUNC)
+
+
+def test_exact_decode_is_the_integer_product_and_bounds_float_decodes(codec):
+    """Against int64 arithmetic (Python-exact, no floats): equal to the unit; in any summation order (reversed
+    components) identical; the float32 codec decode, and a float32 product summed in another order, lie within
+    the bound E of it."""
+    rng = np.random.default_rng(0)
+    step = 0.37
+    basis = _basis(codec, step)
+    q = np.zeros((50, 64), np.int64)
+    for row in q:  # 10-20 non-zero codes per block, as at 64 B per block
+        idx = rng.choice(64, rng.integers(10, 21), replace=False)
+        row[idx] = rng.integers(-40, 41, len(idx))
+    v, e = pm.exact_decode(q, basis)
+    want = q @ basis[1:].astype(np.int64) + basis[0].astype(np.int64)  # int64: exact, no rounding possible
+    assert np.array_equal(v.astype(np.int64), want)
+    v_rev, _ = pm.exact_decode(q[:, ::-1].copy(), np.vstack([basis[:1], basis[1:][::-1]]))
+    assert np.array_equal(v_rev, v)
+    codes = torch.from_numpy((q * step).astype(np.float32))
+    flt = codec.decode(codes).numpy().reshape(len(q), -1).astype(np.float64) * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
+    sd = codec.state_dict()
+    alt = (((q * step).astype(np.float32)[:, ::-1] @ sd["components"][::-1]) + sd["mean"]).astype(np.float64)
+    alt = alt * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
+    for x in (flt, alt):
+        gap = np.abs(x * S - v)
+        assert (gap <= e[:, None]).all()
+        assert gap.max() > 0  # float32 does round: the bound is what makes the pins exact
+    assert e.max() < 5e-4 * S  # and it is small: under half a millimetre, 1/40 of a voxel
+
+
+def test_exact_pins_of_a_plane_by_hand():
+    """A plane x = 7.5 voxels in one block, neighbours not coded (d_max): the same pins as the float rule's, by
+    hand (tests/test_lossy_mask.py); a coded neighbour at -x in another chunk may take either sign, so the whole
+    -x face layer is pinned, and the plane's corners stay pinned."""
+    x = (np.arange(16) - 7.5) * VS
+    dec = np.clip(np.broadcast_to(x[:, None, None], (16, 16, 16)), *TRUNC).reshape(1, -1)
+    v = np.rint(dec * S)
+    c = np.array([[3, 3, 3]])
+    pin, _, _ = pm.exact_pins(c, v - 1, v + 1, np.zeros((0, 3)), TRUNC)
+    face = np.zeros((16, 16, 16), bool)
+    face[:9, [0, 15], :] = face[:9, :, [0, 15]] = True
+    want = face.copy()
+    want[[0, 7, 8]] = True
+    assert np.array_equal(pin[0], want)
+    assert np.array_equal(pin[0], pinned_voxels(c, dec.reshape(1, 16, 16, 16).astype(np.float32), TRUNC)[0])
+    pin2, _, _ = pm.exact_pins(c, v - 1, v + 1, np.array([[2, 3, 3]]), TRUNC)
+    assert pin2[0, 0].all() and np.array_equal(pin2[0, 1:], want[1:])
+
+
+def test_canonical_bits_by_hand():
+    """Two blocks side by side along x, a plane at x = 7.5 voxels in each: the first block fully observed, the
+    second observed only for x <= 4 (its plane's cells are not meshed). Stored ones: the first block's plane
+    corners (x = 7, 8) and its meshed cells across the shared face (its x = 15 layer meets the second block's
+    negative x = 0 layer: a crossing cell, fully observed: the second block's x = 0 layer too)."""
+    x = (np.arange(16) - 7.5) * VS
+    dec = np.clip(np.broadcast_to(x[:, None, None], (16, 16, 16)), *TRUNC).reshape(1, -1)
+    v = np.rint(np.concatenate([dec, dec]) * S)
+    coords = np.array([[3, 3, 3], [4, 3, 3]])
+    obs = np.ones((2, 16, 16, 16), bool)
+    obs[1, 5:] = False
+    bits = pm.canonical_bits(coords, obs, v - 1, v + 1, TRUNC)
+    pin, _, _ = pm.exact_pins(coords, v - 1, v + 1, np.zeros((0, 3)), TRUNC)
+    want = np.zeros_like(obs)
+    want[0, [7, 8, 15]] = True  # the plane's cells and the cells across the face to the negative x = 0 layer
+    want[1, 0] = True
+    assert np.array_equal(bits & pin, want & pin)
+    assert not (bits & ~obs).any()  # never marks an unobserved voxel observed
+
+
+def _maps(tmp_path: Path, room, codec, step: float):
+    p = tmp_path / f"exact-{step}.sdfz"
+    write_volume_map(p, *room, codec, codec_state="reference", variable_rate={"step": step, "exact_mask": True})
+    return sdfcodec.open_map(p)
+
+
+@pytest.fixture(scope="module")
+def room():
+    vol, obs = fused_like(sample_volume(analytic_scene(), (96, 80, 48), VS, truncation=TRUNC))
+    return vol, obs
+
+
+@pytest.mark.parametrize("step", [0.05, 0.6])
+def test_stored_bits_round_trip_and_give_the_exact_masks_surface_and_mesh(tmp_path, room, codec, step):
+    """A fused room written with the exact mask: the pins of the exact decode cover the float decode's; the M2
+    stream returns the stored bits bit for bit; decoding the blocks with the M2 mask gives the exact mask's
+    surface points and open3d marching-cubes triangles; and it is smaller than M1 of the lossy mask."""
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    m = _maps(tmp_path, room, codec, step)
+    r = m.reader
+    coords, codes = r.read_codes()
+    q = np.rint(codes / np.float32(step)).astype(np.int64)
+    assert np.abs(q * step - codes).max() < 1e-5
+    truth = m.read_observed(coords)
+    v, e = pm.exact_decode(q, _basis(codec, step))
+    lo, hi = v - e[:, None], v + e[:, None]
+    pin, _, _ = pm.exact_pins(coords, lo, hi, np.zeros((0, 3)), TRUNC)
+    dec = codec.decode(torch.from_numpy(codes)).numpy() * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
+    dec = np.clip(dec, *TRUNC)
+    assert not (pinned_voxels(coords, dec, TRUNC) & ~pin).any()
+    bits = pm.canonical_bits(coords, truth, lo, hi, TRUNC)
+    stream = pm.encode_pinned(bits, pin)
+    back = pm.decode_pinned(stream, pin)
+    assert np.array_equal(back[pin], bits[pin]) and back[~pin].all()
+    assert (back != truth).mean() > 0.01  # a different mask ...
+    grid = r.grid_blocks
+    vols, meshes = [], []
+    for mask in (truth, back):
+        blocks = np.where(mask, dec, TRUNC[1]).astype(np.float32)
+        full = np.full((*grid, 16, 16, 16), TRUNC[1], np.float32)
+        full[tuple(coords.T)] = blocks
+        vols.append(full.transpose(0, 3, 1, 4, 2, 5).reshape(grid[0] * 16, grid[1] * 16, grid[2] * 16))
+        mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
+        vv, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        meshes.append(sorted(tuple(sorted(map(tuple, vv[tri]))) for tri in t))
+    assert np.array_equal(split_blocks(vols[0], fill=TRUNC[1])[tuple(coords.T)], np.where(truth, dec, TRUNC[1]))
+    np.testing.assert_array_equal(surface_points(vols[0], VS), surface_points(vols[1], VS))  # ... the same surface
+    assert len(meshes[0]) > 1000 and meshes[0] == meshes[1]
+    m1 = encode_mask_rows(pack_mask(relax_mask(truth, pinned_voxels(coords, dec, TRUNC))))
+    assert len(stream) < len(m1)
+
+
+def test_a_corrupted_or_mismatched_stream_fails_with_one_line():
+    rng = np.random.default_rng(1)
+    pin = rng.random((3, 16, 16, 16)) < 0.2
+    bits = rng.random((3, 16, 16, 16)) < 0.3
+    stream = pm.encode_pinned(bits, pin)
+    assert np.array_equal(pm.decode_pinned(stream, pin)[pin], bits[pin])
+    with pytest.raises(ChecksumError, match="not an M2 stream"):
+        pm.decode_pinned(b"M1" + stream[2:], pin)
+    with pytest.raises(ChecksumError, match="not an M2 stream"):
+        pm.decode_pinned(stream[:-1], pin)
+    other = pin.copy()
+    other[0, 0, 0, 0] = ~other[0, 0, 0, 0]
+    with pytest.raises(ChecksumError, match="pinned voxels"):  # a reader whose codes pin differently
+        pm.decode_pinned(stream, other)
+    with pytest.raises(ChecksumError):
+        pm.decode_pinned(stream[:-8], pin)  # words missing: exhausted, or left over in the wrong place
+    bad = bytearray(stream)
+    bad[len(bad) // 2] ^= 0xFF
+    try:
+        got = pm.decode_pinned(bytes(bad), pin)
+    except ChecksumError:
+        pass
+    else:  # an ANS stream with a flipped word may still decode; then it decodes other bits (the CRC guards it)
+        assert not np.array_equal(got[pin], bits[pin])
