@@ -71,14 +71,14 @@ def test_exact_pins_of_a_plane_by_hand():
     dec = np.clip(np.broadcast_to(x[:, None, None], (16, 16, 16)), *TRUNC).reshape(1, -1)
     v = np.rint(dec * S)
     c = np.array([[3, 3, 3]])
-    pin, _, _ = pm.exact_pins(c, v - 1, v + 1, np.zeros((0, 3)), TRUNC)
+    pin, _, _ = pm.exact_pins(c, *pm.sign_bounds(v, [1]), np.zeros((0, 3)), TRUNC)
     face = np.zeros((16, 16, 16), bool)
     face[:9, [0, 15], :] = face[:9, :, [0, 15]] = True
     want = face.copy()
     want[[0, 7, 8]] = True
     assert np.array_equal(pin[0], want)
     assert np.array_equal(pin[0], pinned_voxels(c, dec.reshape(1, 16, 16, 16).astype(np.float32), TRUNC)[0])
-    pin2, _, _ = pm.exact_pins(c, v - 1, v + 1, np.array([[2, 3, 3]]), TRUNC)
+    pin2, _, _ = pm.exact_pins(c, *pm.sign_bounds(v, [1]), np.array([[2, 3, 3]]), TRUNC)
     assert pin2[0, 0].all() and np.array_equal(pin2[0, 1:], want[1:])
 
 
@@ -93,8 +93,9 @@ def test_canonical_bits_by_hand():
     coords = np.array([[3, 3, 3], [4, 3, 3]])
     obs = np.ones((2, 16, 16, 16), bool)
     obs[1, 5:] = False
-    bits = pm.canonical_bits(coords, obs, v - 1, v + 1, TRUNC)
-    pin, _, _ = pm.exact_pins(coords, v - 1, v + 1, np.zeros((0, 3)), TRUNC)
+    signs = pm.sign_bounds(v, [1, 1])
+    bits = pm.canonical_bits(coords, obs, *signs, TRUNC)
+    pin, _, _ = pm.exact_pins(coords, *signs, np.zeros((0, 3)), TRUNC)
     want = np.zeros_like(obs)
     want[0, [7, 8, 15]] = True  # the plane's cells and the cells across the face to the negative x = 0 layer
     want[1, 0] = True
@@ -128,12 +129,12 @@ def test_stored_bits_round_trip_and_give_the_exact_masks_surface_and_mesh(tmp_pa
     assert np.abs(q * step - codes).max() < 1e-5
     truth = m.read_observed(coords)
     v, e = pm.exact_decode(q, _basis(codec, step))
-    lo, hi = v - e[:, None], v + e[:, None]
-    pin, _, _ = pm.exact_pins(coords, lo, hi, np.zeros((0, 3)), TRUNC)
+    signs = pm.sign_bounds(v, e)
+    pin, _, _ = pm.exact_pins(coords, *signs, np.zeros((0, 3)), TRUNC)
     dec = codec.decode(torch.from_numpy(codes)).numpy() * (TRUNC[1] - TRUNC[0]) + TRUNC[0]
     dec = np.clip(dec, *TRUNC)
     assert not (pinned_voxels(coords, dec, TRUNC) & ~pin).any()
-    bits = pm.canonical_bits(coords, truth, lo, hi, TRUNC)
+    bits = pm.canonical_bits(coords, truth, *signs, TRUNC)
     stream = pm.encode_pinned(bits, pin)
     back = pm.decode_pinned(stream, pin)
     assert np.array_equal(back[pin], bits[pin]) and back[~pin].all()

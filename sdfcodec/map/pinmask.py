@@ -49,7 +49,7 @@ from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
 from .lossymask import padded_blocks
 
-__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "exact_pins", "canonical_bits", "encode_pinned",
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "canonical_bits", "encode_pinned",
            "decode_pinned", "NEIGHBOURS"]
 
 #: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
@@ -101,53 +101,59 @@ def exact_decode(q: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return v, bound
 
 
-def exact_pins(coords: np.ndarray, lo: np.ndarray, hi: np.ndarray, outside_coded: np.ndarray,
+def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
                truncation: tuple[float, float], jump: float = JUMP) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Relevant cells and pinned voxels of the blocks ``coords`` ``(n, 3)`` from the decode's bounds ``lo``,
-    ``hi`` ``(n, 4096)`` (metres times ``2^FRACTION_BITS``, e.g. ``v -/+ E[:, None]``).
+    """Relevant cells and pinned voxels of the blocks ``coords`` ``(n, 3)``, from where their decode may be
+    negative (``neg``) and non-negative (``pos``), ``(n, 4096)`` or ``(n, 16, 16, 16)`` bool: ``v - E < 0`` and
+    ``v + E >= 0`` of :func:`exact_decode` (:func:`sign_bounds`).
 
     ``outside_coded`` ``(m, 3)``: coded blocks that are not among ``coords`` (another chunk's): their voxels may
     take either sign; every other block around reads ``d_max``.
 
     Returns:
         ``(pinned (n, 16, 16, 16) bool, neg (n, 18, 18, 18) bool, pos (n, 18, 18, 18) bool)``: the voxels in a
-        relevant cell, and where each padded voxel may be negative / non-negative.
+        relevant cell, and ``neg``, ``pos`` with the one-voxel layer of the neighbours around each block.
     """
-    d_min, d_max = (float(t) * 2.0 ** FRACTION_BITS for t in truncation)
     coords = np.asarray(coords, np.int64).reshape(-1, 3)
     outside = np.asarray(outside_coded, np.int64).reshape(-1, 3)
-    n = len(coords)
+    n, shape = len(coords), (-1, BLOCK, BLOCK, BLOCK)
     all_c = np.concatenate([coords, outside])
-    lo_all = np.concatenate([np.asarray(lo, np.float64).reshape(n, -1), np.full((len(outside), BLOCK ** 3), d_min)])
-    hi_all = np.concatenate([np.asarray(hi, np.float64).reshape(n, -1), np.full((len(outside), BLOCK ** 3), d_max)])
-    shape = (-1, BLOCK, BLOCK, BLOCK)
-    neg = padded_blocks(all_c, lo_all.reshape(shape), d_max)[:n] < 0
-    pos = padded_blocks(all_c, hi_all.reshape(shape), d_max)[:n] >= 0
+    either = np.ones((len(outside), BLOCK, BLOCK, BLOCK), bool)
+    neg = padded_blocks(all_c, np.concatenate([np.asarray(neg, bool).reshape(shape), either]), False)[:n]
+    pos = padded_blocks(all_c, np.concatenate([np.asarray(pos, bool).reshape(shape), either]), True)[:n]
+    return _cells(_relevant(neg, pos, truncation, jump), np.logical_or), neg, pos
+
+
+def sign_bounds(v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(neg, pos)`` ``(n, 16, 16, 16)`` bool from :func:`exact_decode`'s ``(v, E)``: where a float decode may be
+    negative, and where it may be non-negative."""
+    e = np.asarray(bound, np.float64).reshape(-1, 1)
+    return (v - e < 0).reshape(-1, BLOCK, BLOCK, BLOCK), (v + e >= 0).reshape(-1, BLOCK, BLOCK, BLOCK)
+
+
+def _relevant(neg: np.ndarray, pos: np.ndarray, truncation: tuple[float, float], jump: float) -> np.ndarray:
+    """``(n, 17, 17, 17)`` bool: the cells of padded blocks whose decode may change sign (below ``jump``, any cell
+    that may be negative: module lossymask)."""
     cell = _cells(neg, np.logical_or)
-    if d_max >= jump * 2.0 ** FRACTION_BITS:  # below: all-negative cells matter too (module lossymask)
-        cell &= _cells(pos, np.logical_or)
-    return _cells(cell, np.logical_or), neg, pos
+    return cell & _cells(pos, np.logical_or) if float(truncation[1]) >= jump else cell
 
 
-def canonical_bits(coords: np.ndarray, observed: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+def canonical_bits(coords: np.ndarray, observed: np.ndarray, neg: np.ndarray, pos: np.ndarray,
                    truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: the bits to store (module docstring) of the coded blocks ``coords`` ``(n, 3)``
-    (the whole map's, or a batch with its coded neighbours) with true mask ``observed`` ``(n, 16, 16, 16)`` and
-    exact decode bounds ``lo``, ``hi`` ``(n, 4096)``: 1 at the corners of relevant cells that ``observed`` sees
-    fully and at both ends of observed edges that may change sign; 0 elsewhere."""
+    (the whole map's, or a chunk with its coded neighbours: only blocks whose neighbours are all given are
+    exact) with true mask ``observed`` ``(n, 16, 16, 16)`` and decode signs ``neg``, ``pos`` (:func:`sign_bounds`):
+    1 at the corners of relevant cells that ``observed`` sees fully and at both ends of observed edges that may
+    change sign; 0 elsewhere."""
     coords = np.asarray(coords, np.int64).reshape(-1, 3)
-    _, neg, pos = exact_pins(coords, lo, hi, np.zeros((0, 3), np.int64), truncation, jump)
+    _, neg, pos = exact_pins(coords, neg, pos, np.zeros((0, 3), np.int64), truncation, jump)
     obs = padded_blocks(coords, np.asarray(observed, bool), False)  # blocks not coded read d_max: never meshed
-    cell = _cells(neg, np.logical_or)
-    d_max = float(truncation[1])
-    if d_max >= jump:
-        cell &= _cells(pos, np.logical_or)
-    meshed = cell & _cells(obs, np.logical_and)
+    meshed = _relevant(neg, pos, truncation, jump) & _cells(obs, np.logical_and)
     out = _cells(np.pad(meshed, ((0, 0), (1, 1), (1, 1), (1, 1))), np.logical_or)  # (n, 18, 18, 18)
     for ax in (1, 2, 3):
         a = tuple(slice(0, -1) if d == ax else slice(None) for d in range(4))
         b = tuple(slice(1, None) if d == ax else slice(None) for d in range(4))
-        may = (neg[a] & pos[b]) | (pos[a] & neg[b]) if d_max >= jump else neg[a] | neg[b]
+        may = (neg[a] & pos[b]) | (pos[a] & neg[b]) if float(truncation[1]) >= jump else neg[a] | neg[b]
         edge = may & obs[a] & obs[b]
         out[a] |= edge
         out[b] |= edge

@@ -597,6 +597,7 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
     # under the observed blocks, the only ones it may store)
     observed = None if states is None else np.argwhere(states != BlockState.UNOBSERVED)
     for arr in (*m.reader.observation_arrays(), m.reader.residual_array):
+        arr = getattr(arr, "streams", arr)  # a pinned mask's chunks are its streams' (sdfcodec.map.pinstore)
         if arr is not None:
             for _ in _iter_chunks(rep, arr, _chunk_keys(arr, rep, observed)):
                 pass
