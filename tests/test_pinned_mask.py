@@ -180,3 +180,66 @@ def test_a_corrupted_or_mismatched_stream_fails_with_one_line():
         pass
     else:  # an ANS stream with a flipped word may still decode; then it decodes other bits (the CRC guards it)
         assert not np.array_equal(got[pin], bits[pin])
+
+
+def _mesh(coords, blocks):
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
+    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    return sorted(tuple(sorted(map(tuple, v[tri]))) for tri in t)
+
+
+def test_a_pinned_map_reads_the_exact_masks_surface_and_is_smaller(tmp_path, room, codec):
+    """Three maps of the fused room, the same codes (a fixed step): exact mask, M1 lossy mask, pinned mask (the
+    default). The pinned map lists pinned-observation-mask (required) and no observed array, verifies, decodes to
+    the exact map's surface points and open3d mesh, reads a mask that differs from the truth, takes fewer mask
+    bytes than the M1 lossy map, and `info` says how its mask is stored."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+    from sdfcodec.map.verify import verify_map
+
+    maps = {}
+    for name, extra in (("exact", {"exact_mask": True}), ("m1", {"pinned_mask": False}), ("pinned", {})):
+        p = tmp_path / f"{name}.sdfz"
+        write_volume_map(p, *room, codec, codec_state="reference", variable_rate={"step": 0.3, **extra})
+        maps[name] = sdfcodec.open_map(p)
+    pinned = maps["pinned"]
+    ext = {e.name: e.required for e in pinned.header.extensions}
+    assert ext["pinned-observation-mask"] is True and ext["approximate-observation-mask"] is False
+    assert "observation-mask" not in ext and "coded-observation-mask" not in ext
+    root = Path(pinned.reader.local_root())
+    assert not (root / "observed").exists() and (root / "mask_streams").is_dir()
+    assert verify_map(root).ok
+    coords = np.argwhere(pinned.block_states() == 2)
+    truth = maps["exact"].read_observed(coords)
+    assert (pinned.read_observed(coords) != truth).mean() > 0.01
+    a, b = maps["exact"].decode_region(), pinned.decode_region()
+    np.testing.assert_array_equal(surface_points(a, VS), surface_points(b, VS))
+    ma = _mesh(coords, split_blocks(a, fill=TRUNC[1])[tuple(coords.T)])
+    assert len(ma) > 1000 and ma == _mesh(coords, split_blocks(b, fill=TRUNC[1])[tuple(coords.T)])
+
+    def mask_bytes(m, sub):
+        return sum(f.stat().st_size for f in (Path(m.reader.local_root()) / sub).rglob("*") if f.is_file())
+
+    assert mask_bytes(pinned, "mask_streams") < mask_bytes(maps["m1"], "observed")
+    out = CliRunner().invoke(app, ["info", str(root)])
+    assert out.exit_code == 0 and "pinned-observation-mask" in out.output, out.output
+
+
+def test_a_reader_without_the_extension_refuses_and_a_flipped_byte_is_caught(tmp_path, room, codec, monkeypatch):
+    from sdfcodec import errors
+    from sdfcodec.core import header
+
+    p = tmp_path / "pinned.sdfz"
+    write_volume_map(p, *room, codec, codec_state="reference", variable_rate={"step": 0.3}, manifest=False)
+    chunk = next(f for f in (p / "mask_streams").rglob("*") if f.is_file() and f.name != "zarr.json")
+    raw = bytearray(chunk.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    chunk.write_bytes(bytes(raw))
+    with pytest.raises(errors.ChecksumError, match="mask_streams"):
+        sdfcodec.open_map(p).decode_region()
+    monkeypatch.setattr(header, "KNOWN_EXTENSIONS", header.KNOWN_EXTENSIONS - {"pinned-observation-mask"})
+    with pytest.raises(errors.SDFCodecError, match="pinned-observation-mask"):
+        sdfcodec.open_map(p)

@@ -139,7 +139,9 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
                  else f"embedded (sha256 {cs['sha256']})"))
     if info.get("observation_mask") is not None:
         kind = info["observation_mask"]
-        rows.append(("observation mask", ("context-coded (coded-observation-mask)" if kind.startswith("context-coded")
+        rows.append(("observation mask", ("stored at the voxels its codes pin (pinned-observation-mask)"
+                                          if kind.startswith("pinned") else
+                                          "context-coded (coded-observation-mask)" if kind.startswith("context-coded")
                                           else "Blosc-compressed") + (", exact only where it decides the surface "
                                           "(approximate-observation-mask)" if kind.endswith("approximate") else "")))
     if info["residual"] is not None:

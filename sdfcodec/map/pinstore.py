@@ -59,6 +59,13 @@ def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarr
     return coords, near[coded & other]
 
 
+def _zstd(row: np.ndarray) -> bytes:
+    """``row`` as zarr's ``zstd`` codec at level 1 stores it (numcodecs' Zstd, no checksum)."""
+    from numcodecs.zstd import Zstd
+
+    return bytes(Zstd(level=1).encode(row))
+
+
 def _signs(q: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pm.sign_bounds(*pm.exact_decode(q, basis))
 
@@ -67,12 +74,12 @@ class PinnedStreams:
     """The ``M2`` streams of a map's coded blocks ``coords`` ``(n, 3)`` (grouped by chunk, C order inside each:
     the writer's order) with true mask ``truth`` ``(n, 16, 16, 16)``, for integer codes given to :meth:`at`
     (``basis_for(step)``: :func:`linear_basis` at those steps):
-    ``bytes`` what their rows take (stream, length, row frame), :meth:`write` stores them."""
+    ``bytes`` what their chunks take, :meth:`write` stores them."""
 
     def __init__(self, coords: np.ndarray, truth: np.ndarray, states: np.ndarray, cb: int,
-                 basis_for: Callable[[np.ndarray], np.ndarray], truncation: tuple[float, float], frame: int):
+                 basis_for: Callable[[np.ndarray], np.ndarray], truncation: tuple[float, float]):
         self.coords, self.truth, self.states, self.cb = np.asarray(coords, np.int64), truth, states, cb
-        self.basis_for, self.truncation, self.frame = basis_for, truncation, frame
+        self.basis_for, self.truncation = basis_for, truncation
         self.keys, self.inverse = np.unique(self.coords // cb, axis=0, return_inverse=True)
         self.inverse = self.inverse.reshape(-1)
         self.plans = [chunk_blocks(states, k, cb) for k in self.keys]
@@ -94,19 +101,28 @@ class PinnedStreams:
             bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
             pins, _, _ = pm.exact_pins(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
             self.streams.append(pm.encode_pinned(bits, pins))
-        self.bytes = sum(4 + len(s) + self.frame for s in self.streams)
+        self.bytes = sum(len(_zstd(r)) + 4 for r in self._rows())  # each row as stored: zstd level 1, CRC32C
+
+    def _rows(self) -> list[np.ndarray]:
+        """Per chunk with coded blocks its row: the stream's length (uint32 LE), the stream, zeros."""
+        width = 4 + max((len(s) for s in self.streams), default=0)
+        rows = []
+        for s in self.streams:
+            row = np.zeros(width, np.uint8)
+            row[:4] = np.frombuffer(np.uint32(len(s)).astype("<u4").tobytes(), np.uint8)
+            row[4:4 + len(s)] = np.frombuffer(s, np.uint8)
+            rows.append(row)
+        return rows
 
     def write(self, group: Any, compressors: list) -> None:
         """Create ``mask_streams`` in ``group`` (chain ``compressors``) with the streams of the last :meth:`at`."""
         cgrid = tuple(-(-n // self.cb) for n in self.states.shape)
-        width = 4 + max((len(s) for s in self.streams), default=0)
+        rows = self._rows()
+        width = len(rows[0]) if rows else 4
         arr = group.create_array(PINNED_ARRAY, shape=(*cgrid, width), dtype="uint8", fill_value=0,
                                  chunks=(1, 1, 1, width), compressors=compressors)
         arr = arr.with_config({"write_empty_chunks": True})
-        for key, s in zip(self.keys, self.streams):
-            row = np.zeros(width, np.uint8)
-            row[:4] = np.frombuffer(np.uint32(len(s)).astype("<u4").tobytes(), np.uint8)
-            row[4:4 + len(s)] = np.frombuffer(s, np.uint8)
+        for key, row in zip(self.keys, rows):
             arr[(*(int(k) for k in key), slice(None))] = row
 
 

@@ -229,19 +229,27 @@ class VariableRateWriter:
         """``(PinnedStreams or None, metadata bytes it adds)``: the pinned mask (spec 6g) where ``pinned_mask`` and
         the codec decodes linearly; then ``extensions`` lists ``pinned-observation-mask`` in place of the
         ``observed`` array's two."""
-        from .pinstore import PINNED_MASK_EXTENSION, PinnedStreams, linear_basis
+        from .pinstore import PINNED_ARRAY, PINNED_MASK_EXTENSION, PinnedStreams, linear_basis
 
         basis = linear_basis(self.codec, 1.0, self.d, truncation) if self.pinned_mask else None
         if basis is None:
             return None, 0
         truth = unpack_mask(_rows(group[MASK_ARRAY], coded))
         streams = PinnedStreams(coded, truth, state, cb, lambda step: linear_basis(self.codec, step, self.d, truncation),
-                                truncation, _ROW_FRAME)
+                                truncation)
         gone = {e.name for e in extensions} & {"observation-mask", CODED_MASK_EXTENSION}
         extensions[:] = [e for e in extensions if e.name not in gone] + [
             Extension(name=PINNED_MASK_EXTENSION, required=True)]
-        meta = Path(group.store.root) / MASK_ARRAY / "zarr.json"
-        return streams, STREAM_METADATA_BYTES - (meta.stat().st_size if meta.exists() else 0)
+        from .manifest import manifest_bytes_estimate
+
+        root = Path(group.store.root)
+        meta = root / MASK_ARRAY / "zarr.json"
+        # its document against the observed array's, and (if the map has a manifest) their records in it
+        old = [f.relative_to(root).as_posix() for f in (root / MASK_ARRAY).rglob("*") if f.is_file()]
+        new = [f"{PINNED_ARRAY}/zarr.json"] + [f"{PINNED_ARRAY}/c/{'/'.join(str(int(c)) for c in k)}/0"
+                                                for k in streams.keys]
+        keys = manifest_bytes_estimate(new) - manifest_bytes_estimate(old)
+        return streams, STREAM_METADATA_BYTES - (meta.stat().st_size if meta.exists() else 0) + max(keys, 0)
 
     def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation) -> np.ndarray:
         if self.step is not None:
