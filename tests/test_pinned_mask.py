@@ -251,7 +251,7 @@ GOLDEN = Path(__file__).parent / "golden" / "maps" / "pinned-mask-pca-8"
 def test_golden_pinned_mask_map(regen_golden):
     """The frozen pinned-mask map (a fitted pca-8, embedded): verified and decoded to its frozen values, and its
     surface is the one the true mask gives with the same codes."""
-    from _golden_maps import check_golden_map
+    from _golden_maps import check_golden_map, check_true_mask_surface
 
     vol, obs = fused_like(sample_volume(analytic_scene(), (48, 48, 32), VS, truncation=TRUNC))  # 18 blocks
     codec8 = sdfcodec.get_codec("pca", code_size=8).fit(
@@ -263,15 +263,4 @@ def test_golden_pinned_mask_map(regen_golden):
     m = check_golden_map(GOLDEN, make, regen_golden)
     ext = {e.name: e.required for e in m.header.extensions}
     assert ext["pinned-observation-mask"] is True and "observation-mask" not in ext
-    r = m.reader
-    coords, codes = r.codes_in(r.block_range(r.block_box(None, "voxels")), r.level(None))
-    raw = np.asarray(r.decode_codes(torch.from_numpy(codes), metres=True, coords=coords,
-                                    mask_rows=np.full((len(coords), 512), 255, np.uint8)))
-    true = (split_blocks(obs.astype(np.float32), fill=1.0) > 0.5)[tuple(coords.T)].reshape(-1, 16, 16, 16)
-    dec = m.decode_region()
-    exact = split_blocks(dec, fill=TRUNC[1])
-    exact[tuple(coords.T)] = np.where(true, raw, np.float32(TRUNC[1]))
-    nx, ny, nz = dec.shape
-    exact = exact.transpose(0, 3, 1, 4, 2, 5).reshape(exact.shape[0] * 16, exact.shape[1] * 16, -1)[:nx, :ny, :nz]
-    assert (m.read_observed(coords) != true).mean() > 0.002  # the mask is not the truth
-    np.testing.assert_array_equal(surface_points(dec, VS), surface_points(exact, VS))
+    check_true_mask_surface(m, obs)

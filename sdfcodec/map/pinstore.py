@@ -20,6 +20,7 @@ from ..errors import FormatError
 from . import pinmask as pm
 
 if TYPE_CHECKING:
+    from ..codec import Codec
     from .reader import MapReader
 
 __all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "chunk_blocks", "PinnedStreams",
@@ -33,7 +34,7 @@ _OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in 
                      if (a, b, c) != (0, 0, 0)], dtype=np.int64)
 
 
-def linear_basis(codec: Any, step: Any, size: int, truncation: tuple[float, float]) -> np.ndarray | None:
+def linear_basis(codec: Codec, step: Any, size: int, truncation: tuple[float, float]) -> np.ndarray | None:
     """:func:`~sdfcodec.map.pinmask.fixed_point_basis` of a codec whose decode is ``mean + codes components``
     (pca with a dataset mean), for codes of length ``size`` with steps ``step``; None for any other codec."""
     if getattr(codec, "mean", None) != "dataset":
