@@ -30,6 +30,9 @@ __all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "chunk_block
 #: (uint32 LE), the stream, zeros (as ``code_streams``, spec section 4e).
 PINNED_ARRAY = "mask_streams"
 
+#: Decoded chunks a reader keeps (512 B per coded block each): a region read block group by block group decodes
+#: each chunk's stream once.
+CACHED_CHUNKS = 8
 _OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
                      if (a, b, c) != (0, 0, 0)], dtype=np.int64)
 
@@ -151,6 +154,7 @@ class PinnedMaskArray:
         self.dtype = np.dtype(np.uint8)
         self.path = PINNED_ARRAY
         self._basis: np.ndarray | None = None
+        self._cache: dict[tuple[int, ...], tuple[dict, np.ndarray]] = {}  # decoded chunks, oldest first
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
@@ -160,6 +164,33 @@ class PinnedMaskArray:
                 raise FormatError(f"{r.location}: {PINNED_MASK_EXTENSION} needs a codec whose decode is linear "
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
+
+    def _remember(self, key: tuple[int, ...], value: tuple[dict, np.ndarray]) -> None:
+        self._cache[key] = value
+        while len(self._cache) > CACHED_CHUNKS:
+            self._cache.pop(next(iter(self._cache)))
+
+    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[dict, np.ndarray]:
+        """``({block coords: row index}, packed rows (n, 512))`` of chunk ``key`` from its stored ``row``."""
+        r = self.reader
+        own, outside = chunk_blocks(states, key, self.cb)
+        if not len(own):
+            return {}, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
+        row = np.ascontiguousarray(row.reshape(-1))
+        n = int(row[:4].view("<u4")[0])
+        where = f"{r.location}: chunk {tuple(int(c) for c in key)} of array '{PINNED_ARRAY}'"
+        if n == 0 or 4 + n > len(row):
+            raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
+                              "in it; the map is incomplete there: restore it from a copy or re-encode")
+        step = np.broadcast_to(np.asarray(r.header.codes.variable_rate.step, np.float64), (r.header.codes.size,))
+        codes = r.vr.codes_for(own, r.header.codes.size).astype(np.float64)
+        q = np.rint(codes / step)
+        if np.abs(q * step - codes).max() > 1e-6 * max(1.0, float(np.abs(codes).max())):
+            raise FormatError(f"{where}: the codes are not integer multiples of their steps")
+        neg, pos = _signs(q, self.basis())
+        pins, _, _ = pm.exact_pins(own, neg, pos, outside, r.truncation)
+        mask = pm.decode_pinned(row[4:4 + n].tobytes(), pins, where)
+        return {tuple(c): j for j, c in enumerate(own.tolist())}, np.packbits(mask.reshape(len(own), -1), axis=1)
 
     def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
@@ -171,27 +202,15 @@ class PinnedMaskArray:
         states = r.vr.states()
         keys, inverse = np.unique(np.asarray(coords, np.int64) // cb, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
-        rows = r.read_many(self.streams, [(*(slice(int(c), int(c) + 1) for c in k), slice(None)) for k in keys])
-        step = np.broadcast_to(np.asarray(r.header.codes.variable_rate.step, np.float64), (r.header.codes.size,))
-        for i, (key, row) in enumerate(zip(keys, rows)):
-            own, outside = chunk_blocks(states, key, cb)
-            if not len(own):
-                continue
-            row = np.ascontiguousarray(row.reshape(-1))
-            n = int(row[:4].view("<u4")[0])
-            where = f"{r.location}: chunk {tuple(int(c) for c in key)} of array '{PINNED_ARRAY}'"
-            if n == 0 or 4 + n > len(row):
-                raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
-                                  "in it; the map is incomplete there: restore it from a copy or re-encode")
-            codes = r.vr.codes_for(own, r.header.codes.size).astype(np.float64)
-            q = np.rint(codes / step)
-            if np.abs(q * step - codes).max() > 1e-6 * max(1.0, float(np.abs(codes).max())):
-                raise FormatError(f"{where}: the codes are not integer multiples of their steps")
-            neg, pos = _signs(q, self.basis())
-            pins, _, _ = pm.exact_pins(own, neg, pos, outside, r.truncation)
-            mask = pm.decode_pinned(row[4:4 + n].tobytes(), pins, where)
-            packed = np.packbits(mask.reshape(len(own), -1), axis=1)
-            index = {tuple(c): j for j, c in enumerate(own)}
+        names = [tuple(int(c) for c in k) for k in keys]
+        got = {k: self._cache[k] for k in names if k in self._cache}
+        todo = [i for i, k in enumerate(names) if k not in got]
+        rows = r.read_many(self.streams, [(*(slice(c, c + 1) for c in names[i]), slice(None)) for i in todo])
+        for i, row in zip(todo, rows):
+            got[names[i]] = self._decode(keys[i], row, states)
+            self._remember(names[i], got[names[i]])
+        for i, name in enumerate(names):
+            index, packed = got[name]
             for j in np.flatnonzero(inverse == i):
                 k = index.get(tuple(int(x) for x in coords[j]))
                 if k is not None:
