@@ -80,17 +80,20 @@ def fixed_point_basis(components: np.ndarray, mean: np.ndarray, step: np.ndarray
     return np.vstack([a0[None], np.rint(comp * step * (d_max - d_min) * scale)])
 
 
-def exact_decode(q: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The exact decode ``(n, 4096)`` float64 integers (metres times ``2^FRACTION_BITS``) of integer codes ``q``
-    ``(n, k')`` (``k' <= k``; a prefix) and its error bound ``E`` ``(n,)`` float64 integers (module docstring).
+    ``(n, k')`` (``k' <= k``; a prefix) and its error bound ``E`` ``(n,)`` float64 integers (module docstring)
+    for codes of length ``size`` (default ``k'``: the ``D`` of the bound).
 
     Raises:
         InvalidValueError: a partial sum could reach ``2^53`` (codes far beyond any map's), so exactness is not
             guaranteed.
     """
     q = np.asarray(q, np.float64)
-    n, k = q.shape
-    a = basis[1:k + 1]
+    n, k = q.shape[0], q.shape[1] if size is None else int(size)
+    used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1  # columns past every prefix add nothing
+    q = q[:, :used]
+    a = basis[1:used + 1]
     absq = np.abs(q)
     peak = np.abs(basis[0]).max() + absq @ np.abs(a).max(axis=1)  # T per block, exact (integers, small)
     if n and float(peak.max()) * 2 >= _EXACT:
@@ -181,21 +184,30 @@ def _order() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _schedule(pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Padded flat positions of the pinned voxels of ``pinned`` ``(n, 16, 16, 16)`` sorted by wavefront (blocks,
     then C order, within one), the wavefront bounds, and the padded ternary grid (2 = not pinned)."""
-    wave, padded, _ = _order()
     n = len(pinned)
-    r, c = np.nonzero(np.asarray(pinned, bool).reshape(n, -1))
-    order = np.argsort(wave[c], kind="stable")
-    at = (r * _PAD ** 3 + padded[c])[order]
-    bounds = np.searchsorted(wave[c][order], np.arange(3 * (BLOCK - 1) + 2))
-    grid = np.full(n * _PAD ** 3, 2, np.int64)
-    return at, bounds, grid
+    flat = np.asarray(pinned, bool).reshape(n, -1)
+    parts = []
+    for cells, pads in _waves():  # per wavefront its (block, voxel) pairs in order: no sort of every pin
+        r, c = np.nonzero(flat[:, cells])
+        parts.append(r * _PAD ** 3 + pads[c])
+    bounds = np.r_[0, np.cumsum([len(p) for p in parts])]
+    grid = np.full(n * _PAD ** 3, 2, np.int8)
+    return np.concatenate(parts), bounds, grid
+
+
+@lru_cache(maxsize=1)
+def _waves() -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Per wavefront: its voxels' C-order indices in a block (ascending) and their padded flat indices."""
+    wave, padded, _ = _order()
+    return tuple((np.flatnonzero(wave == w), padded[wave == w]) for w in range(3 * (BLOCK - 1) + 1))
 
 
 def _context(grid: np.ndarray, at: np.ndarray) -> np.ndarray:
     deltas = _order()[2]
     ctx = np.zeros(len(at), np.int64)
     for d in deltas:
-        ctx = ctx * 3 + grid[at + d]
+        ctx *= 3
+        ctx += grid[at + d]
     return ctx
 
 
@@ -218,9 +230,9 @@ def encode_pinned(bits: np.ndarray, pinned: np.ndarray) -> bytes:
         sl = at[bounds[w]:bounds[w + 1]]
         if not len(sl):
             continue
-        ctx, sym = _context(grid, sl), grid[sl]
+        ctx, sym = _context(grid, sl), grid[sl].astype(np.int64)
         parts.append((sym.astype(np.int32), _p1(counts, ctx)))
-        np.add.at(counts, (sym, ctx), 1)
+        counts += _tally(sym, ctx)
     for sym, p in reversed(parts):
         coder.encode_reverse(sym, bern, p)
     words = np.asarray(coder.get_compressed(), dtype="<u4")
@@ -231,6 +243,12 @@ def _bits_at(bits: np.ndarray, at: np.ndarray) -> np.ndarray:
     """The bits of ``bits`` ``(n, 16, 16, 16)`` at padded flat positions ``at``."""
     b = np.pad(np.asarray(bits, bool), ((0, 0), (1, 1), (1, 1), (1, 1))).reshape(-1)
     return b[at].astype(np.int64)
+
+
+def _tally(sym: np.ndarray, ctx: np.ndarray) -> np.ndarray:
+    """``(2, 3^6)`` counts of symbols ``sym`` in contexts ``ctx``."""
+    n = 3 ** len(NEIGHBOURS)
+    return np.bincount(sym * n + ctx, minlength=2 * n).reshape(2, n)
 
 
 def _p1(counts: np.ndarray, ctx: np.ndarray) -> np.ndarray:
@@ -269,7 +287,7 @@ def decode_pinned(stream: bytes | np.ndarray, pinned: np.ndarray, where: str = "
                 ctx = _context(grid, sl)
                 sym = np.asarray(coder.decode(bern, _p1(counts, ctx)), np.int64)
                 grid[sl] = sym
-                np.add.at(counts, (sym, ctx), 1)
+                counts += _tally(sym, ctx)
         except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
             raise ChecksumError(f"{where} is not a sound M2 stream ({type(e).__name__}: {e})") from e
         if not coder.is_empty():
