@@ -135,8 +135,8 @@ def test_stored_bits_round_trip_and_give_the_exact_masks_surface_and_mesh(tmp_pa
     dec = np.clip(dec, *TRUNC)
     assert not (pinned_voxels(coords, dec, TRUNC) & ~pin).any()
     bits = pm.canonical_bits(coords, truth, *signs, TRUNC)
-    stream = pm.encode_pinned(bits, pin)
-    back = pm.decode_pinned(stream, pin)
+    stream = pm.encode_pinned(coords, bits, pin)
+    back = pm.decode_pinned(stream, coords, pin)
     assert np.array_equal(back[pin], bits[pin]) and back[~pin].all()
     assert (back != truth).mean() > 0.01  # a different mask ...
     grid = r.grid_blocks
@@ -160,22 +160,23 @@ def test_a_corrupted_or_mismatched_stream_fails_with_one_line():
     rng = np.random.default_rng(1)
     pin = rng.random((3, 16, 16, 16)) < 0.2
     bits = rng.random((3, 16, 16, 16)) < 0.3
-    stream = pm.encode_pinned(bits, pin)
-    assert np.array_equal(pm.decode_pinned(stream, pin)[pin], bits[pin])
+    coords = np.array([[0, 0, 0], [0, 0, 1], [3, 1, 2]])  # two blocks face to face, one apart
+    stream = pm.encode_pinned(coords, bits, pin)
+    assert np.array_equal(pm.decode_pinned(stream, coords, pin)[pin], bits[pin])
     with pytest.raises(ChecksumError, match="not an M2 stream"):
-        pm.decode_pinned(b"M1" + stream[2:], pin)
+        pm.decode_pinned(b"M1" + stream[2:], coords, pin)
     with pytest.raises(ChecksumError, match="not an M2 stream"):
-        pm.decode_pinned(stream[:-1], pin)
+        pm.decode_pinned(stream[:-1], coords, pin)
     other = pin.copy()
     other[0, 0, 0, 0] = ~other[0, 0, 0, 0]
     with pytest.raises(ChecksumError, match="pinned voxels"):  # a reader whose codes pin differently
-        pm.decode_pinned(stream, other)
+        pm.decode_pinned(stream, coords, other)
     with pytest.raises(ChecksumError):
-        pm.decode_pinned(stream[:-8], pin)  # words missing: exhausted, or left over in the wrong place
+        pm.decode_pinned(stream[:-8], coords, pin)  # words missing: exhausted, or left over in the wrong place
     bad = bytearray(stream)
     bad[len(bad) // 2] ^= 0xFF
     try:
-        got = pm.decode_pinned(bytes(bad), pin)
+        got = pm.decode_pinned(bytes(bad), coords, pin)
     except ChecksumError:
         pass
     else:  # an ANS stream with a flipped word may still decode; then it decodes other bits (the CRC guards it)
