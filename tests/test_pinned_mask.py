@@ -227,6 +227,13 @@ def test_a_pinned_map_reads_the_exact_masks_surface_and_is_smaller(tmp_path, roo
     assert mask_bytes(pinned, "mask_streams") < mask_bytes(maps["m1"], "observed")
     out = CliRunner().invoke(app, ["info", str(root)])
     assert out.exit_code == 0 and "pinned-observation-mask" in out.output, out.output
+    copy = tmp_path / "copy.sdfz"  # a fixed-rate transcode stores the mask the pinned map reads, as 6b rows
+    with sdfcodec.create_map(copy, codec=codec, voxel_size=VS, truncation=TRUNC, shape_voxels=pinned.shape_voxels,
+                             codec_state="reference") as m:
+        m.write_map(pinned)
+    copied = sdfcodec.open_map(copy)
+    assert "approximate-observation-mask" in [e.name for e in copied.header.extensions]
+    assert np.array_equal(copied.read_observed(coords), pinned.read_observed(coords))
 
 
 def test_a_reader_without_the_extension_refuses_and_a_flipped_byte_is_caught(tmp_path, room, codec, monkeypatch):
