@@ -297,3 +297,37 @@ def test_chunks_decode_alone_and_agree_across_their_faces(tmp_path, room, codec)
     fresh = sdfcodec.open_map(Path(pinned.reader.local_root()))
     assert np.array_equal(fresh.read_observed(coords[i:i + 1])[0], pinned.read_observed(coords)[i])
     np.testing.assert_allclose(fresh.decode_region(box), b[box], atol=1e-6)  # BLAS rounds by batch: 2e-8
+
+
+def test_a_truncation_below_the_jump_pins_all_negative_cells_too(tmp_path, codec):
+    """d_max 0.06 m < the crossing rule's jump (0.1 m): a d_max corner next to a negative one would count as a
+    crossing, so every cell that may be negative is relevant; surface points and mesh still equal the exact
+    mask's."""
+    trunc = (-0.04, 0.06)
+    vol = sample_volume(analytic_scene(), (96, 80, 48), VS, truncation=trunc)
+    observed = vol > trunc[0] + 1e-6
+    vol = np.where(observed, vol, np.float32(trunc[1])).astype(np.float32)
+    blocks = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
+    obs = split_blocks(observed.astype(np.float32), fill=1.0).reshape(-1, 16, 16, 16) > 0.5
+    coords = np.argwhere(np.ones(split_blocks(vol, fill=trunc[1]).shape[:3], bool))
+    decoded = {}
+    for name, extra in (("exact", {"exact_mask": True}), ("pinned", {})):
+        p = tmp_path / f"{name}.sdfz"
+        with sdfcodec.create_map(p, codec=codec, voxel_size=VS, truncation=trunc, shape_voxels=vol.shape,
+                                 codec_state="reference", variable_rate={"step": 0.3, **extra}) as m:
+            m.write_blocks(coords, blocks, observed=obs)
+        decoded[name] = sdfcodec.open_map(p)
+    assert "pinned-observation-mask" in [e.name for e in decoded["pinned"].header.extensions]
+    a, b = (decoded[k].decode_region() for k in ("exact", "pinned"))
+    assert not np.array_equal(a, b)
+    np.testing.assert_array_equal(surface_points(a, VS), surface_points(b, VS))
+    c = np.argwhere(decoded["pinned"].block_states() == 2)
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    meshes = []
+    for v in (a, b):
+        mesh = mesh_from_blocks(c, split_blocks(v, fill=trunc[1])[tuple(c.T)], origin=(0, 0, 0), voxel_size=VS,
+                                truncation=trunc)
+        vv, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        meshes.append(sorted(tuple(sorted(map(tuple, vv[tri]))) for tri in t))
+    assert len(meshes[0]) > 1000 and meshes[0] == meshes[1]
