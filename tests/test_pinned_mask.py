@@ -101,6 +101,21 @@ def test_canonical_bits_by_hand():
     want[1, 0] = True
     assert np.array_equal(bits & pin, want & pin)
     assert not (bits & ~obs).any()  # never marks an unobserved voxel observed
+    # one block, its plane's two layers unobserved at odd y: no cell of the plane is fully observed, but the
+    # crossing edges x = 7 -> 8 at even y are, so their ends keep their 1 (a crossing point), nothing else does
+    obs = np.ones((1, 16, 16, 16), bool)
+    obs[0, 7:9, 1::2] = False
+    one = pm.sign_bounds(v[:1], [1])
+    bits = pm.canonical_bits(coords[:1], obs, *one, TRUNC)
+    want = np.zeros_like(obs)
+    want[0, 7:9, 0::2] = True
+    assert np.array_equal(bits, want)
+    pin, _, _ = pm.exact_pins(coords[:1], *one, np.zeros((0, 3)), TRUNC)
+    field = dec.reshape(16, 16, 16).astype(np.float32)
+    read = np.where(bits[0] | ~pin[0], field, np.float32(TRUNC[1]))  # what a reader decodes
+    true = np.where(obs[0], field, np.float32(TRUNC[1]))
+    assert len(surface_points(true, VS)) > 50
+    np.testing.assert_array_equal(surface_points(read, VS), surface_points(true, VS))
 
 
 def _maps(tmp_path: Path, room, codec, step: float):
