@@ -139,7 +139,9 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
                  else f"embedded (sha256 {cs['sha256']})"))
     if info.get("observation_mask") is not None:
         kind = info["observation_mask"]
-        rows.append(("observation mask", ("context-coded (coded-observation-mask)" if kind.startswith("context-coded")
+        rows.append(("observation mask", ("stored at the voxels its codes pin (pinned-observation-mask)"
+                                          if kind.startswith("pinned") else
+                                          "context-coded (coded-observation-mask)" if kind.startswith("context-coded")
                                           else "Blosc-compressed") + (", exact only where it decides the surface "
                                           "(approximate-observation-mask)" if kind.endswith("approximate") else "")))
     if info["residual"] is not None:
@@ -181,7 +183,7 @@ def encode_cmd(
     chunk_blocks: Optional[int] = typer.Option(None, "--chunk-blocks", help="Blocks per axis of a chunk of codes (default: 16 for pca-64; smaller chunks transfer less per small remote region)."),
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Store the chunks of codes in Zarr shards of N blocks per axis (a multiple of --chunk-blocks dividing 64, e.g. 32): objects of megabytes for maps of millions of blocks on object storage (readers before the extension sharded-codes refuse the map)."),
     keep_weights: bool = typer.Option(False, "--keep-weights", help="Carry the input map's fusion weights (uint8 counts in a lossy map, float16 with raw); by default only its observation mask is kept."),
-    exact_mask: bool = typer.Option(False, "--exact-mask", help="Variable-rate maps: keep the observation mask exact. By default it is exact only where it decides the decoded surface (the same surface, a smaller mask; extension approximate-observation-mask, docs/variable-rate.md)."),
+    exact_mask: bool = typer.Option(False, "--exact-mask", help="Variable-rate maps: keep the observation mask exact. By default it is exact only where it decides the decoded surface and stored only there (the same surface, a smaller mask; extensions approximate-observation-mask and, for pca, pinned-observation-mask; docs/variable-rate.md)."),
     exact: bool = typer.Option(False, "--exact", help="With --codec raw: store the voxels' own float32 metres (and float32 weights), read back bit for bit; without it raw is exact to (d_max - d_min) x 2^-24 m. Readers before the extension metric-codes refuse such maps."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.

@@ -22,7 +22,8 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
            "STATE_REFERENCE_EXTENSION", "MAX_EXTENT", "QUANT_EXTENSION", "CodeQuantisation", "FIELD_EXTENSION",
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
            "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate",
-           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION", "APPROX_MASK_EXTENSION", "public_source"]
+           "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION", "APPROX_MASK_EXTENSION", "public_source",
+           "PINNED_MASK_EXTENSION"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -83,6 +84,11 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {CODED_MASK_EXTENSION}
 #: section 6f); optional: the mask reads as any mask does, only what it says of voxels far from a surface differs
 APPROX_MASK_EXTENSION = "approximate-observation-mask"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {APPROX_MASK_EXTENSION}
+#: "pinned-observation-mask": the mask stored only at the voxels where it can change the surface, which the
+#: reader finds from an exact integer decode of the variable-rate codes, one stream per chunk in ``mask_streams``
+#: (spec section 6g); required: it replaces the ``observed`` array
+PINNED_MASK_EXTENSION = "pinned-observation-mask"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {PINNED_MASK_EXTENSION}
 
 
 class BlockState:

@@ -42,7 +42,7 @@ from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from .maskcoder import encode_mask_rows
 
-__all__ = ["PIN_MARGIN", "BATCH_BLOCKS", "pinned_voxels", "pinned_in_batches", "relax_mask", "MaskChunks"]
+__all__ = ["PIN_MARGIN", "padded_blocks", "BATCH_BLOCKS", "pinned_voxels", "pinned_in_batches", "relax_mask", "MaskChunks"]
 
 #: Metres: a decoded value within this of zero counts as either sign (the writer's decode and a reader's may
 #: round differently; float32 rounding of values of 0.1 m is ~1e-8 m).
@@ -59,7 +59,7 @@ def _keys(coords: np.ndarray) -> np.ndarray:
     return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
 
 
-def _padded(coords: np.ndarray, dec: np.ndarray, free: float) -> np.ndarray:
+def padded_blocks(coords: np.ndarray, dec: np.ndarray, free: float) -> np.ndarray:
     """``(n, 18, 18, 18)``: each block of ``dec`` ``(n, 16, 16, 16)`` with the one-voxel layer of its 26
     neighbours around it, ``free`` where the neighbour is not among ``coords`` (empty or unobserved blocks
     decode to ``d_max``; outside the grid nothing is meshed)."""
@@ -88,7 +88,7 @@ def pinned_voxels(coords: np.ndarray, dec: np.ndarray, truncation: tuple[float, 
     any mask; the coded blocks of the whole map, so that cells across block faces see both sides): the corners
     of every cell where ``dec`` changes sign (module docstring)."""
     d_min, d_max = (float(t) for t in truncation)
-    p = _padded(np.asarray(coords, np.int64).reshape(-1, 3), np.asarray(dec, np.float32), d_max)
+    p = padded_blocks(np.asarray(coords, np.int64).reshape(-1, 3), np.asarray(dec, np.float32), d_max)
     neg, pos = p < PIN_MARGIN, p >= -PIN_MARGIN
     any_neg = _cells(neg, np.logical_or)
     cell = any_neg if d_max < jump else any_neg & _cells(pos, np.logical_or)  # (n, 17, 17, 17)

@@ -33,7 +33,7 @@ from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
 from ..codec import capabilities, learns_weights, uses_weights
 from ..errors import FormatError
-from ..core.header import CODED_MASK_EXTENSION, BlockState, Extension
+from ..core.header import CODED_MASK_EXTENSION, PINNED_MASK_EXTENSION, BlockState, Extension
 from .format import mask_compressors
 
 if TYPE_CHECKING:
@@ -274,6 +274,10 @@ def checked_mask_array(reader: MapReader) -> zarr.Array | None:
         FormatError: the header lists the mask but the array is missing, or has the wrong dtype, shape or chunks.
     """
     h = reader.header
+    if any(e.name == PINNED_MASK_EXTENSION for e in h.extensions):  # stored at pinned voxels only (spec 6g)
+        from .pinstore import PinnedMaskArray
+
+        return PinnedMaskArray(reader)
     if not any(e.name == MASK_EXTENSION for e in h.extensions):
         return None
     arr = reader.member(MASK_ARRAY)
@@ -291,6 +295,8 @@ def read_block_rows(reader: MapReader, arr: zarr.Array, coords: np.ndarray) -> n
     """``(n, R)`` rows of blocks ``coords`` ``(n, 3)`` of a per-block array ``arr`` ``(Bx, By, Bz, R)`` (the mask,
     fusion weights), read through ``reader`` (a :class:`~sdfcodec.map.reader.MapReader`: its checked,
     concurrent reads), one read per chunk touched."""
+    if hasattr(arr, "block_rows"):  # a pinned mask (sdfcodec.map.pinstore) decodes its rows from the codes
+        return arr.block_rows(coords)
     out = np.empty((len(coords), arr.shape[3]), dtype=arr.dtype)
     if not len(coords):
         return out

@@ -30,7 +30,8 @@ import numpy as np
 
 from ..core._atomic import pin_dir, release_pin
 from ..core._validate import BLOCK
-from ..core.header import APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, BlockState, MapHeader, parse_header
+from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, PINNED_MASK_EXTENSION, BlockState, MapHeader,
+                           parse_header)
 from ..errors import FormatError
 from .implied import unpack_states
 from .io.frames import blosc_frame_problem, crc32c_matches
@@ -95,9 +96,12 @@ def summarize(h: MapHeader, location: str, root: str | None, counts: dict[str, i
         "state_warning": _state_warning(state_bytes, code_bytes, h) if ref is None else None,
         "residual": _residual_info(h, root, counts["coded"]),
         # which voxels were observed (spec 6b), context-coded in maps that list coded-observation-mask (6e),
-        # exact only where it decides the surface in maps that list approximate-observation-mask (6f)
-        "observation_mask": (None if "observation-mask" not in (names := {e.name for e in h.extensions}) else
-                             ("context-coded" if CODED_MASK_EXTENSION in names else "blosc")
+        # exact only where it decides the surface in maps that list approximate-observation-mask (6f), stored at
+        # those voxels only in maps that list pinned-observation-mask (6g)
+        "observation_mask": (None if not {"observation-mask", PINNED_MASK_EXTENSION} & (names := {e.name for e in
+                                                                                             h.extensions}) else
+                             ("pinned" if PINNED_MASK_EXTENSION in names else
+                              "context-coded" if CODED_MASK_EXTENSION in names else "blosc")
                              + (", approximate" if APPROX_MASK_EXTENSION in names else "")),
         "integrity": {"manifest": None if h.manifest is None else {"objects": h.manifest.objects,
                                                                     "sha256": h.manifest.sha256},

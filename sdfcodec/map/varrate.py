@@ -25,7 +25,7 @@ import numpy as np
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
 from ..errors import FormatError, InvalidValueError
-from ..core.header import APPROX_MASK_EXTENSION, BlockState, Extension, VariableRate
+from ..core.header import APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, BlockState, Extension, VariableRate
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
 from .implied import drop_implied, inline_states
@@ -106,10 +106,12 @@ class VariableRateWriter:
     units, one number or one per element), ``target_bytes`` (per coded block, every file of the map counted) and
     ``target_error`` (metres, :func:`surface_error` on the sample) chooses the step; ``lagrange`` scales the
     Lagrange multiplier (:data:`sdfcodec.core.varrate.LAGRANGE`); ``exact_mask`` keeps the observation mask exact
-    (by default it is exact only where it decides the surface, :mod:`sdfcodec.map.lossymask`)."""
+    (by default it is exact only where it decides the surface, :mod:`sdfcodec.map.lossymask`), and stored only at
+    the voxels where it can (``pinned_mask``, for codecs that decode linearly: :mod:`sdfcodec.map.pinstore`)."""
 
     def __init__(self, codec: Codec, *, step: Any = None, target_bytes: float | None = None,
-                 target_error: float | None = None, lagrange: float = LAGRANGE, exact_mask: bool = False):
+                 target_error: float | None = None, lagrange: float = LAGRANGE, exact_mask: bool = False,
+                 pinned_mask: bool = True):
         check_variable_rate(codec)
         if sum(x is not None for x in (step, target_bytes, target_error)) != 1:
             raise InvalidValueError("variable-rate codes need one of a step, a target of bytes per coded block or "
@@ -123,7 +125,7 @@ class VariableRateWriter:
             step = check_step(step, self.d)
         self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
         self.lagrange = float(lagrange)
-        self.exact_mask = bool(exact_mask)
+        self.exact_mask, self.pinned_mask = bool(exact_mask), bool(pinned_mask)
         self._mask: _LossyMask | None = None
         basis = _basis(codec)
         self.basis_sq = (basis * basis).astype(np.float32)
@@ -157,7 +159,7 @@ class VariableRateWriter:
         bounds = np.flatnonzero(np.diff(chunk_ids)) + 1
         streams = [encode_chunk(q[a:b], k[a:b], model) for a, b in zip(np.r_[0, bounds], np.r_[bounds, len(z)])]
         if self._mask is not None:  # the mask that goes with these codes, and its bytes
-            self._mask.at(q * step)
+            self._mask.at(q, step)
         return streams, model, k
 
     def _rows_bytes(self, streams: list[np.ndarray]) -> int:
@@ -186,7 +188,8 @@ class VariableRateWriter:
         inline = inline_states(state)
         slim = 0 if inline else _slim_codes_document(group.store.root, write=False)
         if not self.exact_mask and MASK_ARRAY in group and len(coded) and extensions is not None:
-            self._mask = _LossyMask(self.codec, group[MASK_ARRAY], coded, truncation)
+            self._mask = _LossyMask(self.codec, group[MASK_ARRAY], coded, truncation,
+                                    *self._pinned(group, coded, state, cb, truncation, extensions))
             if APPROX_MASK_EXTENSION not in {e.name for e in extensions}:  # a transcode's may be there already
                 extensions.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
         mask = self._mask
@@ -198,7 +201,7 @@ class VariableRateWriter:
         if len(z):
             streams, model, k = self._encode_all(z, g, chunk_ids, step)
             if mask is not None:
-                mask.write()
+                mask.write(group)
         else:
             streams, model, k = [], EntropyModel([0] * self.d, [0.5] * self.d, [0] * self.d, [1] + [0] * self.d), []
         uniform = bool((step == step[0]).all())
@@ -227,6 +230,33 @@ class VariableRateWriter:
             self.report.update(mask_bytes_per_coded_block=mask.bytes / n,
                                exact_mask_bytes_per_coded_block=mask.exact / n)
         return spec
+
+    def _pinned(self, group: Any, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float],
+                extensions: list) -> tuple[Any, int]:
+        """``(PinnedStreams or None, metadata bytes it adds)``: the pinned mask (spec 6g) where ``pinned_mask`` and
+        the codec decodes linearly; then ``extensions`` lists ``pinned-observation-mask`` in place of the
+        ``observed`` array's two."""
+        from .pinstore import PINNED_ARRAY, PINNED_MASK_EXTENSION, PinnedStreams, linear_basis
+
+        basis = linear_basis(self.codec, 1.0, self.d, truncation) if self.pinned_mask else None
+        if basis is None:
+            return None, 0
+        truth = unpack_mask(_rows(group[MASK_ARRAY], coded))
+        streams = PinnedStreams(coded, truth, state, cb, lambda step: linear_basis(self.codec, step, self.d, truncation),
+                                truncation)
+        gone = {e.name for e in extensions} & {"observation-mask", CODED_MASK_EXTENSION}
+        extensions[:] = [e for e in extensions if e.name not in gone] + [
+            Extension(name=PINNED_MASK_EXTENSION, required=True)]
+        from .manifest import manifest_bytes_estimate
+
+        root = Path(group.store.root)
+        meta = root / MASK_ARRAY / "zarr.json"
+        # its document against the observed array's, and (if the map has a manifest) their records in it
+        old = [f.relative_to(root).as_posix() for f in (root / MASK_ARRAY).rglob("*") if f.is_file()]
+        new = [f"{PINNED_ARRAY}/zarr.json"] + [f"{PINNED_ARRAY}/c/{'/'.join(str(int(c)) for c in k)}/0"
+                                                for k in streams.keys]
+        keys = manifest_bytes_estimate(new) - manifest_bytes_estimate(old)
+        return streams, STREAM_METADATA_BYTES - (meta.stat().st_size if meta.exists() else 0) + max(keys, 0)
 
     def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation) -> np.ndarray:
         if self.step is not None:
@@ -297,9 +327,12 @@ class VariableRateWriter:
 
 class _LossyMask:
     """The lossy mask of the coded blocks ``coords`` for the codes last given to :meth:`at`: ``bytes`` its chunks'
-    bytes, ``saved`` what they take beyond the exact mask's (negative: saved), :meth:`write` stores it."""
+    bytes, ``saved`` what they take beyond the exact mask's (negative: saved), :meth:`write` stores it. With
+    ``pinned`` (a :class:`~sdfcodec.map.pinstore.PinnedStreams` of the same blocks), the pinned mask (spec 6g)
+    instead: ``saved`` counts the ``observed`` array it replaces, ``meta_delta`` its metadata's bytes less."""
 
-    def __init__(self, codec: Codec, arr: Any, coords: np.ndarray, truncation: tuple[float, float]):
+    def __init__(self, codec: Codec, arr: Any, coords: np.ndarray, truncation: tuple[float, float],
+                 pinned: Any = None, meta_delta: int = 0):
         from .lossymask import MaskChunks
 
         self.codec, self.coords, self.truncation = codec, coords, truncation
@@ -307,17 +340,22 @@ class _LossyMask:
         self.truth = unpack_mask(_rows(arr, coords))
         self.exact = self.bytes = self.chunks.bytes(pack_mask(self.truth))
         self.rows: np.ndarray | None = None
+        self.pinned, self.meta_delta = pinned, meta_delta
 
     @property
     def saved(self) -> int:
-        return self.bytes - self.exact
+        return self.bytes - self.exact + (self.meta_delta if self.pinned is not None else 0)
 
-    def at(self, codes: np.ndarray) -> None:
-        """``codes`` ``(n, D)``: the dequantised codes of the coded blocks, in ``coords``' order."""
+    def at(self, q: np.ndarray, step: np.ndarray) -> None:
+        """``q`` ``(n, D)`` integer codes of the coded blocks, in ``coords``' order, and their steps ``(D,)``."""
         from .lossymask import pinned_in_batches, relax_mask
 
+        if self.pinned is not None:
+            self.pinned.at(q, step)
+            self.bytes = self.pinned.bytes
+            return
         d_min, d_max = self.truncation
-        codes = np.asarray(codes, np.float32)
+        codes = np.asarray(q * step, np.float32)
 
         def decode(idx: np.ndarray) -> np.ndarray:
             dec = self.codec.decode(torch.from_numpy(codes[idx])).numpy()
@@ -326,8 +364,12 @@ class _LossyMask:
         self.rows = pack_mask(relax_mask(self.truth, pinned_in_batches(self.coords, decode, self.truncation)))
         self.bytes = self.chunks.bytes(self.rows)
 
-    def write(self) -> None:
-        self.chunks.write(self.rows)
+    def write(self, group: Any) -> None:
+        if self.pinned is None:
+            self.chunks.write(self.rows)
+            return
+        self.pinned.write(group, stream_compressors())
+        del group[MASK_ARRAY]  # the pinned streams replace it (spec 6g)
 
 
 def _slim_codes_document(root: str | Path, write: bool) -> int:

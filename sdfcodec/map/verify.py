@@ -597,8 +597,11 @@ def _verify(rep, path_or_url, loc, storage_options, limit, decode_blocks, Map, o
     # under the observed blocks, the only ones it may store)
     observed = None if states is None else np.argwhere(states != BlockState.UNOBSERVED)
     for arr in (*m.reader.observation_arrays(), m.reader.residual_array):
+        where = observed
+        if hasattr(arr, "streams"):  # a pinned mask's chunks are its streams', one per chunk of codes (pinstore)
+            arr, where = arr.streams, None if observed is None else np.unique(observed // arr.cb, axis=0)
         if arr is not None:
-            for _ in _iter_chunks(rep, arr, _chunk_keys(arr, rep, observed)):
+            for _ in _iter_chunks(rep, arr, _chunk_keys(arr, rep, where)):
                 pass
     _check_codec(rep, m, decode_blocks)
     m.close()

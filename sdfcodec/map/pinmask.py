@@ -1,0 +1,286 @@
+"""An observation mask coded only where it can change the surface, at voxels a reader finds itself (stream ``M2``
+of the map extension ``pinned-observation-mask``, spec/map-format.md section 6g; stored by
+:mod:`sdfcodec.map.pinstore`).
+
+:mod:`sdfcodec.map.lossymask` keeps the true mask bit at the *pinned* voxels (the corners of every 2^3 cell whose
+decode changes sign) and codes every voxel with :mod:`sdfcodec.map.maskcoder`. If the reader can find the pinned
+voxels itself, only their bits need storing: every other voxel reads a fixed value (observed) without moving any
+surface point or triangle. The reader cannot use its float decode for that: a matrix product is not bit-identical
+across BLAS libraries and devices, so a cell at ``-1e-9`` on one machine and ``+1e-9`` on another would
+desynchronise the stream. Here the decision is exact:
+
+* **An exact integer decode.** A dataset-mean PCA decode in metres is ``a0 + sum_i q_i a_i`` with ``q`` the
+  variable-rate integer codes. Its basis is rounded to multiples of ``2^-S`` metres (:func:`fixed_point_basis`):
+  ``A = rint(2^S a)``, and ``v = A0 + q A`` is an integer product. Every partial sum is an integer below
+  ``2^53`` (checked), so the float64 matrix product computes it exactly in any order, with or without FMA, on
+  any machine: no compiled kernel needed and no fallback to keep identical.
+* **A proven bound.** A float decode ``x`` (metres, from float32 codes ``q step`` and float32 components, summed
+  in any order) differs from ``v 2^-S`` by at most ``E 2^-S``, ``E = 1 + sum|q| + ceil(g T)`` per block, with
+  ``T = max|A0| + sum_i |q_i| max|A_i|`` and ``g = (k + 4) 2^-20`` (16 times the worst-case float32 dot product
+  bound ``(k + 2) 2^-24``, for the rounding of the folded decoder and of ``q step``). So ``v - E < 0`` whenever
+  ``x < 0`` and ``v + E >= 0`` whenever ``x >= 0``: a cell is *relevant* when its corners may be negative and
+  may be non-negative (:func:`exact_pins`); every cell whose float decode changes sign on any machine is one.
+* **Chunks decode alone.** A stream covers one mask chunk. A neighbouring coded block outside it is read as
+  "may be either sign", one that is not coded as ``d_max``, so a reader needs only the chunk's codes.
+
+Which bits to store (:func:`canonical_bits`): not the truth. A voxel only matters through the relevant cells and
+the sign-changing edges it belongs to: a cell is meshed only when all its corners are observed, an edge counts a
+crossing only when both ends are. So the stored bit is 1 exactly at the corners of relevant cells the true mask
+observes fully and at the ends of observed sign-changing edges, 0 at every other pinned voxel. Every cell and
+edge that can carry a surface is then meshed or not exactly as under the true mask (a relevant cell not fully
+observed keeps its unobserved corner, which is in no meshed cell and no observed edge: 0), and zeros elsewhere
+are free (module :mod:`sdfcodec.map.lossymask`). This is cheaper than the truth because the meshed region is
+what it spells, not the fusion's ragged borders (kitchen half at 64 B, estimated with contexts over the whole map:
+14.0 against 19.9 B per block).
+
+Coding (:func:`encode_pinned`): the pinned voxels of the chunk's blocks placed in one voxel grid, wavefront by
+wavefront (``x + y + z``; across block faces, so that a voxel's context sees its neighbours in the next block:
+14.0 against 17.0 B per block with one wavefront order per block on the kitchen half at 64 B), each under the
+context of its six neighbours before it along one or two axes, each read as 0, 1 or "not pinned" (3^6
+contexts), with Krichevsky-Trofimov counts updated per wavefront (as in ``M1``); constriction's AnsCoder.
+Stream: ``b"M2"``, the number of pinned voxels (uint32 LE, which the reader checks against its own count), the
+AnsCoder words (uint32 LE).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from ..core._validate import BLOCK
+from ..core.surface import JUMP
+from ..errors import ChecksumError, InvalidValueError
+from .lossymask import padded_blocks
+
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "canonical_bits", "encode_pinned",
+           "decode_pinned", "NEIGHBOURS"]
+
+#: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
+FRACTION_BITS = 24
+#: Context neighbours ``(di, dj, dk)`` of a pinned voxel (all on earlier wavefronts).
+NEIGHBOURS = ((-1, 0, 0), (0, -1, 0), (0, 0, -1), (-1, -1, 0), (-1, 0, -1), (0, -1, -1))
+_MAGIC = b"M2"
+_EXACT = 2.0 ** 53  # integers below this are exact in float64, and so is every partial sum of the product
+_PAD = BLOCK + 2
+
+
+def fixed_point_basis(components: np.ndarray, mean: np.ndarray, step: np.ndarray, truncation: tuple[float, float]
+                      ) -> np.ndarray:
+    """``(k + 1, 4096)`` float64 integers: row 0 the mean, row ``i + 1`` component ``i`` times its step, in metres
+    times ``2^FRACTION_BITS``, rounded to nearest (deterministic: float64 products of the stored float32 values).
+
+    Args:
+        components: ``(k, 4096)`` float32, the dataset-mean PCA basis (normalised units).
+        mean: ``(4096,)`` float32.
+        step: ``(k,)`` quantisation steps of the integer codes.
+        truncation: ``(d_min, d_max)`` metres; the decode ``x`` normalised is ``x (d_max - d_min) + d_min`` metres.
+    """
+    d_min, d_max = (float(t) for t in truncation)
+    scale = 2.0 ** FRACTION_BITS
+    comp = np.asarray(components, np.float32).astype(np.float64)
+    step = np.asarray(step, np.float64).reshape(-1, 1)[: len(comp)]
+    a0 = np.rint((np.asarray(mean, np.float32).astype(np.float64) * (d_max - d_min) + d_min) * scale)
+    return np.vstack([a0[None], np.rint(comp * step * (d_max - d_min) * scale)])
+
+
+def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The exact decode ``(n, 4096)`` float64 integers (metres times ``2^FRACTION_BITS``) of integer codes ``q``
+    ``(n, k')`` (``k' <= k``; a prefix) and its error bound ``E`` ``(n,)`` float64 integers (module docstring)
+    for codes of length ``size`` (default ``k'``: the ``D`` of the bound).
+
+    Raises:
+        InvalidValueError: a partial sum could reach ``2^53`` (codes far beyond any map's), so exactness is not
+            guaranteed.
+    """
+    q = np.asarray(q, np.float64)
+    n, k = q.shape[0], q.shape[1] if size is None else int(size)
+    used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1  # columns past every prefix add nothing
+    q = q[:, :used]
+    a = basis[1:used + 1]
+    absq = np.abs(q)
+    peak = np.abs(basis[0]).max() + absq @ np.abs(a).max(axis=1)  # T per block, exact (integers, small)
+    if n and float(peak.max()) * 2 >= _EXACT:
+        raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
+                                "(partial sums reach 2^52); use the exact mask (--exact-mask)")
+    v = q @ a + basis[0]  # every term and partial sum an integer < 2^53: exact in any order
+    bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
+    return v, bound
+
+
+def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
+               truncation: tuple[float, float], jump: float = JUMP) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Relevant cells and pinned voxels of the blocks ``coords`` ``(n, 3)``, from where their decode may be
+    negative (``neg``) and non-negative (``pos``), ``(n, 4096)`` or ``(n, 16, 16, 16)`` bool: ``v - E < 0`` and
+    ``v + E >= 0`` of :func:`exact_decode` (:func:`sign_bounds`).
+
+    ``outside_coded`` ``(m, 3)``: coded blocks that are not among ``coords`` (another chunk's): their voxels may
+    take either sign; every other block around reads ``d_max``.
+
+    Returns:
+        ``(pinned (n, 16, 16, 16) bool, neg (n, 18, 18, 18) bool, pos (n, 18, 18, 18) bool)``: the voxels in a
+        relevant cell, and ``neg``, ``pos`` with the one-voxel layer of the neighbours around each block.
+    """
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    outside = np.asarray(outside_coded, np.int64).reshape(-1, 3)
+    n, shape = len(coords), (-1, BLOCK, BLOCK, BLOCK)
+    all_c = np.concatenate([coords, outside])
+    either = np.ones((len(outside), BLOCK, BLOCK, BLOCK), bool)
+    neg = padded_blocks(all_c, np.concatenate([np.asarray(neg, bool).reshape(shape), either]), False)[:n]
+    pos = padded_blocks(all_c, np.concatenate([np.asarray(pos, bool).reshape(shape), either]), True)[:n]
+    return _cells(_relevant(neg, pos, truncation, jump), np.logical_or), neg, pos
+
+
+def sign_bounds(v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(neg, pos)`` ``(n, 16, 16, 16)`` bool from :func:`exact_decode`'s ``(v, E)``: where a float decode may be
+    negative, and where it may be non-negative."""
+    e = np.asarray(bound, np.float64).reshape(-1, 1)
+    return (v - e < 0).reshape(-1, BLOCK, BLOCK, BLOCK), (v + e >= 0).reshape(-1, BLOCK, BLOCK, BLOCK)
+
+
+def _relevant(neg: np.ndarray, pos: np.ndarray, truncation: tuple[float, float], jump: float) -> np.ndarray:
+    """``(n, 17, 17, 17)`` bool: the cells of padded blocks whose decode may change sign (below ``jump``, any cell
+    that may be negative: module lossymask)."""
+    cell = _cells(neg, np.logical_or)
+    return cell & _cells(pos, np.logical_or) if float(truncation[1]) >= jump else cell
+
+
+def canonical_bits(coords: np.ndarray, observed: np.ndarray, neg: np.ndarray, pos: np.ndarray,
+                   truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool: the bits to store (module docstring) of the coded blocks ``coords`` ``(n, 3)``
+    (the whole map's, or a chunk with its coded neighbours: only blocks whose neighbours are all given are
+    exact) with true mask ``observed`` ``(n, 16, 16, 16)`` and decode signs ``neg``, ``pos`` (:func:`sign_bounds`):
+    1 at the corners of relevant cells that ``observed`` sees fully and at both ends of observed edges that may
+    change sign; 0 elsewhere."""
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    _, neg, pos = exact_pins(coords, neg, pos, np.zeros((0, 3), np.int64), truncation, jump)
+    obs = padded_blocks(coords, np.asarray(observed, bool), False)  # blocks not coded read d_max: never meshed
+    meshed = _relevant(neg, pos, truncation, jump) & _cells(obs, np.logical_and)
+    out = _cells(np.pad(meshed, ((0, 0), (1, 1), (1, 1), (1, 1))), np.logical_or)  # (n, 18, 18, 18)
+    for ax in (1, 2, 3):
+        a = tuple(slice(0, -1) if d == ax else slice(None) for d in range(4))
+        b = tuple(slice(1, None) if d == ax else slice(None) for d in range(4))
+        may = (neg[a] & pos[b]) | (pos[a] & neg[b]) if float(truncation[1]) >= jump else neg[a] | neg[b]
+        edge = may & obs[a] & obs[b]
+        out[a] |= edge
+        out[b] |= edge
+    return out[:, 1:-1, 1:-1, 1:-1] & np.asarray(observed, bool)
+
+
+def _cells(a: np.ndarray, op) -> np.ndarray:
+    """Reduce ``a`` ``(n, m, m, m)`` over 2 x 2 x 2 windows with ``op``: ``(n, m-1, m-1, m-1)``."""
+    a = op(a[:, 1:], a[:, :-1])
+    a = op(a[:, :, 1:], a[:, :, :-1])
+    return op(a[:, :, :, 1:], a[:, :, :, :-1])
+
+
+class _Layout:
+    """The chunk's coded blocks ``coords`` ``(n, 3)`` placed in one voxel grid (their bounding box, padded by one
+    voxel of "not pinned"): flat positions of the pinned voxels in decode order, the wavefront bounds, the grid
+    (int8: 0, 1, or 2 where not pinned) and the context offsets."""
+
+    def __init__(self, coords: np.ndarray, pinned: np.ndarray):
+        coords = np.asarray(coords, np.int64).reshape(-1, 3)
+        pinned = np.asarray(pinned, bool).reshape(-1, BLOCK, BLOCK, BLOCK)
+        if len(coords) != len(pinned):
+            raise ValueError(f"{len(coords)} block coordinates for {len(pinned)} blocks of pins")
+        lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
+        span = (coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3, np.int64)
+        self.shape = tuple(int(x) + 2 for x in span)
+        self.corner = (coords - lo) * BLOCK + 1  # each block's first voxel in the padded grid
+        i, j, k = (np.arange(BLOCK)[:, None, None], np.arange(BLOCK)[None, :, None], np.arange(BLOCK)[None, None, :])
+        sy, sz = self.shape[1] * self.shape[2], self.shape[2]
+        local = (i * sy + j * sz + k).reshape(-1)  # a block's voxels' flat offsets from its first one
+        first = self.corner @ np.array([sy, sz, 1])
+        self.flat = (first[:, None] + local[None]).reshape(len(coords), BLOCK, BLOCK, BLOCK)  # (n, 16, 16, 16)
+        at = np.sort(self.flat[pinned])  # C order of the grid
+        x, rest = np.divmod(at, sy)
+        y, z = np.divmod(rest, sz)
+        wave = x + y + z
+        order = np.argsort(wave, kind="stable")  # wavefront by wavefront, C order within one
+        self.at = at[order]
+        self.bounds = np.r_[0, np.flatnonzero(np.diff(wave[order])) + 1, len(at)]
+        self.grid = np.full(int(np.prod(self.shape)), 2, np.int8)
+        self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+
+    def context(self, at: np.ndarray) -> np.ndarray:
+        ctx = np.zeros(len(at), np.int64)
+        for d in self.deltas:
+            ctx *= 3
+            ctx += self.grid[at + d]
+        return ctx
+
+
+def _stream():
+    import constriction  # a core dependency, imported on first use
+
+    return constriction.stream
+
+
+def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> bytes:
+    """The ``M2`` stream of ``bits`` ``(n, 16, 16, 16)`` bool at the voxels ``pinned`` (same shape) of a chunk's
+    coded blocks ``coords`` ``(n, 3)`` (bits elsewhere are not stored)."""
+    lay = _Layout(coords, pinned)
+    pinned = np.asarray(pinned, bool).reshape(lay.flat.shape)
+    lay.grid[lay.flat[pinned]] = np.asarray(bits, bool).reshape(lay.flat.shape)[pinned]
+    st = _stream()
+    bern, coder = st.model.Bernoulli(perfect=False), st.stack.AnsCoder()
+    counts = np.zeros((2, 3 ** len(NEIGHBOURS)), np.int64)
+    parts = []
+    for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
+        sl = lay.at[a:b]
+        ctx, sym = lay.context(sl), lay.grid[sl].astype(np.int64)
+        parts.append((sym.astype(np.int32), _p1(counts, ctx)))
+        counts += _tally(sym, ctx)
+    for sym, p in reversed(parts):
+        coder.encode_reverse(sym, bern, p)
+    words = np.asarray(coder.get_compressed(), dtype="<u4")
+    return _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes() + words.tobytes()
+
+
+def _tally(sym: np.ndarray, ctx: np.ndarray) -> np.ndarray:
+    """``(2, 3^6)`` counts of symbols ``sym`` in contexts ``ctx``."""
+    n = 3 ** len(NEIGHBOURS)
+    return np.bincount(sym * n + ctx, minlength=2 * n).reshape(2, n)
+
+
+def _p1(counts: np.ndarray, ctx: np.ndarray) -> np.ndarray:
+    c = counts[:, ctx] + 0.5  # exact in float64: integer counts plus a half
+    return c[1] / (c[0] + c[1])
+
+
+def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray,
+                  where: str = "a pinned mask chunk") -> np.ndarray:
+    """Inverse of :func:`encode_pinned`: ``(n, 16, 16, 16)`` bool, the stored bits at ``pinned`` and 1 (observed)
+    elsewhere.
+
+    Raises:
+        ChecksumError: the stream is not one :func:`encode_pinned` wrote for these pinned voxels, named by
+            ``where``.
+    """
+    buf = np.frombuffer(bytes(stream), dtype=np.uint8)
+    if len(buf) < 6 or bytes(buf[:2]) != _MAGIC or (len(buf) - 6) % 4:
+        raise ChecksumError(f"{where} is not an M2 stream (bad header or length {len(buf)})")
+    lay = _Layout(coords, pinned)
+    count = int(buf[2:6].view("<u4")[0])
+    if count != len(lay.at):
+        raise ChecksumError(f"{where} codes {count} pinned voxels, its blocks' decode pins {len(lay.at)}; the codes "
+                            "or the mask are corrupted")
+    if len(lay.at):
+        words = np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32)
+        st = _stream()
+        try:
+            coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
+            bern = st.model.Bernoulli(perfect=False)
+            counts = np.zeros((2, 3 ** len(NEIGHBOURS)), np.int64)
+            for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
+                sl = lay.at[a:b]
+                ctx = lay.context(sl)
+                sym = np.asarray(coder.decode(bern, _p1(counts, ctx)), np.int64)
+                lay.grid[sl] = sym
+                counts += _tally(sym, ctx)
+        except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
+            raise ChecksumError(f"{where} is not a sound M2 stream ({type(e).__name__}: {e})") from e
+        if not coder.is_empty():
+            raise ChecksumError(f"{where} has words left after its {count} pinned voxels; it is corrupted")
+    return lay.grid[lay.flat] != 0  # pinned: the bit read; elsewhere 2, observed

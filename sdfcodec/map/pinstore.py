@@ -1,0 +1,218 @@
+"""The pinned observation mask in a map (extension ``pinned-observation-mask``, spec/map-format.md section 6g):
+one ``M2`` stream (:mod:`sdfcodec.map.pinmask`) per chunk of codes, in the array ``mask_streams``, written by
+the variable-rate writer (:class:`PinnedStreams`) and read through :class:`PinnedMaskArray`, which stands in
+for the ``observed`` array (packed rows of 512 bytes per block) wherever a reader reads mask rows.
+
+A chunk's stream decodes from the chunk's own codes and the block states: the pinned voxels of its coded
+blocks come from their exact decode (a coded block of another chunk may take either sign there), so a region
+still reads only its chunks.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from ..core._validate import BLOCK
+from ..core.header import PINNED_MASK_EXTENSION, BlockState
+from ..errors import FormatError
+from . import pinmask as pm
+
+if TYPE_CHECKING:
+    from ..codec import Codec
+    from .reader import MapReader
+
+__all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "chunk_blocks", "PinnedStreams",
+           "PinnedMaskArray"]
+
+#: The array of the streams: ``(Cx, Cy, Cz, L)`` uint8, one row per chunk of codes: the stream's length
+#: (uint32 LE), the stream, zeros (as ``code_streams``, spec section 4e).
+PINNED_ARRAY = "mask_streams"
+
+#: Decoded chunks a reader keeps (512 B per coded block each): a region read block group by block group decodes
+#: each chunk's stream once.
+CACHED_CHUNKS = 8
+_OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                     if (a, b, c) != (0, 0, 0)], dtype=np.int64)
+
+
+def linear_basis(codec: Codec, step: Any, size: int, truncation: tuple[float, float]) -> np.ndarray | None:
+    """:func:`~sdfcodec.map.pinmask.fixed_point_basis` of a codec whose decode is ``mean + codes components``
+    (pca with a dataset mean), for codes of length ``size`` with steps ``step``; None for any other codec."""
+    if getattr(codec, "mean", None) != "dataset":
+        return None
+    sd = codec.state_dict()
+    if "components" not in sd or "mean" not in sd:
+        return None
+    step = np.broadcast_to(np.asarray(step, np.float64), (size,))
+    return pm.fixed_point_basis(np.asarray(sd["components"])[:size], sd["mean"], step, truncation)
+
+
+def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(coords (n, 3), outside (m, 3))``: the coded blocks of chunk ``key`` in C order (the order of its
+    stream), and the coded blocks of other chunks that touch them."""
+    lo = np.asarray(key, np.int64) * cb
+    box = tuple(slice(int(a), int(a) + cb) for a in lo)
+    coords = np.argwhere(states[box] == BlockState.CODED) + lo
+    near = np.unique((coords[:, None, :] + _OFFSETS[None]).reshape(-1, 3), axis=0)
+    inside = ((near >= 0) & (near < np.asarray(states.shape))).all(axis=1)
+    near = near[inside]
+    coded = states[tuple(near.T)] == BlockState.CODED
+    other = ((near < lo) | (near >= lo + cb)).any(axis=1)
+    return coords, near[coded & other]
+
+
+def _zstd(row: np.ndarray) -> bytes:
+    """``row`` as zarr's ``zstd`` codec at level 1 stores it (numcodecs' Zstd, no checksum)."""
+    from numcodecs.zstd import Zstd
+
+    return bytes(Zstd(level=1).encode(row))
+
+
+def _signs(q: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return pm.sign_bounds(*pm.exact_decode(q, basis))
+
+
+class PinnedStreams:
+    """The ``M2`` streams of a map's coded blocks ``coords`` ``(n, 3)`` (grouped by chunk, C order inside each:
+    the writer's order) with true mask ``truth`` ``(n, 16, 16, 16)``, for integer codes given to :meth:`at`
+    (``basis_for(step)``: :func:`linear_basis` at those steps):
+    ``bytes`` what their chunks take, :meth:`write` stores them."""
+
+    def __init__(self, coords: np.ndarray, truth: np.ndarray, states: np.ndarray, cb: int,
+                 basis_for: Callable[[np.ndarray], np.ndarray], truncation: tuple[float, float]):
+        self.coords, self.truth, self.states, self.cb = np.asarray(coords, np.int64), truth, states, cb
+        self.basis_for, self.truncation = basis_for, truncation
+        self.keys, self.inverse = np.unique(self.coords // cb, axis=0, return_inverse=True)
+        self.inverse = self.inverse.reshape(-1)
+        self.plans = [chunk_blocks(states, k, cb) for k in self.keys]
+        self.streams: list[bytes] = []
+        self.bytes = 0
+
+    def at(self, q: np.ndarray, step: np.ndarray) -> None:
+        """``q`` ``(n, k)`` integer codes of the blocks, in ``coords``' order, with steps ``step``."""
+        q, basis = np.asarray(q), self.basis_for(step)
+        index = {tuple(c): i for i, c in enumerate(self.coords)}
+        self.streams = []
+        for i, (own, outside) in enumerate(self.plans):
+            sel = np.flatnonzero(self.inverse == i)
+            if not np.array_equal(self.coords[sel], own):
+                raise ValueError("PinnedStreams needs the coded blocks grouped by chunk, in C order inside each")
+            near = np.array([index[tuple(c)] for c in outside], np.int64)
+            both = np.r_[sel, near]
+            neg, pos = _signs(q[both], basis)  # the neighbours' true decode: exact bits at the chunk's faces
+            bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
+            pins, _, _ = pm.exact_pins(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
+            self.streams.append(pm.encode_pinned(own, bits, pins))
+        self.bytes = sum(len(_zstd(r)) + 4 for r in self._rows())  # each row as stored: zstd level 1, CRC32C
+
+    def _rows(self) -> list[np.ndarray]:
+        """Per chunk with coded blocks its row: the stream's length (uint32 LE), the stream, zeros."""
+        width = 4 + max((len(s) for s in self.streams), default=0)
+        rows = []
+        for s in self.streams:
+            row = np.zeros(width, np.uint8)
+            row[:4] = np.frombuffer(np.uint32(len(s)).astype("<u4").tobytes(), np.uint8)
+            row[4:4 + len(s)] = np.frombuffer(s, np.uint8)
+            rows.append(row)
+        return rows
+
+    def write(self, group: Any, compressors: list) -> None:
+        """Create ``mask_streams`` in ``group`` (chain ``compressors``) with the streams of the last :meth:`at`."""
+        cgrid = tuple(-(-n // self.cb) for n in self.states.shape)
+        rows = self._rows()
+        width = len(rows[0]) if rows else 4
+        arr = group.create_array(PINNED_ARRAY, shape=(*cgrid, width), dtype="uint8", fill_value=0,
+                                 chunks=(1, 1, 1, width), compressors=compressors)
+        arr = arr.with_config({"write_empty_chunks": True})
+        for key, row in zip(self.keys, rows):
+            arr[(*(int(k) for k in key), slice(None))] = row
+
+
+class PinnedMaskArray:
+    """Stands in for the ``observed`` array of a map with a pinned mask (``reader``: a MapReader whose header
+    lists ``pinned-observation-mask``): ``shape``, ``chunks`` and ``dtype`` of the packed mask, and
+    :meth:`block_rows`."""
+
+    def __init__(self, reader: MapReader):
+        h = reader.header
+        cb = h.codes.chunk_blocks
+        cgrid = tuple(-(-n // cb) for n in h.grid_blocks)
+        arr = reader.member(PINNED_ARRAY)
+        if arr is None or h.codes.variable_rate is None:
+            raise FormatError(f"{reader.location}: map lists {PINNED_MASK_EXTENSION} but lacks array "
+                              f"'{PINNED_ARRAY}' or variable-rate codes (spec section 6g); it is incomplete")
+        if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
+            raise FormatError(f"{reader.location}: array '{PINNED_ARRAY}' must have shape ({cgrid}, L), one row "
+                              f"per chunk of codes; got {arr.shape}")
+        reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
+                           zero_fill=True)
+        self.reader, self.streams, self.cb = reader, arr, cb
+        self.shape = (*h.grid_blocks, BLOCK ** 3 // 8)
+        self.chunks = (cb, cb, cb, BLOCK ** 3 // 8)
+        self.dtype = np.dtype(np.uint8)
+        self.path = PINNED_ARRAY
+        self._basis: np.ndarray | None = None
+        self._cache: dict[tuple[int, ...], tuple[dict, np.ndarray]] = {}  # decoded chunks, oldest first
+
+    def basis(self) -> np.ndarray:
+        if self._basis is None:
+            h, r = self.reader.header, self.reader
+            self._basis = linear_basis(r.codec, h.codes.variable_rate.step, h.codes.size, r.truncation)
+            if self._basis is None:
+                raise FormatError(f"{r.location}: {PINNED_MASK_EXTENSION} needs a codec whose decode is linear "
+                                  f"(pca with a dataset mean); this map's is {h.codec.id!r}")
+        return self._basis
+
+    def _remember(self, key: tuple[int, ...], value: tuple[dict, np.ndarray]) -> None:
+        self._cache[key] = value
+        while len(self._cache) > CACHED_CHUNKS:
+            self._cache.pop(next(iter(self._cache)))
+
+    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[dict, np.ndarray]:
+        """``({block coords: row index}, packed rows (n, 512))`` of chunk ``key`` from its stored ``row``."""
+        r = self.reader
+        own, outside = chunk_blocks(states, key, self.cb)
+        if not len(own):
+            return {}, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
+        row = np.ascontiguousarray(row.reshape(-1))
+        n = int(row[:4].view("<u4")[0])
+        where = f"{r.location}: chunk {tuple(int(c) for c in key)} of array '{PINNED_ARRAY}'"
+        if n == 0 or 4 + n > len(row):
+            raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
+                              "in it; the map is incomplete there: restore it from a copy or re-encode")
+        step = np.broadcast_to(np.asarray(r.header.codes.variable_rate.step, np.float64), (r.header.codes.size,))
+        codes = r.vr.codes_for(own, r.header.codes.size).astype(np.float64)
+        q = np.rint(codes / step)
+        if np.abs(q * step - codes).max() > 1e-6 * max(1.0, float(np.abs(codes).max())):
+            raise FormatError(f"{where}: the codes are not integer multiples of their steps")
+        neg, pos = _signs(q, self.basis())
+        pins, _, _ = pm.exact_pins(own, neg, pos, outside, r.truncation)
+        mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
+        return {tuple(c): j for j, c in enumerate(own.tolist())}, np.packbits(mask.reshape(len(own), -1), axis=1)
+
+    def block_rows(self, coords: np.ndarray) -> np.ndarray:
+        """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
+        they lie in is read and decoded once."""
+        out = np.full((len(coords), BLOCK ** 3 // 8), 255, np.uint8)
+        if not len(coords):
+            return out
+        r, cb = self.reader, self.cb
+        states = r.vr.states()
+        keys, inverse = np.unique(np.asarray(coords, np.int64) // cb, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        names = [tuple(int(c) for c in k) for k in keys]
+        got = {k: self._cache[k] for k in names if k in self._cache}
+        todo = [i for i, k in enumerate(names) if k not in got]
+        rows = r.read_many(self.streams, [(*(slice(c, c + 1) for c in names[i]), slice(None)) for i in todo])
+        for i, row in zip(todo, rows):
+            got[names[i]] = self._decode(keys[i], row, states)
+            self._remember(names[i], got[names[i]])
+        for i, name in enumerate(names):
+            index, packed = got[name]
+            for j in np.flatnonzero(inverse == i):
+                k = index.get(tuple(int(x) for x in coords[j]))
+                if k is not None:
+                    out[j] = packed[k]
+        return out
