@@ -38,7 +38,8 @@ if TYPE_CHECKING:
 
 torch = lazy_module("torch")
 
-__all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_compressors", "prefix_lengths",
+__all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_document_bytes",
+           "stream_compressors", "prefix_lengths",
            "decode_runs", "VariableRateWriter", "VariableRateReader", "surface_error",
            "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE"]
 
@@ -51,8 +52,18 @@ SAMPLE_BLOCKS = 2048
 #: counts is exact but the compressor's frame of each row, estimated at 20 bytes): a byte the side information
 #: saves goes to the codes.
 TOLERANCE = 0.0005
-#: Bytes of the ``code_streams`` array document (``zarr.json``, compact JSON; measured 317).
-STREAM_METADATA_BYTES = 317
+_STREAM_DOC_BASE = 309  # a stream array's compact document but the digits of its width (measured)
+
+
+def stream_document_bytes(width: int) -> int:
+    """Bytes of a stream array's document (``zarr.json``, compact JSON) whose rows are ``width`` bytes: the width
+    is written twice (shape and chunk shape), so a byte counted exactly at rate control depends on its digits."""
+    return _STREAM_DOC_BASE + 2 * len(str(int(width)))
+
+
+#: Bytes of the ``code_streams`` array document for rows of 1,000-9,999 bytes (the writer's first count; rate
+#: control corrects it by :func:`stream_document_bytes` once it knows the width).
+STREAM_METADATA_BYTES = stream_document_bytes(9999)
 _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
 
 
@@ -273,7 +284,9 @@ class VariableRateWriter:
 
         def total(s: float) -> tuple[float, float]:
             streams, model, _ = self._encode_all(z, g, chunk_ids, np.full(self.d, s))
-            other = other_bytes(dict(step=[s], coder=CODER, model=model.pack()))
+            width = max([stream_bytes(x) for x in streams], default=4)  # the document's digits (finish's width)
+            other = other_bytes(dict(step=[s], coder=CODER, model=model.pack())) + stream_document_bytes(
+                width) - STREAM_METADATA_BYTES
             return (self._rows_bytes(streams) + other) / n, other / n
 
         lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
