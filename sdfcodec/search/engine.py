@@ -102,6 +102,8 @@ class SearchResult:
 def _default_device(device: Any) -> Any:
     """The device to score on: ``device`` checked, or by default CUDA when available, else ``"cpu"``; a machine
     without a GPU driver has no CUDA to look for, and its search never imports torch."""
+    if device == "cpu":  # always there: no torch import to check it
+        return "cpu"
     if device is None:
         if not (any(os.path.exists(p) for p in _GPU_NODES) or "torch" in sys.modules):
             return "cpu"
