@@ -141,3 +141,34 @@ def test_a_first_search_of_a_fused_map_imports_no_torch_and_selects_as_the_torch
     for c, s in mine.items():
         assert s == pytest.approx(theirs[c], rel=1e-3, abs=1e-3)
     assert got["result"]["threshold"] == pytest.approx(ref.threshold, rel=1e-3)
+
+
+def test_plane_components_number_patches_as_scipy_does():
+    """The map-level stage's patches (no scipy import on a search's path): random blocks, normals and planes,
+    labelled as scipy's connected components of the same neighbour graph label them (the peer it replaced)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from sdfcodec.search.scene import PLANE_ANGLE_DEG, PLANE_TOL_VOXELS, plane_components
+
+    rng = np.random.default_rng(7)
+    for n in (0, 1, 2, 40, 300):
+        coords = np.unique(rng.integers(0, 8, (n, 3)), axis=0)
+        m = len(coords)
+        normals = np.tile([0.0, 0.0, 1.0], (m, 1)) + rng.normal(0, 0.15, (m, 3)) * (rng.random((m, 1)) < 0.5)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        points = (coords * 16 + 7.5) * VS + rng.normal(0, 0.02, (m, 3))
+        got = plane_components(coords, normals, points, VS)
+        # the graph by its definition, pair by pair
+        cos_a, tol = np.cos(np.radians(PLANE_ANGLE_DEG)), PLANE_TOL_VOXELS * VS
+        a, b = [], []
+        for i in range(m):
+            for j in range(i + 1, m):
+                d = points[j] - points[i]
+                if (np.abs(coords[i] - coords[j]).max() == 1 and normals[i] @ normals[j] >= cos_a
+                        and abs(normals[i] @ d) <= tol and abs(normals[j] @ d) <= tol):
+                    a.append(i)
+                    b.append(j)
+        want = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(m, m)), directed=False)[1]
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == np.int64
