@@ -165,8 +165,10 @@ class ObservedScorer:
 
         self.codec = codec
         q = self._decode(np.asarray(descriptors, np.float32))
-        self.qt = np.ascontiguousarray(q.T)
-        self.qq = np.ascontiguousarray((q * q).T)
+        # transposed views: BLAS reads them as they are (copies of the wall's 2,856 x 4,096 were a second of a
+        # search's start on two cores)
+        self.qt = q.T
+        self.qq = np.square(q, out=np.empty_like(q)).T
         d_min, d_max = truncation
         self.v0 = -d_min / (d_max - d_min)
         self.half = SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
@@ -178,7 +180,8 @@ class ObservedScorer:
         out = decode_array(self.codec, codes)
         # what a reader sees: truncated to [d_min, d_max] (normalised [0, 1]); a masked map's writer fits its codes
         # to that (docs/surface.md), leaving arbitrary values past the bounds where truncation makes them exact
-        return np.clip(np.asarray(out, dtype=np.float32).reshape(len(codes), -1), 0.0, 1.0)
+        out = np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
+        return np.clip(out, 0.0, 1.0, out=out)  # in place: decode_array's output is ours
 
     def __call__(self, codes: np.ndarray, observed: np.ndarray, fallback: np.ndarray, fallback_idx: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
