@@ -16,23 +16,19 @@ import torch
 
 import sdfcodec
 from sdfcodec.codec import capabilities, numpy_path_of
-from sdfcodec.core.blocks import normalise
 from sdfcodec.errors import PluginError
 from sdfcodec.map.observed import error_weights
 from sdfcodec.search.arrays import decode_array, encode_array
 from sdfcodec.testing import analytic_blocks
-from test_observed import TRUNC, VS, fused_like, scene, write
+from test_observed import TRUNC, VS, blocks_and_mask, fused_like, scene, write  # noqa: F401 (a fixture)
 
 
 @pytest.fixture(scope="module")
-def fused():
+def fused(blocks_and_mask):
     """Normalised fused-like blocks ``(n, 16, 16, 16)`` that hold a surface, and their error weights."""
-    vol, obs = fused_like(scene())
-    v = normalise(vol, *TRUNC).reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
-    o = obs.reshape(4, 16, 4, 16, 4, 16).transpose(0, 2, 4, 1, 3, 5).reshape(-1, 16, 16, 16)
-    keep = ~(v >= 1 - 1e-6).reshape(len(v), -1).all(axis=1)
-    v = np.ascontiguousarray(v[keep])
-    return v, error_weights(v, o[keep], TRUNC, VS)
+    v, o = blocks_and_mask
+    v = np.ascontiguousarray(v)
+    return v, error_weights(v, o, TRUNC, VS)
 
 
 @pytest.mark.parametrize("mean", ["dataset", "block"])
