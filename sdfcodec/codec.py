@@ -39,7 +39,8 @@ from .errors import (DTypeError, InvalidValueError, ModelNotFoundError, NotFitte
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["Codec", "BLOCK", "CAPABILITIES", "capabilities", "check_capabilities", "DecodesInto", "decodes_into",
-           "decodes_tiles", "uses_weights", "learns_weights", "plugin_calls", "checked_decode_output", "FINITE_BOUND"]
+           "decodes_tiles", "uses_weights", "learns_weights", "plugin_calls", "checked_decode_output", "FINITE_BOUND",
+           "NumpyPath", "numpy_path_of"]
 
 #: Decoded values a codec bounds below this are finite however float32 rounding goes (float32 max ~3.4e38).
 FINITE_BOUND = 1e37
@@ -51,7 +52,7 @@ LEGACY_HOOKS = {"_decode_affine": "decode_affine", "_decode_bound": "decode_boun
 #: error: a lossless one).
 CAPABILITIES: dict[str, bool] = {"decode_affine": True, "decode_into": True, "decode_tiles": True,
                                  "encode_truncated": True, "encode_weighted": False, "fit_weighted": False,
-                                 "pretrained": True}
+                                 "numpy_path": True, "pretrained": True}
 
 
 def _forward_to(old: str) -> Callable[..., Any]:
@@ -452,6 +453,13 @@ class Codec(abc.ABC):
         ``encode_truncated`` overrides it (PCA: one compiled pass per block on the CPU)."""
         return None
 
+    def numpy_path(self) -> "NumpyPath | None":
+        """Hook: this fitted codec's encode and decode on the CPU in numpy, without torch (a :class:`NumpyPath`),
+        or None (the default) where it has none. Callers holding numpy arrays only (searches) take it, so that a
+        command on such a codec never imports torch: its import alone costs 1.7 s of a search's start on two
+        cores. Results equal :meth:`encode`, :meth:`decode` and :meth:`encode_truncated` to float32 rounding."""
+        return None
+
     def fit_weighted(self, blocks: np.ndarray, weights: np.ndarray) -> None:
         """Hook: learn from checked float32 numpy blocks ``(N, 16, 16, 16)`` and checked weights of the same
         shape (finite, >= 0) the state whose weighted encode (:meth:`encode_weighted`) makes the weighted error
@@ -581,6 +589,27 @@ class DecodesInto(Protocol):
 
     def decode_into(self, codes: torch.Tensor, out: torch.Tensor, scale: float, offset: float) -> None:
         """Write ``scale * decode(codes) + offset`` into ``out`` ``(N, 16, 16, 16)`` float32."""
+
+
+class NumpyPath(Protocol):
+    """A codec's encode and decode in numpy on the CPU (:meth:`Codec.numpy_path`, capability ``numpy_path``).
+    Inputs are checked by the caller: float32, C-contiguous, finite."""
+
+    def encode(self, blocks: np.ndarray) -> np.ndarray:
+        """Normalised blocks ``(N, 4096)`` -> codes ``(N, code_size)`` float32, as :meth:`Codec.encode`."""
+
+    def decode(self, codes: np.ndarray) -> np.ndarray:
+        """Codes ``(N, k)`` (``k < code_size`` for prefix-ordered codecs only) -> normalised blocks
+        ``(N, 4096)`` float32, as :meth:`Codec.decode`."""
+
+    def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int) -> np.ndarray | None:
+        """Codes ``(N, code_size)`` float32 as :meth:`Codec.encode_truncated` computes them, for blocks and weights
+        ``(N, 4096)``; None where it has no numpy way for them (the caller then takes the torch path)."""
+
+
+def numpy_path_of(codec: Codec) -> NumpyPath | None:
+    """``codec``'s :class:`NumpyPath` when it declares the capability ``numpy_path`` and gives one, else None."""
+    return codec.numpy_path() if "numpy_path" in capabilities(codec) else None
 
 
 def decodes_into(codec: Codec | type[Codec]) -> bool:

@@ -13,6 +13,9 @@ Capabilities
 Decoding into a caller's buffer
     :class:`DecodesInto` (the optional ``decode_into`` hook's signature), :func:`decodes_into` (does a codec
     declare it).
+Encoding and decoding without torch
+    :class:`NumpyPath` (what the optional ``numpy_path`` hook returns), :func:`numpy_path_of` (a codec's, when
+    it declares it).
 Decoding in cache-sized tiles
     :func:`run_tiles` (rows split into tiles over the CPU's cores, one BLAS thread each: the optional
     ``decode_tiles`` hook of a row-wise codec), :func:`scratch` (a per-thread reusable buffer),
@@ -50,7 +53,7 @@ from typing import TYPE_CHECKING, Any
 
 from .core._lazy import is_tensor, lazy_exports, lazy_module
 from .core._validate import BLOCK, affine_into, as_float_tensor, empty, like_input
-from .codec import CAPABILITIES, Codec, DecodesInto, capabilities, decodes_into, decodes_tiles
+from .codec import CAPABILITIES, Codec, DecodesInto, NumpyPath, capabilities, decodes_into, decodes_tiles, numpy_path_of
 from .errors import InvalidValueError, ModelNotFoundError
 from .model import load_meta_file, load_model, load_state_file, save_model, save_state_file
 from .registry import get_codec, get_codec_class, pretrained_codec
@@ -60,7 +63,7 @@ if TYPE_CHECKING:
     from .core.dataset import Dataset
 
 __all__ = ["BLOCK", "as_float_tensor", "like_input", "empty", "affine_into", "CAPABILITIES", "capabilities",
-           "DecodesInto", "decodes_into",
+           "DecodesInto", "decodes_into", "NumpyPath", "numpy_path_of",
            "decodes_tiles", "run_tiles", "scratch",
            "save_state_file", "load_state_file", "load_meta_file", "save_model", "load_model",
            "shipped_model_file", "load_shipped_model",

@@ -48,7 +48,7 @@ def _affine_codec(declare: bool) -> type[sdfcodec.Codec]:
 def test_builtin_codecs_declare_what_they_provide():
     assert capabilities(get_codec_class("pca")) == {"decode_affine", "decode_into", "decode_tiles",
                                                     "encode_truncated", "encode_weighted", "fit_weighted",
-                                                    "pretrained"}
+                                                    "numpy_path", "pretrained"}
     # raw keeps the default encode_weighted (it is lossless) and declares it, no override needed
     assert capabilities(get_codec_class("raw")) == {"decode_into", "encode_weighted"}
     assert "encode_weighted" not in get_codec_class("raw").__dict__

@@ -166,9 +166,32 @@ class FitReturnsNone(Tiny):
         super().fit(blocks)
 
 
+class StaleNumpyPath(Tiny):
+    """a torch-free path (capability numpy_path) that decodes without the mean: searches would score wrong blocks."""
+
+    codec_id = "test-conf-stale-numpy"
+    capabilities = frozenset({"numpy_path"})
+
+    def numpy_path(self):
+        codec = self
+
+        class Path:
+            def encode(self, x):
+                return ((x - codec.mean_) @ codec.basis_.T).astype(np.float32)
+
+            def decode(self, c):
+                return (c @ codec.basis_[: c.shape[1]]).astype(np.float32)
+
+            def encode_truncated(self, x, w, rounds):
+                return None
+
+        return Path()
+
+
 BROKEN = [(CPUCompute, "meta_device"), (AlwaysCPU, "meta_device"), (GarbagePrefix, "prefix_decoding"),
           (GainLast, "prefix_decoding"), (LevelBump, "prefix_decoding"), (StaleCache, "load_state_after_use"),
-          (ForgetsGain, "state_round_trip"), (ClampsInput, "inputs_untouched"), (FitReturnsNone, "fit")]
+          (ForgetsGain, "state_round_trip"), (ClampsInput, "inputs_untouched"), (FitReturnsNone, "fit"),
+          (StaleNumpyPath, "numpy_path")]
 for _cls in [Tiny] + [c for c, _ in BROKEN]:
     sdfcodec.register_codec(_cls, replace=True)
 
@@ -203,7 +226,7 @@ def test_every_failure_is_reported_and_check_codec_lists_them():
     sdfcodec.register_codec(TwoBugs, replace=True)
     failed = {r.name for r in run_codec_checks(TwoBugs(), **OPTS).failures}
     assert {"inputs_untouched", "load_state_after_use"} <= failed
-    listing = r"(?s)2 of 15 conformance checks failed.*load_state_after_use.*inputs_untouched"
+    listing = r"(?s)2 of 16 conformance checks failed.*load_state_after_use.*inputs_untouched"
     with pytest.raises(AssertionError, match=listing):
         check_codec(TwoBugs(), **OPTS)
 

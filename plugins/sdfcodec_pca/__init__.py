@@ -127,7 +127,7 @@ class PCACodec(Codec):
     code_sizes = (32, 64, 128)
     # spec/codec-plugins.md, section 4a: every optional fast path, weighted encode and fit, shipped bases
     capabilities = frozenset({"decode_affine", "decode_into", "decode_tiles", "encode_truncated", "encode_weighted",
-                              "fit_weighted", "pretrained"})
+                              "fit_weighted", "numpy_path", "pretrained"})
 
     def __init__(self, code_size: int = 64, mean: str = "dataset", svd_solver: str = "auto",
                  random_state: int | None = 0):
@@ -366,6 +366,16 @@ class PCACodec(Codec):
                                           self._affine[2].T, self._affine[3], c0.numpy(), RIDGE, rounds)
         return torch.from_numpy(codes)
 
+    def numpy_path(self) -> "_NumpyPCA | None":
+        """The affine encode and decode in numpy, and :meth:`encode_truncated`'s compiled pass (searches: no
+        torch import)."""
+        if not self.is_fitted:
+            return None
+        path = self._device_cache.get("numpy")
+        if path is None:
+            path = self._device_cache["numpy"] = _NumpyPCA(self)
+        return path  # type: ignore[return-value]
+
     def encode_weighted(self, blocks: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """The weighted least-squares code of each block: ``c = argmin sum_j w_j (x_j - (c D + d)_j)^2 +
         lam |c - c0|^2`` with ``c0`` the plain projection and ``lam = RIDGE * mean(w)`` (a block of zero weights
@@ -485,3 +495,34 @@ class PCACodec(Codec):
         else:
             lo, hi = torch.aminmax(codes)
         return max(-float(lo), float(hi)) * float(self._row_max[: codes.shape[1]].sum()) + self._bias_max
+
+
+class _NumpyPCA:
+    """:class:`sdfcodec.codec.NumpyPath` of a fitted :class:`PCACodec`: the same affine maps and compiled pass
+    as its torch hooks on the CPU, on numpy arrays."""
+
+    def __init__(self, codec: PCACodec):
+        self.codec = codec
+        enc_w, enc_b, dec_w, dec_b = codec._affine
+        self.dec = np.ascontiguousarray(np.concatenate([dec_b[None], dec_w]))  # [d; D]: the bias as a leading row
+
+    def encode(self, blocks: np.ndarray) -> np.ndarray:
+        enc_w, enc_b = self.codec._affine[:2]
+        out = blocks @ enc_w
+        out += enc_b
+        return out
+
+    def decode(self, codes: np.ndarray) -> np.ndarray:
+        n, k = codes.shape
+        c1 = np.empty((n, k + 1), dtype=np.float32)
+        c1[:, 0] = 1.0
+        c1[:, 1:] = codes
+        return c1 @ self.dec[: k + 1]  # as decode_into on the CPU
+
+    def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int) -> np.ndarray | None:
+        c = self.codec
+        if c.mean != "dataset" or not truncated.available() or c.code_size > _FAST_MAX_K:
+            return None  # as PCACodec.encode_truncated
+        return truncated.truncated_codes(blocks, weights, c._affine[2].T, c._affine[3], self.encode(blocks), RIDGE,
+                                         rounds)
+

@@ -423,7 +423,7 @@ def parse_region(text: str | None) -> tuple | None:
 def check_device_flag(device: str | None) -> None:
     """``--device``, checked before the work starts (a name torch knows, a device this machine and torch build
     have): the command's error names the flag (:func:`sdfcodec.core._validate.check_device`)."""
-    if device is not None:
+    if device is not None and device != "cpu":  # the CPU is always there: no torch import to say so
         from ..core._validate import check_device
 
         check_device(device, "--device")

@@ -31,7 +31,7 @@ import zarr
 
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK
-from ..codec import capabilities, learns_weights, uses_weights
+from ..codec import capabilities, learns_weights, numpy_path_of, uses_weights
 from ..errors import FormatError
 from ..core.header import CODED_MASK_EXTENSION, PINNED_MASK_EXTENSION, BlockState, Extension
 from .format import mask_compressors
@@ -139,18 +139,26 @@ def _grow(val: np.ndarray, observed: np.ndarray) -> np.ndarray:
 
 
 def encode_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
-                  voxel_size: float, surface_weight: float, device: Any) -> np.ndarray:
+                  voxel_size: float, surface_weight: float, device: Any, *, numpy_path: bool = False) -> np.ndarray:
     """Codes ``(N, k)`` float32 numpy of normalised blocks ``v`` ``(N, 16, 16, 16)``, encoded on ``device`` with
     the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes.
     A codec that ignores weights (:func:`sdfcodec.codec.uses_weights`) encodes the blocks with their
     unobserved voxels filled from the observed ones (:func:`fill_unobserved`) instead. A codec whose map stores
     its voxels as a compressed field (:meth:`~sdfcodec.Codec.field_compression`) gets them exactly as given:
-    the field compressor, not ``encode``, bounds their error (spec/map-format.md section 4c)."""
+    the field compressor, not ``encode``, bounds their error (spec/map-format.md section 4c). ``numpy_path``: on
+    the CPU, through the codec's torch-free :meth:`~sdfcodec.Codec.numpy_path` where it has one (the same codes
+    to float32 rounding; a search encoding its query shapes takes it, writers keep the torch hooks)."""
     if codec.field_compression() is not None:
         return np.ascontiguousarray(v, dtype=np.float32).reshape(len(v), -1)
     w = error_weights(v, observed, truncation, voxel_size, surface_weight)
     if w is not None and not uses_weights(codec):
         v, w = fill_unobserved(v, observed), None
+    path = numpy_path_of(codec) if numpy_path and str(device) == "cpu" else None
+    if path is not None:  # numpy in, numpy out: no torch import (a search's first query on a pca map)
+        x = np.ascontiguousarray(v, dtype=np.float32).reshape(len(v), -1)
+        codes = path.encode(x) if w is None else path.encode_truncated(x, w.reshape(len(v), -1), TRUNCATION_ROUNDS)
+        if codes is not None:
+            return np.asarray(codes, dtype=np.float32)
     x = torch.from_numpy(np.ascontiguousarray(v)).to(device)
     if w is None:
         return codec.encode(x).cpu().numpy()

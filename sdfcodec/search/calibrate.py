@@ -9,9 +9,9 @@ import json
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..codec import Codec
+from .arrays import decode_array, encode_array
 from .cache import cache_key, cached_threshold
 from .models import QueryModel, codec_state_sha256, encode_query_blocks
 from .scoring import ObservedScorer, Scorer, score_codes
@@ -92,12 +92,11 @@ def _calibrate_blocks(model: QueryModel, codec: Codec, level: int, scorer: "Scor
         codes = model.descriptors
         if codes.shape[1] < codec.code_size:
             codes = np.pad(codes, ((0, 0), (0, codec.code_size - codes.shape[1])))
-        with torch.no_grad():
-            v = np.asarray(codec.decode(torch.from_numpy(np.ascontiguousarray(codes))), np.float32)
+        v = decode_array(codec, codes).reshape(len(codes), 16, 16, 16)
     rng = np.random.default_rng(23)
     pick = rng.integers(len(v), size=int(samples))
     moved = np.stack([nd_shift(v[i], rng.uniform(-LIKE_SHIFT, LIKE_SHIFT, 3), order=1, mode="nearest") for i in pick])
-    s, _ = scorer(np.asarray(codec.encode(np.clip(moved, 0.0, 1.0)), np.float32)[:, :level])
+    s, _ = scorer(encode_array(codec, np.clip(moved, 0.0, 1.0))[:, :level])
     q = np.quantile(s, [0.5, 0.9, CALIBRATION_QUANTILE, 1.0])
     return float(q[2]), {"method": "calibrated on shifted copies", "samples": int(samples),
                          "quantile": CALIBRATION_QUANTILE, "shift_voxels": LIKE_SHIFT,

@@ -25,11 +25,11 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
-import torch
 
 from ..errors import InvalidValueError
 from ..map import Map
 from ..map.observed import MASK_EXTENSION
+from .arrays import encode_array
 from .models import shape_model
 from .shapes import BEHIND
 
@@ -97,7 +97,7 @@ def _behind_vote(m: Map, sample: int = VOTE_SAMPLE) -> tuple[float, int]:
                              b, False, (1.0,), False) for b in BEHIND}
     # the map's first level only (prefix-ordered codecs): the bytes a search at that level reads anyway
     lv = m.header.codes.levels[0] if m.header.codes.prefix_ordered else m.code_size
-    scorers = {b: Scorer(q.descriptors[:, :lv], torch.device("cpu")) for b, q in models.items()}
+    scorers = {b: Scorer(q.descriptors[:, :lv], "cpu") for b, q in models.items()}
     got: dict[str, list] = {b: [] for b in BEHIND}
     n = 0
     for _, codes in m.iter_codes(level=lv):
@@ -138,13 +138,13 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
             break
     up = np.array([0.0, 0.0, 1.0])
     votes = 0
-    const = Scorer(np.asarray(codec.encode(np.stack([np.zeros((16,) * 3, np.float32), np.ones((16,) * 3, np.float32)])),
-                              np.float32)[:, :lv], torch.device("cpu"))
+    const = Scorer(encode_array(codec, np.stack([np.zeros((16,) * 3, np.float32), np.ones((16,) * 3, np.float32)]))[:, :lv],
+                   "cpu")
     for cone in (f"cone:{UP_CONE_DEG:g}:48", "cone:4:16", "cone:2:16"):
         # unstretched shapes: a direction does not need fusion's stretches (6 times fewer descriptors)
         model = shape_model("floor", codec, float(m.voxel_size), _truncation(m), check_up(up), cone, "auto", behind,
                             _weighted(m), (1.0,), False)
-        scorer = Scorer(model.descriptors[:, :lv], torch.device("cpu"))
+        scorer = Scorer(model.descriptors[:, :lv], "cpu")
         obs = ObservedScorer(model.descriptors[:, :lv], codec, m.truncation, m.voxel_size) if masked else None
         t, _ = calibrate_threshold(model, codec, lv, scorer, obs, samples=UP_CALIBRATION_SAMPLES)
         normals = []

@@ -7,19 +7,21 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 
+from ..core._lazy import lazy_module
 from ..core._validate import BLOCK, check_device
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..core.header import BlockState
 from ..map import Map, open_map
 from ..map.metric import codec_codes
+from .arrays import encode_array
 from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
 from .calibrate import SURFACE_SHARE, calibrate_threshold, cone_angle
 from .models import QueryModel
@@ -35,6 +37,11 @@ __all__ = [
     "search",
     "expand",
 ]
+
+torch = lazy_module("torch")  # GPU scoring and codecs without a numpy path only: a CPU search of pca never imports it
+#: Device nodes of GPU drivers (NVIDIA; AMD's ROCm, which torch also calls cuda): without one, torch can find no
+#: CUDA device, so the default device is the CPU without asking torch.
+_GPU_NODES = ("/dev/nvidiactl", "/dev/nvidia0", "/dev/kfd", "/dev/dxg")
 
 
 # ---------------------------------------------------------------------------------------------- searching
@@ -92,8 +99,14 @@ class SearchResult:
         return out
 
 
-def _default_device(device: str | torch.device | None) -> torch.device:
+def _default_device(device: Any) -> Any:
+    """The device to score on: ``device`` checked, or by default CUDA when available, else ``"cpu"``; a machine
+    without a GPU driver has no CUDA to look for, and its search never imports torch."""
+    if device == "cpu":  # always there: no torch import to check it
+        return "cpu"
     if device is None:
+        if not (any(os.path.exists(p) for p in _GPU_NODES) or "torch" in sys.modules):
+            return "cpu"
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return check_device(device)
 
@@ -369,7 +382,7 @@ def _surface_test(view: Map, codec: Codec, level: int, t: float):
             return np.zeros(0, bool)
         if not ref:
             const = np.stack([np.zeros((BLOCK,) * 3, np.float32), np.ones((BLOCK,) * 3, np.float32)])
-            ref.append(Scorer(np.asarray(codec.encode(const), np.float32)[:, :level], torch.device("cpu")))
+            ref.append(Scorer(encode_array(codec, const)[:, :level], "cpu"))
         return ref[0](codes_at(view, coords, level) if codes is None else codes)[0] > SURFACE_SHARE * t
 
     return has_surface

@@ -17,6 +17,7 @@ from ..core._validate import BLOCK
 from ..codec import Codec
 from ..errors import FormatError, InvalidValueError, ShapeError
 from ..map import state_digest
+from .arrays import encode_array
 from .cache import cache_key, cached_model
 from .shapes import QUERY_NAMES, probe_blocks, query_blocks, rotation_set
 
@@ -129,7 +130,7 @@ def query_model(name: str, codes: np.ndarray, codec: Codec, voxel_size: float, t
     """A :class:`QueryModel` of ``codes`` ``(M, D)`` float32 encoded by ``codec`` (with the probe codes that tell
     whether another codec encodes alike); ``sha``: the codec's state digest when the caller has it already
     (hashing a large state costs)."""
-    probes = np.asarray(codec.encode(probe_blocks(voxel_size, truncation)), dtype=np.float32)
+    probes = encode_array(codec, probe_blocks(voxel_size, truncation))
     return QueryModel(name=name, descriptors=codes, codec_config=codec.get_config(),
                       codec_state_sha256=codec_state_sha256(codec) if sha is None else sha, voxel_size=voxel_size,
                       truncation=truncation,
@@ -181,11 +182,11 @@ def encode_query_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None
     surface-true encoding a masked map's writer uses (:func:`sdfcodec.map.observed.encode_blocks`, ``observed``
     ``(N, 16, 16, 16)`` bool, all observed when None), so query codes and map codes compare like with like."""
     if not weighted:
-        return np.asarray(codec.encode(v), dtype=np.float32)
+        return encode_array(codec, v)
     from ..map.observed import SURFACE_WEIGHT, encode_blocks
 
     obs = np.ones(v.shape, bool) if observed is None else observed
-    return encode_blocks(codec, v, obs, truncation, voxel_size, SURFACE_WEIGHT, "cpu")
+    return encode_blocks(codec, v, obs, truncation, voxel_size, SURFACE_WEIGHT, "cpu", numpy_path=True)
 
 
 def save_query(model: QueryModel, path: str | os.PathLike) -> Path:

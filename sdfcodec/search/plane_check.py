@@ -33,10 +33,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from ..core._validate import BLOCK
 from ..core.blocks import normalise
+from .arrays import decode_array
 from .scene import PLANE_TOL_VOXELS
 from .models import codec_state_sha256
 from .shapes import MIN_SHAPE_SURFACE, truncate
@@ -89,9 +89,7 @@ def _decode(codec: Codec, codes: np.ndarray) -> np.ndarray:
     decoded with the rest zero: the search's level)."""
     if codes.shape[1] < codec.code_size:
         codes = np.pad(codes, ((0, 0), (0, codec.code_size - codes.shape[1])))
-    with torch.no_grad():
-        out = codec.decode(torch.from_numpy(np.ascontiguousarray(codes, dtype=np.float32)))
-    return np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
+    return decode_array(codec, codes)
 
 
 def _voxels(x: np.ndarray, *, voxel_size: float, truncation: tuple[float, float]) -> np.ndarray:

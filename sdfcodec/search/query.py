@@ -19,6 +19,7 @@ from ..core.blocks import check_truncation, normalise
 from ..codec import Codec
 from ..errors import InvalidValueError, SDFCodecWarning, ShapeError
 from ..map import Map
+from .arrays import encode_array
 from .context import check_up, map_context
 from .models import QueryModel, codec_state_sha256, encode_query_blocks, load_query, query_model, shape_model
 from .shapes import (FUSED_STRETCH, QUERY_NAMES, check_query_name, dedupe_blocks, probe_blocks, query_blocks, rotate_blocks,
@@ -171,7 +172,9 @@ def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None
     with the probe codes). ``behind``, ``up``, ``tilt`` (see :func:`build_query`) apply to built-in names;
     for a saved model they are refused (it was made with its own)."""
     if isinstance(query, str) and query in QUERY_NAMES:
-        return build_query(query, map=m, behind=behind, up=up, tilt=tilt)
+        # descriptors only: a search never reads the shapes' blocks (16 KiB each: the wall's 2,856 made its cache
+        # file 11 MB, zlib-compressed on a first search and inflated on every later one)
+        return build_query(query, map=m, behind=behind, up=up, tilt=tilt, keep_blocks=False)
     if isinstance(query, str) and query.startswith("like:"):
         return like_blocks(m, query[5:], codec)
     if (behind, up, tilt) != (None, None, None):
@@ -213,8 +216,7 @@ def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None
         return replace(query, descriptors=encode_query_blocks(codec, query.blocks, None, query.truncation,
                                                               query.voxel_size, weighted),
                        codec_config=codec.get_config(), codec_state_sha256=codec_state_sha256(codec),
-                       probe_codes=np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)),
-                                              dtype=np.float32))
+                       probe_codes=encode_array(codec, probe_blocks(query.voxel_size, query.truncation)))
     # descriptors only: usable where the map's codec encodes the probe blocks to the same leading elements
     if query.probe_codes is None:
         raise InvalidValueError(f"query model {query.name!r} holds neither shape blocks nor probe codes, and its "
@@ -225,7 +227,7 @@ def resolve_query(query: Any, m: Map, codec: Codec, *, behind: str | None = None
         raise InvalidValueError(f"query model {query.name!r} has {query.code_size}-element descriptors but the map's "
                                 f"{m.header.codec.id!r} codes ({m.code_size}) are not prefix-ordered; rebuild the "
                                 "model with build_query(..., map=the_map)")
-    mine = np.asarray(codec.encode(probe_blocks(query.voxel_size, query.truncation)), dtype=np.float32)[:, :k]
+    mine = encode_array(codec, probe_blocks(query.voxel_size, query.truncation))[:, :k]
     theirs = query.probe_codes[:, :k]
     if not np.allclose(mine, theirs, rtol=1e-3, atol=1e-3 * max(1.0, float(np.abs(theirs).max()))):
         raise InvalidValueError(f"query model {query.name!r} was encoded by a different codec or basis than the map "

@@ -6,10 +6,15 @@ for the conventions and units.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-import torch
 
 from ..codec import Codec
+from ..core._lazy import lazy_module
+from .arrays import decode_array
+
+torch = lazy_module("torch")  # for scoring on a GPU only: a search on the CPU never imports it
 
 __all__ = ["MIN_OBSERVED_SURFACE", "ObservedScorer", "PRUNE_PREFIX", "Scorer", "score_codes"]
 
@@ -57,10 +62,11 @@ class Scorer:
     """Minimum squared distance of codes to descriptors: ``min_m |c|^2 - 2 c.q_m + |q_m|^2``, one matrix
     product per batch. numpy's BLAS on the CPU, torch on other devices.
 
-    ``descriptors``: ``(M, L)`` float32 (cast), the query's first ``L`` elements; ``device``: where to score.
+    ``descriptors``: ``(M, L)`` float32 (cast), the query's first ``L`` elements; ``device``: where to score
+    (``"cpu"`` or a :class:`torch.device`).
     The kernel of :func:`search`, and what ``sdfcodec.bench.bench_search`` times."""
 
-    def __init__(self, descriptors: np.ndarray, device: torch.device):
+    def __init__(self, descriptors: np.ndarray, device: Any):
         q = np.ascontiguousarray(descriptors, dtype=np.float32)
         self.device = device
         self.qq = np.einsum("ij,ij->i", q, q)
@@ -72,18 +78,19 @@ class Scorer:
             self.qt_prefix = np.ascontiguousarray(self.qt[:self.prefix])
             self.rows_prefix = _single_thread_rows(q.shape[0], self.prefix)
             self.margin = PRUNE_MARGIN * float(self.qq.max(initial=0.0))
-        if device.type != "cpu":
+        self.on_cpu = str(device).split(":")[0] == "cpu"
+        if not self.on_cpu:
             self.tqt = torch.from_numpy(self.qt).to(device)
             self.tqq = torch.from_numpy(self.qq).to(device)
 
-    def __call__(self, codes: np.ndarray | torch.Tensor, bound: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, codes: Any, bound: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(n, L)`` float32 codes -> scores ``(n,)`` float32 and nearest index ``(n,)`` int64 (numpy).
 
         With ``bound`` (a search's call, on the CPU), only the codes scoring ``<= bound`` are scored in full:
         their scores are those of the unbounded call (to float32 rounding) and their nearest index is given; the
         others get a lower bound of their score (to float32 rounding) that is ``> bound``: the distance over the
         first :data:`PRUNE_PREFIX` elements, for descriptors of twice as many elements or more; and index -1."""
-        if self.device.type == "cpu":
+        if self.on_cpu:
             c = np.asarray(codes, dtype=np.float32)
             if bound is not None:
                 return self._bounded(c, bound)
@@ -158,8 +165,10 @@ class ObservedScorer:
 
         self.codec = codec
         q = self._decode(np.asarray(descriptors, np.float32))
-        self.qt = np.ascontiguousarray(q.T)
-        self.qq = np.ascontiguousarray((q * q).T)
+        # transposed views: BLAS reads them as they are (copies of the wall's 2,856 x 4,096 were a second of a
+        # search's start on two cores)
+        self.qt = q.T
+        self.qq = np.square(q, out=np.empty_like(q)).T
         d_min, d_max = truncation
         self.v0 = -d_min / (d_max - d_min)
         self.half = SURFACE_BAND_VOXELS * voxel_size / (d_max - d_min)
@@ -168,11 +177,11 @@ class ObservedScorer:
         k = self.codec.code_size
         if codes.shape[1] < k and not self.codec.prefix_ordered:
             codes = np.pad(codes, ((0, 0), (0, k - codes.shape[1])))
-        with torch.no_grad():
-            out = self.codec.decode(torch.from_numpy(np.ascontiguousarray(codes)))
+        out = decode_array(self.codec, codes)
         # what a reader sees: truncated to [d_min, d_max] (normalised [0, 1]); a masked map's writer fits its codes
         # to that (docs/surface.md), leaving arbitrary values past the bounds where truncation makes them exact
-        return np.clip(np.asarray(out, dtype=np.float32).reshape(len(codes), -1), 0.0, 1.0)
+        out = np.asarray(out, dtype=np.float32).reshape(len(codes), -1)
+        return np.clip(out, 0.0, 1.0, out=out)  # in place: decode_array's output is ours
 
     def __call__(self, codes: np.ndarray, observed: np.ndarray, fallback: np.ndarray, fallback_idx: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:

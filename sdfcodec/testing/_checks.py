@@ -320,6 +320,29 @@ def check_decode_tiles(case: Case) -> None:
     assert_close(codes, kept, 0.0, "decode_tiles: modified the codes")
 
 
+def check_numpy_path(case: Case) -> None:
+    """The torch-free path (spec/codec-plugins.md 4, ``numpy_path``; what searches use) of a codec declaring
+    it: float32 numpy codes and blocks equal to ``encode`` and ``decode`` (and a prefix's decode, for
+    prefix-ordered codecs). Codecs without the capability pass."""
+    codec, x, atol = case.codec, case.options.blocks, case.options.atol
+    if "numpy_path" not in capabilities(codec):
+        return
+    path = codec.numpy_path()
+    assert path is not None, "numpy_path: declared, but a fitted codec returned None"
+    n = len(x)
+    codes = np.asarray(codec.encode(x))
+    got = path.encode(np.ascontiguousarray(x, np.float32).reshape(n, -1))
+    assert isinstance(got, np.ndarray) and got.dtype == np.float32 and got.shape == codes.shape, \
+        f"numpy_path encode: got {type(got).__name__} {getattr(got, 'dtype', '')} {getattr(got, 'shape', '')}"
+    assert_close(got, codes, atol * max(1.0, float(np.abs(codes).max())), "numpy_path encode vs encode")
+    for k in sorted({codec.code_size, max(1, codec.code_size // 2)} if codec.prefix_ordered else {codec.code_size}):
+        want = np.asarray(codec.decode(codes[:, :k])).reshape(n, -1)
+        back = path.decode(np.ascontiguousarray(codes[:, :k]))
+        assert isinstance(back, np.ndarray) and back.dtype == np.float32 and back.shape == want.shape, \
+            f"numpy_path decode of {k} elements: got {getattr(back, 'dtype', '')} {getattr(back, 'shape', '')}"
+        assert_close(back, want, atol, f"numpy_path decode of {k} elements vs decode")
+
+
 def _outputs(codec: Codec, x: np.ndarray, max_levels: int) -> dict[str, Any]:
     """Everything a codec computes from ``x``: codes, decoded blocks (numpy and CPU tensors), decodes at a few
     prefix levels, and ``decode_core`` in metres; used to compare two codecs that must be the same."""
@@ -517,6 +540,7 @@ CHECKS: tuple[tuple[str, Callable[[Case], Any]], ...] = (
     ("decode_on_read", check_decode_on_read),
     ("decode_out", check_decode_out),
     ("decode_tiles", check_decode_tiles),
+    ("numpy_path", check_numpy_path),
     ("batch_sizes", check_batch_sizes),
     ("devices", check_devices),
     ("meta_device", check_meta_device),
