@@ -1,0 +1,121 @@
+"""The compiled path of the rANS streams (observation masks, variable-rate codes): the same words as constriction
+0.5.0's ``AnsCoder`` with ``Bernoulli(perfect=False)`` / ``Categorical(perfect=False)`` models, decoded and
+encoded by :mod:`sdfcodec.core.anskernels` (numba, the optional extra ``fast``). Callers check
+:func:`available` and keep constriction's path without numba; both read and write the same streams.
+
+The kernels compile on first use and are cached on disk (a few seconds once per machine)."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+
+__all__ = ["available", "decode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
+           "categorical_intervals"]
+
+_TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
+_FOUND: list[bool] = []
+
+
+def available() -> bool:
+    """Whether the compiled path can run here (numba is installed); checked without importing numba."""
+    if not _FOUND:
+        _FOUND.append(importlib.util.find_spec("numba") is not None)
+    return _FOUND[0]
+
+
+def _k():
+    from . import anskernels
+
+    return anskernels
+
+
+def _words(words: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(words, dtype=np.uint32)
+
+
+def _refuse(status: int) -> None:
+    if status == 1:  # constriction's AnsCoder(words) refuses these with this message
+        raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
+
+
+def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray],
+                vox_waves: tuple[np.ndarray, np.ndarray, np.ndarray], cube_deltas: np.ndarray, deltas: np.ndarray,
+                extra: np.ndarray | None = None, extra_shift: int = 0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decode the words of a mask stream laid out as :mod:`sdfcodec.map.maskcoder` writes it: ``n_rows`` flags
+    (when ``p_rows < n_rows``), the ``(p_rows, 512)`` sub-cube states wavefront by wavefront, then the voxels of
+    mixed sub-cubes wavefront by wavefront, each under Krichevsky-Trofimov counts of the wavefronts before.
+
+    ``cube_waves``/``vox_waves``: (padded flat indices, unpadded flat indices, bounds) of the cells in wavefront
+    order (int64); ``cube_deltas``, ``deltas``: the context neighbours' padded offsets. ``extra`` ``(p_rows,
+    4096)`` small non-negative ints joins each voxel's context as ``extra << extra_shift`` (``extra_shift`` at
+    least ``len(deltas)``). Returns (partial ``(n_rows,)`` bool, states ``(p_rows, 512)`` int64, voxels padded
+    by one on every side ``(p_rows, 18, 18, 18)`` uint8).
+
+    Raises:
+        ValueError: the last word is 0 (no coder writes it).
+    """
+    ex = np.zeros((0, 0), np.int64) if extra is None else np.ascontiguousarray(extra, dtype=np.int64)
+    if extra is not None and (ex.shape != (p_rows, 4096) or (ex.size and ex.min() < 0) or extra_shift < len(deltas)):
+        raise ValueError(f"extra contexts need shape ({p_rows}, 4096), values >= 0 and a shift >= {len(deltas)}")
+    status, partial, states, vpad = _k().mask_decode(
+        _words(words), int(n_rows), int(p_rows), *cube_waves, np.asarray(cube_deltas, np.int64), vox_waves[0],
+        vox_waves[1], vox_waves[2], np.asarray(deltas, np.int64), ex, int(extra_shift))
+    _refuse(status)
+    return partial.astype(bool), states, vpad.reshape(p_rows, 18, 18, 18)
+
+
+def table_cdfs(tables: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cumulative tables constriction's ``Categorical(table, perfect=False)`` builds of each float64 table
+    (at least two entries each): (all of them concatenated, int64; where each starts; its symbol count)."""
+    sizes = np.array([len(t) for t in tables], np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    cdfs = _k().table_cdfs(np.concatenate(tables).astype(np.float64), starts)
+    return cdfs, starts[:-1] + np.arange(len(sizes)), sizes
+
+
+def decode_chunk(words: np.ndarray, n: int, level: int, cdfs: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 off: np.ndarray) -> np.ndarray:
+    """``(n, level)`` int32 from a variable-rate chunk stream (:func:`sdfcodec.core.varrate.decode_chunk`):
+    ``cdfs`` from :func:`table_cdfs` of [lengths table, element 0's table, ...]; ``off`` ``(D,)`` the symbol of
+    value 0 per element.
+
+    Raises:
+        ValueError: the last word is 0.
+    """
+    status, out = _k().chunk_decode(_words(words), int(n), int(level), cdfs[0], cdfs[1], cdfs[2],
+                                    np.asarray(off, np.int64))
+    _refuse(status)
+    return out
+
+
+def bernoulli_intervals(bits: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left, frequency) ``(n,)`` int64 of each bit under ``Bernoulli(p, perfect=False)``: float64 arithmetic
+    as constriction's, elementwise."""
+    p = np.asarray(p, np.float64)
+    pm = 1.0 - p
+    c1 = (pm * ((_TOTAL - 2) / (pm + p))).astype(np.int64) + 1
+    one = np.asarray(bits) != 0
+    return np.where(one, c1, 0), np.where(one, _TOTAL - c1, c1)
+
+
+def categorical_intervals(sym: np.ndarray, probs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left, frequency) ``(n,)`` int64 of each symbol under ``Categorical(perfect=False)`` with its own row of
+    ``probs`` ``(n, k)`` float64."""
+    probs = np.asarray(probs, np.float64)
+    n, k = probs.shape
+    cum = np.zeros((n, k + 1))
+    for i in range(k):  # left to right, as constriction sums
+        cum[:, i + 1] = cum[:, i] + probs[:, i]
+    cdf = (cum * ((_TOTAL - k) / cum[:, k])[:, None]).astype(np.int64) + np.arange(k + 1)
+    cdf[:, k] = _TOTAL
+    rows, s = np.arange(n), np.asarray(sym, np.int64)
+    return cdf[rows, s], cdf[rows, s + 1] - cdf[rows, s]
+
+
+def encode(left: np.ndarray, freq: np.ndarray) -> np.ndarray:
+    """uint32 words of ``AnsCoder()`` after ``encode_reverse`` of the symbols with intervals ``[left, left +
+    freq)`` (decode order), as ``get_compressed`` returns them."""
+    return _k().encode(np.ascontiguousarray(left, np.int64), np.ascontiguousarray(freq, np.int64))
