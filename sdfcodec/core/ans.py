@@ -67,13 +67,13 @@ def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[n
     return partial.astype(bool), states, vpad.reshape(p_rows, 18, 18, 18)
 
 
-def table_cdfs(tables: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The cumulative tables constriction's ``Categorical(table, perfect=False)`` builds of each float64 table
-    (at least two entries each): (all of them concatenated, int64; where each starts; its symbol count)."""
-    sizes = np.array([len(t) for t in tables], np.int64)
-    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    cdfs = _k().table_cdfs(np.concatenate(tables).astype(np.float64), starts)
-    return cdfs, starts[:-1] + np.arange(len(sizes)), sizes
+def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cumulative tables constriction's ``Categorical(table, perfect=False)`` builds of the variable-rate
+    model's tables (:class:`sdfcodec.core.varrate.EntropyModel`: ``lengths`` ``(D + 1,)`` float64, then per
+    element the two-sided geometric law of ``decay``, ``extent`` ``(D,)``): (all of them concatenated, int64;
+    where each starts; its symbol count), as :func:`decode_chunk` takes them."""
+    return _k().table_cdfs(np.ascontiguousarray(lengths, np.float64), np.ascontiguousarray(decay, np.float64),
+                           np.ascontiguousarray(extent, np.int64))
 
 
 def decode_chunk(words: np.ndarray, n: int, level: int, cdfs: tuple[np.ndarray, np.ndarray, np.ndarray],

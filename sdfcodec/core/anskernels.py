@@ -188,24 +188,51 @@ def mask_decode(words, n_rows, p_rows, cube_at, cube_flat, cube_bounds, cube_del
 
 
 @njit(cache=True)
-def table_cdfs(tables, starts):
-    """Cumulative tables ``(starts[-1] + len(starts) - 1,)`` int64 of the probability tables ``tables[starts[j]:
-    starts[j + 1]]`` float64 (each at least two entries), each ``n + 1`` long, at offset ``starts[j] + j``."""
-    out = np.empty(starts[-1] + len(starts) - 1, np.int64)
-    for j in range(len(starts) - 1):
-        a, b = starts[j], starts[j + 1]
-        n = b - a
-        total = 0.0
-        for i in range(a, b):
-            total += tables[i]
-        scale = (_TOTAL - n) / total
-        cum = 0.0
-        o = a + j
-        for i in range(n):
-            out[o + i] = np.int64(cum * scale) + i
-            cum += tables[a + i]
-        out[o + n] = _TOTAL
-    return out
+def _cdf_of(table, out, o):
+    """``out[o:o + n + 1]`` = the cumulative table of probabilities ``table`` ``(n,)`` float64 (the left-to-right
+    sums first, in ``out`` as float64 bits: one chain of dependent adds, not two)."""
+    n = len(table)
+    cum = out[o:o + n + 1].view(np.float64)
+    c = 0.0
+    for i in range(n):
+        cum[i] = c
+        c += table[i]
+    scale = (_TOTAL - n) / c
+    for i in range(n):
+        out[o + i] = np.int64(cum[i] * scale) + i
+    out[o + n] = _TOTAL
+
+
+@njit(cache=True)
+def table_cdfs(first, decay, extent):
+    """Cumulative tables, concatenated ``(len(first) + 1 + sum(2 e_j + 2),)`` int64, of ``first`` (float64) and
+    of each two-sided geometric table of :meth:`sdfcodec.core.varrate.EntropyModel.table` (``e_j = max(extent_j,
+    1)``; its entries ``decay_j ** |i - e_j|`` as numpy's cumprod makes them: one multiply per step), each ``n +
+    1`` long. Returns (tables, where each starts ``(D + 1,)``, symbols of each ``(D + 1,)``)."""
+    d = len(decay)
+    sizes = np.empty(d + 1, np.int64)
+    at = np.empty(d + 1, np.int64)
+    sizes[0] = len(first)
+    for j in range(d):
+        sizes[j + 1] = 2 * max(extent[j], 1) + 1
+    o = 0
+    for j in range(d + 1):
+        at[j] = o
+        o += sizes[j] + 1
+    out = np.empty(o, np.int64)
+    _cdf_of(first, out, 0)
+    for j in range(d):
+        e = max(extent[j], 1)
+        half = np.empty(e + 1)
+        half[0] = 1.0
+        for i in range(1, e + 1):
+            half[i] = half[i - 1] * decay[j]
+        table = np.empty(2 * e + 1)
+        for i in range(e + 1):
+            table[e - i] = half[i]
+            table[e + i] = half[i]
+        _cdf_of(table, out, at[j + 1])
+    return out, at, sizes
 
 
 @njit(cache=True)

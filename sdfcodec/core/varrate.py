@@ -99,7 +99,7 @@ class EntropyModel:
         """The cumulative tables of :meth:`models` (lengths, then each element) for the compiled decoder
         (:func:`sdfcodec.core.ans.table_cdfs`)."""
         if self._cdfs is None:
-            self._cdfs = ans.table_cdfs([self.lengths] + [self.table(j) for j in range(self.size)])
+            self._cdfs = ans.table_cdfs(self.lengths, self.decay, self.extent)
         return self._cdfs
 
     def bits(self, q: np.ndarray) -> np.ndarray:
