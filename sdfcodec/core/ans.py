@@ -11,7 +11,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["available", "decode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
+__all__ = ["available", "Decoder", "decode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
            "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -35,36 +35,74 @@ def _words(words: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(words, dtype=np.uint32)
 
 
-def _refuse(status: int) -> None:
+def _refuse(status: int) -> None:  # the chunk decoder's status
     if status == 1:  # constriction's AnsCoder(words) refuses these with this message
         raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
 
 
+class Decoder:
+    """constriction's ``AnsCoder(words)`` (words uint32, the last read first) for the compiled decoders: pass it
+    from one stage of a stream to the next.
+
+    Raises:
+        ValueError: the last word is 0 (no coder writes it; constriction refuses such a stream).
+    """
+
+    def __init__(self, words: np.ndarray) -> None:
+        self.words = np.ascontiguousarray(words, dtype=np.uint32)
+        self.st = np.zeros(2, np.uint64)
+        if not _k().start(self.words, self.st):
+            raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
+
+    def is_empty(self) -> bool:
+        """Whether every word was read and the state is back to 0 (constriction's ``is_empty``)."""
+        return int(self.st[0]) == 0
+
+    def flags(self, n: int, p: float) -> np.ndarray:
+        """``n`` bits ``(n,)`` bool under ``Bernoulli(p, perfect=False)``."""
+        return _k().decode_flags(self.words, self.st, int(n), float(p)).astype(bool)
+
+    def bits(self, grid: np.ndarray, at: np.ndarray, bounds: np.ndarray, deltas: np.ndarray, weights: np.ndarray,
+             n_ctx: int, extra: np.ndarray | None = None) -> None:
+        """Decode bits into ``grid`` (flat, C-contiguous, int64 or uint8) at positions ``at`` ``(m,)`` int64,
+        wavefront by wavefront (``bounds`` ``(W + 1,)`` delimit them in ``at``; every context reads earlier
+        wavefronts only), each under Krichevsky-Trofimov counts of its context ``sum_q grid[at + deltas[q]] *
+        weights[q] (+ extra)``, ``extra`` ``(m,)`` int64 scaled by the caller, all below ``n_ctx``: what
+        constriction decodes with ``Bernoulli(perfect=False)`` and per wavefront ``p1 = c1 / (c0 + c1)``, ``c =
+        counts + 1/2``, counts added after each wavefront.
+
+        Raises:
+            ValueError: a context is outside ``[0, n_ctx)``.
+        """
+        ok = _k().decode_bits(self.words, self.st, grid, np.asarray(at, np.int64), np.asarray(bounds, np.int64),
+                              np.asarray(deltas, np.int64), np.asarray(weights, np.int64),
+                              np.zeros(0, np.int64) if extra is None else np.asarray(extra, np.int64), int(n_ctx))
+        if not ok:
+            raise ValueError(f"a context is outside [0, {n_ctx})")
+
+
 def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray],
-                vox_waves: tuple[np.ndarray, np.ndarray, np.ndarray], cube_deltas: np.ndarray, deltas: np.ndarray,
-                extra: np.ndarray | None = None, extra_shift: int = 0
+                vox_waves: tuple[np.ndarray, np.ndarray, np.ndarray], cube_deltas: np.ndarray, deltas: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Decode the words of a mask stream laid out as :mod:`sdfcodec.map.maskcoder` writes it: ``n_rows`` flags
-    (when ``p_rows < n_rows``), the ``(p_rows, 512)`` sub-cube states wavefront by wavefront, then the voxels of
-    mixed sub-cubes wavefront by wavefront, each under Krichevsky-Trofimov counts of the wavefronts before.
+    """Decode the words of a mask stream ``M1`` (:mod:`sdfcodec.map.maskcoder`): ``n_rows`` flags (when ``p_rows
+    < n_rows``), the ``(p_rows, 512)`` sub-cube states wavefront by wavefront, then the voxels of mixed sub-cubes
+    wavefront by wavefront (contexts: the bits at ``deltas``, ``q = 0`` least significant), each under
+    Krichevsky-Trofimov counts of the wavefronts before.
 
     ``cube_waves``/``vox_waves``: (padded flat indices, unpadded flat indices, bounds) of the cells in wavefront
-    order (int64); ``cube_deltas``, ``deltas``: the context neighbours' padded offsets. ``extra`` ``(p_rows,
-    4096)`` small non-negative ints joins each voxel's context as ``extra << extra_shift`` (``extra_shift`` at
-    least ``len(deltas)``). Returns (partial ``(n_rows,)`` bool, states ``(p_rows, 512)`` int64, voxels padded
-    by one on every side ``(p_rows, 18, 18, 18)`` uint8).
+    order (int64); ``cube_deltas``, ``deltas``: the context neighbours' padded offsets. Returns (partial
+    ``(n_rows,)`` bool, states ``(p_rows, 512)`` int64, voxels padded by one on every side ``(p_rows, 18, 18,
+    18)`` uint8).
 
     Raises:
         ValueError: the last word is 0 (no coder writes it).
     """
-    ex = np.zeros((0, 0), np.int64) if extra is None else np.ascontiguousarray(extra, dtype=np.int64)
-    if extra is not None and (ex.shape != (p_rows, 4096) or (ex.size and ex.min() < 0) or extra_shift < len(deltas)):
-        raise ValueError(f"extra contexts need shape ({p_rows}, 4096), values >= 0 and a shift >= {len(deltas)}")
-    status, partial, states, vpad = _k().mask_decode(
-        _words(words), int(n_rows), int(p_rows), *cube_waves, np.asarray(cube_deltas, np.int64), vox_waves[0],
-        vox_waves[1], vox_waves[2], np.asarray(deltas, np.int64), ex, int(extra_shift))
-    _refuse(status)
-    return partial.astype(bool), states, vpad.reshape(p_rows, 18, 18, 18)
+    k, dec = _k(), Decoder(words)
+    partial = dec.flags(n_rows, p_rows / n_rows) if p_rows < n_rows else np.ones(n_rows, bool)
+    states = k.decode_cubes(dec.words, dec.st, int(p_rows), *cube_waves, np.asarray(cube_deltas, np.int64))
+    vpad, at, bounds = k.mixed_voxels(states, len(vox_waves[2]) - 1)
+    dec.bits(vpad.reshape(-1), at, bounds, deltas, 1 << np.arange(len(deltas)), 1 << len(deltas))
+    return partial, states, vpad.reshape(p_rows, 18, 18, 18)
 
 
 def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "mask_decode", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "decode_bits", "table_cdfs", "chunk_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -76,12 +76,16 @@ def _bernoulli(words, st, p):
 
 
 @njit(cache=True, inline="always")
-def _categorical3(words, st, p0, p1, p2):
-    """One of three symbols under ``Categorical(perfect=False)`` with probabilities ``p0, p1, p2``."""
-    q = np.int64(st[0] & _QMASK)
+def _cdf3(p0, p1, p2):
+    """``(cdf[1], cdf[2])`` of ``Categorical(perfect=False)`` with probabilities ``p0, p1, p2``."""
     scale = (_TOTAL - 3) / ((p0 + p1) + p2)
-    c1 = np.int64(p0 * scale) + 1
-    c2 = np.int64((p0 + p1) * scale) + 2
+    return np.int64(p0 * scale) + 1, np.int64((p0 + p1) * scale) + 2
+
+
+@njit(cache=True, inline="always")
+def _symbol3(words, st, c1, c2):
+    """One of three symbols under the table ``0, c1, c2, 2^24``."""
+    q = np.int64(st[0] & _QMASK)
     if q < c1:
         _advance(words, st, 0, c1, q)
         return 0
@@ -108,34 +112,35 @@ def _from_cdf(words, st, cdf, a, n):
 
 
 @njit(cache=True)
-def mask_decode(words, n_rows, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas, vox_at, vox_flat,
-                vox_bounds, deltas, extra, extra_shift):
-    """The observation-mask stream ``M1`` of :mod:`sdfcodec.map.maskcoder` (its words after the header).
+def decode_flags(words, st, n, p):
+    """``n`` bits ``(n,)`` uint8, each under ``Bernoulli(p, perfect=False)``."""
+    out = np.empty(n, np.uint8)
+    for i in range(n):
+        out[i] = _bernoulli(words, st, p)
+    return out
 
-    ``cube_at``/``cube_flat``: per sub-cube wavefront (``cube_bounds`` delimit them) the flat indices of its cells
-    in the padded (10^3) and unpadded (8^3) sub-cube grid; ``vox_*`` alike for voxels (18^3, 16^3);
-    ``cube_deltas`` (3,), ``deltas`` (q,) the context neighbours' flat offsets. ``extra``: ``(p_rows, 4096)``
-    int64 added to each voxel's context shifted left by ``extra_shift`` (``(0, 0)`` for none: contexts of ``q``
-    bits). Returns (status: 0 ok, 1 a trailing zero word; partial ``(n_rows,)`` uint8; states ``(p_rows, 512)``
-    int64; padded voxels ``(p_rows, 18^3)`` uint8)."""
-    partial = np.zeros(n_rows, np.uint8)
+
+@njit(cache=True)
+def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas):
+    """The sub-cube states ``(p_rows, 512)`` int64 of the observation-mask stream ``M1``
+    (:mod:`sdfcodec.map.maskcoder`): wavefront by wavefront (``cube_bounds`` delimit them in ``cube_at``, the
+    padded (10^3) flat indices, and ``cube_flat``, the unpadded (8^3) ones), every row, each state (0, 1, 2)
+    under ``Categorical(perfect=False)`` with Krichevsky-Trofimov probabilities of its context: the states at
+    ``cube_deltas`` (3 = outside the block) as base-4 digits, the first least significant, counted over the
+    wavefronts before."""
     states = np.zeros((p_rows, 512), np.int64)
-    vpad = np.zeros((p_rows, 18 * 18 * 18), np.uint8)
-    st = np.zeros(2, np.uint64)
-    if not start(words, st):
-        return 1, partial, states, vpad
-    if p_rows < n_rows:
-        p = p_rows / n_rows
-        for i in range(n_rows):
-            partial[i] = _bernoulli(words, st, p)
-    else:
-        partial[:] = 1
     cstride = 10 * 10 * 10
     cflat = np.full(p_rows * cstride, 3, np.int64)
-    counts = np.zeros((3, 64), np.int64)
-    buf_ctx = np.empty(p_rows * 64, np.int64)
+    n_ctx = 4 ** len(cube_deltas)
+    counts = np.zeros((3, n_ctx), np.int64)
+    cdf = np.empty((n_ctx, 2), np.int64)
+    buf_ctx = np.empty(p_rows * 64, np.int64)  # a wavefront of 8^3 has at most 48 cells
     buf_sym = np.empty(p_rows * 64, np.int64)
     for w in range(len(cube_bounds) - 1):
+        for ctx in range(n_ctx):  # the counts hold for the whole wavefront: each context's table once
+            c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
+            s = (c0 + c1) + c2
+            cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / s, c1 / s, c2 / s)
         m = 0
         for r in range(p_rows):
             for t in range(cube_bounds[w], cube_bounds[w + 1]):
@@ -143,48 +148,91 @@ def mask_decode(words, n_rows, p_rows, cube_at, cube_flat, cube_bounds, cube_del
                 ctx = 0
                 for qq in range(len(cube_deltas) - 1, -1, -1):
                     ctx = ctx * 4 + cflat[at + cube_deltas[qq]]
-                c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
-                s = (c0 + c1) + c2
-                sym = _categorical3(words, st, c0 / s, c1 / s, c2 / s)
+                sym = _symbol3(words, st, cdf[ctx, 0], cdf[ctx, 1])
                 cflat[at] = sym
                 states[r, cube_flat[t]] = sym
                 buf_ctx[m], buf_sym[m] = ctx, sym
                 m += 1
         for i in range(m):
             counts[buf_sym[i], buf_ctx[i]] += 1
+    return states
+
+
+@njit(cache=True)
+def mixed_voxels(states, n_waves):
+    """From sub-cube states ``(p, 512)`` (of 2^3 voxels each): the voxels padded by one ``(p, 18^3)`` uint8 (1 in
+    sub-cubes all observed), and the padded flat positions (``r * 18^3 + ...``) of the voxels of mixed sub-cubes
+    in decode order (wavefront ``i + j + k``, then row, then C order) with the bounds ``(n_waves + 1,)`` of each
+    wavefront (a stable counting sort of the rows' C-order lists)."""
+    p_rows = len(states)
     vstride = 18 * 18 * 18
-    for r in range(p_rows):  # sub-cubes all observed are known; mixed ones are decoded next
-        for c in range(4096):
-            if states[r, ((c >> 9) & 7) * 64 + ((c >> 5) & 7) * 8 + ((c >> 1) & 7)] == 1:
-                vpad[r, (((c >> 8) + 1) * 18 + ((c >> 4) & 15) + 1) * 18 + (c & 15) + 1] = 1
-    n_ctx = 1 << len(deltas)
-    if extra.shape[0]:
-        n_ctx += (extra.max() << extra_shift) if extra.size else 0
-    vcounts = np.zeros((2, n_ctx), np.int64)
-    vbuf_ctx = np.empty(p_rows * 256, np.int64)  # a wavefront of 16^3 has at most 192 cells
-    vbuf_sym = np.empty(p_rows * 256, np.int64)
-    flat_v = vpad.reshape(-1)
-    for w in range(len(vox_bounds) - 1):
-        m = 0
-        for r in range(p_rows):
-            for t in range(vox_bounds[w], vox_bounds[w + 1]):
-                c = vox_flat[t]
-                if states[r, ((c >> 9) & 7) * 64 + ((c >> 5) & 7) * 8 + ((c >> 1) & 7)] != 2:
-                    continue
-                at = r * vstride + vox_at[t]
-                ctx = 0
-                for qq in range(len(deltas)):
-                    ctx |= np.int64(flat_v[at + deltas[qq]]) << qq
-                if extra.shape[0]:
-                    ctx += extra[r, c] << extra_shift
-                n0, n1 = vcounts[0, ctx] + 0.5, vcounts[1, ctx] + 0.5
-                sym = _bernoulli(words, st, n1 / (n0 + n1))
-                flat_v[at] = sym
-                vbuf_ctx[m], vbuf_sym[m] = ctx, sym
-                m += 1
-        for i in range(m):
-            vcounts[vbuf_sym[i], vbuf_ctx[i]] += 1
-    return 0, partial, states, vpad
+    vpad = np.zeros((p_rows, vstride), np.uint8)
+    n = 0
+    for r in range(p_rows):
+        for c in range(512):
+            if states[r, c] == 2:
+                n += 8
+    pos = np.empty(n, np.int64)
+    wave = np.empty(n, np.int64)
+    bounds = np.zeros(n_waves + 1, np.int64)
+    m = 0
+    for r in range(p_rows):
+        for i in range(16):
+            for j in range(16):
+                base = (i >> 1) * 64 + (j >> 1) * 8
+                row0 = r * vstride + ((i + 1) * 18 + j + 1) * 18 + 1
+                for kc in range(8):
+                    s = states[r, base + kc]
+                    if s == 1:
+                        vpad[r, row0 - r * vstride + 2 * kc] = 1
+                        vpad[r, row0 - r * vstride + 2 * kc + 1] = 1
+                    elif s == 2:
+                        for k in range(2 * kc, 2 * kc + 2):
+                            pos[m] = row0 + k
+                            wave[m] = i + j + k
+                            bounds[i + j + k + 1] += 1
+                            m += 1
+    for w in range(n_waves):
+        bounds[w + 1] += bounds[w]
+    fill = bounds[:-1].copy()
+    at = np.empty(n, np.int64)
+    for t in range(n):
+        at[fill[wave[t]]] = pos[t]
+        fill[wave[t]] += 1
+    return vpad, at, bounds
+
+
+@njit(cache=True)
+def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
+    """Bits at the flat positions ``at`` of ``grid`` (written there as decoded), wavefront by wavefront
+    (``bounds`` delimit them in ``at``), each under ``Bernoulli(p, perfect=False)`` with the Krichevsky-Trofimov
+    ``p = (n1 + 1/2) / (n0 + n1 + 1)`` of its context, counted over the wavefronts before. The context of
+    ``at[i]``: ``sum_q grid[at[i] + deltas[q]] * weights[q]``, plus ``extra[i]`` when ``extra`` is not empty
+    (a caller's own small integers, already scaled), below ``n_ctx``. Returns False when a context reaches
+    ``n_ctx`` (then the grid holds what was decoded so far)."""
+    counts = np.zeros((2, n_ctx), np.int64)
+    widest = 0
+    for w in range(len(bounds) - 1):
+        widest = max(widest, bounds[w + 1] - bounds[w])
+    buf_ctx = np.empty(widest, np.int64)
+    has_extra = len(extra) > 0
+    for w in range(len(bounds) - 1):
+        a, b = bounds[w], bounds[w + 1]
+        for i in range(a, b):
+            pos = at[i]
+            ctx = 0
+            for q in range(len(deltas)):
+                ctx += np.int64(grid[pos + deltas[q]]) * weights[q]
+            if has_extra:
+                ctx += extra[i]
+            if ctx < 0 or ctx >= n_ctx:
+                return False
+            n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
+            grid[pos] = _bernoulli(words, st, n1 / (n0 + n1))
+            buf_ctx[i - a] = ctx
+        for i in range(a, b):
+            counts[np.int64(grid[at[i]]), buf_ctx[i - a]] += 1
+    return True
 
 
 @njit(cache=True)
