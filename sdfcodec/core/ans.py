@@ -11,7 +11,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["available", "Decoder", "decode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
+__all__ = ["available", "Decoder", "decode_mask", "encode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
            "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -103,6 +103,29 @@ def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[n
     vpad, at, bounds = k.mixed_voxels(states, len(vox_waves[2]) - 1)
     dec.bits(vpad.reshape(-1), at, bounds, deltas, 1 << np.arange(len(deltas)), 1 << len(deltas))
     return partial, states, vpad.reshape(p_rows, 18, 18, 18)
+
+
+def encode_mask(partial: np.ndarray | None, p_flag: float, bits: np.ndarray,
+                cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray], n_vox_waves: int, cube_deltas: np.ndarray,
+                deltas: np.ndarray) -> np.ndarray:
+    """The words :func:`decode_mask` reads back: row flags ``partial`` ``(R,)`` (None: not coded) under ``p_flag``,
+    then the sub-cube states and the voxels of mixed sub-cubes of ``bits`` ``(P, 4096)`` (0/1, the partial rows);
+    the same words as constriction's ``AnsCoder().encode_reverse`` of the same symbols and probabilities."""
+    k = _k()
+    bits = np.ascontiguousarray(bits, np.uint8).reshape(-1, 4096)
+    p_rows = len(bits)
+    vpad, states = k.padded_states(bits)
+    _, at, bounds = k.mixed_voxels(states, n_vox_waves)
+    n_flags = 0 if partial is None else len(partial)
+    total = n_flags + p_rows * 512 + len(at)
+    left, freq = np.empty(total, np.int64), np.empty(total, np.int64)
+    if n_flags:
+        left[:n_flags], freq[:n_flags] = bernoulli_intervals(partial, np.full(n_flags, p_flag))
+    m = k.cube_intervals(states, *cube_waves, np.asarray(cube_deltas, np.int64), left, freq, n_flags)
+    m = k.bit_intervals(vpad, at, bounds, np.asarray(deltas, np.int64), (1 << np.arange(len(deltas))).astype(np.int64),
+                        np.zeros(0, np.int64), 1 << len(deltas), left, freq, m)
+    assert m == total
+    return encode(left, freq)
 
 
 def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "decode_bits", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "decode_bits", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -233,6 +233,97 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
         for i in range(a, b):
             counts[np.int64(grid[at[i]]), buf_ctx[i - a]] += 1
     return True
+
+
+@njit(cache=True)
+def padded_states(bits):
+    """Voxel bits ``(p, 4096)`` uint8 (0/1, C order) -> (the voxels padded by one with zeros ``(p * 18^3,)``
+    uint8, the sub-cube states ``(p, 512)`` int64: 0 none observed, 1 all, 2 mixed)."""
+    p_rows = len(bits)
+    vpad = np.zeros(p_rows * 18 * 18 * 18, np.uint8)
+    sums = np.zeros((p_rows, 512), np.int64)
+    for r in range(p_rows):
+        for c in range(4096):
+            b = bits[r, c]
+            vpad[r * 5832 + (((c >> 8) + 1) * 18 + ((c >> 4) & 15) + 1) * 18 + (c & 15) + 1] = b
+            sums[r, ((c >> 9) & 7) * 64 + ((c >> 5) & 7) * 8 + ((c >> 1) & 7)] += b
+    states = np.where(sums == 0, 0, np.where(sums == 8, 1, 2))
+    return vpad, states
+
+
+@njit(cache=True)
+def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, freq, m):
+    """The encoder's side of :func:`decode_cubes`: the intervals of the known states ``(p, 512)`` written to
+    ``left``/``freq`` from ``m`` on, in decode order; returns the next free index."""
+    p_rows = len(states)
+    cstride = 10 * 10 * 10
+    cflat = np.full(p_rows * cstride, 3, np.int64)
+    for r in range(p_rows):
+        for t in range(len(cube_at)):
+            cflat[r * cstride + cube_at[t]] = states[r, cube_flat[t]]
+    n_ctx = 4 ** len(cube_deltas)
+    counts = np.zeros((3, n_ctx), np.int64)
+    cdf = np.empty((n_ctx, 3), np.int64)
+    a = m
+    for w in range(len(cube_bounds) - 1):
+        for ctx in range(n_ctx):
+            c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
+            s = (c0 + c1) + c2
+            cdf[ctx, 1], cdf[ctx, 2] = _cdf3(c0 / s, c1 / s, c2 / s)
+            cdf[ctx, 0] = 0
+        a = m
+        for r in range(p_rows):
+            for t in range(cube_bounds[w], cube_bounds[w + 1]):
+                at = r * cstride + cube_at[t]
+                ctx = 0
+                for qq in range(len(cube_deltas) - 1, -1, -1):
+                    ctx = ctx * 4 + cflat[at + cube_deltas[qq]]
+                sym = cflat[at]
+                lo = cdf[ctx, sym]
+                hi = _TOTAL if sym == 2 else cdf[ctx, sym + 1]
+                left[m], freq[m] = lo, hi - lo
+                m += 1
+        for r in range(p_rows):
+            for t in range(cube_bounds[w], cube_bounds[w + 1]):
+                at = r * cstride + cube_at[t]
+                ctx = 0
+                for qq in range(len(cube_deltas) - 1, -1, -1):
+                    ctx = ctx * 4 + cflat[at + cube_deltas[qq]]
+                counts[cflat[at], ctx] += 1
+    return m
+
+
+@njit(cache=True)
+def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m):
+    """The encoder's side of :func:`decode_bits`: the intervals of the known bits ``grid[at]``, from ``m`` on;
+    returns the next free index, or -1 when a context reaches ``n_ctx``."""
+    counts = np.zeros((2, n_ctx), np.int64)
+    ctxs = np.empty(len(at), np.int64)
+    has_extra = len(extra) > 0
+    for w in range(len(bounds) - 1):
+        a, b = bounds[w], bounds[w + 1]
+        for i in range(a, b):
+            pos = at[i]
+            ctx = 0
+            for q in range(len(deltas)):
+                ctx += np.int64(grid[pos + deltas[q]]) * weights[q]
+            if has_extra:
+                ctx += extra[i]
+            if ctx < 0 or ctx >= n_ctx:
+                return -1
+            ctxs[i] = ctx
+            n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
+            p = n1 / (n0 + n1)
+            pm = 1.0 - p
+            c1 = np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
+            if grid[pos]:
+                left[m], freq[m] = c1, _TOTAL - c1
+            else:
+                left[m], freq[m] = 0, c1
+            m += 1
+        for i in range(a, b):
+            counts[np.int64(grid[at[i]]), ctxs[i]] += 1
+    return m
 
 
 @njit(cache=True)

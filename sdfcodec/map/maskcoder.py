@@ -148,13 +148,26 @@ def encode_mask_rows(rows: np.ndarray) -> bytes:
     rows = np.ascontiguousarray(rows, dtype=np.uint8).reshape(-1, _ROW)
     partial = (rows != 255).any(axis=1)
     p_rows = int(partial.sum())
+    flags = partial if 0 < p_rows < len(rows) else None
+    bits = np.unpackbits(rows[partial], axis=1)
+    if ans.available():  # compiled, the same words (tests/test_ans.py)
+        words = ans.encode_mask(flags, p_rows / max(len(rows), 1), bits, _flat_waves()[0], len(_waves()[0]),
+                                _CUBE_DELTAS, _DELTAS)
+    else:
+        words = _encode_words(flags, p_rows / max(len(rows), 1), bits)
+    return _MAGIC + np.uint32(p_rows).astype("<u4").tobytes() + np.asarray(words, dtype="<u4").tobytes()
+
+
+def _encode_words(flags: np.ndarray | None, p_flag: float, bits: np.ndarray) -> np.ndarray:
+    """constriction's words (the path without numba) of row flags ``flags`` (None: not coded) and the partial
+    rows' bits ``(P, 4096)``."""
+    p_rows = len(bits)
     st = _stream()
     bern, cat = st.model.Bernoulli(perfect=False), st.model.Categorical(perfect=False)
     coder = st.stack.AnsCoder()
     parts: list[tuple[Any, np.ndarray, np.ndarray]] = []  # (model, symbols, probabilities) in decode order
-    if 0 < p_rows < len(rows):
-        parts.append((bern, partial.astype(np.int32), np.full(len(rows), p_rows / len(rows))))
-    bits = np.unpackbits(rows[partial], axis=1)
+    if flags is not None:
+        parts.append((bern, flags.astype(np.int32), np.full(len(flags), p_flag)))
     vox_waves, cube_waves = _waves()
     states = _cube_states(bits)
     cpad = np.full((p_rows, _SUB + 2, _SUB + 2, _SUB + 2), 3, dtype=np.int64)
@@ -178,8 +191,7 @@ def encode_mask_rows(rows: np.ndarray) -> bytes:
     for m, sym, p in reversed(parts):  # a stack: the last decoded goes in first
         if len(sym):
             coder.encode_reverse(sym, m, p)
-    words = np.asarray(coder.get_compressed(), dtype="<u4")
-    return _MAGIC + np.uint32(p_rows).astype("<u4").tobytes() + words.tobytes()
+    return np.asarray(coder.get_compressed(), dtype="<u4")
 
 
 def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a coded mask chunk") -> np.ndarray:
