@@ -11,7 +11,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["available", "Decoder", "decode_mask", "encode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
+__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
            "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -102,7 +102,16 @@ def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[n
     states = k.decode_cubes(dec.words, dec.st, int(p_rows), *cube_waves, np.asarray(cube_deltas, np.int64))
     vpad, at, bounds = k.mixed_voxels(states, len(vox_waves[2]) - 1)
     dec.bits(vpad.reshape(-1), at, bounds, deltas, 1 << np.arange(len(deltas)), 1 << len(deltas))
-    return partial, states, vpad.reshape(p_rows, 18, 18, 18)
+    return partial, states.astype(np.int64), vpad.reshape(p_rows, 18, 18, 18)
+
+
+def pack_mask(vpad: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, bool]:
+    """:func:`decode_mask`'s voxels ``(p, 18, 18, 18)`` as packed rows ``(p, 512)`` uint8 (``np.packbits`` of
+    the C-order bits), and whether each mixed sub-cube of ``states`` ``(p, 512)`` holds both values (else the
+    stream contradicts itself: corrupted)."""
+    out, ok = _k().pack_rows(np.ascontiguousarray(vpad, np.uint8).reshape(len(vpad), -1),
+                             np.ascontiguousarray(states, np.int64))
+    return out, bool(ok)
 
 
 def encode_mask(partial: np.ndarray | None, p_flag: float, bits: np.ndarray,

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "decode_bits", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -122,15 +122,15 @@ def decode_flags(words, st, n, p):
 
 @njit(cache=True)
 def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas):
-    """The sub-cube states ``(p_rows, 512)`` int64 of the observation-mask stream ``M1``
+    """The sub-cube states ``(p_rows, 512)`` uint8 of the observation-mask stream ``M1``
     (:mod:`sdfcodec.map.maskcoder`): wavefront by wavefront (``cube_bounds`` delimit them in ``cube_at``, the
     padded (10^3) flat indices, and ``cube_flat``, the unpadded (8^3) ones), every row, each state (0, 1, 2)
     under ``Categorical(perfect=False)`` with Krichevsky-Trofimov probabilities of its context: the states at
     ``cube_deltas`` (3 = outside the block) as base-4 digits, the first least significant, counted over the
     wavefronts before."""
-    states = np.zeros((p_rows, 512), np.int64)
+    states = np.zeros((p_rows, 512), np.uint8)
     cstride = 10 * 10 * 10
-    cflat = np.full(p_rows * cstride, 3, np.int64)
+    cflat = np.full(p_rows * cstride, 3, np.uint8)  # bytes: the rows swept once per wavefront stay in cache
     n_ctx = 4 ** len(cube_deltas)
     counts = np.zeros((3, n_ctx), np.int64)
     cdf = np.empty((n_ctx, 2), np.int64)
@@ -147,7 +147,7 @@ def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas
                 at = r * cstride + cube_at[t]
                 ctx = 0
                 for qq in range(len(cube_deltas) - 1, -1, -1):
-                    ctx = ctx * 4 + cflat[at + cube_deltas[qq]]
+                    ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
                 sym = _symbol3(words, st, cdf[ctx, 0], cdf[ctx, 1])
                 cflat[at] = sym
                 states[r, cube_flat[t]] = sym
@@ -200,6 +200,28 @@ def mixed_voxels(states, n_waves):
         at[fill[wave[t]]] = pos[t]
         fill[wave[t]] += 1
     return vpad, at, bounds
+
+
+@njit(cache=True)
+def pack_rows(vpad, states):
+    """Decoded voxels padded by one ``(p, 18^3)`` uint8 -> (packed mask rows ``(p, 512)`` uint8, C order, most
+    significant bit first as numpy's packbits; whether every mixed sub-cube of ``states`` ``(p, 512)`` decoded
+    both values, as a sound stream does)."""
+    p_rows = len(vpad)
+    out = np.zeros((p_rows, 512), np.uint8)
+    sums = np.zeros(512, np.int64)
+    ok = True
+    for r in range(p_rows):
+        sums[:] = 0
+        for c in range(4096):
+            b = vpad[r, (((c >> 8) + 1) * 18 + ((c >> 4) & 15) + 1) * 18 + (c & 15) + 1]
+            if b:
+                out[r, c >> 3] |= np.uint8(128 >> (c & 7))
+                sums[((c >> 9) & 7) * 64 + ((c >> 5) & 7) * 8 + ((c >> 1) & 7)] += 1
+        for t in range(512):
+            if states[r, t] == 2 and (sums[t] == 0 or sums[t] == 8):
+                ok = False
+    return out, ok
 
 
 @njit(cache=True)
@@ -257,7 +279,7 @@ def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, f
     ``left``/``freq`` from ``m`` on, in decode order; returns the next free index."""
     p_rows = len(states)
     cstride = 10 * 10 * 10
-    cflat = np.full(p_rows * cstride, 3, np.int64)
+    cflat = np.full(p_rows * cstride, 3, np.uint8)
     for r in range(p_rows):
         for t in range(len(cube_at)):
             cflat[r * cstride + cube_at[t]] = states[r, cube_flat[t]]
@@ -277,8 +299,8 @@ def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, f
                 at = r * cstride + cube_at[t]
                 ctx = 0
                 for qq in range(len(cube_deltas) - 1, -1, -1):
-                    ctx = ctx * 4 + cflat[at + cube_deltas[qq]]
-                sym = cflat[at]
+                    ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
+                sym = np.int64(cflat[at])
                 lo = cdf[ctx, sym]
                 hi = _TOTAL if sym == 2 else cdf[ctx, sym + 1]
                 left[m], freq[m] = lo, hi - lo
@@ -288,8 +310,8 @@ def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, f
                 at = r * cstride + cube_at[t]
                 ctx = 0
                 for qq in range(len(cube_deltas) - 1, -1, -1):
-                    ctx = ctx * 4 + cflat[at + cube_deltas[qq]]
-                counts[cflat[at], ctx] += 1
+                    ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
+                counts[np.int64(cflat[at]), ctx] += 1
     return m
 
 

@@ -220,10 +220,14 @@ def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a co
         raise ChecksumError(f"{where} is not a sound {MASK_ANS_CODEC} stream ({type(e).__name__}: {e})") from e
     if int(partial.sum()) != p_rows:
         raise ChecksumError(f"{where} decodes {int(partial.sum())} partial rows, its header says {p_rows}")
-    bits = vpad[:, 1:-1, 1:-1, 1:-1].reshape(p_rows, -1).astype(np.uint8)
-    if (_cube_states(bits) != states).any():
+    if ans.available():
+        packed, sound = ans.pack_mask(vpad, states)
+    else:
+        bits = vpad[:, 1:-1, 1:-1, 1:-1].reshape(p_rows, -1).astype(np.uint8)
+        packed, sound = np.packbits(bits, axis=1), not (_cube_states(bits) != states).any()
+    if not sound:
         raise ChecksumError(f"{where} decodes voxels that contradict its sub-cube states; it is corrupted")
-    out[partial] = np.packbits(bits, axis=1)
+    out[partial] = packed
     return out
 
 
