@@ -53,26 +53,27 @@ def start(words, st):
 
 
 @njit(cache=True, inline="always")
-def _advance(words, st, left, right, quantile):
-    s = (st[0] >> _PREC) * np.uint64(right - left) + np.uint64(quantile - left)
-    if s < _LOW and st[1] > 0:
-        p = st[1] - _ONE
-        s = (s << _W) | np.uint64(words[p])
-        st[1] = p
-    st[0] = s
+def _advance(words, s, pos, left, right, quantile):
+    """The state ``s`` and words left ``pos`` after decoding the symbol of ``[left, right)`` (kept in locals by
+    the callers' loops, not in ``st``: stores to the output arrays would make the compiler reload it)."""
+    s = (s >> _PREC) * np.uint64(right - left) + np.uint64(quantile - left)
+    if s < _LOW and pos > 0:
+        pos -= 1
+        s = (s << _W) | np.uint64(words[pos])
+    return s, pos
 
 
 @njit(cache=True, inline="always")
-def _bernoulli(words, st, p):
+def _bernoulli(words, s, pos, p):
     """One bit under ``Bernoulli(perfect=False)`` with ``p = P(1)``."""
-    q = np.int64(st[0] & _QMASK)
+    q = np.int64(s & _QMASK)
     pm = 1.0 - p
     c1 = np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
     if q < c1:
-        _advance(words, st, 0, c1, q)
-        return 0
-    _advance(words, st, c1, _TOTAL, q)
-    return 1
+        s, pos = _advance(words, s, pos, 0, c1, q)
+        return 0, s, pos
+    s, pos = _advance(words, s, pos, c1, _TOTAL, q)
+    return 1, s, pos
 
 
 @njit(cache=True, inline="always")
@@ -83,23 +84,21 @@ def _cdf3(p0, p1, p2):
 
 
 @njit(cache=True, inline="always")
-def _symbol3(words, st, c1, c2):
-    """One of three symbols under the table ``0, c1, c2, 2^24``."""
-    q = np.int64(st[0] & _QMASK)
-    if q < c1:
-        _advance(words, st, 0, c1, q)
-        return 0
-    if q < c2:
-        _advance(words, st, c1, c2, q)
-        return 1
-    _advance(words, st, c2, _TOTAL, q)
-    return 2
+def _symbol3(words, s, pos, c1, c2):
+    """One of three symbols under the table ``0, c1, c2, 2^24`` (selects, not branches: the symbols of a mask
+    are not predictable enough for a branch predictor)."""
+    q = np.int64(s & _QMASK)
+    a, b = q >= c1, q >= c2
+    lo = c2 if b else (c1 if a else 0)
+    hi = _TOTAL if b else (c2 if a else c1)
+    s, pos = _advance(words, s, pos, lo, hi, q)
+    return np.int64(a) + np.int64(b), s, pos
 
 
 @njit(cache=True, inline="always")
-def _from_cdf(words, st, cdf, a, n):
+def _from_cdf(words, s, pos, cdf, a, n):
     """One symbol of ``0..n-1`` under the table ``cdf[a:a + n + 1]``: a binary search."""
-    q = np.int64(st[0] & _QMASK)
+    q = np.int64(s & _QMASK)
     lo, hi = 0, n  # cdf[a + lo] <= q < cdf[a + hi]
     while hi - lo > 1:
         mid = (lo + hi) >> 1
@@ -107,16 +106,18 @@ def _from_cdf(words, st, cdf, a, n):
             lo = mid
         else:
             hi = mid
-    _advance(words, st, cdf[a + lo], cdf[a + lo + 1], q)
-    return lo
+    s, pos = _advance(words, s, pos, cdf[a + lo], cdf[a + lo + 1], q)
+    return lo, s, pos
 
 
 @njit(cache=True)
 def decode_flags(words, st, n, p):
     """``n`` bits ``(n,)`` uint8, each under ``Bernoulli(p, perfect=False)``."""
     out = np.empty(n, np.uint8)
+    s, pos = st[0], np.int64(st[1])
     for i in range(n):
-        out[i] = _bernoulli(words, st, p)
+        out[i], s, pos = _bernoulli(words, s, pos, p)
+    st[0], st[1] = s, np.uint64(pos)
     return out
 
 
@@ -136,11 +137,12 @@ def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas
     cdf = np.empty((n_ctx, 2), np.int64)
     buf_ctx = np.empty(p_rows * 64, np.int64)  # a wavefront of 8^3 has at most 48 cells
     buf_sym = np.empty(p_rows * 64, np.int64)
+    s, pos = st[0], np.int64(st[1])
     for w in range(len(cube_bounds) - 1):
         for ctx in range(n_ctx):  # the counts hold for the whole wavefront: each context's table once
             c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
-            s = (c0 + c1) + c2
-            cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / s, c1 / s, c2 / s)
+            t3 = (c0 + c1) + c2
+            cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / t3, c1 / t3, c2 / t3)
         m = 0
         for r in range(p_rows):
             for t in range(cube_bounds[w], cube_bounds[w + 1]):
@@ -148,13 +150,14 @@ def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas
                 ctx = 0
                 for qq in range(len(cube_deltas) - 1, -1, -1):
                     ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
-                sym = _symbol3(words, st, cdf[ctx, 0], cdf[ctx, 1])
+                sym, s, pos = _symbol3(words, s, pos, cdf[ctx, 0], cdf[ctx, 1])
                 cflat[at] = sym
                 states[r, cube_flat[t]] = sym
                 buf_ctx[m], buf_sym[m] = ctx, sym
                 m += 1
         for i in range(m):
             counts[buf_sym[i], buf_ctx[i]] += 1
+    st[0], st[1] = s, np.uint64(pos)
     return states
 
 
@@ -208,19 +211,28 @@ def pack_rows(vpad, states):
     significant bit first as numpy's packbits; whether every mixed sub-cube of ``states`` ``(p, 512)`` decoded
     both values, as a sound stream does)."""
     p_rows = len(vpad)
-    out = np.zeros((p_rows, 512), np.uint8)
-    sums = np.zeros(512, np.int64)
+    out = np.empty((p_rows, 512), np.uint8)
     ok = True
     for r in range(p_rows):
-        sums[:] = 0
-        for c in range(4096):
-            b = vpad[r, (((c >> 8) + 1) * 18 + ((c >> 4) & 15) + 1) * 18 + (c & 15) + 1]
-            if b:
-                out[r, c >> 3] |= np.uint8(128 >> (c & 7))
-                sums[((c >> 9) & 7) * 64 + ((c >> 5) & 7) * 8 + ((c >> 1) & 7)] += 1
+        v = vpad[r]
+        for i in range(16):
+            for j in range(16):
+                base = ((i + 1) * 18 + j + 1) * 18 + 1
+                for h in range(2):  # a line of 16 voxels is two bytes
+                    byte = 0
+                    for k in range(8 * h, 8 * h + 8):
+                        byte = (byte << 1) | v[base + k]
+                    out[r, (i * 16 + j) * 2 + h] = byte
         for t in range(512):
-            if states[r, t] == 2 and (sums[t] == 0 or sums[t] == 8):
-                ok = False
+            if states[r, t] == 2:
+                i0, j0, k0 = 2 * (t >> 6), 2 * ((t >> 3) & 7), 2 * (t & 7)
+                n = 0
+                for di in range(2):
+                    for dj in range(2):
+                        at = ((i0 + di + 1) * 18 + j0 + dj + 1) * 18 + k0 + 1
+                        n += v[at] + v[at + 1]
+                if n == 0 or n == 8:
+                    ok = False
     return out, ok
 
 
@@ -238,22 +250,26 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
         widest = max(widest, bounds[w + 1] - bounds[w])
     buf_ctx = np.empty(widest, np.int64)
     has_extra = len(extra) > 0
+    s, pos = st[0], np.int64(st[1])
     for w in range(len(bounds) - 1):
         a, b = bounds[w], bounds[w + 1]
         for i in range(a, b):
-            pos = at[i]
+            g = at[i]
             ctx = 0
             for q in range(len(deltas)):
-                ctx += np.int64(grid[pos + deltas[q]]) * weights[q]
+                ctx += np.int64(grid[g + deltas[q]]) * weights[q]
             if has_extra:
                 ctx += extra[i]
             if ctx < 0 or ctx >= n_ctx:
+                st[0], st[1] = s, np.uint64(pos)
                 return False
             n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
-            grid[pos] = _bernoulli(words, st, n1 / (n0 + n1))
+            bit, s, pos = _bernoulli(words, s, pos, n1 / (n0 + n1))
+            grid[g] = bit
             buf_ctx[i - a] = ctx
         for i in range(a, b):
             counts[np.int64(grid[at[i]]), buf_ctx[i - a]] += 1
+    st[0], st[1] = s, np.uint64(pos)
     return True
 
 
@@ -407,14 +423,16 @@ def chunk_decode(words, n, level, cdfs, at, sizes, off):
     if not start(words, st):
         return 1, out
     k = np.empty(n, np.int64)
+    s, pos = st[0], np.int64(st[1])
     for i in range(n):
-        k[i] = _from_cdf(words, st, cdfs, at[0], sizes[0])
+        k[i], s, pos = _from_cdf(words, s, pos, cdfs, at[0], sizes[0])
     for j in range(level):
         any_ = False
         for i in range(n):
             if k[i] > j:
                 any_ = True
-                out[i, j] = _from_cdf(words, st, cdfs, at[j + 1], sizes[j + 1]) - off[j]
+                v, s, pos = _from_cdf(words, s, pos, cdfs, at[j + 1], sizes[j + 1])
+                out[i, j] = v - off[j]
         if not any_:
             break
     return 0, out
