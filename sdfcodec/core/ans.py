@@ -140,8 +140,8 @@ def encode_mask(partial: np.ndarray | None, p_flag: float, bits: np.ndarray,
 def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The cumulative tables constriction's ``Categorical(table, perfect=False)`` builds of the variable-rate
     model's tables (:class:`sdfcodec.core.varrate.EntropyModel`: ``lengths`` ``(D + 1,)`` float64, then per
-    element the two-sided geometric law of ``decay``, ``extent`` ``(D,)``): (all of them concatenated, int64;
-    where each starts; its symbol count), as :func:`decode_chunk` takes them."""
+    element the two-sided geometric law of ``decay``, ``extent`` ``(D,)``): (all of them concatenated, uint32;
+    where each starts; its symbol count), as :func:`decode_chunk` takes them (uint32 tables)."""
     return _k().table_cdfs(np.ascontiguousarray(lengths, np.float64), np.ascontiguousarray(decay, np.float64),
                            np.ascontiguousarray(extent, np.int64))
 

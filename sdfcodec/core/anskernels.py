@@ -96,17 +96,31 @@ def _symbol3(words, s, pos, c1, c2):
 
 
 @njit(cache=True, inline="always")
-def _from_cdf(words, s, pos, cdf, a, n):
-    """One symbol of ``0..n-1`` under the table ``cdf[a:a + n + 1]``: a binary search."""
-    q = np.int64(s & _QMASK)
+def _from_cdf(words, s, pos, cdf, a, n, hint):
+    """One symbol of ``0..n-1`` under the table ``cdf[a:a + n + 1]``: a search from symbol ``hint`` outward by
+    doubling steps, then by halves (the symbol with ``cdf[s] <= quantile < cdf[s + 1]``, as a binary search
+    finds it, but the values near a peaked law's centre stay in cache when its table is megabytes)."""
+    q = np.uint32(s & _QMASK)
     lo, hi = 0, n  # cdf[a + lo] <= q < cdf[a + hi]
+    if cdf[a + hint] <= q:
+        lo, step = hint, 1
+        while lo + step < n and cdf[a + lo + step] <= q:
+            lo += step
+            step *= 2
+        hi = min(lo + step, n)
+    else:
+        hi, step = hint, 1
+        while hi - step > 0 and cdf[a + hi - step] > q:
+            hi -= step
+            step *= 2
+        lo = max(hi - step, 0)
     while hi - lo > 1:
         mid = (lo + hi) >> 1
         if cdf[a + mid] <= q:
             lo = mid
         else:
             hi = mid
-    s, pos = _advance(words, s, pos, cdf[a + lo], cdf[a + lo + 1], q)
+    s, pos = _advance(words, s, pos, np.int64(cdf[a + lo]), np.int64(cdf[a + lo + 1]), np.int64(q))
     return lo, s, pos
 
 
@@ -365,24 +379,23 @@ def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m
 
 
 @njit(cache=True)
-def _cdf_of(table, out, o):
+def _cdf_of(table, out, o, cum):
     """``out[o:o + n + 1]`` = the cumulative table of probabilities ``table`` ``(n,)`` float64 (the left-to-right
-    sums first, in ``out`` as float64 bits: one chain of dependent adds, not two)."""
+    sums first, into the scratch ``cum``: one chain of dependent adds, not two)."""
     n = len(table)
-    cum = out[o:o + n + 1].view(np.float64)
     c = 0.0
     for i in range(n):
         cum[i] = c
         c += table[i]
     scale = (_TOTAL - n) / c
     for i in range(n):
-        out[o + i] = np.int64(cum[i] * scale) + i
+        out[o + i] = np.uint32(np.int64(cum[i] * scale) + i)
     out[o + n] = _TOTAL
 
 
 @njit(cache=True)
 def table_cdfs(first, decay, extent):
-    """Cumulative tables, concatenated ``(len(first) + 1 + sum(2 e_j + 2),)`` int64, of ``first`` (float64) and
+    """Cumulative tables, concatenated ``(len(first) + 1 + sum(2 e_j + 2),)`` uint32, of ``first`` (float64) and
     of each two-sided geometric table of :meth:`sdfcodec.core.varrate.EntropyModel.table` (``e_j = max(extent_j,
     1)``; its entries ``decay_j ** |i - e_j|`` as numpy's cumprod makes them: one multiply per step), each ``n +
     1`` long. Returns (tables, where each starts ``(D + 1,)``, symbols of each ``(D + 1,)``)."""
@@ -396,8 +409,9 @@ def table_cdfs(first, decay, extent):
     for j in range(d + 1):
         at[j] = o
         o += sizes[j] + 1
-    out = np.empty(o, np.int64)
-    _cdf_of(first, out, 0)
+    out = np.empty(o, np.uint32)  # 2^24 fits: half the bytes a decode walks through
+    cum = np.empty(max(sizes.max(), 1))
+    _cdf_of(first, out, 0, cum)
     for j in range(d):
         e = max(extent[j], 1)
         half = np.empty(e + 1)
@@ -408,7 +422,7 @@ def table_cdfs(first, decay, extent):
         for i in range(e + 1):
             table[e - i] = half[i]
             table[e + i] = half[i]
-        _cdf_of(table, out, at[j + 1])
+        _cdf_of(table, out, at[j + 1], cum)
     return out, at, sizes
 
 
@@ -425,13 +439,13 @@ def chunk_decode(words, n, level, cdfs, at, sizes, off):
     k = np.empty(n, np.int64)
     s, pos = st[0], np.int64(st[1])
     for i in range(n):
-        k[i], s, pos = _from_cdf(words, s, pos, cdfs, at[0], sizes[0])
+        k[i], s, pos = _from_cdf(words, s, pos, cdfs, at[0], sizes[0], sizes[0] >> 1)
     for j in range(level):
         any_ = False
         for i in range(n):
             if k[i] > j:
                 any_ = True
-                v, s, pos = _from_cdf(words, s, pos, cdfs, at[j + 1], sizes[j + 1])
+                v, s, pos = _from_cdf(words, s, pos, cdfs, at[j + 1], sizes[j + 1], sizes[j + 1] >> 1)
                 out[i, j] = v - off[j]
         if not any_:
             break
