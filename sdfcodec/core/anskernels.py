@@ -124,6 +124,26 @@ def _from_cdf(words, s, pos, cdf, a, n, hint):
     return lo, s, pos
 
 
+@njit(cache=True, inline="always")
+def _cube_context(cflat, at, cube_deltas):
+    """The context of the sub-cube at ``at``: the states at ``cube_deltas`` as base-4 digits, first least
+    significant."""
+    ctx = 0
+    for qq in range(len(cube_deltas) - 1, -1, -1):
+        ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
+    return ctx
+
+
+@njit(cache=True)
+def _cube_tables(counts, cdf):
+    """``cdf[ctx] = (cdf[1], cdf[2])`` of each context's Krichevsky-Trofimov probabilities from ``counts``
+    ``(3, n_ctx)``: the counts hold for a whole wavefront, so each context's table is made once."""
+    for ctx in range(counts.shape[1]):
+        c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
+        t3 = (c0 + c1) + c2
+        cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / t3, c1 / t3, c2 / t3)
+
+
 @njit(cache=True)
 def decode_flags(words, st, n, p):
     """``n`` bits ``(n,)`` uint8, each under ``Bernoulli(p, perfect=False)``."""
@@ -153,17 +173,12 @@ def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas
     buf_sym = np.empty(p_rows * 64, np.int64)
     s, pos = st[0], np.int64(st[1])
     for w in range(len(cube_bounds) - 1):
-        for ctx in range(n_ctx):  # the counts hold for the whole wavefront: each context's table once
-            c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
-            t3 = (c0 + c1) + c2
-            cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / t3, c1 / t3, c2 / t3)
+        _cube_tables(counts, cdf)
         m = 0
         for r in range(p_rows):
             for t in range(cube_bounds[w], cube_bounds[w + 1]):
                 at = r * cstride + cube_at[t]
-                ctx = 0
-                for qq in range(len(cube_deltas) - 1, -1, -1):
-                    ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
+                ctx = _cube_context(cflat, at, cube_deltas)
                 sym, s, pos = _symbol3(words, s, pos, cdf[ctx, 0], cdf[ctx, 1])
                 cflat[at] = sym
                 states[r, cube_flat[t]] = sym
@@ -315,33 +330,24 @@ def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, f
             cflat[r * cstride + cube_at[t]] = states[r, cube_flat[t]]
     n_ctx = 4 ** len(cube_deltas)
     counts = np.zeros((3, n_ctx), np.int64)
-    cdf = np.empty((n_ctx, 3), np.int64)
-    a = m
+    cdf = np.empty((n_ctx, 2), np.int64)
+    buf_ctx = np.empty(p_rows * 64, np.int64)  # a wavefront of 8^3 has at most 48 cells
+    buf_sym = np.empty(p_rows * 64, np.int64)
     for w in range(len(cube_bounds) - 1):
-        for ctx in range(n_ctx):
-            c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
-            s = (c0 + c1) + c2
-            cdf[ctx, 1], cdf[ctx, 2] = _cdf3(c0 / s, c1 / s, c2 / s)
-            cdf[ctx, 0] = 0
+        _cube_tables(counts, cdf)
         a = m
         for r in range(p_rows):
             for t in range(cube_bounds[w], cube_bounds[w + 1]):
                 at = r * cstride + cube_at[t]
-                ctx = 0
-                for qq in range(len(cube_deltas) - 1, -1, -1):
-                    ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
+                ctx = _cube_context(cflat, at, cube_deltas)
                 sym = np.int64(cflat[at])
-                lo = cdf[ctx, sym]
-                hi = _TOTAL if sym == 2 else cdf[ctx, sym + 1]
+                lo = 0 if sym == 0 else cdf[ctx, sym - 1]
+                hi = _TOTAL if sym == 2 else cdf[ctx, sym]
                 left[m], freq[m] = lo, hi - lo
+                buf_ctx[m - a], buf_sym[m - a] = ctx, sym
                 m += 1
-        for r in range(p_rows):
-            for t in range(cube_bounds[w], cube_bounds[w + 1]):
-                at = r * cstride + cube_at[t]
-                ctx = 0
-                for qq in range(len(cube_deltas) - 1, -1, -1):
-                    ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
-                counts[np.int64(cflat[at]), ctx] += 1
+        for i in range(m - a):
+            counts[buf_sym[i], buf_ctx[i]] += 1
     return m
 
 
