@@ -155,6 +155,7 @@ def test_real_masks_decode_the_same_on_both_paths(monkeypatch):
         with monkeypatch.context() as m:
             m.setattr(ans, "available", lambda: False)
             assert np.array_equal(decode_mask_rows(stream, len(rows)), rows), name
+            assert encode_mask_rows(rows) == stream, name  # constriction's encoder writes the same bytes
         # and the words themselves, stage by stage, as constriction reads them
         words = np.frombuffer(stream[6:], "<u4").astype(np.uint32)
         p_rows = int(np.frombuffer(stream[2:6], "<u4")[0])
