@@ -165,6 +165,29 @@ def test_stored_prefixes_are_the_dequantised_codes(tmp_path, scene_volume, pca32
     assert len(ca) == 10 and len(ca & cb) >= 6, (ca, cb)
 
 
+@pytest.mark.parametrize("merge", [0, 10 ** 9])
+def test_runs_of_prefix_lengths_decode_each_block_alike_merged_or_not(tmp_path, scene_volume, pca32, monkeypatch,
+                                                                       merge):
+    """decode_runs decodes runs of like prefix lengths apart (RUN_MERGE 0) or joined into the wider run (a large
+    RUN_MERGE: one product at the longest prefix): either way every block is the codec's decode of its own
+    zero-padded code, and the groups come back in the order of their coordinates."""
+    from sdfcodec.map import varrate
+
+    monkeypatch.setattr(varrate, "RUN_MERGE", merge)
+    monkeypatch.setattr(varrate, "RUN_WIDTH", 4)  # runs of 4 elements: the scene's prefixes (26-32) span several
+    vr = _write(tmp_path / "vr.sdfz", pca32, scene_volume, variable_rate={"step": 0.3})
+    coords, z = vr.read_codes()
+    lengths = np.where((z != 0).any(1), 32 - np.argmax((z != 0)[:, ::-1], axis=1), 0)
+    assert len(np.unique(-(-lengths // varrate.RUN_WIDTH))) > 1  # blocks of more than one run width
+    full = dict(zip(map(tuple, coords), np.clip(pca32.decode(z) * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)))
+    seen = 0
+    for cs, blocks in vr.iter_decoded():
+        for c, b in zip(cs, np.asarray(blocks)):
+            np.testing.assert_allclose(b, full[tuple(c)], atol=1e-5)
+            seen += 1
+    assert seen == len(coords)
+
+
 def test_a_missing_or_corrupt_stream_is_one_clear_error(tmp_path, scene_volume, pca32):
     root = tmp_path / "vr.sdfz"
     # without the integrity manifest, which would refuse the missing chunk first (tests/test_manifest.py): the

@@ -27,6 +27,10 @@ __all__ = ["load_codec", "shipped_reference", "shipped_model_of", "resolve_refer
 #: (codec class, model, code size) -> (digest, state): a shipped model's state is cut and hashed once per process
 #: (ae-64: 0.16 s to load, 0.03 s to hash on 2 cores), however many maps name it.
 _RESOLVED: dict[tuple[type, str, int], tuple[str, dict[str, np.ndarray]]] = {}
+#: (codec class, code size, digest) of shipped states a codec has validated in this process: the installed
+#: plugin's own arrays, matched by digest, need the check once, not at every open (pca-128's C C^T was a quarter
+#: of a small map's read: 46-83 ms at load 6-8).
+_VALIDATED: set[tuple[type, int, str]] = set()
 
 
 def state_digest(state: dict[str, np.ndarray]) -> str:
@@ -173,7 +177,12 @@ def load_codec(reader: MapReader) -> Codec:
     try:
         if state:
             codec = codec.load_state_dict(state)
-            codec.validate_state()  # the codec's own judgement of what the digest cannot vouch for
+            ref = spec.state_reference
+            key = None if ref is None else (cls, h.codes.size, ref.sha256)
+            if key is None or key not in _VALIDATED:
+                codec.validate_state()  # the codec's own judgement of what the digest cannot vouch for
+                if key is not None:
+                    _VALIDATED.add(key)
         fitted = codec.is_fitted
     except Exception as e:
         raise FormatError(f"{where}: the codec state under codec/ does not fit codec {spec.id!r} "

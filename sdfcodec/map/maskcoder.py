@@ -33,6 +33,7 @@ import numpy as np
 import zarr
 from zarr.abc.buffer import Buffer, NDBuffer
 
+from ..core import ans
 from ..core._validate import BLOCK
 from ..errors import ChecksumError, FormatError
 from ..core.header import CODED_MASK_EXTENSION
@@ -76,6 +77,18 @@ def _waves() -> tuple[tuple[tuple[np.ndarray, np.ndarray], ...], tuple[tuple[np.
                       ]:
     """(voxel wavefronts, sub-cube wavefronts)."""
     return _wavefronts(BLOCK, 1), _wavefronts(_SUB, 1)
+
+
+@lru_cache(maxsize=1)
+def _flat_waves() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(sub-cube, voxel) wavefronts as the compiled decoder takes them: (padded flat indices, unpadded flat
+    indices, bounds of each wavefront) concatenated in wavefront order."""
+    def cat(waves):
+        return (np.concatenate([a for a, _ in waves]), np.concatenate([b for _, b in waves]),
+                np.concatenate([[0], np.cumsum([len(a) for a, _ in waves])]).astype(np.int64))
+
+    vox, cube = _waves()
+    return cat(cube), cat(vox)
 
 
 @lru_cache(maxsize=1)
@@ -135,13 +148,26 @@ def encode_mask_rows(rows: np.ndarray) -> bytes:
     rows = np.ascontiguousarray(rows, dtype=np.uint8).reshape(-1, _ROW)
     partial = (rows != 255).any(axis=1)
     p_rows = int(partial.sum())
+    flags = partial if 0 < p_rows < len(rows) else None
+    bits = np.unpackbits(rows[partial], axis=1)
+    if ans.available():  # compiled, the same words (tests/test_ans.py)
+        words = ans.encode_mask(flags, p_rows / max(len(rows), 1), bits, _flat_waves()[0], len(_waves()[0]),
+                                _CUBE_DELTAS, _DELTAS)
+    else:
+        words = _encode_words(flags, p_rows / max(len(rows), 1), bits)
+    return _MAGIC + np.uint32(p_rows).astype("<u4").tobytes() + np.asarray(words, dtype="<u4").tobytes()
+
+
+def _encode_words(flags: np.ndarray | None, p_flag: float, bits: np.ndarray) -> np.ndarray:
+    """constriction's words (the path without numba) of row flags ``flags`` (None: not coded) and the partial
+    rows' bits ``(P, 4096)``."""
+    p_rows = len(bits)
     st = _stream()
     bern, cat = st.model.Bernoulli(perfect=False), st.model.Categorical(perfect=False)
     coder = st.stack.AnsCoder()
     parts: list[tuple[Any, np.ndarray, np.ndarray]] = []  # (model, symbols, probabilities) in decode order
-    if 0 < p_rows < len(rows):
-        parts.append((bern, partial.astype(np.int32), np.full(len(rows), p_rows / len(rows))))
-    bits = np.unpackbits(rows[partial], axis=1)
+    if flags is not None:
+        parts.append((bern, flags.astype(np.int32), np.full(len(flags), p_flag)))
     vox_waves, cube_waves = _waves()
     states = _cube_states(bits)
     cpad = np.full((p_rows, _SUB + 2, _SUB + 2, _SUB + 2), 3, dtype=np.int64)
@@ -165,8 +191,7 @@ def encode_mask_rows(rows: np.ndarray) -> bytes:
     for m, sym, p in reversed(parts):  # a stack: the last decoded goes in first
         if len(sym):
             coder.encode_reverse(sym, m, p)
-    words = np.asarray(coder.get_compressed(), dtype="<u4")
-    return _MAGIC + np.uint32(p_rows).astype("<u4").tobytes() + words.tobytes()
+    return np.asarray(coder.get_compressed(), dtype="<u4")
 
 
 def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a coded mask chunk") -> np.ndarray:
@@ -185,55 +210,67 @@ def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a co
     out = np.full((n_rows, _ROW), 255, dtype=np.uint8)
     if p_rows == 0:
         return out
-    st = _stream()
     words = np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32)
     try:
-        coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
-        bern, cat = st.model.Bernoulli(perfect=False), st.model.Categorical(perfect=False)
-        if p_rows < n_rows:
-            partial = coder.decode(bern, np.full(n_rows, p_rows / n_rows)).astype(bool)
-            if int(partial.sum()) != p_rows:
-                raise ChecksumError(f"{where} decodes {int(partial.sum())} partial rows, its header says {p_rows}")
+        if ans.available():  # compiled, the same stream (tests/test_ans.py)
+            partial, states, vpad = ans.decode_mask(words, n_rows, p_rows, *_flat_waves(), _CUBE_DELTAS, _DELTAS)
         else:
-            partial = np.ones(n_rows, dtype=bool)
-        vox_waves, cube_waves = _waves()
-        cpad = np.full((p_rows, _SUB + 2, _SUB + 2, _SUB + 2), 3, dtype=np.int64)
-        cflat, model, cstride = cpad.reshape(-1), _Adaptive(64, 3), (_SUB + 2) ** 3
-        states = np.empty((p_rows, _SUB ** 3), dtype=np.int64)
-        for wpad, wflat in cube_waves:
-            at = (np.arange(p_rows)[:, None] * cstride + wpad[None, :]).ravel()
-            ctx = _gather_context(cflat, at, _CUBE_DELTAS, 4)
-            sym = coder.decode(cat, model.probabilities(ctx)).astype(np.int64)
-            cflat[at] = sym
-            states[:, wflat] = sym.reshape(p_rows, -1)
-            model.add(ctx, sym)
-        per = _per_voxel(states)
-        vpad = np.zeros((p_rows, _PAD, _PAD, _PAD), dtype=np.uint8)
-        vpad[:, 1:-1, 1:-1, 1:-1] = per == 1  # uniform sub-cubes known; mixed ones decoded next
-        vflat, model = vpad.reshape(-1), _Adaptive(_NCTX, 2)
-        # every mixed voxel at once, grouped by wavefront; a stable sort keeps rows, then C order, in each
-        wave_of, padded_of = _voxel_tables()
-        r, c = np.nonzero((per == 2).reshape(p_rows, BLOCK ** 3))
-        order = np.argsort(wave_of[c], kind="stable")
-        at_all = (r * _PAD ** 3 + padded_of[c])[order]
-        bounds = np.searchsorted(wave_of[c][order], np.arange(len(vox_waves) + 1))
-        for w in range(len(vox_waves)):
-            at = at_all[bounds[w]:bounds[w + 1]]
-            if not len(at):
-                continue
-            ctx = _gather_context(vflat, at, _DELTAS, 2)
-            sym = coder.decode(bern, model.probabilities(ctx)).astype(np.int64)
-            vflat[at] = sym
-            model.add(ctx, sym)
-    except ChecksumError:
-        raise
+            partial, states, vpad = _decode_words(words, n_rows, p_rows)
     except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
         raise ChecksumError(f"{where} is not a sound {MASK_ANS_CODEC} stream ({type(e).__name__}: {e})") from e
-    bits = vpad[:, 1:-1, 1:-1, 1:-1].reshape(p_rows, -1).astype(np.uint8)
-    if (_cube_states(bits) != states).any():
+    if int(partial.sum()) != p_rows:
+        raise ChecksumError(f"{where} decodes {int(partial.sum())} partial rows, its header says {p_rows}")
+    if ans.available():
+        packed, sound = ans.pack_mask(vpad, states)
+    else:
+        bits = vpad[:, 1:-1, 1:-1, 1:-1].reshape(p_rows, -1).astype(np.uint8)
+        packed, sound = np.packbits(bits, axis=1), not (_cube_states(bits) != states).any()
+    if not sound:
         raise ChecksumError(f"{where} decodes voxels that contradict its sub-cube states; it is corrupted")
-    out[partial] = np.packbits(bits, axis=1)
+    out[partial] = packed
     return out
+
+
+def _decode_words(words: np.ndarray, n_rows: int, p_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """constriction's decode of a stream's words (the path without numba): (partial ``(n_rows,)`` bool, sub-cube
+    states ``(p_rows, 512)`` int64, voxels padded by one ``(p_rows, 18, 18, 18)`` uint8)."""
+    st = _stream()
+    coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
+    bern, cat = st.model.Bernoulli(perfect=False), st.model.Categorical(perfect=False)
+    if p_rows < n_rows:
+        partial = coder.decode(bern, np.full(n_rows, p_rows / n_rows)).astype(bool)
+    else:
+        partial = np.ones(n_rows, dtype=bool)
+    vox_waves, cube_waves = _waves()
+    cpad = np.full((p_rows, _SUB + 2, _SUB + 2, _SUB + 2), 3, dtype=np.int64)
+    cflat, model, cstride = cpad.reshape(-1), _Adaptive(64, 3), (_SUB + 2) ** 3
+    states = np.empty((p_rows, _SUB ** 3), dtype=np.int64)
+    for wpad, wflat in cube_waves:
+        at = (np.arange(p_rows)[:, None] * cstride + wpad[None, :]).ravel()
+        ctx = _gather_context(cflat, at, _CUBE_DELTAS, 4)
+        sym = coder.decode(cat, model.probabilities(ctx)).astype(np.int64)
+        cflat[at] = sym
+        states[:, wflat] = sym.reshape(p_rows, -1)
+        model.add(ctx, sym)
+    per = _per_voxel(states)
+    vpad = np.zeros((p_rows, _PAD, _PAD, _PAD), dtype=np.uint8)
+    vpad[:, 1:-1, 1:-1, 1:-1] = per == 1  # uniform sub-cubes known; mixed ones decoded next
+    vflat, model = vpad.reshape(-1), _Adaptive(_NCTX, 2)
+    # every mixed voxel at once, grouped by wavefront; a stable sort keeps rows, then C order, in each
+    wave_of, padded_of = _voxel_tables()
+    r, c = np.nonzero((per == 2).reshape(p_rows, BLOCK ** 3))
+    order = np.argsort(wave_of[c], kind="stable")
+    at_all = (r * _PAD ** 3 + padded_of[c])[order]
+    bounds = np.searchsorted(wave_of[c][order], np.arange(len(vox_waves) + 1))
+    for w in range(len(vox_waves)):
+        at = at_all[bounds[w]:bounds[w + 1]]
+        if not len(at):
+            continue
+        ctx = _gather_context(vflat, at, _DELTAS, 2)
+        sym = coder.decode(bern, model.probabilities(ctx)).astype(np.int64)
+        vflat[at] = sym
+        model.add(ctx, sym)
+    return partial, states, vpad
 
 
 @dataclass(frozen=True)

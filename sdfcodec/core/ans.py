@@ -1,0 +1,191 @@
+"""The compiled path of the rANS streams (observation masks, variable-rate codes): the same words as constriction
+0.5.0's ``AnsCoder`` with ``Bernoulli(perfect=False)`` / ``Categorical(perfect=False)`` models, decoded and
+encoded by :mod:`sdfcodec.core.anskernels` (numba, the optional extra ``fast``). Callers check
+:func:`available` and keep constriction's path without numba; both read and write the same streams.
+
+The kernels compile on first use and are cached on disk (a few seconds once per machine)."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+
+__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
+           "categorical_intervals"]
+
+_TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
+_FOUND: list[bool] = []
+
+
+def available() -> bool:
+    """Whether the compiled path can run here (numba is installed); checked without importing numba."""
+    if not _FOUND:
+        _FOUND.append(importlib.util.find_spec("numba") is not None)
+    return _FOUND[0]
+
+
+def _k():
+    from . import anskernels
+
+    return anskernels
+
+
+def _words(words: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(words, dtype=np.uint32)
+
+
+def _refuse(status: int) -> None:  # the chunk decoder's status
+    if status == 1:  # constriction's AnsCoder(words) refuses these with this message
+        raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
+
+
+class Decoder:
+    """constriction's ``AnsCoder(words)`` (words uint32, the last read first) for the compiled decoders: pass it
+    from one stage of a stream to the next.
+
+    Raises:
+        ValueError: the last word is 0 (no coder writes it; constriction refuses such a stream).
+    """
+
+    def __init__(self, words: np.ndarray) -> None:
+        self.words = np.ascontiguousarray(words, dtype=np.uint32)
+        self.st = np.zeros(2, np.uint64)
+        if not _k().start(self.words, self.st):
+            raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
+
+    def is_empty(self) -> bool:
+        """Whether every word was read and the state is back to 0 (constriction's ``is_empty``)."""
+        return int(self.st[0]) == 0
+
+    def flags(self, n: int, p: float) -> np.ndarray:
+        """``n`` bits ``(n,)`` bool under ``Bernoulli(p, perfect=False)``."""
+        return _k().decode_flags(self.words, self.st, int(n), float(p)).astype(bool)
+
+    def bits(self, grid: np.ndarray, at: np.ndarray, bounds: np.ndarray, deltas: np.ndarray, weights: np.ndarray,
+             n_ctx: int, extra: np.ndarray | None = None) -> None:
+        """Decode bits into ``grid`` (flat, C-contiguous, int64 or uint8) at positions ``at`` ``(m,)`` int64,
+        wavefront by wavefront (``bounds`` ``(W + 1,)`` delimit them in ``at``; every context reads earlier
+        wavefronts only), each under Krichevsky-Trofimov counts of its context ``sum_q grid[at + deltas[q]] *
+        weights[q] (+ extra)``, ``extra`` ``(m,)`` int64 scaled by the caller, all below ``n_ctx``: what
+        constriction decodes with ``Bernoulli(perfect=False)`` and per wavefront ``p1 = c1 / (c0 + c1)``, ``c =
+        counts + 1/2``, counts added after each wavefront.
+
+        Raises:
+            ValueError: a context is outside ``[0, n_ctx)``.
+        """
+        ok = _k().decode_bits(self.words, self.st, grid, np.asarray(at, np.int64), np.asarray(bounds, np.int64),
+                              np.asarray(deltas, np.int64), np.asarray(weights, np.int64),
+                              np.zeros(0, np.int64) if extra is None else np.asarray(extra, np.int64), int(n_ctx))
+        if not ok:
+            raise ValueError(f"a context is outside [0, {n_ctx})")
+
+
+def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray],
+                vox_waves: tuple[np.ndarray, np.ndarray, np.ndarray], cube_deltas: np.ndarray, deltas: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decode the words of a mask stream ``M1`` (:mod:`sdfcodec.map.maskcoder`): ``n_rows`` flags (when ``p_rows
+    < n_rows``), the ``(p_rows, 512)`` sub-cube states wavefront by wavefront, then the voxels of mixed sub-cubes
+    wavefront by wavefront (contexts: the bits at ``deltas``, ``q = 0`` least significant), each under
+    Krichevsky-Trofimov counts of the wavefronts before.
+
+    ``cube_waves``/``vox_waves``: (padded flat indices, unpadded flat indices, bounds) of the cells in wavefront
+    order (int64); ``cube_deltas``, ``deltas``: the context neighbours' padded offsets. Returns (partial
+    ``(n_rows,)`` bool, states ``(p_rows, 512)`` int64, voxels padded by one on every side ``(p_rows, 18, 18,
+    18)`` uint8).
+
+    Raises:
+        ValueError: the last word is 0 (no coder writes it).
+    """
+    k, dec = _k(), Decoder(words)
+    partial = dec.flags(n_rows, p_rows / n_rows) if p_rows < n_rows else np.ones(n_rows, bool)
+    states = k.decode_cubes(dec.words, dec.st, int(p_rows), *cube_waves, np.asarray(cube_deltas, np.int64))
+    vpad, at, bounds = k.mixed_voxels(states, len(vox_waves[2]) - 1)
+    dec.bits(vpad.reshape(-1), at, bounds, deltas, 1 << np.arange(len(deltas)), 1 << len(deltas))
+    return partial, states.astype(np.int64), vpad.reshape(p_rows, 18, 18, 18)
+
+
+def pack_mask(vpad: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, bool]:
+    """:func:`decode_mask`'s voxels ``(p, 18, 18, 18)`` as packed rows ``(p, 512)`` uint8 (``np.packbits`` of
+    the C-order bits), and whether each mixed sub-cube of ``states`` ``(p, 512)`` holds both values (else the
+    stream contradicts itself: corrupted)."""
+    out, ok = _k().pack_rows(np.ascontiguousarray(vpad, np.uint8).reshape(len(vpad), -1),
+                             np.ascontiguousarray(states, np.int64))
+    return out, bool(ok)
+
+
+def encode_mask(partial: np.ndarray | None, p_flag: float, bits: np.ndarray,
+                cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray], n_vox_waves: int, cube_deltas: np.ndarray,
+                deltas: np.ndarray) -> np.ndarray:
+    """The words :func:`decode_mask` reads back: row flags ``partial`` ``(R,)`` (None: not coded) under ``p_flag``,
+    then the sub-cube states and the voxels of mixed sub-cubes of ``bits`` ``(P, 4096)`` (0/1, the partial rows);
+    the same words as constriction's ``AnsCoder().encode_reverse`` of the same symbols and probabilities."""
+    k = _k()
+    bits = np.ascontiguousarray(bits, np.uint8).reshape(-1, 4096)
+    p_rows = len(bits)
+    vpad, states = k.padded_states(bits)
+    _, at, bounds = k.mixed_voxels(states, n_vox_waves)
+    n_flags = 0 if partial is None else len(partial)
+    total = n_flags + p_rows * 512 + len(at)
+    left, freq = np.empty(total, np.int64), np.empty(total, np.int64)
+    if n_flags:
+        left[:n_flags], freq[:n_flags] = bernoulli_intervals(partial, np.full(n_flags, p_flag))
+    m = k.cube_intervals(states, *cube_waves, np.asarray(cube_deltas, np.int64), left, freq, n_flags)
+    m = k.bit_intervals(vpad, at, bounds, np.asarray(deltas, np.int64), (1 << np.arange(len(deltas))).astype(np.int64),
+                        np.zeros(0, np.int64), 1 << len(deltas), left, freq, m)
+    assert m == total
+    return encode(left, freq)
+
+
+def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cumulative tables constriction's ``Categorical(table, perfect=False)`` builds of the variable-rate
+    model's tables (:class:`sdfcodec.core.varrate.EntropyModel`: ``lengths`` ``(D + 1,)`` float64, then per
+    element the two-sided geometric law of ``decay``, ``extent`` ``(D,)``): (all of them concatenated, uint32;
+    where each starts; its symbol count), as :func:`decode_chunk` takes them (uint32 tables)."""
+    return _k().table_cdfs(np.ascontiguousarray(lengths, np.float64), np.ascontiguousarray(decay, np.float64),
+                           np.ascontiguousarray(extent, np.int64))
+
+
+def decode_chunk(words: np.ndarray, n: int, level: int, cdfs: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 off: np.ndarray) -> np.ndarray:
+    """``(n, level)`` int32 from a variable-rate chunk stream (:func:`sdfcodec.core.varrate.decode_chunk`):
+    ``cdfs`` from :func:`table_cdfs` of [lengths table, element 0's table, ...]; ``off`` ``(D,)`` the symbol of
+    value 0 per element.
+
+    Raises:
+        ValueError: the last word is 0.
+    """
+    status, out = _k().chunk_decode(_words(words), int(n), int(level), cdfs[0], cdfs[1], cdfs[2],
+                                    np.asarray(off, np.int64))
+    _refuse(status)
+    return out
+
+
+def bernoulli_intervals(bits: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left, frequency) ``(n,)`` int64 of each bit under ``Bernoulli(p, perfect=False)``: float64 arithmetic
+    as constriction's, elementwise."""
+    p = np.asarray(p, np.float64)
+    pm = 1.0 - p
+    c1 = (pm * ((_TOTAL - 2) / (pm + p))).astype(np.int64) + 1
+    one = np.asarray(bits) != 0
+    return np.where(one, c1, 0), np.where(one, _TOTAL - c1, c1)
+
+
+def categorical_intervals(sym: np.ndarray, probs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left, frequency) ``(n,)`` int64 of each symbol under ``Categorical(perfect=False)`` with its own row of
+    ``probs`` ``(n, k)`` float64."""
+    probs = np.asarray(probs, np.float64)
+    n, k = probs.shape
+    cum = np.zeros((n, k + 1))
+    for i in range(k):  # left to right, as constriction sums
+        cum[:, i + 1] = cum[:, i] + probs[:, i]
+    cdf = (cum * ((_TOTAL - k) / cum[:, k])[:, None]).astype(np.int64) + np.arange(k + 1)
+    cdf[:, k] = _TOTAL
+    rows, s = np.arange(n), np.asarray(sym, np.int64)
+    return cdf[rows, s], cdf[rows, s + 1] - cdf[rows, s]
+
+
+def encode(left: np.ndarray, freq: np.ndarray) -> np.ndarray:
+    """uint32 words of ``AnsCoder()`` after ``encode_reverse`` of the symbols with intervals ``[left, left +
+    freq)`` (decode order), as ``get_compressed`` returns them."""
+    return _k().encode(np.ascontiguousarray(left, np.int64), np.ascontiguousarray(freq, np.int64))

@@ -1,0 +1,482 @@
+"""Compiled rANS decoders and encoder, bit-exact with constriction 0.5.0's ``AnsCoder`` (numba; imported only by
+:mod:`sdfcodec.core.ans` when numba is installed).
+
+The coder (constriction ``src/stream/stack.rs``, ``AnsCoder<u32, u64>``, 24-bit precision): the compressed
+words are a stack (the last word is read first); the state is a uint64 kept in ``[2^32, 2^64)`` while words
+remain. Decoding one symbol: ``quantile = state mod 2^24``, find the symbol ``s`` with ``cdf[s] <= quantile <
+cdf[s + 1]``, ``state = (state >> 24) * (cdf[s + 1] - cdf[s]) + quantile - cdf[s]``, then, if ``state < 2^32``
+and a word remains, ``state = state << 32 | next word``. The models' cumulative tables are those of
+``from_floating_point_probabilities_fast`` (``src/stream/model/categorical.rs``): for probabilities ``p`` ``(n,)``
+float64, ``cdf[i] = trunc(P_i * (2^24 - n) / P_n) + i`` with ``P_i`` the left-to-right float64 sum of the first
+``i`` entries, and ``cdf[n] = 2^24`` (what the ``Bernoulli(perfect=False)`` and ``Categorical(perfect=False)``
+models, lazy or not, compute).
+
+Module-level functions, cached on disk by numba (nested ones cannot be). Decoder state: ``st`` ``(2,)`` uint64,
+the state and the number of words not read yet.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
+
+_ONE = np.uint64(1)
+_PREC = np.uint64(24)
+_QMASK = np.uint64((1 << 24) - 1)
+_TOTAL = 1 << 24
+_LOW = np.uint64(1 << 32)
+_W = np.uint64(32)
+
+
+@njit(cache=True)
+def start(words, st):
+    """Set ``st`` to the coder constriction's ``AnsCoder(words)`` starts in; False when the last word is 0 (no
+    coder writes one: constriction refuses such a stream)."""
+    pos = len(words)
+    if pos == 0:
+        st[0], st[1] = np.uint64(0), np.uint64(0)
+        return True
+    first = words[pos - 1]
+    if first == 0:
+        return False
+    pos -= 1
+    s = np.uint64(first)
+    while pos > 0:
+        pos -= 1
+        s = (s << _W) | np.uint64(words[pos])
+        if s >= _LOW:
+            break
+    st[0], st[1] = s, np.uint64(pos)
+    return True
+
+
+@njit(cache=True, inline="always")
+def _advance(words, s, pos, left, right, quantile):
+    """The state ``s`` and words left ``pos`` after decoding the symbol of ``[left, right)`` (kept in locals by
+    the callers' loops, not in ``st``: stores to the output arrays would make the compiler reload it)."""
+    s = (s >> _PREC) * np.uint64(right - left) + np.uint64(quantile - left)
+    if s < _LOW and pos > 0:
+        pos -= 1
+        s = (s << _W) | np.uint64(words[pos])
+    return s, pos
+
+
+@njit(cache=True, inline="always")
+def _bernoulli(words, s, pos, p):
+    """One bit under ``Bernoulli(perfect=False)`` with ``p = P(1)``."""
+    q = np.int64(s & _QMASK)
+    pm = 1.0 - p
+    c1 = np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
+    if q < c1:
+        s, pos = _advance(words, s, pos, 0, c1, q)
+        return 0, s, pos
+    s, pos = _advance(words, s, pos, c1, _TOTAL, q)
+    return 1, s, pos
+
+
+@njit(cache=True, inline="always")
+def _cdf3(p0, p1, p2):
+    """``(cdf[1], cdf[2])`` of ``Categorical(perfect=False)`` with probabilities ``p0, p1, p2``."""
+    scale = (_TOTAL - 3) / ((p0 + p1) + p2)
+    return np.int64(p0 * scale) + 1, np.int64((p0 + p1) * scale) + 2
+
+
+@njit(cache=True, inline="always")
+def _symbol3(words, s, pos, c1, c2):
+    """One of three symbols under the table ``0, c1, c2, 2^24`` (selects, not branches: the symbols of a mask
+    are not predictable enough for a branch predictor)."""
+    q = np.int64(s & _QMASK)
+    a, b = q >= c1, q >= c2
+    lo = c2 if b else (c1 if a else 0)
+    hi = _TOTAL if b else (c2 if a else c1)
+    s, pos = _advance(words, s, pos, lo, hi, q)
+    return np.int64(a) + np.int64(b), s, pos
+
+
+@njit(cache=True, inline="always")
+def _from_cdf(words, s, pos, cdf, a, n, hint):
+    """One symbol of ``0..n-1`` under the table ``cdf[a:a + n + 1]``: a search from symbol ``hint`` outward by
+    doubling steps, then by halves (the symbol with ``cdf[s] <= quantile < cdf[s + 1]``, as a binary search
+    finds it, but the values near a peaked law's centre stay in cache when its table is megabytes)."""
+    q = np.uint32(s & _QMASK)
+    lo, hi = 0, n  # cdf[a + lo] <= q < cdf[a + hi]
+    if cdf[a + hint] <= q:
+        lo, step = hint, 1
+        while lo + step < n and cdf[a + lo + step] <= q:
+            lo += step
+            step *= 2
+        hi = min(lo + step, n)
+    else:
+        hi, step = hint, 1
+        while hi - step > 0 and cdf[a + hi - step] > q:
+            hi -= step
+            step *= 2
+        lo = max(hi - step, 0)
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if cdf[a + mid] <= q:
+            lo = mid
+        else:
+            hi = mid
+    s, pos = _advance(words, s, pos, np.int64(cdf[a + lo]), np.int64(cdf[a + lo + 1]), np.int64(q))
+    return lo, s, pos
+
+
+@njit(cache=True, inline="always")
+def _cube_context(cflat, at, cube_deltas):
+    """The context of the sub-cube at ``at``: the states at ``cube_deltas`` as base-4 digits, first least
+    significant."""
+    ctx = 0
+    for qq in range(len(cube_deltas) - 1, -1, -1):
+        ctx = ctx * 4 + np.int64(cflat[at + cube_deltas[qq]])
+    return ctx
+
+
+@njit(cache=True)
+def _cube_tables(counts, cdf):
+    """``cdf[ctx] = (cdf[1], cdf[2])`` of each context's Krichevsky-Trofimov probabilities from ``counts``
+    ``(3, n_ctx)``: the counts hold for a whole wavefront, so each context's table is made once."""
+    for ctx in range(counts.shape[1]):
+        c0, c1, c2 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5, counts[2, ctx] + 0.5
+        t3 = (c0 + c1) + c2
+        cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / t3, c1 / t3, c2 / t3)
+
+
+@njit(cache=True)
+def decode_flags(words, st, n, p):
+    """``n`` bits ``(n,)`` uint8, each under ``Bernoulli(p, perfect=False)``."""
+    out = np.empty(n, np.uint8)
+    s, pos = st[0], np.int64(st[1])
+    for i in range(n):
+        out[i], s, pos = _bernoulli(words, s, pos, p)
+    st[0], st[1] = s, np.uint64(pos)
+    return out
+
+
+@njit(cache=True)
+def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas):
+    """The sub-cube states ``(p_rows, 512)`` uint8 of the observation-mask stream ``M1``
+    (:mod:`sdfcodec.map.maskcoder`): wavefront by wavefront (``cube_bounds`` delimit them in ``cube_at``, the
+    padded (10^3) flat indices, and ``cube_flat``, the unpadded (8^3) ones), every row, each state (0, 1, 2)
+    under ``Categorical(perfect=False)`` with Krichevsky-Trofimov probabilities of its context: the states at
+    ``cube_deltas`` (3 = outside the block) as base-4 digits, the first least significant, counted over the
+    wavefronts before."""
+    states = np.zeros((p_rows, 512), np.uint8)
+    cstride = 10 * 10 * 10
+    cflat = np.full(p_rows * cstride, 3, np.uint8)  # bytes: the rows swept once per wavefront stay in cache
+    n_ctx = 4 ** len(cube_deltas)
+    counts = np.zeros((3, n_ctx), np.int64)
+    cdf = np.empty((n_ctx, 2), np.int64)
+    buf_ctx = np.empty(p_rows * 64, np.int64)  # a wavefront of 8^3 has at most 48 cells
+    buf_sym = np.empty(p_rows * 64, np.int64)
+    s, pos = st[0], np.int64(st[1])
+    for w in range(len(cube_bounds) - 1):
+        _cube_tables(counts, cdf)
+        m = 0
+        for r in range(p_rows):
+            for t in range(cube_bounds[w], cube_bounds[w + 1]):
+                at = r * cstride + cube_at[t]
+                ctx = _cube_context(cflat, at, cube_deltas)
+                sym, s, pos = _symbol3(words, s, pos, cdf[ctx, 0], cdf[ctx, 1])
+                cflat[at] = sym
+                states[r, cube_flat[t]] = sym
+                buf_ctx[m], buf_sym[m] = ctx, sym
+                m += 1
+        for i in range(m):
+            counts[buf_sym[i], buf_ctx[i]] += 1
+    st[0], st[1] = s, np.uint64(pos)
+    return states
+
+
+@njit(cache=True)
+def mixed_voxels(states, n_waves):
+    """From sub-cube states ``(p, 512)`` (of 2^3 voxels each): the voxels padded by one ``(p, 18^3)`` uint8 (1 in
+    sub-cubes all observed), and the padded flat positions (``r * 18^3 + ...``) of the voxels of mixed sub-cubes
+    in decode order (wavefront ``i + j + k``, then row, then C order) with the bounds ``(n_waves + 1,)`` of each
+    wavefront (a stable counting sort of the rows' C-order lists)."""
+    p_rows = len(states)
+    vstride = 18 * 18 * 18
+    vpad = np.zeros((p_rows, vstride), np.uint8)
+    n = 0
+    for r in range(p_rows):
+        for c in range(512):
+            if states[r, c] == 2:
+                n += 8
+    pos = np.empty(n, np.int64)
+    wave = np.empty(n, np.int64)
+    bounds = np.zeros(n_waves + 1, np.int64)
+    m = 0
+    for r in range(p_rows):
+        for i in range(16):
+            for j in range(16):
+                base = (i >> 1) * 64 + (j >> 1) * 8
+                row0 = r * vstride + ((i + 1) * 18 + j + 1) * 18 + 1
+                for kc in range(8):
+                    s = states[r, base + kc]
+                    if s == 1:
+                        vpad[r, row0 - r * vstride + 2 * kc] = 1
+                        vpad[r, row0 - r * vstride + 2 * kc + 1] = 1
+                    elif s == 2:
+                        for k in range(2 * kc, 2 * kc + 2):
+                            pos[m] = row0 + k
+                            wave[m] = i + j + k
+                            bounds[i + j + k + 1] += 1
+                            m += 1
+    for w in range(n_waves):
+        bounds[w + 1] += bounds[w]
+    fill = bounds[:-1].copy()
+    at = np.empty(n, np.int64)
+    for t in range(n):
+        at[fill[wave[t]]] = pos[t]
+        fill[wave[t]] += 1
+    return vpad, at, bounds
+
+
+@njit(cache=True)
+def pack_rows(vpad, states):
+    """Decoded voxels padded by one ``(p, 18^3)`` uint8 -> (packed mask rows ``(p, 512)`` uint8, C order, most
+    significant bit first as numpy's packbits; whether every mixed sub-cube of ``states`` ``(p, 512)`` decoded
+    both values, as a sound stream does)."""
+    p_rows = len(vpad)
+    out = np.empty((p_rows, 512), np.uint8)
+    ok = True
+    for r in range(p_rows):
+        v = vpad[r]
+        for i in range(16):
+            for j in range(16):
+                base = ((i + 1) * 18 + j + 1) * 18 + 1
+                for h in range(2):  # a line of 16 voxels is two bytes
+                    byte = 0
+                    for k in range(8 * h, 8 * h + 8):
+                        byte = (byte << 1) | v[base + k]
+                    out[r, (i * 16 + j) * 2 + h] = byte
+        for t in range(512):
+            if states[r, t] == 2:
+                i0, j0, k0 = 2 * (t >> 6), 2 * ((t >> 3) & 7), 2 * (t & 7)
+                n = 0
+                for di in range(2):
+                    for dj in range(2):
+                        at = ((i0 + di + 1) * 18 + j0 + dj + 1) * 18 + k0 + 1
+                        n += v[at] + v[at + 1]
+                if n == 0 or n == 8:
+                    ok = False
+    return out, ok
+
+
+@njit(cache=True)
+def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
+    """Bits at the flat positions ``at`` of ``grid`` (written there as decoded), wavefront by wavefront
+    (``bounds`` delimit them in ``at``), each under ``Bernoulli(p, perfect=False)`` with the Krichevsky-Trofimov
+    ``p = (n1 + 1/2) / (n0 + n1 + 1)`` of its context, counted over the wavefronts before. The context of
+    ``at[i]``: ``sum_q grid[at[i] + deltas[q]] * weights[q]``, plus ``extra[i]`` when ``extra`` is not empty
+    (a caller's own small integers, already scaled), below ``n_ctx``. Returns False when a context reaches
+    ``n_ctx`` (then the grid holds what was decoded so far)."""
+    counts = np.zeros((2, n_ctx), np.int64)
+    widest = 0
+    for w in range(len(bounds) - 1):
+        widest = max(widest, bounds[w + 1] - bounds[w])
+    buf_ctx = np.empty(widest, np.int64)
+    has_extra = len(extra) > 0
+    s, pos = st[0], np.int64(st[1])
+    for w in range(len(bounds) - 1):
+        a, b = bounds[w], bounds[w + 1]
+        for i in range(a, b):
+            g = at[i]
+            ctx = 0
+            for q in range(len(deltas)):
+                ctx += np.int64(grid[g + deltas[q]]) * weights[q]
+            if has_extra:
+                ctx += extra[i]
+            if ctx < 0 or ctx >= n_ctx:
+                st[0], st[1] = s, np.uint64(pos)
+                return False
+            n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
+            bit, s, pos = _bernoulli(words, s, pos, n1 / (n0 + n1))
+            grid[g] = bit
+            buf_ctx[i - a] = ctx
+        for i in range(a, b):
+            counts[np.int64(grid[at[i]]), buf_ctx[i - a]] += 1
+    st[0], st[1] = s, np.uint64(pos)
+    return True
+
+
+@njit(cache=True)
+def padded_states(bits):
+    """Voxel bits ``(p, 4096)`` uint8 (0/1, C order) -> (the voxels padded by one with zeros ``(p * 18^3,)``
+    uint8, the sub-cube states ``(p, 512)`` int64: 0 none observed, 1 all, 2 mixed)."""
+    p_rows = len(bits)
+    vpad = np.zeros(p_rows * 18 * 18 * 18, np.uint8)
+    sums = np.zeros((p_rows, 512), np.int64)
+    for r in range(p_rows):
+        for c in range(4096):
+            b = bits[r, c]
+            vpad[r * 5832 + (((c >> 8) + 1) * 18 + ((c >> 4) & 15) + 1) * 18 + (c & 15) + 1] = b
+            sums[r, ((c >> 9) & 7) * 64 + ((c >> 5) & 7) * 8 + ((c >> 1) & 7)] += b
+    states = np.where(sums == 0, 0, np.where(sums == 8, 1, 2))
+    return vpad, states
+
+
+@njit(cache=True)
+def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, freq, m):
+    """The encoder's side of :func:`decode_cubes`: the intervals of the known states ``(p, 512)`` written to
+    ``left``/``freq`` from ``m`` on, in decode order; returns the next free index."""
+    p_rows = len(states)
+    cstride = 10 * 10 * 10
+    cflat = np.full(p_rows * cstride, 3, np.uint8)
+    for r in range(p_rows):
+        for t in range(len(cube_at)):
+            cflat[r * cstride + cube_at[t]] = states[r, cube_flat[t]]
+    n_ctx = 4 ** len(cube_deltas)
+    counts = np.zeros((3, n_ctx), np.int64)
+    cdf = np.empty((n_ctx, 2), np.int64)
+    buf_ctx = np.empty(p_rows * 64, np.int64)  # a wavefront of 8^3 has at most 48 cells
+    buf_sym = np.empty(p_rows * 64, np.int64)
+    for w in range(len(cube_bounds) - 1):
+        _cube_tables(counts, cdf)
+        a = m
+        for r in range(p_rows):
+            for t in range(cube_bounds[w], cube_bounds[w + 1]):
+                at = r * cstride + cube_at[t]
+                ctx = _cube_context(cflat, at, cube_deltas)
+                sym = np.int64(cflat[at])
+                lo = 0 if sym == 0 else cdf[ctx, sym - 1]
+                hi = _TOTAL if sym == 2 else cdf[ctx, sym]
+                left[m], freq[m] = lo, hi - lo
+                buf_ctx[m - a], buf_sym[m - a] = ctx, sym
+                m += 1
+        for i in range(m - a):
+            counts[buf_sym[i], buf_ctx[i]] += 1
+    return m
+
+
+@njit(cache=True)
+def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m):
+    """The encoder's side of :func:`decode_bits`: the intervals of the known bits ``grid[at]``, from ``m`` on;
+    returns the next free index, or -1 when a context reaches ``n_ctx``."""
+    counts = np.zeros((2, n_ctx), np.int64)
+    ctxs = np.empty(len(at), np.int64)
+    has_extra = len(extra) > 0
+    for w in range(len(bounds) - 1):
+        a, b = bounds[w], bounds[w + 1]
+        for i in range(a, b):
+            pos = at[i]
+            ctx = 0
+            for q in range(len(deltas)):
+                ctx += np.int64(grid[pos + deltas[q]]) * weights[q]
+            if has_extra:
+                ctx += extra[i]
+            if ctx < 0 or ctx >= n_ctx:
+                return -1
+            ctxs[i] = ctx
+            n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
+            p = n1 / (n0 + n1)
+            pm = 1.0 - p
+            c1 = np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
+            if grid[pos]:
+                left[m], freq[m] = c1, _TOTAL - c1
+            else:
+                left[m], freq[m] = 0, c1
+            m += 1
+        for i in range(a, b):
+            counts[np.int64(grid[at[i]]), ctxs[i]] += 1
+    return m
+
+
+@njit(cache=True)
+def _cdf_of(table, out, o, cum):
+    """``out[o:o + n + 1]`` = the cumulative table of probabilities ``table`` ``(n,)`` float64 (the left-to-right
+    sums first, into the scratch ``cum``: one chain of dependent adds, not two)."""
+    n = len(table)
+    c = 0.0
+    for i in range(n):
+        cum[i] = c
+        c += table[i]
+    scale = (_TOTAL - n) / c
+    for i in range(n):
+        out[o + i] = np.uint32(np.int64(cum[i] * scale) + i)
+    out[o + n] = _TOTAL
+
+
+@njit(cache=True)
+def table_cdfs(first, decay, extent):
+    """Cumulative tables, concatenated ``(len(first) + 1 + sum(2 e_j + 2),)`` uint32, of ``first`` (float64) and
+    of each two-sided geometric table of :meth:`sdfcodec.core.varrate.EntropyModel.table` (``e_j = max(extent_j,
+    1)``; its entries ``decay_j ** |i - e_j|`` as numpy's cumprod makes them: one multiply per step), each ``n +
+    1`` long. Returns (tables, where each starts ``(D + 1,)``, symbols of each ``(D + 1,)``)."""
+    d = len(decay)
+    sizes = np.empty(d + 1, np.int64)
+    at = np.empty(d + 1, np.int64)
+    sizes[0] = len(first)
+    for j in range(d):
+        sizes[j + 1] = 2 * max(extent[j], 1) + 1
+    o = 0
+    for j in range(d + 1):
+        at[j] = o
+        o += sizes[j] + 1
+    out = np.empty(o, np.uint32)  # 2^24 fits: half the bytes a decode walks through
+    cum = np.empty(max(sizes.max(), 1))
+    _cdf_of(first, out, 0, cum)
+    for j in range(d):
+        e = max(extent[j], 1)
+        half = np.empty(e + 1)
+        half[0] = 1.0
+        for i in range(1, e + 1):
+            half[i] = half[i - 1] * decay[j]
+        table = np.empty(2 * e + 1)
+        for i in range(e + 1):
+            table[e - i] = half[i]
+            table[e + i] = half[i]
+        _cdf_of(table, out, at[j + 1], cum)
+    return out, at, sizes
+
+
+@njit(cache=True)
+def chunk_decode(words, n, level, cdfs, at, sizes, off):
+    """The variable-rate chunk stream of :func:`sdfcodec.core.varrate.decode_chunk`: ``n`` lengths under the
+    table at ``cdfs[at[0]:]`` (``sizes[0]`` symbols), then for ``j < level`` element ``j`` of every block longer
+    than ``j`` under the table ``j + 1``, minus ``off[j]``. Returns (status: 0 ok, 1 a trailing zero word;
+    ``(n, level)`` int32)."""
+    out = np.zeros((n, level), np.int32)
+    st = np.zeros(2, np.uint64)
+    if not start(words, st):
+        return 1, out
+    k = np.empty(n, np.int64)
+    s, pos = st[0], np.int64(st[1])
+    for i in range(n):
+        k[i], s, pos = _from_cdf(words, s, pos, cdfs, at[0], sizes[0], sizes[0] >> 1)
+    for j in range(level):
+        any_ = False
+        for i in range(n):
+            if k[i] > j:
+                any_ = True
+                v, s, pos = _from_cdf(words, s, pos, cdfs, at[j + 1], sizes[j + 1], sizes[j + 1] >> 1)
+                out[i, j] = v - off[j]
+        if not any_:
+            break
+    return 0, out
+
+
+@njit(cache=True)
+def encode(left, freq):
+    """Words (uint32) of constriction's ``AnsCoder()`` after ``encode_reverse`` of symbols whose intervals
+    ``[left, left + freq)`` of ``2^24`` are given in decode order (the last is pushed first)."""
+    words = np.empty(len(left) + 2, np.uint32)
+    m = 0
+    s = np.uint64(0)
+    for i in range(len(left) - 1, -1, -1):
+        f = np.uint64(freq[i])
+        if (s >> np.uint64(40)) >= f:
+            words[m] = np.uint32(s & np.uint64(0xFFFFFFFF))
+            m += 1
+            s = s >> _W
+        s = ((s // f) << _PREC) | (np.uint64(left[i]) + s % f)
+    if s >= _LOW:
+        words[m] = np.uint32(s & np.uint64(0xFFFFFFFF))
+        words[m + 1] = np.uint32(s >> _W)
+        m += 2
+    elif s > 0:
+        words[m] = np.uint32(s)
+        m += 1
+    return words[:m]
