@@ -334,12 +334,13 @@ def _plain_open3d(root: Path, n: int, half_pixel: bool):
     return vbg
 
 
-def test_kitchen_100_frames_agree_with_plain_open3d(shared_data):
+def test_kitchen_40_frames_agree_with_plain_open3d(shared_data):
     """Same blocks as plain open3d, and, through open3d's own voxel coordinates, the same value at every
-    voxel: this checks the block order, the voxel order and the metre conversion on real data."""
+    voxel: this checks the block order, the voxel order and the metre conversion on real data. 40 frames (230
+    blocks, 325,000 voxels seen by both) check it as well as 100 did (268 blocks) in less than half the time."""
     root = shared_data / "7scenes-redkitchen"
-    fb = fuse(open_sequence(root)[:100], VS, (-0.1, 0.1), depth_max=4.0, quiet=True)
-    vbg = _plain_open3d(root, 100, half_pixel=True)
+    fb = fuse(open_sequence(root)[:40], VS, (-0.1, 0.1), depth_max=4.0, quiet=True)
+    vbg = _plain_open3d(root, 40, half_pixel=True)
     hm = vbg.hashmap()
     keys = hm.key_tensor()[hm.active_buf_indices().to(o3d.core.int64)].numpy()
     low = np.round(fb.origin / (16 * VS)).astype(np.int64)
