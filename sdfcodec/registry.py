@@ -10,7 +10,9 @@ gives a codec's shipped weights (from its plugin's own package). Every error rai
 
 from __future__ import annotations
 
+import os
 import re
+import sys
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any, Mapping
@@ -38,15 +40,50 @@ class CodecEntry:
     target: str  # "module:attribute"
 
 
+# (sys.path stamp, entry points, their listing) of the last scan
+_scanned: tuple[tuple, dict[str, metadata.EntryPoint], dict[str, CodecEntry]] | None = None
+
+
+def _path_stamp() -> tuple:
+    """``sys.path`` with each entry's modification time. Installing, upgrading or removing a distribution adds or
+    removes its metadata directory in one of these entries, which changes that entry's time."""
+    stamp = []
+    for p in sys.path:
+        try:
+            stamp.append((p, os.stat(p or os.curdir).st_mtime_ns))
+        except OSError:
+            stamp.append((p, None))
+    return tuple(stamp)
+
+
 def _entry_points() -> dict[str, metadata.EntryPoint]:
-    return {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+    # Scanning reads the metadata of every installed distribution (tens of ms in an environment of a few hundred
+    # packages) and every map written asks for its codec's package: the scan is kept while sys.path and its
+    # entries' times are unchanged, so a plugin installed while a process runs is still found.
+    return dict(_scan()[1])
+
+
+def _scan() -> tuple[tuple, dict[str, metadata.EntryPoint], dict[str, CodecEntry]]:
+    global _scanned
+    stamp = _path_stamp()
+    if _scanned is None or _scanned[0] != stamp:
+        eps = {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+        # each distribution's name and version are read from its metadata file: once per scan
+        _scanned = (stamp, eps, {name: _listing(name, ep) for name, ep in eps.items()})
+    return _scanned
+
+
+def _listing(name: str, ep: metadata.EntryPoint) -> CodecEntry:
+    dist = getattr(ep, "dist", None)
+    return CodecEntry(name, dist.name if dist else None, dist.version if dist else None, ep.value)
 
 
 def _entries() -> dict[str, CodecEntry]:
+    listed = _scan()[2]
     out: dict[str, CodecEntry] = {}
-    for name, ep in _entry_points().items():
-        dist = getattr(ep, "dist", None)
-        out[name] = CodecEntry(name, dist.name if dist else None, dist.version if dist else None, ep.value)
+    for name, ep in _entry_points().items():  # through the module's name, which tests may replace
+        known = listed.get(name)
+        out[name] = known if known is not None and known.target == ep.value else _listing(name, ep)
     for name, cls in _runtime.items():
         out[name] = CodecEntry(name, None, None, f"{cls.__module__}:{cls.__qualname__}")
     return out

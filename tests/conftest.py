@@ -207,3 +207,24 @@ def rng() -> np.random.Generator:
 
 # frozen third-party codec packages: run by tests/test_plugin_compat.py in their own pytest, never collected here
 collect_ignore = ["plugin_packages"]
+
+
+# The arguments of the one `sdfcodec bench` run two test files read: test_cli checks its records,
+# test_bench_progress its progress lines (stderr, one every 0.05 s). A bench run costs seconds of timing
+# rounds, fresh `sdfcodec info` processes and an HTTP server; one run serves both.
+BENCH_ARGS = ["bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--repeats", "2", "--json"]
+
+
+@pytest.fixture(scope="session")
+def bench_run(run_shared) -> dict:
+    """``sdfcodec BENCH_ARGS`` in process, once per run: {"exit_code", "stdout", "stderr", "output"}."""
+
+    def make() -> dict:
+        from typer.testing import CliRunner
+
+        from sdfcodec.cli import app
+
+        r = CliRunner().invoke(app, BENCH_ARGS, env={"SDFCODEC_PROGRESS_SECONDS": "0.05"})
+        return {"exit_code": r.exit_code, "stdout": r.stdout, "stderr": r.stderr, "output": r.output}
+
+    return run_shared.once("bench-cli", make)

@@ -6,6 +6,7 @@ every import (in functions and under ``if TYPE_CHECKING`` too)."""
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -57,7 +58,7 @@ def test_public_modules_declare_all():
     for m, f in MODULES.items():
         if any(_is_private(p) for p in m.split(".")) or m.endswith("__main__"):
             continue
-        tree = ast.parse(f.read_text())
+        tree = _parse(f.read_text())
         names = {t.id for n in tree.body if isinstance(n, (ast.Assign, ast.AugAssign, ast.AnnAssign))
                  for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
         if "__all__" not in names:
@@ -71,7 +72,7 @@ def test_no_module_uses_another_modules_private_names():
     that lives elsewhere)."""
     bad = []
     for m, f in MODULES.items():
-        tree = ast.parse(f.read_text())
+        tree = _parse(f.read_text())
         is_pkg = f.name == "__init__.py"
         module_aliases = {}
         own = set()
@@ -164,13 +165,20 @@ def _lazy_names(tree: ast.Module) -> dict[str, str]:
     return out
 
 
+@functools.lru_cache(maxsize=None)
+def _parse(source: str) -> ast.Module:
+    """The syntax tree of ``source``, parsed once for all the checks here (each reads every module; nothing
+    changes a tree)."""
+    return ast.parse(source)
+
+
 def import_graph(sources: dict[str, tuple[str, bool]], typing: bool = True) -> dict[str, dict[str, int]]:
     """Module -> {imported project module: line} over EVERY import of its source (``ast.walk``: module level,
     in functions, under ``if TYPE_CHECKING``). ``sources``: module -> (source text, is a package). A name
     imported from a package resolves to the module that defines it (lazy exports included); an import of a
     module's own ancestor package (its ``__init__``) is left out, as is the bare root package. ``typing=False``
     leaves out the imports under ``if TYPE_CHECKING`` (annotations only, never run)."""
-    trees = {m: ast.parse(src) for m, (src, _) in sources.items()}
+    trees = {m: _parse(src) for m, (src, _) in sources.items()}
     lazy = {m: _lazy_names(t) for m, t in trees.items() if sources[m][1]}
     graph = {}
     for m, tree in trees.items():
@@ -303,7 +311,7 @@ def test_plugins_import_only_the_public_api(plugin):
     for m, f in MODULES.items():
         if m.split(".")[0] != plugin:
             continue
-        for node in ast.walk(ast.parse(f.read_text())):
+        for node in ast.walk(_parse(f.read_text())):
             names = []
             if isinstance(node, ast.ImportFrom) and not node.level:
                 names = [node.module or ""]

@@ -130,10 +130,10 @@ def test_codecs_listing():
     assert rows["raw"]["requires_fit"] is False and rows["pca"]["package"] == "sdfcodec"
 
 
-def test_bench_json_records():
-    r = run("bench", "--quick", "--sizes", "32", "--batches", "1,64", "--read", "300", "--repeats", "2", "--json")
-    assert r.exit_code == 0, r.output
-    recs = json.loads(r.stdout)
+def test_bench_json_records(bench_run):
+    # `sdfcodec bench --quick --sizes 32 --batches 1,64 --read 300 --repeats 2 --json` (conftest.BENCH_ARGS)
+    assert bench_run["exit_code"] == 0, bench_run["output"]
+    recs = json.loads(bench_run["stdout"])
     (start,) = [x for x in recs if x["operation"] == "info-startup"]  # `sdfcodec info` in fresh processes
     assert start["seconds_best"] > start["baseline_seconds_best"] > 0  # a command costs more than no command
     assert start["meets_target"] == (start["seconds_median"] <= start["target_seconds"] == 0.5)

@@ -28,6 +28,20 @@ def sdfcodec_cli(*args, env: dict | None = None, timeout: float = 120, python_fl
                           capture_output=True, text=True, timeout=timeout, env=_env(env))
 
 
+def sdfcodec_in_process(*args) -> subprocess.CompletedProcess:
+    """The same command run in this process (typer's runner: stdout and stderr are not a terminal either), for the
+    checks of what a command says and writes: a fresh interpreter would add seconds of imports and check nothing
+    more. What is about the process itself (start-up imports, a pipe, a signal) runs in :func:`sdfcodec_cli`."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    r = CliRunner().invoke(app, [str(a) for a in args], env={"FORCE_COLOR": None, "TTY_COMPATIBLE": None})
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception  # a traceback the command would have printed: the test fails with it
+    return subprocess.CompletedProcess(args, r.exit_code, r.stdout, r.stderr)
+
+
 def _env(extra: dict | None = None) -> dict:
     env = dict(os.environ)
     env.pop("FORCE_COLOR", None)
@@ -72,7 +86,7 @@ def test_code_size_zero_or_negative_is_an_error(scene, tmp_path):
     src, _, _ = scene
     for args, words in ((("--code-size", "0"), "positive"), (("--code-size", "-1"), "positive"),
                         (("--codec", "raw", "--code-size", "64"), "4096")):
-        r = sdfcodec_cli("encode", src, tmp_path / "m.sdfz", "--voxel-size", VS, *args)
+        r = sdfcodec_in_process("encode", src, tmp_path / "m.sdfz", "--voxel-size", VS, *args)
         assert r.returncode == 1 and r.stderr.startswith("error: --code-size") is (words == "positive"), r.stderr
         assert words in r.stderr and r.stderr.count("\n") == 1 and r.stdout == ""
         assert not (tmp_path / "m.sdfz").exists()
@@ -176,7 +190,7 @@ def test_metre_regions_are_half_open_and_decodes_truncated(scene, tmp_path):
     ends were included), the same voxels as the voxel range 0:50,0:50,0:25; decoded values lie in the truncation
     (a lossy decode overshot d_max)."""
     _, map_path, _ = scene
-    r = sdfcodec_cli("decode", map_path, tmp_path / "m.npy", "--region", "0:1,0:1,0:0.5", "--units", "m")
+    r = sdfcodec_in_process("decode", map_path, tmp_path / "m.npy", "--region", "0:1,0:1,0:0.5", "--units", "m")
     assert r.returncode == 0, r.stderr
     assert "50 x 50 x 25 voxels" in r.stdout and r.stdout.count("\n") == 1
     part = np.load(tmp_path / "m.npy")
@@ -185,7 +199,7 @@ def test_metre_regions_are_half_open_and_decodes_truncated(scene, tmp_path):
     assert part.shape == (50, 50, 25)
     np.testing.assert_allclose(part, full[:50, :50, :25], rtol=0, atol=1e-6)
     assert full.min() >= -0.04 and full.max() <= 0.1
-    r = sdfcodec_cli("decode", map_path, tmp_path / "e.npy", "--region", "0:1,0:1,0.5:0.5", "--units", "m")
+    r = sdfcodec_in_process("decode", map_path, tmp_path / "e.npy", "--region", "0:1,0:1,0.5:0.5", "--units", "m")
     assert r.returncode == 1 and "holds no voxel on axis z" in r.stderr and "half-open" in r.stderr
 
 
@@ -193,17 +207,17 @@ def test_decode_npz_round_trips_without_flags_and_reversed_truncation_first(scen
     """Item 6: `decode OUT.npz` records voxel size, origin and truncation, so `encode OUT.npz` needs no flag (and
     a region keeps its own origin); a reversed `--truncation` is refused before any clipping warning."""
     src, map_path, _ = scene
-    r = sdfcodec_cli("decode", map_path, tmp_path / "part.npz", "--region", "10:40,20:60,0:30")
+    r = sdfcodec_in_process("decode", map_path, tmp_path / "part.npz", "--region", "10:40,20:60,0:30")
     assert r.returncode == 0, r.stderr
     with np.load(tmp_path / "part.npz") as z:
         assert z["tsdf"].shape == (30, 40, 30) and float(z["voxel_size"]) == VS
         assert np.allclose(z["origin"], [10 * VS, 20 * VS, 0]) and np.allclose(z["truncation"], [-0.04, 0.1])
-    r = sdfcodec_cli("encode", tmp_path / "part.npz", tmp_path / "back.sdfz", "--codec", "raw")
+    r = sdfcodec_in_process("encode", tmp_path / "part.npz", tmp_path / "back.sdfz", "--codec", "raw")
     assert r.returncode == 0, r.stderr
     back = sdfcodec.open_map(tmp_path / "back.sdfz")
     assert back.voxel_size == VS and np.allclose(back.origin, [10 * VS, 20 * VS, 0])
     assert back.truncation == (-0.04, 0.1)
-    r = sdfcodec_cli("encode", src, tmp_path / "rev.sdfz", "--voxel-size", VS, "--truncation", "0.1,-0.04")
+    r = sdfcodec_in_process("encode", src, tmp_path / "rev.sdfz", "--voxel-size", VS, "--truncation", "0.1,-0.04")
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "warning" not in r.stderr, r.stderr
     assert r.stderr.startswith("error: truncation must be d_min,d_max with d_min < d_max")
 
@@ -222,7 +236,7 @@ def test_track_prints_one_sentence_with_its_ate(tmp_path):
     with sdfcodec.create_map(tmp_path / "raw.sdfz", codec=sdfcodec.get_codec("raw"), voxel_size=0.02,
                              origin=tuple(fused.origin)) as m:
         m.write_blocks(fused.coords, fused.tsdf)
-    r = sdfcodec_cli("track", tmp_path / "raw.sdfz", seq, "-o", tmp_path / "t.txt")
+    r = sdfcodec_in_process("track", tmp_path / "raw.sdfz", seq, "-o", tmp_path / "t.txt")
     assert r.returncode == 0, r.stderr
     assert r.stdout.count("\n") == 1 and "{" not in r.stdout and "frames_per_s" not in r.stdout
     rmse = 1000 * ate(read_tum(seq / "groundtruth.txt"), read_tum(tmp_path / "t.txt")).rmse

@@ -3,6 +3,7 @@ conformance suite catches codecs that break the contract."""
 
 from __future__ import annotations
 
+import os
 from importlib import metadata
 
 import numpy as np
@@ -47,6 +48,33 @@ def broken_plugin(monkeypatch):
         return eps
 
     monkeypatch.setattr(registry, "_entry_points", with_broken)
+
+
+def test_installed_codecs_are_scanned_again_only_when_the_path_changes(tmp_path, monkeypatch):
+    """The entry points are read once while sys.path and its entries are unchanged (every map written asks for its
+    codec's package), and a plugin installed while the process runs (a new metadata directory in a path entry)
+    is listed with its package and version."""
+    scans = []
+    real = metadata.entry_points
+    monkeypatch.setattr(metadata, "entry_points", lambda **kw: scans.append(kw) or real(**kw))
+    site = tmp_path / "site"
+    site.mkdir()
+    os.utime(site, ns=(0, 0))  # older than anything made below, whatever the file system's time resolution
+    monkeypatch.syspath_prepend(str(site))
+    assert "late" not in {e.id for e in sdfcodec.list_codecs()}
+    n = len(scans)
+    assert n >= 1  # the path changed: scanned again
+    for _ in range(3):
+        sdfcodec.list_codecs()
+        registry.codec_package("pca")
+    assert len(scans) == n  # nothing changed: no new scan
+    dist = site / "late_codec-1.0.dist-info"  # what pip writes for a package "late-codec" 1.0
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: late-codec\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[sdfcodec.codecs]\nlate = late_codec:Late\n")
+    late = {e.id: e for e in sdfcodec.list_codecs()}["late"]
+    assert (late.package, late.version, late.target) == ("late-codec", "1.0", "late_codec:Late")
+    assert registry.codec_package("late") == "late-codec" and len(scans) == n + 1
 
 
 def test_broken_plugin_is_reported_by_name_and_others_work(broken_plugin):

@@ -227,6 +227,19 @@ def test_overwrite_keeps_old_version_for_its_readers(small_map, tmp_path, pca16)
     assert _hidden(tmp_path) == []
 
 
+def _cli(*args):
+    """``sdfcodec ARGS`` in this process (typer's runner): what is checked is the command's refusal, one line on
+    stderr; an exception it let through fails the test with its traceback."""
+    from typer.testing import CliRunner
+
+    from sdfcodec.cli import app
+
+    r = CliRunner().invoke(app, [str(a) for a in args])
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception
+    return r
+
+
 def _tree(p: Path) -> dict[str, bytes]:
     return {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
 
@@ -257,9 +270,8 @@ def test_overwrite_replaces_only_maps(small_map, tmp_path, pca16):
     # the command line refuses before it reads its input
     vol = tmp_path / "v.npy"
     np.save(vol, np.full((16, 16, 16), TRUNC[1], np.float32))
-    r = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "encode", str(vol), str(data), "--overwrite",
-                        "--codec", "raw"], capture_output=True, text=True, timeout=120)
-    assert r.returncode != 0 and "not an sdfcodec map" in r.stderr and "Traceback" not in r.stderr
+    r = _cli("encode", vol, data, "--overwrite", "--codec", "raw")
+    assert r.exit_code == 1 and "not an sdfcodec map" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert _tree(data) == before[data]
     # an empty directory and a map are replaced
     empty = tmp_path / "empty.sdfz"
@@ -287,9 +299,8 @@ def test_overwrite_refuses_a_device(small_map, tmp_path, pca16):
             m.write_blocks([[0, 0, 0]], _blocks(1))
     vol = tmp_path / "v.npy"
     np.save(vol, np.full((16, 16, 16), TRUNC[1], np.float32))
-    r = subprocess.run([sys.executable, "-m", "sdfcodec.cli", "encode", str(vol), str(dev), "--overwrite",
-                        "--codec", "raw", "--voxel-size", "0.02"], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 1 and "a device, FIFO or socket" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    r = _cli("encode", vol, dev, "--overwrite", "--codec", "raw", "--voxel-size", "0.02")
+    assert r.exit_code == 1 and "a device, FIFO or socket" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     after = os.lstat(dev)
     assert stat_mod.S_ISCHR(after.st_mode) and (after.st_ino, after.st_rdev) == (before.st_ino, before.st_rdev)
     assert _hidden(tmp_path) == []

@@ -334,12 +334,13 @@ def _plain_open3d(root: Path, n: int, half_pixel: bool):
     return vbg
 
 
-def test_kitchen_100_frames_agree_with_plain_open3d(shared_data):
+def test_kitchen_40_frames_agree_with_plain_open3d(shared_data):
     """Same blocks as plain open3d, and, through open3d's own voxel coordinates, the same value at every
-    voxel: this checks the block order, the voxel order and the metre conversion on real data."""
+    voxel: this checks the block order, the voxel order and the metre conversion on real data. 40 frames (230
+    blocks, 325,000 voxels seen by both) check it as well as 100 did (268 blocks) in less than half the time."""
     root = shared_data / "7scenes-redkitchen"
-    fb = fuse(open_sequence(root)[:100], VS, (-0.1, 0.1), depth_max=4.0, quiet=True)
-    vbg = _plain_open3d(root, 100, half_pixel=True)
+    fb = fuse(open_sequence(root)[:40], VS, (-0.1, 0.1), depth_max=4.0, quiet=True)
+    vbg = _plain_open3d(root, 40, half_pixel=True)
     hm = vbg.hashmap()
     keys = hm.key_tensor()[hm.active_buf_indices().to(o3d.core.int64)].numpy()
     low = np.round(fb.origin / (16 * VS)).astype(np.int64)
@@ -382,17 +383,20 @@ def test_floor_blocks_count_only_observed_floor(tmp_path):
     fb = fuse(open_sequence(out), VS, TRUNC, quiet=True)
     scene = RoomScene.load(out)
     assert scene.to_dict()["primitives"][0]["half"][2] == 0.1 and scene.labels[0] == "floor"  # slab -0.2..0
-    observed = fb.weights > 0
-    analytic = scene.floor_blocks(fb.coords, fb.origin, VS)
-    seen = scene.floor_blocks(fb.coords, fb.origin, VS, observed=observed)
     z_lo = fb.origin[2] + VS * 16 * fb.coords[:, 2]  # each block's z range [z_lo, z_lo + 15 voxels]
     under = (z_lo <= -0.2) & (z_lo + 15 * VS >= -0.2) & (z_lo + 15 * VS < -VS)  # the underside, not the top
+    top = (z_lo <= 0) & (z_lo + 15 * VS >= 0)
+    # each block is labelled on its own: only the blocks at the slab's two faces are labelled (the analytic scene
+    # at every voxel of every block was most of this test's time)
+    rows = under | top
+    coords, observed, under, top = fb.coords[rows], (fb.weights > 0)[rows], under[rows], top[rows]
+    analytic = scene.floor_blocks(coords, fb.origin, VS)
+    seen = scene.floor_blocks(coords, fb.origin, VS, observed=observed)
     assert (analytic & under).sum() > 0  # the scene alone labels unseen underside blocks floor
     assert not (seen & under).any()
-    top = (z_lo <= 0) & (z_lo + 15 * VS >= 0)
-    assert (seen & top).sum() >= 0.5 * (analytic & top & (observed.reshape(len(fb), -1).sum(1) > 1000)).sum() > 0
+    assert (seen & top).sum() >= 0.5 * (analytic & top & (observed.reshape(len(coords), -1).sum(1) > 1000)).sum() > 0
     # a block with its floor observed is floor; the same block with nothing observed is not
     i = np.flatnonzero(seen)[0]
     none = np.zeros((1, 16, 16, 16), bool)
-    assert not scene.floor_blocks(fb.coords[i:i + 1], fb.origin, VS, observed=none)[0]
-    assert scene.floor_blocks(fb.coords[i:i + 1], fb.origin, VS, observed=~none)[0]
+    assert not scene.floor_blocks(coords[i:i + 1], fb.origin, VS, observed=none)[0]
+    assert scene.floor_blocks(coords[i:i + 1], fb.origin, VS, observed=~none)[0]

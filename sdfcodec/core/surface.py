@@ -242,10 +242,19 @@ def _observed(m: Any, idx: tuple[np.ndarray, ...], x0: int) -> np.ndarray:
     """Whether the voxels at slab indices ``idx`` (slab starting at voxel ``x0``) of map ``m`` were observed
     (fusion weight above 0, or the map's observation mask); blocks are read only where the band has voxels."""
     g = np.stack([idx[0] + x0, idx[1], idx[2]], axis=1)
-    coords, inverse = np.unique(g // 16, axis=0, return_inverse=True)
+    # the blocks holding these voxels, each once, in C order, and the row of each voxel's block: through one flag
+    # per block of the slab's grid, linear in the voxels (np.unique(axis=0) sorts the rows as opaque records:
+    # 30 s against 0.4 s for 2 million voxels in a 19 x 13 x 7 block grid, both at load 10)
+    b = g // 16
+    shape = tuple(int(n) + 1 for n in b.max(axis=0))
+    key = np.ravel_multi_index(tuple(b.T), shape)
+    flag = np.zeros(math.prod(shape), bool)
+    flag[key] = True
+    coords = np.stack(np.unravel_index(np.flatnonzero(flag), shape), axis=1)
+    row = np.cumsum(flag) - 1
     w = m.read_observed(coords)
     local = g % 16
-    return w[inverse.reshape(-1), local[:, 0], local[:, 1], local[:, 2]]
+    return w[row[key], local[:, 0], local[:, 1], local[:, 2]]
 
 
 def _slabs(nx: int, slab: int) -> Iterator[tuple[int, int, int]]:
