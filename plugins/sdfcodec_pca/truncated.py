@@ -44,7 +44,7 @@ _FOUND: list[bool] = []
 
 
 def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray, c0: np.ndarray,
-                    ridge: float, rounds: int) -> np.ndarray:
+                    ridge: float, rounds: int, iters: int = 0, tol: float = 0.0) -> np.ndarray:
     """Codes ``(n, k)`` float32 of blocks ``x`` ``(n, 4096)`` float32 under error weights ``w`` (same shape,
     finite, >= 0), refitted at most ``rounds`` times for the reader's truncation to ``[0, 1]``: ``dt`` is the
     decode matrix transposed ``(4096, k)`` (float32, columns orthonormal or not), ``dec_b`` the decode bias
@@ -56,7 +56,7 @@ def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndar
     out = np.empty_like(c0)
     kernel(np.ascontiguousarray(x, dtype=np.float32), np.ascontiguousarray(w, dtype=np.float32), dt,
            np.ascontiguousarray(dec_b, dtype=np.float32), gfull.astype(np.float32),
-           np.ascontiguousarray(c0, dtype=np.float32), np.float32(ridge), int(rounds), out)
+           np.ascontiguousarray(c0, dtype=np.float32), np.float32(ridge), int(rounds), int(iters), np.float32(tol), out)
     return out
 
 
