@@ -136,7 +136,7 @@ class PCACodec(Codec):
     #: preconditioned conjugate-gradient steps on the reader's error per refit asked for
     #: (:func:`sdfcodec_pca.kernels.refine`: the writer's 3 refits are 6 steps), or, with 0, the exact active-set
     #: refits (each a Gram rebuilt from the flipped voxels and refactorised). Measured on the kitchen half: equal
-    #: surfaces (docs/surface.md) at 1.3-1.6x the speed. A class attribute, not a constructor argument: how a
+    #: surfaces at 1.2x the speed (docs/surface.md). A class attribute, not a constructor argument: how a
     #: writer solves is no part of a map's codec configuration.
     cg_steps_per_refit = 2
 
@@ -364,7 +364,8 @@ class PCACodec(Codec):
     def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int) -> torch.Tensor | None:
         """What :func:`sdfcodec.map.observed.encode_truncated` computes from :meth:`encode_weighted` (the weighted
         fit, then at most ``rounds`` refits without the bound voxels a reader's truncation makes exact), in one
-        compiled pass per block (:mod:`sdfcodec_pca.truncated`): codes ``(N, k)`` float32 of blocks ``(N, 16, 16,
+        compiled pass per block (:mod:`sdfcodec_pca.truncated`; its refits as :attr:`cg_steps_per_refit`
+        conjugate-gradient steps per refit, by default): codes ``(N, k)`` float32 of blocks ``(N, 16, 16,
         16)`` float32 under checked weights of the same shape. None where that pass does not apply (not on the
         CPU, ``mean="block"``, numba not installed): the caller then runs its batched loop."""
         if (blocks.device.type != "cpu" or self.mean != "dataset" or not truncated.available()
