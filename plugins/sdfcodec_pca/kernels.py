@@ -90,6 +90,24 @@ def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
 
 
 @njit(fastmath=_FAST, cache=True)
+def chol_solve(chol, b, out):
+    """out = (L L^T)^-1 b for the Cholesky factor L in the lower triangle of ``chol`` (k, k); ``out`` may be ``b``.
+    Forward L y = b, then back L^T x = y by columns of L^T (rows of L)."""
+    k = b.shape[0]
+    for i in range(k):
+        ci = chol[i]
+        acc = b[i]
+        for t in range(i):
+            acc -= ci[t] * out[t]
+        out[i] = acc / ci[i]
+    for i in range(k - 1, -1, -1):
+        out[i] /= chol[i, i]
+        ci, v = chol[i], out[i]
+        for t in range(i):
+            out[t] -= v * ci[t]
+
+
+@njit(fastmath=_FAST, cache=True)
 def solve(g, rhs, c0i, lam, chol, panel, sol):
     """sol = (G + lam I)^-1 (rhs + lam c0) by Cholesky (float32, as the batched path): right-looking in
     panels of four columns, the trailing triangle updated four columns at a time (the Gram's loop: 1.8
@@ -131,19 +149,9 @@ def solve(g, rhs, c0i, lam, chol, panel, sol):
                     u, cr = pq[r], chol[r]
                     for b in range(je, r + 1):
                         cr[b] -= u * pq[b]
-    for i in range(k):  # forward: L y = b
-        sol[i] = rhs[i] + lam * c0i[i]
     for i in range(k):
-        ci = chol[i]
-        acc = sol[i]
-        for t in range(i):
-            acc -= ci[t] * sol[t]
-        sol[i] = acc / ci[i]
-    for i in range(k - 1, -1, -1):  # back: L^T c = y, by columns of L^T (rows of L)
-        sol[i] /= chol[i, i]
-        ci, v = chol[i], sol[i]
-        for t in range(i):
-            sol[t] -= v * ci[t]
+        sol[i] = rhs[i] + lam * c0i[i]
+    chol_solve(chol, sol, sol)
     for i in range(k):
         if not np.isfinite(sol[i]):
             return False
@@ -175,23 +183,6 @@ def symv(g, v, out):
             acc += ga[b] * v[b]
             out[b] += ga[b] * va
         out[a] += acc + ga[a] * va
-
-
-@njit(fastmath=_FAST, cache=True)
-def chol_solve(chol, b, out):
-    """out = (L L^T)^-1 b for the Cholesky factor L in the lower triangle of ``chol`` (k, k)."""
-    k = b.shape[0]
-    for i in range(k):
-        ci = chol[i]
-        acc = b[i]
-        for t in range(i):
-            acc -= ci[t] * out[t]
-        out[i] = acc / ci[i]
-    for i in range(k - 1, -1, -1):
-        out[i] /= chol[i, i]
-        ci, v = chol[i], out[i]
-        for t in range(i):
-            out[t] -= v * ci[t]
 
 
 @njit(fastmath=_FAST, cache=True)
