@@ -98,15 +98,20 @@ def test_pca_weighted_encode_is_the_weighted_least_squares(blocks_and_mask):
     assert np.all(err(got) < err(codec.encode(v[:6])))  # and far better than the plain projection
 
 
-def test_truncation_aware_refit_minimises_the_error_a_reader_sees(blocks_and_mask):
+@pytest.mark.parametrize("cg_steps", [0, 2])  # the exact active-set refits; conjugate-gradient steps (the default)
+def test_truncation_aware_refit_minimises_the_error_a_reader_sees(blocks_and_mask, cg_steps, monkeypatch):
     """encode_truncated fits what a reader sees (it truncates to [0, 1] = [d_min, d_max]): a voxel stored at a
     bound costs nothing when decoded beyond it. Checked against scipy's L-BFGS on that convex objective (squared
-    error, one-sided at the bound voxels, plus the codec's ridge), started from the plain weighted fit."""
+    error, one-sided at the bound voxels, plus the codec's ridge), started from the plain weighted fit, with both
+    refit solvers of the pca codec's compiled pass (PCACodec.cg_steps_per_refit; where numba is missing, the
+    batched path runs the exact refits either way)."""
     from scipy.optimize import minimize
 
     import sdfcodec_pca
     from sdfcodec.map.observed import encode_truncated
 
+    monkeypatch.setattr(sdfcodec_pca.PCACodec, "cg_steps_per_refit", cg_steps)
+    exact = cg_steps == 0 or not sdfcodec_pca.truncated.available()
     v, obs = blocks_and_mask
     codec = sdfcodec.pretrained_codec("pca", 16)
     # the four blocks with the most free-space voxels the plain weighted fit decodes beyond d_max
@@ -133,9 +138,10 @@ def test_truncation_aware_refit_minimises_the_error_a_reader_sees(blocks_and_mas
             r = np.where(top, np.minimum(r, 0), np.where(bot, np.maximum(r, 0), r))
             return (wi * r * r).sum() + lam * ((c - c0) ** 2).sum(), 2 * comp @ (wi * r) + 2 * lam * (c - c0)
 
-        # the codec's ridge is lam = RIDGE * mean of the weights it was given: those of the final active set
-        lam = sdfcodec_pca.RIDGE * np.where(top & (got[i] @ comp + mean >= 1) | bot & (got[i] @ comp + mean <= 0),
-                                            0, wi).mean()
+        # the codec's ridge is lam = RIDGE * mean of the weights it was given: the exact refits', those of the
+        # final active set; the conjugate-gradient steps minimise one objective, whose ridge is the block's
+        lam = sdfcodec_pca.RIDGE * (np.where(top & (got[i] @ comp + mean >= 1) | bot & (got[i] @ comp + mean <= 0),
+                                             0, wi) if exact else wi).mean()
         ref = minimize(objective, plain[i].astype(np.float64), args=(lam,), jac=True, method="L-BFGS-B",
                        options={"maxiter": 5000, "gtol": 1e-10, "ftol": 1e-15}).x
         # the active-set fit reaches the optimiser's objective (to 0.5 %), never worse for a reader than the fit

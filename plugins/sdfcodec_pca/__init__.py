@@ -54,6 +54,9 @@ WEIGHTED_FIT_ITERATIONS = 3
 #: percent (or scaled) is far beyond it.
 ORTHONORMAL_TOLERANCE = 1e-3
 _GRAM_TABLE_MAX_K = 128  # (4096, k (k + 1) / 2) float32 outer-product table: 135 MB at k = 128
+#: The refit steps stop early where ``z^T grad`` (preconditioned gradient) falls below this fraction of its first
+#: value: the step would change the error by about that fraction of the first step's change
+REFIT_TOLERANCE = 1e-6
 _FAST_MAX_K = 256  # the compiled pass's per-thread scratch: two k x k matrices
 
 
@@ -128,6 +131,14 @@ class PCACodec(Codec):
     # spec/codec-plugins.md, section 4a: every optional fast path, weighted encode and fit, shipped bases
     capabilities = frozenset({"decode_affine", "decode_into", "decode_tiles", "encode_truncated", "encode_weighted",
                               "fit_weighted", "numpy_path", "pretrained"})
+
+    #: How the compiled pass (:meth:`encode_truncated`) refits for the reader's truncation: this many
+    #: preconditioned conjugate-gradient steps on the reader's error per refit asked for
+    #: (:func:`sdfcodec_pca.kernels.refine`: the writer's 3 refits are 6 steps), or, with 0, the exact active-set
+    #: refits (each a Gram rebuilt from the flipped voxels and refactorised). Measured on the kitchen half: equal
+    #: surfaces at 1.2x the speed (docs/surface.md). A class attribute, not a constructor argument: how a
+    #: writer solves is no part of a map's codec configuration.
+    cg_steps_per_refit = 2
 
     def __init__(self, code_size: int = 64, mean: str = "dataset", svd_solver: str = "auto",
                  random_state: int | None = 0):
@@ -353,7 +364,8 @@ class PCACodec(Codec):
     def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int) -> torch.Tensor | None:
         """What :func:`sdfcodec.map.observed.encode_truncated` computes from :meth:`encode_weighted` (the weighted
         fit, then at most ``rounds`` refits without the bound voxels a reader's truncation makes exact), in one
-        compiled pass per block (:mod:`sdfcodec_pca.truncated`): codes ``(N, k)`` float32 of blocks ``(N, 16, 16,
+        compiled pass per block (:mod:`sdfcodec_pca.truncated`; its refits as :attr:`cg_steps_per_refit`
+        conjugate-gradient steps per refit, by default): codes ``(N, k)`` float32 of blocks ``(N, 16, 16,
         16)`` float32 under checked weights of the same shape. None where that pass does not apply (not on the
         CPU, ``mean="block"``, numba not installed): the caller then runs its batched loop."""
         if (blocks.device.type != "cpu" or self.mean != "dataset" or not truncated.available()
@@ -362,8 +374,10 @@ class PCACodec(Codec):
         n = len(blocks)
         c0 = self._encode(blocks)
         w = weights if weights.dtype == torch.float32 else weights.float()
+        steps = self.cg_steps_per_refit * rounds
         codes = truncated.truncated_codes(blocks.reshape(n, _N).numpy(), w.reshape(n, _N).numpy(),
-                                          self._affine[2].T, self._affine[3], c0.numpy(), RIDGE, rounds)
+                                          self._affine[2].T, self._affine[3], c0.numpy(), RIDGE, rounds, steps,
+                                          REFIT_TOLERANCE)
         return torch.from_numpy(codes)
 
     def numpy_path(self) -> "_NumpyPCA | None":
@@ -523,6 +537,8 @@ class _NumpyPCA:
         c = self.codec
         if c.mean != "dataset" or not truncated.available() or c.code_size > _FAST_MAX_K:
             return None  # as PCACodec.encode_truncated
+        # the solver the torch hook runs (its refits as conjugate-gradient steps by default), so that query shapes
+        # encode as map blocks do and shipped calibrations hold on both paths
         return truncated.truncated_codes(blocks, weights, c._affine[2].T, c._affine[3], self.encode(blocks), RIDGE,
-                                         rounds)
+                                         rounds, c.cg_steps_per_refit * rounds, REFIT_TOLERANCE)
 

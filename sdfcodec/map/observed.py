@@ -177,7 +177,8 @@ def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUN
     still changing). Measured on the held-out half of a fused kitchen, pca-64 (docs/surface.md): Chamfer-L1
     5.29 mm with none, 5.15 / 5.08 / 5.02 mm after 1 / 2 / 3.
 
-    A codec declaring the capability ``encode_truncated`` MAY compute the same in one pass of its own
+    A codec declaring the capability ``encode_truncated`` MAY compute the same (or solve the same problem
+    otherwise, no worse in total: spec/codec-plugins.md section 4) in one pass of its own
     (:meth:`Codec.encode_truncated`; None where it does not apply: the pca codec's compiled pass on the CPU,
     spec/codec-plugins.md section 4a)."""
     if "encode_truncated" in capabilities(codec) and (codes := codec.encode_truncated(x, w, rounds)) is not None:
