@@ -642,7 +642,7 @@ _resolved: "weakref.WeakKeyDictionary[type, frozenset[str]]" = weakref.WeakKeyDi
 def capabilities(codec: Codec | type[Codec]) -> frozenset[str]:
     """What ``codec`` (an instance or a class) can do beyond the contract's defaults (spec section 4a): its
     declared ``capabilities``, checked (:func:`check_capabilities`), plus, for a plugin written before
-    declarations (codec spec 2 before issue 41), each optional hook it overrides without declaring it (its
+    declarations (codec spec 2 before capabilities were declared), each optional hook it overrides without declaring it (its
     class warned when it was defined). Worked out once per class."""
     cls = codec if isinstance(codec, type) else type(codec)
     found = _resolved.get(cls)

@@ -112,7 +112,7 @@ class MapBusyError(SDFCodecError, TimeoutError):
     """Another process kept a map locked (an update in progress) for longer than the caller would wait."""
 
 
-# -- codec registry and model files (issue 14) ------------------------------------------------------------
+# -- codec registry and model files -----------------------------------------------------------------------
 __all__ += ["RegistrationError", "CodecTypeError", "ModelNotFoundError"]
 
 
@@ -140,7 +140,7 @@ class RemoteReadError(SDFCodecError, OSError):
     the map itself is intact."""
 
 
-# -- writes that fail in the file system (issue 21) ---------------------------------------------------------
+# -- writes that fail in the file system ------------------------------------------------------------------
 __all__ += ["WriteFailedError"]
 
 

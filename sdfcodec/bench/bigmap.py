@@ -1,4 +1,4 @@
-"""Maps of a million blocks (issue 18, item 3): build one out of core with dask distributed, and measure what
+"""Maps of a million blocks: build one out of core with dask distributed, and measure what
 opening, reading a region, decoding it all and verifying it cost, from a local store, over HTTP and from S3.
 
 ``python -m sdfcodec.bench.bigmap build OUT --rooms 26 24 3`` encodes :class:`sdfcodec.data.offices.OfficeVolume`

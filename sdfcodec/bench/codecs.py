@@ -429,7 +429,7 @@ def write_bench_map(codec: Codec, n_blocks: int, path: Any, truncation: tuple[fl
 
 def bench_decode_in_place(codec: Codec, n_blocks: int, *, device: str = "cpu", repeats: int = 5, batch: int = 4096,
                           name: str | None = None, min_time: float = 0.2) -> list[dict]:
-    """Decoding into place (issue 19) beside the preallocated roofline, in interleaved rounds
+    """Decoding into place beside the preallocated roofline, in interleaved rounds
     (:func:`~sdfcodec.bench.harness.interleave`):
 
     - ``"decode-on-read-into"``: :meth:`sdfcodec.Map.iter_decoded` ``(copy=False)`` of a whole map of

@@ -1,4 +1,4 @@
-"""How long a light command takes in a fresh process (issue 19: ``sdfcodec info MAP`` <= 0.5 s).
+"""How long a light command takes in a fresh process (held to ``sdfcodec info MAP`` <= 0.5 s).
 
 Each call starts a new interpreter, as a user's shell does; the baseline, interleaved with it, is the bare
 interpreter start-up (``python -c pass``), the floor no command can go under here. The map is a small one

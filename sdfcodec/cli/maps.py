@@ -252,7 +252,7 @@ def encode_cmd(
                       f"{codec.get_config()['max_error'] * (trunc[1] - trunc[0]) * 1000:.3g} mm (the codec's "
                       "default); pass --max-error METRES to choose it", markup=False, highlight=False)
 
-    if codec_state is None:  # a shipped model by reference (issue 42: the whole map is what a map needs)
+    if codec_state is None:  # a shipped model by reference (every byte a map needs is counted with it)
         codec_state = "reference" if codec.is_fitted and model is None and _ships(codec) else "embedded"
     if codec_state == "reference" and not codec.is_fitted:  # refused before spending the fit
         raise InvalidValueError(f"--codec-state reference needs a shipped model, but {codec!r} must be fitted "
@@ -341,7 +341,7 @@ def encode_cmd(
 
 
 def _codec_words(codec: Codec, info: dict, model: Optional[Path], fitted_on: Optional[int], vr: bool) -> str:
-    """What ``encode`` chose, said (issue 44: no silent choice): ``pca-64 (shipped model, by reference)``,
+    """What ``encode`` chose, said (no silent choice): ``pca-64 (shipped model, by reference)``,
     ``pca-128 prefixes (...)`` for variable-rate codes, ``sz3 (7 mm bound)``, ``ae-64 (fitted on N blocks)``."""
     bound = _field_bound(info)
     if bound is not None:

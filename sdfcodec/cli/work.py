@@ -404,7 +404,7 @@ def _bench_codec(codec_id: str, sizes: str, batches: str | None, device: str, qu
             found = bench_search(searched, batches=[n_search], device=device,
                                  min_time=0.05 if quick else 0.2, progress=step, repeats=repeats)
             records += [dict(r, **vs_paper(r["us_per_block"])) for r in found]  # the same paper comparison
-        if n_read > 0:  # with the map benchmarks: a light command's start-up (issue 19, item 4)
+        if n_read > 0:  # with the map benchmarks: a light command's start-up
             from ..bench.startup import bench_info_startup
 
             records += bench_info_startup(repeats=repeats, progress=step)

@@ -1,5 +1,5 @@
 """A synthetic office floor plate of any size, as a lazily computed TSDF: the volume behind maps of a million
-blocks and more (issue 18, item 3; ``docs/scale.md``), generated from its parameters alone, chunk by chunk,
+blocks and more (``docs/scale.md``), generated from its parameters alone, chunk by chunk,
 so that no part of it needs to fit in memory and nothing is downloaded.
 
 The building is a lattice of rooms ``cell`` metres apart (``rooms`` per axis, the z axis being storeys):

@@ -1,5 +1,5 @@
 """Rate control of step-quantised (int16) codes: the step that makes a map take a given number of stored bytes
-per coded block (``sdfcodec encode --target-bytes``, issue 16).
+per coded block (``sdfcodec encode --target-bytes``).
 
 "Stored bytes per coded block" counts every file of the map but its codec state (``codec/``): the codes, the
 observation mask, fusion weights, the residual stage (``--max-error``/``--sign-exact``), block states and the Zarr

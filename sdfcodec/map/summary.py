@@ -1,7 +1,7 @@
 """What ``sdfcodec info`` shows of a map: :func:`summarize` builds it (what :meth:`sdfcodec.Map.info` returns),
 and :func:`local_info` reads it from a local map directory without importing Zarr.
 
-Why a second way to read: ``info`` is a light command (issue 19 asks for 0.5 s), and importing Zarr costs 0.2-0.4 s
+Why a second way to read: ``info`` is a light command (held to 0.5 s), and importing Zarr costs 0.2-0.4 s
 here, as much as the rest of the command. All ``info`` needs is the group's ``zarr.json`` (the header) and the
 block states, one small uint8 array. :func:`local_info` reads those two from the pinned version of a plain local
 map directory, with the same header parser and the same CRC32C check Zarr applies; anything it does not know for

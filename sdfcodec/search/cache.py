@@ -37,7 +37,7 @@ __all__ = ["CACHE_ENV", "SHIPPED_FILE", "cache_dir", "cache_key", "cached_model"
 CACHE_ENV = "SDFCODEC_CACHE_DIR"
 #: Bumped whenever the shapes, their encoding or the calibration change in a way the key does not name, so
 #: that files written by an older sdfcodec are not reused.
-BUILD_VERSION = 3  # 3: the pca writer's truncation refits as conjugate-gradient steps (issue 42 item 5)
+BUILD_VERSION = 3  # 3: the pca writer's truncation refits as conjugate-gradient steps
 #: Models and thresholds kept in memory per process.
 MEMORY_ENTRIES = 64
 
