@@ -11,6 +11,8 @@ import importlib.util
 
 import numpy as np
 
+from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
+
 __all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
            "categorical_intervals"]
 
@@ -37,7 +39,7 @@ def _words(words: np.ndarray) -> np.ndarray:
 
 def _refuse(status: int) -> None:  # the chunk decoder's status
     if status == 1:  # constriction's AnsCoder(words) refuses these with this message
-        raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
+        raise FormatError("Invalid compressed data: ANS compressed data never ends in a zero word.")
 
 
 class Decoder:
@@ -52,7 +54,7 @@ class Decoder:
         self.words = np.ascontiguousarray(words, dtype=np.uint32)
         self.st = np.zeros(2, np.uint64)
         if not _k().start(self.words, self.st):
-            raise ValueError("Invalid compressed data: ANS compressed data never ends in a zero word.")
+            raise FormatError("Invalid compressed data: ANS compressed data never ends in a zero word.")
 
     def is_empty(self) -> bool:
         """Whether every word was read and the state is back to 0 (constriction's ``is_empty``)."""
@@ -78,7 +80,7 @@ class Decoder:
                               np.asarray(deltas, np.int64), np.asarray(weights, np.int64),
                               np.zeros(0, np.int64) if extra is None else np.asarray(extra, np.int64), int(n_ctx))
         if not ok:
-            raise ValueError(f"a context is outside [0, {n_ctx})")
+            raise InvalidValueError(f"a context is outside [0, {n_ctx})")
 
 
 def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray],

@@ -217,7 +217,7 @@ def decode_mask_rows(stream: bytes | np.ndarray, n_rows: int, where: str = "a co
         else:
             partial, states, vpad = _decode_words(words, n_rows, p_rows)
     except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
-        raise ChecksumError(f"{where} is not a sound {MASK_ANS_CODEC} stream ({type(e).__name__}: {e})") from e
+        raise ChecksumError(f"{where} is not a sound {MASK_ANS_CODEC} stream ({e})") from e
     if int(partial.sum()) != p_rows:
         raise ChecksumError(f"{where} decodes {int(partial.sum())} partial rows, its header says {p_rows}")
     if ans.available():

@@ -183,7 +183,7 @@ class _Layout:
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
         pinned = np.asarray(pinned, bool).reshape(-1, BLOCK, BLOCK, BLOCK)
         if len(coords) != len(pinned):
-            raise ValueError(f"{len(coords)} block coordinates for {len(pinned)} blocks of pins")
+            raise InvalidValueError(f"{len(coords)} block coordinates for {len(pinned)} blocks of pins")
         lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
         span = (coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3, np.int64)
         self.shape = tuple(int(x) + 2 for x in span)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..core._validate import BLOCK
 from ..core.header import PINNED_MASK_EXTENSION, BlockState
-from ..errors import FormatError
+from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 
 if TYPE_CHECKING:
@@ -98,7 +98,7 @@ class PinnedStreams:
         for i, (own, outside) in enumerate(self.plans):
             sel = np.flatnonzero(self.inverse == i)
             if not np.array_equal(self.coords[sel], own):
-                raise ValueError("PinnedStreams needs the coded blocks grouped by chunk, in C order inside each")
+                raise InvalidValueError("PinnedStreams needs the coded blocks grouped by chunk, in C order inside each")
             near = np.array([index[tuple(c)] for c in outside], np.int64)
             both = np.r_[sel, near]
             neg, pos = _signs(q[both], basis)  # the neighbours' true decode: exact bits at the chunk's faces

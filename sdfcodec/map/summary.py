@@ -59,7 +59,8 @@ def summarize(h: MapHeader, location: str, root: str | None, counts: dict[str, i
     bytes on disk under ``root`` (its local directory, or None for a remote map) and ratio to dense float32."""
     dense = int(np.prod(h.shape_voxels)) * 4
     on_disk = dir_bytes(root) if root is not None else None
-    state_bytes = dir_bytes(Path(root) / "codec") if on_disk is not None else None
+    # a map without a codec group (state by reference, or a codec that learns nothing) stores 0 bytes of state
+    state_bytes = (dir_bytes(Path(root) / "codec") or 0) if on_disk is not None else None
     code_bytes = (sum(dir_bytes(Path(root) / a) or 0 for a in ("codes", "code_scale", "code_streams"))
                   if on_disk is not None else None)
     ref = h.codec.state_reference
