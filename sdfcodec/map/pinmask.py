@@ -48,6 +48,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..core import ans
 from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
@@ -200,8 +201,12 @@ class _Layout:
         order = np.argsort(wave, kind="stable")  # wavefront by wavefront, C order within one
         self.at = at[order]
         self.bounds = np.r_[0, np.flatnonzero(np.diff(wave[order])) + 1, len(at)]
-        self.grid = np.full(int(np.prod(self.shape)), 2, np.int8)
+        self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
         self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+
+    #: Each neighbour's weight in the context number (the first neighbour most significant), as ans takes them.
+    WEIGHTS = 3 ** np.arange(len(NEIGHBOURS), dtype=np.int64)[::-1]
+    N_CTX = 3 ** len(NEIGHBOURS)
 
     def context(self, at: np.ndarray) -> np.ndarray:
         ctx = np.zeros(len(at), np.int64)
@@ -223,6 +228,10 @@ def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> b
     lay = _Layout(coords, pinned)
     pinned = np.asarray(pinned, bool).reshape(lay.flat.shape)
     lay.grid[lay.flat[pinned]] = np.asarray(bits, bool).reshape(lay.flat.shape)[pinned]
+    head = _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes()
+    if ans.available():  # the compiled encoder: constriction's words, without a Python loop per wavefront
+        words = ans.encode_bits(lay.grid, lay.at, lay.bounds, lay.deltas, lay.WEIGHTS, lay.N_CTX)
+        return head + np.asarray(words, "<u4").tobytes()
     st = _stream()
     bern, coder = st.model.Bernoulli(perfect=False), st.stack.AnsCoder()
     counts = np.zeros((2, 3 ** len(NEIGHBOURS)), np.int64)
@@ -234,8 +243,7 @@ def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> b
         counts += _tally(sym, ctx)
     for sym, p in reversed(parts):
         coder.encode_reverse(sym, bern, p)
-    words = np.asarray(coder.get_compressed(), dtype="<u4")
-    return _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes() + words.tobytes()
+    return head + np.asarray(coder.get_compressed(), dtype="<u4").tobytes()
 
 
 def _tally(sym: np.ndarray, ctx: np.ndarray) -> np.ndarray:
@@ -268,19 +276,32 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
                             "or the mask are corrupted")
     if len(lay.at):
         words = np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32)
-        st = _stream()
-        try:
-            coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
-            bern = st.model.Bernoulli(perfect=False)
-            counts = np.zeros((2, 3 ** len(NEIGHBOURS)), np.int64)
-            for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
-                sl = lay.at[a:b]
-                ctx = lay.context(sl)
-                sym = np.asarray(coder.decode(bern, _p1(counts, ctx)), np.int64)
-                lay.grid[sl] = sym
-                counts += _tally(sym, ctx)
-        except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
-            raise ChecksumError(f"{where} is not a sound M2 stream ({type(e).__name__}: {e})") from e
+        if ans.available():  # compiled, the same words read as constriction reads them (tests/test_pinned_mask.py)
+            try:
+                coder = ans.Decoder(words)
+                coder.bits(lay.grid, lay.at, lay.bounds, lay.deltas, lay.WEIGHTS, lay.N_CTX)
+            except ValueError as e:  # a last word of 0, as constriction refuses it
+                raise ChecksumError(f"{where} is not a sound M2 stream (ValueError: {e})") from e
+        else:
+            coder = _constriction_decode(words, lay, where)
         if not coder.is_empty():
             raise ChecksumError(f"{where} has words left after its {count} pinned voxels; it is corrupted")
     return lay.grid[lay.flat] != 0  # pinned: the bit read; elsewhere 2, observed
+
+
+def _constriction_decode(words: np.ndarray, lay: _Layout, where: str):
+    """The fallback of :func:`decode_pinned` without numba: the bits into ``lay.grid``; returns the coder."""
+    st = _stream()
+    try:
+        coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
+        bern = st.model.Bernoulli(perfect=False)
+        counts = np.zeros((2, lay.N_CTX), np.int64)
+        for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
+            sl = lay.at[a:b]
+            ctx = lay.context(sl)
+            sym = np.asarray(coder.decode(bern, _p1(counts, ctx)), np.int64)
+            lay.grid[sl] = sym
+            counts += _tally(sym, ctx)
+    except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
+        raise ChecksumError(f"{where} is not a sound M2 stream ({type(e).__name__}: {e})") from e
+    return coder
