@@ -64,6 +64,7 @@ NEIGHBOURS = ((-1, 0, 0), (0, -1, 0), (0, 0, -1), (-1, -1, 0), (-1, 0, -1), (0, 
 _MAGIC = b"M2"
 _EXACT = 2.0 ** 53  # integers below this are exact in float64, and so is every partial sum of the product
 _PAD = BLOCK + 2
+_RUN = 8  # the exact product's column runs: blocks whose prefixes round up alike share one matrix product
 
 
 def fixed_point_basis(components: np.ndarray, mean: np.ndarray, step: np.ndarray, truncation: tuple[float, float]
@@ -104,9 +105,26 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
-    v = q @ a + basis[0]  # every term and partial sum an integer < 2^53: exact in any order
+    v = _product(q, a, basis[0])
     bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
     return v, bound
+
+
+def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray) -> np.ndarray:
+    """``q @ a + a0`` with each block's product cut to its prefix (rounded up to :data:`_RUN` columns): the
+    columns cut are exact zeros in every term, and every partial sum is an integer below ``2^53``, so the result is
+    the full product's in any order (low-rate blocks keep a few of 64-128 columns)."""
+    n, k = q.shape
+    if not n:
+        return np.zeros((0, len(a0)))
+    nz = q != 0
+    width = np.where(nz.any(axis=1), k - np.argmax(nz[:, ::-1], axis=1), 0)
+    width = np.minimum(-(-width // _RUN) * _RUN, k)
+    v = np.empty((n, len(a0)))
+    for w in np.unique(width):
+        rows = np.flatnonzero(width == w)
+        v[rows] = q[rows, :w] @ a[:w] + a0 if w else a0
+    return v
 
 
 def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
@@ -136,7 +154,8 @@ def sign_bounds(v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """``(neg, pos)`` ``(n, 16, 16, 16)`` bool from :func:`exact_decode`'s ``(v, E)``: where a float decode may be
     negative, and where it may be non-negative."""
     e = np.asarray(bound, np.float64).reshape(-1, 1)
-    return (v - e < 0).reshape(-1, BLOCK, BLOCK, BLOCK), (v + e >= 0).reshape(-1, BLOCK, BLOCK, BLOCK)
+    # v - e < 0 and v + e >= 0 compared without forming them (integers: the same answers, no temporaries)
+    return (v < e).reshape(-1, BLOCK, BLOCK, BLOCK), (v >= -e).reshape(-1, BLOCK, BLOCK, BLOCK)
 
 
 def _relevant(neg: np.ndarray, pos: np.ndarray, truncation: tuple[float, float], jump: float) -> np.ndarray:
@@ -194,14 +213,18 @@ class _Layout:
         local = (i * sy + j * sz + k).reshape(-1)  # a block's voxels' flat offsets from its first one
         first = self.corner @ np.array([sy, sz, 1])
         self.flat = (first[:, None] + local[None]).reshape(len(coords), BLOCK, BLOCK, BLOCK)  # (n, 16, 16, 16)
-        at = np.sort(self.flat[pinned])  # C order of the grid
+        self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
+        self.grid[self.flat[pinned]] = 0
+        at = np.flatnonzero(self.grid == 0)  # C order of the grid, without a comparison sort
         x, rest = np.divmod(at, sy)
         y, z = np.divmod(rest, sz)
         wave = x + y + z
-        order = np.argsort(wave, kind="stable")  # wavefront by wavefront, C order within one
+        # wavefront by wavefront, C order within one: a stable sort of small integers is numpy's radix sort
+        order = np.argsort(wave.astype(np.uint16) if sum(self.shape) < 2 ** 16 else wave, kind="stable")
         self.at = at[order]
-        self.bounds = np.r_[0, np.flatnonzero(np.diff(wave[order])) + 1, len(at)]
-        self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
+        sizes = np.bincount(wave, minlength=1)
+        self.bounds = np.r_[0, np.cumsum(sizes[sizes > 0])]
+        self.grid[at] = 2
         self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
 
     #: Each neighbour's weight in the context number (the first neighbour most significant), as ans takes them.

@@ -1,0 +1,148 @@
+"""The pinned mask's fast read (sdfcodec.map.pinmask with sdfcodec.core.ans): the compiled M2 decoder and encoder
+write and read constriction's words, on random and real pinned masks and the golden map; the shortcuts of the
+exact decode and of the layout give what the plain definitions give."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+import sdfcodec
+from _fused_maps import TRUNC, VS, fused_like
+from sdfcodec.core import ans
+from sdfcodec.core.blocks import split_blocks
+from sdfcodec.core.sdf import sample_volume
+from sdfcodec.map import pinmask as pm
+from sdfcodec.map.pinstore import PINNED_ARRAY, chunk_blocks
+from sdfcodec.registry import pretrained_codec
+from sdfcodec.testing import analytic_scene
+
+constriction = pytest.importorskip("constriction")
+pytestmark = pytest.mark.skipif(not ans.available(), reason="numba is not installed: no compiled path to compare")
+GOLDEN = Path(__file__).parent / "golden" / "maps" / "pinned-mask-pca-8" / "map.zarr"
+
+
+def _reference_stream(coords, bits, pinned) -> bytes:
+    """M2 as spec section 6g words it, written here with constriction: the chunk's blocks in one grid padded by
+    one voxel, pinned voxels ordered by wavefront x + y + z then C order, ternary contexts of NEIGHBOURS (first
+    most significant; 2 = not pinned), Krichevsky-Trofimov counts added after each wavefront."""
+    coords = np.asarray(coords, np.int64)
+    lo = coords.min(axis=0)
+    shape = tuple((coords.max(axis=0) - lo + 1) * 16 + 2)
+    grid = np.full(shape, 2, np.int64)
+    for c, b, p in zip(coords, bits, pinned):
+        x, y, z = (c - lo) * 16 + 1
+        view = grid[x:x + 16, y:y + 16, z:z + 16]
+        view[p] = b[p]
+    pts = np.argwhere(grid != 2)
+    wave = pts.sum(axis=1)
+    pts = pts[np.lexsort((np.ravel_multi_index(pts.T, shape), wave))]
+    wave = pts.sum(axis=1)
+    sym = grid[tuple(pts.T)]
+    ctx = np.zeros(len(pts), np.int64)
+    for d in pm.NEIGHBOURS:
+        ctx = ctx * 3 + grid[tuple((pts + d).T)]
+    counts, p1 = np.zeros((2, 729)), np.empty(len(pts))
+    for w in np.unique(wave):
+        sel = wave == w
+        c = counts[:, ctx[sel]] + 0.5
+        p1[sel] = c[1] / (c[0] + c[1])
+        np.add.at(counts, (sym[sel], ctx[sel]), 1)
+    coder = constriction.stream.stack.AnsCoder()
+    coder.encode_reverse(sym.astype(np.int32), constriction.stream.model.Bernoulli(perfect=False), p1)
+    words = np.asarray(coder.get_compressed(), "<u4")
+    return b"M2" + np.uint32(len(pts)).astype("<u4").tobytes() + words.tobytes()
+
+
+def _both_paths(monkeypatch, coords, bits, pinned) -> bytes:
+    """The stream of both paths (asserted equal), each decoded by both paths to the stored bits."""
+    stream = pm.encode_pinned(coords, bits, pinned)
+    with monkeypatch.context() as m:
+        m.setattr(ans, "available", lambda: False)
+        assert pm.encode_pinned(coords, bits, pinned) == stream
+        slow = pm.decode_pinned(stream, coords, pinned)
+    fast = pm.decode_pinned(stream, coords, pinned)
+    assert np.array_equal(fast, slow)
+    assert np.array_equal(fast[pinned], np.asarray(bits, bool)[pinned]) and fast[~pinned].all()
+    return stream
+
+
+def _real_case(step: float):
+    """A fused room under pca-64 at ``step``: (coords, canonical bits, pins), as the writer makes them."""
+    vol, obs = fused_like(sample_volume(analytic_scene(), (64, 64, 48), VS, truncation=TRUNC))
+    blocks = split_blocks(vol, fill=TRUNC[1]).reshape(-1, 16, 16, 16)
+    truth = split_blocks(obs, fill=False).reshape(-1, 16, 16, 16)
+    coords = np.argwhere(np.ones(split_blocks(vol, fill=TRUNC[1]).shape[:3], bool))
+    keep = ~(blocks >= TRUNC[1] - 1e-6).reshape(len(blocks), -1).all(axis=1)
+    coords, blocks, truth = coords[keep], blocks[keep], truth[keep]
+    codec = pretrained_codec("pca", 64)
+    z = np.asarray(codec.encode(((blocks - TRUNC[0]) / (TRUNC[1] - TRUNC[0])).astype(np.float32)))
+    q = np.rint(z / step)
+    sd = codec.state_dict()
+    basis = pm.fixed_point_basis(sd["components"], sd["mean"], np.full(64, step), TRUNC)
+    neg, pos = pm.sign_bounds(*pm.exact_decode(q, basis))
+    pins, _, _ = pm.exact_pins(coords, neg, pos, np.zeros((0, 3)), TRUNC)
+    return coords, pm.canonical_bits(coords, truth, neg, pos, TRUNC), pins
+
+
+def test_random_pinned_masks_give_constrictions_stream_on_both_paths(monkeypatch):
+    rng = np.random.default_rng(11)
+    layouts = [np.array([[0, 0, 0]]), np.array([[0, 0, 0], [0, 0, 1], [3, 1, 2]]),
+               np.array([[2, 2, 2], [2, 3, 2], [3, 2, 2], [3, 3, 3], [5, 0, 1]])]
+    for coords in layouts:
+        for density, ones in ((0.0, 0.5), (0.02, 0.5), (0.3, 0.2), (1.0, 0.9)):
+            pinned = rng.random((len(coords), 16, 16, 16)) < density
+            bits = rng.random(pinned.shape) < ones
+            stream = _both_paths(monkeypatch, coords, bits, pinned)
+            assert stream == _reference_stream(coords, bits, pinned), (len(coords), density)
+
+
+@pytest.mark.parametrize("step", [0.05, 0.6])
+def test_real_pinned_masks_give_constrictions_stream_on_both_paths(monkeypatch, step):
+    coords, bits, pins = _real_case(step)
+    assert pins.sum() > 10000 and 0 < bits[pins].mean() < 1
+    assert _both_paths(monkeypatch, coords, bits, pins) == _reference_stream(coords, bits, pins)
+
+
+def test_the_golden_maps_streams_read_alike_and_are_rewritten_byte_for_byte(monkeypatch):
+    """The frozen map's M2 streams (written before the compiled path existed): both paths read the same mask,
+    and encoding it again on either path gives the stored bytes."""
+    m = sdfcodec.open_map(GOLDEN)
+    r, arr = m.reader, m.reader.mask_array
+    states = r.vr.states()
+    stored = zarr.open_group(str(GOLDEN), mode="r")[PINNED_ARRAY]
+    coords = np.argwhere(states == 2)
+    with monkeypatch.context() as mp:
+        mp.setattr(ans, "available", lambda: False)
+        slow = type(arr)(r).block_rows(coords)
+    assert np.array_equal(type(arr)(r).block_rows(coords), slow)
+    step = np.broadcast_to(np.asarray(r.header.codes.variable_rate.step, np.float64), (r.header.codes.size,))
+    seen = 0
+    for key in np.unique(coords // arr.cb, axis=0):
+        own, outside = chunk_blocks(states, key, arr.cb)
+        row = np.asarray(stored[tuple(int(k) for k in key)])
+        stream = row[4:4 + int(row[:4].view("<u4")[0])].tobytes()
+        q = np.rint(r.vr.codes_for(own, r.header.codes.size).astype(np.float64) / step)
+        pins, _, _ = pm.exact_pins(own, *pm.sign_bounds(*pm.exact_decode(q, arr.basis())), outside, r.truncation)
+        bits = pm.decode_pinned(stream, own, pins)
+        assert _both_paths(monkeypatch, own, bits, pins) == stream
+        seen += int(pins.sum())
+    assert seen > 1000
+
+
+def test_the_exact_decode_cut_to_prefixes_is_the_full_product():
+    """Blocks of every prefix length (zeros after it, zeros inside it): the exact decode equals the plain float64
+    product of all columns bit for bit."""
+    rng = np.random.default_rng(12)
+    sd = pretrained_codec("pca", 64).state_dict()
+    basis = pm.fixed_point_basis(sd["components"], sd["mean"], np.full(64, 0.1), TRUNC)
+    q = rng.integers(-40, 41, (130, 64)).astype(np.float64)
+    q[rng.random(q.shape) < 0.3] = 0
+    q[np.arange(65) * 2, :] *= np.arange(64) < np.arange(65)[:, None]  # prefix lengths 0..64
+    v, e = pm.exact_decode(q, basis)
+    assert np.array_equal(v, q @ basis[1:] + basis[0])
+    peak = np.abs(basis[0]).max() + np.abs(q) @ np.abs(basis[1:]).max(axis=1)
+    assert np.array_equal(e, 1 + np.abs(q).sum(axis=1) + np.ceil(peak * 68 / 2 ** 20))
