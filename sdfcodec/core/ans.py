@@ -11,7 +11,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "table_cdfs", "decode_chunk", "encode",
+__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "table_cdfs", "decode_chunk", "encode",
            "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -153,6 +153,16 @@ def encode_bits(grid: np.ndarray, at: np.ndarray, bounds: np.ndarray, deltas: np
     if m < 0:
         raise ValueError(f"a context is outside [0, {n_ctx})")
     return encode(left, freq)
+
+
+def wave_order(grid: np.ndarray, dims: tuple[int, int, int], corner: np.ndarray, pinned: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``at`` and ``bounds`` of :meth:`Decoder.bits` for the voxels ``pinned`` ``(n, 16, 16, 16)`` bool of
+    blocks whose first voxels are at ``corner`` ``(n, 3)`` in the grid ``grid`` (flat uint8 of shape ``dims``, 2
+    wherever a bit is not coded; left so): wavefront by wavefront (``x + y + z``), C order within one; empty
+    wavefronts left out."""
+    return _k().wave_order(grid, np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64),
+                           np.ascontiguousarray(pinned, np.bool_).reshape(len(corner), 4096))
 
 
 def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

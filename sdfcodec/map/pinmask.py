@@ -197,7 +197,7 @@ def _cells(a: np.ndarray, op) -> np.ndarray:
 class _Layout:
     """The chunk's coded blocks ``coords`` ``(n, 3)`` placed in one voxel grid (their bounding box, padded by one
     voxel of "not pinned"): flat positions of the pinned voxels in decode order, the wavefront bounds, the grid
-    (int8: 0, 1, or 2 where not pinned) and the context offsets."""
+    (uint8: 0, 1, or 2 where not pinned) and the context offsets."""
 
     def __init__(self, coords: np.ndarray, pinned: np.ndarray):
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
@@ -208,12 +208,12 @@ class _Layout:
         span = (coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3, np.int64)
         self.shape = tuple(int(x) + 2 for x in span)
         self.corner = (coords - lo) * BLOCK + 1  # each block's first voxel in the padded grid
-        i, j, k = (np.arange(BLOCK)[:, None, None], np.arange(BLOCK)[None, :, None], np.arange(BLOCK)[None, None, :])
         sy, sz = self.shape[1] * self.shape[2], self.shape[2]
-        local = (i * sy + j * sz + k).reshape(-1)  # a block's voxels' flat offsets from its first one
-        first = self.corner @ np.array([sy, sz, 1])
-        self.flat = (first[:, None] + local[None]).reshape(len(coords), BLOCK, BLOCK, BLOCK)  # (n, 16, 16, 16)
         self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
+        self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+        if ans.available():  # compiled: a counting sort and one scan of the grid
+            self.at, self.bounds = ans.wave_order(self.grid, self.shape, self.corner, pinned)
+            return
         self.grid[self.flat[pinned]] = 0
         at = np.flatnonzero(self.grid == 0)  # C order of the grid, without a comparison sort
         x, rest = np.divmod(at, sy)
@@ -225,7 +225,20 @@ class _Layout:
         sizes = np.bincount(wave, minlength=1)
         self.bounds = np.r_[0, np.cumsum(sizes[sizes > 0])]
         self.grid[at] = 2
-        self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+
+    @property
+    def flat(self) -> np.ndarray:
+        """``(n, 16, 16, 16)`` int64: the flat position of every voxel of the blocks in the grid."""
+        sy, sz = self.shape[1] * self.shape[2], self.shape[2]
+        i, j, k = (np.arange(BLOCK)[:, None, None], np.arange(BLOCK)[None, :, None], np.arange(BLOCK)[None, None, :])
+        first = self.corner @ np.array([sy, sz, 1])
+        return first[:, None, None, None] + (i * sy + j * sz + k)[None]
+
+    def blocks(self) -> np.ndarray:
+        """``(n, 16, 16, 16)`` uint8: the grid's values over the blocks (gathered through a window view of the
+        grid, without the flat positions)."""
+        win = np.lib.stride_tricks.sliding_window_view(self.grid.reshape(self.shape), (BLOCK,) * 3)
+        return win[tuple(self.corner.T)]
 
     #: Each neighbour's weight in the context number (the first neighbour most significant), as ans takes them.
     WEIGHTS = 3 ** np.arange(len(NEIGHBOURS), dtype=np.int64)[::-1]
@@ -249,8 +262,9 @@ def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> b
     """The ``M2`` stream of ``bits`` ``(n, 16, 16, 16)`` bool at the voxels ``pinned`` (same shape) of a chunk's
     coded blocks ``coords`` ``(n, 3)`` (bits elsewhere are not stored)."""
     lay = _Layout(coords, pinned)
-    pinned = np.asarray(pinned, bool).reshape(lay.flat.shape)
-    lay.grid[lay.flat[pinned]] = np.asarray(bits, bool).reshape(lay.flat.shape)[pinned]
+    flat = lay.flat
+    pinned = np.asarray(pinned, bool).reshape(flat.shape)
+    lay.grid[flat[pinned]] = np.asarray(bits, bool).reshape(flat.shape)[pinned]
     head = _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes()
     if ans.available():  # the compiled encoder: constriction's words, without a Python loop per wavefront
         words = ans.encode_bits(lay.grid, lay.at, lay.bounds, lay.deltas, lay.WEIGHTS, lay.N_CTX)
@@ -309,7 +323,7 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
             coder = _constriction_decode(words, lay, where)
         if not coder.is_empty():
             raise ChecksumError(f"{where} has words left after its {count} pinned voxels; it is corrupted")
-    return lay.grid[lay.flat] != 0  # pinned: the bit read; elsewhere 2, observed
+    return lay.blocks() != 0  # pinned: the bit read; elsewhere 2, observed
 
 
 def _constriction_decode(words: np.ndarray, lay: _Layout, where: str):

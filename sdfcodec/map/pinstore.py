@@ -55,12 +55,13 @@ def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarr
     lo = np.asarray(key, np.int64) * cb
     box = tuple(slice(int(a), int(a) + cb) for a in lo)
     coords = np.argwhere(states[box] == BlockState.CODED) + lo
-    near = np.unique((coords[:, None, :] + _OFFSETS[None]).reshape(-1, 3), axis=0)
-    inside = ((near >= 0) & (near < np.asarray(states.shape))).all(axis=1)
-    near = near[inside]
-    coded = states[tuple(near.T)] == BlockState.CODED
-    other = ((near < lo) | (near >= lo + cb)).any(axis=1)
-    return coords, near[coded & other]
+    # the blocks around them, marked in the chunk's box grown by one (argwhere: C order, as a sort would give)
+    hull = np.zeros(tuple(s.stop - s.start + 2 for s in box), bool)
+    hull[tuple((coords[:, None, :] - lo + 1 + _OFFSETS[None]).reshape(-1, 3).T)] = True
+    hull[tuple(slice(1, s.stop - s.start + 1) for s in box)] = False  # the chunk's own blocks
+    near = np.argwhere(hull) + lo - 1
+    near = near[((near >= 0) & (near < np.asarray(states.shape))).all(axis=1)]
+    return coords, near[states[tuple(near.T)] == BlockState.CODED]
 
 
 def _zstd(row: np.ndarray) -> bytes:
@@ -182,11 +183,8 @@ class PinnedMaskArray:
         if n == 0 or 4 + n > len(row):
             raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
                               "in it; the map is incomplete there: restore it from a copy or re-encode")
-        step = np.broadcast_to(np.asarray(r.header.codes.variable_rate.step, np.float64), (r.header.codes.size,))
-        codes = r.vr.codes_for(own, r.header.codes.size).astype(np.float64)
-        q = np.rint(codes / step)
-        if np.abs(q * step - codes).max() > 1e-6 * max(1.0, float(np.abs(codes).max())):
-            raise FormatError(f"{where}: the codes are not integer multiples of their steps")
+        # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
+        (_, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
         neg, pos = _signs(q, self.basis())
         pins, _, _ = pm.exact_pins(own, neg, pos, outside, r.truncation)
         mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
