@@ -54,7 +54,7 @@ from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
 from .lossymask import padded_blocks
 
-__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "exact_signs", "sign_bounds", "exact_pins", "canonical_bits", "encode_pinned",
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "canonical_bits", "encode_pinned",
            "decode_pinned", "NEIGHBOURS"]
 
 #: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
@@ -95,44 +95,6 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
         InvalidValueError: a partial sum could reach ``2^53`` (codes far beyond any map's), so exactness is not
             guaranteed.
     """
-    q, a, peak, bound = _prepared(q, basis, size)
-    return _product(q, a, basis[0]), bound
-
-
-def exact_signs(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``sign_bounds(*exact_decode(q, basis, size))``, the same bools, faster: a float32 product ``x`` screens
-    every voxel (``|x - v| <= r``, ``r = (k' + 4) 2^-23 T + 1`` per block: twice the float32 dot product bound
-    ``(k' + 1) 2^-24`` plus the rounding of the basis to float32, in any summation order), and the exact float64
-    dot products run only where ``[x - r, x + r]`` holds ``E`` or ``-E`` (a few voxels within micrometres of the
-    thresholds).
-
-    Raises:
-        InvalidValueError: as :func:`exact_decode`.
-    """
-    q, a, peak, bound = _prepared(q, basis, size)
-    n, used = q.shape
-    if not n:
-        return sign_bounds(np.zeros((0, basis.shape[1])), bound)
-    x = _product(q.astype(np.float32), a.astype(np.float32), basis[0].astype(np.float32)).astype(np.float64)
-    r = (np.ceil(peak * (used + 4) / 2.0 ** 23) + 1)[:, None]
-    e = bound[:, None]
-    lo, hi = x - r, x + r  # v lies in [lo, hi] (float64: these integers and halves are exact)
-    neg, pos = hi < e, lo >= -e
-    todo = ~neg & (lo < e) | ~pos & (hi >= -e)  # not decided by the screen
-    rows, cols = np.nonzero(todo)
-    if len(rows) > n * 512:  # not a few: the whole exact product costs less than the gathers
-        return sign_bounds(_product(q, a, basis[0]), bound)
-    for sl in (slice(i, i + 65536) for i in range(0, len(rows), 65536)):
-        v = (q[rows[sl]] * a[:, cols[sl]].T).sum(axis=1) + basis[0][cols[sl]]  # integers < 2^53: exact
-        neg[rows[sl], cols[sl]] = v < bound[rows[sl]]
-        pos[rows[sl], cols[sl]] = v >= -bound[rows[sl]]
-    return neg.reshape(-1, BLOCK, BLOCK, BLOCK), pos.reshape(-1, BLOCK, BLOCK, BLOCK)
-
-
-def _prepared(q: np.ndarray, basis: np.ndarray, size: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                                np.ndarray]:
-    """``(q (n, k'') float64 cut after the last non-zero column, its basis rows (k'', 4096), T (n,), E (n,))`` of
-    :func:`exact_decode`, checked."""
     q = np.asarray(q, np.float64)
     n, k = q.shape[0], q.shape[1] if size is None else int(size)
     used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1  # columns past every prefix add nothing
@@ -143,7 +105,9 @@ def _prepared(q: np.ndarray, basis: np.ndarray, size: int | None) -> tuple[np.nd
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
-    return q, a, peak, 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
+    v = _product(q, a, basis[0])
+    bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
+    return v, bound
 
 
 def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray) -> np.ndarray:

@@ -72,7 +72,7 @@ def _zstd(row: np.ndarray) -> bytes:
 
 
 def _signs(q: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return pm.exact_signs(q, basis)
+    return pm.sign_bounds(*pm.exact_decode(q, basis))
 
 
 class PinnedStreams:
