@@ -85,7 +85,7 @@ def _real_case(step: float):
     basis = pm.fixed_point_basis(sd["components"], sd["mean"], np.full(64, step), TRUNC)
     neg, pos = pm.sign_bounds(*pm.exact_decode(q, basis))
     pins, _, _ = pm.exact_pins(coords, neg, pos, np.zeros((0, 3)), TRUNC)
-    return coords, pm.canonical_bits(coords, truth, neg, pos, TRUNC), pins
+    return coords, pm.canonical_bits(coords, truth, neg, pos, TRUNC), pins, q, basis
 
 
 def test_random_pinned_masks_give_constrictions_stream_on_both_paths(monkeypatch):
@@ -102,7 +102,7 @@ def test_random_pinned_masks_give_constrictions_stream_on_both_paths(monkeypatch
 
 @pytest.mark.parametrize("step", [0.05, 0.6])
 def test_real_pinned_masks_give_constrictions_stream_on_both_paths(monkeypatch, step):
-    coords, bits, pins = _real_case(step)
+    coords, bits, pins, _, _ = _real_case(step)
     assert pins.sum() > 10000 and 0 < bits[pins].mean() < 1
     assert _both_paths(monkeypatch, coords, bits, pins) == _reference_stream(coords, bits, pins)
 
@@ -146,3 +146,25 @@ def test_the_exact_decode_cut_to_prefixes_is_the_full_product():
     assert np.array_equal(v, q @ basis[1:] + basis[0])
     peak = np.abs(basis[0]).max() + np.abs(q) @ np.abs(basis[1:]).max(axis=1)
     assert np.array_equal(e, 1 + np.abs(q).sum(axis=1) + np.ceil(peak * 68 / 2 ** 20))
+
+
+def test_pinned_voxels_on_rows_are_exact_pins():
+    """pinned_voxels_of (rows of bits) gives exact_pins' pinned voxels (per voxel, padded arrays) bit for bit:
+    random signs, dense and sparse, with coded blocks of another chunk beside some, both truncation rules; and a
+    fused room's."""
+    rng = np.random.default_rng(14)
+    for trial in range(24):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 20), 3)), axis=0)
+        n = len(coords)
+        outside = np.unique(rng.integers(4, 6, (rng.integers(1, 6), 3)), axis=0) if trial % 2 else np.zeros((0, 3))
+        neg = rng.random((n, 16, 16, 16)) < rng.random() * 0.05
+        pos = ~neg | (rng.random(neg.shape) < 0.01)
+        if trial % 3 == 0:  # few voxels may be non-negative: the d_max padding decides more cells
+            pos = rng.random(neg.shape) < rng.random() * 0.05
+            neg |= ~pos
+        for trunc in (TRUNC, (-0.02, 0.02)):  # d_max at or above the jump, and below it (neg alone decides)
+            want = pm.exact_pins(coords, neg, pos, outside, trunc)[0]
+            assert np.array_equal(pm.pinned_voxels_of(coords, neg, pos, outside, trunc), want), (trial, trunc)
+    coords, _, pins, q, basis = _real_case(0.05)
+    got = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), np.zeros((0, 3)), TRUNC)
+    assert np.array_equal(got, pins) and pins.any() and not pins.all()

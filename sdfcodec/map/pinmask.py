@@ -52,9 +52,9 @@ from ..core import ans
 from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
-from .lossymask import padded_blocks
+from .lossymask import neighbours, padded_blocks
 
-__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "canonical_bits", "encode_pinned",
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "canonical_bits", "encode_pinned",
            "decode_pinned", "NEIGHBOURS"]
 
 #: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
@@ -148,6 +148,66 @@ def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_cod
     neg = padded_blocks(all_c, np.concatenate([np.asarray(neg, bool).reshape(shape), either]), False)[:n]
     pos = padded_blocks(all_c, np.concatenate([np.asarray(pos, bool).reshape(shape), either]), True)[:n]
     return _cells(_relevant(neg, pos, truncation, jump), np.logical_or), neg, pos
+
+
+def pinned_voxels_of(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
+                     truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool: the pinned voxels of :func:`exact_pins` (its first result, the same bools),
+    computed on rows of 18 bits (one per voxel along z, the padding included): the neighbours' layers, the
+    cells' OR over 2 x 2 x 2 corners and the voxels' OR over their 8 cells are a few whole-row operations per
+    block instead of one per voxel (what a read of the pinned mask needs; :func:`exact_pins` also returns the
+    padded signs)."""
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    outside = np.asarray(outside_coded, np.int64).reshape(-1, 3)
+    n = len(coords)
+    cells = []
+    for sign, free in ((neg, 0), (pos, _ROW18)):
+        rows = _rows(np.asarray(sign, bool).reshape(n, BLOCK, BLOCK, BLOCK))
+        src = np.concatenate([rows, np.full((len(outside), BLOCK, BLOCK), _ROW16 << 1, np.uint32)])  # either
+        cells.append(_cell_rows(_padded_rows(np.concatenate([coords, outside]), src, n, free)))
+    rel = cells[0] & cells[1] if float(truncation[1]) >= jump else cells[0]
+    rel &= np.uint32(_ROW18 >> 1)  # cells with lower corners 0..16
+    pin = rel[:, 1:, 1:] | rel[:, :-1, 1:] | rel[:, 1:, :-1] | rel[:, :-1, :-1]  # (n, 16, 16): x, y in 1..16
+    pin = ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
+    return np.unpackbits(pin.view(np.uint8).reshape(n, BLOCK, BLOCK, 2), axis=-1, bitorder="little"
+                         ).reshape(n, BLOCK, BLOCK, BLOCK).astype(bool)
+
+
+_ROW16, _ROW18 = np.uint32(0xFFFF), np.uint32(0x3FFFF)
+
+
+def _rows(a: np.ndarray) -> np.ndarray:
+    """``(n, 16, 16)`` uint32 of ``a`` ``(n, 16, 16, 16)`` bool: bit ``z + 1`` is ``a[..., z]`` (bit 0 and 17: the
+    padding)."""
+    packed = np.packbits(a, axis=-1, bitorder="little")  # (n, 16, 16, 2)
+    return np.ascontiguousarray(packed).view("<u2")[..., 0].astype(np.uint32) << np.uint32(1)
+
+
+def _padded_rows(coords: np.ndarray, rows: np.ndarray, n: int, free: np.uint32) -> np.ndarray:
+    """``(n, 18, 18)`` uint32: the first ``n`` blocks' rows (:func:`_rows`) with the one-voxel layer of their 26
+    neighbours among ``coords`` ``(m, 3)`` (rows ``(m, 16, 16)``), ``free`` (0 or all 18 bits) elsewhere."""
+    out = np.full((n, _PAD, _PAD), free, np.uint32)
+    out[:, 1:-1, 1:-1] = rows[:n] | (free & np.uint32(0x20001))  # z padding: free until a neighbour lends it
+    src = {-1: slice(BLOCK - 1, BLOCK), 0: slice(0, BLOCK), 1: slice(0, 1)}  # the rows the neighbour lends
+    dst = {-1: slice(0, 1), 0: slice(1, BLOCK + 1), 1: slice(BLOCK + 1, BLOCK + 2)}
+    for (a, b, c), hit, source in neighbours(coords, n):
+        lent = rows[source, src[a], src[b]]
+        if c == 0:  # the neighbour beside it in x or y: its whole rows, padding bits kept
+            keep, got = _ROW18 & ~np.uint32(0x1FFFE), lent & np.uint32(0x1FFFE)
+        elif c < 0:  # below in z: its voxel z = 15 (bit 16) becomes this block's padding bit 0
+            keep, got = _ROW18 & ~np.uint32(1), (lent >> np.uint32(16)) & np.uint32(1)
+        else:  # above in z: its voxel z = 0 (bit 1) becomes padding bit 17
+            keep, got = _ROW18 & ~np.uint32(1 << 17), (lent & np.uint32(2)) << np.uint32(16)
+        view = out[hit, dst[a], dst[b]]
+        out[hit, dst[a], dst[b]] = (view & keep) | got
+    return out
+
+
+def _cell_rows(p: np.ndarray) -> np.ndarray:
+    """``(n, 17, 17)`` uint32 of padded rows ``(n, 18, 18)``: bit ``z`` set when a corner of the cell with lower
+    corner ``(x, y, z)`` has its bit."""
+    a = p[:, 1:, 1:] | p[:, :-1, 1:] | p[:, 1:, :-1] | p[:, :-1, :-1]
+    return a | (a >> np.uint32(1))
 
 
 def sign_bounds(v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

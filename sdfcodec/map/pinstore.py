@@ -104,7 +104,7 @@ class PinnedStreams:
             both = np.r_[sel, near]
             neg, pos = _signs(q[both], basis)  # the neighbours' true decode: exact bits at the chunk's faces
             bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
-            pins, _, _ = pm.exact_pins(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
+            pins = pm.pinned_voxels_of(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
             self.streams.append(pm.encode_pinned(own, bits, pins))
         self.bytes = sum(len(_zstd(r)) + 4 for r in self._rows())  # each row as stored: zstd level 1, CRC32C
 
@@ -186,7 +186,7 @@ class PinnedMaskArray:
         # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
         (_, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
         neg, pos = _signs(q, self.basis())
-        pins, _, _ = pm.exact_pins(own, neg, pos, outside, r.truncation)
+        pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
         mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
         return {tuple(c): j for j, c in enumerate(own.tolist())}, np.packbits(mask.reshape(len(own), -1), axis=1)
 
