@@ -169,8 +169,7 @@ def pinned_voxels_of(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outsi
     rel &= np.uint32(_ROW18 >> 1)  # cells with lower corners 0..16
     pin = rel[:, 1:, 1:] | rel[:, :-1, 1:] | rel[:, 1:, :-1] | rel[:, :-1, :-1]  # (n, 16, 16): x, y in 1..16
     pin = ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
-    return np.unpackbits(pin.view(np.uint8).reshape(n, BLOCK, BLOCK, 2), axis=-1, bitorder="little"
-                         ).reshape(n, BLOCK, BLOCK, BLOCK).astype(bool)
+    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
 
 
 _ROW16, _ROW18 = np.uint32(0xFFFF), np.uint32(0x3FFFF)
@@ -179,8 +178,8 @@ _ROW16, _ROW18 = np.uint32(0xFFFF), np.uint32(0x3FFFF)
 def _rows(a: np.ndarray) -> np.ndarray:
     """``(n, 16, 16)`` uint32 of ``a`` ``(n, 16, 16, 16)`` bool: bit ``z + 1`` is ``a[..., z]`` (bit 0 and 17: the
     padding)."""
-    packed = np.packbits(a, axis=-1, bitorder="little")  # (n, 16, 16, 2)
-    return np.ascontiguousarray(packed).view("<u2")[..., 0].astype(np.uint32) << np.uint32(1)
+    packed = np.packbits(np.ascontiguousarray(a).reshape(-1), bitorder="little")  # flat: z is the fastest axis
+    return packed.view("<u2").reshape(a.shape[:3]).astype(np.uint32) << np.uint32(1)
 
 
 def _padded_rows(coords: np.ndarray, rows: np.ndarray, n: int, free: np.uint32) -> np.ndarray:
