@@ -335,15 +335,25 @@ def wave_order(grid, dims, corner, pinned):
             u += 1
             bounds[u] = bounds[u - 1] + sizes[w]
     at = np.empty(m, np.int64)
-    for i in range(dims[0]):
-        for j in range(dims[1]):
+    # the scan visits the blocks' voxels only (C order: x, y, then the blocks along z), not the whole box
+    nb = np.empty(3, np.int64)
+    for d in range(3):
+        nb[d] = max((dims[d] - 2) // 16, 1)
+    occ = np.zeros((nb[0], nb[1], nb[2]), np.bool_)
+    for b in range(len(corner)):
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = True
+    for i in range(1, dims[0] - 1):
+        for j in range(1, dims[1] - 1):
             base = i * sy + j * sz
-            for k in range(dims[2]):
-                if grid[base + k] == 0:
-                    w = i + j + k
-                    at[nxt[w]] = base + k
-                    nxt[w] += 1
-                    grid[base + k] = 2
+            for bz in range(nb[2]):
+                if not occ[(i - 1) >> 4, (j - 1) >> 4, bz]:
+                    continue
+                for k in range(bz * 16 + 1, bz * 16 + 17):
+                    if grid[base + k] == 0:
+                        w = i + j + k
+                        at[nxt[w]] = base + k
+                        nxt[w] += 1
+                        grid[base + k] = 2
     return at, bounds
 
 

@@ -155,7 +155,7 @@ class PinnedMaskArray:
         self.dtype = np.dtype(np.uint8)
         self.path = PINNED_ARRAY
         self._basis: np.ndarray | None = None
-        self._cache: dict[tuple[int, ...], tuple[dict, np.ndarray]] = {}  # decoded chunks, oldest first
+        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}  # decoded chunks, oldest first
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
@@ -166,17 +166,19 @@ class PinnedMaskArray:
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
 
-    def _remember(self, key: tuple[int, ...], value: tuple[dict, np.ndarray]) -> None:
+    def _remember(self, key: tuple[int, ...], value: tuple[np.ndarray, np.ndarray]) -> None:
         self._cache[key] = value
         while len(self._cache) > CACHED_CHUNKS:
             self._cache.pop(next(iter(self._cache)))
 
-    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[dict, np.ndarray]:
-        """``({block coords: row index}, packed rows (n, 512))`` of chunk ``key`` from its stored ``row``."""
+    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(row index (cb, cb, cb) int64 of each block of the chunk, -1 where not coded; packed rows (n, 512))``
+        of chunk ``key`` from its stored ``row``."""
         r = self.reader
         own, outside = chunk_blocks(states, key, self.cb)
+        index = np.full((self.cb,) * 3, -1, np.int64)
         if not len(own):
-            return {}, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
+            return index, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
         row = np.ascontiguousarray(row.reshape(-1))
         n = int(row[:4].view("<u4")[0])
         where = f"{r.location}: chunk {tuple(int(c) for c in key)} of array '{PINNED_ARRAY}'"
@@ -188,7 +190,8 @@ class PinnedMaskArray:
         neg, pos = _signs(q, self.basis())
         pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
         mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
-        return {tuple(c): j for j, c in enumerate(own.tolist())}, np.packbits(mask.reshape(len(own), -1), axis=1)
+        index[tuple((own - np.asarray(key, np.int64) * self.cb).T)] = np.arange(len(own))
+        return index, np.packbits(mask.reshape(-1)).reshape(len(own), -1)  # flat: each block's 4096 bits in a row
 
     def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
@@ -209,8 +212,7 @@ class PinnedMaskArray:
             self._remember(names[i], got[names[i]])
         for i, name in enumerate(names):
             index, packed = got[name]
-            for j in np.flatnonzero(inverse == i):
-                k = index.get(tuple(int(x) for x in coords[j]))
-                if k is not None:
-                    out[j] = packed[k]
+            sel = np.flatnonzero(inverse == i)
+            k = index[tuple((np.asarray(coords, np.int64)[sel] - keys[i] * cb).T)]
+            out[sel[k >= 0]] = packed[k[k >= 0]]
         return out
