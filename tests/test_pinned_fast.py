@@ -134,16 +134,25 @@ def test_the_golden_maps_streams_read_alike_and_are_rewritten_byte_for_byte(monk
 
 
 def test_the_exact_decode_cut_to_prefixes_is_the_full_product():
-    """Blocks of every prefix length (zeros after it, zeros inside it): the exact decode equals the plain float64
-    product of all columns bit for bit."""
+    """Blocks of every prefix length (zeros after it, zeros inside it), of small codes (bound T below 2^24: the
+    float32 product) and large ones (float64): the exact decode equals the plain float64 product of all columns
+    bit for bit."""
     rng = np.random.default_rng(12)
     sd = pretrained_codec("pca", 64).state_dict()
     basis = pm.fixed_point_basis(sd["components"], sd["mean"], np.full(64, 0.1), TRUNC)
-    q = rng.integers(-40, 41, (130, 64)).astype(np.float64)
+    q = rng.integers(-1000, 1001, (260, 64)).astype(np.float64)
+    q[130:] = rng.integers(-1, 2, (130, 64))  # small codes
     q[rng.random(q.shape) < 0.3] = 0
-    q[np.arange(65) * 2, :] *= np.arange(64) < np.arange(65)[:, None]  # prefix lengths 0..64
+    for half in (0, 130):
+        q[half + np.arange(65) * 2, :] *= np.arange(64) < np.arange(65)[:, None]  # prefix lengths 0..64
     v, e = pm.exact_decode(q, basis)
-    assert np.array_equal(v, q @ basis[1:] + basis[0])
+    full = q @ basis[1:] + basis[0]
+    peak = np.abs(basis[0]).max() + np.abs(q) @ np.abs(basis[1:]).max(axis=1)
+    small = peak < 2 ** 24
+    assert 50 < small.sum() < 200 and np.abs(full[~small]).max() > 2 ** 24  # both products, sums past float32's
+    assert np.array_equal(v, full)
+    assert not np.array_equal(q.astype(np.float32) @ basis[1:].astype(np.float32) + basis[0].astype(np.float32),
+                              full)  # float32 alone would not do for the large codes
     peak = np.abs(basis[0]).max() + np.abs(q) @ np.abs(basis[1:]).max(axis=1)
     assert np.array_equal(e, 1 + np.abs(q).sum(axis=1) + np.ceil(peak * 68 / 2 ** 20))
 

@@ -13,7 +13,8 @@ desynchronise the stream. Here the decision is exact:
   variable-rate integer codes. Its basis is rounded to multiples of ``2^-S`` metres (:func:`fixed_point_basis`):
   ``A = rint(2^S a)``, and ``v = A0 + q A`` is an integer product. Every partial sum is an integer below
   ``2^53`` (checked), so the float64 matrix product computes it exactly in any order, with or without FMA, on
-  any machine: no compiled kernel needed and no fallback to keep identical.
+  any machine: no compiled kernel needed and no fallback to keep identical. (A block whose bound ``T`` below is
+  under ``2^24`` multiplies in float32, where the same argument holds; each block multiplies its prefix only.)
 * **A proven bound.** A float decode ``x`` (metres, from float32 codes ``q step`` and float32 components, summed
   in any order) differs from ``v 2^-S`` by at most ``E 2^-S``, ``E = 1 + sum|q| + ceil(g T)`` per block, with
   ``T = max|A0| + sum_i |q_i| max|A_i|`` and ``g = (k + 4) 2^-20`` (16 times the worst-case float32 dot product
@@ -64,7 +65,8 @@ NEIGHBOURS = ((-1, 0, 0), (0, -1, 0), (0, 0, -1), (-1, -1, 0), (-1, 0, -1), (0, 
 _MAGIC = b"M2"
 _EXACT = 2.0 ** 53  # integers below this are exact in float64, and so is every partial sum of the product
 _PAD = BLOCK + 2
-_RUN = 8  # the exact product's column runs: blocks whose prefixes round up alike share one matrix product
+_SINGLE = 2.0 ** 24  # integers below this, and every sum of them that stays below it, are exact in float32
+_RUN = 16  # the exact product's column runs: blocks whose prefixes round up alike share one matrix product
 
 
 def fixed_point_basis(components: np.ndarray, mean: np.ndarray, step: np.ndarray, truncation: tuple[float, float]
@@ -105,25 +107,31 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
-    v = _product(q, a, basis[0])
+    v = _product(q, a, basis[0], peak)
     bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
     return v, bound
 
 
-def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray) -> np.ndarray:
-    """``q @ a + a0`` with each block's product cut to its prefix (rounded up to :data:`_RUN` columns): the
-    columns cut are exact zeros in every term, and every partial sum is an integer below ``2^53``, so the result is
-    the full product's in any order (low-rate blocks keep a few of 64-128 columns)."""
+def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray, peak: np.ndarray) -> np.ndarray:
+    """``q @ a + a0`` (float64 integers) with each block's product cut to its prefix (rounded up to :data:`_RUN`
+    columns): the columns cut are exact zeros in every term, and every partial sum is an integer below ``2^53``,
+    so the result is the full product's in any order (low-rate blocks keep a few of 64-128 columns). Blocks whose
+    bound ``T`` (``peak`` ``(n,)``) is below ``2^24`` multiply in float32: every term, partial sum and entry they
+    use is then an integer below ``2^24``, exact in float32 too (a zero code times a rounded entry is 0)."""
     n, k = q.shape
     if not n:
         return np.zeros((0, len(a0)))
     nz = q != 0
     width = np.where(nz.any(axis=1), k - np.argmax(nz[:, ::-1], axis=1), 0)
     width = np.minimum(-(-width // _RUN) * _RUN, k)
+    single = np.asarray(peak) < _SINGLE
     v = np.empty((n, len(a0)))
+    a32 = (a.astype(np.float32), a0.astype(np.float32)) if single.any() else (a, a0)  # (unused then)
     for w in np.unique(width):
-        rows = np.flatnonzero(width == w)
-        v[rows] = q[rows, :w] @ a[:w] + a0 if w else a0
+        for rows, (aw, b0) in ((np.flatnonzero((width == w) & single), a32),
+                               (np.flatnonzero((width == w) & ~single), (a, a0))):
+            if len(rows):
+                v[rows] = q[rows, :w].astype(aw.dtype) @ aw[:w] + b0 if w else b0
     return v
 
 
