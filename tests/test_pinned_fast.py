@@ -177,3 +177,20 @@ def test_pinned_voxels_on_rows_are_exact_pins():
     coords, _, pins, q, basis = _real_case(0.05)
     got = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), np.zeros((0, 3)), TRUNC)
     assert np.array_equal(got, pins) and pins.any() and not pins.all()
+
+
+def test_chunk_blocks_are_the_coded_blocks_and_their_coded_neighbours_elsewhere():
+    """chunk_blocks (neighbours found by marking) against the definition, block by block: the chunk's coded
+    blocks in C order, and every coded block of another chunk among their 26 neighbours, once, in C order."""
+    rng = np.random.default_rng(15)
+    for trial in range(6):
+        states = np.where(rng.random((9, 7, 10)) < 0.4, 2, rng.integers(0, 2, (9, 7, 10)))
+        for key in np.argwhere(np.ones((3, 2, 3), bool)):
+            own, outside = chunk_blocks(states, key, 4)
+            lo = key * 4
+            want_own = [c for c in np.argwhere(states == 2) if ((c >= lo) & (c < lo + 4)).all()]
+            near = {tuple(c + d) for c in want_own for d in np.argwhere(np.ones((3, 3, 3), bool)) - 1}
+            want_out = sorted(c for c in near if all(0 <= x < s for x, s in zip(c, states.shape))
+                              and states[c] == 2 and not ((np.array(c) >= lo) & (np.array(c) < lo + 4)).all())
+            assert np.array_equal(own.reshape(-1, 3), np.array(want_own, np.int64).reshape(-1, 3))
+            assert [tuple(int(x) for x in c) for c in outside] == want_out, (trial, key)
