@@ -13,8 +13,8 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
-__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "table_cdfs", "decode_chunk", "encode", "bernoulli_intervals",
-           "categorical_intervals"]
+__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "table_cdfs",
+           "decode_chunk", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
 _FOUND: list[bool] = []
@@ -137,6 +137,34 @@ def encode_mask(partial: np.ndarray | None, p_flag: float, bits: np.ndarray,
                         np.zeros(0, np.int64), 1 << len(deltas), left, freq, m)
     assert m == total
     return encode(left, freq)
+
+
+def encode_bits(grid: np.ndarray, at: np.ndarray, bounds: np.ndarray, deltas: np.ndarray, weights: np.ndarray,
+                n_ctx: int, extra: np.ndarray | None = None) -> np.ndarray:
+    """The words :meth:`Decoder.bits` reads back into ``grid`` (the same arguments; ``grid`` already holds the bits
+    at ``at``): those of constriction's ``AnsCoder().encode_reverse`` of the same bits and probabilities.
+
+    Raises:
+        ValueError: a context is outside ``[0, n_ctx)``.
+    """
+    at = np.asarray(at, np.int64)
+    left, freq = np.empty(len(at), np.int64), np.empty(len(at), np.int64)
+    m = _k().bit_intervals(grid, at, np.asarray(bounds, np.int64), np.asarray(deltas, np.int64),
+                           np.asarray(weights, np.int64), np.zeros(0, np.int64) if extra is None else
+                           np.asarray(extra, np.int64), int(n_ctx), left, freq, 0)
+    if m < 0:
+        raise ValueError(f"a context is outside [0, {n_ctx})")
+    return encode(left, freq)
+
+
+def wave_order(grid: np.ndarray, dims: tuple[int, int, int], corner: np.ndarray, pinned: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``at`` and ``bounds`` of :meth:`Decoder.bits` for the voxels ``pinned`` ``(n, 16, 16, 16)`` bool of
+    blocks whose first voxels are at ``corner`` ``(n, 3)`` in the grid ``grid`` (flat uint8 of shape ``dims``, 2
+    wherever a bit is not coded; left so): wavefront by wavefront (``x + y + z``), C order within one; empty
+    wavefronts left out."""
+    return _k().wave_order(grid, np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64),
+                           np.ascontiguousarray(pinned, np.bool_).reshape(len(corner), 4096))
 
 
 def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -300,6 +300,61 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
             counts[np.int64(grid[at[i]]), buf_ctx[i - a]] += 1
     st[0], st[1] = s, np.uint64(pos)
     return True
+
+
+@njit(cache=True)
+def wave_order(grid, dims, corner, pinned):
+    """The positions :func:`decode_bits` takes for the pinned voxels of blocks of 16^3 placed in one grid:
+    ``grid`` flat uint8 of ``dims`` ``(3,)`` (C order) holding 2 where nothing is pinned (left so), ``corner``
+    ``(n, 3)`` each block's first voxel, ``pinned`` ``(n, 4096)`` bool (C order in the block). Returns (flat
+    positions ``(m,)`` int64 wavefront by wavefront, ``x + y + z`` rising, C order within one; the bounds of the
+    non-empty wavefronts ``(W + 1,)``): a counting sort by wavefront, then one scan of the grid in C order."""
+    sy, sz = dims[1] * dims[2], dims[2]
+    n_waves = dims[0] + dims[1] + dims[2]
+    sizes = np.zeros(n_waves, np.int64)
+    m = 0
+    for b in range(len(corner)):
+        x0, y0, z0 = corner[b, 0], corner[b, 1], corner[b, 2]
+        for v in range(4096):
+            if pinned[b, v]:
+                i, j, k = x0 + (v >> 8), y0 + ((v >> 4) & 15), z0 + (v & 15)
+                grid[i * sy + j * sz + k] = 0
+                sizes[i + j + k] += 1
+                m += 1
+    nxt = np.zeros(n_waves, np.int64)
+    w_used = 0
+    for w in range(n_waves):
+        if w:
+            nxt[w] = nxt[w - 1] + sizes[w - 1]
+        if sizes[w]:
+            w_used += 1
+    bounds = np.zeros(w_used + 1, np.int64)
+    u = 0
+    for w in range(n_waves):
+        if sizes[w]:
+            u += 1
+            bounds[u] = bounds[u - 1] + sizes[w]
+    at = np.empty(m, np.int64)
+    # the scan visits the blocks' voxels only (C order: x, y, then the blocks along z), not the whole box
+    nb = np.empty(3, np.int64)
+    for d in range(3):
+        nb[d] = max((dims[d] - 2) // 16, 1)
+    occ = np.zeros((nb[0], nb[1], nb[2]), np.bool_)
+    for b in range(len(corner)):
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = True
+    for i in range(1, dims[0] - 1):
+        for j in range(1, dims[1] - 1):
+            base = i * sy + j * sz
+            for bz in range(nb[2]):
+                if not occ[(i - 1) >> 4, (j - 1) >> 4, bz]:
+                    continue
+                for k in range(bz * 16 + 1, bz * 16 + 17):
+                    if grid[base + k] == 0:
+                        w = i + j + k
+                        at[nxt[w]] = base + k
+                        nxt[w] += 1
+                        grid[base + k] = 2
+    return at, bounds
 
 
 @njit(cache=True)

@@ -34,7 +34,7 @@ differ by rounding, far below :data:`PIN_MARGIN`.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -42,7 +42,7 @@ from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from .maskcoder import encode_mask_rows
 
-__all__ = ["PIN_MARGIN", "padded_blocks", "BATCH_BLOCKS", "pinned_voxels", "pinned_in_batches", "relax_mask", "MaskChunks"]
+__all__ = ["PIN_MARGIN", "neighbours", "padded_blocks", "BATCH_BLOCKS", "pinned_voxels", "pinned_in_batches", "relax_mask", "MaskChunks"]
 
 #: Metres: a decoded value within this of zero counts as either sign (the writer's decode and a reader's may
 #: round differently; float32 rounding of values of 0.1 m is ~1e-8 m).
@@ -59,6 +59,23 @@ def _keys(coords: np.ndarray) -> np.ndarray:
     return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
 
 
+def neighbours(coords: np.ndarray, n: int | None = None) -> Iterator[tuple[tuple[int, int, int], np.ndarray, np.ndarray]]:
+    """Per offset ``(a, b, c)`` of the 26 around a block that some block has a neighbour at: ``(offset, hit,
+    source)``, the indices ``hit`` among the first ``n`` (default all) blocks ``coords`` ``(m, 3)`` whose
+    neighbour there is among ``coords``, and that neighbour's index ``source``."""
+    coords = np.asarray(coords, np.int64)
+    n = len(coords) if n is None else n
+    keys = _keys(coords)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    for off in _NEIGHBOURS:
+        want = _keys(coords[:n] + off)
+        pos = np.clip(np.searchsorted(sorted_keys, want), 0, max(len(keys) - 1, 0))
+        hit = np.flatnonzero(sorted_keys[pos] == want) if len(keys) else np.zeros(0, np.int64)
+        if len(hit):
+            yield tuple(int(x) for x in off), hit, order[pos[hit]]
+
+
 def padded_blocks(coords: np.ndarray, dec: np.ndarray, free: float) -> np.ndarray:
     """``(n, 18, 18, 18)``: each block of ``dec`` ``(n, 16, 16, 16)`` with the one-voxel layer of its 26
     neighbours around it, ``free`` where the neighbour is not among ``coords`` (empty or unobserved blocks
@@ -66,18 +83,10 @@ def padded_blocks(coords: np.ndarray, dec: np.ndarray, free: float) -> np.ndarra
     n = len(dec)
     out = np.full((n, BLOCK + 2, BLOCK + 2, BLOCK + 2), free, dtype=dec.dtype)
     out[:, 1:-1, 1:-1, 1:-1] = dec
-    keys = _keys(coords)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
     src = {-1: slice(BLOCK - 1, BLOCK), 0: slice(0, BLOCK), 1: slice(0, 1)}  # what the neighbour lends
     dst = {-1: slice(0, 1), 0: slice(1, BLOCK + 1), 1: slice(BLOCK + 1, BLOCK + 2)}
-    for off in _NEIGHBOURS:
-        want = _keys(np.asarray(coords) + off)
-        pos = np.clip(np.searchsorted(sorted_keys, want), 0, max(n - 1, 0))
-        hit = np.flatnonzero(sorted_keys[pos] == want) if n else np.zeros(0, np.int64)
-        if len(hit):
-            a, b, c = (int(x) for x in off)
-            out[(hit, dst[a], dst[b], dst[c])] = dec[(order[pos[hit]], src[a], src[b], src[c])]
+    for (a, b, c), hit, source in neighbours(coords):
+        out[(hit, dst[a], dst[b], dst[c])] = dec[(source, src[a], src[b], src[c])]
     return out
 
 

@@ -13,7 +13,8 @@ desynchronise the stream. Here the decision is exact:
   variable-rate integer codes. Its basis is rounded to multiples of ``2^-S`` metres (:func:`fixed_point_basis`):
   ``A = rint(2^S a)``, and ``v = A0 + q A`` is an integer product. Every partial sum is an integer below
   ``2^53`` (checked), so the float64 matrix product computes it exactly in any order, with or without FMA, on
-  any machine: no compiled kernel needed and no fallback to keep identical.
+  any machine: no compiled kernel needed and no fallback to keep identical. (A block whose bound ``T`` below is
+  under ``2^24`` multiplies in float32, where the same argument holds; each block multiplies its prefix only.)
 * **A proven bound.** A float decode ``x`` (metres, from float32 codes ``q step`` and float32 components, summed
   in any order) differs from ``v 2^-S`` by at most ``E 2^-S``, ``E = 1 + sum|q| + ceil(g T)`` per block, with
   ``T = max|A0| + sum_i |q_i| max|A_i|`` and ``g = (k + 4) 2^-20`` (16 times the worst-case float32 dot product
@@ -48,12 +49,13 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..core import ans
 from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
-from .lossymask import padded_blocks
+from .lossymask import neighbours, padded_blocks
 
-__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "canonical_bits", "encode_pinned",
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "canonical_bits", "encode_pinned",
            "decode_pinned", "NEIGHBOURS"]
 
 #: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
@@ -63,6 +65,8 @@ NEIGHBOURS = ((-1, 0, 0), (0, -1, 0), (0, 0, -1), (-1, -1, 0), (-1, 0, -1), (0, 
 _MAGIC = b"M2"
 _EXACT = 2.0 ** 53  # integers below this are exact in float64, and so is every partial sum of the product
 _PAD = BLOCK + 2
+_SINGLE = 2.0 ** 24  # integers below this, and every sum of them that stays below it, are exact in float32
+_RUN = 16  # the exact product's column runs: blocks whose prefixes round up alike share one matrix product
 
 
 def fixed_point_basis(components: np.ndarray, mean: np.ndarray, step: np.ndarray, truncation: tuple[float, float]
@@ -103,9 +107,32 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
-    v = q @ a + basis[0]  # every term and partial sum an integer < 2^53: exact in any order
+    v = _product(q, a, basis[0], peak)
     bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
     return v, bound
+
+
+def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray, peak: np.ndarray) -> np.ndarray:
+    """``q @ a + a0`` (float64 integers) with each block's product cut to its prefix (rounded up to :data:`_RUN`
+    columns): the columns cut are exact zeros in every term, and every partial sum is an integer below ``2^53``,
+    so the result is the full product's in any order (low-rate blocks keep a few of 64-128 columns). Blocks whose
+    bound ``T`` (``peak`` ``(n,)``) is below ``2^24`` multiply in float32: every term, partial sum and entry they
+    use is then an integer below ``2^24``, exact in float32 too (a zero code times a rounded entry is 0)."""
+    n, k = q.shape
+    if not n:
+        return np.zeros((0, len(a0)))
+    nz = q != 0
+    width = np.where(nz.any(axis=1), k - np.argmax(nz[:, ::-1], axis=1), 0)
+    width = np.minimum(-(-width // _RUN) * _RUN, k)
+    single = np.asarray(peak) < _SINGLE
+    v = np.empty((n, len(a0)))
+    a32 = (a.astype(np.float32), a0.astype(np.float32)) if single.any() else (a, a0)  # (unused then)
+    for w in np.unique(width):
+        for rows, (aw, b0) in ((np.flatnonzero((width == w) & single), a32),
+                               (np.flatnonzero((width == w) & ~single), (a, a0))):
+            if len(rows):
+                v[rows] = q[rows, :w].astype(aw.dtype) @ aw[:w] + b0 if w else b0
+    return v
 
 
 def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
@@ -131,11 +158,71 @@ def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_cod
     return _cells(_relevant(neg, pos, truncation, jump), np.logical_or), neg, pos
 
 
+def pinned_voxels_of(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
+                     truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool: the pinned voxels of :func:`exact_pins` (its first result, the same bools),
+    computed on rows of 18 bits (one per voxel along z, the padding included): the neighbours' layers, the
+    cells' OR over 2 x 2 x 2 corners and the voxels' OR over their 8 cells are a few whole-row operations per
+    block instead of one per voxel (what a read of the pinned mask needs; :func:`exact_pins` also returns the
+    padded signs)."""
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    outside = np.asarray(outside_coded, np.int64).reshape(-1, 3)
+    n = len(coords)
+    cells = []
+    for sign, free in ((neg, 0), (pos, _ROW18)):
+        rows = _rows(np.asarray(sign, bool).reshape(n, BLOCK, BLOCK, BLOCK))
+        src = np.concatenate([rows, np.full((len(outside), BLOCK, BLOCK), _ROW16 << 1, np.uint32)])  # either
+        cells.append(_cell_rows(_padded_rows(np.concatenate([coords, outside]), src, n, free)))
+    rel = cells[0] & cells[1] if float(truncation[1]) >= jump else cells[0]
+    rel &= np.uint32(_ROW18 >> 1)  # cells with lower corners 0..16
+    pin = rel[:, 1:, 1:] | rel[:, :-1, 1:] | rel[:, 1:, :-1] | rel[:, :-1, :-1]  # (n, 16, 16): x, y in 1..16
+    pin = ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
+    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+
+
+_ROW16, _ROW18 = np.uint32(0xFFFF), np.uint32(0x3FFFF)
+
+
+def _rows(a: np.ndarray) -> np.ndarray:
+    """``(n, 16, 16)`` uint32 of ``a`` ``(n, 16, 16, 16)`` bool: bit ``z + 1`` is ``a[..., z]`` (bit 0 and 17: the
+    padding)."""
+    packed = np.packbits(np.ascontiguousarray(a).reshape(-1), bitorder="little")  # flat: z is the fastest axis
+    return packed.view("<u2").reshape(a.shape[:3]).astype(np.uint32) << np.uint32(1)
+
+
+def _padded_rows(coords: np.ndarray, rows: np.ndarray, n: int, free: np.uint32) -> np.ndarray:
+    """``(n, 18, 18)`` uint32: the first ``n`` blocks' rows (:func:`_rows`) with the one-voxel layer of their 26
+    neighbours among ``coords`` ``(m, 3)`` (rows ``(m, 16, 16)``), ``free`` (0 or all 18 bits) elsewhere."""
+    out = np.full((n, _PAD, _PAD), free, np.uint32)
+    out[:, 1:-1, 1:-1] = rows[:n] | (free & np.uint32(0x20001))  # z padding: free until a neighbour lends it
+    src = {-1: slice(BLOCK - 1, BLOCK), 0: slice(0, BLOCK), 1: slice(0, 1)}  # the rows the neighbour lends
+    dst = {-1: slice(0, 1), 0: slice(1, BLOCK + 1), 1: slice(BLOCK + 1, BLOCK + 2)}
+    for (a, b, c), hit, source in neighbours(coords, n):
+        lent = rows[source, src[a], src[b]]
+        if c == 0:  # the neighbour beside it in x or y: its whole rows, padding bits kept
+            keep, got = _ROW18 & ~np.uint32(0x1FFFE), lent & np.uint32(0x1FFFE)
+        elif c < 0:  # below in z: its voxel z = 15 (bit 16) becomes this block's padding bit 0
+            keep, got = _ROW18 & ~np.uint32(1), (lent >> np.uint32(16)) & np.uint32(1)
+        else:  # above in z: its voxel z = 0 (bit 1) becomes padding bit 17
+            keep, got = _ROW18 & ~np.uint32(1 << 17), (lent & np.uint32(2)) << np.uint32(16)
+        view = out[hit, dst[a], dst[b]]
+        out[hit, dst[a], dst[b]] = (view & keep) | got
+    return out
+
+
+def _cell_rows(p: np.ndarray) -> np.ndarray:
+    """``(n, 17, 17)`` uint32 of padded rows ``(n, 18, 18)``: bit ``z`` set when a corner of the cell with lower
+    corner ``(x, y, z)`` has its bit."""
+    a = p[:, 1:, 1:] | p[:, :-1, 1:] | p[:, 1:, :-1] | p[:, :-1, :-1]
+    return a | (a >> np.uint32(1))
+
+
 def sign_bounds(v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(neg, pos)`` ``(n, 16, 16, 16)`` bool from :func:`exact_decode`'s ``(v, E)``: where a float decode may be
     negative, and where it may be non-negative."""
     e = np.asarray(bound, np.float64).reshape(-1, 1)
-    return (v - e < 0).reshape(-1, BLOCK, BLOCK, BLOCK), (v + e >= 0).reshape(-1, BLOCK, BLOCK, BLOCK)
+    # v - e < 0 and v + e >= 0 compared without forming them (integers: the same answers, no temporaries)
+    return (v < e).reshape(-1, BLOCK, BLOCK, BLOCK), (v >= -e).reshape(-1, BLOCK, BLOCK, BLOCK)
 
 
 def _relevant(neg: np.ndarray, pos: np.ndarray, truncation: tuple[float, float], jump: float) -> np.ndarray:
@@ -177,7 +264,7 @@ def _cells(a: np.ndarray, op) -> np.ndarray:
 class _Layout:
     """The chunk's coded blocks ``coords`` ``(n, 3)`` placed in one voxel grid (their bounding box, padded by one
     voxel of "not pinned"): flat positions of the pinned voxels in decode order, the wavefront bounds, the grid
-    (int8: 0, 1, or 2 where not pinned) and the context offsets."""
+    (uint8: 0, 1, or 2 where not pinned) and the context offsets."""
 
     def __init__(self, coords: np.ndarray, pinned: np.ndarray):
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
@@ -188,20 +275,41 @@ class _Layout:
         span = (coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3, np.int64)
         self.shape = tuple(int(x) + 2 for x in span)
         self.corner = (coords - lo) * BLOCK + 1  # each block's first voxel in the padded grid
-        i, j, k = (np.arange(BLOCK)[:, None, None], np.arange(BLOCK)[None, :, None], np.arange(BLOCK)[None, None, :])
         sy, sz = self.shape[1] * self.shape[2], self.shape[2]
-        local = (i * sy + j * sz + k).reshape(-1)  # a block's voxels' flat offsets from its first one
-        first = self.corner @ np.array([sy, sz, 1])
-        self.flat = (first[:, None] + local[None]).reshape(len(coords), BLOCK, BLOCK, BLOCK)  # (n, 16, 16, 16)
-        at = np.sort(self.flat[pinned])  # C order of the grid
+        self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
+        self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+        if ans.available():  # compiled: a counting sort and one scan of the grid
+            self.at, self.bounds = ans.wave_order(self.grid, self.shape, self.corner, pinned)
+            return
+        self.grid[self.flat[pinned]] = 0
+        at = np.flatnonzero(self.grid == 0)  # C order of the grid, without a comparison sort
         x, rest = np.divmod(at, sy)
         y, z = np.divmod(rest, sz)
         wave = x + y + z
-        order = np.argsort(wave, kind="stable")  # wavefront by wavefront, C order within one
+        # wavefront by wavefront, C order within one: a stable sort of small integers is numpy's radix sort
+        order = np.argsort(wave.astype(np.uint16) if sum(self.shape) < 2 ** 16 else wave, kind="stable")
         self.at = at[order]
-        self.bounds = np.r_[0, np.flatnonzero(np.diff(wave[order])) + 1, len(at)]
-        self.grid = np.full(int(np.prod(self.shape)), 2, np.int8)
-        self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+        sizes = np.bincount(wave, minlength=1)
+        self.bounds = np.r_[0, np.cumsum(sizes[sizes > 0])]
+        self.grid[at] = 2
+
+    @property
+    def flat(self) -> np.ndarray:
+        """``(n, 16, 16, 16)`` int64: the flat position of every voxel of the blocks in the grid."""
+        sy, sz = self.shape[1] * self.shape[2], self.shape[2]
+        i, j, k = (np.arange(BLOCK)[:, None, None], np.arange(BLOCK)[None, :, None], np.arange(BLOCK)[None, None, :])
+        first = self.corner @ np.array([sy, sz, 1])
+        return first[:, None, None, None] + (i * sy + j * sz + k)[None]
+
+    def blocks(self) -> np.ndarray:
+        """``(n, 16, 16, 16)`` uint8: the grid's values over the blocks (gathered through a window view of the
+        grid, without the flat positions)."""
+        win = np.lib.stride_tricks.sliding_window_view(self.grid.reshape(self.shape), (BLOCK,) * 3)
+        return win[tuple(self.corner.T)]
+
+    #: Each neighbour's weight in the context number (the first neighbour most significant), as ans takes them.
+    WEIGHTS = 3 ** np.arange(len(NEIGHBOURS), dtype=np.int64)[::-1]
+    N_CTX = 3 ** len(NEIGHBOURS)
 
     def context(self, at: np.ndarray) -> np.ndarray:
         ctx = np.zeros(len(at), np.int64)
@@ -221,8 +329,13 @@ def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> b
     """The ``M2`` stream of ``bits`` ``(n, 16, 16, 16)`` bool at the voxels ``pinned`` (same shape) of a chunk's
     coded blocks ``coords`` ``(n, 3)`` (bits elsewhere are not stored)."""
     lay = _Layout(coords, pinned)
-    pinned = np.asarray(pinned, bool).reshape(lay.flat.shape)
-    lay.grid[lay.flat[pinned]] = np.asarray(bits, bool).reshape(lay.flat.shape)[pinned]
+    flat = lay.flat
+    pinned = np.asarray(pinned, bool).reshape(flat.shape)
+    lay.grid[flat[pinned]] = np.asarray(bits, bool).reshape(flat.shape)[pinned]
+    head = _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes()
+    if ans.available():  # the compiled encoder: constriction's words, without a Python loop per wavefront
+        words = ans.encode_bits(lay.grid, lay.at, lay.bounds, lay.deltas, lay.WEIGHTS, lay.N_CTX)
+        return head + np.asarray(words, "<u4").tobytes()
     st = _stream()
     bern, coder = st.model.Bernoulli(perfect=False), st.stack.AnsCoder()
     counts = np.zeros((2, 3 ** len(NEIGHBOURS)), np.int64)
@@ -234,8 +347,7 @@ def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> b
         counts += _tally(sym, ctx)
     for sym, p in reversed(parts):
         coder.encode_reverse(sym, bern, p)
-    words = np.asarray(coder.get_compressed(), dtype="<u4")
-    return _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes() + words.tobytes()
+    return head + np.asarray(coder.get_compressed(), dtype="<u4").tobytes()
 
 
 def _tally(sym: np.ndarray, ctx: np.ndarray) -> np.ndarray:
@@ -268,19 +380,32 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
                             "or the mask are corrupted")
     if len(lay.at):
         words = np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32)
-        st = _stream()
-        try:
-            coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
-            bern = st.model.Bernoulli(perfect=False)
-            counts = np.zeros((2, 3 ** len(NEIGHBOURS)), np.int64)
-            for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
-                sl = lay.at[a:b]
-                ctx = lay.context(sl)
-                sym = np.asarray(coder.decode(bern, _p1(counts, ctx)), np.int64)
-                lay.grid[sl] = sym
-                counts += _tally(sym, ctx)
-        except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
-            raise ChecksumError(f"{where} is not a sound M2 stream ({type(e).__name__}: {e})") from e
+        if ans.available():  # compiled, the same words read as constriction reads them (tests/test_pinned_mask.py)
+            try:
+                coder = ans.Decoder(words)
+                coder.bits(lay.grid, lay.at, lay.bounds, lay.deltas, lay.WEIGHTS, lay.N_CTX)
+            except ValueError as e:  # a last word of 0, as constriction refuses it
+                raise ChecksumError(f"{where} is not a sound M2 stream (ValueError: {e})") from e
+        else:
+            coder = _constriction_decode(words, lay, where)
         if not coder.is_empty():
             raise ChecksumError(f"{where} has words left after its {count} pinned voxels; it is corrupted")
-    return lay.grid[lay.flat] != 0  # pinned: the bit read; elsewhere 2, observed
+    return lay.blocks() != 0  # pinned: the bit read; elsewhere 2, observed
+
+
+def _constriction_decode(words: np.ndarray, lay: _Layout, where: str):
+    """The fallback of :func:`decode_pinned` without numba: the bits into ``lay.grid``; returns the coder."""
+    st = _stream()
+    try:
+        coder = st.stack.AnsCoder(words) if len(words) else st.stack.AnsCoder()
+        bern = st.model.Bernoulli(perfect=False)
+        counts = np.zeros((2, lay.N_CTX), np.int64)
+        for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
+            sl = lay.at[a:b]
+            ctx = lay.context(sl)
+            sym = np.asarray(coder.decode(bern, _p1(counts, ctx)), np.int64)
+            lay.grid[sl] = sym
+            counts += _tally(sym, ctx)
+    except Exception as e:  # noqa: BLE001 - constriction raises on an exhausted or inconsistent stream
+        raise ChecksumError(f"{where} is not a sound M2 stream ({type(e).__name__}: {e})") from e
+    return coder

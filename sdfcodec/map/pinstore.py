@@ -55,12 +55,13 @@ def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarr
     lo = np.asarray(key, np.int64) * cb
     box = tuple(slice(int(a), int(a) + cb) for a in lo)
     coords = np.argwhere(states[box] == BlockState.CODED) + lo
-    near = np.unique((coords[:, None, :] + _OFFSETS[None]).reshape(-1, 3), axis=0)
-    inside = ((near >= 0) & (near < np.asarray(states.shape))).all(axis=1)
-    near = near[inside]
-    coded = states[tuple(near.T)] == BlockState.CODED
-    other = ((near < lo) | (near >= lo + cb)).any(axis=1)
-    return coords, near[coded & other]
+    # the blocks around them, marked in the chunk's box grown by one (argwhere: C order, as a sort would give)
+    hull = np.zeros(tuple(s.stop - s.start + 2 for s in box), bool)
+    hull[tuple((coords[:, None, :] - lo + 1 + _OFFSETS[None]).reshape(-1, 3).T)] = True
+    hull[tuple(slice(1, s.stop - s.start + 1) for s in box)] = False  # the chunk's own blocks
+    near = np.argwhere(hull) + lo - 1
+    near = near[((near >= 0) & (near < np.asarray(states.shape))).all(axis=1)]
+    return coords, near[states[tuple(near.T)] == BlockState.CODED]
 
 
 def _zstd(row: np.ndarray) -> bytes:
@@ -103,7 +104,7 @@ class PinnedStreams:
             both = np.r_[sel, near]
             neg, pos = _signs(q[both], basis)  # the neighbours' true decode: exact bits at the chunk's faces
             bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
-            pins, _, _ = pm.exact_pins(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
+            pins = pm.pinned_voxels_of(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
             self.streams.append(pm.encode_pinned(own, bits, pins))
         self.bytes = sum(len(_zstd(r)) + 4 for r in self._rows())  # each row as stored: zstd level 1, CRC32C
 
@@ -154,7 +155,7 @@ class PinnedMaskArray:
         self.dtype = np.dtype(np.uint8)
         self.path = PINNED_ARRAY
         self._basis: np.ndarray | None = None
-        self._cache: dict[tuple[int, ...], tuple[dict, np.ndarray]] = {}  # decoded chunks, oldest first
+        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}  # decoded chunks, oldest first
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
@@ -165,32 +166,32 @@ class PinnedMaskArray:
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
 
-    def _remember(self, key: tuple[int, ...], value: tuple[dict, np.ndarray]) -> None:
+    def _remember(self, key: tuple[int, ...], value: tuple[np.ndarray, np.ndarray]) -> None:
         self._cache[key] = value
         while len(self._cache) > CACHED_CHUNKS:
             self._cache.pop(next(iter(self._cache)))
 
-    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[dict, np.ndarray]:
-        """``({block coords: row index}, packed rows (n, 512))`` of chunk ``key`` from its stored ``row``."""
+    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(row index (cb, cb, cb) int64 of each block of the chunk, -1 where not coded; packed rows (n, 512))``
+        of chunk ``key`` from its stored ``row``."""
         r = self.reader
         own, outside = chunk_blocks(states, key, self.cb)
+        index = np.full((self.cb,) * 3, -1, np.int64)
         if not len(own):
-            return {}, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
+            return index, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
         row = np.ascontiguousarray(row.reshape(-1))
         n = int(row[:4].view("<u4")[0])
         where = f"{r.location}: chunk {tuple(int(c) for c in key)} of array '{PINNED_ARRAY}'"
         if n == 0 or 4 + n > len(row):
             raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
                               "in it; the map is incomplete there: restore it from a copy or re-encode")
-        step = np.broadcast_to(np.asarray(r.header.codes.variable_rate.step, np.float64), (r.header.codes.size,))
-        codes = r.vr.codes_for(own, r.header.codes.size).astype(np.float64)
-        q = np.rint(codes / step)
-        if np.abs(q * step - codes).max() > 1e-6 * max(1.0, float(np.abs(codes).max())):
-            raise FormatError(f"{where}: the codes are not integer multiples of their steps")
+        # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
+        (_, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
         neg, pos = _signs(q, self.basis())
-        pins, _, _ = pm.exact_pins(own, neg, pos, outside, r.truncation)
+        pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
         mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
-        return {tuple(c): j for j, c in enumerate(own.tolist())}, np.packbits(mask.reshape(len(own), -1), axis=1)
+        index[tuple((own - np.asarray(key, np.int64) * self.cb).T)] = np.arange(len(own))
+        return index, np.packbits(mask.reshape(-1)).reshape(len(own), -1)  # flat: each block's 4096 bits in a row
 
     def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
@@ -211,8 +212,7 @@ class PinnedMaskArray:
             self._remember(names[i], got[names[i]])
         for i, name in enumerate(names):
             index, packed = got[name]
-            for j in np.flatnonzero(inverse == i):
-                k = index.get(tuple(int(x) for x in coords[j]))
-                if k is not None:
-                    out[j] = packed[k]
+            sel = np.flatnonzero(inverse == i)
+            k = index[tuple((np.asarray(coords, np.int64)[sel] - keys[i] * cb).T)]
+            out[sel[k >= 0]] = packed[k[k >= 0]]
         return out

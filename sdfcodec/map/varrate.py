@@ -458,6 +458,7 @@ class VariableRateReader:
                            zero_fill=True)
         self.arr, self.cb, self.cgrid = arr, cb, cgrid
         self._states = None
+        self._cache: dict[tuple[tuple[int, ...], int], tuple[np.ndarray, np.ndarray]] = {}
 
     def states(self) -> np.ndarray:
         if self._states is None:
@@ -471,13 +472,30 @@ class VariableRateReader:
         if not len(coords):
             return out
         cb = self.cb
-        ch = coords // cb
-        keys, inverse = np.unique(ch, axis=0, return_inverse=True)
+        keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
-        rows = self.reader.read_many(self.arr, [(*(slice(int(c), int(c) + 1) for c in k), slice(None))
-                                                for k in keys])
         states = self.states()
-        for i, (key, row) in enumerate(zip(keys, rows)):
+        for i, (key, (local, q)) in enumerate(zip(keys, self.chunk_codes(keys, level))):
+            index = np.full(tuple(min(cb, g - int(c) * cb) for c, g in zip(key, states.shape)), -1, np.int64)
+            index[tuple(local.T)] = np.arange(len(local))
+            sel = np.flatnonzero(inverse == i)
+            r = index[tuple((coords[sel] - key * cb).T)]
+            if (r < 0).any():
+                raise InvalidValueError("codes_for was asked for a block that is not coded")
+            out[sel] = q[r] * self.step[:level]
+        return out
+
+    def chunk_codes(self, keys: np.ndarray, level: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per chunk of ``keys`` ``(m, 3)``: (its coded blocks' coordinates relative to the chunk ``(n, 3)``, C
+        order, the integer codes ``(n, level)`` int32 of its stream). The last :data:`CACHED_CODE_CHUNKS` chunks
+        decoded are kept: a pinned mask read right after the field's (or before it) decodes each stream once."""
+        cb, out = self.cb, {}
+        todo = [i for i, k in enumerate(keys) if (tuple(int(c) for c in k), level) not in self._cache]
+        rows = self.reader.read_many(self.arr, [(*(slice(int(c), int(c) + 1) for c in keys[i]), slice(None))
+                                                for i in todo])
+        states = self.states()
+        for i, row in zip(todo, rows):
+            key = keys[i]
             box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(key, states.shape))
             local = np.argwhere(states[box] == BlockState.CODED)
             row = np.ascontiguousarray(row.reshape(-1))
@@ -492,14 +510,15 @@ class VariableRateReader:
             except Exception as e:  # a checksum-valid but inconsistent stream
                 raise FormatError(f"{self.reader.location}: the stream of chunk {tuple(int(c) for c in key)} of "
                                   f"array '{STREAM_ARRAY}' does not decode ({e}); the map is corrupted there") from e
-            index = np.full(tuple(s.stop - s.start for s in box), -1, np.int64)
-            index[tuple(local.T)] = np.arange(len(local))
-            sel = np.flatnonzero(inverse == i)
-            r = index[tuple((coords[sel] - key * cb).T)]
-            if (r < 0).any():
-                raise InvalidValueError("codes_for was asked for a block that is not coded")
-            out[sel] = q[r] * self.step[:level]
-        return out
+            out[i] = (local, q)
+            self._cache[(tuple(int(c) for c in key), level)] = (local, q)
+            while len(self._cache) > CACHED_CODE_CHUNKS:
+                self._cache.pop(next(iter(self._cache)))
+        return [out[i] if i in out else self._cache[(tuple(int(c) for c in k), level)] for i, k in enumerate(keys)]
+
+
+#: Chunks of integer codes a reader keeps decoded (4 B per element): see :meth:`VariableRateCodes.chunk_codes`.
+CACHED_CODE_CHUNKS = 8
 
 
 #: Prefix lengths decoded together are rounded up to a multiple of this: runs of blocks of like lengths decode
