@@ -153,7 +153,7 @@ def encode_bits(grid: np.ndarray, at: np.ndarray, bounds: np.ndarray, deltas: np
                            np.asarray(weights, np.int64), np.zeros(0, np.int64) if extra is None else
                            np.asarray(extra, np.int64), int(n_ctx), left, freq, 0)
     if m < 0:
-        raise ValueError(f"a context is outside [0, {n_ctx})")
+        raise InvalidValueError(f"a context is outside [0, {n_ctx})")
     return encode(left, freq)
 
 
