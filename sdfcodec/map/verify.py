@@ -238,6 +238,15 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
     return out
 
 
+def _members(group: zarr.Group, **kwargs) -> tuple:
+    """``group.members(**kwargs)`` without Zarr's warning about objects it cannot place (the manifest, the
+    signature, or whatever a damaged document leaves): they are no arrays to check, and what is wrong with them
+    is the report's to say, not a warning printed before it."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Object at .* is not recognized")
+        return tuple(group.members(**kwargs))
+
+
 def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
     """Without a valid header: still check every chunk of every array found (of a local map: a remote one is
     never listed, and without its header nothing says what it stores)."""
@@ -245,9 +254,7 @@ def _generic_chunks(rep: VerifyReport, group: zarr.Group) -> None:
         rep.note("map", "without a valid header, the chunks of a remote map are not checked (it is never listed)")
         return
     try:
-        with warnings.catch_warnings():  # the manifest and the signature are documents beside the hierarchy
-            warnings.filterwarnings("ignore", message=r"Object at (manifest|signature)\.json is not recognized")
-            arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+        arrays = [a for _, a in _members(group, max_depth=None) if isinstance(a, zarr.Array)]
     except SDFCodecError as e:  # the store refused a member (a link, a FIFO...): its own message
         rep.problem("map", f"its arrays cannot be listed: {e}")
         return
@@ -398,7 +405,7 @@ def _check_codec(rep: VerifyReport, m, decode_blocks: int) -> None:
         if group is not None and is_unlisted(group.store):  # never listed: the arrays the header names
             present = set(spec.state_arrays)
         elif group is not None:
-            present = {name for name, node in group.members() if isinstance(node, zarr.Array)}
+            present = {name for name, node in _members(group) if isinstance(node, zarr.Array)}
     except SDFCodecError as e:
         rep.problem("codec", str(e))
         return
