@@ -265,6 +265,18 @@ def pack_rows(vpad, states):
     return out, ok
 
 
+@njit(cache=True, inline="always")
+def _context(grid, g, deltas, weights, extra, i, has_extra):
+    """The context of the ``i``-th bit, at ``grid[g]``: its neighbours ``grid[g + deltas]`` weighted, plus
+    ``extra[i]`` where given (the decoder and the encoder must compute it alike)."""
+    ctx = 0
+    for q in range(len(deltas)):
+        ctx += np.int64(grid[g + deltas[q]]) * weights[q]
+    if has_extra:
+        ctx += extra[i]
+    return ctx
+
+
 @njit(cache=True)
 def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
     """Bits at the flat positions ``at`` of ``grid`` (written there as decoded), wavefront by wavefront
@@ -284,11 +296,7 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
         a, b = bounds[w], bounds[w + 1]
         for i in range(a, b):
             g = at[i]
-            ctx = 0
-            for q in range(len(deltas)):
-                ctx += np.int64(grid[g + deltas[q]]) * weights[q]
-            if has_extra:
-                ctx += extra[i]
+            ctx = _context(grid, g, deltas, weights, extra, i, has_extra)
             if ctx < 0 or ctx >= n_ctx:
                 st[0], st[1] = s, np.uint64(pos)
                 return False
@@ -417,11 +425,7 @@ def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m
         a, b = bounds[w], bounds[w + 1]
         for i in range(a, b):
             pos = at[i]
-            ctx = 0
-            for q in range(len(deltas)):
-                ctx += np.int64(grid[pos + deltas[q]]) * weights[q]
-            if has_extra:
-                ctx += extra[i]
+            ctx = _context(grid, pos, deltas, weights, extra, i, has_extra)
             if ctx < 0 or ctx >= n_ctx:
                 return -1
             ctxs[i] = ctx
