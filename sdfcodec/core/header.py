@@ -23,7 +23,7 @@ __all__ = ["MapHeader", "CodecSpec", "CodesSpec", "Truncation", "Provenance", "E
            "FieldCompression", "RESIDUAL_EXTENSION", "ResidualSpec", "SHARD_EXTENSION", "MANIFEST_EXTENSION",
            "ManifestRef", "MAX_MANIFEST_BYTES", "VARIABLE_RATE_EXTENSION", "VariableRate",
            "METRIC_EXTENSION", "FLOAT32_WEIGHTS_EXTENSION", "APPROX_MASK_EXTENSION", "public_source",
-           "PINNED_MASK_EXTENSION"]
+           "PINNED_MASK_EXTENSION", "REFINEMENT_EXTENSION", "Refinement"]
 
 FORMAT_NAME = "sdfcodec-map"
 #: Largest extent along one axis, in voxels or blocks: keeps index arithmetic inside int64 and a hostile header
@@ -89,6 +89,9 @@ KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {APPROX_MASK_EXTENSION}
 #: (spec section 6g); required: it replaces the ``observed`` array
 PINNED_MASK_EXTENSION = "pinned-observation-mask"
 KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {PINNED_MASK_EXTENSION}
+#: Required: integer corrections at the voxels near the surface of a variable-rate map's decode (spec section 6h).
+REFINEMENT_EXTENSION = "surface-refinement"
+KNOWN_EXTENSIONS = KNOWN_EXTENSIONS | {REFINEMENT_EXTENSION}
 
 
 class BlockState:
@@ -212,6 +215,16 @@ class ResidualSpec(_Model):
         return self
 
 
+class Refinement(_Model):
+    """The surface refinement of a variable-rate map (spec section 6h): corrections in steps of ``step`` at the
+    voxels whose exact decode lies within ``tau`` of zero, both in units of ``2^-24`` m."""
+
+    step: int = Field(ge=1, lt=1 << 24, description="correction step, metres times 2^24 (an integer)")
+    tau: int = Field(ge=1, lt=1 << 24, description="voxels with |exact decode| < tau are refined, metres times 2^24")
+    model: str = Field(max_length=1 << 16, pattern=r"^[A-Za-z0-9+/=]*$",
+                       description="base64 of the zlib-compressed law of the corrections (spec section 6h)")
+
+
 class VariableRate(_Model):
     """Variable-rate codes (spec section 4e): element ``j`` of a block's prefix decodes as ``step[j] * q`` (one step:
     every element's); ``model`` packs each element's law of ``q`` and the law of the prefix lengths."""
@@ -225,12 +238,16 @@ class VariableRate(_Model):
                                description="OPTIONAL: base64 of the zlib-compressed block states (grid_blocks, "
                                            "uint8, C order); the map then stores neither 'state' nor 'codes' "
                                            "(spec section 4e); omitted otherwise")
+    refinement: Refinement | None = Field(None, description="OPTIONAL: with the required extension "
+                                                            "'surface-refinement' (spec section 6h); omitted otherwise")
 
     @model_serializer(mode="wrap")
     def _omit_no_states(self, handler):
         out = handler(self)  # maps whose states are in the array stay byte-identical to those before the field
-        if isinstance(out, dict) and out.get("states", 0) is None:
-            out.pop("states")
+        if isinstance(out, dict):
+            for name in ("states", "refinement"):
+                if out.get(name, 0) is None:
+                    out.pop(name)
         return out
 
 

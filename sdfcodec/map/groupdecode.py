@@ -38,7 +38,7 @@ __all__ = ["decode_group"]
 def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                  mask_rows: np.ndarray | None = None, residual: bool = True,
                  residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
-                 placer: BlockPlacer | None = None) -> torch.Tensor | None:
+                 placer: BlockPlacer | None = None, refine: bool = True) -> torch.Tensor | None:
     """:meth:`MapReader.decode_codes` (see there). With ``placer``, the decoded blocks go into its volume (from
     several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned."""
     codec = reader.codec
@@ -46,7 +46,8 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
     scale, offset = decode_affine(reader.header.codes, (d_min, d_max), metres)  # metric codes: no scaling (4f)
     mask = reader.observation_arrays()[1]
     res = reader.residual_rows_array(codes.shape[1]) if residual else None
-    if (mask is not None or res is not None) and coords is None:
+    ref = getattr(reader, "refinement", None) if refine else None  # a surface refinement (spec 6h)
+    if (mask is not None or res is not None or ref is not None) and coords is None:
         raise InvalidValueError(f"{reader.location} has an observation mask or a residual: decode_codes needs the "
                                 "blocks' coords")
     if placer is not None and coords is None:
@@ -55,7 +56,7 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
         bound = codec.decode_bound(codes)
     proven = bound is not None and math.isfinite(bound) and bound <= DECODE_LIMIT
     tiles = placer is not None or decodes_tiles(codec)
-    if metres and proven and mask is None and res is None and len(codes) and tiles:
+    if metres and proven and mask is None and res is None and ref is None and len(codes) and tiles:
         # nothing follows the truncation: decode, clip and place tile by tile (codec.decode_tiles; a codec keeping
         # the default, only to be placed: then it is the plain path below, in one call)
         with plugin_calls(codec, "decoding"):  # a plugin's exception is one line naming it, as on every path
@@ -76,6 +77,11 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
             a = v.numpy()
             np.clip(a, d_min, d_max, out=a)
         else:
+            v = v.clamp_(d_min, d_max)
+    if ref is not None and len(codes):  # corrections in metres, then the truncation again (spec 6h)
+        add = torch.from_numpy(ref.rows(coords)).to(v.device).view(v.shape)
+        v = v.add_(add if metres else add / (d_max - d_min))
+        if metres:
             v = v.clamp_(d_min, d_max)
     if mask is not None:
         rows = read_block_rows(reader, mask, coords) if mask_rows is None else mask_rows

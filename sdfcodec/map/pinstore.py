@@ -71,10 +71,6 @@ def _zstd(row: np.ndarray) -> bytes:
     return bytes(Zstd(level=1).encode(row))
 
 
-def _signs(q: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return pm.sign_bounds(*pm.exact_decode(q, basis))
-
-
 class PinnedStreams:
     """The ``M2`` streams of a map's coded blocks ``coords`` ``(n, 3)`` (grouped by chunk, C order inside each:
     the writer's order) with true mask ``truth`` ``(n, 16, 16, 16)``, for integer codes given to :meth:`at`
@@ -90,6 +86,8 @@ class PinnedStreams:
         self.plans = [chunk_blocks(states, k, cb) for k in self.keys]
         self.streams: list[bytes] = []
         self.bytes = 0
+        #: ``(rows, v, bound) -> (v, bound)``: the refined exact field of those rows (spec 6h), or None
+        self.refined: Callable | None = None
 
     def at(self, q: np.ndarray, step: np.ndarray) -> None:
         """``q`` ``(n, k)`` integer codes of the blocks, in ``coords``' order, with steps ``step``."""
@@ -102,7 +100,10 @@ class PinnedStreams:
                 raise InvalidValueError("PinnedStreams needs the coded blocks grouped by chunk, in C order inside each")
             near = np.array([index[tuple(c)] for c in outside], np.int64)
             both = np.r_[sel, near]
-            neg, pos = _signs(q[both], basis)  # the neighbours' true decode: exact bits at the chunk's faces
+            v, bound = pm.exact_decode(q[both], basis)
+            if self.refined is not None:  # a surface refinement's field decides the pins (spec 6h)
+                v, bound = self.refined(both, v, bound)
+            neg, pos = pm.sign_bounds(v, bound)  # the neighbours' true decode: exact bits at the chunk's faces
             bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
             pins = pm.pinned_voxels_of(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
             self.streams.append(pm.encode_pinned(own, bits, pins))
@@ -187,7 +188,10 @@ class PinnedMaskArray:
                               "in it; the map is incomplete there: restore it from a copy or re-encode")
         # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
         (_, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
-        neg, pos = _signs(q, self.basis())
+        v, bound = pm.exact_decode(q, self.basis())
+        if r.refinement is not None:  # the refined field decides the pins (spec 6h)
+            v, bound = r.refinement.refined(own, v, bound)
+        neg, pos = pm.sign_bounds(v, bound)
         pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
         mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
         index[tuple((own - np.asarray(key, np.int64) * self.cb).T)] = np.arange(len(own))

@@ -200,6 +200,11 @@ class MapReader:
         self.codes_array, self.state_array = codes, state
         # variable-rate codes (spec 4e): read from their chunk streams, the codes array holds no chunk
         self.vr = None if h.codes.variable_rate is None else VariableRateReader(self, h.codes.variable_rate)
+        self.refinement = None  # a surface refinement's corrections (spec 6h)
+        if self.vr is not None and h.codes.variable_rate.refinement is not None:
+            from .refine import RefinementReader
+
+            self.refinement = RefinementReader(self, h.codes.variable_rate.refinement)
 
     # -- reading --------------------------------------------------------------------------------------
     def read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
@@ -484,7 +489,8 @@ class MapReader:
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             if self.vr is not None:
-                yield coords, decode_runs(self, codes, coords, rows, out, placer, metres)
+                yield coords, decode_runs(self, codes, coords, rows, out, placer, metres,
+                                          refine=level == self.header.codes.size)
                 continue
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
                                             residual_rows=resid, out=out, placer=placer)
@@ -507,7 +513,7 @@ class MapReader:
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                      mask_rows: np.ndarray | None = None, residual: bool = True,
                      residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
-                     placer: BlockPlacer | None = None) -> torch.Tensor | None:
+                     placer: BlockPlacer | None = None, refine: bool = True) -> torch.Tensor | None:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
@@ -519,9 +525,10 @@ class MapReader:
         given; ``residual=False``: the plain decode, what the writer measures the residual against). ``out``: a
         contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None. ``placer``:
         a :class:`BlockPlacer` the blocks go into (straight, or tile by tile from cache: sdfcodec.map.groupdecode);
-        ``out`` is scratch then, and None is returned."""
+        ``out`` is scratch then, and None is returned. ``refine=False``: without a surface refinement's
+        corrections (spec 6h; what a decode below full level does)."""
         return decode_group(self, codes, metres=metres, coords=coords, mask_rows=mask_rows, residual=residual,
-                            residual_rows=residual_rows, out=out, placer=placer)
+                            residual_rows=residual_rows, out=out, placer=placer, refine=refine)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:

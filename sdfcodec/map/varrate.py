@@ -25,7 +25,8 @@ import numpy as np
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK, empty
 from ..errors import FormatError, InvalidValueError
-from ..core.header import APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, BlockState, Extension, VariableRate
+from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEMENT_EXTENSION, BlockState, Extension,
+                           VariableRate)
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
 from .implied import drop_implied, inline_states
@@ -41,7 +42,7 @@ torch = lazy_module("torch")
 __all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_document_bytes",
            "stream_compressors", "prefix_lengths",
            "decode_runs", "RUN_MERGE", "VariableRateWriter", "VariableRateReader", "surface_error",
-           "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE"]
+           "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE", "REFINE_FROM", "codes_share"]
 
 STREAM_ARRAY = "code_streams"
 #: Temporary array of the writer (never in a committed map): per coded block the gains of its code elements.
@@ -52,6 +53,9 @@ SAMPLE_BLOCKS = 2048
 #: counts is exact but the compressor's frame of each row, estimated at 20 bytes): a byte the side information
 #: saves goes to the codes.
 TOLERANCE = 0.0005
+#: ``--target-bytes`` from which the bytes go to the codes and a surface refinement (spec 6h), per coded block:
+#: a pca-128 decode's Chamfer stops falling near 128 B (kitchen half: 3.91 mm at 128 B, 3.86 at 192 B).
+REFINE_FROM = 160.0
 _STREAM_DOC_BASE = 309  # a stream array's compact document but the digits of its width (measured)
 
 
@@ -65,6 +69,13 @@ def stream_document_bytes(width: int) -> int:
 #: control corrects it by :func:`stream_document_bytes` once it knows the width).
 STREAM_METADATA_BYTES = stream_document_bytes(9999)
 _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, bytes (measured 17-21)
+
+
+def codes_share(target: float) -> float:
+    """Bytes per coded block the codes (and the other files) get of a ``target`` that a refinement shares:
+    128 at 256, growing by a quarter of the target beyond it (measured on the kitchen half,
+    docs/variable-rate.md)."""
+    return float(np.clip(128.0 + 0.25 * (target - 256.0), 110.0, 0.75 * target))
 
 
 def check_variable_rate(codec: Codec) -> None:
@@ -122,7 +133,7 @@ class VariableRateWriter:
 
     def __init__(self, codec: Codec, *, step: Any = None, target_bytes: float | None = None,
                  target_error: float | None = None, lagrange: float = LAGRANGE, exact_mask: bool = False,
-                 pinned_mask: bool = True):
+                 pinned_mask: bool = True, refine: bool = True, refine_step: float | None = None):
         check_variable_rate(codec)
         if sum(x is not None for x in (step, target_bytes, target_error)) != 1:
             raise InvalidValueError("variable-rate codes need one of a step, a target of bytes per coded block or "
@@ -138,6 +149,14 @@ class VariableRateWriter:
         self.lagrange = float(lagrange)
         self.exact_mask, self.pinned_mask = bool(exact_mask), bool(pinned_mask)
         self._mask: _LossyMask | None = None
+        if refine_step is not None and not (np.isfinite(refine_step) and 2.0 ** -24 <= refine_step < 1.0):
+            raise InvalidValueError(f"the refinement step must be a number of metres in [2^-24, 1), got {refine_step!r}")
+        # the surface refinement (spec 6h): with a byte target above REFINE_FROM, or a step asked for
+        self.refine_step = refine_step
+        self.refine = bool(refine) and (target_bytes is not None or refine_step is not None)
+        self._truth: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray | None]] = {}
+        self._q: np.ndarray | None = None
+        self.voxel_size = 1.0
         basis = _basis(codec)
         self.basis_sq = (basis * basis).astype(np.float32)
         self._rng = np.random.default_rng(0)
@@ -153,6 +172,12 @@ class VariableRateWriter:
         w = np.ones((len(v), BLOCK ** 3), np.float32) if w is None else w.reshape(len(v), -1)
         g = gains(w, self.basis_sq)
         write_block_rows(gain_arr, coords, g)
+        self.voxel_size = float(voxel_size)
+        if self.refine:  # the true values the refinement corrects towards, metres
+            d_min, d_max = truncation
+            x = (np.asarray(v, np.float32).reshape(len(v), -1) * np.float32(d_max - d_min) + np.float32(d_min))
+            for i, c in enumerate(np.asarray(coords).tolist()):
+                self._truth[tuple(c)] = (x[i], None if observed is None else np.asarray(observed[i]).reshape(-1))
         if self.target_error is not None:  # a reservoir: the blocks with the SAMPLE_BLOCKS smallest priorities
             pr = self._rng.random(len(v))
             for i in np.argsort(pr)[:SAMPLE_BLOCKS]:
@@ -167,6 +192,7 @@ class VariableRateWriter:
     def _encode_all(self, z: np.ndarray, g: np.ndarray, chunk_ids: np.ndarray, step: np.ndarray
                     ) -> tuple[list[np.ndarray], EntropyModel, np.ndarray]:
         q, k, model = choose_lengths(z, g, step, self._lam(step, g))
+        self._q = q
         bounds = np.flatnonzero(np.diff(chunk_ids)) + 1
         streams = [encode_chunk(q[a:b], k[a:b], model) for a, b in zip(np.r_[0, bounds], np.r_[bounds, len(z)])]
         if self._mask is not None:  # the mask that goes with these codes, and its bytes
@@ -204,20 +230,33 @@ class VariableRateWriter:
             if APPROX_MASK_EXTENSION not in {e.name for e in extensions}:  # a transcode's may be there already
                 extensions.append(Extension(name=APPROX_MASK_EXTENSION, required=False))
         mask = self._mask
+        ref = self._refinement(coded, state, cb, truncation) if len(coded) else None
 
         def other(f: dict) -> int:
             return other_bytes({**f, "states": inline}) - slim + (0 if mask is None else mask.saved)
 
-        step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
+        share = None if ref is None or self.target_bytes is None else codes_share(self.target_bytes)
+        step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
+        refinement = None
+        if ref is not None:
+            refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
+            if refinement is None and share is not None:  # nothing fits beside the codes: codes alone
+                step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
         if len(z):
             streams, model, k = self._encode_all(z, g, chunk_ids, step)
+            if refinement is not None:  # the mask's pins follow the refined field (spec 6h)
+                ref.at(self._q, step, refinement[0], refinement[1])
+                if mask is not None:
+                    mask.at(self._q, step)
+                ref.write(group, stream_compressors())
+                extensions.append(Extension(name=REFINEMENT_EXTENSION, required=True))
             if mask is not None:
                 mask.write(group)
         else:
             streams, model, k = [], EntropyModel([0] * self.d, [0.5] * self.d, [0] * self.d, [1] + [0] * self.d), []
         uniform = bool((step == step[0]).all())
         spec = VariableRate(step=[float(step[0])] if uniform else [float(s) for s in step], coder=CODER,
-                            model=model.pack(), states=inline)
+                            model=model.pack(), states=inline, refinement=None if refinement is None else ref.spec)
         width = max([stream_bytes(s) for s in streams], default=4)
         arr = group.create_array(STREAM_ARRAY, shape=(*cgrid, width), dtype="uint8", fill_value=0,
                                  chunks=(1, 1, 1, width), compressors=stream_compressors(),
@@ -269,18 +308,82 @@ class VariableRateWriter:
         keys = manifest_bytes_estimate(new) - manifest_bytes_estimate(old)
         return streams, STREAM_METADATA_BYTES - (meta.stat().st_size if meta.exists() else 0) + max(keys, 0)
 
-    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation) -> np.ndarray:
+    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation, share=None) -> np.ndarray:
         if self.step is not None:
             return self.step
         if not len(z):
             raise InvalidValueError("the map has no coded blocks (all free space): there are no codes to rate-control")
         if self.target_error is not None:
             return self._step_for_error(truncation)
-        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n)
+        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n, share)
 
-    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n) -> np.ndarray:
-        """Bisection on log(step): the codes' exact stream bytes plus everything else against the target."""
+    def _refinement(self, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float]):
+        """A :class:`~sdfcodec.map.refine.RefinementStreams` of the coded blocks when the refinement can apply
+        here: asked for, the codec linear, every coded block's true values seen, and a mask exact or pinned (the
+        approximate mask of section 6f is decided on the unrefined decode); else None."""
+        from .pinstore import linear_basis
+        from .refine import RefinementStreams
+
+        if not self.refine or (self.target_bytes is not None and self.refine_step is None
+                               and self.target_bytes < REFINE_FROM):
+            return None
+        if linear_basis(self.codec, 1.0, self.d, truncation) is None or len(self._truth) < len(coded):
+            return None
+        if self._mask is not None and self._mask.pinned is None:
+            return None
+        rows = [self._truth.get(tuple(c)) for c in coded.tolist()]
+        if any(r is None for r in rows):
+            return None
+        obs = None if rows[0][1] is None else np.stack([r[1] for r in rows])
+        return RefinementStreams(coded, np.stack([r[0] for r in rows]), obs, cb, state.shape,
+                                 lambda step: linear_basis(self.codec, step, self.d, truncation), truncation)
+
+    def _choose_refinement(self, ref, z, g, chunk_ids, step, other_bytes, n) -> tuple[float, float] | None:
+        """``(step, tau)`` metres of the refinement: the asked step, or (a byte target) the finest whose map fits
+        the target, bisection on log(step) from 0.2 mm to 5 cm; None when even the coarsest does not fit."""
+        from .manifest import manifest_bytes_estimate
+        from .refine import REFINE_ARRAY, tau_for_step
+
+        streams, model, _ = self._encode_all(z, g, chunk_ids, step)
+        if self._mask is not None:  # from here the pins follow the refined field (spec 6h)
+            self._mask.pinned.refined = ref.refined
+        if self.refine_step is not None:
+            return self.refine_step, tau_for_step(self.refine_step, self.voxel_size)
+        width = max([stream_bytes(x) for x in streams], default=4)
+        codes = self._rows_bytes(streams) + stream_document_bytes(width) - STREAM_METADATA_BYTES
+        keys = [f"{REFINE_ARRAY}/zarr.json"] + [f"{REFINE_ARRAY}/c/{'/'.join(map(str, k))}/0" for k in ref.keys]
+        listed = manifest_bytes_estimate(keys) - manifest_bytes_estimate([])
         t = self.target_bytes
+
+        def total(r: float) -> float:
+            ref.at(self._q, step, r, tau_for_step(r, self.voxel_size))
+            if self._mask is not None:
+                self._mask.at(self._q, step)
+            rw = max([stream_bytes(x) for x in ref.streams], default=4)
+            fields = dict(step=[float(step[0])], coder=CODER, model=model.pack(), refinement=ref.spec)
+            return (codes + other_bytes(fields) + ref.bytes + stream_document_bytes(rw) + listed) / n
+
+        lo, hi = np.log2(2e-4), np.log2(5e-2)
+        if total(2 ** hi) > t:
+            if self._mask is not None:
+                self._mask.pinned.refined = None
+            return None
+        if total(2 ** lo) <= t:
+            return 2 ** lo, tau_for_step(2 ** lo, self.voxel_size)
+        for _ in range(14):
+            mid = (lo + hi) / 2
+            got = total(2 ** mid)
+            if t * (1 - 0.01) <= got <= t:
+                hi = mid
+                break
+            lo, hi = (mid, hi) if got > t else (lo, mid)
+        self.report.update(refine_step=2 ** hi)
+        return 2 ** hi, tau_for_step(2 ** hi, self.voxel_size)
+
+    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None) -> np.ndarray:
+        """Bisection on log(step): the codes' exact stream bytes plus everything else against the target (or
+        ``share`` of it: the codes' part beside a refinement)."""
+        t = self.target_bytes if share is None else share
 
         def total(s: float) -> tuple[float, float]:
             streams, model, _ = self._encode_all(z, g, chunk_ids, np.full(self.d, s))
@@ -538,7 +641,7 @@ def prefix_lengths(codes: Any) -> np.ndarray:
 
 
 def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: BlockPlacer,
-                metres: bool) -> Any:
+                metres: bool, refine: bool = True) -> Any:
     """:meth:`MapReader.decode_codes` of a group whose blocks are sorted by prefix length: each run of blocks whose
     lengths round up to the same multiple of :data:`RUN_WIDTH` decodes only that prefix (into its slice of
     ``out``, or placed by ``placer``); the decodes in the group's order, or None with a placer."""
@@ -560,7 +663,7 @@ def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndar
     for a, b, w in runs:
         part = reader.decode_codes(codes[a:b, :w].contiguous(), metres=metres, coords=coords[a:b],
                                    mask_rows=None if rows is None else rows[a:b],
-                                   out=None if out is None else out[a:b], placer=placer)
+                                   out=None if out is None else out[a:b], placer=placer, refine=refine)
         parts.append(part)
     if placer is not None:
         return None
