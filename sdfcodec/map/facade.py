@@ -464,7 +464,9 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             ``exact_mask`` (True keeps the observation mask exact; by default it is exact only where it decides
             the decoded surface, extension ``approximate-observation-mask``, spec section 6f) and ``pinned_mask``
             (False codes that mask at every voxel; by default only the voxels that decide the surface are stored,
-            extension ``pinned-observation-mask``, section 6g).
+            extension ``pinned-observation-mask``, section 6g), ``refine_step`` (metres: corrections of that step
+            at the voxels next to the decoded surface, extension ``surface-refinement``, section 6h; a
+            ``target_bytes`` of 160 B or more shares its bytes with them unless ``refine`` is False).
             Prefix-ordered codecs (pca) only; such a map is not updated in place.
         keep_weights: what becomes of the fusion weights given to ``write_blocks(weights=...)``: None (default)
             keeps them (float16) for the lossless ``raw`` codec and drops them at commit for lossy codecs (the
@@ -486,9 +488,11 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
             math.isfinite(surface_weight) and surface_weight >= 0):
         raise InvalidValueError(f"surface_weight must be a finite number >= 0, got {surface_weight!r}")
     if variable_rate is not None and (not isinstance(variable_rate, dict) or not set(variable_rate) <= {
-            "step", "target_bytes", "target_error", "lagrange", "exact_mask", "pinned_mask"}):
+            "step", "target_bytes", "target_error", "lagrange", "exact_mask", "pinned_mask", "refine",
+            "refine_step"}):
         raise InvalidValueError(f"variable_rate must be a dict with one of step, target_bytes, target_error (and "
-                                f"optionally lagrange, exact_mask, pinned_mask), got {variable_rate!r}")
+                                f"optionally lagrange, exact_mask, pinned_mask, refine, refine_step), got "
+                                f"{variable_rate!r}")
     writer = create_writer(path, codec=codec, voxel_size=voxel_size, truncation=truncation, origin=origin,
                                   shape_voxels=shape_voxels, code_dtype=code_dtype, chunk_blocks=chunk_blocks,
                                   chunk_code=chunk_code, overwrite=overwrite, device=device, tool=tool,

@@ -73,9 +73,9 @@ _ROW_FRAME = 20  # zstd frame and block headers plus the CRC32C of one row, byte
 
 def codes_share(target: float) -> float:
     """Bytes per coded block the codes (and the other files) get of a ``target`` that a refinement shares:
-    128 at 256, growing by a quarter of the target beyond it (measured on the kitchen half,
+    128 at 256, growing by 8 % of the target beyond it (measured on the kitchen half,
     docs/variable-rate.md)."""
-    return float(np.clip(128.0 + 0.25 * (target - 256.0), 110.0, 0.75 * target))
+    return float(np.clip(128.0 + 0.08 * (target - 256.0), 110.0, 0.75 * target))
 
 
 def check_variable_rate(codec: Codec) -> None:
@@ -348,6 +348,7 @@ class VariableRateWriter:
         if self._mask is not None:  # from here the pins follow the refined field (spec 6h)
             self._mask.pinned.refined = ref.refined
         if self.refine_step is not None:
+            ref.at(self._q, step, self.refine_step, tau_for_step(self.refine_step, self.voxel_size))
             return self.refine_step, tau_for_step(self.refine_step, self.voxel_size)
         width = max([stream_bytes(x) for x in streams], default=4)
         codes = self._rows_bytes(streams) + stream_document_bytes(width) - STREAM_METADATA_BYTES
