@@ -89,7 +89,8 @@ def metadata_bytes_estimate(code_size: int) -> float:
 def stored_bytes(path: str | os.PathLike) -> dict[str, float]:
     """Per coded block of the written map at ``path``: ``total`` (every file but ``codec/``), ``codes`` (the
     ``codes`` array's files), ``mask`` (``observed``, or a pinned mask's ``mask_streams``), ``residual`` (the residual stage of ``--max-error`` /
-    ``--sign-exact``, spec 6d; in ``total`` and ``other`` too) and ``other`` (``total - codes``)."""
+    ``--sign-exact``, spec 6d; in ``total`` and ``other`` too), ``refinement`` (``refine_streams``, spec 6h; in
+    ``total`` and ``other`` too) and ``other`` (``total - codes``)."""
     from .facade import open_map
 
     root = Path(path)
@@ -103,7 +104,7 @@ def stored_bytes(path: str | os.PathLike) -> dict[str, float]:
     total = size("") - size("codec")
     codes = size("codes") + size(STREAM_ARRAY)  # variable-rate codes live in their chunk streams (spec 4e)
     return {"total": total / n, "codes": codes / n, "mask": (size(MASK_ARRAY) + size("mask_streams")) / n, "residual": size(RESIDUAL_ARRAY) / n,
-            "other": (total - codes) / n}
+            "refinement": size("refine_streams") / n, "other": (total - codes) / n}
 
 
 def plan_step(target: float, model: RateModel, other: float) -> float:
