@@ -159,6 +159,10 @@ def test_a_corrupted_refinement_stream_fails_with_one_line(tmp_path, room, codec
     chunk.unlink()
     with pytest.raises(errors.FormatError, match="refine_streams"):
         sdfcodec.open_map(p).decode_region()
+    from sdfcodec.map.verify import verify_map
+
+    rep = verify_map(p)
+    assert not rep.ok and any("refine_streams" in str(x) for x in rep.problems), rep.problems
 
 
 def test_golden_refined_map(regen_golden):

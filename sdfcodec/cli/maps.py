@@ -184,6 +184,8 @@ def encode_cmd(
     shard_blocks: Optional[int] = typer.Option(None, "--shard-blocks", help="Store the chunks of codes in Zarr shards of N blocks per axis (a multiple of --chunk-blocks dividing 64, e.g. 32): objects of megabytes for maps of millions of blocks on object storage (readers before the extension sharded-codes refuse the map)."),
     keep_weights: bool = typer.Option(False, "--keep-weights", help="Carry the input map's fusion weights (uint8 counts in a lossy map, float16 with raw); by default only its observation mask is kept."),
     exact_mask: bool = typer.Option(False, "--exact-mask", help="Variable-rate maps: keep the observation mask exact. By default it is exact only where it decides the decoded surface and stored only there (the same surface, a smaller mask; extensions approximate-observation-mask and, for pca, pinned-observation-mask; docs/variable-rate.md)."),
+    refine_step: Optional[float] = typer.Option(None, "--refine-step", help="Variable-rate pca maps: correct the voxels next to the decoded surface in steps of this many metres (extension surface-refinement; --target-bytes of 160 B or more does so on its own, sharing its bytes; docs/variable-rate.md)."),
+    refine: bool = typer.Option(True, "--refine/--no-refine", help="Variable-rate maps: let --target-bytes spend bytes on a surface refinement (default) or on the codes alone."),
     exact: bool = typer.Option(False, "--exact", help="With --codec raw: store the voxels' own float32 metres (and float32 weights), read back bit for bit; without it raw is exact to (d_max - d_min) x 2^-24 m. Readers before the extension metric-codes refuse such maps."),
 ) -> None:
     """Encode a dense TSDF volume (or transcode a map) into a compressed map.
@@ -310,12 +312,16 @@ def encode_cmd(
     vr_kw = None
     if vr:
         vr_kw = {k: v for k, v in (("step", step), ("target_bytes", target_bytes), ("target_error", target_error))
-                 if v is not None} | ({"exact_mask": True} if exact_mask else {})
+                 if v is not None} | ({"exact_mask": True} if exact_mask else {}) | (
+            {"refine_step": refine_step} if refine_step is not None else {}) | ({} if refine else {"refine": False})
         m, quant = write(), None
         quant = _variable_rate_summary(m, output, target_bytes, target_error)
     else:
         if target_error is not None:
             raise InvalidValueError("--target-error chooses variable-rate codes: drop --fixed-rate/--code-dtype")
+        if refine_step is not None:
+            raise InvalidValueError("--refine-step refines variable-rate codes: add --variable-rate (or drop "
+                                    "--fixed-rate/--code-dtype)")
         m, quant = _encode_quantised(write, codec, step, target_bytes, code_dtype,
                                      lambda: _rate_sample(codec, None if src_map is not None else vol, src_map,
                                                           trunc, vs, device), output)
@@ -335,7 +341,9 @@ def encode_cmd(
         f"{info['blocks']['coded']} coded blocks, {human_bytes(info['bytes_on_disk'])} on disk, "
         f"{info['ratio_dense_to_disk']:.1f}:1 against dense float32" + ("" if quant is None else
         f"; codes quantised with step {quant['step']:.4g}: {quant['bytes_per_coded_block']:.1f} stored bytes per "
-        f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes)" +
+        f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes" + (
+            f", {quant['refinement']['bytes_per_coded_block']:.1f} of surface refinement at "
+            f"{quant['refinement']['step'] * 1000:.3g} mm" if quant.get("refinement") else "") + ")" +
         (f", target {quant['target_bytes']:g} B ({quant['passes']} {'pass' if quant['passes'] == 1 else 'passes'})" if quant.get("target_bytes") else ""))
         + ("" if info["residual"] is None else f"; {_residual_line(info['residual'])}")))
 
@@ -413,6 +421,9 @@ def _variable_rate_summary(m: Map, output: Path, target: Optional[float], error:
         out["target_bytes"], out["passes"] = target, 1
     if error is not None:
         out["target_error"] = error
+    if vr.refinement is not None:  # spec 6h: its step and band in metres, its streams' bytes
+        out["refinement"] = {"step": vr.refinement.step * 2.0 ** -24, "band": vr.refinement.tau * 2.0 ** -24,
+                             "bytes_per_coded_block": got["refinement"]}
     return out
 
 

@@ -189,6 +189,15 @@ class RefinementReader:
                 raise FormatError(f"{self.reader.location}: a block asked for is not coded")
             yield at, k, ch
 
+    def check(self, coords: np.ndarray) -> None:
+        """Decode the stream of every chunk holding blocks ``coords`` ``(n, 3)`` (``verify``).
+
+        Raises:
+            FormatError: a stream is missing, truncated or does not decode to its voxels' corrections.
+        """
+        for key in np.unique(np.asarray(coords, np.int64) // self.cb, axis=0):
+            self._chunk(tuple(int(k) for k in key))
+
     def rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 4096)`` float32: the corrections in metres of coded blocks ``coords`` ``(n, 3)``, 0 where none."""
         out = np.zeros((len(coords), BLOCK ** 3), np.float32)

@@ -342,6 +342,12 @@ def _check_codes(rep: VerifyReport, m, states: np.ndarray | None) -> None:
                 m.reader.vr.codes_for(np.argwhere(states == BlockState.CODED), m.reader.header.codes.size)
             except SDFCodecError as e:
                 rep.problem("code_streams", str(e))
+                return
+            if m.reader.refinement is not None:  # every stream of the surface refinement decodes (spec 6h)
+                try:
+                    m.reader.refinement.check(np.argwhere(states == BlockState.CODED))
+                except SDFCodecError as e:
+                    rep.problem("refine_streams", str(e))
         return
     for arr in (m.reader.codes_array, m.reader.code_scale_array):
         if arr is not None:
