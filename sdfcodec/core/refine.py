@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError
 
-__all__ = ["MAX_CORRECTION", "clip_units", "select", "corrections", "refine", "CorrectionModel",
+__all__ = ["MAX_CORRECTION", "clip_units", "select", "select_unclipped", "corrections", "refine", "CorrectionModel",
            "encode_corrections", "decode_corrections"]
 
 #: The largest ``|c|`` a map's law may hold (its table then has 2 M + 1 entries).
@@ -39,6 +39,20 @@ def clip_units(v: np.ndarray, truncation: tuple[float, float], scale: float) -> 
 def select(v: np.ndarray, tau: int) -> np.ndarray:
     """``(n, 4096)`` bool: the voxels of clipped exact decodes ``v`` ``(n, 4096)`` with ``|v| < tau`` (units)."""
     return np.abs(v) < tau
+
+
+def select_unclipped(v: np.ndarray, tau: int, truncation: tuple[float, float], scale: float) -> np.ndarray:
+    """:func:`select` of ``clip_units(v)`` from the unclipped ``v`` without clipping it (one pass fewer): a side
+    of the band beyond its bound holds every clipped value."""
+    lo, hi = float(truncation[0]) * scale, float(truncation[1]) * scale
+    t = float(tau)
+    if t > hi and -t < lo:
+        return np.ones(v.shape, bool)
+    if t > hi:
+        return v > -t
+    if -t < lo:
+        return v < t
+    return (v < t) & (v > -t)
 
 
 def corrections(truth: np.ndarray, observed: np.ndarray | None, v: np.ndarray, sel: np.ndarray, step: int,

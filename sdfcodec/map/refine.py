@@ -148,16 +148,19 @@ class RefinementReader:
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
 
-    def _chunk(self, key: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(index (cb,)*3 int64 -1 where not coded, local coords (n, 3), sel (n, 4096) bool, c (m,) int32)``."""
+    def _chunk(self, key: tuple[int, ...], v: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(index (cb,)*3 int64 -1 where not coded, local coords (n, 3), sel (n, 4096) bool, c (m,) int32)``;
+        ``v``: the exact decode of the chunk's coded blocks (C order) when the caller has it (the pinned mask)."""
         if key in self._cache:
             return self._cache[key]
         r, cb = self.reader, self.cb
         (local, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
         index = np.full((cb,) * 3, -1, np.int64)
         index[tuple(local.T)] = np.arange(len(local))
-        v, _ = pm.exact_decode(q, self.basis())
-        sel = cr.select(cr.clip_units(v, r.truncation, _SCALE), self.spec.tau)
+        if v is None or len(v) != len(local):
+            v, _ = pm.exact_decode(q, self.basis())
+        sel = cr.select_unclipped(v, self.spec.tau, r.truncation, _SCALE)
         row, = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None))])
         row = np.ascontiguousarray(row.reshape(-1))
         nw = int(row[:4].view("<u4")[0])
@@ -211,6 +214,9 @@ class RefinementReader:
     def refined(self, coords: np.ndarray, v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The refined exact field of coded blocks ``coords`` ``(n, 3)`` (exact decode ``v`` ``(n, 4096)``, bound
         ``(n,)``): what the pinned mask decides its pins on (:meth:`RefinementStreams.refined`)."""
+        keys = np.unique(np.asarray(coords, np.int64) // self.cb, axis=0)
+        if len(keys) == 1:  # a chunk's blocks, as the pinned mask asks: its exact decode is this one
+            self._chunk(tuple(int(k) for k in keys[0]), v)
         out = cr.clip_units(v, self.reader.truncation, _SCALE)
         for at, k, (_, _, sel, c) in self._blocks(coords):
             corr = np.zeros(sel.shape, np.float64)
