@@ -70,6 +70,7 @@ def test_refined_voxels_decode_within_half_a_step_and_the_surface_improves(tmp_p
     assert "surface-refinement" in {e.name for e in b.header.extensions}
     assert b.header.codes.variable_rate.refinement.step == round(r * S)
     assert "surface-refinement" not in {e.name for e in a.header.extensions}
+    assert b.info()["refinement"]["step"] == pytest.approx(r, abs=2.0 ** -24) and a.info()["refinement"] is None
     coords, v, sel, _, bound = _reference(b, codec, vol, obs)
     dec = _blocks(b.decode_region(), coords, TRUNC[1])
     truth = _blocks(vol, coords, TRUNC[1])

@@ -144,6 +144,10 @@ def info_cmd(map_path: str = typer.Argument(..., metavar="MAP", help="Map path o
                                           "context-coded (coded-observation-mask)" if kind.startswith("context-coded")
                                           else "Blosc-compressed") + (", exact only where it decides the surface "
                                           "(approximate-observation-mask)" if kind.endswith("approximate") else "")))
+    if info.get("refinement") is not None:
+        rows.append(("surface refinement", f"corrections in steps of {info['refinement']['step'] * 1000:.3g} mm within "
+                                           f"{info['refinement']['band'] * 1000:.3g} mm of the surface "
+                                           "(surface-refinement)"))
     if info["residual"] is not None:
         rows.append(("residual (residual-bound)", _residual_line(info["residual"])))
     if info.get("integrity") is not None:

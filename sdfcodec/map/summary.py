@@ -104,6 +104,9 @@ def summarize(h: MapHeader, location: str, root: str | None, counts: dict[str, i
                              ("pinned" if PINNED_MASK_EXTENSION in names else
                               "context-coded" if CODED_MASK_EXTENSION in names else "blosc")
                              + (", approximate" if APPROX_MASK_EXTENSION in names else "")),
+        # spec 6h: the corrections' step and band in metres
+        "refinement": (None if (ref6h := h.codes.variable_rate and h.codes.variable_rate.refinement) is None else
+                       {"step": ref6h.step * 2.0 ** -24, "band": ref6h.tau * 2.0 ** -24}),
         "integrity": {"manifest": None if h.manifest is None else {"objects": h.manifest.objects,
                                                                     "sha256": h.manifest.sha256},
                       "signature": _signature_key(root) if root is not None else None},
