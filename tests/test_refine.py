@@ -181,3 +181,12 @@ def test_golden_refined_map(regen_golden):
     m = check_golden_map(GOLDEN, make, regen_golden)
     ext = {e.name: e.required for e in m.header.extensions}
     assert ext["surface-refinement"] is True and ext["pinned-observation-mask"] is True
+
+
+def test_conflicting_refinement_options_fail_with_one_line(codec):
+    from sdfcodec.map.varrate import VariableRateWriter
+
+    with pytest.raises(errors.InvalidValueError, match="give one"):
+        VariableRateWriter(codec, target_bytes=256.0, refine_step=0.004)
+    with pytest.raises(errors.InvalidValueError, match="refinement step"):
+        VariableRateWriter(codec, step=0.3, refine_step=2.0)

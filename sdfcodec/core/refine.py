@@ -56,11 +56,12 @@ def select_unclipped(v: np.ndarray, tau: int, truncation: tuple[float, float], s
 
 
 def corrections(truth: np.ndarray, observed: np.ndarray | None, v: np.ndarray, sel: np.ndarray, step: int,
-                limit: int = MAX_CORRECTION) -> np.ndarray:
+                limit: int = MAX_CORRECTION, scale: float = 1.0) -> np.ndarray:
     """``(m,)`` int32 corrections of the ``m`` selected voxels (``sel`` ``(n, 4096)``, C order): the true values
-    ``truth`` ``(n, 4096)`` (metres times the same scale as ``v``) less ``v``, in steps of ``step`` units, rounded
-    and clipped to ``+-limit``; 0 where ``observed`` ``(n, 4096)`` bool is False (no true value to approach)."""
-    c = np.rint((truth[sel] - v[sel]) / float(step))
+    ``truth`` ``(n, 4096)`` times ``scale`` (then in the units of ``v``) less ``v``, in steps of ``step`` units,
+    rounded and clipped to ``+-limit``; 0 where ``observed`` ``(n, 4096)`` bool is False (no true value to
+    approach)."""
+    c = np.rint((truth[sel].astype(np.float64) * scale - v[sel]) / float(step))
     if observed is not None:
         c[~observed[sel]] = 0
     return np.clip(c, -limit, limit).astype(np.int32)

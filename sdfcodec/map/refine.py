@@ -55,13 +55,14 @@ class RefinementStreams:
     """The streams of a map's coded blocks ``coords`` ``(n, 3)`` (grouped by chunk, C order inside each: the
     writer's order) with true values ``truth`` ``(n, 4096)`` float32 metres and mask ``observed`` ``(n, 4096)``
     bool (or None), for integer codes and steps given to :meth:`at` (``basis_for(step)``:
-    :func:`~sdfcodec.map.pinstore.linear_basis`). After :meth:`at`: ``bytes`` (rows as stored), ``spec`` (the
+    :func:`~sdfcodec.map.pinstore.linear_basis`). Holds 2 x 32 KB per coded block (the exact and the refined
+    field, float64) besides the true values. After :meth:`at`: ``bytes`` (rows as stored), ``spec`` (the
     header's :class:`Refinement`), :meth:`refined` (the pinned mask's hook), :meth:`write`."""
 
     def __init__(self, coords: np.ndarray, truth: np.ndarray, observed: np.ndarray | None, cb: int, grid: tuple,
                  basis_for: Callable[[np.ndarray], np.ndarray], truncation: tuple[float, float]):
         self.coords, self.cb, self.grid = np.asarray(coords, np.int64), cb, grid
-        self.truth = np.asarray(truth, np.float64) * _SCALE
+        self.truth = truth  # float32 metres: scaled where selected only (memory)
         self.observed = observed
         self.basis_for, self.truncation = basis_for, truncation
         chunk = self.coords // cb
@@ -87,7 +88,7 @@ class RefinementStreams:
         r = max(int(round(r_m * _SCALE)), 1)
         tau = max(int(round(tau_m * _SCALE)), 1)
         sel = cr.select(self.v, tau)
-        c = cr.corrections(self.truth, self.observed, self.v, sel, r, _limit(r))
+        c = cr.corrections(self.truth, self.observed, self.v, sel, r, _limit(r), scale=_SCALE)
         model = cr.CorrectionModel.fit(c)
         counts = np.add.reduceat(sel.sum(axis=1), self.bounds[:-1]) if len(sel) else np.zeros(0, np.int64)
         ends = np.cumsum(counts)

@@ -151,9 +151,13 @@ class VariableRateWriter:
         self._mask: _LossyMask | None = None
         if refine_step is not None and not (np.isfinite(refine_step) and 2.0 ** -24 <= refine_step < 1.0):
             raise InvalidValueError(f"the refinement step must be a number of metres in [2^-24, 1), got {refine_step!r}")
-        # the surface refinement (spec 6h): with a byte target above REFINE_FROM, or a step asked for
+        if refine_step is not None and target_bytes is not None:
+            raise InvalidValueError("a refinement step and a target of bytes both choose the refinement's bytes: "
+                                    "give one (a byte target picks the step itself)")
+        # the surface refinement (spec 6h): with a byte target from REFINE_FROM, or a step asked for
         self.refine_step = refine_step
-        self.refine = bool(refine) and (target_bytes is not None or refine_step is not None)
+        self.refine = bool(refine) and (refine_step is not None or (target_bytes is not None
+                                                                    and target_bytes >= REFINE_FROM))
         self._truth: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray | None]] = {}
         self._q: np.ndarray | None = None
         self.voxel_size = 1.0
@@ -173,11 +177,12 @@ class VariableRateWriter:
         g = gains(w, self.basis_sq)
         write_block_rows(gain_arr, coords, g)
         self.voxel_size = float(voxel_size)
-        if self.refine:  # the true values the refinement corrects towards, metres
+        if self.refine:  # the true values the refinement corrects towards: float32 metres, packed bits
             d_min, d_max = truncation
             x = (np.asarray(v, np.float32).reshape(len(v), -1) * np.float32(d_max - d_min) + np.float32(d_min))
             for i, c in enumerate(np.asarray(coords).tolist()):
-                self._truth[tuple(c)] = (x[i], None if observed is None else np.asarray(observed[i]).reshape(-1))
+                self._truth[tuple(c)] = (x[i], None if observed is None else
+                                         np.packbits(np.asarray(observed[i], bool).reshape(-1)))
         if self.target_error is not None:  # a reservoir: the blocks with the SAMPLE_BLOCKS smallest priorities
             pr = self._rng.random(len(v))
             for i in np.argsort(pr)[:SAMPLE_BLOCKS]:
@@ -324,8 +329,7 @@ class VariableRateWriter:
         from .pinstore import linear_basis
         from .refine import RefinementStreams
 
-        if not self.refine or (self.target_bytes is not None and self.refine_step is None
-                               and self.target_bytes < REFINE_FROM):
+        if not self.refine:
             return None
         if linear_basis(self.codec, 1.0, self.d, truncation) is None or len(self._truth) < len(coded):
             return None
@@ -334,7 +338,7 @@ class VariableRateWriter:
         rows = [self._truth.get(tuple(c)) for c in coded.tolist()]
         if any(r is None for r in rows):
             return None
-        obs = None if rows[0][1] is None else np.stack([r[1] for r in rows])
+        obs = None if rows[0][1] is None else np.unpackbits(np.stack([r[1] for r in rows]), axis=1).astype(bool)
         return RefinementStreams(coded, np.stack([r[0] for r in rows]), obs, cb, state.shape,
                                  lambda step: linear_basis(self.codec, step, self.d, truncation), truncation)
 
