@@ -106,7 +106,7 @@ def test_streams_are_what_constriction_reads_and_a_numpy_reference_computes(tmp_
     write_volume_map(p, vol, obs, codec, codec_state="reference", chunk_blocks=2,
                      variable_rate={"step": 0.3, "refine_step": 0.004})
     m = sdfcodec.open_map(p)
-    coords, _, sel, c, _ = _reference(m, codec, vol, obs)
+    coords, v, sel, c, bound = _reference(m, codec, vol, obs)
     raw = zlib.decompress(base64.b64decode(m.header.codes.variable_rate.refinement.model))
     assert raw[:2] == b"R1"
     vals, x, shift = [], 0, 0  # LEB128 varints, decoded here by hand
@@ -132,6 +132,14 @@ def test_streams_are_what_constriction_reads_and_a_numpy_reference_computes(tmp_
         got = coder.decode(model, len(want)) - mm
         np.testing.assert_array_equal(got, want)
         assert coder.is_empty()
+    # the decode of many chunks, whole and by a region across chunk faces: the reference's refined values
+    whole = m.decode_region()
+    want = np.clip((v + c * m.header.codes.variable_rate.refinement.step) / S, *TRUNC)
+    read = m.read_observed(coords).reshape(len(coords), -1)
+    np.testing.assert_allclose(_blocks(whole, coords, TRUNC[1])[read], want[read], atol=bound.max() / S + 1e-6)
+    box = ((20, 70), (10, 60), (5, 40))
+    # float32 rounding apart (a block decoded in another batch, as decode_region documents)
+    np.testing.assert_allclose(m.decode_region(box), whole[20:70, 10:60, 5:40], rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("target", [256.0, 384.0])

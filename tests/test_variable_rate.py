@@ -317,3 +317,21 @@ def test_encode_target_bytes_alone_references_the_shipped_model(tmp_path, scene_
         assert r.exit_code == 1 and msg in r.output, (args, r.output)
         assert not (tmp_path / "bad.sdfz").exists()
     shutil.rmtree(out)
+
+
+def test_chunk_codes_of_many_chunks_keeps_those_it_had_cached(tmp_path, pca32, scene_volume):
+    """A request for more chunks than the reader caches, some of them cached already, returns every chunk's codes
+    (decoding the others once evicted the cached ones before they were returned: a KeyError), equal to a fresh
+    reader's."""
+    m = _write(tmp_path / "many.sdfz", pca32, scene_volume, variable_rate={"step": 0.1}, chunk_blocks=2)
+    coded = np.argwhere(m.block_states() == 2)
+    keys = np.unique(coded // 2, axis=0)
+    assert len(keys) > 12
+    vr = m.reader.vr
+    vr.chunk_codes(keys[:3], pca32.code_size)
+    got = vr.chunk_codes(keys, pca32.code_size)
+    fresh = sdfcodec.open_map(tmp_path / "many.sdfz").reader.vr
+    for (la, qa), key in zip(got, keys):
+        (lb, qb), = fresh.chunk_codes(key[None], pca32.code_size)
+        np.testing.assert_array_equal(la, lb)
+        np.testing.assert_array_equal(qa, qb)

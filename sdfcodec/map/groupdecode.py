@@ -38,7 +38,8 @@ __all__ = ["decode_group"]
 def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                  mask_rows: np.ndarray | None = None, residual: bool = True,
                  residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
-                 placer: BlockPlacer | None = None, refine: bool = True) -> torch.Tensor | None:
+                 placer: BlockPlacer | None = None, refine: bool = True,
+                 refine_rows: np.ndarray | None = None) -> torch.Tensor | None:
     """:meth:`MapReader.decode_codes` (see there). With ``placer``, the decoded blocks go into its volume (from
     several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned."""
     codec = reader.codec
@@ -79,7 +80,7 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
         else:
             v = v.clamp_(d_min, d_max)
     if ref is not None and len(codes):  # corrections in metres, then the truncation again (spec 6h)
-        add = torch.from_numpy(ref.rows(coords)).to(v.device).view(v.shape)
+        add = torch.from_numpy(ref.rows(coords) if refine_rows is None else refine_rows).to(v.device).view(v.shape)
         v = v.add_(add if metres else add / (d_max - d_min))
         if metres:
             v = v.clamp_(d_min, d_max)

@@ -476,21 +476,25 @@ class MapReader:
         :meth:`decode_codes` (the decodes yielded are None then)."""
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
+        refining = self.refinement is not None and level == self.header.codes.size  # spec 6h: full level only
 
         def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
             if self.vr is not None:  # blocks by prefix length, so that runs of like lengths decode their prefix
                 order = np.argsort(prefix_lengths(codes), kind="stable")
                 coords[:], codes = coords[order], codes[order]
-            # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals)
-            return (feed.stage(codes), None if mask is None else read_block_rows(self, mask, coords),
-                    None if res is None else self.read_residual(coords))
+            # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals,
+            # or a refinement's corrections: after the mask, whose pins hand it each chunk's exact decode; the
+            # chunk caches of both are this thread's alone)
+            rows = None if mask is None else read_block_rows(self, mask, coords)
+            extra = self.refinement.rows(coords) if refining else None if res is None else self.read_residual(coords)
+            return feed.stage(codes), rows, extra
 
         for coords, (staged, rows, resid) in self.fetch_stream(box, level, stage=stage, **kw):
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             if self.vr is not None:
                 yield coords, decode_runs(self, codes, coords, rows, out, placer, metres,
-                                          refine=level == self.header.codes.size)
+                                          refine=refining, refine_rows=resid)
                 continue
             yield coords, self.decode_codes(codes, metres=metres, coords=coords, mask_rows=rows,
                                             residual_rows=resid, out=out, placer=placer)
@@ -513,7 +517,8 @@ class MapReader:
     def decode_codes(self, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                      mask_rows: np.ndarray | None = None, residual: bool = True,
                      residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
-                     placer: BlockPlacer | None = None, refine: bool = True) -> torch.Tensor | None:
+                     placer: BlockPlacer | None = None, refine: bool = True,
+                     refine_rows: np.ndarray | None = None) -> torch.Tensor | None:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
@@ -526,9 +531,11 @@ class MapReader:
         contiguous ``(n, 16, 16, 16)`` float32 buffer on the codes' device to decode into, or None. ``placer``:
         a :class:`BlockPlacer` the blocks go into (straight, or tile by tile from cache: sdfcodec.map.groupdecode);
         ``out`` is scratch then, and None is returned. ``refine=False``: without a surface refinement's
-        corrections (spec 6h; what a decode below full level does)."""
+        corrections (spec 6h; what a decode below full level does); ``refine_rows`` (n, 4096): those corrections
+        in metres, read unless given."""
         return decode_group(self, codes, metres=metres, coords=coords, mask_rows=mask_rows, residual=residual,
-                            residual_rows=residual_rows, out=out, placer=placer, refine=refine)
+                            residual_rows=residual_rows, out=out, placer=placer, refine=refine,
+                            refine_rows=refine_rows)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:

@@ -166,7 +166,7 @@ class RefinementReader:
         row = np.ascontiguousarray(row.reshape(-1))
         nw = int(row[:4].view("<u4")[0])
         where = f"{r.location}: chunk {key} of array '{REFINE_ARRAY}'"
-        if 4 + 4 * nw > len(row) or (nw == 0 and len(local)):
+        if 4 + 4 * nw > len(row) or (nw == 0 and sel.any()):  # a chunk with nothing selected holds no word
             raise FormatError(f"{where} holds no stream (or a truncated one) but {len(local)} coded block(s) lie in "
                               "it; the map is incomplete there: restore it from a copy or re-encode")
         try:

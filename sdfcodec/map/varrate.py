@@ -597,8 +597,11 @@ class VariableRateReader:
         """Per chunk of ``keys`` ``(m, 3)``: (its coded blocks' coordinates relative to the chunk ``(n, 3)``, C
         order, the integer codes ``(n, level)`` int32 of its stream). The last :data:`CACHED_CODE_CHUNKS` chunks
         decoded are kept: a pinned mask read right after the field's (or before it) decodes each stream once."""
-        cb, out = self.cb, {}
-        todo = [i for i, k in enumerate(keys) if (tuple(int(c) for c in k), level) not in self._cache]
+        cb = self.cb
+        # the cached chunks held from the start: decoding more than CACHED_CODE_CHUNKS others evicts them
+        out = {i: self._cache[(tuple(int(c) for c in k), level)] for i, k in enumerate(keys)
+               if (tuple(int(c) for c in k), level) in self._cache}
+        todo = [i for i in range(len(keys)) if i not in out]
         rows = self.reader.read_many(self.arr, [(*(slice(int(c), int(c) + 1) for c in keys[i]), slice(None))
                                                 for i in todo])
         states = self.states()
@@ -622,7 +625,7 @@ class VariableRateReader:
             self._cache[(tuple(int(c) for c in key), level)] = (local, q)
             while len(self._cache) > CACHED_CODE_CHUNKS:
                 self._cache.pop(next(iter(self._cache)))
-        return [out[i] if i in out else self._cache[(tuple(int(c) for c in k), level)] for i, k in enumerate(keys)]
+        return [out[i] for i in range(len(keys))]
 
 
 #: Chunks of integer codes a reader keeps decoded (4 B per element): see :meth:`VariableRateCodes.chunk_codes`.
@@ -646,7 +649,7 @@ def prefix_lengths(codes: Any) -> np.ndarray:
 
 
 def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: BlockPlacer,
-                metres: bool, refine: bool = True) -> Any:
+                metres: bool, refine: bool = True, refine_rows: np.ndarray | None = None) -> Any:
     """:meth:`MapReader.decode_codes` of a group whose blocks are sorted by prefix length: each run of blocks whose
     lengths round up to the same multiple of :data:`RUN_WIDTH` decodes only that prefix (into its slice of
     ``out``, or placed by ``placer``); the decodes in the group's order, or None with a placer."""
@@ -668,7 +671,8 @@ def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndar
     for a, b, w in runs:
         part = reader.decode_codes(codes[a:b, :w].contiguous(), metres=metres, coords=coords[a:b],
                                    mask_rows=None if rows is None else rows[a:b],
-                                   out=None if out is None else out[a:b], placer=placer, refine=refine)
+                                   out=None if out is None else out[a:b], placer=placer, refine=refine,
+                                   refine_rows=None if refine_rows is None else refine_rows[a:b])
         parts.append(part)
     if placer is not None:
         return None
