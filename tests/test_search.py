@@ -190,7 +190,7 @@ def test_scores_equal_brute_force_numpy(maps):
 
 @pytest.mark.parametrize("n_desc", [15, 300])
 def test_scorer_in_tiles_equals_brute_force(n_desc):
-    """The CPU scorer's products of a few hundred codes (few descriptors) and its one product (many) give the
+    """The CPU scorer's products of a few hundred codes (few descriptors) and its row tiles (many) give the
     float64 brute-force minimum distances and a nearest descriptor. Bounded (a search's call): every code within
     the bound gets its score and nearest descriptor; the others a lower bound over the bound, from the first
     PRUNE_PREFIX elements where most codes are far, the full score where most are near (the probe)."""
@@ -201,7 +201,9 @@ def test_scorer_in_tiles_equals_brute_force(n_desc):
     far_codes = rng.standard_normal((1900, 64)).astype(np.float32) * spread * 3 + 8.0 * spread
     codes = np.concatenate([near_codes, far_codes])[rng.permutation(2500)]
     scorer = scoring.Scorer(q, torch.device("cpu"))
-    assert (scorer.rows < len(codes)) == (n_desc == 15)  # several products only where one would be threaded
+    # products of a few hundred codes on the calling thread where one would be threaded (few descriptors); a large
+    # model's products in row tiles on every core (rows None)
+    assert (scorer.rows is not None and scorer.rows < len(codes)) == (n_desc == 15)
     s, idx = scorer(codes)
     d = ((codes[:, None, :].astype(np.float64) - q[None]) ** 2).sum(-1)
     np.testing.assert_allclose(s, d.min(1), rtol=1e-4, atol=1e-3)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK, check_device
+from ..core.tiling import one_blas_thread
 from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..core.header import BlockState
@@ -166,6 +167,11 @@ def auto_threshold(model: QueryModel, level: int | None = None, codec: Codec | N
     return float(AUTO_FRACTION * np.median(np.maximum(d.min(axis=1), 0.0)))
 
 
+# numpy's BLAS at one thread throughout: a search's products are small (a few hundred blocks against a model, the
+# plane check's (n, 4096) x (4096, 3)), and OpenBLAS's second thread, woken for each and waiting on a core busy
+# elsewhere, made them 2-4x slower on two loaded cores (the plane check's own-plane fit: 0.12 s of CPU with one
+# thread, 0.26-0.30 s with two); the large products tile themselves over the cores (ObservedScorer)
+@one_blas_thread()
 def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | None = None,
            threshold: float | str | None = None, top: int | None = None, device: str | torch.device | None = None,
            keep_scores: bool = False, chunks_per_batch: int = 8, behind: str | None = None, up: Any = None,
@@ -300,9 +306,19 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
             from .plane_check import check_planes
 
             codes_of = _held_codes(view, lv, held)
+            pre = {tuple(c): k for k, c in enumerate(sel_c.tolist())}
+            pre_s, pre_i = sel_s, sel_i
             sel_c = check_planes(view, model, scene_info, sel_c, sel_s <= stage_t, coded, codes_of)
-            sel_s, sel_i = score_codes(scorer, obs_scorer, codes_of(sel_c),
-                                       view.read_observed(sel_c) if masked else None)
+            # the streamed scores stand (exact under the loop's bound, which every block the stage kept is); only
+            # the blocks the check added are scored (a fused map's partly observed blocks: the model decoded)
+            rows = np.array([pre.get(tuple(c), -1) for c in sel_c.tolist()], np.int64)
+            old = rows >= 0
+            sel_s, sel_i = np.empty(len(sel_c), np.float32), np.empty(len(sel_c), np.int64)
+            sel_s[old], sel_i[old] = pre_s[rows[old]], pre_i[rows[old]]
+            if not old.all():
+                added = sel_c[~old]
+                sel_s[~old], sel_i[~old] = score_codes(scorer, obs_scorer, codes_of(added),
+                                                       view.read_observed(added) if masked else None)
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
     if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here

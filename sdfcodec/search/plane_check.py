@@ -98,26 +98,43 @@ def _voxels(x: np.ndarray, *, voxel_size: float, truncation: tuple[float, float]
     return (x * (d_max - d_min) + d_min) / voxel_size
 
 
-def _ideal(dist: np.ndarray, deltas: np.ndarray, stretches: np.ndarray, voxel_size: float,
-           truncation: tuple[float, float], behind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normalised plane fields ``(n, len(deltas) * len(stretches), 4096)`` of blocks whose voxels lie ``dist``
-    ``(n, 4096)`` voxels from the plane (positive on its free side), the plane moved by each delta and the field
-    stretched by each factor; which voxels to compare (same shape, bool): those within :data:`BAND_VOXELS` of
-    the plane but, for an unobserved-behind field, not within :data:`JUMP_VOXELS` of where it jumps from
-    ``d_min`` to ``d_max`` (a sub-voxel move of the plane flips them, so they say nothing about whether the
-    block holds it); and which moves keep the plane in the block (``(n, moves x stretches)`` bool)."""
-    moved = dist[:, None, None, :] - deltas[None, :, None, None]
-    d = np.empty(moved.shape[:2] + (len(stretches), moved.shape[3]), np.float32)
-    # the product in float64, rounded once into float32 (no float64 temporary of every candidate field)
-    np.multiply(moved, stretches[None, None, :, None], out=d, casting="same_kind")
-    d *= np.float32(voxel_size)
-    v = normalise(truncate(d, truncation, behind), *truncation).reshape(len(dist), -1, dist.shape[1])
-    use = np.broadcast_to(np.abs(moved) <= BAND_VOXELS, d.shape).copy()
-    if behind == "unobserved":
-        use &= np.abs(d - np.float32(truncation[0])) > JUMP_VOXELS * voxel_size
-    # a move taking the plane out of the block (a corner sliver left) is no candidate
-    inside = np.broadcast_to((np.abs(moved) <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE, d.shape[:-1])
-    return v, use.reshape(v.shape), inside.reshape(v.shape[:2])
+def _band_residuals(xs: np.ndarray, obs: np.ndarray, dist: np.ndarray, deltas: np.ndarray, stretches: np.ndarray,
+                    voxel_size: float, truncation: tuple[float, float], behind: str) -> np.ndarray:
+    """``(n, len(deltas) * len(stretches))`` float32 residuals ``sum (x - plane)^2`` of blocks ``xs`` ``(n, C)``
+    (normalised decodes of the voxels that lie ``dist`` ``(n, C)`` voxels from the plane, positive on its free side;
+    ``obs`` which of them were observed) against the plane's field moved by each delta and stretched by each
+    factor, stored per ``behind``; inf for a move with nothing to compare or that leaves the plane only a corner
+    sliver of the block (under :data:`~sdfcodec.search.shapes.MIN_SHAPE_SURFACE` voxels within a voxel of it).
+
+    Compared: the observed voxels within :data:`BAND_VOXELS` of the moved plane but, for an unobserved-behind field,
+    not within :data:`JUMP_VOXELS` of where it jumps from ``d_min`` to ``d_max`` (a sub-voxel move of the plane flips
+    them, so they say nothing about whether the block holds it). Only those are computed, gathered once for every
+    move (about 3 of the 7 voxel layers a move of up to 2 voxels reaches), and summed per move in float64: 2.5x
+    faster than every move's candidate field over all of them, the same residuals to float32 rounding."""
+    n = len(xs)
+    moves, k = len(deltas), len(stretches)
+    moved = dist[:, None, :] - deltas[None, :, None]  # (n, moves, C) float64
+    inside = (np.abs(moved) <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE
+    bi, mi, ci = np.nonzero((np.abs(moved) <= BAND_VOXELS) & obs[:, None, :])
+    t, xv, slot = moved[bi, mi, ci], xs[bi, ci], bi * moves + mi
+    err = np.empty((n, moves, k), np.float64)
+    used = np.empty((n, moves, k), np.float64)
+    d = np.empty(len(t), np.float32)
+    for j, st in enumerate(stretches):
+        # the product in float64, rounded once into float32
+        np.multiply(t, st, out=d, casting="same_kind")
+        d *= np.float32(voxel_size)
+        v = normalise(truncate(d, truncation, behind), *truncation)
+        use = (np.abs(d - np.float32(truncation[0])) > JUMP_VOXELS * voxel_size if behind == "unobserved"
+               else np.ones(len(t), bool))
+        v -= xv
+        v *= v
+        v *= use
+        err[:, :, j] = np.bincount(slot, weights=v, minlength=n * moves).reshape(n, moves)
+        used[:, :, j] = np.bincount(slot, weights=use, minlength=n * moves).reshape(n, moves)
+    out = err.astype(np.float32)
+    out[~inside[:, :, None] | (used == 0)] = np.inf
+    return out.reshape(n, moves * k)
 
 
 def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, voxel_size: float,
@@ -145,7 +162,7 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     -------
     residual : np.ndarray
         ``(n,)`` float32: ``min sum (x - plane)^2`` over the moves and stretches (a move that leaves the plane
-        only a corner sliver of the block is no candidate), the sum over the compared voxels (:func:`_ideal`:
+        only a corner sliver of the block is no candidate), the sum over the compared voxels (:func:`_band_residuals`:
         within :data:`BAND_VOXELS` of the plane, observed, away from an unobserved-behind field's jump). A sum,
         not a mean: a plane crossing few of a block's voxels is little evidence either way.
     seen : np.ndarray
@@ -178,12 +195,8 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
         near = reach[sl]
         cols = np.argsort(~near, axis=1, kind="stable")[:, :max(int(near.sum(axis=1).max()), 1)]
         xs, obs = np.take_along_axis(x[sl], cols, axis=1), np.take_along_axis(observed[sl], cols, axis=1)
-        ideal, use, inside = _ideal(np.take_along_axis(dist[sl], cols, axis=1), deltas, stretches, voxel_size,
-                                    truncation, behind)
-        use &= obs[:, None, :]
-        n_use = use.sum(axis=2)
-        err = ((ideal - xs[:, None, :]) ** 2 * use).sum(axis=2)
-        err[~inside | (n_use == 0)] = np.inf
+        err = _band_residuals(xs, obs, np.take_along_axis(dist[sl], cols, axis=1), deltas, stretches, voxel_size,
+                              truncation, behind)
         best = err.argmin(axis=1)
         out[sl] = err[np.arange(len(best)), best]
         moved[sl] = deltas[best // len(stretches)]

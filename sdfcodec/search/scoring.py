@@ -12,6 +12,7 @@ import numpy as np
 
 from ..codec import Codec
 from ..core._lazy import lazy_module
+from ..core.tiling import run_tiles
 from .arrays import decode_array
 
 torch = lazy_module("torch")  # for scoring on a GPU only: a search on the CPU never imports it
@@ -37,25 +38,33 @@ PRUNE_PROBE = 1024
 PRUNE_MAX_SHARE = 0.5
 
 
-def _min_products(c: np.ndarray, qt: np.ndarray, qq: np.ndarray, rows: int) -> np.ndarray:
-    """``min_m (qq_m + c . qt[:, m])`` ``(n,)`` and the products ``(M, n)``, in products of ``rows`` codes."""
+def _min_products(c: np.ndarray, qt: np.ndarray, qq: np.ndarray, rows: int | None) -> np.ndarray:
+    """``min_m (qq_m + c . qt[:, m])`` ``(n,)`` and the products ``(M, n)``, in products of ``rows`` codes (None:
+    :data:`_LARGE_MODEL_ROWS` at a time on every core)."""
     gt = np.empty((qt.shape[1], len(c)), np.float32)
-    # written transposed, (M, n): the minimum over the descriptors is then M - 1 elementwise minima along
-    # contiguous rows, where numpy's argmin along 15 columns and the gather of its values cost half as much as
-    # the products themselves
-    for a in range(0, len(c), rows):
-        np.matmul(c[a:a + rows], qt, out=gt[:, a:a + rows].T)
+
+    def work(a: int, b: int) -> None:
+        # written transposed, (M, n): the minimum over the descriptors is then M - 1 elementwise minima along
+        # contiguous rows, where numpy's argmin along 15 columns and the gather of its values cost half as much as
+        # the products themselves
+        np.matmul(c[a:b], qt, out=gt[:, a:b].T)
+
+    if rows is None:  # a large model: row tiles on every core, one BLAS thread each
+        run_tiles(len(c), work, rows=_LARGE_MODEL_ROWS)
+    else:
+        for a in range(0, len(c), rows):
+            work(a, a + rows)
     gt += qq[:, None]
     return np.minimum.reduce(gt, axis=0), gt
 
 
-def _single_thread_rows(m: int, l: int) -> int:
+def _single_thread_rows(m: int, l: int) -> int | None:
     # codes per product on the CPU: OpenBLAS runs a product of 2^18 multiply-adds or more on every core, and a
     # skinny one (a few descriptors) then waits on threads busy elsewhere (the reader's decoders, other
     # processes): 4-8 ms for 16,384 codes against 15 descriptors on a loaded 2-core machine, 0.4 ms in
-    # 256-code products (one core each, cache-sized). Large models keep one product, on every core.
+    # 256-code products (one core each, cache-sized). Large models (None): row tiles on every core.
     tile = ((1 << 18) - 1) // max(1, m * l)
-    return tile if tile >= 128 else 1 << 62
+    return tile if tile >= 128 else None
 
 
 class Scorer:
@@ -145,6 +154,10 @@ class Scorer:
 #: Partly observed blocks with fewer observed voxels near a surface than this (a 4 x 4 patch) keep their code
 #: score: no surface of theirs was seen to compare with a shape.
 MIN_OBSERVED_SURFACE = 16
+#: Codes per product of a large model's scores (:func:`_min_products`; 256 x 64 x 2,856 for the wall model).
+_LARGE_MODEL_ROWS = 256
+#: Blocks per product of :class:`ObservedScorer` (a tile of the wall's 2,856 descriptors: 1.4 MiB of scores).
+_OBSERVED_ROWS = 128
 
 
 class ObservedScorer:
@@ -188,15 +201,35 @@ class ObservedScorer:
         """``(n, L)`` codes, ``(n, 16, 16, 16)`` bool observed voxels, and their code scores and nearest
         indices -> masked scores ``(n,)`` float32 and nearest indices ``(n,)`` int64."""
         x = self._decode(codes)
-        o = observed.reshape(len(codes), -1).astype(np.float32)
+        seen = observed.reshape(len(codes), -1)
+        s = np.asarray(fallback, np.float32).copy()
+        idx = np.asarray(fallback_idx, np.int64).copy()
+        # the products only for blocks with a surface observed: the others keep their code score (a fused map's
+        # blocks seen through a few voxels: a fifth of the kitchen's partly observed blocks)
+        ok = np.flatnonzero(((np.abs(x - self.v0) < self.half) & seen).sum(axis=1) >= MIN_OBSERVED_SURFACE)
+        if not len(ok):
+            return s, idx
+        x, o = x[ok], seen[ok].astype(np.float32)
         ox = o * x
-        d = (ox * x).sum(axis=1)[:, None] - 2.0 * (ox @ self.qt) + o @ self.qq
-        idx = d.argmin(axis=1)
+        sxx = (ox * x).sum(axis=1)
+        d = np.empty((len(ok), self.qt.shape[1]), np.float32)
+
+        def work(a: int, b: int) -> None:
+            # (n, 4096) x (4096, M) twice, in row tiles on every core with one BLAS thread each: a search holds
+            # numpy's BLAS at one thread (sdfcodec.search.engine), and its threaded products of a few rows, waiting
+            # on cores busy elsewhere, cost more than they won
+            part = d[a:b]
+            np.matmul(ox[a:b], self.qt, out=part)
+            part *= np.float32(2.0)
+            np.subtract(sxx[a:b, None], part, out=part)
+            part += o[a:b] @ self.qq
+
+        run_tiles(len(ok), work, rows=_OBSERVED_ROWS)
+        best = d.argmin(axis=1)
         n_obs = np.maximum(o.sum(axis=1), 1.0)
-        s = np.maximum(np.take_along_axis(d, idx[:, None], axis=1)[:, 0], 0.0) * (x.shape[1] / n_obs)
-        seen_surface = ((np.abs(x - self.v0) < self.half) & (o > 0)).sum(axis=1)
-        ok = seen_surface >= MIN_OBSERVED_SURFACE
-        return (np.where(ok, s, fallback).astype(np.float32), np.where(ok, idx, fallback_idx).astype(np.int64))
+        s[ok] = np.maximum(np.take_along_axis(d, best[:, None], axis=1)[:, 0], 0.0) * (x.shape[1] / n_obs)
+        idx[ok] = best
+        return s, idx
 
 
 def score_codes(scorer: "Scorer", observed_scorer: ObservedScorer | None, codes: np.ndarray,

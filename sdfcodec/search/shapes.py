@@ -212,20 +212,22 @@ def _reach(pos: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1)
 
 
+# The shapes' signed distances (voxels) at positions ``q`` ``(..., 3)`` for shape positions ``pos`` ``(3,)``, or
+# ``(P, 1, 1, 1, 3)`` against ``q`` ``(16, 16, 16, 3)``: every position at once (:func:`query_blocks`).
 def _plane(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    return q[..., 2] - pos[2]  # solid below, free above (+z)
+    return q[..., 2] - pos[..., 2]  # solid below, free above (+z)
 
 
 def _edge(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Concave edge along z: free where x > pos_x and y > pos_y (two walls seen from inside)."""
-    x, y = q[..., 0] - pos[0], q[..., 1] - pos[1]
+    x, y = q[..., 0] - pos[..., 0], q[..., 1] - pos[..., 1]
     nearest = np.minimum(x, y)
     return np.where(nearest > 0, nearest, -np.sqrt(np.minimum(x, 0) ** 2 + np.minimum(y, 0) ** 2))
 
 
 def _corner(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Concave corner: free where x, y, z exceed pos (floor and two walls seen from inside)."""
-    x, y, z = (q[..., i] - pos[i] for i in range(3))
+    x, y, z = (q[..., i] - pos[..., i] for i in range(3))
     nearest = np.minimum(np.minimum(x, y), z)
     depth = np.sqrt(np.minimum(x, 0) ** 2 + np.minimum(y, 0) ** 2 + np.minimum(z, 0) ** 2)
     return np.where(nearest > 0, nearest, -depth)
@@ -233,7 +235,7 @@ def _corner(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
 
 def _pole(q: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Solid vertical cylinder (along z) of radius ``pos[2]`` about the axis ``x = pos[0], y = pos[1]``."""
-    return np.hypot(q[..., 0] - pos[0], q[..., 1] - pos[1]) - pos[2]
+    return np.hypot(q[..., 0] - pos[..., 0], q[..., 1] - pos[..., 1]) - pos[..., 2]
 
 
 def _shape_family(name: str, offsets: np.ndarray) -> tuple[Callable, np.ndarray, np.ndarray]:
@@ -280,14 +282,36 @@ def truncate(d: np.ndarray, truncation: tuple[float, float], behind: str) -> np.
     return out
 
 
+#: :func:`dedupe_blocks` keys rows by every this many voxels first (a prime: no stride along a grid axis).
+_DEDUPE_STRIDE = 61
+
+
 def dedupe_blocks(blocks: np.ndarray, *extra: np.ndarray) -> tuple[np.ndarray, ...]:
     """Drop repeated blocks ``(N, 16, 16, 16)`` (equal to 1e-4 normalised), keeping first occurrences in order;
     the ``extra`` arrays (first axis ``N``) are cut to the same rows. Returns ``(blocks, *extra)``."""
-    key = np.ascontiguousarray(np.round(blocks.reshape(len(blocks), -1), 4) + 0.0)  # + 0.0: -0.0 equals 0.0
-    rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()  # one bytes key per row
-    _, first = np.unique(rows, return_index=True)
-    keep = np.sort(first)
-    return (blocks[keep], *(e[keep] for e in extra))
+    flat = blocks.reshape(len(blocks), -1)
+
+    def rounded(a: np.ndarray) -> np.ndarray:
+        key = np.round(a, 4)
+        key += 0.0  # -0.0 equals 0.0
+        return key
+
+    # a hash table of the rows' bytes, not a sort of 16 KiB rows (the wall's 2,856 blocks: a third of building its
+    # model); keyed first by a sample of each row's voxels, and only rows whose samples agree compared in full
+    groups: dict[bytes, list[int]] = {}
+    for i, row in enumerate(rounded(flat[:, ::_DEDUPE_STRIDE])):
+        groups.setdefault(row.tobytes(), []).append(i)
+    keep = []
+    for rows in groups.values():
+        if len(rows) == 1:
+            keep.extend(rows)
+            continue
+        first: dict[bytes, int] = {}
+        keep.extend(i for i, row in zip(rows, rounded(flat[rows])) if first.setdefault(row.tobytes(), i) == i)
+    if len(keep) == len(blocks):
+        return (blocks, *extra)
+    idx = np.sort(np.asarray(keep, np.int64))
+    return (blocks[idx], *(e[idx] for e in extra))
 
 
 def plane_offsets(offsets: int | str = "auto", *, voxel_size: float = 0.02,
@@ -389,24 +413,32 @@ def query_blocks(name: str, *, voxel_size: float = 0.02, truncation: tuple[float
     extra, _ = rotation_set(rotations)
     r_up = rotation_to(up)
     grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
+    plane = name in ("floor", "ceiling", "wall")
+    # metres per voxel of each stretch, each product as a scalar multiply makes it
+    scales = np.array([voxel_size * float(st) for st in stretch], np.float64)[None, :, None, None, None]
     blocks, rots, poss, seen = [], [], [], []
+    # every position and stretch of one orientation at once: (P, S, 16, 16, 16), in the order a loop over
+    # positions, then stretches, would make them (the same values, to the bit)
     for e in extra:
         for b in base:
             r = r_up @ e @ b
             q = grid @ r  # grid-to-shape coordinates: R^T p for each voxel position p
-            for p in (_reach(pos, r) if name in ("floor", "ceiling", "wall") else pos):
-                if name in ("floor", "ceiling", "wall") and _surface_voxels(q, p) < MIN_SHAPE_SURFACE:
-                    continue  # a plane clipping a corner: nearly a block of solid or free space, no plane to match
-                for st in stretch:
-                    d = sdf(q, p) * (voxel_size * float(st))
-                    blocks.append(truncate(d, truncation, behind))
-                    # what a camera in front of the surface observes: everything but the space more than |d_min|
-                    # behind it (fusion updates voxels down to d_min); an exact SDF is observed everywhere
-                    seen.append(d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))
-                    rots.append(r)
-                    poss.append(p)
-    v = normalise(np.stack(blocks), *truncation)
-    out = dedupe_blocks(v, np.asarray(rots, np.float32), np.asarray(poss, np.float32), np.stack(seen))
+            ps = _reach(pos, r) if plane else pos
+            if plane:  # a plane clipping a corner: nearly a block of solid or free space, no plane to match
+                ps = ps[[_surface_voxels(q, p) >= MIN_SHAPE_SURFACE for p in ps]]
+            if not len(ps):
+                continue
+            d = sdf(q, ps[:, None, None, None, :])[:, None] * scales
+            blocks.append(normalise(truncate(d, truncation, behind), *truncation).reshape(-1, BLOCK, BLOCK, BLOCK))
+            # what a camera in front of the surface observes: everything but the space more than |d_min| behind it
+            # (fusion updates voxels down to d_min); an exact SDF is observed everywhere
+            seen.append((d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))
+                        .reshape(-1, BLOCK, BLOCK, BLOCK))
+            rots.append(np.broadcast_to(r, (d.shape[0] * d.shape[1], 3, 3)))
+            poss.append(np.repeat(ps, d.shape[1], axis=0))
+    v = np.concatenate(blocks)
+    out = dedupe_blocks(v, np.concatenate(rots).astype(np.float32), np.concatenate(poss).astype(np.float32),
+                        np.concatenate(seen))
     return out if return_observed else out[:3]
 
 
