@@ -55,8 +55,8 @@ from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
 from .lossymask import neighbours, padded_blocks
 
-__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "canonical_bits", "encode_pinned",
-           "decode_pinned", "NEIGHBOURS"]
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "pinned_rows", "decode_bounds", "canonical_bits", "encode_pinned",
+           "decode_pinned", "unobserved_voxels", "NEIGHBOURS"]
 
 #: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
 FRACTION_BITS = 24
@@ -98,18 +98,27 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
             guaranteed.
     """
     q = np.asarray(q, np.float64)
-    n, k = q.shape[0], q.shape[1] if size is None else int(size)
     used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1  # columns past every prefix add nothing
     q = q[:, :used]
-    a = basis[1:used + 1]
+    peak, bound = decode_bounds(q, basis, q.shape[1] if size is None else size)
+    return _product(q, basis[1:used + 1], basis[0], peak), bound
+
+
+def decode_bounds(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, E)`` ``(n,)`` float64 integers of :func:`exact_decode` (module docstring) for integer codes ``q``
+    ``(n, k')`` and codes of length ``size`` (default ``k'``), without the decode.
+
+    Raises:
+        InvalidValueError: a partial sum could reach ``2^53``, as :func:`exact_decode`.
+    """
+    q = np.asarray(q, np.float64)
+    n, k = q.shape[0], q.shape[1] if size is None else int(size)
     absq = np.abs(q)
-    peak = np.abs(basis[0]).max() + absq @ np.abs(a).max(axis=1)  # T per block, exact (integers, small)
+    peak = np.abs(basis[0]).max() + absq @ np.abs(basis[1:q.shape[1] + 1]).max(axis=1)  # T, exact (small integers)
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
-    v = _product(q, a, basis[0], peak)
-    bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
-    return v, bound
+    return peak, 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
 
 
 def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray, peak: np.ndarray) -> np.ndarray:
@@ -161,23 +170,31 @@ def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_cod
 def pinned_voxels_of(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
                      truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: the pinned voxels of :func:`exact_pins` (its first result, the same bools),
-    computed on rows of 18 bits (one per voxel along z, the padding included): the neighbours' layers, the
-    cells' OR over 2 x 2 x 2 corners and the voxels' OR over their 8 cells are a few whole-row operations per
-    block instead of one per voxel (what a read of the pinned mask needs; :func:`exact_pins` also returns the
-    padded signs)."""
+    computed on rows of 18 bits (:func:`pinned_rows`; :func:`exact_pins` also returns the padded signs)."""
+    n = len(np.asarray(coords).reshape(-1, 3))
+    rows = [_rows(np.asarray(s, bool).reshape(n, BLOCK, BLOCK, BLOCK)) for s in (neg, pos)]
+    pin = pinned_rows(coords, *rows, outside_coded, truncation, jump)
+    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+
+
+def pinned_rows(coords: np.ndarray, neg_rows: np.ndarray, pos_rows: np.ndarray, outside_coded: np.ndarray,
+                truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
+    """``(n, 16, 16)`` ``<u2``: bit ``z`` of row ``(x, y)`` set where voxel ``(x, y, z)`` of block ``coords[b]``
+    ``(n, 3)`` is pinned (:func:`pinned_voxels_of`), from the signs as rows: ``neg_rows``, ``pos_rows`` ``(n, 16,
+    16)`` uint32 with bit ``z + 1`` set where voxel ``z`` may be negative, non-negative (bits 0 and 17 clear).
+    The neighbours' layers, the cells' OR over 2 x 2 x 2 corners and the voxels' OR over their 8 cells are a few
+    whole-row operations per block instead of one per voxel."""
     coords = np.asarray(coords, np.int64).reshape(-1, 3)
     outside = np.asarray(outside_coded, np.int64).reshape(-1, 3)
     n = len(coords)
     cells = []
-    for sign, free in ((neg, 0), (pos, _ROW18)):
-        rows = _rows(np.asarray(sign, bool).reshape(n, BLOCK, BLOCK, BLOCK))
+    for rows, free in ((neg_rows, 0), (pos_rows, _ROW18)):
         src = np.concatenate([rows, np.full((len(outside), BLOCK, BLOCK), _ROW16 << 1, np.uint32)])  # either
         cells.append(_cell_rows(_padded_rows(np.concatenate([coords, outside]), src, n, free)))
     rel = cells[0] & cells[1] if float(truncation[1]) >= jump else cells[0]
     rel &= np.uint32(_ROW18 >> 1)  # cells with lower corners 0..16
     pin = rel[:, 1:, 1:] | rel[:, :-1, 1:] | rel[:, 1:, :-1] | rel[:, :-1, :-1]  # (n, 16, 16): x, y in 1..16
-    pin = ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
-    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+    return ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
 
 
 _ROW16, _ROW18 = np.uint32(0xFFFF), np.uint32(0x3FFFF)
@@ -370,6 +387,28 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
         ChecksumError: the stream is not one :func:`encode_pinned` wrote for these pinned voxels, named by
             ``where``.
     """
+    return _decoded(stream, coords, pinned, where).blocks() != 0  # pinned: the bit read; elsewhere 2, observed
+
+
+def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray,
+                      where: str = "a pinned mask chunk") -> np.ndarray:
+    """What :func:`decode_pinned` reads as 0, as ``(m,)`` int64 ``b * 4096 + voxel`` (block ``b`` of ``coords``,
+    the voxel's C-order index in it; ascending within a block is not promised): without the ``(n, 4096)`` mask,
+    for a reader that sets those voxels of its decode to free space.
+
+    Raises:
+        ChecksumError: as :func:`decode_pinned`.
+    """
+    lay = _decoded(stream, coords, pinned, where)
+    if ans.available():
+        from ..core import pinkernels
+
+        return pinkernels.zero_voxels(lay.grid, lay.at, np.asarray(lay.shape, np.int64), lay.corner)
+    return np.flatnonzero(lay.blocks().reshape(-1) == 0)
+
+
+def _decoded(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray, where: str) -> _Layout:
+    """The layout of :func:`decode_pinned` with the stream's bits decoded into its grid."""
     buf = np.frombuffer(bytes(stream), dtype=np.uint8)
     if len(buf) < 6 or bytes(buf[:2]) != _MAGIC or (len(buf) - 6) % 4:
         raise ChecksumError(f"{where} is not an M2 stream (bad header or length {len(buf)})")
@@ -390,7 +429,7 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
             coder = _constriction_decode(words, lay, where)
         if not coder.is_empty():
             raise ChecksumError(f"{where} has words left after its {count} pinned voxels; it is corrupted")
-    return lay.blocks() != 0  # pinned: the bit read; elsewhere 2, observed
+    return lay
 
 
 def _constriction_decode(words: np.ndarray, lay: _Layout, where: str):
