@@ -44,6 +44,11 @@ def _case(step: float, size: int = 64, trunc=TRUNC):
     return coords, q, basis, v
 
 
+def _bools(rows: np.ndarray) -> np.ndarray:
+    """(n, 16, 16, 16) bool of pin rows (n, 16, 16) uint16, bit z for voxel z."""
+    return ((rows[..., None] >> np.arange(16, dtype=np.uint16)) & 1).astype(bool)
+
+
 @pytest.mark.parametrize("step", [0.02, 0.3, 1.5])
 def test_the_margin_bounds_the_codecs_float_decode(step):
     """|2^24 x - w| <= float_margin for every voxel (x: the codec's float32 decode, w: the exact decode), on codes
@@ -70,7 +75,7 @@ def test_pins_told_from_a_float_decode_are_the_exact_pins(step, trunc):
     assert want.any() and not want.all()
     rows = np.arange(n)
     clipped = np.clip(v, *trunc)
-    assert np.array_equal(pinread.decode_pins(clipped, rows, q, basis, coords, outside, trunc), want)
+    assert np.array_equal(_bools(pinread.decode_pins(clipped, rows, q, basis, coords, outside, trunc)), want)
     w, e = pm.exact_decode(q, basis)
     peak, _ = pm.decode_bounds(q, basis)
     margin = pinread.float_margin(q, peak)[:, None]
@@ -81,9 +86,9 @@ def test_pins_told_from_a_float_decode_are_the_exact_pins(step, trunc):
     assert (on_threshold != w).sum() > 10  # (13 to 396 here; test_sign_rows_... puts 256 on them)
     for moved in (anywhere, on_threshold):
         x = (moved / 2.0 ** 24).astype(np.float32)
-        assert np.array_equal(pinread.decode_pins(x, rows, q, basis, coords, outside, trunc), want)
+        assert np.array_equal(_bools(pinread.decode_pins(x, rows, q, basis, coords, outside, trunc)), want)
     half = np.where(np.arange(n) % 2 == 0, rows, -1)  # every other block not decoded: its exact decode decides
-    assert np.array_equal(pinread.decode_pins(v, half, q, basis, coords, outside, trunc), want)
+    assert np.array_equal(_bools(pinread.decode_pins(v, half, q, basis, coords, outside, trunc)), want)
 
 
 def test_sign_rows_decides_voxels_on_the_thresholds_exactly():
@@ -125,3 +130,48 @@ def test_a_read_equals_the_exact_decodes_read(monkeypatch):
         slow_part = sdfcodec.open_map(GOLDEN).decode_region(part)
     assert np.array_equal(fast, slow) and np.array_equal(fast_part, slow_part)
     assert (fast == m.truncation[1]).any() and (fast < 0).any()
+
+
+def test_the_compiled_pinned_rows_are_pinmasks():
+    """pinkernels.pinned_rows (per block, a table of neighbours) gives pinmask.pinned_rows (whole-row numpy
+    operations) bit for bit: random signs, dense and sparse, coded blocks of another chunk beside some, blocks
+    that are not coded around others, both truncation rules."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(5)
+    for trial in range(16):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 20), 3)), axis=0)
+        n = len(coords)
+        outside = np.unique(rng.integers(3, 6, (rng.integers(1, 8), 3)), axis=0) if trial % 2 else np.zeros((0, 3))
+        outside = outside[~(outside[:, None] == coords[None]).all(axis=2).any(axis=1)].astype(np.int64)
+        bits = 1 << (np.arange(16, dtype=np.uint32) + 1)
+        neg_b = rng.random((n, 16, 16, 16)) < rng.random() * 0.1
+        pos_b = ~neg_b | (rng.random(neg_b.shape) < 0.02)
+        neg, pos = ((b * bits).sum(axis=3).astype(np.uint32) for b in (neg_b, pos_b))
+        for trunc, both in ((TRUNC, True), ((-0.02, 0.02), False)):
+            want = pm.pinned_rows(coords, neg, pos, outside, trunc)
+            got = pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64), neg, pos,
+                                         np.ascontiguousarray(outside, np.int64).reshape(-1, 3), both)
+            assert np.array_equal(got, want), (trial, trunc)
+            assert want.any()
+
+
+def test_the_wave_order_of_rows_is_the_grids():
+    """ans.wave_order_rows (the pins' set bits) gives ans.wave_order's positions, wavefront bounds and block
+    voxels (a scan of the grid) on random pins of scattered blocks, and the voxels' own positions check out."""
+    rng = np.random.default_rng(6)
+    for trial in range(8):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 12), 3)), axis=0)
+        pinned = rng.random((len(coords), 16, 16, 16)) < [0.0, 0.01, 0.2, 0.9][trial % 4]
+        lo = coords.min(axis=0)
+        shape = tuple(int(x) for x in (coords.max(axis=0) - lo + 1) * 16 + 2)
+        corner = (coords - lo) * 16 + 1
+        grid = np.full(int(np.prod(shape)), 2, np.uint8)
+        want = ans.wave_order(grid, shape, corner, pinned)
+        rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2")
+        got = ans.wave_order_rows(shape, corner, rows.reshape(-1, 16, 16))
+        assert all(np.array_equal(a, b) for a, b in zip(got, want)) and (grid == 2).all()
+        at, _, ident = got
+        b, v = ident >> 12, ident & 4095
+        pos = corner[b] + np.stack([v >> 8, (v >> 4) & 15, v & 15], axis=1)
+        assert np.array_equal(np.ravel_multi_index(pos.T, shape), at) and len(at) == pinned.sum()

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
-__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "table_cdfs",
+__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_rows", "table_cdfs",
            "decode_chunk", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -158,13 +158,21 @@ def encode_bits(grid: np.ndarray, at: np.ndarray, bounds: np.ndarray, deltas: np
 
 
 def wave_order(grid: np.ndarray, dims: tuple[int, int, int], corner: np.ndarray, pinned: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``at`` and ``bounds`` of :meth:`Decoder.bits` for the voxels ``pinned`` ``(n, 16, 16, 16)`` bool of
     blocks whose first voxels are at ``corner`` ``(n, 3)`` in the grid ``grid`` (flat uint8 of shape ``dims``, 2
     wherever a bit is not coded; left so): wavefront by wavefront (``x + y + z``), C order within one; empty
-    wavefronts left out."""
+    wavefronts left out; and each position's block and voxel, ``b * 4096 + voxel`` ``(m,)`` int64."""
     return _k().wave_order(grid, np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64),
                            np.ascontiguousarray(pinned, np.bool_).reshape(len(corner), 4096))
+
+
+def wave_order_rows(dims: tuple[int, int, int], corner: np.ndarray, rows: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`wave_order` of pinned voxels as rows ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z`` of the row),
+    without touching a grid."""
+    return _k().wave_order_rows(np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64),
+                                np.ascontiguousarray(rows, np.uint16).reshape(len(corner), 16, 16))
 
 
 def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

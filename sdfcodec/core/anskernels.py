@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_rows", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -277,6 +277,16 @@ def _context(grid, g, deltas, weights, extra, i, has_extra):
     return ctx
 
 
+@njit(cache=True, inline="always")
+def _kt_split(c0, c1):
+    """The ``cdf[1]`` of ``Bernoulli(perfect=False)`` under Krichevsky-Trofimov counts ``c0``, ``c1``: ``p = (c1 +
+    1/2) / (c0 + c1 + 1)`` as :func:`_bernoulli` quantises it (the decoder and the encoder must compute it alike)."""
+    n0, n1 = c0 + 0.5, c1 + 0.5
+    p = n1 / (n0 + n1)
+    pm = 1.0 - p
+    return np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
+
+
 @njit(cache=True)
 def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
     """Bits at the flat positions ``at`` of ``grid`` (written there as decoded), wavefront by wavefront
@@ -284,8 +294,10 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
     ``p = (n1 + 1/2) / (n0 + n1 + 1)`` of its context, counted over the wavefronts before. The context of
     ``at[i]``: ``sum_q grid[at[i] + deltas[q]] * weights[q]``, plus ``extra[i]`` when ``extra`` is not empty
     (a caller's own small integers, already scaled), below ``n_ctx``. Returns False when a context reaches
-    ``n_ctx`` (then the grid holds what was decoded so far)."""
+    ``n_ctx`` (then the grid holds what was decoded so far). Each context's quantised split is kept and worked
+    out again only when a wavefront changed its counts (no division per bit: 7.6 -> 5.6 ms a kitchen chunk)."""
     counts = np.zeros((2, n_ctx), np.int64)
+    split = np.full(n_ctx, _kt_split(0, 0), np.int64)
     widest = 0
     for w in range(len(bounds) - 1):
         widest = max(widest, bounds[w + 1] - bounds[w])
@@ -300,12 +312,20 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
             if ctx < 0 or ctx >= n_ctx:
                 st[0], st[1] = s, np.uint64(pos)
                 return False
-            n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
-            bit, s, pos = _bernoulli(words, s, pos, n1 / (n0 + n1))
-            grid[g] = bit
+            c1 = split[ctx]
+            q = np.int64(s & _QMASK)
+            if q < c1:
+                s, pos = _advance(words, s, pos, 0, c1, q)
+                grid[g] = 0
+            else:
+                s, pos = _advance(words, s, pos, c1, _TOTAL, q)
+                grid[g] = 1
             buf_ctx[i - a] = ctx
         for i in range(a, b):
             counts[np.int64(grid[at[i]]), buf_ctx[i - a]] += 1
+        for i in range(a, b):
+            ctx = buf_ctx[i - a]
+            split[ctx] = _kt_split(counts[0, ctx], counts[1, ctx])
     st[0], st[1] = s, np.uint64(pos)
     return True
 
@@ -316,7 +336,8 @@ def wave_order(grid, dims, corner, pinned):
     ``grid`` flat uint8 of ``dims`` ``(3,)`` (C order) holding 2 where nothing is pinned (left so), ``corner``
     ``(n, 3)`` each block's first voxel, ``pinned`` ``(n, 4096)`` bool (C order in the block). Returns (flat
     positions ``(m,)`` int64 wavefront by wavefront, ``x + y + z`` rising, C order within one; the bounds of the
-    non-empty wavefronts ``(W + 1,)``): a counting sort by wavefront, then one scan of the grid in C order."""
+    non-empty wavefronts ``(W + 1,)``; each position's block and voxel ``(m,)`` int64, ``b * 4096 + voxel``): a
+    counting sort by wavefront, then one scan of the grid in C order."""
     sy, sz = dims[1] * dims[2], dims[2]
     n_waves = dims[0] + dims[1] + dims[2]
     sizes = np.zeros(n_waves, np.int64)
@@ -343,26 +364,95 @@ def wave_order(grid, dims, corner, pinned):
             u += 1
             bounds[u] = bounds[u - 1] + sizes[w]
     at = np.empty(m, np.int64)
+    ident = np.empty(m, np.int64)
     # the scan visits the blocks' voxels only (C order: x, y, then the blocks along z), not the whole box
     nb = np.empty(3, np.int64)
     for d in range(3):
         nb[d] = max((dims[d] - 2) // 16, 1)
-    occ = np.zeros((nb[0], nb[1], nb[2]), np.bool_)
+    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
     for b in range(len(corner)):
-        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = True
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
     for i in range(1, dims[0] - 1):
         for j in range(1, dims[1] - 1):
             base = i * sy + j * sz
             for bz in range(nb[2]):
-                if not occ[(i - 1) >> 4, (j - 1) >> 4, bz]:
+                b = occ[(i - 1) >> 4, (j - 1) >> 4, bz]
+                if b < 0:
                     continue
+                first = b * 4096 + (((i - 1) & 15) << 8) + (((j - 1) & 15) << 4) - bz * 16 - 1
                 for k in range(bz * 16 + 1, bz * 16 + 17):
                     if grid[base + k] == 0:
                         w = i + j + k
                         at[nxt[w]] = base + k
+                        ident[nxt[w]] = first + k
                         nxt[w] += 1
                         grid[base + k] = 2
-    return at, bounds
+    return at, bounds, ident
+
+
+@njit(cache=True)
+def wave_order_rows(dims, corner, rows):
+    """:func:`wave_order` of pinned voxels given as rows ``(n, 16, 16)`` uint16 (bit ``z`` of row ``(x, y)``: voxel
+    ``(x, y, z)``), without the grid: the same (positions, bounds, ``b * 4096 + voxel``), visiting the set bits
+    and the rows, not every voxel."""
+    sy, sz = dims[1] * dims[2], dims[2]
+    n_waves = dims[0] + dims[1] + dims[2]
+    sizes = np.zeros(n_waves, np.int64)
+    m = 0
+    for b in range(len(corner)):
+        x0, y0, z0 = corner[b, 0], corner[b, 1], corner[b, 2]
+        for x in range(16):
+            for y in range(16):
+                r = np.int64(rows[b, x, y])
+                base = x0 + x + y0 + y + z0
+                while r:
+                    k = 0
+                    while not (r >> k) & 1:
+                        k += 1
+                    sizes[base + k] += 1
+                    m += 1
+                    r &= r - 1
+    nxt = np.zeros(n_waves, np.int64)
+    w_used = 0
+    for w in range(n_waves):
+        if w:
+            nxt[w] = nxt[w - 1] + sizes[w - 1]
+        if sizes[w]:
+            w_used += 1
+    bounds = np.zeros(w_used + 1, np.int64)
+    u = 0
+    for w in range(n_waves):
+        if sizes[w]:
+            u += 1
+            bounds[u] = bounds[u - 1] + sizes[w]
+    at = np.empty(m, np.int64)
+    ident = np.empty(m, np.int64)
+    nb = np.empty(3, np.int64)
+    for d in range(3):
+        nb[d] = max((dims[d] - 2) // 16, 1)
+    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
+    for b in range(len(corner)):
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+    for i in range(1, dims[0] - 1):
+        for j in range(1, dims[1] - 1):
+            base = i * sy + j * sz
+            for bz in range(nb[2]):
+                b = occ[(i - 1) >> 4, (j - 1) >> 4, bz]
+                if b < 0:
+                    continue
+                r = np.int64(rows[b, (i - 1) & 15, (j - 1) & 15])
+                first = b * 4096 + (((i - 1) & 15) << 8) + (((j - 1) & 15) << 4)
+                while r:
+                    k = 0
+                    while not (r >> k) & 1:
+                        k += 1
+                    g = bz * 16 + 1 + k
+                    w = i + j + g
+                    at[nxt[w]] = base + g
+                    ident[nxt[w]] = first + k
+                    nxt[w] += 1
+                    r &= r - 1
+    return at, bounds, ident
 
 
 @njit(cache=True)
@@ -429,10 +519,7 @@ def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m
             if ctx < 0 or ctx >= n_ctx:
                 return -1
             ctxs[i] = ctx
-            n0, n1 = counts[0, ctx] + 0.5, counts[1, ctx] + 0.5
-            p = n1 / (n0 + n1)
-            pm = 1.0 - p
-            c1 = np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
+            c1 = _kt_split(counts[0, ctx], counts[1, ctx])
             if grid[pos]:
                 left[m], freq[m] = c1, _TOTAL - c1
             else:

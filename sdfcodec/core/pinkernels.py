@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["sign_rows", "zero_voxels"]
+__all__ = ["sign_rows", "zero_voxels", "set_voxels", "pinned_rows"]
 
 _SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact decode's integers
 
@@ -69,17 +69,10 @@ def sign_rows(v, rows, e, d, q, basis, neg, pos):
 
 
 @njit(cache=True)
-def zero_voxels(grid, at, dims, corner):
-    """``(m,)`` int64 ``b * 4096 + voxel`` of the positions ``at`` of a decoded pinned mask's ``grid`` (flat uint8
-    of ``dims`` ``(3,)``, blocks of 16^3 with first voxels ``corner`` ``(n, 3)``) that read 0: the voxels it
-    stores as unobserved, in ``at``'s order."""
-    sy, sz = dims[1] * dims[2], dims[2]
-    nb = np.empty(3, np.int64)
-    for a in range(3):
-        nb[a] = max((dims[a] - 2) // 16, 1)
-    block = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
-    for b in range(len(corner)):
-        block[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+def zero_voxels(grid, at, ident):
+    """``(m,)`` int64: ``ident[t]`` (``b * 4096 + voxel``, :func:`sdfcodec.core.anskernels.wave_order`) of the
+    positions ``at[t]`` of a decoded pinned mask's ``grid`` (flat uint8) that read 0: the voxels stored as
+    unobserved."""
     m = 0
     for t in range(len(at)):
         if grid[at[t]] == 0:
@@ -87,9 +80,96 @@ def zero_voxels(grid, at, dims, corner):
     out = np.empty(m, np.int64)
     m = 0
     for t in range(len(at)):
-        g = at[t]
-        if grid[g] == 0:
-            i, j, k = g // sy - 1, (g // sz) % dims[1] - 1, g % sz - 1
-            out[m] = block[i >> 4, j >> 4, k >> 4] * 4096 + ((i & 15) << 8) + ((j & 15) << 4) + (k & 15)
+        if grid[at[t]] == 0:
+            out[m] = ident[t]
             m += 1
+    return out
+
+
+@njit(cache=True)
+def set_voxels(v, rows, ids, value):
+    """``v[rows[i >> 12], i & 4095] = value`` for each ``i`` of ``ids`` whose ``rows`` entry is not negative
+    (``v`` ``(m, 4096)``)."""
+    for t in range(len(ids)):
+        r = rows[ids[t] >> 12]
+        if r >= 0:
+            v[r, ids[t] & 4095] = value
+
+
+@njit(cache=True)
+def pinned_rows(coords, neg, pos, outside, both):
+    """:func:`sdfcodec.map.pinmask.pinned_rows` per block: ``(n, 16, 16)`` uint16, bit ``z`` where voxel ``(x, y,
+    z)`` of block ``coords[b]`` ``(n, 3)`` lies in a relevant cell, from the sign rows ``neg``, ``pos`` ``(n, 16,
+    16)`` uint32 (bit ``z + 1``); ``outside`` ``(m, 3)``: coded blocks of other chunks (either sign); blocks
+    elsewhere read ``d_max`` (non-negative only). ``both``: a cell is relevant when it may be negative and may
+    be non-negative (``d_max`` at or above the jump), else when it may be negative."""
+    n = len(coords)
+    out = np.zeros((n, 16, 16), np.uint16)
+    if n == 0:
+        return out
+    lo = coords[0].copy()
+    hi = coords[0].copy()
+    for b in range(n + len(outside)):
+        for a in range(3):
+            c = coords[b, a] if b < n else outside[b - n, a]
+            lo[a] = min(lo[a], c)
+            hi[a] = max(hi[a], c)
+    lo -= 1
+    table = np.full((hi[0] - lo[0] + 2, hi[1] - lo[1] + 2, hi[2] - lo[2] + 2), -1, np.int64)
+    for b in range(len(outside)):
+        table[outside[b, 0] - lo[0], outside[b, 1] - lo[1], outside[b, 2] - lo[2]] = -2
+    for b in range(n):
+        table[coords[b, 0] - lo[0], coords[b, 1] - lo[1], coords[b, 2] - lo[2]] = b
+    row16, row18 = np.uint32(0x1FFFE), np.uint32(0x3FFFF)
+    pn = np.empty((18, 18), np.uint32)
+    pp = np.empty((18, 18), np.uint32)
+    rel = np.empty((17, 17), np.uint32)
+    for b in range(n):
+        cx, cy, cz = coords[b, 0] - lo[0], coords[b, 1] - lo[1], coords[b, 2] - lo[2]
+        for x in range(18):
+            bx = -1 if x == 0 else (1 if x == 17 else 0)
+            sx = 15 if x == 0 else (0 if x == 17 else x - 1)
+            for y in range(18):
+                by = -1 if y == 0 else (1 if y == 17 else 0)
+                sy = 15 if y == 0 else (0 if y == 17 else y - 1)
+                # the rows along z: the block beside (or this one), then one bit from those below and above it
+                s = table[cx + bx, cy + by, cz]
+                if s >= 0:
+                    rn, rp = neg[s, sx, sy] & row16, pos[s, sx, sy] & row16
+                elif s == -2:
+                    rn, rp = row16, row16
+                else:
+                    rn, rp = np.uint32(0), row16
+                s = table[cx + bx, cy + by, cz - 1]
+                if s >= 0:
+                    rn |= (neg[s, sx, sy] >> np.uint32(16)) & np.uint32(1)
+                    rp |= (pos[s, sx, sy] >> np.uint32(16)) & np.uint32(1)
+                elif s == -2:
+                    rn |= np.uint32(1)
+                    rp |= np.uint32(1)
+                else:
+                    rp |= np.uint32(1)
+                s = table[cx + bx, cy + by, cz + 1]
+                if s >= 0:
+                    rn |= (neg[s, sx, sy] & np.uint32(2)) << np.uint32(16)
+                    rp |= (pos[s, sx, sy] & np.uint32(2)) << np.uint32(16)
+                elif s == -2:
+                    rn |= np.uint32(1 << 17)
+                    rp |= np.uint32(1 << 17)
+                else:
+                    rp |= np.uint32(1 << 17)
+                pn[x, y] = rn
+                pp[x, y] = rp & row18
+        for x in range(17):
+            for y in range(17):
+                cn = pn[x, y] | pn[x + 1, y] | pn[x, y + 1] | pn[x + 1, y + 1]
+                cn |= cn >> np.uint32(1)
+                if both:
+                    cp = pp[x, y] | pp[x + 1, y] | pp[x, y + 1] | pp[x + 1, y + 1]
+                    cn &= cp | (cp >> np.uint32(1))
+                rel[x, y] = cn & np.uint32(0x1FFFF)
+        for x in range(16):
+            for y in range(16):
+                p = rel[x, y] | rel[x + 1, y] | rel[x, y + 1] | rel[x + 1, y + 1]
+                out[b, x, y] = np.uint16((p | (p >> np.uint32(1))) & np.uint32(0xFFFF))
     return out

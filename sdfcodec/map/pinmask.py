@@ -173,8 +173,14 @@ def pinned_voxels_of(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outsi
     computed on rows of 18 bits (:func:`pinned_rows`; :func:`exact_pins` also returns the padded signs)."""
     n = len(np.asarray(coords).reshape(-1, 3))
     rows = [_rows(np.asarray(s, bool).reshape(n, BLOCK, BLOCK, BLOCK)) for s in (neg, pos)]
-    pin = pinned_rows(coords, *rows, outside_coded, truncation, jump)
-    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+    return _unpack_rows(pinned_rows(coords, *rows, outside_coded, truncation, jump))
+
+
+def _unpack_rows(rows: np.ndarray) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool of rows ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``)."""
+    n = len(rows)
+    flat = np.ascontiguousarray(rows, "<u2").reshape(-1).view(np.uint8)
+    return np.unpackbits(flat, bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
 
 
 def pinned_rows(coords: np.ndarray, neg_rows: np.ndarray, pos_rows: np.ndarray, outside_coded: np.ndarray,
@@ -285,7 +291,12 @@ class _Layout:
 
     def __init__(self, coords: np.ndarray, pinned: np.ndarray):
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
-        pinned = np.asarray(pinned, bool).reshape(-1, BLOCK, BLOCK, BLOCK)
+        pinned = np.asarray(pinned)
+        rows = pinned.dtype == np.uint16  # (n, 16, 16) rows of bits (pinned_rows), not (n, 16, 16, 16) bool
+        if rows and not ans.available():
+            pinned = _unpack_rows(pinned)
+            rows = False
+        pinned = pinned.reshape(-1, BLOCK, BLOCK) if rows else pinned.astype(bool).reshape(-1, BLOCK, BLOCK, BLOCK)
         if len(coords) != len(pinned):
             raise InvalidValueError(f"{len(coords)} block coordinates for {len(pinned)} blocks of pins")
         lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
@@ -295,8 +306,11 @@ class _Layout:
         sy, sz = self.shape[1] * self.shape[2], self.shape[2]
         self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
         self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
+        if rows:  # compiled: a counting sort and one scan of the rows' bits
+            self.at, self.bounds, self.ident = ans.wave_order_rows(self.shape, self.corner, pinned)
+            return
         if ans.available():  # compiled: a counting sort and one scan of the grid
-            self.at, self.bounds = ans.wave_order(self.grid, self.shape, self.corner, pinned)
+            self.at, self.bounds, self.ident = ans.wave_order(self.grid, self.shape, self.corner, pinned)
             return
         self.grid[self.flat[pinned]] = 0
         at = np.flatnonzero(self.grid == 0)  # C order of the grid, without a comparison sort
@@ -394,7 +408,8 @@ def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np
                       where: str = "a pinned mask chunk") -> np.ndarray:
     """What :func:`decode_pinned` reads as 0, as ``(m,)`` int64 ``b * 4096 + voxel`` (block ``b`` of ``coords``,
     the voxel's C-order index in it; ascending within a block is not promised): without the ``(n, 4096)`` mask,
-    for a reader that sets those voxels of its decode to free space.
+    for a reader that sets those voxels of its decode to free space. ``pinned``: ``(n, 16, 16, 16)`` bool, or
+    rows ``(n, 16, 16)`` uint16 (:func:`pinned_rows`).
 
     Raises:
         ChecksumError: as :func:`decode_pinned`.
@@ -403,7 +418,7 @@ def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np
     if ans.available():
         from ..core import pinkernels
 
-        return pinkernels.zero_voxels(lay.grid, lay.at, np.asarray(lay.shape, np.int64), lay.corner)
+        return pinkernels.zero_voxels(lay.grid, lay.at, lay.ident)
     return np.flatnonzero(lay.blocks().reshape(-1) == 0)
 
 

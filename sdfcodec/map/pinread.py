@@ -28,6 +28,7 @@ import numpy as np
 
 from ..core import ans
 from ..core._validate import BLOCK
+from ..core.surface import JUMP
 from . import pinmask as pm
 
 __all__ = ["float_margin", "decode_pins"]
@@ -46,8 +47,9 @@ def float_margin(q: np.ndarray, peak: np.ndarray) -> np.ndarray:
 
 def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np.ndarray, coords: np.ndarray,
                 outside_coded: np.ndarray, truncation: tuple[float, float]) -> np.ndarray:
-    """The pinned voxels ``(n, 16, 16, 16)`` bool of a chunk's coded blocks ``coords`` ``(n, 3)`` with integer codes
-    ``q`` ``(n, k)`` (:func:`~sdfcodec.map.pinmask.pinned_voxels_of` of their exact decode's signs), told from the
+    """The pinned voxels of a chunk's coded blocks ``coords`` ``(n, 3)`` with integer codes ``q`` ``(n, k)``, as rows
+    ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``; :func:`~sdfcodec.map.pinmask.pinned_rows` of their exact
+    decode's signs, :func:`~sdfcodec.map.pinmask.pinned_voxels_of` unpacked), told from the
     float decode ``v[rows[b]]`` of block ``b`` (``v`` ``(m, 4096)`` float32 metres, truncated to ``[d_min,
     d_max]`` or not; ``rows[b] < 0``: not decoded, decided exactly). ``outside_coded``: as ``pinned_voxels_of``.
 
@@ -57,7 +59,8 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     n = len(coords)
     rows = np.asarray(rows, np.int64)
     if not ans.available() or v is None or not len(v):  # numpy: the exact decode of every voxel
-        return pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside_coded, truncation)
+        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside_coded, truncation)
+        return np.packbits(pins.reshape(n, -1), axis=1, bitorder="little").view("<u2").reshape(n, BLOCK, BLOCK)
     from ..core import pinkernels
 
     q = np.ascontiguousarray(q, np.float64)
@@ -69,5 +72,5 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
     pinkernels.sign_rows(np.asarray(v).reshape(len(v), -1), np.maximum(rows, 0), bound, margin, q,
                          np.ascontiguousarray(basis[:q.shape[1] + 1]), neg, pos)
-    pin = pm.pinned_rows(coords, neg, pos, outside_coded, truncation)
-    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+    return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
+                                  np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3), d_max >= JUMP)

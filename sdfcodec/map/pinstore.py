@@ -65,6 +65,17 @@ def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarr
     return coords, near[states[tuple(near.T)] == BlockState.CODED]
 
 
+def _kernels():
+    """:mod:`sdfcodec.core.pinkernels` where numba is installed, else None."""
+    from ..core import ans
+
+    if not ans.available():
+        return None
+    from ..core import pinkernels
+
+    return pinkernels
+
+
 def _zstd(row: np.ndarray) -> bytes:
     """``row`` as zarr's ``zstd`` codec at level 1 stores it (numcodecs' Zstd, no checksum)."""
     from numcodecs.zstd import Zstd
@@ -197,9 +208,7 @@ class PinnedMaskArray:
         """``(n, 4096)`` float32 metres: the codec's decode of integer codes ``q`` ``(n, L)`` on the CPU (its
         prefix only), as the field's read decodes them; None without the compiled kernels (pinread: the exact
         decode then)."""
-        from ..core import ans
-
-        if not ans.available():
+        if _kernels() is None:
             return None
         import torch
 
@@ -238,6 +247,7 @@ class PinnedMaskArray:
         inverse = inverse.reshape(-1)
         streams = r.read_many(self.streams, [(*(slice(int(c), int(c) + 1) for c in k), slice(None)) for k in keys])
         flat = v.reshape(len(v), -1)
+        pinkernels = _kernels()
         for i, (key, row) in enumerate(zip(keys, streams)):
             own, outside = chunk_blocks(states, key, cb)
             sel = np.flatnonzero(inverse == i)
@@ -245,6 +255,9 @@ class PinnedMaskArray:
             index[tuple((coords[sel] - key * cb).T)] = sel
             rows = index[tuple((own - key * cb).T)]  # each coded block's row of v, -1 where not read
             zeros = self._zeros(key, row, own, outside, self._codes(key), flat, rows)
+            if pinkernels is not None:
+                pinkernels.set_voxels(flat, rows, zeros, np.float32(free))
+                continue
             at = rows[zeros >> 12]
             hit = at >= 0
             flat[at[hit], zeros[hit] & (BLOCK ** 3 - 1)] = free
