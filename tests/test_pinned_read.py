@@ -156,9 +156,9 @@ def test_the_compiled_pinned_rows_are_pinmasks():
             assert want.any()
 
 
-def test_the_wave_order_of_rows_is_the_grids():
-    """ans.wave_order_rows (the pins' set bits) gives ans.wave_order's positions, wavefront bounds and block
-    voxels (a scan of the grid) on random pins of scattered blocks, and the voxels' own positions check out."""
+def test_the_wave_planes_order_is_the_grids():
+    """ans.wave_order_planes (the pins' set bits, as (i, j) per wavefront) gives ans.wave_order's positions and
+    wavefront bounds (a scan of the grid) on random pins of scattered blocks."""
     rng = np.random.default_rng(6)
     for trial in range(8):
         coords = np.unique(rng.integers(0, 4, (rng.integers(1, 12), 3)), axis=0)
@@ -166,12 +166,29 @@ def test_the_wave_order_of_rows_is_the_grids():
         lo = coords.min(axis=0)
         shape = tuple(int(x) for x in (coords.max(axis=0) - lo + 1) * 16 + 2)
         corner = (coords - lo) * 16 + 1
-        grid = np.full(int(np.prod(shape)), 2, np.uint8)
-        want = ans.wave_order(grid, shape, corner, pinned)
+        at, bounds = ans.wave_order(np.full(int(np.prod(shape)), 2, np.uint8), shape, corner, pinned)
         rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2")
-        got = ans.wave_order_rows(shape, corner, rows.reshape(-1, 16, 16))
-        assert all(np.array_equal(a, b) for a, b in zip(got, want)) and (grid == 2).all()
-        at, _, ident = got
-        b, v = ident >> 12, ident & 4095
-        pos = corner[b] + np.stack([v >> 8, (v >> 4) & 15, v & 15], axis=1)
-        assert np.array_equal(np.ravel_multi_index(pos.T, shape), at) and len(at) == pinned.sum()
+        ij, waves, got_bounds = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16))
+        i, j = ij.astype(np.int64) >> 16, ij.astype(np.int64) & 0xFFFF
+        w = np.repeat(waves, np.diff(got_bounds))
+        assert np.array_equal(got_bounds, bounds) and np.array_equal(np.ravel_multi_index((i, j, w - i - j), shape), at)
+
+
+def test_the_plane_decoder_reads_the_grid_decoders_bits():
+    """unobserved_voxels of pins as rows (the decoder of wavefront planes, no grid) finds exactly the voxels the
+    grid decoder (decode_pinned, checked against constriction in test_pinned_fast) reads as 0, on random pins
+    and bits; a stream for other pins is refused as decode_pinned refuses it."""
+    rng = np.random.default_rng(7)
+    for trial in range(8):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 10), 3)), axis=0)
+        pinned = rng.random((len(coords), 16, 16, 16)) < [0.01, 0.2, 0.6, 0.95][trial % 4]
+        bits = rng.random(pinned.shape) < [0.5, 0.1, 0.9, 0.5][trial % 4]
+        stream = pm.encode_pinned(coords, bits, pinned)
+        rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2").reshape(-1, 16, 16)
+        want = np.flatnonzero(~pm.decode_pinned(stream, coords, pinned).reshape(-1))
+        assert np.array_equal(np.sort(pm.unobserved_voxels(stream, coords, rows)), want)
+        assert np.array_equal(want, np.flatnonzero((pinned & ~bits).reshape(-1)))
+    fewer = rows.copy()
+    fewer[0, 0, 0] ^= 1
+    with pytest.raises(sdfcodec.errors.ChecksumError, match="pinned voxels"):
+        pm.unobserved_voxels(stream, coords, fewer)

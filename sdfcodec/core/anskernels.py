@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_rows", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -336,8 +336,7 @@ def wave_order(grid, dims, corner, pinned):
     ``grid`` flat uint8 of ``dims`` ``(3,)`` (C order) holding 2 where nothing is pinned (left so), ``corner``
     ``(n, 3)`` each block's first voxel, ``pinned`` ``(n, 4096)`` bool (C order in the block). Returns (flat
     positions ``(m,)`` int64 wavefront by wavefront, ``x + y + z`` rising, C order within one; the bounds of the
-    non-empty wavefronts ``(W + 1,)``; each position's block and voxel ``(m,)`` int64, ``b * 4096 + voxel``): a
-    counting sort by wavefront, then one scan of the grid in C order."""
+    non-empty wavefronts ``(W + 1,)``): a counting sort by wavefront, then one scan of the grid in C order."""
     sy, sz = dims[1] * dims[2], dims[2]
     n_waves = dims[0] + dims[1] + dims[2]
     sizes = np.zeros(n_waves, np.int64)
@@ -364,38 +363,34 @@ def wave_order(grid, dims, corner, pinned):
             u += 1
             bounds[u] = bounds[u - 1] + sizes[w]
     at = np.empty(m, np.int64)
-    ident = np.empty(m, np.int64)
     # the scan visits the blocks' voxels only (C order: x, y, then the blocks along z), not the whole box
     nb = np.empty(3, np.int64)
     for d in range(3):
         nb[d] = max((dims[d] - 2) // 16, 1)
-    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
+    occ = np.zeros((nb[0], nb[1], nb[2]), np.bool_)
     for b in range(len(corner)):
-        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = True
     for i in range(1, dims[0] - 1):
         for j in range(1, dims[1] - 1):
             base = i * sy + j * sz
             for bz in range(nb[2]):
-                b = occ[(i - 1) >> 4, (j - 1) >> 4, bz]
-                if b < 0:
+                if not occ[(i - 1) >> 4, (j - 1) >> 4, bz]:
                     continue
-                first = b * 4096 + (((i - 1) & 15) << 8) + (((j - 1) & 15) << 4) - bz * 16 - 1
                 for k in range(bz * 16 + 1, bz * 16 + 17):
                     if grid[base + k] == 0:
                         w = i + j + k
                         at[nxt[w]] = base + k
-                        ident[nxt[w]] = first + k
                         nxt[w] += 1
                         grid[base + k] = 2
-    return at, bounds, ident
+    return at, bounds
 
 
 @njit(cache=True)
-def wave_order_rows(dims, corner, rows):
-    """:func:`wave_order` of pinned voxels given as rows ``(n, 16, 16)`` uint16 (bit ``z`` of row ``(x, y)``: voxel
-    ``(x, y, z)``), without the grid: the same (positions, bounds, ``b * 4096 + voxel``), visiting the set bits
-    and the rows, not every voxel."""
-    sy, sz = dims[1] * dims[2], dims[2]
+def wave_order_planes(dims, corner, rows):
+    """The order of :func:`wave_order` as wavefront planes: each pinned voxel's ``(i << 16) | j`` ``(m,)`` int32
+    (grid position ``(i, j, w - i - j)``), wavefront by wavefront, C order (``i``, then ``j``) within one; the
+    wavefront ``w`` of each non-empty one ``(W,)`` and their bounds ``(W + 1,)``. Pins as rows ``(n, 16, 16)``
+    uint16 (bit ``z``: voxel ``z``) of blocks with first voxels ``corner`` ``(n, 3)`` in a grid of ``dims``."""
     n_waves = dims[0] + dims[1] + dims[2]
     sizes = np.zeros(n_waves, np.int64)
     m = 0
@@ -420,13 +415,14 @@ def wave_order_rows(dims, corner, rows):
         if sizes[w]:
             w_used += 1
     bounds = np.zeros(w_used + 1, np.int64)
+    waves = np.zeros(w_used, np.int64)
     u = 0
     for w in range(n_waves):
         if sizes[w]:
+            waves[u] = w
             u += 1
             bounds[u] = bounds[u - 1] + sizes[w]
-    at = np.empty(m, np.int64)
-    ident = np.empty(m, np.int64)
+    ij = np.empty(m, np.int32)
     nb = np.empty(3, np.int64)
     for d in range(3):
         nb[d] = max((dims[d] - 2) // 16, 1)
@@ -435,24 +431,105 @@ def wave_order_rows(dims, corner, rows):
         occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
     for i in range(1, dims[0] - 1):
         for j in range(1, dims[1] - 1):
-            base = i * sy + j * sz
             for bz in range(nb[2]):
                 b = occ[(i - 1) >> 4, (j - 1) >> 4, bz]
                 if b < 0:
                     continue
                 r = np.int64(rows[b, (i - 1) & 15, (j - 1) & 15])
-                first = b * 4096 + (((i - 1) & 15) << 8) + (((j - 1) & 15) << 4)
                 while r:
                     k = 0
                     while not (r >> k) & 1:
                         k += 1
-                    g = bz * 16 + 1 + k
-                    w = i + j + g
-                    at[nxt[w]] = base + g
-                    ident[nxt[w]] = first + k
+                    w = i + j + bz * 16 + 1 + k
+                    ij[nxt[w]] = np.int32((i << 16) | j)
                     nxt[w] += 1
                     r &= r - 1
-    return at, bounds, ident
+    return ij, waves, bounds
+
+
+@njit(cache=True)
+def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
+    """:func:`decode_bits` of the positions of :func:`wave_order_planes`, the same bits from the same words,
+    without the grid: a context reads its neighbours ``nbr`` ``(q, 3)`` rows ``(dw, di, dj)`` (``dw < 0``: in an
+    earlier wavefront) from the last three wavefronts kept as planes of ``dims[0] x dims[1]`` (2: not pinned),
+    which stay in cache where a grid of the chunk's voxels did not. Returns (ok, bits ``(m,)`` uint8)."""
+    s0, s1 = dims[0], dims[1]
+    plane = np.full((3, s0, s1), 2, np.uint8)
+    owner = np.full(3, -1, np.int64)  # the wavefront each plane holds
+    since = np.zeros(3, np.int64)  # and where its bits start in ij
+    until = np.zeros(3, np.int64)
+    counts = np.zeros((2, n_ctx), np.int64)
+    split = np.full(n_ctx, _kt_split(0, 0), np.int64)
+    bits = np.zeros(len(ij), np.uint8)
+    widest = 0
+    for u in range(len(bounds) - 1):
+        widest = max(widest, bounds[u + 1] - bounds[u])
+    buf_ctx = np.empty(widest, np.int64)
+    s, pos = st[0], np.int64(st[1])
+    for u in range(len(waves)):
+        w = waves[u]
+        for back in range(3):  # the planes of w - 2, w - 1, w: cleared unless they hold those wavefronts
+            wb = w - back
+            slot = wb % 3
+            if owner[slot] != wb:
+                for t in range(since[slot], until[slot]):
+                    plane[slot, ij[t] >> 16, ij[t] & 0xFFFF] = 2
+                owner[slot], since[slot], until[slot] = wb, 0, 0
+        a, b = bounds[u], bounds[u + 1]
+        me = w % 3
+        since[me], until[me] = a, b
+        for t in range(a, b):
+            i, j = ij[t] >> 16, ij[t] & 0xFFFF
+            ctx = 0
+            for q in range(len(weights)):
+                ctx += np.int64(plane[(w + nbr[q, 0]) % 3, i + nbr[q, 1], j + nbr[q, 2]]) * weights[q]
+            if ctx >= n_ctx:
+                st[0], st[1] = s, np.uint64(pos)
+                return False, bits
+            c1 = split[ctx]
+            qv = np.int64(s & _QMASK)
+            if qv < c1:
+                s, pos = _advance(words, s, pos, 0, c1, qv)
+                bit = 0
+            else:
+                s, pos = _advance(words, s, pos, c1, _TOTAL, qv)
+                bit = 1
+            plane[me, i, j] = bit
+            bits[t] = bit
+            buf_ctx[t - a] = ctx
+        for t in range(a, b):
+            counts[np.int64(bits[t]), buf_ctx[t - a]] += 1
+        for t in range(a, b):
+            ctx = buf_ctx[t - a]
+            split[ctx] = _kt_split(counts[0, ctx], counts[1, ctx])
+    st[0], st[1] = s, np.uint64(pos)
+    return True, bits
+
+
+@njit(cache=True)
+def plane_zeros(ij, waves, bounds, bits, dims, corner):
+    """``(m,)`` int64 ``b * 4096 + voxel`` of the positions of :func:`wave_order_planes` whose bit is 0."""
+    nb = np.empty(3, np.int64)
+    for d in range(3):
+        nb[d] = max((dims[d] - 2) // 16, 1)
+    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
+    for b in range(len(corner)):
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+    m = 0
+    for t in range(len(bits)):
+        if bits[t] == 0:
+            m += 1
+    out = np.empty(m, np.int64)
+    m = 0
+    for u in range(len(waves)):
+        w = waves[u]
+        for t in range(bounds[u], bounds[u + 1]):
+            if bits[t] == 0:
+                i, j = (ij[t] >> 16) - 1, (ij[t] & 0xFFFF) - 1
+                k = w - 2 - i - j - 1
+                out[m] = occ[i >> 4, j >> 4, k >> 4] * 4096 + ((i & 15) << 8) + ((j & 15) << 4) + (k & 15)
+                m += 1
+    return out
 
 
 @njit(cache=True)

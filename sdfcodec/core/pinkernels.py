@@ -1,6 +1,6 @@
-"""Compiled steps of a pinned observation mask's read (numba; imported only by :mod:`sdfcodec.map.pinread` when
-numba is installed): the signs of the exact decode told from the reader's float decode, and the voxels the mask's
-stream reads as unobserved.
+"""Compiled steps of a pinned observation mask's read (numba; imported only by :mod:`sdfcodec.map.pinread` and
+:mod:`sdfcodec.map.pinstore` when numba is installed): the signs of the exact decode told from the reader's float
+decode, the pinned voxels from them, and the unobserved voxels set in the decode.
 
 Module-level functions, cached on disk by numba.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["sign_rows", "zero_voxels", "set_voxels", "pinned_rows"]
+__all__ = ["sign_rows", "set_voxels", "pinned_rows"]
 
 _SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact decode's integers
 
@@ -66,24 +66,6 @@ def sign_rows(v, rows, e, d, q, basis, neg, pos):
             neg[b, xy >> 4, xy & 15] = nb
             pos[b, xy >> 4, xy & 15] = pb
     return exact
-
-
-@njit(cache=True)
-def zero_voxels(grid, at, ident):
-    """``(m,)`` int64: ``ident[t]`` (``b * 4096 + voxel``, :func:`sdfcodec.core.anskernels.wave_order`) of the
-    positions ``at[t]`` of a decoded pinned mask's ``grid`` (flat uint8) that read 0: the voxels stored as
-    unobserved."""
-    m = 0
-    for t in range(len(at)):
-        if grid[at[t]] == 0:
-            m += 1
-    out = np.empty(m, np.int64)
-    m = 0
-    for t in range(len(at)):
-        if grid[at[t]] == 0:
-            out[m] = ident[t]
-            m += 1
-    return out
 
 
 @njit(cache=True)

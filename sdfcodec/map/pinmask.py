@@ -292,11 +292,9 @@ class _Layout:
     def __init__(self, coords: np.ndarray, pinned: np.ndarray):
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
         pinned = np.asarray(pinned)
-        rows = pinned.dtype == np.uint16  # (n, 16, 16) rows of bits (pinned_rows), not (n, 16, 16, 16) bool
-        if rows and not ans.available():
+        if pinned.dtype == np.uint16:  # (n, 16, 16) rows of bits (pinned_rows)
             pinned = _unpack_rows(pinned)
-            rows = False
-        pinned = pinned.reshape(-1, BLOCK, BLOCK) if rows else pinned.astype(bool).reshape(-1, BLOCK, BLOCK, BLOCK)
+        pinned = pinned.astype(bool).reshape(-1, BLOCK, BLOCK, BLOCK)
         if len(coords) != len(pinned):
             raise InvalidValueError(f"{len(coords)} block coordinates for {len(pinned)} blocks of pins")
         lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
@@ -306,11 +304,8 @@ class _Layout:
         sy, sz = self.shape[1] * self.shape[2], self.shape[2]
         self.grid = np.full(int(np.prod(self.shape)), 2, np.uint8)
         self.deltas = np.array([a * sy + b * sz + c for a, b, c in NEIGHBOURS], np.int64)
-        if rows:  # compiled: a counting sort and one scan of the rows' bits
-            self.at, self.bounds, self.ident = ans.wave_order_rows(self.shape, self.corner, pinned)
-            return
         if ans.available():  # compiled: a counting sort and one scan of the grid
-            self.at, self.bounds, self.ident = ans.wave_order(self.grid, self.shape, self.corner, pinned)
+            self.at, self.bounds = ans.wave_order(self.grid, self.shape, self.corner, pinned)
             return
         self.grid[self.flat[pinned]] = 0
         at = np.flatnonzero(self.grid == 0)  # C order of the grid, without a comparison sort
@@ -414,24 +409,58 @@ def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np
     Raises:
         ChecksumError: as :func:`decode_pinned`.
     """
-    lay = _decoded(stream, coords, pinned, where)
-    if ans.available():
-        from ..core import pinkernels
+    pinned = np.asarray(pinned)
+    if ans.available() and pinned.dtype == np.uint16:
+        return _plane_zeros(stream, coords, pinned, where)
+    return np.flatnonzero(_decoded(stream, coords, pinned, where).blocks().reshape(-1) == 0)
 
-        return pinkernels.zero_voxels(lay.grid, lay.at, lay.ident)
-    return np.flatnonzero(lay.blocks().reshape(-1) == 0)
+
+#: NEIGHBOURS as (wavefront step, di, dj): what the compiled decoder of wavefront planes reads.
+_PLANE_NEIGHBOURS = np.array([(a + b + c, a, b) for a, b, c in NEIGHBOURS], np.int64)
+
+
+def _plane_zeros(stream: bytes | np.ndarray, coords: np.ndarray, rows: np.ndarray, where: str) -> np.ndarray:
+    """:func:`unobserved_voxels` of pins as rows, compiled, without a grid of the chunk's voxels: the bits
+    decoded wavefront plane by plane (:func:`sdfcodec.core.ans.decode_planes`), the same words read alike."""
+    buf = _checked(stream, where)
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
+    shape = tuple(int(x) + 2 for x in ((coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3)))
+    corner = (coords - lo) * BLOCK + 1
+    order = ans.wave_order_planes(shape, corner, rows)
+    _check_count(buf, len(order[0]), where)
+    if not len(order[0]):
+        return np.zeros(0, np.int64)
+    try:
+        coder = ans.Decoder(np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32))
+        bits = ans.decode_planes(coder, shape, order, _PLANE_NEIGHBOURS, _Layout.WEIGHTS, _Layout.N_CTX)
+    except ValueError as e:  # a last word of 0, as constriction refuses it
+        raise ChecksumError(f"{where} is not a sound M2 stream (ValueError: {e})") from e
+    if not coder.is_empty():
+        raise ChecksumError(f"{where} has words left after its {len(bits)} pinned voxels; it is corrupted")
+    return ans.plane_zeros(order, bits, shape, corner)
+
+
+def _checked(stream: bytes | np.ndarray, where: str) -> np.ndarray:
+    buf = np.frombuffer(bytes(stream), dtype=np.uint8)
+    if len(buf) < 6 or bytes(buf[:2]) != _MAGIC or (len(buf) - 6) % 4:
+        raise ChecksumError(f"{where} is not an M2 stream (bad header or length {len(buf)})")
+    return buf
+
+
+def _check_count(buf: np.ndarray, pins: int, where: str) -> None:
+    count = int(buf[2:6].view("<u4")[0])
+    if count != pins:
+        raise ChecksumError(f"{where} codes {count} pinned voxels, its blocks' decode pins {pins}; the codes "
+                            "or the mask are corrupted")
 
 
 def _decoded(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray, where: str) -> _Layout:
     """The layout of :func:`decode_pinned` with the stream's bits decoded into its grid."""
-    buf = np.frombuffer(bytes(stream), dtype=np.uint8)
-    if len(buf) < 6 or bytes(buf[:2]) != _MAGIC or (len(buf) - 6) % 4:
-        raise ChecksumError(f"{where} is not an M2 stream (bad header or length {len(buf)})")
+    buf = _checked(stream, where)
     lay = _Layout(coords, pinned)
-    count = int(buf[2:6].view("<u4")[0])
-    if count != len(lay.at):
-        raise ChecksumError(f"{where} codes {count} pinned voxels, its blocks' decode pins {len(lay.at)}; the codes "
-                            "or the mask are corrupted")
+    _check_count(buf, len(lay.at), where)
+    count = len(lay.at)
     if len(lay.at):
         words = np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32)
         if ans.available():  # compiled, the same words read as constriction reads them (tests/test_pinned_mask.py)
