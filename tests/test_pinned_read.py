@@ -109,7 +109,8 @@ def test_sign_rows_decides_voxels_on_the_thresholds_exactly():
         w = basis[0] + q[0] @ basis[1:]
         x = ((w + rng.choice([-3.0, 3.0], 4096)) / 2.0 ** 24).astype(np.float32)[None]
         neg, pos = (np.zeros((1, 16, 16), np.uint32) for _ in range(2))
-        exact = pinkernels.sign_rows(x, np.zeros(1, np.int64), e, np.array([4.0]), q, basis, neg, pos)
+        exact = pinkernels.sign_rows(x, np.zeros(1, np.int64), e, np.array([4.0]), q, np.ascontiguousarray(basis.T),
+                                     neg, pos)
         assert exact >= 64
         bits = 1 << (np.arange(16) + 1)
         got_neg = (neg.reshape(256, 1) & bits) != 0

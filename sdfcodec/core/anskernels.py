@@ -465,9 +465,13 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
     for u in range(len(bounds) - 1):
         widest = max(widest, bounds[u + 1] - bounds[u])
     buf_ctx = np.empty(widest, np.int64)
+    flat = plane.reshape(-1)
+    off = np.empty(len(weights), np.int64)  # each neighbour's offset in flat, for the wavefront at hand
     s, pos = st[0], np.int64(st[1])
     for u in range(len(waves)):
         w = waves[u]
+        for q in range(len(weights)):  # (no division per bit: the planes' slots worked out once a wavefront)
+            off[q] = ((w + nbr[q, 0]) % 3) * s0 * s1 + nbr[q, 1] * s1 + nbr[q, 2]
         for back in range(3):  # the planes of w - 2, w - 1, w: cleared unless they hold those wavefronts
             wb = w - back
             slot = wb % 3
@@ -480,9 +484,10 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
         since[me], until[me] = a, b
         for t in range(a, b):
             i, j = ij[t] >> 16, ij[t] & 0xFFFF
+            at = np.int64(i) * s1 + j
             ctx = 0
             for q in range(len(weights)):
-                ctx += np.int64(plane[(w + nbr[q, 0]) % 3, i + nbr[q, 1], j + nbr[q, 2]]) * weights[q]
+                ctx += np.int64(flat[at + off[q]]) * weights[q]
             if ctx >= n_ctx:
                 st[0], st[1] = s, np.uint64(pos)
                 return False, bits
@@ -494,7 +499,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
             else:
                 s, pos = _advance(words, s, pos, c1, _TOTAL, qv)
                 bit = 1
-            plane[me, i, j] = bit
+            flat[me * s0 * s1 + at] = bit
             bits[t] = bit
             buf_ctx[t - a] = ctx
         for t in range(a, b):

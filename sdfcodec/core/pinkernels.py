@@ -16,25 +16,26 @@ _SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact
 
 
 @njit(cache=True, inline="always")
-def _exact(q, basis, b, j):
-    """The exact decode ``basis[0, j] + sum_i q[b, i] basis[i + 1, j]`` of voxel ``j`` of block ``b``: float64
-    integers whose every partial sum stays below 2^53 (checked by the caller), so exact in this order too."""
-    t = basis[0, j]
+def _exact(q, basis_t, b, j):
+    """The exact decode ``basis[0, j] + sum_i q[b, i] basis[i + 1, j]`` of voxel ``j`` of block ``b`` (``basis_t``:
+    the basis transposed, ``(4096, k + 1)``: one voxel's column is contiguous): float64 integers whose every
+    partial sum stays below 2^53 (checked by the caller), so exact in this order too."""
+    t = basis_t[j, 0]
     for i in range(q.shape[1]):
         c = q[b, i]
         if c != 0.0:
-            t += c * basis[i + 1, j]
+            t += c * basis_t[j, i + 1]
     return t
 
 
 @njit(cache=True)
-def sign_rows(v, rows, e, d, q, basis, neg, pos):
+def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     """Where the exact decode ``w`` of blocks ``b`` may be negative (``w < e[b]``: ``neg``) and non-negative (``w
     >= -e[b]``: ``pos``), as rows ``(n, 16, 16)`` uint32 with bit ``z + 1`` for voxel ``z``, told from a float
     decode in metres ``v[rows[b]]`` (``v`` ``(m, 4096)`` float32) within ``d[b]`` of ``w 2^-24`` (``e``, ``d``
     ``(n,)`` float64 integers, ``d`` may be inf): a voxel whose float decode lies within ``d[b]`` of ``e[b]`` or
-    ``-e[b]`` is decided by the exact decode of its integer codes ``q`` ``(n, k)`` float64 and ``basis`` ``(k + 1,
-    4096)`` float64 (:func:`_exact`). Returns the number of voxels decided exactly."""
+    ``-e[b]`` is decided by the exact decode of its integer codes ``q`` ``(n, k)`` float64 and the basis transposed
+    ``basis_t`` ``(4096, k + 1)`` float64 (:func:`_exact`). Returns the number of voxels decided exactly."""
     n = len(rows)
     exact = 0
     for b in range(n):
@@ -58,7 +59,7 @@ def sign_rows(v, rows, e, d, q, basis, neg, pos):
             if unsure:
                 for z in range(16):
                     if unsure >> z & 1:
-                        w = _exact(q, basis, b, xy * 16 + z)
+                        w = _exact(q, basis_t, b, xy * 16 + z)
                         bit = np.uint32(1) << np.uint32(z + 1)
                         nb = (nb | bit) if w < eb else (nb & ~bit)
                         pb = (pb | bit) if w >= -eb else (pb & ~bit)

@@ -71,6 +71,19 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     margin = np.where((rows >= 0) & (bound + margin < room), margin, np.inf)
     neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
     pinkernels.sign_rows(np.asarray(v).reshape(len(v), -1), np.maximum(rows, 0), bound, margin, q,
-                         np.ascontiguousarray(basis[:q.shape[1] + 1]), neg, pos)
+                         _transposed(basis, q.shape[1] + 1), neg, pos)
     return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
                                   np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3), d_max >= JUMP)
+
+
+_BASIS_T: list = []  # (the basis, its transpose): a map's reads use one basis, transposed once
+
+
+def _transposed(basis: np.ndarray, rows: int) -> np.ndarray:
+    """``basis[:rows].T`` C-contiguous (each voxel's column contiguous for the exact decode of one voxel),
+    kept for the last basis asked."""
+    kept = _BASIS_T[0] if _BASIS_T else None  # (a local: another thread may replace the entry meanwhile)
+    if kept is None or kept[0] is not basis or kept[1].shape[1] != rows:
+        kept = (basis, np.ascontiguousarray(basis[:rows].T))
+        _BASIS_T[:] = [kept]
+    return kept[1]
