@@ -385,6 +385,13 @@ def wave_order(grid, dims, corner, pinned):
     return at, bounds
 
 
+#: The index of a power of two below 2^36 from its remainder modulo 37 (all distinct): a set bit's position
+#: without a loop over the bits below it.
+_LOW_BIT = np.zeros(37, np.int64)
+for _k in range(36):
+    _LOW_BIT[(1 << _k) % 37] = _k
+
+
 @njit(cache=True)
 def wave_order_planes(dims, corner, rows):
     """The order of :func:`wave_order` as wavefront planes: each pinned voxel's ``(i << 16) | j`` ``(m,)`` int32
@@ -401,9 +408,7 @@ def wave_order_planes(dims, corner, rows):
                 r = np.int64(rows[b, x, y])
                 base = x0 + x + y0 + y + z0
                 while r:
-                    k = 0
-                    while not (r >> k) & 1:
-                        k += 1
+                    k = _LOW_BIT[(r & -r) % 37]
                     sizes[base + k] += 1
                     m += 1
                     r &= r - 1
@@ -437,9 +442,7 @@ def wave_order_planes(dims, corner, rows):
                     continue
                 r = np.int64(rows[b, (i - 1) & 15, (j - 1) & 15])
                 while r:
-                    k = 0
-                    while not (r >> k) & 1:
-                        k += 1
+                    k = _LOW_BIT[(r & -r) % 37]
                     w = i + j + bz * 16 + 1 + k
                     ij[nxt[w]] = np.int32((i << 16) | j)
                     nxt[w] += 1
@@ -493,12 +496,9 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
                 return False, bits
             c1 = split[ctx]
             qv = np.int64(s & _QMASK)
-            if qv < c1:
-                s, pos = _advance(words, s, pos, 0, c1, qv)
-                bit = 0
-            else:
-                s, pos = _advance(words, s, pos, c1, _TOTAL, qv)
-                bit = 1
+            bit = np.int64(qv >= c1)  # selects, not a branch: the bits of a mask are not predictable
+            left = bit * c1
+            s, pos = _advance(words, s, pos, left, c1 + bit * (_TOTAL - c1), qv)
             flat[me * s0 * s1 + at] = bit
             bits[t] = bit
             buf_ctx[t - a] = ctx
