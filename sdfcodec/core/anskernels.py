@@ -331,6 +331,42 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
 
 
 @njit(cache=True)
+def _wave_slots(sizes):
+    """From the sizes of the wavefronts ``(W0,)``: (each one's first slot in the order ``(W0,)``, the bounds of the
+    non-empty ones ``(W + 1,)``, their wavefronts ``(W,)``)."""
+    n_waves = len(sizes)
+    nxt = np.zeros(n_waves, np.int64)
+    w_used = 0
+    for w in range(n_waves):
+        if w:
+            nxt[w] = nxt[w - 1] + sizes[w - 1]
+        if sizes[w]:
+            w_used += 1
+    bounds = np.zeros(w_used + 1, np.int64)
+    waves = np.zeros(w_used, np.int64)
+    u = 0
+    for w in range(n_waves):
+        if sizes[w]:
+            waves[u] = w
+            u += 1
+            bounds[u] = bounds[u - 1] + sizes[w]
+    return nxt, bounds, waves
+
+
+@njit(cache=True)
+def _block_table(dims, corner):
+    """``(Bx, By, Bz)`` int64: the index of the block of 16^3 at each block position of a grid of ``dims`` (one
+    voxel of padding around) whose blocks start at ``corner`` ``(n, 3)``; -1 where none."""
+    nb = np.empty(3, np.int64)
+    for d in range(3):
+        nb[d] = max((dims[d] - 2) // 16, 1)
+    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
+    for b in range(len(corner)):
+        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+    return occ
+
+
+@njit(cache=True)
 def wave_order(grid, dims, corner, pinned):
     """The positions :func:`decode_bits` takes for the pinned voxels of blocks of 16^3 placed in one grid:
     ``grid`` flat uint8 of ``dims`` ``(3,)`` (C order) holding 2 where nothing is pinned (left so), ``corner``
@@ -349,19 +385,7 @@ def wave_order(grid, dims, corner, pinned):
                 grid[i * sy + j * sz + k] = 0
                 sizes[i + j + k] += 1
                 m += 1
-    nxt = np.zeros(n_waves, np.int64)
-    w_used = 0
-    for w in range(n_waves):
-        if w:
-            nxt[w] = nxt[w - 1] + sizes[w - 1]
-        if sizes[w]:
-            w_used += 1
-    bounds = np.zeros(w_used + 1, np.int64)
-    u = 0
-    for w in range(n_waves):
-        if sizes[w]:
-            u += 1
-            bounds[u] = bounds[u - 1] + sizes[w]
+    nxt, bounds, _ = _wave_slots(sizes)
     at = np.empty(m, np.int64)
     # the scan visits the blocks' voxels only (C order: x, y, then the blocks along z), not the whole box
     nb = np.empty(3, np.int64)
@@ -412,31 +436,12 @@ def wave_order_planes(dims, corner, rows):
                     sizes[base + k] += 1
                     m += 1
                     r &= r - 1
-    nxt = np.zeros(n_waves, np.int64)
-    w_used = 0
-    for w in range(n_waves):
-        if w:
-            nxt[w] = nxt[w - 1] + sizes[w - 1]
-        if sizes[w]:
-            w_used += 1
-    bounds = np.zeros(w_used + 1, np.int64)
-    waves = np.zeros(w_used, np.int64)
-    u = 0
-    for w in range(n_waves):
-        if sizes[w]:
-            waves[u] = w
-            u += 1
-            bounds[u] = bounds[u - 1] + sizes[w]
+    nxt, bounds, waves = _wave_slots(sizes)
     ij = np.empty(m, np.int32)
-    nb = np.empty(3, np.int64)
-    for d in range(3):
-        nb[d] = max((dims[d] - 2) // 16, 1)
-    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
-    for b in range(len(corner)):
-        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+    occ = _block_table(dims, corner)
     for i in range(1, dims[0] - 1):
         for j in range(1, dims[1] - 1):
-            for bz in range(nb[2]):
+            for bz in range(occ.shape[2]):
                 b = occ[(i - 1) >> 4, (j - 1) >> 4, bz]
                 if b < 0:
                     continue
@@ -514,12 +519,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
 @njit(cache=True)
 def plane_zeros(ij, waves, bounds, bits, dims, corner):
     """``(m,)`` int64 ``b * 4096 + voxel`` of the positions of :func:`wave_order_planes` whose bit is 0."""
-    nb = np.empty(3, np.int64)
-    for d in range(3):
-        nb[d] = max((dims[d] - 2) // 16, 1)
-    occ = np.full((nb[0], nb[1], nb[2]), -1, np.int64)
-    for b in range(len(corner)):
-        occ[(corner[b, 0] - 1) >> 4, (corner[b, 1] - 1) >> 4, (corner[b, 2] - 1) >> 4] = b
+    occ = _block_table(dims, corner)
     m = 0
     for t in range(len(bits)):
         if bits[t] == 0:
