@@ -490,23 +490,24 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
         a, b = bounds[u], bounds[u + 1]
         me = w % 3
         since[me], until[me] = a, b
+        # the wavefront's contexts first (they read earlier wavefronts only), apart from the coder's chain
         for t in range(a, b):
-            i, j = ij[t] >> 16, ij[t] & 0xFFFF
-            at = np.int64(i) * s1 + j
+            at = np.int64(ij[t] >> 16) * s1 + (ij[t] & 0xFFFF)
             ctx = 0
             for q in range(len(weights)):
                 ctx += np.int64(flat[at + off[q]]) * weights[q]
             if ctx >= n_ctx:
                 st[0], st[1] = s, np.uint64(pos)
                 return False, bits
-            c1 = split[ctx]
+            buf_ctx[t - a] = ctx
+        mine = me * s0 * s1
+        for t in range(a, b):
+            c1 = split[buf_ctx[t - a]]
             qv = np.int64(s & _QMASK)
             bit = np.int64(qv >= c1)  # selects, not a branch: the bits of a mask are not predictable
-            left = bit * c1
-            s, pos = _advance(words, s, pos, left, c1 + bit * (_TOTAL - c1), qv)
-            flat[me * s0 * s1 + at] = bit
+            s, pos = _advance(words, s, pos, bit * c1, c1 + bit * (_TOTAL - c1), qv)
+            flat[mine + np.int64(ij[t] >> 16) * s1 + (ij[t] & 0xFFFF)] = bit
             bits[t] = bit
-            buf_ctx[t - a] = ctx
         for t in range(a, b):
             counts[np.int64(bits[t]), buf_ctx[t - a]] += 1
         for t in range(a, b):
