@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
-__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "table_cdfs",
+__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs",
            "decode_chunk", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -81,6 +81,36 @@ class Decoder:
                               np.zeros(0, np.int64) if extra is None else np.asarray(extra, np.int64), int(n_ctx))
         if not ok:
             raise InvalidValueError(f"a context is outside [0, {n_ctx})")
+
+
+def decode_planes(decoder: Decoder, dims: tuple[int, int, int], order: tuple[np.ndarray, np.ndarray, np.ndarray],
+                  nbr: np.ndarray, weights: np.ndarray, n_ctx: int) -> np.ndarray:
+    """:meth:`Decoder.bits` of the positions ``order`` of :func:`wave_order_planes` in a grid of ``dims``, with
+    context neighbours ``nbr`` ``(q, 3)`` rows ``(dw, di, dj)`` (the offset's wavefront step and first two
+    axes): the bits ``(m,)`` uint8 in that order (no grid).
+
+    Raises:
+        ValueError: a context reaches ``n_ctx``.
+    """
+    ok, bits = _k().decode_planes(decoder.words, decoder.st, np.asarray(dims, np.int64), *order,
+                                  np.ascontiguousarray(nbr, np.int64), np.asarray(weights, np.int64), int(n_ctx))
+    if not ok:
+        raise InvalidValueError(f"a context is outside [0, {n_ctx})")
+    return bits
+
+
+def wave_order_planes(dims: tuple[int, int, int], corner: np.ndarray, rows: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(``(i << 16) | j`` ``(m,)`` int32, wavefronts ``(W,)``, bounds ``(W + 1,)``): the order of
+    :func:`wave_order` for pins as rows ``(n, 16, 16)`` uint16 of blocks with first voxels ``corner``."""
+    return _k().wave_order_planes(np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64),
+                                  np.ascontiguousarray(rows, np.uint16).reshape(len(corner), 16, 16))
+
+
+def plane_zeros(order: tuple[np.ndarray, np.ndarray, np.ndarray], bits: np.ndarray, dims: tuple[int, int, int],
+                corner: np.ndarray) -> np.ndarray:
+    """``b * 4096 + voxel`` ``(m,)`` int64 of the positions of ``order`` whose bit is 0."""
+    return _k().plane_zeros(*order, bits, np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64))
 
 
 def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray],

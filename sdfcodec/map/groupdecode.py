@@ -39,13 +39,15 @@ def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords
                  mask_rows: np.ndarray | None = None, residual: bool = True,
                  residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
                  placer: BlockPlacer | None = None, refine: bool = True,
-                 refine_rows: np.ndarray | None = None) -> torch.Tensor | None:
+                 refine_rows: np.ndarray | None = None, unmasked: bool = False) -> torch.Tensor | None:
     """:meth:`MapReader.decode_codes` (see there). With ``placer``, the decoded blocks go into its volume (from
-    several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned."""
+    several threads at once, for disjoint blocks): ``out`` is only scratch memory then, and None is returned.
+    ``unmasked``: unobserved voxels keep their decode (the caller restores them: a pinned mask is decoded from
+    this decode, :meth:`sdfcodec.map.pinstore.PinnedMaskArray.unmask`)."""
     codec = reader.codec
     d_min, d_max = reader.truncation
     scale, offset = decode_affine(reader.header.codes, (d_min, d_max), metres)  # metric codes: no scaling (4f)
-    mask = reader.observation_arrays()[1]
+    mask = None if unmasked else reader.observation_arrays()[1]
     res = reader.residual_rows_array(codes.shape[1]) if residual else None
     ref = getattr(reader, "refinement", None) if refine else None  # a surface refinement (spec 6h)
     if (mask is not None or res is not None or ref is not None) and coords is None:

@@ -55,8 +55,8 @@ from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
 from .lossymask import neighbours, padded_blocks
 
-__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "canonical_bits", "encode_pinned",
-           "decode_pinned", "NEIGHBOURS"]
+__all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "pinned_rows", "decode_bounds", "canonical_bits", "encode_pinned",
+           "decode_pinned", "unobserved_voxels", "NEIGHBOURS"]
 
 #: Fixed-point fraction bits of the exact decode: metres in multiples of 2^-24 (6e-8 m, far below any step).
 FRACTION_BITS = 24
@@ -98,18 +98,27 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
             guaranteed.
     """
     q = np.asarray(q, np.float64)
-    n, k = q.shape[0], q.shape[1] if size is None else int(size)
     used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1  # columns past every prefix add nothing
     q = q[:, :used]
-    a = basis[1:used + 1]
+    peak, bound = decode_bounds(q, basis, q.shape[1] if size is None else size)
+    return _product(q, basis[1:used + 1], basis[0], peak), bound
+
+
+def decode_bounds(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, E)`` ``(n,)`` float64 integers of :func:`exact_decode` (module docstring) for integer codes ``q``
+    ``(n, k')`` and codes of length ``size`` (default ``k'``), without the decode.
+
+    Raises:
+        InvalidValueError: a partial sum could reach ``2^53``, as :func:`exact_decode`.
+    """
+    q = np.asarray(q, np.float64)
+    n, k = q.shape[0], q.shape[1] if size is None else int(size)
     absq = np.abs(q)
-    peak = np.abs(basis[0]).max() + absq @ np.abs(a).max(axis=1)  # T per block, exact (integers, small)
+    peak = np.abs(basis[0]).max() + absq @ np.abs(basis[1:q.shape[1] + 1]).max(axis=1)  # T, exact (small integers)
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
-    v = _product(q, a, basis[0], peak)
-    bound = 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
-    return v, bound
+    return peak, 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
 
 
 def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray, peak: np.ndarray) -> np.ndarray:
@@ -161,23 +170,37 @@ def exact_pins(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_cod
 def pinned_voxels_of(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray,
                      truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: the pinned voxels of :func:`exact_pins` (its first result, the same bools),
-    computed on rows of 18 bits (one per voxel along z, the padding included): the neighbours' layers, the
-    cells' OR over 2 x 2 x 2 corners and the voxels' OR over their 8 cells are a few whole-row operations per
-    block instead of one per voxel (what a read of the pinned mask needs; :func:`exact_pins` also returns the
-    padded signs)."""
+    computed on rows of 18 bits (:func:`pinned_rows`; :func:`exact_pins` also returns the padded signs)."""
+    n = len(np.asarray(coords).reshape(-1, 3))
+    rows = [_rows(np.asarray(s, bool).reshape(n, BLOCK, BLOCK, BLOCK)) for s in (neg, pos)]
+    return _unpack_rows(pinned_rows(coords, *rows, outside_coded, truncation, jump))
+
+
+def _unpack_rows(rows: np.ndarray) -> np.ndarray:
+    """``(n, 16, 16, 16)`` bool of rows ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``)."""
+    n = len(rows)
+    flat = np.ascontiguousarray(rows, "<u2").reshape(-1).view(np.uint8)
+    return np.unpackbits(flat, bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+
+
+def pinned_rows(coords: np.ndarray, neg_rows: np.ndarray, pos_rows: np.ndarray, outside_coded: np.ndarray,
+                truncation: tuple[float, float], jump: float = JUMP) -> np.ndarray:
+    """``(n, 16, 16)`` ``<u2``: bit ``z`` of row ``(x, y)`` set where voxel ``(x, y, z)`` of block ``coords[b]``
+    ``(n, 3)`` is pinned (:func:`pinned_voxels_of`), from the signs as rows: ``neg_rows``, ``pos_rows`` ``(n, 16,
+    16)`` uint32 with bit ``z + 1`` set where voxel ``z`` may be negative, non-negative (bits 0 and 17 clear).
+    The neighbours' layers, the cells' OR over 2 x 2 x 2 corners and the voxels' OR over their 8 cells are a few
+    whole-row operations per block instead of one per voxel."""
     coords = np.asarray(coords, np.int64).reshape(-1, 3)
     outside = np.asarray(outside_coded, np.int64).reshape(-1, 3)
     n = len(coords)
     cells = []
-    for sign, free in ((neg, 0), (pos, _ROW18)):
-        rows = _rows(np.asarray(sign, bool).reshape(n, BLOCK, BLOCK, BLOCK))
+    for rows, free in ((neg_rows, 0), (pos_rows, _ROW18)):
         src = np.concatenate([rows, np.full((len(outside), BLOCK, BLOCK), _ROW16 << 1, np.uint32)])  # either
         cells.append(_cell_rows(_padded_rows(np.concatenate([coords, outside]), src, n, free)))
     rel = cells[0] & cells[1] if float(truncation[1]) >= jump else cells[0]
     rel &= np.uint32(_ROW18 >> 1)  # cells with lower corners 0..16
     pin = rel[:, 1:, 1:] | rel[:, :-1, 1:] | rel[:, 1:, :-1] | rel[:, :-1, :-1]  # (n, 16, 16): x, y in 1..16
-    pin = ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
-    return np.unpackbits(pin.reshape(-1).view(np.uint8), bitorder="little").view(bool).reshape(n, BLOCK, BLOCK, BLOCK)
+    return ((pin | (pin >> 1)) & _ROW16).astype("<u2")  # voxel z in cell z (lower) or z + 1 (upper)
 
 
 _ROW16, _ROW18 = np.uint32(0xFFFF), np.uint32(0x3FFFF)
@@ -268,7 +291,10 @@ class _Layout:
 
     def __init__(self, coords: np.ndarray, pinned: np.ndarray):
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
-        pinned = np.asarray(pinned, bool).reshape(-1, BLOCK, BLOCK, BLOCK)
+        pinned = np.asarray(pinned)
+        if pinned.dtype == np.uint16:  # (n, 16, 16) rows of bits (pinned_rows)
+            pinned = _unpack_rows(pinned)
+        pinned = pinned.astype(bool).reshape(-1, BLOCK, BLOCK, BLOCK)
         if len(coords) != len(pinned):
             raise InvalidValueError(f"{len(coords)} block coordinates for {len(pinned)} blocks of pins")
         lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
@@ -370,14 +396,71 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
         ChecksumError: the stream is not one :func:`encode_pinned` wrote for these pinned voxels, named by
             ``where``.
     """
+    return _decoded(stream, coords, pinned, where).blocks() != 0  # pinned: the bit read; elsewhere 2, observed
+
+
+def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray,
+                      where: str = "a pinned mask chunk") -> np.ndarray:
+    """What :func:`decode_pinned` reads as 0, as ``(m,)`` int64 ``b * 4096 + voxel`` (block ``b`` of ``coords``,
+    the voxel's C-order index in it; ascending within a block is not promised): without the ``(n, 4096)`` mask,
+    for a reader that sets those voxels of its decode to free space. ``pinned``: ``(n, 16, 16, 16)`` bool, or
+    rows ``(n, 16, 16)`` uint16 (:func:`pinned_rows`).
+
+    Raises:
+        ChecksumError: as :func:`decode_pinned`.
+    """
+    pinned = np.asarray(pinned)
+    if ans.available() and pinned.dtype == np.uint16:
+        return _plane_zeros(stream, coords, pinned, where)
+    return np.flatnonzero(_decoded(stream, coords, pinned, where).blocks().reshape(-1) == 0)
+
+
+#: NEIGHBOURS as (wavefront step, di, dj): what the compiled decoder of wavefront planes reads.
+_PLANE_NEIGHBOURS = np.array([(a + b + c, a, b) for a, b, c in NEIGHBOURS], np.int64)
+
+
+def _plane_zeros(stream: bytes | np.ndarray, coords: np.ndarray, rows: np.ndarray, where: str) -> np.ndarray:
+    """:func:`unobserved_voxels` of pins as rows, compiled, without a grid of the chunk's voxels: the bits
+    decoded wavefront plane by plane (:func:`sdfcodec.core.ans.decode_planes`), the same words read alike."""
+    buf = _checked(stream, where)
+    coords = np.asarray(coords, np.int64).reshape(-1, 3)
+    lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
+    shape = tuple(int(x) + 2 for x in ((coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3)))
+    corner = (coords - lo) * BLOCK + 1
+    order = ans.wave_order_planes(shape, corner, rows)
+    _check_count(buf, len(order[0]), where)
+    if not len(order[0]):
+        return np.zeros(0, np.int64)
+    try:
+        coder = ans.Decoder(np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32))
+        bits = ans.decode_planes(coder, shape, order, _PLANE_NEIGHBOURS, _Layout.WEIGHTS, _Layout.N_CTX)
+    except ValueError as e:  # a last word of 0, as constriction refuses it
+        raise ChecksumError(f"{where} is not a sound M2 stream (ValueError: {e})") from e
+    if not coder.is_empty():
+        raise ChecksumError(f"{where} has words left after its {len(bits)} pinned voxels; it is corrupted")
+    return ans.plane_zeros(order, bits, shape, corner)
+
+
+def _checked(stream: bytes | np.ndarray, where: str) -> np.ndarray:
     buf = np.frombuffer(bytes(stream), dtype=np.uint8)
     if len(buf) < 6 or bytes(buf[:2]) != _MAGIC or (len(buf) - 6) % 4:
         raise ChecksumError(f"{where} is not an M2 stream (bad header or length {len(buf)})")
-    lay = _Layout(coords, pinned)
+    return buf
+
+
+def _check_count(buf: np.ndarray, pins: int, where: str) -> None:
     count = int(buf[2:6].view("<u4")[0])
-    if count != len(lay.at):
-        raise ChecksumError(f"{where} codes {count} pinned voxels, its blocks' decode pins {len(lay.at)}; the codes "
+    if count != pins:
+        raise ChecksumError(f"{where} codes {count} pinned voxels, its blocks' decode pins {pins}; the codes "
                             "or the mask are corrupted")
+
+
+def _decoded(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray, where: str) -> _Layout:
+    """The layout of :func:`decode_pinned` with the stream's bits decoded into its grid."""
+    buf = _checked(stream, where)
+    lay = _Layout(coords, pinned)
+    _check_count(buf, len(lay.at), where)
+    count = len(lay.at)
     if len(lay.at):
         words = np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32)
         if ans.available():  # compiled, the same words read as constriction reads them (tests/test_pinned_mask.py)
@@ -390,7 +473,7 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
             coder = _constriction_decode(words, lay, where)
         if not coder.is_empty():
             raise ChecksumError(f"{where} has words left after its {count} pinned voxels; it is corrupted")
-    return lay.blocks() != 0  # pinned: the bit read; elsewhere 2, observed
+    return lay
 
 
 def _constriction_decode(words: np.ndarray, lay: _Layout, where: str):

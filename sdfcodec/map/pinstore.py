@@ -18,6 +18,7 @@ from ..core._validate import BLOCK
 from ..core.header import PINNED_MASK_EXTENSION, BlockState
 from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
+from . import pinread
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -62,6 +63,17 @@ def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarr
     near = np.argwhere(hull) + lo - 1
     near = near[((near >= 0) & (near < np.asarray(states.shape))).all(axis=1)]
     return coords, near[states[tuple(near.T)] == BlockState.CODED]
+
+
+def _kernels():
+    """:mod:`sdfcodec.core.pinkernels` where numba is installed, else None."""
+    from ..core import ans
+
+    if not ans.available():
+        return None
+    from ..core import pinkernels
+
+    return pinkernels
 
 
 def _zstd(row: np.ndarray) -> bytes:
@@ -175,27 +187,87 @@ class PinnedMaskArray:
     def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(row index (cb, cb, cb) int64 of each block of the chunk, -1 where not coded; packed rows (n, 512))``
         of chunk ``key`` from its stored ``row``."""
-        r = self.reader
         own, outside = chunk_blocks(states, key, self.cb)
         index = np.full((self.cb,) * 3, -1, np.int64)
         if not len(own):
             return index, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
-        row = np.ascontiguousarray(row.reshape(-1))
+        # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
+        q = self._codes(key)
+        # what the signs are told from (pinread): one float32 product (a refined map's pins: exactly, in _zeros)
+        v = None if self.reader.refinement is not None else self._float_decode(q, own)
+        zeros = self._zeros(key, row, own, outside, q, v, np.arange(len(own)))
+        mask = np.ones(len(own) * BLOCK ** 3, bool)
+        mask[zeros] = False
+        index[tuple((own - np.asarray(key, np.int64) * self.cb).T)] = np.arange(len(own))
+        return index, np.packbits(mask).reshape(len(own), -1)  # flat: each block's 4096 bits in a row
+
+    def _codes(self, key: np.ndarray) -> np.ndarray:
+        """The integer codes ``(n, L)`` of chunk ``key``'s coded blocks (C order), as the field's read keeps them."""
+        (_, q), = self.reader.vr.chunk_codes(np.asarray(key, np.int64)[None], self.reader.header.codes.size)
+        return q
+
+    def _float_decode(self, q: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
+        """``(n, 4096)`` float32 metres: the codec's decode of integer codes ``q`` ``(n, L)`` on the CPU (its
+        prefix only), as the field's read decodes them; None without the compiled kernels (pinread: the exact
+        decode then)."""
+        if _kernels() is None:
+            return None
+        import torch
+
+        used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1
+        codes = (q[:, :max(used, 1)] * self.reader.vr.step[:max(used, 1)]).astype(np.float32)  # as codes_for
+        v = self.reader.decode_codes(torch.from_numpy(codes), metres=True, coords=coords, residual=False,
+                                     unmasked=True)
+        return v.numpy().reshape(len(q), -1)
+
+    def _zeros(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,
+               v: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
+        """The unobserved voxels (``b * 4096 + voxel``, :func:`~sdfcodec.map.pinmask.unobserved_voxels`) of chunk
+        ``key``'s coded blocks ``own`` from its stored ``row``, its integer codes ``q`` and the float decode
+        ``v[rows[b]]`` of block ``b`` (``-1``: not decoded; :func:`~sdfcodec.map.pinread.decode_pins`)."""
+        r = self.reader
+        row = np.ascontiguousarray(np.asarray(row).reshape(-1))
         n = int(row[:4].view("<u4")[0])
         where = f"{r.location}: chunk {tuple(int(c) for c in key)} of array '{PINNED_ARRAY}'"
         if n == 0 or 4 + n > len(row):
             raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
                               "in it; the map is incomplete there: restore it from a copy or re-encode")
-        # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
-        (_, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
-        v, bound = pm.exact_decode(q, self.basis())
-        if r.refinement is not None:  # the refined field decides the pins (spec 6h)
-            v, bound = r.refinement.refined(own, v, bound)
-        neg, pos = pm.sign_bounds(v, bound)
-        pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
-        mask = pm.decode_pinned(row[4:4 + n].tobytes(), own, pins, where)
-        index[tuple((own - np.asarray(key, np.int64) * self.cb).T)] = np.arange(len(own))
-        return index, np.packbits(mask.reshape(-1)).reshape(len(own), -1)  # flat: each block's 4096 bits in a row
+        if r.refinement is not None:  # the refined exact field decides the pins (spec 6h): told exactly
+            v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
+            neg, pos = pm.sign_bounds(v, bound)
+            pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
+            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+        pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation)
+        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+
+    def unmask(self, coords: np.ndarray, v: np.ndarray, free: float) -> None:
+        """Set the unobserved voxels of ``v`` ``(n, 16, 16, 16)`` float32, the reader's full-level decode in metres
+        of coded blocks ``coords`` ``(n, 3)`` (before any residual; truncated or not), to ``free``, in place: the
+        pins of each chunk told from ``v`` itself (:mod:`sdfcodec.map.pinread`; a chunk's blocks not among
+        ``coords`` by their exact decode)."""
+        if not len(coords):
+            return
+        r, cb = self.reader, self.cb
+        states = r.vr.states()
+        coords = np.asarray(coords, np.int64)
+        keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        streams = r.read_many(self.streams, [(*(slice(int(c), int(c) + 1) for c in k), slice(None)) for k in keys])
+        flat = v.reshape(len(v), -1)
+        pinkernels = _kernels()
+        for i, (key, row) in enumerate(zip(keys, streams)):
+            own, outside = chunk_blocks(states, key, cb)
+            sel = np.flatnonzero(inverse == i)
+            index = np.full((cb,) * 3, -1, np.int64)
+            index[tuple((coords[sel] - key * cb).T)] = sel
+            rows = index[tuple((own - key * cb).T)]  # each coded block's row of v, -1 where not read
+            zeros = self._zeros(key, row, own, outside, self._codes(key), flat, rows)
+            if pinkernels is not None:
+                pinkernels.set_voxels(flat, rows, zeros, np.float32(free))
+                continue
+            at = rows[zeros >> 12]
+            hit = at >= 0
+            flat[at[hit], zeros[hit] & (BLOCK ** 3 - 1)] = free
 
     def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk

@@ -38,7 +38,7 @@ from .codec_state import load_codec
 from .implied import implied_arrays
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
-from .observed import checked_mask_array, read_block_rows, restore_unobserved_voxels
+from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
 from .residual import check_residual_stored, checked_residual_array
 from .io.remote import RemoteStore
 from .io.stores import GuardStore, PinnedStore, open_store, unguarded
@@ -477,6 +477,11 @@ class MapReader:
         self.codec  # loaded (and its state checked) here, before any thread starts
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
         refining = self.refinement is not None and level == self.header.codes.size  # spec 6h: full level only
+        # variable-rate codes on the CPU: decoded in cache-sized tiles, then masked (rows read beside the codes, or
+        # a pinned mask read at full level decoded from the field's own decode: pinread), then placed; a refined
+        # read at full level takes the path that adds its corrections (decode_runs)
+        after = self.vr is not None and res is None and dev.type == "cpu" and not refining
+        fused = after and hasattr(mask, "unmask") and metres and level == self.header.codes.size
 
         def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
             if self.vr is not None:  # blocks by prefix length, so that runs of like lengths decode their prefix
@@ -485,13 +490,23 @@ class MapReader:
             # a masked map's rows are read here too, in the fetching thread, beside their codes (and residuals,
             # or a refinement's corrections: after the mask, whose pins hand it each chunk's exact decode; the
             # chunk caches of both are this thread's alone)
-            rows = None if mask is None else read_block_rows(self, mask, coords)
+            rows = None if mask is None or fused else read_block_rows(self, mask, coords)
             extra = self.refinement.rows(coords) if refining else None if res is None else self.read_residual(coords)
             return feed.stage(codes), rows, extra
 
         for coords, (staged, rows, resid) in self.fetch_stream(box, level, stage=stage, **kw):
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
+            if after:
+                v = decode_runs(self, codes, coords, None, out, None, metres, refine=False, unmasked=True)
+                if fused:
+                    mask.unmask(coords, v.numpy(), self.truncation[1] if metres else 1.0)
+                elif mask is not None:
+                    v = restore_unobserved(v, rows, self.truncation[1] if metres else 1.0)
+                if placer is not None:
+                    placer.place(coords, v)
+                yield coords, None if placer is not None else v
+                continue
             if self.vr is not None:
                 yield coords, decode_runs(self, codes, coords, rows, out, placer, metres,
                                           refine=refining, refine_rows=resid)
@@ -518,7 +533,7 @@ class MapReader:
                      mask_rows: np.ndarray | None = None, residual: bool = True,
                      residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
                      placer: BlockPlacer | None = None, refine: bool = True,
-                     refine_rows: np.ndarray | None = None) -> torch.Tensor | None:
+                     refine_rows: np.ndarray | None = None, unmasked: bool = False) -> torch.Tensor | None:
         """Core decodes ``(n, 16, 16, 16)`` of codes ``(n, L)`` on their device, in metres (the scaling folded
         into the codec's decode where it can, :meth:`Codec.decode_core`) or normalised, unobserved voxels of a
         masked map set to free space (``coords`` (n, 3), the blocks, are required there; their packed mask rows
@@ -532,10 +547,11 @@ class MapReader:
         a :class:`BlockPlacer` the blocks go into (straight, or tile by tile from cache: sdfcodec.map.groupdecode);
         ``out`` is scratch then, and None is returned. ``refine=False``: without a surface refinement's
         corrections (spec 6h; what a decode below full level does); ``refine_rows`` (n, 4096): those corrections
-        in metres, read unless given."""
+        in metres, read unless given. ``unmasked``: unobserved voxels keep their decode (the caller restores
+        them)."""
         return decode_group(self, codes, metres=metres, coords=coords, mask_rows=mask_rows, residual=residual,
                             residual_rows=residual_rows, out=out, placer=placer, refine=refine,
-                            refine_rows=refine_rows)
+                            refine_rows=refine_rows, unmasked=unmasked)
 
     def iter_codes(self, *, level: int | None = None, chunks_per_batch: int = 8, prefetch: int = 2
                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:

@@ -649,10 +649,12 @@ def prefix_lengths(codes: Any) -> np.ndarray:
 
 
 def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndarray | None, out: Any, placer: BlockPlacer,
-                metres: bool, refine: bool = True, refine_rows: np.ndarray | None = None) -> Any:
+                metres: bool, refine: bool = True, refine_rows: np.ndarray | None = None,
+                unmasked: bool = False) -> Any:
     """:meth:`MapReader.decode_codes` of a group whose blocks are sorted by prefix length: each run of blocks whose
     lengths round up to the same multiple of :data:`RUN_WIDTH` decodes only that prefix (into its slice of
-    ``out``, or placed by ``placer``); the decodes in the group's order, or None with a placer."""
+    ``out``, or placed by ``placer``); the decodes in the group's order, or None with a placer. ``unmasked``:
+    as decode_codes."""
     k = prefix_lengths(codes)
     width = np.maximum(-(-k // RUN_WIDTH) * RUN_WIDTH, RUN_WIDTH).clip(max=codes.shape[1])
     bounds = np.r_[0, np.flatnonzero(np.diff(width)) + 1, len(k)]
@@ -668,11 +670,15 @@ def decode_runs(reader: MapReader, codes: Any, coords: np.ndarray, rows: np.ndar
     if out is None and placer is None and len(runs) > 1:  # one buffer, each run decoded into its slice
         out = empty((len(k), BLOCK, BLOCK, BLOCK), codes.device)
     parts = []
+    cpu = codes.device.type == "cpu"
     for a, b, w in runs:
-        part = reader.decode_codes(codes[a:b, :w].contiguous(), metres=metres, coords=coords[a:b],
+        # numpy's copy on the CPU: torch's threaded one waits for the BLAS threads still spinning (16 ms a group)
+        run = torch.from_numpy(np.ascontiguousarray(codes.numpy()[a:b, :w])) if cpu else codes[a:b, :w].contiguous()
+        part = reader.decode_codes(run, metres=metres, coords=coords[a:b],
                                    mask_rows=None if rows is None else rows[a:b],
                                    out=None if out is None else out[a:b], placer=placer, refine=refine,
-                                   refine_rows=None if refine_rows is None else refine_rows[a:b])
+                                   refine_rows=None if refine_rows is None else refine_rows[a:b],
+                                   unmasked=unmasked)
         parts.append(part)
     if placer is not None:
         return None

@@ -1,0 +1,158 @@
+"""Compiled steps of a pinned observation mask's read (numba; imported only by :mod:`sdfcodec.map.pinread` and
+:mod:`sdfcodec.map.pinstore` when numba is installed): the signs of the exact decode told from the reader's float
+decode, the pinned voxels from them, and the unobserved voxels set in the decode.
+
+Module-level functions, cached on disk by numba.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["sign_rows", "set_voxels", "pinned_rows"]
+
+_SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact decode's integers
+
+
+@njit(cache=True, inline="always")
+def _exact(q, basis_t, b, j):
+    """The exact decode ``basis[0, j] + sum_i q[b, i] basis[i + 1, j]`` of voxel ``j`` of block ``b`` (``basis_t``:
+    the basis transposed, ``(4096, k + 1)``: one voxel's column is contiguous): float64 integers whose every
+    partial sum stays below 2^53 (checked by the caller), so exact in this order too."""
+    t = basis_t[j, 0]
+    for i in range(q.shape[1]):
+        c = q[b, i]
+        if c != 0.0:
+            t += c * basis_t[j, i + 1]
+    return t
+
+
+@njit(cache=True)
+def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
+    """Where the exact decode ``w`` of blocks ``b`` may be negative (``w < e[b]``: ``neg``) and non-negative (``w
+    >= -e[b]``: ``pos``), as rows ``(n, 16, 16)`` uint32 with bit ``z + 1`` for voxel ``z``, told from a float
+    decode in metres ``v[rows[b]]`` (``v`` ``(m, 4096)`` float32) within ``d[b]`` of ``w 2^-24`` (``e``, ``d``
+    ``(n,)`` float64 integers, ``d`` may be inf): a voxel whose float decode lies within ``d[b]`` of ``e[b]`` or
+    ``-e[b]`` is decided by the exact decode of its integer codes ``q`` ``(n, k)`` float64 and the basis transposed
+    ``basis_t`` ``(4096, k + 1)`` float64 (:func:`_exact`). Returns the number of voxels decided exactly."""
+    n = len(rows)
+    exact = 0
+    for b in range(n):
+        r = rows[b]
+        eb, db = e[b], d[b]
+        neg_yes, neg_no = eb - db, eb + db  # x < neg_yes: w < e for sure; x >= neg_no: w >= e for sure
+        pos_yes, pos_no = db - eb, -eb - db  # x >= pos_yes: w >= -e for sure; x < pos_no: w < -e for sure
+        for xy in range(256):
+            nb = np.uint32(0)
+            pb = np.uint32(0)
+            unsure = 0
+            for z in range(16):
+                x = np.float64(v[r, xy * 16 + z]) * _SCALE
+                bit = np.uint32(1) << np.uint32(z + 1)
+                if x < neg_yes:
+                    nb |= bit
+                if x >= pos_yes:
+                    pb |= bit
+                if not (x < neg_yes or x >= neg_no) or not (x >= pos_yes or x < pos_no):
+                    unsure |= 1 << z
+            if unsure:
+                for z in range(16):
+                    if unsure >> z & 1:
+                        w = _exact(q, basis_t, b, xy * 16 + z)
+                        bit = np.uint32(1) << np.uint32(z + 1)
+                        nb = (nb | bit) if w < eb else (nb & ~bit)
+                        pb = (pb | bit) if w >= -eb else (pb & ~bit)
+                        exact += 1
+            neg[b, xy >> 4, xy & 15] = nb
+            pos[b, xy >> 4, xy & 15] = pb
+    return exact
+
+
+@njit(cache=True)
+def set_voxels(v, rows, ids, value):
+    """``v[rows[i >> 12], i & 4095] = value`` for each ``i`` of ``ids`` whose ``rows`` entry is not negative
+    (``v`` ``(m, 4096)``)."""
+    for t in range(len(ids)):
+        r = rows[ids[t] >> 12]
+        if r >= 0:
+            v[r, ids[t] & 4095] = value
+
+
+@njit(cache=True)
+def pinned_rows(coords, neg, pos, outside, both):
+    """:func:`sdfcodec.map.pinmask.pinned_rows` per block: ``(n, 16, 16)`` uint16, bit ``z`` where voxel ``(x, y,
+    z)`` of block ``coords[b]`` ``(n, 3)`` lies in a relevant cell, from the sign rows ``neg``, ``pos`` ``(n, 16,
+    16)`` uint32 (bit ``z + 1``); ``outside`` ``(m, 3)``: coded blocks of other chunks (either sign); blocks
+    elsewhere read ``d_max`` (non-negative only). ``both``: a cell is relevant when it may be negative and may
+    be non-negative (``d_max`` at or above the jump), else when it may be negative."""
+    n = len(coords)
+    out = np.zeros((n, 16, 16), np.uint16)
+    if n == 0:
+        return out
+    lo = coords[0].copy()
+    hi = coords[0].copy()
+    for b in range(n + len(outside)):
+        for a in range(3):
+            c = coords[b, a] if b < n else outside[b - n, a]
+            lo[a] = min(lo[a], c)
+            hi[a] = max(hi[a], c)
+    lo -= 1
+    table = np.full((hi[0] - lo[0] + 2, hi[1] - lo[1] + 2, hi[2] - lo[2] + 2), -1, np.int64)
+    for b in range(len(outside)):
+        table[outside[b, 0] - lo[0], outside[b, 1] - lo[1], outside[b, 2] - lo[2]] = -2
+    for b in range(n):
+        table[coords[b, 0] - lo[0], coords[b, 1] - lo[1], coords[b, 2] - lo[2]] = b
+    row16, row18 = np.uint32(0x1FFFE), np.uint32(0x3FFFF)
+    pn = np.empty((18, 18), np.uint32)
+    pp = np.empty((18, 18), np.uint32)
+    rel = np.empty((17, 17), np.uint32)
+    for b in range(n):
+        cx, cy, cz = coords[b, 0] - lo[0], coords[b, 1] - lo[1], coords[b, 2] - lo[2]
+        for x in range(18):
+            bx = -1 if x == 0 else (1 if x == 17 else 0)
+            sx = 15 if x == 0 else (0 if x == 17 else x - 1)
+            for y in range(18):
+                by = -1 if y == 0 else (1 if y == 17 else 0)
+                sy = 15 if y == 0 else (0 if y == 17 else y - 1)
+                # the rows along z: the block beside (or this one), then one bit from those below and above it
+                s = table[cx + bx, cy + by, cz]
+                if s >= 0:
+                    rn, rp = neg[s, sx, sy] & row16, pos[s, sx, sy] & row16
+                elif s == -2:
+                    rn, rp = row16, row16
+                else:
+                    rn, rp = np.uint32(0), row16
+                s = table[cx + bx, cy + by, cz - 1]
+                if s >= 0:
+                    rn |= (neg[s, sx, sy] >> np.uint32(16)) & np.uint32(1)
+                    rp |= (pos[s, sx, sy] >> np.uint32(16)) & np.uint32(1)
+                elif s == -2:
+                    rn |= np.uint32(1)
+                    rp |= np.uint32(1)
+                else:
+                    rp |= np.uint32(1)
+                s = table[cx + bx, cy + by, cz + 1]
+                if s >= 0:
+                    rn |= (neg[s, sx, sy] & np.uint32(2)) << np.uint32(16)
+                    rp |= (pos[s, sx, sy] & np.uint32(2)) << np.uint32(16)
+                elif s == -2:
+                    rn |= np.uint32(1 << 17)
+                    rp |= np.uint32(1 << 17)
+                else:
+                    rp |= np.uint32(1 << 17)
+                pn[x, y] = rn
+                pp[x, y] = rp & row18
+        for x in range(17):
+            for y in range(17):
+                cn = pn[x, y] | pn[x + 1, y] | pn[x, y + 1] | pn[x + 1, y + 1]
+                cn |= cn >> np.uint32(1)
+                if both:
+                    cp = pp[x, y] | pp[x + 1, y] | pp[x, y + 1] | pp[x + 1, y + 1]
+                    cn &= cp | (cp >> np.uint32(1))
+                rel[x, y] = cn & np.uint32(0x1FFFF)
+        for x in range(16):
+            for y in range(16):
+                p = rel[x, y] | rel[x + 1, y] | rel[x, y + 1] | rel[x + 1, y + 1]
+                out[b, x, y] = np.uint16((p | (p >> np.uint32(1))) & np.uint32(0xFFFF))
+    return out

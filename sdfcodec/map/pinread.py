@@ -1,0 +1,89 @@
+"""The pinned voxels of a chunk (spec/map-format.md section 6g) told from the reader's own float decode of its
+codes, so that a read of a map with a pinned mask multiplies its codes once, not twice.
+
+The writer and the reader must agree on the pinned voxels bit for bit, so they are defined by the exact integer
+decode ``w`` of :func:`sdfcodec.map.pinmask.exact_decode` and its bound ``E`` (a voxel may be negative where ``w <
+E``, non-negative where ``w >= -E``). Computing ``w`` is a float64 matrix product over every voxel, as large as the
+field's own decode and twice as slow. But a reader decodes the field anyway: ``x``, in metres, the codec's
+float32 decode of the dequantised codes, and ``2^24 x`` lies within a margin ``D`` of ``w`` (:func:`float_margin`).
+So ``2^24 x < E - D`` proves ``w < E``, ``2^24 x >= E + D`` proves ``w >= E`` (and alike at ``-E``): only the
+voxels whose float decode lies within ``D`` of ``E`` or ``-E`` (a few in 10^4) need their exact decode, one
+voxel at a time (:func:`sdfcodec.core.pinkernels.sign_rows`). The signs, and so the pinned voxels, are those of
+the exact decode, whatever the float decode's rounding.
+
+The margin, for a pca codec with a dataset mean (what :func:`sdfcodec.map.pinstore.linear_basis` accepts): the
+float decode is a float32 dot product, in any order, with or without FMA, of ``(1, fl(q_i s_i))`` and the rows
+``fl(R a_0 + d_min)``, ``fl(R a_i)`` (the codec's folded decoder; ``R = d_max - d_min``), ``w`` the same sum with
+the rows rounded to integers of ``2^-24`` m instead. So ``|2^24 x - w|`` is at most the rounding of those
+integers, ``(1 + sum|q|) / 2``, plus ``(k + 1) 2^-24`` (the dot product, ``k`` terms and the mean's) and
+``2 2^-24`` (the rounding of ``q s`` and of the folded rows) relative to ``T + (1 + sum|q|) / 2`` (``T`` of the
+bound): :func:`float_margin` takes ``(k + 8) 2^-24`` of ``T + 1 + sum|q|`` and two units more. A decode
+truncated to ``[d_min, d_max]`` keeps every decision where ``E + D`` stays below ``2^24 min(-d_min, d_max)``;
+elsewhere (and for blocks not decoded, ``D`` infinite) every voxel is decided exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core import ans
+from ..core._validate import BLOCK
+from ..core.surface import JUMP
+from . import pinmask as pm
+
+__all__ = ["float_margin", "decode_pins"]
+
+_SCALE = 2.0 ** pm.FRACTION_BITS
+
+
+def float_margin(q: np.ndarray, peak: np.ndarray) -> np.ndarray:
+    """``(n,)`` float64: a bound on ``|2^24 x - w|`` (module docstring) for integer codes ``q`` ``(n, k)`` whose
+    exact decode ``w`` has the bound term ``T`` ``peak`` ``(n,)`` (:func:`~sdfcodec.map.pinmask.decode_bounds`)."""
+    q = np.asarray(q, np.float64)
+    k = q.shape[1]
+    spread = 1.0 + np.abs(q).sum(axis=1)
+    return spread * (0.5 + 2.0 ** -20) + np.ceil((k + 8) / _SCALE * (np.asarray(peak) + spread)) + 2.0
+
+
+def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np.ndarray, coords: np.ndarray,
+                outside_coded: np.ndarray, truncation: tuple[float, float]) -> np.ndarray:
+    """The pinned voxels of a chunk's coded blocks ``coords`` ``(n, 3)`` with integer codes ``q`` ``(n, k)``, as rows
+    ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``; :func:`~sdfcodec.map.pinmask.pinned_rows` of their exact
+    decode's signs, :func:`~sdfcodec.map.pinmask.pinned_voxels_of` unpacked), told from the
+    float decode ``v[rows[b]]`` of block ``b`` (``v`` ``(m, 4096)`` float32 metres, truncated to ``[d_min,
+    d_max]`` or not; ``rows[b] < 0``: not decoded, decided exactly). ``outside_coded``: as ``pinned_voxels_of``.
+
+    Raises:
+        InvalidValueError: codes too large for the exact decode (:func:`~sdfcodec.map.pinmask.decode_bounds`).
+    """
+    n = len(coords)
+    rows = np.asarray(rows, np.int64)
+    if not ans.available() or v is None or not len(v):  # numpy: the exact decode of every voxel
+        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside_coded, truncation)
+        return np.packbits(pins.reshape(n, -1), axis=1, bitorder="little").view("<u2").reshape(n, BLOCK, BLOCK)
+    from ..core import pinkernels
+
+    q = np.ascontiguousarray(q, np.float64)
+    peak, bound = pm.decode_bounds(q, basis)
+    d_min, d_max = (float(t) for t in truncation)
+    room = _SCALE * min(-d_min, d_max) * (1 - 2.0 ** -20)  # a truncated decode still decides the signs below it
+    margin = float_margin(q, peak)
+    margin = np.where((rows >= 0) & (bound + margin < room), margin, np.inf)
+    neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
+    pinkernels.sign_rows(np.asarray(v).reshape(len(v), -1), np.maximum(rows, 0), bound, margin, q,
+                         _transposed(basis, q.shape[1] + 1), neg, pos)
+    return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
+                                  np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3), d_max >= JUMP)
+
+
+_BASIS_T: list = []  # (the basis, its transpose): a map's reads use one basis, transposed once
+
+
+def _transposed(basis: np.ndarray, rows: int) -> np.ndarray:
+    """``basis[:rows].T`` C-contiguous (each voxel's column contiguous for the exact decode of one voxel),
+    kept for the last basis asked."""
+    kept = _BASIS_T[0] if _BASIS_T else None  # (a local: another thread may replace the entry meanwhile)
+    if kept is None or kept[0] is not basis or kept[1].shape[1] != rows:
+        kept = (basis, np.ascontiguousarray(basis[:rows].T))
+        _BASIS_T[:] = [kept]
+    return kept[1]

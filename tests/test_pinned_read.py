@@ -1,0 +1,195 @@
+"""The pinned mask read from the reader's own float decode (sdfcodec.map.pinread, sdfcodec.core.pinkernels): the
+margin bounds the codec's float32 decode against the exact integer decode on real codes, and the pinned voxels
+told from a float decode are the exact decode's, bit for bit, whatever the float decode within the margin (voxels
+on the thresholds included); a map read through it reads what the exact decode's pins give."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import sdfcodec
+from _fused_maps import TRUNC, VS, fused_like
+from sdfcodec.core import ans
+from sdfcodec.core.blocks import split_blocks
+from sdfcodec.core.sdf import sample_volume
+from sdfcodec.map import pinmask as pm
+from sdfcodec.map import pinread
+from sdfcodec.registry import pretrained_codec
+from sdfcodec.testing import analytic_scene
+
+pytestmark = pytest.mark.skipif(not ans.available(), reason="numba is not installed: the exact decode is the read")
+GOLDEN = Path(__file__).parent / "golden" / "maps" / "pinned-mask-pca-8" / "map.zarr"
+R = TRUNC[1] - TRUNC[0]
+
+
+def _case(step: float, size: int = 64, trunc=TRUNC):
+    """A fused room under the shipped pca-``size`` quantised at ``step``: coords, integer codes, fixed-point basis,
+    and the codec's own float32 decode in metres (as a reader decodes: the output scaling folded in, unclipped)."""
+    vol, _ = fused_like(sample_volume(analytic_scene(), (64, 64, 48), VS, truncation=trunc))
+    blocks = split_blocks(vol, fill=trunc[1]).reshape(-1, 16, 16, 16)
+    coords = np.argwhere(np.ones(split_blocks(vol, fill=trunc[1]).shape[:3], bool))
+    keep = ~(blocks >= trunc[1] - 1e-6).reshape(len(blocks), -1).all(axis=1)
+    coords, blocks = coords[keep], blocks[keep]
+    codec = pretrained_codec("pca", size)
+    r = trunc[1] - trunc[0]
+    q = np.rint(np.asarray(codec.encode(((blocks - trunc[0]) / r).astype(np.float32))) / step)
+    sd = codec.state_dict()
+    basis = pm.fixed_point_basis(sd["components"], sd["mean"], np.full(size, step), trunc)
+    codes = torch.from_numpy((q.astype(np.int32) * np.full(size, step)).astype(np.float32))  # as codes_for
+    v = codec.decode_core(codes, scale=r, offset=trunc[0]).numpy().reshape(len(q), -1)
+    return coords, q, basis, v
+
+
+def _bools(rows: np.ndarray) -> np.ndarray:
+    """(n, 16, 16, 16) bool of pin rows (n, 16, 16) uint16, bit z for voxel z."""
+    return ((rows[..., None] >> np.arange(16, dtype=np.uint16)) & 1).astype(bool)
+
+
+@pytest.mark.parametrize("step", [0.02, 0.3, 1.5])
+def test_the_margin_bounds_the_codecs_float_decode(step):
+    """|2^24 x - w| <= float_margin for every voxel (x: the codec's float32 decode, w: the exact decode), on codes
+    from small to large. The margin is nearly reached: the basis's rounding to integers, times a large leading
+    code, is most of it (step 0.02: 0.85 of it)."""
+    _, q, basis, v = _case(step)
+    w, _ = pm.exact_decode(q, basis)
+    peak, _ = pm.decode_bounds(q, basis)
+    dev = np.abs(v.astype(np.float64) * 2.0 ** 24 - w).max(axis=1)
+    margin = pinread.float_margin(q, peak)
+    assert (dev <= margin).all()
+    assert 0.2 < (dev / margin).max()  # the bound is not vacuous
+
+
+@pytest.mark.parametrize("step,trunc", [(0.05, TRUNC), (0.6, TRUNC), (0.05, (-0.02, 0.02))])
+def test_pins_told_from_a_float_decode_are_the_exact_pins(step, trunc):
+    """decode_pins gives pinned_voxels_of the exact decode's signs: from the codec's decode (truncated to the
+    range, as a reader has it), from a decode moved anywhere within the margin (many voxels then near the
+    thresholds, decided exactly), and for blocks not decoded (rows -1); both truncation rules."""
+    coords, q, basis, v = _case(step, trunc=trunc)
+    n = len(coords)
+    outside = coords[-3:] + [0, 0, 40]  # coded blocks of another chunk, next to none: no effect, still accepted
+    want = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside, trunc)
+    assert want.any() and not want.all()
+    rows = np.arange(n)
+    clipped = np.clip(v, *trunc)
+    assert np.array_equal(_bools(pinread.decode_pins(clipped, rows, q, basis, coords, outside, trunc)), want)
+    w, e = pm.exact_decode(q, basis)
+    peak, _ = pm.decode_bounds(q, basis)
+    margin = pinread.float_margin(q, peak)[:, None]
+    rng = np.random.default_rng(3)
+    t = np.where(w > 0, e[:, None], -e[:, None])  # the threshold nearer each voxel
+    anywhere = w + margin * rng.uniform(-0.9, 0.9, w.shape)
+    on_threshold = np.where(np.abs(w - t) <= 0.9 * margin, t, w)
+    assert (on_threshold != w).sum() > 10  # (13 to 396 here; test_sign_rows_... puts 256 on them)
+    for moved in (anywhere, on_threshold):
+        x = (moved / 2.0 ** 24).astype(np.float32)
+        assert np.array_equal(_bools(pinread.decode_pins(x, rows, q, basis, coords, outside, trunc)), want)
+    half = np.where(np.arange(n) % 2 == 0, rows, -1)  # every other block not decoded: its exact decode decides
+    assert np.array_equal(_bools(pinread.decode_pins(v, half, q, basis, coords, outside, trunc)), want)
+
+
+def test_sign_rows_decides_voxels_on_the_thresholds_exactly():
+    """Voxels whose exact decode is E - 1, E, -E - 1, -E (where may-be-negative and may-be-non-negative flip),
+    given a float decode far off but within the margin: the bits are the exact decode's."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(4)
+    basis = np.zeros((3, 4096))
+    basis[0] = rng.integers(-50, 50, 4096)
+    basis[1] = rng.integers(-50, 50, 4096)
+    basis[2] = rng.integers(-50, 50, 4096)
+    q = np.array([[3.0, -2.0]])
+    w = basis[0] + q[0] @ basis[1:]
+    e = np.array([float(np.median(np.abs(w)))])
+    for target in (e[0] - 1, e[0], -e[0] - 1, -e[0]):
+        basis[0, :64] += target - w[:64]  # the first 64 voxels exactly on the threshold
+        w = basis[0] + q[0] @ basis[1:]
+        x = ((w + rng.choice([-3.0, 3.0], 4096)) / 2.0 ** 24).astype(np.float32)[None]
+        neg, pos = (np.zeros((1, 16, 16), np.uint32) for _ in range(2))
+        exact = pinkernels.sign_rows(x, np.zeros(1, np.int64), e, np.array([4.0]), q, np.ascontiguousarray(basis.T),
+                                     neg, pos)
+        assert exact >= 64
+        bits = 1 << (np.arange(16) + 1)
+        got_neg = (neg.reshape(256, 1) & bits) != 0
+        got_pos = (pos.reshape(256, 1) & bits) != 0
+        assert np.array_equal(got_neg.reshape(-1), w < e[0]) and np.array_equal(got_pos.reshape(-1), w >= -e[0])
+
+
+def test_a_read_equals_the_exact_decodes_read(monkeypatch):
+    """The golden pinned map read whole and by a region inside one chunk (its other blocks not decoded): the same
+    values as the read that computes every voxel's exact decode (numba off)."""
+    m = sdfcodec.open_map(GOLDEN)
+    fast = m.decode_region()
+    part = tuple(slice(8, 40) for _ in range(2)) + (slice(0, 20),)
+    fast_part = sdfcodec.open_map(GOLDEN).decode_region(part)
+    with monkeypatch.context() as mp:
+        mp.setattr(ans, "available", lambda: False)
+        slow = sdfcodec.open_map(GOLDEN).decode_region()
+        slow_part = sdfcodec.open_map(GOLDEN).decode_region(part)
+    assert np.array_equal(fast, slow) and np.array_equal(fast_part, slow_part)
+    assert (fast == m.truncation[1]).any() and (fast < 0).any()
+
+
+def test_the_compiled_pinned_rows_are_pinmasks():
+    """pinkernels.pinned_rows (per block, a table of neighbours) gives pinmask.pinned_rows (whole-row numpy
+    operations) bit for bit: random signs, dense and sparse, coded blocks of another chunk beside some, blocks
+    that are not coded around others, both truncation rules."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(5)
+    for trial in range(16):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 20), 3)), axis=0)
+        n = len(coords)
+        outside = np.unique(rng.integers(3, 6, (rng.integers(1, 8), 3)), axis=0) if trial % 2 else np.zeros((0, 3))
+        outside = outside[~(outside[:, None] == coords[None]).all(axis=2).any(axis=1)].astype(np.int64)
+        bits = 1 << (np.arange(16, dtype=np.uint32) + 1)
+        neg_b = rng.random((n, 16, 16, 16)) < rng.random() * 0.1
+        pos_b = ~neg_b | (rng.random(neg_b.shape) < 0.02)
+        neg, pos = ((b * bits).sum(axis=3).astype(np.uint32) for b in (neg_b, pos_b))
+        for trunc, both in ((TRUNC, True), ((-0.02, 0.02), False)):
+            want = pm.pinned_rows(coords, neg, pos, outside, trunc)
+            got = pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64), neg, pos,
+                                         np.ascontiguousarray(outside, np.int64).reshape(-1, 3), both)
+            assert np.array_equal(got, want), (trial, trunc)
+            assert want.any()
+
+
+def test_the_wave_planes_order_is_the_grids():
+    """ans.wave_order_planes (the pins' set bits, as (i, j) per wavefront) gives ans.wave_order's positions and
+    wavefront bounds (a scan of the grid) on random pins of scattered blocks."""
+    rng = np.random.default_rng(6)
+    for trial in range(8):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 12), 3)), axis=0)
+        pinned = rng.random((len(coords), 16, 16, 16)) < [0.0, 0.01, 0.2, 0.9][trial % 4]
+        lo = coords.min(axis=0)
+        shape = tuple(int(x) for x in (coords.max(axis=0) - lo + 1) * 16 + 2)
+        corner = (coords - lo) * 16 + 1
+        at, bounds = ans.wave_order(np.full(int(np.prod(shape)), 2, np.uint8), shape, corner, pinned)
+        rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2")
+        ij, waves, got_bounds = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16))
+        i, j = ij.astype(np.int64) >> 16, ij.astype(np.int64) & 0xFFFF
+        w = np.repeat(waves, np.diff(got_bounds))
+        assert np.array_equal(got_bounds, bounds) and np.array_equal(np.ravel_multi_index((i, j, w - i - j), shape), at)
+
+
+def test_the_plane_decoder_reads_the_grid_decoders_bits():
+    """unobserved_voxels of pins as rows (the decoder of wavefront planes, no grid) finds exactly the voxels the
+    grid decoder (decode_pinned, checked against constriction in test_pinned_fast) reads as 0, on random pins
+    and bits; a stream for other pins is refused as decode_pinned refuses it."""
+    rng = np.random.default_rng(7)
+    for trial in range(8):
+        coords = np.unique(rng.integers(0, 4, (rng.integers(1, 10), 3)), axis=0)
+        pinned = rng.random((len(coords), 16, 16, 16)) < [0.01, 0.2, 0.6, 0.95][trial % 4]
+        bits = rng.random(pinned.shape) < [0.5, 0.1, 0.9, 0.5][trial % 4]
+        stream = pm.encode_pinned(coords, bits, pinned)
+        rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2").reshape(-1, 16, 16)
+        want = np.flatnonzero(~pm.decode_pinned(stream, coords, pinned).reshape(-1))
+        assert np.array_equal(np.sort(pm.unobserved_voxels(stream, coords, rows)), want)
+        assert np.array_equal(want, np.flatnonzero((pinned & ~bits).reshape(-1)))
+    fewer = rows.copy()
+    fewer[0, 0, 0] ^= 1
+    with pytest.raises(sdfcodec.errors.ChecksumError, match="pinned voxels"):
+        pm.unobserved_voxels(stream, coords, fewer)
