@@ -311,8 +311,8 @@ def weighted_rhs(rhs, wi, xi, dt, dec_b, c0i):
 @njit(fastmath=_FAST, cache=True)
 def gather_cols(dmat, idx, nb, bt):
     """bt[:, :nb] = the decode matrix ``dmat`` (k, 4096) at voxels ``idx[:nb]``, one basis row at a time (a
-    row stays in cache while it is gathered; gathering basis rows of voxels into columns writes across all of
-    ``bt`` per voxel and measured 2-6x slower)."""
+    row stays in cache while it is gathered; gathering the voxels' basis rows into columns writes across all of
+    ``bt`` per voxel: measured 1.8x slower, 6.7x with ``bt``'s rows 16 KiB apart, where they alias in the cache)."""
     for a in range(dmat.shape[0]):
         da, ba = dmat[a], bt[a]
         for t in range(nb):
