@@ -29,24 +29,15 @@ _CHUNKS = 256  # blocks are handed to the cores in this many chunks, each with i
 
 @njit(fastmath=_FAST, cache=True)
 def add_rows(g, dt, idx, scale, m):
-    """g (k, k) lower triangle += sum_t scale[t] d_idx[t] d_idx[t]^T: four voxels by two rows of g at a time
-    (each load of a basis row feeds two multiply-adds: 1.35x the one-row loop here)."""
+    """g (k, k) += sum_t scale[t] d_idx[t] d_idx[t]^T, four voxels at a time, whole rows: readers use the lower
+    triangle only, but full rows of k vectorise without the triangle's short, ragged loops (measured 1.3-1.45x
+    faster than the triangle alone for the same result there, although they do twice the multiply-adds)."""
     k = g.shape[0]
     t = 0
     while t + 4 <= m:
         r0, r1, r2, r3 = dt[idx[t]], dt[idx[t + 1]], dt[idx[t + 2]], dt[idx[t + 3]]
         s0, s1, s2, s3 = scale[t], scale[t + 1], scale[t + 2], scale[t + 3]
-        for a in range(0, k - 1, 2):
-            u0, u1, u2, u3 = s0 * r0[a], s1 * r1[a], s2 * r2[a], s3 * r3[a]
-            v0, v1, v2, v3 = s0 * r0[a + 1], s1 * r1[a + 1], s2 * r2[a + 1], s3 * r3[a + 1]
-            ga, gb = g[a], g[a + 1]
-            for b in range(a + 1):
-                x0, x1, x2, x3 = r0[b], r1[b], r2[b], r3[b]
-                ga[b] += u0 * x0 + u1 * x1 + u2 * x2 + u3 * x3
-                gb[b] += v0 * x0 + v1 * x1 + v2 * x2 + v3 * x3
-            gb[a + 1] += v0 * r0[a + 1] + v1 * r1[a + 1] + v2 * r2[a + 1] + v3 * r3[a + 1]
-        if k % 2:
-            a = k - 1
+        for a in range(k):
             u0, u1, u2, u3 = s0 * r0[a], s1 * r1[a], s2 * r2[a], s3 * r3[a]
             ga = g[a]
             for b in range(k):
@@ -57,14 +48,14 @@ def add_rows(g, dt, idx, scale, m):
         for a in range(k):
             u0 = s0 * r0[a]
             ga = g[a]
-            for b in range(a + 1):
+            for b in range(k):
                 ga[b] += u0 * r0[b]
         t += 1
 
 
 @njit(fastmath=_FAST, cache=True)
 def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
-    """Gram (lower triangle) and unregularised right-hand side D diag(wc) (x - d) of weights wc, from the
+    """Gram (whole rows; readers use the lower triangle) and unregularised right-hand side D diag(wc) (x - d) of weights wc, from the
     cheaper reference (0 or all ones); returns the weight sum."""
     n_vox, k = dt.shape
     nz = 0
@@ -82,7 +73,7 @@ def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
             scale[m] = wc[j] - ref
             m += 1
     for a in range(k):
-        for b in range(a + 1):
+        for b in range(k):  # whole rows, as add_rows adds them (gfull is symmetric)
             g[a, b] = ref * gfull[a, b]
         rhs[a] = ref * c0i[a]  # D (x - d) = c0: the plain projection
     add_rows(g, dt, idx, scale, m)
@@ -268,7 +259,7 @@ def plan(wi, cand, piece_cost, deep, cost, choice, idx, scale, nodes, node_scale
 
 @njit(fastmath=_FAST, cache=True)
 def add_pieces(g, gp, pieces, nodes, node_scale, npc):
-    """g (k, k) lower triangle = sum_t node_scale[t] times piece nodes[t] (rows of ``pieces``: packed lower
+    """g (k, k) = sum_t node_scale[t] times piece nodes[t] in the lower triangle, 0 above it (rows of ``pieces``: packed lower
     triangles, row by row), summed in the packed scratch ``gp`` (one contiguous pass per piece)."""
     k = g.shape[0]
     gp[:] = 0
@@ -281,6 +272,8 @@ def add_pieces(g, gp, pieces, nodes, node_scale, npc):
         ga = g[a]
         for b in range(a + 1):
             ga[b] = gp[off + b]
+        for b in range(a + 1, k):
+            ga[b] = 0  # whole rows: add_rows adds to them
         off += a + 1
 
 
