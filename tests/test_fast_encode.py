@@ -195,3 +195,80 @@ def test_the_batched_path_runs_where_the_pass_does_not_apply(fused):
     codec = sdfcodec.get_codec("pca", code_size=16, mean="block").fit(v)
     assert codec.encode_truncated(torch.from_numpy(v), torch.from_numpy(w), 3) is None
     assert encode_truncated(codec, torch.from_numpy(v), torch.from_numpy(w)).shape == (len(v), 16)
+
+
+def _octree_weights(rng) -> np.ndarray:
+    """Weights ``(6, 4096)`` whose patterns reach every level of the Gram's octree: uniform octants, 4^3 and 2^3
+    cells of 0, 1 and 51, a fused-like band, single voxels of other values, and noise."""
+    out = []
+    for cell in (8, 4, 2, 1):
+        n = 16 // cell
+        coarse = rng.choice(np.array([0.0, 1.0, 51.0], np.float32), size=(n, n, n))
+        out.append(np.kron(coarse, np.ones((cell,) * 3, np.float32)).reshape(-1))
+    mixed = out[1].copy()
+    mixed[rng.choice(4096, 40, replace=False)] = rng.uniform(0, 3, 40).astype(np.float32)
+    out.append(mixed)
+    out.append(rng.uniform(0, 3, 4096).astype(np.float32) * (rng.random(4096) < 0.6))
+    return np.stack(out)
+
+
+def test_octree_plan_gives_every_voxel_its_weight():
+    # the plan's telescoping sum (pieces of octree nodes times weight changes, plus voxels left over) weighs each
+    # voxel exactly as given: rebuilt here from the plan by walking every node's voxels
+    from sdfcodec_pca import kernels
+
+    rng = np.random.default_rng(5)
+    k = 3
+    for wi in _octree_weights(rng):
+        cand = np.array([0, 1, wi.max() if wi.max() != 1 else 0], np.float32)
+        idx, scale = np.empty(4096, np.int64), np.empty(4096, np.float32)
+        nodes, node_scale = np.empty(585, np.int64), np.empty(585, np.float32)
+        m, npc = kernels.plan(wi, cand, np.float32(1.5), True, np.empty((585, 3), np.float32),
+                              np.empty(585, np.int64), idx, scale, nodes, node_scale)
+        got = np.zeros(4096, np.float64)
+        grid = np.arange(4096).reshape(16, 16, 16)
+        for u, s in zip(nodes[:npc], node_scale[:npc]):
+            level = int(np.searchsorted([0, 1, 9, 73, 585], u, side="right")) - 1
+            n, cell = 1 << level, 16 >> level
+            x, y, z = np.unravel_index(u - [0, 1, 9, 73][level], (n, n, n))
+            got[grid[x * cell:(x + 1) * cell, y * cell:(y + 1) * cell, z * cell:(z + 1) * cell].reshape(-1)] += s
+        np.add.at(got, idx[:m], scale[:m])
+        np.testing.assert_allclose(got, wi, rtol=0, atol=1e-4)
+        assert m + npc <= np.count_nonzero(wi) + 1  # never more work than the voxels one by one
+    uniform = np.kron(np.array([0.0, 51.0] * 4, np.float32).reshape(2, 2, 2), np.ones((8, 8, 8), np.float32))
+    m, npc = kernels.plan(uniform.reshape(-1), np.array([0, 1, 51], np.float32), np.float32(1.5), True,
+                          np.empty((585, 3), np.float32), np.empty(585, np.int64), np.empty(4096, np.int64),
+                          np.empty(4096, np.float32), np.empty(585, np.int64), np.empty(585, np.float32))
+    assert (m, npc) == (0, 4)  # four octants of 51: four pieces, no voxel
+
+
+@pytest.mark.parametrize("k", [64, 130])  # 130: above the octree table's limit, the block's Gram only
+def test_gram_pieces_are_the_grams_of_their_voxels(k):
+    # each node's packed triangle against numpy's float64 Gram of the basis rows of that node's voxels
+    rng = np.random.default_rng(7)
+    dt = rng.standard_normal((4096, k)).astype(np.float32)
+    pieces = truncated.gram_pieces(dt)
+    rows, cols = np.tril_indices(k)
+    grid = np.arange(4096).reshape(16, 16, 16)
+    d64 = dt.astype(np.float64)
+    if k > 128:
+        assert pieces.shape == (1, k * (k + 1) // 2)
+        np.testing.assert_allclose(pieces[0], (d64.T @ d64)[rows, cols], rtol=1e-5, atol=1e-2)
+        return
+    assert pieces.shape == (585, k * (k + 1) // 2)
+    for u in (0, 1, 8, 9, 40, 72, 73, 300, 584):
+        level = int(np.searchsorted([0, 1, 9, 73, 585], u, side="right")) - 1
+        n, cell = 1 << level, 16 >> level
+        x, y, z = np.unravel_index(u - [0, 1, 9, 73][level], (n, n, n))
+        vox = grid[x * cell:(x + 1) * cell, y * cell:(y + 1) * cell, z * cell:(z + 1) * cell].reshape(-1)
+        np.testing.assert_allclose(pieces[u], (d64[vox].T @ d64[vox])[rows, cols], rtol=1e-5, atol=1e-2)
+
+
+@pytest.mark.parametrize("k", [64, 33])
+def test_compiled_fit_on_octree_patterns_is_the_weighted_least_squares(fused, k):
+    # weights uniform over octants and cells (the Gram from pieces only), mixed, and noise: float64 lstsq's fit
+    v, _ = fused
+    w = _octree_weights(np.random.default_rng(3)).reshape(-1, 16, 16, 16)
+    x = v[:len(w)]
+    codec = sdfcodec.pretrained_codec("pca", k)
+    assert_weighted_fit(codec, codec.encode(x, weights=w), x, w)

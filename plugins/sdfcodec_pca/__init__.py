@@ -377,8 +377,15 @@ class PCACodec(Codec):
         steps = self.cg_steps_per_refit * rounds
         codes = truncated.truncated_codes(blocks.reshape(n, _N).numpy(), w.reshape(n, _N).numpy(),
                                           self._affine[2].T, self._affine[3], c0.numpy(), RIDGE, rounds, steps,
-                                          REFIT_TOLERANCE)
+                                          REFIT_TOLERANCE, self._gram_pieces())
         return torch.from_numpy(codes)
+
+    def _gram_pieces(self) -> np.ndarray:
+        """:func:`sdfcodec_pca.truncated.gram_pieces` of this basis, cached (computed in tens of milliseconds)."""
+        pieces = self._device_cache.get("gram-pieces")
+        if pieces is None:
+            pieces = self._device_cache["gram-pieces"] = (truncated.gram_pieces(self._affine[2].T),)
+        return pieces[0]
 
     def numpy_path(self) -> "_NumpyPCA | None":
         """The affine encode and decode in numpy, and :meth:`encode_truncated`'s compiled pass (searches: no
@@ -540,5 +547,5 @@ class _NumpyPCA:
         # the solver the torch hook runs (its refits as conjugate-gradient steps by default), so that query shapes
         # encode as map blocks do and shipped calibrations hold on both paths
         return truncated.truncated_codes(blocks, weights, c._affine[2].T, c._affine[3], self.encode(blocks), RIDGE,
-                                         rounds, c.cg_steps_per_refit * rounds, REFIT_TOLERANCE)
+                                         rounds, c.cg_steps_per_refit * rounds, REFIT_TOLERANCE, c._gram_pieces())
 

@@ -20,28 +20,24 @@ _LINE_STEPS = 4  # Newton steps of the line search along each direction
 _BOUND_EPS = 1e-6  # a stored value within this of 0 or 1 sits at a bound (as encode_truncated tests it)
 #: fastmath without 'nnan' and 'ninf': reordered sums vectorise, the NaN and definiteness checks stay
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+#: The octree of Gram pieces (:func:`plan`): the block, its 8 cells of 8^3, 64 of 4^3 and 512 of 2^3 voxels,
+#: numbered level by level (the first id of each level here), C order within a level
+_OFF = np.array([0, 1, 9, 73], np.int64)
+_NODES = 585
+_CHUNKS = 256  # blocks are handed to the cores in this many chunks, each with its own scratch
 
 
 @njit(fastmath=_FAST, cache=True)
 def add_rows(g, dt, idx, scale, m):
-    """g (k, k) lower triangle += sum_t scale[t] d_idx[t] d_idx[t]^T: four voxels by two rows of g at a time
-    (each load of a basis row feeds two multiply-adds: 1.35x the one-row loop here)."""
+    """g (k, k) += sum_t scale[t] d_idx[t] d_idx[t]^T, four voxels at a time, whole rows: readers use the lower
+    triangle only, but full rows of k vectorise without the triangle's short, ragged loops (measured 1.3-1.45x
+    faster than the triangle alone for the same result there, although they do twice the multiply-adds)."""
     k = g.shape[0]
     t = 0
     while t + 4 <= m:
         r0, r1, r2, r3 = dt[idx[t]], dt[idx[t + 1]], dt[idx[t + 2]], dt[idx[t + 3]]
         s0, s1, s2, s3 = scale[t], scale[t + 1], scale[t + 2], scale[t + 3]
-        for a in range(0, k - 1, 2):
-            u0, u1, u2, u3 = s0 * r0[a], s1 * r1[a], s2 * r2[a], s3 * r3[a]
-            v0, v1, v2, v3 = s0 * r0[a + 1], s1 * r1[a + 1], s2 * r2[a + 1], s3 * r3[a + 1]
-            ga, gb = g[a], g[a + 1]
-            for b in range(a + 1):
-                x0, x1, x2, x3 = r0[b], r1[b], r2[b], r3[b]
-                ga[b] += u0 * x0 + u1 * x1 + u2 * x2 + u3 * x3
-                gb[b] += v0 * x0 + v1 * x1 + v2 * x2 + v3 * x3
-            gb[a + 1] += v0 * r0[a + 1] + v1 * r1[a + 1] + v2 * r2[a + 1] + v3 * r3[a + 1]
-        if k % 2:
-            a = k - 1
+        for a in range(k):
             u0, u1, u2, u3 = s0 * r0[a], s1 * r1[a], s2 * r2[a], s3 * r3[a]
             ga = g[a]
             for b in range(k):
@@ -52,14 +48,14 @@ def add_rows(g, dt, idx, scale, m):
         for a in range(k):
             u0 = s0 * r0[a]
             ga = g[a]
-            for b in range(a + 1):
+            for b in range(k):
                 ga[b] += u0 * r0[b]
         t += 1
 
 
 @njit(fastmath=_FAST, cache=True)
 def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
-    """Gram (lower triangle) and unregularised right-hand side D diag(wc) (x - d) of weights wc, from the
+    """Gram (whole rows; readers use the lower triangle) and unregularised right-hand side D diag(wc) (x - d) of weights wc, from the
     cheaper reference (0 or all ones); returns the weight sum."""
     n_vox, k = dt.shape
     nz = 0
@@ -77,7 +73,7 @@ def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
             scale[m] = wc[j] - ref
             m += 1
     for a in range(k):
-        for b in range(a + 1):
+        for b in range(k):  # whole rows, as add_rows adds them (gfull is symmetric)
             g[a, b] = ref * gfull[a, b]
         rhs[a] = ref * c0i[a]  # D (x - d) = c0: the plain projection
     add_rows(g, dt, idx, scale, m)
@@ -186,21 +182,162 @@ def symv(g, v, out):
 
 
 @njit(fastmath=_FAST, cache=True)
-def refine(c, g, lam, rhs, c0i, chol, xi, wi, dt, dec_b, bound, nb, iters, tol):
+def plan(wi, cand, piece_cost, deep, cost, choice, idx, scale, nodes, node_scale):
+    """How to build the Gram of weights ``wi`` (4096,) from the octree pieces (:func:`add_pieces`): fills
+    ``nodes``/``node_scale`` with the pieces to add (node id, weight change) and ``idx``/``scale`` with the voxels
+    left to add one by one (rank-one updates); returns (voxels, pieces). Each node of the octree (the block, its
+    8^3, 4^3 and 2^3 cells) holds a reference weight (one of ``cand``; the root's parent holds 0); a node whose
+    reference differs from its parent's adds its piece times the difference, and each voxel whose weight
+    differs from its 2^3 cell's reference adds its own term: a telescoping sum, every voxel weighs exactly its
+    weight. The references minimise voxels + ``piece_cost`` times pieces (dynamic programming over the tree,
+    ``cost`` (585, 3) and ``choice`` (585,) scratch). ``deep`` False: the block's piece only (no cell table)."""
+    nc = cand.shape[0]
+    for u in range(_NODES):
+        for r in range(nc):
+            cost[u, r] = 0
+    c0, c1, c2 = cand[0], cand[1], cand[2]
+    for xx in range(16):  # the 2^3 cells: voxels whose weight differs from each candidate reference
+        for yy in range(16):
+            row = wi[(xx * 16 + yy) * 16:(xx * 16 + yy + 1) * 16]
+            base = 73 + ((xx >> 1) * 8 + (yy >> 1)) * 8
+            for zz in range(0, 16, 2):
+                u = base + (zz >> 1)
+                a, b = row[zz], row[zz + 1]
+                cost[u, 0] += np.float32((a != c0) + (b != c0))
+                cost[u, 1] += np.float32((a != c1) + (b != c1))
+                cost[u, 2] += np.float32((a != c2) + (b != c2))
+    for lv in range(3, 0, -1):  # bottom up: a subtree's cost under each inherited reference, into its parent
+        n = 1 << lv
+        h = n >> 1
+        pc = piece_cost if deep else np.float32(1e30)
+        for x in range(n):
+            for y in range(n):
+                for z in range(n):
+                    u = _OFF[lv] + (x * n + y) * n + z
+                    par = _OFF[lv - 1] + ((x >> 1) * h + (y >> 1)) * h + (z >> 1)
+                    for r in range(nc):
+                        best = cost[u, r]
+                        for r2 in range(nc):
+                            if r2 != r and pc + cost[u, r2] < best:
+                                best = pc + cost[u, r2]
+                        cost[par, r] += best
+    npc = 0
+    for lv in range(4):  # top down: each node's reference, given its parent's
+        n = 1 << lv
+        h = n >> 1
+        pc = piece_cost if deep or lv == 0 else np.float32(1e30)
+        for x in range(n):
+            for y in range(n):
+                for z in range(n):
+                    u = _OFF[lv] + (x * n + y) * n + z
+                    inh = 0 if lv == 0 else choice[_OFF[lv - 1] + ((x >> 1) * h + (y >> 1)) * h + (z >> 1)]
+                    pick = inh
+                    best = cost[u, inh]
+                    for r2 in range(nc):
+                        if r2 != inh and pc + cost[u, r2] < best:
+                            best = pc + cost[u, r2]
+                            pick = r2
+                    choice[u] = pick
+                    if pick != inh:
+                        nodes[npc] = u if deep else 0
+                        node_scale[npc] = cand[pick] - cand[inh]
+                        npc += 1
+    m = 0
+    for c in range(512):
+        cx, cy, cz = c >> 6, (c >> 3) & 7, c & 7
+        ref = cand[choice[73 + c]]
+        for dx in range(2):
+            for dy in range(2):
+                for dz in range(2):
+                    j = ((2 * cx + dx) * 16 + 2 * cy + dy) * 16 + 2 * cz + dz
+                    if wi[j] != ref:
+                        idx[m] = j
+                        scale[m] = wi[j] - ref
+                        m += 1
+    return m, npc
+
+
+@njit(fastmath=_FAST, cache=True)
+def add_pieces(g, gp, pieces, nodes, node_scale, npc):
+    """g (k, k) = sum_t node_scale[t] times piece nodes[t] in the lower triangle, 0 above it (rows of ``pieces``: packed lower
+    triangles, row by row), summed in the packed scratch ``gp`` (one contiguous pass per piece)."""
+    k = g.shape[0]
+    gp[:] = 0
+    for t in range(npc):
+        s, pc = node_scale[t], pieces[nodes[t]]
+        for e in range(gp.shape[0]):
+            gp[e] += s * pc[e]
+    off = 0
+    for a in range(k):
+        ga = g[a]
+        for b in range(a + 1):
+            ga[b] = gp[off + b]
+        for b in range(a + 1, k):
+            ga[b] = 0  # whole rows: add_rows adds to them
+        off += a + 1
+
+
+@njit(fastmath=_FAST, cache=True)
+def weighted_rhs(rhs, wi, xi, dt, dec_b, c0i):
+    """rhs = D diag(wi) (xi - d) from the cheaper reference (weights 0, or 1: then D (x - d) = c0, the plain
+    projection); returns the weight sum."""
+    n_vox, k = dt.shape
+    nz = 0
+    nd = 0
+    wsum = 0.0
+    for j in range(n_vox):
+        nz += wi[j] != 0
+        nd += wi[j] != 1
+        wsum += wi[j]
+    ref = np.float32(0.0 if nz <= nd else 1.0)
+    for a in range(k):
+        rhs[a] = ref * c0i[a]
+    for j in range(n_vox):
+        if wi[j] != ref:
+            r = (wi[j] - ref) * (xi[j] - dec_b[j])
+            row = dt[j]
+            for a in range(k):
+                rhs[a] += r * row[a]
+    return wsum
+
+
+@njit(fastmath=_FAST, cache=True)
+def gather_cols(dmat, idx, nb, bt):
+    """bt[:, :nb] = the decode matrix ``dmat`` (k, 4096) at voxels ``idx[:nb]``, one basis row at a time (a
+    row stays in cache while it is gathered; gathering the voxels' basis rows into columns writes across all of
+    ``bt`` per voxel: measured 1.8x slower, 6.7x with ``bt``'s rows 16 KiB apart, where they alias in the cache)."""
+    for a in range(dmat.shape[0]):
+        da, ba = dmat[a], bt[a]
+        for t in range(nb):
+            ba[t] = da[idx[t]]
+
+
+@njit(fastmath=_FAST, cache=True)
+def decode_cols(code, bt, db, nb, out):
+    """out[:nb] = the decode of ``code`` at the bound voxels whose basis columns ``bt`` (k, >= nb) holds (``db``
+    their decode bias): a multiply-add over the voxels per component, vectorised along them."""
+    for t in range(nb):
+        out[t] = db[t]
+    for a in range(bt.shape[0]):
+        ca, row = code[a], bt[a]
+        for t in range(nb):
+            out[t] += ca * row[t]
+
+
+@njit(fastmath=_FAST, cache=True)
+def refine(c, g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec, q, rr):
     """The truncation refits as preconditioned nonlinear conjugate gradients (Polak-Ribiere+) on the reader's
     error itself, ``f(c) = sum_j w_j r_j^2 + lam |c - c0|^2`` over the voxels not at a bound decoded beyond it
     (``r`` the residual of the decode; the active set follows ``c`` at every step), from the weighted fit ``c``
     (k,) float32, updated in place. No Gram is rebuilt nor refactorised: ``G + lam I`` (lower triangle ``g``
     plus ``lam``, of all the weights) gives the Hessian minus the active bound voxels' rank-one terms, and its
-    Cholesky factor ``chol`` preconditions. Per step: one G v product, one preconditioner solve and the basis
-    rows of the ``nb`` bound voxels ``bound`` twice (2 k nb multiply-adds; measured 4-5 plain projections of
-    time a step on the bench's blocks, against about 15 for an exact round, which rebuilds a Gram from the
-    flipped voxels and refactorises it). Stops after ``iters`` steps or when ``z^T grad`` falls below ``tol``
-    times its first value."""
+    Cholesky factor ``chol`` preconditions. The ``nb`` bound voxels come gathered: their basis columns ``bt``
+    (k, >= nb), values ``xb``, weights ``wb``, which bound (``topb``: d_max) and decode bias ``db``; ``dec``,
+    ``q``, ``rr`` scratch (>= nb). Per step: one G v product, one preconditioner solve and two passes over the
+    bound voxels' columns (2 k nb multiply-adds, vectorised along the voxels). Stops after ``iters`` steps or
+    when ``z^T grad`` falls below ``tol`` times its first value."""
     k = c.shape[0]
-    dec = np.empty(nb, np.float32)
-    q = np.empty(nb, np.float32)
-    decode_at(c, dt, dec_b, bound, nb, dec)
+    decode_cols(c, bt, db, nb, dec)
     hc = np.empty(k, np.float32)
     symv(g, c, hc)
     for a in range(k):
@@ -213,16 +350,16 @@ def refine(c, g, lam, rhs, c0i, chol, xi, wi, dt, dec_b, bound, nb, iters, tol):
     gz0 = np.float32(0)
     gzprev = np.float32(0)
     for it in range(iters):
-        for a in range(k):
-            grad[a] = hc[a]
-        for t in range(nb):  # minus the active bound voxels' terms
-            j = bound[t]
+        for t in range(nb):  # the active bound voxels' residuals (0 elsewhere)
             d = dec[t]
-            if (d >= 1) if xi[j] >= 1 - _BOUND_EPS else (d <= 0):
-                r = wi[j] * (d - xi[j])
-                row = dt[j]
-                for a in range(k):
-                    grad[a] -= r * row[a]
+            act = (d >= 1) if topb[t] else (d <= 0)
+            rr[t] = wb[t] * (d - xb[t]) if act else np.float32(0)
+        for a in range(k):  # minus their terms
+            row = bt[a]
+            acc = np.float32(0)
+            for t in range(nb):
+                acc += rr[t] * row[t]
+            grad[a] = hc[a] - acc
         chol_solve(chol, grad, z)
         gz = np.float32(0)
         gzo = np.float32(0)
@@ -252,9 +389,12 @@ def refine(c, g, lam, rhs, c0i, chol, xi, wi, dt, dec_b, bound, nb, iters, tol):
             hp[a] += lam * p[a]
             php += p[a] * hp[a]
             s0 += p[a] * hc[a]
-        decode_at(p, dt, dec_b, bound, nb, q)
         for t in range(nb):
-            q[t] -= dec_b[bound[t]]  # decode_at adds the bias: the direction's change only
+            q[t] = 0  # the direction's change of the decode only (no bias)
+        for a in range(k):
+            pa, row = p[a], bt[a]
+            for t in range(nb):
+                q[t] += pa * row[t]
         # exact line search: the error along p is piecewise quadratic and convex; Newton on its derivative
         # (piecewise linear) from 0 lands on its minimum in a few steps, each O(nb)
         alpha = np.float32(0)
@@ -262,11 +402,11 @@ def refine(c, g, lam, rhs, c0i, chol, xi, wi, dt, dec_b, bound, nb, iters, tol):
             d1 = s0 + alpha * php
             d2 = php
             for t in range(nb):
-                j = bound[t]
                 d = dec[t] + alpha * q[t]
-                if (d >= 1) if xi[j] >= 1 - _BOUND_EPS else (d <= 0):
-                    d1 -= wi[j] * (d - xi[j]) * q[t]
-                    d2 -= wi[j] * q[t] * q[t]
+                act = (d >= 1) if topb[t] else (d <= 0)
+                wq = wb[t] * q[t] if act else np.float32(0)
+                d1 -= wq * (d - xb[t])
+                d2 -= wq * q[t]
             if not d2 > 0:
                 break
             step = d1 / d2
@@ -283,12 +423,15 @@ def refine(c, g, lam, rhs, c0i, chol, xi, wi, dt, dec_b, bound, nb, iters, tol):
 
 
 @njit(parallel=True, fastmath=False, cache=True)
-def kernel(x, w, dt, dec_b, gfull, c0, ridge, rounds, iters, tol, out):
-    """See :func:`sdfcodec_pca.truncated.truncated_codes` (``out`` ``(n, k)`` float32 receives the codes)."""
+def kernel(x, w, dt, dmat, dec_b, gfull, pieces, piece_cost, c0, ridge, rounds, iters, tol, out):
+    """See :func:`sdfcodec_pca.truncated.truncated_codes` (``out`` ``(n, k)`` float32 receives the codes; ``dmat``
+    the decode matrix ``(k, 4096)``, ``dt`` its transpose; ``pieces`` the octree's Grams, :func:`plan`, or the
+    block's alone)."""
     n = x.shape[0]
     n_vox, k = dt.shape
-    for i in prange(n):
-        xi, wi, c0i = x[i], w[i], c0[i]
+    deep = pieces.shape[0] == _NODES
+    chunks = min(n, _CHUNKS)
+    for ch in prange(chunks):
         g = np.zeros((k, k), np.float32)
         rhs = np.zeros(k, np.float32)
         chol = np.zeros((k, k), np.float32)
@@ -296,71 +439,110 @@ def kernel(x, w, dt, dec_b, gfull, c0, ridge, rounds, iters, tol, out):
         sol = np.zeros(k, np.float32)
         idx = np.empty(n_vox, np.int64)
         scale = np.empty(n_vox, np.float32)
-        wc = wi.copy()
-        wsum = build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale)
-        lam = np.float32((ridge / n_vox) * max(wsum, 1e-12))
-        if not solve(g, rhs, c0i, lam, chol, panel, sol):
-            out[i] = c0i
-            continue
-        for a in range(k):
-            out[i, a] = sol[a]
-        # the bound voxels: observed and stored at d_max (1) or d_min (0)
-        nb = 0
-        for j in range(n_vox):
-            if wi[j] > 0 and (xi[j] >= 1 - _BOUND_EPS or xi[j] <= _BOUND_EPS):
-                idx[nb] = j
-                nb += 1
-        if nb == 0:
-            continue
-        bound = idx[:nb].copy()
-        if iters > 0:
-            refine(out[i], g, lam, rhs, c0i, chol, xi, wi, dt, dec_b, bound, nb, iters, tol)
-            continue
-        active = np.zeros(nb, np.bool_)
-        flip = np.empty(nb, np.int64)
-        dec = np.empty(nb, np.float32)
-        for _ in range(rounds):
-            nf = 0
-            decode_at(out[i], dt, dec_b, bound, nb, dec)  # the bound voxels only, as the codes stored
-            for t in range(nb):
-                j = bound[t]
-                d = dec[t]
-                now = (d >= 1) if xi[j] >= 1 - _BOUND_EPS else (d <= 0)
-                if now != active[t]:
-                    flip[nf] = t
-                    nf += 1
-            if nf == 0:
-                break
-            nz = 0
-            nd = 0
-            for t in range(nf):
-                active[flip[t]] = not active[flip[t]]
+        cost = np.empty((_NODES, 3), np.float32)
+        choice = np.empty(_NODES, np.int64)
+        nodes = np.empty(_NODES, np.int64)
+        node_scale = np.empty(_NODES, np.float32)
+        cand = np.zeros(3, np.float32)
+        gp = np.empty(pieces.shape[1], np.float32)
+        bt = np.empty((k, n_vox), np.float32)
+        xb = np.empty(n_vox, np.float32)
+        wb = np.empty(n_vox, np.float32)
+        db = np.empty(n_vox, np.float32)
+        topb = np.empty(n_vox, np.bool_)
+        dec_s = np.empty(n_vox, np.float32)
+        q_s = np.empty(n_vox, np.float32)
+        rr_s = np.empty(n_vox, np.float32)
+        for i in range((ch * n) // chunks, ((ch + 1) * n) // chunks):
+            xi, wi, c0i = x[i], w[i], c0[i]
+            wmax = np.float32(0)
             for j in range(n_vox):
-                nz += wc[j] != 0
-                nd += wc[j] != 1
-            for t in range(nf):  # the new weights: 0 where active, the given weight elsewhere
-                j = bound[flip[t]]
-                wn = np.float32(0.0) if active[flip[t]] else wi[j]
-                nz += (wn != 0) - (wc[j] != 0)
-                nd += (wn != 1) - (wc[j] != 1)
-                scale[t] = wn - wc[j]
-                wc[j] = wn
-            if nf < min(nz, nd):  # update with the flipped voxels only
-                for t in range(nf):
-                    j = bound[flip[t]]
-                    idx[t] = j
-                    r = scale[t] * (xi[j] - dec_b[j])
-                    for a in range(k):
-                        rhs[a] += r * dt[j, a]
-                add_rows(g, dt, idx, scale, nf)
-                wsum = 0.0
-                for j in range(n_vox):
-                    wsum += wc[j]
-            else:
-                wsum = build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale)
+                wmax = max(wmax, wi[j])
+            cand[1] = 1
+            cand[2] = wmax if wmax != 1 else np.float32(0)  # references 0, 1 and the largest weight (the band's)
+            m, npc = plan(wi, cand, piece_cost, deep, cost, choice, idx, scale, nodes, node_scale)
+            add_pieces(g, gp, pieces, nodes, node_scale, npc)
+            add_rows(g, dt, idx, scale, m)
+            wsum = weighted_rhs(rhs, wi, xi, dt, dec_b, c0i)
             lam = np.float32((ridge / n_vox) * max(wsum, 1e-12))
-            if not solve(g, rhs, c0i, lam, chol, panel, sol):  # as the batched path: the plain projection
+            if not solve(g, rhs, c0i, lam, chol, panel, sol):
                 out[i] = c0i
-                break
+                continue
             for a in range(k):
                 out[i, a] = sol[a]
+            # the bound voxels: observed and stored at d_max (1) or d_min (0)
+            nb = 0
+            for j in range(n_vox):
+                if wi[j] > 0 and (xi[j] >= 1 - _BOUND_EPS or xi[j] <= _BOUND_EPS):
+                    idx[nb] = j
+                    nb += 1
+            if nb == 0:
+                continue
+            if iters > 0:
+                for t in range(nb):
+                    j = idx[t]
+                    xb[t], wb[t], db[t], topb[t] = xi[j], wi[j], dec_b[j], xi[j] >= 1 - _BOUND_EPS
+                gather_cols(dmat, idx, nb, bt)
+                refine(out[i], g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec_s, q_s, rr_s)
+                continue
+            exact_refits(out[i], xi, wi, dt, dec_b, gfull, c0i, ridge, rounds, g, rhs, chol, panel, sol,
+                         idx[:nb].copy(), idx, scale)
+
+
+@njit(fastmath=False, cache=True)
+def exact_refits(code, xi, wi, dt, dec_b, gfull, c0i, ridge, rounds, g, rhs, chol, panel, sol, bound, idx, scale):
+    """The truncation refits as exact active-set rounds (``iters = 0``) from the weighted fit ``code`` (k,),
+    updated in place: each round decodes the ``bound`` voxels, updates the Gram ``g`` and right-hand side
+    ``rhs`` of that fit with the voxels whose active state flipped (or rebuilds them from a reference,
+    whichever touches fewer voxels), and refactorises."""
+    n_vox, k = dt.shape
+    nb = bound.shape[0]
+    wc = wi.copy()
+    active = np.zeros(nb, np.bool_)
+    flip = np.empty(nb, np.int64)
+    dec = np.empty(nb, np.float32)
+    for _ in range(rounds):
+        nf = 0
+        decode_at(code, dt, dec_b, bound, nb, dec)  # the bound voxels only, as the codes stored
+        for t in range(nb):
+            j = bound[t]
+            d = dec[t]
+            now = (d >= 1) if xi[j] >= 1 - _BOUND_EPS else (d <= 0)
+            if now != active[t]:
+                flip[nf] = t
+                nf += 1
+        if nf == 0:
+            break
+        nz = 0
+        nd = 0
+        for t in range(nf):
+            active[flip[t]] = not active[flip[t]]
+        for j in range(n_vox):
+            nz += wc[j] != 0
+            nd += wc[j] != 1
+        for t in range(nf):  # the new weights: 0 where active, the given weight elsewhere
+            j = bound[flip[t]]
+            wn = np.float32(0.0) if active[flip[t]] else wi[j]
+            nz += (wn != 0) - (wc[j] != 0)
+            nd += (wn != 1) - (wc[j] != 1)
+            scale[t] = wn - wc[j]
+            wc[j] = wn
+        if nf < min(nz, nd):  # update with the flipped voxels only
+            for t in range(nf):
+                j = bound[flip[t]]
+                idx[t] = j
+                r = scale[t] * (xi[j] - dec_b[j])
+                for a in range(k):
+                    rhs[a] += r * dt[j, a]
+            add_rows(g, dt, idx, scale, nf)
+            wsum = 0.0
+            for j in range(n_vox):
+                wsum += wc[j]
+        else:
+            wsum = build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale)
+        lam = np.float32((ridge / n_vox) * max(wsum, 1e-12))
+        if not solve(g, rhs, c0i, lam, chol, panel, sol):  # as the batched path: the plain projection
+            code[:] = c0i
+            return
+        for a in range(k):
+            code[a] = sol[a]
