@@ -193,3 +193,28 @@ def test_the_plane_decoder_reads_the_grid_decoders_bits():
     fewer[0, 0, 0] ^= 1
     with pytest.raises(sdfcodec.errors.ChecksumError, match="pinned voxels"):
         pm.unobserved_voxels(stream, coords, fewer)
+
+
+def test_a_pinned_maps_decode_runs_in_full_float32_whatever_the_users_precision(monkeypatch):
+    """The pins are proven against a true float32 decode (spec 6g): a user's
+    ``torch.set_float32_matmul_precision("medium")`` (TF32/bfloat16 products on hardware that has them) must not
+    reach the decode of a pinned map, and is the user's again afterwards."""
+    from sdfcodec.map import groupdecode
+
+    seen = []
+    inner = groupdecode._decode_group
+
+    def spy(*a, **kw):
+        seen.append(torch.get_float32_matmul_precision())
+        return inner(*a, **kw)
+
+    monkeypatch.setattr(groupdecode, "_decode_group", spy)
+    was = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("medium")
+    try:
+        whole = sdfcodec.open_map(GOLDEN).decode_region()
+        assert seen and set(seen) == {"highest"}
+        assert torch.get_float32_matmul_precision() == "medium"
+    finally:
+        torch.set_float32_matmul_precision(was)
+    np.testing.assert_array_equal(whole, sdfcodec.open_map(GOLDEN).decode_region())

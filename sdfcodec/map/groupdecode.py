@@ -13,13 +13,15 @@ cache-sized tiles on every core: the clip and the placing read the tile from cac
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK, empty
 from ..codec import decodes_tiles, plugin_calls
+from ..core.header import PINNED_MASK_EXTENSION
 from ..errors import InvalidValueError
 from .format import DECODE_LIMIT, check_decoded
 from .metric import decode_affine
@@ -32,10 +34,34 @@ if TYPE_CHECKING:
 
 torch = lazy_module("torch")  # imported on first use: reading a header never needs it
 
-__all__ = ["decode_group"]
+__all__ = ["decode_group", "float32_products"]
 
 
-def decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
+@contextmanager
+def float32_products(on: bool = True) -> Iterator[None]:
+    """torch's float32 matrix products in full float32 while inside (``on``): a pinned mask's pins (spec 6g) are
+    proven against a true float32 decode, and ``torch.set_float32_matmul_precision("high")`` or ``"medium"`` (a
+    user's, for speed elsewhere) would let TF32 or bfloat16 units decode, whose error the bound does not cover.
+    The user's setting is restored on leaving."""
+    was = torch.get_float32_matmul_precision() if on else "highest"
+    if was == "highest":
+        yield
+        return
+    torch.set_float32_matmul_precision("highest")
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(was)
+
+
+def decode_group(reader: MapReader, codes: torch.Tensor, **kw) -> torch.Tensor | None:
+    """:meth:`MapReader.decode_codes` (see there): :func:`_decode_group`, in full float32 for a map whose mask is
+    pinned (:func:`float32_products`)."""
+    with float32_products(any(e.name == PINNED_MASK_EXTENSION for e in reader.header.extensions)):
+        return _decode_group(reader, codes, **kw)
+
+
+def _decode_group(reader: MapReader, codes: torch.Tensor, *, metres: bool, coords: np.ndarray | None = None,
                  mask_rows: np.ndarray | None = None, residual: bool = True,
                  residual_rows: np.ndarray | None = None, out: torch.Tensor | None = None,
                  placer: BlockPlacer | None = None, refine: bool = True,
