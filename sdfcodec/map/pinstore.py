@@ -18,7 +18,7 @@ from ..core._validate import BLOCK
 from ..core.header import PINNED_MASK_EXTENSION, BlockState
 from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
-from .varrate import check_stream_array
+from .format import check_stream_array
 
 if TYPE_CHECKING:
     from ..codec import Codec

@@ -22,7 +22,7 @@ from ..core.header import REFINEMENT_EXTENSION, Refinement
 from ..core.varrate import stream_bytes
 from ..errors import FormatError
 from . import pinmask as pm
-from .varrate import check_stream_array
+from .format import check_stream_array
 
 if TYPE_CHECKING:
     from .reader import MapReader

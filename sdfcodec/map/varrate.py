@@ -30,6 +30,7 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
 from .implied import drop_implied, inline_states
+from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
 
 if TYPE_CHECKING:
@@ -42,7 +43,7 @@ torch = lazy_module("torch")
 __all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_document_bytes",
            "stream_compressors", "prefix_lengths",
            "decode_runs", "RUN_MERGE", "VariableRateWriter", "VariableRateReader", "surface_error",
-           "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE", "REFINE_FROM", "codes_share", "check_stream_array"]
+           "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE", "REFINE_FROM", "codes_share"]
 
 STREAM_ARRAY = "code_streams"
 #: Temporary array of the writer (never in a committed map): per coded block the gains of its code elements.
@@ -113,26 +114,6 @@ def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, code
     dec = codec.decode(torch.from_numpy(np.asarray(codes, np.float32))).numpy()
     dec = np.clip(dec * (d_max - d_min) + d_min, d_min, d_max)
     return float(np.abs(dec - x)[cross].max())
-
-
-def check_stream_array(reader: MapReader, arr: Any, name: str, section: str, lacks: str) -> None:
-    """Check ``arr`` (``reader.member(name)``: None when absent), an array of one stream per chunk of codes (the
-    codes', the pinned mask's, the refinement's: spec ``section``): shape ``(cgrid, L)``, uint8 rows of one chunk
-    each, fill value 0, the codecs of section 9a and the size limit of every chunk read.
-
-    Raises:
-        FormatError: ``arr`` is None (``lacks``: what the map lists but lacks, the message's start) or does not
-            have that form.
-    """
-    cb = reader.header.codes.chunk_blocks
-    cgrid = tuple(-(-n // cb) for n in reader.header.grid_blocks)
-    if arr is None:
-        raise FormatError(f"{reader.location}: {lacks} (spec section {section}); it is incomplete")
-    if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
-        raise FormatError(f"{reader.location}: array '{name}' must have shape ({cgrid}, L), one row per chunk of "
-                          f"codes; got {arr.shape}")
-    reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
-                       zero_fill=True)
 
 
 def stream_chunk_keys(state: np.ndarray, chunk_blocks: int) -> list[str]:
@@ -487,7 +468,8 @@ class _LossyMask:
 
         self.codec, self.coords, self.truncation = codec, coords, truncation
         self.chunks = MaskChunks(arr, coords)
-        self.truth = unpack_mask(_rows(arr, coords))
+        # the pinned streams' truth is this one: one copy (4 KB per coded block) for both
+        self.truth = unpack_mask(_rows(arr, coords)) if pinned is None else pinned.truth
         self.exact = self.bytes = self.chunks.bytes(pack_mask(self.truth))
         self.rows: np.ndarray | None = None
         self.pinned, self.meta_delta = pinned, meta_delta
