@@ -144,6 +144,8 @@ class RefinementStreams:
         self.keys = chunk[self.bounds[:-1]] if len(self.coords) else np.zeros((0, 3), np.int64)
         self.bytes, self.spec, self.streams = 0, None, []
         self._rt: tuple[int, int] | None = None
+        self._v: tuple | None = None  # (codes' key, exact decode) of a map of one batch
+        self._refined: np.ndarray | None = None
 
     def _corrections(self, idx: np.ndarray, v: np.ndarray, r: int, tau: int
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,8 +169,11 @@ class RefinementStreams:
         lengths = []
         with tempfile.TemporaryFile(prefix="sdfcodec-refine-", dir=self.store.dir) as spill:
             for a, b, ends in self._batches():
-                v, _ = pm.exact_decode(q[a:b], basis)
-                _, sel, c = self._corrections(np.arange(a, b), v, r, tau)
+                v = self._decode(q, a, b, basis, step)
+                vc, sel, c = self._corrections(np.arange(a, b), v, r, tau)
+                # a map of one batch keeps its refined field for the pinned mask's hook (asked for every chunk
+                # and its neighbours at each step rate control tries); a larger one computes it there
+                self._refined = cr.refine(vc, sel, c, r, self.truncation, _SCALE) if b - a == len(q) else None
                 counts += np.bincount(c + cr.MAX_CORRECTION, minlength=len(counts))
                 lengths += np.diff(np.r_[0, np.cumsum(sel.sum(axis=1))[ends - a - 1]]).tolist()
                 spill.write(c.astype("<i2").tobytes())  # |c| <= MAX_CORRECTION
@@ -180,6 +185,17 @@ class RefinementStreams:
         self.spec = Refinement(step=r, tau=tau, model=model.pack())
         self._rt = (r, tau)
         self.bytes = sum(stream_bytes(s) + _ROW_FRAME for s in self.streams)
+
+    def _decode(self, q: np.ndarray, a: int, b: int, basis: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """The exact decode of rows ``a:b`` of ``q``; a map of one batch keeps it for the next :meth:`at` (rate
+        control tries several refinement steps on the same codes)."""
+        whole = a == 0 and b == len(q)
+        key = (q.shape, hash(q.tobytes()), tuple(np.broadcast_to(step, q.shape[1:]).tolist())) if whole else None
+        if key is not None and self._v is not None and self._v[0] == key:
+            return self._v[1]
+        v, _ = pm.exact_decode(q[a:b], basis)
+        self._v = None if key is None else (key, v)
+        return v
 
     def _batches(self):
         """``(a, b, ends)``: rows ``a:b`` of ``coords``, whole chunks of about :data:`BATCH_BLOCKS` blocks (a
@@ -196,6 +212,8 @@ class RefinementStreams:
         """The pinned mask's hook: the refined exact field of blocks ``idx`` (rows of ``coords``) with exact decode
         ``v`` ``(len(idx), 4096)`` (unclipped, as :func:`~sdfcodec.map.pinmask.exact_decode` gives it) at the
         last :meth:`at`, and their bound (one unit more: the reader's float32 sum rounds once, spec 6h)."""
+        if self._refined is not None:
+            return self._refined[idx], bound + 1.0
         r, tau = self._rt
         v, sel, c = self._corrections(np.asarray(idx, np.int64), v, r, tau)
         return cr.refine(v, sel, c, r, self.truncation, _SCALE), bound + 1.0
