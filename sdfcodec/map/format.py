@@ -12,7 +12,7 @@ import math
 import os
 import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import zarr
@@ -28,12 +28,15 @@ from .field import FIELD_CHUNK_BLOCKS, check_field_pipeline
 from .io.shards import check_sharding
 from .maskcoder import MaskANS
 
+if TYPE_CHECKING:
+    from .reader import MapReader
+
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_ZARR_CODECS", "MIN_CHUNKS_PER_READ",
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors",
-           "code_layout", "check_array_metadata", "unstored_suspects", "check_coords", "check_volume",
-           "warn_clipped", "check_codes",
+           "code_layout", "check_array_metadata", "check_stream_array", "unstored_suspects", "check_coords",
+           "check_volume", "warn_clipped", "check_codes",
            "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
            "QUANT_CLEVEL", "mask_compressors", "compact_documents", "root_document", "field_compression_of"]
 
@@ -258,6 +261,26 @@ def check_array_metadata(arr: zarr.Array, where: str, *, dtype: Any = None, shap
     blosc_frame = (len(codecs) == 3 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
                    and isinstance(codecs[2], Crc32cCodec))
     return chunk_bytes, blosc_frame, per_object
+
+
+def check_stream_array(reader: MapReader, arr: Any, name: str, section: str, lacks: str) -> None:
+    """Check ``arr`` (``reader.member(name)``: None when absent), an array of one stream per chunk of codes (the
+    codes', the pinned mask's, the refinement's: spec ``section``): shape ``(cgrid, L)``, uint8 rows of one chunk
+    each, fill value 0, the codecs of section 9a and the size limit of every chunk read.
+
+    Raises:
+        FormatError: ``arr`` is None (``lacks``: what the map lists but lacks, the message's start) or does not
+            have that form.
+    """
+    cb = reader.header.codes.chunk_blocks
+    cgrid = tuple(-(-n // cb) for n in reader.header.grid_blocks)
+    if arr is None:
+        raise FormatError(f"{reader.location}: {lacks} (spec section {section}); it is incomplete")
+    if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
+        raise FormatError(f"{reader.location}: array '{name}' must have shape ({cgrid}, L), one row per chunk of "
+                          f"codes; got {arr.shape}")
+    reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
+                       zero_fill=True)
 
 
 def is_dask_array(x: Any) -> bool:

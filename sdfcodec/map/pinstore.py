@@ -19,6 +19,7 @@ from ..core.header import PINNED_MASK_EXTENSION, BlockState
 from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 from . import pinread
+from .format import check_stream_array
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -152,16 +153,9 @@ class PinnedMaskArray:
     def __init__(self, reader: MapReader):
         h = reader.header
         cb = h.codes.chunk_blocks
-        cgrid = tuple(-(-n // cb) for n in h.grid_blocks)
         arr = reader.member(PINNED_ARRAY)
-        if arr is None or h.codes.variable_rate is None:
-            raise FormatError(f"{reader.location}: map lists {PINNED_MASK_EXTENSION} but lacks array "
-                              f"'{PINNED_ARRAY}' or variable-rate codes (spec section 6g); it is incomplete")
-        if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
-            raise FormatError(f"{reader.location}: array '{PINNED_ARRAY}' must have shape ({cgrid}, L), one row "
-                              f"per chunk of codes; got {arr.shape}")
-        reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
-                           zero_fill=True)
+        check_stream_array(reader, None if h.codes.variable_rate is None else arr, PINNED_ARRAY, "6g",
+                           f"map lists {PINNED_MASK_EXTENSION} but lacks array '{PINNED_ARRAY}' or variable-rate codes")
         self.reader, self.streams, self.cb = reader, arr, cb
         self.shape = (*h.grid_blocks, BLOCK ** 3 // 8)
         self.chunks = (cb, cb, cb, BLOCK ** 3 // 8)

@@ -22,11 +22,12 @@ from ..core.header import REFINEMENT_EXTENSION, Refinement
 from ..core.varrate import stream_bytes
 from ..errors import FormatError
 from . import pinmask as pm
+from .format import check_stream_array
 
 if TYPE_CHECKING:
     from .reader import MapReader
 
-__all__ = ["REFINE_ARRAY", "REFINEMENT_EXTENSION", "UNIT", "RefinementStreams", "RefinementReader",
+__all__ = ["REFINE_ARRAY", "REFINEMENT_EXTENSION", "UNIT", "TrueValues", "RefinementStreams", "RefinementReader",
            "tau_for_step"]
 
 REFINE_ARRAY = "refine_streams"
@@ -36,6 +37,8 @@ _SCALE = 2.0 ** pm.FRACTION_BITS
 _ROW_FRAME = 20  # zstd frame and CRC32C of one stored row (as code_streams')
 #: Cached decoded chunks of a reader (4 B per voxel of their blocks).
 CACHED_CHUNKS = 8
+#: Coded blocks the writer's pass decodes at once (about 140 KB each while in work: a peak of ~70 MB, measured).
+BATCH_BLOCKS = 512
 
 
 def tau_for_step(step_m: float, voxel_size: float) -> float:
@@ -51,56 +54,169 @@ def _limit(step: int) -> int:
     return int(min(cr.MAX_CORRECTION, ((1 << 24) - 1) // step))
 
 
+class TrueValues:
+    """The true values of the blocks a writer encodes, kept for the refinement in an unlinked temporary file
+    (``dir``, default the system's temporary directory: 16.5 KB per block on disk, none in memory; the file is
+    gone when :meth:`close` runs or the process ends, however it ends). :meth:`add` blocks as they come,
+    :meth:`rows_of` finds coded blocks' rows, ``values`` ``(m, 4096)`` float32 metres and ``observed``
+    ``(m, 512)`` uint8 (packed bits, or None) read them (memory maps of the file)."""
+
+    def __init__(self, dir: str | None = None):
+        self.dir, self._file, self._coords, self.n = dir, None, [], 0
+        self.packed: bool | None = None
+        self._view: np.ndarray | None = None
+
+    def add(self, coords: np.ndarray, values: np.ndarray, observed: np.ndarray | None) -> None:
+        """Blocks ``coords`` ``(n, 3)`` with true values ``values`` ``(n, 4096)`` float32 metres and mask
+        ``observed`` ``(n, ...)`` bool or None (one kind for all blocks); a block added again replaces itself."""
+        import tempfile
+
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="sdfcodec-refine-", dir=self.dir)
+            self.packed = observed is not None
+        rec = np.zeros(len(coords), self._dtype())
+        rec["v"] = np.asarray(values, np.float32).reshape(len(coords), -1)
+        if self.packed:
+            rec["o"] = np.packbits(np.asarray(observed, bool).reshape(len(coords), -1), axis=1)
+        self._file.seek(0, 2)
+        self._file.write(rec.tobytes())
+        self._coords.append(np.asarray(coords, np.int64).reshape(-1, 3))
+        self.n += len(coords)
+        self._view = None
+
+    def _dtype(self) -> np.dtype:
+        return np.dtype([("v", "<f4", BLOCK ** 3)] + ([("o", "u1", BLOCK ** 3 // 8)] if self.packed else []))
+
+    def rows_of(self, coords: np.ndarray) -> np.ndarray | None:
+        """``(n,)`` int64: the row of each block ``coords`` ``(n, 3)`` (its last :meth:`add`), or None when a block
+        was never added."""
+        if not self.n:
+            return None if len(coords) else np.zeros(0, np.int64)
+        seen = np.concatenate(self._coords)
+        coords = np.asarray(coords, np.int64).reshape(-1, 3)
+        dims = np.maximum(seen.max(axis=0), coords.max(axis=0, initial=0)) + 1
+        key = np.ravel_multi_index(tuple(seen.T), dims)[::-1]
+        uniq, first = np.unique(key, return_index=True)  # first of the reversed: the last added
+        want = np.ravel_multi_index(tuple(coords.T), dims)
+        at = np.minimum(np.searchsorted(uniq, want), len(uniq) - 1)
+        if len(want) and not (uniq[at] == want).all():
+            return None
+        return (self.n - 1 - first[at]).astype(np.int64)
+
+    def _rec(self) -> np.ndarray:
+        if self._view is None:
+            self._file.flush()
+            self._view = np.memmap(self._file, dtype=self._dtype(), mode="r", shape=(self.n,))
+        return self._view
+
+    @property
+    def values(self) -> np.ndarray:
+        return self._rec()["v"]
+
+    @property
+    def observed(self) -> np.ndarray | None:
+        return self._rec()["o"] if self.packed else None
+
+    def close(self) -> None:
+        """Drop the file (its space comes back at once: it has no name)."""
+        self._view = None
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
 class RefinementStreams:
     """The streams of a map's coded blocks ``coords`` ``(n, 3)`` (grouped by chunk, C order inside each: the
-    writer's order) with true values ``truth`` ``(n, 4096)`` float32 metres and mask ``observed`` ``(n, 4096)``
-    bool (or None), for integer codes and steps given to :meth:`at` (``basis_for(step)``:
-    :func:`~sdfcodec.map.pinstore.linear_basis`). Holds 2 x 32 KB per coded block (the exact and the refined
-    field, float64) besides the true values. After :meth:`at`: ``bytes`` (rows as stored), ``spec`` (the
-    header's :class:`Refinement`), :meth:`refined` (the pinned mask's hook), :meth:`write`."""
+    writer's order) with true values at rows ``rows`` ``(n,)`` of ``store`` (a :class:`TrueValues`), for integer
+    codes and steps given to :meth:`at` (``basis_for(step)``: :func:`~sdfcodec.map.pinstore.linear_basis`).
+    Works through about :data:`BATCH_BLOCKS` blocks at a time (whole chunks), so its memory does not grow with
+    the map's: the corrections go to an unlinked temporary file until the law that codes them is known. After
+    :meth:`at`: ``bytes`` (rows as stored), ``spec`` (the header's :class:`Refinement`), :meth:`refined` (the
+    pinned mask's hook), :meth:`write`."""
 
-    def __init__(self, coords: np.ndarray, truth: np.ndarray, observed: np.ndarray | None, cb: int, grid: tuple,
+    def __init__(self, coords: np.ndarray, store: TrueValues, rows: np.ndarray, cb: int, grid: tuple,
                  basis_for: Callable[[np.ndarray], np.ndarray], truncation: tuple[float, float]):
         self.coords, self.cb, self.grid = np.asarray(coords, np.int64), cb, grid
-        self.truth = truth  # float32 metres: scaled where selected only (memory)
-        self.observed = observed
+        self.store, self.rows = store, np.asarray(rows, np.int64)
         self.basis_for, self.truncation = basis_for, truncation
         chunk = self.coords // cb
         self.bounds = np.r_[0, np.flatnonzero(np.any(np.diff(chunk, axis=0) != 0, axis=1)) + 1, len(self.coords)]
         self.keys = chunk[self.bounds[:-1]] if len(self.coords) else np.zeros((0, 3), np.int64)
-        self._key = None
-        self.v = self.bound = None
         self.bytes, self.spec, self.streams = 0, None, []
+        self._rt: tuple[int, int] | None = None
+        self._v: tuple | None = None  # (codes' key, exact decode) of a map of one batch
         self._refined: np.ndarray | None = None
 
-    def decode_at(self, q: np.ndarray, step: np.ndarray) -> None:
-        """The exact decode of integer codes ``q`` ``(n, k)`` at steps ``step`` (kept for :meth:`at`)."""
-        key = (q.shape, float(np.mean(step)), hash(np.asarray(q).tobytes()))
-        if key != self._key:
-            v, self.bound = pm.exact_decode(np.asarray(q), self.basis_for(step))
-            self.v = cr.clip_units(v, self.truncation, _SCALE)
-            self._key = key
+    def _corrections(self, idx: np.ndarray, v: np.ndarray, r: int, tau: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(clipped v, sel, c)`` of coded blocks ``idx`` (rows of ``coords``) with exact decode ``v``."""
+        v = cr.clip_units(v, self.truncation, _SCALE)
+        sel = cr.select(v, tau)
+        rows = self.rows[idx]
+        obs = self.store.observed
+        obs = None if obs is None else np.unpackbits(obs[rows], axis=1).astype(bool)
+        return v, sel, cr.corrections(self.store.values[rows], obs, v, sel, r, _limit(r), scale=_SCALE)
 
     def at(self, q: np.ndarray, step: np.ndarray, r_m: float, tau_m: float) -> None:
-        """Corrections of step ``r_m`` metres at the voxels within ``tau_m`` metres, for codes ``q`` (see
-        :meth:`decode_at`)."""
-        self.decode_at(q, step)
+        """Corrections of step ``r_m`` metres at the voxels within ``tau_m`` metres, for integer codes ``q``
+        ``(n, k)`` at steps ``step``."""
+        import tempfile
+
         r = max(int(round(r_m * _SCALE)), 1)
         tau = max(int(round(tau_m * _SCALE)), 1)
-        sel = cr.select(self.v, tau)
-        c = cr.corrections(self.truth, self.observed, self.v, sel, r, _limit(r), scale=_SCALE)
-        model = cr.CorrectionModel.fit(c)
-        counts = np.add.reduceat(sel.sum(axis=1), self.bounds[:-1]) if len(sel) else np.zeros(0, np.int64)
-        ends = np.cumsum(counts)
-        self.streams = [cr.encode_corrections(c[a - m:a], model) for a, m in zip(ends, counts)]
+        basis, q = self.basis_for(step), np.asarray(q)
+        counts = np.zeros(2 * cr.MAX_CORRECTION + 1, np.int64)
+        lengths = []
+        with tempfile.TemporaryFile(prefix="sdfcodec-refine-", dir=self.store.dir) as spill:
+            for a, b, ends in self._batches():
+                v = self._decode(q, a, b, basis, step)
+                vc, sel, c = self._corrections(np.arange(a, b), v, r, tau)
+                # a map of one batch keeps its refined field for the pinned mask's hook (asked for every chunk
+                # and its neighbours at each step rate control tries); a larger one computes it there
+                self._refined = cr.refine(vc, sel, c, r, self.truncation, _SCALE) if b - a == len(q) else None
+                counts += np.bincount(c + cr.MAX_CORRECTION, minlength=len(counts))
+                lengths += np.diff(np.r_[0, np.cumsum(sel.sum(axis=1))[ends - a - 1]]).tolist()
+                spill.write(c.astype("<i2").tobytes())  # |c| <= MAX_CORRECTION
+            nz = np.flatnonzero(counts)
+            m = max(int(np.abs(nz - cr.MAX_CORRECTION).max(initial=0)), 1)
+            model = cr.CorrectionModel(counts[cr.MAX_CORRECTION - m:cr.MAX_CORRECTION + m + 1])
+            spill.seek(0)
+            self.streams = [cr.encode_corrections(np.frombuffer(spill.read(2 * n), "<i2"), model) for n in lengths]
         self.spec = Refinement(step=r, tau=tau, model=model.pack())
-        self._refined = cr.refine(self.v, sel, c, r, self.truncation, _SCALE)
+        self._rt = (r, tau)
         self.bytes = sum(stream_bytes(s) + _ROW_FRAME for s in self.streams)
 
+    def _decode(self, q: np.ndarray, a: int, b: int, basis: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """The exact decode of rows ``a:b`` of ``q``; a map of one batch keeps it for the next :meth:`at` (rate
+        control tries several refinement steps on the same codes)."""
+        whole = a == 0 and b == len(q)
+        key = (q.shape, hash(q.tobytes()), tuple(np.broadcast_to(step, q.shape[1:]).tolist())) if whole else None
+        if key is not None and self._v is not None and self._v[0] == key:
+            return self._v[1]
+        v, _ = pm.exact_decode(q[a:b], basis)
+        self._v = None if key is None else (key, v)
+        return v
+
+    def _batches(self):
+        """``(a, b, ends)``: rows ``a:b`` of ``coords``, whole chunks of about :data:`BATCH_BLOCKS` blocks (a
+        chunk's at least), ending at rows ``ends``."""
+        i, nb = 0, len(self.bounds) - 1
+        while i < nb:
+            j = i + 1
+            while j < nb and self.bounds[j + 1] - self.bounds[i] <= BATCH_BLOCKS:
+                j += 1
+            yield int(self.bounds[i]), int(self.bounds[j]), self.bounds[i + 1:j + 1]
+            i = j
+
     def refined(self, idx: np.ndarray, v: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The pinned mask's hook: the refined exact field of blocks ``idx`` (rows of ``coords``) and their bound
-        (one unit more: the reader's float32 sum rounds once, spec 6h) in place of their exact decode ``v``."""
-        return self._refined[idx], bound + 1.0
+        """The pinned mask's hook: the refined exact field of blocks ``idx`` (rows of ``coords``) with exact decode
+        ``v`` ``(len(idx), 4096)`` (unclipped, as :func:`~sdfcodec.map.pinmask.exact_decode` gives it) at the
+        last :meth:`at`, and their bound (one unit more: the reader's float32 sum rounds once, spec 6h)."""
+        if self._refined is not None:
+            return self._refined[idx], bound + 1.0
+        r, tau = self._rt
+        v, sel, c = self._corrections(np.asarray(idx, np.int64), v, r, tau)
+        return cr.refine(v, sel, c, r, self.truncation, _SCALE), bound + 1.0
 
     def write(self, group: Any, compressors: list) -> None:
         """Create ``refine_streams`` in ``group`` with the streams of the last :meth:`at`."""
@@ -123,16 +239,9 @@ class RefinementReader:
     def __init__(self, reader: MapReader, spec: Refinement):
         h = reader.header
         cb = h.codes.chunk_blocks
-        cgrid = tuple(-(-n // cb) for n in h.grid_blocks)
         arr = reader.member(REFINE_ARRAY)
-        if arr is None:
-            raise FormatError(f"{reader.location}: map lists {REFINEMENT_EXTENSION} but lacks array "
-                              f"'{REFINE_ARRAY}' (spec section 6h); it is incomplete")
-        if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
-            raise FormatError(f"{reader.location}: array '{REFINE_ARRAY}' must have shape ({cgrid}, L), one row "
-                              f"per chunk of codes; got {arr.shape}")
-        reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
-                           zero_fill=True)
+        check_stream_array(reader, arr, REFINE_ARRAY, "6h", f"map lists {REFINEMENT_EXTENSION} but lacks array "
+                           f"'{REFINE_ARRAY}'")
         self.reader, self.arr, self.cb, self.spec = reader, arr, cb, spec
         self.model = cr.CorrectionModel.unpack(spec.model)
         self._basis: np.ndarray | None = None

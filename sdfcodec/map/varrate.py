@@ -30,6 +30,7 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
                             stream_bytes)
 from .implied import drop_implied, inline_states
+from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
 
 if TYPE_CHECKING:
@@ -158,7 +159,7 @@ class VariableRateWriter:
         self.refine_step = refine_step
         self.refine = bool(refine) and (refine_step is not None or (target_bytes is not None
                                                                     and target_bytes >= REFINE_FROM))
-        self._truth: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray | None]] = {}
+        self._truth = None  # a TrueValues (map/refine.py) once a block is seen: on disk, not in memory
         self._q: np.ndarray | None = None
         self.voxel_size = 1.0
         basis = _basis(codec)
@@ -178,11 +179,13 @@ class VariableRateWriter:
         write_block_rows(gain_arr, coords, g)
         self.voxel_size = float(voxel_size)
         if self.refine:  # the true values the refinement corrects towards: float32 metres, packed bits
+            from .refine import TrueValues
+
             d_min, d_max = truncation
             x = (np.asarray(v, np.float32).reshape(len(v), -1) * np.float32(d_max - d_min) + np.float32(d_min))
-            for i, c in enumerate(np.asarray(coords).tolist()):
-                self._truth[tuple(c)] = (x[i], None if observed is None else
-                                         np.packbits(np.asarray(observed[i], bool).reshape(-1)))
+            if self._truth is None:
+                self._truth = TrueValues()
+            self._truth.add(coords, x, observed)
         if self.target_error is not None:  # a reservoir: the blocks with the SAMPLE_BLOCKS smallest priorities
             pr = self._rng.random(len(v))
             for i in np.argsort(pr)[:SAMPLE_BLOCKS]:
@@ -214,6 +217,14 @@ class VariableRateWriter:
         mask as written so far). With a coded mask and not ``exact_mask``, its lossy version is written and
         ``extensions`` (the header's list, which ``other_bytes`` counts) gets ``approximate-observation-mask``.
         Returns the header field."""
+        try:
+            return self._commit(group, state, chunk_blocks, other_bytes, truncation, extensions)
+        finally:  # the refinement's true values (a temporary file) are no longer needed, however the pass ends
+            if self._truth is not None:
+                self._truth.close()
+
+    def _commit(self, group: Any, state: np.ndarray, chunk_blocks: int, other_bytes: Callable[[dict], int],
+                truncation: tuple[float, float], extensions: list | None) -> VariableRate:
         coded = np.argwhere(state == BlockState.CODED)
         cb = chunk_blocks
         ch, loc = coded // cb, coded % cb
@@ -331,15 +342,14 @@ class VariableRateWriter:
 
         if not self.refine:
             return None
-        if linear_basis(self.codec, 1.0, self.d, truncation) is None or len(self._truth) < len(coded):
+        if self._truth is None or linear_basis(self.codec, 1.0, self.d, truncation) is None:
             return None
         if self._mask is not None and self._mask.pinned is None:
             return None
-        rows = [self._truth.get(tuple(c)) for c in coded.tolist()]
-        if any(r is None for r in rows):
+        rows = self._truth.rows_of(coded)
+        if rows is None:
             return None
-        obs = None if rows[0][1] is None else np.unpackbits(np.stack([r[1] for r in rows]), axis=1).astype(bool)
-        return RefinementStreams(coded, np.stack([r[0] for r in rows]), obs, cb, state.shape,
+        return RefinementStreams(coded, self._truth, rows, cb, state.shape,
                                  lambda step: linear_basis(self.codec, step, self.d, truncation), truncation)
 
     def _choose_refinement(self, ref, z, g, chunk_ids, step, other_bytes, n) -> tuple[float, float] | None:
@@ -458,7 +468,8 @@ class _LossyMask:
 
         self.codec, self.coords, self.truncation = codec, coords, truncation
         self.chunks = MaskChunks(arr, coords)
-        self.truth = unpack_mask(_rows(arr, coords))
+        # the pinned streams' truth is this one: one copy (4 KB per coded block) for both
+        self.truth = unpack_mask(_rows(arr, coords)) if pinned is None else pinned.truth
         self.exact = self.bytes = self.chunks.bytes(pack_mask(self.truth))
         self.rows: np.ndarray | None = None
         self.pinned, self.meta_delta = pinned, meta_delta
@@ -555,15 +566,8 @@ class VariableRateReader:
         h = reader.header
         cb = h.codes.chunk_blocks
         cgrid = tuple(-(-n // cb) for n in h.grid_blocks)
-        if arr is None:
-            raise FormatError(f"{reader.location}: map has variable-rate codes but lacks array '{STREAM_ARRAY}' "
-                              "(spec section 4e); it is incomplete")
-        if len(arr.shape) != 4 or tuple(arr.shape[:3]) != cgrid:
-            raise FormatError(f"{reader.location}: array '{STREAM_ARRAY}' must have shape ({cgrid}, L), one row per "
-                              f"chunk of codes; got {arr.shape}")
-        # dtype, chunking, fill value and codecs (section 9a), and the size limit of every chunk read
-        reader.check_array(arr, dtype=np.uint8, shape=(*cgrid, arr.shape[3]), chunks=(1, 1, 1, arr.shape[3]),
-                           zero_fill=True)
+        check_stream_array(reader, arr, STREAM_ARRAY, "4e", f"map has variable-rate codes but lacks array "
+                           f"'{STREAM_ARRAY}'")
         self.arr, self.cb, self.cgrid = arr, cb, cgrid
         self._states = None
         self._cache: dict[tuple[tuple[int, ...], int], tuple[np.ndarray, np.ndarray]] = {}
