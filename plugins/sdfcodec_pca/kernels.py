@@ -54,18 +54,26 @@ def add_rows(g, dt, idx, scale, m):
 
 
 @njit(fastmath=_FAST, cache=True)
+def reference_weight(w):
+    """(the cheaper reference weight, 0.0 or 1.0: the one fewer voxels differ from; the sum of ``w``): a block's
+    Gram and right-hand side start from the reference's (none, or the plain projection's) and add only the
+    voxels whose weight differs from it."""
+    nz = 0
+    nd = 0
+    wsum = 0.0
+    for j in range(len(w)):
+        nz += w[j] != 0
+        nd += w[j] != 1
+        wsum += w[j]
+    return (0.0 if nz <= nd else 1.0), wsum
+
+
+@njit(fastmath=_FAST, cache=True)
 def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
     """Gram (whole rows; readers use the lower triangle) and unregularised right-hand side D diag(wc) (x - d) of weights wc, from the
     cheaper reference (0 or all ones); returns the weight sum."""
     n_vox, k = dt.shape
-    nz = 0
-    nd = 0
-    wsum = 0.0
-    for j in range(n_vox):
-        nz += wc[j] != 0
-        nd += wc[j] != 1
-        wsum += wc[j]
-    ref = 0.0 if nz <= nd else 1.0
+    ref, wsum = reference_weight(wc)
     m = 0
     for j in range(n_vox):
         if wc[j] != ref:
@@ -282,14 +290,8 @@ def weighted_rhs(rhs, wi, xi, dt, dec_b, c0i):
     """rhs = D diag(wi) (xi - d) from the cheaper reference (weights 0, or 1: then D (x - d) = c0, the plain
     projection); returns the weight sum."""
     n_vox, k = dt.shape
-    nz = 0
-    nd = 0
-    wsum = 0.0
-    for j in range(n_vox):
-        nz += wi[j] != 0
-        nd += wi[j] != 1
-        wsum += wi[j]
-    ref = np.float32(0.0 if nz <= nd else 1.0)
+    ref, wsum = reference_weight(wi)
+    ref = np.float32(ref)
     for a in range(k):
         rhs[a] = ref * c0i[a]
     for j in range(n_vox):
