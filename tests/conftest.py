@@ -200,6 +200,25 @@ def run_shared(tmp_path_factory) -> RunShared:
     return RunShared(tmp_path_factory)
 
 
+def golden_round_trip(codec, golden: Path | None, regen_golden: bool) -> dict:
+    """The ``golden_fixture`` and ``round_trip`` conformance checks of ``codec`` (fitted): the frozen fixture in
+    ``golden`` (rewritten with ``regen_golden``), and the round trip's measurements (``mse``). Every other check
+    of each built-in codec runs in test_conformance_builtin.py, one test per check; running all of them again
+    here cost the suite ~25 s of worker time."""
+    from sdfcodec.testing import codec_checks
+
+    checks = dict(codec_checks(codec, golden=golden))
+    if golden is not None:
+        checks["golden_fixture"](regen_golden=regen_golden)
+    return checks["round_trip"]()
+
+
+@pytest.fixture(name="golden_round_trip")
+def _golden_round_trip_fixture():
+    """:func:`golden_round_trip`, for test modules (conftest is not imported by name)."""
+    return golden_round_trip
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
