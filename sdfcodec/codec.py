@@ -31,7 +31,7 @@ from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Protoco
 import numpy as np
 
 from .core._lazy import lazy_module
-from .core._validate import BLOCK, affine_into, as_float_tensor, check_weights, like_input, output_buffer
+from .core._validate import BLOCK, affine_into, as_float_tensor, check_weights, finite_sum, like_input, output_buffer
 from .core._validate import empty as _empty  # not `empty`: sdfcodec.codec.empty is a deprecated name (see __getattr__)
 from .errors import (DTypeError, InvalidValueError, ModelNotFoundError, NotFittedError, PluginError,
                      RegistrationError, SDFCodecError, ShapeError)
@@ -314,6 +314,10 @@ class Codec(abc.ABC):
             return v
         bound = self.decode_bound(codes)
         if bound is not None and bound <= FINITE_BOUND:
+            return v
+        # NaN/Inf propagate into the sum: one cheap pass (0.2 ms for 256 blocks where torch's isfinite + all took
+        # 10-20 ms on the 2-core VM); the per-row test runs only when the sum is not finite
+        if finite_sum(v):
             return v
         finite = torch.isfinite(v.reshape(len(v), -1)).all(dim=1)
         if bool(finite.all()):

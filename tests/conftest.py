@@ -15,6 +15,32 @@ import signal
 # workers, which inherit the variable, load numpy after it is set.
 os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
 
+
+def _memory_temp_root() -> None:
+    """Temporary files (pytest's tmp_path, tempfile, every subprocess) in /dev/shm where it is a tmpfs with room,
+    unless TMPDIR is set. The suite writes and removes tens of thousands of map directories; on the project's
+    VM (ext4 mounted with ``discard``) removing a directory takes ~2 ms against 0.04 ms in memory, and the
+    waits were most of some tests' time: test_reliability.py + test_mapfile.py 158 s -> 85 s, the fault
+    injection of test_writes.py 42 s -> 24 s, the same CPU time (pytest -n 0, load 5-7). What the tests check
+    does not depend on the file system: the crash tests kill processes, never the machine, and the disk-full
+    test mounts a small tmpfs of its own. Set here, at import, before pytest picks its base directory (the
+    xdist workers, started later, inherit the variable and get their directories from the controller)."""
+    import tempfile
+
+    if os.environ.get("TMPDIR") or os.environ.get("PYTEST_DEBUG_TEMPROOT"):
+        return
+    try:
+        with open("/proc/mounts") as f:
+            tmpfs = any(line.split()[1:3] == ["/dev/shm", "tmpfs"] for line in f)
+        free = shutil.disk_usage("/dev/shm").free
+    except OSError:
+        return
+    if tmpfs and free > 4 << 30 and os.access("/dev/shm", os.W_OK | os.X_OK):
+        os.environ["TMPDIR"] = tempfile.tempdir = "/dev/shm"
+
+
+_memory_temp_root()
+
 import numpy as np  # noqa: E402
 import pytest
 from hypothesis import settings
@@ -198,6 +224,25 @@ class RunShared:
 def run_shared(tmp_path_factory) -> RunShared:
     """Results and directories built once per run, whichever xdist worker asks first (:class:`RunShared`)."""
     return RunShared(tmp_path_factory)
+
+
+def golden_round_trip(codec, golden: Path | None, regen_golden: bool) -> dict:
+    """The ``golden_fixture`` and ``round_trip`` conformance checks of ``codec`` (fitted): the frozen fixture in
+    ``golden`` (rewritten with ``regen_golden``), and the round trip's measurements (``mse``). Every other check
+    of each built-in codec runs in test_conformance_builtin.py, one test per check; running all of them again
+    here cost the suite ~25 s of worker time."""
+    from sdfcodec.testing import codec_checks
+
+    checks = dict(codec_checks(codec, golden=golden))
+    if golden is not None:
+        checks["golden_fixture"](regen_golden=regen_golden)
+    return checks["round_trip"]()
+
+
+@pytest.fixture(name="golden_round_trip")
+def _golden_round_trip_fixture():
+    """:func:`golden_round_trip`, for test modules (conftest is not imported by name)."""
+    return golden_round_trip
 
 
 @pytest.fixture

@@ -29,6 +29,7 @@ maps where writes really fail (see :func:`faults_main`).
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import random
@@ -41,12 +42,7 @@ import traceback
 import numpy as np
 
 import sdfcodec
-import sdfcodec.map  # noqa: F401  (loaded once here: `import sdfcodec` is lazy, and each forked job would
-import sdfcodec.map.verify  # noqa: F401  import torch, zarr and the map package again, ~2 s a job)
-import scipy.linalg  # noqa: F401
-import scipy.spatial  # noqa: F401  (the map modules take these on first use since the light-command change:
-import sklearn.decomposition  # noqa: F401  imported here, before any fork, or every job pays for them)
-import torch  # noqa: F401
+import sdfcodec.map  # noqa: F401
 from sdfcodec.core import _atomic
 
 VS, TRUNC = 0.02, (-0.04, 0.1)
@@ -417,10 +413,27 @@ def faults_main(kind: str, d: str) -> None:
     print("RESULTS " + json.dumps(res))
 
 
+def _preload() -> None:
+    """Load, before the first fork, what every job would otherwise load again after it (~2 s a job): torch,
+    zarr and the map package (`import sdfcodec` is lazy), the scipy and sklearn modules the map modules take on
+    first use, and the registry's scan of the installed codecs (another 0.06 s of a job's 0.3 s). Nothing of it
+    starts a thread. (The ``faults`` child of test_writes.py runs once and loads only what it uses.)"""
+    import scipy.linalg  # noqa: F401
+    import scipy.spatial  # noqa: F401
+    import sklearn.decomposition  # noqa: F401
+    import torch  # noqa: F401
+
+    for module in ("facade", "reader", "writer", "manifest", "verify", "sign"):
+        importlib.import_module(f"sdfcodec.map.{module}")
+    sdfcodec.get_codec("raw")
+    assert threading.active_count() == 1, "the fork server must not start threads before it forks"
+
+
 def main() -> None:
     if sys.argv[1:2] == ["faults"]:
         faults_main(sys.argv[2], sys.argv[3])
         return
+    _preload()
     for line in sys.stdin:
         cmd = json.loads(line)
         if cmd["job"] == "quit":

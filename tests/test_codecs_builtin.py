@@ -1,4 +1,5 @@
-"""Every built-in codec passes the public conformance suite, golden fixtures included."""
+"""The built-in linear codecs (pca, raw, gaussian-blur): golden fixtures, the PCA against sklearn, shipped eigenshapes,
+the blur's halo. Every conformance check of every built-in codec runs in test_conformance_builtin.py."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 import sdfcodec
-from sdfcodec.testing import analytic_blocks, check_codec
+from sdfcodec.testing import analytic_blocks
 
 GOLDEN = Path(__file__).parent / "golden"
 
@@ -20,15 +21,15 @@ def train_blocks():
 
 @pytest.mark.parametrize("mean", ["dataset", "block"])
 @pytest.mark.parametrize("code_size", [32, 64])
-def test_pca_conforms(train_blocks, code_size, mean, regen_golden):
+def test_pca_golden_and_round_trip(train_blocks, code_size, mean, regen_golden, golden_round_trip):
     codec = sdfcodec.get_codec("pca", code_size=code_size, mean=mean).fit(train_blocks)
     golden = GOLDEN / f"pca-{code_size}-{mean}" if code_size == 32 else None
-    report = check_codec(codec, golden=golden, regen_golden=regen_golden)
+    report = golden_round_trip(codec, golden, regen_golden)
     assert report["mse"] < 0.01
 
 
-def test_raw_conforms(regen_golden):
-    report = check_codec(sdfcodec.get_codec("raw"), golden=GOLDEN / "raw", regen_golden=regen_golden)
+def test_raw_golden_and_round_trip(regen_golden, golden_round_trip):
+    report = golden_round_trip(sdfcodec.get_codec("raw"), GOLDEN / "raw", regen_golden)
     assert report["mse"] == 0.0
 
 
@@ -149,10 +150,10 @@ def test_pretrained_through_the_registry():
         sdfcodec.pretrained_codec("pca", 32, mean="block")
 
 
-def test_gaussian_blur_conforms(regen_golden):
+def test_gaussian_blur_golden_and_halo(regen_golden, golden_round_trip):
     codec = sdfcodec.get_codec("gaussian-blur")
     assert codec.halo == 4
-    check_codec(codec, golden=GOLDEN / "gaussian-blur", regen_golden=regen_golden)
+    golden_round_trip(codec, GOLDEN / "gaussian-blur", regen_golden)
     with pytest.raises(sdfcodec.errors.InvalidValueError, match="odd"):
         sdfcodec.get_codec("gaussian-blur", size=8).halo
 

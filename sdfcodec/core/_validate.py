@@ -17,7 +17,7 @@ from ..errors import DTypeError, InvalidValueError, ShapeError
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
 # most are public through sdfcodec.plugin (check_device is for the map readers, writers and the CLI)
-__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into", "check_device"]
+__all__ = ["BLOCK", "as_float_tensor", "check_weights", "like_input", "empty", "affine_into", "check_device", "finite_sum"]
 
 BLOCK = 16  # voxels per block edge, fixed by the map format and the codec contract (spec/)
 
@@ -52,14 +52,14 @@ def as_float_tensor(x: Any, name: str, shape: tuple[int | None, ...], *, check_f
         raise ShapeError(f"{name} must have shape {expected}, got {tuple(t.shape)}{hint}")
     # fast path: one reduction (NaN/Inf propagate into the sum); the exact element test runs only when the sum
     # is not finite, which also covers finite values whose sum overflows; meta tensors hold no values to check
-    if check_finite and t.numel() and t.device.type != "meta" and not _finite_sum(t) and not bool(torch.isfinite(t).all()):
+    if check_finite and t.numel() and t.device.type != "meta" and not finite_sum(t) and not bool(torch.isfinite(t).all()):
         bad = int((~torch.isfinite(t)).sum())
         raise InvalidValueError(f"{name} holds {bad} NaN or infinite value(s); sdfcodec needs finite input "
                                 "(replace unobserved voxels with the truncation distance d_max)")
     return t, was_numpy
 
 
-def _finite_sum(t: torch.Tensor) -> bool:
+def finite_sum(t: torch.Tensor) -> bool:
     """Whether the sum of ``t``'s values is finite. CPU tensors are summed by numpy: torch's threaded reduction
     right after a numpy (OpenBLAS) product waits for the BLAS threads still spinning on the same cores, which
     cost 26 ms for 4096 codes of 64 on 2 cores (a third of the decode it checked)."""
