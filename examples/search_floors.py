@@ -27,14 +27,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--top", type=int, help="select at most this many blocks")
     ap.add_argument("--picture", type=Path, help="write a top-down picture of the selection here (.png)")
     args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="sdfcodec-floors-") as work:  # the synthetic room's map, removed after
+        _report(args, Path(work) / "room.sdfz")
 
+
+def _report(args: argparse.Namespace, scratch: Path) -> None:
     room = None
     path = args.map
     if path is None:
         from sdfcodec.search.rooms import synthetic_room
 
         room = synthetic_room(0, size=(args.size, args.size, 2.0))          # exact TSDF with labelled primitives
-        path = Path(tempfile.mkdtemp(prefix="sdfcodec-floors-")) / "room.sdfz"
+        path = scratch
         with sdfcodec.create_map(path, codec=sdfcodec.pretrained_codec("pca", 64), voxel_size=room.voxel_size,
                                  truncation=room.truncation, origin=tuple(room.origin)) as m:
             m.write_volume(room.volume)

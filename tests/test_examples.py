@@ -7,6 +7,7 @@ import importlib.util
 import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -69,9 +70,13 @@ def test_fuse_and_compress(tmp_path, capsys):
     assert m and 1.0 < float(m.group(1)) < 80.0
 
 
-def test_search_floors(tmp_path, capsys):
+def test_search_floors(tmp_path, capsys, monkeypatch):
     pic = tmp_path / "floors.png"
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # where the example's synthetic room is written
     out = run("search_floors.py", "--size", "2", "--picture", str(pic), capsys=capsys)
+    assert not list(scratch.iterdir()), "the example left its synthetic room's map behind"
     m = re.search(r"selected (\d+) blocks; decoded (\d+) of (\d+)", out)
     assert m, out
     selected, decoded, coded = (int(g) for g in m.groups())
