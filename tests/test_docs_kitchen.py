@@ -2,7 +2,7 @@
 
 * every ``$ sdfcodec ...`` command on the page is one the command line accepts as written;
 * every output line the page quotes is in the record of that command's real run (docs/how-to/kitchen.json,
-  written by docs/kitchen_measure.py on the 7-Scenes kitchen), ``...`` standing for what the page leaves out,
+  written by docs/how-to/kitchen_measure.py on the 7-Scenes kitchen), ``...`` standing for what the page leaves out,
   so no figure on the page is typed by hand;
 * the quick commands (info, encode, compare, decode, mesh) run now on a small map the test makes still print
   lines of the shape the page quotes (its numbers aside), so a reworded summary fails here, not on a reader;
@@ -90,7 +90,7 @@ def test_every_quoted_line_is_in_the_record():
     assert all(r["returncode"] == 0 and r["load_before"] >= 0 and r["wall_s"] > 0 for r in RECORD["records"])
     seen: dict[str, int] = {}
     for cmd, lines in _quoted():
-        assert cmd in by, f"`{cmd}` is on the page but not in docs/how-to/kitchen.json: run docs/kitchen_measure.py"
+        assert cmd in by, f"`{cmd}` is on the page but not in docs/how-to/kitchen.json: run docs/how-to/kitchen_measure.py"
         k = seen[cmd] = seen.get(cmd, -1) + 1  # the same command twice (cold, then warm search): its runs in order
         assert k < len(by[cmd]), f"`{cmd}` is on the page {k + 1} times but recorded {len(by[cmd])}"
         rec = by[cmd][k]

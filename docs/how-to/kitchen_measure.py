@@ -2,7 +2,7 @@
 (frames 0-499), its output recorded into docs/how-to/kitchen.json, from which the page quotes
 (tests/test_docs_kitchen.py checks every quoted line against that record).
 
-Run: ``.venv/bin/python docs/kitchen_measure.py --kitchen DIR --work WORKDIR [--out docs/how-to/kitchen.json]``
+Run: ``.venv/bin/python docs/how-to/kitchen_measure.py --kitchen DIR --work WORKDIR [--out docs/how-to/kitchen.json]``
 (DIR: a 7-Scenes redkitchen sequence folder, default ``$SDFCODEC_KITCHEN``; WORKDIR: an empty scratch folder).
 The commands run as a new user runs them, ``sdfcodec COMMAND`` one process each, in WORKDIR, with the kitchen
 linked there as ``7scenes-redkitchen`` and an empty query cache (``SDFCODEC_CACHE_DIR``), so the first search is
@@ -76,7 +76,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--kitchen", default=os.environ.get("SDFCODEC_KITCHEN"), help="7-Scenes redkitchen folder")
     ap.add_argument("--work", required=True, type=Path, help="empty scratch folder")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "how-to" / "kitchen.json")
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "kitchen.json")
     a = ap.parse_args()
     if not a.kitchen or not Path(a.kitchen).is_dir():
         sys.exit("error: --kitchen DIR (a 7-Scenes redkitchen sequence folder) is needed")
@@ -96,7 +96,7 @@ def main() -> None:
     finally:
         server.terminate()
         server.wait()
-    doc = {"what": "docs/how-to/kitchen.md, run by docs/kitchen_measure.py",
+    doc = {"what": "docs/how-to/kitchen.md, run by docs/how-to/kitchen_measure.py",
            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()} {platform.release()}",
            "python": platform.python_version(), "records": records}
