@@ -171,6 +171,43 @@ def test_stored_bits_round_trip_and_give_the_exact_masks_surface_and_mesh(tmp_pa
     assert len(stream) < len(m1)
 
 
+def test_cheapest_bits_are_shorter_and_keep_the_exact_masks_surface_and_mesh(tmp_path, room, codec):
+    """The writer's choice of the free bits (truly observed voxels the canonical bits leave 0): set to what the
+    coder's adaptive model finds more probable. They change only free voxels, the stream is shorter than the
+    canonical bits', and decoding with them gives the true mask's surface points and open3d triangles."""
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    step = 0.6
+    m = _maps(tmp_path, room, codec, step)
+    coords, codes = m.reader.read_codes()
+    q = np.rint(codes / np.float32(step)).astype(np.int64)
+    truth = m.read_observed(coords)
+    signs = pm.sign_bounds(*pm.exact_decode(q, _basis(codec, step)))
+    pin, _, _ = pm.exact_pins(coords, *signs, np.zeros((0, 3)), TRUNC)
+    bits = pm.canonical_bits(coords, truth, *signs, TRUNC)
+    free = truth & ~bits
+    cheap = pm.cheapest_bits(coords, bits, free, pin)
+    changed = (cheap != bits) & pin
+    assert changed.any() and not (changed & ~free).any()
+    short, long = pm.encode_pinned(coords, cheap, pin), pm.encode_pinned(coords, bits, pin)
+    assert len(short) < len(long)
+    back = pm.decode_pinned(short, coords, pin)
+    assert np.array_equal(back[pin], cheap[pin])
+    dec = np.clip(codec.decode(torch.from_numpy(codes)).numpy() * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)
+    grid = m.reader.grid_blocks
+    pts, meshes = [], []
+    for mask in (truth, back):
+        blocks = np.where(mask, dec, TRUNC[1]).astype(np.float32)
+        full = np.full((*grid, 16, 16, 16), TRUNC[1], np.float32)
+        full[tuple(coords.T)] = blocks
+        pts.append(surface_points(full.transpose(0, 3, 1, 4, 2, 5).reshape(*(g * 16 for g in grid)), VS))
+        mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
+        vv, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        meshes.append(sorted(tuple(sorted(map(tuple, vv[tri]))) for tri in t))
+    np.testing.assert_array_equal(pts[0], pts[1])
+    assert len(meshes[0]) > 1000 and meshes[0] == meshes[1]
+
+
 def test_a_corrupted_or_mismatched_stream_fails_with_one_line():
     rng = np.random.default_rng(1)
     pin = rng.random((3, 16, 16, 16)) < 0.2
