@@ -14,7 +14,7 @@ import numpy as np
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
 __all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs",
-           "decode_chunk", "encode", "bernoulli_intervals", "categorical_intervals"]
+           "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
 _FOUND: list[bool] = []
@@ -59,6 +59,11 @@ class Decoder:
     def is_empty(self) -> bool:
         """Whether every word was read and the state is back to 0 (constriction's ``is_empty``)."""
         return int(self.st[0]) == 0
+
+    def categorical(self, n: int, cdf: np.ndarray) -> np.ndarray:
+        """``n`` symbols ``(n,)`` int32 under one ``Categorical(perfect=False)`` law (its table:
+        :func:`categorical_cdf`)."""
+        return _k().categorical_decode(self.words, self.st, int(n), cdf)
 
     def flags(self, n: int, p: float) -> np.ndarray:
         """``n`` bits ``(n,)`` bool under ``Bernoulli(p, perfect=False)``."""
@@ -204,6 +209,13 @@ def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tu
     where each starts; its symbol count), as :func:`decode_chunk` takes them (uint32 tables)."""
     return _k().table_cdfs(np.ascontiguousarray(lengths, np.float64), np.ascontiguousarray(decay, np.float64),
                            np.ascontiguousarray(extent, np.int64))
+
+
+def categorical_cdf(probs: np.ndarray) -> np.ndarray:
+    """The cumulative table ``(k + 1,)`` uint32 constriction's ``Categorical(probs, perfect=False)`` builds of
+    probabilities ``probs`` ``(k,)`` float64, as :meth:`Decoder.categorical` takes it."""
+    empty = np.zeros(0)
+    return _k().table_cdfs(np.ascontiguousarray(probs, np.float64), empty, empty.astype(np.int64))[0]
 
 
 def decode_chunk(words: np.ndarray, n: int, level: int, cdfs: tuple[np.ndarray, np.ndarray, np.ndarray],

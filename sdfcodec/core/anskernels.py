@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "categorical_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -685,6 +685,19 @@ def chunk_decode(words, n, level, cdfs, at, sizes, off):
         if not any_:
             break
     return 0, out
+
+
+@njit(cache=True)
+def categorical_decode(words, st, n, cdf):
+    """``n`` symbols ``(n,)`` int32, each under the one table ``cdf`` (``m + 1`` entries, :func:`table_cdfs`),
+    from the decoder state ``st`` (left where the last symbol leaves it)."""
+    out = np.empty(n, np.int32)
+    m = len(cdf) - 1
+    s, pos = st[0], np.int64(st[1])
+    for i in range(n):
+        out[i], s, pos = _from_cdf(words, s, pos, cdf, 0, m, m >> 1)
+    st[0], st[1] = s, np.uint64(pos)
+    return out
 
 
 @njit(cache=True)

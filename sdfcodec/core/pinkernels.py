@@ -1,6 +1,7 @@
 """Compiled steps of a pinned observation mask's read (numba; imported only by :mod:`sdfcodec.map.pinread` and
-:mod:`sdfcodec.map.pinstore` when numba is installed): the signs of the exact decode told from the reader's float
-decode, the pinned voxels from them, and the unobserved voxels set in the decode.
+:mod:`sdfcodec.map.pinstore` when numba is installed): the signs of the exact decode (or of a surface refinement's
+refined exact field, with the refinement's selected voxels) told from the reader's float decode, the pinned
+voxels from them, and the unobserved voxels set in the decode.
 
 Module-level functions, cached on disk by numba.
 """
@@ -10,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["sign_rows", "set_voxels", "pinned_rows"]
+__all__ = ["sign_rows", "select_rows", "refined_sign_rows", "set_voxels", "pinned_rows"]
 
 _SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact decode's integers
 
@@ -28,6 +29,20 @@ def _exact(q, basis_t, b, j):
     return t
 
 
+@njit(cache=True, inline="always")
+def _limits(e, d):
+    """``(neg_yes, neg_no, pos_yes, pos_no)`` for a bound ``e`` and margin ``d``: a value ``x`` within ``d`` of
+    ``w`` has ``w < e`` for sure where ``x < neg_yes``, ``w >= e`` where ``x >= neg_no``, ``w >= -e`` where ``x >=
+    pos_yes``, ``w < -e`` where ``x < pos_no``."""
+    return e - d, e + d, d - e, -e - d
+
+
+@njit(cache=True, inline="always")
+def _sure(x, neg_yes, neg_no, pos_yes, pos_no):
+    """Whether both signs of a value within the margin of ``x`` are decided (:func:`_limits`)."""
+    return (x < neg_yes or x >= neg_no) and (x >= pos_yes or x < pos_no)
+
+
 @njit(cache=True)
 def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     """Where the exact decode ``w`` of blocks ``b`` may be negative (``w < e[b]``: ``neg``) and non-negative (``w
@@ -40,9 +55,8 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     exact = 0
     for b in range(n):
         r = rows[b]
-        eb, db = e[b], d[b]
-        neg_yes, neg_no = eb - db, eb + db  # x < neg_yes: w < e for sure; x >= neg_no: w >= e for sure
-        pos_yes, pos_no = db - eb, -eb - db  # x >= pos_yes: w >= -e for sure; x < pos_no: w < -e for sure
+        eb = e[b]
+        neg_yes, neg_no, pos_yes, pos_no = _limits(eb, d[b])
         for xy in range(256):
             nb = np.uint32(0)
             pb = np.uint32(0)
@@ -54,7 +68,7 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
                     nb |= bit
                 if x >= pos_yes:
                     pb |= bit
-                if not (x < neg_yes or x >= neg_no) or not (x >= pos_yes or x < pos_no):
+                if not _sure(x, neg_yes, neg_no, pos_yes, pos_no):
                     unsure |= 1 << z
             if unsure:
                 for z in range(16):
@@ -64,6 +78,88 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
                         nb = (nb | bit) if w < eb else (nb & ~bit)
                         pb = (pb | bit) if w >= -eb else (pb & ~bit)
                         exact += 1
+            neg[b, xy >> 4, xy & 15] = nb
+            pos[b, xy >> 4, xy & 15] = pb
+    return exact
+
+
+@njit(cache=True)
+def select_rows(v, rows, tau, d, q, basis_t, lo, hi, sel):
+    """A surface refinement's selected voxels (spec 6h: ``|clip(w, lo, hi)| < tau``, ``w`` the exact decode,
+    ``lo``, ``hi`` the truncation times 2^24 in float64) of blocks ``b`` into ``sel`` ``(n, 4096)`` bool, told
+    from the clipped float decode in metres ``v[rows[b]]`` (``v`` ``(m, 4096)`` float32) within ``d[b]`` of
+    ``clip(w) 2^-24`` (``d`` ``(n,)`` float64, may be inf; ``rows[b] < 0``: not decoded): a voxel whose interval
+    ``[max(x - d, lo), min(x + d, hi)]`` holds ``+-tau`` is decided by its exact decode (:func:`_exact`). Returns
+    the number of voxels decided exactly."""
+    exact = 0
+    for b in range(len(rows)):
+        r = rows[b]
+        db = d[b]
+        for j in range(4096):
+            if r >= 0:
+                # clip(w) lies in [a, b] (within d of x and inside the truncation: a value clipped at a bound
+                # near tau is decided too)
+                x = np.float64(v[r, j]) * _SCALE
+                a, z = max(x - db, lo), min(x + db, hi)
+                if -tau < a and z < tau:
+                    sel[b, j] = True
+                    continue
+                if a >= tau or z <= -tau:
+                    sel[b, j] = False
+                    continue
+            w = min(max(_exact(q, basis_t, b, j), lo), hi)
+            sel[b, j] = abs(w) < tau
+            exact += 1
+    return exact
+
+
+@njit(cache=True)
+def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos):
+    """:func:`sign_rows` of a surface refinement's refined exact field (spec 6h) ``r = clip(clip(w) + c step)``
+    (``c`` the corrections ``(m,)`` int32 of the selected voxels ``sel`` ``(n, 4096)`` bool in C order, block by
+    block; 0 elsewhere; ``step`` units, ``lo``, ``hi`` the truncation times 2^24 in float64), against the bound
+    ``e`` ``(n,)``. The corrections are first added to the float decode ``v[rows[b]]`` (metres, clipped), in
+    place, as the reader's refined decode: ``min(max(fl32(v + c step 2^-24), lo32), hi32)`` in float32; the
+    signs are then told from it within ``d[b]`` of ``r 2^-24``, the voxels within ``d[b]`` of ``+-e[b]`` (and
+    every voxel of a block not decoded) by the exact ``r``. Returns the number of voxels decided exactly."""
+    exact = 0
+    t = 0
+    step32 = np.float32(step / _SCALE)  # exact: an integer below 2^24 times a power of two
+    lo32, hi32 = np.float32(lo / _SCALE), np.float32(hi / _SCALE)
+    for b in range(len(rows)):
+        r = rows[b]
+        eb = e[b]
+        neg_yes, neg_no, pos_yes, pos_no = _limits(eb, d[b])
+        for xy in range(256):
+            nb = np.uint32(0)
+            pb = np.uint32(0)
+            for z in range(16):
+                j = xy * 16 + z
+                cj = 0
+                if sel[b, j]:
+                    cj = c[t]
+                    t += 1
+                bit = np.uint32(1) << np.uint32(z + 1)
+                if r >= 0:
+                    # the reader's float32 sum (+0.0 where nothing is selected, as it adds a row of zeros)
+                    y = np.float32(v[r, j] + np.float32(cj) * step32)
+                    y = min(max(y, lo32), hi32)
+                    v[r, j] = y
+                    x = np.float64(y) * _SCALE
+                    if _sure(x, neg_yes, neg_no, pos_yes, pos_no):
+                        if x < neg_yes:
+                            nb |= bit
+                        if x >= pos_yes:
+                            pb |= bit
+                        continue
+                w = min(max(_exact(q, basis_t, b, j), lo), hi)
+                if cj != 0:
+                    w = min(max(w + cj * step, lo), hi)
+                if w < eb:
+                    nb |= bit
+                if w >= -eb:
+                    pb |= bit
+                exact += 1
             neg[b, xy >> 4, xy & 15] = nb
             pos[b, xy >> 4, xy & 15] = pb
     return exact
