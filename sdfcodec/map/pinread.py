@@ -28,10 +28,12 @@ refined decode is ``y = clip32(fl32(x + e step 2^-24))``, ``x`` its float decode
 (the truncation rounded to float32, ``|L32 - L| <= |d_min| < 1`` unit). Both sides are told from that float
 decode, never from a second one:
 
-* *Selection.* Clipping is 1-Lipschitz in the value and in each bound, so ``|2^24 x - c(w)| <= D + 1``. Hence
-  ``|2^24 x| < tau - (D + 1)`` proves the voxel selected and ``|2^24 x| >= tau + (D + 1)`` proves it not; a
-  voxel in between (or of a block not decoded) is decided by its exact decode. The selection, and so the number
-  of corrections the stream holds, is the exact one.
+* *Selection.* Clipping is 1-Lipschitz in the value and in each bound, so ``|2^24 x - c(w)| <= D + 1``, and
+  ``c(w)`` lies in ``[L, H]``: in ``[a, b] = [max(2^24 x - D - 1, L), min(2^24 x + D + 1, H)]``. Where ``-tau <
+  a`` and ``b < tau`` the voxel is selected, where ``a >= tau`` or ``b <= -tau`` it is not (a decode clipped at
+  ``d_min`` with ``tau`` just beyond ``|d_min|`` is then decided without its exact decode); any other voxel (or
+  one of a block not decoded) is decided by its exact decode. The selection, and so the number of corrections
+  the stream holds, is the exact one.
 * *Refined pins.* ``e step 2^-24`` is exact in float32 (spec 6h), so the sum ``x + e step 2^-24`` has one
   rounding, at most ``2^-24`` of its magnitude: at most ``rho = max(|d_min|, |d_max|) + max|e| step 2^-24``
   units (metres as a number of units). The final clip adds at most one unit more, so ``|2^24 y - r| <= D + 2 +
