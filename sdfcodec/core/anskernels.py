@@ -468,6 +468,11 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
     until = np.zeros(3, np.int64)
     counts = np.zeros((2, n_ctx), np.int64)
     split = np.full(n_ctx, _kt_split(0, 0), np.int64)
+    stamp = np.full(n_ctx, -1, np.int64)  # the wavefront whose counts changed a context's split
+    top = 0
+    for q in range(len(weights)):
+        top += 2 * weights[q]
+    bounded = top < n_ctx  # the planes hold 0, 1, 2 only: no context can reach n_ctx, none is checked
     bits = np.zeros(len(ij), np.uint8)
     widest = 0
     for u in range(len(bounds) - 1):
@@ -491,15 +496,24 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
         me = w % 3
         since[me], until[me] = a, b
         # the wavefront's contexts first (they read earlier wavefronts only), apart from the coder's chain
-        for t in range(a, b):
-            at = np.int64(ij[t] >> 16) * s1 + (ij[t] & 0xFFFF)
-            ctx = 0
-            for q in range(len(weights)):
-                ctx += np.int64(flat[at + off[q]]) * weights[q]
-            if ctx >= n_ctx:
-                st[0], st[1] = s, np.uint64(pos)
-                return False, bits
-            buf_ctx[t - a] = ctx
+        if len(weights) == 6 and bounded:  # M2's six neighbours, unrolled (a loop measured 1.2x the time)
+            o0, o1, o2, o3, o4, o5 = off[0], off[1], off[2], off[3], off[4], off[5]
+            w0, w1, w2, w3, w4, w5 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5]
+            for t in range(a, b):
+                at = np.int64(ij[t] >> 16) * s1 + (ij[t] & 0xFFFF)
+                buf_ctx[t - a] = (np.int64(flat[at + o0]) * w0 + np.int64(flat[at + o1]) * w1
+                                  + np.int64(flat[at + o2]) * w2 + np.int64(flat[at + o3]) * w3
+                                  + np.int64(flat[at + o4]) * w4 + np.int64(flat[at + o5]) * w5)
+        else:
+            for t in range(a, b):
+                at = np.int64(ij[t] >> 16) * s1 + (ij[t] & 0xFFFF)
+                ctx = 0
+                for q in range(len(weights)):
+                    ctx += np.int64(flat[at + off[q]]) * weights[q]
+                if ctx >= n_ctx:
+                    st[0], st[1] = s, np.uint64(pos)
+                    return False, bits
+                buf_ctx[t - a] = ctx
         mine = me * s0 * s1
         for t in range(a, b):
             c1 = split[buf_ctx[t - a]]
@@ -510,9 +524,12 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
             bits[t] = bit
         for t in range(a, b):
             counts[np.int64(bits[t]), buf_ctx[t - a]] += 1
-        for t in range(a, b):
+            stamp[buf_ctx[t - a]] = u
+        for t in range(a, b):  # each context's split once a wavefront (two divisions), not once a bit
             ctx = buf_ctx[t - a]
-            split[ctx] = _kt_split(counts[0, ctx], counts[1, ctx])
+            if stamp[ctx] == u:
+                stamp[ctx] = -1
+                split[ctx] = _kt_split(counts[0, ctx], counts[1, ctx])
     st[0], st[1] = s, np.uint64(pos)
     return True, bits
 

@@ -40,7 +40,7 @@ def _limits(e, d):
 @njit(cache=True, inline="always")
 def _sure(x, neg_yes, neg_no, pos_yes, pos_no):
     """Whether both signs of a value within the margin of ``x`` are decided (:func:`_limits`)."""
-    return (x < neg_yes or x >= neg_no) and (x >= pos_yes or x < pos_no)
+    return ((x < neg_yes) | (x >= neg_no)) & ((x >= pos_yes) | (x < pos_no))
 
 
 @njit(cache=True)
@@ -63,13 +63,10 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
             unsure = 0
             for z in range(16):
                 x = np.float64(v[r, xy * 16 + z]) * _SCALE
-                bit = np.uint32(1) << np.uint32(z + 1)
-                if x < neg_yes:
-                    nb |= bit
-                if x >= pos_yes:
-                    pb |= bit
-                if not _sure(x, neg_yes, neg_no, pos_yes, pos_no):
-                    unsure |= 1 << z
+                sh = np.uint32(z + 1)  # flags as bits, not branches
+                nb |= np.uint32(x < neg_yes) << sh
+                pb |= np.uint32(x >= pos_yes) << sh
+                unsure |= np.int64(not _sure(x, neg_yes, neg_no, pos_yes, pos_no)) << z
             if unsure:
                 for z in range(16):
                     if unsure >> z & 1:
@@ -126,40 +123,42 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
     t = 0
     step32 = np.float32(step / _SCALE)  # exact: an integer below 2^24 times a power of two
     lo32, hi32 = np.float32(lo / _SCALE), np.float32(hi / _SCALE)
+    cz = np.zeros(16, np.int64)  # a row's corrections (0 where not selected)
+    last = max(len(c) - 1, 0)
+    cc = c if len(c) else np.zeros(1, np.int32)
     for b in range(len(rows)):
         r = rows[b]
         eb = e[b]
         neg_yes, neg_no, pos_yes, pos_no = _limits(eb, d[b])
         for xy in range(256):
-            nb = np.uint32(0)
-            pb = np.uint32(0)
-            for z in range(16):
-                j = xy * 16 + z
-                cj = 0
-                if sel[b, j]:
-                    cj = c[t]
-                    t += 1
-                bit = np.uint32(1) << np.uint32(z + 1)
-                if r >= 0:
+            base = xy * 16
+            for z in range(16):  # no branch on the selection: a row's corrections gathered first
+                s_ = np.int64(sel[b, base + z])
+                cz[z] = np.int64(cc[min(t, last)]) * s_
+                t += s_
+            nb, pb, unsure = np.uint32(0), np.uint32(0), 0xFFFF
+            if r >= 0:
+                unsure = 0
+                for z in range(16):
                     # the reader's float32 sum (+0.0 where nothing is selected, as it adds a row of zeros)
-                    y = np.float32(v[r, j] + np.float32(cj) * step32)
+                    y = np.float32(v[r, base + z] + np.float32(cz[z]) * step32)
                     y = min(max(y, lo32), hi32)
-                    v[r, j] = y
+                    v[r, base + z] = y
                     x = np.float64(y) * _SCALE
-                    if _sure(x, neg_yes, neg_no, pos_yes, pos_no):
-                        if x < neg_yes:
-                            nb |= bit
-                        if x >= pos_yes:
-                            pb |= bit
-                        continue
-                w = min(max(_exact(q, basis_t, b, j), lo), hi)
-                if cj != 0:
-                    w = min(max(w + cj * step, lo), hi)
-                if w < eb:
-                    nb |= bit
-                if w >= -eb:
-                    pb |= bit
-                exact += 1
+                    sh = np.uint32(z + 1)
+                    nb |= np.uint32(x < neg_yes) << sh
+                    pb |= np.uint32(x >= pos_yes) << sh
+                    unsure |= np.int64(not _sure(x, neg_yes, neg_no, pos_yes, pos_no)) << z
+            if unsure:
+                for z in range(16):
+                    if unsure >> z & 1:
+                        bit = np.uint32(1) << np.uint32(z + 1)
+                        w = min(max(_exact(q, basis_t, b, base + z), lo), hi)
+                        if cz[z] != 0:
+                            w = min(max(w + cz[z] * step, lo), hi)
+                        nb = (nb | bit) if w < eb else (nb & ~bit)
+                        pb = (pb | bit) if w >= -eb else (pb & ~bit)
+                        exact += 1
             neg[b, xy >> 4, xy & 15] = nb
             pos[b, xy >> 4, xy & 15] = pb
     return exact
