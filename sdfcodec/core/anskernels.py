@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "categorical_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "slot_table", "categorical_decode", "encode"]
 
 _ONE = np.uint64(1)
 _PREC = np.uint64(24)
@@ -96,32 +96,16 @@ def _symbol3(words, s, pos, c1, c2):
 
 
 @njit(cache=True, inline="always")
-def _from_cdf(words, s, pos, cdf, a, n, hint):
-    """One symbol of ``0..n-1`` under the table ``cdf[a:a + n + 1]``: a search from symbol ``hint`` outward by
-    doubling steps, then by halves (the symbol with ``cdf[s] <= quantile < cdf[s + 1]``, as a binary search
-    finds it, but the values near a peaked law's centre stay in cache when its table is megabytes)."""
-    q = np.uint32(s & _QMASK)
-    lo, hi = 0, n  # cdf[a + lo] <= q < cdf[a + hi]
-    if cdf[a + hint] <= q:
-        lo, step = hint, 1
-        while lo + step < n and cdf[a + lo + step] <= q:
-            lo += step
-            step *= 2
-        hi = min(lo + step, n)
-    else:
-        hi, step = hint, 1
-        while hi - step > 0 and cdf[a + hi - step] > q:
-            hi -= step
-            step *= 2
-        lo = max(hi - step, 0)
-    while hi - lo > 1:
-        mid = (lo + hi) >> 1
-        if cdf[a + mid] <= q:
-            lo = mid
-        else:
-            hi = mid
-    s, pos = _advance(words, s, pos, np.int64(cdf[a + lo]), np.int64(cdf[a + lo + 1]), np.int64(q))
-    return lo, s, pos
+def _from_slots(words, s, pos, cdf, a, slots, row, shift):
+    """One symbol under the table ``cdf[a:]``: the symbol of its quantile's slot (``slots[row]``,
+    :func:`slot_table`) and a few steps forward to the one with ``cdf[s] <= quantile < cdf[s + 1]`` (a binary
+    search takes a dozen dependent loads a symbol, some beyond cache when the tables are megabytes)."""
+    q = np.int64(s & _QMASK)
+    k = np.int64(slots[row, q >> shift])
+    while np.int64(cdf[a + k + 1]) <= q:
+        k += 1
+    s, pos = _advance(words, s, pos, np.int64(cdf[a + k]), np.int64(cdf[a + k + 1]), q)
+    return k, s, pos
 
 
 @njit(cache=True, inline="always")
@@ -679,11 +663,11 @@ def table_cdfs(first, decay, extent):
 
 
 @njit(cache=True)
-def chunk_decode(words, n, level, cdfs, at, sizes, off):
+def chunk_decode(words, n, level, cdfs, at, slots, shift, off):
     """The variable-rate chunk stream of :func:`sdfcodec.core.varrate.decode_chunk`: ``n`` lengths under the
-    table at ``cdfs[at[0]:]`` (``sizes[0]`` symbols), then for ``j < level`` element ``j`` of every block longer
-    than ``j`` under the table ``j + 1``, minus ``off[j]``. Returns (status: 0 ok, 1 a trailing zero word;
-    ``(n, level)`` int32)."""
+    table at ``cdfs[at[0]:]``, then for ``j < level`` element ``j`` of every block longer than ``j`` under the
+    table ``j + 1``, minus ``off[j]`` (``slots`` ``(D + 1, 2^(24 - shift))``: :func:`slot_table` of each table).
+    Returns (status: 0 ok, 1 a trailing zero word; ``(n, level)`` int32)."""
     out = np.zeros((n, level), np.int32)
     st = np.zeros(2, np.uint64)
     if not start(words, st):
@@ -691,13 +675,13 @@ def chunk_decode(words, n, level, cdfs, at, sizes, off):
     k = np.empty(n, np.int64)
     s, pos = st[0], np.int64(st[1])
     for i in range(n):
-        k[i], s, pos = _from_cdf(words, s, pos, cdfs, at[0], sizes[0], sizes[0] >> 1)
+        k[i], s, pos = _from_slots(words, s, pos, cdfs, at[0], slots, 0, shift)
     for j in range(level):
         any_ = False
         for i in range(n):
             if k[i] > j:
                 any_ = True
-                v, s, pos = _from_cdf(words, s, pos, cdfs, at[j + 1], sizes[j + 1], sizes[j + 1] >> 1)
+                v, s, pos = _from_slots(words, s, pos, cdfs, at[j + 1], slots, j + 1, shift)
                 out[i, j] = v - off[j]
         if not any_:
             break
@@ -705,14 +689,29 @@ def chunk_decode(words, n, level, cdfs, at, sizes, off):
 
 
 @njit(cache=True)
-def categorical_decode(words, st, n, cdf):
-    """``n`` symbols ``(n,)`` int32, each under the one table ``cdf`` (``m + 1`` entries, :func:`table_cdfs`),
-    from the decoder state ``st`` (left where the last symbol leaves it)."""
+def slot_table(cdfs, at, shift):
+    """``(len(at), 2^(24 - shift))`` int32: for each table ``j`` of ``cdfs`` (starting at ``at[j]``, as
+    :func:`table_cdfs` gives them) and each slot ``t`` of the quantiles, the symbol ``s`` with ``cdf[s] <= t
+    2^shift < cdf[s + 1]``: where a decode of a symbol starts looking."""
+    out = np.empty((len(at), 1 << (24 - shift)), np.int32)
+    for j in range(len(at)):
+        k = 0
+        for t in range(out.shape[1]):
+            while np.int64(cdfs[at[j] + k + 1]) <= (t << shift):
+                k += 1
+            out[j, t] = k
+    return out
+
+
+@njit(cache=True)
+def categorical_decode(words, st, n, cdf, slots, shift):
+    """``n`` symbols ``(n,)`` int32, each under the one table ``cdf`` (``m + 1`` entries, :func:`table_cdfs`;
+    ``slots`` ``(1, 2^(24 - shift))``: its :func:`slot_table`), from the decoder state ``st`` (left where the
+    last symbol leaves it)."""
     out = np.empty(n, np.int32)
-    m = len(cdf) - 1
     s, pos = st[0], np.int64(st[1])
     for i in range(n):
-        out[i], s, pos = _from_cdf(words, s, pos, cdf, 0, m, m >> 1)
+        out[i], s, pos = _from_slots(words, s, pos, cdf, 0, slots, 0, shift)
     st[0], st[1] = s, np.uint64(pos)
     return out
 

@@ -100,7 +100,7 @@ class CorrectionModel:
                               "counts >= 0")
         self.m = len(self.counts) // 2
         self._model = None
-        self._cdf: np.ndarray | None = None
+        self._cdf: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def fit(cls, c: np.ndarray) -> "CorrectionModel":
@@ -121,8 +121,9 @@ class CorrectionModel:
             self._model = constriction.stream.model.Categorical(self.probabilities(), perfect=False)
         return self._model
 
-    def cdf(self) -> np.ndarray:
-        """The cumulative table ``(2 M + 2,)`` uint32 of :meth:`model` (the compiled decoder's)."""
+    def cdf(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cumulative table ``(2 M + 2,)`` uint32 of :meth:`model` and its slots (the compiled decoder's,
+        :func:`sdfcodec.core.ans.categorical_cdf`)."""
         if self._cdf is None:
             from . import ans
 
