@@ -368,3 +368,23 @@ def test_a_refined_read_equals_the_exact_decodes_read(monkeypatch):
     m = sdfcodec.open_map(REFINED)
     assert (fast[0] == m.truncation[1]).any() and (fast[0] < 0).any() and not fast[3].all()
     assert np.abs(fast[0] - fast[2]).max() > 1e-3
+
+
+def test_a_chunk_of_short_prefixes_reads_back(tmp_path, monkeypatch):
+    """A pinned map whose every block's prefix is shorter than the codes (step 3: the last 17 of 64 columns are
+    zero in every block) reads, with numba and without, to the same values: writer and readers take the bound
+    ``E`` of spec 6g with the codes' length ``D`` (the writer took the prefix's, and the compiled reader refused
+    the chunk, its pin count differing)."""
+    from _fused_maps import write_volume_map
+
+    vol, obs = fused_like(sample_volume(analytic_scene(), (64, 64, 48), VS, truncation=TRUNC))
+    path = tmp_path / "short.sdfz"
+    write_volume_map(path, vol, obs, pretrained_codec("pca", 64), variable_rate={"step": 3.0})
+    m = sdfcodec.open_map(path)
+    (_, q), = m.reader.vr.chunk_codes(np.zeros((1, 3), np.int64), m.header.codes.size)
+    assert not q[:, -8:].any() and q.any()
+    fast = m.decode_region()
+    with monkeypatch.context() as mp:
+        mp.setattr(ans, "available", lambda: False)
+        slow = sdfcodec.open_map(path).decode_region()
+    assert np.array_equal(fast, slow) and (fast == TRUNC[1]).any() and (fast < 0).any()

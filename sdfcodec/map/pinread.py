@@ -79,7 +79,8 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     n = len(coords)
     rows = np.asarray(rows, np.int64)
     if not ans.available() or v is None or not len(v):  # numpy: the exact decode of every voxel
-        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside_coded, truncation)
+        exact = pm.exact_decode(q, basis, size=q.shape[1])  # E of the codes' length D, as below (spec 6g)
+        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*exact), outside_coded, truncation)
         return np.packbits(pins.reshape(n, -1), axis=1, bitorder="little").view("<u2").reshape(n, BLOCK, BLOCK)
     from ..core import pinkernels
 
