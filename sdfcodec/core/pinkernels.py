@@ -43,6 +43,26 @@ def _sure(x, neg_yes, neg_no, pos_yes, pos_no):
     return ((x < neg_yes) | (x >= neg_no)) & ((x >= pos_yes) | (x < pos_no))
 
 
+@njit(cache=True, inline="always")
+def _told(x, z, lim, nb, pb, unsure):
+    """Voxel ``z``'s flags told from ``x`` (bit ``z + 1`` of ``nb``, ``pb``; bit ``z`` of ``unsure`` where the
+    margin leaves its signs open) under :func:`_limits` ``lim``: bits, not branches."""
+    sh = np.uint32(z + 1)
+    nb |= np.uint32(x < lim[0]) << sh
+    pb |= np.uint32(x >= lim[2]) << sh
+    unsure |= np.int64(not _sure(x, lim[0], lim[1], lim[2], lim[3])) << z
+    return nb, pb, unsure
+
+
+@njit(cache=True, inline="always")
+def _decided(w, e, z, nb, pb):
+    """Voxel ``z``'s flags set from its exact value ``w`` against the bound ``e``."""
+    bit = np.uint32(1) << np.uint32(z + 1)
+    nb = (nb | bit) if w < e else (nb & ~bit)
+    pb = (pb | bit) if w >= -e else (pb & ~bit)
+    return nb, pb
+
+
 @njit(cache=True)
 def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     """Where the exact decode ``w`` of blocks ``b`` may be negative (``w < e[b]``: ``neg``) and non-negative (``w
@@ -56,24 +76,15 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     for b in range(n):
         r = rows[b]
         eb = e[b]
-        neg_yes, neg_no, pos_yes, pos_no = _limits(eb, d[b])
+        lim = _limits(eb, d[b])
         for xy in range(256):
-            nb = np.uint32(0)
-            pb = np.uint32(0)
-            unsure = 0
+            nb, pb, unsure = np.uint32(0), np.uint32(0), 0
             for z in range(16):
-                x = np.float64(v[r, xy * 16 + z]) * _SCALE
-                sh = np.uint32(z + 1)  # flags as bits, not branches
-                nb |= np.uint32(x < neg_yes) << sh
-                pb |= np.uint32(x >= pos_yes) << sh
-                unsure |= np.int64(not _sure(x, neg_yes, neg_no, pos_yes, pos_no)) << z
+                nb, pb, unsure = _told(np.float64(v[r, xy * 16 + z]) * _SCALE, z, lim, nb, pb, unsure)
             if unsure:
                 for z in range(16):
                     if unsure >> z & 1:
-                        w = _exact(q, basis_t, b, xy * 16 + z)
-                        bit = np.uint32(1) << np.uint32(z + 1)
-                        nb = (nb | bit) if w < eb else (nb & ~bit)
-                        pb = (pb | bit) if w >= -eb else (pb & ~bit)
+                        nb, pb = _decided(_exact(q, basis_t, b, xy * 16 + z), eb, z, nb, pb)
                         exact += 1
             neg[b, xy >> 4, xy & 15] = nb
             pos[b, xy >> 4, xy & 15] = pb
@@ -129,7 +140,7 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
     for b in range(len(rows)):
         r = rows[b]
         eb = e[b]
-        neg_yes, neg_no, pos_yes, pos_no = _limits(eb, d[b])
+        lim = _limits(eb, d[b])
         for xy in range(256):
             base = xy * 16
             for z in range(16):  # no branch on the selection: a row's corrections gathered first
@@ -144,20 +155,14 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
                     y = np.float32(v[r, base + z] + np.float32(cz[z]) * step32)
                     y = min(max(y, lo32), hi32)
                     v[r, base + z] = y
-                    x = np.float64(y) * _SCALE
-                    sh = np.uint32(z + 1)
-                    nb |= np.uint32(x < neg_yes) << sh
-                    pb |= np.uint32(x >= pos_yes) << sh
-                    unsure |= np.int64(not _sure(x, neg_yes, neg_no, pos_yes, pos_no)) << z
+                    nb, pb, unsure = _told(np.float64(y) * _SCALE, z, lim, nb, pb, unsure)
             if unsure:
                 for z in range(16):
                     if unsure >> z & 1:
-                        bit = np.uint32(1) << np.uint32(z + 1)
                         w = min(max(_exact(q, basis_t, b, base + z), lo), hi)
                         if cz[z] != 0:
                             w = min(max(w + cz[z] * step, lo), hi)
-                        nb = (nb | bit) if w < eb else (nb & ~bit)
-                        pb = (pb | bit) if w >= -eb else (pb & ~bit)
+                        nb, pb = _decided(w, eb, z, nb, pb)
                         exact += 1
             neg[b, xy >> 4, xy & 15] = nb
             pos[b, xy >> 4, xy & 15] = pb
