@@ -40,17 +40,21 @@ def _limits(e, d):
 @njit(cache=True, inline="always")
 def _sure(x, neg_yes, neg_no, pos_yes, pos_no):
     """Whether both signs of a value within the margin of ``x`` are decided (:func:`_limits`)."""
-    return ((x < neg_yes) | (x >= neg_no)) & ((x >= pos_yes) | (x < pos_no))
+    return (x < neg_yes or x >= neg_no) and (x >= pos_yes or x < pos_no)
 
 
 @njit(cache=True, inline="always")
 def _told(x, z, lim, nb, pb, unsure):
     """Voxel ``z``'s flags told from ``x`` (bit ``z + 1`` of ``nb``, ``pb``; bit ``z`` of ``unsure`` where the
-    margin leaves its signs open) under :func:`_limits` ``lim``: bits, not branches."""
-    sh = np.uint32(z + 1)
-    nb |= np.uint32(x < lim[0]) << sh
-    pb |= np.uint32(x >= lim[2]) << sh
-    unsure |= np.int64(not _sure(x, lim[0], lim[1], lim[2], lim[3])) << z
+    margin leaves its signs open) under :func:`_limits` ``lim`` (branches: most voxels lie far from the
+    thresholds, in runs of one sign; flags as bits measured 2-3x slower on the synthetic room)."""
+    bit = np.uint32(1) << np.uint32(z + 1)
+    if x < lim[0]:
+        nb |= bit
+    if x >= lim[2]:
+        pb |= bit
+    if not _sure(x, lim[0], lim[1], lim[2], lim[3]):
+        unsure |= 1 << z
     return nb, pb, unsure
 
 
