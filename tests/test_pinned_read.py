@@ -218,3 +218,173 @@ def test_a_pinned_maps_decode_runs_in_full_float32_whatever_the_users_precision(
     finally:
         torch.set_float32_matmul_precision(was)
     np.testing.assert_array_equal(whole, sdfcodec.open_map(GOLDEN).decode_region())
+
+
+REFINED = Path(__file__).parent / "golden" / "maps" / "refined-pca-8" / "map.zarr"
+S = 2.0 ** pm.FRACTION_BITS
+
+
+def _refined_reference(w, e, trunc, tau, step, c_of):
+    """A numpy reference of spec 6h from the exact decode ``w`` and bound ``e``: (selected voxels, corrections,
+    the refined field ``r`` and its bound ``E + 1``), the corrections ``c_of(m)`` for the ``m`` selected."""
+    from sdfcodec.core import refine as cr
+
+    clipped = np.clip(w, trunc[0] * S, trunc[1] * S)
+    sel = np.abs(clipped) < tau
+    c = c_of(int(sel.sum()))
+    r = clipped.copy()
+    r[sel] += c * float(step)
+    return sel, c, cr.clip_units(r, trunc, S), e + 1.0
+
+
+@pytest.mark.parametrize("step,trunc,tau_m,r_m", [(0.05, TRUNC, 0.01, 0.002), (0.6, TRUNC, 0.04, 0.004),
+                                                  (0.05, (-0.02, 0.02), 0.03, 0.001)])
+def test_refined_pins_told_from_a_float_decode_are_the_exact_ones(step, trunc, tau_m, r_m):
+    """decode_refined_pins (spec 6h) gives the pins of the refined exact field (a numpy reference), asks the
+    stream for the exact selection, and leaves the reader's refined decode in the field: from the codec's
+    clipped decode, from one moved anywhere within the margin, from one put on the selection's thresholds
+    ``+-tau`` wherever the margin allows, and for blocks not decoded; a band wider than
+    ``d_min`` (0.04 m) and ``d_max``, and one of 1 cm."""
+    coords, q, basis, v = _case(step, trunc=trunc)
+    n = len(coords)
+    outside = coords[-3:] + [0, 0, 40]
+    tau, rstep = int(round(tau_m * S)), int(round(r_m * S))
+    w, e = pm.exact_decode(q, basis, size=q.shape[1])
+    rng = np.random.default_rng(7)
+    sel, c, r, e1 = _refined_reference(w, e, trunc, tau, rstep, lambda m: rng.integers(-9, 10, m))
+    want = pm.pinned_voxels_of(coords, *pm.sign_bounds(r, e1), outside, trunc)
+    assert sel.any() and want.any() and not want.all()
+    assert sel.all() == (tau_m > max(-trunc[0], trunc[1]))  # a band past both bounds selects every voxel
+    step32 = np.float32(rstep / S)
+
+    def read(x, rows):
+        asked = []
+
+        def corrections(s):
+            asked.append(s.copy())
+            return c
+
+        field = x.copy()
+        pins = pinread.decode_refined_pins(field, rows, q, basis, coords, outside, trunc, tau, rstep, corrections)
+        assert np.array_equal(asked[0], sel)
+        return _bools(pins), field
+
+    clipped = np.clip(v, *trunc)
+    rows = np.arange(n)
+    got, field = read(clipped, rows)
+    assert np.array_equal(got, want)
+    add = np.zeros_like(clipped)
+    add[sel] = c.astype(np.float32) * step32  # the reader's row of corrections, float32 sum, truncated again
+    assert np.array_equal(field, np.clip(clipped + add, *trunc))
+    peak, _ = pm.decode_bounds(q, basis)
+    margin = pinread.float_margin(q, peak)[:, None]
+    cw = np.clip(w, trunc[0] * S, trunc[1] * S)
+    anywhere = cw + margin * rng.uniform(-0.9, 0.9, w.shape)
+    near = np.abs(np.abs(cw) - tau) <= 0.9 * margin
+    on_tau = np.where(near, np.sign(cw) * tau, cw)
+    assert near.any() or sel.all()
+    for moved in (anywhere, on_tau):
+        x = np.clip((moved / S).astype(np.float32), *trunc)
+        assert np.array_equal(read(x, rows)[0], want)
+    half = np.where(np.arange(n) % 2 == 0, rows, -1)
+    got, field = read(clipped, half)
+    assert np.array_equal(got, want)
+    assert np.array_equal(field[::2], np.clip(clipped + add, *trunc)[::2]) and np.array_equal(field[1::2],
+                                                                                             clipped[1::2])
+
+
+def test_refined_kernels_decide_voxels_on_the_thresholds_exactly():
+    """select_rows and refined_sign_rows given a float decode 3 units off (within the margin 4) where the clipped
+    exact decode sits on ``tau - 1``, ``tau``, ``-tau``, ``-tau + 1`` (selection) or the refined field on ``E - 1``,
+    ``E``, ``-E - 1``, ``-E`` (pins): every answer is the exact one, those voxels decided exactly."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(8)
+    q = np.array([[3.0, -2.0]])
+    lo, hi = -1e6, 1e6
+    rstep = 7
+    for target in ("tau - 1", "tau", "-tau", "-tau + 1", "E - 1", "E", "-E - 1", "-E"):
+        basis = rng.integers(-50, 50, (3, 4096)).astype(np.float64)
+        w = basis[0] + q[0] @ basis[1:]
+        tau = float(np.median(np.abs(w)))
+        sel = np.abs(w) < tau
+        c = rng.integers(-3, 4, 4096)  # a correction for every voxel; the selected ones use theirs
+        e = float(np.median(np.abs(w + c * rstep * sel)))
+        goal = {"tau - 1": tau - 1, "tau": tau, "-tau": -tau, "-tau + 1": -tau + 1}.get(target)
+        if goal is not None:
+            basis[0, :64] += goal - w[:64]
+        else:
+            goal = {"E - 1": e - 1, "E": e, "-E - 1": -e - 1, "-E": -e}[target]
+            sel[:64] = np.abs(w[:64]) < tau
+            basis[0, :64] += goal - w[:64] - c[:64] * rstep * sel[:64]
+        w = basis[0] + q[0] @ basis[1:]
+        sel_want = np.abs(w) < tau
+        r = np.where(sel_want, w + c * rstep, w)
+        noise = rng.choice([-3.0, 3.0], 4096)
+        x = ((w + noise) / S).astype(np.float32)[None]
+        basis_t = np.ascontiguousarray(basis.T)
+        got = np.zeros((1, 4096), bool)
+        exact = pinkernels.select_rows(x, np.zeros(1, np.int64), tau, np.array([4.0]), q, basis_t, lo, hi, got)
+        assert np.array_equal(got[0], sel_want)
+        if target.startswith(("tau", "-tau")):
+            assert exact >= 64
+        neg, pos = (np.zeros((1, 16, 16), np.uint32) for _ in range(2))
+        field = x.copy()
+        exact = pinkernels.refined_sign_rows(field, np.zeros(1, np.int64), sel_want[None], c[sel_want].astype(np.int32),
+                                             float(rstep), lo, hi, np.array([e]), np.array([4.0 + 1]), q, basis_t,
+                                             neg, pos)
+        if target.startswith(("E", "-E")):
+            assert exact >= 64
+        bits = 1 << (np.arange(16) + 1)
+        assert np.array_equal(((neg.reshape(256, 1) & bits) != 0).reshape(-1), r < e)
+        assert np.array_equal(((pos.reshape(256, 1) & bits) != 0).reshape(-1), r >= -e)
+        assert np.array_equal(field[0], ((w + noise + c * rstep * sel_want) / S).astype(np.float32))
+    # a float decode clipped at d_min with tau just beyond it: clip(w) is d_min too, selected without an exact
+    # decode (the margin's interval ends at the truncation)
+    lo = -0.04 * S
+    basis[0] = lo - 1000 - q[0] @ basis[1:]
+    x = np.full((1, 4096), np.float32(-0.04))
+    exact = pinkernels.select_rows(x, np.zeros(1, np.int64), -lo + 1, np.array([4.0]), q, basis_t, lo, hi, got)
+    assert got.all() and exact == 0
+
+
+def test_a_refined_read_equals_the_exact_decodes_read(monkeypatch):
+    """The golden refined map read whole, by a region inside one chunk, at a lower level and as mask rows: the
+    same values as the read that decodes every voxel exactly (numba off: every selection and pin from the
+    refined exact field); and the corrections are in the field (it differs from the plain decode)."""
+    def reads():
+        m = sdfcodec.open_map(REFINED)
+        coords, _ = m.reader.read_codes()
+        part = tuple(slice(8, 40) for _ in range(2)) + (slice(0, 20),)
+        return (m.decode_region(), sdfcodec.open_map(REFINED).decode_region(part),
+                sdfcodec.open_map(REFINED).decode_region(level=4), sdfcodec.open_map(REFINED).read_observed(coords))
+
+    fast = reads()
+    with monkeypatch.context() as mp:
+        mp.setattr(ans, "available", lambda: False)
+        slow = reads()
+    for a, b in zip(fast, slow):
+        assert np.array_equal(a, b)
+    m = sdfcodec.open_map(REFINED)
+    assert (fast[0] == m.truncation[1]).any() and (fast[0] < 0).any() and not fast[3].all()
+    assert np.abs(fast[0] - fast[2]).max() > 1e-3
+
+
+def test_a_chunk_of_short_prefixes_reads_back(tmp_path, monkeypatch):
+    """A pinned map whose every block's prefix is shorter than the codes (step 3: the last 17 of 64 columns are
+    zero in every block) reads, with numba and without, to the same values: writer and readers take the bound
+    ``E`` of spec 6g with the codes' length ``D`` (the writer took the prefix's, and the compiled reader refused
+    the chunk, its pin count differing)."""
+    from _fused_maps import write_volume_map
+
+    vol, obs = fused_like(sample_volume(analytic_scene(), (64, 64, 48), VS, truncation=TRUNC))
+    path = tmp_path / "short.sdfz"
+    write_volume_map(path, vol, obs, pretrained_codec("pca", 64), variable_rate={"step": 3.0})
+    m = sdfcodec.open_map(path)
+    (_, q), = m.reader.vr.chunk_codes(np.zeros((1, 3), np.int64), m.header.codes.size)
+    assert not q[:, -8:].any() and q.any()
+    fast = m.decode_region()
+    with monkeypatch.context() as mp:
+        mp.setattr(ans, "available", lambda: False)
+        slow = sdfcodec.open_map(path).decode_region()
+    assert np.array_equal(fast, slow) and (fast == TRUNC[1]).any() and (fast < 0).any()

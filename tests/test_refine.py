@@ -350,3 +350,25 @@ def test_true_values_keep_the_last_of_a_block_and_know_what_they_lack(tmp_path):
     assert t.rows_of(np.array([[0, 0, 1]])) is None and t.rows_of(np.array([[9, 9, 9]])) is None
     assert list(tmp_path.iterdir()) == []
     t.close()
+
+
+def test_the_compiled_corrections_decoder_reads_what_constriction_reads():
+    """decode_corrections (compiled when numba is there) gives constriction's own decode of encode_corrections'
+    words, and the corrections encoded, on laws from 3 to 2047 symbols; a stream with a word too many fails."""
+    import constriction
+
+    from sdfcodec.core import ans
+    from sdfcodec.core import refine as cr
+
+    if not ans.available():
+        pytest.skip("numba is not installed: constriction decodes")
+    rng = np.random.default_rng(9)
+    for big, n in ((1, 10), (3, 1000), (40, 20000), (1023, 5000)):
+        c = np.clip(np.rint(rng.laplace(0, big / 6, n)), -big, big).astype(np.int64)
+        model = cr.CorrectionModel.fit(c)
+        words = cr.encode_corrections(c, model)
+        plain = np.asarray(constriction.stream.stack.AnsCoder(words).decode(model.model(), n)) - model.m
+        got = cr.decode_corrections(words, n, model)
+        assert np.array_equal(got, c) and np.array_equal(plain, c)
+        with pytest.raises(errors.FormatError, match="more than its"):
+            cr.decode_corrections(words, n - 1, model)

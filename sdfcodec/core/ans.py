@@ -14,7 +14,7 @@ import numpy as np
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
 __all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs",
-           "decode_chunk", "encode", "bernoulli_intervals", "categorical_intervals"]
+           "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
 _FOUND: list[bool] = []
@@ -59,6 +59,11 @@ class Decoder:
     def is_empty(self) -> bool:
         """Whether every word was read and the state is back to 0 (constriction's ``is_empty``)."""
         return int(self.st[0]) == 0
+
+    def categorical(self, n: int, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """``n`` symbols ``(n,)`` int32 under one ``Categorical(perfect=False)`` law (its tables:
+        :func:`categorical_cdf`)."""
+        return _k().categorical_decode(self.words, self.st, int(n), table[0], table[1], _SLOT_SHIFT)
 
     def flags(self, n: int, p: float) -> np.ndarray:
         """``n`` bits ``(n,)`` bool under ``Bernoulli(p, perfect=False)``."""
@@ -206,6 +211,31 @@ def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tu
                            np.ascontiguousarray(extent, np.int64))
 
 
+#: Quantile bits below a slot of the decoders' lookup tables (:func:`sdfcodec.core.anskernels.slot_table`): 2^12
+#: slots (16 KiB, in L1 cache) for one law, 2^8 for each of a code model's up to 257 laws.
+_SLOT_SHIFT = 12
+_CODE_SHIFT = 16
+_SLOTS: list = []  # (the tables, their slots) of the last code model decoded: a map's reads use one model
+
+
+def categorical_cdf(probs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cumulative table ``(k + 1,)`` uint32 constriction's ``Categorical(probs, perfect=False)`` builds of
+    probabilities ``probs`` ``(k,)`` float64, and its slots' first symbols, as :meth:`Decoder.categorical` takes
+    them."""
+    empty = np.zeros(0)
+    cdf = _k().table_cdfs(np.ascontiguousarray(probs, np.float64), empty, empty.astype(np.int64))[0]
+    return cdf, _k().slot_table(cdf, np.zeros(1, np.int64), _SLOT_SHIFT)
+
+
+def _code_slots(cdfs: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """The slot tables of :func:`table_cdfs`' tables, kept for the last tables asked."""
+    kept = _SLOTS[0] if _SLOTS else None  # (a local: another thread may replace the entry meanwhile)
+    if kept is None or kept[0] is not cdfs[0]:
+        kept = (cdfs[0], _k().slot_table(cdfs[0], cdfs[1], _CODE_SHIFT))
+        _SLOTS[:] = [kept]
+    return kept[1]
+
+
 def decode_chunk(words: np.ndarray, n: int, level: int, cdfs: tuple[np.ndarray, np.ndarray, np.ndarray],
                  off: np.ndarray) -> np.ndarray:
     """``(n, level)`` int32 from a variable-rate chunk stream (:func:`sdfcodec.core.varrate.decode_chunk`):
@@ -215,8 +245,8 @@ def decode_chunk(words: np.ndarray, n: int, level: int, cdfs: tuple[np.ndarray, 
     Raises:
         ValueError: the last word is 0.
     """
-    status, out = _k().chunk_decode(_words(words), int(n), int(level), cdfs[0], cdfs[1], cdfs[2],
-                                    np.asarray(off, np.int64))
+    status, out = _k().chunk_decode(_words(words), int(n), int(level), cdfs[0], cdfs[1], _code_slots(cdfs),
+                                    _CODE_SHIFT, np.asarray(off, np.int64))
     _refuse(status)
     return out
 

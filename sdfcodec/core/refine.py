@@ -100,6 +100,7 @@ class CorrectionModel:
                               "counts >= 0")
         self.m = len(self.counts) // 2
         self._model = None
+        self._cdf: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def fit(cls, c: np.ndarray) -> "CorrectionModel":
@@ -119,6 +120,15 @@ class CorrectionModel:
 
             self._model = constriction.stream.model.Categorical(self.probabilities(), perfect=False)
         return self._model
+
+    def cdf(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cumulative table ``(2 M + 2,)`` uint32 of :meth:`model` and its slots (the compiled decoder's,
+        :func:`sdfcodec.core.ans.categorical_cdf`)."""
+        if self._cdf is None:
+            from . import ans
+
+            self._cdf = ans.categorical_cdf(self.probabilities())
+        return self._cdf
 
     def bits(self, c: np.ndarray) -> float:
         """Ideal bits of corrections ``c`` under the law."""
@@ -172,12 +182,18 @@ def decode_corrections(words: np.ndarray, m: int, model: CorrectionModel) -> np.
     """
     import constriction
 
+    from . import ans
+
     words = np.ascontiguousarray(words, np.uint32)
     if not m:
         return np.zeros(0, np.int32)
     try:
-        coder = constriction.stream.stack.AnsCoder(words)
-        c = np.asarray(coder.decode(model.model(), m), np.int32) - model.m
+        if ans.available():  # compiled: the same words read as constriction reads them (tests/test_refine.py)
+            coder = ans.Decoder(words)
+            c = coder.categorical(m, model.cdf()) - np.int32(model.m)
+        else:
+            coder = constriction.stream.stack.AnsCoder(words)
+            c = np.asarray(coder.decode(model.model(), m), np.int32) - model.m
         ok = coder.is_empty()
     except Exception as e:  # constriction's ValueError on words no coder writes
         raise FormatError(f"surface refinement stream does not decode ({e})") from e

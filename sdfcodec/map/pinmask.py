@@ -116,11 +116,24 @@ def decode_bounds(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> 
     q = np.asarray(q, np.float64)
     n, k = q.shape[0], q.shape[1] if size is None else int(size)
     absq = np.abs(q)
-    peak = np.abs(basis[0]).max() + absq @ np.abs(basis[1:q.shape[1] + 1]).max(axis=1)  # T, exact (small integers)
+    top = _row_peaks(basis)
+    peak = top[0] + absq @ top[1:q.shape[1] + 1]  # T, exact (small integers)
     if n and float(peak.max()) * 2 >= _EXACT:
         raise InvalidValueError(f"codes up to {absq.max():g} are too large for the exact decode of the pinned mask "
                                 "(partial sums reach 2^52); use the exact mask (--exact-mask)")
     return peak, 1.0 + absq.sum(axis=1) + np.ceil(peak * (k + 4) / 2.0 ** 20)
+
+
+_PEAKS: list = []  # (a basis, max |row| of it): a map's reads use one basis (4 MB read once, not per chunk)
+
+
+def _row_peaks(basis: np.ndarray) -> np.ndarray:
+    """``(k + 1,)`` float64: ``max_j |basis[i, j]|`` per row, kept for the last basis asked."""
+    kept = _PEAKS[0] if _PEAKS else None  # (a local: another thread may replace the entry meanwhile)
+    if kept is None or kept[0] is not basis:
+        kept = (basis, np.abs(basis).max(axis=1))
+        _PEAKS[:] = [kept]
+    return kept[1]
 
 
 def _product(q: np.ndarray, a: np.ndarray, a0: np.ndarray, peak: np.ndarray) -> np.ndarray:

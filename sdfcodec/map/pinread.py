@@ -20,6 +20,26 @@ integers, ``(1 + sum|q|) / 2``, plus ``(k + 1) 2^-24`` (the dot product, ``k`` t
 bound): :func:`float_margin` takes ``(k + 8) 2^-24`` of ``T + 1 + sum|q|`` and two units more. A decode
 truncated to ``[d_min, d_max]`` keeps every decision where ``E + D`` stays below ``2^24 min(-d_min, d_max)``;
 elsewhere (and for blocks not decoded, ``D`` infinite) every voxel is decided exactly.
+
+**A surface refinement** (spec 6h; :func:`decode_refined_pins`) selects the voxels whose clipped exact decode
+``c(w) = clip(w, L, H)`` (``L``, ``H``: the truncation times ``2^24``, float64) has ``|c(w)| < tau``, adds
+``e step`` units there and decides the pins on ``r = clip(c(w) + e step)`` with the bound ``E + 1``. The reader's
+refined decode is ``y = clip32(fl32(x + e step 2^-24))``, ``x`` its float decode clipped to ``(L32, H32) 2^-24``
+(the truncation rounded to float32, ``|L32 - L| <= |d_min| < 1`` unit). Both sides are told from that float
+decode, never from a second one:
+
+* *Selection.* Clipping is 1-Lipschitz in the value and in each bound, so ``|2^24 x - c(w)| <= D + 1``, and
+  ``c(w)`` lies in ``[L, H]``: in ``[a, b] = [max(2^24 x - D - 1, L), min(2^24 x + D + 1, H)]``. Where ``-tau <
+  a`` and ``b < tau`` the voxel is selected, where ``a >= tau`` or ``b <= -tau`` it is not (a decode clipped at
+  ``d_min`` with ``tau`` just beyond ``|d_min|`` is then decided without its exact decode); any other voxel (or
+  one of a block not decoded) is decided by its exact decode. The selection, and so the number of corrections
+  the stream holds, is the exact one.
+* *Refined pins.* ``e step 2^-24`` is exact in float32 (spec 6h), so the sum ``x + e step 2^-24`` has one
+  rounding, at most ``2^-24`` of its magnitude: at most ``rho = max(|d_min|, |d_max|) + max|e| step 2^-24``
+  units (metres as a number of units). The final clip adds at most one unit more, so ``|2^24 y - r| <= D + 2 +
+  rho``: :func:`decode_refined_pins` takes ``D_r = D + 3 + ceil(rho)`` and decides, as above, only the voxels
+  within ``D_r`` of ``+-(E + 1)`` exactly (``r`` from ``w``, the voxel's correction and two clips, all exact
+  float64). No room condition is needed: ``r`` and ``y`` are both clipped.
 """
 
 from __future__ import annotations
@@ -31,7 +51,7 @@ from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from . import pinmask as pm
 
-__all__ = ["float_margin", "decode_pins"]
+__all__ = ["float_margin", "decode_pins", "decode_refined_pins"]
 
 _SCALE = 2.0 ** pm.FRACTION_BITS
 
@@ -59,7 +79,8 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     n = len(coords)
     rows = np.asarray(rows, np.int64)
     if not ans.available() or v is None or not len(v):  # numpy: the exact decode of every voxel
-        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside_coded, truncation)
+        exact = pm.exact_decode(q, basis, size=q.shape[1])  # E of the codes' length D, as below (spec 6g)
+        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*exact), outside_coded, truncation)
         return np.packbits(pins.reshape(n, -1), axis=1, bitorder="little").view("<u2").reshape(n, BLOCK, BLOCK)
     from ..core import pinkernels
 
@@ -74,6 +95,41 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
                          _transposed(basis, q.shape[1] + 1), neg, pos)
     return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
                                   np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3), d_max >= JUMP)
+
+
+def decode_refined_pins(v: np.ndarray, rows: np.ndarray, q: np.ndarray, basis: np.ndarray, coords: np.ndarray,
+                        outside_coded: np.ndarray, truncation: tuple[float, float], tau: int, step: int,
+                        corrections) -> np.ndarray:
+    """:func:`decode_pins` of a map with a surface refinement (spec 6h, module docstring), compiled only: the
+    pinned voxels of the refined exact field, as rows ``(n, 16, 16)`` uint16. ``v`` ``(m, 4096)`` float32 metres,
+    the float decode clipped to the truncation, becomes the reader's refined decode at rows ``rows[b] >= 0`` (in
+    place). ``tau``, ``step``: the refinement's, in units of ``2^-24`` m; ``corrections(sel)``: the corrections
+    ``(m,)`` int32 of the selected voxels ``sel`` ``(n, 4096)`` bool (the chunk's stream).
+
+    Raises:
+        InvalidValueError: codes too large for the exact decode (:func:`~sdfcodec.map.pinmask.decode_bounds`).
+    """
+    from ..core import pinkernels
+
+    n = len(coords)
+    rows = np.asarray(rows, np.int64)
+    q = np.ascontiguousarray(q, np.float64)
+    peak, bound = pm.decode_bounds(q, basis)
+    lo, hi = (float(t) * _SCALE for t in truncation)
+    margin = np.where(rows >= 0, float_margin(q, peak) + 1.0, np.inf)  # clip(x) against clip(w): one unit more
+    basis_t = _transposed(basis, q.shape[1] + 1)
+    flat = np.asarray(v).reshape(len(v), -1)
+    sel = np.empty((n, BLOCK ** 3), bool)
+    pinkernels.select_rows(flat, rows, float(tau), margin, q, basis_t, lo, hi, sel)
+    c = np.asarray(corrections(sel), np.int32)
+    rho = max(-float(truncation[0]), float(truncation[1])) + float(np.abs(c).max(initial=0)) * step / _SCALE
+    margin = margin + 2.0 + np.ceil(rho)  # D + 3 + ceil(rho)
+    neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
+    pinkernels.refined_sign_rows(flat, rows, sel, c, float(step), lo, hi, bound + 1.0,
+                                 margin, q, basis_t, neg, pos)
+    return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
+                                  np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3),
+                                  float(truncation[1]) >= JUMP)
 
 
 _BASIS_T: list = []  # (the basis, its transpose): a map's reads use one basis, transposed once

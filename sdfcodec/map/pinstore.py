@@ -113,7 +113,7 @@ class PinnedStreams:
                 raise InvalidValueError("PinnedStreams needs the coded blocks grouped by chunk, in C order inside each")
             near = np.array([index[tuple(c)] for c in outside], np.int64)
             both = np.r_[sel, near]
-            v, bound = pm.exact_decode(q[both], basis)
+            v, bound = pm.exact_decode(q[both], basis, size=q.shape[1])  # E of the codes' length D (spec 6g)
             if self.refined is not None:  # a surface refinement's field decides the pins (spec 6h)
                 v, bound = self.refined(both, v, bound)
             neg, pos = pm.sign_bounds(v, bound)  # the neighbours' true decode: exact bits at the chunk's faces
@@ -189,8 +189,8 @@ class PinnedMaskArray:
             return index, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
         # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
         q = self._codes(key)
-        # what the signs are told from (pinread): one float32 product (a refined map's pins: exactly, in _zeros)
-        v = None if self.reader.refinement is not None else self._float_decode(q, own)
+        # what the signs are told from (pinread): one float32 product, refined in place for a refined map
+        v = self._float_decode(q, own)
         zeros = self._zeros(key, row, own, outside, q, v, np.arange(len(own)))
         mask = np.ones(len(own) * BLOCK ** 3, bool)
         mask[zeros] = False
@@ -213,7 +213,7 @@ class PinnedMaskArray:
         used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1
         codes = (q[:, :max(used, 1)] * self.reader.vr.step[:max(used, 1)]).astype(np.float32)  # as codes_for
         v = self.reader.decode_codes(torch.from_numpy(codes), metres=True, coords=coords, residual=False,
-                                     unmasked=True)
+                                     refine=False, unmasked=True)
         return v.numpy().reshape(len(q), -1)
 
     def _zeros(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,
@@ -228,8 +228,13 @@ class PinnedMaskArray:
         if n == 0 or 4 + n > len(row):
             raise FormatError(f"{where} holds no stream (or a truncated one) but {len(own)} coded block(s) lie "
                               "in it; the map is incomplete there: restore it from a copy or re-encode")
-        if r.refinement is not None:  # the refined exact field decides the pins (spec 6h): told exactly
-            v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
+        if r.refinement is not None and v is not None and _kernels() is not None:  # spec 6h: pinread, refined
+            ref = r.refinement
+            pins = pinread.decode_refined_pins(v, rows, q, self.basis(), own, outside, r.truncation, ref.spec.tau,
+                                               ref.spec.step, lambda sel: ref.corrections(key, sel))
+            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+        if r.refinement is not None:  # without the compiled kernels: every voxel's refined exact field
+            v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis(), size=q.shape[1]))
             neg, pos = pm.sign_bounds(v, bound)
             pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
@@ -238,9 +243,9 @@ class PinnedMaskArray:
 
     def unmask(self, coords: np.ndarray, v: np.ndarray, free: float) -> None:
         """Set the unobserved voxels of ``v`` ``(n, 16, 16, 16)`` float32, the reader's full-level decode in metres
-        of coded blocks ``coords`` ``(n, 3)`` (before any residual; truncated or not), to ``free``, in place: the
-        pins of each chunk told from ``v`` itself (:mod:`sdfcodec.map.pinread`; a chunk's blocks not among
-        ``coords`` by their exact decode)."""
+        of coded blocks ``coords`` ``(n, 3)`` (before any residual; truncated or not; of a refined map: truncated,
+        without the corrections, which are added here), to ``free``, in place: the pins of each chunk told from
+        ``v`` itself (:mod:`sdfcodec.map.pinread`; a chunk's blocks not among ``coords`` by their exact decode)."""
         if not len(coords):
             return
         r, cb = self.reader, self.cb
@@ -251,6 +256,9 @@ class PinnedMaskArray:
         streams = r.read_many(self.streams, [(*(slice(int(c), int(c) + 1) for c in k), slice(None)) for k in keys])
         flat = v.reshape(len(v), -1)
         pinkernels = _kernels()
+        if r.refinement is not None and pinkernels is None:  # numpy: the corrections added here, pins told exactly
+            flat += r.refinement.rows(coords)
+            np.clip(flat, *r.truncation, out=flat)
         for i, (key, row) in enumerate(zip(keys, streams)):
             own, outside = chunk_blocks(states, key, cb)
             sel = np.flatnonzero(inverse == i)

@@ -478,10 +478,12 @@ class MapReader:
         feed, mask, res = DeviceFeed(dev), self.observation_arrays()[1], self.residual_rows_array(level)
         refining = self.refinement is not None and level == self.header.codes.size  # spec 6h: full level only
         # variable-rate codes on the CPU: decoded in cache-sized tiles, then masked (rows read beside the codes, or
-        # a pinned mask read at full level decoded from the field's own decode: pinread), then placed; a refined
-        # read at full level takes the path that adds its corrections (decode_runs)
-        after = self.vr is not None and res is None and dev.type == "cpu" and not refining
-        fused = after and hasattr(mask, "unmask") and metres and level == self.header.codes.size
+        # a pinned mask read at full level decoded from the field's own decode, a refinement's corrections added
+        # there: pinread), then placed; any other refined read at full level takes the path that adds its
+        # corrections (decode_runs)
+        fused = (self.vr is not None and res is None and dev.type == "cpu" and hasattr(mask, "unmask") and metres
+                 and level == self.header.codes.size)
+        after = fused or (self.vr is not None and res is None and dev.type == "cpu" and not refining)
 
         def stage(coords: np.ndarray, codes: np.ndarray) -> tuple[Any, np.ndarray | None, np.ndarray | None]:
             if self.vr is not None:  # blocks by prefix length, so that runs of like lengths decode their prefix
@@ -491,7 +493,8 @@ class MapReader:
             # or a refinement's corrections: after the mask, whose pins hand it each chunk's exact decode; the
             # chunk caches of both are this thread's alone)
             rows = None if mask is None or fused else read_block_rows(self, mask, coords)
-            extra = self.refinement.rows(coords) if refining else None if res is None else self.read_residual(coords)
+            extra = (self.refinement.rows(coords) if refining and not fused else None if res is None
+                     else self.read_residual(coords))
             return feed.stage(codes), rows, extra
 
         for coords, (staged, rows, resid) in self.fetch_stream(box, level, stage=stage, **kw):

@@ -258,19 +258,21 @@ class RefinementReader:
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
 
-    def _chunk(self, key: tuple[int, ...], v: np.ndarray | None = None
+    def _chunk(self, key: tuple[int, ...], v: np.ndarray | None = None, sel: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(index (cb,)*3 int64 -1 where not coded, local coords (n, 3), sel (n, 4096) bool, c (m,) int32)``;
-        ``v``: the exact decode of the chunk's coded blocks (C order) when the caller has it (the pinned mask)."""
+        ``v``: the exact decode of the chunk's coded blocks (C order) when the caller has it, or ``sel``: their
+        selected voxels (the pinned mask's read, :func:`~sdfcodec.map.pinread.decode_refined_pins`)."""
         if key in self._cache:
             return self._cache[key]
         r, cb = self.reader, self.cb
         (local, q), = r.vr.chunk_codes(np.asarray(key, np.int64)[None], r.header.codes.size)
         index = np.full((cb,) * 3, -1, np.int64)
         index[tuple(local.T)] = np.arange(len(local))
-        if v is None or len(v) != len(local):
-            v, _ = pm.exact_decode(q, self.basis())
-        sel = cr.select_unclipped(v, self.spec.tau, r.truncation, _SCALE)
+        if sel is None or len(sel) != len(local):
+            if v is None or len(v) != len(local):
+                v, _ = pm.exact_decode(q, self.basis())
+            sel = cr.select_unclipped(v, self.spec.tau, r.truncation, _SCALE)
         row, = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None))])
         row = np.ascontiguousarray(row.reshape(-1))
         nw = int(row[:4].view("<u4")[0])
@@ -301,6 +303,15 @@ class RefinementReader:
             if (k < 0).any():
                 raise FormatError(f"{self.reader.location}: a block asked for is not coded")
             yield at, k, ch
+
+    def corrections(self, key: tuple[int, ...], sel: np.ndarray) -> np.ndarray:
+        """``(m,)`` int32: the corrections of chunk ``key``'s selected voxels ``sel`` ``(n, 4096)`` bool (its coded
+        blocks in C order, as the caller found them), kept for :meth:`rows`.
+
+        Raises:
+            FormatError: as :meth:`check`.
+        """
+        return self._chunk(tuple(int(k) for k in key), sel=sel)[3]
 
     def check(self, coords: np.ndarray) -> None:
         """Decode the stream of every chunk holding blocks ``coords`` ``(n, 3)`` (``verify``).
