@@ -116,38 +116,31 @@ def _band_residuals(xs: np.ndarray, obs: np.ndarray, dist: np.ndarray, deltas: n
     moves, k = len(deltas), len(stretches)
     d_min, d_max = (np.float32(v) for v in truncation)
     span, vs = np.float32(truncation[1] - truncation[0]), np.float32(voxel_size)
-    err = np.empty((n, moves, k), np.float64)
-    used = np.empty((n, moves, k), bool)
-    inside = np.empty((n, moves), bool)
+    err, used, inside = np.empty((n, moves, k)), np.empty((n, moves, k), bool), np.empty((n, moves), bool)
     for m, delta in enumerate(deltas):
         # one move at a time: its (n, C) distances in float64, the compared voxels gathered row by row (each row's
-        # sums then run over its voxels in order, as one gather of every move did), the work in place (a third
-        # fewer passes over them than building each stretch's field from new arrays)
+        # sums run over its voxels in order, as one gather of every move did), each field made in place
         moved = dist - delta
         near = np.abs(moved)
         inside[:, m] = (near <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE
         rows, cols = np.nonzero((near <= BAND_VOXELS) & obs)
         t, xv = moved[rows, cols], xs[rows, cols]
-        d = np.empty(len(t), np.float32)
-        v = np.empty(len(t), np.float32)
+        d, v = np.empty(len(t), np.float32), np.empty(len(t), np.float32)
         for j, st in enumerate(stretches):
-            # the product in float64, rounded once into float32
-            np.multiply(t, st, out=d, casting="same_kind")
+            np.multiply(t, st, out=d, casting="same_kind")  # the product in float64, rounded once into float32
             d *= vs
             # truncate() then normalise() (sdfcodec.search.shapes, core.blocks), in place: the same float32 steps
             np.clip(d, d_min, d_max, out=v)
-            if behind == "unobserved":
+            use = np.abs(d - d_min) > JUMP_VOXELS * voxel_size if behind == "unobserved" else None
+            if use is not None:
                 np.copyto(v, d_max, where=d < d_min)
             v -= d_min
             v /= span
             v -= xv
             v *= v
-            if behind == "unobserved":
-                use = np.abs(d - d_min) > JUMP_VOXELS * voxel_size
+            if use is not None:
                 v *= use
-                used[:, m, j] = np.bincount(rows[use], minlength=n) > 0
-            else:
-                used[:, m, j] = np.bincount(rows, minlength=n) > 0
+            used[:, m, j] = np.bincount(rows if use is None else rows[use], minlength=n) > 0
             err[:, m, j] = np.bincount(rows, weights=v, minlength=n)
     out = err.astype(np.float32)
     out[~inside[:, :, None] | ~used] = np.inf
@@ -200,17 +193,13 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
         ``(n,)`` int64 the block's surface voxels of another surface (beyond the band on the free side).
     """
     n = len(x)
-    outs = (np.empty(n, np.float32), np.empty(n, np.int64), np.empty(n, np.float64), np.empty(n, np.float32),
-            np.empty(n, np.float64), np.empty(n, np.int64), np.empty(n, np.int64))
+    outs = tuple(np.empty(n, t) for t in (np.float32, np.int64, np.float64, np.float32, np.float64, np.int64, np.int64))
 
-    def work(a: int, b: int) -> None:
-        for o, r in zip(outs, _plane_rows(x[a:b], observed[a:b], dist[a:b], voxel_size=voxel_size,
-                                          truncation=truncation, behind=behind, stretches=stretches, tol=tol,
-                                          crossings=crossings)):
+    def work(a: int, b: int) -> None:  # row tiles on every core (the numpy work releases the GIL), same numbers
+        for o, r in zip(outs, _plane_rows(x[a:b], observed[a:b], dist[a:b], voxel_size, truncation, behind,
+                                          stretches, tol, crossings)):
             o[a:b] = r
 
-    # every block on its own (row tiles on every core: the check's numpy work releases the GIL; the same numbers
-    # whatever the tiles)
     run_tiles(n, work, rows=CHECK_ROWS)
     return outs
 
@@ -219,10 +208,8 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
 CHECK_ROWS = 32
 
 
-def _plane_rows(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, voxel_size: float,
-                truncation: tuple[float, float], behind: str, stretches: np.ndarray, tol: float,
-                crossings: bool) -> tuple[np.ndarray, ...]:
-    """:func:`plane_residuals` of rows ``x``, ``observed``, ``dist`` (the same arguments and results)."""
+def _plane_rows(x, observed, dist, voxel_size, truncation, behind, stretches, tol, crossings) -> tuple:
+    """:func:`plane_residuals` of some rows (the same arguments and results)."""
     deltas = np.arange(-tol, tol + 1e-9, VERIFY_STEP)
     out = np.empty(len(x), np.float32)
     moved = np.empty(len(x), np.float64)
@@ -451,10 +438,8 @@ def _rise(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, normal: np.ndarr
     step = (dec[hi] - dec[lo]) * np.sign(normal[a])
     both = (ok[hi] & ok[lo]).reshape(len(dec), -1)
     count = both.sum(axis=1)
-    # each row's median at once: its pairs' steps sorted first (the rest after them as inf), then the middle one, or
-    # the mean of the middle two, as np.median takes them
-    srt = np.sort(np.where(both, step.reshape(len(dec), -1), np.inf), axis=1)
-    rows = np.arange(len(dec))
+    # every row's median at once, as np.median takes it (the middle one or the mean of the middle two)
+    srt, rows = np.sort(np.where(both, step.reshape(len(dec), -1), np.inf), axis=1), np.arange(len(dec))
     mid = (srt[rows, np.maximum(count - 1, 0) // 2] + srt[rows, count // 2 - (count == 0)]) / 2
     return np.where(count >= MIN_VERDICT_SURFACE, mid / abs(normal[a]), np.nan)
 
