@@ -114,8 +114,7 @@ def _band_residuals(xs: np.ndarray, obs: np.ndarray, dist: np.ndarray, deltas: n
     faster than every move's candidate field over all of them, the same residuals to float32 rounding."""
     n = len(xs)
     moves, k = len(deltas), len(stretches)
-    d_min, d_max = (np.float32(v) for v in truncation)
-    span, vs = np.float32(truncation[1] - truncation[0]), np.float32(voxel_size)
+    d_min, d_max, span, vs = (np.float32(v) for v in (*truncation, truncation[1] - truncation[0], voxel_size))
     err, used, inside = np.empty((n, moves, k)), np.empty((n, moves, k), bool), np.empty((n, moves), bool)
     for m, delta in enumerate(deltas):
         # one move at a time: its (n, C) distances in float64, the compared voxels gathered row by row (each row's
@@ -208,7 +207,8 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
 CHECK_ROWS = 32
 
 
-def _plane_rows(x, observed, dist, voxel_size, truncation, behind, stretches, tol, crossings) -> tuple:
+def _plane_rows(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, voxel_size: float, truncation: tuple,
+                behind: str, stretches: np.ndarray, tol: float, crossings: bool) -> tuple[np.ndarray, ...]:
     """:func:`plane_residuals` of some rows (the same arguments and results)."""
     deltas = np.arange(-tol, tol + 1e-9, VERIFY_STEP)
     out = np.empty(len(x), np.float32)
