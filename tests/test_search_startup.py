@@ -155,3 +155,58 @@ def test_observed_scores_equal_the_brute_force_over_the_observed_voxels():
         assert d[idx[i]] == pytest.approx(d.min(), rel=2e-3, abs=2e-2)
         masked += 1
     assert masked > 100 and all(s[:30] == plain[:30])  # most partly observed blocks scored where observed
+
+
+def _plane_inputs(seed: int, n_blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noisy, partly observed plane blocks and their voxels' distances to tilted planes (as the check sees them)."""
+    rng = np.random.default_rng(seed)
+    g = _G.reshape(-1, 3)
+    normals = rng.normal(size=(n_blocks, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    dist = (g @ normals.T).T - rng.uniform(-9, 9, (n_blocks, 1))
+    x = np.stack([_plane_block(nk, 0.0, 1.3, "unobserved")[0].ravel() for nk in normals])
+    x = np.roll(x, 1, axis=1) + rng.normal(0, 0.05, x.shape).astype(np.float32)
+    return x.astype(np.float32), rng.random(x.shape) < 0.8, dist.astype(np.float32)
+
+
+def test_plane_residuals_do_not_depend_on_how_the_blocks_are_tiled(monkeypatch):
+    """plane_residuals runs its blocks in row tiles on every core: every result of every block is the same, to the
+    bit, whether the tiles hold one block, five or the default, with and without the zero-crossing rule."""
+    import sdfcodec.search.plane_check as pc
+
+    x, observed, dist = _plane_inputs(5, 45)
+    kw = dict(voxel_size=VS, truncation=TRUNC, behind="unobserved", stretches=np.asarray(FUSED_STRETCH), tol=2.0)
+    for crossings in (False, True):
+        want = plane_residuals(x, observed, dist, crossings=crossings, **kw)
+        for rows in (1, 5):
+            monkeypatch.setattr(pc, "CHECK_ROWS", rows)
+            got = plane_residuals(x, observed, dist, crossings=crossings, **kw)
+            assert all(a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True) for a, b in zip(got, want))
+        monkeypatch.undo()
+
+
+def test_the_rise_of_each_block_is_the_median_of_its_pairs():
+    """_rise takes every block's median at once: what np.median gives over each block's pairs of observed voxels one
+    step apart along the normal's axis, both near the plane and off the truncation bounds (NaN under
+    MIN_VERDICT_SURFACE pairs), including blocks with an even and an odd count of pairs."""
+    from sdfcodec.search.plane_check import MIN_VERDICT_SURFACE, _rise
+
+    x, observed, dist = _plane_inputs(9, 30)
+    observed[:3] = False  # no pairs at all
+    observed[3, :4000] = False  # a few
+    normal = np.array([0.3, -0.2, 0.93])
+    normal /= np.linalg.norm(normal)
+    got = _rise(x, observed, dist, normal, voxel_size=VS, truncation=TRUNC)
+    dec = ((x * (TRUNC[1] - TRUNC[0]) + TRUNC[0]) / VS).reshape(-1, 16, 16, 16)
+    ok = (observed.reshape(dec.shape) & (np.abs(dist).reshape(dec.shape) <= BAND_VOXELS + 1.0)
+          & (dec > TRUNC[0] / VS + 0.25) & (dec < TRUNC[1] / VS - 0.25))
+    counts = set()
+    for i in range(len(x)):  # along z, the normal's largest component, rising with it
+        both = ok[i, :, :, 1:] & ok[i, :, :, :-1]
+        counts.add(int(both.sum()) % 2)
+        if both.sum() < MIN_VERDICT_SURFACE:
+            assert np.isnan(got[i])
+        else:
+            step = (dec[i, :, :, 1:] - dec[i, :, :, :-1]).astype(np.float64)[both]
+            assert got[i] == np.median(step) / normal[2]
+    assert counts == {0, 1} and np.isnan(got[:3]).all() and np.isfinite(got).sum() > 20

@@ -679,7 +679,7 @@ def search_cmd(
     """Search a compressed map in code space and decompress only the blocks that match (the paper's Fig. 7).
 
     The first search of a map with a codec builds the query and calibrates its threshold for the map's up
-    direction (seconds for a floor, tens of seconds for walls on 2 cores; said on stderr) and caches them
+    direction (about a second for a floor, a few seconds for walls on 2 cores; said on stderr) and caches them
     (sdfcodec.search.cache); later searches reuse them. The plane check's calibrations ship with sdfcodec for
     the shipped pca sizes."""
     if out_dir is not None:

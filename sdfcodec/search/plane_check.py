@@ -36,6 +36,7 @@ import numpy as np
 
 from ..core._validate import BLOCK
 from ..core.blocks import normalise
+from ..core.tiling import run_tiles
 from .arrays import decode_array
 from .scene import PLANE_TOL_VOXELS
 from .models import codec_state_sha256
@@ -113,27 +114,35 @@ def _band_residuals(xs: np.ndarray, obs: np.ndarray, dist: np.ndarray, deltas: n
     faster than every move's candidate field over all of them, the same residuals to float32 rounding."""
     n = len(xs)
     moves, k = len(deltas), len(stretches)
-    moved = dist[:, None, :] - deltas[None, :, None]  # (n, moves, C) float64
-    inside = (np.abs(moved) <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE
-    bi, mi, ci = np.nonzero((np.abs(moved) <= BAND_VOXELS) & obs[:, None, :])
-    t, xv, slot = moved[bi, mi, ci], xs[bi, ci], bi * moves + mi
-    err = np.empty((n, moves, k), np.float64)
-    used = np.empty((n, moves, k), np.float64)
-    d = np.empty(len(t), np.float32)
-    for j, st in enumerate(stretches):
-        # the product in float64, rounded once into float32
-        np.multiply(t, st, out=d, casting="same_kind")
-        d *= np.float32(voxel_size)
-        v = normalise(truncate(d, truncation, behind), *truncation)
-        use = (np.abs(d - np.float32(truncation[0])) > JUMP_VOXELS * voxel_size if behind == "unobserved"
-               else np.ones(len(t), bool))
-        v -= xv
-        v *= v
-        v *= use
-        err[:, :, j] = np.bincount(slot, weights=v, minlength=n * moves).reshape(n, moves)
-        used[:, :, j] = np.bincount(slot, weights=use, minlength=n * moves).reshape(n, moves)
+    d_min, d_max, span, vs = (np.float32(v) for v in (*truncation, truncation[1] - truncation[0], voxel_size))
+    err, used, inside = np.empty((n, moves, k)), np.empty((n, moves, k), bool), np.empty((n, moves), bool)
+    for m, delta in enumerate(deltas):
+        # one move at a time: its (n, C) distances in float64, the compared voxels gathered row by row (each row's
+        # sums run over its voxels in order, as one gather of every move did), each field made in place
+        moved = dist - delta
+        near = np.abs(moved)
+        inside[:, m] = (near <= 1.0).sum(axis=-1) >= MIN_SHAPE_SURFACE
+        rows, cols = np.nonzero((near <= BAND_VOXELS) & obs)
+        t, xv = moved[rows, cols], xs[rows, cols]
+        d, v = np.empty(len(t), np.float32), np.empty(len(t), np.float32)
+        for j, st in enumerate(stretches):
+            np.multiply(t, st, out=d, casting="same_kind")  # the product in float64, rounded once into float32
+            d *= vs
+            # truncate() then normalise() (sdfcodec.search.shapes, core.blocks), in place: the same float32 steps
+            np.clip(d, d_min, d_max, out=v)
+            use = np.abs(d - d_min) > JUMP_VOXELS * voxel_size if behind == "unobserved" else None
+            if use is not None:
+                np.copyto(v, d_max, where=d < d_min)
+            v -= d_min
+            v /= span
+            v -= xv
+            v *= v
+            if use is not None:
+                v *= use
+            used[:, m, j] = np.bincount(rows if use is None else rows[use], minlength=n) > 0
+            err[:, m, j] = np.bincount(rows, weights=v, minlength=n)
     out = err.astype(np.float32)
-    out[~inside[:, :, None] | (used == 0)] = np.inf
+    out[~inside[:, :, None] | ~used] = np.inf
     return out.reshape(n, moves * k)
 
 
@@ -182,6 +191,25 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     off : np.ndarray
         ``(n,)`` int64 the block's surface voxels of another surface (beyond the band on the free side).
     """
+    n = len(x)
+    outs = tuple(np.empty(n, t) for t in (np.float32, np.int64, np.float64, np.float32, np.float64, np.int64, np.int64))
+
+    def work(a: int, b: int) -> None:  # row tiles on every core (the numpy work releases the GIL), same numbers
+        for o, r in zip(outs, _plane_rows(x[a:b], observed[a:b], dist[a:b], voxel_size, truncation, behind,
+                                          stretches, tol, crossings)):
+            o[a:b] = r
+
+    run_tiles(n, work, rows=CHECK_ROWS)
+    return outs
+
+
+#: Blocks per tile of :func:`plane_residuals` (a wall of the kitchen crosses 34-126 coded blocks).
+CHECK_ROWS = 32
+
+
+def _plane_rows(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, voxel_size: float, truncation: tuple,
+                behind: str, stretches: np.ndarray, tol: float, crossings: bool) -> tuple[np.ndarray, ...]:
+    """:func:`plane_residuals` of some rows (the same arguments and results)."""
     deltas = np.arange(-tol, tol + 1e-9, VERIFY_STEP)
     out = np.empty(len(x), np.float32)
     moved = np.empty(len(x), np.float64)
@@ -190,8 +218,8 @@ def plane_residuals(x: np.ndarray, observed: np.ndarray, dist: np.ndarray, *, vo
     # (about half its voxels at tol 2, a third at tol 0.8), packed first in each row, the rest cut off where the
     # row with the most ends. Same residuals but for float32 summation order; 2-2.5x less work (docs/search.md)
     reach = np.abs(dist) <= tol + BAND_VOXELS + 1e-9
-    for i in range(0, len(x), 64):  # (64, moves x stretches, <= 4096) float32 at a time
-        sl = slice(i, i + 64)
+    for i in range(0, len(x), CHECK_ROWS):  # (rows, moves x stretches, <= 4096) float32 at a time
+        sl = slice(i, i + CHECK_ROWS)
         near = reach[sl]
         cols = np.argsort(~near, axis=1, kind="stable")[:, :max(int(near.sum(axis=1).max()), 1)]
         xs, obs = np.take_along_axis(x[sl], cols, axis=1), np.take_along_axis(observed[sl], cols, axis=1)
@@ -408,11 +436,12 @@ def _rise(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, normal: np.ndarr
           & (dec > d_min + 0.25) & (dec < d_max - 0.25))
     lo, hi = _neighbours(a)
     step = (dec[hi] - dec[lo]) * np.sign(normal[a])
-    both = ok[hi] & ok[lo]
-    out = np.full(len(dec), np.nan)
-    for i in np.flatnonzero(both.sum(axis=(1, 2, 3)) >= MIN_VERDICT_SURFACE):
-        out[i] = np.median(step[i][both[i]]) / abs(normal[a])
-    return out
+    both = (ok[hi] & ok[lo]).reshape(len(dec), -1)
+    count = both.sum(axis=1)
+    # every row's median at once, as np.median takes it (the middle one or the mean of the middle two)
+    srt, rows = np.sort(np.where(both, step.reshape(len(dec), -1), np.inf), axis=1), np.arange(len(dec))
+    mid = (srt[rows, np.maximum(count - 1, 0) // 2] + srt[rows, count // 2 - (count == 0)]) / 2
+    return np.where(count >= MIN_VERDICT_SURFACE, mid / abs(normal[a]), np.nan)
 
 
 def _plane_cover(x: np.ndarray, observed: np.ndarray, rel: np.ndarray, *, voxel_size: float,

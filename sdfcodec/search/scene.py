@@ -227,6 +227,9 @@ def _merge_levels(level: np.ndarray, levels: list[dict], comp: np.ndarray, norma
     tol = PLANE_TOL_VOXELS * voxel_size
     of = level[comp]  # each block's level
     owner = list(range(len(levels)))  # what each level merged into
+    # pairs found not to merge, by what each level holds then: a pass after a merge tries only the pairs that
+    # changed (the same decisions as trying every pair again, without refitting the ones that cannot have changed)
+    apart: set[tuple] = set()
     merged = True
     while merged:
         merged = False
@@ -238,12 +241,16 @@ def _merge_levels(level: np.ndarray, levels: list[dict], comp: np.ndarray, norma
                 la, lb = levels[a], levels[b]
                 if la["normal"] @ lb["normal"] < cos_a:
                     continue
-                ia = np.flatnonzero(np.isin(of, [j for j in range(len(levels)) if owner[j] == a]))
-                ib = np.flatnonzero(np.isin(of, [j for j in range(len(levels)) if owner[j] == b]))
+                pair = tuple(tuple(j for j in range(len(levels)) if owner[j] == o) for o in (a, b))
+                if pair in apart:
+                    continue
+                ia = np.flatnonzero(np.isin(of, pair[0]))
+                ib = np.flatnonzero(np.isin(of, pair[1]))
                 both = np.r_[ia, ib]
                 n, d = _fit_plane(normals[both], points[both], voxel_size)
                 if (n @ la["normal"] < cos_a or n @ lb["normal"] < cos_a
                         or np.median(np.abs(points[ia] @ n - d)) > tol or np.median(np.abs(points[ib] @ n - d)) > tol):
+                    apart.add(pair)
                     continue
                 la.update(normal=n, d=d, blocks=la["blocks"] + lb["blocks"])
                 owner = [a if o == b else o for o in owner]

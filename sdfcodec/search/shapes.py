@@ -499,7 +499,7 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
     r_up = rotation_to(up)
     grid = np.stack(np.meshgrid(*[np.arange(BLOCK, dtype=np.float64) - _CENTRE] * 3, indexing="ij"), -1)
     cos_t = math.cos(math.radians(tilt_deg))
-    vs, seen = [], []
+    ds = []
     for _ in range(int(count)):
         cz = rng.uniform(cos_t, 1.0)
         phi = rng.uniform(0.0, 2 * math.pi)
@@ -513,6 +513,7 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
             b = rot_z(rng.uniform(0.0, 2 * math.pi)) @ fam[rng.integers(len(fam))]
         spin = rot_z(rng.uniform(0.0, 2 * math.pi)) if name in ("floor", "ceiling") else np.eye(3)
         r = r_up @ tilt @ spin @ b
+        q = grid @ r
         if name == "pole":
             p = np.array([rng.uniform(-6.0, 6.0), rng.uniform(-6.0, 6.0), rng.uniform(min(POLE_RADII),
                                                                                       max(POLE_RADII))])
@@ -520,14 +521,13 @@ def sample_shapes(name: str, count: int, *, voxel_size: float = 0.02, truncation
             # a plane up to one voxel beyond the block's outer voxel layers is still its surface: the block on
             # each side of a surface between them holds it (its mesh needs both)
             ext = _extent(r)
-            q = grid @ r
             for _ in range(32):  # a clean instance is more than a corner sliver (the strict truth's rule)
                 p = np.array([0.0, 0.0, rng.uniform(-ext, ext)])
                 if _surface_voxels(q, p) >= MIN_SHAPE_SURFACE:
                     break
         else:  # edges and corners: where the model places them
             p = rng.uniform(-PART_REACH, PART_REACH, 3)
-        d = sdf(grid @ r, p) * voxel_size * rng.uniform(*stretch)
-        vs.append(truncate(d, truncation, behind))
-        seen.append(d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool))
-    return normalise(np.stack(vs), *truncation), np.stack(seen)
+        ds.append(sdf(q, p) * voxel_size * rng.uniform(*stretch))
+    d = np.stack(ds)  # truncated and masked at once: the same values as block by block
+    seen = d >= truncation[0] if behind == "unobserved" else np.ones(d.shape, bool)
+    return normalise(truncate(d, truncation, behind), *truncation), seen
