@@ -569,9 +569,10 @@ def _kill_at_random_times(server: Server, path: Path, n_kills: int, seed: int) -
 
 
 def test_sigkill_at_random_times_leaves_old_or_new(server, tmp_path):
-    stats = _kill_at_random_times(server, tmp_path / "k.sdfz", n_kills=24, seed=8)
+    # 12 kill points (6 updates, 3 creations, 3 transcodes); 200 in test_sigkill_at_random_times_long (slow)
+    stats = _kill_at_random_times(server, tmp_path / "k.sdfz", n_kills=12, seed=8)
     print("random-time kills:", stats)
-    assert stats["killed_mid_write"] >= 8  # the delays really land inside the writes
+    assert stats["killed_mid_write"] >= 4  # the delays really land inside the writes
 
 
 @pytest.mark.slow
