@@ -803,9 +803,11 @@ def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_rea
 
 
 def test_sigkill_tiny_updates_under_readers(server, tmp_path):
-    stats = _kill_tiny_under_readers(server, tmp_path, n_kills=40, n_readers=3, seed=21)
+    # 24 kill points under 2 readers (each reader a busy process beside the suite's workers); 240 under 4 in
+    # test_sigkill_tiny_updates_under_readers_long (slow)
+    stats = _kill_tiny_under_readers(server, tmp_path, n_kills=24, n_readers=2, seed=21)
     print("tiny updates killed under readers:", stats)
-    assert stats["completed"] >= 8 and stats["killed"] >= 8  # kills land inside updates, and updates complete
+    assert stats["completed"] >= 6 and stats["killed"] >= 6  # kills land inside updates, and updates complete
     assert stats["updates_completed_under_a_reader"] >= 5  # swaps really happen under open readers
     assert stats["reads"] >= 40 and stats["verifies"] >= 5
 
