@@ -85,6 +85,37 @@ def pytest_configure(config):
         os.environ[CACHE_ENV] = config._sdfcodec_cache = tempfile.mkdtemp(prefix="sdfcodec-test-cache-")  # noqa: SLF001
 
 
+# Modules whose module-scoped fixtures are expensive (a fork server preloading torch, a pip install, trained
+# networks, a whole study's run, fused sequences), or whose few tests are long. Under pytest-xdist's default
+# distribution (`-n 2`: load) each of these modules runs on one worker, so its fixtures are built once instead
+# of in both workers, and these modules are handed out (most tests first) before the single tests, so that no
+# long test is left alone at the end of the run while the other worker idles. Every other test is handed out
+# one by one, as xdist does. (xdist's own `--dist loadgroup` does not group tests under pytest 9.) The two
+# modules reading the one `sdfcodec bench` run (bench_run, ~20 s of CPU) share a worker: in two workers asking
+# for it at once, RunShared built it twice.
+WORKER_GROUPS = {name: name for name in (
+    "test_reliability", "test_writes", "test_plugin_package", "test_plugin_compat", "test_codecs_nn",
+    "test_rate_distortion", "test_peers_study", "test_bench_harness", "test_search", "test_building",
+    "test_shards", "test_tracking", "test_evaluation", "test_view")} | {
+    "test_cli": "bench_run", "test_bench_progress": "bench_run"}
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    if config.getvalue("dist") != "load":
+        return None  # a distribution asked for by name
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupedScheduling(LoadScopeScheduling):
+        """xdist's scope scheduling with a scope per grouped module, and one per test elsewhere."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            group = WORKER_GROUPS.get(Path(nodeid.split("::", 1)[0]).stem)
+            return f"group {group}" if group else nodeid
+
+    return GroupedScheduling(config, log)
+
+
 def pytest_unconfigure(config):
     import shutil
 

@@ -516,7 +516,10 @@ def test_s3_transient_500_is_retried_and_deleted_objects_are_named(small_map, s3
     obj = "/maps/" + TARGETS["chunk"]
     proxy.plan = lambda p, n: "500" if p == obj and n <= 2 else None
     proxy.counts.clear()
-    assert np.array_equal(_read("s3://maps/x.sdfz", {**opts, "remote_limits": FAST}), small_map[1])
+    # FAST's tries with calm timeouts: what is checked is the retries and the errors' words, and FAST's 1.5 s in
+    # all ran out under the suite's load (a RemoteReadError where the missing metadata was to be named)
+    calm = {**FAST, "connect_timeout": 5.0, "read_timeout": 10.0, "total_timeout": 15.0}
+    assert np.array_equal(_read("s3://maps/x.sdfz", {**opts, "remote_limits": calm}), small_map[1])
     assert proxy.counts[obj] == 3
     proxy.plan = lambda p, n: None
     # deleted objects (straight on moto): the map's metadata missing is a clear error naming the map
@@ -528,16 +531,16 @@ def test_s3_transient_500_is_retried_and_deleted_objects_are_named(small_map, s3
     fs.rm("maps/y.sdfz/codes/zarr.json")
     # the manifest lists the metadata removed (maps without one: "lacks array 'codes'")
     with pytest.raises(errors.FormatError, match=r"s3://maps/y.sdfz.*codes/zarr.json\) is listed in the manifest but missing"):
-        sdfcodec.open_map("s3://maps/y.sdfz", storage_options={**opts, "remote_limits": FAST})
+        sdfcodec.open_map("s3://maps/y.sdfz", storage_options={**opts, "remote_limits": calm})
     fs.rm("maps/y.sdfz/zarr.json")
     with pytest.raises(errors.SDFCodecError, match="s3://maps/y.sdfz"):
-        sdfcodec.open_map("s3://maps/y.sdfz", storage_options={**opts, "remote_limits": FAST})
+        sdfcodec.open_map("s3://maps/y.sdfz", storage_options={**opts, "remote_limits": calm})
     # a deleted code chunk under coded blocks: verify names it
     from sdfcodec.map.verify import verify_map
 
     fs.cp("maps/x.sdfz", "maps/z.sdfz", recursive=True)
     fs.rm("maps/z.sdfz/" + CHUNK)
-    rep = verify_map("s3://maps/z.sdfz", storage_options={**opts, "remote_limits": FAST})
+    rep = verify_map("s3://maps/z.sdfz", storage_options={**opts, "remote_limits": calm})
     assert not rep.ok and "0/0/0" in json.dumps(rep.to_dict() if hasattr(rep, "to_dict") else str(rep))
 
 
@@ -677,8 +680,9 @@ _QUICK_FAULTS = ["500", "503", "reset", "truncate", "long_length", "short_length
 
 
 def test_random_remote_faults_short_run(small_map, http_server, s3_proxy):
-    """CI's short fault run: 40 faults, none of the slow kinds (drip, hang, slow headers)."""
-    counts = _random_faults(http_server, s3_proxy, small_map[1], 40, _QUICK_FAULTS, seed=7)
+    """CI's short fault run: 24 faults at random, none of the slow kinds (drip, hang, slow headers); each kind
+    alone, at each kind of object: the FAILING and S3_FAILING tests above; 520 faults: the slow run below."""
+    counts = _random_faults(http_server, s3_proxy, small_map[1], 24, _QUICK_FAULTS, seed=7)
     assert all(c["reads"] for c in counts.values())
 
 

@@ -569,9 +569,10 @@ def _kill_at_random_times(server: Server, path: Path, n_kills: int, seed: int) -
 
 
 def test_sigkill_at_random_times_leaves_old_or_new(server, tmp_path):
-    stats = _kill_at_random_times(server, tmp_path / "k.sdfz", n_kills=24, seed=8)
+    # 12 kill points (6 updates, 3 creations, 3 transcodes); 200 in test_sigkill_at_random_times_long (slow)
+    stats = _kill_at_random_times(server, tmp_path / "k.sdfz", n_kills=12, seed=8)
     print("random-time kills:", stats)
-    assert stats["killed_mid_write"] >= 8  # the delays really land inside the writes
+    assert stats["killed_mid_write"] >= 4  # the delays really land inside the writes
 
 
 @pytest.mark.slow
@@ -802,9 +803,11 @@ def _kill_tiny_under_readers(server: Server, tmp_path: Path, n_kills: int, n_rea
 
 
 def test_sigkill_tiny_updates_under_readers(server, tmp_path):
-    stats = _kill_tiny_under_readers(server, tmp_path, n_kills=40, n_readers=3, seed=21)
+    # 24 kill points under 2 readers (each reader a busy process beside the suite's workers); 240 under 4 in
+    # test_sigkill_tiny_updates_under_readers_long (slow)
+    stats = _kill_tiny_under_readers(server, tmp_path, n_kills=24, n_readers=2, seed=21)
     print("tiny updates killed under readers:", stats)
-    assert stats["completed"] >= 8 and stats["killed"] >= 8  # kills land inside updates, and updates complete
+    assert stats["completed"] >= 6 and stats["killed"] >= 6  # kills land inside updates, and updates complete
     assert stats["updates_completed_under_a_reader"] >= 5  # swaps really happen under open readers
     assert stats["reads"] >= 40 and stats["verifies"] >= 5
 
