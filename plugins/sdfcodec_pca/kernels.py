@@ -331,24 +331,71 @@ def sub_rows(acc, rows, sel, coef, m):
 
 
 @njit(fastmath=_FAST, cache=True)
-def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, dec, q, rr, sel):
+def dots_acc(p, rows, nb, coef, q, acc):
+    """One pass over the gathered rows ``rows`` (>= nb, k), four at a time: q[t] = rows[t] . p for t < nb, and
+    acc (k,) += sum_t coef[t] q[t] rows[t] (rows whose ``coef`` is 0 add nothing; each row is read once for both)."""
+    k = rows.shape[1]
+    t = 0
+    while t + 4 <= nb:
+        r0, r1, r2, r3 = rows[t], rows[t + 1], rows[t + 2], rows[t + 3]
+        a0 = a1 = a2 = a3 = np.float32(0)
+        for a in range(k):
+            pa = p[a]
+            a0 += pa * r0[a]
+            a1 += pa * r1[a]
+            a2 += pa * r2[a]
+            a3 += pa * r3[a]
+        q[t], q[t + 1], q[t + 2], q[t + 3] = a0, a1, a2, a3
+        s0, s1, s2, s3 = coef[t] * a0, coef[t + 1] * a1, coef[t + 2] * a2, coef[t + 3] * a3
+        if s0 != 0 or s1 != 0 or s2 != 0 or s3 != 0:
+            for a in range(k):
+                acc[a] += s0 * r0[a] + s1 * r1[a] + s2 * r2[a] + s3 * r3[a]
+        t += 4
+    while t < nb:
+        r0 = rows[t]
+        a0 = np.float32(0)
+        for a in range(k):
+            a0 += p[a] * r0[a]
+        q[t] = a0
+        s0 = coef[t] * a0
+        if s0 != 0:
+            for a in range(k):
+                acc[a] += s0 * r0[a]
+        t += 1
+
+
+@njit(fastmath=_FAST, cache=True)
+def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, dec, q, wa, sel):
     """The truncation refits as preconditioned nonlinear conjugate gradients (Polak-Ribiere+) on the reader's
     error itself, ``f(c) = sum_j w_j r_j^2 + lam |c - c0|^2`` over the voxels not at a bound decoded beyond it
     (``r`` the residual of the decode; the active set follows ``c`` at every step), from the weighted fit ``c``
     (k,) float32, updated in place. No Gram is rebuilt nor refactorised: ``G + lam I`` (lower triangle ``g``
     plus ``lam``, of all the weights) gives the Hessian minus the active bound voxels' rank-one terms, and its
     Cholesky factor ``chol`` preconditions. The ``nb`` bound voxels come gathered: their basis rows ``rows``
-    (>= nb, k: contiguous, so each pass reads them in order from the cache), values ``xb``, weights ``wb``, the
-    bound ``bv`` and its side ``sg`` (1 and +1 at d_max: active where the decode is >= 1; 0 and -1 at d_min:
-    active where it is <= 0) and decode bias ``db``; ``dec``, ``q``, ``rr`` (>= nb) float32 and ``sel`` (>= nb) int64 scratch.
-    Per step: one G v product, one preconditioner solve, one pass over the bound voxels' rows (the direction's
-    decode change) and one over the active ones only (their gradient terms). The active tests are branch-free
-    selects, so the passes over the voxels vectorise. Stops after ``iters`` steps or when ``z^T grad`` falls
-    below ``tol`` times its first value."""
+    (>= nb, k: contiguous, so a pass reads them in order from the cache), values ``xb``, weights ``wb``, bound
+    ``bv`` and its side ``sg`` (1 and +1 at d_max: active where the decode is >= 1; 0 and -1 at d_min: active
+    where it is <= 0) and decode bias ``db``; ``dec``, ``q``, ``wa`` (>= nb) float32 and ``sel`` (>= nb) int64
+    scratch.
+
+    One pass over the bound voxels' rows per step: the active voxels' gradient terms ``S = sum_A w_t (dec_t -
+    x_t) d_t`` are carried from step to step (``S + alpha sum_A w_t q_t d_t``, the sum taken in the same pass as
+    the direction's decode change ``q = D p``), and only the voxels whose active state flipped along the step
+    are added or removed (few: their rows read once more). Per step also one G v product and one
+    preconditioner solve. Stops after ``iters`` steps or when ``z^T grad`` falls below ``tol`` times its first
+    value."""
     k = c.shape[0]
     dots(c, rows, nb, dec)
-    for t in range(nb):
-        dec[t] += db[t]
+    m = 0
+    for t in range(nb):  # the active bound voxels (sg (d - bound) >= 0: decoded beyond it) and their residuals
+        d = dec[t] + db[t]
+        dec[t] = d
+        if sg[t] * (d - bv[t]) >= 0:
+            sel[m] = t
+            q[m] = wb[t] * (d - xb[t])
+            m += 1
+        wa[t] = wb[t] if sg[t] * (d - bv[t]) >= 0 else np.float32(0)
+    s = np.zeros(k, np.float32)
+    sub_rows(s, rows, sel, q, m)  # s = -S
     hc = np.empty(k, np.float32)
     symv(g, c, hc)
     for a in range(k):
@@ -358,20 +405,13 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
     zprev = np.zeros(k, np.float32)
     p = np.zeros(k, np.float32)
     hp = np.empty(k, np.float32)
+    s2 = np.empty(k, np.float32)
     gz0 = np.float32(0)
     gzprev = np.float32(0)
     one, zero = np.float32(1), np.float32(0)
     for it in range(iters):
-        m = 0
-        for t in range(nb):  # the active bound voxels and their residuals; sg (d - bound) >= 0 <=> beyond it
-            d = dec[t]
-            if sg[t] * (d - bv[t]) >= 0:
-                sel[m] = t
-                rr[m] = wb[t] * (d - xb[t])
-                m += 1
         for a in range(k):
-            grad[a] = hc[a]
-        sub_rows(grad, rows, sel, rr, m)  # minus their terms
+            grad[a] = hc[a] + s[a]
         chol_solve(chol, grad, z)
         gz = np.float32(0)
         gzo = np.float32(0)
@@ -401,9 +441,8 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
             hp[a] += lam * p[a]
             php += p[a] * hp[a]
             s0 += p[a] * hc[a]
-        dots(p, rows, nb, q)  # the direction's change of the decode only (no bias)
-        for t in range(nb):
-            rr[t] = wb[t] * q[t]  # constant along the line
+            s2[a] = 0
+        dots_acc(p, rows, nb, wa, q, s2)  # q = the direction's decode change; s2 = sum_A w_t q_t d_t
         # exact line search: the error along p is piecewise quadratic and convex; Newton on its derivative
         # (piecewise linear) from 0 lands on its minimum in a few steps, each O(nb)
         alpha = np.float32(0)
@@ -412,8 +451,7 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
             d2 = php
             for t in range(nb):
                 d = dec[t] + alpha * q[t]
-                on = one if sg[t] * (d - bv[t]) >= 0 else zero
-                wq = on * rr[t]
+                wq = (one if sg[t] * (d - bv[t]) >= 0 else zero) * wb[t] * q[t]
                 d1 -= wq * (d - xb[t])
                 d2 -= wq * q[t]
             if not d2 > 0:
@@ -427,8 +465,18 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
         for a in range(k):
             c[a] += alpha * p[a]
             hc[a] += alpha * hp[a]
-        for t in range(nb):
-            dec[t] += alpha * q[t]
+            s[a] -= alpha * s2[a]  # the voxels active before, at the new decode
+        m = 0
+        for t in range(nb):  # then the voxels whose state flipped: in with their term, out with theirs
+            d = dec[t] + alpha * q[t]
+            dec[t] = d
+            on = sg[t] * (d - bv[t]) >= 0
+            if on != (wa[t] != 0):
+                sel[m] = t
+                q[m] = wb[t] * (d - xb[t]) * (np.float32(1) if on else np.float32(-1))
+                m += 1
+                wa[t] = wb[t] if on else np.float32(0)
+        sub_rows(s, rows, sel, q, m)
 
 
 @njit(parallel=True, fastmath=False, cache=True)
@@ -494,7 +542,9 @@ def kernel(x, w, dt, dec_b, gfull, pieces, piece_cost, c0, rhs_all, wsum_all, ri
                     xb[t], wb[t], db[t] = xi[j], wi[j], dec_b[j]
                     sg[t] = 1 if top else -1
                     bv[t] = 1 if top else 0
-                    rows[t] = dt[j]  # a contiguous row copy: the passes then read the rows in order
+                    rt, dj = rows[t], dt[j]
+                    for a in range(k):  # a contiguous row copy (an element loop: numba's slice copy costs 7x)
+                        rt[a] = dj[a]
                 refine(out[i], g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, dec_s, q_s, rr_s,
                        idx)
                 continue
