@@ -22,8 +22,12 @@ What the kernel does instead, per block, in cache:
   the reader's error, one-sided at the bound voxels, minimised from the weighted fit by preconditioned
   nonlinear conjugate gradients, its Hessian products from the fit's Gram minus the active bound voxels, its
   preconditioner the fit's Cholesky factor: no Gram rebuilt, nothing refactorised. The bound voxels' basis
-  columns are gathered once per block (``k x nb``), so each step's two passes over them vectorise along the
-  voxels. Leaves the exact rounds' error in total at 2 steps per round (tests/test_fast_encode.py).
+  rows are copied once per block into a contiguous ``nb x k`` buffer (in the core's cache), and each step makes
+  one pass over it: the direction's decode change and the active voxels' Hessian terms together; the active
+  voxels' gradient terms are carried from step to step and corrected for the voxels whose state flipped only.
+  Leaves the exact rounds' error in total at 2 steps per round (tests/test_fast_encode.py).
+- **Right-hand sides in one product** (:func:`normal_rhs`): ``D diag(w) (x - d)`` of all blocks as a matrix
+  product per slab of blocks, at the BLAS's speed, before the per-block pass.
 - **Exact refits as updates** (``iters = 0``). Each truncation refit changes the weights of the voxels whose
   active state flipped only: the Gram and right-hand side are updated with those (or rebuilt from a
   reference, whichever touches fewer voxels), then refactorised (``k^3 / 3`` flops). Only the bound voxels
