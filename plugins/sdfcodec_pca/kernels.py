@@ -286,32 +286,6 @@ def add_pieces(g, gp, pieces, nodes, node_scale, npc):
 
 
 @njit(fastmath=_FAST, cache=True)
-def dots(code, rows, nb, out):
-    """out[:nb] = rows[t] . code for the gathered basis rows ``rows`` (>= nb, k), four rows at a time (one read of
-    ``code`` per four dot products; each row's multiply-adds vectorise along the components)."""
-    k = rows.shape[1]
-    t = 0
-    while t + 4 <= nb:
-        r0, r1, r2, r3 = rows[t], rows[t + 1], rows[t + 2], rows[t + 3]
-        a0 = a1 = a2 = a3 = np.float32(0)
-        for a in range(k):
-            ca = code[a]
-            a0 += ca * r0[a]
-            a1 += ca * r1[a]
-            a2 += ca * r2[a]
-            a3 += ca * r3[a]
-        out[t], out[t + 1], out[t + 2], out[t + 3] = a0, a1, a2, a3
-        t += 4
-    while t < nb:
-        r0 = rows[t]
-        a0 = np.float32(0)
-        for a in range(k):
-            a0 += code[a] * r0[a]
-        out[t] = a0
-        t += 1
-
-
-@njit(fastmath=_FAST, cache=True)
 def sub_rows(acc, rows, sel, coef, m):
     """acc (k,) -= sum_t coef[t] rows[sel[t]] over t < m, four rows at a time (one read and write of ``acc`` per
     four rows)."""
@@ -384,7 +358,10 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
     preconditioner solve. Stops after ``iters`` steps or when ``z^T grad`` falls below ``tol`` times its first
     value."""
     k = c.shape[0]
-    dots(c, rows, nb, dec)
+    for t in range(nb):
+        wa[t] = 0
+    s2 = np.zeros(k, np.float32)
+    dots_acc(c, rows, nb, wa, dec, s2)  # the decode only (no coefficient: nothing summed)
     m = 0
     for t in range(nb):  # the active bound voxels (sg (d - bound) >= 0: decoded beyond it) and their residuals
         d = dec[t] + db[t]
@@ -405,7 +382,6 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
     zprev = np.zeros(k, np.float32)
     p = np.zeros(k, np.float32)
     hp = np.empty(k, np.float32)
-    s2 = np.empty(k, np.float32)
     gz0 = np.float32(0)
     gzprev = np.float32(0)
     one, zero = np.float32(1), np.float32(0)
