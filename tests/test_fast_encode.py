@@ -272,3 +272,25 @@ def test_compiled_fit_on_octree_patterns_is_the_weighted_least_squares(fused, k)
     x = v[:len(w)]
     codec = sdfcodec.pretrained_codec("pca", k)
     assert_weighted_fit(codec, codec.encode(x, weights=w), x, w)
+
+
+def test_normal_rhs_is_the_weighted_projection():
+    # the right-hand sides from one product per slab against float64 D diag(w) (x - d), block by block, across
+    # more blocks than one slab holds; all weights 0 give exactly 0 and the weight sums are the weights' sums
+    rng = np.random.default_rng(11)
+    n, k = truncated._RHS_SLAB + 3, 33
+    dt = rng.standard_normal((4096, k)).astype(np.float32)
+    dec_b = rng.uniform(0, 1, 4096).astype(np.float32)
+    x = rng.uniform(0, 1, (n, 4096)).astype(np.float32)
+    w = rng.choice(np.array([0, 1, 51], np.float32), size=(n, 4096))
+    w[0] = 0
+    w[1] = 0
+    w[1, 77] = 2.5  # one voxel
+    rhs, wsum = truncated.normal_rhs(x, w, dt, dec_b)
+    x64, w64, d64 = x.astype(np.float64), w.astype(np.float64), dt.astype(np.float64)
+    ref = np.stack([d64.T @ (wi * (xi - dec_b)) for xi, wi in zip(x64, w64)])
+    assert rhs.dtype == np.float32 and rhs.shape == (n, k)
+    np.testing.assert_allclose(rhs, ref, rtol=1e-4, atol=1e-4 * np.abs(ref).max())
+    assert np.all(rhs[0] == 0)
+    np.testing.assert_allclose(rhs[1], 2.5 * (x64[1, 77] - dec_b[77]) * d64[77], rtol=1e-6)
+    np.testing.assert_allclose(wsum, w64.sum(axis=1))

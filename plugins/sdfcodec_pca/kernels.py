@@ -286,60 +286,93 @@ def add_pieces(g, gp, pieces, nodes, node_scale, npc):
 
 
 @njit(fastmath=_FAST, cache=True)
-def weighted_rhs(rhs, wi, xi, dt, dec_b, c0i):
-    """rhs = D diag(wi) (xi - d) from the cheaper reference (weights 0, or 1: then D (x - d) = c0, the plain
-    projection); returns the weight sum."""
-    n_vox, k = dt.shape
-    ref, wsum = reference_weight(wi)
-    ref = np.float32(ref)
-    for a in range(k):
-        rhs[a] = ref * c0i[a]
-    for j in range(n_vox):
-        if wi[j] != ref:
-            r = (wi[j] - ref) * (xi[j] - dec_b[j])
-            row = dt[j]
+def sub_rows(acc, rows, sel, coef, m):
+    """acc (k,) -= sum_t coef[t] rows[sel[t]] over t < m, four rows at a time (one read and write of ``acc`` per
+    four rows)."""
+    k = acc.shape[0]
+    t = 0
+    while t + 4 <= m:
+        r0, r1, r2, r3 = rows[sel[t]], rows[sel[t + 1]], rows[sel[t + 2]], rows[sel[t + 3]]
+        s0, s1, s2, s3 = coef[t], coef[t + 1], coef[t + 2], coef[t + 3]
+        for a in range(k):
+            acc[a] -= s0 * r0[a] + s1 * r1[a] + s2 * r2[a] + s3 * r3[a]
+        t += 4
+    while t < m:
+        r0, s0 = rows[sel[t]], coef[t]
+        for a in range(k):
+            acc[a] -= s0 * r0[a]
+        t += 1
+
+
+@njit(fastmath=_FAST, cache=True)
+def dots_acc(p, rows, nb, coef, q, acc):
+    """One pass over the gathered rows ``rows`` (>= nb, k), four at a time: q[t] = rows[t] . p for t < nb, and
+    acc (k,) += sum_t coef[t] q[t] rows[t] (rows whose ``coef`` is 0 add nothing; each row is read once for both)."""
+    k = rows.shape[1]
+    t = 0
+    while t + 4 <= nb:
+        r0, r1, r2, r3 = rows[t], rows[t + 1], rows[t + 2], rows[t + 3]
+        a0 = a1 = a2 = a3 = np.float32(0)
+        for a in range(k):
+            pa = p[a]
+            a0 += pa * r0[a]
+            a1 += pa * r1[a]
+            a2 += pa * r2[a]
+            a3 += pa * r3[a]
+        q[t], q[t + 1], q[t + 2], q[t + 3] = a0, a1, a2, a3
+        s0, s1, s2, s3 = coef[t] * a0, coef[t + 1] * a1, coef[t + 2] * a2, coef[t + 3] * a3
+        if s0 != 0 or s1 != 0 or s2 != 0 or s3 != 0:
             for a in range(k):
-                rhs[a] += r * row[a]
-    return wsum
+                acc[a] += s0 * r0[a] + s1 * r1[a] + s2 * r2[a] + s3 * r3[a]
+        t += 4
+    while t < nb:
+        r0 = rows[t]
+        a0 = np.float32(0)
+        for a in range(k):
+            a0 += p[a] * r0[a]
+        q[t] = a0
+        s0 = coef[t] * a0
+        if s0 != 0:
+            for a in range(k):
+                acc[a] += s0 * r0[a]
+        t += 1
 
 
 @njit(fastmath=_FAST, cache=True)
-def gather_cols(dmat, idx, nb, bt):
-    """bt[:, :nb] = the decode matrix ``dmat`` (k, 4096) at voxels ``idx[:nb]``, one basis row at a time (a
-    row stays in cache while it is gathered; gathering the voxels' basis rows into columns writes across all of
-    ``bt`` per voxel: measured 1.8x slower, 6.7x with ``bt``'s rows 16 KiB apart, where they alias in the cache)."""
-    for a in range(dmat.shape[0]):
-        da, ba = dmat[a], bt[a]
-        for t in range(nb):
-            ba[t] = da[idx[t]]
-
-
-@njit(fastmath=_FAST, cache=True)
-def decode_cols(code, bt, db, nb, out):
-    """out[:nb] = the decode of ``code`` at the bound voxels whose basis columns ``bt`` (k, >= nb) holds (``db``
-    their decode bias): a multiply-add over the voxels per component, vectorised along them."""
-    for t in range(nb):
-        out[t] = db[t]
-    for a in range(bt.shape[0]):
-        ca, row = code[a], bt[a]
-        for t in range(nb):
-            out[t] += ca * row[t]
-
-
-@njit(fastmath=_FAST, cache=True)
-def refine(c, g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec, q, rr):
+def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, dec, q, wa, sel):
     """The truncation refits as preconditioned nonlinear conjugate gradients (Polak-Ribiere+) on the reader's
     error itself, ``f(c) = sum_j w_j r_j^2 + lam |c - c0|^2`` over the voxels not at a bound decoded beyond it
     (``r`` the residual of the decode; the active set follows ``c`` at every step), from the weighted fit ``c``
     (k,) float32, updated in place. No Gram is rebuilt nor refactorised: ``G + lam I`` (lower triangle ``g``
     plus ``lam``, of all the weights) gives the Hessian minus the active bound voxels' rank-one terms, and its
-    Cholesky factor ``chol`` preconditions. The ``nb`` bound voxels come gathered: their basis columns ``bt``
-    (k, >= nb), values ``xb``, weights ``wb``, which bound (``topb``: d_max) and decode bias ``db``; ``dec``,
-    ``q``, ``rr`` scratch (>= nb). Per step: one G v product, one preconditioner solve and two passes over the
-    bound voxels' columns (2 k nb multiply-adds, vectorised along the voxels). Stops after ``iters`` steps or
-    when ``z^T grad`` falls below ``tol`` times its first value."""
+    Cholesky factor ``chol`` preconditions. The ``nb`` bound voxels come gathered: their basis rows ``rows``
+    (>= nb, k: contiguous, so a pass reads them in order from the cache), values ``xb``, weights ``wb``, bound
+    ``bv`` and its side ``sg`` (1 and +1 at d_max: active where the decode is >= 1; 0 and -1 at d_min: active
+    where it is <= 0) and decode bias ``db``; ``dec``, ``q``, ``wa`` (>= nb) float32 and ``sel`` (>= nb) int64
+    scratch.
+
+    One pass over the bound voxels' rows per step: the active voxels' gradient terms ``S = sum_A w_t (dec_t -
+    x_t) d_t`` are carried from step to step (``S + alpha sum_A w_t q_t d_t``, the sum taken in the same pass as
+    the direction's decode change ``q = D p``), and only the voxels whose active state flipped along the step
+    are added or removed (few: their rows read once more). Per step also one G v product and one
+    preconditioner solve. Stops after ``iters`` steps or when ``z^T grad`` falls below ``tol`` times its first
+    value."""
     k = c.shape[0]
-    decode_cols(c, bt, db, nb, dec)
+    for t in range(nb):
+        wa[t] = 0
+    s2 = np.zeros(k, np.float32)
+    dots_acc(c, rows, nb, wa, dec, s2)  # the decode only (no coefficient: nothing summed)
+    m = 0
+    for t in range(nb):  # the active bound voxels (sg (d - bound) >= 0: decoded beyond it) and their residuals
+        d = dec[t] + db[t]
+        dec[t] = d
+        if sg[t] * (d - bv[t]) >= 0:
+            sel[m] = t
+            q[m] = wb[t] * (d - xb[t])
+            m += 1
+        wa[t] = wb[t] if sg[t] * (d - bv[t]) >= 0 else np.float32(0)
+    s = np.zeros(k, np.float32)
+    sub_rows(s, rows, sel, q, m)  # s = -S
     hc = np.empty(k, np.float32)
     symv(g, c, hc)
     for a in range(k):
@@ -351,17 +384,10 @@ def refine(c, g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec,
     hp = np.empty(k, np.float32)
     gz0 = np.float32(0)
     gzprev = np.float32(0)
+    one, zero = np.float32(1), np.float32(0)
     for it in range(iters):
-        for t in range(nb):  # the active bound voxels' residuals (0 elsewhere)
-            d = dec[t]
-            act = (d >= 1) if topb[t] else (d <= 0)
-            rr[t] = wb[t] * (d - xb[t]) if act else np.float32(0)
-        for a in range(k):  # minus their terms
-            row = bt[a]
-            acc = np.float32(0)
-            for t in range(nb):
-                acc += rr[t] * row[t]
-            grad[a] = hc[a] - acc
+        for a in range(k):
+            grad[a] = hc[a] + s[a]
         chol_solve(chol, grad, z)
         gz = np.float32(0)
         gzo = np.float32(0)
@@ -391,12 +417,8 @@ def refine(c, g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec,
             hp[a] += lam * p[a]
             php += p[a] * hp[a]
             s0 += p[a] * hc[a]
-        for t in range(nb):
-            q[t] = 0  # the direction's change of the decode only (no bias)
-        for a in range(k):
-            pa, row = p[a], bt[a]
-            for t in range(nb):
-                q[t] += pa * row[t]
+            s2[a] = 0
+        dots_acc(p, rows, nb, wa, q, s2)  # q = the direction's decode change; s2 = sum_A w_t q_t d_t
         # exact line search: the error along p is piecewise quadratic and convex; Newton on its derivative
         # (piecewise linear) from 0 lands on its minimum in a few steps, each O(nb)
         alpha = np.float32(0)
@@ -405,8 +427,7 @@ def refine(c, g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec,
             d2 = php
             for t in range(nb):
                 d = dec[t] + alpha * q[t]
-                act = (d >= 1) if topb[t] else (d <= 0)
-                wq = wb[t] * q[t] if act else np.float32(0)
+                wq = (one if sg[t] * (d - bv[t]) >= 0 else zero) * wb[t] * q[t]
                 d1 -= wq * (d - xb[t])
                 d2 -= wq * q[t]
             if not d2 > 0:
@@ -420,22 +441,32 @@ def refine(c, g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec,
         for a in range(k):
             c[a] += alpha * p[a]
             hc[a] += alpha * hp[a]
-        for t in range(nb):
-            dec[t] += alpha * q[t]
+            s[a] -= alpha * s2[a]  # the voxels active before, at the new decode
+        m = 0
+        for t in range(nb):  # then the voxels whose state flipped: in with their term, out with theirs
+            d = dec[t] + alpha * q[t]
+            dec[t] = d
+            on = sg[t] * (d - bv[t]) >= 0
+            if on != (wa[t] != 0):
+                sel[m] = t
+                q[m] = wb[t] * (d - xb[t]) * (np.float32(1) if on else np.float32(-1))
+                m += 1
+                wa[t] = wb[t] if on else np.float32(0)
+        sub_rows(s, rows, sel, q, m)
 
 
 @njit(parallel=True, fastmath=False, cache=True)
-def kernel(x, w, dt, dmat, dec_b, gfull, pieces, piece_cost, c0, ridge, rounds, iters, tol, out):
-    """See :func:`sdfcodec_pca.truncated.truncated_codes` (``out`` ``(n, k)`` float32 receives the codes; ``dmat``
-    the decode matrix ``(k, 4096)``, ``dt`` its transpose; ``pieces`` the octree's Grams, :func:`plan`, or the
-    block's alone)."""
+def kernel(x, w, dt, dec_b, gfull, pieces, piece_cost, c0, rhs_all, wsum_all, ridge, rounds, iters, tol, out):
+    """See :func:`sdfcodec_pca.truncated.truncated_codes` (``out`` ``(n, k)`` float32 receives the codes; ``dt``
+    the decode matrix transposed ``(4096, k)``; ``pieces`` the octree's Grams, :func:`plan`, or the block's alone;
+    ``rhs_all`` ``(n, k)`` the unregularised right-hand sides ``D diag(w) (x - d)`` and ``wsum_all`` ``(n,)`` the
+    weight sums, computed by the caller in one matrix product for all blocks)."""
     n = x.shape[0]
     n_vox, k = dt.shape
     deep = pieces.shape[0] == _NODES
     chunks = min(n, _CHUNKS)
     for ch in prange(chunks):
         g = np.zeros((k, k), np.float32)
-        rhs = np.zeros(k, np.float32)
         chol = np.zeros((k, k), np.float32)
         panel = np.zeros((4, k), np.float32)
         sol = np.zeros(k, np.float32)
@@ -447,16 +478,17 @@ def kernel(x, w, dt, dmat, dec_b, gfull, pieces, piece_cost, c0, ridge, rounds, 
         node_scale = np.empty(_NODES, np.float32)
         cand = np.zeros(3, np.float32)
         gp = np.empty(pieces.shape[1], np.float32)
-        bt = np.empty((k, n_vox), np.float32)
+        rows = np.empty((n_vox, k), np.float32)
         xb = np.empty(n_vox, np.float32)
         wb = np.empty(n_vox, np.float32)
         db = np.empty(n_vox, np.float32)
-        topb = np.empty(n_vox, np.bool_)
+        sg = np.empty(n_vox, np.float32)
+        bv = np.empty(n_vox, np.float32)
         dec_s = np.empty(n_vox, np.float32)
         q_s = np.empty(n_vox, np.float32)
         rr_s = np.empty(n_vox, np.float32)
         for i in range((ch * n) // chunks, ((ch + 1) * n) // chunks):
-            xi, wi, c0i = x[i], w[i], c0[i]
+            xi, wi, c0i, rhs = x[i], w[i], c0[i], rhs_all[i]
             wmax = np.float32(0)
             for j in range(n_vox):
                 wmax = max(wmax, wi[j])
@@ -465,8 +497,7 @@ def kernel(x, w, dt, dmat, dec_b, gfull, pieces, piece_cost, c0, ridge, rounds, 
             m, npc = plan(wi, cand, piece_cost, deep, cost, choice, idx, scale, nodes, node_scale)
             add_pieces(g, gp, pieces, nodes, node_scale, npc)
             add_rows(g, dt, idx, scale, m)
-            wsum = weighted_rhs(rhs, wi, xi, dt, dec_b, c0i)
-            lam = np.float32((ridge / n_vox) * max(wsum, 1e-12))
+            lam = np.float32((ridge / n_vox) * max(wsum_all[i], 1e-12))
             if not solve(g, rhs, c0i, lam, chol, panel, sol):
                 out[i] = c0i
                 continue
@@ -483,11 +514,17 @@ def kernel(x, w, dt, dmat, dec_b, gfull, pieces, piece_cost, c0, ridge, rounds, 
             if iters > 0:
                 for t in range(nb):
                     j = idx[t]
-                    xb[t], wb[t], db[t], topb[t] = xi[j], wi[j], dec_b[j], xi[j] >= 1 - _BOUND_EPS
-                gather_cols(dmat, idx, nb, bt)
-                refine(out[i], g, lam, rhs, c0i, chol, bt, xb, wb, topb, db, nb, iters, tol, dec_s, q_s, rr_s)
+                    top = xi[j] >= 1 - _BOUND_EPS
+                    xb[t], wb[t], db[t] = xi[j], wi[j], dec_b[j]
+                    sg[t] = 1 if top else -1
+                    bv[t] = 1 if top else 0
+                    rt, dj = rows[t], dt[j]
+                    for a in range(k):  # a contiguous row copy (an element loop: numba's slice copy costs 7x)
+                        rt[a] = dj[a]
+                refine(out[i], g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, dec_s, q_s, rr_s,
+                       idx)
                 continue
-            exact_refits(out[i], xi, wi, dt, dec_b, gfull, c0i, ridge, rounds, g, rhs, chol, panel, sol,
+            exact_refits(out[i], xi, wi, dt, dec_b, gfull, c0i, ridge, rounds, g, rhs.copy(), chol, panel, sol,
                          idx[:nb].copy(), idx, scale)
 
 

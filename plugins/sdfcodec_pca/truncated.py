@@ -22,8 +22,12 @@ What the kernel does instead, per block, in cache:
   the reader's error, one-sided at the bound voxels, minimised from the weighted fit by preconditioned
   nonlinear conjugate gradients, its Hessian products from the fit's Gram minus the active bound voxels, its
   preconditioner the fit's Cholesky factor: no Gram rebuilt, nothing refactorised. The bound voxels' basis
-  columns are gathered once per block (``k x nb``), so each step's two passes over them vectorise along the
-  voxels. Leaves the exact rounds' error in total at 2 steps per round (tests/test_fast_encode.py).
+  rows are copied once per block into a contiguous ``nb x k`` buffer (in the core's cache), and each step makes
+  one pass over it: the direction's decode change and the active voxels' Hessian terms together; the active
+  voxels' gradient terms are carried from step to step and corrected for the voxels whose state flipped only.
+  Leaves the exact rounds' error in total at 2 steps per round (tests/test_fast_encode.py).
+- **Right-hand sides in one product** (:func:`normal_rhs`): ``D diag(w) (x - d)`` of all blocks as a matrix
+  product per slab of blocks, at the BLAS's speed, before the per-block pass.
 - **Exact refits as updates** (``iters = 0``). Each truncation refit changes the weights of the voxels whose
   active state flipped only: the Gram and right-hand side are updated with those (or rebuilt from a
   reference, whichever touches fewer voxels), then refactorised (``k^3 / 3`` flops). Only the bound voxels
@@ -39,7 +43,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["PIECE_COST", "available", "gram_pieces", "truncated_codes"]
+__all__ = ["PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
 
 
 def available() -> bool:
@@ -69,11 +73,14 @@ def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndar
     dt = np.ascontiguousarray(dt, dtype=np.float32)
     if pieces is None:
         pieces = gram_pieces(dt)
+    x = np.ascontiguousarray(x, dtype=np.float32)
+    w = np.ascontiguousarray(w, dtype=np.float32)
+    dec_b = np.ascontiguousarray(dec_b, dtype=np.float32)
+    rhs, wsum = normal_rhs(x, w, dt, dec_b)
     out = np.empty_like(c0)
-    kernel(np.ascontiguousarray(x, dtype=np.float32), np.ascontiguousarray(w, dtype=np.float32), dt,
-           np.ascontiguousarray(dt.T), np.ascontiguousarray(dec_b, dtype=np.float32), _full_gram(pieces, dt.shape[1]),
-           pieces, np.float32(PIECE_COST), np.ascontiguousarray(c0, dtype=np.float32), np.float32(ridge), int(rounds),
-           int(iters), np.float32(tol), out)
+    kernel(x, w, dt, dec_b, _full_gram(pieces, dt.shape[1]), pieces, np.float32(PIECE_COST),
+           np.ascontiguousarray(c0, dtype=np.float32), rhs, wsum, np.float32(ridge), int(rounds), int(iters),
+           np.float32(tol), out)
     return out
 
 
@@ -83,6 +90,23 @@ def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndar
 #: machine): 1.0, 1.5, 2 and 3 within the noise (302-323 updates, 60-51 pieces).
 PIECE_COST = 1.5
 _PIECES_MAX_K = 128  # the octree's table is 585 packed Grams: 19 MB at k = 128; beyond, the block's Gram only
+
+
+_RHS_SLAB = 256  # blocks per product of normal_rhs: their weighted residuals (4 MiB) stay in the cache
+
+
+def normal_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The right-hand sides ``D diag(w_i) (x_i - d)`` ``(n, k)`` float32 and weight sums ``(n,)`` float64 of blocks
+    ``x`` under weights ``w`` (both ``(n, 4096)`` float32; ``dt`` ``(4096, k)``, ``dec_b`` ``(4096,)``): one matrix
+    product ``(w * (x - d)) @ dt`` per slab of blocks, at the BLAS's speed (the same work as the plain projection),
+    instead of a per-block loop over the voxels whose weight differs from a reference (4-5 projections' time)."""
+    rhs = np.empty((len(x), dt.shape[1]), np.float32)
+    wsum = w.sum(axis=1, dtype=np.float64)
+    for i in range(0, len(x), _RHS_SLAB):
+        r = np.subtract(x[i:i + _RHS_SLAB], dec_b)
+        r *= w[i:i + _RHS_SLAB]
+        np.matmul(r, dt, out=rhs[i:i + _RHS_SLAB])
+    return rhs, wsum
 
 
 def gram_pieces(dt: np.ndarray) -> np.ndarray:
