@@ -286,7 +286,7 @@ def choose_lengths(z: np.ndarray, g: np.ndarray, step: np.ndarray, lam: float, r
     model = fit_model(q, k)
     cols = np.arange(d)
     for _ in range(rounds):
-        if rdoq:  # each element rounded to nearest or one step toward zero, whichever costs less D + lam R
+        if rdoq:  # each element rounded to nearest or one step toward its law's centre, whichever costs less D + lam R
             q = _rd_round(z, g, step, lam, q0, model)
         err = g * ((z - q * step) ** 2 - z * z)  # distortion change when element j is coded instead of dropped
         cost = np.cumsum(err + lam * model.bits(q), axis=1)

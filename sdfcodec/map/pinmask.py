@@ -100,9 +100,10 @@ def exact_decode(q: np.ndarray, basis: np.ndarray, size: int | None = None) -> t
             guaranteed.
     """
     q = np.asarray(q, np.float64)
+    size = q.shape[1] if size is None else int(size)  # D of the bound: the codes' length, not the prefix used
     used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1  # columns past every prefix add nothing
     q = q[:, :used]
-    peak, bound = decode_bounds(q, basis, q.shape[1] if size is None else size)
+    peak, bound = decode_bounds(q, basis, size)
     return _product(q, basis[1:used + 1], basis[0], peak), bound
 
 
@@ -299,12 +300,9 @@ def cheapest_bits(coords: np.ndarray, bits: np.ndarray, free: np.ndarray, pinned
     given). Where every free voxel is truly observed and not in ``bits``, any choice keeps the guarantee of
     :func:`canonical_bits` (a relevant cell or edge the true mask does not observe keeps its unobserved corner
     at 0), so the writer may store either."""
-    lay = _Layout(coords, pinned)
-    flat = lay.flat
-    pinned = np.asarray(pinned, bool).reshape(flat.shape)
-    lay.grid[flat[pinned]] = np.asarray(bits, bool).reshape(flat.shape)[pinned]
+    lay, pinned = _Layout.holding(coords, bits, pinned)
     is_free = np.zeros(lay.grid.shape, bool)
-    is_free[flat[np.asarray(free, bool).reshape(flat.shape) & pinned]] = True
+    is_free[lay.flat[np.asarray(free, bool).reshape(lay.flat.shape) & pinned]] = True
     counts = np.zeros((2, lay.N_CTX), np.int64)
     for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
         sl = lay.at[a:b]
@@ -360,6 +358,16 @@ class _Layout:
         self.bounds = np.r_[0, np.cumsum(sizes[sizes > 0])]
         self.grid[at] = 2
 
+    @classmethod
+    def holding(cls, coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> tuple["_Layout", np.ndarray]:
+        """The layout of ``pinned`` ``(n, 16, 16, 16)`` bool with ``bits`` (same shape) placed in its grid at the
+        pinned voxels, and ``pinned`` as bool in the shape of :attr:`flat`."""
+        lay = cls(coords, pinned)
+        flat = lay.flat
+        pinned = np.asarray(pinned, bool).reshape(flat.shape)
+        lay.grid[flat[pinned]] = np.asarray(bits, bool).reshape(flat.shape)[pinned]
+        return lay, pinned
+
     @property
     def flat(self) -> np.ndarray:
         """``(n, 16, 16, 16)`` int64: the flat position of every voxel of the blocks in the grid."""
@@ -395,10 +403,7 @@ def _stream():
 def encode_pinned(coords: np.ndarray, bits: np.ndarray, pinned: np.ndarray) -> bytes:
     """The ``M2`` stream of ``bits`` ``(n, 16, 16, 16)`` bool at the voxels ``pinned`` (same shape) of a chunk's
     coded blocks ``coords`` ``(n, 3)`` (bits elsewhere are not stored)."""
-    lay = _Layout(coords, pinned)
-    flat = lay.flat
-    pinned = np.asarray(pinned, bool).reshape(flat.shape)
-    lay.grid[flat[pinned]] = np.asarray(bits, bool).reshape(flat.shape)[pinned]
+    lay, _ = _Layout.holding(coords, bits, pinned)
     head = _MAGIC + np.uint32(len(lay.at)).astype("<u4").tobytes()
     if ans.available():  # the compiled encoder: constriction's words, without a Python loop per wavefront
         words = ans.encode_bits(lay.grid, lay.at, lay.bounds, lay.deltas, lay.WEIGHTS, lay.N_CTX)

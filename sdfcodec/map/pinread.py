@@ -79,8 +79,7 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     n = len(coords)
     rows = np.asarray(rows, np.int64)
     if not ans.available() or v is None or not len(v):  # numpy: the exact decode of every voxel
-        exact = pm.exact_decode(q, basis, size=q.shape[1])  # E of the codes' length D, as below (spec 6g)
-        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*exact), outside_coded, truncation)
+        pins = pm.pinned_voxels_of(coords, *pm.sign_bounds(*pm.exact_decode(q, basis)), outside_coded, truncation)
         return np.packbits(pins.reshape(n, -1), axis=1, bitorder="little").view("<u2").reshape(n, BLOCK, BLOCK)
     from ..core import pinkernels
 
@@ -93,8 +92,7 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
     pinkernels.sign_rows(np.asarray(v).reshape(len(v), -1), np.maximum(rows, 0), bound, margin, q,
                          _transposed(basis, q.shape[1] + 1), neg, pos)
-    return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
-                                  np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3), d_max >= JUMP)
+    return _pinned(coords, neg, pos, outside_coded, d_max)
 
 
 def decode_refined_pins(v: np.ndarray, rows: np.ndarray, q: np.ndarray, basis: np.ndarray, coords: np.ndarray,
@@ -127,9 +125,16 @@ def decode_refined_pins(v: np.ndarray, rows: np.ndarray, q: np.ndarray, basis: n
     neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
     pinkernels.refined_sign_rows(flat, rows, sel, c, float(step), lo, hi, bound + 1.0,
                                  margin, q, basis_t, neg, pos)
+    return _pinned(coords, neg, pos, outside_coded, float(truncation[1]))
+
+
+def _pinned(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray, d_max: float
+            ) -> np.ndarray:
+    """The pinned rows ``(n, 16, 16)`` uint16 of blocks ``coords`` from their sign rows ``neg``, ``pos``."""
+    from ..core import pinkernels
+
     return pinkernels.pinned_rows(np.ascontiguousarray(coords, np.int64).reshape(-1, 3), neg, pos,
-                                  np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3),
-                                  float(truncation[1]) >= JUMP)
+                                  np.ascontiguousarray(outside_coded, np.int64).reshape(-1, 3), d_max >= JUMP)
 
 
 _BASIS_T: list = []  # (the basis, its transpose): a map's reads use one basis, transposed once

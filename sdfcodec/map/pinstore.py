@@ -113,7 +113,7 @@ class PinnedStreams:
                 raise InvalidValueError("PinnedStreams needs the coded blocks grouped by chunk, in C order inside each")
             near = np.array([index[tuple(c)] for c in outside], np.int64)
             both = np.r_[sel, near]
-            v, bound = pm.exact_decode(q[both], basis, size=q.shape[1])  # E of the codes' length D (spec 6g)
+            v, bound = pm.exact_decode(q[both], basis)  # E of the codes' length D (spec 6g)
             if self.refined is not None:  # a surface refinement's field decides the pins (spec 6h)
                 v, bound = self.refined(both, v, bound)
             neg, pos = pm.sign_bounds(v, bound)  # the neighbours' true decode: exact bits at the chunk's faces
@@ -234,7 +234,7 @@ class PinnedMaskArray:
                                                ref.spec.step, lambda sel: ref.corrections(key, sel))
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
         if r.refinement is not None:  # without the compiled kernels: every voxel's refined exact field
-            v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis(), size=q.shape[1]))
+            v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
             neg, pos = pm.sign_bounds(v, bound)
             pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
