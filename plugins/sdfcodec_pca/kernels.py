@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 from numba import config, njit, prange
 
+from .vecdot import dot
+
 # numba tries TBB first and warns (at the first parallel call) when the installed TBB is older than it supports;
 # OpenMP is what torch's CPU build runs on too and, unlike numba's own workqueue, may be entered from several
 # threads at once. A layer the user chose (NUMBA_THREADING_LAYER) is kept: only the order of the default's tries
@@ -18,8 +20,12 @@ __all__ = ["kernel"]
 
 _LINE_STEPS = 4  # Newton steps of the line search along each direction
 _BOUND_EPS = 1e-6  # a stored value within this of 0 or 1 sits at a bound (as encode_truncated tests it)
-#: fastmath without 'nnan' and 'ninf': reordered sums vectorise, the NaN and definiteness checks stay
-_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+#: fastmath flags that leave every rounding as the source writes it: no 'reassoc' (the order of a sum's additions
+#: was the code generator's, and differed between a kernel compiled in the process and the same kernel loaded from
+#: numba's cache: see :mod:`sdfcodec_pca.vecdot`, whose :func:`dot` gives the sums their vectors back), no
+#: 'contract' (fused multiply-adds where the machine has them), no 'afn'/'arcp' (approximate square roots and
+#: reciprocals differ between processors). 'nsz' alone: the sign of a zero decides nothing here.
+_FAST = {"nsz", "contract"}
 #: The octree of Gram pieces (:func:`plan`): the block, its 8 cells of 8^3, 64 of 4^3 and 512 of 2^3 voxels,
 #: numbered level by level (the first id of each level here), C order within a level
 _OFF = np.array([0, 1, 9, 73], np.int64)
@@ -100,10 +106,7 @@ def chol_solve(chol, b, out):
     k = b.shape[0]
     for i in range(k):
         ci = chol[i]
-        acc = b[i]
-        for t in range(i):
-            acc -= ci[t] * out[t]
-        out[i] = acc / ci[i]
+        out[i] = (b[i] - dot(ci, out, i)) / ci[i]
     for i in range(k - 1, -1, -1):
         out[i] /= chol[i, i]
         ci, v = chol[i], out[i]
@@ -164,14 +167,10 @@ def solve(g, rhs, c0i, lam, chol, panel, sol):
 
 @njit(fastmath=_FAST, cache=True)
 def decode_at(code, dt, dec_b, vox, nb, out):
-    """out[:nb] = the decode of ``code`` at voxels ``vox[:nb]`` (reordered sums: vector dot products)."""
+    """out[:nb] = the decode of ``code`` at voxels ``vox[:nb]`` (vector dot products, :func:`dot`)."""
     k = dt.shape[1]
     for t in range(nb):
-        r = dt[vox[t]]
-        d = np.float32(0)
-        for a in range(k):
-            d += code[a] * r[a]
-        out[t] = d + dec_b[vox[t]]
+        out[t] = dot(code, dt[vox[t]], k) + dec_b[vox[t]]
 
 
 @njit(fastmath=_FAST, cache=True)
@@ -182,11 +181,9 @@ def symv(g, v, out):
         out[a] = 0
     for a in range(k):
         ga, va = g[a], v[a]
-        acc = np.float32(0)
         for b in range(a):
-            acc += ga[b] * v[b]
             out[b] += ga[b] * va
-        out[a] += acc + ga[a] * va
+        out[a] += dot(ga, v, a) + ga[a] * va
 
 
 @njit(fastmath=_FAST, cache=True)
@@ -312,13 +309,7 @@ def dots_acc(p, rows, nb, coef, q, acc):
     t = 0
     while t + 4 <= nb:
         r0, r1, r2, r3 = rows[t], rows[t + 1], rows[t + 2], rows[t + 3]
-        a0 = a1 = a2 = a3 = np.float32(0)
-        for a in range(k):
-            pa = p[a]
-            a0 += pa * r0[a]
-            a1 += pa * r1[a]
-            a2 += pa * r2[a]
-            a3 += pa * r3[a]
+        a0, a1, a2, a3 = dot(p, r0, k), dot(p, r1, k), dot(p, r2, k), dot(p, r3, k)
         q[t], q[t + 1], q[t + 2], q[t + 3] = a0, a1, a2, a3
         s0, s1, s2, s3 = coef[t] * a0, coef[t + 1] * a1, coef[t + 2] * a2, coef[t + 3] * a3
         if s0 != 0 or s1 != 0 or s2 != 0 or s3 != 0:
@@ -327,9 +318,7 @@ def dots_acc(p, rows, nb, coef, q, acc):
         t += 4
     while t < nb:
         r0 = rows[t]
-        a0 = np.float32(0)
-        for a in range(k):
-            a0 += p[a] * r0[a]
+        a0 = dot(p, r0, k)
         q[t] = a0
         s0 = coef[t] * a0
         if s0 != 0:
@@ -389,35 +378,28 @@ def refine(c, g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nb, iters, tol, 
         for a in range(k):
             grad[a] = hc[a] + s[a]
         chol_solve(chol, grad, z)
-        gz = np.float32(0)
-        gzo = np.float32(0)
-        for a in range(k):
-            gz += grad[a] * z[a]
-            gzo += grad[a] * zprev[a]
+        gz = dot(grad, z, k)
+        gzo = dot(grad, zprev, k)
         if it == 0:
             gz0 = gz
         if not gz > tol * gz0:
             break
         beta = max(np.float32(0), (gz - gzo) / gzprev) if it else np.float32(0)
-        slope = np.float32(0)
         for a in range(k):
             p[a] = -z[a] + beta * p[a]
             zprev[a] = z[a]
-            slope += grad[a] * p[a]
+        slope = dot(grad, p, k)
         if not slope < 0:  # not a descent direction any more: restart from the preconditioned gradient
-            slope = np.float32(0)
             for a in range(k):
                 p[a] = -z[a]
-                slope -= grad[a] * z[a]
+            slope = dot(grad, p, k)
         gzprev = gz
         symv(g, p, hp)
-        php = np.float32(0)  # p^T (G + lam I) p and p^T (G + lam I) c - p^T b: the full-weight quadratic
-        s0 = np.float32(0)
         for a in range(k):
             hp[a] += lam * p[a]
-            php += p[a] * hp[a]
-            s0 += p[a] * hc[a]
             s2[a] = 0
+        php = dot(p, hp, k)  # p^T (G + lam I) p and p^T (G + lam I) c - p^T b: the full-weight quadratic
+        s0 = dot(p, hc, k)
         dots_acc(p, rows, nb, wa, q, s2)  # q = the direction's decode change; s2 = sum_A w_t q_t d_t
         # exact line search: the error along p is piecewise quadratic and convex; Newton on its derivative
         # (piecewise linear) from 0 lands on its minimum in a few steps, each O(nb)
