@@ -18,12 +18,17 @@ pytest.importorskip("numba")
 
 from numba import njit  # noqa: E402
 
-from sdfcodec_pca.vecdot import dot  # noqa: E402
+from sdfcodec_pca.vecdot import dot, dot4  # noqa: E402
 
 
 @njit(cache=False)
 def _dot(x, y, n):
     return dot(x, y, n)
+
+
+@njit(cache=False)
+def _dot4(x, r, n):
+    return dot4(x, r[0], r[1], r[2], r[3], n)
 
 
 def _lane_order(x: np.ndarray, y: np.ndarray, n: int) -> np.float32:
@@ -48,6 +53,8 @@ def test_dot_adds_in_its_documented_order(n):
     y = (2.0 ** rng.integers(-3, 3, n) * rng.choice([-1, 1], n)).astype(np.float32)
     got = _dot(x, y, n)
     assert got == _lane_order(x, y, n)
+    rows = np.stack([y, -y, y[::-1], 2 * y]) if n else np.zeros((4, 0), np.float32)
+    assert _dot4(x, rows, n) == tuple(_lane_order(x, r, n) for r in rows)
     exact = float(x.astype(np.float64) @ y.astype(np.float64))
     assert abs(float(got) - exact) <= 1e-6 * float(np.abs(x * y).sum())
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import config, njit, prange
 
-from .vecdot import dot
+from .vecdot import dot, dot4
 
 # numba tries TBB first and warns (at the first parallel call) when the installed TBB is older than it supports;
 # OpenMP is what torch's CPU build runs on too and, unlike numba's own workqueue, may be entered from several
@@ -309,7 +309,7 @@ def dots_acc(p, rows, nb, coef, q, acc):
     t = 0
     while t + 4 <= nb:
         r0, r1, r2, r3 = rows[t], rows[t + 1], rows[t + 2], rows[t + 3]
-        a0, a1, a2, a3 = dot(p, r0, k), dot(p, r1, k), dot(p, r2, k), dot(p, r3, k)
+        a0, a1, a2, a3 = dot4(p, r0, r1, r2, r3, k)
         q[t], q[t + 1], q[t + 2], q[t + 3] = a0, a1, a2, a3
         s0, s1, s2, s3 = coef[t] * a0, coef[t + 1] * a1, coef[t + 2] * a2, coef[t + 3] * a3
         if s0 != 0 or s1 != 0 or s2 != 0 or s3 != 0:
