@@ -118,6 +118,35 @@ def test_sign_rows_decides_voxels_on_the_thresholds_exactly():
         assert np.array_equal(got_neg.reshape(-1), w < e[0]) and np.array_equal(got_pos.reshape(-1), w >= -e[0])
 
 
+def test_the_kernels_exact_decode_is_exact_near_its_limit():
+    """Blocks not decoded (every voxel decided by the kernels' exact decode, summed in four running sums, codes
+    after the last non-zero one skipped) with terms near 2^47 and a bound term near 2^50 (exact_decode's limit is
+    2^52): the signs are those of the sum in Python integers, voxels placed on +-E included."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(11)
+    k = 13  # four running sums and a tail of one
+    basis = rng.integers(-2 ** 30, 2 ** 30, (k + 1, 4096)).astype(np.float64)
+    q = rng.integers(-2 ** 17, 2 ** 17, (3, k)).astype(np.float64)
+    q[1, 9:] = 0  # a shorter prefix
+    q[2, 1::2] = 0  # zeros inside the prefix
+    peak = np.abs(basis).max(axis=1)[0] + np.abs(q) @ np.abs(basis).max(axis=1)[1:]
+    assert peak.max() < 2.0 ** 52 and peak.max() > 2.0 ** 49
+    b_int = [[int(x) for x in row] for row in basis]
+    w = [[b_int[0][j] + sum(int(q[b, i]) * b_int[i + 1][j] for i in range(k)) for j in range(4096)] for b in range(3)]
+    e = np.array([float(abs(w[b][5])) for b in range(3)])  # voxel 5 of each block on a threshold
+    neg, pos = (np.zeros((3, 16, 16), np.uint32) for _ in range(2))
+    exact = pinkernels.sign_rows(np.zeros((1, 4096), np.float32), np.full(3, -1, np.int64), e, np.full(3, np.inf),
+                                 q, np.ascontiguousarray(basis.T), neg, pos)
+    assert exact == 3 * 4096
+    bits = 1 << (np.arange(16) + 1)
+    for b in range(3):
+        want = np.array(w[b], dtype=object)
+        got_neg = ((neg[b].reshape(256, 1) & bits) != 0).reshape(-1)
+        got_pos = ((pos[b].reshape(256, 1) & bits) != 0).reshape(-1)
+        assert np.array_equal(got_neg, want < int(e[b])) and np.array_equal(got_pos, want >= -int(e[b]))
+
+
 def test_a_read_equals_the_exact_decodes_read(monkeypatch):
     """The golden pinned map read whole and by a region inside one chunk (its other blocks not decoded): the same
     values as the read that computes every voxel's exact decode (numba off)."""

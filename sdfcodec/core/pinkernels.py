@@ -17,16 +17,34 @@ _SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact
 
 
 @njit(cache=True, inline="always")
-def _exact(q, basis_t, b, j):
+def _exact(q, basis_t, b, j, k):
     """The exact decode ``basis[0, j] + sum_i q[b, i] basis[i + 1, j]`` of voxel ``j`` of block ``b`` (``basis_t``:
-    the basis transposed, ``(4096, k + 1)``: one voxel's column is contiguous): float64 integers whose every
-    partial sum stays below 2^53 (checked by the caller), so exact in this order too."""
-    t = basis_t[j, 0]
-    for i in range(q.shape[1]):
-        c = q[b, i]
-        if c != 0.0:
-            t += c * basis_t[j, i + 1]
-    return t
+    the basis transposed, ``(4096, k + 1)``: one voxel's column is contiguous) over its first ``k`` codes
+    (:func:`_width`: the rest are 0): float64 integers whose every partial sum, in any order and grouping, is an
+    integer of magnitude at most the bound term ``T`` below 2^52 (checked by the caller), so exact with four
+    running sums too (no branch on zero codes: they add an exact 0)."""
+    row = basis_t[j]
+    t0, t1, t2, t3 = row[0], 0.0, 0.0, 0.0
+    i = 0
+    while i + 4 <= k:
+        t0 += q[b, i] * row[i + 1]
+        t1 += q[b, i + 1] * row[i + 2]
+        t2 += q[b, i + 2] * row[i + 3]
+        t3 += q[b, i + 3] * row[i + 4]
+        i += 4
+    while i < k:
+        t0 += q[b, i] * row[i + 1]
+        i += 1
+    return (t0 + t1) + (t2 + t3)
+
+
+@njit(cache=True, inline="always")
+def _width(q, b):
+    """The codes of block ``b`` up to its last non-zero one: how many :func:`_exact` takes."""
+    k = q.shape[1]
+    while k > 0 and q[b, k - 1] == 0.0:
+        k -= 1
+    return k
 
 
 @njit(cache=True, inline="always")
@@ -80,6 +98,7 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     for b in range(n):
         r = rows[b]
         eb = e[b]
+        kb = _width(q, b)
         lim = _limits(eb, d[b])
         for xy in range(256):
             nb, pb, unsure = np.uint32(0), np.uint32(0), 0
@@ -88,7 +107,7 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
             if unsure:
                 for z in range(16):
                     if unsure >> z & 1:
-                        nb, pb = _decided(_exact(q, basis_t, b, xy * 16 + z), eb, z, nb, pb)
+                        nb, pb = _decided(_exact(q, basis_t, b, xy * 16 + z, kb), eb, z, nb, pb)
                         exact += 1
             neg[b, xy >> 4, xy & 15] = nb
             pos[b, xy >> 4, xy & 15] = pb
@@ -104,24 +123,28 @@ def select_rows(v, rows, tau, d, q, basis_t, lo, hi, sel):
     ``[max(x - d, lo), min(x + d, hi)]`` holds ``+-tau`` is decided by its exact decode (:func:`_exact`). Returns
     the number of voxels decided exactly."""
     exact = 0
+    open_ = np.empty(4096, np.bool_)  # the voxels of a block the margin leaves open
     for b in range(len(rows)):
         r = rows[b]
         db = d[b]
-        for j in range(4096):
-            if r >= 0:
-                # clip(w) lies in [a, b] (within d of x and inside the truncation: a value clipped at a bound
-                # near tau is decided too)
-                x = np.float64(v[r, j]) * _SCALE
+        kb = _width(q, b)
+        if r >= 0:
+            # clip(w) lies in [a, z] (within d of x and inside the truncation: a value clipped at a bound near
+            # tau is decided too); no branch per voxel, so that the loop runs on vectors (open ones are rare)
+            vr, sr = v[r], sel[b]
+            for j in range(4096):
+                x = np.float64(vr[j]) * _SCALE
                 a, z = max(x - db, lo), min(x + db, hi)
-                if -tau < a and z < tau:
-                    sel[b, j] = True
-                    continue
-                if a >= tau or z <= -tau:
-                    sel[b, j] = False
-                    continue
-            w = min(max(_exact(q, basis_t, b, j), lo), hi)
-            sel[b, j] = abs(w) < tau
-            exact += 1
+                yes = (-tau < a) & (z < tau)
+                sr[j] = yes
+                open_[j] = not (yes | (a >= tau) | (z <= -tau))
+        else:
+            open_[:] = True
+        for j in range(4096):
+            if open_[j]:
+                w = min(max(_exact(q, basis_t, b, j, kb), lo), hi)
+                sel[b, j] = abs(w) < tau
+                exact += 1
     return exact
 
 
@@ -144,6 +167,7 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
     for b in range(len(rows)):
         r = rows[b]
         eb = e[b]
+        kb = _width(q, b)
         lim = _limits(eb, d[b])
         for xy in range(256):
             base = xy * 16
@@ -163,7 +187,7 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
             if unsure:
                 for z in range(16):
                     if unsure >> z & 1:
-                        w = min(max(_exact(q, basis_t, b, base + z), lo), hi)
+                        w = min(max(_exact(q, basis_t, b, base + z, kb), lo), hi)
                         if cz[z] != 0:
                             w = min(max(w + cz[z] * step, lo), hi)
                         nb, pb = _decided(w, eb, z, nb, pb)
