@@ -113,9 +113,11 @@ def interleave(fns: Mapping[str, Callable[[], object]], *, repeats: int = 5, min
 def _no_gc() -> Iterator[None]:
     """The rounds without Python's cyclic garbage collector (as :mod:`timeit` times): a collection pass costs
     in proportion to every object the whole process holds, not to the call that triggered it, and lands on
-    whichever side allocates Python objects (a codec's call, not numpy's product)."""
+    whichever side allocates Python objects (a codec's call, not numpy's product). No collection first (timeit
+    makes none either): disabled, none runs in the rounds anyway, and a full pass costs 0.15-0.5 CPU-s in a
+    process holding torch and a test session (42 passes were 22 % of test_bench_harness.py and
+    test_bench_progress.py's CPU time)."""
     was = gc.isenabled()
-    gc.collect()
     gc.disable()
     try:
         yield
