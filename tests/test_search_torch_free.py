@@ -70,8 +70,11 @@ def test_pca_numpy_truncated_encode_is_the_compiled_pass(fused):
         assert got.dtype == np.float32 and got.shape == (n, 64)
         if rounds == 0:  # the weighted fit: continuous, equal to float32 rounding
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-4 * np.abs(want).max())
-        else:  # the refits' active sets may flip on a voxel within rounding of its bound: the same error then
-            assert_same_refits(codec, got, want, v, w)
+        else:  # the refits' active sets may flip on a voxel within rounding of its bound: the same error then.
+            # The two paths feed the pass plain codes from numpy's and torch's products (float32 rounding apart);
+            # its six conjugate-gradient steps from those starts end up to 1.0 % apart on single blocks (4 of 54
+            # here), 0.1 % in total as assert_same_refits checks
+            assert_same_refits(codec, got, want, v, w, per_block=1.02)
 
 
 def test_codecs_without_a_numpy_path_take_their_own_encode_and_decode():
