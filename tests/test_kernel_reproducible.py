@@ -44,13 +44,20 @@ def _lane_order(x: np.ndarray, y: np.ndarray, n: int) -> np.float32:
     return total
 
 
+def _exact_products(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Float32 vectors of length ``n`` (seeded by ``n``) whose products are exact: integers of very different sizes
+    times powers of two, so a sum of them depends on the order of its additions only."""
+    rng = np.random.default_rng(n)
+    x = (rng.integers(-999, 999, n) * 2.0 ** rng.integers(-6, 26, n)).astype(np.float32)
+    y = (2.0 ** rng.integers(-3, 3, n) * rng.choice([-1, 1], n)).astype(np.float32)
+    return x, y
+
+
 @pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 15, 16, 17, 33, 63, 64, 65, 128])
 def test_dot_adds_in_its_documented_order(n):
     # integers of very different sizes times powers of two: every product is exact, so the result is fixed by
     # the order of the additions alone (a fused multiply-add rounds as a multiply and an add do), and orders differ
-    rng = np.random.default_rng(n)
-    x = (rng.integers(-999, 999, n) * 2.0 ** rng.integers(-6, 26, n)).astype(np.float32)
-    y = (2.0 ** rng.integers(-3, 3, n) * rng.choice([-1, 1], n)).astype(np.float32)
+    x, y = _exact_products(n)
     got = _dot(x, y, n)
     assert got == _lane_order(x, y, n)
     rows = np.stack([y, -y, y[::-1], 2 * y]) if n else np.zeros((4, 0), np.float32)
@@ -63,9 +70,7 @@ def test_the_order_test_tells_orders_apart():
     # the data above distinguish the lane order from a plain running sum (so the test above can fail)
     differs = 0
     for n in (33, 63, 64, 65, 128):
-        rng = np.random.default_rng(n)
-        x = (rng.integers(-999, 999, n) * 2.0 ** rng.integers(-6, 26, n)).astype(np.float32)
-        y = (2.0 ** rng.integers(-3, 3, n) * rng.choice([-1, 1], n)).astype(np.float32)
+        x, y = _exact_products(n)
         running = np.float32(0)
         for a, b in zip(x, y):
             running = np.float32(running + a * b)
