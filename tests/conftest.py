@@ -121,8 +121,8 @@ def pytest_collection_finish(session):
     """Everything imported by now (the test modules, torch, zarr, open3d...: ~350k objects) lives for the whole
     session: moved out of the cyclic collector's reach (``gc.freeze``), so that each of its full passes scans only
     what the tests made. Measured on tests/test_manifest.py + test_mapfile.py (-n 0, load 7-9, two runs each):
-    full passes 2.7-2.9 -> 1.7-1.9 CPU-s, the files 36.4-39.2 -> 35.9-36.2 CPU-s. A forked child (tests/test_hostile_local.py's probes) also no longer
-    touches those objects' pages when it collects."""
+    full passes 2.7-2.9 -> 1.7-1.9 CPU-s, the files 36.4-39.2 -> 35.9-36.2 CPU-s. A forked child
+    (tests/test_hostile_local.py's probes) also no longer touches those objects' pages when it collects."""
     import gc
 
     gc.freeze()

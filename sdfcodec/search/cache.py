@@ -37,8 +37,9 @@ __all__ = ["CACHE_ENV", "SHIPPED_FILE", "cache_dir", "cache_key", "cached_model"
 CACHE_ENV = "SDFCODEC_CACHE_DIR"
 #: Bumped whenever the shapes, their encoding or the calibration change in a way the key does not name, so
 #: that files written by an older sdfcodec are not reused.
-BUILD_VERSION = 4  # 3: the pca writer's truncation refits as conjugate-gradient steps; 4: those from the fit
-#: without the bound voxels
+#: 3: the pca writer's truncation refits as conjugate-gradient steps; 4: those from the fit without the bound
+#: voxels, in kernels whose sums keep their order (codes no longer depend on numba's cache)
+BUILD_VERSION = 4
 #: Models and thresholds kept in memory per process.
 MEMORY_ENTRIES = 64
 
