@@ -817,3 +817,26 @@ def test_sigkill_tiny_updates_under_readers_long(server, tmp_path):
     stats = _kill_tiny_under_readers(server, tmp_path, n_kills=240, n_readers=4, seed=22)
     print("tiny updates killed under readers (long):", stats)
     assert stats["updates_completed_under_a_reader"] >= 30
+
+
+def test_a_temporary_directory_collected_before_it_is_opened_is_made_again(tmp_path, monkeypatch):
+    # another writer's garbage collection takes any .NAME.tmp-* whose lock it can get, and a new one's lock is
+    # free between its mkdir and its flock: removed before the writer opened it, the writer must make another
+    # (an update in test_concurrent_readers_see_whole_versions failed with ENOENT there, in a clean-clone run)
+    from sdfcodec.core import _atomic
+
+    real_mkdir, made = os.mkdir, []
+
+    def mkdir_then_collected(path, *args, **kwargs):
+        real_mkdir(path, *args, **kwargs)
+        made.append(Path(path))
+        if len(made) == 1:
+            os.rmdir(path)  # what the collector does, before the writer opens it
+
+    monkeypatch.setattr(_atomic.os, "mkdir", mkdir_then_collected)
+    tmp, fd = _atomic.make_temp_dir(tmp_path / "m.sdfz")
+    try:
+        assert len(made) == 2 and tmp == made[1] and tmp.is_dir() and not made[0].exists()
+        assert _atomic.same_dir(fd, tmp)
+    finally:
+        os.close(fd)

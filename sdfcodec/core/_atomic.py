@@ -107,8 +107,12 @@ def make_temp_dir(final: Path) -> tuple[Path, int]:
             os.mkdir(tmp)
         except FileExistsError:
             continue
-        fd = _open_dir(tmp)
-        # another writer's garbage collection may have removed it between mkdir and flock: check, else retry
+        # another writer's garbage collection may remove it between mkdir and flock (its lock is free until
+        # ours is taken): before we open it, or after; either way, retry with a new name
+        try:
+            fd = _open_dir(tmp)
+        except FileNotFoundError:
+            continue
         if _try_lock(fd, fcntl.LOCK_EX) is not False and same_dir(fd, tmp):
             return tmp, fd
         os.close(fd)
