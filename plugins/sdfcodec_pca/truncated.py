@@ -110,15 +110,20 @@ def normal_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray,
     ``drop_bound`` the voxels stored at a bound, 0 or 1, weigh 0 in the sides, not in the sums): one matrix
     product ``(w * (x - d)) @ dt`` per slab of blocks, at the BLAS's speed (the same work as the plain projection),
     instead of a per-block loop over the voxels whose weight differs from a reference (4-5 projections' time)."""
+    from .kernels import residuals
+
+    x, w = np.ascontiguousarray(x, dtype=np.float32), np.ascontiguousarray(w, dtype=np.float32)
+    dec_b = np.ascontiguousarray(dec_b, dtype=np.float32)
     rhs = np.empty((len(x), dt.shape[1]), np.float32)
-    wsum = w.sum(axis=1, dtype=np.float64)
+    wsum = np.empty(len(x), np.float64)
+    r = np.empty((min(len(x), _RHS_SLAB), x.shape[1]), np.float32)
     for i in range(0, len(x), _RHS_SLAB):
-        r = np.subtract(x[i:i + _RHS_SLAB], dec_b)
-        r *= w[i:i + _RHS_SLAB]
-        if drop_bound:
-            xs = x[i:i + _RHS_SLAB]
-            r[(xs >= 1 - _BOUND_EPS) | (xs <= _BOUND_EPS)] = 0
-        np.matmul(r, dt, out=rhs[i:i + _RHS_SLAB])
+        sl = slice(i, i + _RHS_SLAB)
+        n = len(x[sl])
+        # the weighted residuals and weight sums in one compiled pass (numpy's five passes and a masked store
+        # took 2-3 projections' time; the product is the same on the same residuals)
+        residuals(x[sl], w[sl], dec_b, drop_bound, r[:n], wsum[sl])
+        np.matmul(r[:n], dt, out=rhs[sl])
     return rhs, wsum
 
 
