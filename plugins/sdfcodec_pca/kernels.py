@@ -94,7 +94,7 @@ def build(g, rhs, wc, xi, dt, dec_b, gfull, c0i, idx, scale):
             scale[m] = wc[j] - ref
             m += 1
     for a in range(k):
-        for b in range(k):  # whole rows, as add_rows adds them (gfull is symmetric)
+        for b in range(k):  # whole rows: add_rows adds past the diagonal (gfull is symmetric)
             g[a, b] = ref * gfull[a, b]
         rhs[a] = ref * c0i[a]  # D (x - d) = c0: the plain projection
     add_rows(g, dt, idx, scale, m)
