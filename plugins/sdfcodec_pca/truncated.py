@@ -27,13 +27,16 @@ What the kernel does instead, per block, in cache:
   the fit's Gram: no Gram rebuilt, nothing refactorised. From the fit with the bound voxels (the earlier start)
   the same 6 steps left the error 5.7 % above its optimum on the bench's blocks; from this one 0.02 %
   (tests/test_fast_encode.py), the kitchen half's Chamfer 1.3-1.6 % lower. The bound voxels the fit
-  decodes far beyond their bound sit out the steps (their rows are not gathered) and are checked after them.
+  decodes far beyond their bound sit out the steps (their rows are not gathered) and are checked after them:
+  only those whose decode can have come back (their last distance beyond the bound less ``|d_j|`` times how
+  far the code moved) are decoded again, about half of them on the bench's blocks.
   The gathered rows (``nb x k``, contiguous, in the core's cache) are read once per step: the direction's
   decode change and the counted voxels' Hessian terms together; their gradient terms are carried from step to
   step and corrected for the voxels whose state flipped only. Leaves the exact rounds' error in total or
   less at 2 steps per round (tests/test_fast_encode.py).
 - **Right-hand sides in one product** (:func:`normal_rhs`): ``D diag(w) (x - d)`` of all blocks as a matrix
-  product per slab of blocks, at the BLAS's speed, before the per-block pass.
+  product per slab of blocks, at the BLAS's speed, before the per-block pass (the weighted residuals and the
+  weight sums in one compiled pass before it).
 - **Exact refits as updates** (``iters = 0``). Each truncation refit changes the weights of the voxels whose
   active state flipped only: the Gram and right-hand side are updated with those (or rebuilt from a
   reference, whichever touches fewer voxels), then refactorised (``k^3 / 3`` flops). Only the bound voxels
