@@ -308,9 +308,11 @@ def test_compiled_fit_on_octree_patterns_is_the_weighted_least_squares(fused, k)
     assert_weighted_fit(codec, codec.encode(x, weights=w), x, w)
 
 
-def test_normal_rhs_is_the_weighted_projection():
+@pytest.mark.parametrize("compiled", [False, True])  # numpy's residuals (few blocks) or the compiled pass
+def test_normal_rhs_is_the_weighted_projection(compiled, monkeypatch):
     # the right-hand sides from one product per slab against float64 D diag(w) (x - d), block by block, across
     # more blocks than one slab holds; all weights 0 give exactly 0 and the weight sums are the weights' sums
+    monkeypatch.setattr(truncated, "COMPILED_RESIDUALS_MIN", 0 if compiled else 10 ** 9)
     rng = np.random.default_rng(11)
     n, k = truncated._RHS_SLAB + 3, 33
     dt = rng.standard_normal((4096, k)).astype(np.float32)

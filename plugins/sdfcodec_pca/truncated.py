@@ -52,7 +52,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
+__all__ = ["COMPILED_RESIDUALS_MIN", "PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
 
 
 def available() -> bool:
@@ -113,18 +113,40 @@ def normal_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray,
     ``drop_bound`` the voxels stored at a bound, 0 or 1, weigh 0 in the sides, not in the sums): one matrix
     product ``(w * (x - d)) @ dt`` per slab of blocks, at the BLAS's speed (the same work as the plain projection),
     instead of a per-block loop over the voxels whose weight differs from a reference (4-5 projections' time)."""
+    rhs = np.empty((len(x), dt.shape[1]), np.float32)
+    if len(x) >= COMPILED_RESIDUALS_MIN:
+        return _compiled_rhs(x, w, dt, dec_b, drop_bound, rhs)
+    wsum = w.sum(axis=1, dtype=np.float64)
+    for i in range(0, len(x), _RHS_SLAB):
+        r = np.subtract(x[i:i + _RHS_SLAB], dec_b)
+        r *= w[i:i + _RHS_SLAB]
+        if drop_bound:
+            xs = x[i:i + _RHS_SLAB]
+            r[(xs >= 1 - _BOUND_EPS) | (xs <= _BOUND_EPS)] = 0
+        np.matmul(r, dt, out=rhs[i:i + _RHS_SLAB])
+    return rhs, wsum
+
+
+#: From this many blocks, :func:`normal_rhs` forms the weighted residuals and weight sums in one compiled pass on
+#: every core (:func:`sdfcodec_pca.kernels.residuals`): numpy's five single-thread passes and masked store took
+#: 1-1.5 projections' time, a serial share that both cores' pass leaves (bench blocks). Fewer blocks keep numpy:
+#: a first small encode (a search's query shapes) then loads one compiled kernel, not two. The same values, but
+#: for a value within float32 rounding of a bound's 1e-6: the compiled pass compares in float64, as the kernel.
+COMPILED_RESIDUALS_MIN = 1024
+
+
+def _compiled_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray, drop_bound: bool,
+                  rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`normal_rhs` with the residuals from :func:`sdfcodec_pca.kernels.residuals`, into ``rhs``."""
     from .kernels import residuals
 
     x, w = np.ascontiguousarray(x, dtype=np.float32), np.ascontiguousarray(w, dtype=np.float32)
     dec_b = np.ascontiguousarray(dec_b, dtype=np.float32)
-    rhs = np.empty((len(x), dt.shape[1]), np.float32)
     wsum = np.empty(len(x), np.float64)
     r = np.empty((min(len(x), _RHS_SLAB), x.shape[1]), np.float32)
     for i in range(0, len(x), _RHS_SLAB):
         sl = slice(i, i + _RHS_SLAB)
         n = len(x[sl])
-        # the weighted residuals and weight sums in one compiled pass (numpy's five passes and a masked store
-        # took 2-3 projections' time; the product is the same on the same residuals)
         residuals(x[sl], w[sl], dec_b, drop_bound, r[:n], wsum[sl])
         np.matmul(r[:n], dt, out=rhs[sl])
     return rhs, wsum
