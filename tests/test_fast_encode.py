@@ -392,7 +392,7 @@ def test_far_bound_voxels_join_as_when_every_one_is_decoded():
     cprev = prev.copy()
     bufs = [np.zeros((4096, k), np.float32)] + [np.zeros(4096, np.float32) for _ in range(5)]
     kept, nr = kernels.recheck_far(code, cprev, xi, wi, dt, dec_b, kernels.row_norms(dt), far_k, lbf, nf,
-                                   np.float32(thr), 0, *bufs)
+                                   np.float32(thr), 0, *bufs, np.empty(4096, np.int64), np.empty(4096, np.float32))
     joins = beyond(dec_now)[far] <= thr
     assert 0 < nr < nf and nr == joins.sum() and kept == nf - nr
     np.testing.assert_array_equal(bufs[0][:nr], dt[far[joins]])

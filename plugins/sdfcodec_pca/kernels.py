@@ -505,15 +505,15 @@ def row_norms(dt):
 
 
 @njit(fastmath=False, cache=True)
-def recheck_far(code, cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows, xb, wb, sg, bv, db):
+def recheck_far(code, cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows, xb, wb, sg, bv, db, vox, dec):
     """After a round of steps: the bound voxels ``far[:nf]`` that the code ``code`` (k,) decodes within ``thr``
     of their bound (or inside it) join the gathered rows at ``nr`` (:func:`gather`), in order; the others stay
     in ``far``. Returns (nf, nr). ``lbf[:nf]`` holds a lower bound of how far each lies beyond its bound at the
     code ``cprev`` (updated to ``code``): the decode at voxel j moves by at most ``|d_j| |code - cprev|``
     (``rn`` the row norms), so a voxel whose bound, less that move, stays above ``thr`` is kept without its
-    decode (most are: a round's steps move the code little); the others are decoded as before. The margin
-    (1e-4 of the decode's scale) covers float32 rounding of both decodes: the same voxels join, in the same
-    order, as when every one is decoded."""
+    decode (about half of them on the bench's blocks); the others are decoded as before (:func:`decode_at`,
+    ``vox`` (>= nf) int64 and ``dec`` (>= nf) float32 scratch). The margin (1e-4 of the decode's scale) covers
+    float32 rounding of both decodes: the same voxels join, in the same order, as when every one is decoded."""
     k = code.shape[0]
     dd = 0.0
     cn = 0.0
@@ -524,16 +524,27 @@ def recheck_far(code, cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows,
         cprev[a] = code[a]
     move = np.sqrt(dd) * (1 + 1e-6)
     cn = np.sqrt(cn)
-    kept = 0
-    for t in range(nf):
+    nd = 0
+    for t in range(nf):  # the bounds at this code; the voxels whose bound does not keep them, decoded together
         j = far[t]
         lb = lbf[t] - rn[j] * move
-        if lb - 1e-4 * (1 + cn * rn[j]) > thr:
+        lbf[t] = np.float32(lb)
+        if not lb - 1e-4 * (1 + cn * rn[j]) > thr:
+            vox[nd] = j
+            nd += 1
+            lbf[t] = np.float32(np.nan)  # decoded below
+    decode_at(code, dt, dec_b, vox, nd, dec)
+    kept = 0
+    nd = 0
+    for t in range(nf):
+        j = far[t]
+        if lbf[t] == lbf[t]:  # kept on its bound
             far[kept] = j
-            lbf[kept] = np.float32(lb)
+            lbf[kept] = lbf[t]
             kept += 1
             continue
-        e = _beyond(xi[j], dot(code, dt[j], k) + dec_b[j])
+        e = _beyond(xi[j], dec[nd])
+        nd += 1
         if e <= thr:
             nr = gather(xi, wi, dt, dec_b, j, nr, rows, xb, wb, sg, bv, db)
         else:
@@ -632,7 +643,7 @@ def kernel(x, w, dt, dec_b, gfull, pieces, piece_cost, c0, rhs_all, wsum_all, ri
                     # after the last round, every voxel that came inside its bound
                     thr = np.float32(0) if _ == _FAR_ROUNDS - 1 else _FAR
                     nf, nr = recheck_far(out[i], cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows, xb, wb,
-                                         sg, bv, db)
+                                         sg, bv, db, idx, dec_s)
                     if nr == back:
                         break
                 continue
