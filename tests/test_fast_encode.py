@@ -308,9 +308,11 @@ def test_compiled_fit_on_octree_patterns_is_the_weighted_least_squares(fused, k)
     assert_weighted_fit(codec, codec.encode(x, weights=w), x, w)
 
 
-def test_normal_rhs_is_the_weighted_projection():
+@pytest.mark.parametrize("compiled", [False, True])  # numpy's residuals (few blocks) or the compiled pass
+def test_normal_rhs_is_the_weighted_projection(compiled, monkeypatch):
     # the right-hand sides from one product per slab against float64 D diag(w) (x - d), block by block, across
     # more blocks than one slab holds; all weights 0 give exactly 0 and the weight sums are the weights' sums
+    monkeypatch.setattr(truncated, "COMPILED_RESIDUALS_MIN", 0 if compiled else 10 ** 9)
     rng = np.random.default_rng(11)
     n, k = truncated._RHS_SLAB + 3, 33
     dt = rng.standard_normal((4096, k)).astype(np.float32)
@@ -328,3 +330,73 @@ def test_normal_rhs_is_the_weighted_projection():
     assert np.all(rhs[0] == 0)
     np.testing.assert_allclose(rhs[1], 2.5 * (x64[1, 77] - dec_b[77]) * d64[77], rtol=1e-6)
     np.testing.assert_allclose(wsum, w64.sum(axis=1))
+    # drop_bound: the voxels stored at a bound (0 or 1) weigh nothing in the sides, as much as given in the sums
+    x[2:, ::7] = 1.0
+    x[2:, 3::7] = 0.0
+    rhs, wsum = truncated.normal_rhs(x, w, dt, dec_b, drop_bound=True)
+    x64 = x.astype(np.float64)
+    keep = (x64 > 1e-6) & (x64 < 1 - 1e-6)
+    ref = np.stack([d64.T @ (wi * ki * (xi - dec_b)) for xi, wi, ki in zip(x64, w64, keep)])
+    np.testing.assert_allclose(rhs, ref, rtol=1e-4, atol=1e-4 * np.abs(ref).max())
+    np.testing.assert_allclose(wsum, w64.sum(axis=1))
+
+
+@pytest.mark.parametrize("k", [64, 33])  # 33: the last row's group of eight columns runs past k
+def test_gram_rows_fill_the_lower_triangle(k):
+    # add_rows against float64 D^T diag(s) D over the same voxels (any number, not a multiple of four; scales of
+    # both signs, as a weight change has), onto a Gram that already holds something: the lower triangle only
+    from sdfcodec_pca import kernels
+
+    rng = np.random.default_rng(13)
+    dt = rng.standard_normal((4096, k)).astype(np.float32)
+    m = 203
+    idx = rng.choice(4096, m, replace=False).astype(np.int64)
+    scale = rng.uniform(-2, 51, m).astype(np.float32)
+    g0 = rng.standard_normal((k, k)).astype(np.float32)
+    g = g0.copy()
+    kernels.add_rows(g, dt, idx, scale, m)
+    d64 = dt[idx].astype(np.float64)
+    ref = g0 + d64.T @ (scale[:, None].astype(np.float64) * d64)
+    rows, cols = np.tril_indices(k)
+    np.testing.assert_allclose(g[rows, cols], ref[rows, cols], rtol=1e-4, atol=1e-4 * np.abs(ref).max())
+
+
+def test_far_bound_voxels_join_as_when_every_one_is_decoded():
+    # recheck_far keeps the far bound voxels that cannot have come within the threshold without decoding them,
+    # from a lower bound of how far each lay beyond its bound at the previous code: the voxels that join (in
+    # order, their rows gathered) and those kept must be what decoding every one of them gives (numpy, float64),
+    # and the bounds it carries on must stay below the true distances
+    from sdfcodec_pca import kernels
+
+    rng = np.random.default_rng(17)
+    k = 64
+    q, _ = np.linalg.qr(rng.standard_normal((4096, k)))
+    dt = np.ascontiguousarray(q, dtype=np.float32)  # orthonormal columns, as a basis's
+    xi = np.where(rng.random(4096) < 0.5, 1.0, 0.0).astype(np.float32)  # at d_max or d_min
+    # decoded from 0.2 inside their bound to 0.6 beyond it; the code moves by ~0.4 (each decode by up to ~0.07)
+    dec_b = np.where(xi >= 1, 1 + rng.uniform(-0.2, 0.6, 4096), -rng.uniform(-0.2, 0.6, 4096)).astype(np.float32)
+    d64 = dt.astype(np.float64)
+    prev = rng.standard_normal(k).astype(np.float32)
+    code = (prev + 0.05 * rng.standard_normal(k)).astype(np.float32)
+    dec_prev, dec_now = d64 @ prev + dec_b, d64 @ code + dec_b
+    wi = np.full(4096, 1.0, np.float32)
+
+    def beyond(dec):
+        return np.where(xi >= 1, dec - 1, -dec)
+
+    thr = 0.05
+    far = np.flatnonzero(beyond(dec_prev) > thr)
+    far = far[np.abs(beyond(dec_now)[far] - thr) > 1e-3]  # no voxel within rounding of the threshold
+    nf = len(far)
+    far_k, lbf = far.astype(np.int64), beyond(dec_prev)[far].astype(np.float32)
+    cprev = prev.copy()
+    bufs = [np.zeros((4096, k), np.float32)] + [np.zeros(4096, np.float32) for _ in range(5)]
+    kept, nr = kernels.recheck_far(code, cprev, xi, wi, dt, dec_b, kernels.row_norms(dt), far_k, lbf, nf,
+                                   np.float32(thr), 0, *bufs, np.empty(4096, np.int64), np.empty(4096, np.float32))
+    joins = beyond(dec_now)[far] <= thr
+    assert 0 < nr < nf and nr == joins.sum() and kept == nf - nr
+    np.testing.assert_array_equal(bufs[0][:nr], dt[far[joins]])
+    np.testing.assert_array_equal(far_k[:kept], far[~joins])
+    assert np.all(lbf[:kept] <= beyond(dec_now)[far[~joins]] + 1e-5)
+    assert np.any(lbf[:kept] < beyond(dec_now)[far[~joins]] - 1e-3)  # some kept on their bound, not decoded
+    np.testing.assert_array_equal(cprev, code)

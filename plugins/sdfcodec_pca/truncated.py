@@ -27,13 +27,16 @@ What the kernel does instead, per block, in cache:
   the fit's Gram: no Gram rebuilt, nothing refactorised. From the fit with the bound voxels (the earlier start)
   the same 6 steps left the error 5.7 % above its optimum on the bench's blocks; from this one 0.02 %
   (tests/test_fast_encode.py), the kitchen half's Chamfer 1.3-1.6 % lower. The bound voxels the fit
-  decodes far beyond their bound sit out the steps (their rows are not gathered) and are checked after them.
+  decodes far beyond their bound sit out the steps (their rows are not gathered) and are checked after them:
+  only those whose decode can have come back (their last distance beyond the bound less ``|d_j|`` times how
+  far the code moved) are decoded again, about half of them on the bench's blocks.
   The gathered rows (``nb x k``, contiguous, in the core's cache) are read once per step: the direction's
   decode change and the counted voxels' Hessian terms together; their gradient terms are carried from step to
   step and corrected for the voxels whose state flipped only. Leaves the exact rounds' error in total or
   less at 2 steps per round (tests/test_fast_encode.py).
 - **Right-hand sides in one product** (:func:`normal_rhs`): ``D diag(w) (x - d)`` of all blocks as a matrix
-  product per slab of blocks, at the BLAS's speed, before the per-block pass.
+  product per slab of blocks, at the BLAS's speed, before the per-block pass (the weighted residuals and the
+  weight sums in one compiled pass before it).
 - **Exact refits as updates** (``iters = 0``). Each truncation refit changes the weights of the voxels whose
   active state flipped only: the Gram and right-hand side are updated with those (or rebuilt from a
   reference, whichever touches fewer voxels), then refactorised (``k^3 / 3`` flops). Only the bound voxels
@@ -49,7 +52,7 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
+__all__ = ["COMPILED_RESIDUALS_MIN", "PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
 
 
 def available() -> bool:
@@ -111,6 +114,8 @@ def normal_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray,
     product ``(w * (x - d)) @ dt`` per slab of blocks, at the BLAS's speed (the same work as the plain projection),
     instead of a per-block loop over the voxels whose weight differs from a reference (4-5 projections' time)."""
     rhs = np.empty((len(x), dt.shape[1]), np.float32)
+    if len(x) >= COMPILED_RESIDUALS_MIN:
+        return _compiled_rhs(x, w, dt, dec_b, drop_bound, rhs)
     wsum = w.sum(axis=1, dtype=np.float64)
     for i in range(0, len(x), _RHS_SLAB):
         r = np.subtract(x[i:i + _RHS_SLAB], dec_b)
@@ -119,6 +124,31 @@ def normal_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray,
             xs = x[i:i + _RHS_SLAB]
             r[(xs >= 1 - _BOUND_EPS) | (xs <= _BOUND_EPS)] = 0
         np.matmul(r, dt, out=rhs[i:i + _RHS_SLAB])
+    return rhs, wsum
+
+
+#: From this many blocks, :func:`normal_rhs` forms the weighted residuals and weight sums in one compiled pass on
+#: every core (:func:`sdfcodec_pca.kernels.residuals`): numpy's five single-thread passes and masked store took
+#: 1-1.5 projections' time, a serial share that both cores' pass leaves (bench blocks). Fewer blocks keep numpy:
+#: a first small encode (a search's query shapes) then loads one compiled kernel, not two. The same values, but
+#: for a value within float32 rounding of a bound's 1e-6: the compiled pass compares in float64, as the kernel.
+COMPILED_RESIDUALS_MIN = 1024
+
+
+def _compiled_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarray, drop_bound: bool,
+                  rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`normal_rhs` with the residuals from :func:`sdfcodec_pca.kernels.residuals`, into ``rhs``."""
+    from .kernels import residuals
+
+    x, w = np.ascontiguousarray(x, dtype=np.float32), np.ascontiguousarray(w, dtype=np.float32)
+    dec_b = np.ascontiguousarray(dec_b, dtype=np.float32)
+    wsum = np.empty(len(x), np.float64)
+    r = np.empty((min(len(x), _RHS_SLAB), x.shape[1]), np.float32)
+    for i in range(0, len(x), _RHS_SLAB):
+        sl = slice(i, i + _RHS_SLAB)
+        n = len(x[sl])
+        residuals(x[sl], w[sl], dec_b, drop_bound, r[:n], wsum[sl])
+        np.matmul(r[:n], dt, out=rhs[sl])
     return rhs, wsum
 
 
