@@ -28,7 +28,7 @@ from ..errors import FormatError, InvalidValueError
 from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEMENT_EXTENSION, BlockState, Extension,
                            VariableRate)
 from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
-                            stream_bytes)
+                            shrink_for_bytes, stream_bytes)
 from .implied import drop_implied, inline_states
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
@@ -150,6 +150,8 @@ class VariableRateWriter:
             step = check_step(step, self.d)
         self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
         self.lagrange = float(lagrange)
+        #: the ridge towards the zero code the map writer encodes blocks with (low byte targets only)
+        self.shrink = shrink_for_bytes(target_bytes)
         self.exact_mask, self.pinned_mask = bool(exact_mask), bool(pinned_mask)
         self._mask: _LossyMask | None = None
         if refine_step is not None and not (np.isfinite(refine_step) and 2.0 ** -24 <= refine_step < 1.0):
