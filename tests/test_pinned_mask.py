@@ -208,6 +208,58 @@ def test_cheapest_bits_are_shorter_and_keep_the_exact_masks_surface_and_mesh(tmp
     assert len(meshes[0]) > 1000 and meshes[0] == meshes[1]
 
 
+def _surfaces(coords, dec, grid, masks):
+    """Per mask ``(n, 16, 16, 16)`` bool: the surface points of the blocks ``dec`` with unobserved voxels at
+    ``d_max`` and the open3d marching-cubes triangles (sorted vertex triples)."""
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    out = []
+    for mask in masks:
+        blocks = np.where(mask, dec, TRUNC[1]).astype(np.float32)
+        full = np.full((*grid, 16, 16, 16), TRUNC[1], np.float32)
+        full[tuple(coords.T)] = blocks
+        pts = surface_points(full.transpose(0, 3, 1, 4, 2, 5).reshape(*(g * 16 for g in grid)), VS)
+        mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
+        vv, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        out.append((pts, sorted(tuple(sorted(map(tuple, vv[tri]))) for tri in t)))
+    return out
+
+
+def test_chosen_bits_set_unobserved_pins_yet_keep_the_exact_masks_surface_and_mesh(tmp_path, room, codec):
+    """The writer's choice of every pinned bit the canonical bits leave 0, truly unobserved ones included: only
+    such voxels change (0 -> 1), unobserved ones among them; the stream is shorter than with only the observed
+    ones chosen (cheapest_bits); decoding it gives the true mask's surface points and open3d triangles, while
+    setting one more unobserved pinned voxel per block, unchecked, changes the mesh (the check keeps it)."""
+    step = 2.5  # coarse codes, as at 64 B per block: spurious sign changes where the room is not observed
+    m = _maps(tmp_path, room, codec, step)
+    coords, codes = m.reader.read_codes()
+    q = np.rint(codes / np.float32(step)).astype(np.int64)
+    truth = m.read_observed(coords)
+    signs = pm.sign_bounds(*pm.exact_decode(q, _basis(codec, step)))
+    pin, neg, pos = pm.exact_pins(coords, *signs, np.zeros((0, 3)), TRUNC)
+    bits = pm.canonical_bits(coords, truth, *signs, TRUNC)
+    chosen = pm.chosen_bits(coords, bits, pin, neg, pos, np.zeros((0, 3)), TRUNC)
+    changed = chosen != bits
+    assert not (changed & (~pin | bits)).any()  # only pinned zeros, and only to 1
+    assert (changed & ~truth).any() and (changed & truth).any()
+    short = pm.encode_pinned(coords, chosen, pin)
+    cheap = pm.encode_pinned(coords, pm.cheapest_bits(coords, bits, truth & ~bits, pin), pin)
+    assert len(short) < len(cheap)
+    back = pm.decode_pinned(short, coords, pin)
+    assert np.array_equal(back[pin], chosen[pin])
+    dec = np.clip(codec.decode(torch.from_numpy(codes)).numpy() * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)
+    # unchecked: the unobserved pinned voxels the choice left 0 beside a meshed cell's corner, all set
+    meshed = back & pin & truth
+    beside = np.zeros_like(meshed)
+    for ax in (1, 2, 3):
+        beside |= np.roll(meshed, 1, axis=ax) | np.roll(meshed, -1, axis=ax)
+    blind = back | (pin & ~back & beside)
+    (p0, m0), (p1, m1), (_, m2) = _surfaces(coords, dec, m.reader.grid_blocks, (truth, back, blind))
+    np.testing.assert_array_equal(p0, p1)
+    assert len(m0) > 1000 and m0 == m1
+    assert m2 != m0
+
+
 def test_a_corrupted_or_mismatched_stream_fails_with_one_line():
     rng = np.random.default_rng(1)
     pin = rng.random((3, 16, 16, 16)) < 0.2
