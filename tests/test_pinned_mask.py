@@ -223,18 +223,18 @@ def test_cheapest_bits_are_shorter_and_keep_the_exact_masks_surface_and_mesh(tmp
 def test_chosen_bits_set_unobserved_pins_yet_keep_the_exact_masks_surface_and_mesh(tmp_path, room, codec):
     """The writer's choice of every pinned bit the canonical bits leave 0, truly unobserved ones included: only
     such voxels change (0 -> 1), unobserved ones among them; the stream is shorter than with only the observed
-    ones chosen (cheapest_bits); decoding it gives the true mask's surface points and open3d triangles, while
+    ones chosen (cheapest_bits, where it starts); decoding it gives the true mask's surface points and open3d triangles, while
     setting, unchecked, the unobserved pinned voxels it left 0 beside an observed 1 changes the mesh (the check
     is what keeps it)."""
     # coarse codes, as at 64 B per block: spurious sign changes where the room is not observed
     m, coords, truth, pin, neg, pos, bits, dec = _canonical(tmp_path, room, codec, 2.5)
-    chosen = pm.chosen_bits(coords, bits, pin, neg, pos, np.zeros((0, 3)), TRUNC)
+    start = pm.cheapest_bits(coords, bits, truth & ~bits, pin)  # as the writer does
+    chosen = pm.chosen_bits(coords, bits, pin, neg, pos, np.zeros((0, 3)), TRUNC, start=start)
     changed = chosen != bits
     assert not (changed & (~pin | bits)).any()  # only pinned zeros, and only to 1
     assert (changed & ~truth).any() and (changed & truth).any()
     short = pm.encode_pinned(coords, chosen, pin)
-    cheap = pm.encode_pinned(coords, pm.cheapest_bits(coords, bits, truth & ~bits, pin), pin)
-    assert len(short) < len(cheap)
+    assert len(short) < len(pm.encode_pinned(coords, start, pin))
     back = pm.decode_pinned(short, coords, pin)
     assert np.array_equal(back[pin], chosen[pin])
     # unchecked: the unobserved pinned voxels the choice left 0 beside a meshed cell's corner, all set

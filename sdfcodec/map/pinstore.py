@@ -119,9 +119,12 @@ class PinnedStreams:
             neg, pos = pm.sign_bounds(v, bound)  # the neighbours' true decode: exact bits at the chunk's faces
             bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
             pins = pm.pinned_voxels_of(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
-            # every pinned voxel the canonical bits leave 0 is free where a 1 meshes nothing new: the shorter value
+            # every pinned voxel the canonical bits leave 0 is free where a 1 meshes nothing new: first the truly
+            # observed ones by the adaptive model, then all by the stream's length (shorter than either alone)
+            start = pm.cheapest_bits(own, bits, self.truth[sel] & ~bits, pins)
             _, negp, posp = pm.exact_pins(self.coords[both], neg, pos, np.zeros((0, 3), np.int64), self.truncation)
-            bits = pm.chosen_bits(own, bits, pins, negp[:len(sel)], posp[:len(sel)], outside, self.truncation)
+            bits = pm.chosen_bits(own, bits, pins, negp[:len(sel)], posp[:len(sel)], outside, self.truncation,
+                                  start=start)
             self.streams.append(pm.encode_pinned(own, bits, pins))
         self.bytes = sum(len(_zstd(r)) + 4 for r in self._rows())  # each row as stored: zstd level 1, CRC32C
 
