@@ -299,7 +299,7 @@ def cheapest_bits(coords: np.ndarray, bits: np.ndarray, free: np.ndarray, pinned
     by wavefront as the coder goes: the stream of the result is shorter (the model sharpens on the values it is
     given). Where every free voxel is truly observed and not in ``bits``, any choice keeps the guarantee of
     :func:`canonical_bits` (a relevant cell or edge the true mask does not observe keeps its unobserved corner
-    at 0), so the writer may store either."""
+    at 0), so the writer may store either; it starts :func:`chosen_bits` from the result."""
     lay, pinned = _Layout.holding(coords, bits, pinned)
     is_free = np.zeros(lay.grid.shape, bool)
     is_free[lay.flat[np.asarray(free, bool).reshape(lay.flat.shape) & pinned]] = True
