@@ -32,9 +32,11 @@ edge that can carry a surface is then meshed or not exactly as under the true ma
 observed keeps its unobserved corner, which is in no meshed cell and no observed edge: 0), and zeros elsewhere
 are free (module :mod:`sdfcodec.map.lossymask`). This is cheaper than the truth because the meshed region is
 what it spells, not the fusion's ragged borders (kitchen half at 64 B, estimated with contexts over the whole map:
-14.0 against 19.9 B per block). The writer may still store 1 at a truly observed voxel the canonical bits leave
-0 (its cells and edges that the truth leaves unmeshed keep an unobserved corner at 0): :func:`cheapest_bits`
-does where the coder's adaptive model expects a 1 there (12.68 -> 12.36 B per block on the kitchen half at 64 B).
+14.0 against 19.9 B per block). The writer may still store 1 at any pinned voxel the canonical bits leave 0, as
+long as no relevant cell becomes all 1 and no edge that may change sign gets both ends 1: :func:`chosen_bits`
+picks those bits by the stream's length (kitchen half at 64 B, raw streams: 12.05 B per block canonical, 11.72
+with only the truly observed ones set where the adaptive model expects a 1 (:func:`cheapest_bits`, the writer's
+choice before), 10.91).
 
 Coding (:func:`encode_pinned`): the pinned voxels of the chunk's blocks placed in one voxel grid, wavefront by
 wavefront (``x + y + z``; across block faces, so that a voxel's context sees its neighbours in the next block:
