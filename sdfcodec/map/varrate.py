@@ -59,6 +59,9 @@ STEP_RESOLUTION = 2.0 ** -10
 #: ``--target-bytes`` from which the bytes go to the codes and a surface refinement (spec 6h), per coded block:
 #: a pca-128 decode's Chamfer stops falling near 128 B (kitchen half: 3.91 mm at 128 B, 3.86 at 192 B).
 REFINE_FROM = 160.0
+#: The step search's last rounds with the pinned mask's chooser (low targets): bisection rounds, and how far
+#: below the step found they look (log2 of the step).
+CHOICE_ROUNDS, CHOICE_SPAN = 4, 0.16
 _STREAM_DOC_BASE = 309  # a stream array's compact document but the digits of its width (measured)
 
 
@@ -427,8 +430,19 @@ class VariableRateWriter:
             mid = (lo + hi) / 2
             got, _ = total(2 ** mid)
             if t * (1 - TOLERANCE) <= got <= t:
-                return np.full(self.d, 2 ** mid)
+                hi = mid
+                break
             lo, hi = (mid, hi) if got > t else (lo, mid)
+        mask = self._mask
+        if self.shrink > 0 and mask is not None and mask.pinned is not None:
+            # low targets: the mask's free bits chosen (pinstore.PinnedStreams.choose) in a few last rounds only
+            # (the chooser costs three masks), below the step found, keeping the finest that fits
+            mask.pinned.choose = True
+            lo = hi - CHOICE_SPAN
+            for _ in range(CHOICE_ROUNDS):
+                mid = (lo + hi) / 2
+                got, _ = total(2 ** mid)
+                lo, hi = (mid, hi) if got > t else (lo, mid)
         return np.full(self.d, 2 ** hi)
 
     def _step_for_error(self, truncation) -> np.ndarray:
