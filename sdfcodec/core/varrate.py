@@ -35,7 +35,8 @@ from . import ans
 from ..errors import FormatError, InvalidValueError
 
 __all__ = ["EntropyModel", "fit_model", "quantise", "choose_lengths", "encode_chunk", "decode_chunk", "gains",
-           "LAGRANGE", "CODER", "stream_bytes", "SHRINK", "SHRINK_BELOW", "shrink_for_bytes"]
+           "LAGRANGE", "CODER", "stream_bytes", "SHRINK", "SHRINK_BELOW", "SHRINK_FROM_STEP",
+           "shrink_for_step"]
 
 #: The coder a map names (spec section 4e): constriction's AnsCoder (32-bit words, 64-bit state) with
 #: ``Categorical(table, perfect=False)`` models (24-bit precision).
@@ -46,15 +47,21 @@ CODER = "constriction-ans-1"
 #: 7.81 against 8.23 mm on the kitchen half, 1.42 against 1.50 on the synthetic room, 1.51 against 1.60 on the
 #: posed rooms, and the same surfaces at 128 B (docs/variable-rate.md).
 LAGRANGE = float(2.5 * np.log(2) / 6)
-#: The writer's ridge towards the zero code (relative to the mean error weight; :func:`shrink_for_bytes`) at low
-#: rates. The reader's error is flat along the code directions that only move voxels it truncates; its exact
-#: optimum drifts along them to large codes, which cost bits once a coarse step quantises them. Kitchen half at
-#: 64 B per coded block, Chamfer-L1: 8.00 mm without, 6.40 / 5.99 / 5.99 / 7.24 / 11.6 mm at 1e-3 / 3e-3 / 1e-2 /
-#: 3e-2 / 1e-1 (docs/variable-rate.md); at 128 and 256 B a ridge of 1e-3 made it worse (3.87 -> 3.97, 1.56 ->
-#: 1.67 mm): the finer step pays for the optimum's codes.
+#: The writer's ridge towards the zero code (relative to the mean error weight; :func:`shrink_for_step`) where
+#: the step is coarse. The reader's error is flat along the code directions that only move voxels it truncates;
+#: its exact optimum drifts along them to large codes, which cost bits once a coarse step quantises them.
+#: Kitchen half at 64 B per coded block (step 0.875 without), Chamfer-L1: 8.00 mm without, 6.40 / 5.99 / 5.99 /
+#: 7.24 / 11.6 mm at 1e-3 / 3e-3 / 1e-2 / 3e-2 / 1e-1 (a ridge towards the plain code instead: 6.67 at 1e-3).
 SHRINK = 3e-3
-#: Byte targets (per coded block) below which the writer shrinks (:data:`SHRINK`).
-SHRINK_BELOW = 96.0
+#: Steps (normalised units) from which the writer shrinks (:data:`SHRINK`): the step the map takes without it.
+#: Measured with 3e-3, Chamfer-L1 without -> with: kitchen half 64 B (step 0.875) 8.00 -> 5.95 mm, 80 B (0.49)
+#: 5.71 -> 4.85, 96 B (0.26) 4.45 -> 4.27, but 112 B (0.144) 4.02 -> 4.15; at 64 B the synthetic room (0.125)
+#: 1.44 -> 1.57, the posed rooms (0.117) 1.57 -> 1.83, the building (0.080) 1.39 -> 1.97 (examples/
+#: peers_study.py's data sets): below ~0.2 the finer step pays for the optimum's codes.
+SHRINK_FROM_STEP = 0.2
+#: Byte targets (per coded block) from which a writer never shrinks (so it need not keep the blocks for a second
+#: encode): at 128 B the kitchen half's step is 0.08.
+SHRINK_BELOW = 128.0
 _MIN_DECAY, _MAX_DECAY = 1e-6, 1 - 1e-9
 #: Entries of all of a model's tables together a reader builds at most (128 MiB of float64).
 MAX_TABLE = 1 << 24
@@ -274,11 +281,11 @@ def fit_model(q: np.ndarray, k: np.ndarray) -> EntropyModel:
     return EntropyModel(center, decay, extent, np.bincount(k, minlength=d + 1))
 
 
-def shrink_for_bytes(target_bytes: float | None) -> float:
-    """The ``shrink`` (:func:`sdfcodec.map.observed.encode_truncated`) a writer aiming at ``target_bytes`` per
-    coded block (None: a step or an error target) encodes blocks with: :data:`SHRINK` below
-    :data:`SHRINK_BELOW`, else 0 (the reader's optimum)."""
-    return SHRINK if target_bytes is not None and target_bytes < SHRINK_BELOW else 0.0
+def shrink_for_step(step: float) -> float:
+    """The ``shrink`` (:func:`sdfcodec.map.observed.encode_truncated`) a variable-rate writer encodes its blocks
+    with again when the map's step without it is ``step`` (the mean over elements): :data:`SHRINK` from
+    :data:`SHRINK_FROM_STEP`, else 0 (the reader's optimum)."""
+    return SHRINK if step >= SHRINK_FROM_STEP else 0.0
 
 
 def gains(weights: np.ndarray, basis_sq: np.ndarray) -> np.ndarray:

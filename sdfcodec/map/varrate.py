@@ -27,8 +27,8 @@ from ..core._validate import BLOCK, empty
 from ..errors import FormatError, InvalidValueError
 from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEMENT_EXTENSION, BlockState, Extension,
                            VariableRate)
-from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
-                            shrink_for_bytes, stream_bytes)
+from ..core.varrate import (CODER, LAGRANGE, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk, encode_chunk,
+                            gains, shrink_for_step, stream_bytes)
 from .implied import drop_implied, inline_states
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
@@ -153,8 +153,10 @@ class VariableRateWriter:
             step = check_step(step, self.d)
         self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
         self.lagrange = float(lagrange)
-        #: the ridge towards the zero code the map writer encodes blocks with (low byte targets only)
-        self.shrink = shrink_for_bytes(target_bytes)
+        #: the ridge towards the zero code the blocks were encoded with again on commit (:meth:`_shrunk`), or 0;
+        #: below SHRINK_BELOW bytes the blocks are kept for that second encode
+        self.shrink, self._may_shrink = 0.0, target_bytes is not None and target_bytes < SHRINK_BELOW
+        self._surface_weight = 1.0
         self.exact_mask, self.pinned_mask = bool(exact_mask), bool(pinned_mask)
         self._mask: _LossyMask | None = None
         if refine_step is not None and not (np.isfinite(refine_step) and 2.0 ** -24 <= refine_step < 1.0):
@@ -184,8 +186,8 @@ class VariableRateWriter:
         w = np.ones((len(v), BLOCK ** 3), np.float32) if w is None else w.reshape(len(v), -1)
         g = gains(w, self.basis_sq)
         write_block_rows(gain_arr, coords, g)
-        self.voxel_size = float(voxel_size)
-        if self.refine:  # the true values the refinement corrects towards: float32 metres, packed bits
+        self.voxel_size, self._surface_weight = float(voxel_size), float(surface_weight)
+        if self.refine or self._may_shrink:  # the true values (refinement, second encode): float32 metres, bits
             from .refine import TrueValues
 
             d_min, d_max = truncation
@@ -260,6 +262,10 @@ class VariableRateWriter:
 
         share = None if ref is None or self.target_bytes is None else codes_share(self.target_bytes)
         step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
+        shrink = shrink_for_step(float(np.mean(step))) if self._may_shrink and len(z) else 0.0
+        if shrink > 0 and self._truth is not None and self._truth.rows_of(coded) is not None:
+            z = self._shrunk(coded, truncation, shrink)  # a coarse step: smaller codes, then the step again
+            step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
         refinement = None
         if ref is not None:
             refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
@@ -303,6 +309,26 @@ class VariableRateWriter:
             self.report.update(mask_bytes_per_coded_block=mask.bytes / n,
                                exact_mask_bytes_per_coded_block=mask.exact / n)
         return spec
+
+    def _shrunk(self, coded: np.ndarray, truncation: tuple[float, float], shrink: float) -> np.ndarray:
+        """Codes ``(n, D)`` float64 of the blocks ``coded`` encoded again from their true values with a ridge
+        towards the zero code (``shrink``, :data:`sdfcodec.core.varrate.SHRINK`): where the step is coarse, the
+        smaller codes in the reader's flat valley cost fewer bits. Sets ``self.shrink``."""
+        from .observed import encode_blocks
+
+        rows = self._truth.rows_of(coded)
+        d_min, d_max = truncation
+        out = np.empty((len(coded), self.d), np.float64)
+        for i in range(0, len(coded), SAMPLE_BLOCKS):
+            r = rows[i:i + SAMPLE_BLOCKS]
+            v = (np.asarray(self._truth.values[r]) - np.float32(d_min)) / np.float32(d_max - d_min)
+            v = v.astype(np.float32).reshape(-1, BLOCK, BLOCK, BLOCK)
+            obs = self._truth.observed
+            obs = None if obs is None else unpack_mask(np.asarray(obs[r]))
+            out[i:i + SAMPLE_BLOCKS] = encode_blocks(self.codec, v, obs, truncation, self.voxel_size,
+                                                     self._surface_weight, "cpu", shrink=shrink)
+        self.shrink = shrink
+        return out
 
     def _pinned(self, group: Any, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float],
                 extensions: list) -> tuple[Any, int]:

@@ -335,8 +335,7 @@ class MapWriter:
                 obs = None if observed is None else observed[i:i + batch_size][~empty]
                 codes = (v[~empty].reshape(-1, BLOCK ** 3) if metric  # raw's encode: the identity
                          else encode_blocks(self.codec, v[~empty], obs, (d_min, d_max), self.header_kw["voxel_size"],
-                                            self.surface_weight, self.device,
-                                            shrink=0.0 if self.vr is None else self.vr.shrink))
+                                            self.surface_weight, self.device))
                 packed = None if obs is None else pack_mask(obs)
                 self.put_codes(c[~empty], codes, masks=packed)
                 if self.vr is not None:  # the gains the variable-rate pass weighs errors with
