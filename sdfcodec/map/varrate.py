@@ -265,7 +265,7 @@ class VariableRateWriter:
         shrink = shrink_for_step(float(np.mean(step))) if self._may_shrink and len(z) else 0.0
         if shrink > 0 and self._truth is not None and self._truth.rows_of(coded) is not None:
             z = self._shrunk(coded, truncation, shrink)  # a coarse step: smaller codes, then the step again
-            step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
+            step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share, float(np.mean(step)))
         refinement = None
         if ref is not None:
             refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
@@ -357,14 +357,14 @@ class VariableRateWriter:
         keys = manifest_bytes_estimate(new) - manifest_bytes_estimate(old)
         return streams, STREAM_METADATA_BYTES - (meta.stat().st_size if meta.exists() else 0) + max(keys, 0)
 
-    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation, share=None) -> np.ndarray:
+    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation, share=None, below=None) -> np.ndarray:
         if self.step is not None:
             return self.step
         if not len(z):
             raise InvalidValueError("the map has no coded blocks (all free space): there are no codes to rate-control")
         if self.target_error is not None:
             return self._step_for_error(truncation)
-        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n, share)
+        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n, share, below)
 
     def _refinement(self, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float]):
         """A :class:`~sdfcodec.map.refine.RefinementStreams` of the coded blocks when the refinement can apply
@@ -428,9 +428,11 @@ class VariableRateWriter:
         self.report.update(refine_step=2 ** hi)
         return 2 ** hi, tau_for_step(2 ** hi, self.voxel_size)
 
-    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None) -> np.ndarray:
+    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None, below=None) -> np.ndarray:
         """Bisection on log(step): the codes' exact stream bytes plus everything else against the target (or
-        ``share`` of it: the codes' part beside a refinement)."""
+        ``share`` of it: the codes' part beside a refinement). ``below``: a step known to fit codes larger than
+        ``z`` (the first encode's, before the shrink): the search starts between it and 8 times finer, without
+        the costly ends (the finest step codes every element at full length), unless ``z`` does not fit there."""
         t = self.target_bytes if share is None else share
 
         def total(s: float) -> tuple[float, float]:
@@ -441,12 +443,16 @@ class VariableRateWriter:
             return (self._rows_bytes(streams) + other) / n, other / n
 
         lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
-        t_hi, other_hi = total(2 ** hi)
+        if below is not None and total(below)[0] <= t:
+            lo, hi = np.log2(below) - 3.0, float(np.log2(below))
+        else:
+            below = None
+        t_hi, other_hi = (0.0, 0.0) if below is not None else total(2 ** hi)
         if t_hi > t * (1 + TOLERANCE):
             raise InvalidValueError(f"a target of {t:g} bytes per coded block is below what this map can take: at "
                                     f"least {t_hi:.1f} (of it {other_hi:.1f} of observation mask, weights, block "
                                     "states, header and metadata; codes all but empty)")
-        t_lo, _ = total(2 ** lo)
+        t_lo, _ = (np.inf, 0.0) if below is not None else total(2 ** lo)
         if t_lo < t:
             raise InvalidValueError(f"a target of {t:g} bytes per coded block is above what variable-rate codes take "
                                     f"on this map: at most {t_lo:.1f} (at step {2 ** lo:g}); store float32 codes")
