@@ -87,6 +87,7 @@ def test_the_shrink_follows_the_step():
     assert shrink_for_step(SHRINK_FROM_STEP) == SHRINK > 0
     assert shrink_for_step(0.875) == SHRINK  # the kitchen half's step at 64 B without it
     assert shrink_for_step(0.125) == 0.0  # the synthetic room's at 64 B: the optimum's codes pay there
+    assert shrink_for_step(0.296) == 0.0  # the synthetic room at 40 B: the shrink lost there too (2.65 -> 2.99 mm)
 
 
 def _write(tmp_path, name, coords, tsdf, obs, target):
