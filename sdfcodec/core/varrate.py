@@ -35,8 +35,7 @@ from . import ans
 from ..errors import FormatError, InvalidValueError
 
 __all__ = ["EntropyModel", "fit_model", "quantise", "choose_lengths", "encode_chunk", "decode_chunk", "gains",
-           "LAGRANGE", "CODER", "stream_bytes", "SHRINK", "SHRINK_BELOW", "SHRINK_FROM_STEP",
-           "shrink_for_step"]
+           "LAGRANGE", "CODER", "stream_bytes", "SHRINK", "SHRINK_BELOW"]
 
 #: The coder a map names (spec section 4e): constriction's AnsCoder (32-bit words, 64-bit state) with
 #: ``Categorical(table, perfect=False)`` models (24-bit precision).
@@ -47,20 +46,16 @@ CODER = "constriction-ans-1"
 #: 7.81 against 8.23 mm on the kitchen half, 1.42 against 1.50 on the synthetic room, 1.51 against 1.60 on the
 #: posed rooms, and the same surfaces at 128 B (docs/variable-rate.md).
 LAGRANGE = float(2.5 * np.log(2) / 6)
-#: The writer's ridge towards the zero code (relative to the mean error weight; :func:`shrink_for_step`) where
-#: the step is coarse. The reader's error is flat along the code directions that only move voxels it truncates;
-#: its exact optimum drifts along them to large codes, which cost bits once a coarse step quantises them.
-#: Kitchen half at 64 B per coded block (step 0.875 without), Chamfer-L1: 8.00 mm without, 6.40 / 5.99 / 5.99 /
-#: 7.24 / 11.6 mm at 1e-3 / 3e-3 / 1e-2 / 3e-2 / 1e-1 (a ridge towards the plain code instead: 6.67 at 1e-3).
+#: The variable-rate writer's ridge towards the zero code (relative to the mean error weight) for its second
+#: encode below :data:`SHRINK_BELOW` bytes (:meth:`sdfcodec.map.varrate.VariableRateWriter._shrunk` then keeps, per
+#: block, the cheaper of the two codes in D + lam R). The reader's error is flat along the code directions that
+#: only move voxels it truncates or does not weigh; its exact optimum drifts along them to large codes, which cost
+#: bits once a coarse step quantises them. Kitchen half at 64 B, every block shrunk, Chamfer-L1: 8.00 mm without,
+#: 6.40 / 5.99 / 5.99 / 7.24 / 11.6 mm at 1e-3 / 3e-3 / 1e-2 / 3e-2 / 1e-1 (towards the plain code: 6.67 at 1e-3).
+#: Every block shrunk also lost on finer steps (kitchen 112 B 4.02 -> 4.15 mm; synthetic room, posed rooms at 40 B
+#: 2.65 -> 2.99, 2.94 -> 3.09; at 64 B 1.44 -> 1.57, 1.57 -> 1.83, building 1.39 -> 1.97): the per-block choice
+#: gains on all of them (docs/variable-rate.md).
 SHRINK = 3e-3
-#: Steps (normalised units) from which the writer shrinks (:data:`SHRINK`): the step the map takes without it.
-#: Measured with 3e-3, Chamfer-L1 without -> with: kitchen half 64 B (step 0.875) 8.00 -> 5.95 mm, 80 B (0.49)
-#: 5.71 -> 4.85, 96 B (0.26) 4.45 -> 4.27, 112 B (0.144) 4.02 -> 4.15; whole kitchen 64 B (0.679) 6.39 -> 4.93;
-#: the synthetic room and the posed rooms of examples/peers_study.py at 40 B (0.296, 0.280) 2.65 -> 2.99 and
-#: 2.94 -> 3.09, at 64 B (0.125, 0.117) 1.44 -> 1.57 and 1.57 -> 1.83, the building at 64 B (0.080) 1.39 ->
-#: 1.97. Between 0.26 and 0.5 the sign depends on the data: 0.5 keeps every loss measured (and the kitchen's
-#: 80-96 B gains out).
-SHRINK_FROM_STEP = 0.5
 #: Byte targets (per coded block) from which a writer never shrinks (so it need not keep the blocks for a second
 #: encode): at 128 B the kitchen half's step is 0.08.
 SHRINK_BELOW = 128.0
@@ -281,13 +276,6 @@ def fit_model(q: np.ndarray, k: np.ndarray) -> EntropyModel:
     if (np.abs(center) > 2 ** 31 - 1).any() or (extent > 2 ** 32 - 1).any():
         raise InvalidValueError("quantised codes beyond 2**31 steps: use a larger step")
     return EntropyModel(center, decay, extent, np.bincount(k, minlength=d + 1))
-
-
-def shrink_for_step(step: float) -> float:
-    """The ``shrink`` (:func:`sdfcodec.map.observed.encode_truncated`) a variable-rate writer encodes its blocks
-    with again when the map's step without it is ``step`` (the mean over elements): :data:`SHRINK` from
-    :data:`SHRINK_FROM_STEP`, else 0 (the reader's optimum)."""
-    return SHRINK if step >= SHRINK_FROM_STEP else 0.0
 
 
 def gains(weights: np.ndarray, basis_sq: np.ndarray) -> np.ndarray:
