@@ -36,7 +36,7 @@ what it spells, not the fusion's ragged borders (kitchen half at 64 B, estimated
 long as no relevant cell becomes all 1 and no edge that may change sign gets both ends 1: :func:`chosen_bits`
 picks those bits by the stream's length (kitchen half at 64 B, raw streams: 12.05 B per block canonical, 11.72
 with only the truly observed ones set where the adaptive model expects a 1 (:func:`cheapest_bits`, what the
-writer stores by default), 10.91; the writer runs it in maps of a coarse step only, ``PinnedStreams.choose``).
+writer stores by default), 10.91; the writer runs it below 128 B per block, ``PinnedStreams.choose``).
 
 Coding (:func:`encode_pinned`): the pinned voxels of the chunk's blocks placed in one voxel grid, wavefront by
 wavefront (``x + y + z``; across block faces, so that a voxel's context sees its neighbours in the next block:
