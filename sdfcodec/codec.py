@@ -448,13 +448,16 @@ class Codec(abc.ABC):
         codec accepts them; a codec that can use them overrides it (PCA solves the weighted least squares)."""
         return self._encode(blocks)
 
-    def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int) -> torch.Tensor | None:
+    def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int, shrink: float = 0.0
+                         ) -> torch.Tensor | None:
         """Hook: the codes ``(N, code_size)`` that :func:`sdfcodec.map.observed.encode_truncated` computes from
         :meth:`encode_weighted` (the weighted fit, then at most ``rounds`` refits without the bound voxels a
         reader's truncation makes exact), to float32 rounding, for checked blocks ``(N, 16, 16, 16)`` float32 and
         checked weights of the same shape; or None where the codec has no faster way for these inputs (that
         function then runs its batched refits). The default is None; a codec declaring the capability
-        ``encode_truncated`` overrides it (PCA: one compiled pass per block on the CPU)."""
+        ``encode_truncated`` overrides it (PCA: one compiled pass per block on the CPU). ``shrink`` (optional
+        keyword, > 0 only at low rates of variable-rate maps): a ridge towards the zero code of that weight
+        relative to the mean weight added to the problem; a hook without the keyword is called without it."""
         return None
 
     def numpy_path(self) -> "NumpyPath | None":
@@ -606,7 +609,8 @@ class NumpyPath(Protocol):
         """Codes ``(N, k)`` (``k < code_size`` for prefix-ordered codecs only) -> normalised blocks
         ``(N, 4096)`` float32, as :meth:`Codec.decode`."""
 
-    def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int) -> np.ndarray | None:
+    def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int, shrink: float = 0.0
+                         ) -> np.ndarray | None:
         """Codes ``(N, code_size)`` float32 as :meth:`Codec.encode_truncated` computes them, for blocks and weights
         ``(N, 4096)``; None where it has no numpy way for them (the caller then takes the torch path)."""
 

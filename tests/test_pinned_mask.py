@@ -171,20 +171,42 @@ def test_stored_bits_round_trip_and_give_the_exact_masks_surface_and_mesh(tmp_pa
     assert len(stream) < len(m1)
 
 
-def test_cheapest_bits_are_shorter_and_keep_the_exact_masks_surface_and_mesh(tmp_path, room, codec):
-    """The writer's choice of the free bits (truly observed voxels the canonical bits leave 0): set to what the
-    coder's adaptive model finds more probable. They change only free voxels, the stream is shorter than the
-    canonical bits', and decoding with them gives the true mask's surface points and open3d triangles."""
-    from sdfcodec.fusion.tsdf import mesh_from_blocks
-
-    step = 0.6
+def _canonical(tmp_path, room, codec, step):
+    """A room written with the exact mask at ``step``, read back: ``(map, coords, codes, truth, pin, neg, pos,
+    canonical bits, decode in metres clipped)``."""
     m = _maps(tmp_path, room, codec, step)
     coords, codes = m.reader.read_codes()
     q = np.rint(codes / np.float32(step)).astype(np.int64)
     truth = m.read_observed(coords)
     signs = pm.sign_bounds(*pm.exact_decode(q, _basis(codec, step)))
-    pin, _, _ = pm.exact_pins(coords, *signs, np.zeros((0, 3)), TRUNC)
+    pin, neg, pos = pm.exact_pins(coords, *signs, np.zeros((0, 3)), TRUNC)
     bits = pm.canonical_bits(coords, truth, *signs, TRUNC)
+    dec = np.clip(codec.decode(torch.from_numpy(codes)).numpy() * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)
+    return m, coords, truth, pin, neg, pos, bits, dec
+
+
+def _surfaces(coords, dec, grid, masks):
+    """Per mask ``(n, 16, 16, 16)`` bool: the surface points of the blocks ``dec`` with unobserved voxels at
+    ``d_max`` and the open3d marching-cubes triangles (sorted vertex triples)."""
+    from sdfcodec.fusion.tsdf import mesh_from_blocks
+
+    out = []
+    for mask in masks:
+        blocks = np.where(mask, dec, TRUNC[1]).astype(np.float32)
+        full = np.full((*grid, 16, 16, 16), TRUNC[1], np.float32)
+        full[tuple(coords.T)] = blocks
+        pts = surface_points(full.transpose(0, 3, 1, 4, 2, 5).reshape(*(g * 16 for g in grid)), VS)
+        mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
+        vv, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        out.append((pts, sorted(tuple(sorted(map(tuple, vv[tri]))) for tri in t)))
+    return out
+
+
+def test_cheapest_bits_are_shorter_and_keep_the_exact_masks_surface_and_mesh(tmp_path, room, codec):
+    """The writer's choice of the free bits (truly observed voxels the canonical bits leave 0): set to what the
+    coder's adaptive model finds more probable. They change only free voxels, the stream is shorter than the
+    canonical bits', and decoding with them gives the true mask's surface points and open3d triangles."""
+    m, coords, truth, pin, _, _, bits, dec = _canonical(tmp_path, room, codec, 0.6)
     free = truth & ~bits
     cheap = pm.cheapest_bits(coords, bits, free, pin)
     changed = (cheap != bits) & pin
@@ -193,19 +215,38 @@ def test_cheapest_bits_are_shorter_and_keep_the_exact_masks_surface_and_mesh(tmp
     assert len(short) < len(long)
     back = pm.decode_pinned(short, coords, pin)
     assert np.array_equal(back[pin], cheap[pin])
-    dec = np.clip(codec.decode(torch.from_numpy(codes)).numpy() * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)
-    grid = m.reader.grid_blocks
-    pts, meshes = [], []
-    for mask in (truth, back):
-        blocks = np.where(mask, dec, TRUNC[1]).astype(np.float32)
-        full = np.full((*grid, 16, 16, 16), TRUNC[1], np.float32)
-        full[tuple(coords.T)] = blocks
-        pts.append(surface_points(full.transpose(0, 3, 1, 4, 2, 5).reshape(*(g * 16 for g in grid)), VS))
-        mesh = mesh_from_blocks(coords, blocks, origin=(0, 0, 0), voxel_size=VS, truncation=TRUNC)
-        vv, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-        meshes.append(sorted(tuple(sorted(map(tuple, vv[tri]))) for tri in t))
-    np.testing.assert_array_equal(pts[0], pts[1])
-    assert len(meshes[0]) > 1000 and meshes[0] == meshes[1]
+    (p0, m0), (p1, m1) = _surfaces(coords, dec, m.reader.grid_blocks, (truth, back))
+    np.testing.assert_array_equal(p0, p1)
+    assert len(m0) > 1000 and m0 == m1
+
+
+def test_chosen_bits_set_unobserved_pins_yet_keep_the_exact_masks_surface_and_mesh(tmp_path, room, codec):
+    """The writer's choice of every pinned bit the canonical bits leave 0, truly unobserved ones included: only
+    such voxels change (0 -> 1), unobserved ones among them; the stream is shorter than with only the observed
+    ones chosen (cheapest_bits, where it starts); decoding it gives the true mask's surface points and open3d triangles, while
+    setting, unchecked, the unobserved pinned voxels it left 0 beside an observed 1 changes the mesh (the check
+    is what keeps it)."""
+    # coarse codes, as at 64 B per block: spurious sign changes where the room is not observed
+    m, coords, truth, pin, neg, pos, bits, dec = _canonical(tmp_path, room, codec, 2.5)
+    start = pm.cheapest_bits(coords, bits, truth & ~bits, pin)  # as the writer does
+    chosen = pm.chosen_bits(coords, bits, pin, neg, pos, np.zeros((0, 3)), TRUNC, start=start)
+    changed = chosen != bits
+    assert not (changed & (~pin | bits)).any()  # only pinned zeros, and only to 1
+    assert (changed & ~truth).any() and (changed & truth).any()
+    short = pm.encode_pinned(coords, chosen, pin)
+    assert len(short) < len(pm.encode_pinned(coords, start, pin))
+    back = pm.decode_pinned(short, coords, pin)
+    assert np.array_equal(back[pin], chosen[pin])
+    # unchecked: the unobserved pinned voxels the choice left 0 beside a meshed cell's corner, all set
+    meshed = back & pin & truth
+    beside = np.zeros_like(meshed)
+    for ax in (1, 2, 3):
+        beside |= np.roll(meshed, 1, axis=ax) | np.roll(meshed, -1, axis=ax)
+    blind = back | (pin & ~back & beside)
+    (p0, m0), (p1, m1), (_, m2) = _surfaces(coords, dec, m.reader.grid_blocks, (truth, back, blind))
+    np.testing.assert_array_equal(p0, p1)
+    assert len(m0) > 1000 and m0 == m1
+    assert m2 != m0
 
 
 def test_a_corrupted_or_mismatched_stream_fails_with_one_line():

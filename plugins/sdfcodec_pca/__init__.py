@@ -41,7 +41,7 @@ torch = lazy_module("torch")
 scipy_linalg = lazy_module("scipy.linalg")
 sklearn_decomposition = lazy_module("sklearn.decomposition")
 
-__all__ = ["PCACodec", "SHIPPED_MODEL", "RIDGE", "WEIGHTED_FIT_ITERATIONS"]
+__all__ = ["PCACodec", "SHIPPED_MODEL", "RIDGE", "WEIGHTED_FIT_ITERATIONS", "ridge_centre"]
 
 _N = 16 ** 3
 SHIPPED_MODEL = "pca-128.npz"  # in this package's models/
@@ -59,6 +59,19 @@ _GRAM_TABLE_MAX_K = 128  # (4096, k (k + 1) / 2) float32 outer-product table: 13
 #: value, and any fraction of it stopped such blocks short of the optimum, tests/test_observed.py)
 REFIT_TOLERANCE = 0.0
 _FAST_MAX_K = 256  # the compiled pass's per-thread scratch: two k x k matrices
+
+
+def ridge_centre(c0: np.ndarray, shrink: float) -> tuple[np.ndarray, float]:
+    """``(centre (N, k) float32, ridge)`` of the one ridge ``ridge * mean(w) |c - centre|^2`` that equals the
+    encode's two: :data:`RIDGE` towards the plain codes ``c0`` ``(N, k)`` and ``shrink`` (>= 0) towards the zero
+    code (their sum differs by a constant in ``c``). Why shrink: the reader's error is flat along the directions
+    that only move voxels it truncates, and its exact optimum drifts along them to large codes that cost bits once
+    quantised coarsely; a ridge towards zero picks the small code in that valley (the variable-rate writer asks
+    for it at low rates: :func:`sdfcodec.core.varrate.shrink_for_bytes`)."""
+    if not shrink > 0:
+        return c0, RIDGE
+    total = RIDGE + float(shrink)
+    return np.ascontiguousarray(c0 * np.float32(RIDGE / total), dtype=np.float32), total
 
 
 def _refit_rows(x: torch.Tensor, w: torch.Tensor, codes: torch.Tensor, fixed: torch.Tensor, mean: torch.Tensor
@@ -364,13 +377,15 @@ class PCACodec(Codec):
     def _decode(self, codes: torch.Tensor) -> torch.Tensor:
         return self.decode_affine(codes, 1.0, 0.0)
 
-    def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int) -> torch.Tensor | None:
+    def encode_truncated(self, blocks: torch.Tensor, weights: torch.Tensor, rounds: int, shrink: float = 0.0
+                         ) -> torch.Tensor | None:
         """What :func:`sdfcodec.map.observed.encode_truncated` computes from :meth:`encode_weighted` (the weighted
         fit, then at most ``rounds`` refits without the bound voxels a reader's truncation makes exact), in one
         compiled pass per block (:mod:`sdfcodec_pca.truncated`; its refits as :attr:`cg_steps_per_refit`
         conjugate-gradient steps per refit, by default): codes ``(N, k)`` float32 of blocks ``(N, 16, 16,
         16)`` float32 under checked weights of the same shape. None where that pass does not apply (not on the
-        CPU, ``mean="block"``, numba not installed): the caller then runs its batched loop."""
+        CPU, ``mean="block"``, numba not installed): the caller then runs its batched loop. ``shrink`` > 0 adds
+        a ridge towards the zero code of that relative weight (:func:`ridge_centre`)."""
         if (blocks.device.type != "cpu" or self.mean != "dataset" or not truncated.available()
                 or blocks.dtype != torch.float32 or self.code_size > _FAST_MAX_K):
             return None
@@ -378,8 +393,9 @@ class PCACodec(Codec):
         c0 = self._encode(blocks)
         w = weights if weights.dtype == torch.float32 else weights.float()
         steps = self.cg_steps_per_refit * rounds
+        centre, ridge = ridge_centre(c0.numpy(), shrink)
         codes = truncated.truncated_codes(blocks.reshape(n, _N).numpy(), w.reshape(n, _N).numpy(),
-                                          self._affine[2].T, self._affine[3], c0.numpy(), RIDGE, rounds, steps,
+                                          self._affine[2].T, self._affine[3], centre, ridge, rounds, steps,
                                           REFIT_TOLERANCE, self._gram_pieces())
         return torch.from_numpy(codes)
 
@@ -543,12 +559,14 @@ class _NumpyPCA:
         c1[:, 1:] = codes
         return c1 @ self.dec[: k + 1]  # as decode_into on the CPU
 
-    def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int) -> np.ndarray | None:
+    def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int, shrink: float = 0.0
+                         ) -> np.ndarray | None:
         c = self.codec
         if c.mean != "dataset" or not truncated.available() or c.code_size > _FAST_MAX_K:
             return None  # as PCACodec.encode_truncated
         # the solver the torch hook runs (its refits as conjugate-gradient steps by default), so that query shapes
         # encode as map blocks do and shipped calibrations hold on both paths
-        return truncated.truncated_codes(blocks, weights, c._affine[2].T, c._affine[3], self.encode(blocks), RIDGE,
+        centre, ridge = ridge_centre(self.encode(blocks), shrink)
+        return truncated.truncated_codes(blocks, weights, c._affine[2].T, c._affine[3], centre, ridge,
                                          rounds, c.cg_steps_per_refit * rounds, REFIT_TOLERANCE, c._gram_pieces())
 

@@ -35,7 +35,7 @@ from . import ans
 from ..errors import FormatError, InvalidValueError
 
 __all__ = ["EntropyModel", "fit_model", "quantise", "choose_lengths", "encode_chunk", "decode_chunk", "gains",
-           "LAGRANGE", "CODER", "stream_bytes"]
+           "LAGRANGE", "CODER", "stream_bytes", "SHRINK", "SHRINK_BELOW"]
 
 #: The coder a map names (spec section 4e): constriction's AnsCoder (32-bit words, 64-bit state) with
 #: ``Categorical(table, perfect=False)`` models (24-bit precision).
@@ -46,6 +46,19 @@ CODER = "constriction-ans-1"
 #: 7.81 against 8.23 mm on the kitchen half, 1.42 against 1.50 on the synthetic room, 1.51 against 1.60 on the
 #: posed rooms, and the same surfaces at 128 B (docs/variable-rate.md).
 LAGRANGE = float(2.5 * np.log(2) / 6)
+#: The variable-rate writer's ridge towards the zero code (relative to the mean error weight) for its second
+#: encode below :data:`SHRINK_BELOW` bytes (:meth:`sdfcodec.map.varrate.VariableRateWriter._shrunk` then keeps, per
+#: block, the cheaper of the two codes in D + lam R). The reader's error is flat along the code directions that
+#: only move voxels it truncates or does not weigh; its exact optimum drifts along them to large codes, which cost
+#: bits once a coarse step quantises them. Kitchen half at 64 B, every block shrunk, Chamfer-L1: 8.00 mm without,
+#: 6.40 / 5.99 / 5.99 / 7.24 / 11.6 mm at 1e-3 / 3e-3 / 1e-2 / 3e-2 / 1e-1 (towards the plain code: 6.67 at 1e-3).
+#: Every block shrunk also lost on finer steps (kitchen 112 B 4.02 -> 4.15 mm; synthetic room, posed rooms at 40 B
+#: 2.65 -> 2.99, 2.94 -> 3.09; at 64 B 1.44 -> 1.57, 1.57 -> 1.83, building 1.39 -> 1.97): the per-block choice
+#: gains on all of them, kitchen 112 B aside (4.02 -> 4.04; docs/variable-rate.md).
+SHRINK = 3e-3
+#: Byte targets (per coded block) from which a writer never shrinks (so it need not keep the blocks for a second
+#: encode): at 128 B the kitchen half's step is 0.08.
+SHRINK_BELOW = 128.0
 _MIN_DECAY, _MAX_DECAY = 1e-6, 1 - 1e-9
 #: Entries of all of a model's tables together a reader builds at most (128 MiB of float64).
 MAX_TABLE = 1 << 24

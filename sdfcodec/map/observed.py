@@ -21,6 +21,7 @@ Both are the writer's and reader's business; codecs only see weights.
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 from pathlib import Path
@@ -139,7 +140,8 @@ def _grow(val: np.ndarray, observed: np.ndarray) -> np.ndarray:
 
 
 def encode_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
-                  voxel_size: float, surface_weight: float, device: Any, *, numpy_path: bool = False) -> np.ndarray:
+                  voxel_size: float, surface_weight: float, device: Any, *, numpy_path: bool = False,
+                  shrink: float = 0.0) -> np.ndarray:
     """Codes ``(N, k)`` float32 numpy of normalised blocks ``v`` ``(N, 16, 16, 16)``, encoded on ``device`` with
     the error weights of :func:`error_weights`: how every map writer (one process, or dask tasks) encodes.
     A codec that ignores weights (:func:`sdfcodec.codec.uses_weights`) encodes the blocks with their
@@ -147,7 +149,8 @@ def encode_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, trun
     its voxels as a compressed field (:meth:`~sdfcodec.Codec.field_compression`) gets them exactly as given:
     the field compressor, not ``encode``, bounds their error (spec/map-format.md section 4c). ``numpy_path``: on
     the CPU, through the codec's torch-free :meth:`~sdfcodec.Codec.numpy_path` where it has one (the same codes
-    to float32 rounding; a search encoding its query shapes takes it, writers keep the torch hooks)."""
+    to float32 rounding; a search encoding its query shapes takes it, writers keep the torch hooks). ``shrink``:
+    see :func:`encode_truncated`."""
     if codec.field_compression() is not None:
         return np.ascontiguousarray(v, dtype=np.float32).reshape(len(v), -1)
     w = error_weights(v, observed, truncation, voxel_size, surface_weight)
@@ -156,16 +159,25 @@ def encode_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, trun
     path = numpy_path_of(codec) if numpy_path and str(device) == "cpu" else None
     if path is not None:  # numpy in, numpy out: no torch import (a search's first query on a pca map)
         x = np.ascontiguousarray(v, dtype=np.float32).reshape(len(v), -1)
-        codes = path.encode(x) if w is None else path.encode_truncated(x, w.reshape(len(v), -1), TRUNCATION_ROUNDS)
+        codes = path.encode(x) if w is None else path.encode_truncated(x, w.reshape(len(v), -1), TRUNCATION_ROUNDS,
+                                                                        **_shrink_kw(path.encode_truncated, shrink))
         if codes is not None:
             return np.asarray(codes, dtype=np.float32)
     x = torch.from_numpy(np.ascontiguousarray(v)).to(device)
     if w is None:
         return codec.encode(x).cpu().numpy()
-    return encode_truncated(codec, x, torch.from_numpy(w).to(device)).cpu().numpy()
+    return encode_truncated(codec, x, torch.from_numpy(w).to(device), shrink=shrink).cpu().numpy()
 
 
-def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUNDS) -> Any:
+def _shrink_kw(hook: Any, shrink: float) -> dict:
+    """``{"shrink": shrink}`` where it is > 0 and the codec's ``encode_truncated`` hook takes it, else ``{}``
+    (a plugin written before the keyword still gets its three arguments)."""
+    if not shrink > 0:
+        return {}
+    return {"shrink": float(shrink)} if "shrink" in inspect.signature(hook).parameters else {}
+
+
+def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUNDS, shrink: float = 0.0) -> Any:
     """Weighted codes ``(N, k)`` of normalised blocks ``x`` ``(N, 16, 16, 16)`` (tensor) under error weights
     ``w`` (same shape), for a reader that truncates what it decodes to ``[0, 1]`` (``[d_min, d_max]``).
 
@@ -180,8 +192,13 @@ def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUN
     A codec declaring the capability ``encode_truncated`` MAY compute the same (or solve the same problem
     otherwise, no worse in total: spec/codec-plugins.md section 4) in one pass of its own
     (:meth:`Codec.encode_truncated`; None where it does not apply: the pca codec's compiled pass on the CPU,
-    spec/codec-plugins.md section 4a)."""
-    if "encode_truncated" in capabilities(codec) and (codes := codec.encode_truncated(x, w, rounds)) is not None:
+    spec/codec-plugins.md section 4a).
+
+    ``shrink`` > 0 (the variable-rate writer's at low rates, :func:`sdfcodec.core.varrate.shrink_for_bytes`):
+    the hook adds a ridge towards the zero code of that relative weight (times the mean weight) where it takes
+    the keyword; the batched loop below does not, and solves the problem without it."""
+    if "encode_truncated" in capabilities(codec) and (codes := codec.encode_truncated(
+            x, w, rounds, **_shrink_kw(codec.encode_truncated, shrink))) is not None:
         return codes
     codes = codec.encode(x, weights=w)
     n = len(x)

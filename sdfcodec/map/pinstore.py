@@ -101,6 +101,10 @@ class PinnedStreams:
         self.bytes = 0
         #: ``(rows, v, bound) -> (v, bound)``: the refined exact field of those rows (spec 6h), or None
         self.refined: Callable | None = None
+        #: whether :meth:`at` chooses the unobserved free bits too (:func:`~sdfcodec.map.pinmask.chosen_bits`:
+        #: about 1 B per coded block less on the kitchen half, at three times the mask's cost; the variable-rate
+        #: writer turns it on for the last rounds of its step search at low byte targets)
+        self.choose = False
 
     def at(self, q: np.ndarray, step: np.ndarray) -> None:
         """``q`` ``(n, k)`` integer codes of the blocks, in ``coords``' order, with steps ``step``."""
@@ -119,8 +123,14 @@ class PinnedStreams:
             neg, pos = pm.sign_bounds(v, bound)  # the neighbours' true decode: exact bits at the chunk's faces
             bits = pm.canonical_bits(self.coords[both], self.truth[both], neg, pos, self.truncation)[:len(sel)]
             pins = pm.pinned_voxels_of(own, neg[:len(sel)], pos[:len(sel)], outside, self.truncation)
-            # the truly observed voxels the canonical bits leave 0 are free: the coder's likelier value
+            # the truly observed voxels the canonical bits leave 0 are free: the coder's likelier value; with
+            # ``choose``, every pinned voxel they leave 0 where a 1 meshes nothing new, by the stream's length
             bits = pm.cheapest_bits(own, bits, self.truth[sel] & ~bits, pins)
+            if self.choose:
+                _, negp, posp = pm.exact_pins(self.coords[both], neg, pos, np.zeros((0, 3), np.int64),
+                                              self.truncation)
+                bits = pm.chosen_bits(own, bits, pins, negp[:len(sel)], posp[:len(sel)], outside, self.truncation,
+                                      start=bits)
             self.streams.append(pm.encode_pinned(own, bits, pins))
         self.bytes = sum(len(_zstd(r)) + 4 for r in self._rows())  # each row as stored: zstd level 1, CRC32C
 

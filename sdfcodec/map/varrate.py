@@ -27,8 +27,8 @@ from ..core._validate import BLOCK, empty
 from ..errors import FormatError, InvalidValueError
 from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEMENT_EXTENSION, BlockState, Extension,
                            VariableRate)
-from ..core.varrate import (CODER, LAGRANGE, EntropyModel, choose_lengths, decode_chunk, encode_chunk, gains,
-                            stream_bytes)
+from ..core.varrate import (CODER, LAGRANGE, SHRINK, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk,
+                            encode_chunk, gains, stream_bytes)
 from .implied import drop_implied, inline_states
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
@@ -59,6 +59,9 @@ STEP_RESOLUTION = 2.0 ** -10
 #: ``--target-bytes`` from which the bytes go to the codes and a surface refinement (spec 6h), per coded block:
 #: a pca-128 decode's Chamfer stops falling near 128 B (kitchen half: 3.91 mm at 128 B, 3.86 at 192 B).
 REFINE_FROM = 160.0
+#: The step search's last rounds with the pinned mask's chooser (low targets): bisection rounds, and how far
+#: below the step found they look (log2 of the step).
+CHOICE_ROUNDS, CHOICE_SPAN = 4, 0.16
 _STREAM_DOC_BASE = 309  # a stream array's compact document but the digits of its width (measured)
 
 
@@ -150,6 +153,10 @@ class VariableRateWriter:
             step = check_step(step, self.d)
         self.step, self.target_bytes, self.target_error = step, target_bytes, target_error
         self.lagrange = float(lagrange)
+        #: the ridge towards the zero code the blocks were encoded with again on commit (:meth:`_shrunk`), or 0;
+        #: below SHRINK_BELOW bytes the blocks are kept for that second encode and the choice between the two
+        self.shrink, self._may_shrink = 0.0, target_bytes is not None and target_bytes < SHRINK_BELOW
+        self._surface_weight = 1.0
         self.exact_mask, self.pinned_mask = bool(exact_mask), bool(pinned_mask)
         self._mask: _LossyMask | None = None
         if refine_step is not None and not (np.isfinite(refine_step) and 2.0 ** -24 <= refine_step < 1.0):
@@ -179,8 +186,8 @@ class VariableRateWriter:
         w = np.ones((len(v), BLOCK ** 3), np.float32) if w is None else w.reshape(len(v), -1)
         g = gains(w, self.basis_sq)
         write_block_rows(gain_arr, coords, g)
-        self.voxel_size = float(voxel_size)
-        if self.refine:  # the true values the refinement corrects towards: float32 metres, packed bits
+        self.voxel_size, self._surface_weight = float(voxel_size), float(surface_weight)
+        if self.refine or self._may_shrink:  # the true values (refinement, second encode): float32 metres, bits
             from .refine import TrueValues
 
             d_min, d_max = truncation
@@ -255,6 +262,10 @@ class VariableRateWriter:
 
         share = None if ref is None or self.target_bytes is None else codes_share(self.target_bytes)
         step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
+        shrink = SHRINK if self._may_shrink and len(z) else 0.0
+        if shrink > 0 and self._truth is not None and self._truth.rows_of(coded) is not None:
+            z = self._shrunk(coded, truncation, shrink, z, g, step)  # per block the cheaper of two codes, step again
+            step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share, float(np.mean(step)))
         refinement = None
         if ref is not None:
             refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
@@ -299,6 +310,48 @@ class VariableRateWriter:
                                exact_mask_bytes_per_coded_block=mask.exact / n)
         return spec
 
+    def _shrunk(self, coded: np.ndarray, truncation: tuple[float, float], shrink: float, z: np.ndarray,
+                g: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """Codes ``(n, D)`` float64 of the blocks ``coded``: per block, the first encode's ``z`` or the encode again
+        from the true values with a ridge towards the zero code (``shrink``, :data:`sdfcodec.core.varrate.SHRINK`),
+        whichever costs less ``D + lam R`` once quantised at ``step`` (the step found for ``z``): ``D`` the
+        reader's weighted error of the truncated decode against the true values (not the gains' second-order
+        estimate: the flat valley is what it misses), ``R`` the bits under each candidate's own model. Where the
+        step is coarse the smaller codes win; elsewhere most blocks keep the first encode. Sets ``self.shrink`` and
+        the report's ``shrunk_blocks``."""
+        from .observed import encode_blocks
+
+        rows = self._truth.rows_of(coded)
+        d_min, d_max = truncation
+        lam = self._lam(step, g)
+        cands = [z, np.empty_like(z)]
+        batches = []
+        for i in range(0, len(coded), SAMPLE_BLOCKS):
+            r = rows[i:i + SAMPLE_BLOCKS]
+            v = (np.asarray(self._truth.values[r]) - np.float32(d_min)) / np.float32(d_max - d_min)
+            v = v.astype(np.float32).reshape(-1, BLOCK, BLOCK, BLOCK)
+            obs = self._truth.observed
+            obs = None if obs is None else unpack_mask(np.asarray(obs[r]))
+            cands[1][i:i + SAMPLE_BLOCKS] = encode_blocks(self.codec, v, obs, truncation, self.voxel_size,
+                                                          self._surface_weight, "cpu", shrink=shrink)
+            batches.append((i, v, obs))
+        cost = []
+        cols = np.arange(self.d)
+        for c in cands:
+            q, k, model = choose_lengths(c, g, step, lam)
+            bits = np.where(cols < k[:, None], model.bits(q), 0.0).sum(axis=1) + model.length_bits()[k]
+            err = np.empty(len(c))
+            for i, v, obs in batches:
+                dec = self.codec.decode(torch.from_numpy((q[i:i + len(v)] * step).astype(np.float32))).numpy()
+                w = error_weights(v, obs, truncation, self.voxel_size, self._surface_weight)
+                e = (np.clip(dec.reshape(len(v), -1), 0, 1) - v.reshape(len(v), -1)) ** 2
+                err[i:i + len(v)] = (e if w is None else e * w.reshape(len(v), -1)).sum(axis=1)
+            cost.append(err + lam * bits)
+        pick = cost[1] < cost[0]
+        self.shrink = shrink
+        self.report["shrunk_blocks"] = int(pick.sum())
+        return np.where(pick[:, None], cands[1], z)
+
     def _pinned(self, group: Any, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float],
                 extensions: list) -> tuple[Any, int]:
         """``(PinnedStreams or None, metadata bytes it adds)``: the pinned mask (spec 6g) where ``pinned_mask`` and
@@ -326,14 +379,14 @@ class VariableRateWriter:
         keys = manifest_bytes_estimate(new) - manifest_bytes_estimate(old)
         return streams, STREAM_METADATA_BYTES - (meta.stat().st_size if meta.exists() else 0) + max(keys, 0)
 
-    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation, share=None) -> np.ndarray:
+    def _choose_step(self, z, g, chunk_ids, other_bytes, n, truncation, share=None, below=None) -> np.ndarray:
         if self.step is not None:
             return self.step
         if not len(z):
             raise InvalidValueError("the map has no coded blocks (all free space): there are no codes to rate-control")
         if self.target_error is not None:
             return self._step_for_error(truncation)
-        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n, share)
+        return self._step_for_bytes(z, g, chunk_ids, other_bytes, n, share, below)
 
     def _refinement(self, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float]):
         """A :class:`~sdfcodec.map.refine.RefinementStreams` of the coded blocks when the refinement can apply
@@ -397,9 +450,11 @@ class VariableRateWriter:
         self.report.update(refine_step=2 ** hi)
         return 2 ** hi, tau_for_step(2 ** hi, self.voxel_size)
 
-    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None) -> np.ndarray:
+    def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None, below=None) -> np.ndarray:
         """Bisection on log(step): the codes' exact stream bytes plus everything else against the target (or
-        ``share`` of it: the codes' part beside a refinement)."""
+        ``share`` of it: the codes' part beside a refinement). ``below``: a step known to fit codes larger than
+        ``z`` (the first encode's, before the shrink): the search starts between it and 8 times finer, without
+        the costly ends (the finest step codes every element at full length), unless ``z`` does not fit there."""
         t = self.target_bytes if share is None else share
 
         def total(s: float) -> tuple[float, float]:
@@ -410,12 +465,16 @@ class VariableRateWriter:
             return (self._rows_bytes(streams) + other) / n, other / n
 
         lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
-        t_hi, other_hi = total(2 ** hi)
+        if below is not None and total(below)[0] <= t:
+            lo, hi = np.log2(below) - 3.0, float(np.log2(below))
+        else:
+            below = None
+        t_hi, other_hi = (0.0, 0.0) if below is not None else total(2 ** hi)
         if t_hi > t * (1 + TOLERANCE):
             raise InvalidValueError(f"a target of {t:g} bytes per coded block is below what this map can take: at "
                                     f"least {t_hi:.1f} (of it {other_hi:.1f} of observation mask, weights, block "
                                     "states, header and metadata; codes all but empty)")
-        t_lo, _ = total(2 ** lo)
+        t_lo, _ = (np.inf, 0.0) if below is not None else total(2 ** lo)
         if t_lo < t:
             raise InvalidValueError(f"a target of {t:g} bytes per coded block is above what variable-rate codes take "
                                     f"on this map: at most {t_lo:.1f} (at step {2 ** lo:g}); store float32 codes")
@@ -425,8 +484,19 @@ class VariableRateWriter:
             mid = (lo + hi) / 2
             got, _ = total(2 ** mid)
             if t * (1 - TOLERANCE) <= got <= t:
-                return np.full(self.d, 2 ** mid)
+                hi = mid
+                break
             lo, hi = (mid, hi) if got > t else (lo, mid)
+        mask = self._mask
+        if self.shrink > 0 and mask is not None and mask.pinned is not None:
+            # low targets: the mask's free bits chosen (pinstore.PinnedStreams.choose) in a few last rounds only
+            # (the chooser costs three masks), below the step found, keeping the finest that fits
+            mask.pinned.choose = True
+            lo = hi - CHOICE_SPAN
+            for _ in range(CHOICE_ROUNDS):
+                mid = (lo + hi) / 2
+                got, _ = total(2 ** mid)
+                lo, hi = (mid, hi) if got > t else (lo, mid)
         return np.full(self.d, 2 ** hi)
 
     def _step_for_error(self, truncation) -> np.ndarray:
