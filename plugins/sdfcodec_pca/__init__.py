@@ -67,7 +67,7 @@ def ridge_centre(c0: np.ndarray, shrink: float) -> tuple[np.ndarray, float]:
     code (their sum differs by a constant in ``c``). Why shrink: the reader's error is flat along the directions
     that only move voxels it truncates, and its exact optimum drifts along them to large codes that cost bits once
     quantised coarsely; a ridge towards zero picks the small code in that valley (the variable-rate writer asks
-    for it at low rates: :func:`sdfcodec.core.varrate.shrink_for_bytes`)."""
+    for it at low rates: :data:`sdfcodec.core.varrate.SHRINK`)."""
     if not shrink > 0:
         return c0, RIDGE
     total = RIDGE + float(shrink)

@@ -194,7 +194,7 @@ def encode_truncated(codec: Codec, x: Any, w: Any, rounds: int = TRUNCATION_ROUN
     (:meth:`Codec.encode_truncated`; None where it does not apply: the pca codec's compiled pass on the CPU,
     spec/codec-plugins.md section 4a).
 
-    ``shrink`` > 0 (the variable-rate writer's at low rates, :func:`sdfcodec.core.varrate.shrink_for_bytes`):
+    ``shrink`` > 0 (the variable-rate writer's at low rates, :data:`sdfcodec.core.varrate.SHRINK`):
     the hook adds a ridge towards the zero code of that relative weight (times the mean weight) where it takes
     the keyword; the batched loop below does not, and solves the problem without it."""
     if "encode_truncated" in capabilities(codec) and (codes := codec.encode_truncated(
