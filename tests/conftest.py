@@ -148,11 +148,13 @@ def pytest_xdist_node_collection_finished(node, ids):
 # long test is left alone at the end of the run while the other worker idles. Every other test is handed out
 # one by one, as xdist does. (xdist's own `--dist loadgroup` does not group tests under pytest 9.) The two
 # modules reading the one `sdfcodec bench` run (bench_run, ~20 s of CPU) share a worker: in two workers asking
-# for it at once, RunShared built it twice. test_architecture's checks share one parse of every module (~3 s).
+# for it at once, RunShared built it twice. test_architecture's checks share one parse of every module (~3 s),
+# test_conformance_builtin's one fit of each codec (sdfcodec.testing fits a reference once per process).
 WORKER_GROUPS = {name: name for name in (
     "test_reliability", "test_writes", "test_plugin_package", "test_plugin_compat", "test_codecs_nn",
     "test_rate_distortion", "test_peers_study", "test_bench_harness", "test_search", "test_building",
-    "test_shards", "test_tracking", "test_evaluation", "test_view", "test_architecture")} | {
+    "test_shards", "test_tracking", "test_evaluation", "test_view", "test_architecture",
+    "test_conformance_builtin")} | {
     "test_cli": "bench_run", "test_bench_progress": "bench_run"}
 
 
