@@ -72,12 +72,18 @@ def pytest_configure(config):
     Under pytest-xdist each worker gets its share of the cores as torch's and OpenBLAS's default threads
     (``OMP_NUM_THREADS``, unless set): two workers with two threads each on two cores wait on each other's
     spinning threads (the suite on the 2-core machine: 484 s with 2 threads a worker, 411 s with 1). Tests that
-    need more threads ask for them (``torch.set_num_threads``, threadpoolctl)."""
+    need more threads ask for them (``torch.set_num_threads``, threadpoolctl). So do numba's parallel kernels
+    (``NUMBA_NUM_THREADS``; numba's default is every core, whatever ``OMP_NUM_THREADS`` says): with two threads
+    in each of two workers, the writer's parallel encode in one worker slowed the other's torch work up to 20x
+    (test_conformance.py + test_fast_encode.py + test_observed.py, -n 2, load ~2, twice each, alternated:
+    29.3-29.6 s -> 16.8-17.1 s, 43.3-43.8 -> 35.1-36.0 CPU-s)."""
     import tempfile
 
     workers = getattr(config.option, "numprocesses", None)
     if isinstance(workers, int) and workers > 1:
-        os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // workers)))
+        share = str(max(1, (os.cpu_count() or 1) // workers))
+        os.environ.setdefault("OMP_NUM_THREADS", share)
+        os.environ.setdefault("NUMBA_NUM_THREADS", share)
         if not os.environ.get("PYTEST_XDIST_WORKER"):
             _start_numba_warm()
 
