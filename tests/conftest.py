@@ -74,7 +74,7 @@ def pytest_configure(config):
     spinning threads (the suite on the 2-core machine: 484 s with 2 threads a worker, 411 s with 1). Tests that
     need more threads ask for them (``torch.set_num_threads``, threadpoolctl). So do numba's parallel kernels
     (``NUMBA_NUM_THREADS``; numba's default is every core, whatever ``OMP_NUM_THREADS`` says): with two threads
-    in each of two workers, the writer's parallel encode in one worker slowed the other's torch work up to 20x
+    in each of two workers, the writer's parallel encode in one worker slowed the other's work
     (test_conformance.py + test_fast_encode.py + test_observed.py, -n 2, load ~2, twice each, alternated:
     29.3-29.6 s -> 16.8-17.1 s, 43.3-43.8 -> 35.1-36.0 CPU-s)."""
     import tempfile
