@@ -72,17 +72,79 @@ def pytest_configure(config):
     Under pytest-xdist each worker gets its share of the cores as torch's and OpenBLAS's default threads
     (``OMP_NUM_THREADS``, unless set): two workers with two threads each on two cores wait on each other's
     spinning threads (the suite on the 2-core machine: 484 s with 2 threads a worker, 411 s with 1). Tests that
-    need more threads ask for them (``torch.set_num_threads``, threadpoolctl)."""
+    need more threads ask for them (``torch.set_num_threads``, threadpoolctl). So do numba's parallel kernels
+    (``NUMBA_NUM_THREADS``; numba's default is every core, whatever ``OMP_NUM_THREADS`` says): with two threads
+    in each of two workers, the writer's parallel encode in one worker slowed the other's work
+    (test_conformance.py + test_fast_encode.py + test_observed.py, -n 2, load ~2, twice each, alternated:
+    29.3-29.6 s -> 16.8-17.1 s, 43.3-43.8 -> 35.1-36.0 CPU-s)."""
     import tempfile
 
     workers = getattr(config.option, "numprocesses", None)
     if isinstance(workers, int) and workers > 1:
-        os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // workers)))
+        share = str(max(1, (os.cpu_count() or 1) // workers))
+        os.environ.setdefault("OMP_NUM_THREADS", share)
+        os.environ.setdefault("NUMBA_NUM_THREADS", share)
+        if not os.environ.get("PYTEST_XDIST_WORKER"):
+            _start_numba_warm()
 
     from sdfcodec.search.cache import CACHE_ENV
 
     if CACHE_ENV not in os.environ:
         os.environ[CACHE_ENV] = config._sdfcodec_cache = tempfile.mkdtemp(prefix="sdfcodec-test-cache-")  # noqa: SLF001
+
+
+# The numba kernels and the sources whose on-disk cache (numba's, in the __pycache__ beside each) the jobs of
+# tests/numba_warm.py fill.
+NUMBA_WARM_JOBS = {"pca": ["plugins/sdfcodec_pca/kernels.py"],
+                   "pinned": ["sdfcodec/core/anskernels.py", "sdfcodec/core/pinkernels.py"]}
+
+
+def _numba_cached(sources: list[str]) -> bool:
+    """Whether numba's cache beside each source holds entries written after the source last changed (a cheap
+    test: an entry numba finds stale, or a kernel not yet cached, is compiled where it is used, as always)."""
+    for src in (ROOT / s for s in sources):
+        entries = list((src.parent / "__pycache__").glob(f"{src.stem}.*.nbi"))
+        if not entries or min(e.stat().st_mtime for e in entries) < src.stat().st_mtime:
+            return False
+    return True
+
+
+def _start_numba_warm() -> None:
+    """The controller of an xdist run starts tests/numba_warm.py's jobs while the workers import and collect,
+    and waits for them before the first test is handed out (pytest_xdist_node_collection_finished). In a fresh
+    checkout (CI's clean clone) nothing is compiled: each worker compiled the same kernels (~70 CPU-s), and so
+    did every subprocess a test started before a worker had saved them; run once, split over the two cores,
+    the workers load them. Skipped without numba, with the cache filled (the next runs), or with
+    SDFCODEC_TEST_NO_WARM set."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    if os.environ.get("SDFCODEC_TEST_NO_WARM") or importlib.util.find_spec("numba") is None:
+        return
+    custom = bool(os.environ.get("NUMBA_CACHE_DIR"))  # another cache directory: not checked, warmed
+    _WARMING.extend(
+        subprocess.Popen([sys.executable, str(ROOT / "tests" / "numba_warm.py"), job], cwd=ROOT,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        for job, sources in NUMBA_WARM_JOBS.items() if custom or not _numba_cached(sources))
+
+
+_WARMING: list = []  # the controller's running warm-up jobs
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids):
+    """Wait for the numba warm-up (:func:`_start_numba_warm`) before the controller hands out tests; a job that
+    fails or hangs only leaves its kernels to be compiled where they are used."""
+    import subprocess
+
+    while _WARMING:
+        job = _WARMING.pop()
+        try:
+            job.wait(timeout=300)
+        except subprocess.TimeoutExpired:
+            job.kill()
+            job.wait()
 
 
 # Modules whose module-scoped fixtures are expensive (a fork server preloading torch, a pip install, trained
@@ -92,11 +154,13 @@ def pytest_configure(config):
 # long test is left alone at the end of the run while the other worker idles. Every other test is handed out
 # one by one, as xdist does. (xdist's own `--dist loadgroup` does not group tests under pytest 9.) The two
 # modules reading the one `sdfcodec bench` run (bench_run, ~20 s of CPU) share a worker: in two workers asking
-# for it at once, RunShared built it twice.
+# for it at once, RunShared built it twice. test_architecture's checks share one parse of every module (~3 s),
+# test_conformance_builtin's one fit of each codec (sdfcodec.testing fits a reference once per process).
 WORKER_GROUPS = {name: name for name in (
     "test_reliability", "test_writes", "test_plugin_package", "test_plugin_compat", "test_codecs_nn",
     "test_rate_distortion", "test_peers_study", "test_bench_harness", "test_search", "test_building",
-    "test_shards", "test_tracking", "test_evaluation", "test_view")} | {
+    "test_shards", "test_tracking", "test_evaluation", "test_view", "test_architecture",
+    "test_conformance_builtin")} | {
     "test_cli": "bench_run", "test_bench_progress": "bench_run"}
 
 

@@ -29,6 +29,7 @@ maps where writes really fail (see :func:`faults_main`).
 
 from __future__ import annotations
 
+import gc
 import importlib
 import json
 import os
@@ -427,6 +428,10 @@ def _preload() -> None:
         importlib.import_module(f"sdfcodec.map.{module}")
     sdfcodec.get_codec("raw")
     assert threading.active_count() == 1, "the fork server must not start threads before it forks"
+    # what was loaded lives as long as every job: out of the cyclic collector's reach, so that a job's
+    # collections scan only what the job made and leave the loaded modules' pages shared with the server
+    # (as tests/conftest.py does for the test processes)
+    gc.freeze()
 
 
 def main() -> None:

@@ -346,7 +346,7 @@ def _owned_any(source: str, layer: int | None = None) -> list[str]:
         return layer is None or LAYERS[unit_of(OWNER[key])] <= layer
 
     found = []
-    for fn in ast.walk(ast.parse(source)):
+    for fn in ast.walk(_parse(source)):
         if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
             continue
         a = fn.args

@@ -29,8 +29,13 @@ class Tiny(sdfcodec.Codec):
     def _fit(self, blocks):
         x = blocks.reshape(len(blocks), -1).astype(np.float64)
         mu = x.mean(axis=0)
-        _, _, vt = np.linalg.svd(x - mu, full_matrices=False)
-        self.load_state_dict({"mean": mu.astype(np.float32), "basis": vt[: self.code_size].astype(np.float32)})
+        # the principal directions from the blocks' Gram matrix (n x n, n <= a few hundred here): the SVD of the
+        # n x 4096 blocks gives the same, ~10x slower (the checks fit this codec ~30 times in the file)
+        c = x - mu
+        w, v = np.linalg.eigh(c @ c.T)
+        top = np.argsort(w)[::-1][: self.code_size]
+        basis = (v[:, top].T @ c) / np.sqrt(w[top])[:, None]
+        self.load_state_dict({"mean": mu.astype(np.float32), "basis": basis.astype(np.float32)})
 
     def state_dict(self):
         return {"mean": self.mean_, "basis": self.basis_} if hasattr(self, "basis_") else {}
