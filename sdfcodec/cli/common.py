@@ -132,8 +132,8 @@ def finished_cleanly() -> None:
 def end_process(code: Any) -> None:
     """End the process with status ``code`` right away when the command :func:`finished_cleanly`: the streams
     flushed and the ``atexit`` handlers run (readers' pins, remote sessions, logging), as at a normal exit, but
-    not the teardown of the ~700 modules a command imports (0.1 s on two idle cores, 0.2-0.4 s loaded, after the
-    answer is printed). Returns (the caller exits as usual) otherwise, or when a stream cannot be flushed."""
+    not the teardown of the ~700 modules a command imports (0.2-0.4 s after the answer on two cores at load 4-6).
+    Returns (the caller exits as usual) otherwise, or when a stream cannot be flushed."""
     if not _finished or not (code is None or (isinstance(code, int) and not isinstance(code, bool))):
         return
     import atexit

@@ -754,7 +754,7 @@ def check_planes(view: Any, model: QueryModel, scene_info: dict, kept: np.ndarra
         return kept
     # the walls of a map that records its observation keep some of the stage's blocks and add none (below): the
     # selection reads the verdicts of those only, and the refits and noise measure come from its strong blocks, so
-    # only the stage's blocks are checked (the kitchen: 100 instead of 509, the same verdicts and selection)
+    # only the stage's blocks are checked (the kitchen: 170 checks instead of 509, the same verdicts and selection)
     walls = bool(spec.get("weighted")) and spec.get("shape") == "wall"
     acc, undecided, impure, info = verify_planes(
         view, planes, kept if walls else coded, kept[kept_strong], codes_of, behind=spec.get("behind", "solid"),
