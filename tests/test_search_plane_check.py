@@ -532,3 +532,54 @@ def test_shipped_calibrations_select_what_fresh_ones_select(tmp_path, tilted_flo
     got = {tuple(int(v) for v in c) for c in shipped.coords}
     assert not (got & mixed) and len(got & clean) >= 0.8 * len(clean)
     cache.clear_memory_cache()
+
+
+def test_a_fused_maps_walls_checked_on_the_stages_blocks_alone_get_the_verdicts_of_a_check_of_every_block(tmp_path):
+    """check_planes checks the walls of a map that records its observation on the map-level stage's blocks only
+    (it keeps some of them and adds none): every verdict it reads, each plane's refit and noise measure (from the
+    strong blocks) must be those of the check of every crossed block. A fused-style room's corner: wall A (x = 20.5
+    voxels) with a box standing against it, wall B (y = 40.5), both checked with their refits."""
+    from sdfcodec.search.engine import codes_at
+    from sdfcodec.search.models import QueryModel
+    from sdfcodec.search.plane_check import check_planes, verify_planes
+    from sdfcodec.search.shapes import FUSED_STRETCH
+
+    scene = Scene([Plane((1.0, 0.0, 0.0), 20.5 * VS), Plane((0.0, -1.0, 0.0), -40.5 * VS),
+                   Box((26 * VS, 6 * VS, 6 * VS), (6 * VS, 4 * VS, 6 * VS))])
+    vol, observed = fused_like(sample_volume(scene, (64, 64, 32), VS, truncation=TRUNC))
+    write_volume_map(tmp_path / "w.sdfz", vol, observed, pretrained_codec("pca", 64))
+    m = sdfcodec.open_map(tmp_path / "w.sdfz")
+    coded = np.argwhere(np.ones((4, 4, 2), bool))
+    planes = [(np.array([1.0, 0.0, 0.0]), 20.5 * VS), (np.array([0.0, -1.0, 0.0]), -40.5 * VS)]
+    # the stage's blocks: wall A's (one holding the box), wall B's, the corner's, two of neither (the strong ones:
+    # the walls' but two)
+    kept = np.array([[1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1], [2, 2, 0], [2, 2, 1], [3, 2, 0], [3, 2, 1],
+                     [1, 2, 0], [0, 1, 0], [2, 0, 1]])
+    strong = np.ones(len(kept), bool)
+    strong[[3, 7, 9, 10]] = False
+    kw = dict(behind="unobserved", weighted=True, stretches=FUSED_STRETCH, quantile=0.99, samples=256, tol=2.0)
+    codes_of = lambda c: codes_at(m, c, m.code_size)  # noqa: E731
+    every = verify_planes(m, planes, coded, kept[strong], codes_of, **kw)
+    alone = verify_planes(m, planes, kept, kept[strong], codes_of, **kw)
+    keys = {tuple(c) for c in kept.tolist()}
+
+    def among(blocks):
+        return {tuple(int(v) for v in c) for c in np.asarray(blocks).reshape(-1, 3)} & keys
+
+    assert all(among(e) == among(a) for e, a in zip(every[:3], alone[:3]))
+    assert [among(p) for p in every[3]["crossed"]] == [among(p) for p in alone[3]["crossed"]]
+    same = ("normal", "d", "threshold", "move_voxels", "noise_excess", "measured_on")
+    def reported(info):
+        return [{k: p[k] for k in same} for p in info["planes"]]
+
+    assert reported(every[3]) == reported(alone[3])
+    assert every[3]["planes"][0]["checked"] > alone[3]["planes"][0]["checked"]
+    # and check_planes' selection: the stage's blocks crossed by a plane and not impure, from the check of every block
+    model = QueryModel("wall", np.zeros((1, 64), np.float32), {}, None, VS, TRUNC,
+                       spec={"shape": "wall", "behind": "unobserved", "weighted": True, "stretch": list(FUSED_STRETCH)})
+    scene_info = {"planes": [{"normal": n.tolist(), "d": d} for n, d in planes]}
+    got = check_planes(m, model, scene_info, kept, strong, coded, codes_of)
+    crossed = {tuple(c) for p in every[3]["crossed"] for c in p}
+    impure = {tuple(int(v) for v in c) for c in every[2]}
+    want = [c for c in kept.tolist() if tuple(c) in crossed and tuple(c) not in impure]
+    assert got.tolist() == want and 0 < len(want) < len(kept)

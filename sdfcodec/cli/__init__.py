@@ -20,10 +20,15 @@ if "numpy" not in sys.modules:
 from . import maps, work  # noqa: E402,F401  (each module registers its commands on the app)
 from . import view  # noqa: E402,F401  (sdfcodec view: a Rerun recording of a map)
 from . import interop  # noqa: E402,F401  (import, export, trajectory: other systems' maps and poses)
-from .common import app  # noqa: E402
+from .common import app, end_process  # noqa: E402
 
 __all__ = ["app", "main"]
 
 
 def main() -> None:
-    app()
+    """The ``sdfcodec`` command (``python -m sdfcodec``): ``app`` run in this process, which ends with it."""
+    try:
+        app()
+    except SystemExit as e:
+        end_process(e.code)  # a command that finished cleanly ends here, without Python's teardown
+        raise

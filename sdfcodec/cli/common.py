@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
 __all__ = ["app", "out", "err", "fail", "cli", "reads_maps", "write_output", "PlainWriter", "progress_bar",
            "parse_triple", "parse_pair", "parse_truncation", "parse_region", "print_json", "report", "refuse_existing", "human_bytes",
-           "load_volume", "overwrite_option", "json_option", "check_device_flag"]
+           "load_volume", "overwrite_option", "json_option", "check_device_flag", "finished_cleanly", "end_process"]
 
 
 def unwrap_paragraphs(text: str | None) -> str | None:
@@ -120,6 +120,33 @@ def fail(msg: str, code: int = 1) -> None:
     raise typer.Exit(code)
 
 
+_finished: list[bool] = []  # finished_cleanly() was called by the command running (one command per process)
+
+
+def finished_cleanly() -> None:
+    """Say that the running command has printed its answer, closed every file it wrote and left no thread of its
+    own working (a read-only command: search): :func:`end_process` may then skip Python's teardown."""
+    _finished.append(True)
+
+
+def end_process(code: Any) -> None:
+    """End the process with status ``code`` right away when the command :func:`finished_cleanly`: the streams
+    flushed and the ``atexit`` handlers run (readers' pins, remote sessions, logging), as at a normal exit, but
+    not the teardown of the ~700 modules a command imports (0.2-0.4 s after the answer on two cores at load 4-6).
+    Returns (the caller exits as usual) otherwise, or when a stream cannot be flushed."""
+    if not _finished or not (code is None or (isinstance(code, int) and not isinstance(code, bool))):
+        return
+    import atexit
+
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed pipe: Python's own exit reports it
+        return
+    atexit._run_exitfuncs()  # what Py_Finalize runs first; os._exit then skips the rest
+    os._exit(code or 0)
+
+
 def cli(fn: Callable) -> Callable:
     """Turn the project's errors (and missing files) into one line on stderr and exit status 1."""
 
@@ -131,6 +158,7 @@ def cli(fn: Callable) -> Callable:
         old = warnings.showwarning
         warnings.showwarning = show
         _targets.clear()  # one command per process, but CliRunner runs many in one
+        _finished.clear()
         try:
             return fn(*args, **kwargs)
         except KeyboardInterrupt:  # Ctrl-C: the shell's 128 + SIGINT, and what became of the output

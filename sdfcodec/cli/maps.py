@@ -16,6 +16,7 @@ from .common import (app, check_code_size, check_device_flag, cli, err, fail, hu
                      parse_truncation, parse_triple, PlainWriter, print_json, print_table, progress_bar,
                      refuse_existing, report, working, write_output)
 from .common import json_option, overwrite_option  # the --json and --overwrite every command shares
+from .common import finished_cleanly
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -705,6 +706,7 @@ def search_cmd(
                                  overwrite=overwrite, behind=behind, up=up, tilt=tilt, scene=not shape_only)
     # the line says whether the time includes building the query (nothing is listened for with --json)
     report(summary, as_json, lambda: format_summary(dict(summary, built=sorted(said)), verbose=verbose))
+    finished_cleanly()  # its files are written and closed: the process may end without Python's teardown
 
 
 @app.command("verify")
