@@ -568,11 +568,13 @@ def test_a_fused_maps_walls_checked_on_the_stages_blocks_alone_get_the_verdicts_
 
     assert all(among(e) == among(a) for e, a in zip(every[:3], alone[:3]))
     assert [among(p) for p in every[3]["crossed"]] == [among(p) for p in alone[3]["crossed"]]
-    same = ("normal", "d", "threshold", "move_voxels", "noise_excess", "measured_on")
-    def reported(info):
-        return [{k: p[k] for k in same} for p in info["planes"]]
-
-    assert reported(every[3]) == reported(alone[3])
+    # the reported figures are rounded to 4 decimals; the two checks decode their blocks in batches of different
+    # sizes, whose float32 products may round apart (a clean clone's run reported thresholds 3.3116 and 3.3115)
+    same = ("d", "threshold", "move_voxels", "noise_excess")
+    for e, a in zip(every[3]["planes"], alone[3]["planes"], strict=True):
+        assert e["measured_on"] == a["measured_on"]
+        assert e["normal"] == pytest.approx(a["normal"], abs=2e-4)
+        assert {k: e[k] for k in same} == pytest.approx({k: a[k] for k in same}, rel=1e-4, abs=2e-4)
     assert every[3]["planes"][0]["checked"] > alone[3]["planes"][0]["checked"]
     # and check_planes' selection: the stage's blocks crossed by a plane and not impure, from the check of every block
     model = QueryModel("wall", np.zeros((1, 64), np.float32), {}, None, VS, TRUNC,

@@ -143,7 +143,10 @@ def end_process(code: Any) -> None:
         sys.stderr.flush()
     except (OSError, ValueError):  # a closed pipe: Python's own exit reports it
         return
-    atexit._run_exitfuncs()  # what Py_Finalize runs first; os._exit then skips the rest
+    run_exitfuncs = getattr(atexit, "_run_exitfuncs", None)  # CPython's; without it, Python's own exit
+    if run_exitfuncs is None:
+        return
+    run_exitfuncs()  # what Py_Finalize runs first; os._exit then skips the rest
     os._exit(code or 0)
 
 
