@@ -324,33 +324,42 @@ class VariableRateWriter:
         rows = self._truth.rows_of(coded)
         d_min, d_max = truncation
         lam = self._lam(step, g)
-        cands = [z, np.empty_like(z)]
-        batches = []
-        for i in range(0, len(coded), SAMPLE_BLOCKS):
+
+        def truth(i: int) -> tuple[np.ndarray, np.ndarray | None]:
+            """Blocks ``i:i + SAMPLE_BLOCKS``' normalised true values and observation, read from the memory map
+            of the true values (a batch at a time: the map's blocks are never all in memory)."""
             r = rows[i:i + SAMPLE_BLOCKS]
             v = (np.asarray(self._truth.values[r]) - np.float32(d_min)) / np.float32(d_max - d_min)
-            v = v.astype(np.float32).reshape(-1, BLOCK, BLOCK, BLOCK)
             obs = self._truth.observed
-            obs = None if obs is None else unpack_mask(np.asarray(obs[r]))
-            cands[1][i:i + SAMPLE_BLOCKS] = encode_blocks(self.codec, v, obs, truncation, self.voxel_size,
-                                                          self._surface_weight, "cpu", shrink=shrink)
-            batches.append((i, v, obs))
-        cost = []
+            return (v.astype(np.float32).reshape(-1, BLOCK, BLOCK, BLOCK),
+                    None if obs is None else unpack_mask(np.asarray(obs[r])))
+
+        starts = range(0, len(coded), SAMPLE_BLOCKS)
+        shrunk = np.empty_like(z)
+        for i in starts:
+            v, obs = truth(i)
+            shrunk[i:i + len(v)] = encode_blocks(self.codec, v, obs, truncation, self.voxel_size, self._surface_weight,
+                                                 "cpu", shrink=shrink)
         cols = np.arange(self.d)
-        for c in cands:
+        quantised, bits = [], []
+        for c in (z, shrunk):
             q, k, model = choose_lengths(c, g, step, lam)
-            bits = np.where(cols < k[:, None], model.bits(q), 0.0).sum(axis=1) + model.length_bits()[k]
-            err = np.empty(len(c))
-            for i, v, obs in batches:
+            quantised.append(q)
+            bits.append(np.where(cols < k[:, None], model.bits(q), 0.0).sum(axis=1) + model.length_bits()[k])
+        err = np.empty((2, len(z)))
+        for i in starts:
+            v, obs = truth(i)
+            w = error_weights(v, obs, truncation, self.voxel_size, self._surface_weight)
+            x = v.reshape(len(v), -1)
+            for e_c, q in zip(err, quantised):
                 dec = self.codec.decode(torch.from_numpy((q[i:i + len(v)] * step).astype(np.float32))).numpy()
-                w = error_weights(v, obs, truncation, self.voxel_size, self._surface_weight)
-                e = (np.clip(dec.reshape(len(v), -1), 0, 1) - v.reshape(len(v), -1)) ** 2
-                err[i:i + len(v)] = (e if w is None else e * w.reshape(len(v), -1)).sum(axis=1)
-            cost.append(err + lam * bits)
+                e = (np.clip(dec.reshape(len(v), -1), 0, 1) - x) ** 2
+                e_c[i:i + len(v)] = (e if w is None else e * w.reshape(len(v), -1)).sum(axis=1)
+        cost = err + lam * np.stack(bits)
         pick = cost[1] < cost[0]
         self.shrink = shrink
         self.report["shrunk_blocks"] = int(pick.sum())
-        return np.where(pick[:, None], cands[1], z)
+        return np.where(pick[:, None], shrunk, z)
 
     def _pinned(self, group: Any, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float],
                 extensions: list) -> tuple[Any, int]:
