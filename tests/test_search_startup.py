@@ -210,3 +210,57 @@ def test_the_rise_of_each_block_is_the_median_of_its_pairs():
             step = (dec[i, :, :, 1:] - dec[i, :, :, :-1]).astype(np.float64)[both]
             assert got[i] == np.median(step) / normal[2]
     assert counts == {0, 1} and np.isnan(got[:3]).all() and np.isfinite(got).sum() > 20
+
+
+@pytest.fixture
+def no_query_cache(monkeypatch):
+    from sdfcodec.search import cache
+
+    monkeypatch.setenv(cache.CACHE_ENV, "off")
+    cache.clear_memory_cache()
+    yield
+    cache.clear_memory_cache()
+
+
+def test_a_first_encode_runs_beside_the_making_of_the_shapes_and_changes_no_code(monkeypatch, no_query_cache):
+    """A model built on a cache miss starts the codec's first encode (pca: numba's start) in a thread before the
+    shapes are made, and its descriptors are still the shapes encoded as one call of encode_query_blocks gives."""
+    import threading
+
+    from sdfcodec.search import models
+
+    codec = pretrained_codec("pca", 64)
+    threads: list[str] = []
+    real = models.query_blocks
+
+    def spy(*a, **k):
+        threads.extend(t.name for t in threading.enumerate())
+        return real(*a, **k)
+
+    monkeypatch.setattr(models, "query_blocks", spy)
+    args = dict(voxel_size=VS, truncation=TRUNC, up=(0.0, 0.0, 1.0), rotations=None, offsets="auto",
+                behind="unobserved", stretch=(1.0, 2.0))
+    q = models.shape_model("floor", codec, weighted=True, keep_blocks=False, **args)
+    assert "sdfcodec-first-encode" in threads
+    v, _, _, seen = real("floor", return_observed=True, **args)
+    assert np.array_equal(q.descriptors, models.encode_query_blocks(codec, v, seen, TRUNC, VS, True))
+
+
+def test_a_failing_first_encode_leaves_one_error_to_the_real_encode(monkeypatch, no_query_cache, capfd):
+    """What goes wrong in the first encode's thread is raised once, by the encode of the shapes, in the caller's
+    thread; the thread prints nothing."""
+    from sdfcodec.errors import InvalidValueError
+    from sdfcodec.search import models
+
+    calls = []
+
+    def broken(*a, **k):
+        calls.append(1)
+        raise InvalidValueError("this codec cannot encode")
+
+    monkeypatch.setattr(models, "encode_query_blocks", broken)
+    with pytest.raises(InvalidValueError, match="cannot encode"):
+        models.shape_model("floor", pretrained_codec("pca", 64), VS, TRUNC, (0.0, 0.0, 1.0), None, "auto",
+                           "unobserved", True, (1.0,), False)
+    assert len(calls) == 2  # the thread's and the real one
+    assert "Exception in thread" not in capfd.readouterr().err

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -151,9 +152,11 @@ def shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[f
     config, sha = codec.get_config(), codec_state_sha256(codec)
 
     def build() -> QueryModel:
+        ready = _first_encode(codec, truncation, voxel_size, weighted)
         v, rot, pos, seen = query_blocks(shape, voxel_size=voxel_size, truncation=truncation, up=up,
                                          rotations=rotations, offsets=offsets, behind=behind, return_observed=True,
                                          stretch=stretch)
+        ready.join()
         codes = encode_query_blocks(codec, v, seen, truncation, voxel_size, weighted)
         return query_model(shape, codes, codec, voxel_size, truncation, v if keep_blocks else None, rot, pos, dict(spec),
                       sha=sha)
@@ -174,6 +177,26 @@ def shape_model(shape: str, codec: Codec, voxel_size: float, truncation: tuple[f
     # a copy: callers may write into what they get without changing the cached model
     return replace(q, descriptors=q.descriptors.copy(), spec=dict(q.spec),
                    blocks=None if q.blocks is None else q.blocks.copy())
+
+
+def _first_encode(codec: Codec, truncation: tuple[float, float], voxel_size: float, weighted: bool
+                  ) -> threading.Thread:
+    """A started thread encoding one block as :func:`encode_query_blocks` will encode the shapes, so that what a
+    codec loads on its first encode overlaps the making of the shapes, whose numpy work (and page faults) runs
+    mostly without the GIL: for pca's weighted encode, numba's import and the start of its compiled pass, ~0.6 s
+    of one core, paid once per process (a first search on two cores: 0.2-0.3 s sooner). Join it before encoding.
+    Whatever goes wrong in it is left for the real encode to raise."""
+
+    def run() -> None:
+        one = np.ones((1, BLOCK, BLOCK, BLOCK), np.float32)  # free space: a block any codec encodes
+        try:
+            encode_query_blocks(codec, one, np.ones(one.shape, bool), truncation, voxel_size, weighted)
+        except Exception:  # noqa: BLE001 - the same error comes from the real encode, in the caller's thread
+            pass
+
+    thread = threading.Thread(target=run, name="sdfcodec-first-encode", daemon=True)
+    thread.start()
+    return thread
 
 
 def encode_query_blocks(codec: Codec, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
