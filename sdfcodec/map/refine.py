@@ -23,6 +23,7 @@ from ..core.varrate import stream_bytes
 from ..errors import FormatError
 from . import pinmask as pm
 from .format import check_stream_array
+from .grouping import ChunkCache
 
 if TYPE_CHECKING:
     from .reader import MapReader
@@ -245,7 +246,7 @@ class RefinementReader:
         self.reader, self.arr, self.cb, self.spec = reader, arr, cb, spec
         self.model = cr.CorrectionModel.unpack(spec.model)
         self._basis: np.ndarray | None = None
-        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._cache = ChunkCache(CACHED_CHUNKS)  # chunk -> (index, local coords, sel, corrections): _chunk
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
@@ -286,9 +287,7 @@ class RefinementReader:
             raise FormatError(f"{where}: {e}; the map is corrupted there") from e
         if len(c) and np.abs(c).max() > _limit(self.spec.step):
             raise FormatError(f"{where}: a correction exceeds the limit of spec 6h; the map is corrupted there")
-        self._cache[key] = out = (index, local, sel, c)
-        while len(self._cache) > CACHED_CHUNKS:
-            self._cache.pop(next(iter(self._cache)))
+        self._cache.put(key, out := (index, local, sel, c))
         return out
 
     def _blocks(self, coords: np.ndarray):
