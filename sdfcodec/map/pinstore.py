@@ -10,6 +10,7 @@ still reads only its chunks.
 
 from __future__ import annotations
 
+import json
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -26,7 +27,7 @@ if TYPE_CHECKING:
     from ..codec import Codec
     from .reader import MapReader
 
-__all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "chunk_blocks", "PinnedStreams",
+__all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "map_basis", "chunk_blocks", "PinnedStreams",
            "PinnedMaskArray"]
 
 #: The array of the streams: ``(Cx, Cy, Cz, L)`` uint8, one row per chunk of codes: the stream's length
@@ -50,6 +51,29 @@ def linear_basis(codec: Codec, step: Any, size: int, truncation: tuple[float, fl
         return None
     step = np.broadcast_to(np.asarray(step, np.float64), (size,))
     return pm.fixed_point_basis(np.asarray(sd["components"])[:size], sd["mean"], step, truncation)
+
+
+def map_basis(reader: MapReader) -> np.ndarray | None:
+    """:func:`linear_basis` of the map ``reader`` reads (its codec, variable-rate steps, code size and truncation),
+    the same array for every map whose codec state has the same digest (a shipped model referenced by many maps,
+    or one map opened again): the last :data:`CACHED_BASES` kept, read-only."""
+    h = reader.header
+    digest = h.codec.state_sha256
+    key = None if digest is None else (h.codec.id, json.dumps(h.codec.config, sort_keys=True, default=str), digest,
+                                       np.asarray(h.codes.variable_rate.step, np.float64).tobytes(), h.codes.size,
+                                       tuple(float(t) for t in reader.truncation))
+    got = _BASES.get(key) if key is not None else None
+    if got is None:
+        got = linear_basis(reader.codec, h.codes.variable_rate.step, h.codes.size, reader.truncation)
+        if got is not None and key is not None:  # a state checked against its digest when the codec was loaded
+            got.flags.writeable = False
+            _BASES.put(key, got)
+    return got
+
+
+#: Bases :func:`map_basis` keeps (4 MB each for a pca-128 codec).
+CACHED_BASES = 2
+_BASES = ChunkCache(CACHED_BASES)
 
 
 def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarray, np.ndarray]:
@@ -180,7 +204,7 @@ class PinnedMaskArray:
     def basis(self) -> np.ndarray:
         if self._basis is None:
             h, r = self.reader.header, self.reader
-            self._basis = linear_basis(r.codec, h.codes.variable_rate.step, h.codes.size, r.truncation)
+            self._basis = map_basis(r)
             if self._basis is None:
                 raise FormatError(f"{r.location}: {PINNED_MASK_EXTENSION} needs a codec whose decode is linear "
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")

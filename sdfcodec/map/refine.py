@@ -250,10 +250,10 @@ class RefinementReader:
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
-            from .pinstore import linear_basis
+            from .pinstore import map_basis
 
             r, h = self.reader, self.reader.header
-            self._basis = linear_basis(r.codec, h.codes.variable_rate.step, h.codes.size, r.truncation)
+            self._basis = map_basis(r)
             if self._basis is None:
                 raise FormatError(f"{r.location}: {REFINEMENT_EXTENSION} needs a codec whose decode is linear "
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
