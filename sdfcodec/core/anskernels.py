@@ -730,6 +730,27 @@ def categorical_decode(words, st, n, cdf, slots, shift):
     return out
 
 
+#: The flag :func:`categorical_ahead` sets on a symbol after which the state is 0 (symbols are below 2^16).
+AHEAD_EMPTY = np.int32(1 << 30)
+
+
+@njit(cache=True, nogil=True)
+def categorical_ahead(words, st, cap, cdf, slots, shift):
+    """:func:`categorical_decode` of a stream whose length is not known yet: symbols ``(m',)`` int32 until the
+    coder is empty for good (state 0 and every word read: each further symbol is then the table's first, the state
+    staying 0) or ``cap`` symbols, each flagged with :data:`AHEAD_EMPTY` where the state is 0 after it (what
+    ``is_empty`` tells after that many symbols)."""
+    out = np.empty(cap, np.int32)
+    s, pos = st[0], np.int64(st[1])
+    n = 0
+    while n < cap and not (s == 0 and pos == 0):
+        k, s, pos = _from_slots(words, s, pos, cdf, 0, slots, 0, shift)
+        out[n] = k | AHEAD_EMPTY if s == 0 else k
+        n += 1
+    st[0], st[1] = s, np.uint64(pos)
+    return out[:n].copy()
+
+
 @njit(cache=True, nogil=True)
 def encode(left, freq):
     """Words (uint32) of constriction's ``AnsCoder()`` after ``encode_reverse`` of symbols whose intervals
