@@ -131,3 +131,41 @@ def test_the_read_kernels_release_the_gil():
                                      "plane_zeros"))):
         for name in names:
             assert getattr(mod, name).targetoptions.get("nogil") is True, name
+
+
+@pytest.mark.parametrize("case", ["plain", "trailing first symbols", "only first symbols", "random words"])
+def test_corrections_decoded_ahead_are_a_decode_of_any_length(case):
+    """Symbols decoded before their number is known (corrections_ahead), cut to any length n: the symbols and the
+    verdict (empty or not) of constriction's own decode of n symbols, for a stream of corrections, one ending in a
+    run of the law's first symbol (the coder is empty before its end), one holding nothing else (no word at all), and
+    random words no coder wrote (zeros among them)."""
+    import constriction
+
+    from sdfcodec.core import refine as cr
+
+    rng = np.random.default_rng(3)
+    model = cr.CorrectionModel(np.array([5, 1, 30, 200, 40, 2, 9]))  # M = 3
+    c = rng.integers(-3, 4, 300)
+    if case == "trailing first symbols":
+        c[-40:] = -3
+    elif case == "only first symbols":
+        c[:] = -3
+    words = cr.encode_corrections(c, model)
+    if case == "random words":
+        words = rng.integers(0, 2 ** 32, 40, dtype=np.uint64).astype(np.uint32)
+        words[::7] = 0
+        words[-1] = 5
+    cap = 600
+    ahead = cr.corrections_ahead(words, cap, model)
+    for n in range(1, cap + 1):
+        coder = constriction.stream.stack.AnsCoder(words.astype(np.uint32)) if len(words) else \
+            constriction.stream.stack.AnsCoder()
+        want = np.asarray(coder.decode(model.model(), n), np.int32) - model.m
+        got, empty = ans.symbols_ahead(ahead, n)
+        assert np.array_equal(got - model.m, want) and empty == coder.is_empty(), n
+        if case != "random words" and n == len(c):
+            assert empty and np.array_equal(got - model.m, c)
+            assert np.array_equal(cr.decode_corrections(words, n, model, ahead), c)
+    if case == "plain":  # (a run of first symbols at the end leaves the coder empty before it)
+        with pytest.raises(sdfcodec.errors.FormatError, match="holds more than"):
+            cr.decode_corrections(words, len(c) - 1, model, ahead)
