@@ -169,3 +169,19 @@ def test_corrections_decoded_ahead_are_a_decode_of_any_length(case):
     if case == "plain":  # (a run of first symbols at the end leaves the coder empty before it)
         with pytest.raises(sdfcodec.errors.FormatError, match="holds more than"):
             cr.decode_corrections(words, len(c) - 1, model, ahead)
+
+
+def test_read_threads_follow_the_cpus_and_numbas_share(monkeypatch):
+    """READ_THREADS when set; else the CPUs this process may use, at most 8 and at most NUMBA_NUM_THREADS."""
+    import os
+
+    monkeypatch.setattr(grouping, "READ_THREADS", None)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(12)), raising=False)
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    assert grouping.read_threads() == 8
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")
+    assert grouping.read_threads() == 3
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert grouping.read_threads() == 2
+    monkeypatch.setattr(grouping, "READ_THREADS", 5)
+    assert grouping.read_threads() == 5

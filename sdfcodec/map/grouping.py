@@ -105,20 +105,25 @@ def prefetched(job: Callable[[Any], Any], groups: Iterable[Any], prefetch: int) 
         pool.shutdown(wait=finished, cancel_futures=True)
 
 
-#: Threads a read decodes the chunks of one group on (:func:`each_chunk`); None: the CPUs this process may run on.
+#: Threads a read decodes the chunks of one group on (:func:`each_chunk`); None: :func:`read_threads` decides.
 #: The compiled kernels of a variable-rate read release the GIL, so each thread keeps a core busy.
 READ_THREADS: int | None = None
 
 
 def read_threads() -> int:
-    """The threads :func:`each_chunk` runs on: :data:`READ_THREADS`, else the CPUs this process may use (at most
-    8: a group's chunks are few, and each thread holds its chunk's decode in memory)."""
+    """The threads :func:`each_chunk` runs on: :data:`READ_THREADS`, else the CPUs this process may use, at most
+    8 (a group's chunks are few, and each thread holds its chunk's decode in memory) and at most
+    ``NUMBA_NUM_THREADS`` where that is set (the threads run numba's kernels: a process given a share of the
+    cores, such as a test worker, keeps to it)."""
     if READ_THREADS is not None:
         return max(1, int(READ_THREADS))
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         cpus = os.cpu_count() or 1
+    share = os.environ.get("NUMBA_NUM_THREADS", "")
+    if share.isdigit() and int(share) > 0:
+        cpus = min(cpus, int(share))
     return max(1, min(cpus, 8))
 
 
