@@ -185,3 +185,34 @@ def test_read_threads_follow_the_cpus_and_numbas_share(monkeypatch):
     assert grouping.read_threads() == 2
     monkeypatch.setattr(grouping, "READ_THREADS", 5)
     assert grouping.read_threads() == 5
+
+
+def test_a_codec_state_loads_with_one_blas_thread(maps, monkeypatch):
+    """A map's codec loads its state with numpy's BLAS at one thread (its products then leave no OpenBLAS thread
+    spinning through the read on the cores the read decodes on), and the BLAS threads are back after it."""
+    from sdfcodec.core import tiling
+
+    blas = tiling._blas()  # noqa: SLF001 - numpy's BLAS controller, as the reader holds it
+    if blas is None:
+        pytest.skip("threadpoolctl finds no BLAS of numpy's")
+    before = blas.num_threads
+    blas.set_num_threads(2)  # (a test worker runs one thread; the point is a BLAS of several)
+    if blas.num_threads != 2:
+        blas.set_num_threads(before)
+        pytest.skip("numpy's BLAS runs one thread here: nothing to hold")
+    seen = []
+    codec_cls = type(pretrained_codec("pca", 64))
+    real = codec_cls.load_state_dict
+
+    def spy(self, state):
+        seen.append(blas.num_threads)
+        return real(self, state)
+
+    monkeypatch.setattr(codec_cls, "load_state_dict", spy)
+    try:
+        with sdfcodec.open_map(maps["pinned", 16]) as m:
+            m.codec
+        after = blas.num_threads
+    finally:
+        blas.set_num_threads(before)
+    assert seen == [1] and after == 2
