@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
-__all__ = ["available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs",
+__all__ = ["symbols_ahead", "available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs",
            "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
@@ -31,6 +31,17 @@ def _k():
     from . import anskernels
 
     return anskernels
+
+
+def symbols_ahead(ahead: np.ndarray, n: int) -> tuple[np.ndarray, bool]:
+    """The first ``n`` symbols ``(n,)`` int32 of a :meth:`Decoder.categorical_ahead` decode, and whether the coder
+    is empty after them: exactly what :meth:`Decoder.categorical` of ``n`` symbols and ``is_empty`` give (past the
+    last symbol decoded, when the coder was empty for good, each symbol is the table's first)."""
+    flag = np.int32(1 << 30)
+    if n <= len(ahead):
+        return ahead[:n] & ~flag, bool(n == 0 or ahead[n - 1] & flag)
+    done = len(ahead) == 0 or bool(ahead[-1] & flag)  # shorter than n: it stopped empty (n <= its cap)
+    return np.concatenate([ahead & ~flag, np.zeros(n - len(ahead), np.int32)]), done
 
 
 def _words(words: np.ndarray) -> np.ndarray:
@@ -64,6 +75,11 @@ class Decoder:
         """``n`` symbols ``(n,)`` int32 under one ``Categorical(perfect=False)`` law (its tables:
         :func:`categorical_cdf`)."""
         return _k().categorical_decode(self.words, self.st, int(n), table[0], table[1], _SLOT_SHIFT)
+
+    def categorical_ahead(self, cap: int, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """:meth:`categorical` before the number of symbols is known: up to ``cap`` of them ``(m',)`` int32, flagged
+        (:func:`~sdfcodec.core.anskernels.categorical_ahead`); :func:`symbols_ahead` takes the first ``n``."""
+        return _k().categorical_ahead(self.words, self.st, int(cap), table[0], table[1], _SLOT_SHIFT)
 
     def flags(self, n: int, p: float) -> np.ndarray:
         """``n`` bits ``(n,)`` bool under ``Bernoulli(p, perfect=False)``."""

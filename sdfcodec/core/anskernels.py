@@ -30,7 +30,7 @@ _LOW = np.uint64(1 << 32)
 _W = np.uint64(32)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def start(words, st):
     """Set ``st`` to the coder constriction's ``AnsCoder(words)`` starts in; False when the last word is 0 (no
     coder writes one: constriction refuses such a stream)."""
@@ -118,7 +118,7 @@ def _cube_context(cflat, at, cube_deltas):
     return ctx
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cube_tables(counts, cdf):
     """``cdf[ctx] = (cdf[1], cdf[2])`` of each context's Krichevsky-Trofimov probabilities from ``counts``
     ``(3, n_ctx)``: the counts hold for a whole wavefront, so each context's table is made once."""
@@ -128,7 +128,7 @@ def _cube_tables(counts, cdf):
         cdf[ctx, 0], cdf[ctx, 1] = _cdf3(c0 / t3, c1 / t3, c2 / t3)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def decode_flags(words, st, n, p):
     """``n`` bits ``(n,)`` uint8, each under ``Bernoulli(p, perfect=False)``."""
     out = np.empty(n, np.uint8)
@@ -139,7 +139,7 @@ def decode_flags(words, st, n, p):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas):
     """The sub-cube states ``(p_rows, 512)`` uint8 of the observation-mask stream ``M1``
     (:mod:`sdfcodec.map.maskcoder`): wavefront by wavefront (``cube_bounds`` delimit them in ``cube_at``, the
@@ -174,7 +174,7 @@ def decode_cubes(words, st, p_rows, cube_at, cube_flat, cube_bounds, cube_deltas
     return states
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mixed_voxels(states, n_waves):
     """From sub-cube states ``(p, 512)`` (of 2^3 voxels each): the voxels padded by one ``(p, 18^3)`` uint8 (1 in
     sub-cubes all observed), and the padded flat positions (``r * 18^3 + ...``) of the voxels of mixed sub-cubes
@@ -218,7 +218,7 @@ def mixed_voxels(states, n_waves):
     return vpad, at, bounds
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pack_rows(vpad, states):
     """Decoded voxels padded by one ``(p, 18^3)`` uint8 -> (packed mask rows ``(p, 512)`` uint8, C order, most
     significant bit first as numpy's packbits; whether every mixed sub-cube of ``states`` ``(p, 512)`` decoded
@@ -271,7 +271,7 @@ def _kt_split(c0, c1):
     return np.int64(pm * ((_TOTAL - 2) / (pm + p))) + 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
     """Bits at the flat positions ``at`` of ``grid`` (written there as decoded), wavefront by wavefront
     (``bounds`` delimit them in ``at``), each under ``Bernoulli(p, perfect=False)`` with the Krichevsky-Trofimov
@@ -314,7 +314,7 @@ def decode_bits(words, st, grid, at, bounds, deltas, weights, extra, n_ctx):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _wave_slots(sizes):
     """From the sizes of the wavefronts ``(W0,)``: (each one's first slot in the order ``(W0,)``, the bounds of the
     non-empty ones ``(W + 1,)``, their wavefronts ``(W,)``)."""
@@ -337,7 +337,7 @@ def _wave_slots(sizes):
     return nxt, bounds, waves
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _block_table(dims, corner):
     """``(Bx, By, Bz)`` int64: the index of the block of 16^3 at each block position of a grid of ``dims`` (one
     voxel of padding around) whose blocks start at ``corner`` ``(n, 3)``; -1 where none."""
@@ -350,7 +350,7 @@ def _block_table(dims, corner):
     return occ
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def wave_order(grid, dims, corner, pinned):
     """The positions :func:`decode_bits` takes for the pinned voxels of blocks of 16^3 placed in one grid:
     ``grid`` flat uint8 of ``dims`` ``(3,)`` (C order) holding 2 where nothing is pinned (left so), ``corner``
@@ -400,7 +400,7 @@ for _k in range(36):
     _LOW_BIT[(1 << _k) % 37] = _k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def wave_order_planes(dims, corner, rows):
     """The order of :func:`wave_order` as wavefront planes: each pinned voxel's ``(i << 16) | j`` ``(m,)`` int32
     (grid position ``(i, j, w - i - j)``), wavefront by wavefront, C order (``i``, then ``j``) within one; the
@@ -439,7 +439,7 @@ def wave_order_planes(dims, corner, rows):
     return ij, waves, bounds
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
     """:func:`decode_bits` of the positions of :func:`wave_order_planes`, the same bits from the same words,
     without the grid: a context reads its neighbours ``nbr`` ``(q, 3)`` rows ``(dw, di, dj)`` (``dw < 0``: in an
@@ -532,7 +532,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
     return True, bits
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def plane_zeros(ij, waves, bounds, bits, dims, corner):
     """``(m,)`` int64 ``b * 4096 + voxel`` of the positions of :func:`wave_order_planes` whose bit is 0."""
     occ = _block_table(dims, corner)
@@ -553,7 +553,7 @@ def plane_zeros(ij, waves, bounds, bits, dims, corner):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def padded_states(bits):
     """Voxel bits ``(p, 4096)`` uint8 (0/1, C order) -> (the voxels padded by one with zeros ``(p * 18^3,)``
     uint8, the sub-cube states ``(p, 512)`` int64: 0 none observed, 1 all, 2 mixed)."""
@@ -569,7 +569,7 @@ def padded_states(bits):
     return vpad, states
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, freq, m):
     """The encoder's side of :func:`decode_cubes`: the intervals of the known states ``(p, 512)`` written to
     ``left``/``freq`` from ``m`` on, in decode order; returns the next free index."""
@@ -602,7 +602,7 @@ def cube_intervals(states, cube_at, cube_flat, cube_bounds, cube_deltas, left, f
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m):
     """The encoder's side of :func:`decode_bits`: the intervals of the known bits ``grid[at]``, from ``m`` on;
     returns the next free index, or -1 when a context reaches ``n_ctx``."""
@@ -628,7 +628,7 @@ def bit_intervals(grid, at, bounds, deltas, weights, extra, n_ctx, left, freq, m
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cdf_of(table, out, o, cum):
     """``out[o:o + n + 1]`` = the cumulative table of probabilities ``table`` ``(n,)`` float64 (the left-to-right
     sums first, into the scratch ``cum``: one chain of dependent adds, not two)."""
@@ -643,7 +643,7 @@ def _cdf_of(table, out, o, cum):
     out[o + n] = _TOTAL
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def table_cdfs(first, decay, extent):
     """Cumulative tables, concatenated ``(len(first) + 1 + sum(2 e_j + 2),)`` uint32, of ``first`` (float64) and
     of each two-sided geometric table of :meth:`sdfcodec.core.varrate.EntropyModel.table` (``e_j = max(extent_j,
@@ -676,7 +676,7 @@ def table_cdfs(first, decay, extent):
     return out, at, sizes
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def chunk_decode(words, n, level, cdfs, at, slots, shift, off):
     """The variable-rate chunk stream of :func:`sdfcodec.core.varrate.decode_chunk`: ``n`` lengths under the
     table at ``cdfs[at[0]:]``, then for ``j < level`` element ``j`` of every block longer than ``j`` under the
@@ -702,7 +702,7 @@ def chunk_decode(words, n, level, cdfs, at, slots, shift, off):
     return 0, out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def slot_table(cdfs, at, shift):
     """``(len(at), 2^(24 - shift))`` int32: for each table ``j`` of ``cdfs`` (starting at ``at[j]``, as
     :func:`table_cdfs` gives them) and each slot ``t`` of the quantiles, the symbol ``s`` with ``cdf[s] <= t
@@ -717,7 +717,7 @@ def slot_table(cdfs, at, shift):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def categorical_decode(words, st, n, cdf, slots, shift):
     """``n`` symbols ``(n,)`` int32, each under the one table ``cdf`` (``m + 1`` entries, :func:`table_cdfs`;
     ``slots`` ``(1, 2^(24 - shift))``: its :func:`slot_table`), from the decoder state ``st`` (left where the
@@ -730,7 +730,28 @@ def categorical_decode(words, st, n, cdf, slots, shift):
     return out
 
 
-@njit(cache=True)
+#: The flag :func:`categorical_ahead` sets on a symbol after which the state is 0 (symbols are below 2^16).
+AHEAD_EMPTY = np.int32(1 << 30)
+
+
+@njit(cache=True, nogil=True)
+def categorical_ahead(words, st, cap, cdf, slots, shift):
+    """:func:`categorical_decode` of a stream whose length is not known yet: symbols ``(m',)`` int32 until the
+    coder is empty for good (state 0 and every word read: each further symbol is then the table's first, the state
+    staying 0) or ``cap`` symbols, each flagged with :data:`AHEAD_EMPTY` where the state is 0 after it (what
+    ``is_empty`` tells after that many symbols)."""
+    out = np.empty(cap, np.int32)
+    s, pos = st[0], np.int64(st[1])
+    n = 0
+    while n < cap and not (s == 0 and pos == 0):
+        k, s, pos = _from_slots(words, s, pos, cdf, 0, slots, 0, shift)
+        out[n] = k | AHEAD_EMPTY if s == 0 else k
+        n += 1
+    st[0], st[1] = s, np.uint64(pos)
+    return out[:n].copy()
+
+
+@njit(cache=True, nogil=True)
 def encode(left, freq):
     """Words (uint32) of constriction's ``AnsCoder()`` after ``encode_reverse`` of symbols whose intervals
     ``[left, left + freq)`` of ``2^24`` are given in decode order (the last is pushed first)."""

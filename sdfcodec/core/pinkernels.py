@@ -85,7 +85,7 @@ def _decided(w, e, z, nb, pb):
     return nb, pb
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     """Where the exact decode ``w`` of blocks ``b`` may be negative (``w < e[b]``: ``neg``) and non-negative (``w
     >= -e[b]``: ``pos``), as rows ``(n, 16, 16)`` uint32 with bit ``z + 1`` for voxel ``z``, told from a float
@@ -114,7 +114,7 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     return exact
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def select_rows(v, rows, tau, d, q, basis_t, lo, hi, sel):
     """A surface refinement's selected voxels (spec 6h: ``|clip(w, lo, hi)| < tau``, ``w`` the exact decode,
     ``lo``, ``hi`` the truncation times 2^24 in float64) of blocks ``b`` into ``sel`` ``(n, 4096)`` bool, told
@@ -148,7 +148,7 @@ def select_rows(v, rows, tau, d, q, basis_t, lo, hi, sel):
     return exact
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos):
     """:func:`sign_rows` of a surface refinement's refined exact field (spec 6h) ``r = clip(clip(w) + c step)``
     (``c`` the corrections ``(m,)`` int32 of the selected voxels ``sel`` ``(n, 4096)`` bool in C order, block by
@@ -197,7 +197,7 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
     return exact
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def set_voxels(v, rows, ids, value):
     """``v[rows[i >> 12], i & 4095] = value`` for each ``i`` of ``ids`` whose ``rows`` entry is not negative
     (``v`` ``(m, 4096)``)."""
@@ -207,7 +207,7 @@ def set_voxels(v, rows, ids, value):
             v[r, ids[t] & 4095] = value
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pinned_rows(coords, neg, pos, outside, both):
     """:func:`sdfcodec.map.pinmask.pinned_rows` per block: ``(n, 16, 16)`` uint16, bit ``z`` where voxel ``(x, y,
     z)`` of block ``coords[b]`` ``(n, 3)`` lies in a relevant cell, from the sign rows ``neg``, ``pos`` ``(n, 16,

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import base64
 import zlib
+from typing import Any
 
 import numpy as np
 
 from ..errors import FormatError, InvalidValueError
 
 __all__ = ["MAX_CORRECTION", "clip_units", "select", "select_unclipped", "corrections", "refine", "CorrectionModel",
-           "encode_corrections", "decode_corrections"]
+           "encode_corrections", "decode_corrections", "corrections_ahead"]
 
 #: The largest ``|c|`` a map's law may hold (its table then has 2 M + 1 entries).
 MAX_CORRECTION = 1023
@@ -174,8 +175,9 @@ def encode_corrections(c: np.ndarray, model: CorrectionModel) -> np.ndarray:
     return np.asarray(coder.get_compressed(), np.uint32)
 
 
-def decode_corrections(words: np.ndarray, m: int, model: CorrectionModel) -> np.ndarray:
-    """``(m,)`` int32 corrections of a stream (:func:`encode_corrections`).
+def decode_corrections(words: np.ndarray, m: int, model: CorrectionModel, ahead: Any = None) -> np.ndarray:
+    """``(m,)`` int32 corrections of a stream (:func:`encode_corrections`); ``ahead``: the stream's
+    :func:`corrections_ahead` (decoded before ``m`` was known), else the stream is decoded here.
 
     Raises:
         FormatError: the stream does not decode to ``m`` symbols and end there (a corrupted or foreign stream).
@@ -188,16 +190,34 @@ def decode_corrections(words: np.ndarray, m: int, model: CorrectionModel) -> np.
     if not m:
         return np.zeros(0, np.int32)
     try:
-        if ans.available():  # compiled: the same words read as constriction reads them (tests/test_refine.py)
+        if ahead is not None:  # what the coder's start refused, or the symbols decoded ahead
+            if isinstance(ahead, BaseException):
+                raise ahead
+            sym, ok = ans.symbols_ahead(ahead, m)
+            c = sym - np.int32(model.m)
+        elif ans.available():  # compiled: the same words read as constriction reads them (tests/test_refine.py)
             coder = ans.Decoder(words)
             c = coder.categorical(m, model.cdf()) - np.int32(model.m)
+            ok = coder.is_empty()
         else:
             coder = constriction.stream.stack.AnsCoder(words)
             c = np.asarray(coder.decode(model.model(), m), np.int32) - model.m
-        ok = coder.is_empty()
+            ok = coder.is_empty()
     except Exception as e:  # constriction's ValueError on words no coder writes
         raise FormatError(f"surface refinement stream does not decode ({e})") from e
     if not ok:
         raise FormatError(f"surface refinement stream holds more than its {m} corrections")
     return c
+
+
+def corrections_ahead(words: np.ndarray, cap: int, model: CorrectionModel) -> Any:
+    """The symbols of a stream decoded before the number of corrections is known (at most ``cap``, the voxels of
+    its blocks), for :func:`decode_corrections`' ``ahead`` (compiled only): the same symbols, and the same verdict on
+    the stream, as a decode of the number found later; an error the decode would raise is kept, not raised."""
+    from . import ans
+
+    try:
+        return ans.Decoder(np.ascontiguousarray(words, np.uint32)).categorical_ahead(cap, model.cdf())
+    except Exception as e:  # noqa: BLE001 - raised by decode_corrections when it has corrections to decode
+        return e
 

@@ -17,6 +17,7 @@ from ..codec import Codec
 from ..errors import (ChecksumError, FormatError, InvalidValueError, ModelNotFoundError, SDFCodecError,
                       StateReferenceError)
 from ..core.header import StateReference
+from ..core.tiling import one_blas_thread
 from ..registry import describe_shipped, get_codec_class, list_codecs
 
 if TYPE_CHECKING:
@@ -175,14 +176,18 @@ def load_codec(reader: MapReader) -> Codec:
         raise ChecksumError(f"{where}: the codec state under codec/ does not match the digest "
                             "in the header; the map's codec arrays were altered or corrupted")
     try:
-        if state:
-            codec = codec.load_state_dict(state)
-            ref = spec.state_reference
-            key = None if ref is None else (cls, h.codes.size, ref.sha256)
-            if key is None or key not in _VALIDATED:
-                codec.validate_state()  # the codec's own judgement of what the digest cannot vouch for
-                if key is not None:
-                    _VALIDATED.add(key)
+        # numpy's BLAS held at one thread: a state's small products (pca: the mean through the basis) woke
+        # OpenBLAS's threads, which then spun through the read that follows on the cores it decodes on (a
+        # variable-rate read of 849 blocks took 1.8x the CPU time); one thread gives the same products
+        with one_blas_thread():
+            if state:
+                codec = codec.load_state_dict(state)
+                ref = spec.state_reference
+                key = None if ref is None else (cls, h.codes.size, ref.sha256)
+                if key is None or key not in _VALIDATED:
+                    codec.validate_state()  # the codec's own judgement of what the digest cannot vouch for
+                    if key is not None:
+                        _VALIDATED.add(key)
         fitted = codec.is_fitted
     except Exception as e:
         raise FormatError(f"{where}: the codec state under codec/ does not fit codec {spec.id!r} "

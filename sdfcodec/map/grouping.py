@@ -1,5 +1,6 @@
-"""How the reader walks a map: which code chunks it reads together (:func:`chunk_groups`) and how groups are
-fetched ahead of the caller (:func:`prefetched`).
+"""How the reader walks a map: which code chunks it reads together (:func:`chunk_groups`), how groups are
+fetched ahead of the caller (:func:`prefetched`), and how a group's chunks are decoded on every core
+(:func:`each_chunk`, with decoded chunks kept in a :class:`ChunkCache` any thread may fill).
 
 A group is the unit of one batched fetch and one batched decode. Grouping follows the block states only, never
 the chunks' volume, so a sparse map (or a hostile, huge and empty grid) costs what it stores; a group never
@@ -10,6 +11,8 @@ from __future__ import annotations
 
 import collections
 import itertools
+import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterable, Iterator
 
@@ -19,7 +22,7 @@ from ..core._validate import BLOCK
 from ..errors import InvalidValueError
 from ..core.header import BlockState, CodesSpec
 
-__all__ = ["Box", "chunk_groups", "prefetched"]
+__all__ = ["Box", "chunk_groups", "prefetched", "READ_THREADS", "read_threads", "each_chunk", "ChunkCache"]
 
 Box = tuple[slice, slice, slice]  # a block box: half-open block index ranges per axis
 
@@ -100,3 +103,90 @@ def prefetched(job: Callable[[Any], Any], groups: Iterable[Any], prefetch: int) 
         for f in pending:
             f.cancel()
         pool.shutdown(wait=finished, cancel_futures=True)
+
+
+#: Threads a read decodes the chunks of one group on (:func:`each_chunk`); None: :func:`read_threads` decides.
+#: The compiled kernels of a variable-rate read release the GIL, so each thread keeps a core busy.
+READ_THREADS: int | None = None
+
+
+def read_threads() -> int:
+    """The threads :func:`each_chunk` runs on: :data:`READ_THREADS`, else the CPUs this process may use, at most
+    8 (a group's chunks are few, and each thread holds its chunk's decode in memory) and at most
+    ``NUMBA_NUM_THREADS`` where that is set (the threads run numba's kernels: a process given a share of the
+    cores, such as a test worker, keeps to it)."""
+    if READ_THREADS is not None:
+        return max(1, int(READ_THREADS))
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    share = os.environ.get("NUMBA_NUM_THREADS", "")
+    if share.isdigit() and int(share) > 0:
+        cpus = min(cpus, int(share))
+    return max(1, min(cpus, 8))
+
+
+def each_chunk(job: Callable[[Any], Any], items: Iterable[Any], threads: int | None = None) -> list[Any]:
+    """``[job(item) for item in items]``, the items shared among up to ``threads`` (default :func:`read_threads`)
+    threads, the calling thread one of them; inline with one item or one thread. ``job`` must be safe to run on
+    several items at once (each writes only its own part of any shared output). The first error is raised once
+    every job started has ended."""
+    items = list(items)
+    threads = read_threads() if threads is None else max(1, int(threads))
+    if len(items) <= 1 or threads == 1:
+        return [job(it) for it in items]
+    out: list[Any] = [None] * len(items)
+    nxt = itertools.count()  # next() of a count is atomic under the GIL: each item is taken once
+    errors: list[BaseException] = []
+
+    def work() -> None:
+        for i in iter(lambda: next(nxt), None):
+            if i >= len(items) or errors:
+                return
+            try:
+                out[i] = job(items[i])
+            except BaseException as e:  # noqa: BLE001 - handed to the calling thread
+                errors.append(e)
+                return
+
+    helpers = [threading.Thread(target=work, name="sdfcodec-chunk", daemon=True)
+               for _ in range(min(threads, len(items)) - 1)]
+    for t in helpers:
+        t.start()
+    work()
+    for t in helpers:
+        t.join()
+    if errors:
+        raise errors[0]
+    return out
+
+
+class ChunkCache:
+    """The last ``size`` decoded chunks by key, oldest dropped first; safe to fill from several threads (a lock
+    around each change: :func:`each_chunk` gives each thread its own chunks, so none is decoded twice)."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self._items: dict[Any, Any] = {}
+        self._lock = threading.Lock()
+
+    def get(self, key: Any) -> Any:
+        """The value kept for ``key``, or None."""
+        return self._items.get(key)
+
+    def __contains__(self, key: Any) -> bool:
+        return key in self._items
+
+    def __getitem__(self, key: Any) -> Any:
+        return self._items[key]
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, key: Any, value: Any) -> None:
+        """Keep ``value`` for ``key``, dropping the oldest entries beyond ``size``."""
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self.size:
+                self._items.pop(next(iter(self._items)))

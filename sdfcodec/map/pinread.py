@@ -50,6 +50,7 @@ from ..core import ans
 from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from . import pinmask as pm
+from .grouping import each_chunk
 
 __all__ = ["float_margin", "decode_pins", "decode_refined_pins"]
 
@@ -66,12 +67,13 @@ def float_margin(q: np.ndarray, peak: np.ndarray) -> np.ndarray:
 
 
 def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np.ndarray, coords: np.ndarray,
-                outside_coded: np.ndarray, truncation: tuple[float, float]) -> np.ndarray:
+                outside_coded: np.ndarray, truncation: tuple[float, float], threads: int = 1) -> np.ndarray:
     """The pinned voxels of a chunk's coded blocks ``coords`` ``(n, 3)`` with integer codes ``q`` ``(n, k)``, as rows
     ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``; :func:`~sdfcodec.map.pinmask.pinned_rows` of their exact
     decode's signs, :func:`~sdfcodec.map.pinmask.pinned_voxels_of` unpacked), told from the
     float decode ``v[rows[b]]`` of block ``b`` (``v`` ``(m, 4096)`` float32 metres, truncated to ``[d_min,
     d_max]`` or not; ``rows[b] < 0``: not decoded, decided exactly). ``outside_coded``: as ``pinned_voxels_of``.
+    ``threads``: the compiled signs computed on that many threads, each on its share of the blocks.
 
     Raises:
         InvalidValueError: codes too large for the exact decode (:func:`~sdfcodec.map.pinmask.decode_bounds`).
@@ -90,19 +92,21 @@ def decode_pins(v: np.ndarray | None, rows: np.ndarray, q: np.ndarray, basis: np
     margin = float_margin(q, peak)
     margin = np.where((rows >= 0) & (bound + margin < room), margin, np.inf)
     neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
-    pinkernels.sign_rows(np.asarray(v).reshape(len(v), -1), np.maximum(rows, 0), bound, margin, q,
-                         _transposed(basis, q.shape[1] + 1), neg, pos)
+    flat, at, basis_t = np.asarray(v).reshape(len(v), -1), np.maximum(rows, 0), _transposed(basis, q.shape[1] + 1)
+    each_chunk(lambda s: pinkernels.sign_rows(flat, at[s], bound[s], margin[s], q[s], basis_t, neg[s], pos[s]),
+               _shares(n, threads), threads)
     return _pinned(coords, neg, pos, outside_coded, d_max)
 
 
 def decode_refined_pins(v: np.ndarray, rows: np.ndarray, q: np.ndarray, basis: np.ndarray, coords: np.ndarray,
                         outside_coded: np.ndarray, truncation: tuple[float, float], tau: int, step: int,
-                        corrections) -> np.ndarray:
+                        corrections, threads: int = 1) -> np.ndarray:
     """:func:`decode_pins` of a map with a surface refinement (spec 6h, module docstring), compiled only: the
     pinned voxels of the refined exact field, as rows ``(n, 16, 16)`` uint16. ``v`` ``(m, 4096)`` float32 metres,
     the float decode clipped to the truncation, becomes the reader's refined decode at rows ``rows[b] >= 0`` (in
     place). ``tau``, ``step``: the refinement's, in units of ``2^-24`` m; ``corrections(sel)``: the corrections
-    ``(m,)`` int32 of the selected voxels ``sel`` ``(n, 4096)`` bool (the chunk's stream).
+    ``(m,)`` int32 of the selected voxels ``sel`` ``(n, 4096)`` bool (the chunk's stream). ``threads``: as
+    :func:`decode_pins`.
 
     Raises:
         InvalidValueError: codes too large for the exact decode (:func:`~sdfcodec.map.pinmask.decode_bounds`).
@@ -118,14 +122,33 @@ def decode_refined_pins(v: np.ndarray, rows: np.ndarray, q: np.ndarray, basis: n
     basis_t = _transposed(basis, q.shape[1] + 1)
     flat = np.asarray(v).reshape(len(v), -1)
     sel = np.empty((n, BLOCK ** 3), bool)
-    pinkernels.select_rows(flat, rows, float(tau), margin, q, basis_t, lo, hi, sel)
+    shares = _shares(n, threads)
+    each_chunk(lambda s: pinkernels.select_rows(flat, rows[s], float(tau), margin[s], q[s], basis_t, lo, hi, sel[s]),
+               shares, threads)
     c = np.asarray(corrections(sel), np.int32)
     rho = max(-float(truncation[0]), float(truncation[1])) + float(np.abs(c).max(initial=0)) * step / _SCALE
     margin = margin + 2.0 + np.ceil(rho)  # D + 3 + ceil(rho)
+    bound = bound + 1.0
     neg, pos = (np.empty((n, BLOCK, BLOCK), np.uint32) for _ in range(2))
-    pinkernels.refined_sign_rows(flat, rows, sel, c, float(step), lo, hi, bound + 1.0,
-                                 margin, q, basis_t, neg, pos)
+    # each share's corrections start after those of the blocks before it (C order, block by block)
+    first = np.r_[0, np.cumsum([np.count_nonzero(sel[s]) for s in shares])]
+    each_chunk(lambda i: pinkernels.refined_sign_rows(
+        flat, rows[shares[i]], sel[shares[i]], c[first[i]:first[i + 1]], float(step), lo, hi, bound[shares[i]],
+        margin[shares[i]], q[shares[i]], basis_t, neg[shares[i]], pos[shares[i]]), range(len(shares)), threads)
     return _pinned(coords, neg, pos, outside_coded, float(truncation[1]))
+
+
+#: Fewest blocks worth a thread of their own in :func:`_shares` (a thread's start is ~0.1 ms, a block's signs
+#: ~20 us).
+MIN_SHARE = 32
+
+
+def _shares(n: int, threads: int) -> list[slice]:
+    """``n`` blocks as up to ``threads`` consecutive slices of about equal size, each of at least
+    :data:`MIN_SHARE` blocks (one slice when that leaves one)."""
+    k = max(1, min(int(threads), n // MIN_SHARE))
+    edges = np.linspace(0, n, k + 1).astype(np.int64)
+    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
 def _pinned(coords: np.ndarray, neg: np.ndarray, pos: np.ndarray, outside_coded: np.ndarray, d_max: float

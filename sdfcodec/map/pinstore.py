@@ -10,6 +10,7 @@ still reads only its chunks.
 
 from __future__ import annotations
 
+import json
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -20,12 +21,13 @@ from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 from . import pinread
 from .format import check_stream_array
+from .grouping import ChunkCache, each_chunk, read_threads
 
 if TYPE_CHECKING:
     from ..codec import Codec
     from .reader import MapReader
 
-__all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "chunk_blocks", "PinnedStreams",
+__all__ = ["PINNED_ARRAY", "PINNED_MASK_EXTENSION", "linear_basis", "map_basis", "chunk_blocks", "PinnedStreams",
            "PinnedMaskArray"]
 
 #: The array of the streams: ``(Cx, Cy, Cz, L)`` uint8, one row per chunk of codes: the stream's length
@@ -49,6 +51,29 @@ def linear_basis(codec: Codec, step: Any, size: int, truncation: tuple[float, fl
         return None
     step = np.broadcast_to(np.asarray(step, np.float64), (size,))
     return pm.fixed_point_basis(np.asarray(sd["components"])[:size], sd["mean"], step, truncation)
+
+
+def map_basis(reader: MapReader) -> np.ndarray | None:
+    """:func:`linear_basis` of the map ``reader`` reads (its codec, variable-rate steps, code size and truncation),
+    the same array for every map whose codec state has the same digest (a shipped model referenced by many maps,
+    or one map opened again): the last :data:`CACHED_BASES` kept, read-only."""
+    h = reader.header
+    digest = h.codec.state_sha256
+    key = None if digest is None else (h.codec.id, json.dumps(h.codec.config, sort_keys=True, default=str), digest,
+                                       np.asarray(h.codes.variable_rate.step, np.float64).tobytes(), h.codes.size,
+                                       tuple(float(t) for t in reader.truncation))
+    got = _BASES.get(key) if key is not None else None
+    if got is None:
+        got = linear_basis(reader.codec, h.codes.variable_rate.step, h.codes.size, reader.truncation)
+        if got is not None and key is not None:  # a state checked against its digest when the codec was loaded
+            got.flags.writeable = False
+            _BASES.put(key, got)
+    return got
+
+
+#: Bases :func:`map_basis` keeps (4 MB each for a pca-128 codec).
+CACHED_BASES = 2
+_BASES = ChunkCache(CACHED_BASES)
 
 
 def chunk_blocks(states: np.ndarray, key: np.ndarray, cb: int) -> tuple[np.ndarray, np.ndarray]:
@@ -174,21 +199,16 @@ class PinnedMaskArray:
         self.dtype = np.dtype(np.uint8)
         self.path = PINNED_ARRAY
         self._basis: np.ndarray | None = None
-        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}  # decoded chunks, oldest first
+        self._cache = ChunkCache(CACHED_CHUNKS)  # decoded chunks: (row index, packed rows)
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
             h, r = self.reader.header, self.reader
-            self._basis = linear_basis(r.codec, h.codes.variable_rate.step, h.codes.size, r.truncation)
+            self._basis = map_basis(r)
             if self._basis is None:
                 raise FormatError(f"{r.location}: {PINNED_MASK_EXTENSION} needs a codec whose decode is linear "
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
-
-    def _remember(self, key: tuple[int, ...], value: tuple[np.ndarray, np.ndarray]) -> None:
-        self._cache[key] = value
-        while len(self._cache) > CACHED_CHUNKS:
-            self._cache.pop(next(iter(self._cache)))
 
     def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(row index (cb, cb, cb) int64 of each block of the chunk, -1 where not coded; packed rows (n, 512))``
@@ -227,10 +247,11 @@ class PinnedMaskArray:
         return v.numpy().reshape(len(q), -1)
 
     def _zeros(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,
-               v: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
+               v: np.ndarray | None, rows: np.ndarray, threads: int = 1) -> np.ndarray:
         """The unobserved voxels (``b * 4096 + voxel``, :func:`~sdfcodec.map.pinmask.unobserved_voxels`) of chunk
         ``key``'s coded blocks ``own`` from its stored ``row``, its integer codes ``q`` and the float decode
-        ``v[rows[b]]`` of block ``b`` (``-1``: not decoded; :func:`~sdfcodec.map.pinread.decode_pins`)."""
+        ``v[rows[b]]`` of block ``b`` (``-1``: not decoded; :func:`~sdfcodec.map.pinread.decode_pins`, its
+        blocks split among ``threads``)."""
         r = self.reader
         row = np.ascontiguousarray(np.asarray(row).reshape(-1))
         n = int(row[:4].view("<u4")[0])
@@ -241,14 +262,14 @@ class PinnedMaskArray:
         if r.refinement is not None and v is not None and _kernels() is not None:  # spec 6h: pinread, refined
             ref = r.refinement
             pins = pinread.decode_refined_pins(v, rows, q, self.basis(), own, outside, r.truncation, ref.spec.tau,
-                                               ref.spec.step, lambda sel: ref.corrections(key, sel))
+                                               ref.spec.step, lambda sel: ref.corrections(key, sel), threads)
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
         if r.refinement is not None:  # without the compiled kernels: every voxel's refined exact field
             v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
             neg, pos = pm.sign_bounds(v, bound)
             pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
-        pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation)
+        pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation, threads)
         return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
 
     def unmask(self, coords: np.ndarray, v: np.ndarray, free: float) -> None:
@@ -269,19 +290,31 @@ class PinnedMaskArray:
         if r.refinement is not None and pinkernels is None:  # numpy: the corrections added here, pins told exactly
             flat += r.refinement.rows(coords)
             np.clip(flat, *r.truncation, out=flat)
-        for i, (key, row) in enumerate(zip(keys, streams)):
+        # compiled: the chunks on every core (the kernels release the GIL; each chunk writes only its blocks' rows
+        # of v), or one chunk's pins split among them; what every thread reads made before they start
+        threads = read_threads() if pinkernels is not None else 1
+        if threads > 1:
+            self.basis()
+            if r.refinement is not None:
+                r.refinement.model.cdf()
+
+        def chunk(i: int) -> None:
+            key = keys[i]
             own, outside = chunk_blocks(states, key, cb)
             sel = np.flatnonzero(inverse == i)
             index = np.full((cb,) * 3, -1, np.int64)
             index[tuple((coords[sel] - key * cb).T)] = sel
             rows = index[tuple((own - key * cb).T)]  # each coded block's row of v, -1 where not read
-            zeros = self._zeros(key, row, own, outside, self._codes(key), flat, rows)
+            zeros = self._zeros(key, streams[i], own, outside, self._codes(key), flat, rows,
+                                threads=threads if len(keys) == 1 else 1)
             if pinkernels is not None:
                 pinkernels.set_voxels(flat, rows, zeros, np.float32(free))
-                continue
+                return
             at = rows[zeros >> 12]
             hit = at >= 0
             flat[at[hit], zeros[hit] & (BLOCK ** 3 - 1)] = free
+
+        each_chunk(chunk, range(len(keys)), threads)
 
     def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
@@ -299,7 +332,7 @@ class PinnedMaskArray:
         rows = r.read_many(self.streams, [(*(slice(c, c + 1) for c in names[i]), slice(None)) for i in todo])
         for i, row in zip(todo, rows):
             got[names[i]] = self._decode(keys[i], row, states)
-            self._remember(names[i], got[names[i]])
+            self._cache.put(names[i], got[names[i]])
         for i, name in enumerate(names):
             index, packed = got[name]
             sel = np.flatnonzero(inverse == i)

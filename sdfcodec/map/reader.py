@@ -223,6 +223,8 @@ class MapReader:
         fetched and decompressed in parallel, off the calling thread), with the checks of :meth:`read`."""
         for sel in sels:
             self._check_read(arr, sel)
+        if not sels:  # no round trip to Zarr's event loop thread (a GIL hand-over each, ~1 ms on a busy machine)
+            return []
         if len(sels) == 1:
             return [self.read(arr, sels[0])]
         aarr = arr.async_array
@@ -501,6 +503,8 @@ class MapReader:
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             if after:
+                if fused and self.refinement is not None:  # its corrections decoded meanwhile, on threads
+                    self.refinement.start(coords)
                 v = decode_runs(self, codes, coords, None, out, None, metres, refine=False, unmasked=True)
                 if fused:
                     mask.unmask(coords, v.numpy(), self.truncation[1] if metres else 1.0)

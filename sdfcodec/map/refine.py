@@ -12,17 +12,20 @@ surface closer; the values of the voxels next to it can (2-voxel band set to the
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from ..core import ans
 from ..core import refine as cr
 from ..core._validate import BLOCK
-from ..core.header import REFINEMENT_EXTENSION, Refinement
+from ..core.header import REFINEMENT_EXTENSION, BlockState, Refinement
 from ..core.varrate import stream_bytes
 from ..errors import FormatError
 from . import pinmask as pm
 from .format import check_stream_array
+from .grouping import ChunkCache, read_threads
 
 if TYPE_CHECKING:
     from .reader import MapReader
@@ -245,14 +248,45 @@ class RefinementReader:
         self.reader, self.arr, self.cb, self.spec = reader, arr, cb, spec
         self.model = cr.CorrectionModel.unpack(spec.model)
         self._basis: np.ndarray | None = None
-        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._cache = ChunkCache(CACHED_CHUNKS)  # chunk -> (index, local coords, sel, corrections): _chunk
+        self._ahead: dict[tuple[int, ...], Future] = {}  # chunk -> its (row, symbols decoded ahead): start
+
+    def start(self, coords: np.ndarray) -> None:
+        """Decode ahead, on threads of their own, the streams of the chunks holding blocks ``coords`` ``(n, 3)``
+        (those not kept), before the selection that tells how many corrections each holds is known (compiled
+        only; :func:`sdfcodec.core.refine.corrections_ahead`): a read calls this before its float decode, whose
+        selection then finds its corrections decoded."""
+        if not ans.available():
+            return
+        keys = [tuple(int(k) for k in key) for key in np.unique(np.asarray(coords, np.int64) // self.cb, axis=0)]
+        keys = [k for k in keys if k not in self._cache and k not in self._ahead]
+        if not keys:
+            return
+        r, cb = self.reader, self.cb
+        rows = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None)) for key in keys])
+        states = r.vr.states()
+        self.model.cdf()  # made once, before the threads read it
+
+        def job(key: tuple[int, ...], row: np.ndarray) -> tuple[np.ndarray, Any]:
+            row = np.ascontiguousarray(row.reshape(-1))
+            nw = int(row[:4].view("<u4")[0])
+            if 4 + 4 * nw > len(row):  # _chunk says so
+                return row, None
+            box = tuple(slice(c * cb, min(c * cb + cb, g)) for c, g in zip(key, states.shape))
+            cap = int(np.count_nonzero(states[box] == BlockState.CODED)) * BLOCK ** 3  # the most it can hold
+            return row, cr.corrections_ahead(row[4:4 + 4 * nw].view("<u4"), cap, self.model)
+
+        pool = ThreadPoolExecutor(max_workers=min(read_threads(), len(keys)), thread_name_prefix="sdfcodec-refine")
+        for key, row in zip(keys, rows):
+            self._ahead[key] = pool.submit(job, key, row)
+        pool.shutdown(wait=False)  # the jobs run on; the pool's threads end with them
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
-            from .pinstore import linear_basis
+            from .pinstore import map_basis
 
             r, h = self.reader, self.reader.header
-            self._basis = linear_basis(r.codec, h.codes.variable_rate.step, h.codes.size, r.truncation)
+            self._basis = map_basis(r)
             if self._basis is None:
                 raise FormatError(f"{r.location}: {REFINEMENT_EXTENSION} needs a codec whose decode is linear "
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
@@ -273,7 +307,11 @@ class RefinementReader:
             if v is None or len(v) != len(local):
                 v, _ = pm.exact_decode(q, self.basis())
             sel = cr.select_unclipped(v, self.spec.tau, r.truncation, _SCALE)
-        row, = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None))])
+        started = self._ahead.pop(key, None)
+        if started is not None:
+            row, ahead = started.result()
+        else:
+            (row,), ahead = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None))]), None
         row = np.ascontiguousarray(row.reshape(-1))
         nw = int(row[:4].view("<u4")[0])
         where = f"{r.location}: chunk {key} of array '{REFINE_ARRAY}'"
@@ -281,14 +319,12 @@ class RefinementReader:
             raise FormatError(f"{where} holds no stream (or a truncated one) but {len(local)} coded block(s) lie in "
                               "it; the map is incomplete there: restore it from a copy or re-encode")
         try:
-            c = cr.decode_corrections(row[4:4 + 4 * nw].view("<u4"), int(sel.sum()), self.model)
+            c = cr.decode_corrections(row[4:4 + 4 * nw].view("<u4"), int(sel.sum()), self.model, ahead)
         except FormatError as e:
             raise FormatError(f"{where}: {e}; the map is corrupted there") from e
         if len(c) and np.abs(c).max() > _limit(self.spec.step):
             raise FormatError(f"{where}: a correction exceeds the limit of spec 6h; the map is corrupted there")
-        self._cache[key] = out = (index, local, sel, c)
-        while len(self._cache) > CACHED_CHUNKS:
-            self._cache.pop(next(iter(self._cache)))
+        self._cache.put(key, out := (index, local, sel, c))
         return out
 
     def _blocks(self, coords: np.ndarray):

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from ..core import ans
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK, empty
 from ..errors import FormatError, InvalidValueError
@@ -30,6 +31,7 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, SHRINK, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk,
                             encode_chunk, gains, stream_bytes)
 from .implied import drop_implied, inline_states
+from .grouping import ChunkCache, each_chunk
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
 
@@ -653,7 +655,7 @@ class VariableRateReader:
                            f"'{STREAM_ARRAY}'")
         self.arr, self.cb, self.cgrid = arr, cb, cgrid
         self._states = None
-        self._cache: dict[tuple[tuple[int, ...], int], tuple[np.ndarray, np.ndarray]] = {}
+        self._cache = ChunkCache(CACHED_CODE_CHUNKS)  # ((chunk, level) -> (local coords, integer codes))
 
     def states(self) -> np.ndarray:
         if self._states is None:
@@ -683,36 +685,41 @@ class VariableRateReader:
     def chunk_codes(self, keys: np.ndarray, level: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per chunk of ``keys`` ``(m, 3)``: (its coded blocks' coordinates relative to the chunk ``(n, 3)``, C
         order, the integer codes ``(n, level)`` int32 of its stream). The last :data:`CACHED_CODE_CHUNKS` chunks
-        decoded are kept: a pinned mask read right after the field's (or before it) decodes each stream once."""
-        cb = self.cb
+        decoded are kept: a pinned mask read right after the field's (or before it) decodes each stream once.
+        The streams not kept are decoded on the read threads (:func:`~sdfcodec.map.grouping.each_chunk`)."""
+        names = [(tuple(int(c) for c in k), level) for k in keys]
         # the cached chunks held from the start: decoding more than CACHED_CODE_CHUNKS others evicts them
-        out = {i: self._cache[(tuple(int(c) for c in k), level)] for i, k in enumerate(keys)
-               if (tuple(int(c) for c in k), level) in self._cache}
+        out = {i: self._cache[name] for i, name in enumerate(names) if name in self._cache}
         todo = [i for i in range(len(keys)) if i not in out]
         rows = self.reader.read_many(self.arr, [(*(slice(int(c), int(c) + 1) for c in keys[i]), slice(None))
                                                 for i in todo])
-        states = self.states()
-        for i, row in zip(todo, rows):
-            key = keys[i]
-            box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(key, states.shape))
-            local = np.argwhere(states[box] == BlockState.CODED)
-            row = np.ascontiguousarray(row.reshape(-1))
-            nw = int(row[:4].view("<u4")[0])
-            if nw == 0 or 4 + 4 * nw > len(row):
-                raise FormatError(f"{self.reader.location}: chunk {tuple(int(c) for c in key)} of array "
-                                  f"'{STREAM_ARRAY}' holds no stream (or a truncated one) but {len(local)} coded "
-                                  "block(s) lie in it; the map is incomplete there: restore it from a copy or "
-                                  "re-encode")
-            try:
-                q = decode_chunk(row[4:4 + 4 * nw].view("<u4"), len(local), self.model, level)
-            except Exception as e:  # a checksum-valid but inconsistent stream
-                raise FormatError(f"{self.reader.location}: the stream of chunk {tuple(int(c) for c in key)} of "
-                                  f"array '{STREAM_ARRAY}' does not decode ({e}); the map is corrupted there") from e
-            out[i] = (local, q)
-            self._cache[(tuple(int(c) for c in key), level)] = (local, q)
-            while len(self._cache) > CACHED_CODE_CHUNKS:
-                self._cache.pop(next(iter(self._cache)))
+        if len(todo) > 1:  # what every thread's decode reads, made once before they start
+            self.states()
+            if ans.available():
+                self.model.cdfs()
+        for i, got in zip(todo, each_chunk(lambda job: self._decode(keys[job[0]], job[1], level), zip(todo, rows))):
+            out[i] = got
+            self._cache.put(names[i], got)
         return [out[i] for i in range(len(keys))]
+
+    def _decode(self, key: np.ndarray, row: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+        """(coded blocks ``(n, 3)`` relative to chunk ``key``, integer codes ``(n, level)``) from its stored ``row``."""
+        cb, states = self.cb, self.states()
+        box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(key, states.shape))
+        local = np.argwhere(states[box] == BlockState.CODED)
+        row = np.ascontiguousarray(row.reshape(-1))
+        nw = int(row[:4].view("<u4")[0])
+        if nw == 0 or 4 + 4 * nw > len(row):
+            raise FormatError(f"{self.reader.location}: chunk {tuple(int(c) for c in key)} of array "
+                              f"'{STREAM_ARRAY}' holds no stream (or a truncated one) but {len(local)} coded "
+                              "block(s) lie in it; the map is incomplete there: restore it from a copy or "
+                              "re-encode")
+        try:
+            q = decode_chunk(row[4:4 + 4 * nw].view("<u4"), len(local), self.model, level)
+        except Exception as e:  # a checksum-valid but inconsistent stream
+            raise FormatError(f"{self.reader.location}: the stream of chunk {tuple(int(c) for c in key)} of "
+                              f"array '{STREAM_ARRAY}' does not decode ({e}); the map is corrupted there") from e
+        return local, q
 
 
 #: Chunks of integer codes a reader keeps decoded (4 B per element): see :meth:`VariableRateCodes.chunk_codes`.
