@@ -84,7 +84,8 @@ class _Leaky(sdfcodec.Codec):
 
 def test_check_codec_catches_state_outside_state_dict():
     sdfcodec.register_codec(_Leaky, replace=True)
-    rep = run_codec_checks(_Leaky())
+    # 32 blocks and a 64-block large batch: the leak shows on any input (the defaults, 256 and 4096, took seconds)
+    rep = run_codec_checks(_Leaky(), blocks=analytic_blocks(32, seed=0), large_batch=64)
     failed = {r.name: r.message for r in rep.results if not r.passed}
     assert "state_round_trip" in failed and "outside state_dict" in failed["state_round_trip"], failed
 
