@@ -323,13 +323,18 @@ def noise_map(path, n: int, seed: int = 0) -> None:
         m.write_blocks(coords, noise_blocks(n, seed))
 
 
-def snapshot(path) -> tuple[dict, np.ndarray]:
-    """Every file's bytes, and the decoded volume, of the map at ``path``."""
+def files_of(path) -> dict[str, bytes]:
+    """Every file's bytes of the map at ``path``, by path inside it."""
     from pathlib import Path
 
     p = Path(path)
-    files = {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
-    with sdfcodec.open_map(p) as m:
+    return {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
+
+
+def snapshot(path) -> tuple[dict, np.ndarray]:
+    """Every file's bytes, and the decoded volume, of the map at ``path``."""
+    files = files_of(path)
+    with sdfcodec.open_map(path) as m:
         return files, np.asarray(m.decode_region())
 
 

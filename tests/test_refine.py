@@ -142,7 +142,9 @@ def test_streams_are_what_constriction_reads_and_a_numpy_reference_computes(tmp_
     np.testing.assert_allclose(m.decode_region(box), whole[20:70, 10:60, 5:40], rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("target", [256.0, 384.0])
+# 384 B takes the same path as 256 B (codes topped out, the rest a refinement) with a larger refinement budget:
+# run on demand (pytest -m slow); 256 B stays in CI
+@pytest.mark.parametrize("target", [256.0, pytest.param(384.0, marks=pytest.mark.slow)])
 def test_target_bytes_with_a_refinement_lands_within_five_percent(tmp_path, target):
     """Rate control on a synthetic fused room whose codes alone top out below the target: the map takes the
     target within 5 % (every file counted) and spends the rest on a refinement."""

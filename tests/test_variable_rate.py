@@ -248,7 +248,9 @@ def _fused_room(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.argwhere(np.ones(blocks.shape[:3], bool)), blocks.reshape(-1, 16, 16, 16), obs
 
 
-@pytest.mark.parametrize("target", [60.0, 100.0])  # pca-64 takes at most ~103.5 B on the scene
+# pca-64 takes at most ~103.5 B on the scene. Both targets are below core.varrate.SHRINK_BELOW (the low-rate
+# path with the shrunk second encode); 60 B stays in CI, 100 B (the same bisection near the codes' top) on demand
+@pytest.mark.parametrize("target", [60.0, pytest.param(100.0, marks=pytest.mark.slow)])
 def test_target_bytes_lands_at_or_just_below_the_target(tmp_path, target):
     """Rate control on two synthetic fused rooms (masked) and an analytic scene: every file counted (the manifest
     and its record in the header too), within 1 % below the target and never above it, so that every byte the
