@@ -415,10 +415,16 @@ def m_ours(d: Data, quick: bool) -> None:
         d.maps[label] = path
 
 
-def decode_on_read(d: Data, quick: bool, repeat: int = 5) -> dict | None:
+def decode_on_read(d: Data, quick: bool, repeat: int = 9) -> dict | None:
     """Decode on read (open the map, decode every block, close) of each variable-rate map :func:`m_ours` wrote
     against the fixed-length pca-64 map (``encode --codec pca --code-size 64``) of the same blocks, the maps timed
-    in turn within each of ``repeat`` rounds; best time of each. None without maps of ours."""
+    in turn within each of ``repeat`` rounds, each round starting one map further on; best time of each. None
+    without maps of ours.
+
+    Why the rotation: a read right after another map's is slower than one right after the same map's (what the
+    process keeps of the map read last, and the caches, serve the next read of it); in a fixed order the first
+    variable-rate map always came right after the fixed map (kitchen half, 64 B: best 37-45 ms in the study's
+    fixed order, 28 ms in a balanced order, load 0.8)."""
     import sdfcodec
 
     if not d.maps:
@@ -428,8 +434,9 @@ def decode_on_read(d: Data, quick: bool, repeat: int = 5) -> dict | None:
         return None
     paths = {"fixed pca-64": ref, **d.maps}
     times: dict[str, list[float]] = {k: [] for k in paths}
-    for _ in range(2 if quick else repeat):
-        for name, path in paths.items():
+    order = list(paths.items())
+    for r in range(2 if quick else repeat):
+        for name, path in order[r % len(order):] + order[:r % len(order)]:
             t = time.perf_counter()
             with sdfcodec.open_map(path) as m:
                 for _c, _b in m.iter_decoded():
