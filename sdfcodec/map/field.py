@@ -31,6 +31,7 @@ from zarr.abc.buffer import Buffer, NDBuffer
 
 from ..errors import ChecksumError, FormatError, InvalidValueError, MissingDependencyError
 from ..core.header import BlockState, FieldCompression
+from .grouping import chunk_box
 
 __all__ = ["SZ3_ZARR_CODEC", "ThreadedArrayBytesCodec", "SZ3Field", "sz3_compress", "sz3_decompress",
            "field_compressors", "field_of", "chunks_of", "compress_codes", "refuse_update", "check_field_pipeline",
@@ -228,7 +229,7 @@ def compress_codes(group: zarr.Group, tmp: Path, state: np.ndarray, fc: FieldCom
                              serializer=field_compressors(fc)[0], compressors=[Crc32cCodec()],
                              dimension_names=["bx", "by", "bz", "code"])
     for ch in np.ndindex(*(-(-g // cb) for g in grid)):
-        box = tuple(slice(c * cb, min(c * cb + cb, g)) for c, g in zip(ch, grid))
+        box = chunk_box(ch, cb, grid)
         coded = state[box] == BlockState.CODED
         if not coded.any():
             continue

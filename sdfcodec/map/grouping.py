@@ -22,9 +22,18 @@ from ..core._validate import BLOCK
 from ..errors import InvalidValueError
 from ..core.header import BlockState, CodesSpec
 
-__all__ = ["Box", "chunk_groups", "prefetched", "READ_THREADS", "read_threads", "each_chunk", "ChunkCache"]
+__all__ = ["Box", "chunk_box", "chunk_groups", "prefetched", "READ_THREADS", "read_threads", "each_chunk",
+           "ChunkCache"]
 
 Box = tuple[slice, slice, slice]  # a block box: half-open block index ranges per axis
+
+
+def chunk_box(key: Any, chunk: Any, shape: Any) -> tuple[slice, ...]:
+    """The index box of chunk ``key`` (its index per axis) of an array of ``shape`` cut in chunks of ``chunk``
+    elements (one int for every axis, or one per axis): half-open slices, the last chunk of an axis ending with
+    the array."""
+    sizes = [int(chunk)] * len(key) if isinstance(chunk, (int, np.integer)) else [int(c) for c in chunk]
+    return tuple(slice(int(k) * c, min(int(k) * c + c, int(n))) for k, c, n in zip(key, sizes, shape))
 
 
 def chunk_groups(spec: CodesSpec, box: Box, states: np.ndarray, level: int, *, max_decode_bytes: int,

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..core._validate import BLOCK
 from ..core.surface import JUMP
+from .grouping import chunk_box
 from .maskcoder import encode_mask_rows
 
 __all__ = ["PIN_MARGIN", "neighbours", "padded_blocks", "BATCH_BLOCKS", "pinned_voxels", "pinned_in_batches", "relax_mask", "MaskChunks"]
@@ -178,7 +179,7 @@ class MaskChunks:
             self.base.append(full)
 
     def _box(self, key: np.ndarray) -> tuple[slice, ...]:
-        return tuple(slice(int(k) * self.c, min(int(k) * self.c + self.c, n)) for k, n in zip(key, self.arr.shape))
+        return chunk_box(key, self.c, self.arr.shape)
 
     def _chunk(self, i: int, rows: np.ndarray) -> np.ndarray:
         full = self.base[i].copy()

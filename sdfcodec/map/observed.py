@@ -36,6 +36,7 @@ from ..codec import capabilities, learns_weights, numpy_path_of, uses_weights
 from ..errors import FormatError
 from ..core.header import CODED_MASK_EXTENSION, PINNED_MASK_EXTENSION, BlockState, Extension
 from .format import mask_compressors
+from .grouping import chunk_box
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -402,4 +403,4 @@ def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]]
 def _box(key: tuple[int, int, int], meta: dict) -> tuple[slice, ...]:
     """The block box of mask chunk ``key`` of the array whose metadata is ``meta``."""
     cb, shape = meta["chunk_grid"]["configuration"]["chunk_shape"], meta["shape"]
-    return tuple(slice(int(k) * c, min(int(k) * c + c, n)) for k, c, n in zip(key, cb, shape))
+    return chunk_box(key, cb, shape)

@@ -25,7 +25,7 @@ from ..core.varrate import stream_bytes
 from ..errors import FormatError
 from . import pinmask as pm
 from .format import check_stream_array
-from .grouping import ChunkCache, read_threads
+from .grouping import ChunkCache, chunk_box, read_threads
 
 if TYPE_CHECKING:
     from .reader import MapReader
@@ -272,7 +272,7 @@ class RefinementReader:
             nw = int(row[:4].view("<u4")[0])
             if 4 + 4 * nw > len(row):  # _chunk says so
                 return row, None
-            box = tuple(slice(c * cb, min(c * cb + cb, g)) for c, g in zip(key, states.shape))
+            box = chunk_box(key, cb, states.shape)
             cap = int(np.count_nonzero(states[box] == BlockState.CODED)) * BLOCK ** 3  # the most it can hold
             return row, cr.corrections_ahead(row[4:4 + 4 * nw].view("<u4"), cap, self.model)
 

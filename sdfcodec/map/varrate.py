@@ -31,7 +31,7 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, SHRINK, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk,
                             encode_chunk, gains, stream_bytes)
 from .implied import drop_implied, inline_states
-from .grouping import ChunkCache, each_chunk
+from .grouping import ChunkCache, chunk_box, each_chunk
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
 
@@ -705,7 +705,7 @@ class VariableRateReader:
     def _decode(self, key: np.ndarray, row: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
         """(coded blocks ``(n, 3)`` relative to chunk ``key``, integer codes ``(n, level)``) from its stored ``row``."""
         cb, states = self.cb, self.states()
-        box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(key, states.shape))
+        box = chunk_box(key, cb, states.shape)
         local = np.argwhere(states[box] == BlockState.CODED)
         row = np.ascontiguousarray(row.reshape(-1))
         nw = int(row[:4].view("<u4")[0])

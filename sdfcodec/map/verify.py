@@ -35,6 +35,7 @@ import zarr
 from ..core._lazy import lazy_module
 from ..errors import ChecksumError, FormatError, MapNotFoundError, SDFCodecError, StateReferenceError
 from ..core.header import BlockState, parse_header
+from .grouping import chunk_box
 from .io.shards import chunk_name, shard_contents
 from .io.unlisted import chunk_positions, is_unlisted, stored_chunks
 
@@ -158,10 +159,6 @@ def _chunk_keys(arr: zarr.Array, rep: VerifyReport | None = None, blocks: np.nda
     return found, stray, broken
 
 
-def _chunk_box(arr: zarr.Array, coords: tuple[int, ...]) -> tuple[slice, ...]:
-    return tuple(slice(c * n, min((c + 1) * n, s)) for c, n, s in zip(coords, arr.chunks, arr.shape))
-
-
 def _iter_chunks(rep: VerifyReport, arr: zarr.Array, listing: Any = False):
     """Yield ``(coords, key, data or None)`` for every stored chunk of ``arr``; a chunk that does not read back
     is reported (data None). Counts the chunks in ``rep.chunks_checked``. ``listing``: from _chunk_keys. The
@@ -212,7 +209,7 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
     aarr = arr.async_array
 
     async def each(cs):
-        return await asyncio.gather(*(aarr.getitem(_chunk_box(arr, c)) for c in cs), return_exceptions=True)
+        return await asyncio.gather(*(aarr.getitem(chunk_box(c, arr.chunks, arr.shape)) for c in cs), return_exceptions=True)
 
     if arr.shards is None:
         return list(await each(chunks))
@@ -232,7 +229,7 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
             return
         for i in idxs:
             out[i] = whole[tuple(slice(b.start - o.start, b.stop - o.start)
-                                 for b, o in zip(_chunk_box(arr, chunks[i]), box))]
+                                 for b, o in zip(chunk_box(chunks[i], arr.chunks, arr.shape), box))]
 
     await asyncio.gather(*(shard(sh, idxs) for sh, idxs in by_shard.items()))
     return out

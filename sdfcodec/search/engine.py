@@ -21,6 +21,7 @@ from ..codec import Codec
 from ..errors import InvalidValueError, ShapeError
 from ..core.header import BlockState
 from ..map import Map, open_map
+from ..map.grouping import chunk_box
 from ..map.metric import codec_codes
 from .arrays import encode_array
 from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
@@ -357,7 +358,7 @@ def codes_at(m: Map, coords: np.ndarray, level: int) -> np.ndarray:
             continue
         idx = order[lo:hi]
         ch = chunk_of[idx[0]]
-        box = tuple(slice(int(c) * cb, min(int(c) * cb + cb, g)) for c, g in zip(ch, grid))
+        box = chunk_box(ch, cb, grid)
         chunk = m.reader.read(arr, (*box, slice(0, level)))
         codes[idx] = chunk[tuple((coords[idx] - ch * cb).T)]
     return codec_codes(m.header.codes, m.truncation, codes)  # metric codes: as the codec encodes them
