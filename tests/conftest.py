@@ -166,11 +166,14 @@ def pytest_xdist_node_collection_finished(node, ids):
 # modules reading the one `sdfcodec bench` run (bench_run, ~20 s of CPU) share a worker: in two workers asking
 # for it at once, RunShared built it twice. test_architecture's checks share one parse of every module (~3 s),
 # test_conformance_builtin's one fit of each codec (sdfcodec.testing fits a reference once per process).
+# test_variable_rate: handed out one test at a time, its ~9 s rate-control test came among the run's last (they go
+# in collection order) and ended the run alone on one worker, the other idle 7-9 s; its module fixtures (a pca-32
+# fit, the analytic scene) were built in both workers.
 WORKER_GROUPS = {name: name for name in (
     "test_reliability", "test_writes", "test_plugin_package", "test_plugin_compat", "test_codecs_nn",
     "test_rate_distortion", "test_peers_study", "test_bench_harness", "test_search", "test_building",
     "test_shards", "test_tracking", "test_evaluation", "test_view", "test_architecture",
-    "test_conformance_builtin")} | {
+    "test_conformance_builtin", "test_variable_rate")} | {
     "test_cli": "bench_run", "test_bench_progress": "bench_run"}
 
 

@@ -400,3 +400,11 @@ def test_floor_blocks_count_only_observed_floor(tmp_path):
     none = np.zeros((1, 16, 16, 16), bool)
     assert not scene.floor_blocks(coords[i:i + 1], fb.origin, VS, observed=none)[0]
     assert scene.floor_blocks(coords[i:i + 1], fb.origin, VS, observed=~none)[0]
+    # the fractions with an observation: the scene's labels at every voxel (surface_labels), counted over the
+    # observed voxels alone (the scene is evaluated at those only)
+    local = np.stack(np.meshgrid(*[np.arange(16)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    labels = scene.surface_labels(fb.origin + VS * (16 * coords[:, None] + local[None]), 0.5 * np.sqrt(3) * VS)
+    labels = np.where(observed.reshape(len(coords), -1), labels, -1)
+    counts = np.stack([(labels == k).sum(axis=1) for k in range(len(LABELS))], axis=1)
+    want = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1)
+    np.testing.assert_allclose(scene.block_label_fractions(coords, fb.origin, VS, observed=observed), want, rtol=1e-6)

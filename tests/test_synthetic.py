@@ -347,3 +347,24 @@ def test_primitives_broadcast_stacked_parameters(rng):
         np.testing.assert_allclose(barrels[i], one, rtol=0, atol=1e-12)
         np.testing.assert_allclose(corners[i], ConcaveCorner(centers[i, 0], rots[i], int(planes[i]))(pts[i]),
                                    rtol=0, atol=1e-12)
+
+
+def test_box_sphere_cylinder_distances_are_numpys_formulas_bit_for_bit(rng):
+    """The closed forms of Box, Sphere and Cylinder, written here with numpy's reductions (np.linalg.norm and
+    max over the last axis): the primitives give the same bits (they sum and compare the components one at a
+    time, which is faster), NaN where a point is NaN."""
+    from sdfcodec.core.sdf import Sphere
+
+    pts = rng.normal(scale=1.5, size=(3000, 3)) * rng.choice([1e-4, 1.0, 1e3], size=(3000, 1))
+    pts[:5] = np.nan
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    c = np.array([0.1, -0.2, 0.3])
+    np.testing.assert_array_equal(Sphere(c, 0.7)(pts), np.linalg.norm(pts - c, axis=-1) - 0.7)
+    for r in (None, rot):
+        q = np.abs(pts - c if r is None else (pts - c) @ r) - np.array([0.5, 0.2, 1.0])
+        want = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+        np.testing.assert_array_equal(Box(c, (0.5, 0.2, 1.0), r)(pts), want)
+        p = pts - c if r is None else (pts - c) @ r
+        d = np.stack([np.linalg.norm(p[..., :2], axis=-1) - 0.4, np.abs(p[..., 2]) - 0.8], -1)
+        want = np.minimum(d.max(axis=-1), 0.0) + np.linalg.norm(np.maximum(d, 0.0), axis=-1)
+        np.testing.assert_array_equal(Cylinder(c, 0.4, 0.8, r)(pts), want)

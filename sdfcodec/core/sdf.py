@@ -25,6 +25,23 @@ def _local(points: np.ndarray, center: np.ndarray, rotation: np.ndarray | None) 
     return p if rotation is None else p @ np.asarray(rotation, dtype=np.float64)
 
 
+def _length(v: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(v, axis=-1)`` bit for bit (the squares summed in the same order), without numpy's
+    reduction over a short last axis: ~7x faster on ``(n, 3)`` points, where the analytic scenes spend their time."""
+    total = v[..., 0] * v[..., 0]
+    for k in range(1, v.shape[-1]):
+        total = total + v[..., k] * v[..., k]
+    return np.sqrt(total)
+
+
+def _largest(v: np.ndarray) -> np.ndarray:
+    """``v.max(axis=-1)`` (NaN kept, as there), one component at a time (as :func:`_length`)."""
+    out = v[..., 0]
+    for k in range(1, v.shape[-1]):
+        out = np.maximum(out, v[..., k])
+    return out
+
+
 @dataclass
 class Plane:
     """Half-space ``n . p <= offset`` is solid (``n`` is normalised on use)."""
@@ -45,7 +62,7 @@ class Sphere:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         p = np.asarray(points, dtype=np.float64) - np.asarray(self.center, dtype=np.float64)
-        return np.linalg.norm(p, axis=-1) - self.radius
+        return _length(p) - self.radius
 
 
 @dataclass
@@ -58,8 +75,8 @@ class Box:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         q = np.abs(_local(points, np.asarray(self.center, np.float64), self.rotation)) - np.asarray(self.half)
-        outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
-        inside = np.minimum(q.max(axis=-1), 0.0)
+        outside = _length(np.maximum(q, 0.0))
+        inside = np.minimum(_largest(q), 0.0)
         return outside + inside
 
 
@@ -74,8 +91,8 @@ class Cylinder:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         p = _local(points, np.asarray(self.center, np.float64), self.rotation)
-        d = np.stack([np.linalg.norm(p[..., :2], axis=-1) - self.radius, np.abs(p[..., 2]) - self.half_height], -1)
-        return np.minimum(d.max(axis=-1), 0.0) + np.linalg.norm(np.maximum(d, 0.0), axis=-1)
+        d = np.stack([_length(p[..., :2]) - self.radius, np.abs(p[..., 2]) - self.half_height], -1)
+        return np.minimum(_largest(d), 0.0) + _length(np.maximum(d, 0.0))
 
 
 @dataclass
