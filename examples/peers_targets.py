@@ -162,8 +162,8 @@ def markdown_targets(t: dict, measured: str) -> list[str]:
     d = t.get("decode_on_read")
     if d:
         L += [f"Decode on read (open the map, decode every block; best of {d['repeat']} rounds, the maps timed in "
-              f"turn within each round, each round starting one map further on, load {d['load']:.1f}): fixed-length pca-64 (`encode --codec pca "
-              f"--code-size 64`) {d['reference_blocks_per_s']:,.0f} blocks/s; variable-rate maps over it (target: "
+              f"turn within each round, each round starting one map further on, load {d['load']:.1f}): "
+              f"fixed-length pca-64 (`encode --codec pca --code-size 64`) {d['reference_blocks_per_s']:,.0f} blocks/s; variable-rate maps over it (target: "
               ">= 0.5x):", "", "| map | B/block | decode on read, x fixed pca-64 | >= 0.5x? |", "|---|---:|---:|---|"]
         for name, r in d["ratios"].items():
             L.append(f"| {name} | {d['bytes'][name]:.1f} | {r:.2f} | {'yes' if r >= 0.5 else '**no**'} |")

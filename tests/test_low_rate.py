@@ -33,11 +33,16 @@ def fused():
     return np.ascontiguousarray(np.clip(v, 0.01, 0.99)), w
 
 
+def _basis64(codec) -> tuple[np.ndarray, np.ndarray]:
+    """The codec's decode ``(D, d)`` in float64: components ``(k, 4096)`` and mean ``(4096,)``."""
+    state = codec.state_dict()
+    return state["components"].astype(np.float64), state["mean"].astype(np.float64)
+
+
 def two_ridges(codec, x: np.ndarray, w: np.ndarray, shrink: float) -> np.ndarray:
     """Independent reference: ``argmin sum w (x - (c D + d))^2 + RIDGE mean(w) |c - c0|^2 + shrink mean(w) |c|^2``
     (``c0`` the plain projection) by numpy's lstsq on the stacked system, in float64."""
-    state = codec.state_dict()
-    dec_w, dec_b = state["components"].astype(np.float64), state["mean"].astype(np.float64)
+    dec_w, dec_b = _basis64(codec)
     out = []
     for xi, wi in zip(x.reshape(len(x), -1).astype(np.float64), w.reshape(len(w), -1).astype(np.float64)):
         c0 = (xi - dec_b) @ dec_w.T
@@ -51,8 +56,7 @@ def two_ridges(codec, x: np.ndarray, w: np.ndarray, shrink: float) -> np.ndarray
 
 def two_ridges_objective(codec, x: np.ndarray, w: np.ndarray, shrink: float, c: np.ndarray) -> np.ndarray:
     """``(n,)`` float64: the objective :func:`two_ridges` minimises, at codes ``c`` ``(n, k)``."""
-    state = codec.state_dict()
-    dec_w, dec_b = state["components"].astype(np.float64), state["mean"].astype(np.float64)
+    dec_w, dec_b = _basis64(codec)
     xf, wf = x.reshape(len(x), -1).astype(np.float64), w.reshape(len(w), -1).astype(np.float64)
     c = np.asarray(c, np.float64)
     c0 = (xf - dec_b) @ dec_w.T
@@ -63,7 +67,7 @@ def two_ridges_objective(codec, x: np.ndarray, w: np.ndarray, shrink: float, c: 
 
 def two_ridges_condition(codec, w: np.ndarray, shrink: float) -> np.ndarray:
     """``(n,)``: the condition number of each block's normal matrix in :func:`two_ridges` (float64)."""
-    dec_w = codec.state_dict()["components"].astype(np.float64)
+    dec_w, _ = _basis64(codec)
     eye = np.eye(len(dec_w))
     return np.array([np.linalg.cond((dec_w * wi) @ dec_w.T + (sdfcodec_pca.RIDGE + shrink) * wi.mean() * eye)
                      for wi in w.reshape(len(w), -1).astype(np.float64)])

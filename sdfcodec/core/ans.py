@@ -13,8 +13,8 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
-__all__ = ["symbols_ahead", "available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order", "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs",
-           "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
+__all__ = ["symbols_ahead", "available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order",
+           "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs", "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
 _FOUND: list[bool] = []
@@ -37,7 +37,7 @@ def symbols_ahead(ahead: np.ndarray, n: int) -> tuple[np.ndarray, bool]:
     """The first ``n`` symbols ``(n,)`` int32 of a :meth:`Decoder.categorical_ahead` decode, and whether the coder
     is empty after them: exactly what :meth:`Decoder.categorical` of ``n`` symbols and ``is_empty`` give (past the
     last symbol decoded, when the coder was empty for good, each symbol is the table's first)."""
-    flag = np.int32(1 << 30)
+    flag = _k().AHEAD_EMPTY
     if n <= len(ahead):
         return ahead[:n] & ~flag, bool(n == 0 or ahead[n - 1] & flag)
     done = len(ahead) == 0 or bool(ahead[-1] & flag)  # shorter than n: it stopped empty (n <= its cap)

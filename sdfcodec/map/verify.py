@@ -209,7 +209,8 @@ async def _read_chunks(arr: zarr.Array, chunks: list[tuple[int, ...]]) -> list[A
     aarr = arr.async_array
 
     async def each(cs):
-        return await asyncio.gather(*(aarr.getitem(chunk_box(c, arr.chunks, arr.shape)) for c in cs), return_exceptions=True)
+        return await asyncio.gather(*(aarr.getitem(chunk_box(c, arr.chunks, arr.shape)) for c in cs),
+                                    return_exceptions=True)
 
     if arr.shards is None:
         return list(await each(chunks))
