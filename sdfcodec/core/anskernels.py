@@ -23,6 +23,9 @@ from numba import njit
 __all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_sizes", "wave_place", "decode_planes", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "slot_table", "categorical_decode", "encode"]
 
 _ONE = np.uint64(1)
+_TWO = np.uint64(2)
+_16 = np.uint64(16)
+_LOW16 = np.uint64(0xFFFF)
 _PREC = np.uint64(24)
 _QMASK = np.uint64((1 << 24) - 1)
 _TOTAL = 1 << 24
@@ -445,12 +448,13 @@ def wave_place(dims, corner, rows, nxt, slabs, out):
                 if b < 0:
                     continue
                 r = np.int64(rows[b, (i - 1) & 15, (j - 1) & 15])
-                w0 = i + j + bz * 16 + 1
+                w0 = np.uint64(i + j + bz * 16 + 1)  # indices as uint64: no test for a negative one
                 v = ((b * 4096 + (((i - 1) & 15) << 8) + (((j - 1) & 15) << 4)) << 32) | (i << 16) | j
                 while r:
-                    k = _LOW_BIT[(((r & -r) * 0x09AF) >> 12) & 15]
-                    out[nxt[w0 + k]] = v + (k << 32)
-                    nxt[w0 + k] += 1
+                    k = _LOW_BIT[np.uint64((((r & -r) * 0x09AF) >> 12) & 15)]
+                    at = w0 + np.uint64(k)
+                    out[np.uint64(nxt[at])] = v + (k << 32)
+                    nxt[at] += 1
                     r &= r - 1
 
 
@@ -479,7 +483,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
     for q in range(len(weights)):
         top += 2 * weights[q]
     bounded = top < n_ctx  # the planes hold 0, 1, 2 only: no context can reach n_ctx, none is checked
-    nz = 0  # the zeros found: never past the position at hand, nor those of the wavefronts to come
+    nz = np.uint64(0)  # the zeros found: never past the position at hand, nor those of the wavefronts to come
     widest = 0
     for u in range(len(bounds) - 1):
         widest = max(widest, bounds[u + 1] - bounds[u])
@@ -489,6 +493,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
     flat = plane.reshape(-1)
     off = np.empty(len(weights), np.int64)  # each neighbour's offset in flat, for the wavefront at hand
     s, pos = st[0], np.int64(st[1])
+    us1 = np.uint64(s1)
     for u in range(len(waves)):
         w = waves[u]
         for q in range(len(weights)):  # (no division per bit: the planes' slots worked out once a wavefront)
@@ -498,7 +503,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
             slot = wb % 3
             if owner[slot] != wb:
                 for t in range(n_held[slot]):
-                    flat[held[slot, t]] = 2
+                    flat[np.uint64(held[slot, t])] = 2
                 owner[slot], n_held[slot] = wb, 0
         a, b = bounds[u], bounds[u + 1]
         me = w % 3
@@ -506,11 +511,13 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
         buf_at = held[me]
         mine = me * s0 * s1
         if len(weights) == 6 and bounded:  # M2's six neighbours, unrolled (a loop measured 1.2x the time)
-            o0, o1, o2, o3, o4, o5 = off[0], off[1], off[2], off[3], off[4], off[5]
+            o0, o1, o2, o3, o4, o5 = (np.uint64(off[0]), np.uint64(off[1]), np.uint64(off[2]), np.uint64(off[3]),
+                                      np.uint64(off[4]), np.uint64(off[5]))  # negative ones wrap, as the sums do
             w0, w1, w2, w3, w4, w5 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5]
             for t in range(a, b):
-                at = ((ij[t] >> 16) & 0xFFFF) * s1 + (ij[t] & 0xFFFF)
-                buf_at[t - a] = at + mine
+                v = np.uint64(ij[t])
+                at = ((v >> _16) & _LOW16) * us1 + (v & _LOW16)
+                buf_at[t - a] = np.int64(at) + mine
                 buf_ctx[t - a] = (np.int64(flat[at + o0]) * w0 + np.int64(flat[at + o1]) * w1
                                   + np.int64(flat[at + o2]) * w2 + np.int64(flat[at + o3]) * w3
                                   + np.int64(flat[at + o4]) * w4 + np.int64(flat[at + o5]) * w5)
@@ -526,8 +533,9 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
                 buf_at[t - a] = at + mine
                 buf_ctx[t - a] = ctx
         nc = 0
-        for t in range(a, b):
-            ctx = buf_ctx[t - a]
+        for t in range(a, b):  # (indices as uint64: no test for a negative one; 1.8 ms less of the 592k bits)
+            r = np.uint64(t - a)
+            ctx = np.uint64(buf_ctx[r])
             c1 = split[ctx]
             qv = np.int64(s & _QMASK)
             up = qv >= c1  # selects, not a branch: the bits of a mask are not predictable
@@ -536,10 +544,10 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
             if s < _LOW and pos > 0:
                 pos -= 1
                 s = (s << _W) | np.uint64(words[pos])
-            flat[buf_at[t - a]] = np.uint8(up)
-            ij[nz] = ij[t] >> 32
-            nz += 1 - np.int64(up)
-            counts[2 * ctx + np.int64(up)] += 1
+            flat[np.uint64(buf_at[r])] = np.uint8(up)
+            ij[nz] = ij[np.uint64(t)] >> 32
+            nz += _ONE - np.uint64(up)
+            counts[_TWO * ctx + np.uint64(up)] += 1
             if stamp[ctx] != u:
                 stamp[ctx] = u
                 changed[nc] = ctx
