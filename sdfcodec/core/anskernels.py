@@ -460,7 +460,7 @@ def wave_place(dims, corner, rows, nxt, slabs, out):
 
 @njit(cache=True, nogil=True)
 def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
-    """:func:`decode_bits` of the positions of :func:`wave_order_planes`, the same bits from the same words,
+    """:func:`decode_bits` of the positions ``ij`` of :func:`wave_place`, the same bits from the same words,
     without the grid: a context reads its neighbours ``nbr`` ``(q, 3)`` rows ``(dw, di, dj)`` (``dw < 0``: in an
     earlier wavefront) from the last three wavefronts kept as planes of ``dims[0] x dims[1]`` (2: not pinned),
     which stay in cache where a grid of the chunk's voxels did not. Returns (ok, the ``b * 4096 + voxel`` of
@@ -533,7 +533,7 @@ def decode_planes(words, st, dims, ij, waves, bounds, nbr, weights, n_ctx):
                 buf_at[t - a] = at + mine
                 buf_ctx[t - a] = ctx
         nc = 0
-        for t in range(a, b):  # (indices as uint64: no test for a negative one; 1.8 ms less of the 592k bits)
+        for t in range(a, b):  # indices as uint64 here and above: no test for a negative one (5.8 -> 3.9 ms)
             r = np.uint64(t - a)
             ctx = np.uint64(buf_ctx[r])
             c1 = split[ctx]
