@@ -154,8 +154,8 @@ def test_the_read_kernels_release_the_gil():
     from sdfcodec.core import anskernels, pinkernels
 
     for mod, names in ((pinkernels, ("sign_rows", "select_rows", "refined_sign_rows", "set_voxels", "pinned_rows")),
-                       (anskernels, ("chunk_decode", "categorical_decode", "decode_planes", "wave_order_planes",
-                                     "plane_zeros"))):
+                       (anskernels, ("chunk_decode", "categorical_decode", "decode_planes", "wave_sizes",
+                                     "wave_place"))):
         for name in names:
             assert getattr(mod, name).targetoptions.get("nogil") is True, name
 

@@ -18,6 +18,7 @@ from sdfcodec.core.blocks import split_blocks
 from sdfcodec.core.sdf import sample_volume
 from sdfcodec.map import pinmask as pm
 from sdfcodec.map import pinread
+from sdfcodec.map.grouping import each_chunk
 from sdfcodec.registry import pretrained_codec
 from sdfcodec.testing import analytic_scene
 
@@ -187,8 +188,9 @@ def test_the_compiled_pinned_rows_are_pinmasks():
 
 
 def test_the_wave_planes_order_is_the_grids():
-    """ans.wave_order_planes (the pins' set bits, as (i, j) per wavefront) gives ans.wave_order's positions and
-    wavefront bounds (a scan of the grid) on random pins of scattered blocks."""
+    """ans.wave_order_planes (the pins' set bits, as (i, j) per wavefront, each with its block and voxel) gives
+    ans.wave_order's positions and wavefront bounds (a scan of the grid) on random pins of scattered blocks, and
+    the same array placed in runs of slabs (in turn, in reverse, or on threads)."""
     rng = np.random.default_rng(6)
     for trial in range(8):
         coords = np.unique(rng.integers(0, 4, (rng.integers(1, 12), 3)), axis=0)
@@ -198,10 +200,25 @@ def test_the_wave_planes_order_is_the_grids():
         corner = (coords - lo) * 16 + 1
         at, bounds = ans.wave_order(np.full(int(np.prod(shape)), 2, np.uint8), shape, corner, pinned)
         rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2")
-        ij, waves, got_bounds = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16))
-        i, j = ij.astype(np.int64) >> 16, ij.astype(np.int64) & 0xFFFF
+        order, waves, got_bounds = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16))
+        i, j = (order >> 16) & 0xFFFF, order & 0xFFFF
         w = np.repeat(waves, np.diff(got_bounds))
         assert np.array_equal(got_bounds, bounds) and np.array_equal(np.ravel_multi_index((i, j, w - i - j), shape), at)
+        grid = np.stack((i, j, w - i - j), axis=1)  # each position's block and voxel, from the blocks' corners
+        b = np.flatnonzero(np.all((grid[:, None] >= corner) & (grid[:, None] < corner + 16), axis=2).reshape(-1))
+        b = b % len(corner)
+        voxel = np.ravel_multi_index(tuple((grid - corner[b]).T), (16, 16, 16)) if len(b) else b
+        assert len(b) == len(order) and np.array_equal(order >> 32, b * 4096 + voxel)
+        for parts in (2, 3, 5):
+            def backwards(job, runs):
+                return [job(r) for r in runs[::-1]]
+
+            def threaded(job, runs):
+                return each_chunk(job, runs, threads=len(runs))
+
+            for each in (None, backwards, threaded):
+                again = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16), parts, each)
+                assert all(np.array_equal(x, y) for x, y in zip(again, (order, waves, got_bounds))), (trial, parts)
 
 
 def test_the_plane_decoder_reads_the_grid_decoders_bits():
@@ -216,7 +233,9 @@ def test_the_plane_decoder_reads_the_grid_decoders_bits():
         stream = pm.encode_pinned(coords, bits, pinned)
         rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2").reshape(-1, 16, 16)
         want = np.flatnonzero(~pm.decode_pinned(stream, coords, pinned).reshape(-1))
-        assert np.array_equal(np.sort(pm.unobserved_voxels(stream, coords, rows)), want)
+        got = pm.unobserved_voxels(stream, coords, rows)
+        assert np.array_equal(np.sort(got), want)
+        assert np.array_equal(pm.unobserved_voxels(stream, coords, rows, threads=3), got)  # and in the same order
         assert np.array_equal(want, np.flatnonzero((pinned & ~bits).reshape(-1)))
     fewer = rows.copy()
     fewer[0, 0, 0] ^= 1
