@@ -56,24 +56,54 @@ def _limits(e, d):
 
 
 @njit(cache=True, inline="always")
-def _sure(x, neg_yes, neg_no, pos_yes, pos_no):
-    """Whether both signs of a value within the margin of ``x`` are decided (:func:`_limits`)."""
-    return (x < neg_yes or x >= neg_no) and (x >= pos_yes or x < pos_no)
+def _first32(t):
+    """The least float32 ``c`` with ``float64(c) 2^24 >= t`` (``t`` float64; NaN where ``t`` is NaN): for a float32
+    ``f``, ``float64(f) 2^24 < t`` exactly where ``f < c``, and ``>= t`` where ``f >= c``.
+
+    Why: ``g(f) = float64(f) 2^24`` is exact (float32 to float64 is exact; a power of two, far from overflow) and
+    strictly increasing over the non-NaN float32s (-inf and +inf included), so ``{f: g(f) >= t}`` is closed
+    upwards: all the float32s from its least element ``c`` on (``+inf`` at least: ``g(+inf) >= t`` for every
+    non-NaN ``t``), and ``g(f) < t`` is its complement, ``f < c``. ``c`` is found from the float32 nearest ``t
+    2^-24``, stepped up while it fails the test and down while the one below passes it: checked against the test
+    itself, it owes nothing to how the guess rounded. A NaN ``f`` fails ``f < c`` and ``f >= c``, as ``g(NaN)``
+    fails both tests it replaces; a NaN ``t`` leaves ``c`` NaN, which fails every test, as ``t`` did."""
+    c = np.float32(t / _SCALE)
+    up, down = np.float32(np.inf), np.float32(-np.inf)
+    while np.float64(c) * _SCALE < t:
+        c = np.nextafter(c, up)
+    while c > down and np.float64(np.nextafter(c, down)) * _SCALE >= t:
+        c = np.nextafter(c, down)
+    return c
 
 
 @njit(cache=True, inline="always")
-def _told(x, z, lim, nb, pb, unsure):
-    """Voxel ``z``'s flags told from ``x`` (bit ``z + 1`` of ``nb``, ``pb``; bit ``z`` of ``unsure`` where the
-    margin leaves its signs open) under :func:`_limits` ``lim`` (branches: most voxels lie far from the
-    thresholds, in runs of one sign; flags as bits measured 2-3x slower on the synthetic room)."""
-    bit = np.uint32(1) << np.uint32(z + 1)
-    if x < lim[0]:
-        nb |= bit
-    if x >= lim[2]:
-        pb |= bit
-    if not _sure(x, lim[0], lim[1], lim[2], lim[3]):
-        unsure |= 1 << z
-    return nb, pb, unsure
+def _flag_bytes(x, lim, flags):
+    """Each voxel's flags told from ``x`` (4096,) float32 metres under :func:`_limits` ``lim`` (in units of
+    2^-24 m): ``flags[j]`` bit 0 where ``x[j] < neg_yes`` (may be negative), bit 1 where ``x[j] >= pos_yes`` (may
+    be non-negative), bit 2 where the margin leaves a sign open (NaN included: decided exactly). Compared in
+    float32 against :func:`_first32` of each limit, exactly the float64 tests ``float64(x) 2^24 < t`` (and ``>=``)
+    they replace, and without a branch: the loop runs on vectors (a branch per voxel did, on float64, before)."""
+    c0, c1, c2, c3 = _first32(lim[0]), _first32(lim[1]), _first32(lim[2]), _first32(lim[3])
+    for j in range(4096):
+        f = x[j]
+        neg, no_neg, pos, no_pos = f < c0, f >= c1, f >= c2, f < c3
+        flags[j] = np.uint8(neg) | (np.uint8(pos) << np.uint8(1)) | (
+            np.uint8(not ((neg | no_neg) & (pos | no_pos))) << np.uint8(2))
+
+
+_ONES = np.uint64(0x0101010101010101)
+_GATHER = np.uint64(0x0102040810204080)  # times 8 bytes of 0 or 1: byte i's bit lands on bit 56 + i, no carry
+
+
+@njit(cache=True, inline="always")
+def _row_bits(words, xy, bit):
+    """Bit ``bit`` of the 16 :func:`_flag_bytes` of row ``xy`` (``words``: the flags viewed as uint64) as a uint32,
+    bit ``z`` for voxel ``z``. Byte ``i`` times bit ``56 - 7 j`` of :data:`_GATHER` lands on bit ``56 + 8 i - 7 j``:
+    bits 56-63 only where ``i = j``, the rest on distinct lower bits (their sum carries nothing upwards)."""
+    s, top = np.uint64(bit), np.uint64(56)
+    lo = (((words[2 * xy] >> s) & _ONES) * _GATHER) >> top
+    hi = (((words[2 * xy + 1] >> s) & _ONES) * _GATHER) >> top
+    return np.uint32(lo | (hi << np.uint64(8)))
 
 
 @njit(cache=True, inline="always")
@@ -93,24 +123,37 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     ``(n,)`` float64 integers, ``d`` may be inf): a voxel whose float decode lies within ``d[b]`` of ``e[b]`` or
     ``-e[b]`` is decided by the exact decode of its integer codes ``q`` ``(n, k)`` float64 and the basis transposed
     ``basis_t`` ``(4096, k + 1)`` float64 (:func:`_exact`). Returns the number of voxels decided exactly."""
-    n = len(rows)
     exact = 0
-    for b in range(n):
-        r = rows[b]
-        eb = e[b]
-        kb = _width(q, b)
-        lim = _limits(eb, d[b])
-        for xy in range(256):
-            nb, pb, unsure = np.uint32(0), np.uint32(0), 0
+    flags = np.empty(4096, np.uint8)
+    words = flags.view(np.uint64)
+    for b in range(len(rows)):
+        _flag_bytes(v[rows[b]], _limits(e[b], d[b]), flags)
+        exact += _rows_of(flags, words, None, e[b], q, basis_t, b, _width(q, b), 0.0, 0.0, 0.0, neg, pos)
+    return exact
+
+
+@njit(cache=True, inline="always")
+def _rows_of(flags, words, cz, eb, q, basis_t, b, kb, step, lo, hi, neg, pos):
+    """Block ``b``'s sign rows into ``neg[b]``, ``pos[b]`` from its :func:`_flag_bytes`, the voxels left open
+    decided by the exact decode (clipped to ``[lo, hi]`` and refined by ``cz[j] step`` where ``cz`` is not None:
+    :func:`refined_sign_rows`). Returns how many were."""
+    exact = 0
+    for xy in range(256):
+        nb = _row_bits(words, xy, 0) << np.uint32(1)
+        pb = _row_bits(words, xy, 1) << np.uint32(1)
+        if (words[2 * xy] | words[2 * xy + 1]) & (_ONES << np.uint64(2)):  # open voxels are rare: a branch
             for z in range(16):
-                nb, pb, unsure = _told(np.float64(v[r, xy * 16 + z]) * _SCALE, z, lim, nb, pb, unsure)
-            if unsure:
-                for z in range(16):
-                    if unsure >> z & 1:
-                        nb, pb = _decided(_exact(q, basis_t, b, xy * 16 + z, kb), eb, z, nb, pb)
-                        exact += 1
-            neg[b, xy >> 4, xy & 15] = nb
-            pos[b, xy >> 4, xy & 15] = pb
+                j = xy * 16 + z
+                if flags[j] & 4:
+                    w = _exact(q, basis_t, b, j, kb)
+                    if cz is not None:
+                        w = min(max(w, lo), hi)
+                        if cz[j] != 0:
+                            w = min(max(w + cz[j] * step, lo), hi)
+                    nb, pb = _decided(w, eb, z, nb, pb)
+                    exact += 1
+        neg[b, xy >> 4, xy & 15] = nb
+        pos[b, xy >> 4, xy & 15] = pb
     return exact
 
 
@@ -161,39 +204,33 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
     t = 0
     step32 = np.float32(step / _SCALE)  # exact: an integer below 2^24 times a power of two
     lo32, hi32 = np.float32(lo / _SCALE), np.float32(hi / _SCALE)
-    cz = np.zeros(16, np.int64)  # a row's corrections (0 where not selected)
+    cz = np.zeros(4096, np.int64)  # a block's corrections (0 where not selected)
     last = max(len(c) - 1, 0)
     cc = c if len(c) else np.zeros(1, np.int32)
+    flags = np.empty(4096, np.uint8)
+    words = flags.view(np.uint64)
     for b in range(len(rows)):
         r = rows[b]
-        eb = e[b]
-        kb = _width(q, b)
-        lim = _limits(eb, d[b])
+        picked = sel[b].view(np.uint64)  # a row's 16 selections in two words: most rows have none
         for xy in range(256):
-            base = xy * 16
-            for z in range(16):  # no branch on the selection: a row's corrections gathered first
-                s_ = np.int64(sel[b, base + z])
-                cz[z] = np.int64(cc[min(t, last)]) * s_
-                t += s_
-            nb, pb, unsure = np.uint32(0), np.uint32(0), 0xFFFF
-            if r >= 0:
-                unsure = 0
-                for z in range(16):
-                    # the reader's float32 sum (+0.0 where nothing is selected, as it adds a row of zeros)
-                    y = np.float32(v[r, base + z] + np.float32(cz[z]) * step32)
-                    y = min(max(y, lo32), hi32)
-                    v[r, base + z] = y
-                    nb, pb, unsure = _told(np.float64(y) * _SCALE, z, lim, nb, pb, unsure)
-            if unsure:
-                for z in range(16):
-                    if unsure >> z & 1:
-                        w = min(max(_exact(q, basis_t, b, base + z, kb), lo), hi)
-                        if cz[z] != 0:
-                            w = min(max(w + cz[z] * step, lo), hi)
-                        nb, pb = _decided(w, eb, z, nb, pb)
-                        exact += 1
-            neg[b, xy >> 4, xy & 15] = nb
-            pos[b, xy >> 4, xy & 15] = pb
+            if picked[2 * xy] | picked[2 * xy + 1]:
+                for j in range(xy * 16, xy * 16 + 16):  # no branch on the selection
+                    s_ = np.int64(sel[b, j])
+                    cz[j] = np.int64(cc[min(t, last)]) * s_
+                    t += s_
+        if r >= 0:
+            vr = v[r]
+            for j in range(4096):
+                # the reader's float32 sum (+0.0 where nothing is selected, as it adds a row of zeros)
+                y = np.float32(vr[j] + np.float32(cz[j]) * step32)
+                vr[j] = min(max(y, lo32), hi32)
+            _flag_bytes(vr, _limits(e[b], d[b]), flags)
+        else:
+            flags[:] = 4
+        exact += _rows_of(flags, words, cz, e[b], q, basis_t, b, _width(q, b), step, lo, hi, neg, pos)
+        for xy in range(256):
+            if picked[2 * xy] | picked[2 * xy + 1]:
+                cz[xy * 16:xy * 16 + 16] = 0
     return exact
 
 
