@@ -244,6 +244,43 @@ def set_voxels(v, rows, ids, value):
             v[r, ids[t] & 4095] = value
 
 
+@njit(cache=True, inline="always")
+def _padded_part(neg, pos, s, x0, x1, sx0, y0, y1, sy0, pn, pp):
+    """Rows ``[x0, x1) x [y0, y1)`` of a block's padded sign rows ``pn``, ``pp`` (18 bits: z padded by one below and
+    above) from the rows ``sx0 + x - x0``, ``sy0 + y - y0`` of the blocks ``s`` (table entries: below, beside,
+    above; ``-2``: coded elsewhere, either sign; ``-1``: not coded, ``d_max``, non-negative only)."""
+    row16 = np.uint32(0x1FFFE)
+    for x in range(x0, x1):
+        sx = sx0 + x - x0
+        for y in range(y0, y1):
+            sy = sy0 + y - y0
+            # the rows along z: the block beside (or this one), then one bit from those below and above it
+            if s[1] >= 0:
+                rn, rp = neg[s[1], sx, sy] & row16, pos[s[1], sx, sy] & row16
+            elif s[1] == -2:
+                rn, rp = row16, row16
+            else:
+                rn, rp = np.uint32(0), row16
+            if s[0] >= 0:
+                rn |= (neg[s[0], sx, sy] >> np.uint32(16)) & np.uint32(1)
+                rp |= (pos[s[0], sx, sy] >> np.uint32(16)) & np.uint32(1)
+            elif s[0] == -2:
+                rn |= np.uint32(1)
+                rp |= np.uint32(1)
+            else:
+                rp |= np.uint32(1)
+            if s[2] >= 0:
+                rn |= (neg[s[2], sx, sy] & np.uint32(2)) << np.uint32(16)
+                rp |= (pos[s[2], sx, sy] & np.uint32(2)) << np.uint32(16)
+            elif s[2] == -2:
+                rn |= np.uint32(1 << 17)
+                rp |= np.uint32(1 << 17)
+            else:
+                rp |= np.uint32(1 << 17)
+            pn[x, y] = rn
+            pp[x, y] = rp
+
+
 @njit(cache=True, nogil=True)
 def pinned_rows(coords, neg, pos, outside, both):
     """:func:`sdfcodec.map.pinmask.pinned_rows` per block: ``(n, 16, 16)`` uint16, bit ``z`` where voxel ``(x, y,
@@ -268,46 +305,18 @@ def pinned_rows(coords, neg, pos, outside, both):
         table[outside[b, 0] - lo[0], outside[b, 1] - lo[1], outside[b, 2] - lo[2]] = -2
     for b in range(n):
         table[coords[b, 0] - lo[0], coords[b, 1] - lo[1], coords[b, 2] - lo[2]] = b
-    row16, row18 = np.uint32(0x1FFFE), np.uint32(0x3FFFF)
     pn = np.empty((18, 18), np.uint32)
     pp = np.empty((18, 18), np.uint32)
     rel = np.empty((17, 17), np.uint32)
     for b in range(n):
         cx, cy, cz = coords[b, 0] - lo[0], coords[b, 1] - lo[1], coords[b, 2] - lo[2]
-        for x in range(18):
-            bx = -1 if x == 0 else (1 if x == 17 else 0)
-            sx = 15 if x == 0 else (0 if x == 17 else x - 1)
-            for y in range(18):
-                by = -1 if y == 0 else (1 if y == 17 else 0)
-                sy = 15 if y == 0 else (0 if y == 17 else y - 1)
-                # the rows along z: the block beside (or this one), then one bit from those below and above it
-                s = table[cx + bx, cy + by, cz]
-                if s >= 0:
-                    rn, rp = neg[s, sx, sy] & row16, pos[s, sx, sy] & row16
-                elif s == -2:
-                    rn, rp = row16, row16
-                else:
-                    rn, rp = np.uint32(0), row16
-                s = table[cx + bx, cy + by, cz - 1]
-                if s >= 0:
-                    rn |= (neg[s, sx, sy] >> np.uint32(16)) & np.uint32(1)
-                    rp |= (pos[s, sx, sy] >> np.uint32(16)) & np.uint32(1)
-                elif s == -2:
-                    rn |= np.uint32(1)
-                    rp |= np.uint32(1)
-                else:
-                    rp |= np.uint32(1)
-                s = table[cx + bx, cy + by, cz + 1]
-                if s >= 0:
-                    rn |= (neg[s, sx, sy] & np.uint32(2)) << np.uint32(16)
-                    rp |= (pos[s, sx, sy] & np.uint32(2)) << np.uint32(16)
-                elif s == -2:
-                    rn |= np.uint32(1 << 17)
-                    rp |= np.uint32(1 << 17)
-                else:
-                    rp |= np.uint32(1 << 17)
-                pn[x, y] = rn
-                pp[x, y] = rp & row18
+        # the padded rows in nine parts (the block's 16 x 16, four edges, four corners), each from one block
+        # beside it (or this one) and those below and above that: three table look-ups per part, not per row
+        for bx in range(-1, 2):
+            x0, x1, sx0 = (0, 1, 15) if bx < 0 else ((17, 18, 0) if bx > 0 else (1, 17, 0))
+            for by in range(-1, 2):
+                y0, y1, sy0 = (0, 1, 15) if by < 0 else ((17, 18, 0) if by > 0 else (1, 17, 0))
+                _padded_part(neg, pos, table[cx + bx, cy + by, cz - 1:cz + 2], x0, x1, sx0, y0, y1, sy0, pn, pp)
         for x in range(17):
             for y in range(17):
                 cn = pn[x, y] | pn[x + 1, y] | pn[x, y + 1] | pn[x + 1, y + 1]
