@@ -493,3 +493,44 @@ def test_float32_thresholds_tell_the_signs_the_float64_rule_tells():
         assert np.array_equal(((one_neg.reshape(256, 1) & bits) != 0).reshape(-1), want_neg)
         assert np.array_equal(((one_pos.reshape(256, 1) & bits) != 0).reshape(-1), want_pos)
     assert opened > 4096  # (the infinite margin opens every finite voxel of its block)
+
+
+def test_select_rows_in_float32_select_what_the_float64_rule_selects():
+    """select_rows compares float32 decodes with float32 thresholds: on decodes at and around each of its four
+    limits (``x -+ margin`` against ``-+tau``, rounded in float64), +-0, +-inf, NaN and at random, with tau inside
+    and beyond the truncation and an infinite margin, the selection and the count decided exactly are those of
+    the rule in float64 (``[max(x - d, lo), min(x + d, hi)]`` against ``+-tau``; open voxels, NaN included, by
+    their clipped exact value)."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(22)
+    special = np.array([0.0, -0.0, 1e-45, np.inf, -np.inf, np.nan], np.float32)
+    lo, hi = -0.04 * S, 0.1 * S
+    opened = 0
+    for tau, db in ((40000.0, 2272.0039014816284), (1e6 + 0.5, 283.00031757354736), (7.0, 0.0),
+                    (-lo + 3, 17.25), (40000.0, np.inf)):
+        near = []
+        for t in (db - tau, tau + db, tau - db, -tau - db):
+            g = np.float32(t / S)
+            for _ in range(3):
+                g = np.nextafter(g, np.float32(-np.inf))
+            for _ in range(7):
+                near.append(g)
+                with np.errstate(over="ignore"):
+                    g = np.nextafter(g, np.float32(np.inf))
+        x = (rng.normal(size=4096) * 3 * tau / S).astype(np.float32)
+        x[rng.random(4096) < 0.05] = np.nan
+        x[rng.choice(4096, len(near) + len(special), replace=False)] = np.concatenate([near, special])
+        w = rng.choice([tau - 1, tau, -tau, -tau + 1, 3 * tau, lo - 5], 4096)
+        got = np.zeros((1, 4096), bool)
+        exact = pinkernels.select_rows(x[None], np.zeros(1, np.int64), tau, np.array([db]), np.zeros((1, 1)),
+                                       np.ascontiguousarray(w[:, None]), lo, hi, got)
+        y = x.astype(np.float64) * S
+        with np.errstate(invalid="ignore"):  # inf - inf: NaN, and kept, as numba's max and min keep it
+            a, z = np.maximum(y - db, lo), np.minimum(y + db, hi)
+        yes = (-tau < a) & (z < tau)
+        open_ = ~(yes | (a >= tau) | (z <= -tau))
+        assert exact == open_.sum()
+        assert np.array_equal(got[0], np.where(open_, np.abs(np.clip(w, lo, hi)) < tau, yes))
+        opened += exact
+    assert opened > 4096

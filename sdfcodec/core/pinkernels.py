@@ -157,6 +157,58 @@ def _rows_of(flags, words, cz, eb, q, basis_t, b, kb, step, lo, hi, neg, pos):
     return exact
 
 
+@njit(cache=True, inline="always")
+def _select_test(kind, f, db, lo, hi, tau):
+    """The tests of :func:`select_rows` on a float decode ``f`` (float32 metres), as it makes them in float64
+    (kinds 2 and 3 negated: each passes from some float32 on, for a finite ``db``)."""
+    x = np.float64(f) * _SCALE
+    if kind == 0:
+        return -tau < max(x - db, lo)
+    if kind == 1:
+        return max(x - db, lo) >= tau
+    if kind == 2:
+        return not (min(x + db, hi) < tau)
+    return not (min(x + db, hi) <= -tau)
+
+
+@njit(cache=True, inline="always")
+def _least_passing(kind, guess, db, lo, hi, tau):
+    """``(found, c)``: ``c`` the least float32 passing :func:`_select_test` ``kind`` (-inf where all do, NaN where
+    none does), looked for within four float32 of ``guess`` (``found`` False where it is not there).
+
+    Why one compare in float32 tells the test: ``x = float64(f) 2^24`` is exact and strictly increasing over the
+    non-NaN float32s (as in :func:`_first32`), and ``x - db``, ``x + db`` rounded (``db`` finite) and their
+    max, min with a constant are non-decreasing in ``x``: each test passes on all the float32s from ``c`` on and
+    fails below it; the test itself places ``c``. A NaN ``f`` fails every test (numba's ``max``, ``min`` keep a
+    NaN first argument) and every compare with ``c``."""
+    down, up = np.float32(-np.inf), np.float32(np.inf)
+    if _select_test(kind, down, db, lo, hi, tau):
+        return True, down
+    if not _select_test(kind, up, db, lo, hi, tau):
+        return True, np.float32(np.nan)
+    c = guess
+    for _ in range(4):
+        c = np.nextafter(c, down)
+    if _select_test(kind, c, db, lo, hi, tau):
+        return False, c
+    for _ in range(8):
+        c = np.nextafter(c, up)
+        if _select_test(kind, c, db, lo, hi, tau):
+            return True, c
+    return False, c
+
+
+@njit(cache=True, inline="always")
+def _below(c):
+    """The float32 ``d`` with ``f <= d`` exactly where ``f < c`` (``f`` not NaN; a NaN ``c``: none passing, as from
+    :func:`_least_passing`, read as past +inf); a NaN ``f`` fails both."""
+    if c != c:
+        return np.float32(np.inf)
+    if c == np.float32(-np.inf):
+        return np.float32(np.nan)
+    return np.nextafter(c, np.float32(-np.inf))
+
+
 @njit(cache=True, nogil=True)
 def select_rows(v, rows, tau, d, q, basis_t, lo, hi, sel):
     """A surface refinement's selected voxels (spec 6h: ``|clip(w, lo, hi)| < tau``, ``w`` the exact decode,
@@ -166,28 +218,47 @@ def select_rows(v, rows, tau, d, q, basis_t, lo, hi, sel):
     ``[max(x - d, lo), min(x + d, hi)]`` holds ``+-tau`` is decided by its exact decode (:func:`_exact`). Returns
     the number of voxels decided exactly."""
     exact = 0
-    open_ = np.empty(4096, np.bool_)  # the voxels of a block the margin leaves open
+    open_ = np.empty(4096, np.uint8)  # the voxels of a block the margin leaves open
+    words = open_.view(np.uint64)
     for b in range(len(rows)):
         r = rows[b]
         db = d[b]
         kb = _width(q, b)
         if r >= 0:
             # clip(w) lies in [a, z] (within d of x and inside the truncation: a value clipped at a bound near
-            # tau is decided too); no branch per voxel, so that the loop runs on vectors (open ones are rare)
+            # tau is decided too): -tau < a, z < tau (selected), a >= tau, z <= -tau (not), each one float32
+            # compare (_least_passing) where its threshold is found, so that the loop runs on vectors
             vr, sr = v[r], sel[b]
-            for j in range(4096):
-                x = np.float64(vr[j]) * _SCALE
-                a, z = max(x - db, lo), min(x + db, hi)
-                yes = (-tau < a) & (z < tau)
-                sr[j] = yes
-                open_[j] = not (yes | (a >= tau) | (z <= -tau))
+            found = np.isfinite(db)
+            if found:
+                f0, c0 = _least_passing(0, np.float32((db - tau) / _SCALE), db, lo, hi, tau)
+                f1, c1 = _least_passing(1, np.float32((tau + db) / _SCALE), db, lo, hi, tau)
+                f2, c2 = _least_passing(2, np.float32((tau - db) / _SCALE), db, lo, hi, tau)
+                f3, c3 = _least_passing(3, np.float32((-tau - db) / _SCALE), db, lo, hi, tau)
+                found = f0 and f1 and f2 and f3
+            if found:
+                d2, d3 = _below(c2), _below(c3)
+                for j in range(4096):
+                    f = vr[j]
+                    yes = (f >= c0) & (f <= d2)
+                    sr[j] = yes
+                    open_[j] = not (yes | (f >= c1) | (f <= d3))
+            else:  # (an infinite margin, or no threshold near its guess: told in float64)
+                for j in range(4096):
+                    x = np.float64(vr[j]) * _SCALE
+                    a, z = max(x - db, lo), min(x + db, hi)
+                    yes = (-tau < a) & (z < tau)
+                    sr[j] = yes
+                    open_[j] = not (yes | (a >= tau) | (z <= -tau))
         else:
-            open_[:] = True
-        for j in range(4096):
-            if open_[j]:
-                w = min(max(_exact(q, basis_t, b, j, kb), lo), hi)
-                sel[b, j] = abs(w) < tau
-                exact += 1
+            open_[:] = 1
+        for i in range(512):
+            if words[i]:  # open voxels are rare: eight at a time
+                for j in range(8 * i, 8 * i + 8):
+                    if open_[j]:
+                        w = min(max(_exact(q, basis_t, b, j, kb), lo), hi)
+                        sel[b, j] = abs(w) < tau
+                        exact += 1
     return exact
 
 
