@@ -419,6 +419,20 @@ def test_a_chunk_of_short_prefixes_reads_back(tmp_path, monkeypatch):
     assert np.array_equal(fast, slow) and (fast == TRUNC[1]).any() and (fast < 0).any()
 
 
+def _float32_around(limits) -> np.ndarray:
+    """The float32 decodes (metres) nearest each limit (units of 2^-24 m) and three float32 steps either side."""
+    near = []
+    with np.errstate(over="ignore"):  # limits past float32's range: +-inf
+        for t in limits:
+            g = np.float32(t / S)
+            for _ in range(3):
+                g = np.nextafter(g, np.float32(-np.inf))
+            for _ in range(7):
+                near.append(g)
+                g = np.nextafter(g, np.float32(np.inf))
+    return np.array(near, np.float32)
+
+
 def _float64_rule(x: np.ndarray, w: np.ndarray, e: float, d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The sign flags of a float decode ``x`` (float32 metres) by the rule in float64 (``float64(x) 2^24``
     against ``e - d``, ``e + d``, ``d - e``, ``-e - d``; a voxel the margin leaves open, NaN included, by its exact
@@ -430,7 +444,7 @@ def _float64_rule(x: np.ndarray, w: np.ndarray, e: float, d: float) -> tuple[np.
 
 def test_float32_thresholds_tell_the_signs_the_float64_rule_tells():
     """sign_rows and refined_sign_rows compare float32 decodes with float32 thresholds: on a float decode at, and
-    one and two float32 steps either side of, every limit (none of them a float32: margins with fractions, bounds
+    up to three float32 steps either side of, every limit (none of them a float32: margins with fractions, bounds
     past float32's range, an infinite margin), at +-0, subnormals, +-inf, NaN and at random, the flags and the
     count decided exactly are the float64 rule's; the refined decode is the float32 sum, -0 read as +0, NaN kept."""
     from sdfcodec.core import pinkernels
@@ -445,14 +459,7 @@ def test_float32_thresholds_tell_the_signs_the_float64_rule_tells():
     w = np.empty((n, 4096))
     with np.errstate(over="ignore"):  # float32 decodes of bounds past its range: +-inf
         for b, (e, d) in enumerate(cases):
-            near = []
-            for t in (e - d, e + d, d - e, -e - d):
-                g = np.float32(t / S)
-                for _ in range(2):
-                    g = np.nextafter(g, np.float32(-np.inf))
-                for _ in range(5):
-                    near.append(g)
-                    g = np.nextafter(g, np.float32(np.inf))
+            near = _float32_around((e - d, e + d, d - e, -e - d))
             fill = rng.normal(size=4096) * (e + (d if np.isfinite(d) else 0.0)) * 2 / S
             v[b] = np.where(rng.random(4096) < 0.05, np.nan, fill).astype(np.float32)
             picked = rng.choice(4096, len(near) + len(special) + 40, replace=False)
@@ -509,15 +516,7 @@ def test_select_rows_in_float32_select_what_the_float64_rule_selects():
     opened = 0
     for tau, db in ((40000.0, 2272.0039014816284), (1e6 + 0.5, 283.00031757354736), (7.0, 0.0),
                     (-lo + 3, 17.25), (40000.0, np.inf)):
-        near = []
-        for t in (db - tau, tau + db, tau - db, -tau - db):
-            g = np.float32(t / S)
-            for _ in range(3):
-                g = np.nextafter(g, np.float32(-np.inf))
-            for _ in range(7):
-                near.append(g)
-                with np.errstate(over="ignore"):
-                    g = np.nextafter(g, np.float32(np.inf))
+        near = _float32_around((db - tau, tau + db, tau - db, -tau - db))
         x = (rng.normal(size=4096) * 3 * tau / S).astype(np.float32)
         x[rng.random(4096) < 0.05] = np.nan
         x[rng.choice(4096, len(near) + len(special), replace=False)] = np.concatenate([near, special])
