@@ -119,13 +119,13 @@ def test_sign_rows_decides_voxels_on_the_thresholds_exactly():
 
 
 def test_the_kernels_exact_decode_is_exact_near_its_limit():
-    """Blocks not decoded (every voxel decided by the kernels' exact decode, summed in four running sums, codes
+    """Blocks not decoded (every voxel decided by the kernels' exact decode, summed in eight running sums, codes
     after the last non-zero one skipped) with terms near 2^47 and a bound term near 2^50 (exact_decode's limit is
     2^52): the signs are those of the sum in Python integers, voxels placed on +-E included."""
     from sdfcodec.core import pinkernels
 
     rng = np.random.default_rng(11)
-    k = 13  # four running sums and a tail of one
+    k = 13  # eight running sums and a tail of five
     basis = rng.integers(-2 ** 30, 2 ** 30, (k + 1, 4096)).astype(np.float64)
     q = rng.integers(-2 ** 17, 2 ** 17, (3, k)).astype(np.float64)
     q[1, 9:] = 0  # a shorter prefix

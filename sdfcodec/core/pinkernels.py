@@ -21,21 +21,27 @@ def _exact(q, basis_t, b, j, k):
     """The exact decode ``basis[0, j] + sum_i q[b, i] basis[i + 1, j]`` of voxel ``j`` of block ``b`` (``basis_t``:
     the basis transposed, ``(4096, k + 1)``: one voxel's column is contiguous) over its first ``k`` codes
     (:func:`_width`: the rest are 0): float64 integers whose every partial sum, in any order and grouping, is an
-    integer of magnitude at most the bound term ``T`` below 2^52 (checked by the caller), so exact with four
-    running sums too (no branch on zero codes: they add an exact 0)."""
+    integer of magnitude at most the bound term ``T`` below 2^52 (checked by the caller), so exact with eight
+    running sums too (no branch on zero codes: they add an exact 0; eight chains of additions measured 10-30%
+    faster than four on the kitchen's and a room's open voxels)."""
     row = basis_t[j]
-    t0, t1, t2, t3 = row[0], 0.0, 0.0, 0.0
+    qb = q[b]
+    t0, t1, t2, t3, t4, t5, t6, t7 = row[0], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     i = 0
-    while i + 4 <= k:
-        t0 += q[b, i] * row[i + 1]
-        t1 += q[b, i + 1] * row[i + 2]
-        t2 += q[b, i + 2] * row[i + 3]
-        t3 += q[b, i + 3] * row[i + 4]
-        i += 4
+    while i + 8 <= k:
+        t0 += qb[i] * row[i + 1]
+        t1 += qb[i + 1] * row[i + 2]
+        t2 += qb[i + 2] * row[i + 3]
+        t3 += qb[i + 3] * row[i + 4]
+        t4 += qb[i + 4] * row[i + 5]
+        t5 += qb[i + 5] * row[i + 6]
+        t6 += qb[i + 6] * row[i + 7]
+        t7 += qb[i + 7] * row[i + 8]
+        i += 8
     while i < k:
-        t0 += q[b, i] * row[i + 1]
+        t0 += qb[i] * row[i + 1]
         i += 1
-    return (t0 + t1) + (t2 + t3)
+    return ((t0 + t1) + (t2 + t3)) + ((t4 + t5) + (t6 + t7))
 
 
 @njit(cache=True, inline="always")
@@ -93,6 +99,10 @@ def _flag_bytes(x, lim, flags):
 
 _ONES = np.uint64(0x0101010101010101)
 _GATHER = np.uint64(0x0102040810204080)  # times 8 bytes of 0 or 1: byte i's bit lands on bit 56 + i, no carry
+# a de Bruijn sequence: 2^i (i < 32) times it, cut to 32 bits, names i in bits 27-31 (_LOWEST: i by those bits)
+_LOW32, _DE_BRUIJN = np.uint64(0xFFFFFFFF), np.uint64(0x077CB531)
+_LOWEST = np.zeros(32, np.int64)
+_LOWEST[((np.uint64(1) << np.arange(32, dtype=np.uint64)) * _DE_BRUIJN & _LOW32) >> np.uint64(27)] = range(32)
 
 
 @njit(cache=True, inline="always")
@@ -282,13 +292,16 @@ def refined_sign_rows(v, rows, sel, c, step, lo, hi, e, d, q, basis_t, neg, pos)
     words = flags.view(np.uint64)
     for b in range(len(rows)):
         r = rows[b]
-        picked = sel[b].view(np.uint64)  # a row's 16 selections in two words: most rows have none
+        picked = sel[b].view(np.uint64)  # a row's 16 selections in two words: about half the rows have none
         for xy in range(256):
             if picked[2 * xy] | picked[2 * xy + 1]:
-                for j in range(xy * 16, xy * 16 + 16):  # no branch on the selection
-                    s_ = np.int64(sel[b, j])
-                    cz[j] = np.int64(cc[min(t, last)]) * s_
-                    t += s_
+                m = np.uint64(_row_bits(picked, xy, 0))
+                while m:  # the selected voxels only, lowest first (C order)
+                    low = m & (~m + np.uint64(1))
+                    z = _LOWEST[((low * _DE_BRUIJN) & _LOW32) >> np.uint64(27)]
+                    cz[xy * 16 + z] = np.int64(cc[min(t, last)])
+                    t += 1
+                    m ^= low
         if r >= 0:
             vr = v[r]
             for j in range(4096):
