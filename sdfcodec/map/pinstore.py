@@ -286,14 +286,14 @@ class PinnedMaskArray:
             ref = r.refinement
             pins = pinread.decode_refined_pins(v, rows, q, self.basis(), own, outside, r.truncation, ref.spec.tau,
                                                ref.spec.step, lambda sel: ref.corrections(key, sel), threads)
-            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
         if r.refinement is not None:  # without the compiled kernels: every voxel's refined exact field
             v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
             neg, pos = pm.sign_bounds(v, bound)
             pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
         pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation, threads)
-        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
 
     def unmask(self, coords: np.ndarray, v: np.ndarray, free: float) -> None:
         """Set the unobserved voxels of ``v`` ``(n, 16, 16, 16)`` float32, the reader's full-level decode in metres
