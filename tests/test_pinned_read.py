@@ -192,6 +192,7 @@ def test_the_wave_planes_order_is_the_grids():
     ans.wave_order's positions and wavefront bounds (a scan of the grid) on random pins of scattered blocks, and
     the same array placed in runs of slabs (in turn, in reverse, or on threads)."""
     rng = np.random.default_rng(6)
+    split = []  # the runs each placement in reverse was given
     for trial in range(8):
         coords = np.unique(rng.integers(0, 4, (rng.integers(1, 12), 3)), axis=0)
         pinned = rng.random((len(coords), 16, 16, 16)) < [0.0, 0.01, 0.2, 0.9][trial % 4]
@@ -211,6 +212,7 @@ def test_the_wave_planes_order_is_the_grids():
         assert len(b) == len(order) and np.array_equal(order >> 32, b * 4096 + voxel)
         for parts in (2, 3, 5):
             def backwards(job, runs):
+                split.append(len(runs))
                 return [job(r) for r in runs[::-1]]
 
             def threaded(job, runs):
@@ -219,6 +221,7 @@ def test_the_wave_planes_order_is_the_grids():
             for each in (None, backwards, threaded):
                 again = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16), parts, each)
                 assert all(np.array_equal(x, y) for x, y in zip(again, (order, waves, got_bounds))), (trial, parts)
+    assert max(split) >= 3  # the blocks were placed in several runs
 
 
 def test_the_plane_decoder_reads_the_grid_decoders_bits():
