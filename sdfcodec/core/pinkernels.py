@@ -189,8 +189,8 @@ def _least_passing(kind, guess, db, lo, hi, tau):
     Why one compare in float32 tells the test: ``x = float64(f) 2^24`` is exact and strictly increasing over the
     non-NaN float32s (as in :func:`_first32`), and ``x - db``, ``x + db`` rounded (``db`` finite) and their
     max, min with a constant are non-decreasing in ``x``: each test passes on all the float32s from ``c`` on and
-    fails below it; the test itself places ``c``. A NaN ``f`` fails every test (numba's ``max``, ``min`` keep a
-    NaN first argument) and every compare with ``c``."""
+    fails below it; the test itself places ``c``. A NaN ``f`` fails the four tests of :func:`select_rows` (numba's
+    ``max``, ``min`` keep a NaN first argument), and so every compare with ``c`` or :func:`_below` of it."""
     down, up = np.float32(-np.inf), np.float32(np.inf)
     if _select_test(kind, down, db, lo, hi, tau):
         return True, down
