@@ -184,10 +184,10 @@ class MapReader:
         implied = h.codes.variable_rate is not None and h.codes.variable_rate.states is not None
         names = {e.name for e in h.extensions}
         # the members the checks below read, as the header names them, read together (absent: None there)
-        self._fetched = fetch_members(self.group, [*(() if implied else ("codes", "state")), *(("code_scale",) if h.codes.dtype == "int8" else ()),
-                        *((STREAM_ARRAY,) if h.codes.variable_rate is not None else ()),
-                        *((PINNED_ARRAY,) if PINNED_MASK_EXTENSION in names else
-                          (MASK_ARRAY,) if MASK_EXTENSION in names else ())])
+        self._fetched = fetch_members(self.group, [
+            *(() if implied else ("codes", "state")), *(("code_scale",) if h.codes.dtype == "int8" else ()),
+            *((STREAM_ARRAY,) if h.codes.variable_rate is not None else ()),
+            *((PINNED_ARRAY,) if PINNED_MASK_EXTENSION in names else (MASK_ARRAY,) if MASK_EXTENSION in names else ())])
         if implied:
             codes, state, self._inline_states = implied_arrays(h, self.location)  # in the header (spec 4e)
         else:
