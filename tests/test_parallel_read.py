@@ -102,22 +102,6 @@ def test_thread_shares_follow_the_work():
     assert grouping.thread_shares([0, 0], 4) == [1, 1]
 
 
-def test_in_background_runs_meanwhile_and_raises_at_result():
-    """The job starts at once on another thread (it meets the caller at a barrier) and its error is raised by
-    result()."""
-    barrier = threading.Barrier(2, timeout=10)
-    got = grouping.in_background(lambda x: (barrier.wait(), threading.current_thread().name, x)[1:], 7)
-    barrier.wait()
-    name, x = got.result(timeout=10)
-    assert x == 7 and name != threading.current_thread().name
-
-    def fail():
-        raise ValueError("row 3")
-
-    with pytest.raises(ValueError, match="row 3"):
-        grouping.in_background(fail).result(timeout=10)
-
-
 def test_each_chunk_runs_items_at_once_in_order_and_raises_the_first_error():
     """Two items meet at a barrier (they run at the same time: one thread would wait forever), the results come
     in the items' order, one thread runs them inline, and a failing item's error reaches the caller."""

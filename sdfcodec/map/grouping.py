@@ -13,7 +13,7 @@ import collections
 import itertools
 import os
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
@@ -23,7 +23,7 @@ from ..errors import InvalidValueError
 from ..core.header import BlockState, CodesSpec
 
 __all__ = ["Box", "chunk_box", "chunk_groups", "prefetched", "READ_THREADS", "read_threads", "each_chunk",
-           "thread_shares", "in_background", "ChunkCache"]
+           "thread_shares", "ChunkCache"]
 
 Box = tuple[slice, slice, slice]  # a block box: half-open block index ranges per axis
 
@@ -144,16 +144,6 @@ def thread_shares(sizes: Sequence[int], threads: int) -> list[int]:
     if total <= 0 or threads <= 1:
         return [1] * len(sizes)
     return [max(1, min(threads, round(threads * s / total))) for s in sizes]
-
-
-def in_background(job: Callable[..., Any], *args: Any) -> Future:
-    """``job(*args)`` started now on a thread of its own: a read whose result the caller collects later
-    (``result()`` raises the job's error there), while it computes meanwhile."""
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sdfcodec-ahead")
-    try:
-        return pool.submit(job, *args)
-    finally:
-        pool.shutdown(wait=False)  # the thread ends with the job
 
 
 def each_chunk(job: Callable[[Any], Any], items: Iterable[Any], threads: int | None = None) -> list[Any]:

@@ -11,7 +11,6 @@ still reads only its chunks.
 from __future__ import annotations
 
 import json
-from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -22,7 +21,7 @@ from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 from . import pinread
 from .format import check_stream_array
-from .grouping import ChunkCache, chunk_box, each_chunk, in_background, read_threads, thread_shares
+from .grouping import ChunkCache, chunk_box, each_chunk, read_threads, thread_shares
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -201,28 +200,10 @@ class PinnedMaskArray:
         self.path = PINNED_ARRAY
         self._basis: np.ndarray | None = None
         self._cache = ChunkCache(CACHED_CHUNKS)  # decoded chunks: (row index, packed rows)
-        self._ahead: dict[tuple[int, ...], tuple[Future, int]] = {}  # chunk -> its row being read: prefetch
-
-    def prefetch(self, coords: np.ndarray) -> None:
-        """Start reading, off this thread, the stored rows of the chunks holding blocks ``coords`` ``(n, 3)``: a
-        read calls this before its float decode, which the Zarr read then overlaps (:meth:`unmask` collects
-        them)."""
-        names = [tuple(int(c) for c in k) for k in np.unique(np.asarray(coords, np.int64) // self.cb, axis=0)]
-        names = [k for k in names if k not in self._ahead]
-        if names:
-            pending = in_background(self.reader.read_many, self.streams, [self._selection(k) for k in names])
-            self._ahead.update((k, (pending, i)) for i, k in enumerate(names))
-
-    @staticmethod
-    def _selection(name: tuple[int, ...]) -> tuple[slice, ...]:
-        return (*(slice(c, c + 1) for c in name), slice(None))
 
     def _rows(self, names: list[tuple[int, ...]]) -> list[np.ndarray]:
-        """The stored rows of chunks ``names``: those :meth:`prefetch` started, the rest read now."""
-        ahead = [self._ahead.pop(k, None) for k in names]
-        todo = [i for i, a in enumerate(ahead) if a is None]
-        read = dict(zip(todo, self.reader.read_many(self.streams, [self._selection(names[i]) for i in todo])))
-        return [read[i] if a is None else a[0].result()[a[1]] for i, a in enumerate(ahead)]
+        """The stored rows of chunks ``names``."""
+        return self.reader.read_many(self.streams, [(*(slice(c, c + 1) for c in k), slice(None)) for k in names])
 
     def basis(self) -> np.ndarray:
         if self._basis is None:

@@ -526,10 +526,8 @@ class MapReader:
             codes = feed.ready(staged)
             out = None if out_for is None else out_for(len(codes))
             if after:
-                if fused:  # the mask's stored rows read, and a refinement's corrections decoded, meanwhile
-                    mask.prefetch(coords)
-                    if self.refinement is not None:
-                        self.refinement.start(coords)
+                if fused and self.refinement is not None:  # its corrections decoded meanwhile, on threads
+                    self.refinement.start(coords)
                 v = decode_runs(self, codes, coords, None, out, None, metres, refine=False, unmasked=True)
                 if fused:
                     mask.unmask(coords, v.numpy(), self.truncation[1] if metres else 1.0)

@@ -263,12 +263,12 @@ class RefinementReader:
         if not keys:
             return
         r, cb = self.reader, self.cb
+        rows = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None)) for key in keys])
         states = r.vr.states()
         self.model.cdf()  # made once, before the threads read it
 
-        def job(key: tuple[int, ...]) -> tuple[np.ndarray, Any]:
-            # read on the job's thread too: the caller's float decode goes on meanwhile
-            row = np.ascontiguousarray(r.read(self.arr, (*(slice(c, c + 1) for c in key), slice(None))).reshape(-1))
+        def job(key: tuple[int, ...], row: np.ndarray) -> tuple[np.ndarray, Any]:
+            row = np.ascontiguousarray(row.reshape(-1))
             nw = int(row[:4].view("<u4")[0])
             if 4 + 4 * nw > len(row):  # _chunk says so
                 return row, None
@@ -277,8 +277,8 @@ class RefinementReader:
             return row, cr.corrections_ahead(row[4:4 + 4 * nw].view("<u4"), cap, self.model)
 
         pool = ThreadPoolExecutor(max_workers=min(read_threads(), len(keys)), thread_name_prefix="sdfcodec-refine")
-        for key in keys:
-            self._ahead[key] = pool.submit(job, key)
+        for key, row in zip(keys, rows):
+            self._ahead[key] = pool.submit(job, key, row)
         pool.shutdown(wait=False)  # the jobs run on; the pool's threads end with them
 
     def basis(self) -> np.ndarray:
