@@ -91,6 +91,17 @@ def test_a_region_read_on_threads_decodes_only_its_chunks(maps, monkeypatch):
     assert np.array_equal(*parts) and (parts[0] < 0).any()
 
 
+def test_thread_shares_follow_the_work():
+    """Each job's share of the threads in proportion to its size, at least one: a chunk of nearly all the coded
+    blocks gets every core, chunks of like sizes one each."""
+    assert grouping.thread_shares([494, 13], 2) == [2, 1]
+    assert grouping.thread_shares([100, 100], 2) == [1, 1]
+    assert grouping.thread_shares([300, 100, 0], 4) == [3, 1, 1]
+    assert grouping.thread_shares([5], 8) == [8]
+    assert grouping.thread_shares([7, 3], 1) == [1, 1]
+    assert grouping.thread_shares([0, 0], 4) == [1, 1]
+
+
 def test_each_chunk_runs_items_at_once_in_order_and_raises_the_first_error():
     """Two items meet at a barrier (they run at the same time: one thread would wait forever), the results come
     in the items' order, one thread runs them inline, and a failing item's error reaches the caller."""
@@ -127,8 +138,8 @@ def test_the_read_kernels_release_the_gil():
     from sdfcodec.core import anskernels, pinkernels
 
     for mod, names in ((pinkernels, ("sign_rows", "select_rows", "refined_sign_rows", "set_voxels", "pinned_rows")),
-                       (anskernels, ("chunk_decode", "categorical_decode", "decode_planes", "wave_order_planes",
-                                     "plane_zeros"))):
+                       (anskernels, ("chunk_decode", "categorical_decode", "decode_planes", "wave_sizes",
+                                     "wave_place"))):
         for name in names:
             assert getattr(mod, name).targetoptions.get("nogil") is True, name
 

@@ -341,6 +341,8 @@ def test_a_reader_without_the_extension_refuses_and_a_flipped_byte_is_caught(tmp
     chunk.write_bytes(bytes(raw))
     with pytest.raises(errors.ChecksumError, match="mask_streams"):
         sdfcodec.open_map(p).decode_region()
+    with pytest.raises(errors.ChecksumError, match="mask_streams"):  # its row read during the float decode
+        list(sdfcodec.open_map(p).iter_decoded())
     monkeypatch.setattr(header, "KNOWN_EXTENSIONS", header.KNOWN_EXTENSIONS - {"pinned-observation-mask"})
     with pytest.raises(errors.SDFCodecError, match="pinned-observation-mask"):
         sdfcodec.open_map(p)

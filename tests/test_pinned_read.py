@@ -18,6 +18,7 @@ from sdfcodec.core.blocks import split_blocks
 from sdfcodec.core.sdf import sample_volume
 from sdfcodec.map import pinmask as pm
 from sdfcodec.map import pinread
+from sdfcodec.map.grouping import each_chunk
 from sdfcodec.registry import pretrained_codec
 from sdfcodec.testing import analytic_scene
 
@@ -119,13 +120,13 @@ def test_sign_rows_decides_voxels_on_the_thresholds_exactly():
 
 
 def test_the_kernels_exact_decode_is_exact_near_its_limit():
-    """Blocks not decoded (every voxel decided by the kernels' exact decode, summed in four running sums, codes
+    """Blocks not decoded (every voxel decided by the kernels' exact decode, summed in eight running sums, codes
     after the last non-zero one skipped) with terms near 2^47 and a bound term near 2^50 (exact_decode's limit is
     2^52): the signs are those of the sum in Python integers, voxels placed on +-E included."""
     from sdfcodec.core import pinkernels
 
     rng = np.random.default_rng(11)
-    k = 13  # four running sums and a tail of one
+    k = 13  # eight running sums and a tail of five
     basis = rng.integers(-2 ** 30, 2 ** 30, (k + 1, 4096)).astype(np.float64)
     q = rng.integers(-2 ** 17, 2 ** 17, (3, k)).astype(np.float64)
     q[1, 9:] = 0  # a shorter prefix
@@ -187,9 +188,11 @@ def test_the_compiled_pinned_rows_are_pinmasks():
 
 
 def test_the_wave_planes_order_is_the_grids():
-    """ans.wave_order_planes (the pins' set bits, as (i, j) per wavefront) gives ans.wave_order's positions and
-    wavefront bounds (a scan of the grid) on random pins of scattered blocks."""
+    """ans.wave_order_planes (the pins' set bits, as (i, j) per wavefront, each with its block and voxel) gives
+    ans.wave_order's positions and wavefront bounds (a scan of the grid) on random pins of scattered blocks, and
+    the same array placed in runs of slabs (in turn, in reverse, or on threads)."""
     rng = np.random.default_rng(6)
+    split = []  # the runs each placement in reverse was given
     for trial in range(8):
         coords = np.unique(rng.integers(0, 4, (rng.integers(1, 12), 3)), axis=0)
         pinned = rng.random((len(coords), 16, 16, 16)) < [0.0, 0.01, 0.2, 0.9][trial % 4]
@@ -198,10 +201,27 @@ def test_the_wave_planes_order_is_the_grids():
         corner = (coords - lo) * 16 + 1
         at, bounds = ans.wave_order(np.full(int(np.prod(shape)), 2, np.uint8), shape, corner, pinned)
         rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2")
-        ij, waves, got_bounds = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16))
-        i, j = ij.astype(np.int64) >> 16, ij.astype(np.int64) & 0xFFFF
+        order, waves, got_bounds = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16))
+        i, j = (order >> 16) & 0xFFFF, order & 0xFFFF
         w = np.repeat(waves, np.diff(got_bounds))
         assert np.array_equal(got_bounds, bounds) and np.array_equal(np.ravel_multi_index((i, j, w - i - j), shape), at)
+        grid = np.stack((i, j, w - i - j), axis=1)  # each position's block and voxel, from the blocks' corners
+        b = np.flatnonzero(np.all((grid[:, None] >= corner) & (grid[:, None] < corner + 16), axis=2).reshape(-1))
+        b = b % len(corner)
+        voxel = np.ravel_multi_index(tuple((grid - corner[b]).T), (16, 16, 16)) if len(b) else b
+        assert len(b) == len(order) and np.array_equal(order >> 32, b * 4096 + voxel)
+        for parts in (2, 3, 5):
+            def backwards(job, runs):
+                split.append(len(runs))
+                return [job(r) for r in runs[::-1]]
+
+            def threaded(job, runs):
+                return each_chunk(job, runs, threads=len(runs))
+
+            for each in (None, backwards, threaded):
+                again = ans.wave_order_planes(shape, corner, rows.reshape(-1, 16, 16), parts, each)
+                assert all(np.array_equal(x, y) for x, y in zip(again, (order, waves, got_bounds))), (trial, parts)
+    assert max(split) >= 3  # the blocks were placed in several runs
 
 
 def test_the_plane_decoder_reads_the_grid_decoders_bits():
@@ -216,7 +236,9 @@ def test_the_plane_decoder_reads_the_grid_decoders_bits():
         stream = pm.encode_pinned(coords, bits, pinned)
         rows = np.packbits(pinned.reshape(len(coords), -1), axis=1, bitorder="little").view("<u2").reshape(-1, 16, 16)
         want = np.flatnonzero(~pm.decode_pinned(stream, coords, pinned).reshape(-1))
-        assert np.array_equal(np.sort(pm.unobserved_voxels(stream, coords, rows)), want)
+        got = pm.unobserved_voxels(stream, coords, rows)
+        assert np.array_equal(np.sort(got), want)
+        assert np.array_equal(pm.unobserved_voxels(stream, coords, rows, threads=3), got)  # and in the same order
         assert np.array_equal(want, np.flatnonzero((pinned & ~bits).reshape(-1)))
     fewer = rows.copy()
     fewer[0, 0, 0] ^= 1
@@ -417,3 +439,119 @@ def test_a_chunk_of_short_prefixes_reads_back(tmp_path, monkeypatch):
         mp.setattr(ans, "available", lambda: False)
         slow = sdfcodec.open_map(path).decode_region()
     assert np.array_equal(fast, slow) and (fast == TRUNC[1]).any() and (fast < 0).any()
+
+
+def _float32_around(limits) -> np.ndarray:
+    """The float32 decodes (metres) nearest each limit (units of 2^-24 m) and three float32 steps either side."""
+    near = []
+    with np.errstate(over="ignore"):  # limits past float32's range: +-inf
+        for t in limits:
+            g = np.float32(t / S)
+            for _ in range(3):
+                g = np.nextafter(g, np.float32(-np.inf))
+            for _ in range(7):
+                near.append(g)
+                g = np.nextafter(g, np.float32(np.inf))
+    return np.array(near, np.float32)
+
+
+def _float64_rule(x: np.ndarray, w: np.ndarray, e: float, d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sign flags of a float decode ``x`` (float32 metres) by the rule in float64 (``float64(x) 2^24``
+    against ``e - d``, ``e + d``, ``d - e``, ``-e - d``; a voxel the margin leaves open, NaN included, by its exact
+    value ``w``): may be negative, may be non-negative, open."""
+    y = x.astype(np.float64) * S
+    sure = ((y < e - d) | (y >= e + d)) & ((y >= d - e) | (y < -e - d))
+    return np.where(sure, y < e - d, w < e), np.where(sure, y >= d - e, w >= -e), ~sure
+
+
+def test_float32_thresholds_tell_the_signs_the_float64_rule_tells():
+    """sign_rows and refined_sign_rows compare float32 decodes with float32 thresholds: on a float decode at, and
+    up to three float32 steps either side of, every limit (none of them a float32: margins with fractions, bounds
+    past float32's range, an infinite margin), at +-0, subnormals, +-inf, NaN and at random, the flags and the
+    count decided exactly are the float64 rule's; the refined decode is the float32 sum, -0 read as +0, NaN kept."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(21)
+    f32 = np.finfo(np.float32)
+    special = np.array([0.0, -0.0, 1e-45, -1e-45, f32.tiny, np.inf, -np.inf, np.nan, f32.max, -f32.max], np.float32)
+    cases = [(7531.0, 2272.0039014816284), (2138.0, 283.00031757354736), (5.0, 0.0), (2.0 ** 40 + 1, 3.25),
+             (1e50, 1.5), (100.0, np.inf), (0.0, 0.5), (3.0, 2.0 ** -30)]
+    n = len(cases)
+    v = np.empty((n, 4096), np.float32)
+    w = np.empty((n, 4096))
+    with np.errstate(over="ignore"):  # float32 decodes of bounds past its range: +-inf
+        for b, (e, d) in enumerate(cases):
+            near = _float32_around((e - d, e + d, d - e, -e - d))
+            fill = rng.normal(size=4096) * (e + (d if np.isfinite(d) else 0.0)) * 2 / S
+            v[b] = np.where(rng.random(4096) < 0.05, np.nan, fill).astype(np.float32)
+            picked = rng.choice(4096, len(near) + len(special) + 40, replace=False)
+            v[b, picked] = np.concatenate([near, special, rng.choice(special, 40)])
+            w[b] = rng.choice([e - 1, e, -e - 1, -e, 3 * e, -3 * e], 4096)
+    q = np.zeros((n, 1))  # no codes: each voxel's exact decode is the basis's first row, w
+    e, d = np.array(cases).T
+    rows = np.arange(n)
+    bits = 1 << (np.arange(16) + 1)
+    opened = 0
+    for b in range(n):
+        basis_t = np.ascontiguousarray(w[b][:, None])  # one block at a time: a basis of its own
+        one_neg, one_pos = (np.zeros((1, 16, 16), np.uint32) for _ in range(2))
+        exact = pinkernels.sign_rows(v, rows[b:b + 1], e[b:b + 1], d[b:b + 1], q[b:b + 1], basis_t, one_neg, one_pos)
+        want_neg, want_pos, open_ = _float64_rule(v[b], w[b], e[b], d[b])
+        assert exact == open_.sum() > 0
+        assert np.array_equal(((one_neg.reshape(256, 1) & bits) != 0).reshape(-1), want_neg)
+        assert np.array_equal(((one_pos.reshape(256, 1) & bits) != 0).reshape(-1), want_pos)
+        opened += exact
+        # refined: a tenth selected, corrections of a few steps; truncation at +-1000 m (beyond: clipped)
+        sel = rng.random(4096) < 0.1
+        c = rng.integers(-3, 4, int(sel.sum())).astype(np.int32)
+        step, lo, hi = 7.0, -1000.0 * S, 1000.0 * S
+        add = np.zeros(4096, np.float32)
+        add[sel] = c.astype(np.float32) * np.float32(step / S)
+        field = v[b:b + 1].copy()
+        exact = pinkernels.refined_sign_rows(field, np.zeros(1, np.int64), sel[None], c, step, lo, hi, e[b:b + 1],
+                                             d[b:b + 1], q[b:b + 1], basis_t, one_neg, one_pos)
+        want_field = np.clip(v[b] + add, np.float32(lo / S), np.float32(hi / S))  # NaN stays NaN
+        assert np.array_equal(field[0], want_field, equal_nan=True)
+        assert not np.signbit(field[0][field[0] == 0]).any()
+        cw = np.zeros(4096)
+        cw[sel] = c
+        r = np.clip(w[b], lo, hi)
+        r = np.where(cw != 0, np.clip(r + cw * step, lo, hi), r)
+        want_neg, want_pos, open_ = _float64_rule(want_field, r, e[b], d[b])
+        assert exact == open_.sum()
+        assert np.array_equal(((one_neg.reshape(256, 1) & bits) != 0).reshape(-1), want_neg)
+        assert np.array_equal(((one_pos.reshape(256, 1) & bits) != 0).reshape(-1), want_pos)
+    assert opened > 4096  # (the infinite margin opens every finite voxel of its block)
+
+
+def test_select_rows_in_float32_select_what_the_float64_rule_selects():
+    """select_rows compares float32 decodes with float32 thresholds: on decodes at and around each of its four
+    limits (``x -+ margin`` against ``-+tau``, rounded in float64), +-0, +-inf, NaN and at random, with tau inside
+    and beyond the truncation and an infinite margin, the selection and the count decided exactly are those of
+    the rule in float64 (``[max(x - d, lo), min(x + d, hi)]`` against ``+-tau``; open voxels, NaN included, by
+    their clipped exact value)."""
+    from sdfcodec.core import pinkernels
+
+    rng = np.random.default_rng(22)
+    special = np.array([0.0, -0.0, 1e-45, np.inf, -np.inf, np.nan], np.float32)
+    lo, hi = -0.04 * S, 0.1 * S
+    opened = 0
+    for tau, db in ((40000.0, 2272.0039014816284), (1e6 + 0.5, 283.00031757354736), (7.0, 0.0),
+                    (-lo + 3, 17.25), (40000.0, np.inf)):
+        near = _float32_around((db - tau, tau + db, tau - db, -tau - db))
+        x = (rng.normal(size=4096) * 3 * tau / S).astype(np.float32)
+        x[rng.random(4096) < 0.05] = np.nan
+        x[rng.choice(4096, len(near) + len(special), replace=False)] = np.concatenate([near, special])
+        w = rng.choice([tau - 1, tau, -tau, -tau + 1, 3 * tau, lo - 5], 4096)
+        got = np.zeros((1, 4096), bool)
+        exact = pinkernels.select_rows(x[None], np.zeros(1, np.int64), tau, np.array([db]), np.zeros((1, 1)),
+                                       np.ascontiguousarray(w[:, None]), lo, hi, got)
+        y = x.astype(np.float64) * S
+        with np.errstate(invalid="ignore"):  # inf - inf: NaN, and kept, as numba's max and min keep it
+            a, z = np.maximum(y - db, lo), np.minimum(y + db, hi)
+        yes = (-tau < a) & (z < tau)
+        open_ = ~(yes | (a >= tau) | (z <= -tau))
+        assert exact == open_.sum()
+        assert np.array_equal(got[0], np.where(open_, np.abs(np.clip(w, lo, hi)) < tau, yes))
+        opened += exact
+    assert opened > 4096

@@ -170,6 +170,8 @@ def test_a_corrupted_refinement_stream_fails_with_one_line(tmp_path, room, codec
     chunk.unlink()
     with pytest.raises(errors.FormatError, match="refine_streams"):
         sdfcodec.open_map(p).decode_region()
+    with pytest.raises(errors.FormatError, match="refine_streams"):  # its row read and decoded ahead, on a thread
+        list(sdfcodec.open_map(p).iter_decoded())
     from sdfcodec.map.verify import verify_map
 
     rep = verify_map(p)

@@ -270,10 +270,13 @@ class PCACodec(Codec):
         if not (np.isfinite(comp).all() and np.isfinite(mean).all()):
             raise InvalidValueError("pca state holds NaN or infinite values")
         self.components_, self.mean_, self.explained_variance_ = comp, mean, var
-        self._affine = self._build_affine()
-        dec_w, dec_b = self._affine[2].astype(np.float64), self._affine[3].astype(np.float64)
-        # |x_j| <= sum_i |code_i| max_j |D_ij| + max_j |d_j|: what decode_bound evaluates per batch
-        self._row_max, self._bias_max = np.abs(dec_w).max(axis=1), float(np.abs(dec_b).max())
+        # the decode half now, the encode half on first use (_affine): a map's read decodes only, and the
+        # encoder's float64 fold of a 128-component basis cost it ~1.5 ms per open
+        self._dec, self._enc = self._build_decode(), None
+        dec_w, dec_b = self._dec
+        # |x_j| <= sum_i |code_i| max_j |D_ij| + max_j |d_j|: what decode_bound evaluates per batch (|.| and max
+        # are exact in float32; the row maxima are summed in float64 there)
+        self._row_max, self._bias_max = np.abs(dec_w).max(axis=1).astype(np.float64), float(np.abs(dec_b).max())
         self._device_cache: dict[Any, tuple[Any, ...]] = {}
         return self
 
@@ -290,19 +293,32 @@ class PCACodec(Codec):
                                     f"{worst:.3g}, tolerance {ORTHONORMAL_TOLERANCE:g}): it was altered or corrupted; "
                                     "restore the map or model from a copy, or re-fit the codec")
 
-    def _build_affine(self) -> tuple[np.ndarray, ...]:
-        """Fold the mean handling into ``code = x E + e`` and ``x = code D + d`` (float64 while folding)."""
+    @property
+    def _affine(self) -> tuple[np.ndarray, ...]:
+        """``(E, e, D, d)`` float32: the mean handling folded into ``code = x E + e`` and ``x = code D + d``."""
+        if self._enc is None:
+            self._enc = self._build_encode()
+        return (*self._enc, *self._dec)
+
+    def _build_decode(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(D, d)``: the basis (after a row of ones, the block mean's slot, for ``mean="block"``) and the mean,
+        float32 as stored (no fold: no rounding)."""
+        w = np.ascontiguousarray(self.components_, dtype=np.float32)  # (c, 4096)
+        if self.mean == "block":
+            w = np.concatenate([np.ones((1, _N), np.float32), w], axis=0)
+        return w, np.ascontiguousarray(self.mean_, dtype=np.float32)
+
+    def _build_encode(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(E, e)``, folded in float64."""
         w = self.components_.astype(np.float64)  # (c, 4096)
         mu = self.mean_.astype(np.float64)
         if self.mean == "dataset":
-            enc_w, enc_b, dec_w, dec_b = w.T, -(mu @ w.T), w, mu
+            enc_w, enc_b = w.T, -(mu @ w.T)
         else:
             # slot 0 = block mean; slots 1.. = (x - mean(x) 1 - mu_c) W^T = x (W^T - 1 colmean(W^T)) - mu_c W^T
             enc_w = np.concatenate([np.full((_N, 1), 1.0 / _N), w.T - w.T.mean(axis=0, keepdims=True)], axis=1)
             enc_b = np.concatenate([[0.0], -(mu @ w.T)])
-            dec_w = np.concatenate([np.ones((1, _N)), w], axis=0)
-            dec_b = mu
-        return tuple(np.ascontiguousarray(a, dtype=np.float32) for a in (enc_w, enc_b, dec_w, dec_b))
+        return tuple(np.ascontiguousarray(a, dtype=np.float32) for a in (enc_w, enc_b))  # type: ignore[return-value]
 
     def _on(self, device: torch.device) -> tuple[torch.Tensor, ...]:
         mats = self._device_cache.get(device)
@@ -317,12 +333,15 @@ class PCACodec(Codec):
         key = (device, scale, offset)
         dec = self._device_cache.get(key)
         if dec is None:
-            dec_w = self._affine[2].astype(np.float64) * scale
-            dec_b = self._affine[3].astype(np.float64) * scale + offset
+            dec_w, dec_b = self._dec
+            mat = np.empty((len(dec_w) + 1, _N), np.float32)  # [d; D], each scaled in float64, rounded once
+            mat[0] = dec_b.astype(np.float64) * scale + offset
+            # one pass, no float64 copy of the basis (2 MB at k = 64)
+            np.multiply(dec_w, scale, out=mat[1:], dtype=np.float64, casting="same_kind")
             if device.type == "cpu":
-                dec = (np.ascontiguousarray(np.concatenate([dec_b[None], dec_w]), dtype=np.float32),)
+                dec = (mat,)
             else:
-                dec = tuple(torch.from_numpy(a.astype(np.float32)).to(device) for a in (dec_b, dec_w))
+                dec = tuple(torch.from_numpy(a).to(device) for a in (mat[0], mat[1:]))
             if len(self._device_cache) > 8:  # a handful of truncations per process; never grow without bound
                 self._device_cache.clear()
             self._device_cache[key] = dec
@@ -543,7 +562,7 @@ class _NumpyPCA:
 
     def __init__(self, codec: PCACodec):
         self.codec = codec
-        enc_w, enc_b, dec_w, dec_b = codec._affine
+        dec_w, dec_b = codec._dec  # the encode half is folded on first encode
         self.dec = np.ascontiguousarray(np.concatenate([dec_b[None], dec_w]))  # [d; D]: the bias as a leading row
 
     def encode(self, blocks: np.ndarray) -> np.ndarray:

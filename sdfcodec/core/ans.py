@@ -8,13 +8,15 @@ The kernels compile on first use and are cached on disk (a few seconds once per 
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
 __all__ = ["symbols_ahead", "available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order",
-           "wave_order_planes", "decode_planes", "plane_zeros", "table_cdfs", "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
+           "wave_order_planes", "decode_planes", "table_cdfs", "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
 _FOUND: list[bool] = []
@@ -108,30 +110,51 @@ def decode_planes(decoder: Decoder, dims: tuple[int, int, int], order: tuple[np.
                   nbr: np.ndarray, weights: np.ndarray, n_ctx: int) -> np.ndarray:
     """:meth:`Decoder.bits` of the positions ``order`` of :func:`wave_order_planes` in a grid of ``dims``, with
     context neighbours ``nbr`` ``(q, 3)`` rows ``(dw, di, dj)`` (the offset's wavefront step and first two
-    axes): the bits ``(m,)`` uint8 in that order (no grid).
+    axes), given as the ``b * 4096 + voxel`` of the positions whose bit is 0 ``(z,)`` int64, in that order (no
+    grid): a view of ``order[0]``, which this overwrites.
 
     Raises:
         ValueError: a context reaches ``n_ctx``.
     """
-    ok, bits = _k().decode_planes(decoder.words, decoder.st, np.asarray(dims, np.int64), *order,
-                                  np.ascontiguousarray(nbr, np.int64), np.asarray(weights, np.int64), int(n_ctx))
+    ok, zeros = _k().decode_planes(decoder.words, decoder.st, np.asarray(dims, np.int64), *order,
+                                   np.ascontiguousarray(nbr, np.int64), np.asarray(weights, np.int64), int(n_ctx))
     if not ok:
         raise InvalidValueError(f"a context is outside [0, {n_ctx})")
-    return bits
+    return zeros
 
 
-def wave_order_planes(dims: tuple[int, int, int], corner: np.ndarray, rows: np.ndarray
+def wave_order_planes(dims: tuple[int, int, int], corner: np.ndarray, rows: np.ndarray, parts: int = 1,
+                      each: Callable[[Callable[[Any], Any], list[Any]], Any] | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(``(i << 16) | j`` ``(m,)`` int32, wavefronts ``(W,)``, bounds ``(W + 1,)``): the order of
-    :func:`wave_order` for pins as rows ``(n, 16, 16)`` uint16 of blocks with first voxels ``corner``."""
-    return _k().wave_order_planes(np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64),
-                                  np.ascontiguousarray(rows, np.uint16).reshape(len(corner), 16, 16))
+    """(``(b * 4096 + voxel) << 32 | i << 16 | j`` ``(m,)`` int64 per pinned voxel, voxel ``voxel`` of block
+    ``b`` at grid position ``(i, j, w - i - j)``; the wavefronts ``w`` ``(W,)``; their bounds ``(W + 1,)``): the
+    order of :func:`wave_order` for pins as rows ``(n, 16, 16)`` uint16 of blocks with first voxels ``corner``.
+    The blocks are placed in up to ``parts`` runs of slabs along the first axis, of about equal pins, each
+    knowing its slots from the pins of the slabs before it: ``each(job, runs)`` runs ``job`` on each (default in
+    turn; on threads, which write apart, the same order)."""
+    dims, corner = np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64)
+    rows = np.ascontiguousarray(rows, np.uint16).reshape(len(corner), 16, 16)
+    sizes = _k().wave_sizes(dims, corner, rows)  # (slab, wavefront)
+    per_wave = sizes.sum(axis=0)
+    first = np.cumsum(per_wave) - per_wave  # each wavefront's first slot
+    waves = np.flatnonzero(per_wave)
+    bounds = np.concatenate(([0], np.cumsum(per_wave[waves])))
+    out = np.empty(int(bounds[-1]), np.int64)
+    pins = np.cumsum(sizes.sum(axis=1))
+    cuts = np.searchsorted(pins, pins[-1] * np.arange(1, max(int(parts), 1)) / max(int(parts), 1)) + 1
+    ends = np.unique(np.concatenate((cuts[cuts < len(sizes)], [len(sizes)])))
+    runs = np.stack((np.concatenate(([0], ends[:-1])), ends), axis=1)
+    before = np.cumsum(sizes, axis=0) - sizes  # the slots the slabs before each take in every wavefront
 
+    def place(run: np.ndarray) -> None:
+        _k().wave_place(dims, corner, rows, first + before[run[0]], run, out)
 
-def plane_zeros(order: tuple[np.ndarray, np.ndarray, np.ndarray], bits: np.ndarray, dims: tuple[int, int, int],
-                corner: np.ndarray) -> np.ndarray:
-    """``b * 4096 + voxel`` ``(m,)`` int64 of the positions of ``order`` whose bit is 0."""
-    return _k().plane_zeros(*order, bits, np.asarray(dims, np.int64), np.ascontiguousarray(corner, np.int64))
+    if each is None or len(runs) == 1:
+        for run in runs:
+            place(run)
+    else:
+        each(place, list(runs))
+    return out, waves, bounds
 
 
 def decode_mask(words: np.ndarray, n_rows: int, p_rows: int, cube_waves: tuple[np.ndarray, np.ndarray, np.ndarray],

@@ -57,6 +57,7 @@ from ..core import ans
 from ..core._validate import BLOCK
 from ..core.surface import JUMP
 from ..errors import ChecksumError, InvalidValueError
+from .grouping import each_chunk
 from .lossymask import neighbours, padded_blocks
 
 __all__ = ["FRACTION_BITS", "fixed_point_basis", "exact_decode", "sign_bounds", "exact_pins", "pinned_voxels_of", "pinned_rows", "decode_bounds", "canonical_bits", "cheapest_bits", "chosen_bits", "encode_pinned",
@@ -575,18 +576,19 @@ def decode_pinned(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.nda
 
 
 def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np.ndarray,
-                      where: str = "a pinned mask chunk") -> np.ndarray:
+                      where: str = "a pinned mask chunk", *, threads: int = 1) -> np.ndarray:
     """What :func:`decode_pinned` reads as 0, as ``(m,)`` int64 ``b * 4096 + voxel`` (block ``b`` of ``coords``,
     the voxel's C-order index in it; ascending within a block is not promised): without the ``(n, 4096)`` mask,
     for a reader that sets those voxels of its decode to free space. ``pinned``: ``(n, 16, 16, 16)`` bool, or
-    rows ``(n, 16, 16)`` uint16 (:func:`pinned_rows`).
+    rows ``(n, 16, 16)`` uint16 (:func:`pinned_rows`; compiled, the order of the decode laid out on up to
+    ``threads`` threads, the decode itself on one: each bit's context is its decoded neighbours).
 
     Raises:
         ChecksumError: as :func:`decode_pinned`.
     """
     pinned = np.asarray(pinned)
     if ans.available() and pinned.dtype == np.uint16:
-        return _plane_zeros(stream, coords, pinned, where)
+        return _plane_zeros(stream, coords, pinned, where, threads=threads)
     return np.flatnonzero(_decoded(stream, coords, pinned, where).blocks().reshape(-1) == 0)
 
 
@@ -594,7 +596,8 @@ def unobserved_voxels(stream: bytes | np.ndarray, coords: np.ndarray, pinned: np
 _PLANE_NEIGHBOURS = np.array([(a + b + c, a, b) for a, b, c in NEIGHBOURS], np.int64)
 
 
-def _plane_zeros(stream: bytes | np.ndarray, coords: np.ndarray, rows: np.ndarray, where: str) -> np.ndarray:
+def _plane_zeros(stream: bytes | np.ndarray, coords: np.ndarray, rows: np.ndarray, where: str, *,
+                 threads: int = 1) -> np.ndarray:
     """:func:`unobserved_voxels` of pins as rows, compiled, without a grid of the chunk's voxels: the bits
     decoded wavefront plane by plane (:func:`sdfcodec.core.ans.decode_planes`), the same words read alike."""
     buf = _checked(stream, where)
@@ -602,18 +605,18 @@ def _plane_zeros(stream: bytes | np.ndarray, coords: np.ndarray, rows: np.ndarra
     lo = coords.min(axis=0) if len(coords) else np.zeros(3, np.int64)
     shape = tuple(int(x) + 2 for x in ((coords.max(axis=0) - lo + 1) * BLOCK if len(coords) else np.zeros(3)))
     corner = (coords - lo) * BLOCK + 1
-    order = ans.wave_order_planes(shape, corner, rows)
+    order = ans.wave_order_planes(shape, corner, rows, threads, lambda job, runs: each_chunk(job, runs, threads))
     _check_count(buf, len(order[0]), where)
     if not len(order[0]):
         return np.zeros(0, np.int64)
     try:
         coder = ans.Decoder(np.ascontiguousarray(buf[6:].view("<u4"), dtype=np.uint32))
-        bits = ans.decode_planes(coder, shape, order, _PLANE_NEIGHBOURS, _Layout.WEIGHTS, _Layout.N_CTX)
+        zeros = ans.decode_planes(coder, shape, order, _PLANE_NEIGHBOURS, _Layout.WEIGHTS, _Layout.N_CTX)
     except ValueError as e:  # a last word of 0, as constriction refuses it
         raise ChecksumError(f"{where} is not a sound M2 stream (ValueError: {e})") from e
     if not coder.is_empty():
-        raise ChecksumError(f"{where} has words left after its {len(bits)} pinned voxels; it is corrupted")
-    return ans.plane_zeros(order, bits, shape, corner)
+        raise ChecksumError(f"{where} has words left after its {len(order[0])} pinned voxels; it is corrupted")
+    return zeros
 
 
 def _checked(stream: bytes | np.ndarray, where: str) -> np.ndarray:

@@ -21,7 +21,7 @@ from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 from . import pinread
 from .format import check_stream_array
-from .grouping import ChunkCache, each_chunk, read_threads
+from .grouping import ChunkCache, chunk_box, each_chunk, read_threads, thread_shares
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -201,6 +201,10 @@ class PinnedMaskArray:
         self._basis: np.ndarray | None = None
         self._cache = ChunkCache(CACHED_CHUNKS)  # decoded chunks: (row index, packed rows)
 
+    def _rows(self, names: list[tuple[int, ...]]) -> list[np.ndarray]:
+        """The stored rows of chunks ``names``."""
+        return self.reader.read_many(self.streams, [(*(slice(c, c + 1) for c in k), slice(None)) for k in names])
+
     def basis(self) -> np.ndarray:
         if self._basis is None:
             h, r = self.reader.header, self.reader
@@ -263,14 +267,14 @@ class PinnedMaskArray:
             ref = r.refinement
             pins = pinread.decode_refined_pins(v, rows, q, self.basis(), own, outside, r.truncation, ref.spec.tau,
                                                ref.spec.step, lambda sel: ref.corrections(key, sel), threads)
-            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
         if r.refinement is not None:  # without the compiled kernels: every voxel's refined exact field
             v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
             neg, pos = pm.sign_bounds(v, bound)
             pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
             return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
         pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation, threads)
-        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
 
     def unmask(self, coords: np.ndarray, v: np.ndarray, free: float) -> None:
         """Set the unobserved voxels of ``v`` ``(n, 16, 16, 16)`` float32, the reader's full-level decode in metres
@@ -284,19 +288,22 @@ class PinnedMaskArray:
         coords = np.asarray(coords, np.int64)
         keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
-        streams = r.read_many(self.streams, [(*(slice(int(c), int(c) + 1) for c in k), slice(None)) for k in keys])
+        streams = self._rows([tuple(int(c) for c in k) for k in keys])
         flat = v.reshape(len(v), -1)
         pinkernels = _kernels()
         if r.refinement is not None and pinkernels is None:  # numpy: the corrections added here, pins told exactly
             flat += r.refinement.rows(coords)
             np.clip(flat, *r.truncation, out=flat)
         # compiled: the chunks on every core (the kernels release the GIL; each chunk writes only its blocks' rows
-        # of v), or one chunk's pins split among them; what every thread reads made before they start
+        # of v), each chunk's pins split among its share of them (thread_shares: a chunk of most of the coded blocks
+        # gets most of the cores), the largest first; what every thread reads made before they start
         threads = read_threads() if pinkernels is not None else 1
         if threads > 1:
             self.basis()
             if r.refinement is not None:
                 r.refinement.model.cdf()
+        sizes = [int(np.count_nonzero(states[chunk_box(k, cb, states.shape)] == BlockState.CODED)) for k in keys]
+        inner = thread_shares(sizes, threads)
 
         def chunk(i: int) -> None:
             key = keys[i]
@@ -305,16 +312,17 @@ class PinnedMaskArray:
             index = np.full((cb,) * 3, -1, np.int64)
             index[tuple((coords[sel] - key * cb).T)] = sel
             rows = index[tuple((own - key * cb).T)]  # each coded block's row of v, -1 where not read
-            zeros = self._zeros(key, streams[i], own, outside, self._codes(key), flat, rows,
-                                threads=threads if len(keys) == 1 else 1)
-            if pinkernels is not None:
-                pinkernels.set_voxels(flat, rows, zeros, np.float32(free))
+            zeros = self._zeros(key, streams[i], own, outside, self._codes(key), flat, rows, threads=inner[i])
+            if pinkernels is not None:  # distinct voxels: the zeros' slices on the chunk's threads
+                edges = np.linspace(0, len(zeros), inner[i] + 1).astype(np.int64)
+                each_chunk(lambda j: pinkernels.set_voxels(flat, rows, zeros[edges[j]:edges[j + 1]],
+                                                           np.float32(free)), range(inner[i]), inner[i])
                 return
             at = rows[zeros >> 12]
             hit = at >= 0
             flat[at[hit], zeros[hit] & (BLOCK ** 3 - 1)] = free
 
-        each_chunk(chunk, range(len(keys)), threads)
+        each_chunk(chunk, sorted(range(len(keys)), key=lambda i: -sizes[i]), threads)
 
     def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
@@ -329,7 +337,7 @@ class PinnedMaskArray:
         names = [tuple(int(c) for c in k) for k in keys]
         got = {k: self._cache[k] for k in names if k in self._cache}
         todo = [i for i, k in enumerate(names) if k not in got]
-        rows = r.read_many(self.streams, [(*(slice(c, c + 1) for c in names[i]), slice(None)) for i in todo])
+        rows = self._rows([names[i] for i in todo])
         for i, row in zip(todo, rows):
             got[names[i]] = self._decode(keys[i], row, states)
             self._cache.put(names[i], got[names[i]])

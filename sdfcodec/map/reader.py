@@ -27,7 +27,7 @@ from ..core._validate import BLOCK, check_device, empty, output_buffer
 from ..codec import Codec
 from ..errors import (ChecksumError, FormatError, IntegrityError, InvalidValueError, MapNotFoundError, RemoteReadError,
                       SDFCodecError)
-from ..core.header import BlockState, MapHeader, parse_header
+from ..core.header import PINNED_MASK_EXTENSION, BlockState, MapHeader, parse_header
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
                      check_coords, code_values, region_voxels, unstored_suspects)
 from .io.shards import chunk_ranges
@@ -38,14 +38,16 @@ from .codec_state import load_codec
 from .implied import implied_arrays
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
-from .observed import checked_mask_array, read_block_rows, restore_unobserved, restore_unobserved_voxels
+from .observed import (MASK_ARRAY, MASK_EXTENSION, checked_mask_array, read_block_rows, restore_unobserved,
+                       restore_unobserved_voxels)
+from .pinstore import PINNED_ARRAY
 from .residual import check_residual_stored, checked_residual_array
 from .io.remote import RemoteStore
-from .io.stores import GuardStore, PinnedStore, open_store, unguarded
+from .io.stores import GuardStore, PinnedStore, fetch_members, open_store, unguarded
 from .weights import checked_weights_array
 from .device_feed import DeviceFeed
 from .io.shards import chunk_name, chunk_stored, shard_layout
-from .varrate import VariableRateReader, decode_runs, prefix_lengths
+from .varrate import STREAM_ARRAY, VariableRateReader, decode_runs, prefix_lengths
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
@@ -87,6 +89,8 @@ class MapReader:
         self.residual_array = None
         self.residual_chunks_checked: set[str] = set()  # residual chunks found stored (under coded blocks)
         self.rings = RingPool(RING)  # iter_decoded(copy=False)'s output buffers, kept between its iterations
+        self._inline_states: np.ndarray | None = None  # the header's block states (spec 4e), read-only
+        self._fetched: dict[str, Any] = {}  # members read ahead by _check_arrays (node or exception), taken once
         if live is None:
             self._check_arrays()
         else:  # a map being written: its arrays are the writer's, checked as they were made
@@ -139,7 +143,11 @@ class MapReader:
     def member(self, path: str, kind: type = zarr.Array) -> Any:
         """The array (or group) at ``path``, or None when absent; unreadable metadata is a FormatError."""
         try:
-            node = self.group[path]
+            node = self._fetched.pop(path, None)
+            if isinstance(node, BaseException):
+                raise node
+            if node is None:
+                node = self.group[path]
         except KeyError:
             return None
         except SDFCodecError:
@@ -173,8 +181,15 @@ class MapReader:
             raise FormatError(f"{self.location}: header field grid_blocks {h.grid_blocks} needs {state_bytes} bytes "
                               f"of block states, above the reader's limit of {self.max_decode_bytes} bytes (raise "
                               "max_decode_bytes in open_map() if the map is genuine)")
-        if h.codes.variable_rate is not None and h.codes.variable_rate.states is not None:
-            codes, state = implied_arrays(h, self.location)  # in the header, not stored (spec 4e)
+        implied = h.codes.variable_rate is not None and h.codes.variable_rate.states is not None
+        names = {e.name for e in h.extensions}
+        # the members the checks below read, as the header names them, read together (absent: None there)
+        self._fetched = fetch_members(self.group, [
+            *(() if implied else ("codes", "state")), *(("code_scale",) if h.codes.dtype == "int8" else ()),
+            *((STREAM_ARRAY,) if h.codes.variable_rate is not None else ()),
+            *((PINNED_ARRAY,) if PINNED_MASK_EXTENSION in names else (MASK_ARRAY,) if MASK_EXTENSION in names else ())])
+        if implied:
+            codes, state, self._inline_states = implied_arrays(h, self.location)  # in the header (spec 4e)
         else:
             codes, state = self.member("codes"), self.member("state")
         if codes is None or state is None:
@@ -296,7 +311,7 @@ class MapReader:
         """``(Bx, By, Bz)`` uint8 block states (see :class:`sdfcodec.core.header.BlockState`)."""
         if self.live is not None:
             return self.live.state.copy()
-        return self._valid_states(self.read(self.state_array, (slice(None),) * 3), (slice(None),) * 3)
+        return self._valid_states(self._stored_states((slice(None),) * 3), (slice(None),) * 3)
 
     def count_states(self) -> dict[str, int]:
         """Number of blocks per state name (``unobserved``, ``empty``, ``coded``)."""
@@ -410,7 +425,15 @@ class MapReader:
         """Block states of a block box: only the state chunks it touches are read."""
         if self.live is not None:
             return self.live.state[box]
-        return self._valid_states(self.read(self.state_array, box), box)
+        return self._valid_states(self._stored_states(box), box)
+
+    def _stored_states(self, box: Box) -> np.ndarray:
+        """The ``state`` array's values in block box ``box``: for a map whose header holds them (spec 4e), what
+        its implied array holds, copied unread (a Zarr read of it cost ~1 ms, twice a read); else read."""
+        if self._inline_states is None:
+            return self.read(self.state_array, box)
+        self._check_open()
+        return self._inline_states[box].copy()
 
     def _valid_states(self, state: np.ndarray, box: Box) -> np.ndarray:
         if state.size and state.max() > BlockState.CODED:

@@ -28,6 +28,7 @@ import zarr.abc.store
 from zarr.abc.buffer import Buffer
 from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
 from zarr.buffer import default_buffer_prototype
+from zarr.core.group import get_node
 
 from ...core import _atomic
 from .frames import blosc_frame_problem
@@ -38,7 +39,7 @@ from ...errors import ChecksumError, FormatError, InvalidValueError, MapNotFound
 
 
 __all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
-           "unguarded", "chunk_read_limit", "check_metadata_document"]
+           "unguarded", "chunk_read_limit", "check_metadata_document", "fetch_members"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
 MAX_METADATA_BYTES = 16 << 20
@@ -680,3 +681,25 @@ def open_store(path_or_url: str | os.PathLike | zarr.abc.store.Store, loc: str,
     if HAVE_DIR_FD:
         return GuardStore(SafeLocalStore(p, follow_symlinks=follow_symlinks))
     return GuardStore(zarr.storage.LocalStore(p, read_only=True))
+
+
+def fetch_members(group: zarr.Group, paths: list[str]) -> dict[str, Any]:
+    """``{path: group[path]}`` for the members ``paths``, their metadata read concurrently in one trip to Zarr's
+    event loop thread (read one by one, each took 0.4-0.9 ms of a read's timeline at load 1-2); where reading
+    one raises, the exception (KeyError for an absent one, as ``group[path]`` says it). Empty for a group with
+    consolidated metadata (its members are read from that)."""
+    if not paths or group.metadata.consolidated_metadata is not None:
+        return {}
+    base = f"{group.path}/" if group.path else ""
+
+    async def fetch() -> list[Any]:
+        return await asyncio.gather(*(get_node(group.store, base + p, 3) for p in paths), return_exceptions=True)
+
+    out: dict[str, Any] = {}
+    for path, got in zip(paths, zarr.core.sync.sync(fetch())):
+        if isinstance(got, FileNotFoundError):
+            got = KeyError(path)
+        elif not isinstance(got, BaseException):
+            got = zarr.Array(got) if isinstance(got, zarr.AsyncArray) else zarr.Group(got)
+        out[path] = got
+    return out
