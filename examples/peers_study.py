@@ -415,7 +415,7 @@ def m_ours(d: Data, quick: bool) -> None:
         d.maps[label] = path
 
 
-def decode_on_read(d: Data, quick: bool, repeat: int = 9) -> dict | None:
+def decode_on_read(d: Data, quick: bool, repeat: int = 15) -> dict | None:
     """Decode on read (open the map, decode every block, close) of each variable-rate map :func:`m_ours` wrote
     against the fixed-length pca-64 map (``encode --codec pca --code-size 64``) of the same blocks, the maps timed
     in turn within each of ``repeat`` rounds, each round starting one map further on; best time of each. None
@@ -424,7 +424,8 @@ def decode_on_read(d: Data, quick: bool, repeat: int = 9) -> dict | None:
     Why the rotation: a read right after another map's is slower than one right after the same map's (what the
     process keeps of the map read last, and the caches, serve the next read of it); in a fixed order the first
     variable-rate map always came right after the fixed map (kitchen half, 64 B: best 37-45 ms in the study's
-    fixed order, 28 ms in a balanced order, load 0.8)."""
+    fixed order, 28 ms in a balanced order, load 0.8). Why 15 rounds: the best of 9 moved by up to a fifth from run
+    to run on an idle 2-core machine (kitchen half, fixed map 12.3-17.7 ms best)."""
     import sdfcodec
 
     if not d.maps:
