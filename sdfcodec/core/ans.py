@@ -15,8 +15,9 @@ import numpy as np
 
 from ..errors import FormatError, InvalidValueError  # FormatError is a ValueError, as constriction raises
 
-__all__ = ["symbols_ahead", "available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits", "wave_order",
-           "wave_order_planes", "decode_planes", "table_cdfs", "decode_chunk", "categorical_cdf", "encode", "bernoulli_intervals", "categorical_intervals"]
+__all__ = ["symbols_ahead", "available", "Decoder", "decode_mask", "pack_mask", "encode_mask", "encode_bits",
+           "wave_order", "wave_order_planes", "decode_planes", "table_cdfs", "decode_chunk", "categorical_cdf",
+           "encode", "bernoulli_intervals", "categorical_intervals"]
 
 _TOTAL = 1 << 24  # constriction's default precision: probabilities are multiples of 2^-24
 _FOUND: list[bool] = []

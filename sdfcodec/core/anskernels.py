@@ -20,7 +20,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order", "wave_sizes", "wave_place", "decode_planes", "padded_states", "cube_intervals", "bit_intervals", "table_cdfs", "chunk_decode", "slot_table", "categorical_decode", "encode"]
+__all__ = ["start", "decode_flags", "decode_cubes", "mixed_voxels", "pack_rows", "decode_bits", "wave_order",
+           "wave_sizes", "wave_place", "decode_planes", "padded_states", "cube_intervals", "bit_intervals",
+           "table_cdfs", "chunk_decode", "slot_table", "categorical_decode", "encode"]
 
 _ONE = np.uint64(1)
 _TWO = np.uint64(2)

@@ -38,8 +38,9 @@ from .shards import range_problem, read_cap, shard_problem
 from ...errors import ChecksumError, FormatError, InvalidValueError, MapNotFoundError, ReadOnlyError
 
 
-__all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore", "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store", "set_read_defaults",
-           "unguarded", "chunk_read_limit", "check_metadata_document", "fetch_members"]
+__all__ = ["MAX_METADATA_BYTES", "MAX_OTHER_MEMBER_BYTES", "blosc_frame_problem", "HAVE_DIR_FD", "GuardStore",
+           "SafeLocalStore", "SafeZipStore", "PinnedStore", "CowLocalStore", "is_url", "open_store",
+           "set_read_defaults", "unguarded", "chunk_read_limit", "check_metadata_document", "fetch_members"]
 
 #: Largest zarr.json a reader loads: metadata documents of a map are a few kB.
 MAX_METADATA_BYTES = 16 << 20
