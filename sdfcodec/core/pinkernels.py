@@ -61,7 +61,7 @@ def _limits(e, d):
     return e - d, e + d, d - e, -e - d
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True)
 def _first32(t):
     """The least float32 ``c`` with ``float64(c) 2^24 >= t`` (``t`` float64; NaN where ``t`` is NaN): for a float32
     ``f``, ``float64(f) 2^24 < t`` exactly where ``f < c``, and ``>= t`` where ``f >= c``.
@@ -82,7 +82,7 @@ def _first32(t):
     return c
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True)
 def _flag_bytes(x, lim, flags):
     """Each voxel's flags told from ``x`` (4096,) float32 metres under :func:`_limits` ``lim`` (in units of
     2^-24 m): ``flags[j]`` bit 0 where ``x[j] < neg_yes`` (may be negative), bit 1 where ``x[j] >= pos_yes`` (may
@@ -142,7 +142,7 @@ def sign_rows(v, rows, e, d, q, basis_t, neg, pos):
     return exact
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True)
 def _rows_of(flags, words, cz, eb, q, basis_t, b, kb, step, lo, hi, neg, pos):
     """Block ``b``'s sign rows into ``neg[b]``, ``pos[b]`` from its :func:`_flag_bytes`, the voxels left open
     decided by the exact decode (clipped to ``[lo, hi]`` and refined by ``cz[j] step`` where ``cz`` is not None:
@@ -167,7 +167,7 @@ def _rows_of(flags, words, cz, eb, q, basis_t, b, kb, step, lo, hi, neg, pos):
     return exact
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True)
 def _select_test(kind, f, db, lo, hi, tau):
     """The tests of :func:`select_rows` on a float decode ``f`` (float32 metres), as it makes them in float64
     (kinds 2 and 3 negated: each passes from some float32 on, for a finite ``db``)."""
@@ -181,7 +181,7 @@ def _select_test(kind, f, db, lo, hi, tau):
     return not (min(x + db, hi) <= -tau)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True)
 def _least_passing(kind, guess, db, lo, hi, tau):
     """``(found, c)``: ``c`` the least float32 passing :func:`_select_test` ``kind`` (-inf where all do, NaN where
     none does), looked for within four float32 of ``guess`` (``found`` False where it is not there).
@@ -208,7 +208,7 @@ def _least_passing(kind, guess, db, lo, hi, tau):
     return False, c
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True)
 def _below(c):
     """The float32 ``d`` with ``f <= d`` exactly where ``f < c`` (``f`` not NaN; a NaN ``c``: none passing, as from
     :func:`_least_passing`, read as past +inf); a NaN ``f`` fails both."""
