@@ -40,7 +40,6 @@ from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import (MASK_ARRAY, MASK_EXTENSION, checked_mask_array, read_block_rows, restore_unobserved,
                        restore_unobserved_voxels)
-from .pinstore import PINNED_ARRAY
 from .residual import check_residual_stored, checked_residual_array
 from .io.remote import RemoteStore
 from .io.stores import GuardStore, PinnedStore, fetch_members, open_store, unguarded
@@ -183,11 +182,14 @@ class MapReader:
                               "max_decode_bytes in open_map() if the map is genuine)")
         implied = h.codes.variable_rate is not None and h.codes.variable_rate.states is not None
         names = {e.name for e in h.extensions}
+        mask = (MASK_ARRAY,) if MASK_EXTENSION in names else ()
+        if PINNED_MASK_EXTENSION in names:  # pinstore (and the modules it loads) imported only for maps with one
+            from .pinstore import PINNED_ARRAY
+            mask = (PINNED_ARRAY,)
         # the members the checks below read, as the header names them, read together (absent: None there)
         self._fetched = fetch_members(self.group, [
             *(() if implied else ("codes", "state")), *(("code_scale",) if h.codes.dtype == "int8" else ()),
-            *((STREAM_ARRAY,) if h.codes.variable_rate is not None else ()),
-            *((PINNED_ARRAY,) if PINNED_MASK_EXTENSION in names else (MASK_ARRAY,) if MASK_EXTENSION in names else ())])
+            *((STREAM_ARRAY,) if h.codes.variable_rate is not None else ()), *mask])
         if implied:
             codes, state, self._inline_states = implied_arrays(h, self.location)  # in the header (spec 4e)
         else:
