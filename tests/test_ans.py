@@ -236,3 +236,24 @@ def test_a_trailing_zero_word_fails_alike_on_both_paths(monkeypatch):
     with pytest.raises(errors.ChecksumError, match="never ends in a zero word") as slow:
         decode_mask_rows(stream, len(rows))
     assert str(fast.value) == str(slow.value)
+
+
+@pytest.mark.parametrize("law", ["peaked", "flat", "wide"])
+def test_categorical_decoder_reads_any_words_as_constriction_does(law):
+    """The slot table's packed entries (a slot inside one symbol) and its fallback (a slot across symbols, and
+    every symbol from 2^15 on) read arbitrary words as constriction's ``Categorical(perfect=False)`` does: a
+    peaked law (most slots inside one symbol), a flat one over 3,000 symbols (most slots across symbols), and a
+    peaked one over 40,000 symbols (slots inside symbols past the packed entries' 2^15)."""
+    rng = np.random.default_rng(11)
+    size = {"peaked": 79, "flat": 3000, "wide": 40000}[law]
+    probs = rng.dirichlet(np.full(size, 5.0 if law == "flat" else 0.2))  # "wide": heavy symbols past 2^15
+    cdf = ans.categorical_cdf(probs)
+    model = ST.model.Categorical(probs, perfect=False)
+    for n in (0, 1, 7, 400):
+        words = _random_words(rng, n)
+        want = ST.stack.AnsCoder(words).decode(model, 3 * n + 5)
+        dec = ans.Decoder(words)
+        got = dec.categorical(3 * n + 5, cdf)
+        assert np.array_equal(got, want), (law, n)
+        ahead = ans.symbols_ahead(ans.Decoder(words).categorical_ahead(3 * n + 5, cdf), 3 * n + 5)[0]
+        assert np.array_equal(ahead, want), (law, n)

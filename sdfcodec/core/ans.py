@@ -252,7 +252,7 @@ def table_cdfs(lengths: np.ndarray, decay: np.ndarray, extent: np.ndarray) -> tu
 
 
 #: Quantile bits below a slot of the decoders' lookup tables (:func:`sdfcodec.core.anskernels.slot_table`): 2^12
-#: slots (16 KiB, in L1 cache) for one law, 2^8 for each of a code model's up to 257 laws.
+#: slots (32 KiB, in L1 cache) for one law, 2^8 for each of a code model's up to 257 laws.
 _SLOT_SHIFT = 12
 _CODE_SHIFT = 16
 _SLOTS: list = []  # (the tables, their slots) of the last code model decoded: a map's reads use one model
