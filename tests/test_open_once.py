@@ -18,6 +18,7 @@ import zarr
 import sdfcodec
 from sdfcodec import errors
 from sdfcodec.map.reader import MapReader
+from sdfcodec.map.verify import verify_map
 
 GOLDEN = Path(__file__).parent / "golden" / "maps"
 
@@ -49,6 +50,35 @@ def test_header_states_are_not_read_back_through_the_implied_array(monkeypatch):
     m.close()
     with pytest.raises(errors.InvalidValueError, match="closed"):
         m.block_states()
+
+
+def test_implied_arrays_are_built_only_when_used(monkeypatch):
+    """A map whose header holds its states opens and reads without building its implied ``codes`` and ``state``
+    arrays (nor checking state chunks it cannot lose); they are built, once, where something reads them, and are
+    what a writer would have stored: shapes and chunks from the header, the states those of the stdlib's decode."""
+    root = GOLDEN / "side-docs-pca-128" / "map.zarr"
+    built: list[int] = []
+    build = MapReader.build_implied
+
+    def counted(self):
+        built.append(1)
+        return build(self)
+
+    monkeypatch.setattr(MapReader, "build_implied", counted)
+    with sdfcodec.open_map(root) as m:
+        h = m.reader.header
+        blocks = sum(len(c) for c, _ in m.iter_decoded())
+        m.decode_region()
+        assert blocks > 0 and built == []
+        want = np.frombuffer(zlib.decompress(base64.b64decode(h.codes.variable_rate.states)), np.uint8)
+        codes, state = m.reader.codes_array, m.reader.state_array
+        assert built == [1]
+        assert codes.shape == (*h.grid_blocks, h.codes.size) and codes.dtype == np.dtype(h.codes.dtype)
+        assert codes.chunks == (h.codes.chunk_blocks,) * 3 + (h.codes.chunk_code,)
+        assert np.array_equal(np.asarray(state[...]).reshape(-1), want)
+        assert m.reader.codes_array is codes and built == [1]
+    report = verify_map(root)  # verify reads the state and codes arrays through Zarr: built there
+    assert report.ok, report.problems
 
 
 @pytest.mark.parametrize("name, members", [("int16-pca-4", {"codes", "state"}),

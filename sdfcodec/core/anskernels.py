@@ -58,9 +58,8 @@ def start(words, st):
     return True
 
 
-# The per-symbol helpers are compiled functions of their own, which LLVM inlines, not numba's inline="always"
-# (inlined in numba's IR before typing): the corrections' decode ran 3x slower that way (1.6 M symbols, one core:
-# 24.8 vs 8.5 ms in a copy of the loop, the same machine instructions counted by kind; the cause not pinned down).
+# Per-symbol helpers: functions LLVM inlines, not numba's inline="always" (IR inlining), with which a copy of the
+# corrections' loop ran 3x slower (1.6 M symbols: 24.8 vs 8.5 ms; the same instructions by kind, cause unknown).
 @njit(cache=True)
 def _advance(words, s, pos, left, right, quantile):
     """The state ``s`` and words left ``pos`` after decoding the symbol of ``[left, right)`` (kept in locals by
@@ -106,12 +105,9 @@ def _symbol3(words, s, pos, c1, c2):
 
 @njit(cache=True)
 def _from_slots(words, s, pos, cdf, a, slots, row, shift):
-    """One symbol under the table ``cdf[a:]`` from its quantile's slot (``slots[row]``, :func:`slot_table`): a
-    slot inside one symbol holds that symbol and its interval, so most symbols cost one load from a table in the
-    cache; a slot across symbols holds its first, and a few steps forward find the one with ``cdf[s] <= quantile <
-    cdf[s + 1]`` (a binary search takes a dozen dependent loads a symbol, some beyond cache when the tables are
-    megabytes). A refined map's corrections (99 % of whose slots lie in one symbol), one core: 6.2 ns a symbol,
-    8.0 with the slot's first symbol only."""
+    """One symbol under the table ``cdf[a:]`` from its quantile's slot (``slots[row]``, :func:`slot_table`): one load
+    where the slot lies in one symbol, else a few steps forward from its first (a binary search takes a dozen
+    dependent loads). A refined map's corrections (99 % of slots in one symbol): 6.2 ns a symbol, 8.0 stepping."""
     q = np.int64(s & _QMASK)
     e = slots[row, q >> shift]
     if e >= 0:
@@ -737,16 +733,12 @@ def slot_table(cdfs, at, shift):
             while np.int64(cdfs[at[j] + k + 1]) <= (t << shift):
                 k += 1
             left, right = np.int64(cdfs[at[j] + k]), np.int64(cdfs[at[j] + k + 1])
-            if right >= (t + 1) << shift and k < _PACKED_SYMBOLS:
+            if right >= (t + 1) << shift and k < 1 << 15:  # (15 bits keep the entry positive)
                 out[j, t] = (k << 48) | (left << 24) | (right - left)
             else:
                 out[j, t] = -1 - k
     return out
 
-
-#: Symbols below this have their interval packed into a slot entry (:func:`slot_table`: 15 bits above the two
-#: 24-bit fields keep the entry positive); the maps' laws have at most a few thousand symbols.
-_PACKED_SYMBOLS = 1 << 15
 
 
 @njit(cache=True, nogil=True)

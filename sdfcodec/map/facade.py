@@ -22,7 +22,8 @@ from ..errors import InvalidValueError, ReadOnlyError
 from ..core.header import APPROX_MASK_EXTENSION, Extension, MapHeader
 from .format import DEFAULT_MAX_DECODE_BYTES, Region, check_coords, check_volume, is_dask_array
 from .observed import SURFACE_WEIGHT, pack_mask, read_observed
-from .reader import CodecCache, MapReader, open_reader
+from .opening import open_reader
+from .reader import CodecCache, MapReader
 from .io.stores import PinnedStore
 from .summary import summarize
 from .varrate import VariableRateWriter

@@ -6,8 +6,9 @@ from the header; its ``state`` array is one small chunk. On a map of a few hundr
 documents, the state chunk and their three manifest entries are 5 B per coded block of a 64 B budget (kitchen
 half: 297 + 356 + 136 + 190 bytes), where the states take 144 bytes of header. Such maps are
 never updated in place, so nothing writes those arrays again. Writers inline the states when they compress to
-at most :data:`INLINE_MAX` bytes; readers rebuild both arrays in memory (:func:`implied_arrays`), so every
-reading path (regions, verify, search) reads them as it reads stored ones.
+at most :data:`INLINE_MAX` bytes; readers take the states from the header and rebuild both arrays in memory
+(:func:`implied_arrays`) where a path reads them through Zarr (verify, presence checks, prefix reads of codes), on
+first use (:class:`ImpliedArray`), as it reads stored ones.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from ..errors import FormatError
 from ..core.header import MapHeader
 
 __all__ = ["INLINE_MAX", "pack_states", "unpack_states", "inline_states", "implied_arrays", "drop_implied",
-           "IMPLIED"]
+           "IMPLIED", "ImpliedArray"]
 
 #: Largest zlib-compressed block states a writer puts in the header (bytes; 5.5 KB of base64): a grid of
 #: tens of thousands of blocks. Larger grids keep the ``state`` array, whose chunks a region reads alone.
@@ -97,6 +98,26 @@ def implied_arrays(h: MapHeader, where: str) -> tuple[Any, Any, np.ndarray]:
 
     codes, state = sync(build())
     return zarr.Array(codes), zarr.Array(state), states
+
+
+class ImpliedArray:
+    """A reader's ``codes_array`` or ``state_array`` attribute that, on a map whose header holds its states, builds
+    the implied arrays (the owner's ``build_implied()``, :func:`implied_arrays`) on first use: reads take the states
+    from the header and never touch either array, and building them cost 1.5-3.5 ms of each open (two Zarr array
+    documents and a state chunk encoded in memory); verify, presence checks and the codes' prefix reads use them."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.slot = "_" + name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        if obj.__dict__.get("implied_pending"):
+            obj.build_implied()
+        return obj.__dict__.get(self.slot)
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        obj.__dict__[self.slot] = value
 
 
 def drop_implied(root: str | Path) -> None:

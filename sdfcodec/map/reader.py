@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import itertools
 import math
-import os
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
@@ -25,9 +24,8 @@ from zarr.core.sync import sync as zarr_sync
 from ..core._lazy import lazy_module
 from ..core._validate import BLOCK, check_device, empty, output_buffer
 from ..codec import Codec
-from ..errors import (ChecksumError, FormatError, IntegrityError, InvalidValueError, MapNotFoundError, RemoteReadError,
-                      SDFCodecError)
-from ..core.header import PINNED_MASK_EXTENSION, BlockState, MapHeader, parse_header
+from ..errors import ChecksumError, FormatError, IntegrityError, InvalidValueError, RemoteReadError, SDFCodecError
+from ..core.header import PINNED_MASK_EXTENSION, BlockState, MapHeader
 from .format import (BYTES_PER_CHUNK, DEFAULT_MAX_DECODE_BYTES, MIN_CHUNKS_PER_READ, Region, check_array_metadata,
                      check_coords, code_values, region_voxels, unstored_suspects)
 from .io.shards import chunk_ranges
@@ -35,14 +33,14 @@ from .groupdecode import decode_group
 from .grouping import Box, chunk_groups, prefetched
 from .metric import codec_codes, is_metric
 from .codec_state import load_codec
-from .implied import implied_arrays
+from .implied import ImpliedArray, implied_arrays, unpack_states
 from .presence import check_state_chunks
 from .placement import BlockPlacer, BufferRing, RingPool
 from .observed import (MASK_ARRAY, MASK_EXTENSION, checked_mask_array, read_block_rows, restore_unobserved,
                        restore_unobserved_voxels)
 from .residual import check_residual_stored, checked_residual_array
 from .io.remote import RemoteStore
-from .io.stores import GuardStore, PinnedStore, fetch_members, open_store, unguarded
+from .io.stores import GuardStore, PinnedStore, fetch_members, unguarded
 from .weights import checked_weights_array
 from .device_feed import DeviceFeed
 from .io.shards import chunk_name, chunk_stored, shard_layout
@@ -50,7 +48,7 @@ from .varrate import STREAM_ARRAY, VariableRateReader, decode_runs, prefix_lengt
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
-__all__ = ["MapReader", "CodecCache", "DeviceFeed", "open_reader"]
+__all__ = ["MapReader", "CodecCache", "DeviceFeed"]
 
 #: Output buffers ``iter_decoded(copy=False)`` cycles through: a yielded batch stays valid while the next one is
 #: decoded and used (a consumer may look one batch back), and is overwritten by the one after.
@@ -75,6 +73,8 @@ class MapReader:
     ``code_scale_array`` (int8 maps), ``weights_array`` (maps with fusion weights), else None.
     """
 
+    codes_array, state_array = ImpliedArray(), ImpliedArray()  # (built on first use where implied, spec 4e)
+
     def __init__(self, group: zarr.Group, header: MapHeader, location: str, *,
                  max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
                  live: Any = None, source: tuple[Any, dict | None] | None = None, owns_store: bool = True):
@@ -84,6 +84,7 @@ class MapReader:
         self._owns_store, self._closed = owns_store, False
         self._chunk_bytes: dict[str, int] = {}
         self.state_chunks_checked: set[tuple[int, ...]] = set()  # state chunks found present or legitimately absent
+        self.implied_pending = False  # codes_array and state_array still to build (ImpliedArray)
         self.codes_array = self.state_array = self.code_scale_array = self.weights_array = self.mask_array = None
         self.residual_array = None
         self.residual_chunks_checked: set[str] = set()  # residual chunks found stored (under coded blocks)
@@ -190,20 +191,17 @@ class MapReader:
         self._fetched = fetch_members(self.group, [
             *(() if implied else ("codes", "state")), *(("code_scale",) if h.codes.dtype == "int8" else ()),
             *((STREAM_ARRAY,) if h.codes.variable_rate is not None else ()), *mask])
-        if implied:
-            codes, state, self._inline_states = implied_arrays(h, self.location)  # in the header (spec 4e)
+        if implied:  # the states in the header (spec 4e): codes and state built on first use (build_implied)
+            self._inline_states = unpack_states(h.codes.variable_rate.states, tuple(h.grid_blocks), self.location)
+            self.implied_pending = True
         else:
             codes, state = self.member("codes"), self.member("state")
-        if codes is None or state is None:
-            missing = "codes" if codes is None else "state"
-            raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec map")
-        cb, sb = h.codes.chunk_blocks, h.codes.shard_blocks
-        chunks = (cb, cb, cb, h.codes.chunk_code)
-        self.check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size), chunks=chunks,
-                         zero_fill=True, field=h.codes.field_compression,
-                         shards=None if sb is None else shard_layout(chunks, h.codes.size, sb))
-        self.check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
-        self.code_scale_array = None
+            if codes is None or state is None:
+                missing = "codes" if codes is None else "state"
+                raise FormatError(f"{self.location}: map lacks array '{missing}'; it is incomplete or not an sdfcodec "
+                                  "map")
+            self._set_codes_state(codes, state)
+        self.code_scale_array, cb = None, h.codes.chunk_blocks
         if h.codes.dtype == "int8":
             self.code_scale_array = self.member("code_scale")
             if self.code_scale_array is None:
@@ -214,7 +212,6 @@ class MapReader:
         self.weights_array = checked_weights_array(self)  # float16, or uint8 counts (spec section 6a)
         self.mask_array = checked_mask_array(self)
         self.residual_array = checked_residual_array(self)
-        self.codes_array, self.state_array = codes, state
         # variable-rate codes (spec 4e): read from their chunk streams, the codes array holds no chunk
         self.vr = None if h.codes.variable_rate is None else VariableRateReader(self, h.codes.variable_rate)
         self.refinement = None  # a surface refinement's corrections (spec 6h)
@@ -222,6 +219,24 @@ class MapReader:
             from .refine import RefinementReader
 
             self.refinement = RefinementReader(self, h.codes.variable_rate.refinement)
+
+    def _set_codes_state(self, codes: zarr.Array, state: zarr.Array) -> None:
+        """Check the ``codes`` and ``state`` arrays against the header and take them."""
+        h = self.header
+        cb, sb = h.codes.chunk_blocks, h.codes.shard_blocks
+        chunks = (cb, cb, cb, h.codes.chunk_code)
+        self.check_array(codes, dtype=h.codes.dtype, shape=(*h.grid_blocks, h.codes.size), chunks=chunks,
+                         zero_fill=True, field=h.codes.field_compression,
+                         shards=None if sb is None else shard_layout(chunks, h.codes.size, sb))
+        self.check_array(state, dtype=np.uint8, shape=tuple(h.grid_blocks), zero_fill=True)
+        self.codes_array, self.state_array = codes, state
+
+    def build_implied(self) -> None:
+        """The ``codes`` and ``state`` arrays of a map whose header holds its states (spec 4e), built in memory and
+        checked as stored ones are (:class:`~sdfcodec.map.implied.ImpliedArray`: on first use)."""
+        codes, state, _ = implied_arrays(self.header, self.location)
+        self._set_codes_state(codes, state)
+        self.implied_pending = False  # after the arrays are set: another thread reads them, or builds them too
 
     # -- reading --------------------------------------------------------------------------------------
     def read(self, arr: zarr.Array, sel: tuple) -> np.ndarray:
@@ -441,7 +456,8 @@ class MapReader:
         if state.size and state.max() > BlockState.CODED:
             raise FormatError(f"{self.location}: state array holds reserved value {int(state.max())} "
                               "(valid: 0 unobserved, 1 empty, 2 coded)")
-        check_state_chunks(self, box, state)  # a lost state chunk must not read as unobserved (spec 9a)
+        if self._inline_states is None:  # (states in the header, spec 4e, have no chunk to lose)
+            check_state_chunks(self, box, state)  # a lost state chunk must not read as unobserved (spec 9a)
         return state
 
     def _chunk_groups(self, box: Box, states: np.ndarray, level: int, **kw) -> list[np.ndarray]:
@@ -756,43 +772,6 @@ class MapReader:
             inner.close_pin()
         elif self._owns_store and isinstance(inner, RemoteStore):
             inner.close()  # its HTTP or S3 session
-
-
-def open_reader(path_or_url: str | os.PathLike | zarr.abc.store.Store, *, storage_options: dict | None = None,
-                max_decode_bytes: int = DEFAULT_MAX_DECODE_BYTES, cache: CodecCache | None = None,
-                follow_symlinks: bool = False, trusted_keys: Sequence[Any] | None = None,
-                verify_chunks: bool | None = None, location: str | None = None) -> MapReader:
-    """The reader of the map at ``path_or_url`` (what :func:`sdfcodec.open_map` opens; see there).
-    ``trusted_keys`` and ``verify_chunks`` default to the process's (``--trusted-key``, ``--no-verify-chunks``);
-    ``location``: what messages call it (default ``str(path_or_url)``; a held version's store names its map
-    directory)."""
-    from .manifest import check_default
-    from .signing import protect, trust_default
-
-    loc = location or str(path_or_url)
-    try:
-        store = open_store(path_or_url, loc, storage_options, follow_symlinks=follow_symlinks)
-        group = zarr.open_group(store, mode="r", zarr_format=3)
-        raw = group.attrs.get("sdfcodec")
-    except (MapNotFoundError, FormatError):
-        raise
-    except (FileNotFoundError, NotADirectoryError) as e:
-        raise MapNotFoundError(f"no map at {loc}") from e
-    except SDFCodecError:
-        raise
-    except Exception as e:
-        raise FormatError(f"{loc}: not a readable Zarr v3 group ({type(e).__name__}: {e})") from e
-    header = parse_header(raw, where=loc)
-    # the integrity manifest and the signature (spec sections 9b, 9c): before any array's metadata is read
-    protect(store, header, raw, loc, trusted_keys=trust_default() if trusted_keys is None else trusted_keys,
-            verify_chunks=check_default() if verify_chunks is None else verify_chunks)
-    inner = unguarded(store)
-    # how another process reopens it: the store object itself, the map directory's path (not the pinned
-    # /proc/self/fd one), or the location as given
-    source = (location if location else  # a held version (a writer's commit): reopened by its map's path
-              path_or_url if isinstance(path_or_url, zarr.abc.store.Store) else
-              str(inner.path) if isinstance(inner, PinnedStore) else loc, storage_options)
-    return MapReader(group, header, loc, max_decode_bytes=max_decode_bytes, cache=cache, source=source)
 
 
 def _block_view(vol: torch.Tensor, nb) -> torch.Tensor:

@@ -38,7 +38,8 @@ from ..core.header import BlockState
 from .codec_state import state_digest
 from .format import check_codes, free_space, warn_clipped
 from .observed import encode_blocks
-from .reader import MapReader, open_reader
+from .opening import open_reader
+from .reader import MapReader
 from .io.stores import CowLocalStore
 from .writer import MapWriter, create_writer, store_code_chunk
 

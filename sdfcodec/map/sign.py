@@ -13,7 +13,7 @@ from ..core import _atomic
 from ..errors import FormatError, IntegrityError, InvalidValueError, SDFCodecError, WriteFailedError
 from .io.stores import MAX_METADATA_BYTES, is_url
 from .manifest import SIGNATURE_KEY, object_problems
-from .reader import open_reader
+from .opening import open_reader
 from .signing import key_id, load_private_key, signature_document
 
 __all__ = ["sign_map"]

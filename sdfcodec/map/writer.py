@@ -2,8 +2,7 @@
 from :func:`create_writer`, or a copy of the current version from :func:`update_writer`), encodes volumes and
 blocks into it, and commits it into place atomically (or aborts, leaving the previous map untouched;
 ``sdfcodec.core._atomic``, spec section 9). :class:`sdfcodec.Map` is the facade users write through; the dask
-encoder (``sdfcodec.map.scale``) writes chunks into :attr:`MapWriter.tmp` with :func:`store_code_chunk`.
-"""
+encoder (``sdfcodec.map.scale``) writes chunks into :attr:`MapWriter.tmp` with :func:`store_code_chunk`."""
 
 from __future__ import annotations
 
@@ -39,9 +38,10 @@ from .field import compress_codes, refuse_update
 from .implied import IMPLIED, inline_states
 from .format import (CODE_DTYPES, DEFAULT_MAX_DECODE_BYTES, check_codes, check_coords, code_compressors,
                      code_layout, compact_documents, compressors, free_space, mask_compressors, root_document)
-from .observed import (MASK_ARRAY, MASK_BYTES, SURFACE_WEIGHT, encode_blocks, finish_mask,
-                       pack_mask, store_mask_chunk, write_block_rows)
-from .reader import CodecCache, MapReader, open_reader
+from .observed import (MASK_ARRAY, MASK_BYTES, SURFACE_WEIGHT, encode_blocks, finish_mask, pack_mask, store_mask_chunk,
+                       write_block_rows)
+from .opening import open_reader
+from .reader import CodecCache, MapReader
 from .residual import (RESIDUAL_ARRAY, crossing_voxels, residual_compressors, residual_rows, residual_spec,
                        stored_code_values)
 from .manifest import manifest_bytes_estimate, manifest_placeholder, previous_digests, write_manifest
