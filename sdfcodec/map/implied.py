@@ -68,11 +68,11 @@ def unpack_states(text: str, grid: tuple[int, int, int], where: str) -> np.ndarr
     return np.frombuffer(raw, np.uint8).reshape(grid)
 
 
-def implied_arrays(h: MapHeader, where: str) -> tuple[Any, Any, np.ndarray]:
-    """``(codes, state, states)`` of a map whose header holds its states: ``codes`` and ``state`` in memory, as a
-    writer would have stored them, ``codes`` without a chunk, ``state`` holding the states (the reader's checks
-    then apply unchanged): two ``zarr.Array`` (zarr is imported here only, so that the light reader of ``info``
-    unpacks states without it); ``states``: what ``state`` holds, read-only, for readers to take unread."""
+def implied_arrays(h: MapHeader, states: np.ndarray) -> tuple[Any, Any]:
+    """``(codes, state)`` of a map whose header holds its states ``states`` (:func:`unpack_states` of it), in
+    memory, as a writer would have stored them: ``codes`` without a chunk, ``state`` holding the states (the
+    reader's checks then apply unchanged): two ``zarr.Array`` (zarr is imported here only, so that the light
+    reader of ``info`` unpacks states without it)."""
     import zarr
     from zarr.api.asynchronous import create_array
     from zarr.codecs import Crc32cCodec
@@ -81,7 +81,6 @@ def implied_arrays(h: MapHeader, where: str) -> tuple[Any, Any, np.ndarray]:
 
     from .format import compressors
 
-    states = unpack_states(h.codes.variable_rate.states, tuple(h.grid_blocks), where)
     cb, cs = h.codes.chunk_blocks, h.codes
 
     async def build() -> tuple[Any, Any]:
@@ -97,7 +96,7 @@ def implied_arrays(h: MapHeader, where: str) -> tuple[Any, Any, np.ndarray]:
         return codes, state
 
     codes, state = sync(build())
-    return zarr.Array(codes), zarr.Array(state), states
+    return zarr.Array(codes), zarr.Array(state)
 
 
 class ImpliedArray:

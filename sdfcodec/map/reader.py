@@ -234,7 +234,7 @@ class MapReader:
     def build_implied(self) -> None:
         """The ``codes`` and ``state`` arrays of a map whose header holds its states (spec 4e), built in memory and
         checked as stored ones are (:class:`~sdfcodec.map.implied.ImpliedArray`: on first use)."""
-        codes, state, _ = implied_arrays(self.header, self.location)
+        codes, state = implied_arrays(self.header, self._inline_states)  # the states unpacked at open
         self._set_codes_state(codes, state)
         self.implied_pending = False  # after the arrays are set: another thread reads them, or builds them too
 
