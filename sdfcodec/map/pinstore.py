@@ -201,10 +201,6 @@ class PinnedMaskArray:
         self._basis: np.ndarray | None = None
         self._cache = ChunkCache(CACHED_CHUNKS)  # decoded chunks: (row index, packed rows)
 
-    def _rows(self, names: list[tuple[int, ...]]) -> list[np.ndarray]:
-        """The stored rows of chunks ``names``."""
-        return self.reader.read_many(self.streams, [(*(slice(c, c + 1) for c in k), slice(None)) for k in names])
-
     def basis(self) -> np.ndarray:
         if self._basis is None:
             h, r = self.reader.header, self.reader
@@ -288,7 +284,7 @@ class PinnedMaskArray:
         coords = np.asarray(coords, np.int64)
         keys, inverse = np.unique(coords // cb, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
-        streams = self._rows([tuple(int(c) for c in k) for k in keys])
+        streams = r.read_rows(self.streams, keys)
         flat = v.reshape(len(v), -1)
         pinkernels = _kernels()
         if r.refinement is not None and pinkernels is None:  # numpy: the corrections added here, pins told exactly
@@ -337,7 +333,7 @@ class PinnedMaskArray:
         names = [tuple(int(c) for c in k) for k in keys]
         got = {k: self._cache[k] for k in names if k in self._cache}
         todo = [i for i, k in enumerate(names) if k not in got]
-        rows = self._rows([names[i] for i in todo])
+        rows = r.read_rows(self.streams, [names[i] for i in todo])
         for i, row in zip(todo, rows):
             got[names[i]] = self._decode(keys[i], row, states)
             self._cache.put(names[i], got[names[i]])

@@ -273,6 +273,11 @@ class MapReader:
             out.append(np.asarray(res))
         return out
 
+    def read_rows(self, arr: zarr.Array, keys: Sequence[Sequence[int]]) -> list[np.ndarray]:
+        """The stored row ``(1, 1, 1, L)`` of each chunk ``k`` of ``keys`` of a stream array ``(Cx, Cy, Cz, L)`` (one
+        row a chunk: codes, masks, corrections): :meth:`read_many` of ``arr[k0:k0 + 1, k1:k1 + 1, k2:k2 + 1, :]``."""
+        return self.read_many(arr, [(*(slice(int(c), int(c) + 1) for c in k), slice(None)) for k in keys])
+
     def gather(self, arr: zarr.Array, sels: Sequence[tuple], locs: Sequence[np.ndarray]) -> np.ndarray:
         """The rows ``arr[sel][tuple(loc.T)]`` of every selection, stacked (:meth:`read_many`)."""
         return np.concatenate([a[tuple(loc.T)] for a, loc in zip(self.read_many(arr, sels), locs)])

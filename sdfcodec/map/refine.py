@@ -263,7 +263,7 @@ class RefinementReader:
         if not keys:
             return
         r, cb = self.reader, self.cb
-        rows = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None)) for key in keys])
+        rows = r.read_rows(self.arr, keys)
         states = r.vr.states()
         self.model.cdf()  # made once, before the threads read it
 
@@ -311,7 +311,7 @@ class RefinementReader:
         if started is not None:
             row, ahead = started.result()
         else:
-            (row,), ahead = r.read_many(self.arr, [(*(slice(c, c + 1) for c in key), slice(None))]), None
+            (row,), ahead = r.read_rows(self.arr, [key]), None
         row = np.ascontiguousarray(row.reshape(-1))
         nw = int(row[:4].view("<u4")[0])
         where = f"{r.location}: chunk {key} of array '{REFINE_ARRAY}'"

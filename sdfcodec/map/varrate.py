@@ -691,8 +691,7 @@ class VariableRateReader:
         # the cached chunks held from the start: decoding more than CACHED_CODE_CHUNKS others evicts them
         out = {i: self._cache[name] for i, name in enumerate(names) if name in self._cache}
         todo = [i for i in range(len(keys)) if i not in out]
-        rows = self.reader.read_many(self.arr, [(*(slice(int(c), int(c) + 1) for c in keys[i]), slice(None))
-                                                for i in todo])
+        rows = self.reader.read_rows(self.arr, [keys[i] for i in todo])
         if len(todo) > 1:  # what every thread's decode reads, made once before they start
             self.states()
             if ans.available():
