@@ -272,6 +272,22 @@ class PinnedMaskArray:
         pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation, threads)
         return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
 
+    def _zeros_beside(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,
+                      flat: np.ndarray, rows: np.ndarray, unread: np.ndarray, threads: int) -> np.ndarray:
+        """:meth:`_zeros` of a chunk whose coded blocks ``unread`` (indices into ``own``) the caller did not decode
+        (a region read): those get the float product too, beside the caller's rows copied, so that their signs are
+        told from it as the others' are (else every voxel of theirs is decided by its exact decode, ~0.1 ms a
+        block: 19 of a 37 ms read of eight blocks of a chunk of 196). The pins are the same either way; of a
+        refined map the read blocks' refined decode is copied back into ``flat``."""
+        read = np.flatnonzero(rows >= 0)
+        v = np.empty((len(own), BLOCK ** 3), np.float32)
+        v[read] = flat[rows[read]]
+        v[unread] = self._float_decode(q[unread], own[unread])
+        zeros = self._zeros(key, row, own, outside, q, v, np.arange(len(own)), threads=threads)
+        if self.reader.refinement is not None:
+            flat[rows[read]] = v[read]
+        return zeros
+
     def unmask(self, coords: np.ndarray, v: np.ndarray, free: float) -> None:
         """Set the unobserved voxels of ``v`` ``(n, 16, 16, 16)`` float32, the reader's full-level decode in metres
         of coded blocks ``coords`` ``(n, 3)`` (before any residual; truncated or not; of a refined map: truncated,
@@ -308,7 +324,12 @@ class PinnedMaskArray:
             index = np.full((cb,) * 3, -1, np.int64)
             index[tuple((coords[sel] - key * cb).T)] = sel
             rows = index[tuple((own - key * cb).T)]  # each coded block's row of v, -1 where not read
-            zeros = self._zeros(key, streams[i], own, outside, self._codes(key), flat, rows, threads=inner[i])
+            q = self._codes(key)
+            unread = np.flatnonzero(rows < 0)
+            if len(unread) and pinkernels is not None:
+                zeros = self._zeros_beside(key, streams[i], own, outside, q, flat, rows, unread, inner[i])
+            else:
+                zeros = self._zeros(key, streams[i], own, outside, q, flat, rows, threads=inner[i])
             if pinkernels is not None:  # distinct voxels: the zeros' slices on the chunk's threads
                 edges = np.linspace(0, len(zeros), inner[i] + 1).astype(np.int64)
                 each_chunk(lambda j: pinkernels.set_voxels(flat, rows, zeros[edges[j]:edges[j + 1]],
