@@ -4,6 +4,7 @@ control with the refinement, the golden map, and corruption."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +160,28 @@ def test_target_bytes_with_a_refinement_lands_within_five_percent(tmp_path, targ
     n = m.count_states()["coded"]
     got = sum(f.stat().st_size for f in p.rglob("*") if f.is_file()) / n  # every file, counted here
     assert 0.95 * target <= got <= target * 1.0005, got
+
+
+def test_a_target_beyond_the_finest_codes_and_refinement_is_refused_naming_what_fits(tmp_path):
+    """Above what the finest codes and refinement take, --target-bytes is refused with that maximum (not a map
+    far below the target without a word); the maximum asked for lands within 5 %: the bytes the finest
+    refinement leaves go to finer codes."""
+    from sdfcodec.search.rooms import synthetic_room
+
+    vol, obs = fused_like(synthetic_room(0, size=(2.2, 2.0, 1.8)).volume)
+    p = tmp_path / "room.sdfz"
+    with pytest.raises(errors.InvalidValueError, match=r"above what variable-rate codes and a surface refinement") as e:
+        write_volume_map(p, vol, obs, pretrained_codec("pca", 128), codec_state="reference",
+                         variable_rate={"target_bytes": 4000.0})
+    assert not p.exists()
+    most = float(re.search(r"ask for at most (\d+)", str(e.value)).group(1))
+    assert 256 < most < 4000
+    write_volume_map(p, vol, obs, pretrained_codec("pca", 128), codec_state="reference",
+                     variable_rate={"target_bytes": most})
+    m = sdfcodec.open_map(p)
+    got = sum(f.stat().st_size for f in p.rglob("*") if f.is_file()) / m.count_states()["coded"]
+    assert 0.95 * most <= got <= most * 1.0005, got
+    assert m.header.codes.variable_rate.refinement is not None
 
 
 def test_a_corrupted_refinement_stream_fails_with_one_line(tmp_path, room, codec):

@@ -273,6 +273,18 @@ class VariableRateWriter:
             refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
             if refinement is None and share is not None:  # nothing fits beside the codes: codes alone
                 step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
+            for _ in range(2):  # the finest refinement left bytes: finer codes take them, then the refinement again
+                if refinement is None or share is None or self._spare is None or self._spare <= TOLERANCE * share:
+                    break
+                share += self._spare
+                step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
+                refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
+            if refinement is not None and share is not None and (self._spare or 0) > 0.05 * self.target_bytes:
+                got = self.target_bytes - self._spare
+                raise InvalidValueError(
+                    f"a target of {self.target_bytes:g} bytes per coded block is above what variable-rate codes and a "
+                    f"surface refinement take on this map: at most {got:.1f} (both at their finest steps); ask for "
+                    f"at most {got:.0f}, or store the map lossless (--codec raw) or error-bounded (--codec sz3 --max-error E)")
         if len(z):
             streams, model, k = self._encode_all(z, g, chunk_ids, step)
             if refinement is not None:  # the mask's pins follow the refined field (spec 6h)
@@ -424,6 +436,7 @@ class VariableRateWriter:
         from .manifest import manifest_bytes_estimate
         from .refine import REFINE_ARRAY, tau_for_step
 
+        self._spare = None
         streams, model, _ = self._encode_all(z, g, chunk_ids, step)
         if self._mask is not None:  # from here the pins follow the refined field (spec 6h)
             self._mask.pinned.refined = ref.refined
@@ -449,7 +462,9 @@ class VariableRateWriter:
             if self._mask is not None:
                 self._mask.pinned.refined = None
             return None
-        if total(2 ** lo) <= t:
+        finest = total(2 ** lo)
+        if finest <= t:
+            self._spare = t - finest  # bytes the finest refinement leaves: the caller gives them to the codes
             return 2 ** lo, tau_for_step(2 ** lo, self.voxel_size)
         for _ in range(14):
             mid = (lo + hi) / 2
@@ -486,6 +501,8 @@ class VariableRateWriter:
                                     f"least {t_hi:.1f} (of it {other_hi:.1f} of observation mask, weights, block "
                                     "states, header and metadata; codes all but empty)")
         t_lo, _ = (np.inf, 0.0) if below is not None else total(2 ** lo)
+        if t_lo < t and share is not None:  # beside a refinement: the finest codes, the refinement takes the rest
+            return np.full(self.d, 2 ** lo)
         if t_lo < t:
             raise InvalidValueError(f"a target of {t:g} bytes per coded block is above what variable-rate codes take "
                                     f"on this map: at most {t_lo:.1f} (at step {2 ** lo:g}); store float32 codes")
