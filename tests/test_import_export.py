@@ -129,6 +129,26 @@ def test_voxblox_any_block_size_and_negative_indices(tmp_path, vps, vs):
         assert set(back) == set(voxels)
 
 
+def test_export_tells_the_format_by_the_name(tmp_path):
+    """`export` without --format: a voxblox suffix writes voxblox, .npz Open3D (the same bytes as with --format,
+    and the content's own detector agrees); any other name is refused naming it and writes nothing."""
+    from sdfcodec.interop.importer import detect_format
+
+    raw = tmp_path / "layer.voxblox"
+    synthetic_layer(str(raw), 8)
+    sdfcodec.import_map(raw, tmp_path / "m.sdfz")
+    runner = CliRunner()
+    for name, fmt in (("a.tsdf", "voxblox"), ("b.npz", "open3d")):
+        for out, extra in ((tmp_path / name, []), (tmp_path / f"explicit-{name}", ["--format", fmt])):
+            r = runner.invoke(app, ["export", str(tmp_path / "m.sdfz"), str(out), "--voxels-per-side", "8", *extra])
+            assert r.exit_code == 0, r.output
+        assert (tmp_path / name).read_bytes() == (tmp_path / f"explicit-{name}").read_bytes()
+        assert detect_format(tmp_path / name) == fmt
+    r = runner.invoke(app, ["export", str(tmp_path / "m.sdfz"), str(tmp_path / "c.bin")])
+    assert r.exit_code != 0 and "'c.bin'" in r.output and "--format" in r.output
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith((".c", "c."))] == []
+
+
 def test_import_with_another_codec(tmp_path):
     rng = np.random.default_rng(3)
     msgs, voxels = _random_layer(rng, 8, 0.02, 12)

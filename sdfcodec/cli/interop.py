@@ -71,7 +71,7 @@ def import_cmd(
 def export_cmd(
     map_path: str = typer.Argument(..., metavar="MAP", help="Map path or URL."),
     output: Path = typer.Argument(..., metavar="OUT", help="File to write (.voxblox for voxblox, .npz for open3d)."),
-    format: str = typer.Option(..., "--format", help="voxblox (a TSDF layer voxblox's load_map reads) or open3d (VoxelBlockGrid.load)."),
+    format: Optional[str] = typer.Option(None, "--format", help="voxblox (a TSDF layer voxblox's load_map reads) or open3d (VoxelBlockGrid.load); default: told by OUT's name (.voxblox, .vxblx, .tsdf or .npz)."),
     region: Optional[str] = typer.Option(None, "--region", help="x0:x1,y0:y1,z0:z1 (half-open voxels, or metres with --units m)."),
     units: str = typer.Option("voxels", "--units", help="Units of --region: voxels or m."),
     level: Optional[int] = typer.Option(None, "--level", help="Decode only the first K code elements."),
@@ -85,7 +85,9 @@ def export_cmd(
     Voxels not observed, or outside --region, are written with weight 0 (voxblox and Open3D: unobserved)."""
     box = parse_region(region)
     refuse_existing(output, overwrite)
-    from ..interop.importer import export_map
+    from ..interop.importer import export_format, export_map
+
+    format = export_format(output) if format is None else format  # told by OUT's name, not the temporary's
 
     def write(tmp: Path) -> bool:
         summary.update(export_map(map_path, tmp, format=format, region=box, units=units, level=level,

@@ -44,13 +44,15 @@ from ..errors import FormatError, InputNotFoundError, InvalidValueError
 from ..core.header import BlockState
 from .open3d_grid import (DEFAULT_TRUNC_VOXEL_MULTIPLIER, looks_like_open3d_grid, open3d_tsdf, open_open3d_grid,
                           write_open3d_grid)
-from .voxblox import looks_like_voxblox, read_voxblox_blocks, scan_voxblox, encode_block, write_voxblox
+from .voxblox import (VOXBLOX_SUFFIXES, encode_block, looks_like_voxblox, read_voxblox_blocks, scan_voxblox,
+                      write_voxblox)
 
 if TYPE_CHECKING:
     from ..codec import Codec
     from ..map.facade import Map
 
-__all__ = ["FORMATS", "Source", "open_source", "detect_format", "import_map", "export_map", "lossless_truncation"]
+__all__ = ["FORMATS", "Source", "open_source", "detect_format", "import_map", "export_map", "export_format",
+           "lossless_truncation"]
 
 FORMATS = ("voxblox", "open3d")
 #: Smallest positive float16 (the map stores weights as float16): a smaller positive weight is raised to it so
@@ -350,7 +352,20 @@ def _export_blocks(m: Map, region: Any, units: str, level: int | None) -> Any:
         yield c, np.full((len(c), BLOCK, BLOCK, BLOCK), np.float32(m.truncation[1])), weights_of(c)
 
 
-def export_map(map_path: str | os.PathLike, out: str | os.PathLike, *, format: str,
+def export_format(out: str | os.PathLike) -> str:
+    """The format :func:`export_map` writes to a file named ``out`` by default: ``voxblox`` for a voxblox suffix
+    (:data:`~sdfcodec.interop.voxblox.VOXBLOX_SUFFIXES`), ``open3d`` for ``.npz``.
+
+    Raises:
+        InvalidValueError: any other name (names the suffixes, and ``--format``)."""
+    suffix = Path(out).suffix.lower()
+    if suffix in VOXBLOX_SUFFIXES or suffix == ".npz":
+        return "voxblox" if suffix in VOXBLOX_SUFFIXES else "open3d"
+    raise InvalidValueError(f"cannot tell the format to export from the name {Path(out).name!r}: name it "
+                            f"{' or '.join(VOXBLOX_SUFFIXES)} (voxblox) or .npz (open3d), or pass --format")
+
+
+def export_map(map_path: str | os.PathLike, out: str | os.PathLike, *, format: str | None = None,
                region: Any = None, units: str = "voxels", level: int | None = None,
                voxels_per_side: int | None = None, trunc_voxel_multiplier: float = DEFAULT_TRUNC_VOXEL_MULTIPLIER,
                overwrite: bool = False) -> dict[str, Any]:
@@ -361,10 +376,12 @@ def export_map(map_path: str | os.PathLike, out: str | os.PathLike, *, format: s
     divisor of 16 (default 16; a map imported from voxblox exports back at its own 8 when given 8). Voxels
     not observed, or outside the region, get weight 0; colour is 0. Returns a summary (``blocks`` written,
     ``observed_voxels``, ``shift``: metres the voxels moved onto the target's lattice, 0 for maps imported
-    from it).
+    from it). ``format``: ``voxblox`` or ``open3d``; by default told by the name of ``out`` (a voxblox suffix,
+    :data:`~sdfcodec.interop.voxblox.VOXBLOX_SUFFIXES`, or ``.npz``).
     """
     from ..map import open_map
 
+    format = export_format(out) if format is None else format
     if format not in FORMATS:
         raise InvalidValueError(f"--format must be one of {', '.join(FORMATS)}, got {format!r}")
     n = BLOCK if voxels_per_side is None else int(voxels_per_side)
