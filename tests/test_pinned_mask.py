@@ -329,6 +329,42 @@ def test_a_pinned_map_reads_the_exact_masks_surface_and_is_smaller(tmp_path, roo
     assert np.array_equal(copied.read_observed(coords), pinned.read_observed(coords))
 
 
+def test_the_known_voxels_are_where_the_mask_is_stored_and_a_search_scores_only_observed_ones(tmp_path, room, codec):
+    """observation_known of a pinned map: every voxel outside it reads observed (the format's rule, whatever the
+    cameras saw), it holds every corner of every 2^3 cell whose float decode changes sign (numpy, from the codes),
+    and where it says observed the exact mask does too. A search scores, in blocks with an unobserved pin, only
+    voxels the exact mask observed (read_observed alone gives it thousands it did not)."""
+    from sdfcodec.map.observed import observation_known
+    from sdfcodec.search.scoring import scored_voxels
+
+    maps = {}
+    for name, extra in (("exact", {"exact_mask": True}), ("pinned", {})):
+        p = tmp_path / f"{name}.sdfz"
+        write_volume_map(p, *room, codec, codec_state="reference", variable_rate={"step": 0.3, **extra})
+        maps[name] = sdfcodec.open_map(p)
+    pinned = maps["pinned"]
+    coords = np.argwhere(pinned.block_states() == 2)
+    truth = maps["exact"].read_observed(coords)
+    assert observation_known(maps["exact"].reader, coords) is None  # an exact mask knows every voxel
+    known, obs = observation_known(pinned.reader, coords), pinned.read_observed(coords)
+    assert obs[~known].all() and not (obs & known & ~truth).any()
+    c, z = pinned.read_codes()
+    assert np.array_equal(c, coords)  # both in C order
+    v = np.asarray(pinned.codec.decode(torch.from_numpy(np.ascontiguousarray(z, np.float32)))).reshape(-1, 16, 16, 16)
+    neg = v < (0 - TRUNC[0]) / (TRUNC[1] - TRUNC[0])  # normalised decode below the surface
+    cells = [neg[:, a:a + 15, b:b + 15, d:d + 15] for a in (0, 1) for b in (0, 1) for d in (0, 1)]
+    crossing = np.any(cells, axis=0) & ~np.all(cells, axis=0)
+    corners = np.zeros_like(neg)
+    for a in (0, 1):
+        for b in (0, 1):
+            for d in (0, 1):
+                corners[:, a:a + 15, b:b + 15, d:d + 15] |= crossing
+    assert corners.sum() > 10000 and not (corners & ~known).any()
+    hidden = (known & ~obs).reshape(len(coords), -1).any(axis=1)
+    assert hidden.sum() > 10 and (obs & ~truth)[hidden].sum() > 1000
+    assert not (scored_voxels(pinned, coords) & ~truth)[hidden].any()
+
+
 def test_a_reader_without_the_extension_refuses_and_a_flipped_byte_is_caught(tmp_path, room, codec, monkeypatch):
     from sdfcodec import errors
     from sdfcodec.core import header

@@ -199,7 +199,7 @@ class PinnedMaskArray:
         self.dtype = np.dtype(np.uint8)
         self.path = PINNED_ARRAY
         self._basis: np.ndarray | None = None
-        self._cache = ChunkCache(CACHED_CHUNKS)  # decoded chunks: (row index, packed rows)
+        self._cache = ChunkCache(CACHED_CHUNKS)  # decoded chunks: (row index, packed rows, packed pinned voxels)
 
     def basis(self) -> np.ndarray:
         if self._basis is None:
@@ -210,22 +210,23 @@ class PinnedMaskArray:
                                   f"(pca with a dataset mean); this map's is {h.codec.id!r}")
         return self._basis
 
-    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(row index (cb, cb, cb) int64 of each block of the chunk, -1 where not coded; packed rows (n, 512))``
-        of chunk ``key`` from its stored ``row``."""
+    def _decode(self, key: np.ndarray, row: np.ndarray, states: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(row index (cb, cb, cb) int64 of each block of the chunk, -1 where not coded; packed rows (n, 512);
+        the pinned voxels' packed rows (n, 512))`` of chunk ``key`` from its stored ``row``."""
         own, outside = chunk_blocks(states, key, self.cb)
         index = np.full((self.cb,) * 3, -1, np.int64)
         if not len(own):
-            return index, np.zeros((0, BLOCK ** 3 // 8), np.uint8)
+            return index, *(np.zeros((0, BLOCK ** 3 // 8), np.uint8),) * 2
         # the integer codes themselves, decoded once for the field read and the mask (the reader keeps them)
         q = self._codes(key)
         # what the signs are told from (pinread): one float32 product, refined in place for a refined map
         v = self._float_decode(q, own)
-        zeros = self._zeros(key, row, own, outside, q, v, np.arange(len(own)))
+        zeros, pins = self._zeros(key, row, own, outside, q, v, np.arange(len(own)))
         mask = np.ones(len(own) * BLOCK ** 3, bool)
         mask[zeros] = False
         index[tuple((own - np.asarray(key, np.int64) * self.cb).T)] = np.arange(len(own))
-        return index, np.packbits(mask).reshape(len(own), -1)  # flat: each block's 4096 bits in a row
+        return index, np.packbits(mask).reshape(len(own), -1), _packed(pins)  # flat: a block's 4096 bits a row
 
     def _codes(self, key: np.ndarray) -> np.ndarray:
         """The integer codes ``(n, L)`` of chunk ``key``'s coded blocks (C order), as the field's read keeps them."""
@@ -247,11 +248,11 @@ class PinnedMaskArray:
         return v.numpy().reshape(len(q), -1)
 
     def _zeros(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,
-               v: np.ndarray | None, rows: np.ndarray, threads: int = 1) -> np.ndarray:
-        """The unobserved voxels (``b * 4096 + voxel``, :func:`~sdfcodec.map.pinmask.unobserved_voxels`) of chunk
-        ``key``'s coded blocks ``own`` from its stored ``row``, its integer codes ``q`` and the float decode
-        ``v[rows[b]]`` of block ``b`` (``-1``: not decoded; :func:`~sdfcodec.map.pinread.decode_pins`, its
-        blocks split among ``threads``)."""
+               v: np.ndarray | None, rows: np.ndarray, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """``(the unobserved voxels (b * 4096 + voxel, pinmask.unobserved_voxels), the pinned voxels (rows (n, 16,
+        16) uint16 or (n, 16, 16, 16) bool))`` of chunk ``key``'s coded blocks ``own`` from its stored ``row``, its
+        integer codes ``q`` and the float decode ``v[rows[b]]`` of block ``b`` (``-1``: not decoded;
+        :func:`~sdfcodec.map.pinread.decode_pins`, its blocks split among ``threads``)."""
         r = self.reader
         row = np.ascontiguousarray(np.asarray(row).reshape(-1))
         n = int(row[:4].view("<u4")[0])
@@ -263,14 +264,14 @@ class PinnedMaskArray:
             ref = r.refinement
             pins = pinread.decode_refined_pins(v, rows, q, self.basis(), own, outside, r.truncation, ref.spec.tau,
                                                ref.spec.step, lambda sel: ref.corrections(key, sel), threads)
-            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
+            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads), pins
         if r.refinement is not None:  # without the compiled kernels: every voxel's refined exact field
             v, bound = r.refinement.refined(own, *pm.exact_decode(q, self.basis()))
             neg, pos = pm.sign_bounds(v, bound)
             pins = pm.pinned_voxels_of(own, neg, pos, outside, r.truncation)
-            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where)
+            return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where), pins
         pins = pinread.decode_pins(v, rows, q, self.basis(), own, outside, r.truncation, threads)
-        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads)
+        return pm.unobserved_voxels(row[4:4 + n].tobytes(), own, pins, where, threads=threads), pins
 
     def _zeros_beside(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,
                       flat: np.ndarray, rows: np.ndarray, unread: np.ndarray, threads: int) -> np.ndarray:
@@ -283,7 +284,7 @@ class PinnedMaskArray:
         v = np.empty((len(own), BLOCK ** 3), np.float32)
         v[read] = flat[rows[read]]
         v[unread] = self._float_decode(q[unread], own[unread])
-        zeros = self._zeros(key, row, own, outside, q, v, np.arange(len(own)), threads=threads)
+        zeros, _ = self._zeros(key, row, own, outside, q, v, np.arange(len(own)), threads=threads)
         if self.reader.refinement is not None:
             flat[rows[read]] = v[read]
         return zeros
@@ -329,7 +330,7 @@ class PinnedMaskArray:
             if len(unread) and pinkernels is not None:
                 zeros = self._zeros_beside(key, streams[i], own, outside, q, flat, rows, unread, inner[i])
             else:
-                zeros = self._zeros(key, streams[i], own, outside, q, flat, rows, threads=inner[i])
+                zeros, _ = self._zeros(key, streams[i], own, outside, q, flat, rows, threads=inner[i])
             if pinkernels is not None:  # distinct voxels: the zeros' slices on the chunk's threads
                 edges = np.linspace(0, len(zeros), inner[i] + 1).astype(np.int64)
                 each_chunk(lambda j: pinkernels.set_voxels(flat, rows, zeros[edges[j]:edges[j + 1]],
@@ -341,9 +342,10 @@ class PinnedMaskArray:
 
         each_chunk(chunk, sorted(range(len(keys)), key=lambda i: -sizes[i]), threads)
 
-    def block_rows(self, coords: np.ndarray) -> np.ndarray:
+    def block_rows(self, coords: np.ndarray, pinned: bool = False) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
-        they lie in is read and decoded once."""
+        they lie in is read and decoded once. ``pinned``: the rows of the pinned voxels instead, where the mask is
+        stored (every other voxel reads observed whatever the cameras saw; 255 where not coded)."""
         out = np.full((len(coords), BLOCK ** 3 // 8), 255, np.uint8)
         if not len(coords):
             return out
@@ -359,8 +361,17 @@ class PinnedMaskArray:
             got[names[i]] = self._decode(keys[i], row, states)
             self._cache.put(names[i], got[names[i]])
         for i, name in enumerate(names):
-            index, packed = got[name]
+            index, packed = got[name][0], got[name][2 if pinned else 1]
             sel = np.flatnonzero(inverse == i)
             k = index[tuple((np.asarray(coords, np.int64)[sel] - keys[i] * cb).T)]
             out[sel[k >= 0]] = packed[k[k >= 0]]
         return out
+
+
+def _packed(pins: np.ndarray) -> np.ndarray:
+    """``(n, 512)`` uint8: pinned voxels as rows ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``) or ``(n, 16, 16,
+    16)`` bool, packed as the mask's rows are (C order, most significant bit first)."""
+    n = len(pins)
+    if pins.dtype != bool:  # each uint16 row's two bytes, low first: bits 0-7 are z 0-7, bits 8-15 z 8-15
+        pins = np.unpackbits(np.ascontiguousarray(pins, "<u2").view(np.uint8), axis=-1, bitorder="little")
+    return np.packbits(pins.reshape(n, -1), axis=1)

@@ -284,7 +284,8 @@ class VariableRateWriter:
                 raise InvalidValueError(
                     f"a target of {self.target_bytes:g} bytes per coded block is above what variable-rate codes and a "
                     f"surface refinement take on this map: at most {got:.1f} (both at their finest steps); ask for "
-                    f"at most {got:.0f}, or store the map lossless (--codec raw) or error-bounded (--codec sz3 --max-error E)")
+                    f"at most {got:.0f}, or store the map lossless (--codec raw) or error-bounded (--codec sz3 "
+                    "--max-error E)")
         if len(z):
             streams, model, k = self._encode_all(z, g, chunk_ids, step)
             if refinement is not None:  # the mask's pins follow the refined field (spec 6h)

@@ -124,7 +124,7 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     votes is refined twice, with cones of 4 and 2 degrees about it. An estimate within :data:`LEVEL_DEG` of ``+z``, or
     fewer than :data:`MIN_UP_VOTES` votes, keeps ``+z``. Returns ``(up, where it came from)``."""
     from .calibrate import SURFACE_SHARE, calibrate_threshold
-    from .scoring import ObservedScorer, Scorer, score_codes
+    from .scoring import ObservedScorer, Scorer, score_codes, scored_voxels
 
     codec = m.codec
     lv = m.header.codes.levels[0] if m.header.codes.prefix_ordered else m.code_size
@@ -132,7 +132,7 @@ def estimate_up(m: Map, behind: str, sample: int = VOTE_SAMPLE) -> tuple[tuple[f
     batches = []
     n = 0
     for coords, codes in m.iter_codes(level=lv):
-        batches.append((codes, m.read_observed(coords) if masked else None))
+        batches.append((codes, scored_voxels(m, coords) if masked else None))
         n += len(codes)
         if n >= sample:
             break

@@ -28,7 +28,7 @@ from .counting import CountingStore, code_chunk_bytes, counting_view, release_vi
 from .calibrate import SURFACE_SHARE, calibrate_threshold, cone_angle
 from .models import QueryModel
 from .query import build_query, resolve_query
-from .scoring import ObservedScorer, Scorer, score_codes
+from .scoring import ObservedScorer, Scorer, score_codes, scored_voxels
 
 __all__ = [
     "AUTO_FRACTION",
@@ -264,7 +264,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
         # in the reader's fetching threads, so that scoring a batch overlaps reading the next ones; metric codes
         # (spec 4f) scored as the codec encodes them, normalised
         codes = codec_codes(m.header.codes, m.truncation, codes)
-        return codes, *score_codes(scorer, obs_scorer, codes, view.read_observed(coords) if masked else None,
+        return codes, *score_codes(scorer, obs_scorer, codes, scored_voxels(view, coords) if masked else None,
                                    bound=None if keep_scores else loop_t)  # bounded: scores over it not exact
 
     whole = tuple(slice(0, n) for n in view.reader.grid())
@@ -319,7 +319,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
             if not old.all():
                 added = sel_c[~old]
                 sel_s[~old], sel_i[~old] = score_codes(scorer, obs_scorer, codes_of(added),
-                                                       view.read_observed(added) if masked else None)
+                                                       scored_voxels(view, added) if masked else None)
     order = np.lexsort((sel_c[:, 2], sel_c[:, 1], sel_c[:, 0], sel_s))
     sel_c, sel_s, sel_i = sel_c[order], sel_s[order], sel_i[order]
     if top is not None:  # ties at the cut: the lexsort above makes the kept set deterministic only here

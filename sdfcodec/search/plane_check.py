@@ -41,6 +41,7 @@ from .arrays import decode_array
 from .scene import PLANE_TOL_VOXELS
 from .models import codec_state_sha256
 from .shapes import MIN_SHAPE_SURFACE, truncate
+from .scoring import scored_voxels
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -626,7 +627,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
         for rnd in range(2):
             c = coded[near]
             x = _decode(codec, codes_of(c))
-            obs = view.read_observed(c).reshape(len(c), -1) if weighted else np.ones(x.shape, bool)
+            obs = scored_voxels(view, c).reshape(len(c), -1) if weighted else np.ones(x.shape, bool)
             on = np.array([tuple(b) in strong_set for b in c.tolist()], bool)
             r, seen, moved, const, share, on_plane, off_plane = plane_residuals(
                 x, obs, dist, voxel_size=vs, truncation=trunc, behind=behind, stretches=st, tol=t_used,
@@ -651,8 +652,7 @@ def verify_planes(view: Any, planes: list[tuple[np.ndarray, float]], coded: np.n
             # the block shows the plane: as many decoded surface voxels on it as a check needs observed, or a whole
             # shape's worth of observed voxels within a voxel of the fitted plane itself (not moved), at least
             # PURITY of them decoding near zero (_plane_cover: a floor ending inside the block does not). A codec
-            # smears a
-            # surface at a block face: the block on the far side of a plane passing through the voxel centres of its
+            # smears a surface at a block face: the block on the far side of a plane through the voxel centres of its
             # neighbour holds the plane a voxel from its last layer, which pca-64 decodes 1.2 voxels from zero
             # (measured: a level exact floor at a block face lost the 100 blocks below it, recall 0.44), and an
             # unobserved-behind field's 2-voxel band before the jump to d_max, stretched by fusion, decodes farther
