@@ -192,6 +192,9 @@ def test_stored_prefixes_are_the_dequantised_codes(tmp_path, scene_volume, pca32
     b = search(ref, "floor", top=10)
     ca, cb = {tuple(c) for c in np.asarray(a.coords)}, {tuple(c) for c in np.asarray(b.coords)}
     assert len(ca) == 10 and len(ca & cb) >= 6, (ca, cb)
+    # what it read of codes: every code stream's chunk file (a row holds every prefix), as the disk holds them
+    streams = sum(f.stat().st_size for f in (tmp_path / "vr.sdfz" / "code_streams" / "c").rglob("*") if f.is_file())
+    assert a.stats["code_bytes_read"] == a.stats["code_bytes_full"] == a.stats["code_bytes_level"] == streams > 0
 
 
 @pytest.mark.parametrize("merge", [0, 10 ** 9])

@@ -1,6 +1,9 @@
 """Search with the CLI's defaults on maps nobody tuned on: precision and recall per room kind and query.
 
     PYTHONPATH=. .venv/bin/python docs/search/evaluate.py [--seeds 7501 7502 7503] [--jobs 3] [--out docs/search/eval-defaults.json]
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py --kinds fused fused-tilted --jobs 2 --out docs/search/eval-pca64-fused.json
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py --kinds fused fused-tilted --jobs 2 --target-bytes 128 --out docs/search/eval-vr128.json
+    PYTHONPATH=. .venv/bin/python docs/search/evaluate.py --kinds fused fused-tilted --jobs 2 --target-bytes 64 --out docs/search/eval-vr64.json
 
 Every map is searched exactly as ``sdfcodec search MAP --query Q`` does with no flags (``threshold="auto"``:
 the calibrated threshold, ``behind`` and ``up`` from the map); precision and recall of the selection are
@@ -23,7 +26,8 @@ ceiling block has >= 90 % of its surface voxels on one such primitive, which cov
 the block in its own plane; planes only clipping a corner (section under a quarter face) are left out; every
 other block is a negative. *(pure)*: >= 90 % against < 10 %, mixed blocks left out. Edges, corners and poles
 (exact rooms): see ``TRUTH``. Each floor, wall and ceiling search runs with the map-level stage (the CLI's
-default) and without it (``--shape-only``). Codec: the shipped pca-64, searched at its full level.
+default) and without it (``--shape-only``). Codec: the shipped pca-64, searched at its full level
+(``--target-bytes B``: variable-rate maps of B bytes per coded block, pca-128 prefixes with the pinned mask).
 """
 
 from __future__ import annotations
@@ -56,9 +60,9 @@ QUERIES = ("floor", "wall", "ceiling")
 PARTS = ("edge", "corner", "pole")
 
 
-def _write(path: Path, room: LabelledRoom, codec) -> sdfcodec.Map:
+def _write(path: Path, room: LabelledRoom, codec, **kw) -> sdfcodec.Map:
     with sdfcodec.create_map(path, codec=codec, voxel_size=room.voxel_size, truncation=room.truncation,
-                             origin=tuple(room.origin), overwrite=True) as w:
+                             origin=tuple(room.origin), overwrite=True, **kw) as w:
         w.write_volume(room.volume)
     return sdfcodec.open_map(path)
 
@@ -91,8 +95,10 @@ def open_room(seed: int) -> LabelledRoom:
                         rotation=np.eye(3), size=(3.2, 3.2, 1.28), up=np.array([0.0, 0.0, 1.0]), behind="solid")
 
 
-def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120) -> tuple[sdfcodec.Map, LabelledRoom]:
-    """Render a furnished room with a ceiling along a camera path, fuse it, encode it with its observation."""
+def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120, **kw
+               ) -> tuple[sdfcodec.Map, LabelledRoom]:
+    """Render a furnished room with a ceiling along a camera path, fuse it, encode it with its observation
+    (``kw``: more arguments of ``create_map``)."""
     from sdfcodec.data.render import DEFAULT_INTRINSICS, Renderer, RoomScene, camera_path, room_scene
     from sdfcodec.search.rooms import LabelledRoom
     from sdfcodec.data.sequences import Frame
@@ -117,7 +123,7 @@ def fused_room(seed: int, tilt_deg: float, path: Path, codec, frames: int = 120)
           enumerate(poses)]
     fused = fuse(fr, voxel_size=0.02, truncation=(-0.04, 0.1), intrinsics=DEFAULT_INTRINSICS, quiet=True)
     with sdfcodec.create_map(path, codec=codec, voxel_size=0.02, origin=tuple(fused.origin), overwrite=True,
-                             tool="sdfcodec fuse (evaluation)") as w:
+                             tool="sdfcodec fuse (evaluation)", **kw) as w:
         w.write_blocks(fused.coords, fused.tsdf, weights=fused.weights)
     m = sdfcodec.open_map(path)
     # exact distances on the fused grid, for the labels
@@ -271,9 +277,13 @@ def _search(m: sdfcodec.Map, q: str, scene: bool = True):
     return res, sel
 
 
-def _tally(kinds: list, seeds: list) -> dict:
-    """Pooled counts per (room kind, query row) over the maps of ``kinds`` made from ``seeds``."""
-    codec = pretrained_codec("pca", 64)
+def _tally(kinds: list, seeds: list, target_bytes: float | None = None) -> dict:
+    """Pooled counts per (room kind, query row) over the maps of ``kinds`` made from ``seeds``: pca-64, or with
+    ``target_bytes`` variable-rate maps of that many bytes per coded block (pca-128 prefixes, pinned mask)."""
+    codec, kw = pretrained_codec("pca", 64), {}
+    if target_bytes is not None:
+        codec = pretrained_codec("pca", 128)
+        kw = {"codec_state": "reference", "variable_rate": {"target_bytes": float(target_bytes)}}
     tally: dict = {}
     labels_of: dict = {}
     t0 = time.perf_counter()
@@ -295,7 +305,7 @@ def _tally(kinds: list, seeds: list) -> dict:
                 raw = sdfcodec.open_map(rawp)
                 p64 = tmp / "kitchen-pca64.sdfz"
                 with sdfcodec.create_map(p64, codec=codec, voxel_size=0.02, origin=raw.origin,
-                                         tool="sdfcodec encode") as w:
+                                         tool="sdfcodec encode", **kw) as w:
                     w.write_map(raw)
                 items.append((sdfcodec.open_map(p64), None, raw))
             for seed in seeds:
@@ -303,22 +313,22 @@ def _tally(kinds: list, seeds: list) -> dict:
                 if kind == "exact":
                     for g in ("poor", "normal", "rich"):
                         room = synthetic_room(seed, geometry=g, behind="solid")
-                        items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec), room, None))
+                        items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec, **kw), room, None))
                 elif kind == "exact-open":
                     room = open_room(seed)
-                    items.append((_write(path, room, codec), room, None))
+                    items.append((_write(path, room, codec, **kw), room, None))
                 elif kind == "exact-tilted":
                     room = synthetic_room(seed, geometry=("normal", "rich")[seed % 2], behind="solid", tilt_deg=10)
-                    items.append((_write(path, room, codec), room, None))
+                    items.append((_write(path, room, codec, **kw), room, None))
                 elif kind in ("fused-style", "fused-style-tilted"):
                     # exact distances in a band, unobserved (d_max) beyond it, written as a plain volume: the map
                     # records neither weights nor up, so what is behind surfaces and up are found from its blocks
                     tilt = 10.0 if kind.endswith("tilted") else 0.0
                     for g in (("poor", "normal", "rich") if not tilt else (("normal", "rich")[seed % 2],)):
                         room = synthetic_room(seed, geometry=g, behind="unobserved", tilt_deg=tilt)
-                        items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec), room, None))
+                        items.append((_write(tmp / f"{kind}-{seed}-{g}.sdfz", room, codec, **kw), room, None))
                 elif kind in ("fused", "fused-tilted"):
-                    m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec)
+                    m, room = fused_room(seed, 10.0 if kind == "fused-tilted" else 0.0, path, codec, **kw)
                     items.append((m, room, None))
             runs = [(it, q, sc) for it in items for q in QUERIES for sc in (True, False)]
             if kind in ("exact", "exact-tilted", "fused-style"):  # truths from the primitives' structure (no scene stage)
@@ -373,13 +383,15 @@ def main(argv=None) -> int:
                          "rows are skipped")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--jobs", type=int, default=1, help="processes (one task per kind and seed)")
+    ap.add_argument("--target-bytes", type=float, default=None,
+                    help="search variable-rate maps of B bytes per coded block (pinned mask) instead of pca-64")
     args = ap.parse_args(argv)
     if args.kitchen is not None:  # the worker processes read it from the environment
         os.environ["SDFCODEC_KITCHEN"] = str(args.kitchen)
     t0 = time.perf_counter()
     # one task per kind and seed (the kitchen once), run in --jobs processes; counts are pooled afterwards
-    tasks = [([k], [sd]) for k in args.kinds if k != "kitchen" for sd in args.seeds]
-    tasks += [(["kitchen"], [])] if "kitchen" in args.kinds else []
+    tasks = [([k], [sd], args.target_bytes) for k in args.kinds if k != "kitchen" for sd in args.seeds]
+    tasks += [(["kitchen"], [], args.target_bytes)] if "kitchen" in args.kinds else []
     if args.jobs > 1:
         import multiprocessing as mp
 
@@ -409,8 +421,9 @@ def main(argv=None) -> int:
         print(f"| {kind} | {q} | {t['maps']} | {t['blocks']} | {t['positives']} | {t['selected']} | {p:.3f} | {r:.3f} | "
               f"{', '.join(sorted(t['behind']))} | {min(t['thresholds']):.1f}-{max(t['thresholds']):.1f} |")
     if args.out:
-        args.out.write_text(json.dumps({"seeds": args.seeds, "kinds": args.kinds, "load": os.getloadavg(), "rows": rows,
-                                        "seconds": time.perf_counter() - t0}, indent=1))
+        args.out.write_text(json.dumps({"seeds": args.seeds, "kinds": args.kinds, "target_bytes": args.target_bytes,
+                                        "load": os.getloadavg(), "rows": rows, "seconds": time.perf_counter() - t0},
+                                       indent=1))
     return 0
 
 

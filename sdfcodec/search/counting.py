@@ -16,7 +16,11 @@ import zarr.abc.store
 from ..errors import InvalidValueError
 from ..map import Map
 
-__all__ = ["CountingStore", "counting_view", "release_view", "code_chunk_bytes"]
+__all__ = ["CountingStore", "counting_view", "release_view", "code_chunk_bytes", "code_bytes_read"]
+
+#: Where a map keeps its codes: ``codes`` (fixed-length) or the variable-rate code streams (spec section 4e),
+#: whose rows each hold every element of a chunk's codes (any level reads the whole row)
+_CODE_ARRAYS = ("codes", "code_streams")
 
 
 class CountingStore(zarr.storage.WrapperStore):
@@ -107,7 +111,8 @@ def code_chunk_bytes(m: Map, *levels: int | None) -> list[int | None]:
     held = _VIEWS.get(m)
     if held is not None and levels in held[2]:  # a committed map's files do not change under its reader
         return list(held[2][levels])
-    root = os.path.join(m.location, "codes", "c")
+    streams = m.header.codes.variable_rate is not None
+    root = os.path.join(m.location, _CODE_ARRAYS[streams], "c")
     if "://" in m.location or not os.path.isdir(root):
         return [None] * len(levels)
     per_column: dict[int, int] = {}  # bytes per chunk index along the code axis (the last key segment)
@@ -121,7 +126,12 @@ def code_chunk_bytes(m: Map, *levels: int | None) -> list[int | None]:
                     with contextlib.suppress(OSError):
                         per_column[int(e.name)] = per_column.get(int(e.name), 0) + e.stat(follow_symlinks=False).st_size
     cc = m.header.codes.chunk_code
-    out = [sum(n for k, n in per_column.items() if k < -(-(lv or m.code_size) // cc)) for lv in levels]
+    out = [sum(n for k, n in per_column.items() if streams or k < -(-(lv or m.code_size) // cc)) for lv in levels]
     if held is not None:
         held[2][levels] = tuple(out)
     return out
+
+
+def code_bytes_read(store: CountingStore) -> int:
+    """Bytes of code chunks ``store`` returned: the ``codes`` array's or, in a variable-rate map, its code streams'."""
+    return sum(int(store.bytes.get(a, 0)) for a in _CODE_ARRAYS)

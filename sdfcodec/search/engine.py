@@ -24,7 +24,7 @@ from ..map import Map, open_map
 from ..map.grouping import chunk_box
 from ..map.metric import codec_codes
 from .arrays import encode_array
-from .counting import CountingStore, code_chunk_bytes, counting_view, release_view
+from .counting import CountingStore, code_bytes_read, code_chunk_bytes, counting_view, release_view
 from .calibrate import SURFACE_SHARE, calibrate_threshold, cone_angle
 from .models import QueryModel
 from .query import build_query, resolve_query
@@ -328,7 +328,7 @@ def search(map: Map | str | os.PathLike, query: Any = "floor", *, level: int | N
     stats = {
         "map": m.location, "codec": m.header.codec.id, "code_size": m.code_size, "level": lv,
         "descriptors": len(model), "blocks_scored": n_scored, "selected": int(len(sel_c)),
-        "bytes_read": dict(store.bytes), "code_bytes_read": int(store.bytes.get("codes", 0)),
+        "bytes_read": dict(store.bytes), "code_bytes_read": code_bytes_read(store),
         **dict(zip(("code_bytes_level", "code_bytes_full"), code_chunk_bytes(m, lv, None))),
         "seconds": seconds, "blocks_per_s": n_scored / seconds if seconds > 0 else None, "device": str(dev),
         "threshold_info": threshold_info, "context": (model.spec or {}).get("context"),
@@ -523,7 +523,7 @@ def expand(map: Map | str | os.PathLike, selection: SearchResult | np.ndarray, a
 
         out.mesh = mesh_from_blocks(coords, blocks, origin=m.origin, voxel_size=m.voxel_size, truncation=m.truncation)
     out.stats = {"blocks_decoded": int(len(coords)), "coded_blocks": int((states == BlockState.CODED).sum()),
-                 "level": lv, "code_bytes_read": int(store.bytes.get("codes", 0)),
+                 "level": lv, "code_bytes_read": code_bytes_read(store),
                  "code_bytes_full": code_chunk_bytes(m, None)[0], "bytes_read": dict(store.bytes),
                  "seconds": time.perf_counter() - t0}
     release_view(store)
