@@ -168,7 +168,7 @@ def test_a_target_beyond_the_finest_codes_and_refinement_is_refused_naming_what_
     refinement leaves go to finer codes."""
     from sdfcodec.search.rooms import synthetic_room
 
-    vol, obs = fused_like(synthetic_room(0, size=(2.2, 2.0, 1.8)).volume)
+    vol, obs = fused_like(synthetic_room(0, size=(1.6, 1.5, 1.8)).volume)  # small: a search runs twice
     p = tmp_path / "room.sdfz"
     with pytest.raises(errors.InvalidValueError, match=r"above what variable-rate codes and a surface refinement") as e:
         write_volume_map(p, vol, obs, pretrained_codec("pca", 128), codec_state="reference",
