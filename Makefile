@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml Makefile
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/sdfcodec demo --out demo-out
+	$(VENV)/bin/sdfcodec demo --out demo-out --overwrite
 
 # two workers (pytest-xdist): most tests are single-threaded Python or wait on subprocesses; about 1.5-2x on 2 cores.
 # Bytecode is written even where the environment sets PYTHONDONTWRITEBYTECODE (this project's machines do): the
