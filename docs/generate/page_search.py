@@ -30,7 +30,9 @@ def defaults() -> list[str]:
          "camera sees is kept), `fused` (rendered and fused with open3d), `-tilted` (the whole room tilted), and "
          "the real 7-Scenes kitchen where given. Positives are the blocks whose surface is that shape by the "
          "rooms' labels; precision and recall are pooled over the maps of a kind. Only each query's default "
-         "form is tabled; the JSON also holds its shape-only, pure and observed variants.", ""]
+         "form is tabled; the JSON also holds its shape-only, pure and observed variants. The maps are the shipped "
+         "pca-64 eigenshapes; variable-rate maps (`--target-bytes`, pinned observation mask) of the fused rooms: "
+         "[variable-rate.md](variable-rate.md).", ""]
     for src in DEFAULTS:
         doc = load(src)
         rows = [(r["kind"], r["query"], r["maps"], f"{r['blocks']:,}", r["positives"], r["selected"], r["tp"],
