@@ -330,11 +330,11 @@ def test_a_pinned_map_reads_the_exact_masks_surface_and_is_smaller(tmp_path, roo
 
 
 def test_the_known_voxels_are_where_the_mask_is_stored_and_a_search_scores_only_observed_ones(tmp_path, room, codec):
-    """observation_known of a pinned map: every voxel outside it reads observed (the format's rule, whatever the
-    cameras saw), it holds every corner of every 2^3 cell whose float decode changes sign (numpy, from the codes),
+    """read_observation of a pinned map: every voxel outside what it knows reads observed (the format's rule,
+    whatever the cameras saw), what it knows holds every corner of every 2^3 cell whose float decode changes sign (numpy, from the codes),
     and where it says observed the exact mask does too. A search scores, in blocks with an unobserved pin, only
     voxels the exact mask observed (read_observed alone gives it thousands it did not)."""
-    from sdfcodec.map.observed import observation_known
+    from sdfcodec.map.observed import read_observation
     from sdfcodec.search.scoring import scored_voxels
 
     maps = {}
@@ -345,8 +345,9 @@ def test_the_known_voxels_are_where_the_mask_is_stored_and_a_search_scores_only_
     pinned = maps["pinned"]
     coords = np.argwhere(pinned.block_states() == 2)
     truth = maps["exact"].read_observed(coords)
-    assert observation_known(maps["exact"].reader, coords) is None  # an exact mask knows every voxel
-    known, obs = observation_known(pinned.reader, coords), pinned.read_observed(coords)
+    assert read_observation(maps["exact"].reader, coords)[1] is None  # an exact mask knows every voxel
+    obs, known = read_observation(pinned.reader, coords)
+    assert np.array_equal(obs, pinned.read_observed(coords))
     assert obs[~known].all() and not (obs & known & ~truth).any()
     c, z = pinned.read_codes()
     assert np.array_equal(c, coords)  # both in C order

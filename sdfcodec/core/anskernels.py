@@ -740,7 +740,6 @@ def slot_table(cdfs, at, shift):
     return out
 
 
-
 @njit(cache=True, nogil=True)
 def categorical_decode(words, st, n, cdf, slots, shift):
     """``n`` symbols ``(n,)`` int32, each under the one table ``cdf`` (``m + 1`` entries, :func:`table_cdfs`;

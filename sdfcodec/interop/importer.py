@@ -359,8 +359,10 @@ def export_format(out: str | os.PathLike) -> str:
     Raises:
         InvalidValueError: any other name (names the suffixes, and ``--format``)."""
     suffix = Path(out).suffix.lower()
-    if suffix in VOXBLOX_SUFFIXES or suffix == ".npz":
-        return "voxblox" if suffix in VOXBLOX_SUFFIXES else "open3d"
+    if suffix in VOXBLOX_SUFFIXES:
+        return "voxblox"
+    if suffix == ".npz":
+        return "open3d"
     raise InvalidValueError(f"cannot tell the format to export from the name {Path(out).name!r}: name it "
                             f"{' or '.join(VOXBLOX_SUFFIXES)} (voxblox) or .npz (open3d), or pass --format")
 

@@ -47,7 +47,7 @@ torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a
 __all__ = ["MASK_EXTENSION", "MASK_ARRAY", "MASK_BYTES", "SURFACE_BAND_VOXELS", "SURFACE_WEIGHT", "TRUNCATION_ROUNDS",
            "error_weights", "fill_unobserved", "encode_blocks", "encode_truncated", "fit_codec", "pack_mask",
            "unpack_mask", "restore_unobserved", "restore_unobserved_voxels", "read_block_rows", "write_block_rows",
-           "store_mask_chunk", "read_observed", "observation_known", "checked_mask_array", "finish_mask"]
+           "store_mask_chunk", "read_observed", "read_observation", "checked_mask_array", "finish_mask"]
 
 MASK_EXTENSION = "observation-mask"
 MASK_ARRAY = "observed"
@@ -373,16 +373,18 @@ def read_observed(reader: MapReader, coords: np.ndarray) -> np.ndarray:
     return np.ones((len(coords), BLOCK, BLOCK, BLOCK), dtype=bool)
 
 
-def observation_known(reader: MapReader, coords: np.ndarray) -> np.ndarray | None:
-    """Where :func:`read_observed` tells what the cameras saw: ``(n, 16, 16, 16)`` bool for blocks ``coords``, or
-    None where it does everywhere (weights, an exact mask, none). A pinned mask (spec 6g) stores its bits at the
-    pinned voxels only, the corners of the cells whose decode may change sign: every other voxel reads observed
-    by the format's rule, behind a surface too, where the cameras saw nothing and the decode is the codec's
-    guess (what weighs the observation, such as a search's scores, should leave those voxels out)."""
-    _, mask = reader.observation_arrays()
-    if mask is None or not hasattr(mask, "block_rows"):
-        return None
-    return unpack_mask(mask.block_rows(coords, pinned=True))
+def read_observation(reader: MapReader, coords: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(observed, known)`` of blocks ``coords`` ``(n, 3)``: :func:`read_observed`, and where it tells what the
+    cameras saw, ``(n, 16, 16, 16)`` bool, or None where it does everywhere (weights, an exact mask, none). A
+    pinned mask (spec 6g) stores its bits at the pinned voxels only, the corners of the cells whose decode may
+    change sign: every other voxel reads observed by the format's rule, behind a surface too, where the cameras
+    saw nothing and the decode is the codec's guess (what weighs the observation, such as a search's scores,
+    should leave those voxels out). Both from one decode of each chunk of the mask."""
+    arr, mask = reader.observation_arrays()
+    if arr is None and mask is not None and hasattr(mask, "rows_with_pins"):
+        rows, pins = mask.rows_with_pins(coords)
+        return unpack_mask(rows), unpack_mask(pins)
+    return read_observed(reader, coords), None
 
 
 def finish_mask(group: zarr.Group, tmp: Path, touched: set[tuple[int, int, int]], coded: bool = False

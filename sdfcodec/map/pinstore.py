@@ -342,13 +342,18 @@ class PinnedMaskArray:
 
         each_chunk(chunk, sorted(range(len(keys)), key=lambda i: -sizes[i]), threads)
 
-    def block_rows(self, coords: np.ndarray, pinned: bool = False) -> np.ndarray:
+    def block_rows(self, coords: np.ndarray) -> np.ndarray:
         """``(n, 512)`` uint8 packed mask rows of blocks ``coords`` ``(n, 3)`` (255 where not coded): each chunk
-        they lie in is read and decoded once. ``pinned``: the rows of the pinned voxels instead, where the mask is
-        stored (every other voxel reads observed whatever the cameras saw; 255 where not coded)."""
-        out = np.full((len(coords), BLOCK ** 3 // 8), 255, np.uint8)
+        they lie in is read and decoded once."""
+        return self.rows_with_pins(coords)[0]
+
+    def rows_with_pins(self, coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(mask rows, pinned rows)``, both ``(n, 512)`` uint8 packed for blocks ``coords`` ``(n, 3)`` (255 where not
+        coded): :meth:`block_rows` and the pinned voxels, where the mask is stored (every other voxel reads observed
+        whatever the cameras saw), from one decode of each chunk they lie in."""
+        out = np.full((2, len(coords), BLOCK ** 3 // 8), 255, np.uint8)
         if not len(coords):
-            return out
+            return out[0], out[1]
         r, cb = self.reader, self.cb
         states = r.vr.states()
         keys, inverse = np.unique(np.asarray(coords, np.int64) // cb, axis=0, return_inverse=True)
@@ -361,12 +366,11 @@ class PinnedMaskArray:
             got[names[i]] = self._decode(keys[i], row, states)
             self._cache.put(names[i], got[names[i]])
         for i, name in enumerate(names):
-            index, packed = got[name][0], got[name][2 if pinned else 1]
+            index, packed, pins = got[name]
             sel = np.flatnonzero(inverse == i)
             k = index[tuple((np.asarray(coords, np.int64)[sel] - keys[i] * cb).T)]
-            out[sel[k >= 0]] = packed[k[k >= 0]]
-        return out
-
+            out[0, sel[k >= 0]], out[1, sel[k >= 0]] = packed[k[k >= 0]], pins[k[k >= 0]]
+        return out[0], out[1]
 
 def _packed(pins: np.ndarray) -> np.ndarray:
     """``(n, 512)`` uint8: pinned voxels as rows ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``) or ``(n, 16, 16,

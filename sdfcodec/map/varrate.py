@@ -270,17 +270,17 @@ class VariableRateWriter:
             step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share, float(np.mean(step)))
         refinement = None
         if ref is not None:
-            refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
+            refinement, spare = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
             if refinement is None and share is not None:  # nothing fits beside the codes: codes alone
                 step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
             for _ in range(2):  # the finest refinement left bytes: finer codes take them, then the refinement again
-                if refinement is None or share is None or self._spare is None or self._spare <= TOLERANCE * share:
+                if refinement is None or share is None or spare <= TOLERANCE * share:
                     break
-                share += self._spare
+                share += spare
                 step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
-                refinement = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
-            if refinement is not None and share is not None and (self._spare or 0) > 0.05 * self.target_bytes:
-                got = self.target_bytes - self._spare
+                refinement, spare = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
+            if refinement is not None and share is not None and spare > 0.05 * self.target_bytes:
+                got = self.target_bytes - spare
                 raise InvalidValueError(
                     f"a target of {self.target_bytes:g} bytes per coded block is above what variable-rate codes and a "
                     f"surface refinement take on this map: at most {got:.1f} (both at their finest steps); ask for "
@@ -431,19 +431,20 @@ class VariableRateWriter:
         return RefinementStreams(coded, self._truth, rows, cb, state.shape,
                                  lambda step: linear_basis(self.codec, step, self.d, truncation), truncation)
 
-    def _choose_refinement(self, ref, z, g, chunk_ids, step, other_bytes, n) -> tuple[float, float] | None:
-        """``(step, tau)`` metres of the refinement: the asked step, or (a byte target) the finest whose map fits
-        the target, bisection on log(step) from 0.2 mm to 5 cm; None when even the coarsest does not fit."""
+    def _choose_refinement(self, ref, z, g, chunk_ids, step, other_bytes, n
+                           ) -> tuple[tuple[float, float] | None, float]:
+        """``((step, tau) metres of the refinement, spare bytes per coded block)``: the asked step, or (a byte
+        target) the finest whose map fits the target, bisection on log(step) from 0.2 mm to 5 cm, None when even
+        the coarsest does not fit; spare: what the finest refinement leaves of the target (0 otherwise)."""
         from .manifest import manifest_bytes_estimate
         from .refine import REFINE_ARRAY, tau_for_step
 
-        self._spare = None
         streams, model, _ = self._encode_all(z, g, chunk_ids, step)
         if self._mask is not None:  # from here the pins follow the refined field (spec 6h)
             self._mask.pinned.refined = ref.refined
         if self.refine_step is not None:
             ref.at(self._q, step, self.refine_step, tau_for_step(self.refine_step, self.voxel_size))
-            return self.refine_step, tau_for_step(self.refine_step, self.voxel_size)
+            return (self.refine_step, tau_for_step(self.refine_step, self.voxel_size)), 0.0
         width = max([stream_bytes(x) for x in streams], default=4)
         codes = self._rows_bytes(streams) + stream_document_bytes(width) - STREAM_METADATA_BYTES
         keys = [f"{REFINE_ARRAY}/zarr.json"] + [f"{REFINE_ARRAY}/c/{'/'.join(map(str, k))}/0" for k in ref.keys]
@@ -462,11 +463,10 @@ class VariableRateWriter:
         if total(2 ** hi) > t:
             if self._mask is not None:
                 self._mask.pinned.refined = None
-            return None
+            return None, 0.0
         finest = total(2 ** lo)
-        if finest <= t:
-            self._spare = t - finest  # bytes the finest refinement leaves: the caller gives them to the codes
-            return 2 ** lo, tau_for_step(2 ** lo, self.voxel_size)
+        if finest <= t:  # bytes left over: the caller gives them to the codes
+            return (2 ** lo, tau_for_step(2 ** lo, self.voxel_size)), t - finest
         for _ in range(14):
             mid = (lo + hi) / 2
             got = total(2 ** mid)
@@ -475,7 +475,7 @@ class VariableRateWriter:
                 break
             lo, hi = (mid, hi) if got > t else (lo, mid)
         self.report.update(refine_step=2 ** hi)
-        return 2 ** hi, tau_for_step(2 ** hi, self.voxel_size)
+        return (2 ** hi, tau_for_step(2 ** hi, self.voxel_size)), 0.0
 
     def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None, below=None) -> np.ndarray:
         """Bisection on log(step): the codes' exact stream bytes plus everything else against the target (or

@@ -238,7 +238,7 @@ class ObservedScorer:
 def scored_voxels(m: "Map", coords: np.ndarray) -> np.ndarray:
     """``(n, 16, 16, 16)`` bool: the voxels of blocks ``coords`` ``(n, 3)`` of map ``m`` that an observed score
     (and the plane check) compares: those :meth:`~sdfcodec.Map.read_observed` gives as observed, and in a block
-    where the map's mask is stored only at some voxels (:func:`~sdfcodec.map.observed.observation_known`: a
+    where the map's mask is stored only at some voxels (:func:`~sdfcodec.map.observed.read_observation`: a
     pinned mask, the default of variable-rate maps) and says one of them is unobserved, only those it stores.
 
     Why: a pinned mask reads every voxel but its pinned ones (the corners of the cells whose decode may change
@@ -248,10 +248,10 @@ def scored_voxels(m: "Map", coords: np.ndarray) -> np.ndarray:
     shows the block has such space; a block whose pins are all observed reads as the mask says (an observation
     that is whole near its surfaces), as a map with an exact mask would. A block with too few scored voxels near
     its surface keeps its code score (:data:`MIN_OBSERVED_SURFACE`)."""
-    from ..map.observed import observation_known
+    from ..map.format import check_coords
+    from ..map.observed import read_observation
 
-    obs = m.read_observed(coords)
-    known = observation_known(m.reader, np.asarray(coords, np.int64).reshape(-1, 3))
+    obs, known = read_observation(m.reader, check_coords(coords, grid=m.grid_blocks))
     if known is None:
         return obs
     hidden = (known & ~obs).reshape(len(obs), -1).any(axis=1)
