@@ -332,8 +332,8 @@ def test_a_pinned_map_reads_the_exact_masks_surface_and_is_smaller(tmp_path, roo
 def test_the_known_voxels_are_where_the_mask_is_stored_and_a_search_scores_only_observed_ones(tmp_path, room, codec):
     """read_observation of a pinned map: every voxel outside what it knows reads observed (the format's rule,
     whatever the cameras saw), what it knows holds every corner of every 2^3 cell whose float decode changes sign
-    (numpy, from the codes), and where it says observed the exact mask does too. A search scores, in blocks with an unobserved pin, only
-    voxels the exact mask observed (read_observed alone gives it thousands it did not)."""
+    (numpy, from the codes), and where it says observed the exact mask does too. A search scores, in blocks with
+    an unobserved pin, only voxels the exact mask observed (read_observed alone gives it thousands it did not)."""
     from sdfcodec.map.observed import read_observation
     from sdfcodec.search.scoring import scored_voxels
 
