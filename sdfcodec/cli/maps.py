@@ -181,7 +181,7 @@ def encode_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print a JSON summary."),
     step: Optional[float] = typer.Option(None, "--step", help="Quantise the codes with this step (int16 codes, entropy-coded; |error| <= step/2 per element; pca, raw)."),
     target_bytes: Optional[float] = typer.Option(None, "--target-bytes", help="Make the map take B stored bytes per coded block, every file counted (a referenced shipped model excepted): variable-rate codes (pca-128 prefixes chosen per block, unless --code-size), or with --code-dtype int16 fixed-length int16 codes."),
-    target_error: Optional[float] = typer.Option(None, "--target-error", help="The smallest variable-rate map whose surface stays within E metres: every observed voxel touching a surface crossing decodes within E, checked on a sample of 2048 coded blocks (docs/variable-rate.md)."),
+    target_error: Optional[float] = typer.Option(None, "--target-error", help="The smallest variable-rate map whose surface stays within E metres: 99% of the observed voxels touching a surface crossing decode within E (the codes alone or beside a surface refinement, whichever takes fewer bytes), measured on a sample of 2048 coded blocks (docs/variable-rate.md)."),
     variable_rate: Optional[bool] = typer.Option(None, "--variable-rate/--fixed-rate", help="Variable-rate codes (prefix per block, entropy-coded; default with --target-bytes/--target-error) or fixed-length int16 codes (default with --step)."),
     max_error: Optional[float] = typer.Option(None, "--max-error", help="Absolute error bound in metres on observed voxels: with --codec sz3 SZ3's own bound (field compression), with block codecs (pca, ae...) a residual stage on top of the codes (full level only)."),
     sign_exact: bool = typer.Option(False, "--sign-exact", help="Every voxel touching a surface crossing of the input decodes with its sign (a residual stage on top of the codes; block codecs)."),
@@ -349,7 +349,9 @@ def encode_cmd(
         f"coded block ({quant['codes_bytes_per_coded_block']:.1f} of codes" + (
             f", {quant['refinement']['bytes_per_coded_block']:.1f} of surface refinement at "
             f"{quant['refinement']['step'] * 1000:.3g} mm" if quant.get("refinement") else "") + ")" +
-        (f", target {quant['target_bytes']:g} B ({quant['passes']} {'pass' if quant['passes'] == 1 else 'passes'})" if quant.get("target_bytes") else ""))
+        (f", target {quant['target_bytes']:g} B ({quant['passes']} {'pass' if quant['passes'] == 1 else 'passes'})" if quant.get("target_bytes") else "")
+        + (f", target error {quant['target_error'] * 1000:g} mm at 99% of the voxels that place the surface (sampled)"
+           if quant.get("target_error") else ""))
         + ("" if info["residual"] is None else f"; {_residual_line(info['residual'])}")))
 
 

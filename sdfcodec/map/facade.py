@@ -461,13 +461,15 @@ def create_map(path: str | os.PathLike, *, codec: Codec, voxel_size: float,
         variable_rate: variable-rate codes (extension ``variable-rate-codes``, spec section 4e;
             docs/variable-rate.md): per block a prefix of its code chosen by rate-distortion, entropy-coded on
             commit; a dict with one of ``step`` (normalised code units), ``target_bytes`` (stored bytes per coded
-            block, every file counted) or ``target_error`` (metres, surface error), and optionally ``lagrange`` and
+            block, every file counted) or ``target_error`` (metres: the error of 99 % of the voxels that place the
+            surface, docs/variable-rate.md), and optionally ``lagrange`` and
             ``exact_mask`` (True keeps the observation mask exact; by default it is exact only where it decides
             the decoded surface, extension ``approximate-observation-mask``, spec section 6f) and ``pinned_mask``
             (False codes that mask at every voxel; by default only the voxels that decide the surface are stored,
             extension ``pinned-observation-mask``, section 6g), ``refine_step`` (metres: corrections of that step
             at the voxels next to the decoded surface, extension ``surface-refinement``, section 6h; a
-            ``target_bytes`` of 160 B or more shares its bytes with them unless ``refine`` is False).
+            ``target_bytes`` of 160 B or more shares its bytes with them, and a ``target_error`` takes them where
+            they make the map smaller, unless ``refine`` is False).
             Prefix-ordered codecs (pca) only; such a map is not updated in place.
         keep_weights: what becomes of the fusion weights given to ``write_blocks(weights=...)``: None (default)
             keeps them (float16) for the lossless ``raw`` codec and drops them at commit for lossy codecs (the

@@ -17,6 +17,7 @@ at every step rate control tries: the bytes it saves go to the codes.
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -31,6 +32,7 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, SHRINK, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk,
                             encode_chunk, gains, stream_bytes)
 from .implied import drop_implied, inline_states
+from .errortarget import CODE_HALVINGS, REFINE_RANGE, ErrorSample, refine_steps, unreachable
 from .grouping import ChunkCache, chunk_box, each_chunk
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
@@ -44,7 +46,7 @@ torch = lazy_module("torch")
 
 __all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_document_bytes",
            "stream_compressors", "prefix_lengths",
-           "decode_runs", "RUN_MERGE", "VariableRateWriter", "VariableRateReader", "surface_error",
+           "decode_runs", "RUN_MERGE", "VariableRateWriter", "VariableRateReader",
            "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE", "REFINE_FROM", "codes_share"]
 
 STREAM_ARRAY = "code_streams"
@@ -104,25 +106,6 @@ def _basis(codec: Codec) -> np.ndarray:
     return dec[1:] - dec[:1]
 
 
-def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
-                  truncation: tuple[float, float]) -> float:
-    """The surface error (metres) of decoding ``codes`` ``(n, D)`` against normalised blocks ``v`` ``(n, 16, 16, 16)``:
-    the largest ``|decoded - input|`` over observed voxels that touch a surface crossing of the input inside
-    their block (:func:`~sdfcodec.map.residual.crossing_voxels`): the voxels whose values place the surface.
-    0 when there are none."""
-    from .residual import crossing_voxels
-
-    d_min, d_max = truncation
-    x = v * (d_max - d_min) + d_min
-    far = np.arange(len(v))[:, None] * np.array([[3, 0, 0]])  # blocks never neighbours: no face crossings
-    cross = crossing_voxels(far, x, observed)
-    if not cross.any():
-        return 0.0
-    dec = codec.decode(torch.from_numpy(np.asarray(codes, np.float32))).numpy()
-    dec = np.clip(dec * (d_max - d_min) + d_min, d_min, d_max)
-    return float(np.abs(dec - x)[cross].max())
-
-
 def stream_chunk_keys(state: np.ndarray, chunk_blocks: int) -> list[str]:
     """The store keys of the ``code_streams`` chunks a map with block states ``state`` (Bx, By, Bz) writes: one per
     chunk of ``chunk_blocks``^3 blocks holding a coded block (Zarr v3's default chunk key encoding)."""
@@ -134,7 +117,8 @@ class VariableRateWriter:
     """The variable-rate pass of a :class:`~sdfcodec.map.writer.MapWriter`: ``observe`` the blocks as they are
     encoded (gains, a sample), ``finish`` on commit. Exactly one of ``step`` (metres-free: normalised code
     units, one number or one per element), ``target_bytes`` (per coded block, every file of the map counted) and
-    ``target_error`` (metres, :func:`surface_error` on the sample) chooses the step; ``lagrange`` scales the
+    ``target_error`` (metres, :func:`~sdfcodec.map.errortarget.surface_error` on the sample, with a refinement
+    where it makes the map smaller) chooses the step; ``lagrange`` scales the
     Lagrange multiplier (:data:`sdfcodec.core.varrate.LAGRANGE`); ``exact_mask`` keeps the observation mask exact
     (by default it is exact only where it decides the surface, :mod:`sdfcodec.map.lossymask`), and stored only at
     the voxels where it can (``pinned_mask``, for codecs that decode linearly: :mod:`sdfcodec.map.pinstore`)."""
@@ -166,17 +150,16 @@ class VariableRateWriter:
         if refine_step is not None and target_bytes is not None:
             raise InvalidValueError("a refinement step and a target of bytes both choose the refinement's bytes: "
                                     "give one (a byte target picks the step itself)")
-        # the surface refinement (spec 6h): with a byte target from REFINE_FROM, or a step asked for
+        # the surface refinement (spec 6h): with a byte target from REFINE_FROM, an error target, or a step asked for
         self.refine_step = refine_step
-        self.refine = bool(refine) and (refine_step is not None or (target_bytes is not None
-                                                                    and target_bytes >= REFINE_FROM))
+        self.refine = bool(refine) and (refine_step is not None or target_error is not None
+                                        or (target_bytes is not None and target_bytes >= REFINE_FROM))
         self._truth = None  # a TrueValues (map/refine.py) once a block is seen: on disk, not in memory
         self._q: np.ndarray | None = None
         self.voxel_size = 1.0
         basis = _basis(codec)
         self.basis_sq = (basis * basis).astype(np.float32)
-        self._rng = np.random.default_rng(0)
-        self._sample: list[tuple[np.ndarray, ...]] = []  # (priority, v, observed, codes, gains) per kept block
+        self._sample = None if target_error is None else ErrorSample(codec, SAMPLE_BLOCKS)
         self.report: dict[str, Any] = {}
 
     def observe(self, gain_arr: Any, coords: np.ndarray, v: np.ndarray, observed: np.ndarray | None,
@@ -197,12 +180,8 @@ class VariableRateWriter:
             if self._truth is None:
                 self._truth = TrueValues()
             self._truth.add(coords, x, observed)
-        if self.target_error is not None:  # a reservoir: the blocks with the SAMPLE_BLOCKS smallest priorities
-            pr = self._rng.random(len(v))
-            for i in np.argsort(pr)[:SAMPLE_BLOCKS]:
-                self._sample.append((pr[i], v[i], None if observed is None else observed[i], codes[i], g[i]))
-            self._sample.sort(key=lambda t: t[0])
-            del self._sample[SAMPLE_BLOCKS:]
+        if self._sample is not None:
+            self._sample.add(v, observed, codes, g)
 
     # -- the pass on commit ---------------------------------------------------------------------------
     def _lam(self, step: np.ndarray, g: np.ndarray) -> float:
@@ -263,13 +242,17 @@ class VariableRateWriter:
             return other_bytes({**f, "states": inline}) - slim + (0 if mask is None else mask.saved)
 
         share = None if ref is None or self.target_bytes is None else codes_share(self.target_bytes)
-        step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
+        planned = None  # an error target's refinement
+        if self.target_error is not None and len(z):
+            step, planned = self._error_plan(ref, z, g, chunk_ids, other, len(coded), truncation)
+        else:
+            step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share)
         shrink = SHRINK if self._may_shrink and len(z) else 0.0
         if shrink > 0 and self._truth is not None and self._truth.rows_of(coded) is not None:
             z = self._shrunk(coded, truncation, shrink, z, g, step)  # per block the cheaper of two codes, step again
             step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation, share, float(np.mean(step)))
-        refinement = None
-        if ref is not None:
+        refinement = planned
+        if ref is not None and self.target_error is None:
             refinement, spare = self._choose_refinement(ref, z, g, chunk_ids, step, other, len(coded))
             if refinement is None and share is not None:  # nothing fits beside the codes: codes alone
                 step = self._choose_step(z, g, chunk_ids, other, len(coded), truncation)
@@ -408,8 +391,6 @@ class VariableRateWriter:
             return self.step
         if not len(z):
             raise InvalidValueError("the map has no coded blocks (all free space): there are no codes to rate-control")
-        if self.target_error is not None:
-            return self._step_for_error(truncation)
         return self._step_for_bytes(z, g, chunk_ids, other_bytes, n, share, below)
 
     def _refinement(self, coded: np.ndarray, state: np.ndarray, cb: int, truncation: tuple[float, float]):
@@ -436,30 +417,14 @@ class VariableRateWriter:
         """``((step, tau) metres of the refinement, spare bytes per coded block)``: the asked step, or (a byte
         target) the finest whose map fits the target, bisection on log(step) from 0.2 mm to 5 cm, None when even
         the coarsest does not fit; spare: what the finest refinement leaves of the target (0 otherwise)."""
-        from .manifest import manifest_bytes_estimate
-        from .refine import REFINE_ARRAY, tau_for_step
+        from .refine import tau_for_step
 
-        streams, model, _ = self._encode_all(z, g, chunk_ids, step)
-        if self._mask is not None:  # from here the pins follow the refined field (spec 6h)
-            self._mask.pinned.refined = ref.refined
+        total = self._refined_bytes(ref, z, g, chunk_ids, step, other_bytes, n)
         if self.refine_step is not None:
             ref.at(self._q, step, self.refine_step, tau_for_step(self.refine_step, self.voxel_size))
             return (self.refine_step, tau_for_step(self.refine_step, self.voxel_size)), 0.0
-        width = max([stream_bytes(x) for x in streams], default=4)
-        codes = self._rows_bytes(streams) + stream_document_bytes(width) - STREAM_METADATA_BYTES
-        keys = [f"{REFINE_ARRAY}/zarr.json"] + [f"{REFINE_ARRAY}/c/{'/'.join(map(str, k))}/0" for k in ref.keys]
-        listed = manifest_bytes_estimate(keys) - manifest_bytes_estimate([])
         t = self.target_bytes
-
-        def total(r: float) -> float:
-            ref.at(self._q, step, r, tau_for_step(r, self.voxel_size))
-            if self._mask is not None:
-                self._mask.at(self._q, step)
-            rw = max([stream_bytes(x) for x in ref.streams], default=4)
-            fields = dict(step=[float(step[0])], coder=CODER, model=model.pack(), refinement=ref.spec)
-            return (codes + other_bytes(fields) + ref.bytes + stream_document_bytes(rw) + listed) / n
-
-        lo, hi = np.log2(2e-4), np.log2(5e-2)
+        lo, hi = np.log2(REFINE_RANGE)
         if total(2 ** hi) > t:
             if self._mask is not None:
                 self._mask.pinned.refined = None
@@ -477,19 +442,44 @@ class VariableRateWriter:
         self.report.update(refine_step=2 ** hi)
         return (2 ** hi, tau_for_step(2 ** hi, self.voxel_size)), 0.0
 
+    def _refined_bytes(self, ref, z, g, chunk_ids, step, other_bytes, n) -> Callable[[float], float]:
+        """The map's bytes per coded block with codes at ``step`` beside a refinement of step ``r`` metres, as a
+        function of ``r``: the codes encoded once, here; from here the pins follow the refined field (spec 6h)."""
+        from .manifest import manifest_bytes_estimate
+        from .refine import REFINE_ARRAY, tau_for_step
+
+        streams, model, _ = self._encode_all(z, g, chunk_ids, step)
+        if self._mask is not None:
+            self._mask.pinned.refined = ref.refined
+        width = max([stream_bytes(x) for x in streams], default=4)
+        codes = self._rows_bytes(streams) + stream_document_bytes(width) - STREAM_METADATA_BYTES
+        keys = [f"{REFINE_ARRAY}/zarr.json"] + [f"{REFINE_ARRAY}/c/{'/'.join(map(str, k))}/0" for k in ref.keys]
+        listed = manifest_bytes_estimate(keys) - manifest_bytes_estimate([])
+
+        def total(r: float) -> float:
+            ref.at(self._q, step, r, tau_for_step(r, self.voxel_size))
+            if self._mask is not None:
+                self._mask.at(self._q, step)
+            rw = max([stream_bytes(x) for x in ref.streams], default=4)
+            fields = dict(step=[float(step[0])], coder=CODER, model=model.pack(), refinement=ref.spec)
+            return (codes + other_bytes(fields) + ref.bytes + stream_document_bytes(rw) + listed) / n
+        return total
+
+    def _codes_bytes(self, z, g, chunk_ids, s: float, other_bytes, n) -> tuple[float, float]:
+        """``(the map's bytes per coded block with codes alone at step s, of them not the code streams')``."""
+        streams, model, _ = self._encode_all(z, g, chunk_ids, np.full(self.d, s))
+        width = max([stream_bytes(x) for x in streams], default=4)  # the document's digits (finish's width)
+        other = other_bytes(dict(step=[s], coder=CODER, model=model.pack())) + stream_document_bytes(
+            width) - STREAM_METADATA_BYTES
+        return (self._rows_bytes(streams) + other) / n, other / n
+
     def _step_for_bytes(self, z, g, chunk_ids, other_bytes, n, share=None, below=None) -> np.ndarray:
         """Bisection on log(step): the codes' exact stream bytes plus everything else against the target (or
         ``share`` of it: the codes' part beside a refinement). ``below``: a step known to fit codes larger than
         ``z`` (the first encode's, before the shrink): the search starts between it and 8 times finer, without
         the costly ends (the finest step codes every element at full length), unless ``z`` does not fit there."""
         t = self.target_bytes if share is None else share
-
-        def total(s: float) -> tuple[float, float]:
-            streams, model, _ = self._encode_all(z, g, chunk_ids, np.full(self.d, s))
-            width = max([stream_bytes(x) for x in streams], default=4)  # the document's digits (finish's width)
-            other = other_bytes(dict(step=[s], coder=CODER, model=model.pack())) + stream_document_bytes(
-                width) - STREAM_METADATA_BYTES
-            return (self._rows_bytes(streams) + other) / n, other / n
+        total = partial(self._codes_bytes, z, g, chunk_ids, other_bytes=other_bytes, n=n)  # of a step s
 
         lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
         if below is not None and total(below)[0] <= t:
@@ -528,35 +518,46 @@ class VariableRateWriter:
                 lo, hi = (mid, hi) if got > t else (lo, mid)
         return np.full(self.d, 2 ** hi)
 
-    def _step_for_error(self, truncation) -> np.ndarray:
-        """The largest step (a smaller map) whose sample's :func:`surface_error` stays within the target:
-        bisection on log(step) from a step that meets it."""
-        if not self._sample:
-            raise InvalidValueError("the map has no coded blocks (all free space): there is no surface to bound")
-        v = np.stack([s[1] for s in self._sample])
-        obs = None if self._sample[0][2] is None else np.stack([s[2] for s in self._sample])
-        z = np.stack([s[3] for s in self._sample]).astype(np.float64)
-        g = np.stack([s[4] for s in self._sample]).astype(np.float64)
-        e = self.target_error
+    def _error_plan(self, ref, z, g, chunk_ids, other_bytes, n, truncation
+                    ) -> tuple[np.ndarray, tuple[float, float] | None]:
+        """``(codes step, refinement (step, band) metres or None)``: of the codes alone and beside a refinement at
+        ``refine_steps`` of the target (or the step asked), the steps whose sample's surface error meets it
+        (:mod:`sdfcodec.map.errortarget`), then the fewest bytes the map measures; refused when none meets it."""
+        from .refine import tau_for_step
 
-        def err(s: float) -> float:
+        e, mask = self.target_error, self._mask  # called with coded blocks, so a sample of them
+
+        def quantised(zs: np.ndarray, gs: np.ndarray, s: float) -> np.ndarray:
             st = np.full(self.d, s)
-            q, _, _ = choose_lengths(z, g, st, self._lam(st, g))
-            return surface_error(self.codec, v, obs, q * st, truncation)
+            return choose_lengths(zs, gs, st, self._lam(st, gs))[0] * st
 
-        lo, hi = -10.0, 4.0
-        floor = err(2 ** lo)
-        if floor > e:
-            raise InvalidValueError(f"a target error of {e * 1000:g} mm is below what this codec reaches on this map: "
-                                    f"{floor * 1000:.2f} mm at its finest step; use --max-error (a residual stage) "
-                                    "for a bound")
-        if err(2 ** hi) <= e:
-            return np.full(self.d, 2 ** hi)
-        for _ in range(16):
-            mid = (lo + hi) / 2
-            lo, hi = (mid, hi) if err(2 ** mid) <= e else (lo, mid)
-        self.report["sample_surface_error"] = err(2 ** lo)
-        return np.full(self.d, 2 ** lo)
+        steps = [] if ref is None else [self.refine_step] if self.refine_step else refine_steps(e)
+        options, reached = [], []
+        if ref is None or self.refine_step is None:
+            s, got = self._sample.coarsest_step(e, truncation, quantised)
+            reached.append(got)
+            if s is not None:
+                if mask is not None and mask.pinned is not None:
+                    mask.pinned.refined = None  # the pins of the unrefined field
+                options.append((self._codes_bytes(z, g, chunk_ids, s, other_bytes, n)[0], s, None, got))
+        def beside(s: float, r: float, band: float, got: float) -> tuple:  # the option of codes s and refinement r
+            return self._refined_bytes(ref, z, g, chunk_ids, np.full(self.d, s), other_bytes, n)(r), s, (r, band), got
+
+        refined = []
+        for r in steps:
+            s, got = self._sample.coarsest_step(e, truncation, quantised, (r, tau_for_step(r, self.voxel_size)))
+            reached.append(got)
+            refined += [] if s is None else [beside(s, r, tau_for_step(r, self.voxel_size), got)]
+        if refined:  # beside the best refinement, finer codes may make a smaller map (less left to correct)
+            _, s, (r, band), got = best = min(refined, key=lambda o: o[0])
+            options += [best] + [beside(s * 2.0 ** -j, r, band, got) for j in range(1, CODE_HALVINGS + 1)]
+        if not options:
+            raise unreachable(e, min(reached), bool(steps))
+        _, s, refinement, got = min(options, key=lambda o: o[0])
+        if mask is not None and mask.pinned is not None:  # the pins follow the field chosen (spec 6h)
+            mask.pinned.refined = None if refinement is None else ref.refined
+        self.report.update(sample_surface_error=got, refine_step=refinement and refinement[0])
+        return np.full(self.d, s), refinement
 
 
 class _LossyMask:
