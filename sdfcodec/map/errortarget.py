@@ -29,16 +29,22 @@ if TYPE_CHECKING:
 
 torch = lazy_module("torch")
 
-__all__ = ["ERROR_QUANTILE", "REFINE_FACTORS", "REFINE_RANGE", "CODE_HALVINGS", "surface_error", "coarsest_step",
-           "ErrorSample", "refine_steps", "unreachable"]
+__all__ = ["ERROR_QUANTILE", "REFINE_FACTORS", "REFINE_RANGE", "REFINE_TRIES", "CODE_HALVINGS", "surface_error",
+           "coarsest_step", "ErrorSample", "refine_steps", "unreachable"]
 
 #: The share of a sample's crossing voxels whose decode a target error bounds.
 ERROR_QUANTILE = 0.99
 #: Refinement steps tried for a target error ``E``, as multiples of ``E`` (a corrected voxel lies within half a
-#: step of its input): the map the writer keeps is the smallest of these and of the codes alone. Finer steps
-#: than the target needs are tried too: a finer step refines a wider band around the decoded surface
-#: (:func:`~sdfcodec.map.refine.tau_for_step`), which reaches the crossing voxels coarser codes decode far off.
-REFINE_FACTORS = tuple(1.5 * 2.0 ** -k for k in range(6))
+#: step of its input), coarsest first, a quarter octave apart. Finer steps than the target needs are tried too: a
+#: finer step refines a wider band around the decoded surface (:func:`~sdfcodec.map.refine.tau_for_step`), which
+#: reaches the crossing voxels coarser codes decode far off. The band widens in steps as fine as that: on the
+#: kitchen half a 10 mm target took 450.5 B per coded block with steps an octave apart (refinement 1.87 mm), 386.1 B
+#: half an octave apart (2.65 mm), 336.9 B a quarter apart (3.15 mm).
+REFINE_FACTORS = tuple(1.5 * 2.0 ** (-k / 4) for k in range(21))
+#: The refinement steps whose maps are measured: the coarsest that meets the target on the sample and the next
+#: finer ones that do, this many in all (finer steps cost more bytes of corrections, unless the coarsest needs much
+#: finer codes).
+REFINE_TRIES = 3
 #: The refinement steps rate control tries, metres (a byte target's bisection, an error target's ladder).
 REFINE_RANGE = (2e-4, 5e-2)
 #: Beside each refinement step, the codes' steps tried: the coarsest that reaches the target and this many
@@ -62,22 +68,30 @@ def unreachable(target: float, reached: float, refined: bool) -> InvalidValueErr
         "that place the surface, on a sample); use --max-error (a residual stage) for a bound on every voxel")
 
 
+def _crossings(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``(input metres (n, 4096) float64, its in-block crossing voxels (n, 4096) bool)`` of normalised ``v``."""
+    from .residual import crossing_voxels
+
+    d_min, d_max = truncation
+    x = (v * (d_max - d_min) + d_min).reshape(len(v), -1).astype(np.float64)
+    far = np.arange(len(v))[:, None] * np.array([[3, 0, 0]])  # blocks never neighbours: no face crossings
+    return x, crossing_voxels(far, x.reshape(v.shape), observed).reshape(len(v), -1)
+
+
 def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
                   truncation: tuple[float, float], refinement: tuple[float, float] | None = None,
-                  quantile: float = ERROR_QUANTILE) -> float:
+                  quantile: float = ERROR_QUANTILE, crossings: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """The surface error (metres) of decoding ``codes`` ``(n, D)`` against normalised blocks ``v``
     ``(n, 16, 16, 16)``: the ``quantile`` of ``|decoded - input|`` over the observed voxels that touch a surface
     crossing of the input inside their block (``observed`` ``(n, 16, 16, 16)`` bool, None: all). With
     ``refinement`` ``(step, band)`` metres, the decode is refined first as a map's surface refinement refines it
     (:mod:`sdfcodec.core.refine`, here in float metres rather than the reader's exact units: the rate control's
-    estimate). 0 when there are no such voxels."""
-    from .residual import crossing_voxels
-
+    estimate). 0 when there are no such voxels. ``crossings``: ``_crossings`` of these blocks, where the caller
+    keeps them."""
     d_min, d_max = truncation
     n = len(v)
-    x = (v * (d_max - d_min) + d_min).reshape(n, -1).astype(np.float64)
-    far = np.arange(n)[:, None] * np.array([[3, 0, 0]])  # blocks never neighbours: no face crossings
-    cross = crossing_voxels(far, x.reshape(v.shape), observed).reshape(n, -1)
+    x, cross = crossings if crossings is not None else _crossings(v, observed, truncation)
     if not cross.any():
         return 0.0
     dec = codec.decode(torch.from_numpy(np.asarray(codes, np.float32))).numpy().reshape(n, -1)
@@ -123,6 +137,7 @@ class ErrorSample:
         self.codec, self.size = codec, int(size)
         self._rng = np.random.default_rng(seed)
         self._kept: list[tuple] = []  # (priority, v, observed, codes, gains) per kept block
+        self._arrays: tuple | None = None  # (truncation, the kept blocks' arrays and crossings): coarsest_step
 
     def __len__(self) -> int:
         return len(self._kept)
@@ -133,14 +148,18 @@ class ErrorSample:
             self._kept.append((pr[i], v[i], None if observed is None else observed[i], codes[i], gains[i]))
         self._kept.sort(key=lambda t: t[0])
         del self._kept[self.size:]
+        self._arrays = None
 
     def coarsest_step(self, target: float, truncation: tuple[float, float],
                       quantised: Callable[[np.ndarray, np.ndarray, float], np.ndarray],
                       refinement: tuple[float, float] | None = None) -> tuple[float | None, float]:
         """:func:`coarsest_step` of the sample's :func:`surface_error` (with ``refinement``, ``(step, band)``
         metres, or None), its codes at step ``s`` being ``quantised(codes, gains, s)`` (``(n, D)``, dequantised)."""
-        v = np.stack([t[1] for t in self._kept])
-        obs = None if self._kept[0][2] is None else np.stack([t[2] for t in self._kept])
-        z, g = (np.stack([t[i] for t in self._kept]).astype(np.float64) for i in (3, 4))
-        return coarsest_step(lambda s: surface_error(self.codec, v, obs, quantised(z, g, s), truncation, refinement),
-                             target)
+        if self._arrays is None or self._arrays[0] != truncation:  # stacked once for every step tried
+            v = np.stack([t[1] for t in self._kept])
+            obs = None if self._kept[0][2] is None else np.stack([t[2] for t in self._kept])
+            z, g = (np.stack([t[i] for t in self._kept]).astype(np.float64) for i in (3, 4))
+            self._arrays = (truncation, v, obs, z, g, _crossings(v, obs, truncation))
+        _, v, obs, z, g, cross = self._arrays
+        return coarsest_step(lambda s: surface_error(self.codec, v, obs, quantised(z, g, s), truncation, refinement,
+                                                     crossings=cross), target)

@@ -32,7 +32,7 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, SHRINK, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk,
                             encode_chunk, gains, stream_bytes)
 from .implied import drop_implied, inline_states
-from .errortarget import CODE_HALVINGS, REFINE_RANGE, ErrorSample, refine_steps, unreachable
+from .errortarget import CODE_HALVINGS, REFINE_RANGE, REFINE_TRIES, ErrorSample, refine_steps, unreachable
 from .grouping import ChunkCache, chunk_box, each_chunk
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
@@ -544,10 +544,12 @@ class VariableRateWriter:
             return self._refined_bytes(ref, z, g, chunk_ids, np.full(self.d, s), other_bytes, n)(r), s, (r, band), got
 
         refined = []
-        for r in steps:
+        for r in steps:  # coarsest first: the first REFINE_TRIES that meet the target on the sample are measured
             s, got = self._sample.coarsest_step(e, truncation, quantised, (r, tau_for_step(r, self.voxel_size)))
             reached.append(got)
             refined += [] if s is None else [beside(s, r, tau_for_step(r, self.voxel_size), got)]
+            if len(refined) == REFINE_TRIES:
+                break
         if refined:  # beside the best refinement, finer codes may make a smaller map (less left to correct)
             _, s, (r, band), got = best = min(refined, key=lambda o: o[0])
             options += [best] + [beside(s * 2.0 ** -j, r, band, got) for j in range(1, CODE_HALVINGS + 1)]
