@@ -5,8 +5,8 @@ sample, within the sampling's slack where they do not (the rooms: 2,345 blocks, 
 
 from __future__ import annotations
 
+import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,12 +15,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _study():
-    sys.path.insert(0, str(ROOT / "examples"))
-    try:
-        import error_target_study
-    finally:
-        sys.path.remove(str(ROOT / "examples"))
-    return error_target_study
+    spec = importlib.util.spec_from_file_location("error_target_study", ROOT / "examples" / "error_target_study.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_the_section_is_the_run():

@@ -29,7 +29,8 @@ if TYPE_CHECKING:
 
 torch = lazy_module("torch")
 
-__all__ = ["ERROR_QUANTILE", "REFINE_FACTORS", "REFINE_RANGE", "REFINE_TRIES", "CODE_HALVINGS", "surface_error",
+__all__ = ["ERROR_QUANTILE", "REFINE_FACTORS", "REFINE_RANGE", "REFINE_TRIES", "CODE_HALVINGS", "LOG2_CODE_STEPS",
+           "surface_error",
            "coarsest_step", "ErrorSample", "refine_steps", "unreachable"]
 
 #: The share of a sample's crossing voxels whose decode a target error bounds.
@@ -50,7 +51,9 @@ REFINE_RANGE = (2e-4, 5e-2)
 #: Beside each refinement step, the codes' steps tried: the coarsest that reaches the target and this many
 #: halvings of it (the error only falls with them; the bytes the map measures decide).
 CODE_HALVINGS = 3
-_LOG2_STEPS = (-10.0, 4.0)  # the codes' steps searched: 1e-3 .. 16 normalised units (as a byte target's)
+#: log2 of the codes' steps rate control searches, a byte target and an error target alike: 1e-3 .. 16
+#: normalised units.
+LOG2_CODE_STEPS = (-10.0, 4.0)
 
 
 def refine_steps(target: float) -> list[float]:
@@ -107,7 +110,7 @@ def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, code
 def coarsest_step(error: Callable[[float], float], target: float) -> tuple[float | None, float]:
     """``(step, error there)``: the coarsest step (the smallest codes) whose ``error(step)`` stays within
     ``target``, bisection on log2(step), or ``(None, error at the finest step)`` when even that misses."""
-    lo, hi = _LOG2_STEPS
+    lo, hi = LOG2_CODE_STEPS
     floor = error(2 ** lo)
     if floor > target:
         return None, floor
@@ -138,9 +141,6 @@ class ErrorSample:
         self._rng = np.random.default_rng(seed)
         self._kept: list[tuple] = []  # (priority, v, observed, codes, gains) per kept block
         self._arrays: tuple | None = None  # (truncation, the kept blocks' arrays and crossings): coarsest_step
-
-    def __len__(self) -> int:
-        return len(self._kept)
 
     def add(self, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray, gains: np.ndarray) -> None:
         pr = self._rng.random(len(v))

@@ -32,7 +32,8 @@ from ..core.header import (APPROX_MASK_EXTENSION, CODED_MASK_EXTENSION, REFINEME
 from ..core.varrate import (CODER, LAGRANGE, SHRINK, SHRINK_BELOW, EntropyModel, choose_lengths, decode_chunk,
                             encode_chunk, gains, stream_bytes)
 from .implied import drop_implied, inline_states
-from .errortarget import CODE_HALVINGS, REFINE_RANGE, REFINE_TRIES, ErrorSample, refine_steps, unreachable
+from .errortarget import (CODE_HALVINGS, LOG2_CODE_STEPS, REFINE_RANGE, REFINE_TRIES, ErrorSample, refine_steps,
+                          unreachable)
 from .grouping import ChunkCache, chunk_box, each_chunk
 from .format import check_stream_array
 from .observed import MASK_ARRAY, error_weights, pack_mask, read_block_rows, unpack_mask, write_block_rows
@@ -480,8 +481,7 @@ class VariableRateWriter:
         the costly ends (the finest step codes every element at full length), unless ``z`` does not fit there."""
         t = self.target_bytes if share is None else share
         total = partial(self._codes_bytes, z, g, chunk_ids, other_bytes=other_bytes, n=n)  # of a step s
-
-        lo, hi = -10.0, 4.0  # log2 of steps: 1e-3 .. 16 normalised units
+        lo, hi = LOG2_CODE_STEPS
         if below is not None and total(below)[0] <= t:
             lo, hi = np.log2(below) - 3.0, float(np.log2(below))
         else:
@@ -540,6 +540,7 @@ class VariableRateWriter:
                 if mask is not None and mask.pinned is not None:
                     mask.pinned.refined = None  # the pins of the unrefined field
                 options.append((self._codes_bytes(z, g, chunk_ids, s, other_bytes, n)[0], s, None, got))
+
         def beside(s: float, r: float, band: float, got: float) -> tuple:  # the option of codes s and refinement r
             return self._refined_bytes(ref, z, g, chunk_ids, np.full(self.d, s), other_bytes, n)(r), s, (r, band), got
 
