@@ -69,6 +69,7 @@ class HostileServer:
         self.root, self.upstream, self.s3 = root, upstream, s3
         self.plan = lambda path, n: None
         self.counts: dict[str, int] = {}
+        self.first: dict[str, float] = {}  # path -> time.monotonic() of its first request since counts.clear()
         self.faults: dict[str, int] = {}
         self.stop = threading.Event()
         self.lock = threading.Lock()
@@ -126,6 +127,8 @@ class HostileServer:
         path = h.path.split("?", 1)[0]
         with self.lock:
             n = self.counts[path] = self.counts.get(path, 0) + 1
+            if n == 1:
+                self.first[path] = time.monotonic()
         fault = None if head else self.plan(path, n)
         if fault is not None:
             with self.lock:
@@ -367,11 +370,12 @@ def test_stall_fails_once_within_the_total_deadline(small_map, http_server, faul
     lim = {**FAST, "read_timeout": 0.5, "total_timeout": 1.5, "tries": 4}
     t = time.monotonic()
     kind, res = _bounded(lambda: _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim}), 30)
-    took = time.monotonic() - t
+    end = time.monotonic()
     assert kind == "error" and isinstance(res, errors.RemoteReadError), (kind, res)
     assert re.search(r"no complete response within the timeouts .* not retried", str(res)), res
     assert http_server.counts[obj] == 1, http_server.counts
-    assert took < 1.5 + 1.0, f"{fault}: {took:.1f} s"
+    took = end - http_server.first[obj]  # from the stalled object's own request, as above
+    assert took < 1.5 + 1.0, f"{fault}: {took:.1f} s from the request of {obj} ({end - t:.1f} s in all)"
 
 
 def test_errors_are_retried_only_within_the_total_deadline(small_map, http_server):
@@ -385,9 +389,13 @@ def test_errors_are_retried_only_within_the_total_deadline(small_map, http_serve
     # during one ("no complete response ... after N failed tries (HTTP 503 ...)"): either names the status and count
     with pytest.raises(errors.RemoteReadError, match=r"HTTP 503.* on each of \d+ tries|after \d+ failed tries \(HTTP 503"):
         _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim})
-    took = time.monotonic() - t
+    end = time.monotonic()
     assert 2 <= http_server.counts[obj] < 20, http_server.counts
-    assert took < 1.0 + 1.0, f"{took:.1f} s"
+    # timed from the failing object's first request, which the server stamps: opening the map and the imports
+    # of a first decode come before it and took seconds on a loaded CI machine
+    took = end - http_server.first[obj]
+    assert took < 1.0 + 1.0, f"{took:.1f} s from the first try of {obj} ({end - t:.1f} s in all)"
+    assert end - t < BOUND_S, f"{end - t:.1f} s in all"
 
 
 def test_default_stall_deadline_is_at_most_a_minute(monkeypatch):
