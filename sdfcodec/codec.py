@@ -600,7 +600,12 @@ class DecodesInto(Protocol):
 
 class NumpyPath(Protocol):
     """A codec's encode and decode in numpy on the CPU (:meth:`Codec.numpy_path`, capability ``numpy_path``).
-    Inputs are checked by the caller: float32, C-contiguous, finite."""
+    Inputs are checked by the caller: float32, C-contiguous, finite.
+
+    It MAY also give ``decode_affine(codes, scale, offset)``: codes ``(N, k)`` -> ``scale * decode(codes) +
+    offset`` ``(N, 4096)`` float32, as :meth:`Codec.decode_affine` computes it on the CPU (a scaling folded into
+    the decode layer, folded alike). Map readers take it where they have no other use for torch
+    (:func:`numpy_decode_affine`); without it they decode through torch."""
 
     def encode(self, blocks: np.ndarray) -> np.ndarray:
         """Normalised blocks ``(N, 4096)`` -> codes ``(N, code_size)`` float32, as :meth:`Codec.encode`."""
@@ -618,6 +623,11 @@ class NumpyPath(Protocol):
 def numpy_path_of(codec: Codec) -> NumpyPath | None:
     """``codec``'s :class:`NumpyPath` when it declares the capability ``numpy_path`` and gives one, else None."""
     return codec.numpy_path() if "numpy_path" in capabilities(codec) else None
+
+
+def numpy_decode_affine(codec: Codec) -> Callable[[np.ndarray, float, float], np.ndarray] | None:
+    """The optional ``decode_affine`` of ``codec``'s :class:`NumpyPath` (see there), else None."""
+    return getattr(numpy_path_of(codec), "decode_affine", None)
 
 
 def decodes_into(codec: Codec | type[Codec]) -> bool:

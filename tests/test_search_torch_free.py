@@ -171,3 +171,52 @@ def test_plane_components_number_patches_as_scipy_does():
         want = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(m, m)), directed=False)[1]
         np.testing.assert_array_equal(got, want)
         assert got.dtype == np.int64
+
+
+@pytest.mark.parametrize("vr", [{"step": 0.6}, {"step": 0.6, "refine_step": 0.004}], ids=["pinned", "refined"])
+def test_a_pinned_mask_is_read_without_torch_as_through_it_and_exactly(tmp_path, monkeypatch, vr):
+    """A variable-rate map's pinned mask (spec/map-format.md 6g) is told from the codes' float decode: on the
+    codec's numpy ``decode_affine`` (no torch) that decode equals the torch path's to float32 rounding, and the
+    mask read is the torch path's and the exact read's (numba off: every voxel's exact integer decode), bit for
+    bit; then a first floor search in a fresh interpreter loads no torch and selects what the torch path does."""
+    from sdfcodec.core import ans
+    from sdfcodec.map import pinstore
+    from sdfcodec.map.observed import read_block_rows
+
+    if not ans.available():
+        pytest.skip("numba is not installed: the mask is read by its exact decode, with no float decode")
+    path = tmp_path / "vr.sdfz"
+    write(path, *fused_like(scene()), k=128, codec_state="reference", variable_rate=vr)
+    m = sdfcodec.open_map(path)
+    assert (m.header.codes.variable_rate.refinement is not None) == ("refine_step" in vr)
+    r, arr = m.reader, m.reader.mask_array
+    coords = np.argwhere(r.vr.states() == 2)
+    key = np.zeros(3, np.int64)  # the map's one chunk
+    own = pinstore.chunk_blocks(r.vr.states(), key, arr.cb)[0]
+    q = type(arr)(r)._codes(key)
+    rows, fast = {}, type(arr)(r)._float_decode(q, own)
+    rows["numpy"] = read_block_rows(r, type(arr)(r), coords)
+    with monkeypatch.context() as mp:
+        mp.setattr(pinstore, "numpy_decode_affine", lambda codec: None)
+        slow = type(arr)(r)._float_decode(q, own)
+        rows["torch"] = read_block_rows(r, type(arr)(r), coords)
+    with monkeypatch.context() as mp:
+        mp.setattr(ans, "available", lambda: False)
+        rows["exact"] = read_block_rows(r, type(arr)(r), coords)
+    assert fast.dtype == np.float32 and fast.shape == slow.shape == (len(own), 4096)
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-6)
+    assert TRUNC[0] <= fast.min() and fast.max() <= TRUNC[1]  # truncated, as the read's metres
+    assert np.array_equal(rows["numpy"], rows["torch"]) and np.array_equal(rows["numpy"], rows["exact"])
+    assert 0 < np.unpackbits(rows["exact"]).mean() < 1  # a mask with observed and unobserved voxels
+    got = _search_in_fresh_interpreter(path, str(tmp_path / "cache"))
+    assert got["torch"] is False
+    from sdfcodec.search.cache import clear_memory_cache
+    from sdfcodec.search.engine import search
+
+    monkeypatch.setattr(pinstore, "numpy_decode_affine", lambda codec: None)
+    monkeypatch.setenv("SDFCODEC_CACHE_DIR", "off")
+    clear_memory_cache()
+    ref = search(sdfcodec.open_map(path), "floor", up=(0, 0, 1), threshold="auto", device="cpu")
+    clear_memory_cache()
+    assert sorted(tuple(b["coords"]) for b in got["result"]["blocks"]) == sorted(map(tuple, ref.coords.tolist()))
+    assert len(ref.coords) >= 4

@@ -328,24 +328,38 @@ class PCACodec(Codec):
         return mats
 
     def _decoder(self, device: torch.device, scale: float, offset: float) -> Any:
-        """The decode layer with the output scaling folded in, cached: on the CPU the numpy matrix ``[d; D]``
-        (bias as the first row) scaled, elsewhere the tensors ``(scale d + offset, scale D)``."""
+        """The decode layer with the output scaling folded in, cached: on the CPU :meth:`_folded` itself,
+        elsewhere its tensors ``(scale d + offset, scale D)`` on ``device``."""
+        mat = self._folded(scale, offset)
+        if device.type == "cpu":
+            return (mat,)
         key = (device, scale, offset)
         dec = self._device_cache.get(key)
         if dec is None:
+            dec = tuple(torch.from_numpy(a).to(device) for a in (mat[0], mat[1:]))
+            self._cache(key, dec)
+        return dec
+
+    def _folded(self, scale: float, offset: float) -> np.ndarray:
+        """``[scale d + offset; scale D]`` ``(c + 1, 4096)`` float32 (the bias as the first row), each element
+        scaled in float64 and rounded once (the rows a pinned mask's reader proves its margin for:
+        spec/map-format.md section 6g), cached."""
+        key = ("folded", scale, offset)
+        dec = self._device_cache.get(key)
+        if dec is None:
             dec_w, dec_b = self._dec
-            mat = np.empty((len(dec_w) + 1, _N), np.float32)  # [d; D], each scaled in float64, rounded once
+            mat = np.empty((len(dec_w) + 1, _N), np.float32)
             mat[0] = dec_b.astype(np.float64) * scale + offset
             # one pass, no float64 copy of the basis (2 MB at k = 64)
             np.multiply(dec_w, scale, out=mat[1:], dtype=np.float64, casting="same_kind")
-            if device.type == "cpu":
-                dec = (mat,)
-            else:
-                dec = tuple(torch.from_numpy(a).to(device) for a in (mat[0], mat[1:]))
-            if len(self._device_cache) > 8:  # a handful of truncations per process; never grow without bound
-                self._device_cache.clear()
-            self._device_cache[key] = dec
-        return dec
+            dec = self._cache(key, (mat,))
+        return dec[0]
+
+    def _cache(self, key: Any, value: tuple[Any, ...]) -> tuple[Any, ...]:
+        if len(self._device_cache) > 8:  # a handful of truncations per process; never grow without bound
+            self._device_cache.clear()
+        self._device_cache[key] = value
+        return value
 
     def prefix(self, code_size: int) -> "PCACodec":
         """The fitted codec that keeps only the first ``code_size`` code elements (its leading components):
@@ -572,11 +586,18 @@ class _NumpyPCA:
         return out
 
     def decode(self, codes: np.ndarray) -> np.ndarray:
+        return self._product(codes, self.dec)  # as decode_into on the CPU
+
+    def decode_affine(self, codes: np.ndarray, scale: float, offset: float) -> np.ndarray:
+        return self._product(codes, self.codec._folded(scale, offset))  # as decode_into on the CPU, rows alike
+
+    @staticmethod
+    def _product(codes: np.ndarray, dec: np.ndarray) -> np.ndarray:
         n, k = codes.shape
         c1 = np.empty((n, k + 1), dtype=np.float32)
         c1[:, 0] = 1.0
         c1[:, 1:] = codes
-        return c1 @ self.dec[: k + 1]  # as decode_into on the CPU
+        return c1 @ dec[: k + 1]
 
     def encode_truncated(self, blocks: np.ndarray, weights: np.ndarray, rounds: int, shrink: float = 0.0
                          ) -> np.ndarray | None:

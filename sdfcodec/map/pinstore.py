@@ -15,13 +15,16 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from ..codec import numpy_decode_affine
 from ..core._validate import BLOCK
+from ..core.blocks import DECODE_LIMIT
 from ..core.header import PINNED_MASK_EXTENSION, BlockState
 from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 from . import pinread
 from .format import check_stream_array
 from .grouping import ChunkCache, chunk_box, each_chunk, read_threads, thread_shares
+from .metric import decode_affine
 
 if TYPE_CHECKING:
     from ..codec import Codec
@@ -239,12 +242,20 @@ class PinnedMaskArray:
         decode then)."""
         if _kernels() is None:
             return None
+        r = self.reader
+        used = max(int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1, 1)
+        codes = (q[:, :used] * r.vr.step[:used]).astype(np.float32)  # as codes_for
+        fast = numpy_decode_affine(r.codec)
+        if fast is not None:  # torch-free (a search of the mask alone need not import it): the same rows, folded
+            (d_min, d_max), (scale, offset) = r.truncation, decode_affine(r.header.codes, r.truncation, True)
+            v = fast(codes, scale, offset)
+            lo, hi = d_min - DECODE_LIMIT * (d_max - d_min), d_min + DECODE_LIMIT * (d_max - d_min)
+            if not v.size or lo <= v.min() and v.max() <= hi:  # else the read below refuses it, naming a block
+                return np.clip(v, d_min, d_max, out=v)  # truncated, as decode_codes' metres
         import torch
 
-        used = int(np.flatnonzero(q.any(axis=0)).max(initial=-1)) + 1
-        codes = (q[:, :max(used, 1)] * self.reader.vr.step[:max(used, 1)]).astype(np.float32)  # as codes_for
-        v = self.reader.decode_codes(torch.from_numpy(codes), metres=True, coords=coords, residual=False,
-                                     refine=False, unmasked=True)
+        v = r.decode_codes(torch.from_numpy(codes), metres=True, coords=coords, residual=False, refine=False,
+                           unmasked=True)
         return v.numpy().reshape(len(q), -1)
 
     def _zeros(self, key: np.ndarray, row: np.ndarray, own: np.ndarray, outside: np.ndarray, q: np.ndarray,

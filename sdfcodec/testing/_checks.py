@@ -323,7 +323,8 @@ def check_decode_tiles(case: Case) -> None:
 def check_numpy_path(case: Case) -> None:
     """The torch-free path (spec/codec-plugins.md 4, ``numpy_path``; what searches use) of a codec declaring
     it: float32 numpy codes and blocks equal to ``encode`` and ``decode`` (and a prefix's decode, for
-    prefix-ordered codecs). Codecs without the capability pass."""
+    prefix-ordered codecs), and its optional ``decode_affine`` equal to ``decode_core`` with a map's scaling.
+    Codecs without the capability pass."""
     codec, x, atol = case.codec, case.options.blocks, case.options.atol
     if "numpy_path" not in capabilities(codec):
         return
@@ -341,6 +342,15 @@ def check_numpy_path(case: Case) -> None:
         assert isinstance(back, np.ndarray) and back.dtype == np.float32 and back.shape == want.shape, \
             f"numpy_path decode of {k} elements: got {getattr(back, 'dtype', '')} {getattr(back, 'shape', '')}"
         assert_close(back, want, atol, f"numpy_path decode of {k} elements vs decode")
+        affine = getattr(path, "decode_affine", None)  # optional: readers fall back to torch without it
+        if affine is not None:
+            scale, offset = 0.14, -0.04  # a map's truncation range and d_min, the scaling readers fold in
+            want = np.asarray(codec.decode_core(codes[:, :k], scale=scale, offset=offset)).reshape(n, -1)
+            got = affine(np.ascontiguousarray(codes[:, :k]), scale, offset)
+            assert isinstance(got, np.ndarray) and got.dtype == np.float32 and got.shape == want.shape, \
+                f"numpy_path decode_affine of {k} elements: got {getattr(got, 'dtype', '')} " \
+                f"{getattr(got, 'shape', '')}"
+            assert_close(got, want, atol, f"numpy_path decode_affine of {k} elements vs decode_core")
 
 
 def _outputs(codec: Codec, x: np.ndarray, max_levels: int) -> dict[str, Any]:
