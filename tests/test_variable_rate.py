@@ -332,6 +332,24 @@ def test_an_error_target_below_what_the_codes_reach_takes_a_surface_refinement(t
     assert np.quantile(err, ERROR_QUANTILE) <= e + 1e-6, np.quantile(err, ERROR_QUANTILE)
 
 
+def test_an_error_target_below_the_refinement_ladder_takes_its_finest_step(tmp_path):
+    """0.12 mm: every step of the ladder (at most 1.5 E, 0.18 mm) lies below the finest refinement step rate control
+    takes (0.2 mm), which was refused; that step keeps a corrected voxel within 0.1 mm, so the map takes it and
+    meets the target. 0.05 mm is refused naming what the refinement reaches."""
+    from sdfcodec.map.errortarget import ERROR_QUANTILE, REFINE_RANGE, refine_steps
+
+    assert refine_steps(1.2e-4) == [REFINE_RANGE[0]] and refine_steps(100.0) == []
+    vol = sample_volume(Scene([Plane((0, 0, 1), 0.3), Plane((1, 0, 0), 0.35)]), (64, 64, 48), VS, truncation=TRUNC)
+    touch = _in_block_crossing_voxels(vol)
+    codec = pretrained_codec("pca", 128)
+    m = _write(tmp_path / "e.sdfz", codec, vol, codec_state="reference", variable_rate={"target_error": 1.2e-4})
+    assert m.header.codes.variable_rate.refinement.step * 2.0 ** -24 == pytest.approx(REFINE_RANGE[0], rel=1e-3)
+    err = np.abs(m.decode_region() - vol)[touch]
+    assert np.quantile(err, ERROR_QUANTILE) <= 1.2e-4, np.quantile(err, ERROR_QUANTILE)
+    with pytest.raises(errors.InvalidValueError, match=r"0\.05 mm is below .* mm at its finest step with a surface"):
+        _write(tmp_path / "f.sdfz", codec, vol, codec_state="reference", variable_rate={"target_error": 5e-5})
+
+
 # -- golden -------------------------------------------------------------------------------------------------------
 
 def _golden_map(path: Path) -> None:
@@ -377,7 +395,10 @@ def test_encode_target_bytes_alone_references_the_shipped_model(tmp_path, scene_
     for args, msg in ((["--target-bytes", "1"], "below what this map can take"),
                       (["--target-error", "-1"], "finite number of metres > 0"),
                       (["--target-error", "0.00005"], "below what this codec reaches"),
-                      (["--variable-rate", "--step", "0.1", "--codec", "ae"], "cannot store step-quantised")):
+                      (["--target-error", "0.02", "--target-bytes", "90"], "drop --target-bytes"),
+                      (["--target-error", "0.02", "--step", "0.1"], "drop --step"),
+                      (["--target-error", "0.02", "--codec", "sz3"], "codes are not prefix-ordered"),
+                      (["--variable-rate", "--step", "0.1", "--codec", "ae"], "codes are not prefix-ordered")):
         r = CliRunner().invoke(app, ["encode", str(src), str(tmp_path / "bad.sdfz"), "--voxel-size", str(VS), *args])
         assert r.exit_code == 1 and msg in r.output, (args, r.output)
         assert not (tmp_path / "bad.sdfz").exists()

@@ -391,6 +391,9 @@ def _variable_rate_wanted(flag: Optional[bool], step: Optional[float], target_by
         check_target(target_bytes)
     if target_error is not None and not (np.isfinite(target_error) and target_error > 0):
         raise InvalidValueError(f"--target-error must be a finite number of metres > 0, got {target_error}")
+    if target_error is not None and (step is not None or target_bytes is not None):
+        given = " and ".join(f for f, v in (("--step", step), ("--target-bytes", target_bytes)) if v is not None)
+        raise InvalidValueError(f"--target-error chooses the codes' step and their bytes itself: drop {given}")
     if flag is not None:
         if flag and code_dtype != "float32":
             raise InvalidValueError(f"--variable-rate stores its own codes; --code-dtype {code_dtype} contradicts it")

@@ -58,8 +58,10 @@ LOG2_CODE_STEPS = (-10.0, 4.0)
 
 def refine_steps(target: float) -> list[float]:
     """The refinement steps (metres) tried for a target error: :data:`REFINE_FACTORS` times it, within
-    :data:`REFINE_RANGE`."""
-    return [f * target for f in REFINE_FACTORS if REFINE_RANGE[0] <= f * target <= REFINE_RANGE[1]]
+    :data:`REFINE_RANGE`; for a target below every one of them, the finest step of the range (which may still meet
+    it: a corrected voxel lies within half a step; else the refusal names the error it reaches)."""
+    steps = [f * target for f in REFINE_FACTORS if REFINE_RANGE[0] <= f * target <= REFINE_RANGE[1]]
+    return steps or ([REFINE_RANGE[0]] if max(REFINE_FACTORS) * target < REFINE_RANGE[0] else [])
 
 
 def unreachable(target: float, reached: float, refined: bool) -> InvalidValueError:

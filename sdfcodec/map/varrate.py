@@ -93,10 +93,10 @@ def check_variable_rate(codec: Codec) -> None:
     """Refuse a codec whose codes a prefix does not decode (variable-rate codes drop each block's tail)."""
     from ..core.quantize import check_quantisable
 
-    check_quantisable(codec)
-    if not getattr(codec, "prefix_ordered", False):
+    if not getattr(codec, "prefix_ordered", False):  # first: what a variable-rate map needs most
         raise InvalidValueError(f"codec {codec.codec_id!r} codes are not prefix-ordered: variable-rate codes keep a "
                                 "prefix of each block's code, so they need a codec such as pca")
+    check_quantisable(codec)
 
 
 def _basis(codec: Codec) -> np.ndarray:
@@ -129,8 +129,8 @@ class VariableRateWriter:
                  pinned_mask: bool = True, refine: bool = True, refine_step: float | None = None):
         check_variable_rate(codec)
         if sum(x is not None for x in (step, target_bytes, target_error)) != 1:
-            raise InvalidValueError("variable-rate codes need one of a step, a target of bytes per coded block or "
-                                    "a target error")
+            raise InvalidValueError("variable-rate codes take exactly one of a step, a target of bytes per coded "
+                                    "block and a target error")
         for name, val in (("target bytes", target_bytes), ("target error", target_error)):
             if val is not None and not (np.isfinite(val) and val > 0):
                 raise InvalidValueError(f"the {name} must be a finite number > 0, got {val!r}")
