@@ -395,6 +395,7 @@ def test_encode_target_bytes_alone_references_the_shipped_model(tmp_path, scene_
     for args, msg in ((["--target-bytes", "1"], "below what this map can take"),
                       (["--target-error", "-1"], "finite number of metres > 0"),
                       (["--target-error", "0.00005"], "below what this codec reaches"),
+                      (["--target-bytes", "5000", "--no-refine"], "or take longer codes (--code-size)"),
                       (["--target-error", "0.02", "--target-bytes", "90"], "drop --target-bytes"),
                       (["--target-error", "0.02", "--step", "0.1"], "drop --step"),
                       (["--target-error", "0.02", "--codec", "sz3"], "codes are not prefix-ordered"),

@@ -46,9 +46,8 @@ if TYPE_CHECKING:
 torch = lazy_module("torch")
 
 __all__ = ["stream_chunk_keys", "STREAM_ARRAY", "GAIN_ARRAY", "STREAM_METADATA_BYTES", "stream_document_bytes",
-           "stream_compressors", "prefix_lengths",
-           "decode_runs", "RUN_MERGE", "VariableRateWriter", "VariableRateReader",
-           "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE", "REFINE_FROM", "codes_share"]
+           "stream_compressors", "prefix_lengths", "decode_runs", "RUN_MERGE", "VariableRateWriter",
+           "VariableRateReader", "check_variable_rate", "SAMPLE_BLOCKS", "TOLERANCE", "REFINE_FROM", "codes_share"]
 
 STREAM_ARRAY = "code_streams"
 #: Temporary array of the writer (never in a committed map): per coded block the gains of its code elements.
@@ -495,8 +494,9 @@ class VariableRateWriter:
         if t_lo < t and share is not None:  # beside a refinement: the finest codes, the refinement takes the rest
             return np.full(self.d, 2 ** lo)
         if t_lo < t:
-            raise InvalidValueError(f"a target of {t:g} bytes per coded block is above what variable-rate codes take "
-                                    f"on this map: at most {t_lo:.1f} (at step {2 ** lo:g}); store float32 codes")
+            raise InvalidValueError(f"a target of {t:g} B per coded block is above what variable-rate codes take on "
+                                    f"this map: at most {t_lo:.1f} (at step {2 ** lo:g}); ask for at most {int(t_lo)},"
+                                    " or take longer codes (--code-size), a refinement (no --no-refine), --fixed-rate")
         # rate-distortion rounding and the mask's free bits make the bytes step by more than TOLERANCE between
         # neighbouring steps on some maps: stop at a 0.07 % step resolution with ``hi``, the finest step known to fit
         while hi - lo > STEP_RESOLUTION:
