@@ -273,16 +273,15 @@ def test_target_bytes_lands_at_or_just_below_the_target(tmp_path, target):
     assert 0.99 * target <= _files_per_block(p) <= target, _files_per_block(p)
 
 
-def _in_block_crossing_voxels(x: np.ndarray) -> np.ndarray:
-    """The voxels of a dense volume ``x`` (metres) touching a crossing between axis neighbours of one 16^3 block:
-    ``target_error``'s definition, computed here from the volume itself."""
+def _crossing_voxels(x: np.ndarray) -> np.ndarray:
+    """The voxels of a dense volume ``x`` (metres) touching a crossing between axis neighbours, in one 16^3 block or
+    across the face of two: ``target_error``'s definition, computed here from the volume itself."""
     from sdfcodec.core.surface import crossing_edges
 
     touch = np.zeros(x.shape, bool)
     for ax in range(3):
         a, b = np.moveaxis(x, ax, 0)[:-1], np.moveaxis(x, ax, 0)[1:]
-        same_block = (np.arange(x.shape[ax] - 1) % 16 != 15).reshape(-1, 1, 1)
-        edge = crossing_edges(a, b) & same_block
+        edge = crossing_edges(a, b)
         t = np.moveaxis(touch, ax, 0)
         t[:-1] |= edge
         t[1:] |= edge
@@ -303,7 +302,7 @@ def test_surface_at_a_fixed_rate_and_the_error_target(tmp_path, scene_volume):
     met = compare_volumes(scene_volume, m.decode_region(), VS)
     assert met.f_score_1 >= 0.9 and met.chamfer_l1 <= 0.01, met
     vol = sample_volume(analytic_scene(), (96, 80, 48), VS, truncation=TRUNC)
-    touch = _in_block_crossing_voxels(vol)
+    touch = _crossing_voxels(vol)
     sizes = []
     for e in (0.02, 0.005):
         p = tmp_path / f"e{e}.sdfz"
@@ -323,13 +322,41 @@ def test_an_error_target_below_what_the_codes_reach_takes_a_surface_refinement(t
 
     vol = sample_volume(Scene([Plane((0, 0, 1), 0.3), Plane((1, 0, 0), 0.35), Box((1.3, 0.9, 0.75), (0.015,) * 3)]),
                         (96, 96, 64), VS, truncation=TRUNC)
-    touch = _in_block_crossing_voxels(vol)
+    touch = _crossing_voxels(vol)
     codec = pretrained_codec("pca", 128)
     e = 0.004
     m = _write(tmp_path / "e.sdfz", codec, vol, codec_state="reference", variable_rate={"target_error": e})
     assert m.header.codes.variable_rate.refinement is not None
     err = np.abs(m.decode_region() - vol)[touch]
     assert np.quantile(err, ERROR_QUANTILE) <= e + 1e-6, np.quantile(err, ERROR_QUANTILE)
+
+
+def test_the_error_samples_face_crossings_weigh_what_the_sample_lacks():
+    """Two blocks side by side along x, a plane between voxel 15 of the first and voxel 0 of the second: every
+    crossing lies across their face. Both kept: those voxels count (weight 1, a plain quantile); with a sample of
+    2 of 5 blocks, each weighs (5 - 1) / (2 - 1) = 4 against 1 for a crossing inside a block; a block alone has no
+    crossing."""
+    from sdfcodec.map.errortarget import ErrorSample
+
+    xs = (np.arange(32) - 15.5) * VS
+    vol = np.broadcast_to(xs[:, None, None], (32, 16, 16)).astype(np.float32)
+    v = ((np.clip(vol, *TRUNC) - TRUNC[0]) / (TRUNC[1] - TRUNC[0])).reshape(2, 16, 16, 16)
+    coords = np.array([[0, 0, 0], [1, 0, 0]])
+    codec = pretrained_codec("pca", 8)
+    for seen, weight in ((2, None), (5, 4.0)):
+        sample = ErrorSample(codec, 2)
+        sample.add(coords, v, None, np.zeros((2, 8)), np.ones((2, 8)))
+        sample._seen = seen  # as if 3 more blocks had been added and not kept
+        sample.coarsest_step(0.05, TRUNC, lambda z, g, s: z)
+        _, _, _, _, _, (x, cross, w) = sample._arrays
+        kept = [int(t[1][0]) for t in sample._kept]  # the sample's order: its random priorities
+        for i, bx in enumerate(kept):  # the face's layers: x = 15 of block 0, x = 0 of block 1
+            assert cross.reshape(2, 16, 16, 16)[i, 15 if bx == 0 else 0].all()
+        assert cross.sum() == 2 * 256
+        assert (w is None) if weight is None else np.array_equal(w, np.full(512, weight))
+    alone = ErrorSample(codec, 2)
+    alone.add(coords[:1], v[:1], None, np.zeros((1, 8)), np.ones((1, 8)))
+    assert alone.coarsest_step(0.05, TRUNC, lambda z, g, s: z)[1] == 0.0
 
 
 def test_an_error_target_below_the_refinement_ladder_takes_its_finest_step(tmp_path):
@@ -340,7 +367,7 @@ def test_an_error_target_below_the_refinement_ladder_takes_its_finest_step(tmp_p
 
     assert refine_steps(1.2e-4) == [REFINE_RANGE[0]] and refine_steps(100.0) == []
     vol = sample_volume(Scene([Plane((0, 0, 1), 0.3), Plane((1, 0, 0), 0.35)]), (64, 64, 48), VS, truncation=TRUNC)
-    touch = _in_block_crossing_voxels(vol)
+    touch = _crossing_voxels(vol)
     codec = pretrained_codec("pca", 128)
     m = _write(tmp_path / "e.sdfz", codec, vol, codec_state="reference", variable_rate={"target_error": 1.2e-4})
     assert m.header.codes.variable_rate.refinement.step * 2.0 ** -24 == pytest.approx(REFINE_RANGE[0], rel=1e-3)

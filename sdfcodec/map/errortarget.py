@@ -3,9 +3,11 @@ step that keeps it within a target (the variable-rate writer's rate control by e
 :class:`~sdfcodec.map.varrate.VariableRateWriter`).
 
 The surface error is measured where the surface is placed: at the observed voxels that touch a crossing of the
-input's zero level inside their block (:func:`~sdfcodec.map.residual.crossing_voxels`), each voxel's decode
-(refined, where the map carries a surface refinement, spec section 6h) against its input value. The target
-holds for :data:`ERROR_QUANTILE` of them. Why a quantile and not the largest: on real fused maps a few crossing
+input's zero level, inside their block or across a block's face (:func:`~sdfcodec.map.residual.crossing_voxels`),
+each voxel's decode (refined, where the map carries a surface refinement, spec section 6h) against its input value.
+Faces count because blocks decode worst at their edges: measured inside blocks only, a synthetic room's 50 mm map
+met its target (49.7 mm) and missed it with the faces (56.8 mm). The target holds for :data:`ERROR_QUANTILE` of
+them. Why a quantile and not the largest: on real fused maps a few crossing
 voxels lie on surfaces thinner than the codes can hold, which every lossy code here erases. Measured on the
 kitchen half (frames of a real RGB-D kitchen fused at 2 cm, 196 coded blocks, 36,988 crossing voxels), the
 largest error is 134-140 mm for the fixed-length pca-64 map and for variable-rate maps from 64 to 512 B per
@@ -40,7 +42,7 @@ ERROR_QUANTILE = 0.99
 #: finer step refines a wider band around the decoded surface (:func:`~sdfcodec.map.refine.tau_for_step`), which
 #: reaches the crossing voxels coarser codes decode far off. The band widens in steps as fine as that: on the
 #: kitchen half a 10 mm target took 450.5 B per coded block with steps an octave apart (refinement 1.87 mm), 386.1 B
-#: half an octave apart (2.65 mm), 336.9 B a quarter apart (3.15 mm).
+#: half an octave apart (2.65 mm), 336.9 B a quarter apart (3.15 mm), the crossings inside blocks measured.
 REFINE_FACTORS = tuple(1.5 * 2.0 ** (-k / 4) for k in range(21))
 #: The refinement steps whose maps are measured: the coarsest that meets the target on the sample and the next
 #: finer ones that do, this many in all (finer steps cost more bytes of corrections, unless the coarsest needs much
@@ -73,30 +75,46 @@ def unreachable(target: float, reached: float, refined: bool) -> InvalidValueErr
         "that place the surface, on a sample); use --max-error (a residual stage) for a bound on every voxel")
 
 
-def _crossings(v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float]
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """``(input metres (n, 4096) float64, its in-block crossing voxels (n, 4096) bool)`` of normalised ``v``."""
+def _apart(n: int) -> np.ndarray:
+    """``(n, 3)`` block indices no two of which are neighbours: crossings inside each block only."""
+    return np.arange(n)[:, None] * np.array([[3, 0, 0]])
+
+
+def _crossings(coords: np.ndarray, v: np.ndarray, observed: np.ndarray | None, truncation: tuple[float, float],
+               face_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(input metres (n, 4096) float64, its crossing voxels (n, 4096) bool, their weights or None: all 1)`` of
+    normalised ``v``, blocks ``coords`` ``(n, 3)``: crossings inside a block and across the face of two of these
+    blocks. A voxel whose only crossings lie across faces weighs ``face_weight``: for a uniform sample of blocks,
+    how many of its neighbours the sample lacks for each it holds (a face's two blocks are both in a sample of k of
+    N blocks with odds (k - 1) / (N - 1) once one is)."""
     from .residual import crossing_voxels
 
     d_min, d_max = truncation
     x = (v * (d_max - d_min) + d_min).reshape(len(v), -1).astype(np.float64)
-    far = np.arange(len(v))[:, None] * np.array([[3, 0, 0]])  # blocks never neighbours: no face crossings
-    return x, crossing_voxels(far, x.reshape(v.shape), observed).reshape(len(v), -1)
+    cross = crossing_voxels(coords, x.reshape(v.shape), observed).reshape(len(v), -1)
+    if face_weight == 1.0:
+        return x, cross, None
+    inside = crossing_voxels(_apart(len(v)), x.reshape(v.shape), observed).reshape(len(v), -1)[cross]
+    return x, cross, np.where(inside, 1.0, face_weight)
 
 
 def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
                   truncation: tuple[float, float], refinement: tuple[float, float] | None = None,
-                  quantile: float = ERROR_QUANTILE, crossings: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+                  quantile: float = ERROR_QUANTILE, crossings: tuple | None = None,
+                  coords: np.ndarray | None = None) -> float:
     """The surface error (metres) of decoding ``codes`` ``(n, D)`` against normalised blocks ``v``
-    ``(n, 16, 16, 16)``: the ``quantile`` of ``|decoded - input|`` over the observed voxels that touch a surface
-    crossing of the input inside their block (``observed`` ``(n, 16, 16, 16)`` bool, None: all). With
+    ``(n, 16, 16, 16)`` at block indices ``coords`` ``(n, 3)`` (None: no two of them neighbours): the ``quantile`` of
+    ``|decoded - input|`` over the observed voxels that touch a surface crossing of the input, inside their block
+    or across the face of two of these blocks (``observed`` ``(n, 16, 16, 16)`` bool, None: all). With
     ``refinement`` ``(step, band)`` metres, the decode is refined first as a map's surface refinement refines it
     (:mod:`sdfcodec.core.refine`, here in float metres rather than the reader's exact units: the rate control's
-    estimate). 0 when there are no such voxels. ``crossings``: ``_crossings`` of these blocks, where the caller
-    keeps them."""
+    estimate). 0 when there are no such voxels. ``crossings``: ``_crossings`` of these blocks (its weights make
+    the quantile a weighted one), where the caller keeps them."""
     d_min, d_max = truncation
     n = len(v)
-    x, cross = crossings if crossings is not None else _crossings(v, observed, truncation)
+    if crossings is None:
+        crossings = _crossings(_apart(n) if coords is None else coords, v, observed, truncation)
+    x, cross, weights = crossings
     if not cross.any():
         return 0.0
     dec = codec.decode(torch.from_numpy(np.asarray(codes, np.float32))).numpy().reshape(n, -1)
@@ -106,7 +124,10 @@ def surface_error(codec: Codec, v: np.ndarray, observed: np.ndarray | None, code
         sel = cr.select(dec, band)
         obs = None if observed is None else np.asarray(observed, bool).reshape(n, -1)
         dec = cr.refine(dec, sel, cr.corrections(x, obs, dec, sel, step), step, truncation, 1.0)
-    return float(np.quantile(np.abs(dec - x)[cross], quantile))
+    err = np.abs(dec - x)[cross]
+    if weights is None:
+        return float(np.quantile(err, quantile))
+    return float(np.quantile(err, quantile, weights=weights, method="inverted_cdf"))
 
 
 def coarsest_step(error: Callable[[float], float], target: float) -> tuple[float | None, float]:
@@ -134,22 +155,29 @@ class ErrorSample:
     """A uniform sample of up to ``size`` of the blocks a writer encodes (a reservoir: the blocks of the ``size``
     smallest random priorities, ``seed``), kept to measure the surface error of their codes at a step.
 
-    :meth:`add` blocks as they are encoded: normalised ``v`` ``(n, 16, 16, 16)``, ``observed`` (same shape, or
-    None), float ``codes`` ``(n, D)`` and the gains ``(n, D)`` the step's prefix lengths are chosen by;
-    :meth:`coarsest_step` the coarsest step that keeps their :func:`surface_error` within a target."""
+    :meth:`add` blocks as they are encoded: their indices ``coords`` ``(n, 3)``, normalised ``v`` ``(n, 16, 16,
+    16)``, ``observed`` (same shape, or None), float ``codes`` ``(n, D)`` and the gains ``(n, D)`` the step's prefix
+    lengths are chosen by; :meth:`coarsest_step` the coarsest step that keeps their :func:`surface_error` within a
+    target. A crossing across the face of two kept blocks counts; one whose neighbour was not kept does not, so
+    the voxels whose only crossings lie across faces weigh as many as the sample lacks of them (:func:`_crossings`):
+    none where every block is kept."""
 
     def __init__(self, codec: Codec, size: int, seed: int = 0):
         self.codec, self.size = codec, int(size)
         self._rng = np.random.default_rng(seed)
-        self._kept: list[tuple] = []  # (priority, v, observed, codes, gains) per kept block
+        self._kept: list[tuple] = []  # (priority, coords, v, observed, codes, gains) per kept block
+        self._seen = 0  # blocks added
         self._arrays: tuple | None = None  # (truncation, the kept blocks' arrays and crossings): coarsest_step
 
-    def add(self, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray, gains: np.ndarray) -> None:
+    def add(self, coords: np.ndarray, v: np.ndarray, observed: np.ndarray | None, codes: np.ndarray,
+            gains: np.ndarray) -> None:
         pr = self._rng.random(len(v))
         for i in np.argsort(pr)[:self.size]:
-            self._kept.append((pr[i], v[i], None if observed is None else observed[i], codes[i], gains[i]))
+            self._kept.append((pr[i], np.asarray(coords[i], np.int64), v[i], None if observed is None else observed[i],
+                               codes[i], gains[i]))
         self._kept.sort(key=lambda t: t[0])
         del self._kept[self.size:]
+        self._seen += len(v)
         self._arrays = None
 
     def coarsest_step(self, target: float, truncation: tuple[float, float],
@@ -158,10 +186,12 @@ class ErrorSample:
         """:func:`coarsest_step` of the sample's :func:`surface_error` (with ``refinement``, ``(step, band)``
         metres, or None), its codes at step ``s`` being ``quantised(codes, gains, s)`` (``(n, D)``, dequantised)."""
         if self._arrays is None or self._arrays[0] != truncation:  # stacked once for every step tried
-            v = np.stack([t[1] for t in self._kept])
-            obs = None if self._kept[0][2] is None else np.stack([t[2] for t in self._kept])
-            z, g = (np.stack([t[i] for t in self._kept]).astype(np.float64) for i in (3, 4))
-            self._arrays = (truncation, v, obs, z, g, _crossings(v, obs, truncation))
+            c, v = np.stack([t[1] for t in self._kept]), np.stack([t[2] for t in self._kept])
+            obs = None if self._kept[0][3] is None else np.stack([t[3] for t in self._kept])
+            z, g = (np.stack([t[i] for t in self._kept]).astype(np.float64) for i in (4, 5))
+            k = len(self._kept)
+            face = 1.0 if k >= self._seen or k < 2 else (self._seen - 1) / (k - 1)
+            self._arrays = (truncation, v, obs, z, g, _crossings(c, v, obs, truncation, face))
         _, v, obs, z, g, cross = self._arrays
         return coarsest_step(lambda s: surface_error(self.codec, v, obs, quantised(z, g, s), truncation, refinement,
                                                      crossings=cross), target)
