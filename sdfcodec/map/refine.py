@@ -90,21 +90,23 @@ class TrueValues:
     def _dtype(self) -> np.dtype:
         return np.dtype([("v", "<f4", BLOCK ** 3)] + ([("o", "u1", BLOCK ** 3 // 8)] if self.packed else []))
 
-    def rows_of(self, coords: np.ndarray) -> np.ndarray | None:
+    def rows_of(self, coords: np.ndarray, partial: bool = False) -> np.ndarray | None:
         """``(n,)`` int64: the row of each block ``coords`` ``(n, 3)`` (its last :meth:`add`), or None when a block
-        was never added."""
-        if not self.n:
-            return None if len(coords) else np.zeros(0, np.int64)
-        seen = np.concatenate(self._coords)
+        was never added (``partial``: -1 for each such block instead; so for indices below 0)."""
         coords = np.asarray(coords, np.int64).reshape(-1, 3)
+        if not self.n:
+            return np.full(len(coords), -1, np.int64) if partial or not len(coords) else None
+        seen = np.concatenate(self._coords)
         dims = np.maximum(seen.max(axis=0), coords.max(axis=0, initial=0)) + 1
         key = np.ravel_multi_index(tuple(seen.T), dims)[::-1]
         uniq, first = np.unique(key, return_index=True)  # first of the reversed: the last added
-        want = np.ravel_multi_index(tuple(coords.T), dims)
+        known = (coords >= 0).all(axis=1)
+        want = np.ravel_multi_index(tuple(np.maximum(coords, 0).T), dims)
         at = np.minimum(np.searchsorted(uniq, want), len(uniq) - 1)
-        if len(want) and not (uniq[at] == want).all():
+        found = known & (uniq[at] == want)
+        if not partial and not found.all():
             return None
-        return (self.n - 1 - first[at]).astype(np.int64)
+        return np.where(found, self.n - 1 - first[at], -1).astype(np.int64)
 
     def _rec(self) -> np.ndarray:
         if self._view is None:

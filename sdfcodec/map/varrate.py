@@ -181,7 +181,7 @@ class VariableRateWriter:
                 self._truth = TrueValues()
             self._truth.add(coords, x, observed)
         if self._sample is not None:
-            self._sample.add(coords, v, observed, codes, g)
+            self._sample.add(coords, v, observed, codes, g, self._truth)
 
     # -- the pass on commit ---------------------------------------------------------------------------
     def _lam(self, step: np.ndarray, g: np.ndarray) -> float:
