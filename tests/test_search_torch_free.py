@@ -178,7 +178,8 @@ def test_a_pinned_mask_is_read_without_torch_as_through_it_and_exactly(tmp_path,
     """A variable-rate map's pinned mask (spec/map-format.md 6g) is told from the codes' float decode: on the
     codec's numpy ``decode_affine`` (no torch) that decode equals the torch path's to float32 rounding, and the
     mask read is the torch path's and the exact read's (numba off: every voxel's exact integer decode), bit for
-    bit; then a first floor search in a fresh interpreter loads no torch and selects what the torch path does."""
+    bit; then (pinned map) a first floor search in a fresh interpreter loads no torch and selects what the torch
+    path does."""
     from sdfcodec.core import ans
     from sdfcodec.map import pinstore
     from sdfcodec.map.observed import read_block_rows
@@ -208,6 +209,8 @@ def test_a_pinned_mask_is_read_without_torch_as_through_it_and_exactly(tmp_path,
     assert TRUNC[0] <= fast.min() and fast.max() <= TRUNC[1]  # truncated, as the read's metres
     assert np.array_equal(rows["numpy"], rows["torch"]) and np.array_equal(rows["numpy"], rows["exact"])
     assert 0 < np.unpackbits(rows["exact"]).mean() < 1  # a mask with observed and unobserved voxels
+    if "refine_step" in vr:
+        return  # the search's path is the same on a refined map (the mask's float decode before its refinement)
     got = _search_in_fresh_interpreter(path, str(tmp_path / "cache"))
     assert got["torch"] is False
     from sdfcodec.search.cache import clear_memory_cache
