@@ -7,13 +7,12 @@ input's zero level, inside their block or across a block's face (:func:`~sdfcode
 each voxel's decode (refined, where the map carries a surface refinement, spec section 6h) against its input value.
 Faces count because blocks decode worst at their edges: measured inside blocks only, a synthetic room's 50 mm map
 met its target (49.7 mm) and missed it with the faces (56.8 mm). The target holds for :data:`ERROR_QUANTILE` of
-them. Why a quantile and not the largest: on real fused maps a few crossing
-voxels lie on surfaces thinner than the codes can hold, which every lossy code here erases. Measured on the
-kitchen half (frames of a real RGB-D kitchen fused at 2 cm, 196 coded blocks, 36,988 crossing voxels), the
-largest error is 134-140 mm for the fixed-length pca-64 map and for variable-rate maps from 64 to 512 B per
-coded block, while 99 % lie within 77.6 / 59.4 / 23.4 / 0.8 mm at 64 / 128 / 256 / 512 B: a bound on the largest
-refused every target below 134.75 mm. A bound on every voxel is the residual stage's (``--max-error``,
-fixed-rate maps).
+them. Why a quantile and not the largest: on real fused maps a few crossing voxels lie on surfaces thinner than
+the codes can hold, which every lossy code here erases. Measured on the kitchen half (frames of a real RGB-D
+kitchen fused at 2 cm, 196 coded blocks, 36,988 crossing voxels), the largest error is 134-140 mm for the
+fixed-length pca-64 map and for variable-rate maps from 64 to 512 B per coded block, while 99 % lie within 77.6 /
+59.4 / 23.4 / 0.8 mm at 64 / 128 / 256 / 512 B: a bound on the largest refused every target below 134.75 mm. A
+bound on every voxel is the residual stage's (``--max-error``, fixed-rate maps).
 """
 
 from __future__ import annotations
@@ -228,9 +227,10 @@ class ErrorSample:
     :meth:`add` blocks as they are encoded: their indices ``coords`` ``(n, 3)``, normalised ``v`` ``(n, 16, 16,
     16)``, ``observed`` (same shape, or None), float ``codes`` ``(n, D)`` and the gains ``(n, D)`` the step's prefix
     lengths are chosen by; :meth:`coarsest_step` the coarsest step that keeps their :func:`surface_error` within a
-    target. A crossing across the face of two kept blocks counts; one whose neighbour was not kept does not, so
-    the voxels whose only crossings lie across faces weigh as many as the sample lacks of them (:func:`_crossings`):
-    none where every block is kept."""
+    target. The crossings across a kept block's faces read the neighbour's input from ``truth`` (:meth:`add`) where
+    the writer keeps one (:func:`_face_crossings`); else only those between two kept blocks count, the voxels whose
+    only crossings lie across faces weighing as many as the sample lacks of them (:func:`_crossings`; 1 where every
+    block is kept). On a map larger than the sample the error is bounded with :data:`CONFIDENCE_Z` to spare."""
 
     def __init__(self, codec: Codec, size: int, seed: int = 0):
         self.codec, self.size = codec, int(size)
