@@ -14,7 +14,7 @@ from _fused_maps import TRUNC, VS, fused_like, write_volume_map
 from sdfcodec.core import ans
 from sdfcodec.core.sdf import sample_volume
 from sdfcodec.map import grouping, pinread
-from sdfcodec.map.varrate import VariableRateReader
+from sdfcodec.map.varread import VariableRateReader
 from sdfcodec.registry import pretrained_codec
 from sdfcodec.testing import analytic_scene
 

@@ -18,7 +18,7 @@ from _golden_maps import check_golden_map
 from sdfcodec import errors
 from sdfcodec.core.blocks import split_blocks
 from sdfcodec.cli import app
-from sdfcodec.map.varrate import STREAM_ARRAY
+from sdfcodec.map.varread import STREAM_ARRAY
 from sdfcodec.registry import pretrained_codec
 from sdfcodec.core.sdf import Box, Plane, Scene, Sphere, sample_volume
 from sdfcodec.testing import analytic_blocks, analytic_scene
@@ -203,14 +203,14 @@ def test_runs_of_prefix_lengths_decode_each_block_alike_merged_or_not(tmp_path, 
     """decode_runs decodes runs of like prefix lengths apart (RUN_MERGE 0) or joined into the wider run (a large
     RUN_MERGE: one product at the longest prefix): either way every block is the codec's decode of its own
     zero-padded code, and the groups come back in the order of their coordinates."""
-    from sdfcodec.map import varrate
+    from sdfcodec.map import varread
 
-    monkeypatch.setattr(varrate, "RUN_MERGE", merge)
-    monkeypatch.setattr(varrate, "RUN_WIDTH", 4)  # runs of 4 elements: the scene's prefixes (26-32) span several
+    monkeypatch.setattr(varread, "RUN_MERGE", merge)
+    monkeypatch.setattr(varread, "RUN_WIDTH", 4)  # runs of 4 elements: the scene's prefixes (26-32) span several
     vr = _write(tmp_path / "vr.sdfz", pca32, scene_volume, variable_rate={"step": 0.3})
     coords, z = vr.read_codes()
     lengths = np.where((z != 0).any(1), 32 - np.argmax((z != 0)[:, ::-1], axis=1), 0)
-    assert len(np.unique(-(-lengths // varrate.RUN_WIDTH))) > 1  # blocks of more than one run width
+    assert len(np.unique(-(-lengths // varread.RUN_WIDTH))) > 1  # blocks of more than one run width
     full = dict(zip(map(tuple, coords), np.clip(pca32.decode(z) * (TRUNC[1] - TRUNC[0]) + TRUNC[0], *TRUNC)))
     seen = 0
     for cs, blocks in vr.iter_decoded():

@@ -28,7 +28,7 @@ from ..core.quantize import RateModel, fit_rate_model, step_for_bytes
 from .format import QUANT_CLEVEL
 from .observed import MASK_ARRAY
 from .residual import RESIDUAL_ARRAY
-from .varrate import STREAM_ARRAY
+from .varread import STREAM_ARRAY
 
 __all__ = ["TOLERANCE", "SAMPLE_BLOCKS", "codes_rate_model", "mask_bytes_estimate", "stored_bytes", "plan_step",
            "correct_step", "check_target", "metadata_bytes_estimate"]

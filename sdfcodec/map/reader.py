@@ -44,7 +44,7 @@ from .io.stores import GuardStore, PinnedStore, fetch_members, unguarded
 from .weights import checked_weights_array
 from .device_feed import DeviceFeed
 from .io.shards import chunk_name, chunk_stored, shard_layout
-from .varrate import STREAM_ARRAY, VariableRateReader, decode_runs, prefix_lengths
+from .varread import STREAM_ARRAY, VariableRateReader, decode_runs, prefix_lengths
 
 torch = lazy_module("torch")  # imported on first use: info, codecs, verify of a header never need it
 
