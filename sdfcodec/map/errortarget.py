@@ -265,7 +265,7 @@ class ErrorSample:
             z, g = (np.stack([t[i] for t in self._kept]).astype(np.float64) for i in (4, 5))
             k, truth = len(self._kept), self._truth
             if truth is not None and truth.n:  # every face of every kept block, its neighbour read from the input
-                x, cross, _ = _crossings(c, v, obs, truncation)
+                x, cross, _ = _crossings(_apart(k), v, obs, truncation)  # inside blocks; the faces from the copy
                 cross = (cross | _face_crossings(truth, c, x, obs), None)
             else:  # the faces between kept blocks, each weighing what the sample lacks
                 face = 1.0 if k >= self._seen or k < 2 else (self._seen - 1) / (k - 1)

@@ -37,7 +37,7 @@ __all__ = ["region_voxels", "DEFAULT_MAX_DECODE_BYTES", "CODE_DTYPES", "ALLOWED_
            "BYTES_PER_CHUNK", "EMPTY_EPS", "FINITE_BOUND", "DECODE_LIMIT", "Region", "compressors",
            "code_layout", "check_array_metadata", "check_stream_array", "unstored_suspects", "check_coords",
            "check_volume", "warn_clipped", "check_codes",
-           "code_values", "free_space", "is_dask_array", "check_decoded", "code_compressors",
+           "code_values", "free_space", "is_dask_array", "decoded_range", "check_decoded", "code_compressors",
            "QUANT_CLEVEL", "mask_compressors", "compact_documents", "root_document", "field_compression_of"]
 
 #: A read that would allocate more than this many bytes at once (a decoded region, a dense read of codes, the
@@ -395,12 +395,18 @@ def warn_clipped(outside: int, size: int, span: tuple[float, float], truncation:
                   SDFCodecWarning, stacklevel=stacklevel + 1)
 
 
+def decoded_range(scale: float, offset: float) -> tuple[float, float]:
+    """``(lo, hi)``: the values a decode ``scale * normalised + offset`` may take before it is refused as absurd,
+    :data:`DECODE_LIMIT` truncation ranges either side of ``offset`` (:func:`check_decoded`)."""
+    return offset - DECODE_LIMIT * scale, offset + DECODE_LIMIT * scale
+
+
 def check_decoded(v: torch.Tensor, *, scale: float, offset: float, coords: np.ndarray | None, location: str,
                   codec_id: str, chunk_blocks: int) -> torch.Tensor:
     """``v`` (n, 16, 16, 16) decodes (``scale * normalised + offset``) out of the codec, refused when they hold
     NaN/Inf or absurd values (beyond :data:`DECODE_LIMIT` truncation ranges) rather than returned: a
     :class:`FormatError` naming a block of ``coords`` (n, 3) and its chunk."""
-    lo, hi = offset - DECODE_LIMIT * scale, offset + DECODE_LIMIT * scale
+    lo, hi = decoded_range(scale, offset)
     vmin, vmax = torch.aminmax(v) if v.numel() else (v.new_zeros(()) + offset,) * 2  # one pass; NaN propagates
     if bool(vmin >= lo) and bool(vmax <= hi):
         return v

@@ -17,12 +17,11 @@ import numpy as np
 
 from ..codec import numpy_decode_affine
 from ..core._validate import BLOCK
-from ..core.blocks import DECODE_LIMIT
 from ..core.header import PINNED_MASK_EXTENSION, BlockState
 from ..errors import FormatError, InvalidValueError
 from . import pinmask as pm
 from . import pinread
-from .format import check_stream_array
+from .format import check_stream_array, decoded_range
 from .grouping import ChunkCache, chunk_box, each_chunk, read_threads, thread_shares
 from .metric import decode_affine
 
@@ -249,7 +248,7 @@ class PinnedMaskArray:
         if fast is not None:  # torch-free (a search of the mask alone need not import it): the same rows, folded
             (d_min, d_max), (scale, offset) = r.truncation, decode_affine(r.header.codes, r.truncation, True)
             v = fast(codes, scale, offset)
-            lo, hi = d_min - DECODE_LIMIT * (d_max - d_min), d_min + DECODE_LIMIT * (d_max - d_min)
+            lo, hi = decoded_range(d_max - d_min, d_min)  # in metres, as the read below judges them
             if not v.size or lo <= v.min() and v.max() <= hi:  # else the read below refuses it, naming a block
                 return np.clip(v, d_min, d_max, out=v)  # truncated, as decode_codes' metres
         import torch
@@ -382,6 +381,7 @@ class PinnedMaskArray:
             k = index[tuple((np.asarray(coords, np.int64)[sel] - keys[i] * cb).T)]
             out[0, sel[k >= 0]], out[1, sel[k >= 0]] = packed[k[k >= 0]], pins[k[k >= 0]]
         return out[0], out[1]
+
 
 def _packed(pins: np.ndarray) -> np.ndarray:
     """``(n, 512)`` uint8: pinned voxels as rows ``(n, 16, 16)`` uint16 (bit ``z``: voxel ``z``) or ``(n, 16, 16,

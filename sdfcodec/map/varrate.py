@@ -416,8 +416,9 @@ class VariableRateWriter:
 
         total = self._refined_bytes(ref, z, g, chunk_ids, step, other_bytes, n)
         if self.refine_step is not None:
-            ref.at(self._q, step, self.refine_step, tau_for_step(self.refine_step, self.voxel_size))
-            return (self.refine_step, tau_for_step(self.refine_step, self.voxel_size)), 0.0
+            asked = (self.refine_step, tau_for_step(self.refine_step, self.voxel_size))
+            ref.at(self._q, step, *asked)
+            return asked, 0.0
         t = self.target_bytes
         lo, hi = np.log2(REFINE_RANGE)
         if total(2 ** hi) > t:
@@ -541,9 +542,10 @@ class VariableRateWriter:
 
         refined = []
         for r in steps:  # coarsest first: the first REFINE_TRIES that meet the target on the sample are measured
-            s, got = self._sample.coarsest_step(e, truncation, quantised, (r, tau_for_step(r, self.voxel_size)))
+            band = tau_for_step(r, self.voxel_size)
+            s, got = self._sample.coarsest_step(e, truncation, quantised, (r, band))
             reached.append(got)
-            refined += [] if s is None else [beside(s, r, tau_for_step(r, self.voxel_size), got)]
+            refined += [] if s is None else [beside(s, r, band, got)]
             if len(refined) == REFINE_TRIES:
                 break
         if refined:  # beside the best refinement, finer codes may make a smaller map (less left to correct)
