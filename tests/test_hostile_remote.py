@@ -41,6 +41,10 @@ VS, TRUNC = 0.02, (-0.04, 0.1)
 FAST = {"connect_timeout": 1.0, "read_timeout": 1.0, "total_timeout": 1.5, "tries": 3, "backoff": 0.05,
         "max_backoff": 0.2}
 BOUND_S = 3 * 1.5 + 3 * 0.2 + 5  # the longest a failing read may take: tries x total + backoff + slack
+#: When a read that should fail is called a hang: far above ``BOUND_S``, because the wait also holds what precedes the
+#: faulty object's first request (opening the map, a worker's first imports and compiles: 30 s once on CI's loaded
+#: machine); the bound under test is timed from that request (``_since_first_request``)
+HANG_S = 120.0
 CHUNK = "codes/c/0/0/0/0"
 S3_ERROR = (b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>InternalError</Code><Message>injected fault'
             b'</Message></Error>')
@@ -323,7 +327,7 @@ def test_http_fault_is_one_clear_error(small_map, http_server, fault, target, sa
     http_server.plan = lambda path, n: fault if path == obj else None
     http_server.counts.clear()
     t = time.monotonic()
-    kind, res = _bounded(lambda: _read(f"{http_server.address}/x.sdfz", {"remote_limits": FAST}), BOUND_S + 10)
+    kind, res = _bounded(lambda: _read(f"{http_server.address}/x.sdfz", {"remote_limits": FAST}), HANG_S)
     took = _since_first_request(http_server, obj, t)
     assert kind == "error", f"{fault} on {obj}: {kind}"
     assert isinstance(res, errors.RemoteReadError), f"{type(res).__name__}: {res}"
@@ -377,7 +381,7 @@ def test_stall_fails_once_within_the_total_deadline(small_map, http_server, faul
     http_server.counts.clear()
     lim = {**FAST, "read_timeout": 0.5, "total_timeout": 1.5, "tries": 4}
     t = time.monotonic()
-    kind, res = _bounded(lambda: _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim}), 30)
+    kind, res = _bounded(lambda: _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim}), HANG_S)
     took = _since_first_request(http_server, obj, t)
     assert kind == "error" and isinstance(res, errors.RemoteReadError), (kind, res)
     assert re.search(r"no complete response within the timeouts .* not retried", str(res)), res
@@ -396,10 +400,11 @@ def test_errors_are_retried_only_within_the_total_deadline(small_map, http_serve
     # during one ("no complete response ... after N failed tries (HTTP 503 ...)"): either names the status and count
     with pytest.raises(errors.RemoteReadError, match=r"HTTP 503.* on each of \d+ tries|after \d+ failed tries \(HTTP 503"):
         _read(f"{http_server.address}/x.sdfz", {"remote_limits": lim})
-    took, whole = _since_first_request(http_server, obj, t), time.monotonic() - t
+    took = _since_first_request(http_server, obj, t)
     assert 2 <= http_server.counts[obj] < 20, http_server.counts
-    assert took < 1.0 + 1.0, f"{took:.1f} s from the first try of {obj} ({whole:.1f} s in all)"
-    assert whole < BOUND_S, f"{whole:.1f} s in all"
+    # the read's time before that object's first try (opening the map, a worker's first imports and compiles) is
+    # no part of the deadline under test: on CI's loaded machine it has taken 30 s
+    assert took < 1.0 + 1.0, f"{took:.1f} s from the first try of {obj}"
 
 
 def test_default_stall_deadline_is_at_most_a_minute(monkeypatch):
@@ -515,7 +520,7 @@ def test_s3_fault_is_one_clear_error(small_map, s3_proxy, fault, target, says):
     proxy.plan = lambda path, n: fault if path == obj else None
     proxy.counts.clear()
     t = time.monotonic()
-    kind, res = _bounded(lambda: _read("s3://maps/x.sdfz", {**opts, "remote_limits": FAST}), BOUND_S + 10)
+    kind, res = _bounded(lambda: _read("s3://maps/x.sdfz", {**opts, "remote_limits": FAST}), HANG_S)
     took = _since_first_request(proxy, obj, t)
     assert kind == "error", f"{fault} on {obj}: {kind}"
     assert isinstance(res, errors.RemoteReadError), f"{type(res).__name__}: {res}"
