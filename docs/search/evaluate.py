@@ -388,7 +388,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.kitchen is not None:  # the worker processes read it from the environment
         os.environ["SDFCODEC_KITCHEN"] = str(args.kitchen)
-    t0 = time.perf_counter()
+    t0, load_before = time.perf_counter(), os.getloadavg()
     # one task per kind and seed (the kitchen once), run in --jobs processes; counts are pooled afterwards
     tasks = [([k], [sd], args.target_bytes) for k in args.kinds if k != "kitchen" for sd in args.seeds]
     tasks += [(["kitchen"], [], args.target_bytes)] if "kitchen" in args.kinds else []
@@ -421,9 +421,22 @@ def main(argv=None) -> int:
         print(f"| {kind} | {q} | {t['maps']} | {t['blocks']} | {t['positives']} | {t['selected']} | {p:.3f} | {r:.3f} | "
               f"{', '.join(sorted(t['behind']))} | {min(t['thresholds']):.1f}-{max(t['thresholds']):.1f} |")
     if args.out:
-        args.out.write_text(json.dumps({"seeds": args.seeds, "kinds": args.kinds, "target_bytes": args.target_bytes,
-                                        "load": os.getloadavg(), "rows": rows, "seconds": time.perf_counter() - t0},
-                                       indent=1))
+        from datetime import datetime, timezone
+
+        from sdfcodec.bench.harness import machine
+
+        # the command as run, without --out, the kitchen's folder named DIR (a path on the measuring machine)
+        words, skip = [], False
+        for a in argv if argv is not None else sys.argv[1:]:
+            if skip or a.startswith("--out"):
+                skip = a == "--out"
+                continue
+            words.append("DIR" if args.kitchen is not None and a == str(args.kitchen) else a)
+        doc = {"seeds": args.seeds, "kinds": args.kinds, "target_bytes": args.target_bytes,
+               "command": " ".join(["python docs/search/evaluate.py", *words]), "machine": machine(),
+               "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "load_before": load_before,
+               "load_after": os.getloadavg(), "rows": rows, "seconds": time.perf_counter() - t0}
+        args.out.write_text(json.dumps(doc, indent=1))
     return 0
 
 

@@ -41,6 +41,7 @@ __all__ = [
     "WEAK_FACTOR",
     "PLANE_TOL_VOXELS",
     "PLANE_ANGLE_DEG",
+    "ANGLE_SLACK_DEG",
     "LEVEL_TOL_VOXELS",
     "LEVEL_SHARE",
     "WALL_SHARE",
@@ -61,8 +62,14 @@ WEAK_FACTOR = 2.0
 #: Neighbouring blocks lie on one plane when each one's plane passes within this many voxels of the other's
 #: plane point (planes a voxel apart are one surface to the offset lattice, plus a voxel of fusion noise)...
 PLANE_TOL_VOXELS = 2.0
-#: ... and their normals agree within this angle (degrees): twice the models' 7.5 degree yaw spacing.
+#: ... and their normals agree within this angle (degrees): one step of the wall model's yaws (15 degrees apart,
+#: so that any wall is within 7.5 degrees of one), so blocks of a wall between two yaws agree whichever one each
+#: is nearest to.
 PLANE_ANGLE_DEG = 15.0
+#: Normals exactly PLANE_ANGLE_DEG apart agree: the model's neighbouring yaws, stored as float32 rotations, lie
+#: 15 degrees apart give or take 1e-4, and without this slack rounding alone split a wall between two yaws into
+#: patches that never joined (the kitchen's side wall).
+ANGLE_SLACK_DEG = 1e-3
 #: Patches whose heights along up differ by less than this (voxels) are one level (one floor seen in pieces).
 LEVEL_TOL_VOXELS = 4.0
 #: A level is large when it holds at least this share of the largest level's blocks (and MIN_PATCH_BLOCKS).
@@ -78,6 +85,11 @@ MAP_SHARE = 0.1
 #: A ceiling closes the map from above: at most this share of the map's coded blocks lies above it (a block or
 #: more); a floor, from below. Beyond it the level is not the floor or ceiling the query means.
 BEYOND_SHARE = 0.03
+
+
+def _cos_within(degrees: float) -> float:
+    """The cosine a normals' dot product must reach to lie within ``degrees`` (:data:`ANGLE_SLACK_DEG` included)."""
+    return math.cos(math.radians(degrees + ANGLE_SLACK_DEG))
 
 
 def block_planes(model: QueryModel, coords: np.ndarray, nearest: np.ndarray, origin: np.ndarray, voxel_size: float
@@ -122,7 +134,7 @@ def plane_components(coords: np.ndarray, normals: np.ndarray, points: np.ndarray
     key = np.ravel_multi_index((c - lo).T, dims)
     order = np.argsort(key)
     skey = key[order]
-    cos_a = math.cos(math.radians(PLANE_ANGLE_DEG))
+    cos_a = _cos_within(PLANE_ANGLE_DEG)
     tol = PLANE_TOL_VOXELS * voxel_size
     rows, cols = [], []
     # the 13 neighbour offsets of one half of the 26-neighbourhood: each pair once
@@ -189,7 +201,7 @@ def plane_levels(comp: np.ndarray, normals: np.ndarray, points: np.ndarray, live
     size = np.bincount(comp, minlength=n_comp)
     level = np.full(n_comp, -1, np.int64)
     levels: list[dict] = []
-    cos_a = math.cos(math.radians(PLANE_ANGLE_DEG))
+    cos_a = _cos_within(PLANE_ANGLE_DEG)
     tol = LEVEL_TOL_VOXELS * voxel_size
     members = np.argsort(comp, kind="stable")
     bounds = np.r_[0, np.cumsum(size)]
@@ -218,12 +230,15 @@ def _merge_levels(level: np.ndarray, levels: list[dict], comp: np.ndarray, norma
     model's nearest yaw, 7.5 degrees off at worst) tilts it by a few degrees, so the far patches of one wall or
     floor miss its :data:`LEVEL_TOL_VOXELS` (measured: the kitchen's side wall, 10 degrees from the models' nearest
     yaw, was four levels of 11, 6, 6 and 5 blocks, and its 17 blocks outside the first were dropped as small
-    levels). Two levels whose normals agree within :data:`PLANE_ANGLE_DEG` merge when the plane fitted through
-    both levels' block plane points lies within :data:`PLANE_TOL_VOXELS` (median) of each level's points, and
-    its normal within :data:`PLANE_ANGLE_DEG` of both; the largest levels first, until nothing merges."""
+    levels). Two levels merge when the plane fitted through both levels' block plane points lies within
+    :data:`PLANE_TOL_VOXELS` (median) of each level's points, and its normal within :data:`PLANE_ANGLE_DEG` of
+    both (so only levels whose normals agree within twice that angle are tried: a wall between two of the model's
+    yaws is levels of either yaw, 15 degrees apart, that a check of their own normals within one step missed);
+    the largest levels first, until nothing merges."""
     if len(levels) < 2:
         return level, levels
-    cos_a = math.cos(math.radians(PLANE_ANGLE_DEG))
+    cos_a = _cos_within(PLANE_ANGLE_DEG)
+    cos_2a = _cos_within(2 * PLANE_ANGLE_DEG)  # implied by the fit's check below: a filter
     tol = PLANE_TOL_VOXELS * voxel_size
     of = level[comp]  # each block's level
     owner = list(range(len(levels)))  # what each level merged into
@@ -239,7 +254,7 @@ def _merge_levels(level: np.ndarray, levels: list[dict], comp: np.ndarray, norma
                 if b == a or levels[b]["blocks"] > levels[a]["blocks"] or owner[b] != b or owner[a] != a:
                     continue
                 la, lb = levels[a], levels[b]
-                if la["normal"] @ lb["normal"] < cos_a:
+                if la["normal"] @ lb["normal"] < cos_2a:
                     continue
                 pair = tuple(tuple(j for j in range(len(levels)) if owner[j] == o) for o in (a, b))
                 if pair in apart:
