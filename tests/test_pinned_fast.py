@@ -107,6 +107,32 @@ def test_real_pinned_masks_give_constrictions_stream_on_both_paths(monkeypatch, 
     assert _both_paths(monkeypatch, coords, bits, pins) == _reference_stream(coords, bits, pins)
 
 
+def test_the_free_bits_are_chosen_alike_on_both_paths(monkeypatch):
+    """The writer's choice of the free bits (pinmask.cheapest_bits: each set to the value its context has seen more
+    often, counted over the wavefronts before) compiled and in numpy: the same bits, on random chunks and on a
+    real one, and the choice shortens the stream it feeds."""
+    rng = np.random.default_rng(16)
+    coords_r, bits_r, pins_r, _, _ = _real_case(0.6)
+    cases = [(coords_r, bits_r, pins_r, ~bits_r & (rng.random(bits_r.shape) < 0.7))]
+    for coords in (np.array([[0, 0, 0]]), np.array([[0, 0, 0], [0, 0, 1], [3, 1, 2]])):
+        for density in (0.02, 0.3, 1.0):
+            pinned = rng.random((len(coords), 16, 16, 16)) < density
+            bits = rng.random(pinned.shape) < 0.3
+            cases.append((coords, bits, pinned, pinned & (rng.random(pinned.shape) < 0.5)))
+    for coords, bits, pinned, free in cases:
+        fast = pm.cheapest_bits(coords, bits, free, pinned)
+        with monkeypatch.context() as m:
+            m.setattr(ans, "available", lambda: False)
+            slow = pm.cheapest_bits(coords, bits, free, pinned)
+        assert np.array_equal(fast, slow), (len(coords), int(pinned.sum()))
+        kept = pinned & ~free  # the other pinned bits stay (unpinned ones are not stored: read 0 here)
+        assert np.array_equal(fast[kept], np.asarray(bits, bool)[kept])
+    coords, bits, pinned, free = cases[0]
+    chosen = pm.cheapest_bits(coords, bits, free, pinned)
+    assert not np.array_equal(chosen, bits)
+    assert len(pm.encode_pinned(coords, chosen, pinned)) < len(pm.encode_pinned(coords, bits, pinned))
+
+
 def test_the_golden_maps_streams_read_alike_and_are_rewritten_byte_for_byte(monkeypatch):
     """The frozen map's M2 streams (written before the compiled path existed): both paths read the same mask,
     and encoding it again on either path gives the stored bytes."""

@@ -1,7 +1,8 @@
-"""Compiled steps of a pinned observation mask's read (numba; imported only by :mod:`sdfcodec.map.pinread` and
-:mod:`sdfcodec.map.pinstore` when numba is installed): the signs of the exact decode (or of a surface refinement's
-refined exact field, with the refinement's selected voxels) told from the reader's float decode, the pinned
-voxels from them, and the unobserved voxels set in the decode.
+"""Compiled steps of a pinned observation mask (numba; imported only by :mod:`sdfcodec.map.pinread`,
+:mod:`sdfcodec.map.pinstore` and :mod:`sdfcodec.map.pinmask` when numba is installed): on read, the signs of the
+exact decode (or of a surface refinement's refined exact field, with the refinement's selected voxels) told from
+the reader's float decode, the pinned voxels from them, and the unobserved voxels set in the decode; on write, the
+coder's likelier value chosen for the free bits.
 
 Module-level functions, cached on disk by numba.
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["sign_rows", "select_rows", "refined_sign_rows", "set_voxels", "pinned_rows"]
+__all__ = ["sign_rows", "select_rows", "refined_sign_rows", "set_voxels", "pinned_rows", "likelier_bits"]
 
 _SCALE = 2.0 ** 24  # FRACTION_BITS of sdfcodec.map.pinmask: metres -> the exact decode's integers
 
@@ -414,3 +415,30 @@ def pinned_rows(coords, neg, pos, outside, both):
                 p = rel[x, y] | rel[x + 1, y] | rel[x, y + 1] | rel[x + 1, y + 1]
                 out[b, x, y] = np.uint16((p | (p >> np.uint32(1))) & np.uint32(0xFFFF))
     return out
+
+
+@njit(cache=True, nogil=True)
+def likelier_bits(grid, at, bounds, deltas, free, n_ctx):
+    """:func:`sdfcodec.map.pinmask.cheapest_bits` in place on the layout's ``grid`` (flat uint8: 0, 1, 2 where not
+    pinned): wavefront by wavefront (``at`` between ``bounds``), each voxel of ``free`` (bool, the grid's shape) set
+    to the value of the larger count of its context (ties keep it), the counts those of the wavefronts before. Each
+    context ``sum grid[g + deltas[q]] 3^(5 - q)`` reads earlier wavefronts only, so one voxel at a time is the same
+    as numpy's whole wavefront at a time."""
+    counts = np.zeros((2, n_ctx), np.int64)
+    ctxs = np.empty(len(at), np.int64)
+    for w in range(len(bounds) - 1):
+        a, b = bounds[w], bounds[w + 1]
+        for i in range(a, b):
+            g = at[i]
+            ctx = 0
+            for q in range(len(deltas)):
+                ctx = ctx * 3 + np.int64(grid[g + deltas[q]])
+            ctxs[i] = ctx
+            if free[g]:
+                c0, c1 = counts[0, ctx], counts[1, ctx]
+                if c1 > c0:
+                    grid[g] = 1
+                elif c0 > c1:
+                    grid[g] = 0
+        for i in range(a, b):
+            counts[np.int64(grid[at[i]]), ctxs[i]] += 1

@@ -306,6 +306,11 @@ def cheapest_bits(coords: np.ndarray, bits: np.ndarray, free: np.ndarray, pinned
     lay, pinned = _Layout.holding(coords, bits, pinned)
     is_free = np.zeros(lay.grid.shape, bool)
     is_free[lay.flat[np.asarray(free, bool).reshape(lay.flat.shape) & pinned]] = True
+    if ans.available():  # compiled: one voxel at a time, no Python loop per wavefront (the same choices)
+        from ..core import pinkernels
+
+        pinkernels.likelier_bits(lay.grid, lay.at, np.asarray(lay.bounds, np.int64), lay.deltas, is_free, lay.N_CTX)
+        return lay.blocks() == 1
     counts = np.zeros((2, lay.N_CTX), np.int64)
     for a, b in zip(lay.bounds[:-1], lay.bounds[1:]):
         sl = lay.at[a:b]
