@@ -6,15 +6,9 @@ cached, and compiling them takes tens of seconds: every process would pay it).""
 from __future__ import annotations
 
 import numpy as np
-from numba import config, njit, prange
+from numba import njit
 
 from .vecdot import dot, dot4
-
-# numba tries TBB first and warns (at the first parallel call) when the installed TBB is older than it supports;
-# OpenMP is what torch's CPU build runs on too and, unlike numba's own workqueue, may be entered from several
-# threads at once. A layer the user chose (NUMBA_THREADING_LAYER) is kept: only the order of the default's tries
-# changes.
-config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 __all__ = ["kernel"]
 
@@ -36,7 +30,6 @@ _FAST = {"nsz", "contract"}
 #: numbered level by level (the first id of each level here), C order within a level
 _OFF = np.array([0, 1, 9, 73], np.int64)
 _NODES = 585
-_CHUNKS = 256  # blocks are handed to the cores in this many chunks, each with its own scratch
 
 
 @njit(fastmath=_FAST, cache=True)
@@ -473,13 +466,14 @@ def gather(xi, wi, dt, dec_b, j, nr, rows, xb, wb, sg, bv, db):
     return nr + 1
 
 
-@njit(parallel=True, fastmath=False, cache=True)
-def residuals(x, w, dec_b, drop_bound, r, wsum):
+@njit(fastmath=False, cache=True, nogil=True)
+def residuals(lo, hi, x, w, dec_b, drop_bound, r, wsum):
     """r[i] = w[i] (x[i] - dec_b) (``(n, n_vox)`` float32; with ``drop_bound``, 0 at the voxels stored at a
-    bound, 0 or 1) and wsum[i] = the sum of w[i] (float64, in order): :func:`sdfcodec_pca.truncated.normal_rhs`'s
-    residuals, one pass over the blocks and their weights."""
-    n, n_vox = x.shape
-    for i in prange(n):
+    bound, 0 or 1) and wsum[i] = the sum of w[i] (float64, in order) for blocks ``lo`` to ``hi``:
+    :func:`sdfcodec_pca.truncated.normal_rhs`'s residuals, one pass over the blocks and their weights (without the
+    GIL: the caller runs disjoint ranges on its threads)."""
+    n_vox = x.shape[1]
+    for i in range(lo, hi):
         xi, wi, ri = x[i], w[i], r[i]
         s = 0.0
         for j in range(n_vox):
@@ -554,101 +548,101 @@ def recheck_far(code, cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows,
     return kept, nr
 
 
-@njit(parallel=True, fastmath=False, cache=True)
-def kernel(x, w, dt, dec_b, gfull, pieces, piece_cost, c0, rhs_all, wsum_all, ridge, rounds, iters, tol, out):
-    """See :func:`sdfcodec_pca.truncated.truncated_codes` (``out`` ``(n, k)`` float32 receives the codes; ``dt``
-    the decode matrix transposed ``(4096, k)``; ``pieces`` the octree's Grams, :func:`plan`, or the block's alone;
-    ``rhs_all`` ``(n, k)`` the unregularised right-hand sides ``D diag(w) (x - d)`` and ``wsum_all`` ``(n,)`` the
-    weight sums, computed by the caller in one matrix product for all blocks)."""
-    n = x.shape[0]
+@njit(fastmath=False, cache=True, nogil=True)
+def kernel(lo, hi, x, w, dt, dec_b, gfull, pieces, piece_cost, c0, rhs_all, wsum_all, ridge, rounds, iters, tol, out,
+           rn):
+    """The codes of blocks ``lo`` to ``hi`` into ``out[lo:hi]``, with scratch of its own: see
+    :func:`sdfcodec_pca.truncated.truncated_codes` (``out`` ``(n, k)`` float32; ``dt`` the decode matrix transposed
+    ``(4096, k)``; ``pieces`` the octree's Grams, :func:`plan`, or the block's alone; ``rhs_all`` ``(n, k)`` the
+    unregularised right-hand sides ``D diag(w) (x - d)`` and ``wsum_all`` ``(n,)`` the weight sums, computed by the
+    caller in one matrix product for all blocks; ``rn`` :func:`row_norms` of ``dt``). Without the GIL: the caller
+    runs disjoint ranges on its threads (a numba parallel loop around this took ~8 s more to compile on a first
+    encode, 2-core Xeon, for no faster codes)."""
     n_vox, k = dt.shape
     deep = pieces.shape[0] == _NODES
-    rn = row_norms(dt)
-    chunks = min(n, _CHUNKS)
-    for ch in prange(chunks):
-        g = np.zeros((k, k), np.float32)
-        chol = np.zeros((k, k), np.float32)
-        panel = np.zeros((4, k), np.float32)
-        sol = np.zeros(k, np.float32)
-        idx = np.empty(n_vox, np.int64)
-        scale = np.empty(n_vox, np.float32)
-        cost = np.empty((_NODES, 3), np.float32)
-        choice = np.empty(_NODES, np.int64)
-        nodes = np.empty(_NODES, np.int64)
-        node_scale = np.empty(_NODES, np.float32)
-        cand = np.zeros(3, np.float32)
-        gp = np.empty(pieces.shape[1], np.float32)
-        rows = np.empty((n_vox, k), np.float32)
-        xb = np.empty(n_vox, np.float32)
-        wb = np.empty(n_vox, np.float32)
-        db = np.empty(n_vox, np.float32)
-        sg = np.empty(n_vox, np.float32)
-        bv = np.empty(n_vox, np.float32)
-        dec_s = np.empty(n_vox, np.float32)
-        q_s = np.empty(n_vox, np.float32)
-        rr_s = np.empty(n_vox, np.float32)
-        wfit = np.empty(n_vox, np.float32)
-        far = np.empty(n_vox, np.int64)
-        bnd = np.empty(n_vox, np.int64)
-        lbf = np.empty(n_vox, np.float32)
-        cprev = np.empty(k, np.float32)
-        for i in range((ch * n) // chunks, ((ch + 1) * n) // chunks):
-            xi, wi, c0i, rhs = x[i], w[i], c0[i], rhs_all[i]
-            wmax = np.float32(0)
-            nb = 0
-            for j in range(n_vox):  # the fit's weights: with CG refits, 0 at the bound voxels (see truncated.py)
-                # the bound voxels (``bnd[:nb]``): observed and stored at d_max (1) or d_min (0)
-                bound = wi[j] > 0 and (xi[j] >= 1 - _BOUND_EPS or xi[j] <= _BOUND_EPS)
-                bnd[nb] = j
-                nb += bound
-                wfit[j] = np.float32(0) if bound and iters > 0 else wi[j]
-                wmax = max(wmax, wfit[j])
-            cand[1] = 1
-            cand[2] = wmax if wmax != 1 else np.float32(0)  # references 0, 1 and the largest weight (the band's)
-            m, npc = plan(wfit, cand, piece_cost, deep, cost, choice, idx, scale, nodes, node_scale)
-            add_pieces(g, gp, pieces, nodes, node_scale, npc)
-            add_rows(g, dt, idx, scale, m)
-            lam = np.float32((ridge / n_vox) * max(wsum_all[i], 1e-12))
-            if not solve(g, rhs, c0i, lam, chol, panel, sol):
-                out[i] = c0i
-                continue
+    g = np.zeros((k, k), np.float32)
+    chol = np.zeros((k, k), np.float32)
+    panel = np.zeros((4, k), np.float32)
+    sol = np.zeros(k, np.float32)
+    idx = np.empty(n_vox, np.int64)
+    scale = np.empty(n_vox, np.float32)
+    cost = np.empty((_NODES, 3), np.float32)
+    choice = np.empty(_NODES, np.int64)
+    nodes = np.empty(_NODES, np.int64)
+    node_scale = np.empty(_NODES, np.float32)
+    cand = np.zeros(3, np.float32)
+    gp = np.empty(pieces.shape[1], np.float32)
+    rows = np.empty((n_vox, k), np.float32)
+    xb = np.empty(n_vox, np.float32)
+    wb = np.empty(n_vox, np.float32)
+    db = np.empty(n_vox, np.float32)
+    sg = np.empty(n_vox, np.float32)
+    bv = np.empty(n_vox, np.float32)
+    dec_s = np.empty(n_vox, np.float32)
+    q_s = np.empty(n_vox, np.float32)
+    rr_s = np.empty(n_vox, np.float32)
+    wfit = np.empty(n_vox, np.float32)
+    far = np.empty(n_vox, np.int64)
+    bnd = np.empty(n_vox, np.int64)
+    lbf = np.empty(n_vox, np.float32)
+    cprev = np.empty(k, np.float32)
+    for i in range(lo, hi):
+        xi, wi, c0i, rhs = x[i], w[i], c0[i], rhs_all[i]
+        wmax = np.float32(0)
+        nb = 0
+        for j in range(n_vox):  # the fit's weights: with CG refits, 0 at the bound voxels (see truncated.py)
+            # the bound voxels (``bnd[:nb]``): observed and stored at d_max (1) or d_min (0)
+            bound = wi[j] > 0 and (xi[j] >= 1 - _BOUND_EPS or xi[j] <= _BOUND_EPS)
+            bnd[nb] = j
+            nb += bound
+            wfit[j] = np.float32(0) if bound and iters > 0 else wi[j]
+            wmax = max(wmax, wfit[j])
+        cand[1] = 1
+        cand[2] = wmax if wmax != 1 else np.float32(0)  # references 0, 1 and the largest weight (the band's)
+        m, npc = plan(wfit, cand, piece_cost, deep, cost, choice, idx, scale, nodes, node_scale)
+        add_pieces(g, gp, pieces, nodes, node_scale, npc)
+        add_rows(g, dt, idx, scale, m)
+        lam = np.float32((ridge / n_vox) * max(wsum_all[i], 1e-12))
+        if not solve(g, rhs, c0i, lam, chol, panel, sol):
+            out[i] = c0i
+            continue
+        for a in range(k):
+            out[i, a] = sol[a]
+        if nb == 0:
+            continue
+        if iters > 0:
+            # the refits see the bound voxels near their bound or inside it; those decoded far beyond it
+            # (weight 0 in the fit's Gram already) are checked after the steps and brought in if they came back
+            decode_at(out[i], dt, dec_b, bnd, nb, dec_s)
+            nr = 0
+            nf = 0
+            for t in range(nb):
+                j = bnd[t]
+                e = _beyond(xi[j], dec_s[t])
+                if e > _FAR:
+                    far[nf] = j
+                    lbf[nf] = e
+                    nf += 1
+                else:
+                    nr = gather(xi, wi, dt, dec_b, j, nr, rows, xb, wb, sg, bv, db)
             for a in range(k):
-                out[i, a] = sol[a]
-            if nb == 0:
-                continue
-            if iters > 0:
-                # the refits see the bound voxels near their bound or inside it; those decoded far beyond it
-                # (weight 0 in the fit's Gram already) are checked after the steps and brought in if they came back
-                decode_at(out[i], dt, dec_b, bnd, nb, dec_s)
-                nr = 0
-                nf = 0
-                for t in range(nb):
-                    j = bnd[t]
-                    e = _beyond(xi[j], dec_s[t])
-                    if e > _FAR:
-                        far[nf] = j
-                        lbf[nf] = e
-                        nf += 1
-                    else:
-                        nr = gather(xi, wi, dt, dec_b, j, nr, rows, xb, wb, sg, bv, db)
-                for a in range(k):
-                    cprev[a] = out[i, a]
-                for _ in range(_FAR_ROUNDS):
-                    if nr:
-                        refine(out[i], g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nr, iters, tol, dec_s, q_s,
-                               rr_s, idx)
-                    if nf == 0:
-                        break
-                    back = nr
-                    # after the last round, every voxel that came inside its bound
-                    thr = np.float32(0) if _ == _FAR_ROUNDS - 1 else _FAR
-                    nf, nr = recheck_far(out[i], cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows, xb, wb,
-                                         sg, bv, db, idx, dec_s)
-                    if nr == back:
-                        break
-                continue
-            exact_refits(out[i], xi, wi, dt, dec_b, gfull, c0i, ridge, rounds, g, rhs.copy(), chol, panel, sol,
-                         bnd[:nb].copy(), idx, scale)
+                cprev[a] = out[i, a]
+            for _ in range(_FAR_ROUNDS):
+                if nr:
+                    refine(out[i], g, lam, rhs, c0i, chol, rows, xb, wb, sg, bv, db, nr, iters, tol, dec_s, q_s,
+                           rr_s, idx)
+                if nf == 0:
+                    break
+                back = nr
+                # after the last round, every voxel that came inside its bound
+                thr = np.float32(0) if _ == _FAR_ROUNDS - 1 else _FAR
+                nf, nr = recheck_far(out[i], cprev, xi, wi, dt, dec_b, rn, far, lbf, nf, thr, nr, rows, xb, wb,
+                                     sg, bv, db, idx, dec_s)
+                if nr == back:
+                    break
+            continue
+        exact_refits(out[i], xi, wi, dt, dec_b, gfull, c0i, ridge, rounds, g, rhs.copy(), chol, panel, sol,
+                     bnd[:nb].copy(), idx, scale)
 
 
 @njit(fastmath=False, cache=True)

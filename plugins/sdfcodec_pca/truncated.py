@@ -42,7 +42,8 @@ What the kernel does instead, per block, in cache:
   reference, whichever touches fewer voxels), then refactorised (``k^3 / 3`` flops). Only the bound voxels
   are decoded to find the flips.
 
-Blocks are independent: ``prange`` runs them on every core. With exact refits, results equal the batched
+Blocks are independent: ranges of them (:data:`KERNEL_CHUNKS`) run on every core (``sdfcodec.plugin.run_tiles``,
+the kernel without the GIL). With exact refits, results equal the batched
 path's to float32 rounding (Grams, factorisations and solves in float32, as the batched path's).
 """
 
@@ -52,7 +53,14 @@ import importlib.util
 
 import numpy as np
 
-__all__ = ["COMPILED_RESIDUALS_MIN", "PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
+from sdfcodec.plugin import run_tiles
+
+__all__ = ["COMPILED_RESIDUALS_MIN", "KERNEL_CHUNKS", "PIECE_COST", "available", "gram_pieces", "normal_rhs", "truncated_codes"]
+
+
+#: The blocks are handed to the cores in this many ranges (at least 64 blocks each, run_tiles' least), each range
+#: with its own scratch.
+KERNEL_CHUNKS = 256
 
 
 def available() -> bool:
@@ -79,7 +87,7 @@ def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndar
     active-set refits, from the fit without the bound voxels; the ridge is then the given weights' throughout
     (the exact refits take the current active set's).
     ``pieces``: :func:`gram_pieces` of ``dt`` where the caller keeps it (else computed here)."""
-    kernel = _kernel()
+    kernel, row_norms = _kernel()
     dt = np.ascontiguousarray(dt, dtype=np.float32)
     if pieces is None:
         pieces = gram_pieces(dt)
@@ -88,9 +96,14 @@ def truncated_codes(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndar
     dec_b = np.ascontiguousarray(dec_b, dtype=np.float32)
     rhs, wsum = normal_rhs(x, w, dt, dec_b, drop_bound=iters > 0)
     out = np.empty_like(c0)
-    kernel(x, w, dt, dec_b, _full_gram(pieces, dt.shape[1]), pieces, np.float32(PIECE_COST),
-           np.ascontiguousarray(c0, dtype=np.float32), rhs, wsum, np.float32(ridge), int(rounds), int(iters),
-           np.float32(tol), out)
+    gfull, c0, rn = _full_gram(pieces, dt.shape[1]), np.ascontiguousarray(c0, dtype=np.float32), row_norms(dt)
+
+    def blocks(a: int, b: int) -> None:
+        kernel(a, b, x, w, dt, dec_b, gfull, pieces, np.float32(PIECE_COST), c0, rhs, wsum, np.float32(ridge),
+               int(rounds), int(iters), np.float32(tol), out, rn)
+
+    # the blocks in KERNEL_CHUNKS ranges, taken in turn by one thread per core (each range's fit is independent)
+    run_tiles(len(x), blocks, rows=max(1, -(-len(x) // KERNEL_CHUNKS)))
     return out
 
 
@@ -146,9 +159,9 @@ def _compiled_rhs(x: np.ndarray, w: np.ndarray, dt: np.ndarray, dec_b: np.ndarra
     r = np.empty((min(len(x), _RHS_SLAB), x.shape[1]), np.float32)
     for i in range(0, len(x), _RHS_SLAB):
         sl = slice(i, i + _RHS_SLAB)
-        n = len(x[sl])
-        residuals(x[sl], w[sl], dec_b, drop_bound, r[:n], wsum[sl])
-        np.matmul(r[:n], dt, out=rhs[sl])
+        xs, ws, rs, wss = x[sl], w[sl], r[:len(x[sl])], wsum[sl]
+        run_tiles(len(xs), lambda a, b: residuals(a, b, xs, ws, dec_b, drop_bound, rs, wss))
+        np.matmul(rs, dt, out=rhs[sl])
     return rhs, wsum
 
 
@@ -185,7 +198,8 @@ def _full_gram(pieces: np.ndarray, k: int) -> np.ndarray:
 
 
 def _kernel():
-    """The compiled kernel (:mod:`sdfcodec_pca.kernels`: compiled on first use, then cached on disk)."""
-    from .kernels import kernel
+    """The compiled kernel and :func:`~sdfcodec_pca.kernels.row_norms` (:mod:`sdfcodec_pca.kernels`: compiled on
+    first use, then cached on disk)."""
+    from .kernels import kernel, row_norms
 
-    return kernel
+    return kernel, row_norms
