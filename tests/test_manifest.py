@@ -306,7 +306,7 @@ def test_golden_signed_map_decodes_forever(regen_golden):
 
 
 # -- fuzzing the manifest: an attacker who also rewrites the header's record of it --------------------------
-FUZZ_EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "40"))
+FUZZ_EXAMPLES = int(os.environ.get("SDFCODEC_FUZZ_EXAMPLES", "20"))
 
 
 def _mutate(doc: dict, data) -> bytes:
@@ -357,7 +357,7 @@ def _mutate(doc: dict, data) -> bytes:
 def test_fuzzed_manifests_are_refused_or_harmless(maps, tmp_path_factory, name):
     """Hostile manifests whose digest the header records (what an attacker who rewrites both writes): reading
     and verifying the map raises only SDFCodecError, and a decode that succeeds is the map's true decode. Runs
-    SDFCODEC_FUZZ_EXAMPLES cases (40; the slow suite's long run sets 10,000)."""
+    SDFCODEC_FUZZ_EXAMPLES cases (20; the slow suite's long run sets 10,000)."""
     from hypothesis import HealthCheck, given, settings, strategies as st
 
     from sdfcodec.errors import SDFCodecError
