@@ -15,6 +15,9 @@ pytest.importorskip("pysz", reason="the study's SZ3 methods need pysz (pip insta
 pytest.importorskip("numcodecs_wasm_sperr", reason="the study's SPERR peer needs numcodecs-wasm-sperr (the test extra)")
 
 ROOT = Path(__file__).resolve().parents[1]
+# a heavy evaluation (the study's quick run: 8 CPU-s of a 2-core CI run that passed its 5 minutes), run on demand:
+# pytest -m slow tests/test_peers_study.py
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
