@@ -41,10 +41,7 @@ def defaults() -> list[str]:
         L += [f"### Seeds {', '.join(map(str, doc['seeds']))}", ""]
         L += table(("kind", "query", "maps", "blocks", "positives", "selected", "true positives", "precision",
                     "recall"), rows, right=(2, 3, 4, 5, 6, 7, 8))
-        seeds = " ".join(map(str, doc["seeds"]))
-        kitchen = any(r["kind"].startswith("kitchen") for r in doc["rows"])  # asked for and found
-        L += ["", measured_on(doc, source=src, command=doc.get("command") or (
-            f"python docs/search/evaluate.py --seeds {seeds} --jobs 2" + (" --kitchen DIR" if kitchen else ""))), ""]
+        L += ["", measured_on(doc, source=src), ""]  # evaluate.py records its command
     doc = load(INDEPENDENT)
     rows = [(p["style"], f"{p['tilt_deg']:g}", f"{p['voxel_m']:g}", p["query"], p["positives"], p["selected"],
              p["tp"], p["fp"], _pr(p["precision"]), _pr(p["recall"])) for p in doc["pooled"]]
